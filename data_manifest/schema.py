@@ -1,0 +1,176 @@
+"""Render manifest: the one contract between the renderer (blender_gen/, crater_synth/) and train/.
+
+Format (documented in docs/manifest.md): JSON Lines, one row per render, ``schema_version`` in every
+row. While rendering, each worker appends rows to its own part file
+(``manifest.parts/<name>.jsonl``; append + flush + fsync, so a kill -9 can at worst leave a truncated
+last line, which readers skip). ``merge_parts`` writes the sorted, de-duplicated ``manifest.jsonl``
+atomically. Rows carry no timestamps: the same config and seed give byte-identical manifests.
+
+Every EXR holds the channels of :data:`EXR_CHANNELS` (float32, tiled, lossless) and the render
+parameters in its header; pixel boxes in rows are in the EXR's (crop) pixel coordinates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from data_manifest.errors import ContractError
+
+SCHEMA_VERSION = 1
+MANIFEST_NAME = "manifest.jsonl"
+PARTS_DIR = "manifest.parts"
+
+# EXR channel names: radiance factor, camera depth (m along the view axis), world-space (ENU) unit
+# normal, and the fraction of the solar disk visible (1 lit, 0 in shadow, fractional in penumbra).
+EXR_CHANNELS = ("IF", "depth", "N.X", "N.Y", "N.Z", "lit")
+
+REQUIRED_FIELDS = {
+    "schema_version": int, "crater": str, "index": int, "indices": list,
+    "sun_elevation": float, "sun_azimuth": float, "cam_elevation": float, "cam_azimuth": float,
+    "range_m": float, "fov_deg": float, "width": int, "height": int, "frame_width": int,
+    "crop_origin": list, "center_px": list, "rim_ellipse": dict, "sigma_boxes": dict,
+    "lit_fraction": float, "mean_if": float, "path": str, "sha256": str, "seed": int,
+    "code_version": str, "renderer": str, "terrain_id": str,
+}
+
+
+class ManifestError(ContractError):
+    """A manifest or one of its rows is malformed."""
+
+
+def row_key(row: dict) -> tuple[str, int]:
+    return row["crater"], int(row["index"])
+
+
+def validate_row(row: dict, where: str = "manifest row") -> dict:
+    """Check that ``row`` has every required field with the right type; returns it."""
+    missing = [k for k in REQUIRED_FIELDS if k not in row]
+    if missing:
+        raise ManifestError(f"{where}: missing field(s) {missing}")
+    for key, typ in REQUIRED_FIELDS.items():
+        val = row[key]
+        ok = isinstance(val, (int, float)) and not isinstance(val, bool) if typ is float else isinstance(val, typ)
+        if not ok:
+            raise ManifestError(f"{where}: field {key!r} should be {typ.__name__}, got {val!r}")
+    if row["schema_version"] != SCHEMA_VERSION:
+        raise ManifestError(f"{where}: schema_version {row['schema_version']} != {SCHEMA_VERSION}")
+    return row
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def dumps_row(row: dict) -> str:
+    """Canonical one-line JSON (sorted keys) so manifests are byte-comparable."""
+    return json.dumps(row, sort_keys=True, separators=(",", ":"))
+
+
+def append_row(part_path: str | os.PathLike, row: dict) -> None:
+    """Durably append one validated row to a part file."""
+    line = dumps_row(validate_row(row)) + "\n"
+    Path(part_path).parent.mkdir(parents=True, exist_ok=True)
+    with open(part_path, "a", encoding="utf-8") as fh:
+        fh.write(line)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def iter_rows(path: str | os.PathLike, strict: bool = False) -> Iterator[dict]:
+    """Rows of a JSONL manifest. A truncated or corrupt line (from a killed writer) is skipped unless
+    ``strict``, in which case it raises :class:`ManifestError` naming the file and line."""
+    path = Path(path)
+    if not path.exists():
+        if strict:
+            raise ManifestError(f"manifest {path} does not exist")
+        return
+    with open(path, encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                row = validate_row(json.loads(line), f"{path}:{lineno}")
+            except (json.JSONDecodeError, ManifestError) as exc:
+                if strict:
+                    raise ManifestError(f"{path}:{lineno}: unreadable row ({exc})") from None
+                continue
+            yield row
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` via a temp file in the same directory and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def sorted_unique(rows: Iterable[dict]) -> list[dict]:
+    """Rows sorted by (crater, index); for duplicate keys the last one wins."""
+    by_key = {row_key(r): r for r in rows}
+    return [by_key[k] for k in sorted(by_key)]
+
+
+def write_manifest(path: str | os.PathLike, rows: Iterable[dict]) -> int:
+    rows = sorted_unique(rows)
+    atomic_write_text(path, "".join(dumps_row(r) + "\n" for r in rows))
+    return len(rows)
+
+
+def dataset_rows(dataset_dir: str | os.PathLike) -> list[dict]:
+    """All rows known in a dataset directory: the merged manifest plus any part files."""
+    d = Path(dataset_dir)
+    rows = list(iter_rows(d / MANIFEST_NAME))
+    parts = d / PARTS_DIR
+    if parts.is_dir():
+        for part in sorted(parts.glob("*.jsonl")):
+            rows.extend(iter_rows(part))
+    return sorted_unique(rows)
+
+
+def merge_parts(dataset_dir: str | os.PathLike, keep: set[tuple[str, int]] | None = None) -> int:
+    """Merge part files into ``manifest.jsonl`` (atomic), optionally keeping only ``keep`` keys,
+    then remove the merged part files. Returns the row count."""
+    d = Path(dataset_dir)
+    rows = dataset_rows(d)
+    if keep is not None:
+        rows = [r for r in rows if row_key(r) in keep]
+    n = write_manifest(d / MANIFEST_NAME, rows)
+    parts = d / PARTS_DIR
+    if parts.is_dir():
+        for part in parts.glob("*.jsonl"):
+            part.unlink()
+    return n
+
+
+def load_manifest(dataset_dir_or_file: str | os.PathLike) -> list[dict]:
+    """Strictly read a merged manifest (a file, or a dataset directory containing one)."""
+    p = Path(dataset_dir_or_file)
+    if p.is_dir():
+        p = p / MANIFEST_NAME
+    return list(iter_rows(p, strict=True))
+
+
+def manifest_digest(rows: Iterable[dict]) -> str:
+    """Content hash of a set of rows (keys the training cache)."""
+    h = hashlib.sha256()
+    for r in sorted_unique(rows):
+        h.update(dumps_row(r).encode())
+    return h.hexdigest()[:16]

@@ -1,0 +1,168 @@
+"""The Table 2 sweep grid: the one source of truth for index <-> render parameters.
+
+Pure numpy + standard library (used by the host orchestration, the Blender worker's jobs and train/).
+
+Sample positions (SPEC.md, "project's reading" of the paper's Table 2):
+    sun elevation   theta1 = 0.16 deg * k,        k = 1..N
+    sun azimuth     phi1   = 360 deg * k / N,     k = 0..N-1
+    camera elevation theta2 = 90 deg - 4 deg * k, k = 0..N-1
+    camera azimuth  phi2   = 360 deg * k / N,     k = 0..N-1
+    ROI ratio       sigma  = 1.0 + 0.2 * k,       k = 0..N-1   (a crop of every render, not a render axis)
+
+Render order is sun-major (sun elevation, sun azimuth, camera elevation, camera azimuth), so a
+contiguous shard shares few sun directions: the fast renderer computes one shadow map per sun
+direction and one G-buffer per camera pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+
+from data_manifest.errors import ContractError
+
+
+class SweepError(ContractError):
+    """A sweep configuration value is missing or physically meaningless."""
+
+
+AXES = ("sun_elevation", "sun_azimuth", "cam_elevation", "cam_azimuth")
+
+# Physical limits used to reject nonsense configuration before any rendering starts.
+_LIMITS = {
+    "sun_elevation": (-90.0, 90.0, "sun elevation must lie in (-90, 90] degrees"),
+    "sun_azimuth": (-360.0, 720.0, "sun azimuth must lie in [-360, 720] degrees"),
+    "cam_elevation": (0.0, 90.0, "camera elevation must lie in (0, 90] degrees (above the horizon)"),
+    "cam_azimuth": (-360.0, 720.0, "camera azimuth must lie in [-360, 720] degrees"),
+}
+
+
+def default_positions(axis: str, count: int, step_deg: float | None = None) -> list[float]:
+    """The paper's sample positions for ``count`` samples of ``axis`` (see module docstring)."""
+    if count < 1:
+        raise SweepError(f"sweep.{axis}.count must be >= 1, got {count}")
+    k = np.arange(count, dtype=np.float64)
+    if axis == "sun_elevation":
+        vals = (step_deg or 0.16) * (k + 1.0)
+    elif axis in ("sun_azimuth", "cam_azimuth"):
+        vals = 360.0 * k / count
+    elif axis == "cam_elevation":
+        vals = 90.0 - (step_deg or 4.0) * k
+    elif axis == "sigma":
+        vals = 1.0 + (step_deg or 0.2) * k
+    else:
+        raise SweepError(f"unknown sweep axis {axis!r}")
+    return [round(float(v), 10) for v in vals]
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """Parameters of one render of the sweep (angles in degrees)."""
+
+    index: int
+    indices: tuple[int, int, int, int]
+    sun_elevation: float
+    sun_azimuth: float
+    cam_elevation: float
+    cam_azimuth: float
+
+    @property
+    def sun_key(self) -> tuple[int, int]:
+        return self.indices[0], self.indices[1]
+
+    @property
+    def camera_key(self) -> tuple[int, int]:
+        return self.indices[2], self.indices[3]
+
+    def as_dict(self) -> dict:
+        return {"index": self.index, "indices": list(self.indices), "sun_elevation": self.sun_elevation,
+                "sun_azimuth": self.sun_azimuth, "cam_elevation": self.cam_elevation,
+                "cam_azimuth": self.cam_azimuth}
+
+
+@dataclass(frozen=True)
+class SweepGrid:
+    """The Cartesian product of the four angular axes, plus the ROI ratios and fixed camera values."""
+
+    sun_elevation: tuple[float, ...]
+    sun_azimuth: tuple[float, ...]
+    cam_elevation: tuple[float, ...]
+    cam_azimuth: tuple[float, ...]
+    sigmas: tuple[float, ...]
+    fov_deg: float = 90.0
+    range_factor: float = 1.5
+
+    def __post_init__(self):
+        for axis in AXES:
+            vals = getattr(self, axis)
+            if len(vals) == 0:
+                raise SweepError(f"sweep.{axis} has no values")
+            lo, hi, msg = _LIMITS[axis]
+            bad = [v for v in vals if not (lo < v <= hi) and not (axis.endswith("azimuth") and v == lo)]
+            if bad:
+                raise SweepError(f"invalid sweep.{axis} values {bad}: {msg}")
+            if len(set(vals)) != len(vals):
+                raise SweepError(f"sweep.{axis} has duplicate values {list(vals)}")
+        if not self.sigmas or any(s <= 0 for s in self.sigmas):
+            raise SweepError(f"invalid sweep.sigma values {list(self.sigmas)}: ROI ratio must be > 0")
+        if not (0.0 < self.fov_deg < 180.0):
+            raise SweepError(f"invalid sweep.fov_deg={self.fov_deg}: field of view must lie in (0, 180)")
+        if not self.range_factor > 0:
+            raise SweepError(f"invalid sweep.range_factor={self.range_factor}: must be > 0")
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return tuple(len(getattr(self, a)) for a in AXES)  # type: ignore[return-value]
+
+    def __len__(self) -> int:
+        return int(np.prod(self.shape))
+
+    def params(self, index: int) -> RenderParams:
+        """Deterministic flat index -> render parameters (sun-major order)."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sweep index {index} outside [0, {len(self)})")
+        idx = tuple(int(i) for i in np.unravel_index(index, self.shape))
+        return RenderParams(index, idx, self.sun_elevation[idx[0]], self.sun_azimuth[idx[1]],
+                            self.cam_elevation[idx[2]], self.cam_azimuth[idx[3]])
+
+    def index_of(self, indices: Sequence[int]) -> int:
+        return int(np.ravel_multi_index(tuple(indices), self.shape))
+
+    def __iter__(self) -> Iterator[RenderParams]:
+        return (self.params(i) for i in range(len(self)))
+
+    def shard(self, shard_index: int, shard_count: int) -> range:
+        """Contiguous block of flat indices for shard ``shard_index`` of ``shard_count``."""
+        if shard_count < 1 or not 0 <= shard_index < shard_count:
+            raise SweepError(f"invalid shard {shard_index}/{shard_count}: need 0 <= i < n, n >= 1")
+        n = len(self)
+        return range(shard_index * n // shard_count, (shard_index + 1) * n // shard_count)
+
+    def as_dict(self) -> dict:
+        return {a: list(getattr(self, a)) for a in AXES} | {
+            "sigmas": list(self.sigmas), "fov_deg": self.fov_deg, "range_factor": self.range_factor}
+
+
+def _axis_values(cfg_axis: Mapping, axis: str) -> tuple[float, ...]:
+    values = cfg_axis.get("values")
+    if values is not None:
+        return tuple(float(v) for v in values)
+    return tuple(default_positions(axis, int(cfg_axis["count"]), cfg_axis.get("step_deg")))
+
+
+def grid_from_config(sweep_cfg: Mapping) -> SweepGrid:
+    """Build the grid from a ``configs/sweep/*.yaml`` mapping (counts, or explicit value lists)."""
+    try:
+        return SweepGrid(
+            sun_elevation=_axis_values(sweep_cfg["sun_elevation"], "sun_elevation"),
+            sun_azimuth=_axis_values(sweep_cfg["sun_azimuth"], "sun_azimuth"),
+            cam_elevation=_axis_values(sweep_cfg["cam_elevation"], "cam_elevation"),
+            cam_azimuth=_axis_values(sweep_cfg["cam_azimuth"], "cam_azimuth"),
+            sigmas=_axis_values(sweep_cfg["sigma"], "sigma"),
+            fov_deg=float(sweep_cfg.get("fov_deg", 90.0)),
+            range_factor=float(sweep_cfg.get("range_factor", 1.5)),
+        )
+    except KeyError as exc:
+        raise SweepError(f"sweep config is missing key {exc}") from None

@@ -1,0 +1,1 @@
+"""Training and evaluation of crater classifiers on the rendered manifest. Never imports bpy."""
