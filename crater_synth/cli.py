@@ -15,6 +15,9 @@ import click
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command"),
     ("crater_synth.fetch", "fetch_data_command"),
+    ("crater_synth.dataset", "dataset_command"),
+    ("crater_synth.verify", "verify_command"),
+    ("crater_synth.preview", "preview_command"),
 )
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

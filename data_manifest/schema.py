@@ -35,7 +35,7 @@ REQUIRED_FIELDS = {
     "range_m": float, "fov_deg": float, "width": int, "height": int, "frame_width": int,
     "crop_origin": list, "center_px": list, "rim_ellipse": dict, "sigma_boxes": dict,
     "lit_fraction": float, "mean_if": float, "path": str, "sha256": str, "seed": int,
-    "code_version": str, "renderer": str, "terrain_id": str,
+    "code_version": str, "renderer": str, "terrain_id": str, "render_digest": str,
 }
 
 
@@ -43,8 +43,24 @@ class ManifestError(ContractError):
     """A manifest or one of its rows is malformed."""
 
 
-def row_key(row: dict) -> tuple[str, int]:
-    return row["crater"], int(row["index"])
+def params_key(crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float,
+               cam_azimuth: float) -> tuple:
+    """Identity of a render: its crater and angles (not the flat index, which depends on the grid,
+    so a grown grid -- the closed loop -- resumes the same dataset)."""
+    return (crater, round(float(sun_elevation), 6), round(float(sun_azimuth), 6),
+            round(float(cam_elevation), 6), round(float(cam_azimuth), 6))
+
+
+def row_key(row: dict) -> tuple:
+    return params_key(row["crater"], row["sun_elevation"], row["sun_azimuth"], row["cam_elevation"],
+                      row["cam_azimuth"])
+
+
+def render_rel_path(crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float,
+                    cam_azimuth: float) -> str:
+    """Deterministic file name of a render inside a dataset directory."""
+    return (f"{crater}/se{sun_elevation:06.3f}_sa{sun_azimuth:07.3f}"
+            f"_ce{cam_elevation:06.3f}_ca{cam_azimuth:07.3f}.exr")
 
 
 def validate_row(row: dict, where: str = "manifest row") -> dict:
@@ -123,7 +139,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def sorted_unique(rows: Iterable[dict]) -> list[dict]:
-    """Rows sorted by (crater, index); for duplicate keys the last one wins."""
+    """Rows sorted by :func:`row_key`; for duplicate keys the last one wins."""
     by_key = {row_key(r): r for r in rows}
     return [by_key[k] for k in sorted(by_key)]
 
@@ -145,18 +161,27 @@ def dataset_rows(dataset_dir: str | os.PathLike) -> list[dict]:
     return sorted_unique(rows)
 
 
-def merge_parts(dataset_dir: str | os.PathLike, keep: set[tuple[str, int]] | None = None) -> int:
-    """Merge part files into ``manifest.jsonl`` (atomic), optionally keeping only ``keep`` keys,
-    then remove the merged part files. Returns the row count."""
+def merge_parts(dataset_dir: str | os.PathLike, parts: Iterable[str | os.PathLike] | None = None,
+                keep: set[tuple] | None = None) -> int:
+    """Merge part files (default: all of them) into ``manifest.jsonl`` atomically, under an exclusive
+    lock so concurrent shards cannot lose each other's rows; merged part files are removed.
+    ``keep`` optionally restricts the result to those row keys. Returns the row count."""
+    import fcntl
+
     d = Path(dataset_dir)
-    rows = dataset_rows(d)
-    if keep is not None:
-        rows = [r for r in rows if row_key(r) in keep]
-    n = write_manifest(d / MANIFEST_NAME, rows)
-    parts = d / PARTS_DIR
-    if parts.is_dir():
-        for part in parts.glob("*.jsonl"):
-            part.unlink()
+    d.mkdir(parents=True, exist_ok=True)
+    with open(d / ".manifest.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        part_files = sorted((d / PARTS_DIR).glob("*.jsonl")) if parts is None else [Path(p) for p in parts]
+        rows = list(iter_rows(d / MANIFEST_NAME))
+        for part in part_files:
+            rows.extend(iter_rows(part))
+        rows = sorted_unique(rows)
+        if keep is not None:
+            rows = [r for r in rows if row_key(r) in keep]
+        n = write_manifest(d / MANIFEST_NAME, rows)
+        for part in part_files:
+            Path(part).unlink(missing_ok=True)
     return n
 
 

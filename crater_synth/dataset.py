@@ -1,0 +1,394 @@
+"""Render a sweep into a dataset directory: plan, resume, dispatch Blender workers, record the manifest.
+
+Layout of a dataset directory::
+
+    manifest.jsonl            merged, sorted rows (data_manifest/schema.py)
+    manifest.parts/*.jsonl    rows appended while rendering (merged at the end)
+    <crater>/<params>.exr     one tiled EXR per render
+    .jobs/                    worker job files and logs
+
+The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker``)
+that imports bpy once and renders a contiguous, sun-major block of renders.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import selectors
+import shutil
+import subprocess
+import sys
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from blender_gen import geometry
+from blender_gen.hapke import HapkeParams
+from crater_synth import __version__
+from crater_synth.config import ConfigError, craters as selected_craters, resolved
+from crater_synth.errors import UserError
+from data_manifest import schema
+from data_manifest.sweep import SweepGrid, grid_from_config
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+# Bytes per render used for the free-disk check before any measured value exists
+# (210x210 px x 6 float32 channels, zip-compressed: measured ~0.6-0.9 MB; rounded up).
+DEFAULT_BYTES_PER_RENDER = 1_000_000
+
+
+class RenderError(UserError):
+    """A worker reported bad input or kept failing."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Validation (before any rendering starts)
+# ------------------------------------------------------------------------------------------------
+def validate_render_config(render: dict) -> None:
+    if render.get("mode") not in ("fast", "direct"):
+        raise ConfigError(f"render.mode={render.get('mode')!r}: must be 'fast' or 'direct'")
+    if int(render.get("samples", 0)) < 1:
+        raise ConfigError(f"render.samples={render.get('samples')}: must be >= 1")
+    if int(render.get("max_bounces", 0)) < 0:
+        raise ConfigError(f"render.max_bounces={render.get('max_bounces')}: must be >= 0")
+    if int(render.get("roi_min_px", 0)) < 8:
+        raise ConfigError(f"render.roi_min_px={render.get('roi_min_px')}: must be >= 8")
+    if int(render.get("workers", 1)) < 1:
+        raise ConfigError(f"render.workers={render.get('workers')}: must be >= 1")
+
+
+def hapke_params(cfg_resolved: dict) -> HapkeParams:
+    try:
+        return HapkeParams.from_mapping(cfg_resolved["hapke"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"hapke: {exc}") from None
+
+
+def check_output_dir(out_dir: Path) -> None:
+    """The dataset directory must be creatable and writable."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".write-probe-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"output directory {out_dir} is not writable: {exc.strerror or exc}") from None
+
+
+def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
+    sizes = [(out_dir / r["path"]).stat().st_size for r in rows[:50] if (out_dir / r["path"]).exists()]
+    return int(np.mean(sizes)) if sizes else DEFAULT_BYTES_PER_RENDER
+
+
+def check_free_disk(out_dir: Path, n_renders: int, bytes_per_render: int) -> None:
+    need = int(n_renders * bytes_per_render * 1.1)
+    free = shutil.disk_usage(out_dir).free
+    if need > free:
+        raise UserError(f"not enough free disk in {out_dir}: {n_renders} renders need ~{need / 1e9:.2f} GB "
+                        f"({bytes_per_render / 1e6:.2f} MB each), {free / 1e9:.2f} GB free")
+
+
+def parse_shard(shard) -> tuple[int, int] | None:
+    if shard in (None, "", "null"):
+        return None
+    try:
+        i, n = (int(x) for x in str(shard).split("/"))
+    except ValueError:
+        raise ConfigError(f"launcher.shard={shard!r}: expected 'i/n', e.g. 0/4") from None
+    if n < 1 or not 0 <= i < n:
+        raise ConfigError(f"launcher.shard={shard!r}: need 0 <= i < n")
+    return i, n
+
+
+# ------------------------------------------------------------------------------------------------
+# Planning: geometry of every render, computed analytically on the host
+# ------------------------------------------------------------------------------------------------
+def code_version() -> str:
+    return f"crater-synth {__version__}"
+
+
+def render_digest(render: dict, hapke: dict, terrain_id: str) -> str:
+    """Fingerprint of everything besides the angles that changes the pixels of a render."""
+    keys = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_extent_factor", "roi_min_px")
+    payload = json.dumps({"render": {k: render.get(k) for k in keys}, "hapke": hapke, "terrain": terrain_id},
+                         sort_keys=True)
+    return f"{zlib.crc32(payload.encode()):08x}"
+
+
+def render_seed(base_seed: int, key: tuple) -> int:
+    return zlib.crc32(f"{base_seed}:{key}".encode()) & 0x7FFFFFFF
+
+
+def plan_render(crater: dict, meta: dict, grid: SweepGrid, index: int, roi_min_px: int) -> dict:
+    """Camera, frame size, rim ellipse, sigma boxes and crop of one render (full-frame -> crop px)."""
+    p = grid.params(index)
+    diameter_m = crater["diameter_km"] * 1000.0
+    range_m = grid.range_factor * diameter_m
+    pose = geometry.look_at_camera(p.cam_elevation, p.cam_azimuth, range_m, grid.fov_deg)
+    rim_center = np.array([0.0, 0.0, float(meta.get("rim_z_m", 0.0))])
+    width = geometry.frame_width_for_roi(pose, rim_center, diameter_m / 2.0, roi_min_px, min(grid.sigmas))
+    ellipse = geometry.project_horizontal_circle(rim_center, diameter_m / 2.0, pose, width)
+    (cu, cv), _ = geometry.project_points(rim_center, pose, width)
+    boxes = {f"{s:.1f}": geometry.roi_box((cu, cv), 2.0 * ellipse.a, s) for s in grid.sigmas}
+    big = boxes[f"{max(grid.sigmas):.1f}"]
+    crop = [int(math.floor(big[0])), int(math.floor(big[1])), int(math.ceil(big[2])), int(math.ceil(big[3]))]
+    if crop[0] < 0 or crop[1] < 0 or crop[2] > width or crop[3] > width:
+        raise UserError(f"ROI box of sigma={max(grid.sigmas)} leaves the {grid.fov_deg} deg frame for "
+                        f"{crater['name']} at camera elevation {p.cam_elevation}: lower sigma or raise range_factor")
+    u0, v0 = crop[0], crop[1]
+    return {
+        "params": p,
+        "range_m": range_m,
+        "frame_width": width,
+        "crop": crop,
+        "center_px": [float(cu - u0), float(cv - v0)],
+        "rim_ellipse": ellipse.as_dict() | {"cu": ellipse.cu - u0, "cv": ellipse.cv - v0},
+        "sigma_boxes": {k: [b[0] - u0, b[1] - v0, b[2] - u0, b[3] - v0] for k, b in boxes.items()},
+    }
+
+
+@dataclass
+class CraterJob:
+    """Everything needed to render (part of) one crater's sweep."""
+
+    crater: dict
+    npz: Path
+    meta: dict
+    plans: list[dict] = field(default_factory=list)
+
+
+def _row(job: CraterJob, plan: dict, result: dict, cfg_r: dict, digest: str) -> dict:
+    p = plan["params"]
+    return {
+        "schema_version": schema.SCHEMA_VERSION,
+        "crater": job.crater["name"],
+        "index": p.index,
+        "indices": list(p.indices),
+        "sun_elevation": p.sun_elevation, "sun_azimuth": p.sun_azimuth,
+        "cam_elevation": p.cam_elevation, "cam_azimuth": p.cam_azimuth,
+        "range_m": plan["range_m"], "fov_deg": float(cfg_r["sweep"]["fov_deg"]),
+        "width": plan["crop"][2] - plan["crop"][0], "height": plan["crop"][3] - plan["crop"][1],
+        "frame_width": plan["frame_width"], "crop_origin": plan["crop"][:2],
+        "center_px": plan["center_px"], "rim_ellipse": plan["rim_ellipse"], "sigma_boxes": plan["sigma_boxes"],
+        "lit_fraction": float(result["lit_fraction"]), "mean_if": float(result["mean_if"]),
+        "path": result["rel_path"], "sha256": result["sha256"], "seed": plan["seed"],
+        "code_version": code_version(), "renderer": cfg_r["render"]["mode"],
+        "terrain_id": job.meta["terrain_id"], "render_digest": digest,
+    }
+
+
+def _is_done(row: dict | None, out_dir: Path, digest: str) -> bool:
+    if row is None or row.get("render_digest") != digest:
+        return False
+    f = out_dir / row["path"]
+    return f.is_file() and schema.sha256_file(f) == row["sha256"]
+
+
+# ------------------------------------------------------------------------------------------------
+# Worker dispatch
+# ------------------------------------------------------------------------------------------------
+def _worker_render_item(job: CraterJob, plan: dict, cfg_r: dict) -> dict:
+    p = plan["params"]
+    rel = schema.render_rel_path(job.crater["name"], p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
+    header = {"crater": job.crater["name"], "terrain_id": job.meta["terrain_id"], "code_version": code_version(),
+              "renderer": cfg_r["render"]["mode"], "samples": int(cfg_r["render"]["samples"]),
+              "range_m": plan["range_m"], "fov_deg": float(cfg_r["sweep"]["fov_deg"]),
+              "frame_width": plan["frame_width"], "crop": json.dumps(plan["crop"]),
+              "sigma_boxes": json.dumps(plan["sigma_boxes"]), "rim_ellipse": json.dumps(plan["rim_ellipse"]),
+              "hapke": json.dumps(cfg_r["hapke"], sort_keys=True), "seed": plan["seed"]}
+    return {"index": p.index, "indices": list(p.indices), "sun_elevation": p.sun_elevation,
+            "sun_azimuth": p.sun_azimuth, "cam_elevation": p.cam_elevation, "cam_azimuth": p.cam_azimuth,
+            "range_m": plan["range_m"], "fov_deg": float(cfg_r["sweep"]["fov_deg"]),
+            "frame_width": plan["frame_width"], "crop": plan["crop"], "rel_path": rel, "seed": plan["seed"],
+            "header": header}
+
+
+def worker_command(job_file: Path) -> list[str]:
+    return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
+
+
+def _split_contiguous(items: list, n: int) -> list[list]:
+    n = max(1, min(n, len(items)))
+    return [items[i * len(items) // n:(i + 1) * len(items) // n] for i in range(n)]
+
+
+def run_workers(jobs: list[CraterJob], cfg_r: dict, out_dir: Path, on_result, max_retries: int = 2) -> None:
+    """Render every plan of ``jobs`` with ``render.workers`` processes; ``on_result(job, plan, result)``
+    is called for each finished render. A worker that dies is restarted on its unfinished renders."""
+    n_workers = int(cfg_r["render"].get("workers", 1))
+    jobs_dir = out_dir / ".jobs"
+    jobs_dir.mkdir(parents=True, exist_ok=True)
+    render_cfg = dict(cfg_r["render"])
+    if n_workers > 1 and int(render_cfg.get("threads", 0)) == 0:
+        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
+
+    # Work units: contiguous blocks of one crater's plans (sun-major), one block per worker slot.
+    units: list[tuple[CraterJob, list[dict]]] = []
+    for job in jobs:
+        if job.plans:
+            share = max(1, round(n_workers * len(job.plans) / max(1, sum(len(j.plans) for j in jobs))))
+            units += [(job, block) for block in _split_contiguous(job.plans, share)]
+    pending = list(units)
+    attempts: dict[int, int] = {}
+    running: dict = {}
+    sel = selectors.DefaultSelector()
+    uid = 0
+
+    def start(job: CraterJob, block: list[dict], unit_id: int):
+        job_file = jobs_dir / f"{job.crater['name']}-{unit_id}.json"
+        spec = {"terrain_npz": str(job.npz), "terrain_meta": job.meta, "crater": job.crater,
+                "hapke": cfg_r["hapke"], "render": render_cfg, "out_dir": str(out_dir),
+                "renders": [_worker_render_item(job, p, cfg_r) for p in block]}
+        schema.atomic_write_text(job_file, json.dumps(spec))
+        log = open(job_file.with_suffix(".log"), "ab")
+        proc = subprocess.Popen(worker_command(job_file), stdout=subprocess.PIPE, stderr=log, cwd=REPO_ROOT,
+                                env=os.environ | {"PYTHONUNBUFFERED": "1"})
+        state = {"job": job, "block": {p["params"].index: p for p in block}, "id": unit_id, "log": log,
+                 "error": None, "buf": b""}
+        running[proc] = state
+        sel.register(proc.stdout, selectors.EVENT_READ, proc)
+
+    try:
+        while pending or running:
+            while pending and len(running) < n_workers:
+                job, block = pending.pop(0)
+                uid += 1
+                attempts[uid] = attempts.get(uid, 0)
+                start(job, block, uid)
+            for key, _ in sel.select(timeout=1.0):
+                proc = key.data
+                state = running[proc]
+                chunk = os.read(proc.stdout.fileno(), 65536)
+                if chunk:
+                    state["buf"] += chunk
+                    *lines, state["buf"] = state["buf"].split(b"\n")
+                    for raw in lines:
+                        line = raw.decode("utf-8", "replace")
+                        if line.startswith("RESULT "):
+                            result = json.loads(line[7:])
+                            plan = state["block"].pop(int(result["index"]), None)
+                            if plan is not None:
+                                on_result(state["job"], plan, result)
+                        elif line.startswith("ERROR "):
+                            state["error"] = line[6:]
+                    continue
+                sel.unregister(proc.stdout)
+                rc = proc.wait()
+                state["log"].close()
+                del running[proc]
+                if state["error"]:
+                    raise RenderError(f"worker for {state['job'].crater['name']}: {state['error']}")
+                left = list(state["block"].values())
+                if left:
+                    tries = attempts.get(state["id"], 0) + 1
+                    if tries > max_retries:
+                        raise RenderError(f"worker for {state['job'].crater['name']} failed {tries} times "
+                                          f"(exit {rc}); see {jobs_dir}/*.log")
+                    uid += 1
+                    attempts[uid] = tries
+                    left.sort(key=lambda p: p["params"].index)
+                    start(state["job"], left, uid)
+    finally:
+        for proc, state in list(running.items()):
+            proc.kill()
+            proc.wait()
+            state["log"].close()
+        sel.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# The dataset command's body
+# ------------------------------------------------------------------------------------------------
+def build_dataset(cfg, progress: bool = True) -> dict:
+    """Render the configured sweep (or one shard of it) into ``cfg.out_dir``, resuming.
+
+    Returns a summary dict (counts, timings, dataset path).
+    """
+    from crater_synth.terrain import build_terrain
+
+    cfg_r = resolved(cfg)
+    render = cfg_r["render"]
+    validate_render_config(render)
+    hapke_params(cfg_r)
+    grid = grid_from_config(cfg_r["sweep"])
+    shard = parse_shard(cfg_r["launcher"].get("shard"))
+    indices = grid.shard(*shard) if shard else range(len(grid))
+    out_dir = Path(cfg_r["out_dir"]).resolve()
+    check_output_dir(out_dir)
+    craters = selected_craters(cfg)
+
+    existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
+    jobs, skipped, total = [], 0, 0
+    for crater in craters:
+        npz, meta = build_terrain(crater, cfg)
+        job = CraterJob(crater=crater, npz=Path(npz), meta=meta)
+        digest = render_digest(render, cfg_r["hapke"], meta["terrain_id"])
+        for index in indices:
+            plan = plan_render(crater, meta, grid, index, int(render["roi_min_px"]))
+            p = plan["params"]
+            key = schema.params_key(crater["name"], p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
+            plan["seed"] = render_seed(int(cfg_r["seed"]), key)
+            plan["digest"] = digest
+            total += 1
+            if _is_done(existing.get(key), out_dir, digest):
+                skipped += 1
+            else:
+                job.plans.append(plan)
+        jobs.append(job)
+
+    todo = sum(len(j.plans) for j in jobs)
+    check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
+    part_name = f"shard{shard[0]}of{shard[1]}" if shard else "all"
+    part_file = out_dir / schema.PARTS_DIR / f"{part_name}-{os.getpid()}.jsonl"
+
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=todo, unit="render", desc=f"rendering ({render['mode']})", dynamic_ncols=True,
+                   file=sys.stderr)
+    t0 = time.perf_counter()
+
+    def on_result(job: CraterJob, plan: dict, result: dict):
+        schema.append_row(part_file, _row(job, plan, result, cfg_r, plan["digest"]))
+        if bar is not None:
+            bar.update(1)
+
+    try:
+        run_workers(jobs, cfg_r, out_dir, on_result, max_retries=int(render.get("max_retries", 2)))
+    finally:
+        if bar is not None:
+            bar.close()
+    elapsed = time.perf_counter() - t0
+    n_rows = schema.merge_parts(out_dir, parts=[part_file])
+    return {"dataset": str(out_dir), "renders_total": total, "rendered": todo, "skipped_existing": skipped,
+            "manifest_rows": n_rows, "seconds": round(elapsed, 2),
+            "renders_per_s": round(todo / elapsed, 3) if todo and elapsed > 0 else None,
+            "craters": [c["name"] for c in craters], "mode": render["mode"]}
+
+
+# ------------------------------------------------------------------------------------------------
+# CLI
+# ------------------------------------------------------------------------------------------------
+import click  # noqa: E402
+
+from crater_synth.cli_common import OVERRIDES, user_errors  # noqa: E402
+
+
+@click.command("dataset")
+@OVERRIDES
+@user_errors
+def dataset_command(overrides):
+    """Render the sweep into out_dir (resumable; `launcher.shard=i/n` renders one slice).
+
+    Examples: `crater-synth dataset sweep=smoke crater=shoemaker render.samples=2`,
+    `crater-synth dataset sweep=paper render.workers=2 out_dir=/big/disk/paper`.
+    """
+    from crater_synth.config import compose
+
+    summary = build_dataset(compose(overrides))
+    click.echo(json.dumps(summary))

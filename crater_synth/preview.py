@@ -1,0 +1,112 @@
+"""``crater-synth preview DIR``: PNG contact sheets of a dataset, one per crater."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from data_manifest import schema
+
+
+def read_channel(path: Path, name: str = "IF") -> np.ndarray:
+    """One named channel of an EXR as a 2-D float32 array."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot open EXR ({oiio.geterror()})")
+    try:
+        names = list(inp.spec().channelnames)
+        if name not in names:
+            raise UserError(f"{path}: no channel {name!r} (has {names})")
+        px = inp.read_image("float")
+        if px is None:
+            raise UserError(f"{path}: cannot decode pixels")
+        return np.asarray(px, dtype=np.float32)[..., names.index(name)]
+    finally:
+        inp.close()
+
+
+def tone_map(radiance_factor: np.ndarray) -> np.ndarray:
+    """Display mapping for I/F: scale so the 99.5th percentile of lit pixels is white, then sRGB-like
+    gamma. Shadows stay black; each tile is scaled on its own (absolute I/F is in the EXR)."""
+    lit = radiance_factor[radiance_factor > 0]
+    white = float(np.percentile(lit, 99.5)) if lit.size else 1.0
+    return np.clip(radiance_factor / max(white, 1e-6), 0.0, 1.0) ** (1.0 / 2.2)
+
+
+def _ellipse_points(e: dict, n: int = 180) -> np.ndarray:
+    t = np.linspace(0.0, 2.0 * np.pi, n)
+    ca, sa = np.cos(e["angle_rad"]), np.sin(e["angle_rad"])
+    x, y = e["a"] * np.cos(t), e["b"] * np.sin(t)
+    return np.stack([e["cu"] + ca * x - sa * y, e["cv"] + sa * x + ca * y], axis=-1)
+
+
+def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str, max_tiles: int = 36) -> Path:
+    """Write a contact sheet of up to ``max_tiles`` renders (evenly spread over ``rows``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pick = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, min(max_tiles, len(rows))).astype(int))]
+    cols = int(np.ceil(np.sqrt(len(pick))))
+    nrows = int(np.ceil(len(pick) / cols))
+    fig, axes = plt.subplots(nrows, cols, figsize=(2.4 * cols, 2.6 * nrows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, row in zip(axes.ravel(), pick):
+        img = tone_map(read_channel(dataset_dir / row["path"]))
+        ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        pts = _ellipse_points(row["rim_ellipse"])
+        ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)
+        for sigma, (u0, v0, u1, v1) in row["sigma_boxes"].items():
+            ax.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], "--", color="#50c0ff", lw=0.5)
+        ax.set_title(f"sun {row['sun_elevation']:.2f}/{row['sun_azimuth']:.0f}  cam {row['cam_elevation']:.0f}/"
+                     f"{row['cam_azimuth']:.0f}\nlit {row['lit_fraction']:.2f}  I/F {row['mean_if']:.4f}", fontsize=6)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".png", dir=out_png.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.replace(tmp, out_png)
+    finally:
+        plt.close(fig)
+        Path(tmp).unlink(missing_ok=True)
+    return out_png
+
+
+def preview_dataset(dataset_dir: str | Path, out_dir: str | Path | None = None, max_tiles: int = 36) -> list[Path]:
+    d = Path(dataset_dir)
+    rows = schema.load_manifest(d) if (d / schema.MANIFEST_NAME).exists() else []
+    if not rows:
+        raise UserError(f"{d}: no rendered rows to preview")
+    out = Path(out_dir) if out_dir else d / "preview"
+    sheets = []
+    for crater in sorted({r["crater"] for r in rows}):
+        crater_rows = [r for r in rows if r["crater"] == crater]
+        sheets.append(contact_sheet(crater_rows, d, out / f"contact_{crater}.png",
+                                    f"{crater}: {len(crater_rows)} renders (sun el/az, cam el/az in deg); "
+                                    f"red = projected rim, blue = sigma boxes", max_tiles))
+    return sheets
+
+
+@click.command("preview")
+@click.argument("dataset_dir", type=click.Path(file_okay=False))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Where to write the PNGs (default DATASET_DIR/preview).")
+@click.option("--max-tiles", default=36, show_default=True)
+@user_errors
+def preview_command(dataset_dir, out_dir, max_tiles):
+    """Write a PNG contact sheet per crater: tone-mapped renders labelled with their parameters, with the
+    projected rim ellipse and the sigma boxes drawn."""
+    for sheet in preview_dataset(dataset_dir, out_dir, max_tiles):
+        click.echo(str(sheet))
