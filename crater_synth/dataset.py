@@ -386,9 +386,16 @@ def dataset_command(overrides):
     """Render the sweep into out_dir (resumable; `launcher.shard=i/n` renders one slice).
 
     Examples: `crater-synth dataset sweep=smoke crater=shoemaker render.samples=2`,
-    `crater-synth dataset sweep=paper render.workers=2 out_dir=/big/disk/paper`.
+    `crater-synth dataset sweep=paper render.workers=2 out_dir=/big/disk/paper`,
+    `crater-synth dataset sweep=paper launcher=dask launcher.address=tcp://head:8786`.
     """
     from crater_synth.config import compose
 
-    summary = build_dataset(compose(overrides))
+    cfg = compose(overrides)
+    if cfg.launcher.name == "dask":
+        from crater_synth.launcher import run_dask
+
+        summary = run_dask(cfg)
+    else:
+        summary = build_dataset(cfg)
     click.echo(json.dumps(summary))
