@@ -1,0 +1,404 @@
+"""Terrain patch for rendering: a curved near field at fine spacing plus a coarse far field.
+
+Contract with the Blender worker (docs/terrain.md):
+
+- Frame: local ENU at the crater centre on the reference sphere (``blender_gen.geometry``):
+  x east, y north, z up, metres, origin on the sphere (height 0) below the crater centre.
+- Near field: vertices over horizontal ENU (e, n) in [-hw, hw]^2, hw = near_radius_factor x D,
+  ``terrain.near_vertices`` per side; row i <-> n_i = -hw + i * spacing (ascending north), column j
+  <-> e_j = -hw + j * spacing (ascending east). Each vertex lies on the ray from the Moon's centre
+  through origin + e E + n N, at radius R + h (h: DEM height, bicubic, + sub-DEM detail), expressed
+  in ENU: the Moon's curvature is in the geometry (ground 100 km away is ~2.9 km below z = 0).
+- Far field: the same construction without detail, spacing ``far_spacing_km``, out to
+  ``far_radius_km`` (clipped to where the far DEM has data); ``far_keep_quads[i, j]`` is False for
+  the quads lying fully inside the near field shrunk by one far cell, so near and far overlap by at
+  least one far cell and leave no crack.
+- ``<data_dir>/terrain/<crater>-<terrain_id>.npz`` (near_xyz, far_xyz, far_keep_quads, near_height)
+  and ``.json`` (metadata) are written atomically, npz first; a patch with the same terrain_id is
+  reused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.errors import UserError
+
+# Bump when the patch arrays or their meaning change: it is part of every terrain_id.
+TERRAIN_FORMAT_VERSION = 1
+TERRAIN_SUBDIR = "terrain"
+# Rim/floor measurement (docs/terrain.md): rim crest = max of each radial profile between these
+# fractions of the radius, averaged over azimuth; floor = low percentile within FLOOR_RADIUS_FRAC R.
+RIM_SEARCH_FRAC = (0.9, 1.1)
+FLOOR_RADIUS_FRAC = 0.3
+FLOOR_PERCENTILE = 5.0
+N_AZIMUTHS = 360
+NEAR_VERTICES_RANGE = (16, 8193)
+
+
+class TerrainConfigError(UserError):
+    """A terrain.* or dem.* setting is missing or out of range."""
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------
+def _section(cfg, key: str) -> dict:
+    """A config subtree as a plain dict (interpolations resolved), ``{}`` when absent."""
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(cfg, dict):
+        return dict(cfg.get(key) or {})
+    try:
+        node = cfg.get(key) if isinstance(cfg, DictConfig) else None
+        if node is None:
+            return {}
+        return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)  # type: ignore[return-value]
+    except OmegaConfBaseException as exc:
+        raise TerrainConfigError(f"bad {key}.* configuration: {exc}".splitlines()[0]) from None
+
+
+def _number(section: dict, name: str, key: str, integer: bool = False):
+    val = section.get(key)
+    if isinstance(val, bool) or val is None:
+        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number")
+    try:
+        num = float(val)
+    except (TypeError, ValueError):
+        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number") from None
+    if not math.isfinite(num):
+        raise TerrainConfigError(f"{name}.{key}={val!r} must be finite")
+    if integer:
+        if num != int(num):
+            raise TerrainConfigError(f"{name}.{key}={val!r} must be an integer")
+        return int(num)
+    return num
+
+
+def terrain_settings(cfg) -> dict:
+    """Validated ``terrain.*`` (without ``detail``), ``dem.*`` and ``data_dir``."""
+    from crater_synth.detail import DetailSettings
+
+    t, d = _section(cfg, "terrain"), _section(cfg, "dem")
+    data_dir = cfg.get("data_dir")
+    s = {
+        "near_radius_factor": _number(t, "terrain", "near_radius_factor"),
+        "near_vertices": _number(t, "terrain", "near_vertices", integer=True),
+        "far_radius_km": _number(t, "terrain", "far_radius_km"),
+        "far_spacing_km": _number(t, "terrain", "far_spacing_km"),
+        "max_nodata_fraction": _number(d, "dem", "max_nodata_fraction"),
+    }
+    lo, hi = NEAR_VERTICES_RANGE
+    if not lo <= s["near_vertices"] <= hi:
+        raise TerrainConfigError(f"terrain.near_vertices={s['near_vertices']} must lie in [{lo}, {hi}]")
+    if not 0.6 <= s["near_radius_factor"] <= 50.0:
+        raise TerrainConfigError(f"terrain.near_radius_factor={s['near_radius_factor']} must lie in "
+                                 "[0.6, 50] crater diameters (the near field must contain the rim)")
+    if s["far_radius_km"] < 0.0:
+        raise TerrainConfigError(f"terrain.far_radius_km={s['far_radius_km']} must be >= 0 (0 = no far field)")
+    if s["far_spacing_km"] <= 0.0:
+        raise TerrainConfigError(f"terrain.far_spacing_km={s['far_spacing_km']} must be > 0")
+    if not 0.0 <= s["max_nodata_fraction"] <= 1.0:
+        raise TerrainConfigError(f"dem.max_nodata_fraction={s['max_nodata_fraction']} must lie in [0, 1]")
+    s["detail"] = DetailSettings.from_config(t.get("detail"))
+    s["dem"] = {k: d.get(k) for k in ("product", "path", "far_product", "far_path")}
+    if not s["dem"]["product"] and not s["dem"]["path"]:
+        raise TerrainConfigError("dem.product or dem.path must be set")
+    if data_dir is None or str(data_dir) == "":
+        raise TerrainConfigError("data_dir must be set")
+    s["data_dir"] = Path(str(data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
+    return s
+
+
+def _open_dem(product: str | None, path: str | None, data_dir: Path):
+    """(Dem, sha256) for a registry product or an explicit file (``path`` wins)."""
+    from crater_synth.dem import Dem
+    from data_manifest.products import cached_sha256, resolve_product
+
+    if path:
+        p = Path(str(path)).expanduser()
+        dem = Dem(p, product=p.name)  # raises DemReadError naming a missing/corrupt file
+        return dem, cached_sha256(p)
+    p = resolve_product(str(product), data_dir)
+    return Dem(p, product=str(product)), cached_sha256(p)
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers
+# --------------------------------------------------------------------------------------------
+def _sphere_points(e: np.ndarray, n: np.ndarray, lat: float, lon: float):
+    """Unit directions (MC) and (lat, lon) of the sphere points below horizontal ENU (e, n)."""
+    from blender_gen.geometry import MOON_RADIUS_M, enu_basis, latlon_to_mc, mc_to_latlon
+
+    basis = enu_basis(lat, lon)
+    p = latlon_to_mc(lat, lon) + e[..., None] * basis[0] + n[..., None] * basis[1]
+    dirs = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    plat, plon, _ = mc_to_latlon(dirs * MOON_RADIUS_M)
+    return dirs, plat, plon
+
+
+def _to_enu(dirs: np.ndarray, heights: np.ndarray, lat: float, lon: float) -> np.ndarray:
+    from blender_gen.geometry import MOON_RADIUS_M, mc_to_enu
+
+    return mc_to_enu(dirs * (MOON_RADIUS_M + heights)[..., None], lat, lon)
+
+
+def _bilinear(grid: np.ndarray, half_width: float, spacing: float, e: np.ndarray, n: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(grid, [(n + half_width) / spacing, (e + half_width) / spacing], order=1, mode="nearest")
+
+
+def measure_crater(height: np.ndarray, z: np.ndarray, half_width: float, spacing: float, radius_m: float) -> dict:
+    """Rim and floor from the patch (heights above the sphere, and ENU z).
+
+    rim_z_m: mean ENU z on the ring r = D/2 (the rim circle the projected ellipse uses);
+    rim crest: per-azimuth max of the radial profile over [0.9, 1.1] R, averaged;
+    floor: 5th percentile within 0.3 R; depth = rim crest - floor (heights above the sphere, so
+    the curvature drop across the crater does not bias it).
+    """
+    az = np.radians(np.arange(N_AZIMUTHS) * 360.0 / N_AZIMUTHS)
+    sa, ca = np.sin(az), np.cos(az)
+    rim_z = float(_bilinear(z, half_width, spacing, radius_m * sa, radius_m * ca).mean())
+    rim_h_ring = float(_bilinear(height, half_width, spacing, radius_m * sa, radius_m * ca).mean())
+    radii = np.linspace(RIM_SEARCH_FRAC[0], RIM_SEARCH_FRAC[1], 21) * radius_m
+    prof = _bilinear(height, half_width, spacing, np.outer(sa, radii), np.outer(ca, radii))
+    rim_crest = float(prof.max(axis=1).mean())
+    fr = np.linspace(0.0, FLOOR_RADIUS_FRAC, 16) * radius_m
+    fe, fn = np.outer(sa, fr), np.outer(ca, fr)
+    floor_h = float(np.percentile(_bilinear(height, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
+    floor_z = float(np.percentile(_bilinear(z, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
+    return {"rim_z_m": rim_z, "rim_height_m": rim_h_ring, "rim_crest_height_m": rim_crest,
+            "floor_z_m": floor_z, "floor_height_m": floor_h, "rim_to_floor_depth_m": rim_crest - floor_h}
+
+
+def far_keep_quads(far_coords: np.ndarray, near_half_width: float, far_spacing: float) -> np.ndarray:
+    """(m-1, m-1) bool: False for quads fully inside the near square shrunk by one far cell."""
+    inner = near_half_width - far_spacing
+    ins = np.abs(far_coords) <= inner + 1e-6
+    inside_1d = ins[:-1] & ins[1:]  # both edges of the cell inside
+    return ~(inside_1d[:, None] & inside_1d[None, :])
+
+
+def _far_half_cells(dem, lat: float, lon: float, k_max: int, spacing: float, max_nodata: float) -> tuple[int, int]:
+    """Largest Chebyshev ring index m <= k_max whose square lies inside the DEM with a nodata share
+    <= max_nodata; returns (m, nodata vertices within it)."""
+    k = np.arange(-k_max, k_max + 1) * spacing
+    ee, nn = np.meshgrid(k, k)
+    _, plat, plon = _sphere_points(ee, nn, lat, lon)
+    inside, valid = dem.coverage(plat, plon, spacing_m=spacing)
+    ring = np.maximum(np.abs(np.arange(-k_max, k_max + 1))[None, :], np.abs(np.arange(-k_max, k_max + 1))[:, None])
+    total = np.bincount(ring.ravel(), minlength=k_max + 1).cumsum()
+    outside = np.bincount(ring.ravel(), weights=(~inside).ravel(), minlength=k_max + 1).cumsum()
+    nodata = np.bincount(ring.ravel(), weights=(inside & ~valid).ravel(), minlength=k_max + 1).cumsum()
+    ok = (outside == 0) & (nodata <= max_nodata * total)
+    # Rings are nested: the largest m such that every ring up to m is acceptable.
+    bad = np.flatnonzero(~ok)
+    m = k_max if bad.size == 0 else int(bad[0]) - 1
+    return m, (int(nodata[m]) if m >= 0 else 0)
+
+
+# --------------------------------------------------------------------------------------------
+# Building
+# --------------------------------------------------------------------------------------------
+def _atomic_save_npz(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a patch is shared data (rw-r--r--)
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict) -> str:
+    """Content key of a patch: DEM bytes, crater, terrain + detail settings, format version."""
+    detail = s["detail"].as_dict() if s["detail"].enabled else {"enabled": False}
+    key = {
+        "format": TERRAIN_FORMAT_VERSION, "dem_sha256": dem_sha, "far_dem_sha256": far_dem_sha,
+        "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km")},
+        "terrain": {k: s[k] for k in ("near_radius_factor", "near_vertices", "far_radius_km", "far_spacing_km",
+                                      "max_nodata_fraction")},
+        "detail": detail,
+    }
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
+    if not (npz.is_file() and meta_path.is_file()):
+        return None
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return None
+    return meta if meta.get("terrain_id") == tid else None
+
+
+def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
+    """Build (or reuse) the terrain patch of ``crater`` (an entry of ``config.craters(cfg)``).
+
+    Returns (npz path, metadata dict as written to the sibling ``.json``).
+    """
+    from data_manifest.schema import atomic_write_text
+    from crater_synth.dem import DemCoverageError
+    from crater_synth.detail import synthesize_detail
+
+    t0 = time.perf_counter()
+    s = terrain_settings(cfg)
+    name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
+    diameter_m = float(crater["diameter_km"]) * 1000.0
+    dem, dem_sha = _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
+    if s["dem"]["far_product"] or s["dem"]["far_path"]:
+        far_dem, far_sha = _open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
+    else:
+        far_dem, far_sha = dem, dem_sha
+
+    tid = terrain_id(dem_sha, far_sha, crater, s)
+    out_dir = s["data_dir"] / TERRAIN_SUBDIR
+    npz_path = out_dir / f"{name}-{tid}.npz"
+    meta_path = npz_path.with_suffix(".json")
+    cached = _load_cached(npz_path, meta_path, tid)
+    if cached is not None:
+        return npz_path, {**cached, "patch": str(npz_path), "cached": True}
+
+    # Crater centre inside the DEM at all?
+    ccol, crow = dem.latlon_to_pixel(lat, lon)
+    if not bool(dem.inside(ccol, crow)):
+        raise DemCoverageError(f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
+                               f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})")
+
+    # ---- near field
+    nv = s["near_vertices"]
+    hw = s["near_radius_factor"] * diameter_m
+    spacing = 2.0 * hw / (nv - 1)
+    coords = np.linspace(-hw, hw, nv)
+    ee, nn = np.meshgrid(coords, coords)  # [i, j] = (e_j, n_i)
+    dirs, plat, plon = _sphere_points(ee, nn, lat, lon)
+    near = dem.sample(plat, plon, spacing_m=spacing, max_nodata_fraction=s["max_nodata_fraction"],
+                      what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)")
+    detail, detail_stats = synthesize_detail((nv, nv), spacing, dem.pixel_size_m * near.decimation, s["detail"],
+                                             key=name)
+    near_h = near.heights + detail
+    near_xyz = _to_enu(dirs, near_h, lat, lon)
+
+    # ---- far field
+    fs = s["far_spacing_km"] * 1000.0
+    far_info: dict = {"half_width_m": 0.0, "spacing_m": fs, "shape": [0, 0], "product": far_dem.product}
+    far_xyz = np.zeros((0, 0, 3))
+    keep = np.zeros((0, 0), dtype=bool)
+    if s["far_radius_km"] > 0.0:
+        k_max = int(math.floor(s["far_radius_km"] * 1000.0 / fs + 1e-9))
+        k_min = int(math.ceil(hw / fs + 1e-9)) + 1  # at least one far ring wholly outside the near field
+        if k_max < k_min:
+            raise TerrainConfigError(
+                f"terrain.far_radius_km={s['far_radius_km']:g} does not reach beyond the near field of crater "
+                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0")
+        m, _ = _far_half_cells(far_dem, lat, lon, k_max, fs, s["max_nodata_fraction"])
+        if m < k_min:
+            raise DemCoverageError(
+                f"DEM {far_dem.product} does not cover a far field around crater {name} beyond its near field "
+                f"(+-{hw / 1e3:.1f} km + one {fs / 1e3:g} km cell); set dem.far_product to a wider DEM or "
+                "terrain.far_radius_km=0")
+        fcoords = np.arange(-m, m + 1) * fs
+        fe, fn = np.meshgrid(fcoords, fcoords)
+        fdirs, flat, flon = _sphere_points(fe, fn, lat, lon)
+        far = far_dem.sample(flat, flon, spacing_m=fs, max_nodata_fraction=s["max_nodata_fraction"],
+                             what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)")
+        far_xyz = _to_enu(fdirs, far.heights, lat, lon)
+        keep = far_keep_quads(fcoords, hw, fs)
+        far_info.update(half_width_m=float(m * fs), shape=[2 * m + 1, 2 * m + 1],
+                        requested_half_width_m=float(k_max * fs), clipped=bool(m < k_max),
+                        nodata_fraction=far.nodata_fraction, filled_pixels=far.filled_pixels,
+                        filled_holes=far.filled_holes, decimation=far.decimation,
+                        kept_quads=int(keep.sum()))
+
+    meas = measure_crater(near_h, near_xyz[..., 2], hw, spacing, 0.5 * diameter_m)
+    arrays = {
+        "near_xyz": near_xyz.astype(np.float32),
+        "far_xyz": far_xyz.astype(np.float32),
+        "far_keep_quads": keep.astype(bool),
+        "near_height": near_h.astype(np.float32),
+    }
+    dem_info = dem.info()
+    meta = {
+        "terrain_id": tid,
+        "format_version": TERRAIN_FORMAT_VERSION,
+        "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km", "source") if k in crater},
+        "frame": "ENU at the crater centre on the 1737.4 km sphere; x east, y north, z up, metres",
+        "dem": {
+            "product": dem.product, "path": str(dem.path), "sha256": dem_sha,
+            "pixel_size_m": dem.pixel_size_m, "crs_wkt": dem_info["crs_wkt"], "crs_proj": dem_info["crs_proj"],
+            "crater_center_px": [float(ccol), float(crow)], "decimation": near.decimation,
+            "far_product": far_dem.product, "far_sha256": far_sha,
+        },
+        "near": {"half_width_m": hw, "spacing_m": spacing, "shape": [nv, nv],
+                 "rows": "n ascending (south to north)", "cols": "e ascending (west to east)"},
+        "far": far_info,
+        **{k: meas[k] for k in ("rim_z_m", "floor_z_m", "rim_to_floor_depth_m")},
+        "rim_height_m": meas["rim_height_m"], "rim_crest_height_m": meas["rim_crest_height_m"],
+        "floor_height_m": meas["floor_height_m"],
+        "vertex_count": int(nv * nv + far_xyz.shape[0] * far_xyz.shape[1]),
+        "nodata_fraction": near.nodata_fraction,
+        "filled_holes": near.filled_holes,
+        "filled_pixels": near.filled_pixels,
+        "detail": detail_stats,
+        "patch": str(npz_path),
+        "build_seconds": round(time.perf_counter() - t0, 3),
+    }
+    _atomic_save_npz(npz_path, arrays)
+    atomic_write_text(meta_path, json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    return npz_path, {**meta, "cached": False}
+
+
+def summary_line(meta: dict) -> dict:
+    """The one-line JSON report of a patch printed by ``crater-synth terrain``."""
+    return {
+        "crater": meta["crater"]["name"],
+        "terrain_id": meta["terrain_id"],
+        "dem_product": meta["dem"]["product"],
+        "dem_pixel_m": meta["dem"]["pixel_size_m"],
+        "crater_center_px": [round(v, 3) for v in meta["dem"]["crater_center_px"]],
+        "rim_to_floor_depth_m": round(meta["rim_to_floor_depth_m"], 1),
+        "rim_z_m": round(meta["rim_z_m"], 1),
+        "near_extent_km": round(2.0 * meta["near"]["half_width_m"] / 1e3, 3),
+        "near_spacing_m": round(meta["near"]["spacing_m"], 2),
+        "far_extent_km": round(2.0 * meta["far"]["half_width_m"] / 1e3, 3),
+        "vertex_count": meta["vertex_count"],
+        "nodata_fraction": meta["nodata_fraction"],
+        "filled_holes": meta["filled_holes"],
+        "detail_craters": meta["detail"]["n_craters"],
+        "cached": meta.get("cached", False),
+        "patch": meta["patch"],
+    }
+
+
+@click.command("terrain")
+@OVERRIDES
+@user_errors
+def terrain_command(overrides):
+    """Build (or reuse) each selected crater's terrain patch; print one JSON line per crater.
+
+    Example: ``crater-synth terrain crater=shackleton terrain.near_vertices=256``
+    """
+    from crater_synth.config import compose, craters
+
+    cfg = compose(overrides)
+    for crater in craters(cfg):
+        _, meta = build_terrain(crater, cfg)
+        click.echo(json.dumps(summary_line(meta)))

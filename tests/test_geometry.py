@@ -1,0 +1,96 @@
+"""blender_gen.geometry: projections against PROJ, curvature, local frames, cameras, rim ellipses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blender_gen import geometry as g
+
+STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
+MOON_LONLAT = "+proj=longlat +R=1737400 +no_defs"
+
+
+def test_south_polar_stereographic_matches_proj():
+    from rasterio.crs import CRS
+    from rasterio.warp import transform
+
+    rng = np.random.default_rng(0)
+    lat = rng.uniform(-90.0, -60.0, 2000)
+    lon = rng.uniform(-180.0, 180.0, 2000)
+    xp, yp = transform(CRS.from_proj4(MOON_LONLAT), CRS.from_proj4(STEREO_SOUTH), lon, lat)
+    x, y = g.south_polar_stereo_forward(lat, lon)
+    np.testing.assert_allclose(x, xp, atol=1e-6)
+    np.testing.assert_allclose(y, yp, atol=1e-6)
+    lat2, lon2 = g.south_polar_stereo_inverse(x, y)
+    np.testing.assert_allclose(lat2, lat, atol=1e-9)
+    np.testing.assert_allclose(lon2, lon, atol=1e-9)
+
+
+def test_curvature_drop_at_100_km():
+    d, r = 100e3, g.MOON_RADIUS_M
+    approx = d**2 / (2.0 * r)
+    assert abs(g.curvature_drop_m(d) - approx) / approx < 0.01
+    assert 2.8e3 < approx < 2.95e3
+    # The same drop seen in the ENU frame: a sphere point at arc length d from the origin.
+    lat0, lon0 = -89.67, 129.78
+    north = g.enu_basis(lat0, lon0)[1]
+    up = g.enu_basis(lat0, lon0)[2]
+    theta = d / r
+    p = r * (np.cos(theta) * up + np.sin(theta) * north)
+    enu = g.mc_to_enu(p, lat0, lon0)
+    assert abs(-enu[2] - approx) / approx < 0.01
+
+
+@pytest.mark.parametrize("lat, lon", [(-89.67, 129.78), (-88.5, -87.1), (-88.1, 44.9), (0.0, 0.0), (45.0, 200.0)])
+def test_enu_basis_orthonormal_right_handed(lat, lon):
+    b = g.enu_basis(lat, lon)
+    np.testing.assert_allclose(b @ b.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np.cross(b[0], b[1]), b[2], atol=1e-12)
+    np.testing.assert_allclose(b[2], g.latlon_to_mc(lat, lon) / g.MOON_RADIUS_M, atol=1e-12)
+
+
+@pytest.mark.parametrize("lat, lon", [(-89.67, 129.78), (-88.5, -87.1), (-88.1, 44.9)])
+def test_north_points_away_from_south_pole(lat, lon):
+    east, north, _ = g.enu_basis(lat, lon)
+    pole = np.array([0.0, 0.0, -g.MOON_RADIUS_M])
+    here = g.latlon_to_mc(lat, lon)
+    step = 1000.0
+    assert np.linalg.norm(here + step * north - pole) > np.linalg.norm(here - pole) + 0.99 * step
+    # East is the direction of increasing longitude.
+    lat1, lon1, _ = g.mc_to_latlon(here + step * east)
+    assert (lon1 - lon + 540.0) % 360.0 - 180.0 > 0.0
+    lat2, _, _ = g.mc_to_latlon(here + step * north)
+    assert lat2 > lat
+
+
+@pytest.mark.parametrize("elev, az", [(90.0, 0.0), (70.0, 40.0), (54.0, 215.0)])
+def test_projected_circle_is_the_returned_ellipse(elev, az):
+    width, radius = 1024, 10.5e3
+    pose = g.look_at_camera(elev, az, 1.5 * 21e3, 90.0)
+    centre = np.array([0.0, 0.0, 250.0])
+    t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    circle = centre + radius * np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=-1)
+    uv, depth = g.project_points(circle, pose, width)
+    assert (depth > 0).all()
+    ell = g.project_horizontal_circle(centre, radius, pose, width)
+    ca, sa = np.cos(ell.angle), np.sin(ell.angle)
+    du, dv = uv[:, 0] - ell.cu, uv[:, 1] - ell.cv
+    q = ((ca * du + sa * dv) / ell.a) ** 2 + ((-sa * du + ca * dv) / ell.b) ** 2
+    np.testing.assert_allclose(q, 1.0, atol=1e-6)
+    assert ell.a >= ell.b > 0
+
+
+@pytest.mark.parametrize("elev, az", [(90.0, 0.0), (62.0, 120.0), (54.0, 330.0)])
+def test_camera_looks_at_target(elev, az):
+    target = np.array([100.0, -50.0, 30.0])
+    pose = g.look_at_camera(elev, az, 30e3, 90.0, target=target)
+    want = (target - pose.position) / np.linalg.norm(target - pose.position)
+    np.testing.assert_allclose(pose.forward, want, atol=1e-12)
+    np.testing.assert_allclose(pose.rotation.T @ pose.rotation, np.eye(3), atol=1e-12)
+    uv, depth = g.project_points(target, pose, 640)
+    np.testing.assert_allclose(uv, [320.0, 320.0], atol=1e-9)
+    assert depth == pytest.approx(30e3)
+    # Camera elevation above the local horizon as configured.
+    v = pose.position - target
+    assert np.degrees(np.arcsin(v[2] / np.linalg.norm(v))) == pytest.approx(elev)
