@@ -94,8 +94,8 @@ def preview_dataset(dataset_dir: str | Path, out_dir: str | Path | None = None, 
     for crater in sorted({r["crater"] for r in rows}):
         crater_rows = [r for r in rows if r["crater"] == crater]
         sheets.append(contact_sheet(crater_rows, d, out / f"contact_{crater}.png",
-                                    f"{crater}: {len(crater_rows)} renders (sun el/az, cam el/az in deg); "
-                                    f"red = projected rim, blue = sigma boxes", max_tiles))
+                                    f"{crater}: {len(crater_rows)} renders (sun el/az, cam el/az in deg)\n"
+                                    f"red: projected rim; blue: sigma boxes", max_tiles))
     return sheets
 
 
