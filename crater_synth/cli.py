@@ -18,6 +18,9 @@ _COMMANDS = (
     ("crater_synth.dataset", "dataset_command"),
     ("crater_synth.verify", "verify_command"),
     ("crater_synth.preview", "preview_command"),
+    ("train.cli", "train_command"),
+    ("train.cli", "evaluate_command"),
+    ("crater_synth.report", "report_command"),
 )
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

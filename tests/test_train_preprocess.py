@@ -1,0 +1,91 @@
+"""One preprocessing path: geometry of the ROI resampling, and photometric equivalence of a
+synthetic I/F crop and an 8-bit version of the same scene."""
+
+import numpy as np
+import pytest
+
+from train.errors import TrainError
+from train.preprocess import (PreprocessConfig, SensorModel, normalize, outside_fraction, preprocess_crop,
+                              resample_box)
+from train.toydata import render_toy
+
+PP = PreprocessConfig()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A toy crater scene in I/F (float), 96x96 with the rim 64 px across, low sun."""
+    return render_toy(2, 96, 64.0, 8.0, 200.0, 90.0, 30.0, terrain_seed=3)["IF"]
+
+
+def _stats(x):
+    return np.array([x.mean(), x.std(), *np.percentile(x, [25, 50, 75, 95])])
+
+
+@pytest.mark.parametrize("rotation", [0.0, 33.0])
+@pytest.mark.parametrize("offset_dn", [0, 4])
+def test_if_and_8bit_versions_of_a_scene_give_the_same_statistics(scene, rotation, offset_dn):
+    box = (48 - 44.8, 48 - 44.8, 48 + 44.8, 48 + 44.8)          # sigma 1.4 of a 64 px rim
+    gain = 230.0 / float(scene.max())                            # linear camera, unknown exposure
+    dn8 = np.clip(np.rint(scene * gain + offset_dn), 0, 255).astype(np.uint8)
+    a = preprocess_crop(scene, box, PP, rotation_deg=rotation)
+    b = preprocess_crop(dn8, box, PP, rotation_deg=rotation)
+    assert a.shape == b.shape == (150, 150) and a.dtype == b.dtype == np.float32
+    assert 0.0 <= a.min() and a.max() <= 1.0
+    np.testing.assert_allclose(_stats(a), _stats(b), atol=0.02)
+    assert np.mean(np.abs(a - b)) < 0.02
+
+
+def test_normalize_is_affine_invariant_and_handles_dark_images():
+    rng = np.random.default_rng(0)
+    x = rng.gamma(0.5, 0.05, size=(150, 150)).astype(np.float32)
+    np.testing.assert_allclose(normalize(x, PP), normalize(7.0 * x + 0.3, PP), atol=1e-5)
+    assert not normalize(np.zeros((150, 150)), PP).any()          # fully shadowed -> zeros, no NaN
+    y = normalize(np.where(np.arange(150 * 150).reshape(150, 150) == 7, 1.0, 0.0), PP)
+    assert np.isfinite(y).all() and y.max() == 1.0
+
+
+def test_resample_box_geometry_and_rotation_without_black_corners():
+    # A linear ramp in u: sampling a box returns the ramp over the box, pixel centres at i + 0.5.
+    ramp = np.tile(np.arange(200, dtype=np.float32) + 0.5, (200, 1))  # value = u coordinate of the centre
+    out = resample_box(ramp, (50, 60, 125, 135), 150, antialias=False)
+    expected = 50 + (np.arange(150) + 0.5) * 0.5
+    np.testing.assert_allclose(out[75], expected, atol=1e-3)
+    # Rotation of the sampling grid: constant image stays constant (no empty corners).
+    const = np.full((300, 300), 5.0, dtype=np.float32)
+    rot = resample_box(const, (100, 100, 200, 200), 150, rotation_deg=45.0)
+    np.testing.assert_allclose(rot, 5.0)
+    # Grid rotated 90 degrees counter-clockwise == the crop's content turned clockwise (np.rot90 k=-1).
+    img = np.random.default_rng(1).random((120, 120)).astype(np.float32)
+    r0 = resample_box(img, (10, 10, 110, 110), 100, antialias=False, order=1)
+    r90 = resample_box(img, (10, 10, 110, 110), 100, rotation_deg=90.0, antialias=False, order=1)
+    np.testing.assert_allclose(r90, np.rot90(r0, -1), atol=1e-4)
+
+
+def test_antialiasing_removes_aliasing():
+    # A checkerboard at the source Nyquist frequency must average out when shrunk 4x.
+    cb = (np.indices((600, 600)).sum(0) % 2).astype(np.float32)
+    aa = resample_box(cb, (0, 0, 600, 600), 150, antialias=True)
+    assert abs(aa.mean() - 0.5) < 0.01 and aa.std() < 0.05
+
+
+def test_outside_fraction_and_degenerate_box():
+    assert outside_fraction((0, 0, 10, 10), (10, 10)) == 0
+    assert outside_fraction((0, 0, 10, 10), (10, 10), rotation_deg=45) > 0.2
+    with pytest.raises(TrainError, match="degenerate"):
+        resample_box(np.zeros((10, 10)), (5, 5, 5, 9), 8)
+
+
+def test_sensor_model_is_seeded_and_quantised(scene):
+    crop = resample_box(scene, (0, 0, 96, 96), 150) * (0.2 / float(scene.max()))   # below full well
+    s = SensorModel(resolution_min_px=48, resolution_prob=1.0)
+    a = s.apply(crop, np.random.default_rng(5))
+    b = s.apply(crop, np.random.default_rng(5))
+    c = s.apply(crop, np.random.default_rng(6))
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert len(np.unique(np.rint(a * 255))) <= 256 and np.allclose(a * 255, np.rint(a * 255), atol=1e-4)
+    # After normalisation the noisy image still resembles the clean one.
+    assert np.mean(np.abs(normalize(a) - normalize(crop))) < 0.12
+    with pytest.raises(TrainError, match="unknown sensor key"):
+        SensorModel.from_config({"psf": 1})

@@ -1,0 +1,51 @@
+"""`crater-synth train` and `crater-synth evaluate` (heavy imports stay inside the commands)."""
+
+from __future__ import annotations
+
+import click
+
+from crater_synth.cli_common import OVERRIDES, user_errors
+
+
+def _cfg(overrides):
+    from crater_synth.config import compose, resolved
+
+    return resolved(compose(overrides))
+
+
+def _report(metrics: dict, run_dir) -> None:
+    for m in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"):
+        r = metrics[m]
+        val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"
+        click.echo(f"{m:12s} real accuracy {r['real_accuracy']:.3f}  (validation {val})")
+    click.echo(f"train images {metrics['train_images']}, real test images {metrics['test_images']} "
+               f"from {metrics['test_sources']}")
+    click.echo(f"note: {metrics['limits']}")
+    click.echo(f"wrote {run_dir}/metrics.json")
+
+
+@click.command("train")
+@OVERRIDES
+@user_errors
+def train_command(overrides):
+    """Train LunarNet_ex, LunarSVM_ex and HOG+SVM on the manifest at train.dataset_dir; evaluate on real crops.
+
+    e.g. ``crater-synth train sweep=demo train.max_epochs=10 run_dir=outputs/demo``
+    """
+    from train.pipeline import train_and_evaluate
+
+    cfg = _cfg(overrides)
+    metrics = train_and_evaluate(cfg)
+    _report(metrics, cfg["run_dir"])
+
+
+@click.command("evaluate")
+@OVERRIDES
+@user_errors
+def evaluate_command(overrides):
+    """Evaluate the models saved in run_dir on the real test set (metrics.json, confusion PNGs)."""
+    from train.pipeline import evaluate_saved
+
+    cfg = _cfg(overrides)
+    metrics = evaluate_saved(cfg)
+    _report(metrics, cfg["run_dir"])

@@ -1,0 +1,431 @@
+"""Synthetic training data: manifest rows -> cached 150x150 crops -> a torch Dataset (docs/classifiers.md).
+
+- One sample per (manifest row, sigma).
+- The geometric part of the preprocessing (sigma box -> 150x150, anti-aliased) is done once and kept in
+  an on-disk cache, ``<train.cache_dir>/crops-<manifest digest>-<preprocessing hash>/images.npy``
+  (a numpy memmap), so epochs after the first never decode an EXR. The sensor model and the
+  photometric normalisation run per sample at load time (fresh, seeded noise every epoch).
+- Train/validation split by render parameters: whole camera poses (or sun directions) are held out,
+  seeded, so a validation image never has a near-duplicate (same pose, other sun / other sigma) in
+  training.
+- Only synthetic render rows are accepted: anything else -- a row marked as real/test, or a file whose
+  checksum is that of a real test image -- is refused with :class:`RealDataLeakError`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from data_manifest.schema import ManifestError, manifest_digest, sha256_file, validate_row
+from train.errors import DatasetError, RealDataLeakError
+from train.preprocess import PreprocessConfig, SensorModel, normalize, outside_fraction, resample_box
+
+SYNTHETIC = "synthetic"
+CACHE_FORMAT = 1
+
+
+# ------------------------------------------------------------------------------------------------
+# EXR reading
+# ------------------------------------------------------------------------------------------------
+def read_exr_channel(path: str | Path, channel: str = "IF") -> np.ndarray:
+    """One channel of an EXR, looked up by name (OpenImageIO may reorder channels), as float32 (H, W)."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"EXR {path} does not exist (listed in the manifest)")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DatasetError(f"cannot open EXR {path}: {oiio.geterror() or 'unreadable file'}")
+    try:
+        spec = inp.spec()
+        names = list(spec.channelnames)
+        if channel not in names:
+            raise DatasetError(f"EXR {path} has no channel {channel!r} (channels: {names})")
+        c = names.index(channel)
+        data = inp.read_image(0, 0, c, c + 1, oiio.FLOAT)
+        if data is None:
+            raise DatasetError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
+    finally:
+        inp.close()
+    data = np.asarray(data, dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., 0]
+    if not np.all(np.isfinite(data)):
+        raise DatasetError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
+    return data
+
+
+# ------------------------------------------------------------------------------------------------
+# Rows, classes, leak guard, split
+# ------------------------------------------------------------------------------------------------
+def class_names_from_config(cfg: Mapping) -> list[str]:
+    """Class names in configuration order (the ``crater`` group)."""
+    craters = cfg.get("crater") or {}
+    names = [str((entry or {}).get("name") or key) for key, entry in craters.items()]
+    if not names:
+        raise DatasetError("no crater selected (crater=...): nothing to classify")
+    return names
+
+
+def require_manifest(dataset_dir: str | Path) -> Path:
+    """``<dataset_dir>/manifest.jsonl``, or a clear error when it is missing."""
+    from data_manifest.schema import MANIFEST_NAME
+
+    p = Path(dataset_dir) / MANIFEST_NAME
+    if not p.is_file():
+        raise DatasetError(f"no {MANIFEST_NAME} in {Path(dataset_dir)}: render a dataset first (crater-synth dataset) "
+                           f"or set train.dataset_dir")
+    return p
+
+
+def load_rows(dataset_dir: str | Path) -> list[dict]:
+    """Strictly read ``<dataset_dir>/manifest.jsonl``."""
+    from data_manifest.schema import load_manifest
+
+    d = Path(dataset_dir)
+    require_manifest(d)
+    try:
+        return load_manifest(d)
+    except ManifestError as exc:
+        raise DatasetError(str(exc)) from None
+
+
+def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
+    """Checksums of real test products named in the configuration (training must never read them)."""
+    out = set()
+    sha = ((cfg.get("realset") or {}).get("mosaic") or {}).get("sha256")
+    if sha:
+        out.add(str(sha))
+    return out
+
+
+def check_synthetic_rows(rows: Iterable[dict], dataset_dir: str | Path,
+                         forbidden_sha256: Iterable[str] = (), forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
+    """Refuse anything that is not a synthetic render row: a row that fails the render-manifest schema,
+    one marked with a non-synthetic ``source``/``role``, or one whose file (by manifest checksum or
+    resolved path) is a real test image. Returns the rows."""
+    bad_sha = set(forbidden_sha256)
+    bad_paths = {Path(p).resolve() for p in forbidden_paths}
+    out = []
+    for i, row in enumerate(rows):
+        where = f"training row {i} ({row.get('path', '?')})"
+        if str(row.get("source", SYNTHETIC)) != SYNTHETIC or str(row.get("role", "train")) == "test" \
+                or "image_path" in row:
+            raise RealDataLeakError(f"{where} is not a synthetic render (source={row.get('source')!r}, "
+                                    f"role={row.get('role')!r}): real images are only ever test data")
+        try:
+            validate_row(row, where)
+        except ManifestError as exc:
+            raise RealDataLeakError(f"{where} is not a render-manifest row, refused for training: {exc}") from None
+        if row["sha256"] in bad_sha:
+            raise RealDataLeakError(f"{where} has the sha256 of a real test image: refused for training")
+        if bad_paths and resolve_path(dataset_dir, row["path"]).resolve() in bad_paths:
+            raise RealDataLeakError(f"{where} points at a real test image: refused for training")
+        out.append(row)
+    return out
+
+
+def resolve_path(dataset_dir: str | Path, rel: str) -> Path:
+    p = Path(rel)
+    return p if p.is_absolute() else Path(dataset_dir) / p
+
+
+def select_rows(rows: Sequence[dict], class_names: Sequence[str]) -> tuple[list[dict], dict[str, int]]:
+    """Rows of the configured craters; every class must have rows (clear error otherwise)."""
+    counts = {n: 0 for n in class_names}
+    others: dict[str, int] = {}
+    keep = []
+    for r in rows:
+        if r["crater"] in counts:
+            counts[r["crater"]] += 1
+            keep.append(r)
+        else:
+            others[r["crater"]] = others.get(r["crater"], 0) + 1
+    empty = [n for n, c in counts.items() if c == 0]
+    if empty:
+        extra = f"; the manifest also has {others}" if others else ""
+        raise DatasetError(f"empty class(es) {empty}: no rendered rows for them in the manifest "
+                           f"(rows per class: {counts}{extra})")
+    return keep, others
+
+
+def _group_key(row: dict, split_by: str) -> tuple:
+    if split_by == "camera":
+        return round(float(row["cam_elevation"]), 6), round(float(row["cam_azimuth"]), 6)
+    if split_by == "sun":
+        return round(float(row["sun_elevation"]), 6), round(float(row["sun_azimuth"]), 6)
+    raise DatasetError(f"train.split_by={split_by!r}: use 'camera' or 'sun'")
+
+
+def split_rows(rows: Sequence[dict], val_fraction: float, split_by: str, seed: int,
+               class_names: Sequence[str]) -> tuple[list[int], list[int], dict]:
+    """Hold out whole render groups (camera poses, or sun directions) for validation, seeded.
+
+    Falls back to the other axis when the chosen one has a single value. Returns (train row indices,
+    val row indices, info)."""
+    if not 0.0 < val_fraction < 1.0:
+        raise DatasetError(f"train.val_fraction={val_fraction} must lie in (0, 1)")
+    order = [split_by] + [a for a in ("camera", "sun") if a != split_by]
+    for axis in order:
+        keys = sorted({_group_key(r, axis) for r in rows})
+        if len(keys) >= 2:
+            break
+    else:
+        raise DatasetError("cannot split train/validation without leakage: the manifest has a single camera "
+                           "pose and a single sun direction; render at least two of either")
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED])
+    perm = rng.permutation(len(keys))
+    n_val = min(len(keys) - 1, max(1, int(round(val_fraction * len(keys)))))
+    val_keys = {keys[i] for i in perm[:n_val]}
+    tr, va = [], []
+    for i, r in enumerate(rows):
+        (va if _group_key(r, axis) in val_keys else tr).append(i)
+    for part, idx in (("training", tr), ("validation", va)):
+        have = {rows[i]["crater"] for i in idx}
+        missing = [n for n in class_names if n not in have]
+        if missing:
+            raise DatasetError(f"the {part} split has no rows of {missing} (split by {axis}, {len(keys)} groups): "
+                               f"render the same poses for every crater or change train.val_fraction")
+    info = {"split_by": axis, "groups": len(keys), "val_groups": sorted([list(k) for k in val_keys]),
+            "train_rows": len(tr), "val_rows": len(va)}
+    return tr, va, info
+
+
+# ------------------------------------------------------------------------------------------------
+# Cache
+# ------------------------------------------------------------------------------------------------
+def _sigma_box(row: dict, sigma: float, where: str) -> list[float]:
+    for k, box in row["sigma_boxes"].items():
+        try:
+            if abs(float(k) - sigma) < 1e-6:
+                return [float(b) for b in box]
+        except (TypeError, ValueError):
+            continue
+    raise DatasetError(f"{where}: no sigma box for sigma={sigma} (has {sorted(row['sigma_boxes'])})")
+
+
+def row_sigmas(rows: Sequence[dict], sigmas: Sequence[float] | None) -> list[float]:
+    """The sigmas to use: configured ones, else the union over the rows' ``sigma_boxes``."""
+    if sigmas:
+        return sorted(float(s) for s in sigmas)
+    found = set()
+    for r in rows:
+        for k in r["sigma_boxes"]:
+            try:
+                found.add(round(float(k), 6))
+            except ValueError:
+                raise DatasetError(f"row {r.get('path')}: sigma_boxes key {k!r} is not a number") from None
+    if not found:
+        raise DatasetError("manifest rows carry no sigma_boxes")
+    return sorted(found)
+
+
+@dataclass
+class CropCache:
+    """The cached resampled (pre-photometry) I/F crops of a set of rows."""
+
+    path: Path
+    images: np.ndarray               # (N, size, size) memmap
+    samples: list[tuple[int, float]]  # (row index, sigma) per cached image
+    built: bool = False              # True when this call decoded EXRs
+    seconds: float = 0.0
+
+
+def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfig, dtype: str) -> str:
+    h = hashlib.sha256(json.dumps({"format": CACHE_FORMAT, "pp": pp.geometry_key(), "sigmas": list(sigmas),
+                                   "dtype": dtype, "max_outside": pp.max_outside_frac}, sort_keys=True).encode())
+    return f"crops-{manifest_digest(rows)}-{h.hexdigest()[:10]}"
+
+
+def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[float], pp: PreprocessConfig,
+                cache_dir: str | Path, dtype: str = "float16", verify_sha256: bool = True,
+                progress: bool = False) -> CropCache:
+    """Resample every (row, sigma) once into ``cache_dir`` (atomic: built in a temp dir, then renamed);
+    reuse it when present. Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
+    :class:`DatasetError` naming the file."""
+    import time
+
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    if dtype not in ("float16", "float32"):
+        raise DatasetError(f"train.cache_dtype={dtype!r}: use float16 or float32")
+    rows = list(rows)
+    key = cache_key(rows, sigmas, pp, dtype)
+    final = Path(cache_dir) / key
+    samples = [(i, float(s)) for i in range(len(rows)) for s in sigmas]
+    if (final / "index.json").is_file():
+        try:
+            meta = json.loads((final / "index.json").read_text())
+            images = np.load(final / "images.npy", mmap_mode="r")
+            if [tuple(x) for x in meta["samples"]] == samples and images.shape == (len(samples), pp.size, pp.size):
+                return CropCache(final, images, samples, built=False, seconds=time.perf_counter() - t0)
+        except (OSError, ValueError, KeyError, json.JSONDecodeError):
+            pass  # unreadable cache: rebuild below
+        shutil.rmtree(final, ignore_errors=True)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=final.parent))
+    try:
+        arr = np.lib.format.open_memmap(tmp / "images.npy", mode="w+", dtype=np.dtype(dtype),
+                                        shape=(len(samples), pp.size, pp.size))
+        j = 0
+        for i, row in enumerate(tqdm(rows, desc="cache crops", unit="exr", disable=not progress, leave=False)):
+            path = resolve_path(dataset_dir, row["path"])
+            where = f"EXR {path}"
+            if not path.is_file():
+                raise DatasetError(f"{where} does not exist (manifest row {row['crater']} index {row['index']})")
+            if verify_sha256:
+                got = sha256_file(path)
+                if got != row["sha256"]:
+                    raise DatasetError(f"{where}: sha256 {got} does not match the manifest's {row['sha256']} "
+                                       f"(file changed or corrupt)")
+            img = read_exr_channel(path, "IF")
+            if img.shape != (int(row["height"]), int(row["width"])):
+                raise DatasetError(f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says "
+                                   f"{row['width']}x{row['height']}")
+            for s in sigmas:
+                box = _sigma_box(row, s, where)
+                if outside_fraction(box, img.shape) > pp.max_outside_frac:
+                    raise DatasetError(f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
+                                       f"image by more than {pp.max_outside_frac:.0%} of its side")
+                arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
+                j += 1
+        arr.flush()
+        del arr
+        (tmp / "index.json").write_text(json.dumps({"format": CACHE_FORMAT, "key": key, "dataset_dir": str(dataset_dir),
+                                                    "samples": samples, "sigmas": list(sigmas),
+                                                    "pp": pp.geometry_key(), "dtype": dtype}))
+        try:
+            os.replace(tmp, final)
+        except OSError:  # another process finished the same cache first
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    images = np.load(final / "images.npy", mmap_mode="r")
+    return CropCache(final, images, samples, built=True, seconds=time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Dataset
+# ------------------------------------------------------------------------------------------------
+class SyntheticCropDataset(Dataset):
+    """Normalised synthetic crops, one per (row, sigma), for the cached samples ``indices``.
+
+    ``__getitem__`` -> (float tensor (1, N, N), int label). ``train=True`` draws fresh sensor noise
+    every epoch (:meth:`set_epoch`) and random 90-degree rotations (``augment``); ``train=False``
+    uses one fixed noise draw per sample (a stable validation set).
+    """
+
+    def __init__(self, cache: CropCache, indices: Sequence[int], labels: Sequence[int], rows: Sequence[dict],
+                 pp: PreprocessConfig, sensor: SensorModel | None, seed: int, train: bool, augment: bool = False):
+        self.cache = cache
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.labels = np.asarray(labels, dtype=np.int64)
+        self.rows = rows
+        self.pp = pp
+        self.sensor = sensor if (sensor is not None and sensor.enabled) else None
+        self.seed = int(seed) & 0xFFFFFFFF
+        self.train = train
+        self.augment = augment and train
+        self.epoch = 0
+        if len(self.indices) != len(self.labels):
+            raise DatasetError("internal: indices and labels differ in length")
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def sample_info(self, i: int) -> dict:
+        ri, s = self.cache.samples[int(self.indices[i])]
+        r = self.rows[ri]
+        return {"crater": r["crater"], "sigma": s, "path": r["path"]}
+
+    def image(self, i: int) -> np.ndarray:
+        j = int(self.indices[i])
+        x = np.asarray(self.cache.images[j], dtype=np.float32)
+        rng = np.random.default_rng([self.seed, self.epoch + 1 if self.train else 0, j])
+        if self.sensor is not None:
+            x = self.sensor.apply(x, rng)
+        y = normalize(x, self.pp)
+        if self.augment:
+            y = np.ascontiguousarray(np.rot90(y, int(rng.integers(4))))
+        return y
+
+    def __getitem__(self, i: int):
+        return torch.from_numpy(self.image(i)[None]), int(self.labels[i])
+
+    def iter_arrays(self, batch_size: int = 256, positions: Sequence[int] | None = None):
+        """Deterministic (no augmentation, epoch-0 noise) batches ``(X (B, N, N) float32, y (B,))`` over
+        ``positions`` (default: all), streamed so a large dataset never sits in memory at once."""
+        pos = np.arange(len(self)) if positions is None else np.asarray(positions, dtype=np.int64)
+        saved = (self.augment, self.epoch)
+        self.augment, self.epoch = False, 0
+        try:
+            for k in range(0, len(pos), batch_size):
+                chunk = pos[k:k + batch_size]
+                yield np.stack([self.image(int(i)) for i in chunk]), self.labels[chunk].copy()
+        finally:
+            self.augment, self.epoch = saved
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """All images and labels at once (small datasets only; see :meth:`iter_arrays`)."""
+        parts = list(self.iter_arrays(1024))
+        if not parts:
+            return np.zeros((0, self.pp.size, self.pp.size), np.float32), np.zeros(0, np.int64)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+@dataclass
+class SyntheticData:
+    train: SyntheticCropDataset
+    val: SyntheticCropDataset
+    class_names: list[str]
+    info: dict = field(default_factory=dict)
+
+
+def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden_paths: Iterable[str | Path] = (),
+                   progress: bool = False) -> SyntheticData:
+    """From a resolved config: manifest -> leak guard -> classes -> split -> cache -> datasets."""
+    tcfg = cfg["train"]
+    dataset_dir = Path(str(tcfg["dataset_dir"]))
+    class_names = class_names_from_config(cfg)
+    rows = load_rows(dataset_dir)
+    rows = check_synthetic_rows(rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg),
+                                forbidden_paths)
+    rows, others = select_rows(rows, class_names)
+    seed = int(cfg.get("seed", 0))
+    tr_rows, va_rows, split_info = split_rows(rows, float(tcfg.get("val_fraction", 0.2)),
+                                              str(tcfg.get("split_by", "camera")), seed, class_names)
+    sigmas = row_sigmas(rows, tcfg.get("sigmas"))
+    pp = PreprocessConfig.from_config(cfg)
+    cache = build_cache(rows, dataset_dir, sigmas, pp, str(tcfg.get("cache_dir", dataset_dir / ".cache")),
+                        str(tcfg.get("cache_dtype", "float16")), bool(tcfg.get("verify_sha256", True)), progress)
+    sensor = SensorModel.from_config(cfg.get("sensor"))
+    cls = {n: i for i, n in enumerate(class_names)}
+    tr_set, va_set = set(tr_rows), set(va_rows)
+    tr_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in tr_set]
+    va_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in va_set]
+    lab = [cls[rows[ri]["crater"]] for ri, _ in cache.samples]
+    train_ds = SyntheticCropDataset(cache, tr_idx, [lab[j] for j in tr_idx], rows, pp, sensor, seed, train=True,
+                                    augment=bool(tcfg.get("augment", True)))
+    val_ds = SyntheticCropDataset(cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False)
+    info = split_info | {"sigmas": sigmas, "cache": str(cache.path), "cache_built": cache.built,
+                         "cache_seconds": round(cache.seconds, 3), "train_images": len(tr_idx),
+                         "val_images": len(va_idx), "ignored_craters": others,
+                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i)) for n, i in cls.items()}}
+    return SyntheticData(train_ds, val_ds, class_names, info)

@@ -1,0 +1,169 @@
+"""Evaluation of the saved classifiers on the real test set (docs/classifiers.md, docs/realset.md).
+
+Writes into ``run_dir`` (atomically): ``metrics.json`` (accuracy overall / per crater / per sigma /
+per source and the confusion matrix of each model), ``confusion_<model>.png``, ``realset.jsonl``
+(every real crop: source product, pixel box, sigma, offset, rotation, and each model's prediction).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from data_manifest.schema import atomic_write_text
+from train.errors import ModelError
+from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
+from train.trainer import (HOG_FILE, SUMMARY_FILE, SVM_FILE, atomic_write_bytes, atomic_write_json, configure_torch,
+                           fc1_activations, load_lunarnet, load_sklearn, predict_logits)
+
+MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
+METRICS_FILE, REALSET_FILE = "metrics.json", "realset.jsonl"
+
+
+def confusion_matrix(y_true: np.ndarray, y_pred: np.ndarray, n: int) -> list[list[int]]:
+    """Rows: true class, columns: predicted class (class order of ``class_names``)."""
+    m = np.zeros((n, n), dtype=np.int64)
+    np.add.at(m, (y_true, y_pred), 1)
+    return m.tolist()
+
+
+def _acc(mask: np.ndarray, ok: np.ndarray) -> float:
+    return float(np.mean(ok[mask])) if np.any(mask) else float("nan")
+
+
+def model_metrics(y_true: np.ndarray, y_pred: np.ndarray, test: RealTestSet, val_accuracy: float | None) -> dict:
+    ok = y_true == y_pred
+    names = test.class_names
+    sig = np.array([c.sigma for c in test.crops])
+    src = np.array([c.source for c in test.crops])
+    return {
+        "real_accuracy": float(np.mean(ok)) if len(ok) else float("nan"),
+        "real_accuracy_class_mean": float(np.nanmean([_acc(y_true == i, ok) for i in range(len(names))
+                                                      if np.any(y_true == i)])) if len(ok) else float("nan"),
+        "val_accuracy": None if val_accuracy is None else float(val_accuracy),
+        "per_crater": {n: _acc(y_true == i, ok) for i, n in enumerate(names) if np.any(y_true == i)},
+        "per_sigma": {f"{s:.1f}": _acc(np.isclose(sig, s), ok) for s in sorted(set(sig.tolist()))},
+        "per_source": {s: _acc(src == s, ok) for s in sorted(set(src.tolist()))},
+        "confusion": confusion_matrix(y_true, y_pred, len(names)),
+    }
+
+
+def plot_confusion(path: str | Path, conf: Sequence[Sequence[int]], class_names: Sequence[str], title: str) -> None:
+    """Confusion matrix PNG (matplotlib Agg), written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    m = np.asarray(conf, dtype=float)
+    rowsum = m.sum(axis=1, keepdims=True)
+    frac = np.divide(m, rowsum, out=np.zeros_like(m), where=rowsum > 0)
+    fig = Figure(figsize=(4.6, 4.0), dpi=120)
+    ax = fig.add_subplot(111)
+    im = ax.imshow(frac, vmin=0, vmax=1, cmap="Blues")
+    n = len(class_names)
+    ax.set_xticks(range(n), class_names, rotation=30, ha="right")
+    ax.set_yticks(range(n), class_names)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(title, fontsize=9)
+    for i in range(n):
+        for j in range(n):
+            ax.text(j, i, f"{int(m[i, j])}\n{frac[i, j]:.0%}", ha="center", va="center", fontsize=8,
+                    color="white" if frac[i, j] > 0.5 else "black")
+    fig.colorbar(im, ax=ax, fraction=0.046)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
+    by = {}
+    for key, e in (cfg.get("crater") or {}).items():
+        e = e or {}
+        by[canonical_crater(e.get("name") or key)] = {"name": str(e.get("name") or key), "lat": e.get("lat"),
+                                                      "lon": e.get("lon"), "diameter_km": e.get("diameter_km")}
+    out = []
+    for n in class_names:
+        c = by.get(canonical_crater(n))
+        if c is None:
+            raise ModelError(f"the saved models know crater {n!r}, which is not in the configuration's crater "
+                             f"group (select it with crater=[...])")
+        out.append(c)
+    return out
+
+
+def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test: RealTestSet | None = None) -> dict:
+    """Evaluate the three saved models of ``run_dir`` on the real test set; write the metrics files."""
+    run_dir = Path(run_dir)
+    device = configure_torch(cfg["train"])
+    t0 = time.perf_counter()
+    net, ck = load_lunarnet(run_dir, device)
+    svm = load_sklearn(run_dir / SVM_FILE)
+    hog = load_sklearn(run_dir / HOG_FILE)
+    class_names = list(ck["class_names"])
+    for other, f in ((svm, SVM_FILE), (hog, HOG_FILE)):
+        if list(other["class_names"]) != class_names:
+            raise ModelError(f"{run_dir / f} was trained on classes {other['class_names']}, "
+                             f"LunarNet_ex on {class_names}: retrain")
+    summary = {}
+    if (run_dir / SUMMARY_FILE).is_file():
+        summary = json.loads((run_dir / SUMMARY_FILE).read_text())
+    if test is None:  # with the preprocessing the network was trained with
+        from train.preprocess import PreprocessConfig
+
+        pp = PreprocessConfig(**ck["preprocess"]) if ck.get("preprocess") else None
+        test = build_real_test_set(cfg, _craters_for(cfg, class_names), class_names, pp)
+    ebs = int(cfg["train"].get("eval_batch_size", 256))
+    from train.models import hog_features
+
+    preds = {
+        "lunarnet_ex": predict_logits(net, test.images, ebs, device).argmax(1),
+        "lunarsvm_ex": svm["model"].predict(fc1_activations(net, test.images, ebs, device)),
+        "hog_svm": hog["model"].predict(hog_features(test.images, hog.get("hog") or cfg["train"].get("hog", {}))),
+    }
+    vals = {"lunarnet_ex": ck.get("val_accuracy"), "lunarsvm_ex": svm.get("val_accuracy"),
+            "hog_svm": hog.get("val_accuracy")}
+    metrics: dict = {}
+    for name in MODELS:
+        metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
+        plot_confusion(run_dir / f"confusion_{name}.png", metrics[name]["confusion"], class_names,
+                       f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}")
+    metrics.update({
+        "classes": class_names,
+        "train_images": int(summary.get("train_images", 0)),
+        "val_images": int(summary.get("val_images", 0)),
+        "test_images": int(len(test.labels)),
+        "test_sources": test.sources,
+        "test_per_crater": {n: int(np.sum(test.labels == i)) for i, n in enumerate(class_names)},
+        "limits": LIMITS_NOTE if any(c.kind == "embedded" for c in test.crops) else
+                  "Real test frames from the labels file only; see realset.jsonl for their sources.",
+        "evaluate_seconds": time.perf_counter() - t0,
+    })
+    rows = []
+    for i, c in enumerate(test.crops):
+        r = c.as_row()
+        r.update({f"pred_{m}": class_names[int(preds[m][i])] for m in MODELS})
+        rows.append(json.dumps(r, sort_keys=True))
+    atomic_write_text(run_dir / REALSET_FILE, "\n".join(rows) + "\n")
+    atomic_write_json(run_dir / METRICS_FILE, _jsonable(metrics))
+    return metrics
+
+
+def _jsonable(obj):
+    """NaN -> None so metrics.json is strict JSON."""
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    return obj

@@ -1,0 +1,127 @@
+"""The three classifiers of the paper (docs/classifiers.md).
+
+- :class:`LunarNetEx` -- the shallow CNN of Fig. 5, layers in the paper's order:
+  CONV1 (stride 1) -> ReLU1 -> POOL -> CONV2 -> ReLU2 -> FC1 -> ReLU3 -> FC2 -> Softmax.
+  The softmax is applied by the loss (``CrossEntropyLoss``) in training and by :meth:`predict_proba`
+  at inference, so ``forward`` returns logits.
+- LunarSVM_ex -- a multiclass linear SVM (scikit-learn ``SGDClassifier(loss="hinge")``, one-vs-rest)
+  on standardised FC1 activations (after ReLU3) of the trained LunarNet_ex.
+- HOG + linear SVM baseline (``skimage.feature.hog`` + the same SGD linear SVM).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from train.errors import ModelError
+
+PAPER_LAYER_ORDER = ("conv1", "relu1", "pool", "conv2", "relu2", "flatten", "fc1", "relu3", "fc2")
+
+
+def _geometry(mcfg: Mapping) -> dict:
+    try:
+        n = int(mcfg["input_size"])
+        c1, k1, s1 = int(mcfg["conv1"]["channels"]), int(mcfg["conv1"]["kernel"]), int(mcfg["conv1"].get("stride", 1))
+        pk, ps = int(mcfg["pool"]["kernel"]), int(mcfg["pool"].get("stride", mcfg["pool"]["kernel"]))
+        c2, k2, s2 = int(mcfg["conv2"]["channels"]), int(mcfg["conv2"]["kernel"]), int(mcfg["conv2"].get("stride", 1))
+        f1, nc = int(mcfg["fc1"]), int(mcfg["num_classes"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelError(f"model config incomplete or not numeric: {exc}") from None
+    if s1 != 1:
+        raise ModelError(f"model.conv1.stride={s1}: the paper fixes CONV1's stride to 1")
+    h1 = n - k1 + 1
+    hp = (h1 - pk) // ps + 1
+    h2 = (hp - k2) // s2 + 1
+    if min(h1, hp, h2) < 1:
+        raise ModelError(f"model: input {n} too small for conv1 k{k1} / pool {pk}/{ps} / conv2 k{k2} s{s2}")
+    return dict(n=n, c1=c1, k1=k1, pk=pk, ps=ps, c2=c2, k2=k2, s2=s2, f1=f1, nc=nc, h1=h1, hp=hp, h2=h2)
+
+
+class LunarNetEx(nn.Module):
+    """LunarNet_ex; input (B, 1, N, N) normalised crops, output (B, num_classes) logits."""
+
+    def __init__(self, mcfg: Mapping):
+        super().__init__()
+        g = _geometry(mcfg)
+        self.geometry = g
+        dropout = float(mcfg.get("dropout", 0.0) or 0.0)
+        layers: list[tuple[str, nn.Module]] = [
+            ("conv1", nn.Conv2d(1, g["c1"], g["k1"], stride=1)),
+            ("relu1", nn.ReLU(inplace=True)),
+            ("pool", nn.MaxPool2d(g["pk"], g["ps"])),
+            ("conv2", nn.Conv2d(g["c1"], g["c2"], g["k2"], stride=g["s2"])),
+            ("relu2", nn.ReLU(inplace=True)),          # no pooling after CONV2 (paper)
+            ("flatten", nn.Flatten()),
+            ("fc1", nn.Linear(g["c2"] * g["h2"] * g["h2"], g["f1"])),
+            ("relu3", nn.ReLU(inplace=True)),
+        ]
+        if dropout > 0:
+            layers.append(("drop3", nn.Dropout(dropout)))
+        layers.append(("fc2", nn.Linear(g["f1"], g["nc"])))
+        self.layers = nn.Sequential(OrderedDict(layers))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
+
+    def fc1_features(self, x: torch.Tensor) -> torch.Tensor:
+        """FC1 activations after ReLU3 (LunarSVM_ex's features)."""
+        for name, layer in self.layers.named_children():
+            x = layer(x)
+            if name == "relu3":
+                return x
+        raise AssertionError("no relu3 layer")  # pragma: no cover
+
+    @torch.no_grad()
+    def predict_proba(self, x: torch.Tensor) -> torch.Tensor:
+        """The Softmax layer of Fig. 5."""
+        return torch.softmax(self.forward(x), dim=1)
+
+
+def parameter_count(model: nn.Module) -> int:
+    return int(sum(p.numel() for p in model.parameters()))
+
+
+def multiply_adds(mcfg: Mapping) -> dict:
+    """Multiply-accumulate operations per image, by layer (FLOPs ~= 2 x MACs)."""
+    g = _geometry(mcfg)
+    macs = {
+        "conv1": g["h1"] ** 2 * g["c1"] * g["k1"] ** 2,
+        "conv2": g["h2"] ** 2 * g["c2"] * g["c1"] * g["k2"] ** 2,
+        "fc1": g["c2"] * g["h2"] ** 2 * g["f1"],
+        "fc2": g["f1"] * g["nc"],
+    }
+    macs["total"] = sum(macs.values())
+    return macs
+
+
+# ------------------------------------------------------------------------------------------------
+# Linear SVMs (scikit-learn)
+# ------------------------------------------------------------------------------------------------
+def make_linear_svm(svm_cfg: Mapping, seed: int):
+    """Standardise -> multiclass (one-vs-rest) linear SVM trained by SGD on the hinge loss."""
+    from sklearn.linear_model import SGDClassifier
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    return make_pipeline(
+        StandardScaler(),
+        SGDClassifier(loss="hinge", alpha=float(svm_cfg.get("alpha", 1e-4)), max_iter=int(svm_cfg.get("max_iter", 50)),
+                      tol=float(svm_cfg.get("tol", 1e-4)), random_state=int(seed) & 0x7FFFFFFF),
+    )
+
+
+def hog_features(images: np.ndarray, hog_cfg: Mapping) -> np.ndarray:
+    """HOG descriptors (skimage) of normalised (N, H, W) images -> (N, D) float32."""
+    from skimage.feature import hog
+
+    ppc = int(hog_cfg.get("pixels_per_cell", 10))
+    cpb = int(hog_cfg.get("cells_per_block", 2))
+    ori = int(hog_cfg.get("orientations", 9))
+    feats = [hog(im, orientations=ori, pixels_per_cell=(ppc, ppc), cells_per_block=(cpb, cpb),
+                 block_norm="L2-Hys", feature_vector=True) for im in images]
+    return np.asarray(feats, dtype=np.float32)

@@ -1,0 +1,289 @@
+"""The one preprocessing path shared by synthetic I/F renders and real 8-bit crops (docs/preprocessing.md).
+
+    image (float I/F, or 8-bit DN / 255)
+      -> resample_box: the sigma ROI box (optionally with its sampling grid rotated), anti-aliased,
+         resampled to ``size`` x ``size`` (150 x 150)                       [geometry; cached for renders]
+      -> SensorModel.apply (synthetic training/validation images only, seeded; optional)
+      -> normalize: robust affine-invariant photometric normalisation into [0, 1]   [photometry]
+
+``normalize`` is invariant to any positive affine map ``a * x + b`` of the input, so I/F values and the
+8-bit DN of the same scene under a (linear) camera give the same network input up to quantisation.
+
+Pure numpy/scipy: no torch, no bpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from train.errors import TrainError
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Geometry + photometry settings (``train.preprocess`` plus ``model.input_size``)."""
+
+    size: int = 150
+    antialias: bool = True
+    interp_order: int = 1            # 1 = bilinear sampling of the (pre-filtered) window
+    max_outside_frac: float = 0.05   # a box may leave its image by at most this fraction of its side
+    low_percentile: float = 1.0      # black level
+    high_percentile: float = 99.5    # white level, taken over the lit pixels only
+    lit_threshold: float = 0.02      # lit = above black + this fraction of (max - black)
+    shadow_floor: float = 0.05       # linear values below this (fraction of white) count as shadow -> 0
+    gamma: float = 0.5               # output = clip(linear, 0, 1) ** gamma
+
+    def __post_init__(self):
+        if self.size < 8:
+            raise TrainError(f"preprocess size={self.size} too small (need >= 8)")
+        if not 0.0 <= self.low_percentile < self.high_percentile <= 100.0:
+            raise TrainError(f"train.preprocess: need 0 <= low_percentile < high_percentile <= 100, got "
+                             f"{self.low_percentile}, {self.high_percentile}")
+        if not 0.0 <= self.lit_threshold < 1.0:
+            raise TrainError(f"train.preprocess.lit_threshold={self.lit_threshold} must lie in [0, 1)")
+        if not 0.0 <= self.shadow_floor < 1.0:
+            raise TrainError(f"train.preprocess.shadow_floor={self.shadow_floor} must lie in [0, 1)")
+        if not self.gamma > 0:
+            raise TrainError(f"train.preprocess.gamma={self.gamma} must be > 0")
+        if self.interp_order not in (0, 1, 3):
+            raise TrainError(f"train.preprocess.interp_order={self.interp_order} must be 0, 1 or 3")
+
+    @classmethod
+    def from_config(cls, cfg: Mapping) -> "PreprocessConfig":
+        """From a resolved root config (``model.input_size`` and ``train.preprocess``)."""
+        pp = dict(cfg.get("train", {}).get("preprocess", {}) or {})
+        names = {f.name for f in fields(cls)}
+        unknown = set(pp) - names
+        if unknown:
+            raise TrainError(f"unknown train.preprocess key(s) {sorted(unknown)}; known: {sorted(names)}")
+        size = int(cfg.get("model", {}).get("input_size", pp.pop("size", 150)))
+        pp.pop("size", None)
+        return cls(size=size, **pp)
+
+    def geometry_key(self) -> dict:
+        """The settings that determine the cached (pre-photometry) arrays."""
+        return {k: v for k, v in asdict(self).items() if k in ("size", "antialias", "interp_order")}
+
+
+# ------------------------------------------------------------------------------------------------
+# Geometry: box -> size x size
+# ------------------------------------------------------------------------------------------------
+def box_center_side(box: Sequence[float]) -> tuple[float, float, float, float]:
+    """(cu, cv, width, height) of a pixel box (u0, v0, u1, v1)."""
+    u0, v0, u1, v1 = (float(b) for b in box)
+    if not (u1 > u0 and v1 > v0):
+        raise TrainError(f"degenerate pixel box {list(box)}")
+    return 0.5 * (u0 + u1), 0.5 * (v0 + v1), u1 - u0, v1 - v0
+
+
+def rotated_box_extent(box: Sequence[float], rotation_deg: float = 0.0) -> tuple[float, float, float, float]:
+    """Axis-aligned bounds (u0, v0, u1, v1) of the box's sampling grid after rotation about its centre."""
+    cu, cv, w, h = box_center_side(box)
+    t = math.radians(rotation_deg)
+    hu = 0.5 * (abs(w * math.cos(t)) + abs(h * math.sin(t)))
+    hv = 0.5 * (abs(w * math.sin(t)) + abs(h * math.cos(t)))
+    return cu - hu, cv - hv, cu + hu, cv + hv
+
+
+def outside_fraction(box: Sequence[float], shape: tuple[int, int], rotation_deg: float = 0.0) -> float:
+    """How far (as a fraction of the box side) the (rotated) box leaves an image of ``shape`` (H, W)."""
+    u0, v0, u1, v1 = rotated_box_extent(box, rotation_deg)
+    _, _, w, h = box_center_side(box)
+    H, W = shape
+    over = max(0.0, -u0, -v0, u1 - W, v1 - H)
+    return over / min(w, h)
+
+
+def resample_box(image: np.ndarray, box: Sequence[float], size: int, rotation_deg: float = 0.0,
+                 antialias: bool = True, order: int = 1) -> np.ndarray:
+    """Sample the pixel box (u0, v0, u1, v1) of a 2-D ``image`` onto a ``size`` x ``size`` grid.
+
+    Pixel coordinates: u right, v down, origin at the top-left *corner* of the image (pixel (i, j)
+    covers [j, j+1) x [i, i+1)), the convention of the manifest's ``sigma_boxes`` and of the mosaic.
+    ``rotation_deg`` rotates the sampling grid about the box centre (counter-clockwise on screen, so
+    the crop's content appears turned clockwise by that angle); a rotated crop has no empty corners as long as the rotated box stays inside the image. When the
+    box side exceeds ``size`` pixels the window is first Gaussian-filtered (sigma = (scale - 1) / 2,
+    scikit-image's anti-aliasing rule). Samples that fall outside the image take the nearest edge value.
+    Returns float32 (size, size).
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise TrainError(f"resample_box needs a 2-D image, got shape {img.shape}")
+    cu, cv, w, h = box_center_side(box)
+    scale_u, scale_v = w / size, h / size
+    aa_u = max(0.0, (scale_u - 1.0) / 2.0) if antialias else 0.0
+    aa_v = max(0.0, (scale_v - 1.0) / 2.0) if antialias else 0.0
+    # Window holding the rotated grid plus the filter and interpolation support.
+    e0u, e0v, e1u, e1v = rotated_box_extent(box, rotation_deg)
+    pad = int(math.ceil(4.0 * max(aa_u, aa_v))) + 3
+    H, W = img.shape
+    r0, r1 = int(math.floor(e0v)) - pad, int(math.ceil(e1v)) + pad
+    c0, c1 = int(math.floor(e0u)) - pad, int(math.ceil(e1u)) + pad
+    rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
+    if rr1 <= rr0 or cc1 <= cc0:
+        raise TrainError(f"pixel box {list(box)} lies entirely outside the {W}x{H} image")
+    win = img[rr0:rr1, cc0:cc1].astype(np.float32, copy=True)
+    if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
+        win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
+    if aa_u > 0 or aa_v > 0:
+        win = ndimage.gaussian_filter(win, sigma=(aa_v, aa_u), mode="nearest", truncate=4.0)
+    # Output pixel centres in the box's own frame (units of source pixels), then rotate.
+    k = (np.arange(size, dtype=np.float64) + 0.5) / size - 0.5
+    du, dv = np.meshgrid(k * w, k * h, indexing="xy")
+    t = math.radians(rotation_deg)
+    ct, st = math.cos(t), math.sin(t)
+    # Counter-clockwise on screen (v points down): u' = u cos + v sin, v' = -u sin + v cos.
+    su = cu + ct * du + st * dv
+    sv = cv - st * du + ct * dv
+    # Continuous coordinate -> array index (pixel centres at i + 0.5) -> window index.
+    rows = sv - 0.5 - r0
+    cols = su - 0.5 - c0
+    out = ndimage.map_coordinates(win, [rows, cols], order=order, mode="nearest", prefilter=order > 1)
+    return out.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# Photometry
+# ------------------------------------------------------------------------------------------------
+def normalize(image: np.ndarray, pp: PreprocessConfig = PreprocessConfig()) -> np.ndarray:
+    """Robust, affine-invariant photometric normalisation to float32 in [0, 1].
+
+    black = ``low_percentile`` of all pixels; lit = pixels above black + ``lit_threshold`` x
+    (max - black); white = ``high_percentile`` of the lit pixels (falls back to the max when fewer
+    than 16 pixels are lit); linear = (x - black) / (white - black); a dead zone removes what is
+    indistinguishable from shadow (JPEG blocks and noise of the real 8-bit frames, sensor noise of the
+    synthetic ones): out = clip((linear - shadow_floor) / (1 - shadow_floor), 0, 1) ** gamma. An image
+    with no contrast at all (fully shadowed) becomes all zeros.
+    """
+    x = np.asarray(image, dtype=np.float32)
+    flat = x.ravel()
+    if not np.all(np.isfinite(flat)):
+        flat = np.nan_to_num(flat, nan=0.0, posinf=0.0, neginf=0.0)
+        x = flat.reshape(x.shape)
+    black = float(np.percentile(flat, pp.low_percentile))
+    top = float(flat.max())
+    span = top - black
+    if not span > 1e-12 * max(1.0, abs(top)):
+        return np.zeros(x.shape, dtype=np.float32)
+    lit = flat[flat > black + pp.lit_threshold * span]
+    white = float(np.percentile(lit, pp.high_percentile)) if lit.size >= 16 else top
+    if not white > black:
+        white = top
+    y = (x - black) / (white - black)
+    if pp.shadow_floor > 0:
+        y = (y - pp.shadow_floor) / (1.0 - pp.shadow_floor)
+    y = np.clip(y, 0.0, 1.0)
+    if pp.gamma != 1.0:
+        y = y ** pp.gamma
+    return y.astype(np.float32)
+
+
+def dn_to_float(image: np.ndarray) -> np.ndarray:
+    """Integer DN -> float in [0, 1] by the type's full scale (only a scale: normalize undoes it)."""
+    a = np.asarray(image)
+    if np.issubdtype(a.dtype, np.integer):
+        return a.astype(np.float32) / float(np.iinfo(a.dtype).max)
+    return a.astype(np.float32)
+
+
+def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfig = PreprocessConfig(),
+                    rotation_deg: float = 0.0, sensor: "SensorModel | None" = None,
+                    rng: np.random.Generator | None = None) -> np.ndarray:
+    """The whole path for one crop: resample_box -> (sensor) -> normalize. ``image`` may be float I/F
+    or integer DN (8-bit real frames); both go through exactly the same steps."""
+    a = np.asarray(image)
+    crop = resample_box(a, box, pp.size, rotation_deg, pp.antialias, pp.interp_order)
+    if np.issubdtype(a.dtype, np.integer):  # DN -> [0, 1] (a pure scale; only the window is converted)
+        crop = crop / np.float32(np.iinfo(a.dtype).max)
+    if sensor is not None and sensor.enabled:
+        crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0))
+    return normalize(crop, pp)
+
+
+# ------------------------------------------------------------------------------------------------
+# Optional sensor model for synthetic images (configs/sensor)
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SensorModel:
+    """Seeded camera model applied to a resampled synthetic I/F crop before normalisation.
+
+    In order: effective-resolution jitter (down-sample to r x r, r ~ U[resolution_min_px, size], and
+    back: the real crops are up-sampled from 52-180 mosaic pixels), Gaussian PSF, exposure (automatic:
+    the image's white level -- the 99.5th percentile of its lit pixels -- lands at a random fraction
+    ``exposure_white_frac`` of full scale, as a camera exposing for the scene; or fixed:
+    ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson law), read noise (DN), quantisation to ``quantize_bits``
+    with saturation at ``full_well_if`` x gain. Returns DN / full scale (float32).
+    """
+
+    enabled: bool = True
+    psf_sigma_px: float = 0.7
+    auto_exposure: bool = True        # exposure per image: white level -> U[exposure_white_frac] x full scale
+    exposure_white_frac: tuple = (0.6, 1.05)
+    full_well_if: float = 0.25        # fixed exposure (auto_exposure=false): this I/F saturates at gain 1
+    photons_at_full_well: float = 4000.0
+    read_noise_dn: float = 1.0
+    gain_jitter: float = 0.15
+    quantize_bits: int = 8
+    resolution_min_px: int = 0        # 0 = no resolution jitter
+    resolution_prob: float = 0.5      # probability of applying the resolution jitter
+
+    def __post_init__(self):
+        if self.full_well_if <= 0 or self.photons_at_full_well <= 0:
+            raise TrainError("sensor.full_well_if and sensor.photons_at_full_well must be > 0")
+        if not 0 <= self.gain_jitter < 1:
+            raise TrainError(f"sensor.gain_jitter={self.gain_jitter} must lie in [0, 1)")
+        if self.psf_sigma_px < 0 or self.read_noise_dn < 0:
+            raise TrainError("sensor.psf_sigma_px and sensor.read_noise_dn must be >= 0")
+        if not 1 <= int(self.quantize_bits) <= 16:
+            raise TrainError(f"sensor.quantize_bits={self.quantize_bits} must lie in [1, 16]")
+        lo_hi = tuple(float(v) for v in self.exposure_white_frac)
+        if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
+            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} must be [lo, hi], 0 < lo <= hi")
+        object.__setattr__(self, "exposure_white_frac", lo_hi)
+        if not 0 <= self.resolution_prob <= 1:
+            raise TrainError(f"sensor.resolution_prob={self.resolution_prob} must lie in [0, 1]")
+
+    @classmethod
+    def from_config(cls, sensor_cfg: Mapping | None) -> "SensorModel":
+        d = dict(sensor_cfg or {})
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise TrainError(f"unknown sensor key(s) {sorted(unknown)}; known: {sorted(names)}")
+        return cls(**d)
+
+    def apply(self, image_if: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        x = np.asarray(image_if, dtype=np.float32)
+        n = x.shape[0]
+        if self.resolution_min_px and self.resolution_min_px < n and rng.random() < self.resolution_prob:
+            r = int(rng.integers(self.resolution_min_px, n + 1))
+            if r < n:
+                small = resample_box(x, (0, 0, x.shape[1], x.shape[0]), r, antialias=True, order=1)
+                x = resample_box(small, (0, 0, r, r), n, antialias=False, order=1)
+        if self.psf_sigma_px > 0:
+            x = ndimage.gaussian_filter(x, self.psf_sigma_px, mode="nearest")
+        gain = 1.0 + rng.uniform(-self.gain_jitter, self.gain_jitter) if self.gain_jitter else 1.0
+        full = float(2 ** int(self.quantize_bits) - 1)
+        dn_per_e = full / self.photons_at_full_well
+        full_well_if = self.full_well_if
+        if self.auto_exposure:
+            top = float(x.max())
+            if top <= 0:
+                full_well_if = 1.0
+            else:
+                lit = x[x > 0.02 * top]
+                white = float(np.percentile(lit, 99.5)) if lit.size >= 16 else top
+                full_well_if = white / rng.uniform(*self.exposure_white_frac)
+        electrons = np.clip(x, 0.0, None) * np.float32(self.photons_at_full_well * gain / full_well_if)
+        # Shot noise (Poisson, variance = mean) and read noise in one Gaussian draw: the normal
+        # approximation of the Poisson law is accurate above ~20 e-, and below that the read noise
+        # and the quantisation step (4000 e- / 255 = 16 e- per DN) dominate anyway.
+        sd = np.sqrt(electrons * np.float32(dn_per_e ** 2) + np.float32(self.read_noise_dn ** 2))
+        dn = electrons * np.float32(dn_per_e) + sd * rng.standard_normal(size=x.shape, dtype=np.float32)
+        dn = np.clip(np.rint(dn), 0.0, full)
+        return (dn / full).astype(np.float32)

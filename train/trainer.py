@@ -1,0 +1,337 @@
+"""Training of LunarNet_ex (Adam, stop at the validation target), LunarSVM_ex and the HOG+SVM baseline.
+
+Everything here consumes :class:`train.data.SyntheticData` only: synthetic renders, never real crops.
+Artefacts in ``run_dir`` (each written atomically): ``lunarnet_ex.pt`` (state dict, model config,
+class names, preprocessing, history, resolved config), ``lunarsvm_ex.pkl``, ``hog_svm.pkl``,
+``config.yaml`` (resolved) and ``train_summary.json``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+import time
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from data_manifest.schema import atomic_write_text
+from train.data import SyntheticCropDataset, SyntheticData
+from train.errors import RealDataLeakError, TrainError
+from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
+
+NET_FILE, SVM_FILE, HOG_FILE = "lunarnet_ex.pt", "lunarsvm_ex.pkl", "hog_svm.pkl"
+SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
+
+
+# ------------------------------------------------------------------------------------------------
+# Small utilities
+# ------------------------------------------------------------------------------------------------
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    import tempfile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_json(path: str | Path, obj) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def configure_torch(tcfg: Mapping) -> torch.device:
+    n = int(tcfg.get("num_threads", 0) or 0)
+    torch.set_num_threads(n if n > 0 else max(1, os.cpu_count() or 1))
+    dev = str(tcfg.get("device", "auto"))
+    if dev == "auto":
+        dev = "cuda" if torch.cuda.is_available() else "cpu"
+    if dev == "cuda" and not torch.cuda.is_available():
+        raise TrainError("train.device=cuda but no CUDA device is available (use train.device=cpu)")
+    if dev not in ("cpu", "cuda"):
+        raise TrainError(f"train.device={dev!r}: use auto, cpu or cuda")
+    return torch.device(dev)
+
+
+def balanced_accuracy(y_true: np.ndarray, y_pred: np.ndarray, n_classes: int) -> float:
+    """Mean over the classes present of the per-class accuracy (recall): the paper's 'mean accuracy'."""
+    accs = [float(np.mean(y_pred[y_true == c] == c)) for c in range(n_classes) if np.any(y_true == c)]
+    return float(np.mean(accs)) if accs else float("nan")
+
+
+def _require_synthetic(ds) -> None:
+    if not isinstance(ds, SyntheticCropDataset):
+        raise RealDataLeakError(f"training accepts only synthetic render datasets, got {type(ds).__name__}")
+
+
+def _loader(ds, batch_size: int, shuffle: bool, seed: int):
+    g = torch.Generator()
+    g.manual_seed(int(seed) & 0x7FFFFFFF)
+    return torch.utils.data.DataLoader(ds, batch_size=batch_size, shuffle=shuffle, generator=g, num_workers=0,
+                                       drop_last=False)
+
+
+def _batches(X, batch_size: int):
+    """(X, y|None) batches from an array or a dataset's deterministic stream."""
+    if isinstance(X, SyntheticCropDataset):
+        yield from X.iter_arrays(batch_size)
+    else:
+        for i in range(0, len(X), batch_size):
+            yield X[i:i + batch_size], None
+
+
+@torch.no_grad()
+def _apply(fn, X, batch_size: int, device, width: int) -> tuple[np.ndarray, np.ndarray | None]:
+    out, labels = [], []
+    for xb, yb in _batches(X, batch_size):
+        t = torch.from_numpy(np.ascontiguousarray(xb, dtype=np.float32))[:, None].to(device)
+        out.append(fn(t).float().cpu().numpy())
+        if yb is not None:
+            labels.append(yb)
+    res = np.concatenate(out) if out else np.zeros((0, width), np.float32)
+    return res, (np.concatenate(labels) if labels else None)
+
+
+def predict_logits(model: LunarNetEx, X, batch_size: int = 256, device=torch.device("cpu")) -> np.ndarray:
+    """Logits for an (N, H, W) array or a :class:`SyntheticCropDataset` (streamed)."""
+    model.eval()
+    return _apply(model, X, batch_size, device, model.geometry["nc"])[0]
+
+
+def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.device("cpu")) -> np.ndarray:
+    """FC1 (after ReLU3) activations for an array or a dataset (streamed)."""
+    model.eval()
+    return _apply(model.fc1_features, X, batch_size, device, model.geometry["f1"])[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# LunarNet_ex
+# ------------------------------------------------------------------------------------------------
+def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None = None,
+                   progress: bool = True) -> tuple[LunarNetEx, dict]:
+    """Adam on cross-entropy until the class-balanced validation accuracy reaches
+    ``train.target_val_accuracy`` or ``train.max_epochs``. The best-validation weights are kept and,
+    with ``run_dir``, checkpointed atomically after every epoch that improves them.
+
+    Returns (model, history) where history holds per-epoch loss/accuracy/throughput and timings."""
+    from tqdm import tqdm
+
+    _require_synthetic(data.train)
+    _require_synthetic(data.val)
+    tcfg, mcfg = cfg["train"], dict(cfg["model"])
+    if int(mcfg.get("num_classes", len(data.class_names))) != len(data.class_names):
+        mcfg["num_classes"] = len(data.class_names)
+    device = configure_torch(tcfg)
+    seed = int(cfg.get("seed", 0))
+    torch.manual_seed(seed)
+    model = LunarNetEx(mcfg).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=float(tcfg.get("lr", 1e-3)),
+                           weight_decay=float(tcfg.get("weight_decay", 0.0)))
+    loss_fn = nn.CrossEntropyLoss()  # = the Softmax layer + log-loss
+    target = float(tcfg.get("target_val_accuracy", 0.9))
+    max_epochs = int(tcfg.get("max_epochs", 30))
+    bs, ebs = int(tcfg.get("batch_size", 64)), int(tcfg.get("eval_batch_size", 256))
+    if max_epochs < 1 or bs < 1:
+        raise TrainError(f"train.max_epochs={max_epochs} and train.batch_size={bs} must be >= 1")
+    yv = data.val.labels
+    nc = len(data.class_names)
+    history: list[dict] = []
+    best = {"val_accuracy": -1.0, "state": None, "epoch": 0}
+    t_start = time.perf_counter()
+    train_time = 0.0
+    images_seen = 0
+    reached_at = None
+    for epoch in range(1, max_epochs + 1):
+        data.train.set_epoch(epoch)
+        model.train()
+        tot_loss, tot_ok, tot_n = 0.0, 0, 0
+        t0 = time.perf_counter()
+        bar = tqdm(_loader(data.train, bs, True, seed + epoch), desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
+                   unit="batch", disable=not progress, leave=False)
+        for xb, yb in bar:
+            xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
+            opt.zero_grad(set_to_none=True)
+            logits = model(xb)
+            loss = loss_fn(logits, yb)
+            loss.backward()
+            opt.step()
+            n = int(yb.numel())
+            tot_loss += float(loss.item()) * n
+            tot_ok += int((logits.argmax(1) == yb).sum().item())
+            tot_n += n
+            rate = tot_n / max(time.perf_counter() - t0, 1e-9)
+            bar.set_postfix(loss=f"{tot_loss / tot_n:.3f}", acc=f"{tot_ok / tot_n:.3f}", img_s=f"{rate:.0f}")
+        bar.close()
+        dt = time.perf_counter() - t0
+        train_time += dt
+        images_seen += tot_n
+        pv = predict_logits(model, data.val, ebs, device).argmax(1)
+        val_acc = balanced_accuracy(yv, pv, nc)
+        rec = {"epoch": epoch, "loss": tot_loss / max(tot_n, 1), "train_accuracy": tot_ok / max(tot_n, 1),
+               "val_accuracy": val_acc, "val_accuracy_overall": float(np.mean(pv == yv)) if len(yv) else float("nan"),
+               "epoch_seconds": dt, "images_per_s": tot_n / max(dt, 1e-9),
+               "elapsed_s": time.perf_counter() - t_start}
+        history.append(rec)
+        if progress:
+            tqdm.write(f"lunarnet_ex epoch {epoch}: loss {rec['loss']:.4f} train acc {rec['train_accuracy']:.3f} "
+                       f"val acc (class mean) {val_acc:.3f} [{rec['images_per_s']:.0f} img/s]")
+        if val_acc > best["val_accuracy"]:
+            best = {"val_accuracy": val_acc, "epoch": epoch,
+                    "state": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
+            if run_dir is not None:
+                save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], val_acc)
+        if val_acc >= target:
+            reached_at = rec["elapsed_s"]
+            break
+    model.load_state_dict(best["state"])
+    summary = {"history": history, "best_epoch": best["epoch"], "val_accuracy": best["val_accuracy"],
+               "target_val_accuracy": target, "reached_target": reached_at is not None,
+               "time_to_target_s": reached_at, "train_seconds": train_time,
+               "train_images_per_s": images_seen / max(train_time, 1e-9), "device": str(device),
+               "parameters": parameter_count(model), "multiply_adds": multiply_adds(mcfg)["total"]}
+    if run_dir is not None:  # final save carries the complete history
+        save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], best["val_accuracy"])
+    return model, summary
+
+
+def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_acc) -> Path:
+    from train.preprocess import PreprocessConfig
+
+    buf = io.BytesIO()
+    torch.save({"format": 1, "state_dict": state, "model": dict(mcfg), "class_names": list(class_names),
+                "preprocess": PreprocessConfig.from_config(cfg).__dict__, "epoch": epoch, "val_accuracy": val_acc,
+                "history": history, "config": cfg}, buf)
+    path = Path(run_dir) / NET_FILE
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[LunarNetEx, dict]:
+    from train.errors import ModelError
+
+    path = Path(run_dir) / NET_FILE
+    if not path.is_file():
+        raise ModelError(f"no trained LunarNet_ex at {path}: run `crater-synth train` first (or set run_dir)")
+    try:
+        ck = torch.load(path, map_location=device, weights_only=False)
+        model = LunarNetEx(ck["model"]).to(device)
+        model.load_state_dict(ck["state_dict"])
+    except (RuntimeError, KeyError, pickle.UnpicklingError, EOFError) as exc:
+        raise ModelError(f"cannot load {path}: {exc}") from None
+    model.eval()
+    return model, ck
+
+
+# ------------------------------------------------------------------------------------------------
+# LunarSVM_ex and HOG + SVM
+# ------------------------------------------------------------------------------------------------
+def _subsample(n: int, k: int | None, seed: int) -> np.ndarray:
+    if not k or k >= n:
+        return np.arange(n)
+    return np.sort(np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x406]).choice(n, size=int(k), replace=False))
+
+
+def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: bool = True) -> dict:
+    """Fit LunarSVM_ex (FC1 activations) and the HOG+SVM baseline on the synthetic training images
+    (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies."""
+    _require_synthetic(data.train)
+    _require_synthetic(data.val)
+    tcfg = cfg["train"]
+    seed = int(cfg.get("seed", 0))
+    device = next(model.parameters()).device
+    ebs = int(tcfg.get("eval_batch_size", 256))
+    yt, yv = data.train.labels, data.val.labels
+    nc = len(data.class_names)
+    out = {}
+    t0 = time.perf_counter()
+    svm = make_linear_svm(tcfg.get("svm", {}), seed)
+    conv = _fit_quiet(svm, fc1_activations(model, data.train, ebs, device), yt)
+    pv = svm.predict(fc1_activations(model, data.val, ebs, device))
+    out["lunarsvm_ex"] = {"model": svm, "val_accuracy": balanced_accuracy(yv, pv, nc),
+                          "train_images": int(len(yt)), "converged": conv, "seconds": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    hcfg = tcfg.get("hog", {})
+    sel = _subsample(len(data.train), hcfg.get("max_train_images"), seed)
+    Ht = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.train.iter_arrays(ebs, sel)])
+    hog_svm = make_linear_svm(hcfg, seed)
+    conv = _fit_quiet(hog_svm, Ht, yt[sel])
+    del Ht
+    Hv = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.val.iter_arrays(ebs)])
+    out["hog_svm"] = {"model": hog_svm, "val_accuracy": balanced_accuracy(yv, hog_svm.predict(Hv), nc),
+                      "train_images": int(len(sel)), "converged": conv, "seconds": time.perf_counter() - t0}
+    if progress:
+        from tqdm import tqdm
+        tqdm.write(f"lunarsvm_ex val acc (class mean) {out['lunarsvm_ex']['val_accuracy']:.3f}; "
+                   f"hog_svm val acc {out['hog_svm']['val_accuracy']:.3f}")
+    return out
+
+
+def _fit_quiet(model, X, y) -> bool:
+    """Fit, turning scikit-learn's ConvergenceWarning into a returned flag (recorded in the summary)."""
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ConvergenceWarning)
+        model.fit(X, y)
+    return not any(issubclass(w.category, ConvergenceWarning) for w in caught)
+
+
+def save_sklearn(path: str | Path, model, class_names, meta: dict) -> None:
+    atomic_write_bytes(path, pickle.dumps({"format": 1, "model": model, "class_names": list(class_names), **meta}))
+
+
+def load_sklearn(path: str | Path) -> dict:
+    from train.errors import ModelError
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"no trained model at {path}: run `crater-synth train` first (or set run_dir)")
+    try:
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
+        raise ModelError(f"cannot load {path}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------------------------
+# All three
+# ------------------------------------------------------------------------------------------------
+def train_all(cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: bool = True) -> dict:
+    """Train the three classifiers on ``data`` and save them (plus config and summary) in ``run_dir``."""
+    import yaml
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run_dir / CONFIG_FILE, yaml.safe_dump(cfg, sort_keys=False))
+    model, net = train_lunarnet(data, cfg, run_dir, progress)
+    svms = train_svms(model, data, cfg, progress)
+    save_sklearn(run_dir / SVM_FILE, svms["lunarsvm_ex"]["model"], data.class_names,
+                 {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"]})
+    save_sklearn(run_dir / HOG_FILE, svms["hog_svm"]["model"], data.class_names,
+                 {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"], "hog": dict(cfg["train"].get("hog", {}))})
+    summary = {
+        "class_names": data.class_names,
+        "data": data.info,
+        "train_images": int(len(data.train)),
+        "val_images": int(len(data.val)),
+        "lunarnet_ex": {k: v for k, v in net.items()},
+        "lunarsvm_ex": {k: v for k, v in svms["lunarsvm_ex"].items() if k != "model"},
+        "hog_svm": {k: v for k, v in svms["hog_svm"].items() if k != "model"},
+    }
+    atomic_write_json(run_dir / SUMMARY_FILE, summary)
+    return summary
