@@ -20,6 +20,8 @@ _COMMANDS = (
     ("crater_synth.preview", "preview_command"),
     ("train.cli", "train_command"),
     ("train.cli", "evaluate_command"),
+    ("crater_synth.loop", "loop_command"),
+    ("crater_synth.experiments", "experiments_command"),
     ("crater_synth.report", "report_command"),
 )
 

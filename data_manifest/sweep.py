@@ -166,3 +166,43 @@ def grid_from_config(sweep_cfg: Mapping) -> SweepGrid:
         )
     except KeyError as exc:
         raise SweepError(f"sweep config is missing key {exc}") from None
+
+
+def rows_in_selection(rows: Sequence[Mapping], selection: Mapping[str, Sequence[float] | None] | None) -> list:
+    """Rows whose angles lie in ``selection`` ({axis: values or None}); None/empty keeps every row.
+
+    This is how a grid subset (a closed-loop round, a Figure 6 point) is taken from one rendered
+    dataset without re-rendering.
+    """
+    if not selection:
+        return list(rows)
+    wanted = {}
+    for axis, values in selection.items():
+        if axis not in AXES:
+            raise SweepError(f"unknown selection axis {axis!r} (expected one of {AXES})")
+        if values is not None:
+            wanted[axis] = {round(float(v), 6) for v in values}
+    return [r for r in rows if all(round(float(r[a]), 6) in vals for a, vals in wanted.items())]
+
+
+def nearest_subset(available: Sequence[float], axis: str, count: int) -> list[float]:
+    """``count`` of the ``available`` values closest to the paper's positions for ``count`` samples.
+
+    Sun/camera elevation grids nest, so the result is exact; azimuth grids of 6, 9 or 12 samples are
+    not subsets of the 15-sample grid, so each target snaps to the nearest rendered azimuth (ties to
+    the smaller angle; circular distance). Raises if two targets snap to the same value.
+    """
+    avail = sorted(float(v) for v in available)
+    if count > len(avail):
+        raise SweepError(f"{axis}: {count} samples requested but only {len(avail)} rendered")
+    out = []
+    for target in default_positions(axis, count):
+        if axis.endswith("azimuth"):
+            dist = [min(abs(v - target) % 360.0, 360.0 - abs(v - target) % 360.0) for v in avail]
+        else:
+            dist = [abs(v - target) for v in avail]
+        out.append(avail[int(np.argmin(np.round(dist, 9)))])
+    if len(set(out)) != count:
+        raise SweepError(f"{axis}: {count} samples cannot be taken from the rendered values {avail} "
+                         f"without repeats ({out})")
+    return out

@@ -405,6 +405,13 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
     dataset_dir = Path(str(tcfg["dataset_dir"]))
     class_names = class_names_from_config(cfg)
     rows = load_rows(dataset_dir)
+    selection = tcfg.get("select")
+    if selection:
+        from data_manifest.sweep import rows_in_selection
+
+        rows = rows_in_selection(rows, dict(selection))
+        if not rows:
+            raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={dict(selection)}")
     rows = check_synthetic_rows(rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg),
                                 forbidden_paths)
     rows, others = select_rows(rows, class_names)
