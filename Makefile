@@ -5,11 +5,12 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 CLI := $(BIN)/crater-synth
 OVERRIDES ?=
+RUN_DIR ?= outputs/smoke
 
 .DEFAULT_GOAL := help
 
 help: ## Show this help
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  \033[36m%-10s\033[0m %s\n", $$1, $$2}'
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  \033[36m%-12s\033[0m %s\n", $$1, $$2}'
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -31,4 +32,25 @@ test-slow: setup ## Run only the slow tests
 terrain: setup ## Build terrain patches for the selected craters (OVERRIDES="crater=shoemaker")
 	$(CLI) terrain $(OVERRIDES)
 
-.PHONY: help setup test test-slow terrain
+dataset: setup ## Render a sweep (resumable): OVERRIDES="sweep=demo crater=shoemaker render.workers=2"
+	$(CLI) dataset $(OVERRIDES)
+
+train: setup ## Train the three classifiers on a rendered sweep and evaluate on real crops
+	$(CLI) train $(OVERRIDES)
+
+loop: setup ## Closed loop: add sun elevations until the real accuracy reaches loop.threshold
+	$(CLI) loop $(OVERRIDES)
+
+experiments: setup ## Figure 6 experiments on one rendered dataset (OVERRIDES="sweep=paper")
+	$(CLI) experiments $(OVERRIDES)
+
+report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
+	$(CLI) report $(RUN_DIR) $(OVERRIDES)
+
+DEMO_DIR ?= outputs/demo
+demo: setup ## The main job on the embedded data: render sweep=demo, closed loop, evaluate, report
+	$(CLI) loop sweep=demo run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
+	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
+	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
+
+.PHONY: help setup test test-slow terrain dataset train loop experiments report demo
