@@ -23,7 +23,13 @@ $(VENV)/.installed: $(BIN)/activate pyproject.toml
 
 setup: $(VENV)/.installed ## Create .venv, install the project (editable) and the embedded real data
 
-test: setup ## Run the fast test suite (slow tests: make test-slow)
+test-deps: ## Install Debian chromium for the report's browser test (as root; skipped otherwise)
+	@if command -v chromium >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	else echo "warning: chromium missing and not root: the report browser test will be skipped"; fi
+
+test: setup test-deps ## Run the fast test suite (slow tests: make test-slow)
 	$(BIN)/python -m pytest -q
 
 test-slow: setup ## Run only the slow tests
@@ -53,4 +59,4 @@ demo: setup ## The main job on the embedded data: render sweep=demo, closed loop
 	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test test-slow terrain dataset train loop experiments report demo
+.PHONY: help setup test-deps test test-slow terrain dataset train loop experiments report demo
