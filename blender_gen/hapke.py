@@ -12,8 +12,9 @@ Model (Hapke 1981, Icarus 46:184; roughness correction Hapke 1984, Icarus 59:41;
     p(g) = (1 - xi^2) / (1 + 2 xi cos g + xi^2)^1.5   single-lobe Henyey-Greenstein, xi < 0 backscatters
     H(x) = (1 + 2x) / (1 + 2 sqrt(1 - w) x)           Hapke 1981 approximation of Chandrasekhar's H
 
-The radiance factor is I/F = pi * r. A Lambertian BSDF lit by a unit-irradiance sun returns
-albedo * mu0 / pi * pi = albedo * mu0 in Cycles units, so weighting a Diffuse BSDF by
+The radiance factor is I/F = pi * r. Cycles renders a Lambertian BSDF of albedo c under a sun lamp
+of strength S as c * S * mu0 / pi (measured, docs/renderer.md), so with S = pi
+(``blender_gen.sun.SUN_STRENGTH``) it returns c * mu0, and weighting a Diffuse BSDF by
 ``pi * r / mu0`` makes Cycles output I/F while supplying the cast shadows itself.
 """
 

@@ -16,8 +16,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import selectors
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -51,14 +53,27 @@ class RenderError(UserError):
 def validate_render_config(render: dict) -> None:
     if render.get("mode") not in ("fast", "direct"):
         raise ConfigError(f"render.mode={render.get('mode')!r}: must be 'fast' or 'direct'")
-    if int(render.get("samples", 0)) < 1:
+
+    def number(key, default, cast=int):
+        try:
+            return cast(render.get(key, default))
+        except (TypeError, ValueError):
+            raise ConfigError(f"render.{key}={render.get(key)!r}: must be a number") from None
+
+    if number("samples", 0) < 1:
         raise ConfigError(f"render.samples={render.get('samples')}: must be >= 1")
-    if int(render.get("max_bounces", 0)) < 0:
+    if number("max_bounces", 0) < 0:
         raise ConfigError(f"render.max_bounces={render.get('max_bounces')}: must be >= 0")
-    if int(render.get("roi_min_px", 0)) < 8:
+    if number("roi_min_px", 0) < 8:
         raise ConfigError(f"render.roi_min_px={render.get('roi_min_px')}: must be >= 8")
-    if int(render.get("workers", 1)) < 1:
+    if number("workers", 1) < 1:
         raise ConfigError(f"render.workers={render.get('workers')}: must be >= 1")
+    if number("threads", 0) < 0:
+        raise ConfigError(f"render.threads={render.get('threads')}: must be >= 0 (0 = all cores)")
+    if number("shadow_map_px", 1) < 1:
+        raise ConfigError(f"render.shadow_map_px={render.get('shadow_map_px')}: must be >= 1")
+    if not number("shadow_map_extent_factor", 1.0, float) > 0:
+        raise ConfigError(f"render.shadow_map_extent_factor={render.get('shadow_map_extent_factor')}: must be > 0")
 
 
 def hapke_params(cfg_resolved: dict) -> HapkeParams:
@@ -84,12 +99,45 @@ def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
     return int(np.mean(sizes)) if sizes else DEFAULT_BYTES_PER_RENDER
 
 
+def _size(n: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.2f} {unit}"
+    return f"{int(n)} B"
+
+
 def check_free_disk(out_dir: Path, n_renders: int, bytes_per_render: int) -> None:
     need = int(n_renders * bytes_per_render * 1.1)
     free = shutil.disk_usage(out_dir).free
     if need > free:
-        raise UserError(f"not enough free disk in {out_dir}: {n_renders} renders need ~{need / 1e9:.2f} GB "
-                        f"({bytes_per_render / 1e6:.2f} MB each), {free / 1e9:.2f} GB free")
+        raise UserError(f"not enough free disk in {out_dir}: {n_renders} renders need ~{_size(need)} "
+                        f"({_size(bytes_per_render)} each, +10 %), {_size(free)} free")
+
+
+def writer_tag() -> str:
+    """``<host>-<pid>`` of this process: names its job and manifest part files, so concurrent shards
+    (several processes, or several nodes on a shared filesystem) never write the same file."""
+    host = re.sub(r"[^A-Za-z0-9.]+", "_", socket.gethostname()) or "host"
+    return f"{host}-{os.getpid()}"
+
+
+def stale_parts(out_dir: Path) -> list[Path]:
+    """Manifest part files of writers on this host that are no longer running (e.g. a sweep killed
+    with -9), which are safe to merge. Part names end in ``-<host>-<pid>``; parts of other hosts are
+    merged by their host's next run or by the Dask launcher's final merge."""
+    host = writer_tag().rsplit("-", 1)[0]
+    out = []
+    for part in sorted((out_dir / schema.PARTS_DIR).glob("*.jsonl")):
+        head, _, pid = part.stem.rpartition("-")
+        if not pid.isdigit() or int(pid) == os.getpid() or not head.endswith("-" + host):
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            out.append(part)
+        except OSError:
+            pass  # alive (another user's process)
+    return out
 
 
 def parse_shard(shard) -> tuple[int, int] | None:
@@ -239,7 +287,7 @@ def run_workers(jobs: list[CraterJob], cfg_r: dict, out_dir: Path, on_result, ma
     uid = 0
 
     def start(job: CraterJob, block: list[dict], unit_id: int):
-        job_file = jobs_dir / f"{job.crater['name']}-{unit_id}.json"
+        job_file = jobs_dir / f"{job.crater['name']}-{writer_tag()}-{unit_id}.json"
         spec = {"terrain_npz": str(job.npz), "terrain_meta": job.meta, "crater": job.crater,
                 "hapke": cfg_r["hapke"], "render": render_cfg, "out_dir": str(out_dir),
                 "renders": [_worker_render_item(job, p, cfg_r) for p in block]}
@@ -320,8 +368,15 @@ def build_dataset(cfg, progress: bool = True) -> dict:
     out_dir = Path(cfg_r["out_dir"]).resolve()
     check_output_dir(out_dir)
     craters = selected_craters(cfg)
+    stale = stale_parts(out_dir)
+    if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
+        schema.merge_parts(out_dir, parts=stale)
 
     existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
+    # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
+    # at least this many renders are left even if every existing row belongs to this run.
+    check_free_disk(out_dir, max(0, len(indices) * len(craters) - len(existing)),
+                    measured_bytes_per_render(list(existing.values()), out_dir))
     jobs, skipped, total = [], 0, 0
     for crater in craters:
         npz, meta = build_terrain(crater, cfg)
@@ -343,7 +398,7 @@ def build_dataset(cfg, progress: bool = True) -> dict:
     todo = sum(len(j.plans) for j in jobs)
     check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
     part_name = f"shard{shard[0]}of{shard[1]}" if shard else "all"
-    part_file = out_dir / schema.PARTS_DIR / f"{part_name}-{os.getpid()}.jsonl"
+    part_file = out_dir / schema.PARTS_DIR / f"{part_name}-{writer_tag()}.jsonl"
 
     bar = None
     if progress and todo:
@@ -379,6 +434,17 @@ import click  # noqa: E402
 from crater_synth.cli_common import OVERRIDES, user_errors  # noqa: E402
 
 
+def one_line_config_error(msg: str) -> str:
+    """Hydra's multi-line composition error as one line (an unknown group option names the choices)."""
+    m = re.search(r"Could not find '([^']+)/([^'/]+)'", msg)
+    if m:
+        group, option = m.groups()
+        avail = re.search(r"Available options in '[^']*':[ \t]*\n((?:[ \t]+\S[^\n]*\n?)+)", msg)
+        choices = ", ".join(avail.group(1).split()) if avail else "see configs/" + group
+        return f"unknown {group} {option!r} (override {group}={option}): choose one of {choices}"
+    return " ".join(msg.split("\nConfig search path:")[0].split())
+
+
 @click.command("dataset")
 @OVERRIDES
 @user_errors
@@ -391,7 +457,10 @@ def dataset_command(overrides):
     """
     from crater_synth.config import compose
 
-    cfg = compose(overrides)
+    try:
+        cfg = compose(overrides)
+    except ConfigError as exc:
+        raise ConfigError(one_line_config_error(str(exc))) from None
     if cfg.launcher.name == "dask":
         from crater_synth.launcher import run_dask
 

@@ -1,0 +1,187 @@
+"""Blender render worker: ``python -m blender_gen.worker JOB.json`` or
+``blender --background --python blender_gen/worker.py -- JOB.json``.
+
+Renders every item of the job (docs/renderer.md, "Worker contract") and prints, per finished render,
+one line ``RESULT {json}`` (index, rel_path, sha256, lit_fraction, mean_if, seconds) on stdout,
+flushed. Bad input prints ``ERROR <one line>`` and exits with status 2; anything unexpected prints
+``ERROR`` and exits 1. Progress/timing notes go to stderr.
+
+Imports only bpy, numpy, OpenImageIO and the standard library (plus this package).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+import traceback
+
+if __package__ in (None, ""):  # run as a script (blender --python blender_gen/worker.py)
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
+
+RENDERER_VERSION = "blender_gen 1"
+_RESERVED_EXR_KEYS = {"compression", "DateTime", "channels", "dataWindow", "displayWindow", "lineOrder",
+                      "pixelAspectRatio", "PixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "tiles",
+                      "type", "name", "version", "chunkCount", "oiio:subimages"}
+
+
+def _args(argv: list[str]) -> list[str]:
+    return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+
+
+def log(msg: str) -> None:
+    print(f"[blender_gen.worker] {msg}", file=sys.stderr, flush=True)
+
+
+_RESULT_FD: int | None = None  # private duplicate of the original stdout (see _protect_stdout)
+
+
+def _protect_stdout() -> None:
+    """Send everything else written to fd 1 (Blender's C-level render log, stray prints) to stderr,
+    keeping a private duplicate of stdout for the protocol lines. Blender's buffered C stdio could
+    otherwise flush half a log line in front of a RESULT line and the host would miss it."""
+    global _RESULT_FD
+    if _RESULT_FD is None:
+        sys.stdout.flush()
+        _RESULT_FD = os.dup(1)
+        os.dup2(2, 1)
+
+
+def emit(prefix: str, payload) -> None:
+    """One protocol line (``RESULT {...}`` / ``ERROR ...``), written atomically and unbuffered."""
+    text = payload if isinstance(payload, str) else json.dumps(payload, separators=(",", ":"))
+    data = f"{prefix} {text}\n".encode()
+    if _RESULT_FD is None:
+        sys.stdout.write(data.decode())
+        sys.stdout.flush()
+        return
+    while data:
+        data = data[os.write(_RESULT_FD, data):]
+
+
+def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
+    """Every render parameter, as EXR header attributes (str/int/float)."""
+    hdr = {
+        "crater_synth:renderer": RENDERER_VERSION,
+        "crater_synth:mode": mode_used,
+        "crater_synth:index": int(item["index"]),
+        "crater_synth:indices": json.dumps(item.get("indices", [])),
+        "crater_synth:sun_elevation": float(item["sun_elevation"]),
+        "crater_synth:sun_azimuth": float(item["sun_azimuth"]),
+        "crater_synth:cam_elevation": float(item["cam_elevation"]),
+        "crater_synth:cam_azimuth": float(item["cam_azimuth"]),
+        "crater_synth:range_m": float(item["range_m"]),
+        "crater_synth:fov_deg": float(item["fov_deg"]),
+        "crater_synth:frame_width": int(item["frame_width"]),
+        "crater_synth:crop": json.dumps([int(c) for c in item["crop"]]),
+        "crater_synth:crater": json.dumps(job["crater"], sort_keys=True),
+        "crater_synth:terrain_id": str(job.get("terrain_meta", {}).get("terrain_id", "")),
+        "crater_synth:hapke": json.dumps(job["hapke"], sort_keys=True),
+        "crater_synth:render": json.dumps(cfg, sort_keys=True),
+        "crater_synth:sun_strength": "pi (white Lambertian at normal incidence renders 1: pixel = I/F)",
+        "crater_synth:channels": "IF=radiance factor; depth=m along view axis; N=ENU unit normal; "
+                                 "lit=illuminated fraction of the solar disk",
+    }
+    for k, v in (item.get("header") or {}).items():  # the host's entries, verbatim (unless reserved by EXR)
+        hdr[str(k) if str(k) not in _RESERVED_EXR_KEYS else f"crater_synth:host:{k}"] = v
+    return hdr
+
+
+def run(job_path: str) -> int:
+    job = load_job(job_path)
+    terrain = load_terrain(job["terrain_npz"])  # errors before bpy is even imported
+
+    import numpy as np
+
+    from blender_gen import direct, exr, fast, render
+    from blender_gen.scene import render_settings
+    from blender_gen.session import Session
+    from blender_gen.sun import to_sun_vector
+
+    from blender_gen.hapke import HapkeParams
+
+    try:
+        cfg = render_settings(job.get("render"))
+        HapkeParams.from_mapping(job["hapke"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise JobError(f"job {job_path}: {type(exc).__name__}: {exc}") from None
+    t0 = time.perf_counter()
+    session = Session(job, terrain)
+    del terrain
+    log(f"scene ready in {time.perf_counter() - t0:.2f} s ({len(job['renders'])} renders, mode {cfg['mode']})")
+    fast_r = fast.FastRenderer(session) if cfg["mode"] == "fast" else None
+    out_dir = job["out_dir"]
+    t_job = time.perf_counter()
+    t_write = 0.0
+    try:
+        for item in job["renders"]:
+            t1 = time.perf_counter()
+            to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
+            mode_used = cfg["mode"]
+            try:
+                if fast_r is not None:
+                    try:
+                        chans = fast_r.render(item, to_sun)
+                    except fast.FallbackNeeded as exc:
+                        fast_r.stats["fallbacks"] += 1
+                        log(f"render {item['index']}: {exc}; rendering it in direct mode")
+                        mode_used = "direct"
+                        chans = direct.render(session, item, to_sun)
+                else:
+                    chans = direct.render(session, item, to_sun)
+            except ValueError as exc:  # e.g. a crop outside the frame
+                raise JobError(f"render {item['index']}: {exc}") from None
+            path = os.path.join(out_dir, item["rel_path"])
+            t2 = time.perf_counter()
+            sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
+            t_write += time.perf_counter() - t2
+            radiance = chans["IF"]
+            emit("RESULT", {"index": int(item["index"]), "rel_path": item["rel_path"], "sha256": sha,
+                            "lit_fraction": round(float(np.mean(chans["lit"])), 6),
+                            "mean_if": round(float(np.mean(radiance)), 8),
+                            "seconds": round(time.perf_counter() - t1, 4), "mode": mode_used})
+    finally:
+        render.cleanup()
+    n = len(job["renders"])
+    dt = time.perf_counter() - t_job
+    extra = ""
+    if fast_r is not None:
+        extra = ", fast path " + json.dumps({k: round(v, 3) for k, v in fast_r.stats.items()})
+    log(f"{n} renders in {dt:.2f} s ({n / dt if dt > 0 else 0:.2f}/s); {session.n_cycles_calls} Cycles calls "
+        f"({session.cycles_seconds:.2f} s); EXR writing {t_write:.2f} s{extra}")
+    stats = {"renders": n, "seconds": round(dt, 3), "setup_s": round(t_job - t0, 3),
+             "cycles_calls": session.n_cycles_calls, "cycles_s": round(session.cycles_seconds, 3),
+             "exr_write_s": round(t_write, 3), "mode": cfg["mode"]}
+    if fast_r is not None:
+        stats["fast"] = {k: round(v, 4) for k, v in fast_r.stats.items()}
+    print("STATS " + json.dumps(stats), file=sys.stderr, flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _args(sys.argv if argv is None else argv)
+    _protect_stdout()
+    if len(args) != 1:
+        emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
+        return 2
+    try:
+        return run(args[0])
+    except JobError as exc:
+        emit("ERROR", str(exc).replace("\n", " "))
+        return 2
+    except Exception as exc:  # noqa: BLE001 - one clear line for the host, the trace for the log
+        traceback.print_exc(file=sys.stderr)
+        emit("ERROR", f"{type(exc).__name__}: {exc}".replace("\n", " "))
+        return 1
+
+
+if __name__ == "__main__":
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # Under `blender --python` sys.exit would leave Blender's own exit code; os._exit skips bpy's
+    # (slow) teardown as well.
+    os._exit(code)
