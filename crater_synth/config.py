@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Sequence
 
@@ -32,10 +33,21 @@ def compose(overrides: Sequence[str] = (), config_name: str = "config") -> DictC
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
             cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(f"bad configuration override(s) {list(overrides)}: {exc}") from None
+        raise ConfigError(one_line_config_error(str(exc))) from None
     finally:
         GlobalHydra.instance().clear()
     return cfg
+
+
+def one_line_config_error(msg: str) -> str:
+    """Hydra's multi-line composition error as one line (an unknown group option names the choices)."""
+    m = re.search(r"Could not find '([^']+)/([^'/]+)'", msg)
+    if m:
+        group, option = m.groups()
+        avail = re.search(r"Available options in '[^']*':[ \t]*\n((?:[ \t]+\S[^\n]*\n?)+)", msg)
+        choices = ", ".join(avail.group(1).split()) if avail else "see configs/" + group
+        return f"unknown {group} {option!r} (override {group}={option}): choose one of {choices}"
+    return " ".join(msg.split("\nConfig search path:")[0].split())
 
 
 def resolved(cfg: DictConfig) -> dict:

@@ -434,17 +434,6 @@ import click  # noqa: E402
 from crater_synth.cli_common import OVERRIDES, user_errors  # noqa: E402
 
 
-def one_line_config_error(msg: str) -> str:
-    """Hydra's multi-line composition error as one line (an unknown group option names the choices)."""
-    m = re.search(r"Could not find '([^']+)/([^'/]+)'", msg)
-    if m:
-        group, option = m.groups()
-        avail = re.search(r"Available options in '[^']*':[ \t]*\n((?:[ \t]+\S[^\n]*\n?)+)", msg)
-        choices = ", ".join(avail.group(1).split()) if avail else "see configs/" + group
-        return f"unknown {group} {option!r} (override {group}={option}): choose one of {choices}"
-    return " ".join(msg.split("\nConfig search path:")[0].split())
-
-
 @click.command("dataset")
 @OVERRIDES
 @user_errors
@@ -457,10 +446,7 @@ def dataset_command(overrides):
     """
     from crater_synth.config import compose
 
-    try:
-        cfg = compose(overrides)
-    except ConfigError as exc:
-        raise ConfigError(one_line_config_error(str(exc))) from None
+    cfg = compose(overrides)
     if cfg.launcher.name == "dask":
         from crater_synth.launcher import run_dask
 
