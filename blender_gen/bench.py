@@ -60,10 +60,11 @@ def synthetic_terrain(path: Path, diameter_m: float = 21_000.0, near_n: int = 51
 
 
 def paper_items(diameter_m: float, rim_z: float, n_suns: int, n_cams: int, roi_min_px: int = 150,
-                sigmas=(1.0, 1.2, 1.4)) -> list[dict]:
-    """Sun-major items on the paper grid: suns (0.16 k deg, 24 j deg), cameras (90 - 4 k, 24 j)."""
-    suns = [(0.16 * (1 + k % 10), 24.0 * (k // 10 % 15)) for k in range(n_suns)]
-    cams = [(90.0 - 4.0 * (k % 10), 24.0 * (k // 10 % 15)) for k in range(n_cams)]
+                sigmas=(1.0, 1.2, 1.4), sun_stride: int = 1, cam_stride: int = 1) -> list[dict]:
+    """Sun-major items on the paper grid: suns (0.16 k deg, 24 j deg), cameras (90 - 4 k, 24 j);
+    every ``stride``-th grid point (a stride of 13 walks through elevations and azimuths)."""
+    suns = [(0.16 * (1 + k % 10), 24.0 * (k // 10 % 15)) for k in range(0, n_suns * sun_stride, sun_stride)]
+    cams = [(90.0 - 4.0 * (k % 10), 24.0 * (k // 10 % 15)) for k in range(0, n_cams * cam_stride, cam_stride)]
     rim = np.array([0.0, 0.0, rim_z])
     items = []
     for se, sa in suns:
@@ -94,7 +95,8 @@ def run_block(job: dict, job_file: Path) -> subprocess.Popen:
 def run_mode(mode: str, items: list[dict], npz: Path, meta: dict, out: Path, args) -> dict:
     render = {"mode": mode, "samples": args.samples, "max_bounces": 0, "denoise": False, "threads": args.threads,
               "shadow_map_px": args.shadow_map_px, "shadow_map_extent_factor": args.shadow_map_extent_factor,
-              "shadow_map_samples": args.shadow_map_samples, "gbuffer_samples": args.gbuffer_samples}
+              "shadow_map_samples": args.shadow_map_samples, "gbuffer_samples": args.gbuffer_samples,
+              "shadow_map_levels": args.shadow_map_levels}
     n = args.workers
     blocks = [items[i * len(items) // n:(i + 1) * len(items) // n] for i in range(n)]
     t0 = time.perf_counter()
@@ -146,12 +148,12 @@ def run_mode(mode: str, items: list[dict], npz: Path, meta: dict, out: Path, arg
     return summary
 
 
-def compare(items: list[dict], out: Path) -> dict:
+def compare(items: list[dict], out: Path, direct_dir: Path | None = None) -> dict:
     from blender_gen import exr
 
     rows = []
     for it in items:
-        a, _ = exr.read_exr(str(out / "direct" / it["rel_path"]))
+        a, _ = exr.read_exr(str((direct_dir or out / "direct") / it["rel_path"]))
         b, _ = exr.read_exr(str(out / "fast" / it["rel_path"]))
         d_if, f_if = a["IF"], b["IF"]
         lit_px = d_if[a["lit"] > 0.5]
@@ -174,12 +176,18 @@ def main(argv=None) -> int:
     ap.add_argument("--mode", choices=("fast", "direct", "both"), default="fast")
     ap.add_argument("--suns", type=int, default=2)
     ap.add_argument("--cams", type=int, default=20)
+    ap.add_argument("--sun-stride", type=int, default=1, help="take every n-th sun of the 150-point grid")
+    ap.add_argument("--cam-stride", type=int, default=1, help="take every n-th camera of the 150-point grid")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--samples", type=int, default=16)
-    ap.add_argument("--shadow-map-px", type=int, default=1024)
+    ap.add_argument("--shadow-map-px", type=int, default=512)
     ap.add_argument("--shadow-map-samples", type=int, default=8)
     ap.add_argument("--shadow-map-extent-factor", type=float, default=2.1)
+    ap.add_argument("--shadow-map-levels", type=int, default=2)
+    ap.add_argument("--direct-from", type=Path, default=None,
+                    help="with --mode both: compare with the direct renders of an earlier bench --out dir "
+                         "(same angles/terrain options) instead of rendering them again")
     ap.add_argument("--gbuffer-samples", type=int, default=16)
     ap.add_argument("--near", type=int, default=512, help="near-field vertices per side")
     ap.add_argument("--diameter-km", type=float, default=21.0)
@@ -190,15 +198,19 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     npz = out / f"terrain{args.near}.npz"
     meta = synthetic_terrain(npz, args.diameter_km * 1000.0, args.near)
-    items = paper_items(args.diameter_km * 1000.0, meta["rim_z_m"], args.suns, args.cams)
+    items = paper_items(args.diameter_km * 1000.0, meta["rim_z_m"], args.suns, args.cams,
+                        sun_stride=args.sun_stride, cam_stride=args.cam_stride)
     sizes = [(it["crop"][2] - it["crop"][0]) * (it["crop"][3] - it["crop"][1]) for it in items]
     report = {"out": str(out), "near_vertices": args.near, "renders": len(items),
               "mean_crop_px": round(math.sqrt(float(np.mean(sizes))), 1), "cpu_count": os.cpu_count(),
               "modes": {}}
-    for mode in (("fast", "direct") if args.mode == "both" else (args.mode,)):
+    modes = ("fast", "direct") if args.mode == "both" else (args.mode,)
+    if args.direct_from is not None:
+        modes = tuple(m for m in modes if m != "direct")
+    for mode in modes:
         report["modes"][mode] = run_mode(mode, items, npz, meta, out, args)
     if args.mode == "both":
-        report["fast_vs_direct"] = compare(items, out)
+        report["fast_vs_direct"] = compare(items, out, args.direct_from and args.direct_from / "direct")
     print(json.dumps(report, indent=1))
     return 0
 

@@ -34,8 +34,15 @@ def load_job(path: str) -> dict:
         missing = [k for k in RENDER_KEYS if k not in r]
         if missing:
             raise JobError(f"job file {path}: renders[{i}] lacks {missing}")
-        if len(r["crop"]) != 4:
-            raise JobError(f"job file {path}: renders[{i}].crop must be [u0, v0, u1, v1]")
+        try:
+            u0, v0, u1, v1 = (int(c) for c in r["crop"])
+            width = int(r["frame_width"])
+        except (TypeError, ValueError):
+            raise JobError(f"job file {path}: renders[{i}] needs crop [u0, v0, u1, v1] and frame_width "
+                           f"as integers, got {r['crop']!r}, {r['frame_width']!r}") from None
+        if not (0 <= u0 < u1 <= width and 0 <= v0 < v1 <= width):
+            raise JobError(f"job file {path}: renders[{i}] (index {r['index']}): crop {r['crop']} is not a "
+                           f"non-empty box inside the {width}-px frame")
     job.setdefault("terrain_meta", {})
     job.setdefault("render", {})
     return job

@@ -18,11 +18,37 @@ import OpenImageIO as oiio
 _SCRATCH = None
 
 
+_PREFIX = "crater_synth_render_"
+
+
+def _remove_stale(directory: str) -> None:
+    """Delete scratch files of worker processes that no longer exist (e.g. killed with -9)."""
+    for name in os.listdir(directory):
+        if not (name.startswith(_PREFIX) and name.endswith(".exr")):
+            continue
+        try:
+            pid = int(name[len(_PREFIX):].split("_", 1)[0])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            try:
+                os.unlink(os.path.join(directory, name))
+            except OSError:
+                pass
+        except OSError:
+            pass  # alive but not ours (EPERM)
+
+
 def scratch_path() -> str:
+    """Per-process scratch file for Cycles' output (up to ~64 MB for a 1024^2 lit map)."""
     global _SCRATCH
     if _SCRATCH is None:
-        base = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
-        fd, _SCRATCH = tempfile.mkstemp(prefix="crater_synth_render_", suffix=".exr", dir=base)
+        use_shm = os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK)
+        directory = "/dev/shm" if use_shm else tempfile.gettempdir()
+        _remove_stale(directory)
+        fd, _SCRATCH = tempfile.mkstemp(prefix=f"{_PREFIX}{os.getpid()}_", suffix=".exr", dir=directory)
         os.close(fd)
     return _SCRATCH
 

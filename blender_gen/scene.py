@@ -17,8 +17,9 @@ RENDER_DEFAULTS = {
     "max_bounces": 0,
     "denoise": False,
     "threads": 0,
-    "shadow_map_px": 1024,
-    "shadow_map_extent_factor": 1.6,
+    "shadow_map_px": 512,
+    "shadow_map_extent_factor": 2.1,
+    "shadow_map_levels": 2,  # nested lit maps, each shadow_map_px^2, half-widths extent / 2^k
     "shadow_map_samples": 0,  # 0: same as samples
     "gbuffer_samples": 0,  # 0: same as samples
     "seed": 0,
@@ -31,7 +32,7 @@ def render_settings(job_render: dict | None) -> dict:
     cfg.update({k: v for k, v in (job_render or {}).items() if v is not None})
     if cfg["mode"] not in ("direct", "fast"):
         raise ValueError(f"render.mode={cfg['mode']!r}: must be 'direct' or 'fast'")
-    for key in ("samples", "shadow_map_px"):
+    for key in ("samples", "shadow_map_px", "shadow_map_levels"):
         if int(cfg[key]) < 1:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 1")
     for key in ("max_bounces", "threads", "shadow_map_samples", "gbuffer_samples"):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import time
 import traceback
@@ -23,6 +24,9 @@ if __package__ in (None, ""):  # run as a script (blender --python blender_gen/w
 from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
 
 RENDERER_VERSION = "blender_gen 1"
+# Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
+# bytes do not depend on the worker/thread layout (docs/distributed.md, "Determinism").
+EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries"}
 _RESERVED_EXR_KEYS = {"compression", "DateTime", "channels", "dataWindow", "displayWindow", "lineOrder",
                       "pixelAspectRatio", "PixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "tiles",
                       "type", "name", "version", "chunkCount", "oiio:subimages"}
@@ -80,7 +84,8 @@ def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
         "crater_synth:crater": json.dumps(job["crater"], sort_keys=True),
         "crater_synth:terrain_id": str(job.get("terrain_meta", {}).get("terrain_id", "")),
         "crater_synth:hapke": json.dumps(job["hapke"], sort_keys=True),
-        "crater_synth:render": json.dumps(cfg, sort_keys=True),
+        "crater_synth:render": json.dumps({k: v for k, v in cfg.items() if k not in EXECUTION_ONLY_KEYS},
+                                          sort_keys=True),
         "crater_synth:sun_strength": "pi (white Lambertian at normal incidence renders 1: pixel = I/F)",
         "crater_synth:channels": "IF=radiance factor; depth=m along view axis; N=ENU unit normal; "
                                  "lit=illuminated fraction of the solar disk",
@@ -97,11 +102,10 @@ def run(job_path: str) -> int:
     import numpy as np
 
     from blender_gen import direct, exr, fast, render
+    from blender_gen.hapke import HapkeParams
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector
-
-    from blender_gen.hapke import HapkeParams
 
     try:
         cfg = render_settings(job.get("render"))
@@ -121,19 +125,16 @@ def run(job_path: str) -> int:
             t1 = time.perf_counter()
             to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
             mode_used = cfg["mode"]
-            try:
-                if fast_r is not None:
-                    try:
-                        chans = fast_r.render(item, to_sun)
-                    except fast.FallbackNeeded as exc:
-                        fast_r.stats["fallbacks"] += 1
-                        log(f"render {item['index']}: {exc}; rendering it in direct mode")
-                        mode_used = "direct"
-                        chans = direct.render(session, item, to_sun)
-                else:
+            if fast_r is not None:
+                try:
+                    chans = fast_r.render(item, to_sun)
+                except fast.FallbackNeeded as exc:
+                    fast_r.stats["fallbacks"] += 1
+                    log(f"render {item['index']}: {exc}; rendering it in direct mode")
+                    mode_used = "direct"
                     chans = direct.render(session, item, to_sun)
-            except ValueError as exc:  # e.g. a crop outside the frame
-                raise JobError(f"render {item['index']}: {exc}") from None
+            else:
+                chans = direct.render(session, item, to_sun)
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
             sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
@@ -164,17 +165,28 @@ def run(job_path: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _args(sys.argv if argv is None else argv)
     _protect_stdout()
+    # SIGTERM (host shutting down): unwind normally so the scratch file is removed.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
         return 2
     try:
         return run(args[0])
+    except BrokenPipeError:  # the host went away: nobody is left to tell
+        log("stdout closed by the host; stopping")
+        return 1
     except JobError as exc:
-        emit("ERROR", str(exc).replace("\n", " "))
+        try:
+            emit("ERROR", str(exc).replace("\n", " "))
+        except OSError:
+            pass
         return 2
     except Exception as exc:  # noqa: BLE001 - one clear line for the host, the trace for the log
         traceback.print_exc(file=sys.stderr)
-        emit("ERROR", f"{type(exc).__name__}: {exc}".replace("\n", " "))
+        try:
+            emit("ERROR", f"{type(exc).__name__}: {exc}".replace("\n", " "))
+        except OSError:
+            pass
         return 1
 
 

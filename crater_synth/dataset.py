@@ -161,7 +161,8 @@ def code_version() -> str:
 
 def render_digest(render: dict, hapke: dict, terrain_id: str) -> str:
     """Fingerprint of everything besides the angles that changes the pixels of a render."""
-    keys = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_extent_factor", "roi_min_px")
+    keys = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_levels",
+            "shadow_map_extent_factor", "shadow_map_samples", "gbuffer_samples", "roi_min_px", "crop_to_roi")
     payload = json.dumps({"render": {k: render.get(k) for k in keys}, "hapke": hapke, "terrain": terrain_id},
                          sort_keys=True)
     return f"{zlib.crc32(payload.encode()):08x}"

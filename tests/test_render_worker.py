@@ -65,7 +65,9 @@ def test_exr_layout_and_header(small, mode):
         assert header["crater_synth:cam_azimuth"] == pytest.approx(it["cam_azimuth"])
         assert json.loads(header["crater_synth:crop"]) == it["crop"]
         assert json.loads(header["crater_synth:hapke"]) == cr.HAPKE
-        assert json.loads(header["crater_synth:render"])["samples"] == 4
+        render_hdr = json.loads(header["crater_synth:render"])
+        assert render_hdr["samples"] == 4 and render_hdr["mode"] == mode
+        assert "threads" not in render_hdr  # execution-only: bytes must not depend on the worker layout
         for key, val in it["header"].items():  # the host's header entries are written verbatim
             assert header[key] == val
         assert "DateTime" not in header
