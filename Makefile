@@ -53,10 +53,13 @@ experiments: setup ## Figure 6 experiments on one rendered dataset (OVERRIDES="s
 report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
 	$(CLI) report $(RUN_DIR) $(OVERRIDES)
 
+bench: setup ## Benchmarks: renderer vs naive baseline (renders/s, ratio), training, distributed sweep
+	$(CLI) bench $(OVERRIDES)
+
 DEMO_DIR ?= outputs/demo
 demo: setup ## The main job on the embedded data: render sweep=demo, closed loop, evaluate, report
 	$(CLI) loop sweep=demo run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
 	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test-deps test test-slow terrain dataset train loop experiments report demo
+.PHONY: help setup test-deps test test-slow terrain dataset train loop experiments report bench demo

@@ -172,8 +172,12 @@ def render_seed(base_seed: int, key: tuple) -> int:
     return zlib.crc32(f"{base_seed}:{key}".encode()) & 0x7FFFFFFF
 
 
-def plan_render(crater: dict, meta: dict, grid: SweepGrid, index: int, roi_min_px: int) -> dict:
-    """Camera, frame size, rim ellipse, sigma boxes and crop of one render (full-frame -> crop px)."""
+def plan_render(crater: dict, meta: dict, grid: SweepGrid, index: int, roi_min_px: int,
+                crop_to_roi: bool = True) -> dict:
+    """Camera, frame size, rim ellipse, sigma boxes and crop of one render (full-frame -> crop px).
+
+    With ``crop_to_roi`` (the default) only the largest sigma box is rendered; otherwise the whole
+    90 deg frame (the naive baseline of ``crater-synth bench``)."""
     p = grid.params(index)
     diameter_m = crater["diameter_km"] * 1000.0
     range_m = grid.range_factor * diameter_m
@@ -188,6 +192,8 @@ def plan_render(crater: dict, meta: dict, grid: SweepGrid, index: int, roi_min_p
     if crop[0] < 0 or crop[1] < 0 or crop[2] > width or crop[3] > width:
         raise UserError(f"ROI box of sigma={max(grid.sigmas)} leaves the {grid.fov_deg} deg frame for "
                         f"{crater['name']} at camera elevation {p.cam_elevation}: lower sigma or raise range_factor")
+    if not crop_to_roi:
+        crop = [0, 0, width, width]
     u0, v0 = crop[0], crop[1]
     return {
         "params": p,
@@ -384,7 +390,8 @@ def build_dataset(cfg, progress: bool = True) -> dict:
         job = CraterJob(crater=crater, npz=Path(npz), meta=meta)
         digest = render_digest(render, cfg_r["hapke"], meta["terrain_id"])
         for index in indices:
-            plan = plan_render(crater, meta, grid, index, int(render["roi_min_px"]))
+            plan = plan_render(crater, meta, grid, index, int(render["roi_min_px"]),
+                               bool(render.get("crop_to_roi", True)))
             p = plan["params"]
             key = schema.params_key(crater["name"], p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
             plan["seed"] = render_seed(int(cfg_r["seed"]), key)

@@ -15,22 +15,10 @@ from data_manifest import schema
 
 
 def read_channel(path: Path, name: str = "IF") -> np.ndarray:
-    """One named channel of an EXR as a 2-D float32 array."""
-    import OpenImageIO as oiio
+    """One named channel of an EXR as a 2-D float32 array (the training stage's reader)."""
+    from train.data import read_exr_channel
 
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise UserError(f"{path}: cannot open EXR ({oiio.geterror()})")
-    try:
-        names = list(inp.spec().channelnames)
-        if name not in names:
-            raise UserError(f"{path}: no channel {name!r} (has {names})")
-        px = inp.read_image("float")
-        if px is None:
-            raise UserError(f"{path}: cannot decode pixels")
-        return np.asarray(px, dtype=np.float32)[..., names.index(name)]
-    finally:
-        inp.close()
+    return read_exr_channel(path, name)
 
 
 def tone_map(radiance_factor: np.ndarray) -> np.ndarray:

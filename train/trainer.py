@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from data_manifest.schema import atomic_write_text
+from data_manifest.schema import atomic_write_bytes, atomic_write_text
 from train.data import SyntheticCropDataset, SyntheticData
 from train.errors import RealDataLeakError, TrainError
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
@@ -32,23 +32,6 @@ SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
 # ------------------------------------------------------------------------------------------------
 # Small utilities
 # ------------------------------------------------------------------------------------------------
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    import tempfile
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def atomic_write_json(path: str | Path, obj) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
