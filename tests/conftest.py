@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parent.parent
 # 1 sample per pixel, 32 px crops, 128 px shadow maps. Later overrides of the same key win.
 TINY = ("crater=shackleton", "sweep=smoke", "terrain.near_vertices=48", "terrain.far_radius_km=60",
         "terrain.far_spacing_km=6", "terrain.detail.enabled=false", "render.samples=1",
-        "render.shadow_map_px=128", "render.roi_min_px=32")
+        "render.shadow_map_px=128", "render.roi_min_px=32", "render.workers=1")
 
 
 def cli_command() -> list[str]:
