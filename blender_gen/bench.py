@@ -32,15 +32,23 @@ REPO = Path(__file__).resolve().parent.parent
 HAPKE = {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06, "theta_bar_deg": 23.657}
 
 
-def synthetic_terrain(path: Path, diameter_m: float = 21_000.0, near_n: int = 512, near_factor: float = 2.5,
-                      far_half_m: float = 300_000.0, far_spacing_m: float = 2_000.0) -> dict:
+def bowl_crater_z(diameter_m: float):
+    """Height function z(x, y) of a bowl crater (depth 0.2 D, raised rim 0.04 D; Pike 1977 fresh simple
+    crater proportions) with gentle undulations: a stand-in for a DEM in benchmarks and tests."""
     radius = diameter_m / 2.0
 
-    def crater(x, y):
+    def z(x, y):
         r = np.hypot(x, y) / radius
-        z = np.where(r < 1.0, 0.2 * diameter_m * (r**2 - 1.0) + 0.04 * diameter_m,
-                     0.04 * diameter_m * np.exp(-3.0 * (r - 1.0)))
-        return z + 0.003 * diameter_m * np.sin(x / (0.033 * diameter_m)) * np.cos(y / (0.043 * diameter_m))
+        bowl = np.where(r < 1.0, 0.2 * diameter_m * (r**2 - 1.0) + 0.04 * diameter_m,
+                        0.04 * diameter_m * np.exp(-3.0 * (r - 1.0)))
+        return bowl + 0.003 * diameter_m * np.sin(x / (0.033 * diameter_m)) * np.cos(y / (0.043 * diameter_m))
+
+    return z
+
+
+def synthetic_terrain(path: Path, diameter_m: float = 21_000.0, near_n: int = 512, near_factor: float = 2.5,
+                      far_half_m: float = 300_000.0, far_spacing_m: float = 2_000.0) -> dict:
+    crater = bowl_crater_z(diameter_m)
 
     def grid(half, n, zf):
         xs = np.linspace(-half, half, n)

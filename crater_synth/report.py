@@ -702,26 +702,11 @@ def section_histograms(ctx: _Ctx) -> str:
 
 # ---- 4. models -----------------------------------------------------------------------------------
 def _plot_confusion(path: Path, conf, classes: Sequence[str], title: str) -> str:
-    m = np.asarray(conf, dtype=float)
-    rowsum = m.sum(axis=1, keepdims=True)
-    frac = np.divide(m, rowsum, out=np.zeros_like(m), where=rowsum > 0)
-    with _rc():
-        fig = _new_figure(4.6, 4.0)
-        ax = fig.add_subplot(111)
-        im = ax.imshow(frac, vmin=0, vmax=1, cmap="Blues")
-        n = len(classes)
-        ax.set_xticks(range(n), classes, rotation=30, ha="right")
-        ax.set_yticks(range(n), classes)
-        ax.set_xlabel("predicted")
-        ax.set_ylabel("true")
-        ax.set_title(title)
-        for i in range(n):
-            for j in range(n):
-                ax.text(j, i, f"{int(m[i, j])}\n{frac[i, j]:.0%}", ha="center", va="center", fontsize=8,
-                        color="white" if frac[i, j] > 0.5 else "black")
-        fig.colorbar(im, ax=ax, fraction=0.046)
-        fig.tight_layout()
-        return _save(fig, path)
+    """Re-plot a confusion matrix from metrics.json with the training stage's own plotter."""
+    from train.evaluate import plot_confusion
+
+    plot_confusion(path, conf, classes, title)
+    return path.name
 
 
 def section_models(ctx: _Ctx) -> str:

@@ -23,8 +23,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -213,18 +211,14 @@ def _far_half_cells(dem, lat: float, lon: float, k_max: int, spacing: float, max
 # Building
 # --------------------------------------------------------------------------------------------
 def _atomic_save_npz(path: Path, arrays: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a patch is shared data (rw-r--r--)
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """``np.savez`` through :func:`data_manifest.schema.atomic_write_bytes` (temp file + rename)."""
+    import io
+
+    from data_manifest.schema import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict) -> str:

@@ -109,15 +109,9 @@ def flat_expected_if(it: dict, params: dict = HAPKE, z0: float = 0.0) -> np.ndar
 
 def crater_z(diameter_m: float):
     """Bowl crater (depth 0.2 D, raised rim 0.04 D) with gentle undulations: a stand-in for a DEM."""
-    radius = diameter_m / 2.0
+    from blender_gen.bench import bowl_crater_z
 
-    def z(x, y):
-        r = np.hypot(x, y) / radius
-        bowl = np.where(r < 1.0, 0.2 * diameter_m * (r**2 - 1.0) + 0.04 * diameter_m,
-                        0.04 * diameter_m * np.exp(-3.0 * (r - 1.0)))
-        return bowl + 0.003 * diameter_m * np.sin(x / (0.033 * diameter_m)) * np.cos(y / (0.043 * diameter_m))
-
-    return z
+    return bowl_crater_z(diameter_m)
 
 
 def crater_items(diameter_m: float, suns, cams, roi_min_px: int = 100, sigma_max: float = 1.4,
