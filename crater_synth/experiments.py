@@ -42,11 +42,21 @@ def plan_points(grid, counts: dict) -> list[dict]:
     return points
 
 
+_CSV_TYPES = {"count": int, "sigma": float, "real_accuracy": float, "val_accuracy": float, "train_images": int,
+              "seconds": float}
+
+
 def read_results(path: Path) -> list[dict]:
+    """Rows of experiments.csv with their types restored (a rerun continues from them)."""
     if not path.is_file():
         return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    try:
+        with open(path, newline="") as fh:
+            return [{k: (_CSV_TYPES[k](v) if k in _CSV_TYPES and v not in ("", "None") else
+                         (None if v in ("", "None") else v)) for k, v in row.items()}
+                    for row in csv.DictReader(fh)]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{path}: corrupt experiments CSV ({exc}); delete it to start over") from None
 
 
 def write_results(path: Path, rows: list[dict]) -> None:
@@ -104,7 +114,7 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
     run_dir.mkdir(parents=True, exist_ok=True)
     csv_path = run_dir / CSV_FILE
     results = read_results(csv_path)
-    done = {(r["parameter"], int(r["count"]), float(r["sigma"])) for r in results}
+    done = {(r["parameter"], r["count"], r["sigma"]) for r in results}
     sigmas = [float(s) for s in cfg_r["experiments"].get("sigmas") or grid.sigmas]
     for point in points:
         for sigma in sigmas:

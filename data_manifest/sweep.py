@@ -186,21 +186,23 @@ def rows_in_selection(rows: Sequence[Mapping], selection: Mapping[str, Sequence[
 
 
 def nearest_subset(available: Sequence[float], axis: str, count: int) -> list[float]:
-    """``count`` of the ``available`` values closest to the paper's positions for ``count`` samples.
+    """``count`` of the ``available`` (rendered, grid-ordered) values for a Figure 6 point.
 
-    Sun/camera elevation grids nest, so the result is exact; azimuth grids of 6, 9 or 12 samples are
-    not subsets of the 15-sample grid, so each target snaps to the nearest rendered azimuth (ties to
-    the smaller angle; circular distance). Raises if two targets snap to the same value.
+    Elevation axes: the paper's positions for N samples are the first N of its grid (sun 0.16 deg * k,
+    camera 90 - 4 deg * k), so the subset is the first ``count`` rendered values in grid order -- exact
+    for the paper grid, and the same rule for explicit value lists. Azimuth axes: 360 k / N for 6, 9 or
+    12 samples are not subsets of the 15-sample grid, so each target snaps to the nearest rendered
+    azimuth (circular distance, ties to the smaller angle). Raises if two targets snap to one value.
     """
-    avail = sorted(float(v) for v in available)
+    avail = [float(v) for v in available]
     if count > len(avail):
         raise SweepError(f"{axis}: {count} samples requested but only {len(avail)} rendered")
+    if not axis.endswith("azimuth"):
+        return avail[:count]
+    avail = sorted(avail)
     out = []
     for target in default_positions(axis, count):
-        if axis.endswith("azimuth"):
-            dist = [min(abs(v - target) % 360.0, 360.0 - abs(v - target) % 360.0) for v in avail]
-        else:
-            dist = [abs(v - target) for v in avail]
+        dist = [min(abs(v - target) % 360.0, 360.0 - abs(v - target) % 360.0) for v in avail]
         out.append(avail[int(np.argmin(np.round(dist, 9)))])
     if len(set(out)) != count:
         raise SweepError(f"{axis}: {count} samples cannot be taken from the rendered values {avail} "
