@@ -84,6 +84,9 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
                 if pts:
                     ax.plot(*zip(*pts), style, color=colours[sigma], ms=4, lw=1.2,
                             label=f"{'Net' if model == 'lunarnet_ex' else 'SVM'} σ={sigma:.1f}")
+        counts = sorted({int(r["count"]) for r in rows if r["parameter"] == axis})
+        if counts:
+            ax.set_xticks(counts)
         ax.set_title(PANEL_TITLES[axis], fontsize=10)
         ax.set_xlabel("sample count (others at maximum)")
         ax.set_ylim(0, 1)
