@@ -99,12 +99,13 @@ def _fsync_dir(path: Path) -> None:
 
 def _check(path: Path, expected_sha: str | None, expected_size: int | None, what: str) -> tuple[str, int]:
     """(sha256, size) of ``path``; ChecksumError on a size or digest mismatch."""
-    from data_manifest.products import ChecksumError, sha256_of
+    from data_manifest.products import ChecksumError
+    from data_manifest.schema import sha256_file
 
     size = path.stat().st_size
     if expected_size is not None and size != int(expected_size):
         raise ChecksumError(f"{what}: size {size} bytes != pinned {int(expected_size)}")
-    digest = sha256_of(path)
+    digest = sha256_file(path)
     if expected_sha is not None and digest != str(expected_sha).lower():
         raise ChecksumError(f"{what}: sha256 mismatch (expected {expected_sha}, got {digest})")
     return digest, size

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import copy
 import functools
-import hashlib
 import os
 import re
 from pathlib import Path
 
 from data_manifest.errors import ContractError
+from data_manifest.schema import sha256_file
 
 PRODUCTS_FILE = Path(__file__).resolve().with_name("products.yaml")
 PRODUCTS_SUBDIR = "products"
@@ -115,22 +115,13 @@ def get_product(product_id: str) -> dict:
 # --------------------------------------------------------------------------------------------
 # Checksums
 # --------------------------------------------------------------------------------------------
-def sha256_of(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 # (resolved path, size, mtime_ns) -> digest: each file is hashed at most once per process unless
 # it changes on disk.
 _DIGESTS: dict[tuple[str, int, int], str] = {}
 
 
 def cached_sha256(path: str | os.PathLike) -> str:
-    """:func:`sha256_of`, memoised per process on (path, size, mtime)."""
+    """:func:`data_manifest.schema.sha256_file`, memoised per process on (path, size, mtime)."""
     p = Path(path).resolve()
     try:
         st = p.stat()
@@ -138,7 +129,7 @@ def cached_sha256(path: str | os.PathLike) -> str:
         raise ProductMissingError(f"cannot read {p}: {exc.strerror}") from None
     key = (str(p), st.st_size, st.st_mtime_ns)
     if key not in _DIGESTS:
-        _DIGESTS[key] = sha256_of(p)
+        _DIGESTS[key] = sha256_file(p)
     return _DIGESTS[key]
 
 
