@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blender_gen import geometry
+from crater_core import geometry
 
 REPO = Path(__file__).resolve().parent.parent
 HAPKE = {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06, "theta_bar_deg": 23.657}
@@ -157,7 +157,7 @@ def run_mode(mode: str, items: list[dict], npz: Path, meta: dict, out: Path, arg
 
 
 def compare(items: list[dict], out: Path, direct_dir: Path | None = None) -> dict:
-    from blender_gen import exr
+    from crater_core import exr
 
     rows = []
     for it in items:

@@ -10,7 +10,7 @@ import bpy
 import mathutils
 import numpy as np
 
-from blender_gen import geometry
+from crater_core import geometry
 
 
 def create_camera(scene, name: str = "view") -> bpy.types.Object:

@@ -30,7 +30,8 @@ from collections import OrderedDict
 
 import numpy as np
 
-from blender_gen import direct, hapke
+from crater_core import hapke
+from blender_gen import direct
 
 LIT_MAP_MAX = 4.0  # clip of the map before interpolation (>1 only within ~one solar radius of the terminator)
 

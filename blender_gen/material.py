@@ -1,6 +1,6 @@
 """Terrain material built from shader nodes, with the Hapke formula generated from ``hapke.py``.
 
-``NodeOps`` is a backend for :func:`blender_gen.hapke.radiance_factor`: every arithmetic operator and
+``NodeOps`` is a backend for :func:`crater_core.hapke.radiance_factor`: every arithmetic operator and
 function creates a ``ShaderNodeMath`` node, so the shader graph *is* the numpy oracle's formula (one
 source of truth). Python floats stay constants (node default values); Cycles folds them.
 
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import bpy
 
-from blender_gen import hapke
+from crater_core import hapke
 
 MU0_EPS = 1e-4  # floor of mu0 in the 1/mu0 colour weights (terminator; r_Hapke ~ mu0 there)
 AOV_POSITION = "P"

@@ -2,7 +2,7 @@
 
 bpy offers no direct access to render-result pixels, so each render is written (uncompressed,
 multi-part multilayer EXR, float32) to a per-process scratch file (in /dev/shm when available) and
-read back with OpenImageIO. Costs ~1-3 ms for a 210^2 crop.
+read back with ``crater_core.exr.read_multilayer``. Costs ~1-3 ms for a 210^2 crop.
 """
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import time
 
 import bpy
 import numpy as np
-import OpenImageIO as oiio
+
+from crater_core.exr import read_multilayer
 
 _SCRATCH = None
 
@@ -61,38 +62,6 @@ def cleanup() -> None:
         except OSError:
             pass
         _SCRATCH = None
-
-
-def read_multilayer(path: str) -> dict[str, np.ndarray]:
-    """{pass name: (h, w) or (h, w, c) float32} from a Blender multilayer EXR (one part per pass)."""
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise RuntimeError(f"cannot read render output {path}: {oiio.geterror()}")
-    out = {}
-    try:
-        sub = 0
-        while inp.seek_subimage(sub, 0):
-            spec = inp.spec()
-            px = inp.read_image(sub, 0, 0, spec.nchannels, "float")
-            names = list(spec.channelnames)
-            # "ViewLayer.<Pass>.<chan>": group by pass
-            groups: dict[str, list[int]] = {}
-            for i, ch in enumerate(names):
-                parts = ch.split(".")
-                key = ".".join(parts[1:-1]) if len(parts) >= 3 else parts[0]
-                groups.setdefault(key, []).append(i)
-            px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-            for key, idx in groups.items():
-                arr = px[..., idx]
-                # order channels conventionally (R G B A / X Y Z / single)
-                chans = [names[i].rsplit(".", 1)[-1] for i in idx]
-                order = sorted(range(len(chans)), key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99)
-                arr = arr[..., order]
-                out[key] = arr[..., 0] if arr.shape[-1] == 1 else arr
-            sub += 1
-    finally:
-        inp.close()
-    return out
 
 
 def render_passes(scene) -> tuple[dict[str, np.ndarray], float]:

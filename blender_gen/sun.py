@@ -15,7 +15,7 @@ import bpy
 import mathutils
 import numpy as np
 
-from blender_gen import geometry
+from crater_core import geometry
 
 SUN_STRENGTH = math.pi
 

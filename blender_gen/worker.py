@@ -101,8 +101,9 @@ def run(job_path: str) -> int:
 
     import numpy as np
 
-    from blender_gen import direct, exr, fast, render
-    from blender_gen.hapke import HapkeParams
+    from crater_core import exr
+    from blender_gen import direct, fast, render
+    from crater_core.hapke import HapkeParams
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector

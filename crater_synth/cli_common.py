@@ -8,7 +8,7 @@ import sys
 import click
 
 from crater_synth.errors import UserError
-from data_manifest.errors import ContractError
+from crater_core.errors import ContractError
 
 OVERRIDES = click.argument("overrides", nargs=-1, metavar="[OVERRIDES]...")
 

@@ -29,13 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from blender_gen import geometry
-from blender_gen.hapke import HapkeParams
+from crater_core import geometry
+from crater_core.hapke import HapkeParams
 from crater_synth import __version__
 from crater_synth.config import ConfigError, craters as selected_craters, resolved
 from crater_synth.errors import UserError
-from data_manifest import schema
-from data_manifest.sweep import SweepGrid, grid_from_config
+from crater_core import schema
+from crater_core.sweep import SweepGrid, grid_from_config
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 # Bytes per render used for the free-disk check before any measured value exists

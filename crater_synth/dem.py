@@ -30,7 +30,7 @@ import numpy as np
 
 from crater_synth.errors import UserError
 
-# IAU/LOLA lunar reference sphere (Archinal et al. 2018); the same value as blender_gen.geometry.
+# IAU/LOLA lunar reference sphere (Archinal et al. 2018); the same value as crater_core.geometry.
 MOON_RADIUS_M = 1_737_400.0
 # Geographic CRS of the lunar sphere (planetocentric lat/lon; the IAU crater coordinates).
 MOON_GEOGRAPHIC_PROJ = "+proj=longlat +R=1737400 +no_defs"

@@ -1,7 +1,7 @@
 """Figure 6: real-image accuracy against each sweep parameter's sample count (others at their maximum),
 one curve per ROI ratio, for LunarNet_ex and LunarSVM_ex.
 
-Every subset is a selection of rows from ONE rendered dataset (``data_manifest.sweep.nearest_subset``
+Every subset is a selection of rows from ONE rendered dataset (``crater_core.sweep.nearest_subset``
 and ``rows_in_selection``), never a re-render. Outputs in ``run_dir``: ``experiments.csv`` (one row per
 parameter, count, sigma and model; appended as points finish, so a rerun skips finished points) and
 ``figure6.png`` (four panels in the paper's layout).
@@ -20,8 +20,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
-from data_manifest.schema import atomic_write_text
-from data_manifest.sweep import AXES, grid_from_config, nearest_subset
+from crater_core.schema import atomic_write_text
+from crater_core.sweep import AXES, grid_from_config, nearest_subset
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
 CSV_FIELDS = ("parameter", "count", "sigma", "model", "real_accuracy", "val_accuracy", "train_images", "seconds")

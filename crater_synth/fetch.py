@@ -24,7 +24,7 @@ import click
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from data_manifest.errors import ContractError
+from crater_core.errors import ContractError
 
 # Used when the composed config has no ``fetch`` group (configs/fetch/default.yaml holds the same).
 FETCH_DEFAULTS = {"base_url": None, "timeout_s": 60.0, "retries": 3, "chunk_bytes": 1 << 20, "backoff_s": 1.0}
@@ -100,7 +100,7 @@ def _fsync_dir(path: Path) -> None:
 def _check(path: Path, expected_sha: str | None, expected_size: int | None, what: str) -> tuple[str, int]:
     """(sha256, size) of ``path``; ChecksumError on a size or digest mismatch."""
     from data_manifest.products import ChecksumError
-    from data_manifest.schema import sha256_file
+    from crater_core.schema import sha256_file
 
     size = path.stat().st_size
     if expected_size is not None and size != int(expected_size):

@@ -28,9 +28,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from crater_synth.config import ConfigError, resolved
 from crater_synth.errors import UserError
-from data_manifest import schema
-from data_manifest.errors import ContractError
-from data_manifest.sweep import grid_from_config
+from crater_core import schema
+from crater_core.errors import ContractError
+from crater_core.sweep import grid_from_config
 
 
 def _render_shard(cfg_yaml: str, shard_index: int, shard_count: int) -> dict:

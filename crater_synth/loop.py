@@ -19,8 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
-from data_manifest.schema import atomic_write_text
-from data_manifest.sweep import grid_from_config
+from crater_core.schema import atomic_write_text
+from crater_core.sweep import grid_from_config
 
 HISTORY_FILE = "loop_history.json"
 MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")

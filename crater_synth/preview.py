@@ -11,14 +11,14 @@ import numpy as np
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from data_manifest import schema
+from crater_core import schema
 
 
 def read_channel(path: Path, name: str = "IF") -> np.ndarray:
-    """One named channel of an EXR as a 2-D float32 array (the training stage's reader)."""
-    from train.data import read_exr_channel
+    """One named channel of an EXR as a 2-D float32 array (``crater_core.exr``)."""
+    from crater_core.exr import read_channel as read
 
-    return read_exr_channel(path, name)
+    return read(path, name)
 
 
 def tone_map(radiance_factor: np.ndarray) -> np.ndarray:

@@ -432,7 +432,7 @@ class _Ctx:
 
 
 def _dataset_rows(ds: Path | None) -> list[dict] | None:
-    from data_manifest import schema
+    from crater_core import schema
 
     if ds is None or not (ds / schema.MANIFEST_NAME).is_file():
         return None
@@ -481,7 +481,7 @@ def section_contact(ctx: _Ctx) -> str:
 
 # ---- 2. real vs synthetic ------------------------------------------------------------------------
 def _pick_synthetic(rows: Sequence[dict]) -> dict:
-    from data_manifest import schema
+    from crater_core import schema
 
     return min(rows, key=lambda r: (abs(float(r["cam_elevation"]) - 90.0), -float(r["sun_elevation"]),
                                     -float(r["lit_fraction"]), schema.row_key(r)))
@@ -956,7 +956,7 @@ def _product_rows(cfg: Mapping) -> list[list[str]]:
 
 
 def section_provenance(ctx: _Ctx) -> str:
-    from data_manifest import schema
+    from crater_core import schema
 
     parts = [f'<div class="limits"><b>Limits of the test set.</b> {esc(_limits_text(ctx))}</div>']
     parts.append("<h3>Data products</h3>")
@@ -1226,7 +1226,7 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
     rows = all_rows
     selection = (rc.cfg.get("train") or {}).get("select")
     if all_rows is not None and selection:
-        from data_manifest.sweep import rows_in_selection
+        from crater_core.sweep import rows_in_selection
 
         rows = rows_in_selection(all_rows, dict(selection))
     tmp = Path(tempfile.mkdtemp(prefix=".report.tmp-", dir=run_dir))

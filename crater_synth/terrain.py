@@ -2,7 +2,7 @@
 
 Contract with the Blender worker (docs/terrain.md):
 
-- Frame: local ENU at the crater centre on the reference sphere (``blender_gen.geometry``):
+- Frame: local ENU at the crater centre on the reference sphere (``crater_core.geometry``):
   x east, y north, z up, metres, origin on the sphere (height 0) below the crater centre.
 - Near field: vertices over horizontal ENU (e, n) in [-hw, hw]^2, hw = near_radius_factor x D,
   ``terrain.near_vertices`` per side; row i <-> n_i = -hw + i * spacing (ascending north), column j
@@ -137,7 +137,7 @@ def _open_dem(product: str | None, path: str | None, data_dir: Path):
 # --------------------------------------------------------------------------------------------
 def _sphere_points(e: np.ndarray, n: np.ndarray, lat: float, lon: float):
     """Unit directions (MC) and (lat, lon) of the sphere points below horizontal ENU (e, n)."""
-    from blender_gen.geometry import MOON_RADIUS_M, enu_basis, latlon_to_mc, mc_to_latlon
+    from crater_core.geometry import MOON_RADIUS_M, enu_basis, latlon_to_mc, mc_to_latlon
 
     basis = enu_basis(lat, lon)
     p = latlon_to_mc(lat, lon) + e[..., None] * basis[0] + n[..., None] * basis[1]
@@ -147,7 +147,7 @@ def _sphere_points(e: np.ndarray, n: np.ndarray, lat: float, lon: float):
 
 
 def _to_enu(dirs: np.ndarray, heights: np.ndarray, lat: float, lon: float) -> np.ndarray:
-    from blender_gen.geometry import MOON_RADIUS_M, mc_to_enu
+    from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
 
     return mc_to_enu(dirs * (MOON_RADIUS_M + heights)[..., None], lat, lon)
 
@@ -211,10 +211,10 @@ def _far_half_cells(dem, lat: float, lon: float, k_max: int, spacing: float, max
 # Building
 # --------------------------------------------------------------------------------------------
 def _atomic_save_npz(path: Path, arrays: dict) -> None:
-    """``np.savez`` through :func:`data_manifest.schema.atomic_write_bytes` (temp file + rename)."""
+    """``np.savez`` through :func:`crater_core.schema.atomic_write_bytes` (temp file + rename)."""
     import io
 
-    from data_manifest.schema import atomic_write_bytes
+    from crater_core.schema import atomic_write_bytes
 
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -249,7 +249,7 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
 
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
-    from data_manifest.schema import atomic_write_text
+    from crater_core.schema import atomic_write_text
     from crater_synth.dem import DemCoverageError
     from crater_synth.detail import synthesize_detail
 

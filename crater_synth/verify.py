@@ -10,25 +10,8 @@ import click
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from data_manifest import schema
-
-
-def read_exr_channels(path: Path) -> dict:
-    """Open an EXR and return its spec facts; raises ``ValueError`` naming the file when unreadable."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ValueError(f"{path}: cannot open EXR ({oiio.geterror()})")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image("float")
-        if pixels is None:
-            raise ValueError(f"{path}: cannot decode pixels ({inp.geterror()})")
-        return {"channels": tuple(spec.channelnames), "width": spec.width, "height": spec.height,
-                "tiled": spec.tile_width > 0, "finite": bool(abs(pixels).max() < float("inf"))}
-    finally:
-        inp.close()
+from crater_core import schema
+from crater_core.exr import ExrError, exr_info
 
 
 def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
@@ -64,8 +47,8 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
             continue
         if decode:
             try:
-                info = read_exr_channels(f)
-            except ValueError as exc:
+                info = exr_info(f)
+            except ExrError as exc:
                 faults.append(str(exc))
                 continue
             if set(info["channels"]) != expected:

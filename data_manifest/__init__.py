@@ -1,2 +1,2 @@
-"""The contract between the renderer and training: the sweep grid, the render manifest schema and
-the registry of external data products (products.yaml)."""
+"""The registry of external data products (products.yaml): the embedded LOLA DEM and LROC WAC mosaic,
+the full-resolution products the paper used, their sources, sizes and checksums."""

@@ -19,8 +19,8 @@ import os
 import re
 from pathlib import Path
 
-from data_manifest.errors import ContractError
-from data_manifest.schema import sha256_file
+from crater_core.errors import ContractError
+from crater_core.schema import sha256_file
 
 PRODUCTS_FILE = Path(__file__).resolve().with_name("products.yaml")
 PRODUCTS_SUBDIR = "products"
@@ -121,7 +121,7 @@ _DIGESTS: dict[tuple[str, int, int], str] = {}
 
 
 def cached_sha256(path: str | os.PathLike) -> str:
-    """:func:`data_manifest.schema.sha256_file`, memoised per process on (path, size, mtime)."""
+    """:func:`crater_core.schema.sha256_file`, memoised per process on (path, size, mtime)."""
     p = Path(path).resolve()
     try:
         st = p.stat()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blender_gen import geometry, hapke
+from crater_core import geometry, hapke
 
 REPO = Path(__file__).resolve().parents[1]
 R_MOON = geometry.MOON_RADIUS_M

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blender_gen import geometry as g
+from crater_core import geometry as g
 from crater_synth.dem import Dem, DemCoverageError, DemNodataError, DemReadError
 from data_manifest.products import resolve_product
 

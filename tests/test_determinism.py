@@ -35,7 +35,7 @@ def test_shards_merge_to_the_single_run(tmp_path, tiny_dataset, reference, n):
 
 
 def _pixels_and_header(path):
-    from blender_gen.exr import read_exr
+    from crater_core.exr import read_exr
 
     chans, header = read_exr(str(path))
     render = json.loads(header.pop("crater_synth:render"))

@@ -4,7 +4,7 @@ import pytest
 
 from crater_synth.config import compose, resolved
 from crater_synth.experiments import plan_points
-from data_manifest.sweep import AXES, SweepError, grid_from_config, nearest_subset, rows_in_selection
+from crater_core.sweep import AXES, SweepError, grid_from_config, nearest_subset, rows_in_selection
 
 
 @pytest.fixture(scope="module")

@@ -1,11 +1,11 @@
-"""blender_gen.geometry: projections against PROJ, curvature, local frames, cameras, rim ellipses."""
+"""crater_core.geometry: projections against PROJ, curvature, local frames, cameras, rim ellipses."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from blender_gen import geometry as g
+from crater_core import geometry as g
 
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
 MOON_LONLAT = "+proj=longlat +R=1737400 +no_defs"

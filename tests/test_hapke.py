@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from blender_gen.hapke import HapkeParams, radiance_factor_np
+from crater_core.hapke import HapkeParams, radiance_factor_np
 
 
 def hand_hapke_smooth(mu0, mu, g, w, xi, b0, h):

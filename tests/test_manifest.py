@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from data_manifest import schema
+from crater_core import schema
 
 
 def make_row(crater="shackleton", index=0, se=0.16, sa=0.0, ce=90.0, ca=0.0, **kw):

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from blender_gen import geometry
+from crater_core import geometry
 from crater_synth.config import compose, resolved
 from crater_synth.dataset import plan_render
-from data_manifest.sweep import grid_from_config
+from crater_core.sweep import grid_from_config
 
 CRATER = {"name": "shackleton", "lat": -89.67, "lon": 129.78, "diameter_km": 21.0}
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blender_gen import exr, geometry
+from crater_core import exr, geometry
 
 _spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
 cr = importlib.util.module_from_spec(_spec)

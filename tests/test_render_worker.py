@@ -13,8 +13,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from blender_gen import exr
-from data_manifest.schema import EXR_CHANNELS
+from crater_core import exr
+from crater_core.schema import EXR_CHANNELS
 
 _spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
 cr = importlib.util.module_from_spec(_spec)

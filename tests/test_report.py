@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from data_manifest import schema
+from crater_core import schema
+from crater_core.exr import write_exr
 
 CRATERS = ("shackleton", "de_gerlache", "shoemaker")
 MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
@@ -26,21 +27,6 @@ SIZE, RIM_PX = 64, 40.0
 # ------------------------------------------------------------------------------------------------
 # Fixture: a few small EXRs + manifest, metrics.json, loop_history.json, experiments.csv
 # ------------------------------------------------------------------------------------------------
-def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
-    import OpenImageIO as oiio
-
-    data = np.stack([channels[n].astype(np.float32) for n in schema.EXR_CHANNELS], axis=-1)
-    spec = oiio.ImageSpec(SIZE, SIZE, len(schema.EXR_CHANNELS), oiio.FLOAT)
-    spec.channelnames = schema.EXR_CHANNELS
-    spec.tile_width = spec.tile_height = 32
-    spec.attribute("compression", "zip")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
-    assert out is not None and out.open(str(path), spec), oiio.geterror()
-    assert out.write_image(data), out.geterror()
-    out.close()
-
-
 def _render(k: int, sun_el: float, sun_az: float) -> dict[str, np.ndarray]:
     """A Lambert-shaded bowl (depth differs per crater), seeded roughness."""
     v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
@@ -68,7 +54,7 @@ def make_dataset(d: Path) -> list[dict]:
                                               (1.6, 240.0, 90.0, 0.0), (0.8, 90.0, 90.0, 180.0)]):
             ch = _render(k, se, sa)
             rel = schema.render_rel_path(crater, se, sa, ce, ca)
-            _write_exr(d / rel, ch)
+            write_exr(d / rel, ch)
             rows.append(schema.validate_row({
                 "schema_version": schema.SCHEMA_VERSION, "crater": crater, "index": i, "indices": [0, 0, 0, i],
                 "sun_elevation": se, "sun_azimuth": sa, "cam_elevation": ce, "cam_azimuth": ca,

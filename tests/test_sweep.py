@@ -3,7 +3,7 @@
 import pytest
 
 from crater_synth.config import compose, resolved
-from data_manifest.sweep import SweepError, default_positions, grid_from_config
+from crater_core.sweep import SweepError, default_positions, grid_from_config
 
 
 def test_paper_grid_has_spec_positions_and_size():

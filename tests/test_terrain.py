@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from blender_gen import geometry as g
+from crater_core import geometry as g
 from crater_synth.cli import main
 from crater_synth.config import compose, craters
 from crater_synth.terrain import build_terrain

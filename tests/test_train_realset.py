@@ -62,7 +62,7 @@ def test_crop_plan_is_deterministic_for_the_seed(cfg, craters, mosaic):
 
 
 def test_projection_matches_the_shared_geometry(mosaic):
-    from blender_gen.geometry import south_polar_stereo_forward
+    from crater_core.geometry import south_polar_stereo_forward
 
     for lat, lon in ((-89.67, 129.78), (-88.5, -87.1), (-88.1, 44.9), (-85.0, 200.0)):
         x, y = south_polar_stereo_forward(lat, lon)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from data_manifest.schema import ManifestError, manifest_digest, sha256_file, validate_row
+from crater_core.schema import ManifestError, manifest_digest, sha256_file, validate_row
 from train.errors import DatasetError, RealDataLeakError
 from train.preprocess import PreprocessConfig, SensorModel, normalize, outside_fraction, resample_box
 
@@ -39,32 +39,14 @@ CACHE_FORMAT = 1
 # EXR reading
 # ------------------------------------------------------------------------------------------------
 def read_exr_channel(path: str | Path, channel: str = "IF") -> np.ndarray:
-    """One channel of an EXR, looked up by name (OpenImageIO may reorder channels), as float32 (H, W)."""
-    import OpenImageIO as oiio
+    """One channel of a dataset EXR as float32 (H, W) (``crater_core.exr.read_channel``); a missing or
+    corrupt file is a :class:`DatasetError` naming it."""
+    from crater_core.exr import ExrError, read_channel
 
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"EXR {path} does not exist (listed in the manifest)")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise DatasetError(f"cannot open EXR {path}: {oiio.geterror() or 'unreadable file'}")
     try:
-        spec = inp.spec()
-        names = list(spec.channelnames)
-        if channel not in names:
-            raise DatasetError(f"EXR {path} has no channel {channel!r} (channels: {names})")
-        c = names.index(channel)
-        data = inp.read_image(0, 0, c, c + 1, oiio.FLOAT)
-        if data is None:
-            raise DatasetError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
-    finally:
-        inp.close()
-    data = np.asarray(data, dtype=np.float32)
-    if data.ndim == 3:
-        data = data[..., 0]
-    if not np.all(np.isfinite(data)):
-        raise DatasetError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
-    return data
+        return read_channel(path, channel)
+    except ExrError as exc:
+        raise DatasetError(f"{exc} (listed in the manifest)") from None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -81,7 +63,7 @@ def class_names_from_config(cfg: Mapping) -> list[str]:
 
 def require_manifest(dataset_dir: str | Path) -> Path:
     """``<dataset_dir>/manifest.jsonl``, or a clear error when it is missing."""
-    from data_manifest.schema import MANIFEST_NAME
+    from crater_core.schema import MANIFEST_NAME
 
     p = Path(dataset_dir) / MANIFEST_NAME
     if not p.is_file():
@@ -92,7 +74,7 @@ def require_manifest(dataset_dir: str | Path) -> Path:
 
 def load_rows(dataset_dir: str | Path) -> list[dict]:
     """Strictly read ``<dataset_dir>/manifest.jsonl``."""
-    from data_manifest.schema import load_manifest
+    from crater_core.schema import load_manifest
 
     d = Path(dataset_dir)
     require_manifest(d)
@@ -407,7 +389,7 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
     rows = load_rows(dataset_dir)
     selection = tcfg.get("select")
     if selection:
-        from data_manifest.sweep import rows_in_selection
+        from crater_core.sweep import rows_in_selection
 
         rows = rows_in_selection(rows, dict(selection))
         if not rows:

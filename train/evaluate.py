@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from data_manifest.schema import atomic_write_text
+from crater_core.schema import atomic_write_text
 from train.errors import ModelError
 from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
 from train.trainer import (HOG_FILE, SUMMARY_FILE, SVM_FILE, atomic_write_bytes, atomic_write_json, configure_torch,

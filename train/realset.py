@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from data_manifest.schema import sha256_file
+from crater_core.schema import sha256_file
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 
@@ -39,7 +39,7 @@ LIMITS_NOTE = ("The embedded real test set is one real observation per crater (o
 # ------------------------------------------------------------------------------------------------
 def embedded_product_path(product_id: str) -> Path:
     """Path of an embedded real product (e.g. the WAC mosaic) inside its installed distribution."""
-    from data_manifest.errors import ContractError
+    from crater_core.errors import ContractError
     from data_manifest.products import embedded_path
 
     try:
@@ -60,12 +60,10 @@ class Mosaic:
     radius_m: float
 
     def latlon_to_uv(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
-        # South polar stereographic, lat_ts = -90, lon0 = 0, k0 = 1 (PROJ +proj=stere +lat_0=-90 +R=...).
-        # Same formula as blender_gen.geometry.south_polar_stereo_forward (not imported: train/ stays
-        # free of blender_gen); a test checks they agree.
-        lat, lon = math.radians(lat_deg), math.radians(lon_deg)
-        rho = 2.0 * self.radius_m * math.tan(math.pi / 4.0 + lat / 2.0)
-        x, y = rho * math.sin(lon), rho * math.cos(lon)
+        from crater_core.geometry import south_polar_stereo_forward
+
+        x, y = south_polar_stereo_forward(lat_deg, lon_deg, self.radius_m)
+        x, y = float(x), float(y)
         return (x + self.extent_m) / self.pixel_m, (self.extent_m - y) / self.pixel_m
 
 

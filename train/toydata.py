@@ -1,6 +1,6 @@
 """A tiny procedural stand-in for a rendered dataset (tests, benchmarks, demos without Blender).
 
-Writes tiled float32 EXRs with the renderer's channels (``data_manifest.schema.EXR_CHANNELS``) and a
+Writes tiled float32 EXRs with the renderer's channels (``crater_core.schema.EXR_CHANNELS``) and a
 ``manifest.jsonl`` whose rows pass ``validate_row``. The "craters" are toy height fields (a deep
 bowl, a bowl with a satellite crater on its rim, a flat-floored crater with a central peak) on a
 seeded rough background, Lambert-shaded for the row's sun direction and rotated by the camera
@@ -16,32 +16,10 @@ from typing import Sequence
 
 import numpy as np
 
-from data_manifest import schema
+from crater_core import schema
+from crater_core.exr import write_exr
 
 DEFAULT_CRATERS = ("shackleton", "de_gerlache", "shoemaker")
-
-
-def write_exr(path: str | Path, channels: dict[str, np.ndarray], tile: int = 32) -> None:
-    """Write float32 (H, W) arrays as one tiled, zip-compressed EXR with the given channel names."""
-    import OpenImageIO as oiio
-
-    names = list(channels)
-    data = np.stack([np.asarray(channels[n], dtype=np.float32) for n in names], axis=-1)
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
-    spec.channelnames = tuple(names)
-    spec.tile_width = tile
-    spec.tile_height = tile
-    spec.attribute("compression", "zip")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    ok = out.write_image(data)
-    out.close()
-    if not ok:
-        raise OSError(f"cannot write {path}: {out.geterror()}")
 
 
 def _height(kind: int, x: np.ndarray, y: np.ndarray, rng_bg: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from data_manifest.schema import atomic_write_bytes, atomic_write_text
+from crater_core.schema import atomic_write_bytes, atomic_write_text
 from train.data import SyntheticCropDataset, SyntheticData
 from train.errors import RealDataLeakError, TrainError
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count

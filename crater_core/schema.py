@@ -19,7 +19,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from data_manifest.errors import ContractError
+from crater_core.errors import ContractError
 
 SCHEMA_VERSION = 1
 _UMASK = os.umask(0)

@@ -21,7 +21,7 @@ from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from data_manifest.errors import ContractError
+from crater_core.errors import ContractError
 
 
 class SweepError(ContractError):

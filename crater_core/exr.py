@@ -1,0 +1,189 @@
+"""The one EXR reader/writer of the project (renderer output, training input, verify, preview, tests).
+
+Dataset EXRs (the render contract, docs/manifest.md): tiled 64x64, float32, lossless zip, exactly the
+channels of :data:`crater_core.schema.EXR_CHANNELS`, the render parameters as header attributes.
+Writes are atomic (temp file in the same directory, fsync, then ``os.replace``) and byte-reproducible
+(no time stamp). Blender's multilayer scratch output (one part per render pass) is read by
+:func:`read_multilayer`.
+
+OpenImageIO is imported inside the functions, so importing ``crater_core`` needs only numpy and the
+standard library; every failure is an :class:`ExrError` naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from crater_core.errors import ContractError
+from crater_core.schema import EXR_CHANNELS
+
+CHANNELS = EXR_CHANNELS
+TILE = 64
+COMPRESSION = "zip"
+
+
+class ExrError(ContractError):
+    """An EXR is missing, unreadable, corrupt or does not hold what the contract says."""
+
+
+def _header_value(v):
+    if isinstance(v, bool):
+        return int(v)
+    if isinstance(v, (int, float, str)):
+        return v
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v)
+    return json.dumps(v, sort_keys=True)
+
+
+def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], header: dict | None = None,
+              channel_names: tuple[str, ...] = CHANNELS, tile: int = TILE) -> str:
+    """Write ``channels`` (name -> (h, w) array; exactly ``channel_names``, in that order) atomically as
+    one tiled, zip-compressed float32 EXR; returns the file's sha256."""
+    import OpenImageIO as oiio
+
+    if set(channels) != set(channel_names):
+        raise ExrError(f"{path}: EXR channels {sorted(channels)} != {sorted(channel_names)}")
+    h, w = np.asarray(channels[channel_names[0]]).shape
+    data = np.stack([np.asarray(channels[c], dtype=np.float32).reshape(h, w) for c in channel_names], axis=-1)
+    spec = oiio.ImageSpec(w, h, len(channel_names), "float")
+    spec.channelnames = tuple(channel_names)
+    spec.tile_width = spec.tile_height = int(tile)
+    spec.attribute("compression", COMPRESSION)
+    spec.attribute("DateTime", "")  # an empty value stops OpenImageIO stamping the time: same input, same bytes
+    for key, val in (header or {}).items():
+        spec.attribute(str(key), _header_value(val))
+
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp.exr", dir=directory)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create("openexr")
+        if out is None or not out.open(tmp, spec):
+            raise ExrError(f"cannot open {tmp} for writing: {oiio.geterror()}")
+        ok = out.write_image(data)
+        ok = out.close() and ok
+        if not ok:
+            raise ExrError(f"cannot write {tmp}: {out.geterror() or oiio.geterror()}")
+        with open(tmp, "rb") as fh:
+            blob = fh.read()
+            os.fsync(fh.fileno())
+        digest = hashlib.sha256(blob).hexdigest()
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return digest
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _open(path: str | os.PathLike):
+    import OpenImageIO as oiio
+
+    if not Path(path).is_file():
+        raise ExrError(f"EXR {path} does not exist")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ExrError(f"cannot open EXR {path}: {oiio.geterror() or 'unreadable file'}")
+    return inp
+
+
+def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
+    """(channels by name as float32 (h, w), {header attribute: value}) of a single-part EXR."""
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if px is None:
+            raise ExrError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
+        px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        chans = {name: px[..., i] for i, name in enumerate(spec.channelnames)}
+        header = {a.name: a.value for a in spec.extra_attribs}
+        header["tile_width"], header["tile_height"] = spec.tile_width, spec.tile_height
+    finally:
+        inp.close()
+    return chans, header
+
+
+def read_channel(path: str | os.PathLike, channel: str = "IF") -> np.ndarray:
+    """One channel looked up by name (OpenImageIO may reorder channels), float32 (h, w), all finite."""
+    inp = _open(path)
+    try:
+        names = list(inp.spec().channelnames)
+        if channel not in names:
+            raise ExrError(f"EXR {path} has no channel {channel!r} (channels: {names})")
+        c = names.index(channel)
+        data = inp.read_image(0, 0, c, c + 1, "float")
+        if data is None:
+            raise ExrError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
+    finally:
+        inp.close()
+    data = np.asarray(data, dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., 0]
+    if not np.all(np.isfinite(data)):
+        raise ExrError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
+    return data
+
+
+def exr_info(path: str | os.PathLike) -> dict:
+    """Decode every pixel and report the facts ``verify`` checks: channels, size, tiling, finiteness."""
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image("float")
+        if pixels is None:
+            raise ExrError(f"{path}: cannot decode pixels ({inp.geterror()})")
+        return {"channels": tuple(spec.channelnames), "width": spec.width, "height": spec.height,
+                "tiled": spec.tile_width > 0, "finite": bool(np.isfinite(np.asarray(pixels)).all())}
+    finally:
+        inp.close()
+
+
+def read_multilayer(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """{pass name: (h, w) or (h, w, c) float32} from a Blender multilayer EXR (one part per pass,
+    channels named ``<ViewLayer>.<Pass>.<chan>``), channels ordered R G B A / X Y Z."""
+    inp = _open(path)
+    out = {}
+    try:
+        sub = 0
+        while inp.seek_subimage(sub, 0):
+            spec = inp.spec()
+            px = inp.read_image(sub, 0, 0, spec.nchannels, "float")
+            if px is None:
+                raise ExrError(f"cannot decode render output {path} part {sub}: {inp.geterror()}")
+            names = list(spec.channelnames)
+            groups: dict[str, list[int]] = {}
+            for i, ch in enumerate(names):
+                parts = ch.split(".")
+                key = ".".join(parts[1:-1]) if len(parts) >= 3 else parts[0]
+                groups.setdefault(key, []).append(i)
+            px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            for key, idx in groups.items():
+                chans = [names[i].rsplit(".", 1)[-1] for i in idx]
+                order = sorted(range(len(chans)),
+                               key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99)
+                arr = px[..., [idx[k] for k in order]]
+                out[key] = arr[..., 0] if arr.shape[-1] == 1 else arr
+            sub += 1
+    finally:
+        inp.close()
+    return out
