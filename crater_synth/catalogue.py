@@ -35,6 +35,7 @@ default terrain patch (near field +-``terrain.near_radius_factor`` x D) lies ins
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -44,6 +45,7 @@ import click
 import numpy as np
 
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.errors import UserError
 
 # ---- acceptance thresholds (issue 9, deliverable 1: fixed, never loosened)
 MAX_CENTRE_OFFSET_D = 0.15  # measured centre within 0.15 D of the catalogue position
@@ -92,7 +94,7 @@ class Depression:
     floor_height_m: float  # lowest point within FLOOR_RADIUS_FRAC x rim radius of the centre
     spill_depth_m: float  # spill height - floor height (> 0: water poured in the middle stays)
     spill_depth_d: float  # spill depth / catalogue D
-    no_crest_share: float  # share of azimuths without a rim crest in the window (highest point used)
+    no_crest_share: float  # share of azimuths whose profile never turns down (the knee is used)
     iterations: int  # circle-fit iterations used
     converged: bool
 
@@ -143,11 +145,11 @@ def _bilinear(grid: np.ndarray, half_width: float, spacing: float, e, n) -> np.n
 def _first_crest(prof: np.ndarray, min_drop: float) -> tuple[np.ndarray, np.ndarray]:
     """Index of the rim crest on each row of ``prof`` (radial profiles, inside to outside).
 
-    The crest is the first point beyond the inner wall (the steepest outward rise of the profile),
-    going outward, that the profile drops below by at least
-    ``min_drop`` before it ever rises above it again: the top of the inner wall where the rim turns
-    down into its outer flank. This is not always the highest point: a degraded rim on a regional
-    slope, or next to a neighbour's higher rim, is lower than terrain further out. Where the profile
+    The crest is the first point beyond the inner wall (the steepest outward rise of the profile) that
+    the profile drops below by at least ``min_drop`` before it ever rises above it again: the top of
+    the wall where the rim turns down into its outer flank. This is not always the highest point: a
+    degraded rim on a regional slope, or next to a neighbour's higher rim, is lower than terrain further
+    out. Where the profile
     never turns down (the terrain keeps rising beyond the rim), the rim is the knee of the profile:
     the point furthest above the chord from the profile's start to its highest point.
     Returns (index per row, True where the knee was used).
@@ -255,8 +257,8 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
 
     diameter_m = float(diameter_km) * 1000.0
     radius_m = 0.5 * diameter_m
-    grid, half_width, spacing = _local_grid(dem, lat, lon, diameter_m,
-                                            what=f"catalogue check of crater {name} (+-{GRID_HALF_WIDTH_D * diameter_km:g} km)")
+    what = f"catalogue check of crater {name} (+-{GRID_HALF_WIDTH_D * diameter_km:.0f} km)"
+    grid, half_width, spacing = _local_grid(dem, lat, lon, diameter_m, what=what)
     az = np.radians(np.arange(N_AZIMUTHS) * 360.0 / N_AZIMUTHS)
     sin_az, cos_az = np.sin(az), np.cos(az)
 
@@ -376,11 +378,128 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------------------------------
+# Contact sheets: the real WAC crop and the DEM hillshade of each entry's sigma box
+# --------------------------------------------------------------------------------------------
+SHEET_TILE_PX = 160  # each box resampled to this many pixels per side
+DARK_DN, SATURATED_DN = 8, 250  # WAC crop statistics: near-black (shadow or no data) and saturated pixels
+HILLSHADE_SUN = (315.0, 45.0)  # (azimuth from image up, clockwise; elevation) deg: the cartographic default
+
+
+def _box_uv(mosaic, crater: dict, sigma: float):
+    """Centre (u, v) and side (px) of the real-crop box of ``sigma`` (as ``train.realset`` cuts it:
+    side = sigma x D / mosaic pixel, axis-aligned in the mosaic, centred on the catalogue position)."""
+    cu, cv = mosaic.latlon_to_uv(crater["lat"], crater["lon"])
+    return cu, cv, sigma * crater["diameter_km"] * 1000.0 / mosaic.pixel_m
+
+
+def _tile_points(mosaic, cu: float, cv: float, side: float):
+    """Mosaic (u, v) of the tile's pixel centres, (n, n) each, row 0 at the top."""
+    t = (np.arange(SHEET_TILE_PX) + 0.5) / SHEET_TILE_PX * side - side / 2
+    return np.meshgrid(cu + t, cv + t)
+
+
+def _hillshade(h: np.ndarray, spacing: float) -> np.ndarray:
+    """Lambertian hillshade in [0, 1] of heights ``h`` (rows down, columns right, ``spacing`` m)."""
+    az, el = np.radians(HILLSHADE_SUN[0]), np.radians(HILLSHADE_SUN[1])
+    dz_dv, dz_du = np.gradient(h, spacing)
+    # Normal of z(u, v) with v pointing down the image: (-dz/du, +dz/dv, 1); the sun towards the image's
+    # upper left at azimuth 315 deg.
+    sun = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
+    shade = (-dz_du * sun[0] + dz_dv * sun[1] + sun[2]) / np.sqrt(1.0 + dz_du**2 + dz_dv**2)
+    return np.clip(shade, 0.0, 1.0)
+
+
+def box_images(dem, mosaic, crater: dict, sigma: float) -> dict:
+    """The WAC crop (float, 0-255) and the DEM hillshade (0-1) of an entry's sigma box, and the crop's
+    statistics: share of near-black pixels (<= DARK_DN: shadow or no data) and saturated ones."""
+    from scipy.ndimage import map_coordinates
+
+    from crater_core.geometry import south_polar_stereo_inverse
+
+    cu, cv, side = _box_uv(mosaic, crater, sigma)
+    uu, vv = _tile_points(mosaic, cu, cv, side)
+    wac = map_coordinates(mosaic.image.astype(np.float32), [vv - 0.5, uu - 0.5], order=1, mode="nearest")
+    nearest = map_coordinates(mosaic.image, [vv - 0.5, uu - 0.5], order=0, mode="nearest")
+    x = uu * mosaic.pixel_m - mosaic.extent_m
+    y = mosaic.extent_m - vv * mosaic.pixel_m
+    lat, lon = south_polar_stereo_inverse(x, y, mosaic.radius_m)
+    spacing = side * mosaic.pixel_m / SHEET_TILE_PX
+    h = dem.sample(lat, lon, spacing_m=spacing, what=f"sheet box of crater {crater['name']}").heights
+    return {"wac": wac, "hillshade": _hillshade(h, spacing), "centre_uv": (cu, cv), "side_px": side,
+            "dark_share": float((nearest <= DARK_DN).mean()),
+            "saturated_share": float((nearest >= SATURATED_DN).mean())}
+
+
+def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | None, dem_png: Path | None) -> dict:
+    """Contact sheets of every row's sigma box: the real WAC crop and/or the DEM hillshade, with the
+    catalogue circle (dashed) and the measured rim circle (solid). Returns {name: crop statistics}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from crater_core.schema import atomic_write_bytes
+
+    images = {r["name"]: box_images(dem, mosaic, r, sigma) for r in rows}
+    cols = min(7, len(rows))
+    nrows = -(-len(rows) // cols)
+    for kind, path in (("wac", wac_png), ("hillshade", dem_png)):
+        if path is None:
+            continue
+        fig = Figure(figsize=(2.3 * cols, 2.75 * nrows + 0.4), dpi=110)
+        axes = fig.subplots(nrows, cols, squeeze=False)
+        for ax in axes.ravel():
+            ax.axis("off")
+        for ax, row in zip(axes.ravel(), rows):
+            im = images[row["name"]]
+            (cu, cv), side = im["centre_uv"], im["side_px"]
+            if kind == "wac":
+                ax.imshow(im["wac"], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+            else:
+                ax.imshow(im["hillshade"], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+            to_tile = SHEET_TILE_PX / side
+            # Circles in the mosaic: polar stereographic scale k = 2 / (1 - sin(lat)) at the crater.
+            k = 2.0 / (1.0 - math.sin(math.radians(row["lat"])))
+            t = np.linspace(0.0, 2.0 * np.pi, 181)
+            r_cat = 0.5 * k * row["diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
+            ax.plot(SHEET_TILE_PX / 2 + r_cat * np.cos(t), SHEET_TILE_PX / 2 + r_cat * np.sin(t), "--",
+                    color="#50c0ff", lw=0.8)
+            m = row["measured"]
+            if m:
+                mu, mv = mosaic.latlon_to_uv(m["centre_lat"], m["centre_lon"])
+                r_rim = 0.5 * k * m["rim_diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
+                ax.plot((mu - cu) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.cos(t),
+                        (mv - cv) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.sin(t), "-", color="#ff5050", lw=0.7)
+            title = f"{row['name']}  D {row['diameter_km']:.0f} km"
+            if m:
+                title += (f"\noff {m['centre_offset_d']:.2f}D  rim {m['rim_diameter_ratio']:.2f}D  "
+                          f"spill {m['spill_depth_d']:.3f}D")
+            if kind == "wac":
+                title += f"\ndark {im['dark_share']:.0%}  saturated {im['saturated_share']:.0%}"
+            ax.set_title(title, fontsize=6.5, color="black" if row["passes"] else "#c00000")
+        what = "real LROC WAC mosaic (400 m/px)" if kind == "wac" else f"{dem.product} hillshade"
+        fig.suptitle(f"{what}: box side {sigma:g} D about the catalogue position, image up = mosaic up; "
+                     "blue dashed: catalogue D; red: measured rim", fontsize=8)
+        fig.tight_layout(rect=(0, 0, 1, 0.98))
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=110, facecolor="white")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, buf.getvalue())
+    return {name: {"dark_share": im["dark_share"], "saturated_share": im["saturated_share"]}
+            for name, im in images.items()}
+
+
 @click.command("catalogue")
 @click.option("--json", "as_json", is_flag=True, help="One JSON line per crater instead of a table.")
+@click.option("--wac-sheet", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write a contact sheet of the real WAC crops of every entry to this PNG.")
+@click.option("--dem-sheet", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write a contact sheet of the DEM hillshade of the same boxes to this PNG.")
+@click.option("--sigma", type=float, default=1.4, show_default=True, help="Box side of the sheets, in D.")
 @OVERRIDES
 @user_errors
-def catalogue_command(as_json, overrides):
+def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     """Measure each catalogue crater in the DEM: centre offset, rim diameter, spill depth (docs/catalogue.md).
 
     Default: every entry of configs/crater/. With a ``crater=[a,b,...]`` override, those entries.
@@ -405,5 +524,17 @@ def catalogue_command(as_json, overrides):
                    f"|rim D / D - 1| <= {MAX_DIAMETER_ERROR:g}, spill depth >= {MIN_SPILL_DEPTH_D:g} D, "
                    f"terrain near field (+-{factor:g} D) inside the DEM.")
         click.echo(format_table(rows))
+    if wac_sheet or dem_sheet:
+        from crater_synth.config import resolved
+        from train.realset import load_mosaic
+
+        if not sigma > 0:
+            raise UserError(f"--sigma={sigma} must be > 0")
+        stats = write_sheets(rows, dem, load_mosaic(resolved(cfg)["realset"]), sigma, wac_sheet, dem_sheet)
+        for path in (wac_sheet, dem_sheet):
+            if path:
+                click.echo(f"wrote {path}", err=True)
+        if as_json:
+            click.echo(json.dumps({"sheet_stats": stats}))
     if not all(r["passes"] for r in rows):
         raise SystemExit(1)

@@ -213,3 +213,30 @@ def test_unknown_crater_in_a_list_is_one_error_line(tmp_path):
     assert res.exit_code == 2
     err = res.stderr.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "nowhere" in err[0] and "haworth" in err[0], err
+
+
+# ------------------------------------------------------------------------------ contact sheets
+def test_sheets_show_the_crop_and_hillshade_of_each_box(synthetic, tmp_path):
+    from PIL import Image
+
+    from train.realset import Mosaic
+
+    # A synthetic 400 m/px mosaic over the synthetic DEM's extent: black left half, mid-grey right half.
+    extent, pixel = 160_000.0, 400.0
+    n = int(2 * extent / pixel)
+    image = np.zeros((n, n), np.uint8)
+    image[:, n // 2:] = 128
+    mosaic = Mosaic("synthetic", tmp_path / "mosaic.png", image, extent, pixel, g.MOON_RADIUS_M)
+    lat, lon = crater_latlon()
+    crater = {"name": "bowl", "lat": lat, "lon": lon, "diameter_km": CRATER_D / 1000.0, "source": ""}
+    row = cat.check(synthetic["crater"], crater, 0.6)
+    assert row["passes"]
+    stats = cat.write_sheets([row], synthetic["crater"], mosaic, 1.4, tmp_path / "wac.png", tmp_path / "dem.png")
+    # The box (side 1.4 D = 42 km, centred 30 km right of the mosaic centre) lies in the grey half.
+    assert stats == {"bowl": {"dark_share": 0.0, "saturated_share": 0.0}}
+    for name in ("wac.png", "dem.png"):
+        with Image.open(tmp_path / name) as im:
+            assert im.size[0] > 200 and im.size[1] > 200
+    hs = cat.box_images(synthetic["crater"], mosaic, row, 1.4)["hillshade"]
+    assert hs.shape == (cat.SHEET_TILE_PX, cat.SHEET_TILE_PX) and hs.std() > 0.05  # the crater shows
+    assert not list(tmp_path.glob(".*.tmp"))
