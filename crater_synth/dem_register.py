@@ -181,6 +181,7 @@ class Registration:
     height_frame: str
     rms_m: float
     correlation: float
+    one_minus_correlation: float
     n_reference_pixels: int
     sigma_formal_m: dict = field(default_factory=dict)
     sigma_jackknife_m: dict = field(default_factory=dict)
@@ -366,7 +367,8 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
         "rotation_scale_free_fit": _rotation_scale_fit(a, crop_px, model, frame, x0, y0),
     }
     return Registration(rot90=best["rot90"], transpose=best["transpose"], x0_m=x0, y0_m=y0, pixel_m=crop_px,
-                        dz_m=dz, height_frame=frame, rms_m=rms0, correlation=corr, n_reference_pixels=int(n),
+                        dz_m=dz, height_frame=frame, rms_m=rms0, correlation=corr, one_minus_correlation=1.0 - corr,
+                        n_reference_pixels=int(n),
                         sigma_formal_m=sigma_formal, sigma_jackknife_m=sigma_jk, misfit_doubling_shift_m=width,
                         diagnostics=diagnostics)
 
@@ -441,7 +443,7 @@ def _round(d):
     if isinstance(d, list):
         return [_round(v) for v in d]
     if isinstance(d, float):
-        return round(d, 4)
+        return round(d, 4) if abs(d) >= 0.01 or d == 0.0 else float(f"{d:.3g}")
     return d
 
 
