@@ -22,8 +22,8 @@ edge or nodata) with a C1 profile:
   and outside the valid edge (a smoothed ramp is <= 0.4 sigma there), 1 beyond band + sigma / 2.
 
 band_k = ``dem.blend_pixels`` x the pixel of the coarser data under the layer: the first later
-(coarser) layer whose full-weight core contains layer k's whole raster, else the base DEM. So a
-200 m layer on the 1600 m base fades in over 2 x 1600 m, a 40 m layer inside it over 2 x 200 m.
+(coarser) layer whose full-weight core contains layer k's whole raster, else the base DEM. So with
+the default 1.5 a 200 m layer on the 1600 m base fades in over 2.4 km, a 40 m layer inside it over 300 m.
 
 Heights are continuous with continuous gradients: h and w are C1 and h_k is a cubic B-spline.
 Every sample also carries the final weight of each layer (``layer_weights``: w_k times the
@@ -51,6 +51,9 @@ DEAD_ZONE_PER_SIGMA = 0.5
 # Gaussian support read beyond the band (in sigmas).
 GAUSS_SUPPORT_SIGMAS = 4.0
 BLEND_PIXELS_RANGE = (0.5, 50.0)
+# Default transition band, in coarse pixels (docs/dem_stack.md: on Shackleton, 1.5 keeps the whole
+# rim circle at full 200 m weight; 2 already lets the 1600 m DEM into 10 % of it).
+DEFAULT_BLEND_PIXELS = 1.5
 
 
 class DemStackConfigError(UserError):
@@ -137,8 +140,10 @@ class _Layer:
         margin = int(math.ceil(reach_m / p)) + 2 * factor
         _, valid, (c0, r0), (h, wd) = d._read_window(col[inside], row[inside], factor, margin_px=margin)
         # Outside the raster is invalid: pad one invalid cell on each side where the window meets the
-        # raster edge (elsewhere the window continues with its edge cells).
-        edges = (r0 == 0, r0 + h >= d.height, c0 == 0, c0 + wd >= d.width)
+        # raster edge (elsewhere the window continues with its edge cells). The window holds whole
+        # cells only, so it may stop short of the raster's far edge by less than one cell: that counts
+        # as meeting it (the weight then reaches 0 up to one cell early, never late).
+        edges = (r0 == 0, r0 + h > d.height - factor, c0 == 0, c0 + wd > d.width - factor)
         padded = np.pad(valid, 1, mode="edge")
         if edges[0]:
             padded[0, :] = False
@@ -162,7 +167,7 @@ class DemStack:
     """A base :class:`Dem` plus finer layers (finest first), sampled as one blended surface."""
 
     def __init__(self, base: Dem, layers: list[tuple[Dem, str, str]] | None = None, *, base_sha256: str = "",
-                 blend_pixels: float = 2.0):
+                 blend_pixels: float = DEFAULT_BLEND_PIXELS):
         lo, hi = BLEND_PIXELS_RANGE
         if not (lo <= float(blend_pixels) <= hi):
             raise DemStackConfigError(f"dem.blend_pixels={blend_pixels} must lie in [{lo:g}, {hi:g}] (coarse pixels)")
@@ -282,7 +287,8 @@ def open_dem_entry(entry: str, data_dir: str | Path, what: str = "dem.stack entr
     return dem, cached_sha256(p)
 
 
-def open_stack(base: Dem, base_sha256: str, entries, data_dir: str | Path, blend_pixels: float = 2.0) -> DemStack:
+def open_stack(base: Dem, base_sha256: str, entries, data_dir: str | Path,
+               blend_pixels: float = DEFAULT_BLEND_PIXELS) -> DemStack:
     """A :class:`DemStack` over ``base`` from ``dem.stack`` entries (finest first)."""
     if entries is None:
         entries = []

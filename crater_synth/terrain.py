@@ -42,8 +42,6 @@ FLOOR_RADIUS_FRAC = 0.3
 FLOOR_PERCENTILE = 5.0
 N_AZIMUTHS = 360
 NEAR_VERTICES_RANGE = (16, 8193)
-# dem.blend_pixels when a dem config does not set it: the stack's transition band, in coarse pixels.
-DEFAULT_BLEND_PIXELS = 2.0
 
 
 class TerrainConfigError(UserError):
@@ -88,6 +86,7 @@ def _number(section: dict, name: str, key: str, integer: bool = False):
 
 def terrain_settings(cfg) -> dict:
     """Validated ``terrain.*`` (without ``detail``), ``dem.*`` and ``data_dir``."""
+    from crater_synth.demstack import DEFAULT_BLEND_PIXELS
     from crater_synth.detail import DetailSettings
 
     t, d = _section(cfg, "terrain"), _section(cfg, "dem")

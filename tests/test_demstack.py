@@ -96,6 +96,21 @@ def test_biased_tilted_layer_blends_without_step_or_kink(synthetic):
     assert np.abs(np.diff(h, 2)).max() < 0.005
 
 
+@pytest.mark.parametrize("blend_pixels", [1.0, 2.0, 3.0, 3.5])
+def test_weight_is_zero_at_every_edge(synthetic, blend_pixels):
+    """Whatever the distance-cell size (band / 8, whole cells of a 100-pixel layer), the weight is 0
+    on all four edges of the layer's pixel-centre hull and 1 in its middle."""
+    stack, _ = synthetic
+    s2 = DemStack(stack.base, [(stack.layers[0].dem, "f" * 64, "fine.tif")], blend_pixels=blend_pixels)
+    lo, hi = FINE_LEFT + 0.5 * FINE_PX, FINE_LEFT + (FINE_N - 0.5) * FINE_PX
+    top, bottom = FINE_TOP - 0.5 * FINE_PX, FINE_TOP - (FINE_N - 0.5) * FINE_PX
+    mid_x, mid_y = 0.5 * (lo + hi), 0.5 * (top + bottom)
+    x = np.array([lo, hi, mid_x, mid_x, mid_x])
+    y = np.array([mid_y, mid_y, top, bottom, mid_y])
+    w = sample_xy(s2, x, y).fine_weight
+    assert list(w[:4]) == [0.0] * 4 and w[4] == 1.0
+
+
 def test_corner_of_layer_has_continuous_gradients(synthetic):
     """Near a corner the distance to the edge has a kink along the diagonal; the smoothed distance
     field keeps the blended surface's gradient continuous there too."""
@@ -117,13 +132,36 @@ def test_nodata_hole_falls_back_to_base(tmp_path, synthetic):
     heights = fine_plane(fx, fy)
     heights[40:60, 40:60] = -32768.0
     holed = Dem(write_geotiff(tmp_path / "holed.tif", heights, FINE_PX, FINE_LEFT, FINE_TOP, nodata=-32768.0))
-    hs = DemStack(stack.base, [(holed, "e" * 64, "holed.tif")])
+    hs = DemStack(stack.base, [(holed, "e" * 64, "holed.tif")], blend_pixels=2.0)
     centre = (FINE_LEFT + 50 * FINE_PX, FINE_TOP - 50 * FINE_PX)
     s = sample_xy(hs, np.array([centre[0]]), np.array([centre[1]]))
     assert s.fine_weight[0] == 0.0 and s.heights[0] == pytest.approx(base_plane(*centre), abs=1e-3)
     x = np.arange(centre[0] - 8000.0, centre[0], 10.0)  # from good data into the hole
     h = sample_xy(hs, x, np.full_like(x, centre[1])).heights
     assert np.abs(np.diff(h, 2)).max() < 0.01
+
+
+def test_pds3_layer_like_ldem_875s_20m(tmp_path, synthetic):
+    """A LOLA-style PDS3 product (detached label, int16 DN x 0.5 m + radius), pole-centred at 20 m, as
+    a stack layer: used inside, the base outside, the 20 m layer blending over 2 base pixels."""
+    from test_dem import write_pds3
+
+    stack, _ = synthetic
+    n, px = 600, 20.0  # 12 km around the pole
+
+    def layer_plane(x, y):
+        return base_plane(x, y) - 30.0
+
+    c = (np.arange(n) - n / 2 + 0.5) * px
+    xx, yy = np.meshgrid(c, -c)
+    layer = Dem(write_pds3(tmp_path, layer_plane(xx, yy), px))
+    s20 = DemStack(stack.base, [(layer, "d" * 64, "ldem_test.lbl")], blend_pixels=2.0)
+    assert s20.stack_info()[0]["blend_band_m"] == 3200.0
+    x = np.array([0.0, 500.0, -9000.0])
+    y = np.array([0.0, -300.0, 0.0])
+    s = sample_xy(s20, x, y)
+    np.testing.assert_allclose(s.heights[:2], layer_plane(x, y)[:2], atol=0.5)  # DN quantum 0.5 m
+    assert s.heights[2] == pytest.approx(base_plane(x[2], y[2]), abs=1e-3) and list(s.fine_weight) == [1, 1, 0]
 
 
 def test_weights_and_effective_pixel(synthetic):
@@ -261,3 +299,17 @@ def test_open_stack_skips_the_base_itself(synthetic):
 
     stack, _ = synthetic
     assert open_stack(stack.base, cached_sha256(stack.base.path), [str(stack.base.path)], ".").layers == []
+
+
+def test_seam_report_on_shackleton(tmp_path, capsys):
+    """``python -m crater_synth.demstack_report``: in the blend band of the real 200 m layer the surface
+    is no steeper than the terrain on either side and stays between the two DEMs."""
+    from crater_synth.demstack_report import main as report
+
+    assert report(["crater=shackleton", "terrain.near_vertices=256", "--png", str(tmp_path / "seam")]) == 0
+    m = json.loads(capsys.readouterr().out)
+    assert m["band"]["vertices"] > 100 and m["rim_circle_fine_weight_min"] > 0.99
+    assert m["band"]["step_max_m"] <= max(m["base"]["step_max_m"], m["fine"]["step_max_m"])
+    assert m["band"]["second_diff_max_m"] <= max(m["base"]["second_diff_max_m"], m["fine"]["second_diff_max_m"])
+    assert m["band_envelope_excursion_m"] < 1e-3
+    assert all((tmp_path / f"seam_shackleton_{k}.png").stat().st_size > 10_000 for k in ("hillshade", "profile"))
