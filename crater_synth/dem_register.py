@@ -143,7 +143,7 @@ def repair_square(crop200: np.ndarray, crop40: np.ndarray) -> np.ndarray:
     With the 40 m crop's corner at 102.4 pixels, 200 m pixel 103 + k covers exactly 40 m pixels
     3 + 5k .. 7 + 5k, so the replacement is an exact 5 x 5 block mean (no interpolation).
     """
-    first = int(round((SQUARE_START - ZOOM_ORIGIN_PX) * ZOOM_FACTOR))
+    first = round((SQUARE_START - ZOOM_ORIGIN_PX) * ZOOM_FACTOR)
     zoom = crop40[first:first + SQUARE_SIZE * ZOOM_FACTOR, first:first + SQUARE_SIZE * ZOOM_FACTOR]
     out = crop200.copy()
     sq = slice(SQUARE_START, SQUARE_START + SQUARE_SIZE)
@@ -246,7 +246,7 @@ def _coarse_search(crop: np.ndarray, crop_px: float, ref_h: np.ndarray, ref_vali
     """Best whole-reference-pixel placement per orientation by normalised cross-correlation."""
     from skimage.feature import match_template
 
-    factor = int(round(abs(transform.a) / crop_px))
+    factor = round(abs(transform.a) / crop_px)
     filled = np.where(ref_valid, ref_h, np.nanmean(np.where(ref_valid, ref_h, np.nan)))
     out = []
     for rot, tr in ORIENTATIONS:
@@ -378,7 +378,7 @@ def _rotation_scale_fit(a, crop_px, model: _Model, frame, x0, y0) -> dict:
     from scipy import ndimage, optimize
 
     h, w = a.shape
-    box_r = int(round(model.ref_px[0] / crop_px))
+    box_r = round(model.ref_px[0] / crop_px)
     smooth = ndimage.uniform_filter(a, box_r, mode="nearest")
     shift = 0.5 if box_r % 2 == 0 else 0.0  # even box: the filtered value at i is centred at i - 0.5
 

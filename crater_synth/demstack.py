@@ -135,9 +135,9 @@ class _Layer:
         if not inside.any():
             return w
         p = d.pixel_size_m
-        factor = max(1, int(math.floor(self.band_m / DISTANCE_CELLS_PER_BAND / p)))
+        factor = max(1, math.floor(self.band_m / DISTANCE_CELLS_PER_BAND / p))
         reach_m = self.band_m + self.dead_m + GAUSS_SUPPORT_SIGMAS * self.sigma_m
-        margin = int(math.ceil(reach_m / p)) + 2 * factor
+        margin = math.ceil(reach_m / p) + 2 * factor
         _, valid, (c0, r0), (h, wd) = d._read_window(col[inside], row[inside], factor, margin_px=margin)
         # Outside the raster is invalid: pad one invalid cell on each side where the window meets the
         # raster edge (elsewhere the window continues with its edge cells). The window holds whole

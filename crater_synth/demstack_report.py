@@ -137,8 +137,8 @@ def _profile_figure(plt, a: dict, name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from crater_synth.config import compose, craters
     from crater_core.errors import ContractError
+    from crater_synth.config import compose, craters
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("overrides", nargs="*")

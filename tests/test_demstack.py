@@ -127,7 +127,7 @@ def test_corner_of_layer_has_continuous_gradients(synthetic):
 
 
 def test_nodata_hole_falls_back_to_base(tmp_path, synthetic):
-    stack, d = synthetic
+    stack, _ = synthetic
     fx, fy = grid_xy(FINE_N, FINE_PX, FINE_LEFT, FINE_TOP)
     heights = fine_plane(fx, fy)
     heights[40:60, 40:60] = -32768.0
@@ -249,7 +249,7 @@ def test_user_geotiff_plugs_into_the_stack(data_dir, user_dem):
 def test_detail_not_added_on_fine_data(data_dir):
     """Default stack (200 m Shackleton crop): inside the crater the fine layer is as fine as the grid,
     so the detail is zero there; outside the crop the 1600 m DEM's detail is unchanged."""
-    path_on, on = _terrain(data_dir)
+    _, on = _terrain(data_dir)
     _, off = _terrain(data_dir, "terrain.detail.enabled=false")
     _, base_on = _terrain(data_dir, "dem.stack=[]")
     _, base_off = _terrain(data_dir, "dem.stack=[]", "terrain.detail.enabled=false")
