@@ -107,7 +107,7 @@ class DetailSettings:
     min_depth_diameter: float = 0.014
 
     @classmethod
-    def from_config(cls, d) -> "DetailSettings":
+    def from_config(cls, d) -> DetailSettings:
         """Validate a ``terrain.detail`` mapping; errors name the key."""
         d = dict(d or {})
         known = set(cls.__dataclass_fields__)
@@ -295,7 +295,7 @@ def degradation_table() -> DegradationTable:
     from scipy.linalg import eigh_tridiagonal
 
     ds = DIFFUSION_GRID_STEP_R
-    n = int(round(DIFFUSION_GRID_EXTENT_R / ds))
+    n = round(DIFFUSION_GRID_EXTENT_R / ds)
     s = (np.arange(n) + 0.5) * ds
     faces = np.arange(1, n) * ds
     area = s * ds

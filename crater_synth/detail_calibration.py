@@ -298,7 +298,7 @@ def subdem_band(real: np.ndarray, ldem: np.ndarray, mask: np.ndarray, dem_pixel_
     padded = np.pad(res, ((ny // 2, ny - ny // 2), (nx // 2, nx - nx // 2)), mode="symmetric")
     w = highpass_weights(padded.shape, spacing, dem_pixel_m)
     band = np.fft.irfft2(np.fft.rfft2(padded) * w, s=padded.shape)[ny // 2:ny // 2 + ny, nx // 2:nx // 2 + nx]
-    reach = int(round(dem_pixel_m / spacing))
+    reach = round(dem_pixel_m / spacing)
     return band, ndimage.binary_erosion(mask, iterations=reach, border_value=0)
 
 
@@ -360,8 +360,13 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
     shadowed share of the diameter along the Sun's line and the share of craters more than 90 %
     shadowed ("black pits"), at 0.5 and 1.6 deg."""
     from crater_synth.detail import (
-        LEGACY_PARAMETERS, crater_population, crater_profile, degradation_table, degraded_population,
-        degraded_profile)
+        LEGACY_PARAMETERS,
+        crater_population,
+        crater_profile,
+        degradation_table,
+        degraded_population,
+        degraded_profile,
+    )
 
     rng = np.random.default_rng(seed)
     x = np.linspace(-4.0, 4.0, 1601)
@@ -415,7 +420,7 @@ def reference_ldem() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     dem = _open_ldem()
     mask = background_mask(REAL_CROP_TOP_LEFT_XY_M, dem)
-    reach = int(round(dem.pixel_size_m / REAL_CROP_SPACING_M))
+    reach = round(dem.pixel_size_m / REAL_CROP_SPACING_M)
     return (sample_ldem(dem, REAL_CROP_TOP_LEFT_XY_M), mask,
             ndimage.binary_erosion(mask, iterations=reach, border_value=0))
 
@@ -481,6 +486,40 @@ def comparison_rows(m: dict, seeds=range(4)) -> dict:
             "LDEM + new detail": model_statistics(*args, DetailSettings(), seeds)}
 
 
+TRANSFER_KEYS = ("band_rms_height_m", "band_slope200_rms_deg", "band_laplacian200_std_per_km")
+
+
+def grid_transfer_rows(m: dict, factors=(2, 4), seeds=range(4)) -> dict:
+    """Sub-DEM band on coarser grids (400, 800 m: the de Gerlache / Shoemaker near grids are 318 and
+    499 m): the real crop block-averaged by ``factor`` (what a grid of that spacing can carry) against
+    the detail synthesised at that spacing. Keys keep their 200 m names but are per grid step."""
+    from dataclasses import replace
+
+    from crater_synth.detail import DetailSettings, synthesize_detail
+
+    dem = _open_ldem()
+    rows = {}
+    for f in factors:
+        spacing = REAL_CROP_SPACING_M * f
+        n = REAL_CROP_SHAPE[0] // f
+        real = m["real"].reshape(n, f, n, f).mean(axis=(1, 3))
+        half = (f - 1) * REAL_CROP_SPACING_M / 2.0  # block centres
+        top_left = (m["top_left_xy_m"][0] + half, m["top_left_xy_m"][1] - half)
+        ldem = sample_ldem(dem, top_left, real.shape, spacing)
+        band, band_mask = subdem_band(real, ldem, background_mask(top_left, dem, real.shape, spacing),
+                                      spacing=spacing)
+        row = {"real (block average)": band_statistics(band, band_mask, spacing)}
+        for name, settings in (("old detail", DetailSettings(**OLD_SETTINGS_KW)), ("new detail", DetailSettings())):
+            runs = []
+            for seed in seeds:
+                field, _ = synthesize_detail((2 * n, 2 * n), spacing, 1600.0, replace(settings, seed=int(seed)),
+                                             key="calibration")
+                runs.append(band_statistics(field, np.ones(field.shape, dtype=bool), spacing))
+            row[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+        rows[f"{spacing:g} m"] = row
+    return rows
+
+
 def markdown_table(rows: dict, keys=None) -> str:
     names = list(rows)
     keys = keys or list(rows[names[0]])
@@ -518,7 +557,7 @@ def hillshade(z: np.ndarray, spacing: float, sun_elevation_deg: float) -> np.nda
     return np.clip(cos_i, 0.0, None) * lit
 
 
-def write_hillshades(fields: dict, out_dir: Path, elevations=(0.5, 1.6), spacing=REAL_CROP_SPACING_M) -> list[Path]:
+def write_hillshades(fields: dict, out_dir: Path, elevations=(0.5, 1.6, 5.0), spacing=REAL_CROP_SPACING_M) -> list[Path]:
     """One PNG per sun elevation (panels left to right in ``fields`` order, same grey scale, set by
     the first panel's 99.5th percentile) and one per field; written atomically."""
     from PIL import Image
@@ -578,16 +617,25 @@ def main(argv=None) -> int:
         m = measure_real(path)
         rows = comparison_rows(m, seeds=range(a.seeds))
         fit = fit_parameters(m, seeds=range(a.seeds)) if a.fit else []
+        transfer = grid_transfer_rows(m, seeds=range(a.seeds))
+        population = {"old detail": population_summary(DetailSettings(**OLD_SETTINGS_KW)),
+                      "new detail": population_summary(DetailSettings())}
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     head = {"top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]], "residual_rms_m": m["residual_rms_m"],
             "background_fraction": float(m["mask"].mean()), "band_fraction": float(m["band_mask"].mean())}
     if a.json:
-        print(json.dumps({**head, "rows": rows, "fit": [{"misfit": e, **kw} for e, kw in fit]}, indent=1))
+        print(json.dumps({**head, "rows": rows, "grid_transfer": transfer, "population": population,
+                          "fit": [{"misfit": e, **kw} for e, kw in fit]}, indent=1))
     else:
         print(json.dumps(head))
         print(markdown_table(rows))
+        for grid, row in transfer.items():
+            print(f"\nsub-DEM band on a {grid} grid")
+            print(markdown_table(row, TRANSFER_KEYS))
+        print("\ndrawn crater population, 400 m - 3.2 km, 10,000 km^2 (level ground for the shadows)")
+        print(markdown_table(population))
         for e, kw in fit:
             print(f"misfit {e:.4f}  {kw}")
     if a.out:

@@ -10,9 +10,23 @@ import pytest
 
 from crater_synth import detail_calibration as dc
 from crater_synth.detail import (
-    EQ_COEF, MODELS, PIKE_DEPTH_COEF, PIKE_RIM_COEF, DetailConfigError, DetailSettings, crater_population,
-    crater_profile, degradation_table, degraded_population, degraded_profile, depth_ratio_after_diffusion,
-    diffusion_time_for_depth_ratio, lowpass, roughness_psd_coefficient, stamp_craters, stamp_degraded_craters,
+    EQ_COEF,
+    MODELS,
+    PIKE_DEPTH_COEF,
+    PIKE_RIM_COEF,
+    DetailConfigError,
+    DetailSettings,
+    crater_population,
+    crater_profile,
+    degradation_table,
+    degraded_population,
+    degraded_profile,
+    depth_ratio_after_diffusion,
+    diffusion_time_for_depth_ratio,
+    lowpass,
+    roughness_psd_coefficient,
+    stamp_craters,
+    stamp_degraded_craters,
     synthesize_detail,
 )
 
@@ -81,7 +95,7 @@ def test_unknown_key_is_refused():
 
 # ------------------------------------------------------------------------------------------ legacy
 def test_legacy_is_the_pre_calibration_model():
-    f, stats = make(seed=2, model="legacy", roughness_rms_slope_deg=0.0, crater_density_scale=0.0)
+    _, stats = make(seed=2, model="legacy", roughness_rms_slope_deg=0.0, crater_density_scale=0.0)
     # Fixed parameters: the calibrated keys do not reach it; its fBm is 6 deg RMS per grid step.
     assert stats["n_craters"] > 0 and stats["roughness_rms_slope_deg"] == pytest.approx(6.0, rel=1e-6)
 
@@ -110,7 +124,7 @@ def test_roughness_amplitude_is_physical():
     """The calibrated roughness has one PSD on every grid: its RMS slope on the reference grid is
     the setting, and its RMS height barely depends on the grid spacing (the legacy one, normalised
     per grid step, does)."""
-    kw = dict(crater_density_scale=0.0, roughness_rms_slope_deg=1.5)
+    kw = {"crater_density_scale": 0.0, "roughness_rms_slope_deg": 1.5}
     slopes = [make((256, 256), 200.0, seed=s, **kw)[1]["roughness_rms_slope_deg"] for s in range(4)]
     assert np.mean(slopes) == pytest.approx(1.5, rel=0.05)
     h200 = np.mean([make((256, 256), 200.0, seed=s, **kw)[0].std() for s in range(4)])
