@@ -68,9 +68,9 @@ ROUGHNESS_REFERENCE_SPACING_M = 200.0
 ROUGHNESS_REFERENCE_DEM_PIXEL_M = 1600.0
 ROUGHNESS_REFERENCE_SIZE = 256
 # Degraded-crater profiles (topographic diffusion of Pike's fresh shape): radial grid in units of
-# the crater radius R, and the stamp extent. Diffusion spreads the ejecta beyond 3 R; at the
-# largest diffusion time used (a crater at d/D ~ 0.01) what lies beyond 4 R is < 0.2 % of the
-# fresh depth, so stamps are cut at 4 R with a smooth taper from 3.5 R.
+# the crater radius R, and the stamp extent. Diffusion spreads the ejecta beyond 3 R; up to the
+# largest diffusion time allowed (d/D down to MIN_RECOGNITION_DEPTH_DIAMETER) what lies beyond 4 R
+# is < 0.2 % of the fresh depth, so stamps are cut at 4 R with a smooth taper from 3.5 R.
 DIFFUSION_GRID_STEP_R = 0.02
 DIFFUSION_GRID_EXTENT_R = 8.0
 DEGRADED_EXTENT_RADII = 4.0
@@ -78,6 +78,8 @@ DEGRADED_TAPER_START_RADII = 3.5
 # Nondimensional diffusion times kappa t / D^2 tabulated (0 and a geometric ladder).
 DIFFUSION_TAU_D_RANGE = (1e-5, 2.0)
 DIFFUSION_TAU_D_COUNT = 160
+# Allowed range of min_depth_diameter (the most degraded crater drawn).
+MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
 
 # The pre-calibration model (kept for ablations; docs/detail.md "old").
 LEGACY_PARAMETERS = {"hurst": 0.8, "rms_slope_deg": 6.0, "crater_density_scale": 1.0,
@@ -142,8 +144,10 @@ class DetailSettings:
             ("roughness_rms_slope_deg", 0.0 <= s.roughness_rms_slope_deg < 60.0, "must lie in [0, 60) degrees"),
             ("crater_density_scale", 0.0 <= s.crater_density_scale <= 100.0, "must lie in [0, 100]"),
             ("min_crater_diameter_m", s.min_crater_diameter_m > 0.0, "must be > 0"),
-            ("min_depth_diameter", 0.001 <= s.min_depth_diameter < 0.15,
-             "must lie in [0.001, 0.15) (fresh craters: 0.196, Pike 1977)"),
+            ("min_depth_diameter",
+             MIN_RECOGNITION_DEPTH_DIAMETER <= s.min_depth_diameter < MAX_RECOGNITION_DEPTH_DIAMETER,
+             f"must lie in [{MIN_RECOGNITION_DEPTH_DIAMETER}, {MAX_RECOGNITION_DEPTH_DIAMETER}) "
+             "(fresh craters: 0.196, Pike 1977)"),
         ]
         for key, ok, why in checks:
             if not ok:
