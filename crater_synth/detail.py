@@ -146,8 +146,8 @@ class DetailSettings:
             ("min_crater_diameter_m", s.min_crater_diameter_m > 0.0, "must be > 0"),
             ("min_depth_diameter",
              MIN_RECOGNITION_DEPTH_DIAMETER <= s.min_depth_diameter < MAX_RECOGNITION_DEPTH_DIAMETER,
-             f"must lie in [{MIN_RECOGNITION_DEPTH_DIAMETER}, {MAX_RECOGNITION_DEPTH_DIAMETER}) "
-             "(fresh craters: 0.196, Pike 1977)"),
+             (f"must lie in [{MIN_RECOGNITION_DEPTH_DIAMETER}, {MAX_RECOGNITION_DEPTH_DIAMETER}) "
+              "(fresh craters: 0.196, Pike 1977)")),
         ]
         for key, ok, why in checks:
             if not ok:
