@@ -14,9 +14,10 @@ docs/hapke.md):
 - Hapke, B. (1984) Bidirectional reflectance spectroscopy 3. Correction for macroscopic roughness.
   Icarus 59:41-59: chi(theta_bar), E1, E2, eta, the effective cosines and the shadowing function S
   for i <= e and for e < i (eqs. 46-51), f(psi).
-- Hapke, B. (2002) Bidirectional reflectance spectroscopy 5. Icarus 157:523-534, eq. 2: the
-  combination r = K w/(4 pi) mu0e/(mu0e + mue) [p B_SH + H(mu0e) H(mue) - 1] S used with roughness
-  (K = 1, no porosity term, no coherent backscatter: the five-parameter "simplified" model).
+- Hapke, B. (2002) Bidirectional reflectance spectroscopy 5. Icarus 157:523-534: the combination
+  r = K w/(4 pi) mu0e/(mu0e + mue) [p (1 + B_SH) + H(mu0e) H(mue) - 1] S used with roughness (here
+  K = 1, no porosity term, no coherent backscatter, the 1981 H function: the five-parameter
+  "simplified" model of SPEC.md).
 - Single-lobe Henyey-Greenstein phase function p(g) = (1 - xi^2)/(1 + 2 xi cos g + xi^2)^(3/2)
   (xi < 0: backscattering), as in the lunar fits of Sato et al. 2014 (JGR Planets 119:1775).
 """

@@ -194,3 +194,32 @@ def test_no_import_cycles(graph):
         return "; ".join(arrows)
 
     assert not real, "import cycles:\n" + "\n".join(describe(c) for c in real)
+
+
+# Modules whose whole import closure (every project module they can reach, function-level imports included)
+# must stay free of a heavy dependency, and why.
+LIGHT_CLOSURES = {
+    "crater_synth.report": ("torch", "the report summarises a run without loading the training stack"),
+    "train.registry": ("torch", "the model list is read by the report and the CLI"),
+}
+
+
+def _closure(graph, start: str) -> set[str]:
+    seen, todo = set(), [m for m in graph if m == start or m.startswith(start + ".")]
+    while todo:
+        mod = todo.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        todo += [name for name, _ in graph[mod] if name in graph]
+    return seen
+
+
+def test_light_modules_never_reach_heavy_dependencies(graph):
+    bad = []
+    for start, (heavy, why) in LIGHT_CLOSURES.items():
+        for mod in sorted(_closure(graph, start)):
+            hits = [line for name, line in graph[mod] if name.split(".")[0] == heavy]
+            if hits:
+                bad.append(f"{start} reaches {mod}, which imports {heavy} (line {hits[0]}): {why}")
+    assert not bad, "\n".join(bad)
