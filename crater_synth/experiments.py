@@ -18,7 +18,7 @@ from pathlib import Path
 import click
 from omegaconf import DictConfig, OmegaConf
 
-from crater_core.schema import atomic_write_text
+from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import AXES, grid_from_config, nearest_subset
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
@@ -98,10 +98,10 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     styles = ", ".join(f"{SPECS[m].label} {ls}" for m, ls in zip(MODELS, ("solid", "dashed", "dotted", "dash-dot")))
     fig.suptitle(f"Test accuracy by sample count (paper Fig. 6): {styles}", fontsize=10)
     fig.tight_layout()
-    tmp = png.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    tmp.replace(png)
+    atomic_write_bytes(png, buf.getvalue())
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
