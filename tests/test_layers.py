@@ -223,3 +223,19 @@ def test_light_modules_never_reach_heavy_dependencies(graph):
             if hits:
                 bad.append(f"{start} reaches {mod}, which imports {heavy} (line {hits[0]}): {why}")
     assert not bad, "\n".join(bad)
+
+
+MAX_MODULE_LINES = 500
+LENGTH_REASON = "Length:"       # a paragraph of the module docstring starting with this says why it is longer
+
+
+def test_long_modules_say_why():
+    """No module over MAX_MODULE_LINES lines without a reason written at its top (issue 12)."""
+    bad = []
+    for mod, path in project_modules().items():
+        text = path.read_text(encoding="utf-8")
+        n = text.count("\n") + 1
+        if n > MAX_MODULE_LINES and LENGTH_REASON not in (ast.get_docstring(ast.parse(text)) or ""):
+            bad.append(f"{path.relative_to(ROOT)}: {n} lines; split it, or say why in a '{LENGTH_REASON} ...' "
+                       "paragraph of its docstring")
+    assert not bad, "\n".join(bad)
