@@ -123,7 +123,8 @@ class SweepGrid:
         """Deterministic flat index -> render parameters (sun-major order)."""
         if not 0 <= index < len(self):
             raise IndexError(f"sweep index {index} outside [0, {len(self)})")
-        idx = tuple(int(i) for i in np.unravel_index(index, self.shape))
+        i0, i1, i2, i3 = (int(i) for i in np.unravel_index(index, self.shape))
+        idx = (i0, i1, i2, i3)
         return RenderParams(index, idx, self.sun_elevation[idx[0]], self.sun_azimuth[idx[1]],
                             self.cam_elevation[idx[2]], self.cam_azimuth[idx[3]])
 
