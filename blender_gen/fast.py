@@ -30,8 +30,8 @@ from collections import OrderedDict
 
 import numpy as np
 
-from crater_core import hapke
 from blender_gen import direct
+from crater_core import hapke
 
 LIT_MAP_MAX = 4.0  # clip of the map before interpolation (>1 only within ~one solar radius of the terminator)
 

@@ -101,12 +101,12 @@ def run(job_path: str) -> int:
 
     import numpy as np
 
-    from crater_core import exr
     from blender_gen import direct, fast, render
-    from crater_core.hapke import HapkeParams
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector
+    from crater_core import exr
+    from crater_core.hapke import HapkeParams
 
     try:
         cfg = render_settings(job.get("render"))

@@ -57,16 +57,16 @@ def implied_full_crater_rate(stats: list[dict], workers: int, n_suns: int = 150,
     t_lit = sum(f["lit_map_s"] for f in fast) / lit
     t_gbuf = sum(f["gbuffer_s"] for f in fast) / gbuf
     t_setup = sum(s["setup_s"] for s in stats) / len(stats)
-    t_image = (sum(s["seconds"] - s["setup_s"] for s in stats) - sum(f["lit_map_s"] + f["gbuffer_s"] for f in fast)) / renders
+    t_image = (sum(s["seconds"] - s["setup_s"] for s in stats)
+               - sum(f["lit_map_s"] + f["gbuffer_s"] for f in fast)) / renders
     per_worker = t_setup + (n_suns / workers) * t_lit + n_cams * t_gbuf + (n_suns * n_cams / workers) * t_image
     return n_suns * n_cams / per_worker
 
 
 def _timed_dataset(overrides: list[str], out_dir: Path) -> tuple[dict, float]:
-    from crater_synth.config import compose
+    from crater_synth.config import compose, craters
     from crater_synth.dataset import build_dataset
     from crater_synth.terrain import build_terrain
-    from crater_synth.config import craters
 
     cfg = compose(overrides + [f"out_dir={out_dir}"])
     for crater in craters(cfg):  # terrain is cached data, not rendering: build it outside the timing

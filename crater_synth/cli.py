@@ -10,7 +10,6 @@ import importlib
 
 import click
 
-
 # (module, attribute) of each subcommand, in `crater-synth --help` order.
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command"),

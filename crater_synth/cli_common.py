@@ -7,8 +7,8 @@ import sys
 
 import click
 
-from crater_synth.errors import UserError
 from crater_core.errors import ContractError
+from crater_synth.errors import UserError
 
 OVERRIDES = click.argument("overrides", nargs=-1, metavar="[OVERRIDES]...")
 

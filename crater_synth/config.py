@@ -23,7 +23,8 @@ def compose(overrides: Sequence[str] = (), config_name: str = "config") -> DictC
 
     Raises :class:`ConfigError` with Hydra's message for an unknown group option or a bad override.
     """
-    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
@@ -59,7 +60,7 @@ def one_line_config_error(msg: str) -> str:
 def resolved(cfg: DictConfig) -> dict:
     """Plain-dict copy with all interpolations resolved; a missing mandatory value (``???``) is a
     :class:`ConfigError` naming the key."""
-    from omegaconf.errors import MissingMandatoryValue, InterpolationResolutionError
+    from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue
 
     try:
         return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)  # type: ignore[return-value]

@@ -29,13 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_core import geometry
+from crater_core import geometry, schema
 from crater_core.hapke import HapkeParams
-from crater_synth import __version__
-from crater_synth.config import ConfigError, craters as selected_craters, resolved
-from crater_synth.errors import UserError
-from crater_core import schema
 from crater_core.sweep import SweepGrid, grid_from_config
+from crater_synth import __version__
+from crater_synth.config import ConfigError, resolved
+from crater_synth.config import craters as selected_craters
+from crater_synth.errors import UserError
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 # Bytes per render used for the free-disk check before any measured value exists

@@ -380,7 +380,8 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
         pop = degraded_population(area_m2, *d_range_m, settings.crater_density_scale, settings.min_depth_diameter,
                                   rng)
         t = degradation_table()
-        z = degraded_profile(np.abs(x)[None, :], pop["tau_d"][:, None]) * (2.0 * pop["fresh_depth"] / pop["diameter"])[:, None]
+        depth_ratio = 2.0 * pop["fresh_depth"] / pop["diameter"]
+        z = degraded_profile(np.abs(x)[None, :], pop["tau_d"][:, None]) * depth_ratio[:, None]
         rim_rows = t.s[np.argmax(t.profile, axis=1)]
         rim = np.maximum(np.interp(pop["tau_d"], t.tau_d, rim_rows), 1.0)
     dd = pop["depth"] / pop["diameter"]
@@ -557,7 +558,8 @@ def hillshade(z: np.ndarray, spacing: float, sun_elevation_deg: float) -> np.nda
     return np.clip(cos_i, 0.0, None) * lit
 
 
-def write_hillshades(fields: dict, out_dir: Path, elevations=(0.5, 1.6, 5.0), spacing=REAL_CROP_SPACING_M) -> list[Path]:
+def write_hillshades(fields: dict, out_dir: Path, elevations=(0.5, 1.6, 5.0),
+                     spacing=REAL_CROP_SPACING_M) -> list[Path]:
     """One PNG per sun elevation (panels left to right in ``fields`` order, same grey scale, set by
     the first panel's 99.5th percentile) and one per field; written atomically."""
     from PIL import Image

@@ -26,11 +26,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from crater_synth.config import ConfigError, resolved
-from crater_synth.errors import UserError
 from crater_core import schema
 from crater_core.errors import ContractError
 from crater_core.sweep import grid_from_config
+from crater_synth.config import ConfigError, resolved
+from crater_synth.errors import UserError
 
 
 def _render_shard(cfg_yaml: str, shard_index: int, shard_count: int) -> dict:
@@ -77,8 +77,14 @@ def preflight(cfg: DictConfig) -> dict:
     are built here, so tasks reuse them instead of racing to build them), output directory, free disk.
     Returns ``{"renders_total", "craters", "shards"}``."""
     from crater_synth.config import craters as selected_craters
-    from crater_synth.dataset import (check_free_disk, check_output_dir, hapke_params,
-                                      measured_bytes_per_render, plan_render, validate_render_config)
+    from crater_synth.dataset import (
+        check_free_disk,
+        check_output_dir,
+        hapke_params,
+        measured_bytes_per_render,
+        plan_render,
+        validate_render_config,
+    )
     from crater_synth.terrain import build_terrain
 
     cfg_r, plain = _absolute_cfg(cfg)
@@ -237,7 +243,7 @@ def bench_distributed(cfg: DictConfig, work_dir: str | Path | None = None) -> di
     plan = preflight(runs["single"])  # builds the terrain, outside the timings
 
     t0 = time.perf_counter()
-    single = build_dataset(runs["single"], progress=False)
+    build_dataset(runs["single"], progress=False)
     t_single = time.perf_counter() - t0
     t0 = time.perf_counter()
     dask = run_dask(runs["dask"], progress=False)

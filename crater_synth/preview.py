@@ -9,9 +9,9 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core import schema
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_core import schema
 
 
 def read_channel(path: Path, name: str = "IF") -> np.ndarray:
@@ -54,7 +54,7 @@ def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str
         ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         pts = _ellipse_points(row["rim_ellipse"])
         ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)
-        for sigma, (u0, v0, u1, v1) in row["sigma_boxes"].items():
+        for _sigma, (u0, v0, u1, v1) in row["sigma_boxes"].items():
             ax.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], "--", color="#50c0ff", lw=0.5)
         ax.set_title(f"sun {row['sun_elevation']:.2f}/{row['sun_azimuth']:.0f}  cam {row['cam_elevation']:.0f}/"
                      f"{row['cam_azimuth']:.0f}\nlit {row['lit_fraction']:.2f}  I/F {row['mean_if']:.4f}", fontsize=6)

@@ -76,7 +76,8 @@ def _validate(products: dict, archives: dict, where: str) -> None:
                     raise ProductError(f"{where}: product {pid!r} file name {f['name']!r} must be a bare name")
                 sha = f.get("sha256")
                 if sha is not None and not _SHA256_RE.match(str(sha)):
-                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} is not 64 hex digits")
+                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} "
+                                       "is not 64 hex digits")
             names = [f["name"] for f in files]
             if files and p.get("open") not in names:
                 raise ProductError(f"{where}: product {pid!r} 'open' must name one of its files {names}")

@@ -5,7 +5,6 @@ import shutil
 
 import pytest
 from click.testing import CliRunner
-
 from conftest import TINY, exr_files, run_cli
 
 HUGE = ("sweep.sun_elevation.values=null", "sweep.sun_elevation.count=100", "sweep.sun_azimuth.count=1000",
@@ -15,7 +14,8 @@ CASES = {
     "unknown-crater": (["crater=atlantis"],  # the choices list every configs/crater/ entry (docs/catalogue.md)
                        "unknown crater 'atlantis' (override crater=atlantis): choose one of amundsen, cabeus, custom, "
                        "de_forest, de_gerlache,"),
-    "crater-outside-dem": (["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0", "crater.custom.diameter_km=20"],
+    "crater-outside-dem": (["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0",
+                            "crater.custom.diameter_km=20"],
                            "crater custom at (lat 0, lon 0) lies outside DEM lola_ldem256_south"),
     "custom-crater-without-lat": (["crater=custom"], "missing mandatory config value: crater.custom.lat"),
     "sun-elevation-95": (["sweep.sun_elevation.values=[95]"], "invalid sweep.sun_elevation values [95.0]"),

@@ -76,7 +76,8 @@ def test_flat_plane_if_matches_hapke_oracle(flat_runs, mode):
         got = img["IF"]
         assert got.shape == expected.shape
         rel_mean = got.mean() / expected.mean() - 1.0
-        assert abs(rel_mean) < 0.01, f"{mode} {it['sun_elevation']}/{it['cam_elevation']}: mean I/F off by {rel_mean:.2%}"
+        where = f"{mode} {it['sun_elevation']}/{it['cam_elevation']}"
+        assert abs(rel_mean) < 0.01, f"{where}: mean I/F off by {rel_mean:.2%}"
         # per pixel: exact formula, only Monte-Carlo noise of the solar disk at grazing sun
         mad = np.abs(got - expected).mean() / expected.mean()
         assert mad < (0.01 if it["sun_elevation"] < 5 else 0.002), f"{mode} {it}: per-pixel MAD {mad:.3%}"

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from train.errors import TrainError
-from train.preprocess import (PreprocessConfig, SensorModel, normalize, outside_fraction, preprocess_crop,
-                              resample_box)
+from train.preprocess import PreprocessConfig, SensorModel, normalize, outside_fraction, preprocess_crop, resample_box
 from train.toydata import render_toy
 
 PP = PreprocessConfig()

@@ -94,7 +94,8 @@ def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
 
 
 def check_synthetic_rows(rows: Iterable[dict], dataset_dir: str | Path,
-                         forbidden_sha256: Iterable[str] = (), forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
+                         forbidden_sha256: Iterable[str] = (),
+                         forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
     """Refuse anything that is not a synthetic render row: a row that fails the render-manifest schema,
     one marked with a non-synthetic ``source``/``role``, or one whose file (by manifest checksum or
     resolved path) is a real test image. Returns the rows."""
@@ -263,7 +264,7 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
         arr = np.lib.format.open_memmap(tmp / "images.npy", mode="w+", dtype=np.dtype(dtype),
                                         shape=(len(samples), pp.size, pp.size))
         j = 0
-        for i, row in enumerate(tqdm(rows, desc="cache crops", unit="exr", disable=not progress, leave=False)):
+        for _i, row in enumerate(tqdm(rows, desc="cache crops", unit="exr", disable=not progress, leave=False)):
             path = resolve_path(dataset_dir, row["path"])
             where = f"EXR {path}"
             if not path.is_file():
@@ -416,5 +417,6 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
     info = split_info | {"sigmas": sigmas, "cache": str(cache.path), "cache_built": cache.built,
                          "cache_seconds": round(cache.seconds, 3), "train_images": len(tr_idx),
                          "val_images": len(va_idx), "ignored_craters": others,
-                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i)) for n, i in cls.items()}}
+                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i))
+                                                for n, i in cls.items()}}
     return SyntheticData(train_ds, val_ds, class_names, info)

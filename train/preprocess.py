@@ -106,7 +106,8 @@ def resample_box(image: np.ndarray, box: Sequence[float], size: int, rotation_de
     Pixel coordinates: u right, v down, origin at the top-left *corner* of the image (pixel (i, j)
     covers [j, j+1) x [i, i+1)), the convention of the manifest's ``sigma_boxes`` and of the mosaic.
     ``rotation_deg`` rotates the sampling grid about the box centre (counter-clockwise on screen, so
-    the crop's content appears turned clockwise by that angle); a rotated crop has no empty corners as long as the rotated box stays inside the image. When the
+    the crop's content appears turned clockwise by that angle); a rotated crop has no empty corners as
+    long as the rotated box stays inside the image. When the
     box side exceeds ``size`` pixels the window is first Gaussian-filtered (sigma = (scale - 1) / 2,
     scikit-image's anti-aliasing rule). Samples that fall outside the image take the nearest edge value.
     Returns float32 (size, size).
@@ -216,8 +217,9 @@ class SensorModel:
     back: the real crops are up-sampled from 52-180 mosaic pixels), Gaussian PSF, exposure (automatic:
     the image's white level -- the 99.5th percentile of its lit pixels -- lands at a random fraction
     ``exposure_white_frac`` of full scale, as a camera exposing for the scene; or fixed:
-    ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson law), read noise (DN), quantisation to ``quantize_bits``
-    with saturation at ``full_well_if`` x gain. Returns DN / full scale (float32).
+    ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson
+    law), read noise (DN), quantisation to ``quantize_bits`` with saturation
+    at ``full_well_if`` x gain. Returns DN / full scale (float32).
     """
 
     enabled: bool = True
@@ -243,7 +245,8 @@ class SensorModel:
             raise TrainError(f"sensor.quantize_bits={self.quantize_bits} must lie in [1, 16]")
         lo_hi = tuple(float(v) for v in self.exposure_white_frac)
         if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} must be [lo, hi], 0 < lo <= hi")
+            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} "
+                             "must be [lo, hi], 0 < lo <= hi")
         object.__setattr__(self, "exposure_white_frac", lo_hi)
         if not 0 <= self.resolution_prob <= 1:
             raise TrainError(f"sensor.resolution_prob={self.resolution_prob} must lie in [0, 1]")
