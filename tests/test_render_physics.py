@@ -312,7 +312,7 @@ def test_lit_map_levels_lookup():
         c = -half + (np.arange(geo.px) + 0.5) * d
         x, y = np.meshgrid(c, c[::-1])
         levels.append(0.3 + 1e-4 * x - 2e-4 * y)
-    lit = fast.LitMap(np.concatenate([lv.ravel() for lv in levels]).astype(np.float32), geo)
+    lit = fast.HorizonMap(np.concatenate([lv.ravel() for lv in levels]).astype(np.float32), geo)
     pts = np.array([[0.0, 0.0], [150.0, -180.0], [400.0, 300.0], [-800.0, 800.0], [1200.0, 0.0]])
     x, y = pts[:, 0][None, :], pts[:, 1][None, :]
     i00, fx, fy, n_out = geo.locate(x, y, np.ones_like(x, dtype=bool))
