@@ -37,6 +37,21 @@ from blender_gen import direct
 
 
 
+class Float32Ops(hapke.NumpyOps):
+    """The numpy backend of ``hapke.radiance_factor`` kept in float32 (about twice as fast as the
+    float64 oracle; relative differences ~1e-6, far below the Monte-Carlo noise of the reference)."""
+
+    @staticmethod
+    def less_equal(a, b):
+        return (np.asarray(a) <= np.asarray(b)).astype(np.float32)
+
+
+def radiance_factor32(mu0: np.ndarray, mu: np.ndarray, cos_g: np.ndarray, params) -> np.ndarray:
+    """I/F of the one Hapke formula (crater_core.hapke) in float32, for mu0 > 0 and mu > 0."""
+    return hapke.radiance_factor(mu0.astype(np.float32), mu.astype(np.float32), cos_g.astype(np.float32),
+                                 params, Float32Ops).astype(np.float32)
+
+
 class FallbackNeeded(Exception):
     """The crop sees terrain outside the lit map: render this image in direct mode instead."""
 
@@ -220,7 +235,7 @@ class FastRenderer:
         m = sunward & (g.mu > 0.0) & (lit > 0.0)
         radiance = np.zeros(g.shape, dtype=np.float32)
         if m.any():
-            radiance[m] = (hapke.radiance_factor_np(mu0[m], g.mu[m], g.view[m] @ s, self.s.params)
+            radiance[m] = (radiance_factor32(mu0[m], g.mu[m], g.view[m] @ s, self.s.params)
                            * lit[m] * g.cov[m])
         lit_out = np.clip(lit, 0.0, 1.0)
         self.stats["shade_s"] += time.perf_counter() - t0

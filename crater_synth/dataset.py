@@ -31,6 +31,7 @@ import numpy as np
 
 from crater_core import geometry
 from crater_core.hapke import HapkeParams
+from crater_core.horizon import HORIZON_VERSION
 from crater_synth import __version__
 from crater_synth.config import ConfigError, craters as selected_craters, resolved
 from crater_synth.errors import UserError
@@ -163,8 +164,10 @@ def render_digest(render: dict, hapke: dict, terrain_id: str) -> str:
     """Fingerprint of everything besides the angles that changes the pixels of a render."""
     keys = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_levels",
             "shadow_map_extent_factor", "shadow_map_samples", "gbuffer_samples", "roi_min_px", "crop_to_roi")
-    payload = json.dumps({"render": {k: render.get(k) for k in keys}, "hapke": hapke, "terrain": terrain_id},
-                         sort_keys=True)
+    payload = {"render": {k: render.get(k) for k in keys}, "hapke": hapke, "terrain": terrain_id}
+    if render.get("mode") == "fast":  # fast-mode shadows come from horizon maps (crater_core.horizon)
+        payload["horizon_version"] = HORIZON_VERSION
+    payload = json.dumps(payload, sort_keys=True)
     return f"{zlib.crc32(payload.encode()):08x}"
 
 
@@ -306,6 +309,7 @@ def run_workers(jobs: list[CraterJob], cfg_r: dict, out_dir: Path, on_result, ma
         job_file = jobs_dir / f"{job.crater['name']}-{writer_tag()}-{unit_id}.json"
         spec = {"terrain_npz": str(job.npz), "terrain_meta": job.meta, "crater": job.crater,
                 "hapke": cfg_r["hapke"], "render": render_cfg, "out_dir": str(out_dir),
+                "horizon_cache_dir": render_cfg.get("horizon_cache_dir"),
                 "renders": [_worker_render_item(job, p, cfg_r) for p in block]}
         schema.atomic_write_text(job_file, json.dumps(spec))
         log = open(job_file.with_suffix(".log"), "ab")
