@@ -204,15 +204,20 @@ class FastRenderer:
         return g
 
     def pixel_horizon(self, item: dict, g: GBuffer) -> np.ndarray:
-        """Horizon elevation (radians) at every pixel's mean surface point, for the item's sun azimuth."""
+        """Horizon elevation (radians) for the item's sun azimuth at the 2 x 2 sub-pixel points
+        (+-1/4 pixel) of every pixel, shape (4, h, w): the horizon at the pixel's mean surface point,
+        extrapolated with its image-space gradient. Averaging the lit factor over them antialiases
+        shadow edges sharper than a pixel (direct mode's 16 samples do the same)."""
         key = (self.camera_key(item), float(item["sun_azimuth"]))
-        h = self.pixel_horizons.get(key)
-        if h is None:
+        sub = self.pixel_horizons.get(key)
+        if sub is None:
             h = g.lookup(self.horizon_map(float(item["sun_azimuth"])))
-            self.pixel_horizons[key] = h
+            dv, du = np.gradient(h) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
+            sub = np.stack([h + a * du + b * dv for a in (-0.25, 0.25) for b in (-0.25, 0.25)]).astype(np.float32)
+            self.pixel_horizons[key] = sub
             if len(self.pixel_horizons) > self.horizon_cache_size:
                 self.pixel_horizons.popitem(last=False)
-        return h
+        return sub
 
     # -- per render -----------------------------------------------------------------------------
     def render(self, item: dict, to_sun: np.ndarray) -> dict[str, np.ndarray]:
@@ -230,8 +235,9 @@ class FastRenderer:
         mu0 = g.normals @ s
         sunward = g.valid & (mu0 > 0.0)
         lit = np.zeros(g.shape, dtype=np.float32)
-        lit[sunward] = horizon.disc_lit_factor(np.float32(theta), h[sunward], mu0[sunward],
-                                               g.normals[sunward] @ ds_dtheta)
+        mu0_s, slope_s = mu0[sunward], g.normals[sunward] @ ds_dtheta
+        lit[sunward] = 0.25 * sum(horizon.disc_lit_factor(np.float32(theta), hk[sunward], mu0_s, slope_s)
+                                  for hk in h)
         m = sunward & (g.mu > 0.0) & (lit > 0.0)
         radiance = np.zeros(g.shape, dtype=np.float32)
         if m.any():

@@ -5,7 +5,9 @@
   against brute-force ray marching over the terrain mesh (bilinear cells, near field then far field,
   scipy's map_coordinates; nothing shared with the implementation): every pixel the march calls
   clearly lit (horizon below the disc's lower limb) or clearly shadowed (horizon above its upper
-  limb) must be so in the render, away from class boundaries and the self-shadow terminator.
+  limb) must be so in the render, away from class boundaries and the self-shadow terminator. Like
+  the renderer (and Cycles' smooth-shaded mesh), terrain closer than
+  ``horizon.MIN_OCCLUDER_DISTANCE_SPACINGS`` near-grid spacings is left to the shading normal.
 """
 
 from __future__ import annotations
@@ -93,8 +95,8 @@ def _marched_horizon(near, far, px, py, azimuth_deg):
     coeffs = spline_filter(near[..., 2].astype(np.float64), order=3, mode="nearest")
     z0 = _mesh_height(coeffs, far, px, py)
     spacing = 2 * NEAR_HALF / (NEAR_N - 1)
-    steps = np.concatenate([np.arange(spacing / 4, 2 * NEAR_HALF * 1.5, spacing / 3),
-                            np.arange(2 * NEAR_HALF * 1.5, 2 * FAR_HALF * 1.5, 250.0)])
+    t_min = max(horizon.MIN_OCCLUDER_DISTANCE_SPACINGS, 0.25) * spacing
+    steps = np.concatenate([np.arange(t_min, 3 * NEAR_HALF, spacing / 3), np.arange(3 * NEAR_HALF, 3 * FAR_HALF, 250.0)])
     best = np.full(px.shape, -np.inf)
     for t in steps:
         best = np.maximum(best, (_mesh_height(coeffs, far, px + t * dx, py + t * dy) - z0) / t)
