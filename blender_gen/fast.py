@@ -53,11 +53,11 @@ def radiance_factor32(mu0: np.ndarray, mu: np.ndarray, cos_g: np.ndarray, params
 
 
 class FallbackNeeded(Exception):
-    """The crop sees terrain outside the lit map: render this image in direct mode instead."""
+    """The crop sees terrain outside the horizon map: render this image in direct mode instead."""
 
 
 class MapGeometry:
-    """Nested square lit maps ("levels"), all ``px`` x ``px`` texels, centred on the crater: level k
+    """Nested square map levels, all ``px`` x ``px`` texels, centred on the crater: level k
     has half-width ``half / 2**(levels-1-k)`` (level 0 is the finest). Level texels are stored one
     after the other in one flat array. A point uses the finest level whose square holds its bilinear
     stencil; camera pixels far from the crater are seen obliquely, so their ground footprint grows
@@ -96,15 +96,21 @@ class MapGeometry:
 
 
 class HorizonMap:
-    """Horizon elevations (radians) of one sun azimuth at the texels of ``geometry``, flat float32."""
+    """One sun azimuth's horizon at the texels of ``geometry``: flat float32 planes (level after
+    level, each row-major, row 0 = north, col 0 = west) of the slope tan(h), the occluder distance
+    and the eye height (crater_core.horizon.horizon_maps)."""
 
-    def __init__(self, values: np.ndarray, geometry: MapGeometry):
-        self.values = values  # level after level, each row-major (row 0 = north, col 0 = west)
+    def __init__(self, values: np.ndarray, geometry: MapGeometry, distance: np.ndarray | None = None,
+                 eye_z: np.ndarray | None = None):
+        self.values = values
+        self.distance = distance
+        self.eye_z = eye_z
         self.geometry = geometry
 
 
 class GBuffer:
-    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px")
+    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px",
+                 "z")
 
     def __init__(self, passes: dict, cam_position: np.ndarray, geometry: MapGeometry):
         cov = np.clip(passes["cov"], 0.0, 1.0).astype(np.float32)
@@ -120,12 +126,14 @@ class GBuffer:
         self.view = view.astype(np.float32)
         self.mu = np.einsum("...k,...k->...", self.normals, self.view).astype(np.float32)
         self.valid = valid
+        self.z = pos[..., 2].astype(np.float32)
         i00, self.fx, self.fy, self.n_outside = geometry.locate(pos[..., 0], pos[..., 1], valid)
         self.i00 = i00.astype(np.int32)
         self.px = geometry.px
 
-    def lookup(self, horizon_map: HorizonMap) -> np.ndarray:
-        v = horizon_map.values
+    def lookup(self, values) -> np.ndarray:
+        """Bilinear lookup of a flat texel array (or a map's ``values``) at every pixel."""
+        v = values.values if isinstance(values, HorizonMap) else values
         s = self.px
         a, b = v[self.i00], v[self.i00 + 1]
         c, d = v[self.i00 + s], v[self.i00 + s + 1]
@@ -168,8 +176,9 @@ class FastRenderer:
             return horizon.Terrain(t["near_xyz"], t.get("far_xyz"), t.get("far_keep_quads"))
 
         maps = horizon.ensure_maps(build, digest, azimuths, self.geometry.halves, self.map_px, cache_dir, log=log)
-        for az, m in maps.items():
-            self.horizon_maps[az] = HorizonMap(m.reshape(-1), self.geometry)
+        for az, m in maps.items():  # (levels, planes, px, px) -> one flat array per plane
+            slope, dist, eye = (np.ascontiguousarray(m[:, k]).reshape(-1) for k in range(3))
+            self.horizon_maps[az] = HorizonMap(slope, self.geometry, dist, eye)
         self.stats["horizon_maps"] += len(maps)
         self.stats["horizon_s"] += time.perf_counter() - t0
 
@@ -205,13 +214,15 @@ class FastRenderer:
 
     def pixel_horizon(self, item: dict, g: GBuffer) -> np.ndarray:
         """Horizon elevation (radians) for the item's sun azimuth at the 2 x 2 sub-pixel points
-        (+-1/4 pixel) of every pixel, shape (4, h, w): the horizon at the pixel's mean surface point,
-        extrapolated with its image-space gradient. Averaging the lit factor over them antialiases
+        (+-1/4 pixel) of every pixel, shape (4, h, w): the horizon at the pixel's mean surface point
+        (corrected to its height on the mesh), extrapolated with its image-space gradient. Averaging the lit factor over them antialiases
         shadow edges sharper than a pixel (direct mode's 16 samples do the same)."""
         key = (self.camera_key(item), float(item["sun_azimuth"]))
         sub = self.pixel_horizons.get(key)
         if sub is None:
-            h = g.lookup(self.horizon_map(float(item["sun_azimuth"])))
+            hm = self.horizon_map(float(item["sun_azimuth"]))
+            slope = horizon.pixel_slope(g.lookup(hm.values), g.lookup(hm.distance), g.lookup(hm.eye_z), g.z)
+            h = np.arctan(slope).astype(np.float32)
             dv, du = np.gradient(h) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
             sub = np.stack([h + a * du + b * dv for a in (-0.25, 0.25) for b in (-0.25, 0.25)]).astype(np.float32)
             self.pixel_horizons[key] = sub

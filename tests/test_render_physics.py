@@ -143,7 +143,7 @@ def mesa_runs(tmp_path_factory):
                      name="mesa") for i, (se, sa, _) in enumerate(MESA_SUNS)]
     runs = {}
     for mode in ("direct", "fast"):
-        # lit maps +-6.3 km and +-12.6 km (covering the crop), 33 / 66 m texels (camera pixels: 100 m)
+        # horizon maps +-6.3 km and +-12.6 km (covering the crop), 33 / 66 m texels (camera pixels: 100 m)
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=6.0, shadow_map_px=384, shadow_map_levels=2)
         _run(job, tmp, f"mesa-{mode}")
         runs[mode] = {"items": items, "out": tmp / mode}
@@ -245,7 +245,7 @@ def crater_runs(tmp_path_factory):
     for mode in ("direct", "fast"):
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=CRATER_D / 1000.0, samples=16,
                      shadow_map_px=384, shadow_map_levels=2, shadow_map_extent_factor=1.8)
-        # lit-map texels 47 m (|x|, |y| < 9 km) and 94 m (out to 18 km); camera pixels ~100 m
+        # horizon-map texels 47 m (|x|, |y| < 9 km) and 94 m (out to 18 km); camera pixels ~100 m
         results, proc = _run(job, tmp, f"crater-{mode}")
         runs[mode] = {"items": items, "out": tmp / mode, "results": results, "stderr": proc.stderr}
     return runs
