@@ -43,7 +43,7 @@ def _remove_stale(directory: str) -> None:
 
 
 def scratch_path() -> str:
-    """Per-process scratch file for Cycles' output (up to ~64 MB for a 1024^2 lit map)."""
+    """Per-process scratch file for Cycles' output (a G-buffer or direct render of one crop: a few MB)."""
     global _SCRATCH
     if _SCRATCH is None:
         use_shm = os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK)

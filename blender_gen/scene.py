@@ -20,8 +20,8 @@ RENDER_DEFAULTS = {
     "threads": 0,
     "shadow_map_px": 512,
     "shadow_map_extent_factor": 2.45,
-    "shadow_map_levels": 2,  # nested lit maps, each shadow_map_px^2, half-widths extent / 2^k
-    "shadow_map_samples": 8,  # 0: same as samples
+    "shadow_map_levels": 2,  # nested horizon-map levels, each shadow_map_px^2, half-widths extent / 2^k
+    "shadow_map_samples": 0,  # unused since horizon maps replaced the lit maps (accepted for old jobs)
     "gbuffer_samples": 0,  # 0: same as samples
     "seed": 0,
 }
