@@ -106,8 +106,8 @@ class DetailSettings:
     seed: int = 0
     model: str = "calibrated"
     hurst: float = 0.8
-    roughness_rms_slope_deg: float = 1.5
-    crater_density_scale: float = 0.5
+    roughness_rms_slope_deg: float = 1.25
+    crater_density_scale: float = 0.8
     min_crater_diameter_m: float = 300.0
     min_depth_diameter: float = 0.014
 

@@ -2,46 +2,50 @@
 
 What it measures, on the same 200 m grid and the same background area:
 
-- real: the LOLA-derived 200 m/px Shackleton crop (``../shared/data/shackleton_lola_200m/``,
-  public domain; encoding ``elevation = (Y - 0.5) * 20000`` m);
-- LDEM: the embedded 1600 m/px LDEM_256 sampled on the crop's grid exactly as the terrain patch
-  samples it (``Dem.sample``: bicubic), after fitting the crop's position to it;
+- real: the registered LOLA-derived 200 m/px Shackleton crop, the embedded product
+  ``shackleton_lola_200m`` (data_manifest/products.yaml; heights above the 1737.4 km sphere, lowered
+  square repaired). Its grid comes from the product's georeferencing: the registration lives in
+  :mod:`crater_synth.dem_register` (``registration.json``), nowhere else;
+- LDEM: the embedded 1600 m/px LDEM_256 sampled on that grid exactly as the terrain patch samples it
+  (``Dem.sample``: bicubic);
 - LDEM + detail: the same plus :func:`crater_synth.detail.synthesize_detail` (old and new model).
 
 Statistics (:func:`terrain_statistics`): slope distributions over 200/400/800 m baselines, the
 Laplacian (curvature) at 200/400 m, the height structure function at 200-3200 m lags and its
 Hurst exponent over 400-3200 m, and the closed depressions (what a low Sun fills with shadow):
 their number per 1000 km^2 by size and their depth/diameter. The background excludes the
-Shackleton bowl (within 1.3 R of its centre) and the crop's known artefact (a lowered 51 x 51 px
-square at rows/cols ~103-153, with a margin).
+Shackleton bowl (within 1.3 R of its centre); the repaired square is real data and is kept.
 
-``python -m crater_synth.detail_calibration --real PATH --out DIR`` prints the table and writes
-hillshades (sun 0.5 and 1.6 deg, cast shadows) of real / LDEM / old / new to ``DIR``.
-The numbers in :data:`REAL_CROP_STATS` and :data:`REAL_CROP_TOP_LEFT_XY_M` were produced by it
-(``measure_real``) and are what tests/test_detail.py checks the generator against.
+``python -m crater_synth.detail_calibration --out DIR`` prints the table and writes hillshades
+(sun 0.5, 1.6 and 5 deg, cast shadows) of real / LDEM / old / new to ``DIR``. The numbers in
+:data:`REAL_CROP_STATS` were produced by it (``measure_real``) and are what tests/test_detail.py
+checks the generator against.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from crater_core.errors import ContractError
 from crater_synth.errors import UserError
 
-REAL_CROP_NAME = "dem_shackridge_200m_256x256.exr"
+# The registered real crop (data_manifest/products.yaml); --dem takes another product id or DEM file.
+REAL_CROP_PRODUCT = "shackleton_lola_200m"
+BASE_DEM_PRODUCT = "lola_ldem256_south"
+DEFAULT_DATA_DIR = "data"
+# The statistics' baselines and the detail's reference grid are in 200 m pixels.
 REAL_CROP_SPACING_M = 200.0
-REAL_CROP_SHAPE = (256, 256)
-# Encoding of the crop (its README): channel Y = elevation_m / 20000 + 0.5.
-REAL_CROP_SCALE_M, REAL_CROP_OFFSET = 20000.0, 0.5
-# Known artefact: rows/cols ~103-153 lowered by ~137 m; excluded with this margin (px).
-ARTEFACT_ROWS = ARTEFACT_COLS = (103, 153)
-ARTEFACT_MARGIN_PX = 3
-# Shackleton (SPEC.md, IAU): the bowl and its inner rim flank are excluded within 1.3 R.
+MIN_CROP_PX = 64  # the band mask loses 8 px (one DEM pixel) per side; 48 px left for the 16 px lag
+# Shackleton (SPEC.md, IAU): the bowl and its inner rim flank are excluded within 1.3 R. The product's
+# repaired square (rows/cols 103-152: the 40 m crop averaged to 200 m) is NOT excluded: in its interior
+# it has the same 200 m statistics as the raw (lowered) square's native 200 m processing (Laplacian std,
+# RMS slope, structure function within 1-3 %), docs/detail.md.
 SHACKLETON_LAT, SHACKLETON_LON, SHACKLETON_DIAMETER_M = -89.67, 129.78, 21000.0
 BOWL_EXCLUSION_RADII = 1.3
 # Statistics: baselines (px of 200 m), structure-function lags (px), closed-depression threshold.
@@ -51,97 +55,101 @@ STRUCTURE_LAGS_PX = (1, 2, 4, 8, 16)
 HURST_FIT_LAGS_PX = (2, 4, 8, 16)  # 400-3200 m
 DEPRESSION_MIN_DEPTH_M = 2.0       # ~ LOLA's vertical precision at 200 m averaging (docs/detail.md)
 DEPRESSION_SIZES_PX = (2, 4, 8)    # equivalent diameters 400, 800, 1600 m
-# Fitted position of the crop (pixel (0, 0) centre, south polar stereographic metres, R = 1737.4 km;
-# columns run +x, rows run -y). Recomputed by register_crop (docs/detail.md).
-REAL_CROP_TOP_LEFT_XY_M = (-29961.7, 14710.7)
 
-# Measured by measure_real() on the real crop (docs/detail.md has the table; tests use them).
+# Measured by measure_real() on the registered product (docs/detail.md has the table; tests use them).
 REAL_CROP_STATS = {
-    "slope200_p50_deg": 10.1498,
-    "slope200_p90_deg": 18.7163,
-    "slope200_p99_deg": 23.9406,
-    "slope200_rms_deg": 12.1109,
-    "slope400_p50_deg": 10.0612,
-    "slope400_p90_deg": 18.6137,
-    "slope400_p99_deg": 23.8349,
-    "slope400_rms_deg": 12.0239,
-    "slope800_p50_deg": 9.91535,
-    "slope800_p90_deg": 18.3665,
-    "slope800_p99_deg": 23.6432,
-    "slope800_rms_deg": 11.8629,
-    "laplacian200_std_per_km": 0.356161,
-    "laplacian200_p99abs_per_km": 1.25939,
-    "laplacian400_std_per_km": 0.244352,
-    "laplacian400_p99abs_per_km": 0.798713,
-    "sf200_m": 30.7541,
-    "sf400_m": 60.9941,
-    "sf800_m": 120.076,
-    "sf1600_m": 232.795,
-    "sf3200_m": 437.155,
-    "hurst_400_3200": 0.947933,
-    "pits400_per_1000km2": 15.6905,
-    "pits800_per_1000km2": 8.60446,
-    "pits1600_per_1000km2": 2.53072,
-    "pits400_median_depth_diameter": 0.0450444,
-    "band_rms_height_m": 10.2648,
-    "band_slope200_rms_deg": 2.74461,
-    "band_slope200_p99_deg": 9.87628,
-    "band_laplacian200_std_per_km": 0.315944,
-    "band_sf200_m": 6.82668,
-    "band_sf400_m": 11.4808,
-    "band_sf800_m": 15.7183,
-    "band_sf1600_m": 14.4782,
-    "band_sf3200_m": 14.8453,
+    "slope200_p50_deg": 9.87521,
+    "slope200_p90_deg": 18.3143,
+    "slope200_p99_deg": 23.8423,
+    "slope200_rms_deg": 11.8056,
+    "slope400_p50_deg": 9.7822,
+    "slope400_p90_deg": 18.1408,
+    "slope400_p99_deg": 23.735,
+    "slope400_rms_deg": 11.7104,
+    "slope800_p50_deg": 9.60268,
+    "slope800_p90_deg": 17.8849,
+    "slope800_p99_deg": 23.5047,
+    "slope800_rms_deg": 11.5334,
+    "laplacian200_std_per_km": 0.35819,
+    "laplacian200_p99abs_per_km": 1.26427,
+    "laplacian400_std_per_km": 0.245722,
+    "laplacian400_p99abs_per_km": 0.797808,
+    "sf200_m": 29.9503,
+    "sf400_m": 59.3462,
+    "sf800_m": 116.63,
+    "sf1600_m": 225.286,
+    "sf3200_m": 420.129,
+    "hurst_400_3200": 0.942063,
+    "pits400_per_1000km2": 25.5343,
+    "pits800_per_1000km2": 9.32982,
+    "pits1600_per_1000km2": 2.45522,
+    "pits400_median_depth_diameter": 0.0378355,
+    "band_rms_height_m": 10.4182,
+    "band_slope200_rms_deg": 2.78701,
+    "band_slope200_p99_deg": 10.0771,
+    "band_laplacian200_std_per_km": 0.319446,
+    "band_sf200_m": 6.93386,
+    "band_sf400_m": 11.6761,
+    "band_sf800_m": 16.0124,
+    "band_sf1600_m": 14.7653,
+    "band_sf3200_m": 15.0481,
 }
 
 
 class CalibrationDataError(UserError):
-    """The real crop is missing or unreadable."""
+    """The real crop is missing, unreadable, or not a complete north-up 200 m grid."""
 
 
 # --------------------------------------------------------------------------------------------
 # Data
 # --------------------------------------------------------------------------------------------
-def default_real_crop() -> Path | None:
-    """The real 200 m crop: $CRATER_SYNTH_SHACKLETON_200M, else ``shared/data/shackleton_lola_200m``
-    beside the repository (or beside its worktree folder); None when absent."""
-    env = os.environ.get("CRATER_SYNTH_SHACKLETON_200M")
-    if env:
-        return Path(env)
-    root = Path(__file__).resolve().parents[1]
-    for base in (root.parent, root.parent.parent):
-        p = base / "shared" / "data" / "shackleton_lola_200m" / REAL_CROP_NAME
-        if p.is_file():
-            return p
-    return None
+@dataclass
+class RealCrop:
+    """A registered real crop: heights (m above the sphere) on its own georeferenced grid."""
+
+    heights: np.ndarray
+    top_left_xy_m: tuple[float, float]  # centre of pixel (0, 0), projected metres; columns +x, rows -y
+    spacing_m: float
+    name: str                           # product id or file name
+    path: Path
 
 
-def load_real_crop(path: str | os.PathLike) -> np.ndarray:
-    """Heights (m) of the real 200 m crop; one clear error for a missing or malformed file."""
-    from crater_core.exr import read_exr
+def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAULT_DATA_DIR) -> RealCrop:
+    """The real crop from a registered DEM product id (default ``shackleton_lola_200m``) or a DEM file
+    (through :func:`crater_synth.demstack.open_dem_entry`), with its grid from its georeferencing.
 
-    p = Path(path)
-    if not p.is_file():
-        raise CalibrationDataError(f"real 200 m crop {p} does not exist")
-    try:
-        channels, _ = read_exr(p)
-    except Exception as exc:  # noqa: BLE001 - the EXR reader raises OSError/ValueError variants
-        raise CalibrationDataError(f"cannot read real 200 m crop {p}: {exc}") from None
-    y = channels.get("Y")
-    if y is None or y.shape != REAL_CROP_SHAPE or not np.isfinite(y).all():
-        raise CalibrationDataError(f"real 200 m crop {p}: expected a finite {REAL_CROP_SHAPE} channel 'Y'")
-    return (y.astype(np.float64) - REAL_CROP_OFFSET) * REAL_CROP_SCALE_M
+    It must be north-up with square 200 m pixels, at least ``MIN_CROP_PX`` on a side, and have no
+    nodata; anything else is one :class:`CalibrationDataError` naming the entry.
+    """
+    from crater_synth.demstack import open_dem_entry
+
+    dem, _ = open_dem_entry(entry, data_dir, what="real crop (--dem)")
+    where = f"real crop {entry!r} ({dem.path})"
+    t = dem.transform
+    if not (math.isclose(t.a, REAL_CROP_SPACING_M, rel_tol=1e-6) and math.isclose(-t.e, REAL_CROP_SPACING_M,
+                                                                                  rel_tol=1e-6)):
+        raise CalibrationDataError(f"{where}: pixels {t.a:g} x {t.e:g} m; the calibration needs a north-up "
+                                   f"grid of {REAL_CROP_SPACING_M:g} m square pixels")
+    if min(dem.height, dem.width) < MIN_CROP_PX:
+        raise CalibrationDataError(f"{where}: {dem.height} x {dem.width} px, at least {MIN_CROP_PX} x "
+                                   f"{MIN_CROP_PX} needed")
+    heights, valid = dem.read_heights()
+    if not valid.all():
+        raise CalibrationDataError(f"{where}: {int((~valid).sum())} nodata pixels; the calibration needs a "
+                                   "complete crop")
+    return RealCrop(heights=heights, top_left_xy_m=(t.c + 0.5 * t.a, t.f + 0.5 * t.e), spacing_m=float(t.a),
+                    name=dem.product, path=dem.path)
 
 
-def _open_ldem():
+def _open_ldem(data_dir: str | Path = DEFAULT_DATA_DIR):
     from crater_synth.dem import Dem
     from data_manifest.products import resolve_product
 
-    return Dem(resolve_product("lola_ldem256_south", Path(".")), product="lola_ldem256_south")
+    return Dem(resolve_product(BASE_DEM_PRODUCT, data_dir), product=BASE_DEM_PRODUCT)
 
 
-def grid_xy(top_left_xy: tuple[float, float], shape=REAL_CROP_SHAPE, spacing=REAL_CROP_SPACING_M):
-    """Projected (x, y) of the crop's pixel centres: columns +x, rows -y."""
+def grid_xy(top_left_xy: tuple[float, float], shape: tuple[int, int], spacing: float):
+    """Projected (x, y) of a grid's pixel centres from its top-left centre: columns +x, rows -y."""
     i = np.arange(shape[0])[:, None]
     j = np.arange(shape[1])[None, :]
     x = np.broadcast_to(top_left_xy[0] + j * spacing, shape)
@@ -149,8 +157,8 @@ def grid_xy(top_left_xy: tuple[float, float], shape=REAL_CROP_SHAPE, spacing=REA
     return x, y
 
 
-def sample_ldem(dem, top_left_xy, shape=REAL_CROP_SHAPE, spacing=REAL_CROP_SPACING_M) -> np.ndarray:
-    """LDEM heights on the crop's grid through ``Dem.sample`` (bicubic), as terrain.py samples."""
+def sample_ldem(dem, top_left_xy, shape, spacing) -> np.ndarray:
+    """LDEM heights on a grid through ``Dem.sample`` (bicubic), as terrain.py samples."""
     from rasterio.warp import transform
 
     x, y = grid_xy(top_left_xy, shape, spacing)
@@ -159,39 +167,11 @@ def sample_ldem(dem, top_left_xy, shape=REAL_CROP_SHAPE, spacing=REAL_CROP_SPACI
     return res.heights
 
 
-def register_crop(real: np.ndarray, dem, guess_xy=(-30000.0, 15000.0), search_m=16000.0) -> tuple[float, float]:
-    """Fit the crop's top-left pixel centre (x, y) to the LDEM: minimise the RMS of (real smoothed
-    to the DEM's scale - LDEM bicubic) over a coarse 1 DEM-pixel grid, then Nelder-Mead.
-
-    A local stand-in for statistics only (the DEM stack registers the crop for rendering).
-    """
-    from scipy import ndimage
-    from scipy.optimize import minimize
-
-    smooth = ndimage.gaussian_filter(real, dem.pixel_size_m / REAL_CROP_SPACING_M / 2.0)[::4, ::4]
-
-    def cost(p):
-        sub = sample_ldem(dem, p, smooth.shape, REAL_CROP_SPACING_M * 4)
-        return float(np.std(smooth - sub))
-
-    step = dem.pixel_size_m
-    offs = np.arange(-search_m, search_m + 1e-6, step)
-    grid = [(cost((guess_xy[0] + dx, guess_xy[1] + dy)), dx, dy) for dx in offs for dy in offs]
-    _, dx, dy = min(grid)
-    res = minimize(cost, [guess_xy[0] + dx, guess_xy[1] + dy], method="Nelder-Mead",
-                   options={"xatol": 5.0, "fatol": 1e-3})
-    return float(res.x[0]), float(res.x[1])
-
-
-def background_mask(top_left_xy, dem, shape=REAL_CROP_SHAPE, spacing=REAL_CROP_SPACING_M) -> np.ndarray:
-    """True on background pixels: outside Shackleton's bowl (1.3 R) and the artefact square."""
+def background_mask(top_left_xy, shape, spacing, dem) -> np.ndarray:
+    """True on background pixels: outside Shackleton's bowl and inner flank (1.3 R of its centre)."""
     cx, cy = dem.latlon_to_xy(SHACKLETON_LAT, SHACKLETON_LON)
     x, y = grid_xy(top_left_xy, shape, spacing)
-    mask = np.hypot(x - float(cx), y - float(cy)) > BOWL_EXCLUSION_RADII * SHACKLETON_DIAMETER_M / 2.0
-    r0, r1 = ARTEFACT_ROWS[0] - ARTEFACT_MARGIN_PX, ARTEFACT_ROWS[1] + ARTEFACT_MARGIN_PX
-    c0, c1 = ARTEFACT_COLS[0] - ARTEFACT_MARGIN_PX, ARTEFACT_COLS[1] + ARTEFACT_MARGIN_PX
-    mask[r0:r1 + 1, c0:c1 + 1] = False
-    return mask
+    return np.hypot(x - float(cx), y - float(cy)) > BOWL_EXCLUSION_RADII * SHACKLETON_DIAMETER_M / 2.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -401,29 +381,18 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
 # --------------------------------------------------------------------------------------------
 # Real vs model
 # --------------------------------------------------------------------------------------------
-def measure_real(path: str | os.PathLike, register: bool = True) -> dict:
-    """Load, (re-)register and measure the real crop: its statistics, its sub-DEM band's
-    statistics, and the LDEM, mask and band on the same grid."""
-    dem = _open_ldem()
-    real = load_real_crop(path)
-    top_left = register_crop(real, dem) if register else REAL_CROP_TOP_LEFT_XY_M
-    ldem = sample_ldem(dem, top_left)
-    mask = background_mask(top_left, dem)
-    band, band_mask = subdem_band(real, ldem, mask)
-    stats = {**terrain_statistics(real, mask), **band_statistics(band, band_mask)}
-    return {"top_left_xy_m": top_left, "real": real, "ldem": ldem, "mask": mask, "band_mask": band_mask,
-            "stats": stats, "residual_rms_m": float(np.std((real - ldem)[mask]))}
-
-
-def reference_ldem() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(LDEM on the crop's grid, background mask, band mask) at the recorded position; no real data."""
-    from scipy import ndimage
-
-    dem = _open_ldem()
-    mask = background_mask(REAL_CROP_TOP_LEFT_XY_M, dem)
-    reach = round(dem.pixel_size_m / REAL_CROP_SPACING_M)
-    return (sample_ldem(dem, REAL_CROP_TOP_LEFT_XY_M), mask,
-            ndimage.binary_erosion(mask, iterations=reach, border_value=0))
+def measure_real(crop: RealCrop | None = None, data_dir: str | Path = DEFAULT_DATA_DIR) -> dict:
+    """Measure the real crop (default: the registered ``shackleton_lola_200m``) on its own grid: its
+    statistics, its sub-DEM band's statistics, and the LDEM, mask and band on the same grid."""
+    crop = load_real_crop(data_dir=data_dir) if crop is None else crop
+    dem = _open_ldem(data_dir)
+    real, top_left, spacing = crop.heights, crop.top_left_xy_m, crop.spacing_m
+    ldem = sample_ldem(dem, top_left, real.shape, spacing)
+    mask = background_mask(top_left, real.shape, spacing, dem)
+    band, band_mask = subdem_band(real, ldem, mask, dem.pixel_size_m, spacing)
+    stats = {**terrain_statistics(real, mask, spacing), **band_statistics(band, band_mask, spacing)}
+    return {"crop": crop.name, "path": str(crop.path), "top_left_xy_m": top_left, "real": real, "ldem": ldem,
+            "mask": mask, "band_mask": band_mask, "stats": stats, "residual_rms_m": float(np.std((real - ldem)[mask]))}
 
 
 def model_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarray, settings, seeds=range(4)) -> dict:
@@ -446,11 +415,14 @@ def ldem_only_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarr
 
 # The calibrated parameters: roughness amplitude and crater density fitted to these statistics;
 # Hurst exponent (Rosenburg et al. 2011) and the recognition limit d/D (Fassett & Thomson 2014)
-# are taken from the literature (docs/detail.md).
+# are taken from the literature (docs/detail.md). The pits' depth/diameter is a fit key because the
+# other eight leave a ridge (roughness traded for craters at equal misfit) along which it is the
+# statistic that moves: roughness makes shallow closed depressions, craters deep ones.
 FIT_KEYS = ("band_rms_height_m", "band_slope200_rms_deg", "band_laplacian200_std_per_km", "band_sf400_m",
-            "band_sf1600_m", "laplacian200_std_per_km", "pits400_per_1000km2", "pits800_per_1000km2")
-FIT_GRID = {"roughness_rms_slope_deg": (0.0, 0.5, 1.0, 1.5, 2.0),
-            "crater_density_scale": (0.4, 0.5, 0.6, 0.7, 0.85, 1.0)}
+            "band_sf1600_m", "laplacian200_std_per_km", "pits400_per_1000km2", "pits800_per_1000km2",
+            "pits400_median_depth_diameter")
+FIT_GRID = {"roughness_rms_slope_deg": (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
+            "crater_density_scale": (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2)}
 
 
 def fit_misfit(model: dict, real: dict, keys=FIT_KEYS) -> float:
@@ -496,25 +468,25 @@ def grid_transfer_rows(m: dict, factors=(2, 4), seeds=range(4)) -> dict:
     the detail synthesised at that spacing. Keys keep their 200 m names but are per grid step."""
     from dataclasses import replace
 
+    from crater_synth.dem_register import block_mean
     from crater_synth.detail import DetailSettings, synthesize_detail
 
     dem = _open_ldem()
     rows = {}
     for f in factors:
         spacing = REAL_CROP_SPACING_M * f
-        n = REAL_CROP_SHAPE[0] // f
-        real = m["real"].reshape(n, f, n, f).mean(axis=(1, 3))
+        real = block_mean(m["real"], f)
         half = (f - 1) * REAL_CROP_SPACING_M / 2.0  # block centres
         top_left = (m["top_left_xy_m"][0] + half, m["top_left_xy_m"][1] - half)
         ldem = sample_ldem(dem, top_left, real.shape, spacing)
-        band, band_mask = subdem_band(real, ldem, background_mask(top_left, dem, real.shape, spacing),
-                                      spacing=spacing)
+        band, band_mask = subdem_band(real, ldem, background_mask(top_left, real.shape, spacing, dem),
+                                      dem.pixel_size_m, spacing)
         row = {"real (block average)": band_statistics(band, band_mask, spacing)}
         for name, settings in (("old detail", DetailSettings(**OLD_SETTINGS_KW)), ("new detail", DetailSettings())):
             runs = []
             for seed in seeds:
-                field, _ = synthesize_detail((2 * n, 2 * n), spacing, 1600.0, replace(settings, seed=int(seed)),
-                                             key="calibration")
+                field, _ = synthesize_detail((2 * real.shape[0], 2 * real.shape[1]), spacing, dem.pixel_size_m,
+                                             replace(settings, seed=int(seed)), key="calibration")
                 runs.append(band_statistics(field, np.ones(field.shape, dtype=bool), spacing))
             row[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
         rows[f"{spacing:g} m"] = row
@@ -601,8 +573,10 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m crater_synth.detail_calibration",
                                  description="Compare LDEM + sub-DEM detail with a real LOLA 200 m crop.")
-    ap.add_argument("--real", help="the real 200 m crop (EXR); default: $CRATER_SYNTH_SHACKLETON_200M or "
-                                   "shared/data/shackleton_lola_200m beside the repository")
+    ap.add_argument("--dem", default=REAL_CROP_PRODUCT,
+                    help="the real crop: a registered DEM product id or a georeferenced DEM file with 200 m "
+                         f"pixels and heights above the sphere (default {REAL_CROP_PRODUCT})")
+    ap.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="where downloaded products live (default data)")
     ap.add_argument("--out", help="folder for the hillshade PNGs (none written when omitted)")
     ap.add_argument("--seeds", type=int, default=4, help="detail draws averaged per model (default 4)")
     ap.add_argument("--fit", action="store_true", help="also run the parameter grid search (FIT_GRID)")
@@ -611,21 +585,17 @@ def main(argv=None) -> int:
     if a.seeds < 1:
         print(f"error: --seeds={a.seeds} must be >= 1", file=sys.stderr)
         return 2
-    path = a.real or default_real_crop()
     try:
-        if path is None:
-            raise CalibrationDataError("real 200 m crop not found: pass --real PATH or set "
-                                       "$CRATER_SYNTH_SHACKLETON_200M")
-        m = measure_real(path)
+        m = measure_real(load_real_crop(a.dem, a.data_dir), a.data_dir)
         rows = comparison_rows(m, seeds=range(a.seeds))
         fit = fit_parameters(m, seeds=range(a.seeds)) if a.fit else []
         transfer = grid_transfer_rows(m, seeds=range(a.seeds))
         population = {"old detail": population_summary(DetailSettings(**OLD_SETTINGS_KW)),
                       "new detail": population_summary(DetailSettings())}
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (UserError, ContractError) as exc:
+        print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
-    head = {"top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]], "residual_rms_m": m["residual_rms_m"],
+    head = {"crop": m["crop"], "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]], "residual_rms_m": m["residual_rms_m"],
             "background_fraction": float(m["mask"].mean()), "band_fraction": float(m["band_mask"].mean())}
     if a.json:
         print(json.dumps({**head, "rows": rows, "grid_transfer": transfer, "population": population,
@@ -645,8 +615,12 @@ def main(argv=None) -> int:
         for name, settings in (("old", DetailSettings(**OLD_SETTINGS_KW)), ("new", DetailSettings())):
             field, _ = synthesize_detail(m["ldem"].shape, REAL_CROP_SPACING_M, 1600.0, settings, key="calibration")
             fields[name] = m["ldem"] + field
-        for p in write_hillshades(fields, Path(a.out)):
-            print(p)
+        try:
+            for p in write_hillshades(fields, Path(a.out)):
+                print(p)
+        except OSError as exc:
+            print(f"error: cannot write hillshades to --out {a.out}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
     return 0
 
 
