@@ -2,13 +2,17 @@
 
 Layout of a dataset directory::
 
-    manifest.jsonl            merged, sorted rows (data_manifest/schema.py)
+    manifest.jsonl            merged, sorted rows (crater_core/schema.py)
     manifest.parts/*.jsonl    rows appended while rendering (merged at the end)
     <crater>/<params>.exr     one tiled EXR per render
     .jobs/                    worker job files and logs
 
 The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker``)
 that imports bpy once and renders a contiguous, camera-major block of renders.
+
+Length: planning, resume, worker dispatch and manifest recording share one render-key/fingerprint
+model and one set of on-disk conventions (partial rows, job files, the lock); split apart they would
+have to pass that state around. The click command at the end is a thin wrapper.
 """
 
 from __future__ import annotations

@@ -595,7 +595,8 @@ def main(argv=None) -> int:
     except (UserError, ContractError) as exc:
         print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
-    head = {"crop": m["crop"], "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]], "residual_rms_m": m["residual_rms_m"],
+    head = {"crop": m["crop"], "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]],
+            "residual_rms_m": m["residual_rms_m"],
             "background_fraction": float(m["mask"].mean()), "band_fraction": float(m["band_mask"].mean())}
     if a.json:
         print(json.dumps({**head, "rows": rows, "grid_transfer": transfer, "population": population,
