@@ -20,6 +20,11 @@ Shackleton bowl (within 1.3 R of its centre); the repaired square is real data a
 (sun 0.5, 1.6 and 5 deg, cast shadows) of real / LDEM / old / new to ``DIR``. The numbers in
 :data:`REAL_CROP_STATS` were produced by it (``measure_real``) and are what tests/test_detail.py
 checks the generator against.
+
+Length: one measurement, end to end: the real crop, the same statistics applied to real, LDEM and
+LDEM + detail, the crater-population checks against published size-frequency curves, the refit and
+its tables and hillshades. Each piece is short and only this calibration uses them; a split would
+scatter one documented procedure (docs/detail.md) over several files.
 """
 
 from __future__ import annotations
