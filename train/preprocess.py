@@ -193,15 +193,16 @@ def dn_to_float(image: np.ndarray) -> np.ndarray:
 
 def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfig = PreprocessConfig(),
                     rotation_deg: float = 0.0, sensor: "SensorModel | None" = None,
-                    rng: np.random.Generator | None = None) -> np.ndarray:
+                    rng: np.random.Generator | None = None, box_side_m: float | None = None) -> np.ndarray:
     """The whole path for one crop: resample_box -> (sensor) -> normalize. ``image`` may be float I/F
-    or integer DN (8-bit real frames); both go through exactly the same steps."""
+    or integer DN (8-bit real frames); both go through exactly the same steps. ``box_side_m`` (the
+    crop's ground width) lets a sensor with ``gsd_m`` sample it on the real product's grid."""
     a = np.asarray(image)
     crop = resample_box(a, box, pp.size, rotation_deg, pp.antialias, pp.interp_order)
     if np.issubdtype(a.dtype, np.integer):  # DN -> [0, 1] (a pure scale; only the window is converted)
         crop = crop / np.float32(np.iinfo(a.dtype).max)
     if sensor is not None and sensor.enabled:
-        crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0))
+        crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0), box_side_m=box_side_m)
     return normalize(crop, pp)
 
 
