@@ -2,7 +2,7 @@
 
 A *lever* is a change justified by physics or data (a real DEM, calibrated detail, the illumination a
 crater really sees, the real product's sampling, ...). The chosen configuration is the baseline with
-every lever on; each variant turns ONE lever off (its ``off`` overrides) and everything else stays.
+every lever on; each variant turns ONE lever off (its ``when_off`` overrides) and everything else stays.
 Every variant runs the full validation protocol (``crater_synth.validate``: the validation groups, and
 the test group reported apart) with the same training budget (``ablation.train``), so the table says
 which levers moved the accuracy and which did not.
@@ -47,9 +47,9 @@ def plan_variants(acfg: dict) -> list[dict]:
         raise ConfigError("ablation.levers is empty: nothing to ablate")
     variants = [{"name": "all levers on", "lever": None, "overrides": []}]
     for name, spec in levers.items():
-        off = list((spec or {}).get("off") or [])
+        off = list((spec or {}).get("when_off") or [])
         if not off:
-            raise ConfigError(f"ablation.levers.{name}.off: give the overrides that turn the lever off")
+            raise ConfigError(f"ablation.levers.{name}.when_off: give the overrides that turn the lever off")
         variants.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""),
                          "overrides": off})
     return variants

@@ -104,7 +104,7 @@ def catalogue_names() -> list[str]:
 
 def run_fingerprint(cfg_resolved: dict) -> str:
     """What decides a run's result: everything but paths, progress and the validate group itself."""
-    skip = {"run_dir", "validate", "data_dir", "out_dir"}
+    skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir"}
     payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
     payload["train"] = {k: v for k, v in payload.get("train", {}).items()
                         if k not in ("progress", "dataset_dir", "cache_dir", "num_threads", "device")}
