@@ -14,6 +14,7 @@ import click
 # (module, attribute) of each subcommand, in `crater-synth --help` order.
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command"),
+    ("crater_synth.catalogue", "catalogue_command"),
     ("crater_synth.fetch", "fetch_data_command"),
     ("crater_synth.dataset", "dataset_command"),
     ("crater_synth.verify", "verify_command"),

@@ -47,6 +47,12 @@ def one_line_config_error(msg: str) -> str:
         avail = re.search(r"Available options in '[^']*':[ \t]*\n((?:[ \t]+\S[^\n]*\n?)+)", msg)
         choices = ", ".join(avail.group(1).split()) if avail else "see configs/" + group
         return f"unknown {group} {option!r} (override {group}={option}): choose one of {choices}"
+    # The same mistake inside a list selection (crater=[a,b,...]): Hydra names no choices then.
+    m = re.search(r"Could not load '([^']+)/([^'/]+)'", msg)
+    if m and (CONFIG_DIR / m.group(1)).is_dir():
+        group, option = m.groups()
+        choices = ", ".join(sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml")))
+        return f"unknown {group} {option!r} (in {group}=[...]): choose from {choices}"
     return " ".join(msg.split("\nConfig search path:")[0].split())
 
 

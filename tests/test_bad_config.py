@@ -12,9 +12,9 @@ HUGE = ("sweep.sun_elevation.values=null", "sweep.sun_elevation.count=100", "swe
         "sweep.cam_elevation.count=20", "sweep.cam_azimuth.count=1000")  # 2e9 renders, ~2 PB at 1 MB each
 
 CASES = {
-    "unknown-crater": (["crater=atlantis"],
-                       "unknown crater 'atlantis' (override crater=atlantis): choose one of custom, de_gerlache, "
-                       "shackleton, shoemaker"),
+    "unknown-crater": (["crater=atlantis"],  # the choices list every configs/crater/ entry (docs/catalogue.md)
+                       "unknown crater 'atlantis' (override crater=atlantis): choose one of amundsen, cabeus, custom, "
+                       "de_forest, de_gerlache,"),
     "crater-outside-dem": (["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0", "crater.custom.diameter_km=20"],
                            "crater custom at (lat 0, lon 0) lies outside DEM lola_ldem256_south"),
     "custom-crater-without-lat": (["crater=custom"], "missing mandatory config value: crater.custom.lat"),
