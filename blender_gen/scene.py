@@ -10,7 +10,8 @@ import bpy
 
 from blender_gen import material
 
-# Default render settings (configs/render/cycles_cpu.yaml mirrors these; the job's values win).
+# Default render settings: equal to configs/render/cycles_cpu.yaml (tests/test_docs_truth.py compares
+# them); the job's values win.
 RENDER_DEFAULTS = {
     "mode": "fast",
     "samples": 16,
@@ -20,7 +21,7 @@ RENDER_DEFAULTS = {
     "shadow_map_px": 512,
     "shadow_map_extent_factor": 2.45,
     "shadow_map_levels": 2,  # nested lit maps, each shadow_map_px^2, half-widths extent / 2^k
-    "shadow_map_samples": 0,  # 0: same as samples
+    "shadow_map_samples": 8,  # 0: same as samples
     "gbuffer_samples": 0,  # 0: same as samples
     "seed": 0,
 }

@@ -149,7 +149,8 @@ class SweepGrid:
         crater's latitude: the sun elevation is the grid's fraction of the local maximum."""
         if not 0 <= index < len(self):
             raise IndexError(f"sweep index {index} outside [0, {len(self)})")
-        idx = tuple(int(i) for i in np.unravel_index(index, self.shape))
+        i0, i1, i2, i3 = (int(i) for i in np.unravel_index(index, self.shape))
+        idx = (i0, i1, i2, i3)
         param = self.sun_elevation[idx[0]]
         elevation = param
         if self.sun_model == "physical":

@@ -3,7 +3,7 @@
 Parts (``--part``, default all, in this order):
 - ``distributed``: renders/s of the Dask path vs one process (crater_synth.launcher.bench_distributed);
 - ``train``: LunarNet_ex training images/s and time to the validation target on the demo sweep
-  (train.bench.run_train_bench; skipped with a note if that dataset is not rendered yet);
+  (crater_synth.bench_train.run_train_bench; skipped with a note if that dataset is not rendered yet);
 - ``renderer``: the project's renderer on the paper geometry at ROI resolution (fast mode, real
   Shackleton terrain, 10 sun directions x the 150 paper camera poses = 1,500 renders, sun-major, on
   ``render.workers`` processes) against the naive baseline (direct mode, one Cycles render per image of
@@ -121,7 +121,7 @@ def bench_command(part, keep, overrides):
             cfg = resolved(compose(["sweep=demo", "train.progress=false", *overrides]))
             dataset = Path(cfg["train"]["dataset_dir"]) / "manifest.jsonl"
             if dataset.is_file():
-                from train.bench import run_train_bench
+                from crater_synth.bench_train import run_train_bench
 
                 click.echo("train " + json.dumps(run_train_bench(cfg)))
             else:

@@ -31,6 +31,9 @@ An entry passes (:func:`check`) when it is a closed depression, its centre lies 
 ``MAX_CENTRE_OFFSET_D`` x D of the catalogue position, its rim diameter within
 ``MAX_DIAMETER_ERROR`` of the catalogue diameter (issue 9: these two are never loosened), and its
 default terrain patch (near field +-``terrain.near_radius_factor`` x D) lies inside the DEM.
+
+Length: one stage, the catalogue check, kept whole: the depression measurement (rim-circle fit,
+spill depth by 2-D filling), the CLI listing and the contact sheets all read the same sampled grid.
 """
 
 from __future__ import annotations

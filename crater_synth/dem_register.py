@@ -23,6 +23,10 @@ correlated residuals), and the half-width of the misfit peak (shift at which the
 
 Run ``python -m crater_synth.dem_register`` to rebuild ``data_manifest/embedded/shackleton_lola_200m``
 (``--out DIR`` elsewhere; ``--check`` compares a rebuild with the committed files).
+
+Length: the registration of one product, kept whole: orientation search, sub-pixel fit with its
+uncertainty (jackknife), tangent-plane to sphere conversion, artefact repair and the GeoTIFF writer
+form one reproducible rebuild (``--check``).
 """
 
 from __future__ import annotations

@@ -31,6 +31,9 @@ High-pass (both): the sum is filtered in the Fourier domain so that *all* conten
 ramp up to wavelength p. The DEM keeps sole authority over every scale it resolves.
 
 Deterministic for (seed, key): one :class:`numpy.random.Generator` seeded from both.
+
+Length: one model, kept whole: settings and their validation, the fBm, the crater population
+(SFD, diffusion degradation), stamping and the high-pass are the terrain detail and nothing else.
 """
 
 from __future__ import annotations

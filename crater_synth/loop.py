@@ -9,24 +9,23 @@ round's models, metrics.json and confusion matrices are copied to ``run_dir`` it
 from __future__ import annotations
 
 import copy
+import io
 import json
-import shutil
 import time
 from pathlib import Path
 
 import click
 from omegaconf import DictConfig, OmegaConf
 
+from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_core.sweep import grid_from_config
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
-from crater_core.schema import atomic_write_text
-from crater_core.sweep import grid_from_config
+from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
 
 HISTORY_FILE = "loop_history.json"
-MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
 # Files of the last round that represent the run as a whole.
-FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.yaml", "lunarnet_ex.pt",
-               "lunarsvm_ex.pkl", "hog_svm.pkl")
+FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.yaml", *ARTEFACTS)
 
 
 def round_config(cfg: DictConfig, sun_count: int, round_dir: Path) -> DictConfig:
@@ -72,8 +71,8 @@ def plot_history(hist: dict, png: Path) -> None:
     rounds = hist["rounds"]
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     counts = [r["sun_elevation_count"] for r in rounds]
-    for name, style in zip(MODELS, ("o-", "s--", "^:")):
-        ax.plot(counts, [r[name] for r in rounds], style, label=name)
+    for name, style in zip(MODELS, ("o-", "s--", "^:", "d-.", "v-")):
+        ax.plot(counts, [r[name] for r in rounds], style, color=SPECS[name].color, label=SPECS[name].label)
     ax.axhline(hist["threshold"], color="grey", lw=0.8, ls="--", label=f"threshold {hist['threshold']:.2f}")
     ax.set_xlabel("sun-elevation sample count")
     ax.set_ylabel("accuracy on real crops")
@@ -82,10 +81,10 @@ def plot_history(hist: dict, png: Path) -> None:
     ax.set_title("Closed loop (paper Fig. 3)")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    tmp = png.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    tmp.replace(png)
+    atomic_write_bytes(png, buf.getvalue())
 
 
 def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
@@ -107,7 +106,7 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     hist = load_history(hist_path, threshold, schedule)
 
     def reached(r: dict) -> bool:
-        return r["lunarnet_ex"] >= threshold
+        return r[LOOP_MODEL] >= threshold
 
     for k, count in enumerate(schedule):
         if k < len(hist["rounds"]):  # finished in an earlier run
@@ -142,8 +141,7 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     final = Path(last["run_dir"])
     for name in FINAL_FILES + tuple(p.name for p in final.glob("confusion_*.png")):
         if (final / name).is_file():
-            shutil.copy2(final / name, run_dir / f".{name}.tmp")
-            (run_dir / f".{name}.tmp").replace(run_dir / name)
+            atomic_write_bytes(run_dir / name, (final / name).read_bytes())
     return hist
 
 
@@ -162,7 +160,7 @@ def loop_command(overrides):
 
     hist = run_loop(compose(overrides))
     for r in hist["rounds"]:
+        accs = " ".join(f"{m} {r[m]:.3f}" for m in MODELS)
         click.echo(f"round {r['round']}: sun count {r['sun_elevation_count']:2d}, {r['images']} train images, "
-                   f"real accuracy lunarnet_ex {r['lunarnet_ex']:.3f} lunarsvm_ex {r['lunarsvm_ex']:.3f} "
-                   f"hog_svm {r['hog_svm']:.3f} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)")
+                   f"real accuracy {accs} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)")
     click.echo(f"stopped: {hist['stopped_because']}")

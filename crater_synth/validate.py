@@ -36,9 +36,10 @@ import numpy as np
 from crater_core.schema import atomic_write_text
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, compose, resolved
+from train.registry import MODELS
 
 RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
-REPORTED_MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
+REPORTED_MODELS = MODELS  # every classifier of train.registry
 # Overrides the protocol sets itself for each run: a user override of these would be silently lost.
 _OWNED_KEYS = ("crater", "run_dir", "train.seed")
 
