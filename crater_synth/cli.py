@@ -23,6 +23,8 @@ _COMMANDS = (
     ("crater_synth.loop", "loop_command"),
     ("crater_synth.experiments", "experiments_command"),
     ("crater_synth.report", "report_command"),
+    ("crater_synth.validate", "validate_command"),
+    ("crater_synth.ablation", "ablate_command"),
     ("crater_synth.bench", "bench_command"),
 )
 

@@ -185,7 +185,7 @@ def plan_render(crater: dict, meta: dict, grid: SweepGrid, index: int, roi_min_p
 
     With ``crop_to_roi`` (the default) only the largest sigma box is rendered; otherwise the whole
     90 deg frame (the naive baseline of ``crater-synth bench``)."""
-    p = grid.params(index)
+    p = grid.params(index, crater["lat"])
     diameter_m = crater["diameter_km"] * 1000.0
     range_m = grid.range_factor * diameter_m
     pose = geometry.look_at_camera(p.cam_elevation, p.cam_azimuth, range_m, grid.fov_deg)
@@ -232,6 +232,7 @@ def _row(job: CraterJob, plan: dict, result: dict, cfg_r: dict, digest: str) -> 
         "indices": list(p.indices),
         "sun_elevation": p.sun_elevation, "sun_azimuth": p.sun_azimuth,
         "cam_elevation": p.cam_elevation, "cam_azimuth": p.cam_azimuth,
+        **({"sun_elevation_param": p.sun_elevation_param} if p.sun_elevation_param != p.sun_elevation else {}),
         "range_m": plan["range_m"], "fov_deg": float(cfg_r["sweep"]["fov_deg"]),
         "width": plan["crop"][2] - plan["crop"][0], "height": plan["crop"][3] - plan["crop"][1],
         "frame_width": plan["frame_width"], "crop_origin": plan["crop"][:2],
@@ -435,6 +436,8 @@ def build_dataset(cfg, progress: bool = True) -> dict:
         job = CraterJob(crater=crater, npz=Path(npz), meta=meta)
         digest = render_digest(render, cfg_r["hapke"], meta["terrain_id"])
         for index in indices:
+            if not grid.renders(grid.params(index, crater["lat"])):
+                continue  # physical sweep: the Sun never stands that high in that direction here
             plan = plan_render(crater, meta, grid, index, int(render["roi_min_px"]),
                                bool(render.get("crop_to_roi", True)))
             p = plan["params"]

@@ -31,8 +31,14 @@ FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.ya
 def round_config(cfg: DictConfig, sun_count: int, round_dir: Path) -> DictConfig:
     """The configuration of one round: ``sun_count`` sun elevations, training restricted to that grid."""
     cfg_k = copy.deepcopy(cfg)
-    OmegaConf.update(cfg_k, "sweep.sun_elevation.count", int(sun_count))
-    OmegaConf.update(cfg_k, "sweep.sun_elevation.values", None)
+    values = resolved(cfg)["sweep"]["sun_elevation"].get("values")
+    if values is not None:  # explicit positions: round k uses the first ``sun_count`` of them (nested rounds)
+        if sun_count > len(values):
+            raise ConfigError(f"loop.sun_elevation_schedule asks for {sun_count} sun elevations but "
+                              f"sweep.sun_elevation.values has only {len(values)}")
+        OmegaConf.update(cfg_k, "sweep.sun_elevation.values", list(values)[:int(sun_count)])
+    else:
+        OmegaConf.update(cfg_k, "sweep.sun_elevation.count", int(sun_count))
     grid = grid_from_config(resolved(cfg_k)["sweep"])
     OmegaConf.update(cfg_k, "train.select", {"sun_elevation": list(grid.sun_elevation),
                                              "sun_azimuth": list(grid.sun_azimuth),

@@ -117,7 +117,7 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
     if int(mcfg.get("num_classes", len(data.class_names))) != len(data.class_names):
         mcfg["num_classes"] = len(data.class_names)
     device = configure_torch(tcfg)
-    seed = int(cfg.get("seed", 0))
+    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     torch.manual_seed(seed)
     model = LunarNetEx(mcfg).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=float(tcfg.get("lr", 1e-3)),
@@ -229,7 +229,7 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     _require_synthetic(data.train)
     _require_synthetic(data.val)
     tcfg = cfg["train"]
-    seed = int(cfg.get("seed", 0))
+    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     device = next(model.parameters()).device
     ebs = int(tcfg.get("eval_batch_size", 256))
     yt, yv = data.train.labels, data.val.labels
