@@ -63,10 +63,16 @@ report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
 bench: setup ## Benchmarks: renderer vs naive baseline (renders/s, ratio), training, distributed sweep
 	$(CLI) bench $(OVERRIDES)
 
+validate: setup ## Real validation protocol (docs/validation.md): choose on the validation craters, report the test
+	$(CLI) validate $(OVERRIDES)
+
+ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/off, validation + test)
+	$(CLI) ablate $(OVERRIDES)
+
 DEMO_DIR ?= outputs/demo
 demo: setup ## The main job on the embedded data: render sweep=demo, closed loop, evaluate, report
 	$(CLI) loop sweep=demo run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
 	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test-deps test lint format-check test-slow terrain dataset train loop experiments report bench demo
+.PHONY: help setup test-deps test lint format-check test-slow terrain dataset train loop experiments report bench validate ablate demo

@@ -21,7 +21,6 @@ RENDER_DEFAULTS = {
     "shadow_map_px": 512,
     "shadow_map_extent_factor": 2.45,
     "shadow_map_levels": 2,  # nested horizon-map levels, each shadow_map_px^2, half-widths extent / 2^k
-    "shadow_map_samples": 0,  # unused since horizon maps replaced the lit maps (accepted for old jobs)
     "gbuffer_samples": 0,  # 0: same as samples
     "seed": 0,
 }
@@ -36,7 +35,7 @@ def render_settings(job_render: dict | None) -> dict:
     for key in ("samples", "shadow_map_px", "shadow_map_levels"):
         if int(cfg[key]) < 1:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 1")
-    for key in ("max_bounces", "threads", "shadow_map_samples", "gbuffer_samples"):
+    for key in ("max_bounces", "threads", "gbuffer_samples"):
         if int(cfg[key]) < 0:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 0")
     if float(cfg["shadow_map_extent_factor"]) <= 0:

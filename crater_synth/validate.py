@@ -128,6 +128,7 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
     overrides = list(overrides)
     _check_overrides(overrides)
     base = resolved(compose(overrides))
+    progress = progress and bool(base["train"].get("progress", True))  # train.progress=false: quiet logs
     vcfg = base["validate"]
     seeds = [int(s) for s in (vcfg.get("seeds") or [0])]
     groups = plan_groups(vcfg, catalogue_names())

@@ -129,3 +129,45 @@ def test_jpeg_roundtrip_changes_little_but_something():
     assert y.shape == x.shape and y.dtype == np.float32
     assert 0 < np.mean(np.abs(y - x)) < 0.2
     assert np.array_equal(jpeg_roundtrip(x, 81), y)  # deterministic
+
+
+def test_mosaic_composite_max_and_patches():
+    """Mosaic composite: max is the per-pixel brightest frame; patches take each pixel from exactly one
+    frame, in cells (both frames present, contiguous regions), and one frame passes through."""
+    from train.preprocess import mosaic_composite
+
+    rng = np.random.default_rng(0)
+    a, b = rng.random((32, 32)).astype(np.float32), rng.random((32, 32)).astype(np.float32)
+    np.testing.assert_array_equal(mosaic_composite([a, b], rng, "max"), np.maximum(a, b))
+    np.testing.assert_array_equal(mosaic_composite([a], rng, "patches"), a)
+    zeros, ones = np.zeros((40, 40), np.float32), np.ones((40, 40), np.float32)
+    got = mosaic_composite([zeros, ones], np.random.default_rng(3), "patches", patches=12)
+    assert set(np.unique(got)) == {0.0, 1.0}
+    # cells, not salt-and-pepper: few label changes along rows
+    assert np.abs(np.diff(got, axis=1)).sum() < 40 * 6
+    with pytest.raises(TrainError, match="mosaic_blend"):
+        SensorModel(mosaic_blend="median")
+    with pytest.raises(TrainError, match="mosaic_frames"):
+        SensorModel(mosaic_frames=0)
+
+
+def test_mosaic_partners_share_crater_pose_and_sigma():
+    """The frames composited with a sample are the same crater, camera pose and sigma, never itself,
+    and only among the given split's samples."""
+    from train.data import CropCache, same_pose_partners
+
+    rows = [{"crater": c, "cam_elevation": ce, "cam_azimuth": ca, "sun_azimuth": sa}
+            for c in ("x", "y") for ce in (90.0, 70.0) for ca in (0.0,) for sa in (0.0, 90.0, 180.0)]
+    samples = [(i, s) for i in range(len(rows)) for s in (1.0, 1.4)]
+    cache = CropCache(path=None, images=np.zeros((len(samples), 2, 2)), samples=samples)
+    split = [j for j, (ri, _) in enumerate(samples) if rows[ri]["sun_azimuth"] != 180.0 or ri < 6]
+    partners = same_pose_partners(cache, split, rows)
+    for j in split:
+        ri, s = samples[j]
+        assert j not in partners[j]
+        for o in partners[j]:
+            assert o in split
+            ro, so = samples[o]
+            assert (rows[ro]["crater"], rows[ro]["cam_elevation"], so) == (rows[ri]["crater"],
+                                                                           rows[ri]["cam_elevation"], s)
+    assert len(partners[split[0]]) == 2

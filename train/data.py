@@ -29,7 +29,14 @@ from torch.utils.data import Dataset
 
 from crater_core.schema import ManifestError, manifest_digest, sha256_file, validate_row
 from train.errors import DatasetError, RealDataLeakError
-from train.preprocess import PreprocessConfig, SensorModel, normalize, outside_fraction, resample_box
+from train.preprocess import (
+    PreprocessConfig,
+    SensorModel,
+    mosaic_composite,
+    normalize,
+    outside_fraction,
+    resample_box,
+)
 
 SYNTHETIC = "synthetic"
 CACHE_FORMAT = 1
@@ -326,6 +333,9 @@ class SyntheticCropDataset(Dataset):
         self.augment = augment and train
         self.epoch = 0
         self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
+        # Mosaic composites draw their extra frames among the same camera pose's renders in this split.
+        self.partners = (same_pose_partners(cache, self.indices, rows)
+                         if self.sensor is not None and self.sensor.mosaic_frames > 1 else None)
         if len(self.indices) != len(self.labels):
             raise DatasetError("internal: indices and labels differ in length")
 
@@ -344,6 +354,13 @@ class SyntheticCropDataset(Dataset):
         j = int(self.indices[i])
         x = np.asarray(self.cache.images[j], dtype=np.float32)
         rng = np.random.default_rng([self.seed, self.epoch + 1 if self.train else 0, j])
+        if self.partners is not None:
+            others = self.partners[j]
+            k = min(int(self.sensor.mosaic_frames) - 1, len(others))
+            if k > 0:
+                extra = [np.asarray(self.cache.images[o], dtype=np.float32)
+                         for o in rng.choice(others, size=k, replace=False)]
+                x = mosaic_composite([x] + extra, rng, self.sensor.mosaic_blend, self.sensor.mosaic_patches)
         if self.sensor is not None:
             ri, sigma = self.cache.samples[j]
             d = self.diameters_m.get(self.rows[ri]["crater"])
@@ -375,6 +392,23 @@ class SyntheticCropDataset(Dataset):
         if not parts:
             return np.zeros((0, self.pp.size, self.pp.size), np.float32), np.zeros(0, np.int64)
         return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def same_pose_partners(cache: CropCache, indices: Sequence[int], rows: Sequence[dict]) -> dict[int, np.ndarray]:
+    """For each cached sample in ``indices``: the other samples in ``indices`` of the same crater,
+    camera pose (elevation, azimuth) and sigma -- the same crop of the same view under other suns."""
+    groups: dict[tuple, list[int]] = {}
+    for j in indices:
+        ri, sigma = cache.samples[int(j)]
+        r = rows[ri]
+        key = (r["crater"], round(float(r["cam_elevation"]), 6), round(float(r["cam_azimuth"]), 6), sigma)
+        groups.setdefault(key, []).append(int(j))
+    out = {}
+    for members in groups.values():
+        arr = np.asarray(members, dtype=np.int64)
+        for j in members:
+            out[j] = arr[arr != j]
+    return out
 
 
 @dataclass

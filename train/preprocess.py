@@ -210,6 +210,34 @@ def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfi
 # ------------------------------------------------------------------------------------------------
 # Optional sensor model for synthetic images (configs/sensor)
 # ------------------------------------------------------------------------------------------------
+MOSAIC_BLENDS = ("max", "patches")
+
+
+def mosaic_composite(frames: Sequence[np.ndarray], rng: np.random.Generator, blend: str = "max",
+                     patches: int = 6) -> np.ndarray:
+    """One image assembled from renders of the same camera pose under different suns, as the real
+    polar mosaic is assembled from frames taken over months (docs/preprocessing.md, "Mosaic").
+
+    ``max``: per pixel, the brightest frame (a mosaic that keeps the best-lit observation of each
+    place). ``patches``: the image is cut into ``patches`` Voronoi cells around uniform random seeds
+    and each cell comes from one randomly chosen frame (seams between frames, as in a mosaic).
+    All frames must have the same shape; one frame is returned unchanged (as float32)."""
+    stack = np.stack([np.asarray(f, dtype=np.float32) for f in frames])
+    if len(stack) == 1:
+        return stack[0]
+    if blend == "max":
+        return stack.max(axis=0)
+    if blend != "patches":
+        raise TrainError(f"mosaic blend {blend!r}: choose one of {', '.join(MOSAIC_BLENDS)}")
+    h, w = stack.shape[1:]
+    seeds = rng.uniform(0.0, 1.0, size=(int(patches), 2)) * np.array([h, w])
+    owner = rng.integers(len(stack), size=int(patches))
+    yy, xx = np.mgrid[0:h, 0:w]
+    d2 = (yy[None] - seeds[:, 0, None, None]) ** 2 + (xx[None] - seeds[:, 1, None, None]) ** 2
+    frame_of_pixel = owner[np.argmin(d2, axis=0)]
+    return np.take_along_axis(stack, frame_of_pixel[None], axis=0)[0]
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """Seeded camera model applied to a resampled synthetic I/F crop before normalisation.
@@ -229,6 +257,10 @@ class SensorModel:
     ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson
     law), read noise (DN), quantisation to ``quantize_bits`` with saturation at ``full_well_if`` x
     gain, and optionally JPEG compression. Returns DN / full scale (float32).
+
+    ``mosaic_frames`` > 1 asks the training dataset to composite that many renders of the same camera
+    pose under different suns (:func:`mosaic_composite`) before :meth:`apply`; it needs several
+    renders, so the dataset (train/data.py), not this class, does it.
     """
 
     enabled: bool = True
@@ -245,6 +277,9 @@ class SensorModel:
     gsd_m: float | None = None        # real sensor's ground sample distance (m/px); None = jitter instead
     gsd_jitter: float = 0.0           # relative jitter of the native grid size
     jpeg_quality: int | None = None   # JPEG quality of the real product (None = no JPEG)
+    mosaic_frames: int = 1            # renders of one camera pose (different suns) composited per image
+    mosaic_blend: str = "max"         # how they are composited: max (per pixel) or patches (Voronoi cells)
+    mosaic_patches: int = 6           # number of cells for mosaic_blend=patches
 
     def __post_init__(self):
         if self.full_well_if <= 0 or self.photons_at_full_well <= 0:
@@ -270,6 +305,12 @@ class SensorModel:
             raise TrainError(f"sensor.jpeg_quality={self.jpeg_quality} must lie in [1, 100] (or null)")
         if self.jpeg_quality is not None and int(self.quantize_bits) != 8:
             raise TrainError("sensor.jpeg_quality needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)")
+        if not 1 <= int(self.mosaic_frames) <= 64:
+            raise TrainError(f"sensor.mosaic_frames={self.mosaic_frames} must lie in [1, 64] (1: a single render)")
+        if self.mosaic_blend not in MOSAIC_BLENDS:
+            raise TrainError(f"sensor.mosaic_blend={self.mosaic_blend!r}: choose one of {', '.join(MOSAIC_BLENDS)}")
+        if not 1 <= int(self.mosaic_patches) <= 256:
+            raise TrainError(f"sensor.mosaic_patches={self.mosaic_patches} must lie in [1, 256]")
 
     @classmethod
     def from_config(cls, sensor_cfg: Mapping | None) -> "SensorModel":
