@@ -81,8 +81,8 @@ def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
                         "overrides": var["overrides"], "render_key": key, "renders": renders,
                         "train_images": {r["group"]: r["train_images"] for r in res["runs"]},
                         "summary": res["summary"]})
-        _write(out, results, acfg, budget)
-    return _write(out, results, acfg, budget)
+        _write(out, results, acfg, budget, overrides)
+    return _write(out, results, acfg, budget, overrides)
 
 
 def table_markdown(results: list[dict], budget: list[str]) -> str:
@@ -110,8 +110,8 @@ def table_markdown(results: list[dict], budget: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write(out: Path, results: list[dict], acfg: dict, budget: list[str]) -> dict:
-    res = {"protocol": "docs/validation.md", "budget": budget, "variants": results}
+def _write(out: Path, results: list[dict], acfg: dict, budget: list[str], overrides: Sequence[str] = ()) -> dict:
+    res = {"protocol": "docs/validation.md", "budget": budget, "overrides": list(overrides), "variants": results}
     atomic_write_text(out / RESULTS_FILE, json.dumps(res, indent=1, sort_keys=True) + "\n")
     table = table_markdown(results, budget)
     atomic_write_text(out / TABLE_FILE, table)

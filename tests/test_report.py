@@ -117,7 +117,21 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
                         for m in ("lunarnet_ex", "lunarsvm_ex"):
                             w.writerow([p, n, s, m, 0.5 + 0.04 * n + 0.05 * s + (0.02 if m == "lunarnet_ex" else 0),
                                         0.9, 2250 * n, 12.5])
+        (run / "ablation.json").write_text(json.dumps(make_ablation()))
     return run, ds
+
+
+def make_ablation() -> dict:
+    """The shape crater_synth/ablation.py writes (without recorded overrides: no images)."""
+    def summary(v):
+        return {"validation_mean": {m: v for m in MODELS}, "test_mean": {m: v - 0.1 for m in MODELS},
+                "groups": {"validation1-a+b+c": {"role": "validation", "models": {m: {"per_crater": {
+                    "a": v, "b": v, "c": v}} for m in MODELS}},
+                    "test-x+y+z": {"role": "test", "models": {m: {"per_crater": {"x": 0.5}} for m in MODELS}}}}
+    return {"protocol": "docs/validation.md", "budget": ["train.max_epochs=5"], "variants": [
+        {"variant": "all levers on", "lever": None, "overrides": [], "renders": {"g": 864}, "summary": summary(0.81)},
+        {"variant": "mosaic_composite off", "lever": "mosaic_composite", "overrides": ["sensor.mosaic_frames=1"],
+         "why": "mosaic", "renders": {"g": 864}, "summary": summary(0.62)}]}
 
 
 def _run(run: Path, *extra: str):
@@ -176,7 +190,7 @@ def test_report_page_loads_in_chromium(tmp_path):
         assert "/" not in s and (page.parent / s).is_file(), s
     assert not re.search(r'(src|href)="(https?:)?//', text) and "<script" not in text
     # The sections and what they must say.
-    for anchor in ("contact", "compare", "histograms", "models", "loop", "figure6", "provenance"):
+    for anchor in ("contact", "compare", "histograms", "models", "loop", "figure6", "fidelity", "provenance"):
         assert f'id="{anchor}"' in text and f'href="#{anchor}"' in text
     assert "ONE real LROC WAC observation per crater, seen 10 ways" in text
     assert "no single sun direction" in text
@@ -184,6 +198,7 @@ def test_report_page_loads_in_chromium(tmp_path):
     assert "re-plotted from experiments.csv" in text                     # no figure6.png
     assert str(ds) in text and "lroc_wac_south" in text and "lola_ldem256_south" in text
     assert "threshold reached" in text and "not run" not in text
+    assert "mosaic_composite off" in text and "sensor.mosaic_frames=1" in text and "re-run crater-synth ablate" in text
     assert "6 (train.select" in text and "4 of 4" not in text and "2 of 2 renders" in text
     assert not list(run.glob(".report.*"))                               # temp dir swapped in
     # A second run replaces the report in place.
@@ -201,7 +216,7 @@ def test_report_page_loads_in_chromium(tmp_path):
     assert m, f"chromium printed no check line; stderr: {out.stderr[-2000:]}"
     total, loaded, broken, chars, sections = map(int, m.groups())
     assert total == len(srcs) and loaded == total and broken == 0, m.group(0)
-    assert chars > 2000 and sections == 7
+    assert chars > 2000 and sections == 8
     # Not blank: a screenshot of the top of the page has real contrast.
     shot = tmp_path / "shot.png"
     subprocess.run([*_chromium_args(exe, tmp_path / "profile2"), "--window-size=1280,1600",
@@ -220,8 +235,9 @@ def test_absent_inputs_become_not_run_notes(tmp_path):
     res = _run(run, f"train.dataset_dir={tmp_path}/no_dataset")
     assert res.exit_code == 0, res.output
     text = (run / "report" / "index.html").read_text()
-    assert text.count("not run:") >= 6
-    for what in ("crater-synth dataset", "crater-synth train", "loop_history.json", "experiments.csv"):
+    assert text.count("not run:") >= 7
+    for what in ("crater-synth dataset", "crater-synth train", "loop_history.json", "experiments.csv",
+                 "crater-synth ablate"):
         assert what in text
     assert "ONE real LROC WAC observation per crater, seen 12 ways" in text       # realset.per_crater=12
     assert "<img" not in text
@@ -247,6 +263,7 @@ def test_dataset_override_beats_the_saved_config(tmp_path):
     ("config.yaml", "train: [unclosed", "config.yaml: corrupt YAML"),
     ("train_summary.json", "[]", "train_summary.json: corrupt training summary"),
     ("confusion_hog_svm.png", "", "confusion_hog_svm.png: corrupt PNG"),
+    ("ablation.json", json.dumps({"variants": [{"summary": {}}]}), "ablation.json: not a crater-synth ablation"),
 ])
 def test_corrupt_input_is_one_clear_error(tmp_path, name, content, match):
     run = tmp_path / "run"
@@ -326,3 +343,23 @@ def test_report_works_for_any_number_of_classes(tmp_path, names, crater_group):
         assert (page.parent / "histograms.png").is_file()
     else:
         assert "Real crops unavailable: none of the report" in text
+
+
+def test_fidelity_section_draws_real_vs_synthetic_for_every_crater(tmp_path):
+    """With recorded overrides, the fidelity section finds the chosen variant's renders and draws, per
+    crater, the real crop, one render and a training image (mosaic composite + sensor)."""
+    run, _ = make_run(tmp_path, with_optional=False)
+    make_dataset(tmp_path / "synth" / "ablate-abc123")
+    doc = make_ablation()
+    doc["overrides"] = [f"data_dir={tmp_path}", "sensor=wac_mosaic"]
+    for v in doc["variants"]:
+        v["render_key"] = "abc123"
+        v["summary"]["groups"] = {"test-s+d+s": {"role": "test", "models": {m: {"per_crater": {
+            c: 0.5 for c in CRATERS}} for m in MODELS}}}
+    (run / "ablation.json").write_text(json.dumps(doc))
+    res = _run(run)
+    assert res.exit_code == 0, res.output
+    text = (run / "report" / "index.html").read_text()
+    for c in CRATERS:
+        assert f'src="fidelity_{c}.png"' in text and (run / "report" / f"fidelity_{c}.png").is_file()
+    assert "1 frame(s) in the composite" in text    # the fixture has one render per camera pose

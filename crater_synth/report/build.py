@@ -51,6 +51,7 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
     load_experiments(run_dir / EXPERIMENTS_FILE)
     check_png(run_dir / FIGURE6_FILE)
     load_summary(run_dir / SUMMARY_FILE)
+    gather.load_ablation(gather.ablation_path(run_dir, rc.cfg))
     for m in MODELS:
         check_png(run_dir / f"confusion_{m}.png")
     all_rows = dataset_rows(rc.dataset_dir)

@@ -187,3 +187,21 @@ def figure6(path: Path, rows: Sequence[dict], models: Sequence[str]) -> str:
         axes[-1].legend(loc="lower right", fontsize=6)
         fig.tight_layout()
         return _save(fig, path)
+
+
+def fidelity_panel(path: Path, crater: str, real: np.ndarray, single: np.ndarray, trained: np.ndarray,
+                   frames: int, row: dict) -> str:
+    """1 x 3 network inputs: the real crop, one render, and the training image (composite + sensor)."""
+    with _rc():
+        fig = _new_figure(7.5, 2.9)
+        axes = fig.subplots(1, 3)
+        for ax, im, t in ((axes[0], real, "real WAC mosaic"),
+                          (axes[1], single, f"one render (sun {row['sun_elevation']:.2f}°)"),
+                          (axes[2], trained, f"training image ({frames} frames + sensor)")):
+            ax.imshow(im, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+            ax.set_title(t, fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        fig.suptitle(crater, fontsize=10.5)
+        fig.tight_layout()
+        return _save(fig, path)

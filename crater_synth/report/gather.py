@@ -320,6 +320,115 @@ def figure6(ctx: Ctx) -> dict:
     return out
 
 
+# ---- 7. fidelity (issue 9) -------------------------------------------------------------------------
+ABLATION_FILE = "ablation.json"
+
+
+def ablation_path(run_dir, cfg: Mapping):
+    """RUN_DIR/ablation.json when present, else the configured ``ablation.out_dir``'s."""
+    from pathlib import Path
+
+    local = run_dir / ABLATION_FILE
+    if local.is_file():
+        return local
+    out = (cfg.get("ablation") or {}).get("out_dir")
+    return Path(str(out)) / ABLATION_FILE if out else local
+
+
+def load_ablation(path) -> dict | None:
+    """The ablation results, checked: None when absent; ReportError naming the file when malformed."""
+    import json
+
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        variants = doc["variants"]
+        for v in variants:
+            v["summary"]["validation_mean"], v["summary"]["test_mean"], v["summary"]["groups"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ReportError(f"{path}: not a crater-synth ablation result ({type(exc).__name__}: {exc})") from None
+    return doc
+
+
+def fidelity(ctx: Ctx) -> dict:
+    """The ablation table, and for every crater of the ablation a real crop beside the synthetic images
+    of the chosen configuration (one render; the composite and sensor model training applies)."""
+    path = ablation_path(ctx.run_dir, ctx.rc.cfg)
+    doc = load_ablation(path)
+    if doc is None:
+        return {"not_run": not_run(f"no {path}", "ablation")}
+    table = []
+    for v in doc["variants"]:
+        s = v["summary"]
+        groups = [{"label": label, "role": g["role"],
+                   "per_crater": g["models"].get("lunarnet_ex", {}).get("per_crater", {})}
+                  for label, g in s["groups"].items()]
+        table.append({"variant": v["variant"], "why": v.get("why", ""), "overrides": v.get("overrides", []),
+                      "val": {m: s["validation_mean"].get(m) for m in MODELS},
+                      "test": {m: s["test_mean"].get(m) for m in MODELS}, "groups": groups,
+                      "renders": sorted(set((v.get("renders") or {}).values()))})
+    out = {"path": str(path), "budget": doc.get("budget", []), "overrides": doc.get("overrides"), "table": table,
+           "models": [SPECS[k] for k in MODELS]}
+    if doc.get("overrides") is None:
+        out["no_images"] = "this ablation.json predates the recorded overrides: re-run crater-synth ablate"
+        return out
+    out["items"] = _fidelity_images(ctx, doc)
+    return out
+
+
+def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
+    from pathlib import Path
+
+    from crater_core.exr import read_channel
+    from crater_core.schema import load_manifest
+    from crater_synth.ablation import render_key
+    from crater_synth.config import compose, resolved
+    from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
+    from train.realset import load_mosaic
+
+    base = doc["variants"][0]
+    craters = [c for g in base["summary"]["groups"].values()
+               for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})]
+    cfg = resolved(compose(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"]))
+    ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base.get('render_key') or render_key(cfg)}"
+    if not (ds / "manifest.jsonl").is_file():
+        return [{"crater": c, "missing": f"no renders at {ds}"} for c in craters]
+    rows = load_manifest(ds)
+    pp, sensor = PreprocessConfig.from_config(cfg), SensorModel.from_config(cfg.get("sensor"))
+    try:
+        mosaic = load_mosaic(cfg["realset"])
+    except Exception as exc:  # the real product is optional for the report
+        return [{"crater": c, "missing": f"real mosaic unavailable ({exc})"} for c in craters]
+    items = []
+    for name in craters:
+        c = cfg["crater"][name]
+        crows = [r for r in rows if r["crater"] == name]
+        if not crows:
+            items.append({"crater": name, "missing": f"no renders of {name} in {ds}"})
+            continue
+        cu, cv = mosaic.latlon_to_uv(c["lat"], c["lon"])
+        side = float(c["diameter_km"]) * 1000.0 / float(mosaic.pixel_m)
+        real = preprocess_crop(mosaic.image, (cu - side / 2, cv - side / 2, cu + side / 2, cv + side / 2), pp)
+        row = pick_synthetic(crows)
+        pose = [r for r in crows if (r["cam_elevation"], r["cam_azimuth"]) == (row["cam_elevation"],
+                                                                             row["cam_azimuth"])]
+        rng = np.random.default_rng(int(row["seed"]))
+        _, box = _box_closest(row["sigma_boxes"], 1.0)
+        frames = [read_channel(ds / r["path"]) for r in
+                  [row] + [pose[i] for i in rng.permutation(len(pose)) if pose[i] is not row][:max(0, int(
+                      sensor.mosaic_frames) - 1)]]
+        single = preprocess_crop(frames[0], box, pp)
+        composite = mosaic_composite(frames, rng, sensor.mosaic_blend, sensor.mosaic_patches)
+        trained = preprocess_crop(composite, box, pp, sensor=sensor if sensor.enabled else None, rng=rng,
+                                  box_side_m=float(c["diameter_km"]) * 1000.0)
+        ctx.say(f"fidelity real vs synthetic {name}")
+        src = figures.fidelity_panel(ctx.out / f"fidelity_{name}.png", name, real, single, trained,
+                                     len(frames), row)
+        items.append({"crater": name, "src": src, "path": row["path"], "frames": len(frames)})
+    return items
+
+
 # ---- header --------------------------------------------------------------------------------------
 def header(ctx: Ctx) -> dict:
     m = ctx.metrics
@@ -351,6 +460,8 @@ SECTIONS = (
      "The closed loop: rounds of rendering more sun elevations until the real accuracy reaches the threshold."),
     ("figure6", "6. Figure 6 experiments", figure6,
      "Accuracy against the number of samples of each sweep parameter."),
-    ("provenance", "7. Provenance & limits", provenance,
+    ("fidelity", "7. Fidelity ablation", fidelity,
+     "Which sim-to-real levers moved the real accuracy (validation craters choose, the test craters are reported)."),
+    ("provenance", "8. Provenance & limits", provenance,
      "Where every input came from, and what the test set can and cannot tell."),
 )
