@@ -40,7 +40,8 @@ def render_key(cfg_resolved: dict) -> str:
 
 
 def plan_variants(acfg: dict) -> list[dict]:
-    """[{name, overrides}]: the baseline (all levers on), then one variant per lever turned off."""
+    """[{name, overrides}]: the baseline (all levers on), one variant per lever turned off, and (with more
+    than one lever) every lever off at once, the reference the levers are measured against."""
     levers = acfg.get("levers") or {}
     if not levers:
         raise ConfigError("ablation.levers is empty: nothing to ablate")
@@ -51,6 +52,9 @@ def plan_variants(acfg: dict) -> list[dict]:
             raise ConfigError(f"ablation.levers.{name}.when_off: give the overrides that turn the lever off")
         variants.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""),
                          "overrides": off})
+    if len(levers) > 1:  # the reference: every lever off at once (the configuration before the levers)
+        variants.append({"name": "all levers off", "lever": "all", "why": "every lever off: the reference",
+                         "overrides": [o for v in variants[1:] for o in v["overrides"]]})
     return variants
 
 
