@@ -31,15 +31,14 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from crater_synth.errors import UserError
+from crater_core.settings import FRESH_DEPTH_DIAMETER, DetailSettings, SettingsError
 
 # Pike (1977), "Size-dependence in the shape of fresh impact craters on the Moon", in Impact and
 # Explosion Cratering, 489-509: fresh simple craters, D/d/h in km.
-PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = 0.196, 1.010
+PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = FRESH_DEPTH_DIAMETER, 1.010
 PIKE_RIM_COEF, PIKE_RIM_EXP = 0.036, 1.014
 # McGetchin, Settle & Head (1973), EPSL 20:226: ejecta thickness ~ (r/R)^-3 outside the rim.
 EJECTA_DECAY_EXP = 3.0
@@ -54,63 +53,8 @@ MIN_CRATER_SAMPLES = 2.0
 _BATCH_ELEMENTS = 2_000_000
 
 
-class DetailConfigError(UserError):
-    """A terrain.detail setting is out of range."""
-
-
-@dataclass(frozen=True)
-class DetailSettings:
-    """``terrain.detail`` (configs/terrain/default.yaml)."""
-
-    enabled: bool = True
-    seed: int = 0
-    hurst: float = 0.8
-    rms_slope_deg: float = 6.0
-    crater_density_scale: float = 1.0
-    min_crater_diameter_m: float = 300.0
-    min_depth_diameter: float = 0.05
-
-    @classmethod
-    def from_config(cls, d) -> "DetailSettings":
-        """Validate a ``terrain.detail`` mapping; errors name the key."""
-        d = dict(d or {})
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise DetailConfigError(f"unknown terrain.detail key(s) {unknown}; known: {sorted(known)}")
-        values = {}
-        for k, v in d.items():
-            if k == "enabled":
-                if not isinstance(v, bool):
-                    raise DetailConfigError(f"terrain.detail.enabled={v!r} must be true or false")
-                values[k] = v
-                continue
-            try:
-                if isinstance(v, bool):
-                    raise ValueError
-                num = float(v)
-                if k == "seed" and num != int(num):
-                    raise ValueError
-                values[k] = int(num) if k == "seed" else num
-            except (TypeError, ValueError):
-                kind = "an integer" if k == "seed" else "a number"
-                raise DetailConfigError(f"terrain.detail.{k}={v!r} must be {kind}") from None
-        s = cls(**values)
-        checks = [
-            ("hurst", 0.0 < s.hurst < 1.0, "must lie in (0, 1)"),
-            ("rms_slope_deg", 0.0 <= s.rms_slope_deg < 60.0, "must lie in [0, 60) degrees"),
-            ("crater_density_scale", 0.0 <= s.crater_density_scale <= 100.0, "must lie in [0, 100]"),
-            ("min_crater_diameter_m", s.min_crater_diameter_m > 0.0, "must be > 0"),
-            ("min_depth_diameter", 0.0 < s.min_depth_diameter <= PIKE_DEPTH_COEF,
-             f"must lie in (0, {PIKE_DEPTH_COEF}] (fresh craters, Pike 1977)"),
-        ]
-        for key, ok, why in checks:
-            if not ok:
-                raise DetailConfigError(f"terrain.detail.{key}={getattr(s, key)} {why}")
-        return s
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+# ``terrain.detail`` settings and their validation live with every other setting (one source of truth).
+DetailConfigError = SettingsError
 
 
 def _rng(seed: int, key: str) -> np.random.Generator:

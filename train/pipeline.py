@@ -17,7 +17,10 @@ def train_and_evaluate(cfg: Mapping, progress: bool | None = None) -> dict:
     from train.realset import build_real_test_set
     from train.trainer import configure_torch, train_all
 
+    from crater_core.files import ensure_writable_dir
+
     progress = bool(cfg["train"].get("progress", True)) if progress is None else progress
+    ensure_writable_dir(str(cfg["run_dir"]), "run_dir")  # before minutes of crop caching, not after
     configure_torch(cfg["train"])
     class_names = class_names_from_config(cfg)
     require_manifest(str(cfg["train"]["dataset_dir"]))
