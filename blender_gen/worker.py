@@ -66,17 +66,22 @@ def emit(prefix: str, payload) -> None:
         data = data[os.write(_RESULT_FD, data):]
 
 
-# Stopping (SIGTERM/SIGINT from the host or the terminal, or the host gone): the worker unwinds so its
-# scratch files are removed, but never between writing an EXR and reporting it, or the file would
-# have no manifest row. A signal arriving in that window is acted on right after the RESULT line.
-_STOP = {"critical": False, "signal": None}
+# Stopping (SIGTERM/SIGINT from the host or the terminal, or the host gone): the handler only records
+# the signal, and the render loop stops at the next safe point -- between renders, never between
+# writing an EXR and reporting it (the file would have no manifest row), and never inside bpy: Blender
+# turns a SystemExit raised inside an operator (a Cycles render) into a C exit() that skips every
+# Python ``finally``, which would leave the scratch file behind.
+_STOP = {"signal": None}
 
 
 def _on_stop_signal(signum, _frame) -> None:
-    if _STOP["critical"]:
-        _STOP["signal"] = signum
-        return
-    raise SystemExit(128 + signum)
+    _STOP["signal"] = signum
+
+
+def _stop_if_asked() -> None:
+    if _STOP["signal"] is not None:
+        log(f"stopping on signal {_STOP['signal']}")
+        raise SystemExit(128 + _STOP["signal"])
 
 
 def _watch_parent(interval_s: float = 1.0) -> None:
@@ -152,6 +157,7 @@ def run(job_path: str) -> int:
     t_write = 0.0
     try:
         for item in job["renders"]:
+            _stop_if_asked()
             t1 = time.perf_counter()
             to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
             mode_used = cfg["mode"]
@@ -168,18 +174,13 @@ def run(job_path: str) -> int:
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
             radiance = chans["IF"]
-            _STOP["critical"] = True  # file written <=> RESULT line sent
-            try:
-                sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
-                t_write += time.perf_counter() - t2
-                emit("RESULT", {"index": int(item["index"]), "rel_path": item["rel_path"], "sha256": sha,
-                                "lit_fraction": round(float(np.mean(chans["lit"])), 6),
-                                "mean_if": round(float(np.mean(radiance)), 8),
-                                "seconds": round(time.perf_counter() - t1, 4), "mode": mode_used})
-            finally:
-                _STOP["critical"] = False
-            if _STOP["signal"] is not None:
-                raise SystemExit(128 + _STOP["signal"])
+            sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
+            t_write += time.perf_counter() - t2
+            emit("RESULT", {"index": int(item["index"]), "rel_path": item["rel_path"], "sha256": sha,
+                            "lit_fraction": round(float(np.mean(chans["lit"])), 6),
+                            "mean_if": round(float(np.mean(radiance)), 8),
+                            "seconds": round(time.perf_counter() - t1, 4), "mode": mode_used})
+            _stop_if_asked()
     finally:
         render.cleanup()
     n = len(job["renders"])

@@ -191,9 +191,11 @@ def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = (
         why = str(cause or exc).splitlines()[0]
         if re.match(r"Key '[^']+' not in '", why) or "Could not override" in msg or "Could not append" in msg:
             return f"{full_key}: unknown key{_suggest(full_key)}"
-        conv = re.match(r"Value '(.*)' of type '[^']+' could not be converted to (\w+)", why)
+        conv = re.match(r"Value '(.*)' of type '[^']+' could not be converted to (\w+)", why) or \
+            re.match(r"Value '(.*)' is not a valid (bool)", why)
         if conv:
-            why = _EXPECTED.get(conv.group(2), f"must be of type {conv.group(2)}")
+            kind = "Boolean" if conv.group(2) == "bool" else conv.group(2)
+            why = _EXPECTED.get(kind, f"must be of type {kind}")
         typed = _override_for(full_key, overrides)
         element = re.search(r"\[(\d+)\]$", full_key)
         if typed and element and conv:

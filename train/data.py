@@ -292,10 +292,15 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
         (tmp / "index.json").write_text(json.dumps({"format": CACHE_FORMAT, "key": key, "dataset_dir": str(dataset_dir),
                                                     "samples": samples, "sigmas": list(sigmas),
                                                     "pp": pp.geometry_key(), "dtype": dtype}))
-        for f in tmp.iterdir():  # durable before the rename publishes the cache
+        for f in tmp.iterdir():  # durable (files and their directory entries) before the rename publishes it
             os.chmod(f, 0o666 & ~umask())
             with open(f, "rb") as fh:
                 os.fsync(fh.fileno())
+        dir_fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
         try:
             os.replace(tmp, final)
         except OSError:  # another process finished the same cache first

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Callable, Mapping
 
 from crater_core import schema
-from crater_core.files import ensure_writable_dir, is_disk_full, os_error_text
+from crater_core.files import ensure_writable_dir, is_disk_full, os_error_text, remove_stale_scratch
 from crater_core.progress import Progress
 from crater_core.settings import Settings
 from crater_synth.dataset import disk
@@ -68,6 +68,7 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
     if removed and warn is not None:
         warn(f"removed {len(removed)} orphan file(s) of an interrupted run from {out_dir} (no manifest row)")
     disk.prune_jobs(out_dir)
+    remove_stale_scratch()  # Cycles scratch files of workers killed with -9 (their host never cleaned up)
     craters = s.craters
     # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
     # at least this many renders are left even if every existing row belongs to this run.

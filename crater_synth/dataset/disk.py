@@ -138,7 +138,7 @@ def _holder(lock_path: Path) -> str:
             pass
     if text:
         return text
-    return "shards of a sweep (launcher.shard)" if lock_path.name == LOCK_FILE else "another process"
+    return "shards of a sweep, launcher.shard=i/n" if lock_path.name == LOCK_FILE else "another process"
 
 
 # ------------------------------------------------------------------------------------------------
