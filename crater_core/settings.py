@@ -534,14 +534,14 @@ class LoopSettings(_Group):
 class CountsSettings(_Group):
     """``experiments.counts``: the sample counts of each axis for Figure 6."""
 
-    sun_elevation: Tuple[int, ...]
-    sun_azimuth: Tuple[int, ...]
-    cam_elevation: Tuple[int, ...]
-    cam_azimuth: Tuple[int, ...]
+    sun_elevation: Optional[Tuple[int, ...]]   # null: this axis is not varied
+    sun_azimuth: Optional[Tuple[int, ...]]
+    cam_elevation: Optional[Tuple[int, ...]]
+    cam_azimuth: Optional[Tuple[int, ...]]
 
     def _check(self):
         for axis in AXES:
-            counts = getattr(self, axis)
+            counts = getattr(self, axis) or ()
             _need(all(c >= 1 for c in counts), axis, counts, "counts must be >= 1")
 
 

@@ -44,7 +44,12 @@ def _schema_type(tp: Any) -> Any:
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is typing.Union:
         inner = [a for a in args if a is not type(None)]
-        return Optional[_schema_type(inner[0])] if len(inner) == 1 else Any
+        if len(inner) != 1 or typing.get_origin(inner[0]) is dict:
+            # An optional mapping stays untyped for OmegaConf: its None node cannot take
+            # OmegaConf.update(..., {...}) (the loop and Figure 6 set train.select so); the settings
+            # conversion checks its keys and values all the same.
+            return Any
+        return Optional[_schema_type(inner[0])]
     if origin in (tuple, list):
         return List[_schema_type(args[0]) if args else Any]
     if origin is dict:
@@ -196,6 +201,8 @@ def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = (
         if conv:
             kind = "Boolean" if conv.group(2) == "bool" else conv.group(2)
             why = _EXPECTED.get(kind, f"must be of type {kind}")
+        if re.match(r"field '[^']+' is not Optional", why) or "is not Optional" in why:
+            why = "must not be null"
         typed = _override_for(full_key, overrides)
         element = re.search(r"\[(\d+)\]$", full_key)
         if typed and element and conv:

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
-from crater_core.schema import atomic_write_text
+from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import AXES, grid_from_config, nearest_subset
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
@@ -96,10 +96,10 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     axes[0, 0].legend(fontsize=7, ncol=2, loc="lower right")
     fig.suptitle("Test accuracy by sample count (paper Fig. 6): LunarNet_ex solid, LunarSVM_ex dashed", fontsize=10)
     fig.tight_layout()
-    tmp = png.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    tmp.replace(png)
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:

@@ -9,8 +9,8 @@ round's models, metrics.json and confusion matrices are copied to ``run_dir`` it
 from __future__ import annotations
 
 import copy
+import io
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
-from crater_core.schema import atomic_write_text
+from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import grid_from_config
 
 HISTORY_FILE = "loop_history.json"
@@ -76,10 +76,10 @@ def plot_history(hist: dict, png: Path) -> None:
     ax.set_title("Closed loop (paper Fig. 3)")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    tmp = png.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    tmp.replace(png)
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
@@ -136,8 +136,7 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     final = Path(last["run_dir"])
     for name in FINAL_FILES + tuple(p.name for p in final.glob("confusion_*.png")):
         if (final / name).is_file():
-            shutil.copy2(final / name, run_dir / f".{name}.tmp")
-            (run_dir / f".{name}.tmp").replace(run_dir / name)
+            atomic_write_bytes(run_dir / name, (final / name).read_bytes())
     return hist
 
 

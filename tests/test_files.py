@@ -91,6 +91,13 @@ def test_every_rename_is_preceded_by_an_fsync(tmp_path, monkeypatch):
            "rim_ellipse": {"cu": 4.0, "cv": 4.0, "a": 3.0, "b": 3.0, "angle_rad": 0.0}}
     contact_sheet([row], tmp_path, tmp_path / "preview" / "contact_shackleton.png", "t")
     _toy_cache(tmp_path)
+    from crater_synth.experiments import plot_figure6
+    from crater_synth.loop import plot_history
+
+    plot_history({"threshold": 0.85, "rounds": [{"sun_elevation_count": 2, "lunarnet_ex": 0.5, "lunarsvm_ex": 0.6,
+                                                   "hog_svm": 0.4}]}, tmp_path / "loop_history.png")
+    plot_figure6([{"parameter": "sun_elevation", "count": 2, "sigma": 1.0, "model": "lunarnet_ex",
+                   "real_accuracy": 0.5}], tmp_path / "figure6.png")
     assert not unsynced, f"renamed without an fsync: {unsynced}"
 
 

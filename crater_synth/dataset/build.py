@@ -11,7 +11,8 @@ from crater_core import schema
 from crater_core.files import ensure_writable_dir, is_disk_full, os_error_text, remove_stale_scratch
 from crater_core.progress import Progress
 from crater_core.settings import Settings
-from crater_synth.dataset import disk
+from crater_synth.dataset.disk import (DatasetLock, check_free_disk, check_output_dir, measured_bytes_per_render,
+                                        prune_jobs, remove_orphans)
 from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.manifest import is_done, manifest_row, part_file, stale_parts
 from crater_synth.dataset.plan import CraterJob, plan_render, render_digest, render_seed, worker_item
@@ -42,8 +43,8 @@ def build_dataset(settings: Settings | Mapping, progress: bool = True, lock: boo
     indices = grid.shard(*shard) if shard else range(len(grid))
     ensure_writable_dir(s.data_dir, "data_dir")  # the terrain patches go there
     out_dir = Path(s.out_dir).resolve()
-    disk.check_output_dir(out_dir)
-    dataset_lock = disk.DatasetLock(out_dir, shard if lock else None)
+    check_output_dir(out_dir)
+    dataset_lock = DatasetLock(out_dir, shard if lock else None)
     if lock:
         dataset_lock.acquire()
     try:
@@ -64,16 +65,16 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
         schema.merge_parts(out_dir, parts=stale)
     existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
-    removed = disk.remove_orphans(out_dir, list(existing.values()), exclusive)
+    removed = remove_orphans(out_dir, list(existing.values()), exclusive)
     if removed and warn is not None:
         warn(f"removed {len(removed)} orphan file(s) of an interrupted run from {out_dir} (no manifest row)")
-    disk.prune_jobs(out_dir)
+    prune_jobs(out_dir)
     remove_stale_scratch()  # Cycles scratch files of workers killed with -9 (their host never cleaned up)
     craters = s.craters
     # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
     # at least this many renders are left even if every existing row belongs to this run.
-    disk.check_free_disk(out_dir, max(0, len(indices) * len(craters) - len(existing)),
-                         disk.measured_bytes_per_render(list(existing.values()), out_dir))
+    check_free_disk(out_dir, max(0, len(indices) * len(craters) - len(existing)),
+                         measured_bytes_per_render(list(existing.values()), out_dir))
     jobs, skipped, total = [], 0, 0
     for crater in craters:
         npz, meta = build_terrain(crater, s)
@@ -94,7 +95,7 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
         jobs.append(job)
 
     todo = sum(len(j.plans) for j in jobs)
-    disk.check_free_disk(out_dir, todo, disk.measured_bytes_per_render(list(existing.values()), out_dir))
+    check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
     part = part_file(out_dir, shard)
     bar = Progress(todo, f"rendering ({s.render.mode})", "render", mode="auto" if progress and todo else "off")
     dark = []
