@@ -91,10 +91,18 @@ def _plain_default(value):
     return as_plain(value)
 
 
+_REGISTERED: list = []
+
+
 def register_schemas() -> None:
-    """Store ``settings_schema`` (the root) and ``<group>_schema`` for every group of configs/."""
+    """Store ``settings_schema`` (the root) and ``<group>_schema`` for every group of configs/ in Hydra's
+    (process-wide) ConfigStore; again only when the settings classes changed (tests extend them)."""
     from hydra.core.config_store import ConfigStore
 
+    key = (Settings, tuple(GROUPS.items()))
+    if _REGISTERED == [key]:
+        return
+    _REGISTERED[:] = [key]
     cs = ConfigStore.instance()
     cs.store(name=ROOT_SCHEMA, node=schema_class(Settings))
     for group, cls in GROUPS.items():
