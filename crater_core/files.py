@@ -133,7 +133,7 @@ def remove_stale_scratch(pids: "set[int] | None" = None, directory: str | None =
     processes once they have ended: a host cleaning up after the workers it stopped). Returns the paths
     removed."""
     directory = directory or scratch_dir()
-    removed = []
+    removed: list[str] = []
     try:
         names = os.listdir(directory)
     except OSError:

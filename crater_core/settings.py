@@ -9,7 +9,9 @@ types it (``render.samples=0: must be >= 1``). Below the CLI, functions take the
 raw mapping.
 
 Standard library only (plus the core's own Hapke and sweep classes): ``train/`` and ``blender_gen/``
-may import it; it never imports omegaconf or Hydra.
+may import it; it never imports omegaconf or Hydra. The training groups live in
+:mod:`crater_core.settings_train` and the mapping -> dataclass converter in
+:mod:`crater_core.typed_config`; both are re-exported here.
 
 How to add a key (e.g. ``render.shadow_method``)
 -------------------------------------------------
@@ -26,74 +28,19 @@ no second list to update. A new group: a class here, a field of :class:`Settings
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
-import math
-import typing
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Dict, Mapping, Optional, Tuple
+from typing import Dict, Mapping, Optional, Tuple
 
-from crater_core.errors import ContractError
 from crater_core.hapke import HapkeParams
+from crater_core.settings_train import (ConvSettings, HogSettings, ModelSettings, MosaicSettings, PoolSettings,
+                                        PreprocessSettings, RealsetSettings, SensorSettings, SvmSettings,
+                                        TrainSettings)
 from crater_core.sweep import AXES, SweepGrid, grid_from_config
+from crater_core.typed_config import SettingsError, _Group, _need, as_plain, build, replace
 
 # The solar disc's angular radius (deg): the whole Sun is below a flat horizon below -this.
 SUN_ANGULAR_RADIUS_DEG = 0.2665
-
-
-class SettingsError(ContractError):
-    """A configuration value has the wrong type, lies out of range, is missing or unknown.
-
-    ``key`` is the dotted path (relative while a class validates itself, made absolute by the
-    converter); the message reads ``<key>=<value>: <why>`` or ``<key>: <why>``."""
-
-    _NO_VALUE = object()
-
-    def __init__(self, key: str, why: str, value: Any = _NO_VALUE):
-        self.key, self.why, self.value = key, why, value
-        shown = "" if value is self._NO_VALUE else f"={_show(value)}"
-        super().__init__(f"{key}{shown}: {why}")
-
-    def under(self, path: str) -> "SettingsError":
-        """The same error with ``path`` prefixed to its key."""
-        return SettingsError(_join(path, self.key), self.why, self.value)
-
-
-def _show(value: Any) -> str:
-    if isinstance(value, str):
-        return repr(value)
-    if isinstance(value, tuple):
-        return repr(list(value))
-    return str(value)
-
-
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path and key else (path or key)
-
-
-def _need(ok: bool, key: str, value: Any, why: str) -> None:
-    if not ok:
-        raise SettingsError(key, why, value)
-
-
-class _Group:
-    """Shared behaviour of the settings classes: conversion from a mapping, back to a plain dict."""
-
-    @classmethod
-    def from_config(cls, mapping: Mapping | None, path: str = ""):
-        """Build and validate from a plain (resolved) mapping; errors name ``path.<key>``."""
-        return build(cls, mapping or {}, path)
-
-    def as_dict(self) -> dict:
-        """Plain nested dict (tuples as lists): the resolved-mapping form older code takes."""
-        return as_plain(self)
-
-    def __post_init__(self):
-        self._check()
-
-    def _check(self) -> None:  # overridden by groups with ranges to check
-        pass
 
 
 # ------------------------------------------------------------------------------------------------
@@ -302,218 +249,6 @@ class LauncherSettings(_Group):
 
 
 # ------------------------------------------------------------------------------------------------
-# Training: model, train (+ preprocess, svm, hog), sensor, real test set
-# ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True, kw_only=True)
-class ConvSettings(_Group):
-    channels: int
-    kernel: int
-    stride: int
-
-    def _check(self):
-        for key in ("channels", "kernel", "stride"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-
-
-@dataclass(frozen=True, kw_only=True)
-class PoolSettings(_Group):
-    kernel: int
-    stride: int
-
-    def _check(self):
-        for key in ("kernel", "stride"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-
-
-@dataclass(frozen=True, kw_only=True)
-class ModelSettings(_Group):
-    """``model.*``: LunarNet_ex layer sizes (configs/model/lunarnet_ex.yaml, docs/classifiers.md)."""
-
-    name: str
-    input_size: int
-    num_classes: int
-    conv1: ConvSettings
-    pool: PoolSettings
-    conv2: ConvSettings
-    fc1: int
-    dropout: float = 0.0
-
-    def _check(self):
-        _need(self.input_size >= 8, "input_size", self.input_size, "must be >= 8")
-        _need(self.num_classes >= 2, "num_classes", self.num_classes, "must be >= 2")
-        _need(self.fc1 >= 1, "fc1", self.fc1, "must be >= 1")
-        _need(0.0 <= self.dropout < 1.0, "dropout", self.dropout, "must lie in [0, 1)")
-
-
-@dataclass(frozen=True, kw_only=True)
-class PreprocessSettings(_Group):
-    """``train.preprocess``: crop resampling and photometric normalisation (docs/preprocessing.md)."""
-
-    antialias: bool
-    interp_order: int
-    max_outside_frac: float
-    low_percentile: float
-    high_percentile: float
-    lit_threshold: float
-    shadow_floor: float
-    gamma: float
-
-    def _check(self):
-        _need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
-        _need(0.0 <= self.max_outside_frac < 1.0, "max_outside_frac", self.max_outside_frac, "must lie in [0, 1)")
-        _need(0.0 <= self.low_percentile < self.high_percentile, "low_percentile", self.low_percentile,
-              "must lie in [0, high_percentile)")
-        _need(self.high_percentile <= 100.0, "high_percentile", self.high_percentile, "must be <= 100")
-        _need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
-        _need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
-        _need(self.gamma > 0.0, "gamma", self.gamma, "must be > 0")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SvmSettings(_Group):
-    """``train.svm``: the SGD linear SVM of LunarSVM_ex."""
-
-    alpha: float
-    max_iter: int
-    tol: float
-
-    def _check(self):
-        _need(self.alpha > 0.0, "alpha", self.alpha, "must be > 0")
-        _need(self.max_iter >= 1, "max_iter", self.max_iter, "must be >= 1")
-        _need(self.tol >= 0.0, "tol", self.tol, "must be >= 0")
-
-
-@dataclass(frozen=True, kw_only=True)
-class HogSettings(SvmSettings):
-    """``train.hog``: HOG features + SGD linear SVM baseline."""
-
-    orientations: int
-    pixels_per_cell: int
-    cells_per_block: int
-    max_train_images: Optional[int] = None
-
-    def _check(self):
-        super()._check()
-        for key in ("orientations", "pixels_per_cell", "cells_per_block"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-        _need(self.max_train_images is None or self.max_train_images >= 1, "max_train_images",
-              self.max_train_images, "must be >= 1 (null = all)")
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrainSettings(_Group):
-    """``train.*`` (configs/train/default.yaml, docs/classifiers.md)."""
-
-    dataset_dir: str
-    val_fraction: float
-    split_by: str
-    sigmas: Optional[Tuple[float, ...]]
-    select: Optional[Dict[str, Optional[Tuple[float, ...]]]]
-    batch_size: int
-    eval_batch_size: int
-    lr: float
-    weight_decay: float
-    max_epochs: int
-    target_val_accuracy: float
-    num_threads: int
-    device: str
-    cache_dir: str
-    cache_dtype: str
-    verify_sha256: bool
-    augment: bool
-    progress: bool
-    preprocess: PreprocessSettings
-    svm: SvmSettings
-    hog: HogSettings
-
-    def _check(self):
-        _need(0.0 < self.val_fraction < 1.0, "val_fraction", self.val_fraction, "must lie in (0, 1)")
-        _need(self.split_by in ("camera", "sun"), "split_by", self.split_by, "must be 'camera' or 'sun'")
-        _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
-        unknown = sorted(set(self.select or {}) - set(AXES))
-        _need(not unknown, "select", unknown, f"unknown axis: use {', '.join(AXES)}")
-        for key in ("batch_size", "eval_batch_size", "max_epochs"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-        _need(self.lr > 0.0, "lr", self.lr, "must be > 0")
-        _need(self.weight_decay >= 0.0, "weight_decay", self.weight_decay, "must be >= 0")
-        _need(0.0 <= self.target_val_accuracy <= 1.0, "target_val_accuracy", self.target_val_accuracy,
-              "must lie in [0, 1]")
-        _need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
-        _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
-        _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SensorSettings(_Group):
-    """``sensor.*``: the seeded sensor model applied to synthetic crops (docs/preprocessing.md)."""
-
-    enabled: bool
-    resolution_min_px: int
-    resolution_prob: float
-    psf_sigma_px: float
-    auto_exposure: bool
-    exposure_white_frac: Tuple[float, ...]
-    full_well_if: float
-    photons_at_full_well: float
-    read_noise_dn: float
-    gain_jitter: float
-    quantize_bits: int
-
-    def _check(self):
-        _need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
-        _need(0.0 <= self.resolution_prob <= 1.0, "resolution_prob", self.resolution_prob, "must lie in [0, 1]")
-        _need(self.psf_sigma_px >= 0.0, "psf_sigma_px", self.psf_sigma_px, "must be >= 0")
-        lo_hi = self.exposure_white_frac
-        _need(len(lo_hi) == 2 and 0.0 < lo_hi[0] <= lo_hi[1], "exposure_white_frac", lo_hi,
-              "must be [lo, hi] with 0 < lo <= hi")
-        _need(self.full_well_if > 0.0, "full_well_if", self.full_well_if, "must be > 0")
-        _need(self.photons_at_full_well > 0.0, "photons_at_full_well", self.photons_at_full_well, "must be > 0")
-        _need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
-        _need(0.0 <= self.gain_jitter < 1.0, "gain_jitter", self.gain_jitter, "must lie in [0, 1)")
-        _need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
-
-
-@dataclass(frozen=True, kw_only=True)
-class MosaicSettings(_Group):
-    """``realset.mosaic``: the embedded real image product (data_manifest/products.yaml)."""
-
-    package: str
-    package_path: str
-    path: Optional[str]
-    sha256: Optional[str]
-    extent_m: float
-    pixel_m: float
-    radius_m: float
-    product_id: Optional[str] = None
-
-    def _check(self):
-        for key in ("extent_m", "pixel_m", "radius_m"):
-            _need(getattr(self, key) > 0.0, key, getattr(self, key), "must be > 0")
-
-
-@dataclass(frozen=True, kw_only=True)
-class RealsetSettings(_Group):
-    """``realset.*``: the real test set (docs/realset.md)."""
-
-    source_product: str
-    per_crater: int
-    sigmas: Tuple[float, ...]
-    max_offset_frac: float
-    max_rotation_deg: float
-    seed: int
-    include_embedded: bool
-    labels_file: Optional[str]
-    mosaic: MosaicSettings
-
-    def _check(self):
-        _need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")
-        _need(len(self.sigmas) > 0 and all(s > 0 for s in self.sigmas), "sigmas", self.sigmas,
-              "must be a non-empty list of ratios > 0")
-        _need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
-        _need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")
-
-
-# ------------------------------------------------------------------------------------------------
 # Closed loop, Figure 6 experiments, data fetching
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
@@ -631,131 +366,9 @@ GROUPS: Dict[str, type] = {
     "experiments": ExperimentsSettings, "fetch": FetchSettings,
 }
 
-
-# ------------------------------------------------------------------------------------------------
-# Conversion: plain mapping -> settings objects (types first, then each class's range checks)
-# ------------------------------------------------------------------------------------------------
-def build(cls: type, data: Mapping, path: str = ""):
-    """An instance of the dataclass ``cls`` from the plain mapping ``data`` (keys under ``path``).
-
-    Unknown keys, missing values (absent, or Hydra's ``???``), wrong types and out-of-range values
-    raise :class:`SettingsError` naming the full key. A :class:`ContractError` raised by a class's own
-    validation (e.g. :class:`crater_core.sweep.SweepError`) passes through unchanged."""
-    if not isinstance(data, Mapping):
-        raise SettingsError(path, f"must be a mapping of {_type_name(cls)} keys", data)
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        key = str(unknown[0])
-        close = difflib.get_close_matches(key, list(fields), n=1)
-        hint = f" (did you mean {_join(path, close[0])}?)" if close else f"; known: {', '.join(fields)}"
-        raise SettingsError(_join(path, key), f"unknown key{hint}")
-    kwargs = {}
-    for name, f in fields.items():
-        key = _join(path, name)
-        if name not in data or data[name] == "???":
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise SettingsError(key, "missing mandatory config value (give it as an override)")
-            continue
-        kwargs[name] = _convert(data[name], hints[name], key)
-    try:
-        return cls(**kwargs)
-    except SettingsError as exc:
-        raise exc.under(path) from None
-    except ContractError:
-        raise
-    except (TypeError, ValueError) as exc:  # e.g. HapkeParams' own range check
-        raise SettingsError(path, str(exc)) from None
-
-
-def _type_name(tp) -> str:
-    return getattr(tp, "__name__", str(tp))
-
-
-def _convert(value: Any, tp: Any, key: str) -> Any:
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin is typing.Union:
-        if value is None and type(None) in args:
-            return None
-        (inner,) = [a for a in args if a is not type(None)]
-        return _convert(value, inner, key)
-    if value is None:
-        raise SettingsError(key, "must not be null", value)
-    if dataclasses.is_dataclass(tp):
-        return build(tp, value, key)
-    if origin in (tuple, list):
-        if not isinstance(value, (list, tuple)):
-            raise SettingsError(key, "must be a list", value)
-        inner = args[0] if args else Any
-        return tuple(_convert(v, inner, f"{key}[{i}]") for i, v in enumerate(value))
-    if origin in (dict, Mapping):
-        if not isinstance(value, Mapping):
-            raise SettingsError(key, "must be a mapping", value)
-        inner = args[1] if len(args) == 2 else Any
-        return {str(k): _convert(v, inner, _join(key, str(k))) for k, v in value.items()}
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "false"):
-            return value.lower() == "true"
-        raise SettingsError(key, "must be true or false", value)
-    if tp is int:
-        if isinstance(value, bool):
-            raise SettingsError(key, "must be an integer", value)
-        if isinstance(value, int):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        if isinstance(value, str):
-            try:
-                return int(value.strip())
-            except ValueError:
-                pass
-        raise SettingsError(key, "must be an integer", value)
-    if tp is float:
-        if isinstance(value, bool):
-            raise SettingsError(key, "must be a number", value)
-        try:
-            num = float(value)
-        except (TypeError, ValueError):
-            raise SettingsError(key, "must be a number", value) from None
-        if not math.isfinite(num):
-            raise SettingsError(key, "must be finite", value)
-        return num
-    if tp is str:
-        if isinstance(value, (str, int, float)) and not isinstance(value, bool):
-            return str(value)
-        raise SettingsError(key, "must be a string", value)
-    raise TypeError(f"settings field {key}: unsupported annotation {tp!r}")
-
-
-def as_plain(obj: Any) -> Any:
-    """Settings object -> plain nested dicts/lists (the inverse of :func:`build`)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: as_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, (list, tuple)):
-        return [as_plain(v) for v in obj]
-    if isinstance(obj, Mapping):
-        return {k: as_plain(v) for k, v in obj.items()}
-    return obj
-
-
-def replace(obj, **changes):
-    """``dataclasses.replace`` with dotted keys: ``replace(s, **{"render.workers": 1})``."""
-    direct, nested = {}, {}
-    for key, value in changes.items():
-        head, _, rest = key.partition(".")
-        if rest:
-            nested.setdefault(head, {})[rest] = value
-        else:
-            direct[head] = value
-    for head, sub in nested.items():
-        direct[head] = replace(getattr(obj, head), **sub)
-    return dataclasses.replace(obj, **direct)
-
-
-__all__ = [name for name in dir() if name.endswith("Settings")] + [
-    "GROUPS", "HapkeParams", "SettingsError", "as_plain", "build", "replace"]
+__all__ = [
+    "GROUPS", "AxisSettings", "ConvSettings", "CountsSettings", "CraterSettings", "DemSettings", "DetailSettings",
+    "ExperimentsSettings", "FetchSettings", "HapkeParams", "HogSettings", "LauncherSettings", "LoopSettings",
+    "ModelSettings", "MosaicSettings", "PoolSettings", "PreprocessSettings", "RealsetSettings", "RenderSettings",
+    "SensorSettings", "Settings", "SettingsError", "SvmSettings", "SweepSettings", "TerrainSettings", "TrainSettings",
+    "as_plain", "build", "replace"]

@@ -238,7 +238,7 @@ def bench_distributed(settings: Settings | Mapping, work_dir: str | Path | None 
     plan = preflight(runs["single"])  # builds the terrain, outside the timings
 
     t0 = time.perf_counter()
-    single = build_dataset(runs["single"], progress=False)
+    build_dataset(runs["single"], progress=False)
     t_single = time.perf_counter() - t0
     t0 = time.perf_counter()
     dask = run_dask(runs["dask"], progress=False)

@@ -50,12 +50,12 @@ def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str
     fig, axes = plt.subplots(nrows, cols, figsize=(2.4 * cols, 2.6 * nrows), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
-    for ax, row in zip(axes.ravel(), pick):
+    for ax, row in zip(axes.ravel(), pick, strict=False):
         img = tone_map(read_channel(dataset_dir / row["path"]))
         ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         pts = _ellipse_points(row["rim_ellipse"])
         ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)
-        for sigma, (u0, v0, u1, v1) in row["sigma_boxes"].items():
+        for u0, v0, u1, v1 in row["sigma_boxes"].values():
             ax.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], "--", color="#50c0ff", lw=0.5)
         ax.set_title(f"sun {row['sun_elevation']:.2f}/{row['sun_azimuth']:.0f}  cam {row['cam_elevation']:.0f}/"
                      f"{row['cam_azimuth']:.0f}\nlit {row['lit_fraction']:.2f}  I/F {row['mean_if']:.4f}", fontsize=6)

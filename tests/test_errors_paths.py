@@ -7,7 +7,7 @@ import sys
 import pytest
 from click.testing import CliRunner
 
-from conftest import TINY, exr_files, run_cli
+from conftest import TINY, run_cli
 
 TOY = dict(sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0),
            rim_px=32.0)
@@ -83,7 +83,7 @@ def test_library_warnings_of_a_successful_command_are_kept(tmp_path):
     @click.command()
     @user_errors
     def noisy():
-        warnings.warn("something odd", UserWarning)
+        warnings.warn("something odd", UserWarning, stacklevel=1)
         click.echo("result")
 
     res = CliRunner().invoke(noisy, [])

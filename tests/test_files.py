@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TINY, exr_files, run_cli
+from conftest import exr_files, run_cli
 
 TOY = dict(sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0),
            rim_px=32.0)

@@ -93,7 +93,7 @@ def test_shards_run_side_by_side_but_not_twice(tmp_path, tiny_data_dir):
     assert _refusal(refusals[1]) == (f"error: dataset {out} is being written by another crater-synth process "
                                      "(shards of a sweep, launcher.shard=i/n): wait for it to finish, or give "
                                      "another out_dir")
-    for p, (_, stderr) in zip(shards, results):
+    for p, (_, stderr) in zip(shards, results, strict=True):
         assert p.returncode == 0, stderr[-3000:]
     assert len(exr_files(out)) == 2 * N16
     v = run_cli("verify", out)

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_core import schema
 from crater_core.files import ensure_writable_dir, free_bytes, size_text
 from crater_synth.errors import DatasetBusyError, UserError
 
