@@ -34,6 +34,13 @@ test-deps: ## Install Debian chromium for the report's browser test (as root; sk
 test: setup test-deps ## Run the fast test suite (slow tests: make test-slow)
 	$(BIN)/python -m pytest -q
 
+lint: setup ## ruff check (pyflakes, pycodestyle, isort, bugbear) on the tree and mypy on crater_core/
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
+format-check: setup ## ruff format --check (in CI once the tree has been formatted)
+	$(BIN)/ruff format --check .
+
 test-slow: setup ## Run only the slow tests
 	$(BIN)/python -m pytest -q -m slow
 
@@ -74,5 +81,5 @@ demo: setup ## The main job on the embedded data: render sweep=demo, closed loop
 	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test-deps test test-slow terrain dataset verify preview config train loop experiments report \
-	bench demo
+.PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
+	experiments report bench demo

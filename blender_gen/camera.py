@@ -10,6 +10,7 @@ import bpy
 import mathutils
 import numpy as np
 
+from blender_gen import border
 from crater_core import geometry
 
 
@@ -35,6 +36,12 @@ def _set(owner, attr: str, value) -> None:
     """Assign only on change: each write tags a Cycles re-sync (re-assigning ``scene.camera``, even
     to the same object, costs ~0.2 s per render; measured in docs/renderer.md)."""
     if getattr(owner, attr) != value:
+        setattr(owner, attr, value)
+
+
+def _set_fraction(owner, attr: str, value: float) -> None:
+    """:func:`_set` for a float32 property (the stored value is the float32 rounding of ``value``)."""
+    if abs(getattr(owner, attr) - value) > 1e-7:
         setattr(owner, attr, value)
 
 
@@ -64,12 +71,13 @@ def set_view(scene, cam_obj, pose: geometry.CameraPose, frame_width: int, crop) 
     _set(r, "resolution_y", int(frame_width))
     _set(r, "use_border", True)
     _set(r, "use_crop_to_border", True)
-    w = float(frame_width)
-    # Blender's border is in [0, 1] with y up from the bottom edge.
-    _set(r, "border_min_x", u0 / w)
-    _set(r, "border_max_x", u1 / w)
-    _set(r, "border_min_y", 1.0 - v1 / w)
-    _set(r, "border_max_y", 1.0 - v0 / w)
+    # Fractions strictly inside the edge pixels: Blender truncates float32 border * width back to
+    # pixels, and an exact u0 / W can come back as u0 - 1 (blender_gen/border.py).
+    min_x, max_x, min_y, max_y = border.border_fractions((u0, v0, u1, v1), frame_width)
+    _set_fraction(r, "border_min_x", min_x)
+    _set_fraction(r, "border_max_x", max_x)
+    _set_fraction(r, "border_min_y", min_y)
+    _set_fraction(r, "border_max_y", max_y)
 
 
 def set_top_down(scene, cam_obj, half_width_m: float, pixels: int, z_top_m: float) -> None:

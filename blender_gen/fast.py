@@ -1,47 +1,62 @@
 """Fast (production) mode: the sweep's sun x camera factorisation (SPEC.md, Performance notes).
 
-Per sun direction (renders arrive sun-major, so one map is live at a time):
-    a terrain-space *lit map*: orthographic top-down Cycles renders of the terrain over nested
-    squares (``shadow_map_levels``, the outer one |x|, |y| <= shadow_map_extent_factor x D, each
-    ``shadow_map_px``^2) with the material in "lit" mode (Diffuse colour 1 / max(mu0, eps), sun on).
-    Each texel is Cycles' estimate of <max(N.l, 0) V(l)>_disk / mu0, the same quantity the direct
-    render multiplies the Hapke radiance factor by, averaged over the texel: cast shadows (near *and*
-    far field, the lamp's finite disk) all come from Cycles.
-Per camera pose (cached in-process, LRU):
+Per sun azimuth (once per terrain, shared by every worker through an on-disk cache):
+    a *horizon map* (crater_core.horizon): the elevation of the terrain's horizon towards the sun
+    azimuth at every texel of nested squares (``shadow_map_levels``, the outer one |x|, |y| <=
+    shadow_map_extent_factor x D, each ``shadow_map_px``^2), over the near and far field, with the
+    Moon's curvature. Every sun elevation of that azimuth reads the same map: the lit fraction is the
+    visible part of the solar disc above the horizon (penumbra included), no render needed.
+Per camera pose (cached in-process, LRU; the host sends renders camera-major):
     a *G-buffer*: a Cycles render of the crop with the material in "gbuffer" mode (sun off), giving
     the pixel-averaged shading normal, the mean surface point P (AOV) and terrain coverage (AOV),
     and depth. From them: view vectors v = unit(camera - P), mu = N.v, and the bilinear lookup of P's
-    (x, y) into the lit map (same texel geometry for every sun, so indices/weights are cached).
+    (x, y) into the map texels (same for every sun, so indices/weights are cached).
 Per render (numpy only):
-    I/F = cov * hapke.radiance_factor(mu0 = N.s, mu, cos g = v.s) * lit(P.xy)
+    I/F = cov * hapke.radiance_factor(mu0 = N.s, mu, cos g = v.s) * disc_fraction(theta - h(P.xy))
 with the numpy backend of the same formula the shader nodes are generated from.
 
 Differences from direct mode (docs/renderer.md quantifies them): the Hapke term is evaluated once per
 pixel at the mean normal instead of per sample (matters only where a pixel straddles a crease or an
-occluding edge), and shadow edges are resampled from the lit map's texels (texel < pixel by default).
-Direct light only: ``max_bounces`` is forced to 0 here.
+occluding edge); shadows are cast by a Catmull-Rom surface through the mesh vertices instead of the
+triangulated mesh (no facet saw-tooth), and the disc fraction is area-weighted, not cosine-weighted
+(they differ only within a solar radius of the terminator). Direct light only: ``max_bounces`` is
+forced to 0 here.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections import OrderedDict
 
 import numpy as np
 
-from crater_core import hapke
 from blender_gen import direct
+from crater_core import hapke, horizon
 
-LIT_MAP_MAX = 4.0  # clip of the map before interpolation (>1 only within ~one solar radius of the terminator)
+
+class Float32Ops(hapke.NumpyOps):
+    """The numpy backend of ``hapke.radiance_factor`` kept in float32 (about twice as fast as the
+    float64 oracle; relative differences ~1e-6, far below the Monte-Carlo noise of the reference)."""
+
+    @staticmethod
+    def less_equal(a, b):
+        return (np.asarray(a) <= np.asarray(b)).astype(np.float32)
+
+
+def radiance_factor32(mu0: np.ndarray, mu: np.ndarray, cos_g: np.ndarray, params) -> np.ndarray:
+    """I/F of the one Hapke formula (crater_core.hapke) in float32, for mu0 > 0 and mu > 0."""
+    return hapke.radiance_factor(mu0.astype(np.float32), mu.astype(np.float32), cos_g.astype(np.float32),
+                                 params, Float32Ops).astype(np.float32)
 
 
 class FallbackNeeded(Exception):
-    """The crop sees terrain outside the lit map: render this image in direct mode instead."""
+    """The crop sees terrain outside the horizon map: render this image in direct mode instead."""
 
 
 class MapGeometry:
-    """Nested square lit maps ("levels"), all ``px`` x ``px`` texels, centred on the crater: level k
+    """Nested square map levels, all ``px`` x ``px`` texels, centred on the crater: level k
     has half-width ``half / 2**(levels-1-k)`` (level 0 is the finest). Level texels are stored one
     after the other in one flat array. A point uses the finest level whose square holds its bilinear
     stencil; camera pixels far from the crater are seen obliquely, so their ground footprint grows
@@ -79,14 +94,22 @@ class MapGeometry:
         return i00, fx, fy, int(outside.sum())
 
 
-class LitMap:
-    def __init__(self, values: np.ndarray, geometry: MapGeometry):
-        self.values = values  # flat float32: level after level, each row-major (row 0 = north, col 0 = west)
+class HorizonMap:
+    """One sun azimuth's horizon at the texels of ``geometry``: flat float32 planes (level after
+    level, each row-major, row 0 = north, col 0 = west) of the slope tan(h), the occluder distance
+    and the eye height (crater_core.horizon.horizon_maps)."""
+
+    def __init__(self, values: np.ndarray, geometry: MapGeometry, distance: np.ndarray | None = None,
+                 eye_z: np.ndarray | None = None):
+        self.values = values
+        self.distance = distance
+        self.eye_z = eye_z
         self.geometry = geometry
 
 
 class GBuffer:
-    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px")
+    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px",
+                 "z")
 
     def __init__(self, passes: dict, cam_position: np.ndarray, geometry: MapGeometry):
         cov = np.clip(passes["cov"], 0.0, 1.0).astype(np.float32)
@@ -102,12 +125,14 @@ class GBuffer:
         self.view = view.astype(np.float32)
         self.mu = np.einsum("...k,...k->...", self.normals, self.view).astype(np.float32)
         self.valid = valid
+        self.z = pos[..., 2].astype(np.float32)
         i00, self.fx, self.fy, self.n_outside = geometry.locate(pos[..., 0], pos[..., 1], valid)
         self.i00 = i00.astype(np.int32)
         self.px = geometry.px
 
-    def lookup(self, lit_map: LitMap) -> np.ndarray:
-        v = lit_map.values
+    def lookup(self, values) -> np.ndarray:
+        """Bilinear lookup of a flat texel array (or a map's ``values``) at every pixel."""
+        v = values.values if isinstance(values, HorizonMap) else values
         s = self.px
         a, b = v[self.i00], v[self.i00 + 1]
         c, d = v[self.i00 + s], v[self.i00 + s + 1]
@@ -117,45 +142,59 @@ class GBuffer:
 
 
 class FastRenderer:
-    def __init__(self, session, gbuffer_cache_size: int = 256):
+    def __init__(self, session, terrain_loader, gbuffer_cache_size: int = 256, horizon_cache_size: int = 64):
         self.s = session
         cfg = session.cfg
         self.half = float(cfg["shadow_map_extent_factor"]) * session.diameter_m
         self.map_px = int(cfg["shadow_map_px"])
         self.geometry = MapGeometry(self.half, self.map_px, int(cfg["shadow_map_levels"]))
-        self.map_samples = int(cfg["shadow_map_samples"]) or int(cfg["samples"])
         self.gbuffer_samples = int(cfg["gbuffer_samples"]) or int(cfg["samples"])
         self.gbuffers: OrderedDict = OrderedDict()
         self.gbuffer_cache_size = gbuffer_cache_size
+        self.pixel_horizons: OrderedDict = OrderedDict()  # (camera key, azimuth) -> horizon per pixel
+        self.horizon_cache_size = horizon_cache_size
+        self.terrain_loader = terrain_loader
+        self.horizon_maps: dict[float, HorizonMap] = {}
         if int(cfg["max_bounces"]) > 0:  # the factorisation is for direct sunlight only
             print(f"[blender_gen.fast] render.max_bounces={cfg['max_bounces']} ignored in fast mode "
                   "(direct light only)", file=sys.stderr, flush=True)
             session.scene.cycles.max_bounces = 0
             session.scene.cycles.diffuse_bounces = 0
-        self.lit_key = None
-        self.lit_map: LitMap | None = None
-        self.stats = {"lit_maps": 0, "lit_map_s": 0.0, "gbuffers": 0, "gbuffer_s": 0.0, "gbuffer_hits": 0,
+        self.stats = {"horizon_maps": 0, "horizon_s": 0.0, "gbuffers": 0, "gbuffer_s": 0.0, "gbuffer_hits": 0,
                       "shade_s": 0.0, "fallbacks": 0}
 
-    # -- per sun --------------------------------------------------------------------------------
-    def get_lit_map(self, to_sun: np.ndarray) -> LitMap:
-        key = tuple(np.round(np.asarray(to_sun, dtype=np.float64), 12))
-        if key != self.lit_key:
-            t0 = time.perf_counter()
-            self.s.set_sun(to_sun)
-            self.s.configure("lit", self.map_samples)
-            levels = [self.s.render_top_down(half, self.map_px)["Combined"][..., 0] for half in self.geometry.halves]
-            values = np.clip(np.concatenate([lv.ravel() for lv in levels]), 0.0, LIT_MAP_MAX).astype(np.float32)
-            self.lit_map = LitMap(values, self.geometry)
-            self.lit_key = key
-            self.stats["lit_maps"] += 1
-            self.stats["lit_map_s"] += time.perf_counter() - t0
-        return self.lit_map
+    # -- per sun azimuth ------------------------------------------------------------------------
+    def prepare_horizons(self, azimuths, terrain_npz: str, cache_dir: str, log=None) -> None:
+        """Horizon maps of every sun azimuth of the job: from the shared on-disk cache, or computed
+        once (crater_core.horizon.ensure_maps: one process per azimuth, the others wait)."""
+        t0 = time.perf_counter()
+        digest = horizon.file_digest(terrain_npz)
+
+        def build():
+            t = self.terrain_loader()
+            return horizon.Terrain(t["near_xyz"], t.get("far_xyz"), t.get("far_keep_quads"))
+
+        maps = horizon.ensure_maps(build, digest, azimuths, self.geometry.halves, self.map_px, cache_dir, log=log)
+        for az, m in maps.items():  # (levels, planes, px, px) -> one flat array per plane
+            slope, dist, eye = (np.ascontiguousarray(m[:, k]).reshape(-1) for k in range(3))
+            self.horizon_maps[az] = HorizonMap(slope, self.geometry, dist, eye)
+        self.stats["horizon_maps"] += len(maps)
+        self.stats["horizon_s"] += time.perf_counter() - t0
+
+    def horizon_map(self, azimuth: float) -> HorizonMap:
+        hm = self.horizon_maps.get(float(azimuth))
+        if hm is None:
+            raise KeyError(f"no horizon map for sun azimuth {azimuth} (prepare_horizons first)")
+        return hm
 
     # -- per camera -----------------------------------------------------------------------------
+    @staticmethod
+    def camera_key(item: dict) -> tuple:
+        return (float(item["cam_elevation"]), float(item["cam_azimuth"]), float(item["range_m"]),
+                float(item["fov_deg"]), int(item["frame_width"]), tuple(int(c) for c in item["crop"]))
+
     def get_gbuffer(self, item: dict) -> GBuffer:
-        key = (float(item["cam_elevation"]), float(item["cam_azimuth"]), float(item["range_m"]),
-               float(item["fov_deg"]), int(item["frame_width"]), tuple(int(c) for c in item["crop"]))
+        key = self.camera_key(item)
         g = self.gbuffers.get(key)
         if g is not None:
             self.gbuffers.move_to_end(key)
@@ -172,27 +211,54 @@ class FastRenderer:
         self.stats["gbuffer_s"] += time.perf_counter() - t0
         return g
 
+    def pixel_horizon(self, item: dict, g: GBuffer) -> np.ndarray:
+        """Horizon elevation (radians) for the item's sun azimuth at the 2 x 2 sub-pixel points
+        (+-1/4 pixel) of every pixel, shape (4, h, w): the horizon at the pixel's mean surface point
+        (corrected to its height on the mesh), extrapolated with its image-space gradient. Averaging the
+        lit factor over them antialiases shadow edges sharper than a pixel (direct mode's 16 samples do
+        the same)."""
+        key = (self.camera_key(item), float(item["sun_azimuth"]))
+        sub = self.pixel_horizons.get(key)
+        if sub is None:
+            hm = self.horizon_map(float(item["sun_azimuth"]))
+            slope = horizon.pixel_slope(g.lookup(hm.values), g.lookup(hm.distance), g.lookup(hm.eye_z), g.z)
+            h = np.arctan(slope).astype(np.float32)
+            dv, du = np.gradient(h) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
+            sub = np.stack([h + a * du + b * dv for a in (-0.25, 0.25) for b in (-0.25, 0.25)]).astype(np.float32)
+            self.pixel_horizons[key] = sub
+            if len(self.pixel_horizons) > self.horizon_cache_size:
+                self.pixel_horizons.popitem(last=False)
+        return sub
+
     # -- per render -----------------------------------------------------------------------------
     def render(self, item: dict, to_sun: np.ndarray) -> dict[str, np.ndarray]:
         g = self.get_gbuffer(item)
         if g.n_outside:
-            raise FallbackNeeded(f"{g.n_outside} px see terrain outside the lit map "
+            raise FallbackNeeded(f"{g.n_outside} px see terrain outside the horizon map "
                                  f"(|x| or |y| > {self.half:.0f} m)")
-        lm = self.get_lit_map(to_sun)
         t0 = time.perf_counter()
+        h = self.pixel_horizon(item, g)
+        theta = math.radians(float(item["sun_elevation"]))
+        phi = math.radians(float(item["sun_azimuth"]))
         s = np.asarray(to_sun, dtype=np.float32)
+        ds_dtheta = np.array([-math.sin(theta) * math.sin(phi), -math.sin(theta) * math.cos(phi), math.cos(theta)],
+                             dtype=np.float32)
         mu0 = g.normals @ s
-        cos_g = g.view @ s
-        lit = g.lookup(lm)
-        m = g.valid & (mu0 > 0.0) & (g.mu > 0.0)
+        sunward = g.valid & (mu0 > 0.0)
+        lit = np.zeros(g.shape, dtype=np.float32)
+        mu0_s, slope_s = mu0[sunward], g.normals[sunward] @ ds_dtheta
+        lit[sunward] = 0.25 * sum(horizon.disc_lit_factor(np.float32(theta), hk[sunward], mu0_s, slope_s)
+                                  for hk in h)
+        m = sunward & (g.mu > 0.0) & (lit > 0.0)
         radiance = np.zeros(g.shape, dtype=np.float32)
         if m.any():
-            radiance[m] = hapke.radiance_factor_np(mu0[m], g.mu[m], cos_g[m], self.s.params) * lit[m] * g.cov[m]
-        lit_out = np.where(g.valid & (mu0 > 0.0), np.clip(lit, 0.0, 1.0), 0.0).astype(np.float32)
+            radiance[m] = (radiance_factor32(mu0[m], g.mu[m], g.view[m] @ s, self.s.params)
+                           * lit[m] * g.cov[m])
+        lit_out = np.clip(lit, 0.0, 1.0)
         self.stats["shade_s"] += time.perf_counter() - t0
         return {"IF": radiance, "depth": g.depth,
                 "N.X": g.normals[..., 0], "N.Y": g.normals[..., 1], "N.Z": g.normals[..., 2],
                 "lit": lit_out}
 
 
-__all__ = ["FastRenderer", "FallbackNeeded", "LitMap", "GBuffer"]
+__all__ = ["FastRenderer", "FallbackNeeded", "HorizonMap", "GBuffer", "MapGeometry"]

@@ -21,8 +21,8 @@ _SCRATCH = None
 
 
 def scratch_path() -> str:
-    """Per-process scratch file for Cycles' output (up to ~64 MB for a 1024^2 lit map), named after the
-    pid so that a host or a later worker can remove those of dead processes (kill -9)."""
+    """Per-process scratch file for Cycles' output (a G-buffer or direct render of one crop: a few MB),
+    named after the pid so that a host or a later worker can remove those of dead processes (kill -9)."""
     global _SCRATCH
     if _SCRATCH is None:
         remove_stale_scratch()

@@ -10,7 +10,8 @@ import bpy
 
 from blender_gen import material
 
-# Default render settings (configs/render/cycles_cpu.yaml mirrors these; the job's values win).
+# Default render settings: equal to configs/render/cycles_cpu.yaml (tests/test_docs_truth.py compares
+# them); the job's values win.
 RENDER_DEFAULTS = {
     "mode": "fast",
     "samples": 16,
@@ -19,8 +20,7 @@ RENDER_DEFAULTS = {
     "threads": 0,
     "shadow_map_px": 512,
     "shadow_map_extent_factor": 2.45,
-    "shadow_map_levels": 2,  # nested lit maps, each shadow_map_px^2, half-widths extent / 2^k
-    "shadow_map_samples": 0,  # 0: same as samples
+    "shadow_map_levels": 2,  # nested horizon-map levels, each shadow_map_px^2, half-widths extent / 2^k
     "gbuffer_samples": 0,  # 0: same as samples
     "seed": 0,
 }
@@ -35,7 +35,7 @@ def render_settings(job_render: dict | None) -> dict:
     for key in ("samples", "shadow_map_px", "shadow_map_levels"):
         if int(cfg[key]) < 1:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 1")
-    for key in ("max_bounces", "threads", "shadow_map_samples", "gbuffer_samples"):
+    for key in ("max_bounces", "threads", "gbuffer_samples"):  # an old job's shadow_map_samples is ignored
         if int(cfg[key]) < 0:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 0")
     if float(cfg["shadow_map_extent_factor"]) <= 0:

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from crater_core import geometry, hapke
 from blender_gen import camera, material, mesh, render, scene, sun
+from crater_core import geometry, hapke
 
 
 class Session:

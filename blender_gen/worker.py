@@ -135,12 +135,12 @@ def run(job_path: str) -> int:
 
     import numpy as np
 
-    from crater_core import exr
     from blender_gen import direct, fast, render
-    from crater_core.hapke import HapkeParams
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector
+    from crater_core import exr
+    from crater_core.hapke import HapkeParams
 
     try:
         cfg = render_settings(job.get("render"))
@@ -151,7 +151,13 @@ def run(job_path: str) -> int:
     session = Session(job, terrain)
     del terrain
     log(f"scene ready in {time.perf_counter() - t0:.2f} s ({len(job['renders'])} renders, mode {cfg['mode']})")
-    fast_r = fast.FastRenderer(session) if cfg["mode"] == "fast" else None
+    fast_r = None
+    if cfg["mode"] == "fast":
+        fast_r = fast.FastRenderer(session, lambda: load_terrain(job["terrain_npz"]))
+        cache_dir = job.get("horizon_cache_dir") or os.path.join(
+            os.path.dirname(os.path.abspath(job["terrain_npz"])), "horizon")
+        fast_r.prepare_horizons([float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"],
+                                cache_dir, log=log)
     out_dir = job["out_dir"]
     t_job = time.perf_counter()
     t_write = 0.0

@@ -22,8 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_core.errors import ContractError
-from crater_core.files import (SCRATCH_PREFIXES, disk_full_message, free_bytes, is_disk_full, scratch_file,
-                                size_text)
+from crater_core.files import SCRATCH_PREFIXES, disk_full_message, free_bytes, is_disk_full, scratch_file, size_text
 from crater_core.schema import EXR_CHANNELS
 
 CHANNELS = EXR_CHANNELS

@@ -4,7 +4,7 @@ The formula is written once, against a tiny "ops" backend, so that the same code
 - evaluates with numpy (the test oracle and the fast renderer's per-pixel shading), and
 - builds a Cycles shader-node graph (``blender_gen.material``) whose math nodes are the same formula.
 
-Model (Hapke 1981, Icarus 46:184; roughness correction Hapke 1984, Icarus 59:41; see docs/hapke.md):
+Model (Hapke 1981, JGR 86:3039; roughness correction Hapke 1984, Icarus 59:41; see docs/hapke.md):
 
     r(i, e, g) = w/(4 pi) * mu0e/(mu0e + mue) * [(1 + B(g)) p(g) + H(mu0e) H(mue) - 1] * S(i, e, g, theta_bar)
 
@@ -48,7 +48,7 @@ class HapkeParams:
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
-            raise ValueError(f"Hapke parameter(s) out of physical range: "
+            raise ValueError("Hapke parameter(s) out of physical range: "
                              + ", ".join(f"{k}={getattr(self, k)}" for k in bad))
 
     @classmethod

@@ -30,12 +30,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Dict, Mapping, Optional, Tuple
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 from crater_core.hapke import HapkeParams
-from crater_core.settings_train import (ConvSettings, HogSettings, ModelSettings, MosaicSettings, PoolSettings,
-                                        PreprocessSettings, RealsetSettings, SensorSettings, SvmSettings,
-                                        TrainSettings)
+from crater_core.settings_train import (
+    ConvSettings,
+    HogSettings,
+    ModelSettings,
+    MosaicSettings,
+    PoolSettings,
+    PreprocessSettings,
+    RealsetSettings,
+    SensorSettings,
+    SvmSettings,
+    TrainSettings,
+)
 from crater_core.sweep import AXES, SweepGrid, grid_from_config
 from crater_core.typed_config import SettingsError, _Group, _need, as_plain, build, replace
 
@@ -63,50 +72,71 @@ class CraterSettings(_Group):
         _need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
 
 
+# dem.blend_pixels: the stack's transition band in coarse pixels (crater_synth/demstack.py, docs/dem_stack.md).
+BLEND_PIXELS_RANGE = (0.5, 50.0)
+
+
 @dataclass(frozen=True, kw_only=True)
 class DemSettings(_Group):
-    """``dem.*``: the DEM product (or an explicit file) and the far-field one."""
+    """``dem.*``: the base DEM product (or an explicit file), finer stack layers over it, the far-field one."""
 
     product: Optional[str]
     path: Optional[str]
+    stack: Tuple[str, ...]       # finer DEMs over the base, finest first: product ids or file paths
+    blend_pixels: float          # stack layers blend into the coarser data over this many coarse pixels
     far_product: Optional[str]
     far_path: Optional[str]
     max_nodata_fraction: float
 
     def _check(self):
         _need(bool(self.product or self.path), "product", self.product, "dem.product or dem.path must be set")
+        lo, hi = BLEND_PIXELS_RANGE
+        _need(lo <= self.blend_pixels <= hi, "blend_pixels", self.blend_pixels,
+              f"must lie in [{lo:g}, {hi:g}] (coarse pixels)")
         _need(0.0 <= self.max_nodata_fraction <= 1.0, "max_nodata_fraction", self.max_nodata_fraction,
               "must lie in [0, 1]")
 
 
 # Pike (1977) fresh simple craters: depth/diameter 0.196 (kept equal to crater_synth.detail's constant).
 FRESH_DEPTH_DIAMETER = 0.196
+# terrain.detail.model: calibrated (fitted to a real LOLA 200 m crop) or legacy (pre-calibration, for ablations).
+DETAIL_MODELS = ("calibrated", "legacy")
+# Allowed min_depth_diameter: the recognition limit of a degraded crater (docs/detail.md). Above 0.005
+# every allowed diffusion time keeps the 4 R stamp cut below 0.2 % of the fresh depth.
+MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
 
 
 @dataclass(frozen=True, kw_only=True)
 class DetailSettings(_Group):
-    """``terrain.detail``: sub-DEM detail (crater_synth/detail.py, docs/terrain.md)."""
+    """``terrain.detail``: sub-DEM detail (crater_synth/detail.py, docs/detail.md); defaults are the
+    calibrated values. ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``,
+    ``min_crater_diameter_m`` and ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy``
+    uses crater_synth.detail.LEGACY_PARAMETERS."""
 
     enabled: bool = True
     seed: int = 0
+    model: str = "calibrated"
     hurst: float = 0.8
-    rms_slope_deg: float = 6.0
-    crater_density_scale: float = 1.0
+    roughness_rms_slope_deg: float = 1.25
+    crater_density_scale: float = 0.8
     min_crater_diameter_m: float = 300.0
-    min_depth_diameter: float = 0.05
+    min_depth_diameter: float = 0.014
 
     @classmethod
     def from_config(cls, mapping: Mapping | None, path: str = "terrain.detail"):
         return build(cls, mapping or {}, path)
 
     def _check(self):
+        _need(self.model in DETAIL_MODELS, "model", self.model, f"must be one of {list(DETAIL_MODELS)}")
         _need(0.0 < self.hurst < 1.0, "hurst", self.hurst, "must lie in (0, 1)")
-        _need(0.0 <= self.rms_slope_deg < 60.0, "rms_slope_deg", self.rms_slope_deg, "must lie in [0, 60) degrees")
+        _need(0.0 <= self.roughness_rms_slope_deg < 60.0, "roughness_rms_slope_deg", self.roughness_rms_slope_deg,
+              "must lie in [0, 60) degrees")
         _need(0.0 <= self.crater_density_scale <= 100.0, "crater_density_scale", self.crater_density_scale,
               "must lie in [0, 100]")
         _need(self.min_crater_diameter_m > 0.0, "min_crater_diameter_m", self.min_crater_diameter_m, "must be > 0")
-        _need(0.0 < self.min_depth_diameter <= FRESH_DEPTH_DIAMETER, "min_depth_diameter", self.min_depth_diameter,
-              f"must lie in (0, {FRESH_DEPTH_DIAMETER}] (fresh craters, Pike 1977)")
+        lo, hi = MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER
+        _need(lo <= self.min_depth_diameter < hi, "min_depth_diameter", self.min_depth_diameter,
+              f"must lie in [{lo}, {hi}) (fresh craters: {FRESH_DEPTH_DIAMETER}, Pike 1977)")
 
 
 # Near-field vertices per side: below 16 the rim is not resolved; above 8193 the mesh does not fit memory.
@@ -153,7 +183,7 @@ class RenderSettings(_Group):
     shadow_map_px: int
     shadow_map_levels: int
     shadow_map_extent_factor: float
-    shadow_map_samples: int
+    horizon_cache_dir: Optional[str]  # fast path: shared horizon-map cache (null: <terrain dir>/horizon)
     gbuffer_samples: int
     workers: int
     max_retries: int = 2      # restarts of a dying Blender worker on its unfinished renders
@@ -168,7 +198,6 @@ class RenderSettings(_Group):
         _need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
         _need(self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor,
               "must be > 0")
-        _need(self.shadow_map_samples >= 0, "shadow_map_samples", self.shadow_map_samples, "must be >= 0 (0 = samples)")
         _need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
         _need(self.workers >= 1, "workers", self.workers, "must be >= 1")
         _need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
@@ -181,6 +210,7 @@ class AxisSettings(_Group):
     count: int
     values: Optional[Tuple[float, ...]] = None
     step_deg: Optional[float] = None
+    step_fraction: Optional[float] = None   # physical sun elevations: fraction step (null: 0.1)
 
     def _check(self):
         _need(self.count >= 1, "count", self.count, "must be >= 1")
@@ -199,6 +229,9 @@ class SweepSettings(_Group):
     sigma: AxisSettings
     fov_deg: float
     range_factor: float
+    # Defaults (a sweep file written before the physical model may omit them) as in crater_core.sweep:
+    sun_model: str = "paper"             # paper: Table 2 positions; physical: fractions of each crater's highest sun
+    min_sun_elevation_deg: float = 0.0   # physical sweeps: suns below this are not rendered
 
     def _check(self):
         _need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
@@ -209,6 +242,8 @@ class SweepSettings(_Group):
         return grid_from_config(self.as_dict())
 
     def warnings(self) -> list[str]:
+        if self.sun_model != "paper":  # physical: the values are fractions in (0, 1], checked by the grid
+            return []
         low = [v for v in self.grid.sun_elevation if v <= 0.0]
         if not low:
             return []
@@ -249,7 +284,7 @@ class LauncherSettings(_Group):
 
 
 # ------------------------------------------------------------------------------------------------
-# Closed loop, Figure 6 experiments, data fetching
+# Closed loop, Figure 6 experiments, validation protocol, ablation, data fetching
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
 class LoopSettings(_Group):
@@ -289,6 +324,42 @@ class ExperimentsSettings(_Group):
 
     def _check(self):
         _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ValidateSettings(_Group):
+    """``validate.*``: the real validation protocol (crater_synth/validate.py, docs/validation.md). The
+    groups' rules (disjoint, in the catalogue, no test crater) are checked there, against configs/crater/."""
+
+    groups: Tuple[Tuple[str, ...], ...]   # validation crater groups (configs/crater/ names)
+    test: Tuple[str, ...]                 # the test group: reported, never used to choose
+    seeds: Tuple[int, ...]                # training seeds per group
+    out_dir: str
+
+    def _check(self):
+        _need(bool(self.seeds), "seeds", self.seeds, "must list at least one seed")
+        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LeverSettings(_Group):
+    """``ablation.levers.<name>``: one fidelity lever; ``when_off`` are the overrides that turn it off."""
+
+    why: str = ""
+    when_off: Tuple[str, ...] = ()   # empty: crater_synth/ablation.py names the lever in its error
+
+
+@dataclass(frozen=True, kw_only=True)
+class AblationSettings(_Group):
+    """``ablation.*``: each fidelity lever on and off under the validation protocol (crater_synth/ablation.py)."""
+
+    out_dir: str
+    docs_file: Optional[str]          # the generated table goes between its markers (null: docs untouched)
+    train: Dict[str, Any]             # train.<key> overrides: the same training budget for every variant
+    levers: Dict[str, LeverSettings]
+
+    def _check(self):
+        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -332,6 +403,8 @@ class Settings(_Group):
     loop: LoopSettings
     experiments: ExperimentsSettings
     fetch: FetchSettings
+    validate: ValidateSettings
+    ablation: AblationSettings
     seed: int
     data_dir: str
     out_dir: str
@@ -363,12 +436,13 @@ GROUPS: Dict[str, type] = {
     "crater": CraterSettings, "dem": DemSettings, "terrain": TerrainSettings, "hapke": HapkeParams,
     "render": RenderSettings, "sweep": SweepSettings, "launcher": LauncherSettings, "model": ModelSettings,
     "train": TrainSettings, "sensor": SensorSettings, "realset": RealsetSettings, "loop": LoopSettings,
-    "experiments": ExperimentsSettings, "fetch": FetchSettings,
+    "experiments": ExperimentsSettings, "fetch": FetchSettings, "validate": ValidateSettings,
+    "ablation": AblationSettings,
 }
 
 __all__ = [
-    "GROUPS", "AxisSettings", "ConvSettings", "CountsSettings", "CraterSettings", "DemSettings", "DetailSettings",
-    "ExperimentsSettings", "FetchSettings", "HapkeParams", "HogSettings", "LauncherSettings", "LoopSettings",
-    "ModelSettings", "MosaicSettings", "PoolSettings", "PreprocessSettings", "RealsetSettings", "RenderSettings",
-    "SensorSettings", "Settings", "SettingsError", "SvmSettings", "SweepSettings", "TerrainSettings", "TrainSettings",
-    "as_plain", "build", "replace"]
+    "GROUPS", "AblationSettings", "AxisSettings", "ConvSettings", "CountsSettings", "CraterSettings", "DemSettings",
+    "DetailSettings", "ExperimentsSettings", "FetchSettings", "HapkeParams", "HogSettings", "LauncherSettings",
+    "LeverSettings", "LoopSettings", "ModelSettings", "MosaicSettings", "PoolSettings", "PreprocessSettings",
+    "RealsetSettings", "RenderSettings", "SensorSettings", "Settings", "SettingsError", "SvmSettings",
+    "SweepSettings", "TerrainSettings", "TrainSettings", "ValidateSettings", "as_plain", "build", "replace"]

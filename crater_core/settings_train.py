@@ -112,6 +112,7 @@ class TrainSettings(_Group):
     """``train.*`` (configs/train/default.yaml, docs/classifiers.md)."""
 
     dataset_dir: str
+    seed: int                    # split, augmentation, sensor noise and weight initialisation (${seed})
     val_fraction: float
     split_by: str
     sigmas: Optional[Tuple[float, ...]]
@@ -165,6 +166,9 @@ class SensorSettings(_Group):
     read_noise_dn: float
     gain_jitter: float
     quantize_bits: int
+    gsd_m: Optional[float]          # the real product's ground sample distance (m/px); null = resolution jitter
+    gsd_jitter: float               # relative jitter of that native grid
+    jpeg_quality: Optional[int]     # JPEG quality of the real product; null = no JPEG
 
     def _check(self):
         _need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
@@ -178,6 +182,12 @@ class SensorSettings(_Group):
         _need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
         _need(0.0 <= self.gain_jitter < 1.0, "gain_jitter", self.gain_jitter, "must lie in [0, 1)")
         _need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
+        _need(self.gsd_m is None or self.gsd_m > 0.0, "gsd_m", self.gsd_m, "must be > 0 metres (or null)")
+        _need(0.0 <= self.gsd_jitter < 1.0, "gsd_jitter", self.gsd_jitter, "must lie in [0, 1)")
+        _need(self.jpeg_quality is None or 1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality,
+              "must lie in [1, 100] (or null)")
+        _need(self.jpeg_quality is None or self.quantize_bits == 8, "jpeg_quality", self.jpeg_quality,
+              "needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,6 +9,13 @@ Sample positions (SPEC.md, "project's reading" of the paper's Table 2):
     camera azimuth  phi2   = 360 deg * k / N,     k = 0..N-1
     ROI ratio       sigma  = 1.0 + 0.2 * k,       k = 0..N-1   (a crop of every render, not a render axis)
 
+Sun model (``sweep.sun_model``): ``paper`` uses the positions above for every crater (Table 2's
+0.16-1.6 deg is the paper's choice). ``physical`` (docs/validation.md) reads the sun-elevation values as
+fractions f of the highest elevation the Sun really reaches at that crater in that direction,
+theta = f * theta_max(lat, phi1) (``crater_core.illumination``), default f = 0.1 k, k = 1..N, so that
+count 10 spans the crater's whole physical range and smaller counts are prefixes (the closed loop
+stays nested); suns that would stand below ``min_sun_elevation_deg`` are not rendered.
+
 Render order is sun-major (sun elevation, sun azimuth, camera elevation, camera azimuth), so a
 contiguous shard shares few sun directions: the fast renderer computes one shadow map per sun
 direction and one G-buffer per camera pose.
@@ -29,6 +36,9 @@ class SweepError(ContractError):
 
 
 AXES = ("sun_elevation", "sun_azimuth", "cam_elevation", "cam_azimuth")
+SUN_MODELS = ("paper", "physical")
+# Physical sweeps: sun-elevation fractions 0.1 k (count 10 = the crater's whole range, like 0.16 k deg).
+PHYSICAL_STEP_FRACTION = 0.1
 
 # Physical limits used to reject nonsense configuration before any rendering starts.
 _LIMITS = {
@@ -68,6 +78,8 @@ class RenderParams:
     cam_elevation: float
     cam_azimuth: float
 
+    sun_elevation_param: float | None = None  # the grid value (physical sweeps: the fraction f)
+
     @property
     def sun_key(self) -> tuple[int, int]:
         return self.indices[0], self.indices[1]
@@ -93,12 +105,25 @@ class SweepGrid:
     sigmas: tuple[float, ...]
     fov_deg: float = 90.0
     range_factor: float = 1.5
+    sun_model: str = "paper"  # "paper" | "physical" (see module docstring)
+    min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def __post_init__(self):
+        if self.sun_model not in SUN_MODELS:
+            raise SweepError(f"invalid sweep.sun_model={self.sun_model!r}: choose one of {list(SUN_MODELS)}")
+        if self.sun_model == "physical":
+            bad = [v for v in self.sun_elevation if not 0.0 < v <= 1.0]
+            if bad:
+                raise SweepError(f"invalid sweep.sun_elevation values {bad}: with sweep.sun_model=physical they are "
+                                 "fractions of the crater's highest sun elevation, in (0, 1]")
         for axis in AXES:
             vals = getattr(self, axis)
             if len(vals) == 0:
                 raise SweepError(f"sweep.{axis} has no values")
+            if axis == "sun_elevation" and self.sun_model == "physical":
+                if len(set(vals)) != len(vals):
+                    raise SweepError(f"sweep.{axis} has duplicate values {list(vals)}")
+                continue
             lo, hi, msg = _LIMITS[axis]
             bad = [v for v in vals if not (lo < v <= hi) and not (axis.endswith("azimuth") and v == lo)]
             if bad:
@@ -119,13 +144,28 @@ class SweepGrid:
     def __len__(self) -> int:
         return int(np.prod(self.shape))
 
-    def params(self, index: int) -> RenderParams:
-        """Deterministic flat index -> render parameters (sun-major order)."""
+    def params(self, index: int, lat_deg: float | None = None) -> RenderParams:
+        """Deterministic flat index -> render parameters (sun-major order). Physical sweeps need the
+        crater's latitude: the sun elevation is the grid's fraction of the local maximum."""
         if not 0 <= index < len(self):
             raise IndexError(f"sweep index {index} outside [0, {len(self)})")
-        idx = tuple(int(i) for i in np.unravel_index(index, self.shape))
-        return RenderParams(index, idx, self.sun_elevation[idx[0]], self.sun_azimuth[idx[1]],
-                            self.cam_elevation[idx[2]], self.cam_azimuth[idx[3]])
+        i0, i1, i2, i3 = (int(i) for i in np.unravel_index(index, self.shape))
+        idx = (i0, i1, i2, i3)
+        param = self.sun_elevation[idx[0]]
+        elevation = param
+        if self.sun_model == "physical":
+            if lat_deg is None:
+                raise SweepError("a physical sweep needs the crater latitude to place its suns")
+            from crater_core.illumination import max_sun_elevation_deg
+
+            elevation = round(float(param * max_sun_elevation_deg(lat_deg, self.sun_azimuth[idx[1]])), 6)
+        return RenderParams(index, idx, elevation, self.sun_azimuth[idx[1]],
+                            self.cam_elevation[idx[2]], self.cam_azimuth[idx[3]], sun_elevation_param=param)
+
+    def renders(self, params: RenderParams) -> bool:
+        """Whether a render is part of the sweep: physical sweeps skip suns that never rise high enough
+        in that direction (below ``min_sun_elevation_deg``); paper sweeps render everything."""
+        return self.sun_model != "physical" or params.sun_elevation >= self.min_sun_elevation_deg
 
     def index_of(self, indices: Sequence[int]) -> int:
         return int(np.ravel_multi_index(tuple(indices), self.shape))
@@ -142,27 +182,34 @@ class SweepGrid:
 
     def as_dict(self) -> dict:
         return {a: list(getattr(self, a)) for a in AXES} | {
-            "sigmas": list(self.sigmas), "fov_deg": self.fov_deg, "range_factor": self.range_factor}
+            "sigmas": list(self.sigmas), "fov_deg": self.fov_deg, "range_factor": self.range_factor,
+            "sun_model": self.sun_model, "min_sun_elevation_deg": self.min_sun_elevation_deg}
 
 
-def _axis_values(cfg_axis: Mapping, axis: str) -> tuple[float, ...]:
+def _axis_values(cfg_axis: Mapping, axis: str, sun_model: str = "paper") -> tuple[float, ...]:
     values = cfg_axis.get("values")
     if values is not None:
         return tuple(float(v) for v in values)
-    return tuple(default_positions(axis, int(cfg_axis["count"]), cfg_axis.get("step_deg")))
+    step = cfg_axis.get("step_deg")
+    if axis == "sun_elevation" and sun_model == "physical":
+        step = cfg_axis.get("step_fraction") or PHYSICAL_STEP_FRACTION
+    return tuple(default_positions(axis, int(cfg_axis["count"]), step))
 
 
 def grid_from_config(sweep_cfg: Mapping) -> SweepGrid:
     """Build the grid from a ``configs/sweep/*.yaml`` mapping (counts, or explicit value lists)."""
+    sun_model = str(sweep_cfg.get("sun_model") or "paper")
     try:
         return SweepGrid(
-            sun_elevation=_axis_values(sweep_cfg["sun_elevation"], "sun_elevation"),
+            sun_elevation=_axis_values(sweep_cfg["sun_elevation"], "sun_elevation", sun_model),
             sun_azimuth=_axis_values(sweep_cfg["sun_azimuth"], "sun_azimuth"),
             cam_elevation=_axis_values(sweep_cfg["cam_elevation"], "cam_elevation"),
             cam_azimuth=_axis_values(sweep_cfg["cam_azimuth"], "cam_azimuth"),
             sigmas=_axis_values(sweep_cfg["sigma"], "sigma"),
             fov_deg=float(sweep_cfg.get("fov_deg", 90.0)),
             range_factor=float(sweep_cfg.get("range_factor", 1.5)),
+            sun_model=sun_model,
+            min_sun_elevation_deg=float(sweep_cfg.get("min_sun_elevation_deg") or 0.0),
         )
     except KeyError as exc:
         raise SweepError(f"sweep config is missing key {exc}") from None
@@ -182,7 +229,14 @@ def rows_in_selection(rows: Sequence[Mapping], selection: Mapping[str, Sequence[
             raise SweepError(f"unknown selection axis {axis!r} (expected one of {AXES})")
         if values is not None:
             wanted[axis] = {round(float(v), 6) for v in values}
-    return [r for r in rows if all(round(float(r[a]), 6) in vals for a, vals in wanted.items())]
+    return [r for r in rows if all(round(float(_axis_value(r, a)), 6) in vals for a, vals in wanted.items())]
+
+
+def _axis_value(row: Mapping, axis: str) -> float:
+    """A row's grid value on ``axis`` (physical sweeps: the sun-elevation fraction, not the angle)."""
+    if axis == "sun_elevation" and row.get("sun_elevation_param") is not None:
+        return row["sun_elevation_param"]
+    return row[axis]
 
 
 def nearest_subset(available: Sequence[float], axis: str, count: int) -> list[float]:

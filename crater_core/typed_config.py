@@ -181,7 +181,8 @@ def as_plain(obj: Any) -> Any:
 
 def replace(obj, **changes):
     """``dataclasses.replace`` with dotted keys: ``replace(s, **{"render.workers": 1})``."""
-    direct, nested = {}, {}
+    direct: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
     for key, value in changes.items():
         head, _, rest = key.partition(".")
         if rest:

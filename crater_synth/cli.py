@@ -18,15 +18,18 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 # (module, attribute, one-line summary) of each subcommand, in `crater-synth --help` order.
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command", "Build each selected crater's terrain patch."),
+    ("crater_synth.catalogue", "catalogue_command", "Check the catalogue craters against the DEM."),
     ("crater_synth.fetch", "fetch_data_command", "Fetch or check the registered data products."),
     ("crater_synth.launcher", "dataset_command", "Render the sweep into out_dir (resumable)."),
     ("crater_synth.verify", "verify_command", "Check a dataset's files against its manifest."),
     ("crater_synth.preview", "preview_command", "Write a contact sheet PNG per crater."),
-    ("train.cli", "train_command", "Train the three classifiers; test on real crops."),
-    ("train.cli", "evaluate_command", "Evaluate saved models on the real crops."),
+    ("crater_synth.training", "train_command", "Train the three classifiers; test on real crops."),
+    ("crater_synth.training", "evaluate_command", "Evaluate saved models on the real crops."),
     ("crater_synth.loop", "loop_command", "Closed loop: add sun elevations until accurate."),
     ("crater_synth.experiments", "experiments_command", "Figure 6: accuracy against each sample count."),
     ("crater_synth.report", "report_command", "Write the HTML report of a run."),
+    ("crater_synth.validate", "validate_command", "Validation protocol: choose on validation craters."),
+    ("crater_synth.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
     ("crater_synth.bench", "bench_command", "Benchmarks: renderer, training, distributed."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )

@@ -115,7 +115,8 @@ def register_schemas() -> None:
 def compose_settings(overrides: Sequence[str] = (), config_name: str = "config") -> tuple[DictConfig, Settings]:
     """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``) and
     validate it: ``(DictConfig, Settings)``. Any bad value or unknown key is a :class:`ConfigError`."""
-    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
@@ -211,6 +212,8 @@ def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = (
             why = _EXPECTED.get(kind, f"must be of type {kind}")
         if re.match(r"field '[^']+' is not Optional", why) or "is not Optional" in why:
             why = "must not be null"
+        if "is not a ListConfig, list or tuple" in why:
+            why = "must be a list, e.g. [a,b]"
         typed = _override_for(full_key, overrides)
         element = re.search(r"\[(\d+)\]$", full_key)
         if typed and element and conv:

@@ -233,10 +233,11 @@ class Dem:
         return max(1, int(math.floor(spacing_m / self.pixel_size_m)))
 
     # ------------------------------------------------------------------------------ reading
-    def _read_window(self, col, row, factor: int):
+    def _read_window(self, col, row, factor: int, margin_px: int | None = None):
         """Read the window around continuous positions (col, row), decimated by ``factor``.
 
-        Returns (values float64 with NaN for nodata, valid fraction per cell, (col_off, row_off),
+        ``margin_px``: native pixels read beyond the positions (default: the spline margin).
+        Returns (values float64 with NaN for nodata, valid mask per cell, (col_off, row_off),
         native window shape).
         """
         import rasterio
@@ -244,7 +245,7 @@ class Dem:
         from rasterio.errors import RasterioError
         from rasterio.windows import Window
 
-        margin = SPLINE_MARGIN_PX * factor
+        margin = SPLINE_MARGIN_PX * factor if margin_px is None else int(margin_px)
         c0 = max(0, int(math.floor(np.min(col))) - margin)
         r0 = max(0, int(math.floor(np.min(row))) - margin)
         c1 = min(self.width, int(math.ceil(np.max(col))) + margin)
@@ -268,6 +269,12 @@ class Dem:
             valid &= data != self.nodata
         values = np.where(valid, data * self.scale + self.offset, np.nan) * self.unit_factor
         return values, valid, (c0, r0), (h, w)
+
+    def read_heights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(heights m above the sphere, NaN where nodata; valid mask) of the whole raster, native pixels."""
+        values, valid, _, _ = self._read_window(np.array([0.0, self.width]), np.array([0.0, self.height]), 1,
+                                                margin_px=0)
+        return self._to_height(values), valid
 
     def _to_height(self, values: np.ndarray) -> np.ndarray:
         if self.stores_radius or (np.isfinite(values).any() and np.nanmedian(values) > 0.5 * self.body_radius_m):

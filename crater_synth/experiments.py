@@ -18,16 +18,17 @@ from pathlib import Path
 import click
 from omegaconf import DictConfig, OmegaConf
 
-from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import AXES, grid_from_config, nearest_subset
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import ConfigError, resolved
+from train.registry import FIGURE6_MODELS, SPECS
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
 CSV_FIELDS = ("parameter", "count", "sigma", "model", "real_accuracy", "val_accuracy", "train_images", "seconds")
 PANEL_TITLES = {"sun_elevation": "Sun elevation θ1", "sun_azimuth": "Sun azimuth φ1",
                 "cam_elevation": "Camera elevation θ2", "cam_azimuth": "Camera azimuth φ2"}
-MODELS = ("lunarnet_ex", "lunarsvm_ex")
+MODELS = FIGURE6_MODELS          # the paper's Figure 6 plots LunarNet_ex and LunarSVM_ex
 
 
 def plan_points(grid, counts: dict) -> list[dict]:
@@ -78,12 +79,12 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     colours = dict(zip(sigmas, ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e")))
     for ax, axis in zip(axes.ravel(), AXES):
         for sigma in sigmas:
-            for model, style in zip(MODELS, ("o-", "s--")):
+            for model, style in zip(MODELS, ("o-", "s--", "^:", "d-.")):
                 pts = sorted((int(r["count"]), float(r["real_accuracy"])) for r in rows
                              if r["parameter"] == axis and float(r["sigma"]) == sigma and r["model"] == model)
                 if pts:
                     ax.plot(*zip(*pts), style, color=colours[sigma], ms=4, lw=1.2,
-                            label=f"{'Net' if model == 'lunarnet_ex' else 'SVM'} σ={sigma:.1f}")
+                            label=f"{SPECS[model].short} σ={sigma:.1f}")
         counts = sorted({int(r["count"]) for r in rows if r["parameter"] == axis})
         if counts:
             ax.set_xticks(counts)
@@ -94,7 +95,8 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     axes[0, 0].set_ylabel("accuracy on real crops")
     axes[1, 0].set_ylabel("accuracy on real crops")
     axes[0, 0].legend(fontsize=7, ncol=2, loc="lower right")
-    fig.suptitle("Test accuracy by sample count (paper Fig. 6): LunarNet_ex solid, LunarSVM_ex dashed", fontsize=10)
+    styles = ", ".join(f"{SPECS[m].label} {ls}" for m, ls in zip(MODELS, ("solid", "dashed", "dotted", "dash-dot")))
+    fig.suptitle(f"Test accuracy by sample count (paper Fig. 6): {styles}", fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)

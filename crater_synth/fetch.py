@@ -22,9 +22,9 @@ from pathlib import Path
 
 import click
 
+from crater_core.errors import ContractError
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_core.errors import ContractError
 
 # Used when the composed config has no ``fetch`` group (configs/fetch/default.yaml holds the same).
 FETCH_DEFAULTS = {"base_url": None, "timeout_s": 60.0, "retries": 3, "chunk_bytes": 1 << 20, "backoff_s": 1.0}
@@ -45,7 +45,10 @@ def fetch_settings(cfg) -> dict:
     from omegaconf import OmegaConf
 
     node = cfg.get("fetch") if cfg is not None else None
-    raw = OmegaConf.to_container(node, resolve=True) if node is not None and not isinstance(node, dict) else (node or {})
+    if node is not None and not isinstance(node, dict):
+        raw = OmegaConf.to_container(node, resolve=True)
+    else:
+        raw = node or {}
     s = {**FETCH_DEFAULTS, **{k: v for k, v in dict(raw).items() if v is not None or k == "base_url"}}
     try:
         s["timeout_s"] = float(s["timeout_s"])
@@ -99,8 +102,8 @@ def _fsync_dir(path: Path) -> None:
 
 def _check(path: Path, expected_sha: str | None, expected_size: int | None, what: str) -> tuple[str, int]:
     """(sha256, size) of ``path``; ChecksumError on a size or digest mismatch."""
-    from data_manifest.products import ChecksumError
     from crater_core.schema import sha256_file
+    from data_manifest.products import ChecksumError
 
     size = path.stat().st_size
     if expected_size is not None and size != int(expected_size):

@@ -17,23 +17,28 @@ from pathlib import Path
 import click
 from omegaconf import DictConfig, OmegaConf
 
-from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import grid_from_config
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import ConfigError, resolved
+from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
 
 HISTORY_FILE = "loop_history.json"
-MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
 # Files of the last round that represent the run as a whole.
-FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.yaml", "lunarnet_ex.pt",
-               "lunarsvm_ex.pkl", "hog_svm.pkl")
+FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.yaml", *ARTEFACTS)
 
 
 def round_config(cfg: DictConfig, sun_count: int, round_dir: Path) -> DictConfig:
     """The configuration of one round: ``sun_count`` sun elevations, training restricted to that grid."""
     cfg_k = copy.deepcopy(cfg)
-    OmegaConf.update(cfg_k, "sweep.sun_elevation.count", int(sun_count))
-    OmegaConf.update(cfg_k, "sweep.sun_elevation.values", None)
+    values = resolved(cfg)["sweep"]["sun_elevation"].get("values")
+    if values is not None:  # explicit positions: round k uses the first ``sun_count`` of them (nested rounds)
+        if sun_count > len(values):
+            raise ConfigError(f"loop.sun_elevation_schedule asks for {sun_count} sun elevations but "
+                              f"sweep.sun_elevation.values has only {len(values)}")
+        OmegaConf.update(cfg_k, "sweep.sun_elevation.values", list(values)[:int(sun_count)])
+    else:
+        OmegaConf.update(cfg_k, "sweep.sun_elevation.count", int(sun_count))
     grid = grid_from_config(resolved(cfg_k)["sweep"])
     OmegaConf.update(cfg_k, "train.select", {"sun_elevation": list(grid.sun_elevation),
                                              "sun_azimuth": list(grid.sun_azimuth),
@@ -66,8 +71,8 @@ def plot_history(hist: dict, png: Path) -> None:
     rounds = hist["rounds"]
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     counts = [r["sun_elevation_count"] for r in rounds]
-    for name, style in zip(MODELS, ("o-", "s--", "^:")):
-        ax.plot(counts, [r[name] for r in rounds], style, label=name)
+    for name, style in zip(MODELS, ("o-", "s--", "^:", "d-.", "v-")):
+        ax.plot(counts, [r[name] for r in rounds], style, color=SPECS[name].color, label=SPECS[name].label)
     ax.axhline(hist["threshold"], color="grey", lw=0.8, ls="--", label=f"threshold {hist['threshold']:.2f}")
     ax.set_xlabel("sun-elevation sample count")
     ax.set_ylabel("accuracy on real crops")
@@ -101,7 +106,7 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     hist = load_history(hist_path, threshold, schedule)
 
     def reached(r: dict) -> bool:
-        return r["lunarnet_ex"] >= threshold
+        return r[LOOP_MODEL] >= threshold
 
     for k, count in enumerate(schedule):
         if k < len(hist["rounds"]):  # finished in an earlier run
@@ -155,7 +160,7 @@ def loop_command(overrides):
 
     hist = run_loop(compose(overrides))
     for r in hist["rounds"]:
+        accs = " ".join(f"{m} {r[m]:.3f}" for m in MODELS)
         click.echo(f"round {r['round']}: sun count {r['sun_elevation_count']:2d}, {r['images']} train images, "
-                   f"real accuracy lunarnet_ex {r['lunarnet_ex']:.3f} lunarsvm_ex {r['lunarsvm_ex']:.3f} "
-                   f"hog_svm {r['hog_svm']:.3f} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)")
+                   f"real accuracy {accs} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)")
     click.echo(f"stopped: {hist['stopped_because']}")

@@ -8,11 +8,11 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
-from crater_synth.errors import UserError
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
 from crater_core.schema import atomic_write_bytes
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
 
 
 def read_channel(path: Path, name: str = "IF") -> np.ndarray:

@@ -29,8 +29,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_core.settings import NEAR_VERTICES_RANGE  # noqa: F401 - the range lives with the settings
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 
 # Bump when the patch arrays or their meaning change: it is part of every terrain_id.
@@ -61,7 +61,8 @@ def terrain_settings(cfg) -> dict:
     s = {"near_radius_factor": t.near_radius_factor, "near_vertices": t.near_vertices,
          "far_radius_km": t.far_radius_km, "far_spacing_km": t.far_spacing_km,
          "max_nodata_fraction": d.max_nodata_fraction, "detail": t.detail,
-         "dem": {"product": d.product, "path": d.path, "far_product": d.far_product, "far_path": d.far_path}}
+         "dem": {"product": d.product, "path": d.path, "far_product": d.far_product, "far_path": d.far_path,
+                 "stack": list(d.stack), "blend_pixels": d.blend_pixels}}
     s["data_dir"] = Path(str(st.data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
     return s
 
@@ -69,6 +70,51 @@ def terrain_settings(cfg) -> dict:
 def _crater_dict(crater) -> dict:
     """A crater entry (``CraterSettings`` or its dict) as the plain dict the patch metadata records."""
     return crater.as_dict() if hasattr(crater, "as_dict") else dict(crater)
+
+
+def _open_stack(s: dict):
+    """The near-field DEM: the base (dem.product / dem.path) with the dem.stack layers over it."""
+    from crater_synth.demstack import open_stack
+
+    base, base_sha = _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
+    return open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
+
+
+def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key: str) -> tuple[np.ndarray, dict]:
+    """Sub-DEM detail weighted by the data behind each vertex (docs/dem_stack.md).
+
+    For each DEM layer with weight W_k > 0 somewhere, ``synthesize_detail`` is called with that layer's
+    effective pixel (native x decimation), and the fields are summed with the weights: where a
+    layer as fine as the grid covers a vertex (e.g. the 200 m Shackleton crop on a 205 m grid) the
+    detail is zero; where only the 1600 m base covers, it is the base's detail unchanged; across a
+    blend band it fades with the weight. A plain :class:`SampleResult` (one DEM) gets the base's detail.
+    """
+    from crater_synth.detail import synthesize_detail
+
+    weights = getattr(sample, "layer_weights", None) or [np.ones(shape)]
+    pixels = getattr(sample, "layer_pixel_m", None) or [None]
+    base_px = pixels[0] if pixels[0] is not None else None
+    field_sum = np.zeros(shape)
+    by_pixel: dict[float, np.ndarray] = {}
+    base_stats: dict = {}
+    for i, (w, px) in enumerate(zip(weights, pixels)):
+        if i > 0 and not np.any(w > 0.0):
+            continue
+        if px not in by_pixel:
+            by_pixel[px], stats = synthesize_detail(shape, spacing_m, px, settings, key=key)
+            if i == 0:
+                base_stats = stats
+        field_sum += w * by_pixel[px]
+    if len(weights) == 1:
+        return field_sum, base_stats
+    base_stats = dict(base_stats)
+    base_stats["stack"] = {
+        "base_pixel_m": base_px,
+        "base_weight_mean": float(np.mean(weights[0])),
+        "rms_height_m": float(np.sqrt(np.mean(field_sum**2))),
+        "note": "detail scaled by each DEM layer's weight; synthesised only below that layer's resolution",
+    }
+    return field_sum, base_stats
 
 
 def _open_dem(product: str | None, path: str | None, data_dir: Path):
@@ -173,8 +219,9 @@ def _atomic_save_npz(path: Path, arrays: dict) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict) -> str:
-    """Content key of a patch: DEM bytes, crater, terrain + detail settings, format version."""
+def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict, stack_key: dict | None = None) -> str:
+    """Content key of a patch: DEM bytes (base, far and every stack layer with its blending), crater,
+    terrain + detail settings, format version. An empty stack leaves the key as it was before stacks."""
     detail = s["detail"].as_dict() if s["detail"].enabled else {"enabled": False}
     key = {
         "format": TERRAIN_FORMAT_VERSION, "dem_sha256": dem_sha, "far_dem_sha256": far_dem_sha,
@@ -183,6 +230,8 @@ def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict) -> str:
                                       "max_nodata_fraction")},
         "detail": detail,
     }
+    if stack_key and stack_key.get("layers"):
+        key["stack"] = stack_key
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -202,24 +251,22 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
 
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
+    from crater_core.files import ensure_writable_dir
     from crater_core.schema import atomic_write_text
     from crater_synth.dem import DemCoverageError
-    from crater_synth.detail import synthesize_detail
-
-    from crater_core.files import ensure_writable_dir
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
     crater = _crater_dict(crater)
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
-    dem, dem_sha = _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
+    dem, dem_sha = _open_stack(s)
     if s["dem"]["far_product"] or s["dem"]["far_path"]:
         far_dem, far_sha = _open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
     else:
-        far_dem, far_sha = dem, dem_sha
+        far_dem, far_sha = dem, dem_sha  # the same stack: near and far fields agree in their overlap
 
-    tid = terrain_id(dem_sha, far_sha, crater, s)
+    tid = terrain_id(dem_sha, far_sha, crater, s, dem.key())
     out_dir = s["data_dir"] / TERRAIN_SUBDIR
     ensure_writable_dir(s["data_dir"], "data_dir")
     npz_path = out_dir / f"{name}-{tid}.npz"
@@ -243,8 +290,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     dirs, plat, plon = _sphere_points(ee, nn, lat, lon)
     near = dem.sample(plat, plon, spacing_m=spacing, max_nodata_fraction=s["max_nodata_fraction"],
                       what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)")
-    detail, detail_stats = synthesize_detail((nv, nv), spacing, dem.pixel_size_m * near.decimation, s["detail"],
-                                             key=name)
+    detail, detail_stats = stack_detail((nv, nv), spacing, near, s["detail"], key=name)
     near_h = near.heights + detail
     near_xyz = _to_enu(dirs, near_h, lat, lon)
 
@@ -297,6 +343,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
             "pixel_size_m": dem.pixel_size_m, "crs_wkt": dem_info["crs_wkt"], "crs_proj": dem_info["crs_proj"],
             "crater_center_px": [float(ccol), float(crow)], "decimation": near.decimation,
             "far_product": far_dem.product, "far_sha256": far_sha,
+            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m), "blend_pixels": dem.blend_pixels,
         },
         "near": {"half_width_m": hw, "spacing_m": spacing, "shape": [nv, nv],
                  "rows": "n ascending (south to north)", "cols": "e ascending (west to east)"},
@@ -317,6 +364,18 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     return npz_path, {**meta, "cached": False}
 
 
+def _stack_meta(stack, near, ee: np.ndarray, nn: np.ndarray, radius_m: float) -> list[dict]:
+    """Per stack layer: its identity and blending, and its weight over the near field and the crater."""
+    in_crater = np.hypot(ee, nn) <= RIM_SEARCH_FRAC[1] * radius_m
+    out = []
+    for i, info in enumerate(stack.stack_info()):  # sample weights: base first, then the layers finest first
+        w = near.layer_weights[i + 1]
+        out.append({**info, "near_weight_mean": round(float(w.mean()), 4),
+                    "crater_weight_mean": round(float(w[in_crater].mean()), 4),
+                    "effective_pixel_m": float(near.layer_pixel_m[i + 1])})
+    return out
+
+
 def summary_line(meta: dict) -> dict:
     """The one-line JSON report of a patch printed by ``crater-synth terrain``."""
     return {
@@ -334,6 +393,8 @@ def summary_line(meta: dict) -> dict:
         "nodata_fraction": meta["nodata_fraction"],
         "filled_holes": meta["filled_holes"],
         "detail_craters": meta["detail"]["n_craters"],
+        "dem_stack": [layer["product"] for layer in meta["dem"].get("stack", [])],
+        "fine_weight_crater": round(sum(layer["crater_weight_mean"] for layer in meta["dem"].get("stack", [])), 3),
         "cached": meta.get("cached", False),
         "patch": meta["patch"],
     }

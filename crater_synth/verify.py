@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
+from crater_core import schema
+from crater_core.exr import ExrError, exr_info
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.disk import find_orphans
 from crater_synth.errors import UserError
-from crater_core import schema
-from crater_core.exr import ExrError, exr_info
 
 
 def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:

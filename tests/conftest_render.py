@@ -109,7 +109,7 @@ def flat_expected_if(it: dict, params: dict = HAPKE, z0: float = 0.0) -> np.ndar
 
 def crater_z(diameter_m: float):
     """Bowl crater (depth 0.2 D, raised rim 0.04 D) with gentle undulations: a stand-in for a DEM."""
-    from blender_gen.bench import bowl_crater_z
+    from crater_synth.render_bench import bowl_crater_z
 
     return bowl_crater_z(diameter_m)
 

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, TINY, assert_same_dataset, exr_files, run_cli, summary
 
 EIGHT = ("sweep.cam_elevation.count=2",)  # 8 renders

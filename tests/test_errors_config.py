@@ -5,7 +5,6 @@ In-process (click's CliRunner), so that each case costs a composition, not an in
 
 import pytest
 from click.testing import CliRunner
-
 from conftest import TINY, exr_files
 
 # (overrides, the complete first -- and only -- stderr line)
@@ -70,7 +69,9 @@ def test_unknown_option_inside_a_crater_list(tmp_path):
     result, _ = _dataset(tmp_path, "crater=[shackleton,atlantis]")
     assert result.exit_code == 2
     assert result.stderr.splitlines() == [
-        "error: unknown crater 'atlantis' (in crater=[...]): choose from custom, de_gerlache, shackleton, shoemaker"]
+        "error: unknown crater 'atlantis' (in crater=[...]): choose from amundsen, cabeus, custom, de_forest, "
+        "de_gerlache, faustini, ganswindt, haworth, hedervari, idelson, kocher, kuhn, malapert, nefedev, nobile, "
+        "rittenhouse, scott, shackleton, shoemaker, svedberg, sverdrup, wiechert"]
 
 
 def test_schema_names_are_not_offered_as_options(tmp_path):

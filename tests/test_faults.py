@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, TINY, assert_same_dataset, cli_command, exr_files, run_cli, summary
 
 # 32 renders, direct mode at 16 spp: ~0.09 s each on 2 cores, so a Blender worker runs ~3 s after

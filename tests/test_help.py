@@ -9,7 +9,6 @@ import subprocess
 import pytest
 import yaml
 from click.testing import CliRunner
-
 from conftest import REPO
 
 
@@ -51,7 +50,7 @@ def test_top_level_help_one_liners_are_whole():
         assert line.rstrip().endswith("."), line
     assert "``" not in text and "…" not in text
     names = [line.split()[0] for line in commands]
-    assert names[:3] == ["terrain", "fetch-data", "dataset"]  # pipeline order, not A-Z
+    assert names[:4] == ["terrain", "catalogue", "fetch-data", "dataset"]  # pipeline order, not A-Z
     assert "config" in names
 
 

@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, TINY, cli_command, exr_files, run_cli
 
 # 16 direct-mode renders at 16 spp: the first writer is busy for several seconds.

@@ -76,3 +76,19 @@ def test_bad_loop_settings_are_refused(tmp_path, scripted_training):
         run(tmp_path, "loop.threshold=1.5")
     with pytest.raises(ConfigError, match="increasing"):
         run(tmp_path, "loop.sun_elevation_schedule=[4,2]")
+
+
+def test_rounds_take_prefixes_of_explicit_sun_elevations(tmp_path):
+    """With explicit positions (e.g. physical fractions) round k trains on the first counts of them,
+    so rounds stay nested and only the new renders are added."""
+    from crater_synth.config import resolved
+
+    cfg = compose(TINY + ["sweep.sun_model=physical", "sweep.sun_elevation.values=[0.25,0.5,0.75,1.0]",
+                          f"data_dir={tmp_path}/data"])
+    sel = [resolved(loop_mod.round_config(cfg, n, tmp_path / f"r{n}"))["train"]["select"]["sun_elevation"]
+           for n in (2, 4)]
+    assert sel == [[0.25, 0.5], [0.25, 0.5, 0.75, 1.0]]
+    from crater_synth.config import ConfigError
+
+    with pytest.raises(ConfigError, match="only 4"):
+        loop_mod.round_config(cfg, 5, tmp_path / "r5")

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from crater_core import geometry
+from crater_core.sweep import grid_from_config
 from crater_synth.config import compose, resolved
 from crater_synth.dataset import plan_render
-from crater_core.sweep import grid_from_config
 
 CRATER = {"name": "shackleton", "lat": -89.67, "lon": 129.78, "diameter_km": 21.0}
 

@@ -76,7 +76,8 @@ def test_flat_plane_if_matches_hapke_oracle(flat_runs, mode):
         got = img["IF"]
         assert got.shape == expected.shape
         rel_mean = got.mean() / expected.mean() - 1.0
-        assert abs(rel_mean) < 0.01, f"{mode} {it['sun_elevation']}/{it['cam_elevation']}: mean I/F off by {rel_mean:.2%}"
+        where = f"{mode} {it['sun_elevation']}/{it['cam_elevation']}"
+        assert abs(rel_mean) < 0.01, f"{where}: mean I/F off by {rel_mean:.2%}"
         # per pixel: exact formula, only Monte-Carlo noise of the solar disk at grazing sun
         mad = np.abs(got - expected).mean() / expected.mean()
         assert mad < (0.01 if it["sun_elevation"] < 5 else 0.002), f"{mode} {it}: per-pixel MAD {mad:.3%}"
@@ -143,7 +144,7 @@ def mesa_runs(tmp_path_factory):
                      name="mesa") for i, (se, sa, _) in enumerate(MESA_SUNS)]
     runs = {}
     for mode in ("direct", "fast"):
-        # lit maps +-6.3 km and +-12.6 km (covering the crop), 33 / 66 m texels (camera pixels: 100 m)
+        # horizon maps +-6.3 km and +-12.6 km (covering the crop), 33 / 66 m texels (camera pixels: 100 m)
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=6.0, shadow_map_px=384, shadow_map_levels=2)
         _run(job, tmp, f"mesa-{mode}")
         runs[mode] = {"items": items, "out": tmp / mode}
@@ -245,7 +246,7 @@ def crater_runs(tmp_path_factory):
     for mode in ("direct", "fast"):
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=CRATER_D / 1000.0, samples=16,
                      shadow_map_px=384, shadow_map_levels=2, shadow_map_extent_factor=1.8)
-        # lit-map texels 47 m (|x|, |y| < 9 km) and 94 m (out to 18 km); camera pixels ~100 m
+        # horizon-map texels 47 m (|x|, |y| < 9 km) and 94 m (out to 18 km); camera pixels ~100 m
         results, proc = _run(job, tmp, f"crater-{mode}")
         runs[mode] = {"items": items, "out": tmp / mode, "results": results, "stderr": proc.stderr}
     return runs
@@ -279,28 +280,26 @@ def test_crater_renders_have_shadows_and_light(crater_runs):
 
 
 @pytest.mark.slow
-def test_bench_fast_vs_direct_512(tmp_path):
-    """The production-size comparison: 512^2 near field of a Shackleton-sized crater, ~211 px crops,
-    paper-grid angles (python -m blender_gen.bench --mode both ...; ~0.5-1 min on 2 cores)."""
-    import json
-    import subprocess
-    import sys
+def test_bench_fast_vs_direct_real_terrain(tmp_path):
+    """The production-size comparison: the real Shackleton terrain, planner and config, 12 paper-grid
+    items (crater_synth.render_bench.SAMPLE) in fast and direct mode, compared per pixel."""
+    from crater_synth import render_bench
 
-    proc = subprocess.run([sys.executable, "-m", "blender_gen.bench", "--mode", "both", "--suns", "2",
-                           "--sun-stride", "7", "--cams", "4", "--cam-stride", "37", "--workers", "2",
-                           "--out", str(tmp_path)], cwd=cr.REPO, capture_output=True, text=True, timeout=1800)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    report = json.loads(proc.stdout)
-    for r in report["fast_vs_direct"]["renders"]:
+    data = [f"data_dir={tmp_path / 'data'}"]
+    render_bench.timed_dataset(render_bench.SAMPLE + ["render.mode=fast"] + data, tmp_path / "fast")
+    render_bench.timed_dataset(render_bench.DIRECT_ROI + data, tmp_path / "direct")
+    report = render_bench.compare(tmp_path / "direct", tmp_path / "fast")
+    assert report["renders"] == 12
+    for r in report["per_render"]:
         assert abs(r["rel_mean"]) < FAST_MEAN_TOL, r
         assert r["mad_over_median"] < FAST_MAD_TOL, r
         assert r["frac_gt_10pct"] < FAST_OUTLIER_TOL, r
         assert r["lit_mad"] < LIT_MAD_TOL, r
-    assert all(s["fast"]["fallbacks"] == 0 for s in report["modes"]["fast"]["worker_stats"])
+    assert render_bench.worker_stats(tmp_path / "fast")[0]["fast"]["fallbacks"] == 0
 
 
 def test_lit_map_levels_lookup():
-    """Nested lit maps: each point reads the finest level whose square holds its bilinear stencil,
+    """Nested map levels: each point reads the finest level whose square holds its bilinear stencil,
     and the lookup reproduces a linear function of (x, y) exactly on every level."""
     from blender_gen import fast
 
@@ -311,8 +310,8 @@ def test_lit_map_levels_lookup():
         d = 2 * half / geo.px
         c = -half + (np.arange(geo.px) + 0.5) * d
         x, y = np.meshgrid(c, c[::-1])
-        levels.append(0.3 + 1e-4 * x - 2e-4 * y)
-    lit = fast.LitMap(np.concatenate([lv.ravel() for lv in levels]).astype(np.float32), geo)
+        levels.append(0.3 + 1e-4 * x - 2e-4 * y)  # a linear field sampled at the texel centres
+    hm = fast.HorizonMap(np.concatenate([lv.ravel() for lv in levels]).astype(np.float32), geo)
     pts = np.array([[0.0, 0.0], [150.0, -180.0], [400.0, 300.0], [-800.0, 800.0], [1200.0, 0.0]])
     x, y = pts[:, 0][None, :], pts[:, 1][None, :]
     i00, fx, fy, n_out = geo.locate(x, y, np.ones_like(x, dtype=bool))
@@ -321,5 +320,5 @@ def test_lit_map_levels_lookup():
     assert list(level[:4]) == [0, 0, 1, 2]
     g = object.__new__(fast.GBuffer)
     g.i00, g.fx, g.fy, g.px = i00.astype(np.int32), fx, fy, geo.px
-    got = g.lookup(lit)[0, :4]
+    got = g.lookup(hm)[0, :4]
     np.testing.assert_allclose(got, 0.3 + 1e-4 * pts[:4, 0] - 2e-4 * pts[:4, 1], atol=1e-6)

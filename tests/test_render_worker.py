@@ -95,7 +95,8 @@ def test_overwrite_is_atomic_and_deterministic(small, mode):
     run = small[mode]
     for it in run["job"]["renders"]:
         assert run["first"][it["index"]]["sha256"] == run["second"][it["index"]]["sha256"]
-    leftovers = [p.name for p in (run["dir"] / "bumps").iterdir() if not p.name.endswith(".exr") or p.name.startswith(".")]
+    leftovers = [p.name for p in (run["dir"] / "bumps").iterdir()
+                 if not p.name.endswith(".exr") or p.name.startswith(".")]
     assert leftovers == []
 
 

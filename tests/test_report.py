@@ -18,9 +18,9 @@ from click.testing import CliRunner
 
 from crater_core import schema
 from crater_core.exr import write_exr
+from train.registry import MODELS
 
 CRATERS = ("shackleton", "de_gerlache", "shoemaker")
-MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
 SIZE, RIM_PX = 64, 40.0
 
 
@@ -44,15 +44,15 @@ def _render(k: int, sun_el: float, sun_az: float) -> dict[str, np.ndarray]:
             "lit": (mu0 > 0).astype(np.float32)}
 
 
-def make_dataset(d: Path) -> list[dict]:
+def make_dataset(d: Path, craters=CRATERS) -> list[dict]:
     rows = []
     c = SIZE / 2
     boxes = {f"{s:.1f}": [c - s * RIM_PX / 2, c - s * RIM_PX / 2, c + s * RIM_PX / 2, c + s * RIM_PX / 2]
              for s in (1.0, 1.2, 1.4)}
-    for k, crater in enumerate(CRATERS):
+    for k, crater in enumerate(craters):
         for i, (se, sa, ce, ca) in enumerate([(0.8, 0.0, 86.0, 0.0), (1.6, 120.0, 86.0, 180.0),
                                               (1.6, 240.0, 90.0, 0.0), (0.8, 90.0, 90.0, 180.0)]):
-            ch = _render(k, se, sa)
+            ch = _render(k % 3, se, sa)
             rel = schema.render_rel_path(crater, se, sa, ce, ca)
             write_exr(d / rel, ch)
             rows.append(schema.validate_row({
@@ -74,7 +74,8 @@ def make_metrics() -> dict:
     out = {}
     for m, c in conf.items():
         a = np.array(c)
-        out[m] = {"real_accuracy": float(np.trace(a) / a.sum()), "real_accuracy_class_mean": float(np.trace(a) / a.sum()),
+        acc = float(np.trace(a) / a.sum())
+        out[m] = {"real_accuracy": acc, "real_accuracy_class_mean": acc,
                   "val_accuracy": 0.93 if m != "hog_svm" else 0.41,
                   "per_crater": {n: float(a[i, i] / a[i].sum()) for i, n in enumerate(CRATERS)},
                   "per_sigma": {"1.0": 0.9, "1.2": 0.8, "1.4": None}, "per_source": {"lroc_wac_south": 0.85},
@@ -95,14 +96,15 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
                                      "  select: {cam_elevation: [90.0]}\n")     # as a loop round / Fig. 6 point
     (run / "metrics.json").write_text(json.dumps(make_metrics()))
     if with_optional:
-        from crater_synth.report import _plot_confusion
+        from train.plots import plot_confusion
 
-        _plot_confusion(run / "confusion_lunarnet_ex.png", make_metrics()["lunarnet_ex"]["confusion"], CRATERS, "x")
+        plot_confusion(run / "confusion_lunarnet_ex.png", make_metrics()["lunarnet_ex"]["confusion"], CRATERS, "x")
         # The shape crater_synth/loop.py writes.
         rounds = [{"round": i, "sun_elevation_count": n, "renders_new": 4500, "renders_reused": 4500 * i,
                    "images": 4500 * n, "lunarnet_ex": a, "lunarsvm_ex": a - 0.05, "hog_svm": 0.3,
                    "val_accuracy": {m: 0.9 for m in MODELS}, "render_s": 600.0 * n, "train_s": 120.0,
-                   "run_dir": f"{run}/rounds/round{i}-sun{n}"} for i, (n, a) in enumerate([(2, 0.6), (4, 0.8), (6, 0.9)])]
+                   "run_dir": f"{run}/rounds/round{i}-sun{n}"}
+                  for i, (n, a) in enumerate([(2, 0.6), (4, 0.8), (6, 0.9)])]
         (run / "loop_history.json").write_text(json.dumps({"threshold": 0.85, "schedule": [2, 4, 6, 8, 10],
                                                            "rounds": rounds, "stopped_because": "threshold reached"}))
         with open(run / "experiments.csv", "w", newline="") as fh:
@@ -273,3 +275,56 @@ def test_chromium_is_required_in_ci(monkeypatch):
 def test_missing_run_dir_is_an_error(tmp_path):
     res = _run(tmp_path / "nope")
     assert res.exit_code == 2 and "run directory" in res.output and "does not exist" in res.output
+
+
+# South-polar craters (IAU Gazetteer, rounded) for runs with other class counts than the paper's three.
+OTHER_CRATERS = {"faustini": (-87.3, 77.0, 39.0), "haworth": (-87.45, -5.0, 51.0), "cabeus": (-85.3, -42.1, 98.0),
+                 "amundsen": (-84.4, 85.6, 103.0), "nobile": (-85.2, 53.5, 73.0), "sverdrup": (-88.5, -152.0, 33.0),
+                 "slater": (-88.1, -110.5, 24.0), "malapert": (-84.9, 12.9, 69.0), "idelson": (-84.2, 114.0, 60.0)}
+
+
+def make_n_class_run(tmp: Path, names: list[str], with_crater_group: bool) -> Path:
+    """A run whose classifier knows ``names``: dataset, metrics.json (n x n confusion), no confusion PNGs."""
+    ds, run = tmp / "ds", tmp / "run"
+    make_dataset(ds, names)
+    run.mkdir()
+    group = "".join(f"  {n}: {{name: {n}, lat: {OTHER_CRATERS[n][0]}, lon: {OTHER_CRATERS[n][1]}, "
+                    f"diameter_km: {OTHER_CRATERS[n][2]}}}\n" for n in names) if with_crater_group else "  {}\n"
+    (run / "config.yaml").write_text(f"seed: 0\nsweep: {{name: tiny}}\ncrater:\n{group}train:\n  dataset_dir: {ds}\n")
+    n = len(names)
+    conf = (np.eye(n, dtype=int) * 6 + 1).tolist()          # 6 right, 1 into every other class
+    metrics = {"classes": names, "train_images": 100 * n, "val_images": 20 * n, "test_images": (n + 5) * n,
+               "test_sources": ["lroc_wac_south"], "test_per_crater": {c: n + 5 for c in names},
+               "limits": "The embedded real test set is one real observation per crater (test)."}
+    for m in MODELS:
+        metrics[m] = {"real_accuracy": 6 / (n + 5), "real_accuracy_class_mean": 6 / (n + 5), "val_accuracy": 0.9,
+                      "per_crater": {c: 6 / (n + 5) for c in names}, "per_sigma": {"1.0": 0.5},
+                      "per_source": {"lroc_wac_south": 6 / (n + 5)}, "confusion": conf}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    return run
+
+
+@pytest.mark.parametrize("names, crater_group", [(["faustini", "haworth"], True),
+                                                 (list(OTHER_CRATERS), False)], ids=["2-classes", "9-classes"])
+def test_report_works_for_any_number_of_classes(tmp_path, names, crater_group):
+    run = make_n_class_run(tmp_path, names, crater_group)
+    res = _run(run, "realset.per_crater=3")
+    assert res.exit_code == 0, res.output
+    page = run / "report" / "index.html"
+    text = page.read_text()
+    n = len(names)
+    for c in names:                                        # one contact sheet per crater
+        assert (page.parent / f"contact_{c}.png").is_file() and f"<b>{c}</b>: 4 of 4 renders" in text
+    per_crater = text[text.index("Real accuracy per crater"):text.index("Real accuracy per ROI")]
+    assert [m for m in re.findall(r"<tr><td>([a-z_]+)</td>", per_crater)] == names   # one row per class
+    from PIL import Image
+
+    for m in MODELS:                                       # re-plotted n x n confusion, sized for n classes
+        with Image.open(page.parent / f"confusion_{m}.png") as im:
+            assert im.size[0] >= (552 if n <= 8 else 120 * (1.6 + 0.42 * n) - 1)
+    assert "re-plotted from <code>metrics.json</code>" in text
+    if crater_group:                                       # real crops exist for the configured craters
+        assert all((page.parent / f"compare_{c}.png").is_file() for c in names)
+        assert (page.parent / "histograms.png").is_file()
+    else:
+        assert "Real crops unavailable: none of the report" in text

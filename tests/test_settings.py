@@ -6,8 +6,17 @@ from pathlib import Path
 
 import pytest
 
-from crater_core.settings import (GROUPS, CraterSettings, DetailSettings, RenderSettings, Settings, SettingsError,
-                                  SweepSettings, build, replace)
+from crater_core.settings import (
+    GROUPS,
+    CraterSettings,
+    DetailSettings,
+    RenderSettings,
+    Settings,
+    SettingsError,
+    SweepSettings,
+    build,
+    replace,
+)
 from crater_synth.config import CONFIG_DIR, ConfigError, compose, compose_settings, load_settings, resolved
 
 

@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, TINY, cli_command, exr_files, run_cli, summary
 
 # 16 direct-mode renders at 16 spp, on 2 workers: time to interrupt the run mid-way.

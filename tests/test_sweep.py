@@ -2,8 +2,8 @@
 
 import pytest
 
-from crater_synth.config import ConfigError, compose, resolved
 from crater_core.sweep import default_positions, grid_from_config
+from crater_synth.config import ConfigError, compose, resolved
 
 
 def test_paper_grid_has_spec_positions_and_size():

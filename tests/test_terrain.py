@@ -112,10 +112,14 @@ def test_cache_and_terrain_id(shackleton, data_dir):
     cfg3 = compose([f"data_dir={data_dir}", "crater=shackleton", *FAST, "seed=99"])
     path3, meta3 = build_terrain(crater, cfg3)
     assert meta3["terrain_id"] != meta["terrain_id"] and not meta3["cached"]
-    off = compose([f"data_dir={data_dir}", "crater=shackleton", *FAST, "terrain.detail.enabled=false"])
+    # The 1600 m DEM alone (no stack layer): the detail is wholly below its resolution.
+    on = compose([f"data_dir={data_dir}", "crater=shackleton", *FAST, "dem.stack=[]"])
+    off = compose([f"data_dir={data_dir}", "crater=shackleton", *FAST, "dem.stack=[]", "terrain.detail.enabled=false"])
+    _, meta_on = build_terrain(crater, on)
     _, meta_off = build_terrain(crater, off)
+    assert meta_on["terrain_id"] != meta["terrain_id"]  # the stack is part of the key
     h_off = np.load(meta_off["patch"])["near_height"].astype(np.float64)
-    h_on = np.load(path)["near_height"].astype(np.float64)
+    h_on = np.load(meta_on["patch"])["near_height"].astype(np.float64)
     assert np.abs(h_on - h_off).max() > 1.0  # the detail is there ...
     from crater_synth.detail import lowpass
     diff = h_on - h_off  # ... and only below the DEM's resolution (float32 storage aside)

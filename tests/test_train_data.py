@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from crater_synth.config import compose, resolved
 from crater_core import schema
+from crater_synth.config import compose, resolved
 from train import data as tdata
 from train.data import build_datasets, check_synthetic_rows, load_rows, split_rows
 from train.errors import DatasetError, RealDataLeakError

@@ -1,17 +1,47 @@
-"""A tiny end-to-end `crater-synth train` / `evaluate` on a procedural dataset, the benchmark
-function, and one-line errors for bad input."""
+"""End-to-end `crater-synth train` / `evaluate` on the procedural toy dataset, with an accuracy bar a
+broken classifier cannot pass; the training benchmark; one-line errors for bad input.
+
+The stated accuracy: trained on the toy dataset (train/toydata.py: three toy craters, 4 camera poses x
+6 suns), every classifier must reach ACCURACY_BAR on the synthetic validation split (held-out camera
+pose) AND on held-out toy frames (new poses and suns, 8-bit PNGs read through the real-set path:
+``toydata.write_toy_frames``). Chance is 1/3. A constant classifier and a classifier trained on
+shuffled labels are shown to fail the same bar.
+"""
 
 import json
+import shutil
 
+import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
 
+from crater_core import schema
 from crater_synth.config import compose, resolved
-from train.toydata import write_toy_dataset
+from train.registry import MODELS
+from train.toydata import TOY_FRAME_SOURCE, write_toy_dataset, write_toy_frames
 
 torch.set_num_threads(1)
-MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
+CRATERS = ["shackleton", "de_gerlache", "shoemaker"]
+# Class-mean accuracy each model must reach (chance: 1/3). Measured with these settings: LunarNet_ex
+# 0.85 validation / 0.85 frames, LunarSVM_ex 0.85 / 0.82, HOG+SVM 0.69 / 0.67; on shuffled labels the
+# frames give 0.33 / 0.14 / 0.25.
+ACCURACY_BAR = {"lunarnet_ex": 0.70, "lunarsvm_ex": 0.65, "hog_svm": 0.60}
+# A small network input (64 px instead of the paper's 150) and enough steps to learn the toy set in
+# seconds; early stop at the validation target keeps the run short.
+FAST_TRAINING = ["model.input_size=64", "train.batch_size=16", "train.lr=3e-3", "train.max_epochs=16",
+                 "train.target_val_accuracy=0.85", "train.hog.max_train_images=200"]
+
+
+def shortfalls(metrics: dict) -> list[str]:
+    """Every (model, test) below ACCURACY_BAR; empty when the classifiers learned the toy set."""
+    out = []
+    for m in MODELS:
+        for what, acc in (("validation", metrics[m]["val_accuracy"]),
+                          ("held-out toy frames", metrics[m]["per_source"].get(TOY_FRAME_SOURCE))):
+            if acc is None or not acc >= ACCURACY_BAR[m]:
+                out.append(f"{m} {what} accuracy {acc} < {ACCURACY_BAR[m]}")
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -22,10 +52,14 @@ def toy(tmp_path_factory):
     return d
 
 
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    return write_toy_frames(tmp_path_factory.mktemp("toy_frames"))
+
+
 def _overrides(toy, tmp, *extra):
     return [f"train.dataset_dir={toy}", f"data_dir={tmp}", f"run_dir={tmp}/run", f"train.cache_dir={tmp}/cache",
-            "train.num_threads=1", "train.progress=false", "train.max_epochs=3", "train.batch_size=32",
-            "realset.per_crater=15", "train.hog.max_train_images=60", *extra]
+            "train.num_threads=1", "train.progress=false", "realset.per_crater=15", *FAST_TRAINING, *extra]
 
 
 def _cli():
@@ -34,48 +68,117 @@ def _cli():
     return main
 
 
-def test_train_then_evaluate_writes_valid_metrics(toy, tmp_path):
-    runner = CliRunner()
-    res = runner.invoke(_cli(), ["train", *_overrides(toy, tmp_path)], catch_exceptions=False)
+@pytest.fixture(scope="module")
+def trained(toy, frames, tmp_path_factory):
+    """One `crater-synth train` run: embedded WAC crops (15 per crater) + the held-out toy frames."""
+    tmp = tmp_path_factory.mktemp("trained")
+    overrides = _overrides(toy, tmp, f"realset.labels_file={frames}")
+    res = CliRunner().invoke(_cli(), ["train", *overrides], catch_exceptions=False)
     assert res.exit_code == 0, res.output
-    assert "one real observation per crater" in res.output
-    run = tmp_path / "run"
+    return tmp, overrides, res.output
+
+
+def test_train_then_evaluate_writes_valid_metrics(trained, toy):
+    tmp, overrides, output = trained
+    assert "one real observation per crater" in output
+    run = tmp / "run"
     m = json.loads((run / "metrics.json").read_text())
+    n_frames = 8 * 3 * 3                                   # views x craters x sigmas
     for name in MODELS:
         r = m[name]
-        assert 0.0 <= r["real_accuracy"] <= 1.0 and 0.0 <= r["val_accuracy"] <= 1.0
-        assert set(r["per_crater"]) == {"shackleton", "de_gerlache", "shoemaker"}
-        assert set(r["per_sigma"]) == {"1.0", "1.2", "1.4"} and set(r["per_source"]) == {"lroc_wac_south"}
-        conf = r["confusion"]
-        assert len(conf) == 3 and all(len(row) == 3 for row in conf)
-        assert sum(map(sum, conf)) == m["test_images"] == 45
-        assert sum(conf[i][i] for i in range(3)) / 45 == pytest.approx(r["real_accuracy"])
+        assert set(r["per_crater"]) == set(CRATERS)
+        assert set(r["per_sigma"]) == {"1.0", "1.2", "1.4"} and set(r["per_source"]) == {"lroc_wac_south",
+                                                                                          TOY_FRAME_SOURCE}
+        conf = np.array(r["confusion"])
+        assert conf.shape == (3, 3) and conf.sum() == m["test_images"] == 45 + n_frames
+        assert np.trace(conf) / conf.sum() == pytest.approx(r["real_accuracy"])
+        recall = np.diag(conf) / conf.sum(axis=1)
+        assert recall.mean() == pytest.approx(r["real_accuracy_class_mean"])
+        assert [r["per_crater"][c] for c in CRATERS] == pytest.approx(recall.tolist())
         assert (run / f"confusion_{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert m["train_images"] > 0 and m["test_sources"] == ["lroc_wac_south"]
+    assert m["train_images"] > 0 and m["test_sources"] == ["lroc_wac_south", TOY_FRAME_SOURCE]
     assert "one real observation per crater" in m["limits"]
     rows = [json.loads(line) for line in (run / "realset.jsonl").read_text().splitlines()]
-    assert len(rows) == 45 and {"box", "sigma", "offset_px", "rotation_deg", "source", "pred_lunarnet_ex"} <= set(rows[0])
+    assert len(rows) == 45 + n_frames
+    assert {"box", "sigma", "offset_px", "rotation_deg", "source", "pred_lunarnet_ex"} <= set(rows[0])
+    frame_rows = [r for r in rows if r["source"] == TOY_FRAME_SOURCE]
+    assert np.mean([r["pred_lunarnet_ex"] == r["crater"] for r in frame_rows]) == pytest.approx(
+        m["lunarnet_ex"]["per_source"][TOY_FRAME_SOURCE])
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["data"]["split_by"] == "camera" and summary["lunarnet_ex"]["history"]
     ck = torch.load(run / "lunarnet_ex.pt", weights_only=False)
-    assert ck["config"]["train"]["dataset_dir"] == str(toy) and ck["class_names"] == ["shackleton", "de_gerlache", "shoemaker"]
-    assert not list(run.glob(".*.tmp"))                       # atomic writes leave no temp files
+    assert ck["config"]["train"]["dataset_dir"] == str(toy) and ck["class_names"] == CRATERS
+    assert {p.name for p in run.glob("*.joblib")} == {"lunarsvm_ex.joblib", "hog_svm.joblib"}
+    assert not list(run.glob("*.pkl")) and not list(run.glob(".*.tmp"))   # joblib; atomic writes
     # `evaluate` reloads the saved models and reproduces the metrics.
-    res = runner.invoke(_cli(), ["evaluate", *_overrides(toy, tmp_path)], catch_exceptions=False)
+    res = CliRunner().invoke(_cli(), ["evaluate", *overrides], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     m2 = json.loads((run / "metrics.json").read_text())
     for name in MODELS:
         assert m2[name]["confusion"] == m[name]["confusion"]
 
 
-def test_bench_reports_throughput_and_time_to_target(toy, tmp_path):
-    from train.bench import run_train_bench
+def test_classifiers_learn_the_toy_set(trained):
+    """The stated accuracy: every model clears ACCURACY_BAR on the validation split and on held-out frames."""
+    m = json.loads((trained[0] / "run" / "metrics.json").read_text())
+    assert shortfalls(m) == []
 
-    cfg = resolved(compose(_overrides(toy, tmp_path, "train.max_epochs=2", "train.target_val_accuracy=0.0")))
+
+def test_a_constant_classifier_fails_the_bar(trained, monkeypatch):
+    """The same saved run, re-evaluated with every model answering the first class: the bar catches it."""
+    import train.evaluate as ev
+
+    class Constant:
+        def predict(self, x):
+            return np.zeros(len(x), dtype=np.int64)
+
+    real_load = ev.load_sklearn
+
+    def constant_logits(net, x, *args, **kwargs):
+        out = np.zeros((len(x), 3), dtype=np.float32)
+        out[:, 0] = 1.0
+        return out
+
+    monkeypatch.setattr(ev, "predict_logits", constant_logits)
+    monkeypatch.setattr(ev, "load_sklearn", lambda path: {**real_load(path), "model": Constant()})
+    tmp, overrides, _ = trained
+    broken = tmp / "constant"
+    shutil.copytree(tmp / "run", broken)
+    res = CliRunner().invoke(_cli(), ["evaluate", *overrides, f"run_dir={broken}"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    m = json.loads((broken / "metrics.json").read_text())
+    for name in MODELS:
+        assert m[name]["per_source"][TOY_FRAME_SOURCE] == pytest.approx(1 / 3)
+        assert f"{name} held-out toy frames accuracy" in " ".join(shortfalls(m))
+
+
+def test_shuffled_labels_fail_the_bar(toy, frames, tmp_path):
+    """Trained on the same images with their crater labels permuted, no model clears the bar."""
+    ds = tmp_path / "shuffled"
+    shutil.copytree(toy, ds)
+    rows = schema.load_manifest(ds)
+    labels = np.random.default_rng(7).permutation([r["crater"] for r in rows])
+    schema.write_manifest(ds / schema.MANIFEST_NAME, [dict(r, crater=str(c)) for r, c in zip(rows, labels)])
+    overrides = _overrides(ds, tmp_path, f"realset.labels_file={frames}", "realset.include_embedded=false",
+                           "train.max_epochs=6")
+    res = CliRunner().invoke(_cli(), ["train", *overrides], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    failed = " ".join(shortfalls(m))
+    for name in MODELS:
+        assert name in failed, f"{name} passed the bar on shuffled labels: {m[name]}"
+
+
+def test_bench_reports_throughput_and_time_to_target(toy, tmp_path):
+    from crater_synth.bench_train import run_train_bench
+
+    cfg = resolved(compose(_overrides(toy, tmp_path, "train.target_val_accuracy=0.7")))
     r = run_train_bench(cfg)
     assert r["train_images_per_s"] > 0 and r["model_images_per_s"] > 0
-    assert r["reached_target"] and r["epochs"] == 1 and r["time_to_target_s"] > 0
-    assert r["parameters"] == 1_062_723
+    assert r["reached_target"] and r["val_accuracy"] >= 0.7 and 1 <= r["epochs"] <= 16
+    assert 0 < r["time_to_target_s"] <= r["train_seconds"] + 60
+    # conv1 + conv2 + fc1 + fc2 of the 64-px LunarNet_ex (the paper-size count is in test_train_models.py)
+    assert r["parameters"] == (16 * 49 + 16) + (32 * 16 * 25 + 32) + (32 * 5 * 5 * 128 + 128) + (128 * 3 + 3)
 
 
 @pytest.mark.parametrize("extra, match", [

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from train.errors import TrainError
-from train.preprocess import (PreprocessConfig, SensorModel, normalize, outside_fraction, preprocess_crop,
-                              resample_box)
+from train.preprocess import PreprocessConfig, SensorModel, normalize, outside_fraction, preprocess_crop, resample_box
 from train.toydata import render_toy
 
 PP = PreprocessConfig()
@@ -84,8 +83,49 @@ def test_sensor_model_is_seeded_and_quantised(scene):
     c = s.apply(crop, np.random.default_rng(6))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
-    assert len(np.unique(np.rint(a * 255))) <= 256 and np.allclose(a * 255, np.rint(a * 255), atol=1e-4)
     # After normalisation the noisy image still resembles the clean one.
     assert np.mean(np.abs(normalize(a) - normalize(crop))) < 0.12
+    # At the crop's own resolution the output is quantised to 8 bits.
+    q = SensorModel(resolution_min_px=0).apply(crop, np.random.default_rng(5))
+    assert np.allclose(q * 255, np.rint(q * 255), atol=1e-4)
     with pytest.raises(TrainError, match="unknown sensor key"):
         SensorModel.from_config({"psf": 1})
+
+
+def test_sensor_model_samples_at_the_real_products_gsd(scene):
+    """With gsd_m the crop is integrated on the real sensor's grid (box side / GSD pixels), quantised
+    and JPEG-compressed there, then up-sampled like a real crop: a 21 km sigma-1 box at 400 m/px is a
+    52-px image, so the result carries no more detail than 52 samples across."""
+    crop = resample_box(scene, (0, 0, 96, 96), 150) * (0.2 / float(scene.max()))
+    s = SensorModel(gsd_m=400.0, jpeg_quality=81, psf_sigma_px=0.0, gain_jitter=0.0, read_noise_dn=0.0,
+                    photons_at_full_well=1e9)
+    out = s.apply(crop, np.random.default_rng(1), box_side_m=21_000.0)
+    assert out.shape == crop.shape
+
+    def detail_beyond_52px(img):  # relative change when squeezed through a 52-px grid and back
+        native = resample_box(img, (0, 0, 150, 150), 52, antialias=True)
+        back = resample_box(native, (0, 0, 52, 52), 150, antialias=False)
+        return np.mean(np.abs(back - img)) / np.mean(np.abs(img))
+
+    noise = 0.05 + 0.1 * np.random.default_rng(2).random((150, 150)).astype(np.float32)  # detail at every scale
+    plain = SensorModel(gsd_m=400.0, psf_sigma_px=0.0, gain_jitter=0.0, read_noise_dn=0.0, photons_at_full_well=1e9)
+    sampled = plain.apply(noise, np.random.default_rng(1), box_side_m=21_000.0)
+    assert detail_beyond_52px(sampled) < 0.25 * detail_beyond_52px(noise)
+    assert np.mean(np.abs(normalize(out) - normalize(crop))) < 0.15  # still the same scene
+    fine = s.apply(crop, np.random.default_rng(1), box_side_m=150 * 400.0 * 2)  # native grid finer than crop
+    assert np.allclose(fine * 255, np.rint(fine * 255), atol=1e-4)  # left at crop size: quantised only
+    with pytest.raises(TrainError, match="jpeg_quality"):
+        SensorModel(jpeg_quality=0)
+    with pytest.raises(TrainError, match="gsd_m"):
+        SensorModel(gsd_m=-1.0)
+
+
+def test_jpeg_roundtrip_changes_little_but_something():
+    from train.preprocess import jpeg_roundtrip
+
+    x = np.clip(np.random.default_rng(0).random((64, 64)), 0, 1)
+    x = np.rint(x * 255) / 255
+    y = jpeg_roundtrip(x, 81)
+    assert y.shape == x.shape and y.dtype == np.float32
+    assert 0 < np.mean(np.abs(y - x)) < 0.2
+    assert np.array_equal(jpeg_roundtrip(x, 81), y)  # deterministic

@@ -10,8 +10,7 @@ import pytest
 
 from crater_synth.config import compose, resolved
 from train.errors import RealSetError
-from train.realset import (build_real_test_set, load_labels_file, load_mosaic, plan_embedded_crops,
-                           plan_real_crops)
+from train.realset import build_real_test_set, load_labels_file, load_mosaic, plan_embedded_crops, plan_real_crops
 
 CLASSES = ["shackleton", "de_gerlache", "shoemaker"]
 
@@ -119,7 +118,8 @@ def test_labels_file_plugs_in_user_frames(cfg, craters, mosaic, tmp_path):
 
 
 @pytest.mark.parametrize("csv, match", [
-    ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,Faustini,10,10,5,x\n", "unknown crater 'Faustini'"),
+    ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,Faustini,10,10,5,x\n",
+     "unknown crater 'Faustini'"),
     ("image_path,crater,source\nframe.png,shackleton,x\n", "needs columns"),
     ("image_path,crater,center_u,center_v,diameter_px,source\nnope.png,shackleton,10,10,5,x\n", "does not exist"),
     ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,shackleton,10,ten,5,x\n", "bad number"),

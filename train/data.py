@@ -94,7 +94,8 @@ def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
 
 
 def check_synthetic_rows(rows: Iterable[dict], dataset_dir: str | Path,
-                         forbidden_sha256: Iterable[str] = (), forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
+                         forbidden_sha256: Iterable[str] = (),
+                         forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
     """Refuse anything that is not a synthetic render row: a row that fails the render-manifest schema,
     one marked with a non-synthetic ``source``/``role``, or one whose file (by manifest checksum or
     resolved path) is a real test image. Returns the rows."""
@@ -266,7 +267,7 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
                                         shape=(len(samples), pp.size, pp.size))
         j = 0
         # Bars on a terminal; otherwise (or with train.progress=false) a line every few seconds.
-        for i, row in enumerate(progress_iter(rows, len(rows), "cache crops", "exr", "auto" if progress else "lines")):
+        for _i, row in enumerate(progress_iter(rows, len(rows), "cache crops", "exr", "auto" if progress else "lines")):
             path = resolve_path(dataset_dir, row["path"])
             where = f"EXR {path}"
             if not path.is_file():
@@ -324,7 +325,8 @@ class SyntheticCropDataset(Dataset):
     """
 
     def __init__(self, cache: CropCache, indices: Sequence[int], labels: Sequence[int], rows: Sequence[dict],
-                 pp: PreprocessConfig, sensor: SensorModel | None, seed: int, train: bool, augment: bool = False):
+                 pp: PreprocessConfig, sensor: SensorModel | None, seed: int, train: bool, augment: bool = False,
+                 diameters_m: Mapping[str, float] | None = None):
         self.cache = cache
         self.indices = np.asarray(indices, dtype=np.int64)
         self.labels = np.asarray(labels, dtype=np.int64)
@@ -335,6 +337,7 @@ class SyntheticCropDataset(Dataset):
         self.train = train
         self.augment = augment and train
         self.epoch = 0
+        self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
         if len(self.indices) != len(self.labels):
             raise DatasetError("internal: indices and labels differ in length")
 
@@ -354,7 +357,9 @@ class SyntheticCropDataset(Dataset):
         x = np.asarray(self.cache.images[j], dtype=np.float32)
         rng = np.random.default_rng([self.seed, self.epoch + 1 if self.train else 0, j])
         if self.sensor is not None:
-            x = self.sensor.apply(x, rng)
+            ri, sigma = self.cache.samples[j]
+            d = self.diameters_m.get(self.rows[ri]["crater"])
+            x = self.sensor.apply(x, rng, box_side_m=None if d is None else sigma * d)
         y = normalize(x, self.pp)
         if self.augment:
             y = np.ascontiguousarray(np.rot90(y, int(rng.integers(4))))
@@ -409,7 +414,7 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
     rows = check_synthetic_rows(rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg),
                                 forbidden_paths)
     rows, others = select_rows(rows, class_names)
-    seed = int(cfg.get("seed", 0))
+    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     tr_rows, va_rows, split_info = split_rows(rows, float(tcfg.get("val_fraction", 0.2)),
                                               str(tcfg.get("split_by", "camera")), seed, class_names)
     sigmas = row_sigmas(rows, tcfg.get("sigmas"))
@@ -417,16 +422,20 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
     cache = build_cache(rows, dataset_dir, sigmas, pp, str(tcfg.get("cache_dir", dataset_dir / ".cache")),
                         str(tcfg.get("cache_dtype", "float16")), bool(tcfg.get("verify_sha256", True)), progress)
     sensor = SensorModel.from_config(cfg.get("sensor"))
+    diameters = {str((e or {}).get("name") or k): float((e or {})["diameter_km"]) * 1000.0
+                 for k, e in (cfg.get("crater") or {}).items() if (e or {}).get("diameter_km") is not None}
     cls = {n: i for i, n in enumerate(class_names)}
     tr_set, va_set = set(tr_rows), set(va_rows)
     tr_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in tr_set]
     va_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in va_set]
     lab = [cls[rows[ri]["crater"]] for ri, _ in cache.samples]
     train_ds = SyntheticCropDataset(cache, tr_idx, [lab[j] for j in tr_idx], rows, pp, sensor, seed, train=True,
-                                    augment=bool(tcfg.get("augment", True)))
-    val_ds = SyntheticCropDataset(cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False)
+                                    augment=bool(tcfg.get("augment", True)), diameters_m=diameters)
+    val_ds = SyntheticCropDataset(cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False,
+                                  diameters_m=diameters)
     info = split_info | {"sigmas": sigmas, "cache": str(cache.path), "cache_built": cache.built,
                          "cache_seconds": round(cache.seconds, 3), "train_images": len(tr_idx),
                          "val_images": len(va_idx), "ignored_craters": others,
-                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i)) for n, i in cls.items()}}
+                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i))
+                                                for n, i in cls.items()}}
     return SyntheticData(train_ds, val_ds, class_names, info)

@@ -1,12 +1,13 @@
-"""Errors of the training stage. All are :class:`crater_synth.errors.UserError` subclasses, so the CLI
-prints one ``error: ...`` line naming the bad input and exits with status 2."""
+"""Errors of the training stage. All derive from :class:`crater_core.errors.ContractError` (the core's
+bad-input base; ``train`` never imports the CLI layer), so the CLI prints one ``error: ...`` line
+naming the bad input and exits with status 2."""
 
 from __future__ import annotations
 
-from crater_synth.errors import UserError
+from crater_core.errors import ContractError
 
 
-class TrainError(UserError):
+class TrainError(ContractError):
     """Base class of bad-input errors raised by ``train/``."""
 
 

@@ -7,7 +7,6 @@ per source and the confusion matrix of each model), ``confusion_<model>.png``, `
 
 from __future__ import annotations
 
-import io
 import json
 import time
 from pathlib import Path
@@ -17,70 +16,43 @@ import numpy as np
 
 from crater_core.schema import atomic_write_text
 from train.errors import ModelError
+from train.metrics import accuracy, class_mean_accuracy, confusion
+from train.plots import plot_confusion
 from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
-from train.trainer import (HOG_FILE, SUMMARY_FILE, SVM_FILE, atomic_write_bytes, atomic_write_json, configure_torch,
-                           fc1_activations, load_lunarnet, load_sklearn, predict_logits)
+from train.registry import MODELS
+from train.trainer import (
+    HOG_FILE,
+    SUMMARY_FILE,
+    SVM_FILE,
+    configure_torch,
+    fc1_activations,
+    json_text,
+    load_lunarnet,
+    load_sklearn,
+    predict_logits,
+)
 
-MODELS = ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
 METRICS_FILE, REALSET_FILE = "metrics.json", "realset.jsonl"
 
 
-def confusion_matrix(y_true: np.ndarray, y_pred: np.ndarray, n: int) -> list[list[int]]:
-    """Rows: true class, columns: predicted class (class order of ``class_names``)."""
-    m = np.zeros((n, n), dtype=np.int64)
-    np.add.at(m, (y_true, y_pred), 1)
-    return m.tolist()
-
-
-def _acc(mask: np.ndarray, ok: np.ndarray) -> float:
-    return float(np.mean(ok[mask])) if np.any(mask) else float("nan")
-
-
 def model_metrics(y_true: np.ndarray, y_pred: np.ndarray, test: RealTestSet, val_accuracy: float | None) -> dict:
-    ok = y_true == y_pred
+    """One model's entry of metrics.json: accuracy overall, class-mean, per crater/sigma/source, confusion."""
     names = test.class_names
     sig = np.array([c.sigma for c in test.crops])
     src = np.array([c.source for c in test.crops])
+
+    def subset(mask: np.ndarray) -> float:
+        return accuracy(y_true[mask], y_pred[mask])
+
     return {
-        "real_accuracy": float(np.mean(ok)) if len(ok) else float("nan"),
-        "real_accuracy_class_mean": float(np.nanmean([_acc(y_true == i, ok) for i in range(len(names))
-                                                      if np.any(y_true == i)])) if len(ok) else float("nan"),
+        "real_accuracy": accuracy(y_true, y_pred),
+        "real_accuracy_class_mean": class_mean_accuracy(y_true, y_pred),
         "val_accuracy": None if val_accuracy is None else float(val_accuracy),
-        "per_crater": {n: _acc(y_true == i, ok) for i, n in enumerate(names) if np.any(y_true == i)},
-        "per_sigma": {f"{s:.1f}": _acc(np.isclose(sig, s), ok) for s in sorted(set(sig.tolist()))},
-        "per_source": {s: _acc(src == s, ok) for s in sorted(set(src.tolist()))},
-        "confusion": confusion_matrix(y_true, y_pred, len(names)),
+        "per_crater": {n: subset(y_true == i) for i, n in enumerate(names) if np.any(y_true == i)},
+        "per_sigma": {f"{s:.1f}": subset(np.isclose(sig, s)) for s in sorted(set(sig.tolist()))},
+        "per_source": {s: subset(src == s) for s in sorted(set(src.tolist()))},
+        "confusion": confusion(y_true, y_pred, len(names)),
     }
-
-
-def plot_confusion(path: str | Path, conf: Sequence[Sequence[int]], class_names: Sequence[str], title: str) -> None:
-    """Confusion matrix PNG (matplotlib Agg), written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
-    m = np.asarray(conf, dtype=float)
-    rowsum = m.sum(axis=1, keepdims=True)
-    frac = np.divide(m, rowsum, out=np.zeros_like(m), where=rowsum > 0)
-    fig = Figure(figsize=(4.6, 4.0), dpi=120)
-    ax = fig.add_subplot(111)
-    im = ax.imshow(frac, vmin=0, vmax=1, cmap="Blues")
-    n = len(class_names)
-    ax.set_xticks(range(n), class_names, rotation=30, ha="right")
-    ax.set_yticks(range(n), class_names)
-    ax.set_xlabel("predicted")
-    ax.set_ylabel("true")
-    ax.set_title(title, fontsize=9)
-    for i in range(n):
-        for j in range(n):
-            ax.text(j, i, f"{int(m[i, j])}\n{frac[i, j]:.0%}", ha="center", va="center", fontsize=8,
-                    color="white" if frac[i, j] > 0.5 else "black")
-    fig.colorbar(im, ax=ax, fraction=0.046)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    atomic_write_bytes(path, buf.getvalue())
 
 
 def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
@@ -100,7 +72,7 @@ def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
 
 
 def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test: RealTestSet | None = None) -> dict:
-    """Evaluate the three saved models of ``run_dir`` on the real test set; write the metrics files."""
+    """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics files."""
     run_dir = Path(run_dir)
     device = configure_torch(cfg["train"])
     t0 = time.perf_counter()
@@ -123,13 +95,15 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
     ebs = int(cfg["train"].get("eval_batch_size", 256))
     from train.models import hog_features
 
-    preds = {
+    preds = {  # one entry per model of train.registry
         "lunarnet_ex": predict_logits(net, test.images, ebs, device).argmax(1),
         "lunarsvm_ex": svm["model"].predict(fc1_activations(net, test.images, ebs, device)),
         "hog_svm": hog["model"].predict(hog_features(test.images, hog.get("hog") or cfg["train"].get("hog", {}))),
     }
     vals = {"lunarnet_ex": ck.get("val_accuracy"), "lunarsvm_ex": svm.get("val_accuracy"),
             "hog_svm": hog.get("val_accuracy")}
+    if set(preds) != set(MODELS) or set(vals) != set(MODELS):
+        raise AssertionError(f"evaluate_run predicts {sorted(preds)}, train.registry lists {list(MODELS)}")
     metrics: dict = {}
     for name in MODELS:
         metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
@@ -152,7 +126,7 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
         r.update({f"pred_{m}": class_names[int(preds[m][i])] for m in MODELS})
         rows.append(json.dumps(r, sort_keys=True))
     atomic_write_text(run_dir / REALSET_FILE, "\n".join(rows) + "\n")
-    atomic_write_json(run_dir / METRICS_FILE, _jsonable(metrics))
+    atomic_write_text(run_dir / METRICS_FILE, json_text(_jsonable(metrics)))
     return metrics
 
 

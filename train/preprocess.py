@@ -106,7 +106,8 @@ def resample_box(image: np.ndarray, box: Sequence[float], size: int, rotation_de
     Pixel coordinates: u right, v down, origin at the top-left *corner* of the image (pixel (i, j)
     covers [j, j+1) x [i, i+1)), the convention of the manifest's ``sigma_boxes`` and of the mosaic.
     ``rotation_deg`` rotates the sampling grid about the box centre (counter-clockwise on screen, so
-    the crop's content appears turned clockwise by that angle); a rotated crop has no empty corners as long as the rotated box stays inside the image. When the
+    the crop's content appears turned clockwise by that angle); a rotated crop has no empty corners as
+    long as the rotated box stays inside the image. When the
     box side exceeds ``size`` pixels the window is first Gaussian-filtered (sigma = (scale - 1) / 2,
     scikit-image's anti-aliasing rule). Samples that fall outside the image take the nearest edge value.
     Returns float32 (size, size).
@@ -193,15 +194,16 @@ def dn_to_float(image: np.ndarray) -> np.ndarray:
 
 def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfig = PreprocessConfig(),
                     rotation_deg: float = 0.0, sensor: "SensorModel | None" = None,
-                    rng: np.random.Generator | None = None) -> np.ndarray:
+                    rng: np.random.Generator | None = None, box_side_m: float | None = None) -> np.ndarray:
     """The whole path for one crop: resample_box -> (sensor) -> normalize. ``image`` may be float I/F
-    or integer DN (8-bit real frames); both go through exactly the same steps."""
+    or integer DN (8-bit real frames); both go through exactly the same steps. ``box_side_m`` (the
+    crop's ground width) lets a sensor with ``gsd_m`` sample it on the real product's grid."""
     a = np.asarray(image)
     crop = resample_box(a, box, pp.size, rotation_deg, pp.antialias, pp.interp_order)
     if np.issubdtype(a.dtype, np.integer):  # DN -> [0, 1] (a pure scale; only the window is converted)
         crop = crop / np.float32(np.iinfo(a.dtype).max)
     if sensor is not None and sensor.enabled:
-        crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0))
+        crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0), box_side_m=box_side_m)
     return normalize(crop, pp)
 
 
@@ -212,12 +214,21 @@ def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfi
 class SensorModel:
     """Seeded camera model applied to a resampled synthetic I/F crop before normalisation.
 
-    In order: effective-resolution jitter (down-sample to r x r, r ~ U[resolution_min_px, size], and
-    back: the real crops are up-sampled from 52-180 mosaic pixels), Gaussian PSF, exposure (automatic:
-    the image's white level -- the 99.5th percentile of its lit pixels -- lands at a random fraction
+    Sampling first, in one of two ways:
+    - ``gsd_m`` set (the real test product's ground sample distance, e.g. 400 m for the LROC WAC
+      mosaic): the crop is area-averaged onto the grid the real sensor would have, native_px =
+      box side in metres / gsd_m (times U[1 - gsd_jitter, 1 + gsd_jitter]), the PSF, exposure, noise,
+      quantisation and JPEG compression (``jpeg_quality``) act on that grid, and it is brought back to
+      the crop size with the same bilinear up-sampling the real crops get (``resample_box``). A crop
+      whose native grid is at least as fine as the crop is left at the crop size.
+    - otherwise an effective-resolution jitter (down-sample to r x r, r ~ U[resolution_min_px, size],
+      with probability ``resolution_prob``, and back).
+    Then: Gaussian PSF (``psf_sigma_px``, in pixels of the sampling grid), exposure (automatic: the
+    image's white level -- the 99.5th percentile of its lit pixels -- lands at a random fraction
     ``exposure_white_frac`` of full scale, as a camera exposing for the scene; or fixed:
-    ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson law), read noise (DN), quantisation to ``quantize_bits``
-    with saturation at ``full_well_if`` x gain. Returns DN / full scale (float32).
+    ``full_well_if``), gain jitter, shot noise (photo-electrons; normal approximation of the Poisson
+    law), read noise (DN), quantisation to ``quantize_bits`` with saturation at ``full_well_if`` x
+    gain, and optionally JPEG compression. Returns DN / full scale (float32).
     """
 
     enabled: bool = True
@@ -231,6 +242,9 @@ class SensorModel:
     quantize_bits: int = 8
     resolution_min_px: int = 0        # 0 = no resolution jitter
     resolution_prob: float = 0.5      # probability of applying the resolution jitter
+    gsd_m: float | None = None        # real sensor's ground sample distance (m/px); None = jitter instead
+    gsd_jitter: float = 0.0           # relative jitter of the native grid size
+    jpeg_quality: int | None = None   # JPEG quality of the real product (None = no JPEG)
 
     def __post_init__(self):
         if self.full_well_if <= 0 or self.photons_at_full_well <= 0:
@@ -243,10 +257,19 @@ class SensorModel:
             raise TrainError(f"sensor.quantize_bits={self.quantize_bits} must lie in [1, 16]")
         lo_hi = tuple(float(v) for v in self.exposure_white_frac)
         if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} must be [lo, hi], 0 < lo <= hi")
+            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} "
+                             "must be [lo, hi], 0 < lo <= hi")
         object.__setattr__(self, "exposure_white_frac", lo_hi)
         if not 0 <= self.resolution_prob <= 1:
             raise TrainError(f"sensor.resolution_prob={self.resolution_prob} must lie in [0, 1]")
+        if self.gsd_m is not None and not self.gsd_m > 0:
+            raise TrainError(f"sensor.gsd_m={self.gsd_m} must be > 0 metres (or null)")
+        if not 0 <= self.gsd_jitter < 1:
+            raise TrainError(f"sensor.gsd_jitter={self.gsd_jitter} must lie in [0, 1)")
+        if self.jpeg_quality is not None and not 1 <= int(self.jpeg_quality) <= 100:
+            raise TrainError(f"sensor.jpeg_quality={self.jpeg_quality} must lie in [1, 100] (or null)")
+        if self.jpeg_quality is not None and int(self.quantize_bits) != 8:
+            raise TrainError("sensor.jpeg_quality needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)")
 
     @classmethod
     def from_config(cls, sensor_cfg: Mapping | None) -> "SensorModel":
@@ -257,16 +280,30 @@ class SensorModel:
             raise TrainError(f"unknown sensor key(s) {sorted(unknown)}; known: {sorted(names)}")
         return cls(**d)
 
-    def apply(self, image_if: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def apply(self, image_if: np.ndarray, rng: np.random.Generator, box_side_m: float | None = None) -> np.ndarray:
+        """The camera applied to one square I/F crop; ``box_side_m`` (the crop's ground width, needed
+        with ``gsd_m``) sets the native sampling grid. Returns DN / full scale at the crop's size."""
         x = np.asarray(image_if, dtype=np.float32)
         n = x.shape[0]
-        if self.resolution_min_px and self.resolution_min_px < n and rng.random() < self.resolution_prob:
-            r = int(rng.integers(self.resolution_min_px, n + 1))
-            if r < n:
-                small = resample_box(x, (0, 0, x.shape[1], x.shape[0]), r, antialias=True, order=1)
-                x = resample_box(small, (0, 0, r, r), n, antialias=False, order=1)
+        native = n
+        if self.gsd_m is not None and box_side_m is not None:
+            jitter = rng.uniform(1.0 - self.gsd_jitter, 1.0 + self.gsd_jitter) if self.gsd_jitter else 1.0
+            native = int(np.clip(round(box_side_m / self.gsd_m * jitter), 4, n))
+        elif self.resolution_min_px and self.resolution_min_px < n and rng.random() < self.resolution_prob:
+            native = int(rng.integers(self.resolution_min_px, n + 1))
+        if native < n:  # area-average onto the sensor's grid (anti-aliased resampling)
+            x = resample_box(x, (0, 0, x.shape[1], x.shape[0]), native, antialias=True, order=1)
         if self.psf_sigma_px > 0:
             x = ndimage.gaussian_filter(x, self.psf_sigma_px, mode="nearest")
+        x = self._expose(x, rng)
+        if self.jpeg_quality is not None:
+            x = jpeg_roundtrip(x, int(self.jpeg_quality))
+        if native < n:  # back to the crop size, as the real crops are up-sampled
+            x = resample_box(x, (0, 0, native, native), n, antialias=False, order=1)
+        return x.astype(np.float32)
+
+    def _expose(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Exposure, gain, shot and read noise, quantisation: I/F -> DN / full scale."""
         gain = 1.0 + rng.uniform(-self.gain_jitter, self.gain_jitter) if self.gain_jitter else 1.0
         full = float(2 ** int(self.quantize_bits) - 1)
         dn_per_e = full / self.photons_at_full_well
@@ -287,3 +324,17 @@ class SensorModel:
         dn = electrons * np.float32(dn_per_e) + sd * rng.standard_normal(size=x.shape, dtype=np.float32)
         dn = np.clip(np.rint(dn), 0.0, full)
         return (dn / full).astype(np.float32)
+
+
+def jpeg_roundtrip(x01: np.ndarray, quality: int) -> np.ndarray:
+    """Baseline JPEG encode/decode (libjpeg through Pillow, 4:4:4 grey) of an image in [0, 1] already
+    quantised to 8 bits: the real product's compression artefacts (block edges, ringing)."""
+    import io
+
+    from PIL import Image
+
+    img = Image.fromarray(np.clip(np.rint(np.asarray(x01) * 255.0), 0, 255).astype(np.uint8), mode="L")
+    buf = io.BytesIO()
+    img.save(buf, format="JPEG", quality=int(quality))
+    buf.seek(0)
+    return np.asarray(Image.open(buf), dtype=np.float32) / 255.0

@@ -214,7 +214,8 @@ def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Seque
     """Crops of user-provided real frames described by a CSV labels file (docs/realset.md).
 
     Columns: ``image_path`` (relative to the CSV's folder, absolute, or ``product:<id>`` for a product
-    registered in data_manifest/products.yaml and fetched with ``crater-synth fetch-data``), ``crater`` (one of the trained
+    registered in data_manifest/products.yaml and fetched with ``crater-synth fetch-data``),
+    ``crater`` (one of the trained
     classes; case, spaces and hyphens ignored), ``source`` (e.g. ``lroc_nac``, ``selene_tc``), and the
     rim either as ``center_u, center_v, diameter_px`` or as its bounding box ``box_u0, box_v0, box_u1,
     box_v1`` (image pixels: u right, v down, origin at the top-left corner). Optional: ``rotation_deg``.
@@ -295,7 +296,8 @@ class RealTestSet:
         return {sha256_file(p) for p in sorted({c.image_path for c in self.crops})}
 
 
-def plan_real_crops(cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str]) -> tuple[list[RealCrop], dict]:
+def plan_real_crops(cfg: Mapping, craters: Sequence[Mapping],
+                    class_names: Sequence[str]) -> tuple[list[RealCrop], dict]:
     """All crops of the configured real test set (embedded mosaic and/or labels file) plus the
     loaded images by path."""
     rs = cfg.get("realset") or {}

@@ -5,6 +5,10 @@ Writes tiled float32 EXRs with the renderer's channels (``crater_core.schema.EXR
 bowl, a bowl with a satellite crater on its rim, a flat-floored crater with a central peak) on a
 seeded rough background, Lambert-shaded for the row's sun direction and rotated by the camera
 azimuth. It exercises the data path only; it says nothing about real lunar images.
+
+:func:`write_toy_frames` renders the same three toy craters at poses and suns the dataset does not
+contain, as 8-bit frames with a realset labels file: a held-out test set on which a classifier trained
+on the toy dataset must beat chance clearly (tests/test_train_e2e.py states the accuracy it must reach).
 """
 
 from __future__ import annotations
@@ -20,6 +24,11 @@ from crater_core import schema
 from crater_core.exr import write_exr
 
 DEFAULT_CRATERS = ("shackleton", "de_gerlache", "shoemaker")
+# (sun elevation, sun azimuth, camera azimuth) of the held-out frames: none is a pose or sun of the
+# default test datasets (camera azimuths 0/90/180/270, sun azimuths 0/120/240).
+HELD_OUT_VIEWS = ((20.0, 60.0, 45.0), (20.0, 180.0, 135.0), (20.0, 300.0, 225.0), (25.0, 10.0, 315.0),
+                  (15.0, 90.0, 30.0), (30.0, 200.0, 200.0), (25.0, 330.0, 110.0), (18.0, 150.0, 290.0))
+TOY_FRAME_SOURCE = "toyframes"
 
 
 def _height(kind: int, x: np.ndarray, y: np.ndarray, rng_bg: np.ndarray) -> np.ndarray:
@@ -68,14 +77,17 @@ def render_toy(kind: int, size: int, rim_px: float, sun_elevation: float, sun_az
 
 
 def write_toy_dataset(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRATERS,
-                      sun_elevations: Sequence[float] = (15.0, 30.0), sun_azimuths: Sequence[float] = (0.0, 120.0, 240.0),
-                      cam_elevations: Sequence[float] = (90.0,), cam_azimuths: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
+                      sun_elevations: Sequence[float] = (15.0, 30.0),
+                      sun_azimuths: Sequence[float] = (0.0, 120.0, 240.0),
+                      cam_elevations: Sequence[float] = (90.0,),
+                      cam_azimuths: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
                       rim_px: float = 48.0, sigmas: Sequence[float] = (1.0, 1.2, 1.4), seed: int = 0) -> list[dict]:
     """Write EXRs + ``manifest.jsonl`` into ``out_dir``; returns the rows."""
     out_dir = Path(out_dir)
     size = int(math.ceil(max(sigmas) * rim_px))
     c = size / 2.0
-    boxes = {f"{s:.1f}": [c - s * rim_px / 2, c - s * rim_px / 2, c + s * rim_px / 2, c + s * rim_px / 2] for s in sigmas}
+    half = {s: s * rim_px / 2 for s in sigmas}
+    boxes = {f"{s:.1f}": [c - half[s], c - half[s], c + half[s], c + half[s]] for s in sigmas}
     rows = []
     shape = (len(sun_elevations), len(sun_azimuths), len(cam_elevations), len(cam_azimuths))
     for ci, crater in enumerate(craters):
@@ -100,3 +112,28 @@ def write_toy_dataset(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRAT
             rows.append(schema.validate_row(row))
     schema.write_manifest(out_dir / schema.MANIFEST_NAME, rows)
     return rows
+
+
+def write_toy_frames(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRATERS,
+                     views: Sequence[tuple[float, float, float]] = HELD_OUT_VIEWS, rim_px: float = 40.0,
+                     size: int = 96, seed: int = 0) -> Path:
+    """Held-out toy frames (8-bit PNG, nadir camera) and their realset labels file; returns the CSV path.
+
+    Same toy craters and terrain seeds as :func:`write_toy_dataset` (same ``seed``), new views: use it as
+    ``realset.labels_file`` to test a model trained on the toy dataset (``source`` = ``toyframes``)."""
+    from PIL import Image
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lines = ["image_path,crater,center_u,center_v,diameter_px,source"]
+    for ci, crater in enumerate(craters):
+        tseed = zlib.crc32(f"{seed}:{crater}".encode())
+        for k, (sun_el, sun_az, cam_az) in enumerate(views):
+            i_f = render_toy(ci % 3, size, rim_px, sun_el, sun_az, 90.0, cam_az, tseed)["IF"]
+            name = f"{crater}_{k:02d}.png"
+            dn = np.clip(np.round(i_f / 0.3 * 255.0), 0, 255).astype(np.uint8)   # 8-bit DN like a real frame
+            Image.fromarray(dn).save(out_dir / name)
+            lines.append(f"{name},{crater},{size / 2},{size / 2},{rim_px},{TOY_FRAME_SOURCE}")
+    labels = out_dir / "labels.csv"
+    schema.atomic_write_text(labels, "\n".join(lines) + "\n")
+    return labels

@@ -1,9 +1,10 @@
 """Training of LunarNet_ex (Adam, stop at the validation target), LunarSVM_ex and the HOG+SVM baseline.
 
 Everything here consumes :class:`train.data.SyntheticData` only: synthetic renders, never real crops.
-Artefacts in ``run_dir`` (each written atomically): ``lunarnet_ex.pt`` (state dict, model config,
-class names, preprocessing, history, resolved config), ``lunarsvm_ex.pkl``, ``hog_svm.pkl``,
-``config.yaml`` (resolved) and ``train_summary.json``.
+Artefacts in ``run_dir`` (each written atomically; names from :mod:`train.registry`): ``lunarnet_ex.pt``
+(state dict, model config, class names, preprocessing, history, resolved config), ``lunarsvm_ex.joblib``
+and ``hog_svm.joblib`` (scikit-learn pipelines, joblib), ``config.yaml`` (resolved) and
+``train_summary.json``.
 """
 
 from __future__ import annotations
@@ -23,18 +24,22 @@ from torch import nn
 
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from train.data import SyntheticCropDataset, SyntheticData
-from train.errors import RealDataLeakError, TrainError
+from train.errors import ModelError, RealDataLeakError, TrainError
+from train.metrics import accuracy, class_mean_accuracy
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
+from train.registry import SPECS
 
-NET_FILE, SVM_FILE, HOG_FILE = "lunarnet_ex.pt", "lunarsvm_ex.pkl", "hog_svm.pkl"
+NET_FILE, SVM_FILE, HOG_FILE = (SPECS[k].artefact for k in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"))
 SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
+SKLEARN_FORMAT = 2          # 1: pickle (.pkl, before joblib); 2: joblib
 
 
 # ------------------------------------------------------------------------------------------------
 # Small utilities
 # ------------------------------------------------------------------------------------------------
-def atomic_write_json(path: str | Path, obj) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+def json_text(obj) -> str:
+    """The project's JSON layout for run artefacts (indented, sorted keys, trailing newline)."""
+    return json.dumps(obj, indent=2, sort_keys=True) + "\n"
 
 
 def configure_torch(tcfg: Mapping) -> torch.device:
@@ -48,12 +53,6 @@ def configure_torch(tcfg: Mapping) -> torch.device:
     if dev not in ("cpu", "cuda"):
         raise TrainError(f"train.device={dev!r}: use auto, cpu or cuda")
     return torch.device(dev)
-
-
-def balanced_accuracy(y_true: np.ndarray, y_pred: np.ndarray, n_classes: int) -> float:
-    """Mean over the classes present of the per-class accuracy (recall): the paper's 'mean accuracy'."""
-    accs = [float(np.mean(y_pred[y_true == c] == c)) for c in range(n_classes) if np.any(y_true == c)]
-    return float(np.mean(accs)) if accs else float("nan")
 
 
 def _require_synthetic(ds) -> None:
@@ -119,7 +118,7 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
     if int(mcfg.get("num_classes", len(data.class_names))) != len(data.class_names):
         mcfg["num_classes"] = len(data.class_names)
     device = configure_torch(tcfg)
-    seed = int(cfg.get("seed", 0))
+    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     torch.manual_seed(seed)
     model = LunarNetEx(mcfg).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=float(tcfg.get("lr", 1e-3)),
@@ -131,7 +130,6 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
     if max_epochs < 1 or bs < 1:
         raise TrainError(f"train.max_epochs={max_epochs} and train.batch_size={bs} must be >= 1")
     yv = data.val.labels
-    nc = len(data.class_names)
     history: list[dict] = []
     best = {"val_accuracy": -1.0, "state": None, "epoch": 0}
     t_start = time.perf_counter()
@@ -164,9 +162,9 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
         train_time += dt
         images_seen += tot_n
         pv = predict_logits(model, data.val, ebs, device).argmax(1)
-        val_acc = balanced_accuracy(yv, pv, nc)
+        val_acc = class_mean_accuracy(yv, pv)
         rec = {"epoch": epoch, "loss": tot_loss / max(tot_n, 1), "train_accuracy": tot_ok / max(tot_n, 1),
-               "val_accuracy": val_acc, "val_accuracy_overall": float(np.mean(pv == yv)) if len(yv) else float("nan"),
+               "val_accuracy": val_acc, "val_accuracy_overall": accuracy(yv, pv),
                "epoch_seconds": dt, "images_per_s": tot_n / max(dt, 1e-9),
                "elapsed_s": time.perf_counter() - t_start}
         history.append(rec)
@@ -205,8 +203,6 @@ def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_ac
 
 
 def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[LunarNetEx, dict]:
-    from train.errors import ModelError
-
     path = Path(run_dir) / NET_FILE
     if not path.is_file():
         raise ModelError(f"no trained LunarNet_ex at {path}: run `crater-synth train` first (or set run_dir)")
@@ -235,17 +231,16 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     _require_synthetic(data.train)
     _require_synthetic(data.val)
     tcfg = cfg["train"]
-    seed = int(cfg.get("seed", 0))
+    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     device = next(model.parameters()).device
     ebs = int(tcfg.get("eval_batch_size", 256))
     yt, yv = data.train.labels, data.val.labels
-    nc = len(data.class_names)
     out = {}
     t0 = time.perf_counter()
     svm = make_linear_svm(tcfg.get("svm", {}), seed)
     conv = _fit_quiet(svm, fc1_activations(model, data.train, ebs, device), yt)
     pv = svm.predict(fc1_activations(model, data.val, ebs, device))
-    out["lunarsvm_ex"] = {"model": svm, "val_accuracy": balanced_accuracy(yv, pv, nc),
+    out["lunarsvm_ex"] = {"model": svm, "val_accuracy": class_mean_accuracy(yv, pv),
                           "train_images": int(len(yt)), "converged": conv, "seconds": time.perf_counter() - t0}
     t0 = time.perf_counter()
     hcfg = tcfg.get("hog", {})
@@ -255,7 +250,7 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     conv = _fit_quiet(hog_svm, Ht, yt[sel])
     del Ht
     Hv = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.val.iter_arrays(ebs)])
-    out["hog_svm"] = {"model": hog_svm, "val_accuracy": balanced_accuracy(yv, hog_svm.predict(Hv), nc),
+    out["hog_svm"] = {"model": hog_svm, "val_accuracy": class_mean_accuracy(yv, hog_svm.predict(Hv)),
                       "train_images": int(len(sel)), "converged": conv, "seconds": time.perf_counter() - t0}
     if progress:
         from tqdm import tqdm
@@ -277,20 +272,33 @@ def _fit_quiet(model, X, y) -> bool:
 
 
 def save_sklearn(path: str | Path, model, class_names, meta: dict) -> None:
-    atomic_write_bytes(path, pickle.dumps({"format": 1, "model": model, "class_names": list(class_names), **meta}))
+    """A fitted scikit-learn model with its class names and metadata, as one joblib file (atomic)."""
+    import joblib
+
+    buf = io.BytesIO()
+    joblib.dump({"format": SKLEARN_FORMAT, "model": model, "class_names": list(class_names), **meta}, buf)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def load_sklearn(path: str | Path) -> dict:
-    from train.errors import ModelError
+    """What :func:`save_sklearn` wrote; ModelError naming the file if it is missing, corrupt or stale."""
+    import joblib
 
     path = Path(path)
     if not path.is_file():
+        if path.with_suffix(".pkl").is_file():
+            raise ModelError(f"{path.with_suffix('.pkl')} was saved by an older crater-synth (pickle); "
+                             f"retrain with `crater-synth train` to write {path.name}")
         raise ModelError(f"no trained model at {path}: run `crater-synth train` first (or set run_dir)")
     try:
-        with open(path, "rb") as fh:
-            return pickle.load(fh)
-    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
-        raise ModelError(f"cannot load {path}: {exc}") from None
+        doc = joblib.load(path)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, KeyError, IndexError, ValueError,
+            TypeError, OSError) as exc:
+        raise ModelError(f"cannot load {path}: {exc or type(exc).__name__}") from None
+    if not (isinstance(doc, dict) and doc.get("format") == SKLEARN_FORMAT and "model" in doc
+            and isinstance(doc.get("class_names"), list)):
+        raise ModelError(f"cannot load {path}: not a crater-synth scikit-learn model file (format {SKLEARN_FORMAT})")
+    return doc
 
 
 # ------------------------------------------------------------------------------------------------
@@ -308,7 +316,8 @@ def train_all(cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: 
     save_sklearn(run_dir / SVM_FILE, svms["lunarsvm_ex"]["model"], data.class_names,
                  {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"]})
     save_sklearn(run_dir / HOG_FILE, svms["hog_svm"]["model"], data.class_names,
-                 {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"], "hog": dict(cfg["train"].get("hog", {}))})
+                 {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"],
+                  "hog": dict(cfg["train"].get("hog", {}))})
     summary = {
         "class_names": data.class_names,
         "data": data.info,
@@ -318,5 +327,5 @@ def train_all(cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: 
         "lunarsvm_ex": {k: v for k, v in svms["lunarsvm_ex"].items() if k != "model"},
         "hog_svm": {k: v for k, v in svms["hog_svm"].items() if k != "model"},
     }
-    atomic_write_json(run_dir / SUMMARY_FILE, summary)
+    atomic_write_text(run_dir / SUMMARY_FILE, json_text(summary))
     return summary

@@ -1,7 +1,7 @@
 """Dispatch: Blender worker processes, their protocol lines, retries, and a clean stop.
 
 The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker JOB``)
-that imports bpy once and renders a contiguous, sun-major block of renders, printing one ``RESULT``
+that imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT``
 line per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
 its unfinished renders (``render.max_retries``). When the host stops early (an error, SIGTERM,
 Ctrl-C), every worker gets SIGTERM, the host keeps reading their RESULT lines until they exit (a
@@ -26,7 +26,7 @@ from crater_core.files import remove_stale_scratch
 from crater_core.settings import HapkeParams, RenderSettings
 from crater_synth.dataset.disk import JOBS_DIR
 from crater_synth.dataset.manifest import writer_tag
-from crater_synth.dataset.plan import CraterJob, hapke_dict
+from crater_synth.dataset.plan import CraterJob, camera_major, hapke_dict
 from crater_synth.errors import RenderError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -85,13 +85,16 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
     if n_workers > 1 and render.threads == 0:
         render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
 
-    # Work units: contiguous blocks of one crater's plans (sun-major), one block per worker slot.
+    # Work units: contiguous blocks of one crater's plans, one block per worker slot, camera-major
+    # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
+    # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work").
     units: list[tuple[CraterJob, list[dict]]] = []
     total = max(1, sum(len(j.plans) for j in jobs))
     for job in jobs:
         if job.plans:
             share = max(1, round(n_workers * len(job.plans) / total))
-            units += [(job, block) for block in _split_contiguous(job.plans, share)]
+            ordered = sorted(job.plans, key=camera_major)
+            units += [(job, block) for block in _split_contiguous(ordered, share)]
     pending = list(units)
     attempts: dict[int, int] = {}
     running: dict[subprocess.Popen, _Worker] = {}
@@ -103,6 +106,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
         job_file = jobs_dir / f"{job.crater.name}-{writer_tag()}-{unit_id}.json"
         spec = {"terrain_npz": str(job.npz), "terrain_meta": job.meta, "crater": job.crater.as_dict(),
                 "hapke": hapke_dict(hapke), "render": render_cfg, "out_dir": str(out_dir),
+                "horizon_cache_dir": render.horizon_cache_dir,
                 "renders": [p["item"] for p in block]}
         schema.atomic_write_text(job_file, json.dumps(spec))
         log = open(job_file.with_suffix(".log"), "ab")
@@ -137,7 +141,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
                 rc = finish(w)
                 if w.error:
                     raise _worker_error(w.job.crater.name, w.error)
-                left = sorted(w.block.values(), key=lambda p: p["params"].index)
+                left = sorted(w.block.values(), key=camera_major)
                 if left:
                     tries = attempts.get(w.id, 0) + 1
                     if tries > render.max_retries:

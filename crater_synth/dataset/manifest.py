@@ -1,6 +1,6 @@
 """Manifest rows of a dataset being rendered: one row per finished render, appended to this writer's
-part file (``manifest.parts/<name>-<host>-<pid>.jsonl``) and merged into ``manifest.jsonl`` at the end
-(crater_core/schema.py holds the format and the merge)."""
+part file (``manifest.parts/<name>-<host>-<pid>.jsonl``, fsynced in batches: schema.RowAppender) and
+merged into ``manifest.jsonl`` at the end (crater_core/schema.py holds the format and the merge)."""
 
 from __future__ import annotations
 
@@ -58,6 +58,7 @@ def manifest_row(job, plan: dict, result: dict, fov_deg: float, renderer: str) -
         "indices": list(p.indices),
         "sun_elevation": p.sun_elevation, "sun_azimuth": p.sun_azimuth,
         "cam_elevation": p.cam_elevation, "cam_azimuth": p.cam_azimuth,
+        **({"sun_elevation_param": p.sun_elevation_param} if p.sun_elevation_param != p.sun_elevation else {}),
         "range_m": plan["range_m"], "fov_deg": float(fov_deg),
         "width": plan["crop"][2] - plan["crop"][0], "height": plan["crop"][3] - plan["crop"][1],
         "frame_width": plan["frame_width"], "crop_origin": plan["crop"][:2],

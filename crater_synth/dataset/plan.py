@@ -18,12 +18,15 @@ import numpy as np
 
 from crater_core import geometry, schema
 from crater_core.hapke import HapkeParams
+from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import CraterSettings, RenderSettings
 from crater_core.sweep import SweepGrid
 from crater_synth import __version__
 from crater_synth.errors import UserError
 
-# Render settings that change pixels (the execution-only ones -- threads, workers, retries -- do not).
+# Render settings that change pixels (the execution-only ones -- threads, workers, retries, the horizon
+# cache directory -- do not). ``shadow_map_samples`` (the retired lit maps) is no setting any more; it
+# stays in the list, as null, so digests match those of datasets rendered since the horizon maps.
 DIGEST_RENDER_KEYS = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_levels",
                       "shadow_map_extent_factor", "shadow_map_samples", "gbuffer_samples", "roi_min_px",
                       "crop_to_roi")
@@ -36,9 +39,10 @@ def code_version() -> str:
 def render_digest(render: RenderSettings, hapke: HapkeParams, terrain_id: str) -> str:
     """Fingerprint of everything besides the angles that changes the pixels of a render."""
     r = render.as_dict()
-    payload = json.dumps({"render": {k: r.get(k) for k in DIGEST_RENDER_KEYS}, "hapke": hapke_dict(hapke),
-                          "terrain": terrain_id}, sort_keys=True)
-    return f"{zlib.crc32(payload.encode()):08x}"
+    payload = {"render": {k: r.get(k) for k in DIGEST_RENDER_KEYS}, "hapke": hapke_dict(hapke), "terrain": terrain_id}
+    if render.mode == "fast":  # fast-mode shadows come from horizon maps (crater_core.horizon)
+        payload["horizon_version"] = HORIZON_VERSION
+    return f"{zlib.crc32(json.dumps(payload, sort_keys=True).encode()):08x}"
 
 
 def hapke_dict(hapke: HapkeParams) -> dict:
@@ -61,7 +65,7 @@ def plan_render(crater: CraterSettings | Mapping, meta: dict, grid: SweepGrid, i
     With ``crop_to_roi`` (the default) only the largest sigma box is rendered; otherwise the whole
     90 deg frame (the naive baseline of ``crater-synth bench``)."""
     crater = _crater(crater)
-    p = grid.params(index)
+    p = grid.params(index, crater.lat)
     diameter_m = crater.diameter_km * 1000.0
     range_m = grid.range_factor * diameter_m
     pose = geometry.look_at_camera(p.cam_elevation, p.cam_azimuth, range_m, grid.fov_deg)
@@ -98,6 +102,12 @@ class CraterJob:
     npz: Path
     meta: dict
     plans: list[dict] = field(default_factory=list)
+
+
+def camera_major(plan: dict) -> tuple[int, int, int, int]:
+    """Sort key of a plan: camera pose first, then the sun (the sweep index is sun-major)."""
+    i = plan["params"].indices
+    return i[2], i[3], i[0], i[1]
 
 
 def worker_item(crater: CraterSettings, meta: dict, plan: dict, render: RenderSettings, hapke: HapkeParams,

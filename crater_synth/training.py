@@ -1,4 +1,5 @@
-"""`crater-synth train` and `crater-synth evaluate` (heavy imports stay inside the commands)."""
+"""`crater-synth train` and `crater-synth evaluate`: the CLI glue over :mod:`train.pipeline` (heavy
+imports stay inside the commands; ``train/`` itself never imports this layer)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ def _cfg(overrides):
 
 
 def _report(metrics: dict, run_dir) -> None:
-    for m in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"):
+    from train.registry import MODELS
+
+    for m in MODELS:
         r = metrics[m]
         val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"
         click.echo(f"{m:12s} real accuracy {r['real_accuracy']:.3f}  (validation {val})")
@@ -28,7 +31,8 @@ def _report(metrics: dict, run_dir) -> None:
 @OVERRIDES
 @user_errors
 def train_command(overrides):
-    """Train LunarNet_ex, LunarSVM_ex and HOG+SVM on the manifest at train.dataset_dir; evaluate on real crops.
+    """Train the classifiers (LunarNet_ex, LunarSVM_ex, HOG+SVM) on the manifest at train.dataset_dir;
+    evaluate them on the real crops.
 
     e.g. ``crater-synth train sweep=demo train.max_epochs=10 run_dir=outputs/demo``
     """

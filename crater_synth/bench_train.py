@@ -1,4 +1,5 @@
-"""Training benchmark for `make bench`: throughput and time to reach the validation target."""
+"""Training benchmark for `make bench` (``crater-synth bench --part train``): throughput and time to
+reach the validation target. Orchestration over ``train/``, so it lives in the host layer."""
 
 from __future__ import annotations
 
@@ -6,12 +7,12 @@ import os
 import time
 from typing import Mapping
 
+from crater_synth.config import resolved
+
 
 def _as_dict(cfg) -> dict:
     if isinstance(cfg, Mapping) and not hasattr(cfg, "_metadata"):
         return dict(cfg)
-    from crater_synth.config import resolved
-
     return resolved(cfg)
 
 

@@ -1,0 +1,356 @@
+"""Data gathering for the report: one function per section, each returning a plain dict for its template
+(``templates/<section>.html.j2``) and drawing its figures (:mod:`crater_synth.report.figures`) into the
+report's temporary directory. No HTML here: the templates own the markup.
+
+Any number of craters (classes) is supported: every per-crater item is a list, never three columns.
+"""
+
+from __future__ import annotations
+
+import shutil
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from crater_synth.report import figures
+from crater_synth.report.context import PRODUCERS, SYNTHETIC_CHOICE, Ctx, not_run
+from crater_synth.report.inputs import (
+    EXPERIMENTS_FILE,
+    FIGURE6_FILE,
+    LOOP_FILE,
+    METRICS_FILE,
+    ReportError,
+    check_png,
+    config_craters,
+    is_num,
+    load_experiments,
+    load_loop_history,
+)
+from crater_synth.report.provenance import limits_text, provenance
+from train.registry import MODELS, REGISTRY, SPECS
+
+
+def crater_order(metrics: dict | None, cfg: Mapping, rows: list[dict] | None) -> list[str]:
+    """The classes of metrics.json, else the configured craters, then any other crater of the dataset."""
+    names = list((metrics or {}).get("classes") or []) or [c["name"] for c in config_craters(cfg)]
+    for r in rows or ():
+        if r["crater"] not in names:
+            names.append(r["crater"])
+    return names
+
+
+# ---- 1. contact sheets ---------------------------------------------------------------------------
+def contact(ctx: Ctx) -> dict:
+    from crater_synth.preview import contact_sheet
+
+    ds = ctx.rc.dataset_dir
+    if ctx.rows is None:
+        return {"not_run": not_run(f"no rendered dataset at {ds or 'train.dataset_dir (unset)'}", "dataset")}
+    if not ctx.rows:
+        if ctx.all_rows:
+            return {"warning": f"No row of {ds} matches the run's train.select."}
+        return {"not_run": not_run(f"the manifest of {ds} has no rows", "dataset")}
+    items, small = [], True
+    for crater in ctx.craters:
+        crows = [r for r in ctx.rows if r["crater"] == crater]
+        if not crows:
+            items.append({"crater": crater, "missing": True})
+            continue
+        ctx.say(f"contact sheet {crater} ({len(crows)} renders)")
+        png = contact_sheet(crows, ds, ctx.out / f"contact_{crater}.png",
+                            f"{crater}: {len(crows)} renders (sun el/az, cam el/az in deg)\n"
+                            f"red: projected rim; blue: sigma boxes", ctx.max_tiles)
+        shown = min(ctx.max_tiles, len(crows))
+        small = small and shown <= 9
+        items.append({"crater": crater, "src": png.name, "shown": shown, "total": len(crows)})
+    return {"dataset_dir": str(ds), "items": items, "grid": small}
+
+
+# ---- 2. real vs synthetic ------------------------------------------------------------------------
+def pick_synthetic(rows: Sequence[dict]) -> dict:
+    """Closest to nadir, then the highest sun, then the highest lit fraction, then manifest order."""
+    from crater_core import schema
+
+    return min(rows, key=lambda r: (abs(float(r["cam_elevation"]) - 90.0), -float(r["sun_elevation"]),
+                                    -float(r["lit_fraction"]), schema.row_key(r)))
+
+
+def _box_closest(boxes: Mapping[str, Sequence[float]], sigma: float = 1.0) -> tuple[str, list[float]]:
+    key = min(boxes, key=lambda k: abs(float(k) - sigma))
+    return key, [float(b) for b in boxes[key]]
+
+
+def _real_plan(ctx: Ctx, canonical: bool):
+    """Crops (and images) of the real test set of the run's configuration; ``canonical``: one sigma = 1.0
+    crop per crater, centred, no offset, no rotation. Returns (crops, images), or None with
+    ``ctx.real_error`` set when the real product is not installed."""
+    from train.errors import RealSetError
+    from train.realset import canonical_crater, plan_real_crops
+
+    rs = dict(ctx.rc.cfg.get("realset") or {})
+    if canonical:
+        rs.update(per_crater=1, sigmas=[1.0], max_offset_frac=0.0, max_rotation_deg=0.0)
+    cfg = dict(ctx.rc.cfg)
+    cfg["realset"] = rs
+    known = {canonical_crater(c) for c in ctx.craters}
+    craters = [c for c in config_craters(ctx.rc.cfg) if canonical_crater(c["name"]) in known]
+    if not craters:
+        ctx.real_error = "none of the report's craters is in the configuration's crater group"
+        return None
+    if rs.get("include_embedded", True) and not (rs.get("mosaic") or {}).get("path"):
+        from data_manifest.products import ProductError, embedded_path
+
+        try:
+            embedded_path(str(rs.get("source_product") or "lroc_wac_south"))
+        except ProductError as exc:   # not installed here: a note, not a failure
+            ctx.real_error = str(exc)
+            return None
+    try:
+        return plan_real_crops(cfg, craters, [c["name"] for c in craters])
+    except RealSetError as exc:
+        raise ReportError(f"real test set: {exc}") from None
+
+
+def compare(ctx: Ctx) -> dict:
+    from crater_synth.preview import _ellipse_points, read_channel, tone_map
+    from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop, resample_box
+    from train.realset import canonical_crater
+
+    if not ctx.rows:
+        return {"not_run": not_run("no rendered dataset to compare with", "dataset")}
+    plan = _real_plan(ctx, canonical=True)
+    if plan is None:
+        return {"unavailable": ctx.real_error}
+    crops, images = plan
+    pp = PreprocessConfig.from_config(ctx.rc.cfg)
+    sensor = SensorModel.from_config(ctx.rc.cfg.get("sensor"))
+    items = []
+    for crater in ctx.craters:
+        crows = [r for r in ctx.rows if r["crater"] == crater]
+        real = sorted((c for c in crops if canonical_crater(c.crater) == canonical_crater(crater)),
+                      key=lambda c: (c.kind != "embedded", c.index))
+        if not crows or not real:
+            items.append({"crater": crater, "missing": "renders" if not crows else
+                          "a real crop (not in the configured crater group)"})
+            continue
+        rc, row = real[0], pick_synthetic(crows)
+        ctx.real[crater] = {"crop": rc}
+        ctx.say(f"real vs synthetic {crater}")
+        img = images[rc.image_path]
+        n_r = max(8, int(round(rc.box[2] - rc.box[0])))
+        real_orig = resample_box(img, rc.box, n_r, rc.rotation_deg, True, 1)
+        if np.issubdtype(img.dtype, np.integer):
+            real_orig = real_orig / float(np.iinfo(img.dtype).max)
+        i_f = read_channel(ctx.rc.dataset_dir / row["path"])
+        skey, sbox = _box_closest(row["sigma_boxes"], 1.0)
+        n_s = max(8, int(round(sbox[2] - sbox[0])))
+        syn_sensor = (preprocess_crop(i_f, sbox, pp, sensor=sensor, rng=np.random.default_rng(int(row["seed"])))
+                      if sensor.enabled else None)
+        name = figures.compare_panel(
+            ctx.out / f"compare_{crater}.png", crater, row, real_orig,
+            tone_map(resample_box(i_f, sbox, n_s, 0.0, True, 1)), i_f, skey, sbox, _ellipse_points(row["rim_ellipse"]),
+            preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg), preprocess_crop(i_f, sbox, pp),
+            syn_sensor, pp.size)
+        items.append({"crater": crater, "src": name, "box": list(rc.box), "sigma": rc.sigma,
+                      "rotation_deg": rc.rotation_deg, "source": rc.source, "path": row["path"],
+                      "lit_fraction": row["lit_fraction"], "mean_if": row["mean_if"]})
+    return {"choice": SYNTHETIC_CHOICE, "size": pp.size, "gamma": pp.gamma, "items": items}
+
+
+# ---- 3. histograms -------------------------------------------------------------------------------
+def histograms(ctx: Ctx) -> dict:
+    from crater_synth.preview import read_channel
+    from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop
+    from train.realset import canonical_crater
+
+    if not ctx.rows:
+        return {"not_run": not_run("no rendered dataset to compare with", "dataset")}
+    plan = _real_plan(ctx, canonical=False)
+    if plan is None:
+        return {"unavailable": ctx.real_error}
+    crops, images = plan
+    pp = PreprocessConfig.from_config(ctx.rc.cfg)
+    sensor = SensorModel.from_config(ctx.rc.cfg.get("sensor"))
+    bins = np.linspace(0.0, 1.0, 41)
+    width = bins[1] - bins[0]
+    panels = []
+    for crater in ctx.craters:
+        crows = [r for r in ctx.rows if r["crater"] == crater]
+        rcs = [c for c in crops if canonical_crater(c.crater) == canonical_crater(crater)]
+        if not crows or not rcs:
+            continue
+        ctx.say(f"histograms {crater}: {len(rcs)} real crops, {min(len(crows), ctx.hist_samples)} renders")
+        real = np.stack([preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg) for c in rcs])
+        pick = [crows[i] for i in np.unique(np.linspace(0, len(crows) - 1,
+                                                       min(ctx.hist_samples, len(crows))).astype(int))]
+        syn, sens = [], []
+        for row in pick:
+            i_f = read_channel(ctx.rc.dataset_dir / row["path"])
+            rng = np.random.default_rng(int(row["seed"]))
+            for box in row["sigma_boxes"].values():
+                syn.append(preprocess_crop(i_f, box, pp))
+                if sensor.enabled:
+                    sens.append(preprocess_crop(i_f, box, pp, sensor=sensor, rng=rng))
+        syn_a, sens_a = np.stack(syn), (np.stack(sens) if sens else None)
+        hr, _ = np.histogram(real, bins=bins, density=True)
+        hs, _ = np.histogram(syn_a, bins=bins, density=True)
+        panels.append({
+            "crater": crater, "real_crops": len(rcs), "syn_crops": syn_a.shape[0], "renders": len(pick),
+            "real_density": hr, "syn_density": hs,
+            "sensor_density": None if sens_a is None else np.histogram(sens_a, bins=bins, density=True)[0],
+            "overlap": float(np.sum(np.minimum(hr, hs)) * width),
+            "real_zero": float(np.mean(real == 0)), "real_mean": float(real.mean()),
+            "syn_zero": float(np.mean(syn_a == 0)), "syn_mean": float(syn_a.mean()),
+            "sensor_zero": None if sens_a is None else float(np.mean(sens_a == 0)),
+            "sensor_mean": None if sens_a is None else float(sens_a.mean())})
+    if not panels:
+        return {"warning": "No crater has both renders and real crops."}
+    name = figures.histograms(ctx.out / "histograms.png", panels, bins)
+    return {"src": name, "hist_samples": ctx.hist_samples, "panels": panels}
+
+
+# ---- 4. models -----------------------------------------------------------------------------------
+def _sigma_order(s) -> float:
+    try:
+        return float(s)
+    except ValueError:
+        return 0.0
+
+
+def models(ctx: Ctx) -> dict:
+    m = ctx.metrics
+    if m is None:
+        return {"not_run": not_run(f"no {ctx.run_dir / METRICS_FILE}", "metrics")}
+    classes = list(m.get("classes") or [])
+    present = [s for s in REGISTRY if s.key in m]
+    overall = [{"spec": s, "real": m[s.key].get("real_accuracy"),
+                "class_mean": m[s.key].get("real_accuracy_class_mean"), "val": m[s.key].get("val_accuracy")}
+               for s in present]
+    # Breakdowns: one row per crater / sigma / source, one column per model (scales to any class count).
+    breakdowns = []
+    for key, what in (("per_crater", "crater"), ("per_sigma", "ROI σ"), ("per_source", "real source")):
+        names: list[str] = []
+        for s in present:
+            names += [n for n in (m[s.key].get(key) or {}) if n not in names]
+        if key == "per_sigma":
+            names.sort(key=_sigma_order)
+        if key == "per_crater":                    # class order
+            names.sort(key=lambda n: classes.index(n) if n in classes else len(classes))
+        if not names:
+            continue
+        counts = m.get("test_per_crater") if key == "per_crater" else None
+        rows = [{"name": f"σ = {n}" if key == "per_sigma" else n, "n": (counts or {}).get(n, "?") if counts else None,
+                 "accs": [(m[s.key].get(key) or {}).get(n) for s in present]} for n in names]
+        breakdowns.append({"what": what, "rows": rows, "counted": bool(counts)})
+    confusions = []
+    for s in present:
+        src = check_png(ctx.run_dir / f"confusion_{s.key}.png")
+        item = {"spec": s, "real": m[s.key].get("real_accuracy")}
+        if src is not None:
+            shutil.copyfile(src, ctx.out / src.name)
+            item.update(src=src.name, replot=False)
+        elif m[s.key].get("confusion") is not None:
+            conf = m[s.key]["confusion"]
+            acc = m[s.key].get("real_accuracy")
+            title = f"{s.label}: real accuracy " + ("–" if not is_num(acc) else f"{100 * acc:.1f} %")
+            item.update(src=figures.confusion(ctx.out / f"confusion_{s.key}.png", conf,
+                                              classes or [str(i) for i in range(len(conf))], title), replot=True)
+        confusions.append(item)
+
+    def count(v):
+        return f"{int(v):,}" if is_num(v) else "–"
+
+    facts = [("classes", ", ".join(classes) or "–"), ("training images (synthetic)", count(m.get("train_images"))),
+             ("validation images (synthetic)", count(m.get("val_images"))),
+             ("real test images", count(m.get("test_images"))),
+             ("real test sources", ", ".join(m.get("test_sources") or []) or "–")]
+    if is_num(m.get("evaluate_seconds")):
+        facts.append(("evaluation time", f"{m['evaluate_seconds']:.1f} s"))
+    return {"absent": [s.label for s in REGISTRY if s.key not in m], "present": present, "overall": overall,
+            "breakdowns": breakdowns, "confusions": confusions, "facts": facts}
+
+
+# ---- 5. closed loop ------------------------------------------------------------------------------
+def loop(ctx: Ctx) -> dict:
+    path = ctx.run_dir / LOOP_FILE
+    doc = load_loop_history(path)
+    if doc is None:
+        return {"not_run": not_run(f"no {path}", "loop")}
+    rounds = sorted(doc["rounds"], key=lambda r: r["round"])
+    out = {"rounds": rounds, "threshold": doc.get("threshold"), "stopped_because": doc.get("stopped_because"),
+           "models": [SPECS[k] for k in MODELS]}
+    if rounds:
+        out["src"] = figures.loop_history(ctx.out / "loop.png", rounds, doc.get("threshold"))
+    return out
+
+
+# ---- 6. Figure 6 ---------------------------------------------------------------------------------
+def figure6(ctx: Ctx) -> dict:
+    csv_path, png_path = ctx.run_dir / EXPERIMENTS_FILE, ctx.run_dir / FIGURE6_FILE
+    rows = load_experiments(csv_path)
+    png = check_png(png_path)
+    if rows is None and png is None:
+        return {"not_run": not_run(f"no {csv_path} and no {png_path}", "experiments")}
+    out: dict = {"csv_name": csv_path.name, "png_name": png_path.name}
+    known = [m for m in MODELS if any(r["model"] == m for r in rows or ())]
+    models_ = known + sorted({r["model"] for r in rows or ()} - set(MODELS))
+    if png is not None:
+        shutil.copyfile(png, ctx.out / FIGURE6_FILE)
+        out["figure"] = {"src": FIGURE6_FILE, "replot": False}
+    elif rows:
+        out["figure"] = {"src": figures.figure6(ctx.out / "figure6_replot.png", rows, models_), "replot": True}
+    if rows is None:
+        out["csv_missing"] = not_run(f"no {csv_path} (the table behind the figure)", "experiments")
+        return out
+    out["empty"] = not rows
+    tables = []
+    for p in dict.fromkeys(r["parameter"] for r in rows):
+        prow = [r for r in rows if r["parameter"] == p]
+        keys = sorted({(r["model"], r["sigma"]) for r in prow},
+                      key=lambda k: (models_.index(k[0]), k[1]))
+        look = {(r["count"], r["model"], r["sigma"]): r for r in prow}
+        lines = []
+        for c in sorted({r["count"] for r in prow}):
+            imgs = sorted({look[(c, mdl, s)]["train_images"] for mdl, s in keys if (c, mdl, s) in look})
+            lines.append({"count": c, "images": imgs,
+                          "accs": [look[(c, mdl, s)]["real_accuracy"] if (c, mdl, s) in look else None
+                                   for mdl, s in keys]})
+        tables.append({"parameter": p, "columns": [(mdl, s) for mdl, s in keys], "lines": lines})
+    out["tables"] = tables
+    return out
+
+
+# ---- header --------------------------------------------------------------------------------------
+def header(ctx: Ctx) -> dict:
+    m = ctx.metrics
+    cards = [{"spec": s, "entry": (m or {}).get(s.key)} for s in REGISTRY]
+    facts = []
+    if m:
+        sources = ", ".join(m.get("test_sources") or []) or "?"
+        facts.append(f"{m.get('test_images', '?')} real test crops from {sources}")
+        facts.append(f"{m.get('train_images', '?'):,} synthetic training images" if is_num(m.get("train_images"))
+                     else "training images: ?")
+    if ctx.rows is not None:
+        facts.append(f"dataset: {len(ctx.rows):,} renders of {len({r['crater'] for r in ctx.rows})} crater(s)")
+    facts.append("classes: " + ", ".join(ctx.craters))
+    return {"name": ctx.run_dir.resolve().name, "path": str(ctx.run_dir.resolve()), "cards": cards, "facts": facts,
+            "metrics_cmd": None if m else PRODUCERS["metrics"][1], "limits": limits_text(ctx)}
+
+
+# (id, title, gatherer, one-line intro), in page order
+SECTIONS = (
+    ("contact", "1. Contact sheets", contact,
+     "What the renderer produced: a sample of the synthetic dataset per crater."),
+    ("compare", "2. Real vs synthetic", compare,
+     "Does a render look like the real image? The real WAC crop beside the closest synthetic render."),
+    ("histograms", "3. Input histograms", histograms,
+     "Do the two domains look alike to the classifier? Pixel statistics of the network input."),
+    ("models", "4. Classifiers", models,
+     "Accuracy on the real crops (test) and on the synthetic validation split."),
+    ("loop", "5. Closed loop", loop,
+     "The closed loop: rounds of rendering more sun elevations until the real accuracy reaches the threshold."),
+    ("figure6", "6. Figure 6 experiments", figure6,
+     "Accuracy against the number of samples of each sweep parameter."),
+    ("provenance", "7. Provenance & limits", provenance,
+     "Where every input came from, and what the test set can and cannot tell."),
+)

@@ -1,0 +1,281 @@
+"""The report's inputs: every loader returns None when its file is absent and raises
+:class:`ReportError` naming the file when it is corrupt; the run's effective configuration."""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+from crater_synth.errors import UserError
+from train.registry import MODELS
+
+METRICS_FILE = "metrics.json"
+LOOP_FILE = "loop_history.json"
+EXPERIMENTS_FILE = "experiments.csv"
+FIGURE6_FILE = "figure6.png"
+RUN_CONFIG_FILE = "config.yaml"          # the resolved config `crater-synth train` saves (train/trainer.py)
+SUMMARY_FILE = "train_summary.json"
+EXPERIMENT_COLUMNS = ("parameter", "count", "sigma", "model", "real_accuracy", "train_images")
+LOOP_ROUND_FIELDS = ("round", "sun_elevation_count", "images", *MODELS, "render_s", "train_s")
+
+
+class ReportError(UserError):
+    """A report input is corrupt (named in the message) or the run directory is unusable."""
+
+
+def is_num(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _num_or_none(x) -> bool:
+    return x is None or is_num(x)
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ReportError(f"{path}: corrupt input (not UTF-8 text)") from None
+    except OSError as exc:
+        raise ReportError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def _read_json(path: Path):
+    text = _read_text(path)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ReportError(f"{path}: corrupt JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") from None
+
+
+def load_metrics(path: Path) -> dict | None:
+    """``metrics.json`` as written by train/evaluate.py, shape-checked (any number of classes)."""
+    if not path.exists():
+        return None
+    doc = _read_json(path)
+    bad = f"{path}: corrupt metrics"
+    if not isinstance(doc, dict):
+        raise ReportError(f"{bad}: expected a JSON object, got {type(doc).__name__}")
+    present = [m for m in MODELS if m in doc]
+    if not present:
+        raise ReportError(f"{bad}: none of the model entries {list(MODELS)}")
+    classes = doc.get("classes")
+    if classes is not None and not (isinstance(classes, list) and all(isinstance(c, str) for c in classes)):
+        raise ReportError(f"{bad}: 'classes' should be a list of crater names")
+    for m in present:
+        e = doc[m]
+        if not isinstance(e, dict):
+            raise ReportError(f"{bad}: {m!r} should be an object")
+        if "real_accuracy" not in e or not _num_or_none(e["real_accuracy"]):
+            raise ReportError(f"{bad}: {m}.real_accuracy missing or not a number")
+        for key in ("val_accuracy", "real_accuracy_class_mean"):
+            if not _num_or_none(e.get(key)):
+                raise ReportError(f"{bad}: {m}.{key} is not a number")
+        for key in ("per_crater", "per_sigma", "per_source"):
+            d = e.get(key, {})
+            if not isinstance(d, dict) or not all(_num_or_none(v) for v in d.values()):
+                raise ReportError(f"{bad}: {m}.{key} should map names to accuracies")
+        conf = e.get("confusion")
+        if conf is not None:
+            n = len(conf) if isinstance(conf, list) else -1
+            if n < 1 or not all(isinstance(r, list) and len(r) == n and all(is_num(v) for v in r) for r in conf):
+                raise ReportError(f"{bad}: {m}.confusion should be a square matrix of counts")
+            if classes is not None and n != len(classes):
+                raise ReportError(f"{bad}: {m}.confusion is {n}x{n} but there are {len(classes)} classes")
+    return doc
+
+
+def load_loop_history(path: Path) -> dict | None:
+    """``loop_history.json``: {"rounds": [...], "threshold", "stopped_because"}."""
+    if not path.exists():
+        return None
+    doc = _read_json(path)
+    bad = f"{path}: corrupt loop history"
+    if not isinstance(doc, dict) or not isinstance(doc.get("rounds"), list):
+        raise ReportError(f"{bad}: expected an object with a 'rounds' list")
+    for i, r in enumerate(doc["rounds"]):
+        if not isinstance(r, dict):
+            raise ReportError(f"{bad}: rounds[{i}] is not an object")
+        for key in ("round", "sun_elevation_count"):
+            if not is_num(r.get(key)):
+                raise ReportError(f"{bad}: rounds[{i}].{key} missing or not a number")
+        for key in LOOP_ROUND_FIELDS[2:]:
+            if not _num_or_none(r.get(key)):
+                raise ReportError(f"{bad}: rounds[{i}].{key} is not a number")
+    if not _num_or_none(doc.get("threshold")):
+        raise ReportError(f"{bad}: threshold is not a number")
+    if doc.get("stopped_because") is not None and not isinstance(doc["stopped_because"], str):
+        raise ReportError(f"{bad}: stopped_because should be text")
+    return doc
+
+
+def load_experiments(path: Path) -> list[dict] | None:
+    """``experiments.csv`` rows with typed values (real_accuracy may be empty -> NaN)."""
+    if not path.exists():
+        return None
+    text = _read_text(path)
+    reader = csv.DictReader(text.splitlines())
+    cols = reader.fieldnames or []
+    missing = [c for c in EXPERIMENT_COLUMNS if c not in cols]
+    if missing:
+        raise ReportError(f"{path}: corrupt experiments table: missing column(s) {missing} (has {cols})")
+    out = []
+    for lineno, rec in enumerate(reader, 2):
+        try:
+            acc = (rec["real_accuracy"] or "").strip()
+            row = {"parameter": (rec["parameter"] or "").strip(), "count": int(float(rec["count"])),
+                   "sigma": float(rec["sigma"]), "model": (rec["model"] or "").strip(),
+                   "real_accuracy": float(acc) if acc else float("nan"),
+                   "train_images": int(float(rec["train_images"]))}
+        except (TypeError, ValueError) as exc:
+            raise ReportError(f"{path}:{lineno}: corrupt experiments row ({exc})") from None
+        if not row["parameter"] or not row["model"]:
+            raise ReportError(f"{path}:{lineno}: corrupt experiments row (empty parameter or model)")
+        out.append(row)
+    return out
+
+
+def load_summary(path: Path) -> dict | None:
+    """``train_summary.json`` (train/trainer.py); only a few facts are shown."""
+    if not path.exists():
+        return None
+    doc = _read_json(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("data", {}), dict):
+        raise ReportError(f"{path}: corrupt training summary (expected a JSON object with a 'data' object)")
+    return doc
+
+
+def check_png(path: Path) -> Path | None:
+    """``path`` if it is a readable PNG, None if absent; ReportError if corrupt."""
+    if not path.exists():
+        return None
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        raise ReportError(f"{path}: cannot read ({exc.strerror})") from None
+    if head != b"\x89PNG\r\n\x1a\n":
+        raise ReportError(f"{path}: corrupt PNG (bad signature)")
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            im.verify()
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        pass
+    except Exception as exc:  # noqa: BLE001 - any decoder complaint means a corrupt file
+        raise ReportError(f"{path}: corrupt PNG ({exc})") from None
+    return path
+
+
+def load_run_config(path: Path) -> dict | None:
+    """The resolved configuration saved by ``crater-synth train`` (RUN_DIR/config.yaml)."""
+    if not path.exists():
+        return None
+    import yaml
+
+    try:
+        doc = yaml.safe_load(_read_text(path))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ReportError(f"{path}: corrupt YAML ({what}{where})") from None
+    if not isinstance(doc, dict):
+        raise ReportError(f"{path}: corrupt run config (expected a mapping)")
+    return doc
+
+
+def dataset_rows(ds: Path | None) -> list[dict] | None:
+    """Every row of the dataset's manifest (strict: a corrupt row is an error naming file:line)."""
+    from crater_core import schema
+
+    if ds is None or not (ds / schema.MANIFEST_NAME).is_file():
+        return None
+    return schema.load_manifest(ds)
+
+
+# ------------------------------------------------------------------------------------------------
+# Configuration: the run's saved config, with the command line's explicit overrides on top
+# ------------------------------------------------------------------------------------------------
+def _explicit_keys(overrides: Sequence[str]) -> list[str]:
+    keys = []
+    for o in overrides:
+        if "=" not in o or o.startswith("~"):
+            continue
+        keys.append(o.split("=", 1)[0].lstrip("+").split("@", 1)[0])
+    return keys
+
+
+def _get_path(d: Mapping, dotted: str):
+    cur = d
+    for part in dotted.split("."):
+        if not isinstance(cur, Mapping) or part not in cur:
+            raise KeyError(dotted)
+        cur = cur[part]
+    return cur
+
+
+def _set_path(d: dict, dotted: str, value) -> None:
+    parts = dotted.split(".")
+    for part in parts[:-1]:
+        if not isinstance(d.get(part), dict):
+            d[part] = {}
+        d = d[part]
+    d[parts[-1]] = copy.deepcopy(value)
+
+
+@dataclass
+class RunConfig:
+    cfg: dict
+    dataset_dir: Path | None
+    dataset_dir_source: str
+    saved: bool
+
+
+def effective_config(run_dir: Path, overrides: Sequence[str] = ()) -> RunConfig:
+    """The configuration the run used (RUN_DIR/config.yaml when train saved one, else the composed
+    defaults), with every key given explicitly on the command line taken from the overrides."""
+    from crater_synth.config import REPO_ROOT, compose, resolved
+
+    composed = resolved(compose(list(overrides)))
+    saved = load_run_config(run_dir / RUN_CONFIG_FILE)
+    explicit = _explicit_keys(overrides)
+    if saved is not None:
+        cfg = copy.deepcopy(saved)
+        for k, v in composed.items():            # sections an older saved config lacks
+            cfg.setdefault(k, copy.deepcopy(v))
+        for key in explicit:
+            try:
+                _set_path(cfg, key, _get_path(composed, key))
+            except KeyError:
+                pass
+    else:
+        cfg = composed
+    if any(k in ("train", "train.dataset_dir") for k in explicit):
+        source = "command-line override train.dataset_dir"
+    elif saved is not None and (saved.get("train") or {}).get("dataset_dir"):
+        source = f"{run_dir / RUN_CONFIG_FILE} (the configuration the run was trained with)"
+    else:
+        source = "configuration default (train.dataset_dir)"
+    raw = (cfg.get("train") or {}).get("dataset_dir")
+    ds = None
+    if raw:
+        ds = Path(str(raw))
+        if not ds.is_absolute() and not ds.exists() and (REPO_ROOT / ds).exists():
+            ds = REPO_ROOT / ds
+    return RunConfig(cfg, ds, source, saved is not None)
+
+
+def config_craters(cfg: Mapping) -> list[dict]:
+    """The crater entries of the configuration's crater group, in configuration order."""
+    out = []
+    for key, e in (cfg.get("crater") or {}).items():
+        e = e or {}
+        out.append({"name": str(e.get("name") or key), "lat": e.get("lat"), "lon": e.get("lon"),
+                    "diameter_km": e.get("diameter_km")})
+    return out

@@ -1,0 +1,252 @@
+"""The real validation protocol (docs/validation.md): choose settings on other craters, report the test.
+
+Only one real observation per crater exists offline (a crop of the LROC WAC south-polar mosaic), so
+a setting chosen while watching the paper's three craters would be tuned to the test set. The protocol:
+
+- **Validation groups** (``validate.groups``): disjoint groups (triples by default) of catalogue craters,
+  none of them one of the test craters. For each group, a classifier is trained on renders of those
+  craters only and tested on their real WAC crops. Their mean accuracy (``validation mean``) is the
+  ONLY real-image number any setting (renderer, detail, sensor model, preprocessing, model, training)
+  may be chosen by.
+- **Test group** (``validate.test``): the paper's three craters, trained and evaluated the same way,
+  reported next to the validation numbers and never used to choose.
+
+Every group is rendered into the same dataset directory (``out_dir``; renders are shared and
+resumed), trained with each seed of ``validate.seeds`` (the spread across seeds is the noise floor a
+lever must beat) and evaluated with the project's own ``train.pipeline.train_and_evaluate``. Results
+land in ``validate.out_dir``: ``validation.json`` (every number), ``validation.csv`` (one row per
+group, seed, model and crater) and ``validation.md`` (the table). A rerun skips finished
+(group, seed) runs whose configuration is unchanged.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import click
+import numpy as np
+
+from crater_core.schema import atomic_write_text
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import ConfigError, compose, resolved
+from train.registry import MODELS
+
+RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
+REPORTED_MODELS = MODELS  # every classifier of train.registry
+# Overrides the protocol sets itself for each run: a user override of these would be silently lost.
+_OWNED_KEYS = ("crater", "run_dir", "train.seed")
+
+
+@dataclass(frozen=True)
+class Group:
+    """One set of craters trained and tested together."""
+
+    role: str  # "validation" | "test"
+    index: int
+    craters: tuple[str, ...]
+
+    @property
+    def label(self) -> str:
+        return f"{self.role}{self.index}-" + "+".join(self.craters) if self.role == "validation" else \
+            "test-" + "+".join(self.craters)
+
+    def crater_override(self) -> str:
+        return "crater=[" + ",".join(self.craters) + "]"
+
+
+def plan_groups(vcfg: dict, known_craters: Sequence[str]) -> list[Group]:
+    """Validation groups then the test group, checked: at least two validation groups of at least two
+    craters each, pairwise disjoint, none sharing a crater with the test group, all in the catalogue."""
+    groups_cfg = vcfg.get("groups") or []
+    test = tuple(str(c) for c in (vcfg.get("test") or []))
+    known = set(known_craters)
+    if len(groups_cfg) < 2:
+        raise ConfigError(f"validate.groups needs at least two validation groups, got {len(groups_cfg)}")
+    groups = []
+    seen: dict[str, int] = {}
+    for i, g in enumerate(groups_cfg):
+        names = tuple(str(c) for c in g)
+        if len(names) < 2 or len(set(names)) != len(names):
+            raise ConfigError(f"validate.groups[{i}]={list(names)}: needs at least two distinct craters")
+        for n in names:
+            if n not in known:
+                raise ConfigError(f"validate.groups[{i}]: unknown crater {n!r} (not in configs/crater/)")
+            if n in test:
+                raise ConfigError(f"validate.groups[{i}]: {n!r} is a test crater; validation craters must be "
+                                  f"disjoint from validate.test={list(test)}")
+            if n in seen:
+                raise ConfigError(f"validate.groups[{i}]: {n!r} is already in validate.groups[{seen[n]}]; "
+                                  "groups must be disjoint")
+            seen[n] = i
+        groups.append(Group("validation", i + 1, names))
+    if test:
+        if len(test) < 2:
+            raise ConfigError(f"validate.test={list(test)}: needs at least two craters")
+        for n in test:
+            if n not in known:
+                raise ConfigError(f"validate.test: unknown crater {n!r} (not in configs/crater/)")
+        groups.append(Group("test", 0, test))
+    return groups
+
+
+def catalogue_names() -> list[str]:
+    """Every crater of the catalogue (configs/crater/*.yaml, except the ``custom`` template)."""
+    from crater_synth.config import CONFIG_DIR
+
+    return sorted(p.stem for p in (CONFIG_DIR / "crater").glob("*.yaml") if p.stem != "custom")
+
+
+def run_fingerprint(cfg_resolved: dict) -> str:
+    """What decides a run's result: everything but paths, progress and the validate group itself."""
+    skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir"}
+    payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
+    payload["train"] = {k: v for k, v in payload.get("train", {}).items()
+                        if k not in ("progress", "dataset_dir", "cache_dir", "num_threads", "device")}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _check_overrides(overrides: Sequence[str]) -> None:
+    for o in overrides:
+        key = o.lstrip("+~").split("=", 1)[0]
+        if key in _OWNED_KEYS:
+            raise ConfigError(f"override {o!r}: the validation protocol sets {key} itself "
+                              f"(choose craters with validate.groups / validate.test, seeds with validate.seeds)")
+
+
+def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
+    """Render, train and evaluate every (group, seed); returns the results dict (also written)."""
+    from crater_synth.dataset import build_dataset
+    from train.pipeline import train_and_evaluate
+
+    overrides = list(overrides)
+    _check_overrides(overrides)
+    base = resolved(compose(overrides))
+    vcfg = base["validate"]
+    seeds = [int(s) for s in (vcfg.get("seeds") or [0])]
+    groups = plan_groups(vcfg, catalogue_names())
+    out = Path(str(vcfg["out_dir"]))
+    out.mkdir(parents=True, exist_ok=True)
+    results_path = out / RESULTS_FILE
+    previous = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    done = {(r["group"], r["seed"]): r for r in previous.get("runs", [])}
+    runs = []
+    for g in groups:
+        rendered = False
+        for seed in seeds:
+            run_dir = out / g.label / f"seed{seed}"
+            ovr = overrides + [g.crater_override(), f"run_dir={run_dir}", f"train.seed={seed}"]
+            cfg = compose(ovr)
+            cfg_r = resolved(cfg)
+            fp = run_fingerprint(cfg_r)
+            old = done.get((g.label, seed))
+            if old is not None and old.get("fingerprint") == fp:
+                runs.append(old)
+                continue
+            if not rendered:
+                if progress:
+                    click.echo(f"validate: rendering {g.label} ({', '.join(g.craters)})", err=True)
+                t0 = time.perf_counter()
+                render = build_dataset(cfg, progress=progress)
+                render_s = time.perf_counter() - t0
+                rendered = True
+            t1 = time.perf_counter()
+            metrics = train_and_evaluate(cfg_r, progress=progress)
+            run = {
+                "group": g.label, "role": g.role, "craters": list(g.craters), "seed": seed, "fingerprint": fp,
+                "train_images": int(metrics["train_images"]), "renders": int(render["renders_total"]),
+                "render_s": round(render_s, 1), "train_s": round(time.perf_counter() - t1, 1),
+                "models": {m: {"real_accuracy": float(metrics[m]["real_accuracy"]),
+                               "val_accuracy": metrics[m].get("val_accuracy"),
+                               "per_crater": {k: float(v) for k, v in metrics[m]["per_crater"].items()},
+                               "confusion": metrics[m]["confusion"]} for m in REPORTED_MODELS},
+                "run_dir": str(run_dir),
+            }
+            runs.append(run)
+            done[(g.label, seed)] = run
+            _write(out, runs, base, groups, seeds)
+            render_s = 0.0
+    return _write(out, runs, base, groups, seeds)
+
+
+def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:
+    """Per group and model: mean accuracy over seeds (and its spread), per crater; then the
+    validation mean (mean over validation groups) and the test mean."""
+    out: dict = {"groups": {}, "validation_mean": {}, "test_mean": {}}
+    for g in groups:
+        rs = [r for r in runs if r["group"] == g.label]
+        if not rs:
+            continue
+        entry = {"role": g.role, "craters": list(g.craters), "seeds": [r["seed"] for r in rs], "models": {}}
+        for m in REPORTED_MODELS:
+            accs = [r["models"][m]["real_accuracy"] for r in rs]
+            per = {c: float(np.mean([r["models"][m]["per_crater"][c] for r in rs])) for c in g.craters}
+            entry["models"][m] = {"mean": float(np.mean(accs)), "std_over_seeds": float(np.std(accs)),
+                                  "per_crater": per, "min_crater": float(min(per.values()))}
+        out["groups"][g.label] = entry
+    for m in REPORTED_MODELS:
+        val = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == "validation"]
+        test = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == "test"]
+        out["validation_mean"][m] = float(np.mean(val)) if val else None
+        out["test_mean"][m] = float(np.mean(test)) if test else None
+    return out
+
+
+def table_markdown(summary: dict) -> str:
+    """The validation table: one line per group and model, per-crater accuracies, means."""
+    lines = ["| group | model | accuracy (mean over seeds ± sd) | per crater |", "|---|---|---|---|"]
+    for label, e in summary["groups"].items():
+        for m in REPORTED_MODELS:
+            d = e["models"][m]
+            per = ", ".join(f"{c} {v:.3f}" for c, v in d["per_crater"].items())
+            lines.append(f"| {label} | {m} | {d['mean']:.3f} ± {d['std_over_seeds']:.3f} | {per} |")
+    lines.append("")
+    for m in REPORTED_MODELS:
+        v, t = summary["validation_mean"][m], summary["test_mean"][m]
+        lines.append(f"- {m}: validation mean {'n/a' if v is None else f'{v:.3f}'}, "
+                     f"test mean {'n/a' if t is None else f'{t:.3f}'}")
+    return "\n".join(lines) + "\n"
+
+
+def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: list[int]) -> dict:
+    summary = summarise(runs, groups, seeds)
+    res = {"protocol": "docs/validation.md", "sweep": base["sweep"].get("name"), "seeds": seeds,
+           "groups": [{"label": g.label, "role": g.role, "craters": list(g.craters)} for g in groups],
+           "runs": runs, "summary": summary}
+    atomic_write_text(out / RESULTS_FILE, json.dumps(res, indent=1, sort_keys=True) + "\n")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["group", "role", "seed", "model", "crater", "accuracy", "group_accuracy", "train_images"])
+    for r in runs:
+        for m in REPORTED_MODELS:
+            for c, a in r["models"][m]["per_crater"].items():
+                w.writerow([r["group"], r["role"], r["seed"], m, c, f"{a:.4f}",
+                            f"{r['models'][m]['real_accuracy']:.4f}", r["train_images"]])
+    atomic_write_text(out / CSV_FILE, buf.getvalue())
+    head = (f"# Validation protocol results ({res['sweep']}, seeds {seeds})\n\n"
+            "Settings are chosen by the validation mean only; the test group is reported, never used to choose.\n\n")
+    atomic_write_text(out / TABLE_FILE, head + table_markdown(summary))
+    return res
+
+
+@click.command("validate")
+@OVERRIDES
+@user_errors
+def validate_command(overrides):
+    """Real validation protocol: train and test on validation crater groups, then the test craters.
+
+    Writes validation.json/.csv/.md under validate.out_dir (docs/validation.md). Example:
+    crater-synth validate sweep=demo validate.seeds=[0,1]
+    """
+    res = run_validation(overrides)
+    s = res["summary"]
+    for m in REPORTED_MODELS:
+        v, t = s["validation_mean"][m], s["test_mean"][m]
+        click.echo(f"{m}: validation mean {v:.3f}" + ("" if t is None else f", test mean {t:.3f}"))
+    click.echo(f"table: {Path(str(resolved(compose(list(overrides)))['validate']['out_dir'])) / TABLE_FILE}")

@@ -1,0 +1,46 @@
+"""Fidelity ablation bookkeeping (crater_synth.ablation): variants, shared renders, generated docs."""
+
+from __future__ import annotations
+
+import pytest
+
+from crater_synth import ablation as ab
+from crater_synth.config import ConfigError, compose, resolved
+
+
+def test_variants_are_the_baseline_then_one_lever_off_each():
+    acfg = {"levers": {"a": {"when_off": ["x=1"], "why": "physics"}, "b": {"when_off": ["y=2", "z=3"]}}}
+    v = ab.plan_variants(acfg)
+    assert [x["name"] for x in v] == ["all levers on", "a off", "b off"]
+    assert v[0]["overrides"] == [] and v[2]["overrides"] == ["y=2", "z=3"]
+    with pytest.raises(ConfigError, match="empty"):
+        ab.plan_variants({"levers": {}})
+    with pytest.raises(ConfigError, match="levers.a.when_off"):
+        ab.plan_variants({"levers": {"a": {"why": "no overrides"}}})
+
+
+def test_training_only_levers_share_renders_and_pixel_settings_do_not():
+    base = resolved(compose(["sweep=demo"]))
+    sensor_off = resolved(compose(["sweep=demo", "sensor=wac_mosaic", "train.max_epochs=3"]))
+    physical = resolved(compose(["sweep=demo", "sweep.sun_model=physical", "sweep.sun_elevation.values=[0.5,1.0]"]))
+    workers = resolved(compose(["sweep=demo", "render.workers=1"]))
+    assert ab.render_key(base) == ab.render_key(sensor_off) == ab.render_key(workers)
+    assert ab.render_key(base) != ab.render_key(physical)
+
+
+def test_generated_table_replaces_only_the_marked_section(tmp_path):
+    doc = tmp_path / "fidelity.md"
+    doc.write_text(f"# Fidelity\n\nintro\n\n{ab.BEGIN}\nold table\n{ab.END}\n\nafter\n")
+    summary = {"groups": {"validation1-a+b": {"role": "validation", "models": {
+        "lunarnet_ex": {"per_crater": {"a": 0.5, "b": 0.7}}}}},
+               "validation_mean": {"lunarnet_ex": 0.6, "lunarsvm_ex": 0.55},
+               "test_mean": {"lunarnet_ex": None, "lunarsvm_ex": None}}
+    results = [{"variant": "all levers on", "lever": None, "renders": {"validation1-a+b": 10}, "summary": summary}]
+    ab._write(tmp_path, results, {"docs_file": str(doc)}, ["train.max_epochs=2"])
+    text = doc.read_text()
+    assert "old table" not in text and "intro" in text and "after" in text
+    assert "| all levers on | 0.600 | n/a | 0.550 | n/a | a 0.50 b 0.70 | 10 |" in text
+    assert (tmp_path / ab.TABLE_FILE).is_file() and (tmp_path / ab.RESULTS_FILE).is_file()
+    doc.write_text("no markers")
+    with pytest.raises(ConfigError, match="markers"):
+        ab._write(tmp_path, results, {"docs_file": str(doc)}, [])

@@ -1,0 +1,243 @@
+"""The layering you can draw: imports point down only, and no module imports itself back.
+
+    crater_core  <  data_manifest  <  {blender_gen, train}  <  crater_synth
+
+Every ``import`` of every module is read from the source (AST, so imports inside functions count too,
+and nothing is executed). The test fails on
+- an import cycle between modules (a strongly connected component of the module graph);
+- an upward or sideways arrow between packages (``blender_gen`` and ``train`` never import each other);
+- a third-party import a package must not make: the core is numpy + stdlib (OpenImageIO only in
+  ``crater_core.exr``), ``blender_gen`` runs inside Blender (bpy, mathutils, numpy; OpenImageIO only
+  through ``crater_core.exr``), ``train`` never imports bpy or the CLI/config stack.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+# Lower rank = lower layer. An import between two packages must go to a strictly lower rank.
+RANK = {"crater_core": 0, "data_manifest": 1, "blender_gen": 2, "train": 2, "crater_synth": 3}
+
+# Third-party top-level modules a package may import (the standard library is always allowed).
+ALLOWED_THIRD_PARTY = {
+    "crater_core": {"numpy"},
+    "blender_gen": {"bpy", "mathutils", "numpy"},
+}
+# Single modules with a wider allowance than their package, and why.
+MODULE_ALLOWANCE = {
+    "crater_core.exr": {"OpenImageIO"},          # the project's one EXR reader/writer
+    "crater_core.progress": {"tqdm"},            # the terminal bar, imported only when the stream is a TTY
+}
+FORBIDDEN_THIRD_PARTY = {
+    "data_manifest": {"bpy", "mathutils", "torch", "click", "omegaconf", "hydra"},
+    "train": {"bpy", "mathutils", "click", "omegaconf", "hydra"},
+}
+
+# Cycles another branch is known to remove. Each entry must still be a real cycle: once the fix lands this
+# test fails and asks for the entry to be deleted. None pending (the dataset/launcher cycle is gone: the
+# launcher owns the dataset command).
+PENDING_CYCLES: set[frozenset[str]] = set()
+
+
+def project_modules() -> dict[str, Path]:
+    mods = {}
+    for pkg in RANK:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            mods[".".join(parts)] = path
+    return mods
+
+
+def _imports(module: str, path: Path, known: set[str]) -> list[tuple[str, int]]:
+    """(imported name, line) for every import in the file; project names resolved to the deepest
+    project module they name (``from pkg import mod`` -> ``pkg.mod``)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    is_pkg = path.name == "__init__.py"
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(alias.name, node.lineno) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base[: len(base) - node.level + (1 if is_pkg else 0)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            for alias in node.names:
+                sub = f"{target}.{alias.name}"
+                out.append((sub if sub in known else target, node.lineno))
+    resolved = []
+    for name, line in out:
+        # ``import a.b.c`` where only ``a.b`` is a project module: depend on ``a.b``.
+        while name not in known and "." in name and name.split(".")[0] in RANK:
+            name = name.rsplit(".", 1)[0]
+        if (name, line) not in resolved:
+            resolved.append((name, line))
+    return resolved
+
+
+@pytest.fixture(scope="module")
+def graph() -> dict[str, list[tuple[str, int]]]:
+    mods = project_modules()
+    known = set(mods)
+    return {m: _imports(m, p, known) for m, p in mods.items()}
+
+
+def _package(module: str) -> str:
+    return module.split(".")[0]
+
+
+def test_walker_sees_function_level_and_relative_imports(tmp_path):
+    src = tmp_path / "mod.py"
+    src.write_text("import os\n\ndef f():\n    from crater_core import geometry\n    from . import sibling\n")
+    known = {"crater_core", "crater_core.geometry", "pkg", "pkg.sibling"}
+    got = {name for name, _ in _imports("pkg.mod", src, known)}
+    assert got == {"os", "crater_core.geometry", "pkg.sibling"}
+
+
+def test_no_upward_or_sideways_imports_between_packages(graph):
+    bad = []
+    for mod, imports in graph.items():
+        src = _package(mod)
+        for name, line in imports:
+            dst = _package(name)
+            if dst in RANK and dst != src and not RANK[dst] < RANK[src]:
+                bad.append(f"{mod} (line {line}) imports {name}: {src} may only import "
+                           f"{sorted(p for p in RANK if RANK[p] < RANK[src]) or 'nothing of the project'}")
+    assert not bad, "imports against the layering:\n" + "\n".join(bad)
+
+
+def test_third_party_imports_fit_each_layer(graph):
+    bad = []
+    stdlib = set(sys.stdlib_module_names) | {"__future__"}
+    for mod, imports in graph.items():
+        pkg = _package(mod)
+        for name, line in imports:
+            top = name.split(".")[0]
+            if top in RANK or top in stdlib:
+                continue
+            if pkg in ALLOWED_THIRD_PARTY:
+                allowed = ALLOWED_THIRD_PARTY[pkg] | MODULE_ALLOWANCE.get(mod, set())
+                if top not in allowed:
+                    bad.append(f"{mod} (line {line}) imports {top}: {pkg} allows only the stdlib and {sorted(allowed)}")
+            elif top in FORBIDDEN_THIRD_PARTY.get(pkg, ()):
+                bad.append(f"{mod} (line {line}) imports {top}, which {pkg} must never import")
+    assert not bad, "third-party imports against the layering:\n" + "\n".join(bad)
+
+
+def strongly_connected(edges: dict[str, set[str]]) -> list[set[str]]:
+    """Tarjan's algorithm (iterative): components of more than one module, or a module importing itself."""
+    index, low, on_stack, stack, out, counter = {}, {}, set(), [], [], [0]
+    for root in edges:
+        if root in index:
+            continue
+        work = [(root, iter(edges[root]))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, it = work[-1]
+            for nxt in it:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = counter[0]
+                    counter[0] += 1
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(edges[nxt])))
+                    break
+                if nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    comp = set()
+                    while True:
+                        n = stack.pop()
+                        on_stack.discard(n)
+                        comp.add(n)
+                        if n == node:
+                            break
+                    if len(comp) > 1 or node in edges[node]:
+                        out.append(comp)
+    return out
+
+
+def test_cycle_finder_finds_cycles():
+    edges = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"d"}, "e": {"a"}}
+    assert sorted(map(sorted, strongly_connected(edges))) == [["a", "b", "c"], ["d"]]
+    assert strongly_connected({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles(graph):
+    edges: dict[str, set[str]] = defaultdict(set)
+    for mod, imports in graph.items():
+        edges[mod] |= {name for name, _ in imports if name in graph}
+    for mod in graph:
+        edges.setdefault(mod, set())
+    cycles = strongly_connected(dict(edges))
+    stale = [sorted(c) for c in PENDING_CYCLES if not any(c <= comp for comp in cycles)]
+    assert not stale, f"these cycles are gone: delete them from PENDING_CYCLES in {__file__}: {stale}"
+    real = [c for c in cycles if frozenset(c) not in PENDING_CYCLES]
+
+    def describe(comp: set[str]) -> str:
+        arrows = [f"{m} -> {n} (line {line})" for m in sorted(comp) for n, line in graph[m] if n in comp]
+        return "; ".join(arrows)
+
+    assert not real, "import cycles:\n" + "\n".join(describe(c) for c in real)
+
+
+# Modules whose whole import closure (every project module they can reach, function-level imports included)
+# must stay free of a heavy dependency, and why.
+LIGHT_CLOSURES = {
+    "crater_synth.report": ("torch", "the report summarises a run without loading the training stack"),
+    "train.registry": ("torch", "the model list is read by the report and the CLI"),
+}
+
+
+def _closure(graph, start: str) -> set[str]:
+    seen, todo = set(), [m for m in graph if m == start or m.startswith(start + ".")]
+    while todo:
+        mod = todo.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        todo += [name for name, _ in graph[mod] if name in graph]
+    return seen
+
+
+def test_light_modules_never_reach_heavy_dependencies(graph):
+    bad = []
+    for start, (heavy, why) in LIGHT_CLOSURES.items():
+        for mod in sorted(_closure(graph, start)):
+            hits = [line for name, line in graph[mod] if name.split(".")[0] == heavy]
+            if hits:
+                bad.append(f"{start} reaches {mod}, which imports {heavy} (line {hits[0]}): {why}")
+    assert not bad, "\n".join(bad)
+
+
+MAX_MODULE_LINES = 500
+LENGTH_REASON = "Length:"       # a paragraph of the module docstring starting with this says why it is longer
+
+
+def test_long_modules_say_why():
+    """No module over MAX_MODULE_LINES lines without a reason written at its top (issue 12)."""
+    bad = []
+    for path in project_modules().values():
+        text = path.read_text(encoding="utf-8")
+        n = text.count("\n") + 1
+        if n > MAX_MODULE_LINES and LENGTH_REASON not in (ast.get_docstring(ast.parse(text)) or ""):
+            bad.append(f"{path.relative_to(ROOT)}: {n} lines; split it, or say why in a '{LENGTH_REASON} ...' "
+                       "paragraph of its docstring")
+    assert not bad, "\n".join(bad)
