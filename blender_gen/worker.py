@@ -66,6 +66,40 @@ def emit(prefix: str, payload) -> None:
         data = data[os.write(_RESULT_FD, data):]
 
 
+# Stopping (SIGTERM/SIGINT from the host or the terminal, or the host gone): the handler only records
+# the signal, and the render loop stops at the next safe point -- between renders, never between
+# writing an EXR and reporting it (the file would have no manifest row), and never inside bpy: Blender
+# turns a SystemExit raised inside an operator (a Cycles render) into a C exit() that skips every
+# Python ``finally``, which would leave the scratch file behind.
+_STOP = {"signal": None}
+
+
+def _on_stop_signal(signum, _frame) -> None:
+    _STOP["signal"] = signum
+
+
+def _stop_if_asked() -> None:
+    if _STOP["signal"] is not None:
+        log(f"stopping on signal {_STOP['signal']}")
+        raise SystemExit(128 + _STOP["signal"])
+
+
+def _watch_parent(interval_s: float = 1.0) -> None:
+    """Stop (SIGTERM to self) when the host process is gone, e.g. killed with -9."""
+    import threading
+
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(interval_s)
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+
+    threading.Thread(target=watch, name="watch-host", daemon=True).start()
+
+
 def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
     """Every render parameter, as EXR header attributes (str/int/float)."""
     hdr = {
@@ -129,6 +163,7 @@ def run(job_path: str) -> int:
     t_write = 0.0
     try:
         for item in job["renders"]:
+            _stop_if_asked()
             t1 = time.perf_counter()
             to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
             mode_used = cfg["mode"]
@@ -144,13 +179,14 @@ def run(job_path: str) -> int:
                 chans = direct.render(session, item, to_sun)
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
+            radiance = chans["IF"]
             sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
             t_write += time.perf_counter() - t2
-            radiance = chans["IF"]
             emit("RESULT", {"index": int(item["index"]), "rel_path": item["rel_path"], "sha256": sha,
                             "lit_fraction": round(float(np.mean(chans["lit"])), 6),
                             "mean_if": round(float(np.mean(radiance)), 8),
                             "seconds": round(time.perf_counter() - t1, 4), "mode": mode_used})
+            _stop_if_asked()
     finally:
         render.cleanup()
     n = len(job["renders"])
@@ -172,8 +208,11 @@ def run(job_path: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _args(sys.argv if argv is None else argv)
     _protect_stdout()
-    # SIGTERM (host shutting down): unwind normally so the scratch file is removed.
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    # SIGTERM (host shutting down) or SIGINT (Ctrl-C reaches the whole process group): unwind
+    # normally so the scratch file is removed; the same when the host disappears.
+    signal.signal(signal.SIGTERM, _on_stop_signal)
+    signal.signal(signal.SIGINT, _on_stop_signal)
+    _watch_parent()
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
         return 2

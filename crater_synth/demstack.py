@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crater_core.settings import BLEND_PIXELS_RANGE  # the allowed dem.blend_pixels, checked with the settings
 from crater_synth.dem import Dem, SampleResult
 from crater_synth.errors import UserError
 
@@ -50,7 +51,6 @@ SMOOTH_SIGMA_PER_BAND = 0.25
 DEAD_ZONE_PER_SIGMA = 0.5
 # Gaussian support read beyond the band (in sigmas).
 GAUSS_SUPPORT_SIGMAS = 4.0
-BLEND_PIXELS_RANGE = (0.5, 50.0)
 # Default transition band, in coarse pixels (docs/dem_stack.md: on Shackleton, 1.5 keeps the whole
 # rim circle at full 200 m weight; 2 already lets the 1600 m DEM into 10 % of it).
 DEFAULT_BLEND_PIXELS = 1.5

@@ -41,15 +41,16 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
-from crater_synth.errors import UserError
+from crater_core.settings import DETAIL_MODELS as MODELS  # noqa: F401 - terrain.detail.model choices, re-exported
+from crater_core.settings import FRESH_DEPTH_DIAMETER, DetailSettings, SettingsError
 
 # Pike (1977), "Size-dependence in the shape of fresh impact craters on the Moon", in Impact and
 # Explosion Cratering, 489-509: fresh simple craters, D/d/h in km.
-PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = 0.196, 1.010
+PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = FRESH_DEPTH_DIAMETER, 1.010
 PIKE_RIM_COEF, PIKE_RIM_EXP = 0.036, 1.014
 # McGetchin, Settle & Head (1973), EPSL 20:226: ejecta thickness ~ (r/R)^-3 outside the rim.
 EJECTA_DECAY_EXP = 3.0
@@ -64,7 +65,6 @@ MIN_CRATER_SAMPLES = 2.0
 # Cap on stamped samples per vectorised batch (memory bound, ~16 MB of float64 per array).
 _BATCH_ELEMENTS = 2_000_000
 
-MODELS = ("calibrated", "legacy")
 # Reference grid of roughness_rms_slope_deg: where the roughness was calibrated against the real
 # 200 m crop (docs/detail.md). The PSD amplitude it implies is used on every grid.
 ROUGHNESS_REFERENCE_SPACING_M = 200.0
@@ -81,84 +81,16 @@ DEGRADED_TAPER_START_RADII = 3.5
 # Nondimensional diffusion times kappa t / D^2 tabulated (0 and a geometric ladder).
 DIFFUSION_TAU_D_RANGE = (1e-5, 2.0)
 DIFFUSION_TAU_D_COUNT = 160
-# Allowed range of min_depth_diameter (the most degraded crater drawn).
-MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
+# The allowed range of min_depth_diameter (the most degraded crater drawn) is checked with the other
+# terrain.detail settings: crater_core.settings.MIN/MAX_RECOGNITION_DEPTH_DIAMETER.
 
 # The pre-calibration model (kept for ablations; docs/detail.md "old").
 LEGACY_PARAMETERS = {"hurst": 0.8, "rms_slope_deg": 6.0, "crater_density_scale": 1.0,
                      "min_crater_diameter_m": 300.0, "min_depth_diameter": 0.05}
 
 
-class DetailConfigError(UserError):
-    """A terrain.detail setting is out of range."""
-
-
-@dataclass(frozen=True)
-class DetailSettings:
-    """``terrain.detail`` (configs/terrain/default.yaml); defaults are the calibrated values.
-
-    ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``, ``min_crater_diameter_m`` and
-    ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy`` uses
-    :data:`LEGACY_PARAMETERS`.
-    """
-
-    enabled: bool = True
-    seed: int = 0
-    model: str = "calibrated"
-    hurst: float = 0.8
-    roughness_rms_slope_deg: float = 1.25
-    crater_density_scale: float = 0.8
-    min_crater_diameter_m: float = 300.0
-    min_depth_diameter: float = 0.014
-
-    @classmethod
-    def from_config(cls, d) -> DetailSettings:
-        """Validate a ``terrain.detail`` mapping; errors name the key."""
-        d = dict(d or {})
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise DetailConfigError(f"unknown terrain.detail key(s) {unknown}; known: {sorted(known)}")
-        values = {}
-        for k, v in d.items():
-            if k == "enabled":
-                if not isinstance(v, bool):
-                    raise DetailConfigError(f"terrain.detail.enabled={v!r} must be true or false")
-                values[k] = v
-                continue
-            if k == "model":
-                if v not in MODELS:
-                    raise DetailConfigError(f"terrain.detail.model={v!r} must be one of {list(MODELS)}")
-                values[k] = v
-                continue
-            try:
-                if isinstance(v, bool):
-                    raise ValueError
-                num = float(v)
-                if not math.isfinite(num) or (k == "seed" and num != int(num)):
-                    raise ValueError
-                values[k] = int(num) if k == "seed" else num
-            except (TypeError, ValueError):
-                kind = "an integer" if k == "seed" else "a finite number"
-                raise DetailConfigError(f"terrain.detail.{k}={v!r} must be {kind}") from None
-        s = cls(**values)
-        checks = [
-            ("hurst", 0.0 < s.hurst < 1.0, "must lie in (0, 1)"),
-            ("roughness_rms_slope_deg", 0.0 <= s.roughness_rms_slope_deg < 60.0, "must lie in [0, 60) degrees"),
-            ("crater_density_scale", 0.0 <= s.crater_density_scale <= 100.0, "must lie in [0, 100]"),
-            ("min_crater_diameter_m", s.min_crater_diameter_m > 0.0, "must be > 0"),
-            ("min_depth_diameter",
-             MIN_RECOGNITION_DEPTH_DIAMETER <= s.min_depth_diameter < MAX_RECOGNITION_DEPTH_DIAMETER,
-             (f"must lie in [{MIN_RECOGNITION_DEPTH_DIAMETER}, {MAX_RECOGNITION_DEPTH_DIAMETER}) "
-              "(fresh craters: 0.196, Pike 1977)")),
-        ]
-        for key, ok, why in checks:
-            if not ok:
-                raise DetailConfigError(f"terrain.detail.{key}={getattr(s, key)} {why}")
-        return s
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+# ``terrain.detail`` settings and their validation live with every other setting (one source of truth).
+DetailConfigError = SettingsError
 
 
 # --------------------------------------------------------------------------------------------

@@ -101,7 +101,7 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    atomic_write_bytes(png, buf.getvalue())
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:

@@ -84,7 +84,7 @@ def plot_history(hist: dict, png: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    atomic_write_bytes(png, buf.getvalue())
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_loop(cfg: DictConfig, progress: bool = True) -> dict:

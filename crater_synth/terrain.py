@@ -29,6 +29,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.settings import NEAR_VERTICES_RANGE  # noqa: F401 - the range lives with the settings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 
@@ -41,7 +42,6 @@ RIM_SEARCH_FRAC = (0.9, 1.1)
 FLOOR_RADIUS_FRAC = 0.3
 FLOOR_PERCENTILE = 5.0
 N_AZIMUTHS = 360
-NEAR_VERTICES_RANGE = (16, 8193)
 
 
 class TerrainConfigError(UserError):
@@ -51,81 +51,25 @@ class TerrainConfigError(UserError):
 # --------------------------------------------------------------------------------------------
 # Configuration
 # --------------------------------------------------------------------------------------------
-def _section(cfg, key: str) -> dict:
-    """A config subtree as a plain dict (interpolations resolved), ``{}`` when absent."""
-    from omegaconf import DictConfig, OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    if isinstance(cfg, dict):
-        return dict(cfg.get(key) or {})
-    try:
-        node = cfg.get(key) if isinstance(cfg, DictConfig) else None
-        if node is None:
-            return {}
-        return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)  # type: ignore[return-value]
-    except OmegaConfBaseException as exc:
-        raise TerrainConfigError(f"bad {key}.* configuration: {exc}".splitlines()[0]) from None
-
-
-def _number(section: dict, name: str, key: str, integer: bool = False):
-    val = section.get(key)
-    if isinstance(val, bool) or val is None:
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number")
-    try:
-        num = float(val)
-    except (TypeError, ValueError):
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number") from None
-    if not math.isfinite(num):
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be finite")
-    if integer:
-        if num != int(num):
-            raise TerrainConfigError(f"{name}.{key}={val!r} must be an integer")
-        return int(num)
-    return num
-
-
 def terrain_settings(cfg) -> dict:
-    """Validated ``terrain.*`` (without ``detail``), ``dem.*`` and ``data_dir``."""
-    from crater_synth.demstack import DEFAULT_BLEND_PIXELS
-    from crater_synth.detail import DetailSettings
+    """``terrain.*`` (without ``detail``), ``detail``, ``dem.*`` and ``data_dir`` of the typed settings
+    (a raw configuration is converted, and so validated, once: crater_core/settings.py)."""
+    from crater_synth.config import as_settings
 
-    t, d = _section(cfg, "terrain"), _section(cfg, "dem")
-    data_dir = cfg.get("data_dir")
-    s = {
-        "near_radius_factor": _number(t, "terrain", "near_radius_factor"),
-        "near_vertices": _number(t, "terrain", "near_vertices", integer=True),
-        "far_radius_km": _number(t, "terrain", "far_radius_km"),
-        "far_spacing_km": _number(t, "terrain", "far_spacing_km"),
-        "max_nodata_fraction": _number(d, "dem", "max_nodata_fraction"),
-    }
-    lo, hi = NEAR_VERTICES_RANGE
-    if not lo <= s["near_vertices"] <= hi:
-        raise TerrainConfigError(f"terrain.near_vertices={s['near_vertices']} must lie in [{lo}, {hi}]")
-    if not 0.6 <= s["near_radius_factor"] <= 50.0:
-        raise TerrainConfigError(f"terrain.near_radius_factor={s['near_radius_factor']} must lie in "
-                                 "[0.6, 50] crater diameters (the near field must contain the rim)")
-    if s["far_radius_km"] < 0.0:
-        raise TerrainConfigError(f"terrain.far_radius_km={s['far_radius_km']} must be >= 0 (0 = no far field)")
-    if s["far_spacing_km"] <= 0.0:
-        raise TerrainConfigError(f"terrain.far_spacing_km={s['far_spacing_km']} must be > 0")
-    if not 0.0 <= s["max_nodata_fraction"] <= 1.0:
-        raise TerrainConfigError(f"dem.max_nodata_fraction={s['max_nodata_fraction']} must lie in [0, 1]")
-    s["detail"] = DetailSettings.from_config(t.get("detail"))
-    s["dem"] = {k: d.get(k) for k in ("product", "path", "far_product", "far_path")}
-    if not s["dem"]["product"] and not s["dem"]["path"]:
-        raise TerrainConfigError("dem.product or dem.path must be set")
-    stack = d.get("stack")
-    if stack is None:
-        stack = []
-    if isinstance(stack, str) or not isinstance(stack, (list, tuple)):
-        raise TerrainConfigError(f"dem.stack={stack!r} must be a list of DEM product ids or file paths "
-                                 "(finest first), e.g. dem.stack=[shackleton_lola_200m]")
-    s["dem"]["stack"] = [str(e) for e in stack]
-    s["dem"]["blend_pixels"] = _number(d, "dem", "blend_pixels") if "blend_pixels" in d else DEFAULT_BLEND_PIXELS
-    if data_dir is None or str(data_dir) == "":
-        raise TerrainConfigError("data_dir must be set")
-    s["data_dir"] = Path(str(data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
+    st = as_settings(cfg)
+    t, d = st.terrain, st.dem
+    s = {"near_radius_factor": t.near_radius_factor, "near_vertices": t.near_vertices,
+         "far_radius_km": t.far_radius_km, "far_spacing_km": t.far_spacing_km,
+         "max_nodata_fraction": d.max_nodata_fraction, "detail": t.detail,
+         "dem": {"product": d.product, "path": d.path, "far_product": d.far_product, "far_path": d.far_path,
+                 "stack": list(d.stack), "blend_pixels": d.blend_pixels}}
+    s["data_dir"] = Path(str(st.data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
     return s
+
+
+def _crater_dict(crater) -> dict:
+    """A crater entry (``CraterSettings`` or its dict) as the plain dict the patch metadata records."""
+    return crater.as_dict() if hasattr(crater, "as_dict") else dict(crater)
 
 
 def _open_stack(s: dict):
@@ -301,16 +245,19 @@ def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
     return meta if meta.get("terrain_id") == tid else None
 
 
-def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
-    """Build (or reuse) the terrain patch of ``crater`` (an entry of ``config.craters(cfg)``).
+def build_terrain(crater, cfg) -> tuple[Path, dict]:
+    """Build (or reuse) the terrain patch of ``crater`` (a ``CraterSettings`` of ``settings.craters``, or
+    its dict) for the settings ``cfg`` (``Settings``; a raw configuration is converted once).
 
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
+    from crater_core.files import ensure_writable_dir
     from crater_core.schema import atomic_write_text
     from crater_synth.dem import DemCoverageError
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
+    crater = _crater_dict(crater)
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
     dem, dem_sha = _open_stack(s)
@@ -321,6 +268,7 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
 
     tid = terrain_id(dem_sha, far_sha, crater, s, dem.key())
     out_dir = s["data_dir"] / TERRAIN_SUBDIR
+    ensure_writable_dir(s["data_dir"], "data_dir")
     npz_path = out_dir / f"{name}-{tid}.npz"
     meta_path = npz_path.with_suffix(".json")
     cached = _load_cached(npz_path, meta_path, tid)
@@ -458,11 +406,13 @@ def summary_line(meta: dict) -> dict:
 def terrain_command(overrides):
     """Build (or reuse) each selected crater's terrain patch; print one JSON line per crater.
 
-    Example: ``crater-synth terrain crater=shackleton terrain.near_vertices=256``
+    Example: `crater-synth terrain crater=shackleton terrain.near_vertices=256`
     """
-    from crater_synth.config import compose, craters
+    from crater_core.files import ensure_writable_dir
+    from crater_synth.config import load_settings
 
-    cfg = compose(overrides)
-    for crater in craters(cfg):
-        _, meta = build_terrain(crater, cfg)
+    settings = load_settings(overrides)
+    ensure_writable_dir(settings.data_dir, "data_dir")
+    for crater in settings.craters:
+        _, meta = build_terrain(crater, settings)
         click.echo(json.dumps(summary_line(meta)))

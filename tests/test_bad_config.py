@@ -17,7 +17,7 @@ CASES = {
     "crater-outside-dem": (["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0",
                             "crater.custom.diameter_km=20"],
                            "crater custom at (lat 0, lon 0) lies outside DEM lola_ldem256_south"),
-    "custom-crater-without-lat": (["crater=custom"], "missing mandatory config value: crater.custom.lat"),
+    "custom-crater-without-lat": (["crater=custom"], "crater.custom.lat: missing mandatory config value"),
     "sun-elevation-95": (["sweep.sun_elevation.values=[95]"], "invalid sweep.sun_elevation values [95.0]"),
     "sun-elevation--90": (["sweep.sun_elevation.values=[-90]"], "invalid sweep.sun_elevation values [-90.0]"),
     "sigma-0": (["sweep.sigma.values=[0]"], "invalid sweep.sigma values [0.0]: ROI ratio must be > 0"),
@@ -27,13 +27,13 @@ CASES = {
     "fov-270": (["sweep.fov_deg=270"], "invalid sweep.fov_deg=270.0"),
     "cam-elevation-0": (["sweep.cam_elevation.values=[0]"], "invalid sweep.cam_elevation values [0.0]"),
     "samples-0": (["render.samples=0"], "render.samples=0: must be >= 1"),
-    "samples-not-a-number": (["render.samples=many"], "render.samples='many': must be a number"),
+    "samples-not-a-number": (["render.samples=many"], "render.samples=many: must be an integer"),
     "mode-foo": (["render.mode=foo"], "render.mode='foo': must be 'fast' or 'direct'"),
     "threads-negative": (["render.threads=-1"], "render.threads=-1: must be >= 0"),
     "shadow-map-0": (["render.shadow_map_px=0"], "render.shadow_map_px=0: must be >= 1"),
     "hapke-w": (["hapke.w=-1"], "Hapke parameter(s) out of physical range: w=-1.0"),
     "bad-shard": (["launcher.shard=2/2"], "launcher.shard='2/2': need 0 <= i < n"),
-    "unknown-key": (["render.sample=4"], "Could not override 'render.sample'"),
+    "unknown-key": (["render.sample=4"], "render.sample: unknown key (did you mean render.samples?)"),
     "too-little-disk": (list(HUGE), "2000000000 renders need ~2200.00 TB (1.00 MB each, +10 %)"),
 }
 
@@ -74,14 +74,14 @@ def test_unwritable_output_directory(tmp_path, tiny_data_dir, where):
     proc = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={target}")
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(f"error: output directory {target} is not writable: "), lines
+    assert len(lines) == 1 and lines[0].startswith(f"error: out_dir={target}: cannot create the directory: "), lines
     assert (tmp_path / "a-file").read_text() == "x"
 
 
 def test_free_disk_estimate_uses_measured_render_size(tmp_path, tiny_data_dir, tiny_dataset, monkeypatch):
     """Resuming a dataset: the estimate uses the measured size of its EXRs (~40 kB here, not the 1 MB
     default). The free space is faked in-process (a real full disk cannot be made here)."""
-    from crater_synth.dataset import dataset_command
+    from crater_synth.launcher import dataset_command
 
     out = tmp_path / "ds"
     tiny_dataset(out)  # 4 renders of the smoke sweep

@@ -92,8 +92,10 @@ def test_bad_settings_name_the_key(key, value):
 
 
 def test_unknown_key_is_refused():
-    with pytest.raises(DetailConfigError, match="unknown terrain.detail key"):
+    with pytest.raises(DetailConfigError, match=r"terrain\.detail\.rms_slope_deg: unknown key"):
         DetailSettings.from_config({"rms_slope_deg": 6.0})  # the legacy key is not a setting any more
+    with pytest.raises(DetailConfigError, match=r"terrain\.detail\.hurts: unknown key"):
+        DetailSettings.from_config({"hurts": 0.5})
 
 
 # ------------------------------------------------------------------------------------------ legacy

@@ -26,8 +26,9 @@ def single(tmp_path_factory, tiny_dataset):
 
 
 def _worker_pids(dataset_dir: Path) -> set[str]:
-    """Processes that ran the dataset's shards: job files are named <crater>-<host>-<pid>-<n>.json."""
-    return {p.stem.rsplit("-", 2)[1] for p in (dataset_dir / ".jobs").glob("*.json")}
+    """Processes that ran the dataset's shards: job logs are named <crater>-<host>-<pid>-<n>.log (the
+    job files themselves are removed once their worker succeeds)."""
+    return {p.stem.rsplit("-", 2)[1] for p in (dataset_dir / ".jobs").glob("*.log")}
 
 
 def test_local_dask_cluster_matches_single_process(tmp_path, tiny_dataset, single):

@@ -232,6 +232,8 @@ def test_report_page_loads_in_chromium(tmp_path):
 def test_absent_inputs_become_not_run_notes(tmp_path):
     run = tmp_path / "empty_run"
     run.mkdir()
+    (run / "config.yaml").write_text("seed: 0\n")  # a run that got no further than its config (an empty
+    # directory is an error: tests/test_errors_paths.py)
     res = _run(run, f"train.dataset_dir={tmp_path}/no_dataset")
     assert res.exit_code == 0, res.output
     text = (run / "report" / "index.html").read_text()

@@ -80,7 +80,7 @@ def scripted(monkeypatch, tmp_path):
             from omegaconf import OmegaConf
 
             names = crater[len("crater=["):-1].split(",")
-            OmegaConf.set_struct(cfg, False)
+            cfg = OmegaConf.create(config_mod.resolved(cfg))  # untyped copy: the schema types crater entries
             cfg.crater = {n: {"name": n, "lat": -88.0, "lon": 0.0, "diameter_km": 20.0, "source": "test"}
                           for n in names}
         return cfg

@@ -247,7 +247,8 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
     :class:`DatasetError` naming the file."""
     import time
 
-    from tqdm import tqdm
+    from crater_core.files import umask
+    from crater_core.progress import progress_iter
 
     t0 = time.perf_counter()
     if dtype not in ("float16", "float32"):
@@ -268,10 +269,12 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=final.parent))
     try:
+        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp makes 0700: a cache is shared like the dataset
         arr = np.lib.format.open_memmap(tmp / "images.npy", mode="w+", dtype=np.dtype(dtype),
                                         shape=(len(samples), pp.size, pp.size))
         j = 0
-        for _i, row in enumerate(tqdm(rows, desc="cache crops", unit="exr", disable=not progress, leave=False)):
+        # Bars on a terminal; otherwise (or with train.progress=false) a line every few seconds.
+        for _i, row in enumerate(progress_iter(rows, len(rows), "cache crops", "exr", "auto" if progress else "lines")):
             path = resolve_path(dataset_dir, row["path"])
             where = f"EXR {path}"
             if not path.is_file():
@@ -297,6 +300,15 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
         (tmp / "index.json").write_text(json.dumps({"format": CACHE_FORMAT, "key": key, "dataset_dir": str(dataset_dir),
                                                     "samples": samples, "sigmas": list(sigmas),
                                                     "pp": pp.geometry_key(), "dtype": dtype}))
+        for f in tmp.iterdir():  # durable (files and their directory entries) before the rename publishes it
+            os.chmod(f, 0o666 & ~umask())
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        dir_fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
         try:
             os.replace(tmp, final)
         except OSError:  # another process finished the same cache first

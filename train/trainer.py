@@ -13,6 +13,7 @@ import io
 import json
 import os
 import pickle
+import sys
 import time
 from pathlib import Path
 from typing import Mapping
@@ -140,8 +141,9 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
         model.train()
         tot_loss, tot_ok, tot_n = 0.0, 0, 0
         t0 = time.perf_counter()
+        # The batch bar on a terminal only: in a log, the epoch summary line below is the progress.
         bar = tqdm(_loader(data.train, bs, True, seed + epoch), desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
-                   unit="batch", disable=not progress, leave=False)
+                   unit="batch", disable=not (progress and sys.stderr.isatty()), leave=False)
         for xb, yb in bar:
             xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
             opt.zero_grad(set_to_none=True)

@@ -18,6 +18,7 @@ from crater_synth.report.inputs import (
     FIGURE6_FILE,
     LOOP_FILE,
     METRICS_FILE,
+    RUN_CONFIG_FILE,
     SUMMARY_FILE,
     ReportError,
     check_png,
@@ -44,6 +45,11 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
         raise ReportError(f"run directory {run_dir} does not exist (`{gather.PRODUCERS['metrics'][1]}` writes it)")
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
+    run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE)
+    if not any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE)) \
+            and not any(run_dir.glob("confusion_*.png")):  # nothing of a run here: e.g. a typo in RUN_DIR
+        raise ReportError(f"run directory {run_dir} holds no run to report (none of {', '.join(run_outputs)}): "
+                          f"run `{gather.PRODUCERS['metrics'][1]}` first, or give the run_dir it wrote")
     rc = effective_config(run_dir, overrides)
     metrics = load_metrics(run_dir / METRICS_FILE)
     # Validate every optional input up front: a corrupt one fails before any work.
