@@ -57,7 +57,13 @@ def test_second_writer_of_the_same_dataset_refuses(tmp_path, tiny_data_dir, tiny
     first = _start(out, tiny_data_dir, *SLOW16)
     try:
         _wait_holding(first, out / ".dataset.lock")
-        second = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", *SLOW16)
+        # Freeze the first writer while the second tries: on a loaded machine the second's start-up can
+        # otherwise outlast the first's 16 renders (it would then find a finished dataset, no lock).
+        os.kill(first.pid, signal.SIGSTOP)
+        try:
+            second = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", *SLOW16)
+        finally:
+            os.kill(first.pid, signal.SIGCONT)
         line = _refusal(second)
         assert line.startswith(f"error: dataset {out} is being written by another crater-synth process "
                                f"(pid {first.pid} on "), line

@@ -45,7 +45,7 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
         raise ReportError(f"run directory {run_dir} does not exist (`{gather.PRODUCERS['metrics'][1]}` writes it)")
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
-    run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE)
+    run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE, gather.ABLATION_FILE)
     if not any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE)) \
             and not any(run_dir.glob("confusion_*.png")):  # nothing of a run here: e.g. a typo in RUN_DIR
         raise ReportError(f"run directory {run_dir} holds no run to report (none of {', '.join(run_outputs)}): "

@@ -382,7 +382,6 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
 
     from crater_core.exr import read_channel
     from crater_core.schema import load_manifest
-    from crater_synth.ablation import render_key
     from crater_synth.config import compose, resolved
     from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
     from train.realset import load_mosaic
@@ -391,7 +390,9 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
     craters = [c for g in base["summary"]["groups"].values()
                for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})]
     cfg = resolved(compose(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"]))
-    ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base.get('render_key') or render_key(cfg)}"
+    if not base.get("render_key"):   # (crater_synth.ablation is not imported: it reaches the training stack)
+        return [{"crater": c, "missing": "the ablation result names no render_key"} for c in craters]
+    ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base['render_key']}"
     if not (ds / "manifest.jsonl").is_file():
         return [{"crater": c, "missing": f"no renders at {ds}"} for c in craters]
     rows = load_manifest(ds)
