@@ -46,8 +46,13 @@ def _header_value(v):
     return json.dumps(v, sort_keys=True)
 
 
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], header: dict | None = None,
-              channel_names: tuple[str, ...] = CHANNELS, tile: int = TILE) -> str:
+def write_exr(
+    path: str | os.PathLike,
+    channels: dict[str, np.ndarray],
+    header: dict | None = None,
+    channel_names: tuple[str, ...] = CHANNELS,
+    tile: int = TILE,
+) -> str:
     """Write ``channels`` (name -> (h, w) array; exactly ``channel_names``, in that order) atomically as
     one tiled, zip-compressed float32 EXR; returns the file's sha256."""
     import OpenImageIO as oiio
@@ -73,8 +78,9 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], header: 
     try:
         room = free_bytes(scratch)
         if room < 2 * data.nbytes + (1 << 20):  # zip never inflates float tiles much beyond raw size
-            raise ExrError(f"disk full (ENOSPC): no room to encode {path} in {os.path.dirname(scratch)} "
-                           f"({size_text(room)} free)")
+            raise ExrError(
+                f"disk full (ENOSPC): no room to encode {path} in {os.path.dirname(scratch)} ({size_text(room)} free)"
+            )
         out = oiio.ImageOutput.create("openexr")
         if out is None or not out.open(scratch, spec):
             raise ExrError(f"cannot open {scratch} for writing {path}: {oiio.geterror()}")
@@ -171,8 +177,13 @@ def exr_info(path: str | os.PathLike) -> dict:
         pixels = inp.read_image("float")
         if pixels is None:
             raise ExrError(f"{path}: cannot decode pixels ({inp.geterror()})")
-        return {"channels": tuple(spec.channelnames), "width": spec.width, "height": spec.height,
-                "tiled": spec.tile_width > 0, "finite": bool(np.isfinite(np.asarray(pixels)).all())}
+        return {
+            "channels": tuple(spec.channelnames),
+            "width": spec.width,
+            "height": spec.height,
+            "tiled": spec.tile_width > 0,
+            "finite": bool(np.isfinite(np.asarray(pixels)).all()),
+        }
     finally:
         inp.close()
 
@@ -198,8 +209,9 @@ def read_multilayer(path: str | os.PathLike) -> dict[str, np.ndarray]:
             px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
             for key, idx in groups.items():
                 chans = [names[i].rsplit(".", 1)[-1] for i in idx]
-                order = sorted(range(len(chans)),
-                               key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99)
+                order = sorted(
+                    range(len(chans)), key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99
+                )
                 arr = px[..., [idx[k] for k in order]]
                 out[key] = arr[..., 0] if arr.shape[-1] == 1 else arr
             sub += 1

@@ -39,8 +39,11 @@ def _obstacle(path: Path) -> str:
     for parent in [path, *path.parents]:
         if parent.exists() or parent.is_symlink():
             if not parent.is_dir():
-                return f"{parent} is a regular file, not a directory" if parent.is_file() else \
-                    f"{parent} is not a directory"
+                return (
+                    f"{parent} is a regular file, not a directory"
+                    if parent.is_file()
+                    else f"{parent} is not a directory"
+                )
             return ""
     return ""
 
@@ -62,8 +65,10 @@ def ensure_writable_dir(path: str | os.PathLike, key: str | None = None) -> Path
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise PathError(f"{label}: {'not a writable directory' if p.is_dir() else 'cannot create the directory'}: "
-                        f"{os_error_text(exc)}") from None
+        raise PathError(
+            f"{label}: {'not a writable directory' if p.is_dir() else 'cannot create the directory'}: "
+            f"{os_error_text(exc)}"
+        ) from None
     return p
 
 

@@ -40,8 +40,15 @@ class Progress:
     ``mode``: ``auto`` (a bar on a TTY, lines otherwise), ``lines`` (always lines: e.g. training with
     ``train.progress=false`` still says where it is), ``off`` (silent)."""
 
-    def __init__(self, total: int, desc: str, unit: str, mode: str = "auto", stream: TextIO | None = None,
-                 interval_s: float | None = None):
+    def __init__(
+        self,
+        total: int,
+        desc: str,
+        unit: str,
+        mode: str = "auto",
+        stream: TextIO | None = None,
+        interval_s: float | None = None,
+    ):
         if mode not in MODES:
             raise ValueError(f"progress mode {mode!r}: use one of {MODES}")
         self.total, self.desc, self.unit = int(total), desc, unit
@@ -77,8 +84,11 @@ class Progress:
         pct = f" ({100.0 * self.n / self.total:.0f} %)" if self.total else ""
         text = f"{self.desc}: {self.n}/{self.total} {self.unit}s{pct}, {rate:.2f} {self.unit}s/s"
         if final:
-            text += f", done in {duration_text(elapsed)}" if self.n >= self.total else \
-                f", stopped after {duration_text(elapsed)}"
+            text += (
+                f", done in {duration_text(elapsed)}"
+                if self.n >= self.total
+                else f", stopped after {duration_text(elapsed)}"
+            )
         else:
             eta = (self.total - self.n) / rate if rate > 0 else float("nan")
             text += f", elapsed {duration_text(elapsed)}, ETA {duration_text(eta) if eta == eta else '?'}"

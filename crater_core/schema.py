@@ -34,12 +34,32 @@ PARTS_DIR = "manifest.parts"
 EXR_CHANNELS = ("IF", "depth", "N.X", "N.Y", "N.Z", "lit")
 
 REQUIRED_FIELDS = {
-    "schema_version": int, "crater": str, "index": int, "indices": list,
-    "sun_elevation": float, "sun_azimuth": float, "cam_elevation": float, "cam_azimuth": float,
-    "range_m": float, "fov_deg": float, "width": int, "height": int, "frame_width": int,
-    "crop_origin": list, "center_px": list, "rim_ellipse": dict, "sigma_boxes": dict,
-    "lit_fraction": float, "mean_if": float, "path": str, "sha256": str, "seed": int,
-    "code_version": str, "renderer": str, "terrain_id": str, "render_digest": str,
+    "schema_version": int,
+    "crater": str,
+    "index": int,
+    "indices": list,
+    "sun_elevation": float,
+    "sun_azimuth": float,
+    "cam_elevation": float,
+    "cam_azimuth": float,
+    "range_m": float,
+    "fov_deg": float,
+    "width": int,
+    "height": int,
+    "frame_width": int,
+    "crop_origin": list,
+    "center_px": list,
+    "rim_ellipse": dict,
+    "sigma_boxes": dict,
+    "lit_fraction": float,
+    "mean_if": float,
+    "path": str,
+    "sha256": str,
+    "seed": int,
+    "code_version": str,
+    "renderer": str,
+    "terrain_id": str,
+    "render_digest": str,
 }
 
 
@@ -47,24 +67,29 @@ class ManifestError(ContractError):
     """A manifest or one of its rows is malformed."""
 
 
-def params_key(crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float,
-               cam_azimuth: float) -> tuple:
+def params_key(
+    crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float, cam_azimuth: float
+) -> tuple:
     """Identity of a render: its crater and angles (not the flat index, which depends on the grid,
     so a grown grid -- the closed loop -- resumes the same dataset)."""
-    return (crater, round(float(sun_elevation), 6), round(float(sun_azimuth), 6),
-            round(float(cam_elevation), 6), round(float(cam_azimuth), 6))
+    return (
+        crater,
+        round(float(sun_elevation), 6),
+        round(float(sun_azimuth), 6),
+        round(float(cam_elevation), 6),
+        round(float(cam_azimuth), 6),
+    )
 
 
 def row_key(row: dict) -> tuple:
-    return params_key(row["crater"], row["sun_elevation"], row["sun_azimuth"], row["cam_elevation"],
-                      row["cam_azimuth"])
+    return params_key(row["crater"], row["sun_elevation"], row["sun_azimuth"], row["cam_elevation"], row["cam_azimuth"])
 
 
-def render_rel_path(crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float,
-                    cam_azimuth: float) -> str:
+def render_rel_path(
+    crater: str, sun_elevation: float, sun_azimuth: float, cam_elevation: float, cam_azimuth: float
+) -> str:
     """Deterministic file name of a render inside a dataset directory."""
-    return (f"{crater}/se{sun_elevation:06.3f}_sa{sun_azimuth:07.3f}"
-            f"_ce{cam_elevation:06.3f}_ca{cam_azimuth:07.3f}.exr")
+    return f"{crater}/se{sun_elevation:06.3f}_sa{sun_azimuth:07.3f}_ce{cam_elevation:06.3f}_ca{cam_azimuth:07.3f}.exr"
 
 
 def validate_row(row: dict, where: str = "manifest row") -> dict:
@@ -215,8 +240,9 @@ def dataset_rows(dataset_dir: str | os.PathLike) -> list[dict]:
     return sorted_unique(rows)
 
 
-def merge_parts(dataset_dir: str | os.PathLike, parts: Iterable[str | os.PathLike] | None = None,
-                keep: set[tuple] | None = None) -> int:
+def merge_parts(
+    dataset_dir: str | os.PathLike, parts: Iterable[str | os.PathLike] | None = None, keep: set[tuple] | None = None
+) -> int:
     """Merge part files (default: all of them) into ``manifest.jsonl`` atomically, under an exclusive
     lock so concurrent shards cannot lose each other's rows; merged part files are removed.
     ``keep`` optionally restricts the result to those row keys. Returns the row count."""

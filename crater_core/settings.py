@@ -24,6 +24,10 @@ How to add a key (e.g. ``render.shadow_method``)
 Hydra's schema is derived from these classes (``crater_synth.config.register_schemas``), so there is
 no second list to update. A new group: a class here, a field of :class:`Settings`, an entry in
 :data:`GROUPS`, and ``defaults: [<group>_schema, _self_]`` at the top of each of its yaml files.
+
+Length: one short dataclass per configuration group with its range checks, and the registry that
+binds them to Hydra; the training groups already live in :mod:`crater_core.settings_train`. Splitting
+the rest further would scatter the single list of groups this module exists to keep.
 """
 
 from __future__ import annotations
@@ -60,8 +64,8 @@ class CraterSettings(_Group):
     """One crater entry, ``crater.<key>`` (configs/crater/<key>.yaml); ``crater=[a,b,c]`` selects several."""
 
     name: str
-    lat: float                # deg, planetocentric
-    lon: float                # deg east
+    lat: float  # deg, planetocentric
+    lon: float  # deg east
     diameter_km: float
     source: str = ""
 
@@ -82,8 +86,8 @@ class DemSettings(_Group):
 
     product: Optional[str]
     path: Optional[str]
-    stack: Tuple[str, ...]       # finer DEMs over the base, finest first: product ids or file paths
-    blend_pixels: float          # stack layers blend into the coarser data over this many coarse pixels
+    stack: Tuple[str, ...]  # finer DEMs over the base, finest first: product ids or file paths
+    blend_pixels: float  # stack layers blend into the coarser data over this many coarse pixels
     far_product: Optional[str]
     far_path: Optional[str]
     max_nodata_fraction: float
@@ -91,10 +95,18 @@ class DemSettings(_Group):
     def _check(self):
         _need(bool(self.product or self.path), "product", self.product, "dem.product or dem.path must be set")
         lo, hi = BLEND_PIXELS_RANGE
-        _need(lo <= self.blend_pixels <= hi, "blend_pixels", self.blend_pixels,
-              f"must lie in [{lo:g}, {hi:g}] (coarse pixels)")
-        _need(0.0 <= self.max_nodata_fraction <= 1.0, "max_nodata_fraction", self.max_nodata_fraction,
-              "must lie in [0, 1]")
+        _need(
+            lo <= self.blend_pixels <= hi,
+            "blend_pixels",
+            self.blend_pixels,
+            f"must lie in [{lo:g}, {hi:g}] (coarse pixels)",
+        )
+        _need(
+            0.0 <= self.max_nodata_fraction <= 1.0,
+            "max_nodata_fraction",
+            self.max_nodata_fraction,
+            "must lie in [0, 1]",
+        )
 
 
 # Pike (1977) fresh simple craters: depth/diameter 0.196 (kept equal to crater_synth.detail's constant).
@@ -129,14 +141,26 @@ class DetailSettings(_Group):
     def _check(self):
         _need(self.model in DETAIL_MODELS, "model", self.model, f"must be one of {list(DETAIL_MODELS)}")
         _need(0.0 < self.hurst < 1.0, "hurst", self.hurst, "must lie in (0, 1)")
-        _need(0.0 <= self.roughness_rms_slope_deg < 60.0, "roughness_rms_slope_deg", self.roughness_rms_slope_deg,
-              "must lie in [0, 60) degrees")
-        _need(0.0 <= self.crater_density_scale <= 100.0, "crater_density_scale", self.crater_density_scale,
-              "must lie in [0, 100]")
+        _need(
+            0.0 <= self.roughness_rms_slope_deg < 60.0,
+            "roughness_rms_slope_deg",
+            self.roughness_rms_slope_deg,
+            "must lie in [0, 60) degrees",
+        )
+        _need(
+            0.0 <= self.crater_density_scale <= 100.0,
+            "crater_density_scale",
+            self.crater_density_scale,
+            "must lie in [0, 100]",
+        )
         _need(self.min_crater_diameter_m > 0.0, "min_crater_diameter_m", self.min_crater_diameter_m, "must be > 0")
         lo, hi = MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER
-        _need(lo <= self.min_depth_diameter < hi, "min_depth_diameter", self.min_depth_diameter,
-              f"must lie in [{lo}, {hi}) (fresh craters: {FRESH_DEPTH_DIAMETER}, Pike 1977)")
+        _need(
+            lo <= self.min_depth_diameter < hi,
+            "min_depth_diameter",
+            self.min_depth_diameter,
+            f"must lie in [{lo}, {hi}) (fresh craters: {FRESH_DEPTH_DIAMETER}, Pike 1977)",
+        )
 
 
 # Near-field vertices per side: below 16 the rim is not resolved; above 8193 the mesh does not fit memory.
@@ -156,8 +180,12 @@ class TerrainSettings(_Group):
     def _check(self):
         lo, hi = NEAR_VERTICES_RANGE
         _need(lo <= self.near_vertices <= hi, "near_vertices", self.near_vertices, f"must lie in [{lo}, {hi}]")
-        _need(0.6 <= self.near_radius_factor <= 50.0, "near_radius_factor", self.near_radius_factor,
-              "must lie in [0.6, 50] crater diameters (the near field must contain the rim)")
+        _need(
+            0.6 <= self.near_radius_factor <= 50.0,
+            "near_radius_factor",
+            self.near_radius_factor,
+            "must lie in [0.6, 50] crater diameters (the near field must contain the rim)",
+        )
         _need(self.far_radius_km >= 0.0, "far_radius_km", self.far_radius_km, "must be >= 0 (0 = no far field)")
         _need(self.far_spacing_km > 0.0, "far_spacing_km", self.far_spacing_km, "must be > 0")
 
@@ -186,7 +214,7 @@ class RenderSettings(_Group):
     horizon_cache_dir: Optional[str]  # fast path: shared horizon-map cache (null: <terrain dir>/horizon)
     gbuffer_samples: int
     workers: int
-    max_retries: int = 2      # restarts of a dying Blender worker on its unfinished renders
+    max_retries: int = 2  # restarts of a dying Blender worker on its unfinished renders
 
     def _check(self):
         _need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
@@ -196,8 +224,9 @@ class RenderSettings(_Group):
         _need(self.roi_min_px >= 8, "roi_min_px", self.roi_min_px, "must be >= 8")
         _need(self.shadow_map_px >= 1, "shadow_map_px", self.shadow_map_px, "must be >= 1")
         _need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
-        _need(self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor,
-              "must be > 0")
+        _need(
+            self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor, "must be > 0"
+        )
         _need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
         _need(self.workers >= 1, "workers", self.workers, "must be >= 1")
         _need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
@@ -210,7 +239,7 @@ class AxisSettings(_Group):
     count: int
     values: Optional[Tuple[float, ...]] = None
     step_deg: Optional[float] = None
-    step_fraction: Optional[float] = None   # physical sun elevations: fraction step (null: 0.1)
+    step_fraction: Optional[float] = None  # physical sun elevations: fraction step (null: 0.1)
 
     def _check(self):
         _need(self.count >= 1, "count", self.count, "must be >= 1")
@@ -230,8 +259,8 @@ class SweepSettings(_Group):
     fov_deg: float
     range_factor: float
     # Defaults (a sweep file written before the physical model may omit them) as in crater_core.sweep:
-    sun_model: str = "paper"             # paper: Table 2 positions; physical: fractions of each crater's highest sun
-    min_sun_elevation_deg: float = 0.0   # physical sweeps: suns below this are not rendered
+    sun_model: str = "paper"  # paper: Table 2 positions; physical: fractions of each crater's highest sun
+    min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def _check(self):
         _need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
@@ -248,8 +277,10 @@ class SweepSettings(_Group):
         if not low:
             return []
         below = "below" if max(low) < -SUN_ANGULAR_RADIUS_DEG else "at or below"
-        return [f"sweep.sun_elevation values {low} put the Sun {below} the local horizon at the crater: "
-                "those renders will be (almost) all black"]
+        return [
+            f"sweep.sun_elevation values {low} put the Sun {below} the local horizon at the crater: "
+            "those renders will be (almost) all black"
+        ]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -257,11 +288,11 @@ class LauncherSettings(_Group):
     """``launcher.*``: one machine (optionally one shard) or a Dask cluster (docs/distributed.md)."""
 
     name: str
-    shard: Optional[str] = None     # "i/n": render only slice i of n
-    address: Optional[str] = None   # dask: scheduler address; null starts a local cluster
-    n_workers: int = 2              # dask local cluster: worker processes
-    shards: Optional[int] = None    # dask: shards per run; null = 4 x n_workers
-    retries: int = 3                # dask: reschedules of a task whose worker died
+    shard: Optional[str] = None  # "i/n": render only slice i of n
+    address: Optional[str] = None  # dask: scheduler address; null starts a local cluster
+    n_workers: int = 2  # dask local cluster: worker processes
+    shards: Optional[int] = None  # dask: shards per run; null = 4 x n_workers
+    retries: int = 3  # dask: reschedules of a task whose worker died
 
     def _check(self):
         _need(self.name in ("local", "dask"), "name", self.name, "must be 'local' or 'dask'")
@@ -296,15 +327,19 @@ class LoopSettings(_Group):
     def _check(self):
         _need(0.0 < self.threshold <= 1.0, "threshold", self.threshold, "must lie in (0, 1]")
         s = list(self.sun_elevation_schedule)
-        _need(bool(s) and s == sorted(set(s)) and s[0] >= 1, "sun_elevation_schedule", s,
-              "must be increasing positive counts")
+        _need(
+            bool(s) and s == sorted(set(s)) and s[0] >= 1,
+            "sun_elevation_schedule",
+            s,
+            "must be increasing positive counts",
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
 class CountsSettings(_Group):
     """``experiments.counts``: the sample counts of each axis for Figure 6."""
 
-    sun_elevation: Optional[Tuple[int, ...]]   # null: this axis is not varied
+    sun_elevation: Optional[Tuple[int, ...]]  # null: this axis is not varied
     sun_azimuth: Optional[Tuple[int, ...]]
     cam_elevation: Optional[Tuple[int, ...]]
     cam_azimuth: Optional[Tuple[int, ...]]
@@ -331,9 +366,9 @@ class ValidateSettings(_Group):
     """``validate.*``: the real validation protocol (crater_synth/validate.py, docs/validation.md). The
     groups' rules (disjoint, in the catalogue, no test crater) are checked there, against configs/crater/."""
 
-    groups: Tuple[Tuple[str, ...], ...]   # validation crater groups (configs/crater/ names)
-    test: Tuple[str, ...]                 # the test group: reported, never used to choose
-    seeds: Tuple[int, ...]                # training seeds per group
+    groups: Tuple[Tuple[str, ...], ...]  # validation crater groups (configs/crater/ names)
+    test: Tuple[str, ...]  # the test group: reported, never used to choose
+    seeds: Tuple[int, ...]  # training seeds per group
     out_dir: str
 
     def _check(self):
@@ -346,7 +381,7 @@ class LeverSettings(_Group):
     """``ablation.levers.<name>``: one fidelity lever; ``when_off`` are the overrides that turn it off."""
 
     why: str = ""
-    when_off: Tuple[str, ...] = ()   # empty: crater_synth/ablation.py names the lever in its error
+    when_off: Tuple[str, ...] = ()  # empty: crater_synth/ablation.py names the lever in its error
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -354,8 +389,8 @@ class AblationSettings(_Group):
     """``ablation.*``: each fidelity lever on and off under the validation protocol (crater_synth/ablation.py)."""
 
     out_dir: str
-    docs_file: Optional[str]          # the generated table goes between its markers (null: docs untouched)
-    train: Dict[str, Any]             # train.<key> overrides: the same training budget for every variant
+    docs_file: Optional[str]  # the generated table goes between its markers (null: docs untouched)
+    train: Dict[str, Any]  # train.<key> overrides: the same training budget for every variant
     levers: Dict[str, LeverSettings]
 
     def _check(self):
@@ -378,8 +413,12 @@ class FetchSettings(_Group):
         _need(self.chunk_bytes >= 1024, "chunk_bytes", self.chunk_bytes, "must be >= 1024")
         _need(self.backoff_s >= 0, "backoff_s", self.backoff_s, "must be >= 0")
         url = (self.base_url or "").strip()
-        _need(not url or url.startswith(("http://", "https://", "file://")), "base_url", self.base_url,
-              "must start with http://, https:// or file://")
+        _need(
+            not url or url.startswith(("http://", "https://", "file://")),
+            "base_url",
+            self.base_url,
+            "must start with http://, https:// or file://",
+        )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -415,8 +454,12 @@ class Settings(_Group):
             raise SettingsError("crater", "no crater selected (crater=NAME or crater=[a,b,...])")
         seen: dict[str, str] = {}
         for key, entry in self.crater.items():
-            _need(entry.name not in seen, f"crater.{key}.name", entry.name,
-                  f"repeats crater.{seen.get(entry.name)}'s name (names label renders and classes)")
+            _need(
+                entry.name not in seen,
+                f"crater.{key}.name",
+                entry.name,
+                f"repeats crater.{seen.get(entry.name)}'s name (names label renders and classes)",
+            )
             seen[entry.name] = key
         for key in ("data_dir", "out_dir", "run_dir"):
             _need(bool(str(getattr(self, key)).strip()), key, getattr(self, key), "must not be empty")
@@ -433,16 +476,55 @@ class Settings(_Group):
 
 # Config groups of configs/ and their settings class (Hydra registers ``<group>_schema`` for each).
 GROUPS: Dict[str, type] = {
-    "crater": CraterSettings, "dem": DemSettings, "terrain": TerrainSettings, "hapke": HapkeParams,
-    "render": RenderSettings, "sweep": SweepSettings, "launcher": LauncherSettings, "model": ModelSettings,
-    "train": TrainSettings, "sensor": SensorSettings, "realset": RealsetSettings, "loop": LoopSettings,
-    "experiments": ExperimentsSettings, "fetch": FetchSettings, "validate": ValidateSettings,
+    "crater": CraterSettings,
+    "dem": DemSettings,
+    "terrain": TerrainSettings,
+    "hapke": HapkeParams,
+    "render": RenderSettings,
+    "sweep": SweepSettings,
+    "launcher": LauncherSettings,
+    "model": ModelSettings,
+    "train": TrainSettings,
+    "sensor": SensorSettings,
+    "realset": RealsetSettings,
+    "loop": LoopSettings,
+    "experiments": ExperimentsSettings,
+    "fetch": FetchSettings,
+    "validate": ValidateSettings,
     "ablation": AblationSettings,
 }
 
 __all__ = [
-    "GROUPS", "AblationSettings", "AxisSettings", "ConvSettings", "CountsSettings", "CraterSettings", "DemSettings",
-    "DetailSettings", "ExperimentsSettings", "FetchSettings", "HapkeParams", "HogSettings", "LauncherSettings",
-    "LeverSettings", "LoopSettings", "ModelSettings", "MosaicSettings", "PoolSettings", "PreprocessSettings",
-    "RealsetSettings", "RenderSettings", "SensorSettings", "Settings", "SettingsError", "SvmSettings",
-    "SweepSettings", "TerrainSettings", "TrainSettings", "ValidateSettings", "as_plain", "build", "replace"]
+    "GROUPS",
+    "AblationSettings",
+    "AxisSettings",
+    "ConvSettings",
+    "CountsSettings",
+    "CraterSettings",
+    "DemSettings",
+    "DetailSettings",
+    "ExperimentsSettings",
+    "FetchSettings",
+    "HapkeParams",
+    "HogSettings",
+    "LauncherSettings",
+    "LeverSettings",
+    "LoopSettings",
+    "ModelSettings",
+    "MosaicSettings",
+    "PoolSettings",
+    "PreprocessSettings",
+    "RealsetSettings",
+    "RenderSettings",
+    "SensorSettings",
+    "Settings",
+    "SettingsError",
+    "SvmSettings",
+    "SweepSettings",
+    "TerrainSettings",
+    "TrainSettings",
+    "ValidateSettings",
+    "as_plain",
+    "build",
+    "replace",
+]

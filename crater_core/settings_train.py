@@ -68,8 +68,12 @@ class PreprocessSettings(_Group):
     def _check(self):
         _need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
         _need(0.0 <= self.max_outside_frac < 1.0, "max_outside_frac", self.max_outside_frac, "must lie in [0, 1)")
-        _need(0.0 <= self.low_percentile < self.high_percentile, "low_percentile", self.low_percentile,
-              "must lie in [0, high_percentile)")
+        _need(
+            0.0 <= self.low_percentile < self.high_percentile,
+            "low_percentile",
+            self.low_percentile,
+            "must lie in [0, high_percentile)",
+        )
         _need(self.high_percentile <= 100.0, "high_percentile", self.high_percentile, "must be <= 100")
         _need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
         _need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
@@ -103,8 +107,12 @@ class HogSettings(SvmSettings):
         super()._check()
         for key in ("orientations", "pixels_per_cell", "cells_per_block"):
             _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-        _need(self.max_train_images is None or self.max_train_images >= 1, "max_train_images",
-              self.max_train_images, "must be >= 1 (null = all)")
+        _need(
+            self.max_train_images is None or self.max_train_images >= 1,
+            "max_train_images",
+            self.max_train_images,
+            "must be >= 1 (null = all)",
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,7 +120,7 @@ class TrainSettings(_Group):
     """``train.*`` (configs/train/default.yaml, docs/classifiers.md)."""
 
     dataset_dir: str
-    seed: int                    # split, augmentation, sensor noise and weight initialisation (${seed})
+    seed: int  # split, augmentation, sensor noise and weight initialisation (${seed})
     val_fraction: float
     split_by: str
     sigmas: Optional[Tuple[float, ...]]
@@ -144,8 +152,12 @@ class TrainSettings(_Group):
             _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
         _need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         _need(self.weight_decay >= 0.0, "weight_decay", self.weight_decay, "must be >= 0")
-        _need(0.0 <= self.target_val_accuracy <= 1.0, "target_val_accuracy", self.target_val_accuracy,
-              "must lie in [0, 1]")
+        _need(
+            0.0 <= self.target_val_accuracy <= 1.0,
+            "target_val_accuracy",
+            self.target_val_accuracy,
+            "must lie in [0, 1]",
+        )
         _need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
         _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
         _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
@@ -166,20 +178,24 @@ class SensorSettings(_Group):
     read_noise_dn: float
     gain_jitter: float
     quantize_bits: int
-    gsd_m: Optional[float]          # the real product's ground sample distance (m/px); null = resolution jitter
-    gsd_jitter: float               # relative jitter of that native grid
-    jpeg_quality: Optional[int]     # JPEG quality of the real product; null = no JPEG
-    mosaic_frames: int              # renders of one camera pose composited per image (1 = a single render)
-    mosaic_blend: str               # max (per pixel) | patches (Voronoi cells)
-    mosaic_patches: int             # cells for mosaic_blend=patches
+    gsd_m: Optional[float]  # the real product's ground sample distance (m/px); null = resolution jitter
+    gsd_jitter: float  # relative jitter of that native grid
+    jpeg_quality: Optional[int]  # JPEG quality of the real product; null = no JPEG
+    mosaic_frames: int  # renders of one camera pose composited per image (1 = a single render)
+    mosaic_blend: str  # max (per pixel) | patches (Voronoi cells)
+    mosaic_patches: int  # cells for mosaic_blend=patches
 
     def _check(self):
         _need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
         _need(0.0 <= self.resolution_prob <= 1.0, "resolution_prob", self.resolution_prob, "must lie in [0, 1]")
         _need(self.psf_sigma_px >= 0.0, "psf_sigma_px", self.psf_sigma_px, "must be >= 0")
         lo_hi = self.exposure_white_frac
-        _need(len(lo_hi) == 2 and 0.0 < lo_hi[0] <= lo_hi[1], "exposure_white_frac", lo_hi,
-              "must be [lo, hi] with 0 < lo <= hi")
+        _need(
+            len(lo_hi) == 2 and 0.0 < lo_hi[0] <= lo_hi[1],
+            "exposure_white_frac",
+            lo_hi,
+            "must be [lo, hi] with 0 < lo <= hi",
+        )
         _need(self.full_well_if > 0.0, "full_well_if", self.full_well_if, "must be > 0")
         _need(self.photons_at_full_well > 0.0, "photons_at_full_well", self.photons_at_full_well, "must be > 0")
         _need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
@@ -187,10 +203,18 @@ class SensorSettings(_Group):
         _need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
         _need(self.gsd_m is None or self.gsd_m > 0.0, "gsd_m", self.gsd_m, "must be > 0 metres (or null)")
         _need(0.0 <= self.gsd_jitter < 1.0, "gsd_jitter", self.gsd_jitter, "must lie in [0, 1)")
-        _need(self.jpeg_quality is None or 1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality,
-              "must lie in [1, 100] (or null)")
-        _need(self.jpeg_quality is None or self.quantize_bits == 8, "jpeg_quality", self.jpeg_quality,
-              "needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)")
+        _need(
+            self.jpeg_quality is None or 1 <= self.jpeg_quality <= 100,
+            "jpeg_quality",
+            self.jpeg_quality,
+            "must lie in [1, 100] (or null)",
+        )
+        _need(
+            self.jpeg_quality is None or self.quantize_bits == 8,
+            "jpeg_quality",
+            self.jpeg_quality,
+            "needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)",
+        )
         _need(1 <= self.mosaic_frames <= 64, "mosaic_frames", self.mosaic_frames, "must lie in [1, 64]")
         _need(self.mosaic_blend in ("max", "patches"), "mosaic_blend", self.mosaic_blend, "must be max or patches")
         _need(1 <= self.mosaic_patches <= 256, "mosaic_patches", self.mosaic_patches, "must lie in [1, 256]")
@@ -230,7 +254,11 @@ class RealsetSettings(_Group):
 
     def _check(self):
         _need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")
-        _need(len(self.sigmas) > 0 and all(s > 0 for s in self.sigmas), "sigmas", self.sigmas,
-              "must be a non-empty list of ratios > 0")
+        _need(
+            len(self.sigmas) > 0 and all(s > 0 for s in self.sigmas),
+            "sigmas",
+            self.sigmas,
+            "must be a non-empty list of ratios > 0",
+        )
         _need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
         _need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")

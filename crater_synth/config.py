@@ -29,8 +29,19 @@ REPO_ROOT = CONFIG_DIR.parent
 ROOT_SCHEMA = "settings_schema"
 SCHEMA_SUFFIX = "_schema"
 
-__all__ = ["CONFIG_DIR", "REPO_ROOT", "ConfigError", "as_settings", "compose", "compose_settings", "craters",
-           "load_settings", "one_line_config_error", "resolved", "settings_from"]
+__all__ = [
+    "CONFIG_DIR",
+    "REPO_ROOT",
+    "ConfigError",
+    "as_settings",
+    "compose",
+    "compose_settings",
+    "craters",
+    "load_settings",
+    "one_line_config_error",
+    "resolved",
+    "settings_from",
+]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -73,11 +84,17 @@ def schema_class(cls: type) -> type:
             tp = _schema_type(hints[f.name])
             if f.default is not dataclasses.MISSING:
                 value = f.default
-                default = (dataclasses.field(default_factory=lambda v=value: list(v)) if isinstance(value, tuple)
-                           else dataclasses.field(default=value))
+                default = (
+                    dataclasses.field(default_factory=lambda v=value: list(v))
+                    if isinstance(value, tuple)
+                    else dataclasses.field(default=value)
+                )
             elif f.default_factory is not dataclasses.MISSING or typing.get_origin(tp) is dict:
-                default = dataclasses.field(default_factory=dict) if typing.get_origin(tp) is dict else \
-                    dataclasses.field(default_factory=lambda c=f.default_factory: _plain_default(c()))
+                default = (
+                    dataclasses.field(default_factory=dict)
+                    if typing.get_origin(tp) is dict
+                    else dataclasses.field(default_factory=lambda c=f.default_factory: _plain_default(c()))
+                )
             else:
                 default = dataclasses.field(default=MISSING)
             specs.append((f.name, tp, default))
@@ -169,8 +186,9 @@ def resolved(cfg: DictConfig) -> dict:
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None)
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"{key}: cannot resolve the value ({first})" if key else
-                          f"cannot resolve a config value: {first}") from None
+        raise ConfigError(
+            f"{key}: cannot resolve the value ({first})" if key else f"cannot resolve a config value: {first}"
+        ) from None
 
 
 def craters(cfg: Settings | DictConfig | Mapping) -> list[dict]:
@@ -181,8 +199,12 @@ def craters(cfg: Settings | DictConfig | Mapping) -> list[dict]:
 # ------------------------------------------------------------------------------------------------
 # Hydra/OmegaConf errors as one line naming the key as the user typed it
 # ------------------------------------------------------------------------------------------------
-_EXPECTED = {"Integer": "must be an integer", "Float": "must be a number", "Boolean": "must be true or false",
-             "String": "must be a string"}
+_EXPECTED = {
+    "Integer": "must be an integer",
+    "Float": "must be a number",
+    "Boolean": "must be true or false",
+    "String": "must be a string",
+}
 
 
 def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = ()) -> str:
@@ -197,16 +219,16 @@ def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = (
     m = re.search(r"Could not load '([^']+)/([^'/]+)'", msg)  # the same mistake inside crater=[a,b,...]
     if m and (CONFIG_DIR / m.group(1)).is_dir():
         group, option = m.groups()
-        return (f"unknown {group} {option!r} (in {group}=[...]): choose from "
-                f"{', '.join(_user_options(group, None))}")
+        return f"unknown {group} {option!r} (in {group}=[...]): choose from {', '.join(_user_options(group, None))}"
     cause = exc.__cause__ if isinstance(exc, BaseException) else None
     full_key = getattr(cause, "full_key", None) or getattr(exc, "full_key", None)
     if full_key:
         why = str(cause or exc).splitlines()[0]
         if re.match(r"Key '[^']+' not in '", why) or "Could not override" in msg or "Could not append" in msg:
             return f"{full_key}: unknown key{_suggest(full_key)}"
-        conv = re.match(r"Value '(.*)' of type '[^']+' could not be converted to (\w+)", why) or \
-            re.match(r"Value '(.*)' is not a valid (bool)", why)
+        conv = re.match(r"Value '(.*)' of type '[^']+' could not be converted to (\w+)", why) or re.match(
+            r"Value '(.*)' is not a valid (bool)", why
+        )
         if conv:
             kind = "Boolean" if conv.group(2) == "bool" else conv.group(2)
             why = _EXPECTED.get(kind, f"must be of type {kind}")

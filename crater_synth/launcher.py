@@ -83,15 +83,19 @@ def preflight(settings: Settings | Mapping) -> dict:
     out_dir = Path(s.out_dir)
     check_output_dir(out_dir)
     existing = schema.dataset_rows(out_dir)
-    check_free_disk(out_dir, max(0, len(grid) * len(s.craters) - len(existing)),
-                    measured_bytes_per_render(existing, out_dir))
+    check_free_disk(
+        out_dir, max(0, len(grid) * len(s.craters) - len(existing)), measured_bytes_per_render(existing, out_dir)
+    )
     n_sun = grid.shape[0] * grid.shape[1]
     for crater in s.craters:
         _, meta = build_terrain(crater, s)
         for index in range(n_sun and len(grid) // n_sun):  # every camera pose once: its ROI fits the frame
             plan_render(crater, meta, grid, index, s.render.roi_min_px)
-    return {"renders_total": len(grid) * len(s.craters), "craters": [c.name for c in s.craters],
-            "shards": shard_count(s)}
+    return {
+        "renders_total": len(grid) * len(s.craters),
+        "craters": [c.name for c in s.craters],
+        "shards": shard_count(s),
+    }
 
 
 def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
@@ -115,8 +119,14 @@ def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
         if launcher.address:
             client = Client(launcher.address, timeout="30s")
         else:
-            cluster = LocalCluster(n_workers=launcher.n_workers, threads_per_worker=1, processes=True,
-                                   host="127.0.0.1", dashboard_address=None, silence_logs=40)
+            cluster = LocalCluster(
+                n_workers=launcher.n_workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+                silence_logs=40,
+            )
             client = Client(cluster)
     except OSError as exc:
         raise UserError(f"cannot reach Dask scheduler launcher.address={launcher.address}: {exc}") from None
@@ -126,17 +136,28 @@ def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
         workers = len(client.scheduler_info().get("workers", {}))
         if launcher.address and not launcher.shards:
             n_shards = 4 * max(1, workers)  # a remote cluster: n_workers describes the local one only
-        futures = [client.submit(_render_shard, s, i, n_shards, key=f"render-shard-{i}-of-{n_shards}",
-                                 retries=launcher.retries, pure=False)
-                   for i in range(n_shards)]
+        futures = [
+            client.submit(
+                _render_shard,
+                s,
+                i,
+                n_shards,
+                key=f"render-shard-{i}-of-{n_shards}",
+                retries=launcher.retries,
+                pure=False,
+            )
+            for i in range(n_shards)
+        ]
         rendered = skipped = 0
         with Progress(n_shards, f"dask sweep ({workers} workers)", "shard", "auto" if progress else "off") as bar:
             for fut in as_completed(futures):
                 try:
                     summary = fut.result()
                 except KilledWorker as exc:
-                    raise RenderError(f"Dask task {fut.key} killed its worker process repeatedly "
-                                      f"(distributed.scheduler.allowed-failures): {exc}") from None
+                    raise RenderError(
+                        f"Dask task {fut.key} killed its worker process repeatedly "
+                        f"(distributed.scheduler.allowed-failures): {exc}"
+                    ) from None
                 if "error" in summary:
                     raise UserError(summary["error"])
                 rendered += summary["rendered"]
@@ -148,10 +169,18 @@ def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
             cluster.close()
     n_rows = schema.merge_parts(out_dir)
     elapsed = time.perf_counter() - t0
-    return {"dataset": str(out_dir), "launcher": "dask", "workers": workers, "shards": n_shards,
-            "rendered": rendered, "skipped_existing": skipped, "manifest_rows": n_rows,
-            "seconds": round(elapsed, 2), "cluster_start_s": round(t_cluster, 2),
-            "renders_per_s": round(rendered / elapsed, 3) if rendered else None}
+    return {
+        "dataset": str(out_dir),
+        "launcher": "dask",
+        "workers": workers,
+        "shards": n_shards,
+        "rendered": rendered,
+        "skipped_existing": skipped,
+        "manifest_rows": n_rows,
+        "seconds": round(elapsed, 2),
+        "cluster_start_s": round(t_cluster, 2),
+        "renders_per_s": round(rendered / elapsed, 3) if rendered else None,
+    }
 
 
 def run_sweep(settings: Settings, progress: bool = True) -> dict:
@@ -212,10 +241,20 @@ def _worker_start_seconds(s: Settings, work: Path) -> float:
     crater = s.craters[0]
     npz, meta = build_terrain(crater, s)
     job = work / "empty-job.json"
-    schema.atomic_write_text(job, json.dumps({"terrain_npz": str(npz), "terrain_meta": meta,
-                                              "crater": crater.as_dict(), "hapke": hapke_dict(s.hapke),
-                                              "render": s.render.as_dict(), "out_dir": str(work),
-                                              "renders": []}))
+    schema.atomic_write_text(
+        job,
+        json.dumps(
+            {
+                "terrain_npz": str(npz),
+                "terrain_meta": meta,
+                "crater": crater.as_dict(),
+                "hapke": hapke_dict(s.hapke),
+                "render": s.render.as_dict(),
+                "out_dir": str(work),
+                "renders": [],
+            }
+        ),
+    )
     times = []
     for _ in range(3):
         t0 = time.perf_counter()
@@ -261,15 +300,25 @@ def bench_distributed(settings: Settings | Mapping, work_dir: str | Path | None 
     observed = ((t_dask - dask["cluster_start_s"]) * w - logs_dask["render_s"]) / max(1, nonempty)
     same = (work / "single" / schema.MANIFEST_NAME).read_bytes() == (work / "dask" / schema.MANIFEST_NAME).read_bytes()
     return {
-        "renders": n, "work_dir": str(work),
-        "single": {"seconds": round(t_single, 2), "renders_per_s": round(n / t_single, 3),
-                   "worker_logs": logs_single},
-        "dask": {"workers": w, "shards": s, "seconds": round(t_dask, 2), "renders_per_s": round(n / t_dask, 3),
-                 "cluster_start_s": dask["cluster_start_s"], "worker_logs": logs_dask},
+        "renders": n,
+        "work_dir": str(work),
+        "single": {"seconds": round(t_single, 2), "renders_per_s": round(n / t_single, 3), "worker_logs": logs_single},
+        "dask": {
+            "workers": w,
+            "shards": s,
+            "seconds": round(t_dask, 2),
+            "renders_per_s": round(n / t_dask, 3),
+            "cluster_start_s": dask["cluster_start_s"],
+            "worker_logs": logs_dask,
+        },
         "speedup_dask_over_single": round(t_single / t_dask, 3),
-        "model": {"worker_start_s": round(worker_start, 3), "per_render_s": round(per_render, 4),
-                  "renders_per_s_per_worker_steady": round(1.0 / per_render, 2) if per_render > 0 else None,
-                  "predicted_dask_s": round(model_dask, 2), "shard_overhead_observed_s": round(observed, 3)},
+        "model": {
+            "worker_start_s": round(worker_start, 3),
+            "per_render_s": round(per_render, 4),
+            "renders_per_s_per_worker_steady": round(1.0 / per_render, 2) if per_render > 0 else None,
+            "predicted_dask_s": round(model_dask, 2),
+            "shard_overhead_observed_s": round(observed, 3),
+        },
         "identical_manifests": same,
     }
 
@@ -277,5 +326,4 @@ def bench_distributed(settings: Settings | Mapping, work_dir: str | Path | None 
 if __name__ == "__main__":  # python -m crater_synth.launcher [OVERRIDES]...  (prints the benchmark JSON)
     from crater_synth.config import load_settings
 
-    print(json.dumps(bench_distributed(load_settings(sys.argv[1:] or ["sweep=smoke", "crater=shackleton"])),
-                     indent=1))
+    print(json.dumps(bench_distributed(load_settings(sys.argv[1:] or ["sweep=smoke", "crater=shackleton"])), indent=1))

@@ -57,8 +57,11 @@ def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str
         ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)
         for u0, v0, u1, v1 in row["sigma_boxes"].values():
             ax.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], "--", color="#50c0ff", lw=0.5)
-        ax.set_title(f"sun {row['sun_elevation']:.2f}/{row['sun_azimuth']:.0f}  cam {row['cam_elevation']:.0f}/"
-                     f"{row['cam_azimuth']:.0f}\nlit {row['lit_fraction']:.2f}  I/F {row['mean_if']:.4f}", fontsize=6)
+        ax.set_title(
+            f"sun {row['sun_elevation']:.2f}/{row['sun_azimuth']:.0f}  cam {row['cam_elevation']:.0f}/"
+            f"{row['cam_azimuth']:.0f}\nlit {row['lit_fraction']:.2f}  I/F {row['mean_if']:.4f}",
+            fontsize=6,
+        )
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
@@ -81,16 +84,28 @@ def preview_dataset(dataset_dir: str | Path, out_dir: str | Path | None = None, 
     sheets = []
     for crater in sorted({r["crater"] for r in rows}):
         crater_rows = [r for r in rows if r["crater"] == crater]
-        sheets.append(contact_sheet(crater_rows, d, out / f"contact_{crater}.png",
-                                    f"{crater}: {len(crater_rows)} renders (sun el/az, cam el/az in deg)\n"
-                                    f"red: projected rim; blue: sigma boxes", max_tiles))
+        sheets.append(
+            contact_sheet(
+                crater_rows,
+                d,
+                out / f"contact_{crater}.png",
+                f"{crater}: {len(crater_rows)} renders (sun el/az, cam el/az in deg)\n"
+                f"red: projected rim; blue: sigma boxes",
+                max_tiles,
+            )
+        )
     return sheets
 
 
 @click.command("preview")
 @click.argument("dataset_dir", type=click.Path(file_okay=False))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
-              help="Where to write the PNGs (default DATASET_DIR/preview).")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Where to write the PNGs (default DATASET_DIR/preview).",
+)
 @click.option("--max-tiles", default=36, show_default=True, type=click.IntRange(min=1), help="Renders per sheet.")
 @user_errors
 def preview_command(dataset_dir, out_dir, max_tiles):

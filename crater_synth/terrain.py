@@ -58,11 +58,22 @@ def terrain_settings(cfg) -> dict:
 
     st = as_settings(cfg)
     t, d = st.terrain, st.dem
-    s = {"near_radius_factor": t.near_radius_factor, "near_vertices": t.near_vertices,
-         "far_radius_km": t.far_radius_km, "far_spacing_km": t.far_spacing_km,
-         "max_nodata_fraction": d.max_nodata_fraction, "detail": t.detail,
-         "dem": {"product": d.product, "path": d.path, "far_product": d.far_product, "far_path": d.far_path,
-                 "stack": list(d.stack), "blend_pixels": d.blend_pixels}}
+    s = {
+        "near_radius_factor": t.near_radius_factor,
+        "near_vertices": t.near_vertices,
+        "far_radius_km": t.far_radius_km,
+        "far_spacing_km": t.far_spacing_km,
+        "max_nodata_fraction": d.max_nodata_fraction,
+        "detail": t.detail,
+        "dem": {
+            "product": d.product,
+            "path": d.path,
+            "far_product": d.far_product,
+            "far_path": d.far_path,
+            "stack": list(d.stack),
+            "blend_pixels": d.blend_pixels,
+        },
+    }
     s["data_dir"] = Path(str(st.data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
     return s
 
@@ -175,8 +186,14 @@ def measure_crater(height: np.ndarray, z: np.ndarray, half_width: float, spacing
     fe, fn = np.outer(sa, fr), np.outer(ca, fr)
     floor_h = float(np.percentile(_bilinear(height, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
     floor_z = float(np.percentile(_bilinear(z, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
-    return {"rim_z_m": rim_z, "rim_height_m": rim_h_ring, "rim_crest_height_m": rim_crest,
-            "floor_z_m": floor_z, "floor_height_m": floor_h, "rim_to_floor_depth_m": rim_crest - floor_h}
+    return {
+        "rim_z_m": rim_z,
+        "rim_height_m": rim_h_ring,
+        "rim_crest_height_m": rim_crest,
+        "floor_z_m": floor_z,
+        "floor_height_m": floor_h,
+        "rim_to_floor_depth_m": rim_crest - floor_h,
+    }
 
 
 def far_keep_quads(far_coords: np.ndarray, near_half_width: float, far_spacing: float) -> np.ndarray:
@@ -224,10 +241,14 @@ def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict, stack_key:
     terrain + detail settings, format version. An empty stack leaves the key as it was before stacks."""
     detail = s["detail"].as_dict() if s["detail"].enabled else {"enabled": False}
     key = {
-        "format": TERRAIN_FORMAT_VERSION, "dem_sha256": dem_sha, "far_dem_sha256": far_dem_sha,
+        "format": TERRAIN_FORMAT_VERSION,
+        "dem_sha256": dem_sha,
+        "far_dem_sha256": far_dem_sha,
         "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km")},
-        "terrain": {k: s[k] for k in ("near_radius_factor", "near_vertices", "far_radius_km", "far_spacing_km",
-                                      "max_nodata_fraction")},
+        "terrain": {
+            k: s[k]
+            for k in ("near_radius_factor", "near_vertices", "far_radius_km", "far_spacing_km", "max_nodata_fraction")
+        },
         "detail": detail,
     }
     if stack_key and stack_key.get("layers"):
@@ -278,8 +299,10 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     # Crater centre inside the DEM at all?
     ccol, crow = dem.latlon_to_pixel(lat, lon)
     if not bool(dem.inside(ccol, crow)):
-        raise DemCoverageError(f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
-                               f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})")
+        raise DemCoverageError(
+            f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
+            f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})"
+        )
 
     # ---- near field
     nv = s["near_vertices"]
@@ -288,8 +311,13 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     coords = np.linspace(-hw, hw, nv)
     ee, nn = np.meshgrid(coords, coords)  # [i, j] = (e_j, n_i)
     dirs, plat, plon = _sphere_points(ee, nn, lat, lon)
-    near = dem.sample(plat, plon, spacing_m=spacing, max_nodata_fraction=s["max_nodata_fraction"],
-                      what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)")
+    near = dem.sample(
+        plat,
+        plon,
+        spacing_m=spacing,
+        max_nodata_fraction=s["max_nodata_fraction"],
+        what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)",
+    )
     detail, detail_stats = stack_detail((nv, nv), spacing, near, s["detail"], key=name)
     near_h = near.heights + detail
     near_xyz = _to_enu(dirs, near_h, lat, lon)
@@ -305,25 +333,38 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
         if k_max < k_min:
             raise TerrainConfigError(
                 f"terrain.far_radius_km={s['far_radius_km']:g} does not reach beyond the near field of crater "
-                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0")
+                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0"
+            )
         m, _ = _far_half_cells(far_dem, lat, lon, k_max, fs, s["max_nodata_fraction"])
         if m < k_min:
             raise DemCoverageError(
                 f"DEM {far_dem.product} does not cover a far field around crater {name} beyond its near field "
                 f"(+-{hw / 1e3:.1f} km + one {fs / 1e3:g} km cell); set dem.far_product to a wider DEM or "
-                "terrain.far_radius_km=0")
+                "terrain.far_radius_km=0"
+            )
         fcoords = np.arange(-m, m + 1) * fs
         fe, fn = np.meshgrid(fcoords, fcoords)
         fdirs, flat, flon = _sphere_points(fe, fn, lat, lon)
-        far = far_dem.sample(flat, flon, spacing_m=fs, max_nodata_fraction=s["max_nodata_fraction"],
-                             what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)")
+        far = far_dem.sample(
+            flat,
+            flon,
+            spacing_m=fs,
+            max_nodata_fraction=s["max_nodata_fraction"],
+            what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)",
+        )
         far_xyz = _to_enu(fdirs, far.heights, lat, lon)
         keep = far_keep_quads(fcoords, hw, fs)
-        far_info.update(half_width_m=float(m * fs), shape=[2 * m + 1, 2 * m + 1],
-                        requested_half_width_m=float(k_max * fs), clipped=bool(m < k_max),
-                        nodata_fraction=far.nodata_fraction, filled_pixels=far.filled_pixels,
-                        filled_holes=far.filled_holes, decimation=far.decimation,
-                        kept_quads=int(keep.sum()))
+        far_info.update(
+            half_width_m=float(m * fs),
+            shape=[2 * m + 1, 2 * m + 1],
+            requested_half_width_m=float(k_max * fs),
+            clipped=bool(m < k_max),
+            nodata_fraction=far.nodata_fraction,
+            filled_pixels=far.filled_pixels,
+            filled_holes=far.filled_holes,
+            decimation=far.decimation,
+            kept_quads=int(keep.sum()),
+        )
 
     meas = measure_crater(near_h, near_xyz[..., 2], hw, spacing, 0.5 * diameter_m)
     arrays = {
@@ -339,17 +380,30 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
         "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km", "source") if k in crater},
         "frame": "ENU at the crater centre on the 1737.4 km sphere; x east, y north, z up, metres",
         "dem": {
-            "product": dem.product, "path": str(dem.path), "sha256": dem_sha,
-            "pixel_size_m": dem.pixel_size_m, "crs_wkt": dem_info["crs_wkt"], "crs_proj": dem_info["crs_proj"],
-            "crater_center_px": [float(ccol), float(crow)], "decimation": near.decimation,
-            "far_product": far_dem.product, "far_sha256": far_sha,
-            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m), "blend_pixels": dem.blend_pixels,
+            "product": dem.product,
+            "path": str(dem.path),
+            "sha256": dem_sha,
+            "pixel_size_m": dem.pixel_size_m,
+            "crs_wkt": dem_info["crs_wkt"],
+            "crs_proj": dem_info["crs_proj"],
+            "crater_center_px": [float(ccol), float(crow)],
+            "decimation": near.decimation,
+            "far_product": far_dem.product,
+            "far_sha256": far_sha,
+            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m),
+            "blend_pixels": dem.blend_pixels,
         },
-        "near": {"half_width_m": hw, "spacing_m": spacing, "shape": [nv, nv],
-                 "rows": "n ascending (south to north)", "cols": "e ascending (west to east)"},
+        "near": {
+            "half_width_m": hw,
+            "spacing_m": spacing,
+            "shape": [nv, nv],
+            "rows": "n ascending (south to north)",
+            "cols": "e ascending (west to east)",
+        },
         "far": far_info,
         **{k: meas[k] for k in ("rim_z_m", "floor_z_m", "rim_to_floor_depth_m")},
-        "rim_height_m": meas["rim_height_m"], "rim_crest_height_m": meas["rim_crest_height_m"],
+        "rim_height_m": meas["rim_height_m"],
+        "rim_crest_height_m": meas["rim_crest_height_m"],
         "floor_height_m": meas["floor_height_m"],
         "vertex_count": int(nv * nv + far_xyz.shape[0] * far_xyz.shape[1]),
         "nodata_fraction": near.nodata_fraction,
@@ -370,9 +424,14 @@ def _stack_meta(stack, near, ee: np.ndarray, nn: np.ndarray, radius_m: float) ->
     out = []
     for i, info in enumerate(stack.stack_info()):  # sample weights: base first, then the layers finest first
         w = near.layer_weights[i + 1]
-        out.append({**info, "near_weight_mean": round(float(w.mean()), 4),
-                    "crater_weight_mean": round(float(w[in_crater].mean()), 4),
-                    "effective_pixel_m": float(near.layer_pixel_m[i + 1])})
+        out.append(
+            {
+                **info,
+                "near_weight_mean": round(float(w.mean()), 4),
+                "crater_weight_mean": round(float(w[in_crater].mean()), 4),
+                "effective_pixel_m": float(near.layer_pixel_m[i + 1]),
+            }
+        )
     return out
 
 

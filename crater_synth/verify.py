@@ -63,8 +63,15 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
             if not info["finite"]:
                 faults.append(f"{f}: non-finite pixels")
     orphans = [str(p) for p in find_orphans(d, rows)]
-    return {"dataset": str(d), "rows": len(rows), "craters": dict(Counter(r["crater"] for r in rows)),
-            "faults": faults, "orphan_files": len(orphans), "orphans": orphans, "ok": not faults}
+    return {
+        "dataset": str(d),
+        "rows": len(rows),
+        "craters": dict(Counter(r["crater"] for r in rows)),
+        "faults": faults,
+        "orphan_files": len(orphans),
+        "orphans": orphans,
+        "ok": not faults,
+    }
 
 
 @click.command("verify")
@@ -83,7 +90,9 @@ def verify_command(dataset_dir, no_decode):
     for orphan in report["orphans"]:
         click.echo(f"orphan: {orphan} (no manifest row; the next `crater-synth dataset` run removes it)", err=True)
     status = "OK" if report["ok"] else f"FAILED ({len(report['faults'])} faults)"
-    click.echo(f"verify {status}: {report['rows']} rows {report['craters']}, "
-               f"{report['orphan_files']} orphan files, in {report['dataset']}")
+    click.echo(
+        f"verify {status}: {report['rows']} rows {report['craters']}, "
+        f"{report['orphan_files']} orphan files, in {report['dataset']}"
+    )
     if not report["ok"]:
         raise SystemExit(1)

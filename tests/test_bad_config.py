@@ -7,16 +7,24 @@ import pytest
 from click.testing import CliRunner
 from conftest import TINY, exr_files, run_cli
 
-HUGE = ("sweep.sun_elevation.values=null", "sweep.sun_elevation.count=100", "sweep.sun_azimuth.count=1000",
-        "sweep.cam_elevation.count=20", "sweep.cam_azimuth.count=1000")  # 2e9 renders, ~2 PB at 1 MB each
+HUGE = (
+    "sweep.sun_elevation.values=null",
+    "sweep.sun_elevation.count=100",
+    "sweep.sun_azimuth.count=1000",
+    "sweep.cam_elevation.count=20",
+    "sweep.cam_azimuth.count=1000",
+)  # 2e9 renders, ~2 PB at 1 MB each
 
 CASES = {
-    "unknown-crater": (["crater=atlantis"],  # the choices list every configs/crater/ entry (docs/catalogue.md)
-                       "unknown crater 'atlantis' (override crater=atlantis): choose one of amundsen, cabeus, custom, "
-                       "de_forest, de_gerlache,"),
-    "crater-outside-dem": (["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0",
-                            "crater.custom.diameter_km=20"],
-                           "crater custom at (lat 0, lon 0) lies outside DEM lola_ldem256_south"),
+    "unknown-crater": (
+        ["crater=atlantis"],  # the choices list every configs/crater/ entry (docs/catalogue.md)
+        "unknown crater 'atlantis' (override crater=atlantis): choose one of amundsen, cabeus, custom, "
+        "de_forest, de_gerlache,",
+    ),
+    "crater-outside-dem": (
+        ["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0", "crater.custom.diameter_km=20"],
+        "crater custom at (lat 0, lon 0) lies outside DEM lola_ldem256_south",
+    ),
     "custom-crater-without-lat": (["crater=custom"], "crater.custom.lat: missing mandatory config value"),
     "sun-elevation-95": (["sweep.sun_elevation.values=[95]"], "invalid sweep.sun_elevation values [95.0]"),
     "sun-elevation--90": (["sweep.sun_elevation.values=[-90]"], "invalid sweep.sun_elevation values [-90.0]"),
@@ -59,8 +67,9 @@ def test_bad_value_is_one_error_line(tmp_path, tiny_data_dir, overrides, expecte
 def test_dask_launcher_checks_before_starting_a_cluster(tmp_path, tiny_data_dir, case):
     overrides, expected = CASES[case]
     out = tmp_path / "ds"
-    proc = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", "launcher=dask", *overrides,
-                   timeout=60)
+    proc = run_cli(
+        "dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", "launcher=dask", *overrides, timeout=60
+    )
     _check_one_error(proc, expected, out)
     assert "dask sweep" not in proc.stderr  # no progress bar: the cluster never started
 
@@ -94,12 +103,14 @@ def test_free_disk_estimate_uses_measured_render_size(tmp_path, tiny_data_dir, t
         return real_usage(path)._replace(free=free)
 
     monkeypatch.setattr(shutil, "disk_usage", fake_usage)
-    result = CliRunner().invoke(dataset_command, [*TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}",
-                                                  "sweep.cam_elevation.count=2"])  # 8 renders, 4 of them new
+    result = CliRunner().invoke(
+        dataset_command, [*TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", "sweep.cam_elevation.count=2"]
+    )  # 8 renders, 4 of them new
     assert result.exit_code == 2, result.output
     assert result.stderr.strip().splitlines() == [
         f"error: not enough free disk in {out}: 4 renders need ~{_kb(int(4 * mean * 1.1))} ({_kb(mean)} each, "
-        f"+10 %), {_kb(free)} free"]
+        f"+10 %), {_kb(free)} free"
+    ]
     assert len(exr_files(out)) == 4
 
 

@@ -47,9 +47,14 @@ def _fill(directory: Path) -> Path:
 
 def test_full_disk_mid_run_says_so(small_disk, tiny_data_dir):
     out = small_disk / "ds"
-    proc = subprocess.Popen([*cli_command(), "dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}",
-                             *SLOW16], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}", *SLOW16],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 180
         while not exr_files(out) and proc.poll() is None and time.monotonic() < deadline:

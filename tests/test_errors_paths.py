@@ -8,8 +8,9 @@ import pytest
 from click.testing import CliRunner
 from conftest import TINY, run_cli
 
-TOY = dict(sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0),
-           rim_px=32.0)
+TOY = dict(
+    sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0), rim_px=32.0
+)
 
 
 def _one_error_line(proc) -> str:
@@ -24,8 +25,10 @@ def test_data_dir_under_a_regular_file(tmp_path, command):
     (tmp_path / "a-file").write_text("x")
     data_dir, out = tmp_path / "a-file" / "data", tmp_path / "ds"
     proc = run_cli(command, *TINY, f"data_dir={data_dir}", f"out_dir={out}")
-    assert _one_error_line(proc) == (f"error: data_dir={data_dir}: cannot create the directory: "
-                                     f"{tmp_path / 'a-file'} is a regular file, not a directory")
+    assert _one_error_line(proc) == (
+        f"error: data_dir={data_dir}: cannot create the directory: "
+        f"{tmp_path / 'a-file'} is a regular file, not a directory"
+    )
     assert (tmp_path / "a-file").read_text() == "x"
     assert not out.exists()  # nothing written: the output directory was not even made
 
@@ -37,10 +40,20 @@ def test_run_dir_under_a_regular_file_fails_before_caching(tmp_path):
     write_toy_dataset(tmp_path / "toy", **TOY)
     (tmp_path / "a-file").write_text("x")
     run_dir, cache = tmp_path / "a-file" / "run", tmp_path / "cache"
-    proc = run_cli("train", f"train.dataset_dir={tmp_path / 'toy'}", f"run_dir={run_dir}", f"data_dir={tmp_path}",
-                   f"train.cache_dir={cache}", "train.num_threads=1", "train.progress=false", "realset.per_crater=2")
-    assert _one_error_line(proc) == (f"error: run_dir={run_dir}: cannot create the directory: "
-                                     f"{tmp_path / 'a-file'} is a regular file, not a directory")
+    proc = run_cli(
+        "train",
+        f"train.dataset_dir={tmp_path / 'toy'}",
+        f"run_dir={run_dir}",
+        f"data_dir={tmp_path}",
+        f"train.cache_dir={cache}",
+        "train.num_threads=1",
+        "train.progress=false",
+        "realset.per_crater=2",
+    )
+    assert _one_error_line(proc) == (
+        f"error: run_dir={run_dir}: cannot create the directory: "
+        f"{tmp_path / 'a-file'} is a regular file, not a directory"
+    )
     assert not cache.exists()
 
 
@@ -54,7 +67,8 @@ def test_report_of_an_empty_directory_is_an_error(tmp_path):
     assert res.stderr.splitlines() == [
         f"error: run directory {run} holds no run to report (none of metrics.json, loop_history.json, "
         "experiments.csv, train_summary.json, config.yaml): run `crater-synth train run_dir=RUN_DIR` first, "
-        "or give the run_dir it wrote"]
+        "or give the run_dir it wrote"
+    ]
     assert list(run.iterdir()) == []  # no page of "not run" sections
 
 
@@ -62,9 +76,11 @@ def test_dem_error_is_not_preceded_by_a_library_warning(tmp_path):
     """A GeoTIFF without georeferencing: rasterio warns (NotGeoreferencedWarning) before the DEM is
     refused; the error line must be the only line."""
     dem = tmp_path / "nogeo.tif"
-    code = ("import numpy as np, rasterio, warnings; warnings.simplefilter('ignore');"
-            f"d = rasterio.open({str(dem)!r}, 'w', driver='GTiff', width=16, height=16, count=1, dtype='int16');"
-            "d.write(np.zeros((1, 16, 16), 'int16')); d.close()")
+    code = (
+        "import numpy as np, rasterio, warnings; warnings.simplefilter('ignore');"
+        f"d = rasterio.open({str(dem)!r}, 'w', driver='GTiff', width=16, height=16, count=1, dtype='int16');"
+        "d.write(np.zeros((1, 16, 16), 'int16')); d.close()"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
     proc = run_cli("terrain", *TINY, f"data_dir={tmp_path / 'data'}", f"dem.path={dem}")
     assert _one_error_line(proc) == f"error: DEM {dem} has no coordinate reference system"

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from conftest import exr_files, run_cli
 
-TOY = dict(sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0),
-           rim_px=32.0)
+TOY = dict(
+    sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0), rim_px=32.0
+)
 
 
 @pytest.fixture
@@ -85,18 +86,33 @@ def test_every_rename_is_preceded_by_an_fsync(tmp_path, monkeypatch):
     schema.atomic_write_text(tmp_path / "a.json", "{}")
     chans = {c: np.full((8, 8), 0.5, np.float32) for c in schema.EXR_CHANNELS}
     exr.write_exr(tmp_path / "shackleton" / "r.exr", chans, {})
-    row = {"path": "shackleton/r.exr", "sun_elevation": 1.6, "sun_azimuth": 0.0, "cam_elevation": 90.0,
-           "cam_azimuth": 0.0, "lit_fraction": 1.0, "mean_if": 0.5, "sigma_boxes": {"1.0": [1, 1, 7, 7]},
-           "rim_ellipse": {"cu": 4.0, "cv": 4.0, "a": 3.0, "b": 3.0, "angle_rad": 0.0}}
+    row = {
+        "path": "shackleton/r.exr",
+        "sun_elevation": 1.6,
+        "sun_azimuth": 0.0,
+        "cam_elevation": 90.0,
+        "cam_azimuth": 0.0,
+        "lit_fraction": 1.0,
+        "mean_if": 0.5,
+        "sigma_boxes": {"1.0": [1, 1, 7, 7]},
+        "rim_ellipse": {"cu": 4.0, "cv": 4.0, "a": 3.0, "b": 3.0, "angle_rad": 0.0},
+    }
     contact_sheet([row], tmp_path, tmp_path / "preview" / "contact_shackleton.png", "t")
     _toy_cache(tmp_path)
     from crater_synth.experiments import plot_figure6
     from crater_synth.loop import plot_history
 
-    plot_history({"threshold": 0.85, "rounds": [{"sun_elevation_count": 2, "lunarnet_ex": 0.5, "lunarsvm_ex": 0.6,
-                                                   "hog_svm": 0.4}]}, tmp_path / "loop_history.png")
-    plot_figure6([{"parameter": "sun_elevation", "count": 2, "sigma": 1.0, "model": "lunarnet_ex",
-                   "real_accuracy": 0.5}], tmp_path / "figure6.png")
+    plot_history(
+        {
+            "threshold": 0.85,
+            "rounds": [{"sun_elevation_count": 2, "lunarnet_ex": 0.5, "lunarsvm_ex": 0.6, "hog_svm": 0.4}],
+        },
+        tmp_path / "loop_history.png",
+    )
+    plot_figure6(
+        [{"parameter": "sun_elevation", "count": 2, "sigma": 1.0, "model": "lunarnet_ex", "real_accuracy": 0.5}],
+        tmp_path / "figure6.png",
+    )
     assert not unsynced, f"renamed without an fsync: {unsynced}"
 
 

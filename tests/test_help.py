@@ -24,8 +24,9 @@ def _make_targets() -> set[str]:
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="make not installed")
 def test_make_help_piped_is_plain_and_complete():
-    proc = subprocess.run(["make", "--no-print-directory", "help"], capture_output=True, text=True, cwd=REPO,
-                          timeout=60)
+    proc = subprocess.run(
+        ["make", "--no-print-directory", "help"], capture_output=True, text=True, cwd=REPO, timeout=60
+    )
     assert proc.returncode == 0, proc.stderr
     assert "\x1b" not in proc.stdout
     listed = {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}
@@ -72,7 +73,8 @@ def test_config_prints_the_composed_configuration():
     assert list(cfg["crater"]) == ["shoemaker"] and cfg["crater"]["shoemaker"]["diameter_km"] == 51.0
     assert cfg["out_dir"].endswith("/synth/paper") and "${" not in res.stdout  # resolved
     one = CliRunner().invoke(main, ["config", "--group", "hapke"])
-    assert yaml.safe_load(one.stdout) == {"hapke": {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06,
-                                                    "theta_bar_deg": 23.657}}
+    assert yaml.safe_load(one.stdout) == {
+        "hapke": {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06, "theta_bar_deg": 23.657}
+    }
     bad = CliRunner().invoke(main, ["config", "sweep.fov_deg=wide"])
     assert bad.exit_code == 2 and bad.stderr.splitlines() == ["error: sweep.fov_deg=wide: must be a number"]

@@ -18,9 +18,14 @@ N16 = 16
 
 
 def _start(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen([*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
 
 
 def _wait_holding(proc: subprocess.Popen, lock: Path, timeout: float = 120) -> None:
@@ -65,8 +70,9 @@ def test_second_writer_of_the_same_dataset_refuses(tmp_path, tiny_data_dir, tiny
         finally:
             os.kill(first.pid, signal.SIGCONT)
         line = _refusal(second)
-        assert line.startswith(f"error: dataset {out} is being written by another crater-synth process "
-                               f"(pid {first.pid} on "), line
+        assert line.startswith(
+            f"error: dataset {out} is being written by another crater-synth process (pid {first.pid} on "
+        ), line
         assert line.endswith("): wait for it to finish, or give another out_dir")
         assert first.poll() is None  # the first writer is untouched
         stdout, stderr = first.communicate(timeout=600)
@@ -93,11 +99,14 @@ def test_shards_run_side_by_side_but_not_twice(tmp_path, tiny_data_dir):
         results = [p.communicate(timeout=600) for p in shards]
     finally:
         _stop(*shards)
-    assert _refusal(refusals[0]).startswith(f"error: shard 0/2 of dataset {out} is being written by another "
-                                            f"crater-synth process (pid {shards[0].pid} on ")
-    assert _refusal(refusals[1]) == (f"error: dataset {out} is being written by another crater-synth process "
-                                     "(shards of a sweep, launcher.shard=i/n): wait for it to finish, or give "
-                                     "another out_dir")
+    assert _refusal(refusals[0]).startswith(
+        f"error: shard 0/2 of dataset {out} is being written by another crater-synth process (pid {shards[0].pid} on "
+    )
+    assert _refusal(refusals[1]) == (
+        f"error: dataset {out} is being written by another crater-synth process "
+        "(shards of a sweep, launcher.shard=i/n): wait for it to finish, or give "
+        "another out_dir"
+    )
     for p, (_, stderr) in zip(shards, results, strict=True):
         assert p.returncode == 0, stderr[-3000:]
     assert len(exr_files(out)) == 2 * N16
@@ -112,10 +121,19 @@ def test_the_lock_dies_with_its_holder(tmp_path):
     from crater_synth.dataset.disk import DatasetLock
     from crater_synth.errors import DatasetBusyError
 
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
-                               "from crater_synth.dataset.disk import DatasetLock; "
-                               f"lock = DatasetLock(Path({str(tmp_path)!r})).acquire(); print('held', flush=True); "
-                               "time.sleep(600)"], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; "
+            "from crater_synth.dataset.disk import DatasetLock; "
+            f"lock = DatasetLock(Path({str(tmp_path)!r})).acquire(); print('held', flush=True); "
+            "time.sleep(600)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(DatasetBusyError, match=f"pid {holder.pid} on "):

@@ -9,8 +9,10 @@ import subprocess
 
 from conftest import REPO, TINY, cli_command, summary
 
-LINE = re.compile(r"^rendering \(fast\): (\d+)/8 renders \(\d+ %\), [0-9.]+ renders/s, "
-                  r"(elapsed \d:\d\d:\d\d, ETA (\d:\d\d:\d\d|\?)|done in \d:\d\d:\d\d)$")
+LINE = re.compile(
+    r"^rendering \(fast\): (\d+)/8 renders \(\d+ %\), [0-9.]+ renders/s, "
+    r"(elapsed \d:\d\d:\d\d, ETA (\d:\d\d:\d\d|\?)|done in \d:\d\d:\d\d)$"
+)
 
 
 def test_redirected_output_is_lines_with_rate_and_eta(tmp_path, tiny_data_dir):
@@ -18,9 +20,21 @@ def test_redirected_output_is_lines_with_rate_and_eta(tmp_path, tiny_data_dir):
     log = tmp_path / "stderr.log"
     env = os.environ | {"CRATER_SYNTH_PROGRESS_INTERVAL": "0.05"}  # a line per render here; 5 s by default
     with open(log, "wb") as err:
-        proc = subprocess.run([*cli_command(), "dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}",
-                               "sweep.cam_elevation.count=2"], stdout=subprocess.PIPE, stderr=err, env=env, cwd=REPO,
-                              timeout=600)
+        proc = subprocess.run(
+            [
+                *cli_command(),
+                "dataset",
+                *TINY,
+                f"data_dir={tiny_data_dir}",
+                f"out_dir={out}",
+                "sweep.cam_elevation.count=2",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            env=env,
+            cwd=REPO,
+            timeout=600,
+        )
     assert proc.returncode == 0, log.read_text()[-3000:]
     assert summary(subprocess.CompletedProcess([], 0, proc.stdout.decode()))["rendered"] == 8
     raw = log.read_bytes()
@@ -69,8 +83,14 @@ def test_cache_build_reports_progress_without_bars(tmp_path, capfd, monkeypatch)
     from train.toydata import write_toy_dataset
 
     monkeypatch.setenv("CRATER_SYNTH_PROGRESS_INTERVAL", "0")
-    write_toy_dataset(tmp_path / "toy", sun_elevations=(15.0,), sun_azimuths=(0.0,), cam_elevations=(90.0,),
-                      cam_azimuths=(0.0, 180.0), rim_px=32.0)
+    write_toy_dataset(
+        tmp_path / "toy",
+        sun_elevations=(15.0,),
+        sun_azimuths=(0.0,),
+        cam_elevations=(90.0,),
+        cam_azimuths=(0.0, 180.0),
+        rim_px=32.0,
+    )
     rows = load_manifest(tmp_path / "toy")
     build_cache(rows, tmp_path / "toy", [1.0], PreprocessConfig(), tmp_path / "cache", progress=False)
     err = capfd.readouterr().err

@@ -25,8 +25,9 @@ def default():
     return load_settings([])
 
 
-@pytest.mark.parametrize("option", sorted(f"{p.parent.name}={p.stem}" for p in CONFIG_DIR.glob("*/*.yaml")
-                                          if p.parent.name != "crater"))
+@pytest.mark.parametrize(
+    "option", sorted(f"{p.parent.name}={p.stem}" for p in CONFIG_DIR.glob("*/*.yaml") if p.parent.name != "crater")
+)
 def test_every_group_option_composes_and_validates(option):
     cfg, s = compose_settings([option])
     assert isinstance(s, Settings)
@@ -85,8 +86,15 @@ def test_replace_with_dotted_keys_validates(default):
 
 def test_duplicate_crater_names_are_refused():
     with pytest.raises(ConfigError, match=r"crater\.custom\.name='shackleton': repeats crater\.shackleton's name"):
-        compose(["crater=[shackleton,custom]", "crater.custom.name=shackleton", "crater.custom.lat=-89",
-                 "crater.custom.lon=0", "crater.custom.diameter_km=20"])
+        compose(
+            [
+                "crater=[shackleton,custom]",
+                "crater.custom.name=shackleton",
+                "crater.custom.lat=-89",
+                "crater.custom.lon=0",
+                "crater.custom.diameter_km=20",
+            ]
+        )
 
 
 def test_a_new_key_is_one_field(monkeypatch):
@@ -129,7 +137,11 @@ def test_settings_module_imports_only_the_standard_library_and_the_core():
     import crater_core.settings as mod
 
     tree = ast.parse(Path(mod.__file__).read_text())
-    names = {n.module if isinstance(n, ast.ImportFrom) else a.name for n in ast.walk(tree)
-             if isinstance(n, (ast.Import, ast.ImportFrom)) for a in getattr(n, "names", [])}
+    names = {
+        n.module if isinstance(n, ast.ImportFrom) else a.name
+        for n in ast.walk(tree)
+        if isinstance(n, (ast.Import, ast.ImportFrom))
+        for a in getattr(n, "names", [])
+    }
     tops = {name.split(".")[0] for name in names if name}
     assert tops <= set(sys.stdlib_module_names) | {"crater_core"}, tops

@@ -14,16 +14,26 @@ import pytest
 from conftest import REPO, TINY, cli_command, exr_files, run_cli, summary
 
 # 16 direct-mode renders at 16 spp, on 2 workers: time to interrupt the run mid-way.
-SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4",
-          "render.workers=2")
+SLOW16 = (
+    "render.mode=direct",
+    "render.samples=16",
+    "sweep.sun_azimuth.count=4",
+    "sweep.cam_azimuth.count=4",
+    "render.workers=2",
+)
 N16 = 16
 SCRATCH = re.compile(r"^crater_synth_(?:render|exr)_(\d+)_")
 
 
 def _start(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen([*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
 
 
 def _workers(out: Path) -> list[int]:
@@ -65,8 +75,11 @@ def _interrupt(out: Path, data_dir: Path, send) -> tuple[subprocess.Popen, str, 
     proc = _start(out, data_dir, *SLOW16)
     try:
         _wait_for(lambda: exr_files(out), "the first EXR", proc)
-        workers = _wait_for(lambda: (w := _workers(out)) and len(_scratch_of(w)) == len(w) == 2 and w,
-                            "two workers with scratch files", proc)
+        workers = _wait_for(
+            lambda: (w := _workers(out)) and len(_scratch_of(w)) == len(w) == 2 and w,
+            "two workers with scratch files",
+            proc,
+        )
         send(proc)
         _, stderr = proc.communicate(timeout=120)
     finally:

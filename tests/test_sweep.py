@@ -36,13 +36,16 @@ def test_shards_partition_the_grid(n):
     assert covered == list(range(len(grid)))
 
 
-@pytest.mark.parametrize("override, message", [
-    ("sweep.sun_elevation.values=[95.0]", "sun elevation"),
-    ("sweep.sun_elevation.values=[-90.0]", "sun elevation"),
-    ("sweep.sigma.values=[0.0,1.0]", "ROI ratio"),
-    ("sweep.fov_deg=180", "field of view"),
-    ("sweep.cam_azimuth.count=0", "count"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("sweep.sun_elevation.values=[95.0]", "sun elevation"),
+        ("sweep.sun_elevation.values=[-90.0]", "sun elevation"),
+        ("sweep.sigma.values=[0.0,1.0]", "ROI ratio"),
+        ("sweep.fov_deg=180", "field of view"),
+        ("sweep.cam_azimuth.count=0", "count"),
+    ],
+)
 def test_nonsense_values_are_refused(override, message):
     with pytest.raises(ConfigError, match=message):  # at composition: the grid is built and checked there
         compose(["sweep=smoke", override])

@@ -21,5 +21,14 @@ from crater_synth.dataset.dispatch import run_workers, worker_command
 from crater_synth.dataset.plan import CraterJob, code_version, plan_render, render_digest, render_seed
 from crater_synth.errors import RenderError
 
-__all__ = ["CraterJob", "RenderError", "build_dataset", "code_version", "plan_render", "render_digest",
-           "render_seed", "run_workers", "worker_command"]
+__all__ = [
+    "CraterJob",
+    "RenderError",
+    "build_dataset",
+    "code_version",
+    "plan_render",
+    "render_digest",
+    "render_seed",
+    "run_workers",
+    "worker_command",
+]

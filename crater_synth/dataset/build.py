@@ -29,8 +29,9 @@ def _warn(message: str) -> None:
     print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
-def build_dataset(settings: Settings | Mapping, progress: bool = True, lock: bool = True,
-                  warn: Callable[[str], None] | None = _warn) -> dict:
+def build_dataset(
+    settings: Settings | Mapping, progress: bool = True, lock: bool = True, warn: Callable[[str], None] | None = _warn
+) -> dict:
     """Render the configured sweep (or ``launcher.shard``) into ``out_dir``, resuming: renders whose row
     has the current digest and whose file hashes right are skipped.
 
@@ -54,8 +55,9 @@ def build_dataset(settings: Settings | Mapping, progress: bool = True, lock: boo
     if lock:
         dataset_lock.acquire()
     try:
-        return _build_locked(s, grid, indices, shard, out_dir, progress, warn,
-                             exclusive=lock and dataset_lock.exclusive)
+        return _build_locked(
+            s, grid, indices, shard, out_dir, progress, warn, exclusive=lock and dataset_lock.exclusive
+        )
     except OSError as exc:
         if is_disk_full(exc):
             raise RenderError(os_error_text(exc)) from None
@@ -79,8 +81,11 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
     craters = s.craters
     # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
     # at least this many renders are left even if every existing row belongs to this run.
-    check_free_disk(out_dir, max(0, len(indices) * len(craters) - len(existing)),
-                         measured_bytes_per_render(list(existing.values()), out_dir))
+    check_free_disk(
+        out_dir,
+        max(0, len(indices) * len(craters) - len(existing)),
+        measured_bytes_per_render(list(existing.values()), out_dir),
+    )
     jobs, skipped, total = [], 0, 0
     for crater in craters:
         npz, meta = build_terrain(crater, s)
@@ -133,9 +138,18 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
     elapsed = time.perf_counter() - t0
     n_rows = schema.merge_parts(out_dir, parts=[part])
     if dark and warn is not None:
-        warn(f"{len(dark)} of {todo} new renders are entirely in shadow (lit_fraction 0, all black), e.g. "
-             f"{out_dir / dark[0]}: check sweep.sun_elevation and the crater's latitude")
-    return {"dataset": str(out_dir), "renders_total": total, "rendered": todo, "skipped_existing": skipped,
-            "manifest_rows": n_rows, "seconds": round(elapsed, 2),
-            "renders_per_s": round(todo / elapsed, 3) if todo and elapsed > 0 else None,
-            "craters": [c.name for c in craters], "mode": s.render.mode}
+        warn(
+            f"{len(dark)} of {todo} new renders are entirely in shadow (lit_fraction 0, all black), e.g. "
+            f"{out_dir / dark[0]}: check sweep.sun_elevation and the crater's latitude"
+        )
+    return {
+        "dataset": str(out_dir),
+        "renders_total": total,
+        "rendered": todo,
+        "skipped_existing": skipped,
+        "manifest_rows": n_rows,
+        "seconds": round(elapsed, 2),
+        "renders_per_s": round(todo / elapsed, 3) if todo and elapsed > 0 else None,
+        "craters": [c.name for c in craters],
+        "mode": s.render.mode,
+    }

@@ -51,8 +51,10 @@ def check_free_disk(out_dir: Path, n_renders: int, bytes_per_render: int) -> Non
     need = int(n_renders * bytes_per_render * 1.1)
     free = free_bytes(out_dir)
     if need > free:
-        raise UserError(f"not enough free disk in {out_dir}: {n_renders} renders need ~{size_text(need)} "
-                        f"({size_text(bytes_per_render)} each, +10 %), {size_text(free)} free")
+        raise UserError(
+            f"not enough free disk in {out_dir}: {n_renders} renders need ~{size_text(need)} "
+            f"({size_text(bytes_per_render)} each, +10 %), {size_text(free)} free"
+        )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -83,8 +85,10 @@ class DatasetLock:
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise
             self.release()
-            raise DatasetBusyError(f"{what} {self.out_dir} is being written by another crater-synth process "
-                                   f"({_holder(path)}): wait for it to finish, or give another out_dir") from None
+            raise DatasetBusyError(
+                f"{what} {self.out_dir} is being written by another crater-synth process "
+                f"({_holder(path)}): wait for it to finish, or give another out_dir"
+            ) from None
         if mode == fcntl.LOCK_EX:  # say who holds it, for the message a second writer prints
             fh.seek(0)
             fh.truncate()
@@ -162,8 +166,12 @@ def find_orphans(out_dir: Path, rows: list[dict]) -> list[Path]:
                 continue
             if _is_temp(f):
                 found.append(f)
-            elif sub != out_dir and f.suffix == ".exr" and not f.name.startswith(".") \
-                    and str(f.relative_to(out_dir)) not in named:
+            elif (
+                sub != out_dir
+                and f.suffix == ".exr"
+                and not f.name.startswith(".")
+                and str(f.relative_to(out_dir)) not in named
+            ):
                 found.append(f)
     return sorted(found)
 

@@ -41,14 +41,17 @@ def worker_command(job_file: Path) -> list[str]:
 
 def _split_contiguous(items: list, n: int) -> list[list]:
     n = max(1, min(n, len(items)))
-    return [items[i * len(items) // n:(i + 1) * len(items) // n] for i in range(n)]
+    return [items[i * len(items) // n : (i + 1) * len(items) // n] for i in range(n)]
 
 
 def _worker_error(crater: str, message: str) -> RenderError:
     if any(m in message for m in _DISK_FULL_MARKERS):
         text = message.split("ExrError: ", 1)[-1]
-        return RenderError(f"{text} (while rendering {crater})" if text.startswith("disk full") else
-                           f"disk full (ENOSPC) while rendering {crater}: {text}")
+        return RenderError(
+            f"{text} (while rendering {crater})"
+            if text.startswith("disk full")
+            else f"disk full (ENOSPC) while rendering {crater}: {text}"
+        )
     return RenderError(f"worker for {crater}: {message}")
 
 
@@ -104,14 +107,25 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
 
     def start(job: CraterJob, block: list[dict], unit_id: int) -> None:
         job_file = jobs_dir / f"{job.crater.name}-{writer_tag()}-{unit_id}.json"
-        spec = {"terrain_npz": str(job.npz), "terrain_meta": job.meta, "crater": job.crater.as_dict(),
-                "hapke": hapke_dict(hapke), "render": render_cfg, "out_dir": str(out_dir),
-                "horizon_cache_dir": render.horizon_cache_dir,
-                "renders": [p["item"] for p in block]}
+        spec = {
+            "terrain_npz": str(job.npz),
+            "terrain_meta": job.meta,
+            "crater": job.crater.as_dict(),
+            "hapke": hapke_dict(hapke),
+            "render": render_cfg,
+            "out_dir": str(out_dir),
+            "horizon_cache_dir": render.horizon_cache_dir,
+            "renders": [p["item"] for p in block],
+        }
         schema.atomic_write_text(job_file, json.dumps(spec))
         log = open(job_file.with_suffix(".log"), "ab")
-        proc = subprocess.Popen(worker_command(job_file), stdout=subprocess.PIPE, stderr=log, cwd=REPO_ROOT,
-                                env=os.environ | {"PYTHONUNBUFFERED": "1"})
+        proc = subprocess.Popen(
+            worker_command(job_file),
+            stdout=subprocess.PIPE,
+            stderr=log,
+            cwd=REPO_ROOT,
+            env=os.environ | {"PYTHONUNBUFFERED": "1"},
+        )
         started.add(proc.pid)
         running[proc] = _Worker(proc, job, block, unit_id, log, job_file)
         sel.register(proc.stdout, selectors.EVENT_READ, proc)
@@ -145,8 +159,9 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
                 if left:
                     tries = attempts.get(w.id, 0) + 1
                     if tries > render.max_retries:
-                        raise RenderError(f"worker for {w.job.crater.name} failed {tries} times "
-                                          f"(exit {rc}); see {jobs_dir}/*.log")
+                        raise RenderError(
+                            f"worker for {w.job.crater.name} failed {tries} times (exit {rc}); see {jobs_dir}/*.log"
+                        )
                     uid += 1
                     attempts[uid] = tries
                     start(w.job, left, uid)

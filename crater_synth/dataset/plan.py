@@ -27,9 +27,19 @@ from crater_synth.errors import UserError
 # Render settings that change pixels (the execution-only ones -- threads, workers, retries, the horizon
 # cache directory -- do not). ``shadow_map_samples`` (the retired lit maps) is no setting any more; it
 # stays in the list, as null, so digests match those of datasets rendered since the horizon maps.
-DIGEST_RENDER_KEYS = ("mode", "samples", "max_bounces", "denoise", "shadow_map_px", "shadow_map_levels",
-                      "shadow_map_extent_factor", "shadow_map_samples", "gbuffer_samples", "roi_min_px",
-                      "crop_to_roi")
+DIGEST_RENDER_KEYS = (
+    "mode",
+    "samples",
+    "max_bounces",
+    "denoise",
+    "shadow_map_px",
+    "shadow_map_levels",
+    "shadow_map_extent_factor",
+    "shadow_map_samples",
+    "gbuffer_samples",
+    "roi_min_px",
+    "crop_to_roi",
+)
 
 
 def code_version() -> str:
@@ -58,8 +68,9 @@ def _crater(crater: CraterSettings | Mapping) -> CraterSettings:
     return crater if isinstance(crater, CraterSettings) else CraterSettings.from_config(crater, "crater")
 
 
-def plan_render(crater: CraterSettings | Mapping, meta: dict, grid: SweepGrid, index: int, roi_min_px: int,
-                crop_to_roi: bool = True) -> dict:
+def plan_render(
+    crater: CraterSettings | Mapping, meta: dict, grid: SweepGrid, index: int, roi_min_px: int, crop_to_roi: bool = True
+) -> dict:
     """Camera, frame size, rim ellipse, sigma boxes and crop of one render (full-frame -> crop px).
 
     With ``crop_to_roi`` (the default) only the largest sigma box is rendered; otherwise the whole
@@ -77,8 +88,10 @@ def plan_render(crater: CraterSettings | Mapping, meta: dict, grid: SweepGrid, i
     big = boxes[f"{max(grid.sigmas):.1f}"]
     crop = [int(math.floor(big[0])), int(math.floor(big[1])), int(math.ceil(big[2])), int(math.ceil(big[3]))]
     if crop[0] < 0 or crop[1] < 0 or crop[2] > width or crop[3] > width:
-        raise UserError(f"ROI box of sigma={max(grid.sigmas)} leaves the {grid.fov_deg} deg frame for "
-                        f"{crater.name} at camera elevation {p.cam_elevation}: lower sigma or raise range_factor")
+        raise UserError(
+            f"ROI box of sigma={max(grid.sigmas)} leaves the {grid.fov_deg} deg frame for "
+            f"{crater.name} at camera elevation {p.cam_elevation}: lower sigma or raise range_factor"
+        )
     if not crop_to_roi:
         crop = [0, 0, width, width]
     u0, v0 = crop[0], crop[1]
@@ -110,19 +123,39 @@ def camera_major(plan: dict) -> tuple[int, int, int, int]:
     return i[2], i[3], i[0], i[1]
 
 
-def worker_item(crater: CraterSettings, meta: dict, plan: dict, render: RenderSettings, hapke: HapkeParams,
-                fov_deg: float) -> dict:
+def worker_item(
+    crater: CraterSettings, meta: dict, plan: dict, render: RenderSettings, hapke: HapkeParams, fov_deg: float
+) -> dict:
     """One entry of a worker job's ``renders`` list (docs/renderer.md, "Worker contract")."""
     p = plan["params"]
     rel = schema.render_rel_path(crater.name, p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
-    header = {"crater": crater.name, "terrain_id": meta["terrain_id"], "code_version": code_version(),
-              "renderer": render.mode, "samples": int(render.samples),
-              "range_m": plan["range_m"], "fov_deg": float(fov_deg),
-              "frame_width": plan["frame_width"], "crop": json.dumps(plan["crop"]),
-              "sigma_boxes": json.dumps(plan["sigma_boxes"]), "rim_ellipse": json.dumps(plan["rim_ellipse"]),
-              "hapke": json.dumps(hapke_dict(hapke), sort_keys=True), "seed": plan["seed"]}
-    return {"index": p.index, "indices": list(p.indices), "sun_elevation": p.sun_elevation,
-            "sun_azimuth": p.sun_azimuth, "cam_elevation": p.cam_elevation, "cam_azimuth": p.cam_azimuth,
-            "range_m": plan["range_m"], "fov_deg": float(fov_deg),
-            "frame_width": plan["frame_width"], "crop": plan["crop"], "rel_path": rel, "seed": plan["seed"],
-            "header": header}
+    header = {
+        "crater": crater.name,
+        "terrain_id": meta["terrain_id"],
+        "code_version": code_version(),
+        "renderer": render.mode,
+        "samples": int(render.samples),
+        "range_m": plan["range_m"],
+        "fov_deg": float(fov_deg),
+        "frame_width": plan["frame_width"],
+        "crop": json.dumps(plan["crop"]),
+        "sigma_boxes": json.dumps(plan["sigma_boxes"]),
+        "rim_ellipse": json.dumps(plan["rim_ellipse"]),
+        "hapke": json.dumps(hapke_dict(hapke), sort_keys=True),
+        "seed": plan["seed"],
+    }
+    return {
+        "index": p.index,
+        "indices": list(p.indices),
+        "sun_elevation": p.sun_elevation,
+        "sun_azimuth": p.sun_azimuth,
+        "cam_elevation": p.cam_elevation,
+        "cam_azimuth": p.cam_azimuth,
+        "range_m": plan["range_m"],
+        "fov_deg": float(fov_deg),
+        "frame_width": plan["frame_width"],
+        "crop": plan["crop"],
+        "rel_path": rel,
+        "seed": plan["seed"],
+        "header": header,
+    }
