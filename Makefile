@@ -9,8 +9,10 @@ RUN_DIR ?= outputs/smoke
 
 .DEFAULT_GOAL := help
 
-help: ## Show this help
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  \033[36m%-12s\033[0m %s\n", $$1, $$2}'
+help: ## Show this help (every target; colour only on a terminal, and never with NO_COLOR set)
+	@if [ -t 1 ] && [ -z "$$NO_COLOR" ]; then on='\033[36m'; off='\033[0m'; else on=''; off=''; fi; \
+	grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | \
+	awk -v on="$$on" -v off="$$off" 'BEGIN {FS = ":.*## "}; {printf "  %s%-12s%s %s\n", on, $$1, off, $$2}'
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +50,16 @@ terrain: setup ## Build terrain patches for the selected craters (OVERRIDES="cra
 dataset: setup ## Render a sweep (resumable): OVERRIDES="sweep=demo crater=shoemaker render.workers=2"
 	$(CLI) dataset $(OVERRIDES)
 
+DATASET ?= data/synth/smoke
+verify: setup ## Check a dataset against its manifest, name orphan files: make verify DATASET=data/synth/smoke
+	$(CLI) verify $(DATASET)
+
+preview: setup ## Contact sheet PNG per crater of a dataset: make preview DATASET=data/synth/smoke
+	$(CLI) preview $(DATASET)
+
+config: setup ## Print the composed configuration: make config OVERRIDES="sweep=paper render.samples=4"
+	$(CLI) config $(OVERRIDES)
+
 train: setup ## Train the three classifiers on a rendered sweep and evaluate on real crops
 	$(CLI) train $(OVERRIDES)
 
@@ -75,4 +87,5 @@ demo: setup ## The main job on the embedded data: render sweep=demo, closed loop
 	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test-deps test lint format-check test-slow terrain dataset train loop experiments report bench validate ablate demo
+.PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
+	experiments report bench validate ablate demo

@@ -35,7 +35,8 @@ def render(session, item: dict, to_sun: np.ndarray) -> dict[str, np.ndarray]:
     return {
         "IF": p["Combined"][..., 0],
         "depth": p["Depth"],
-        "N.X": normals[..., 0], "N.Y": normals[..., 1], "N.Z": normals[..., 2],
+        "N.X": normals[..., 0],
+        "N.Y": normals[..., 1],
+        "N.Z": normals[..., 2],
         "lit": np.clip(lit, 0.0, 1.0).astype(np.float32),
     }
-

@@ -47,8 +47,9 @@ class Float32Ops(hapke.NumpyOps):
 
 def radiance_factor32(mu0: np.ndarray, mu: np.ndarray, cos_g: np.ndarray, params) -> np.ndarray:
     """I/F of the one Hapke formula (crater_core.hapke) in float32, for mu0 > 0 and mu > 0."""
-    return hapke.radiance_factor(mu0.astype(np.float32), mu.astype(np.float32), cos_g.astype(np.float32),
-                                 params, Float32Ops).astype(np.float32)
+    return hapke.radiance_factor(
+        mu0.astype(np.float32), mu.astype(np.float32), cos_g.astype(np.float32), params, Float32Ops
+    ).astype(np.float32)
 
 
 class FallbackNeeded(Exception):
@@ -99,8 +100,13 @@ class HorizonMap:
     level, each row-major, row 0 = north, col 0 = west) of the slope tan(h), the occluder distance
     and the eye height (crater_core.horizon.horizon_maps)."""
 
-    def __init__(self, values: np.ndarray, geometry: MapGeometry, distance: np.ndarray | None = None,
-                 eye_z: np.ndarray | None = None):
+    def __init__(
+        self,
+        values: np.ndarray,
+        geometry: MapGeometry,
+        distance: np.ndarray | None = None,
+        eye_z: np.ndarray | None = None,
+    ):
         self.values = values
         self.distance = distance
         self.eye_z = eye_z
@@ -108,8 +114,7 @@ class HorizonMap:
 
 
 class GBuffer:
-    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px",
-                 "z")
+    __slots__ = ("normals", "view", "mu", "cov", "depth", "valid", "i00", "fx", "fy", "shape", "n_outside", "px", "z")
 
     def __init__(self, passes: dict, cam_position: np.ndarray, geometry: MapGeometry):
         cov = np.clip(passes["cov"], 0.0, 1.0).astype(np.float32)
@@ -156,12 +161,22 @@ class FastRenderer:
         self.terrain_loader = terrain_loader
         self.horizon_maps: dict[float, HorizonMap] = {}
         if int(cfg["max_bounces"]) > 0:  # the factorisation is for direct sunlight only
-            print(f"[blender_gen.fast] render.max_bounces={cfg['max_bounces']} ignored in fast mode "
-                  "(direct light only)", file=sys.stderr, flush=True)
+            print(
+                f"[blender_gen.fast] render.max_bounces={cfg['max_bounces']} ignored in fast mode (direct light only)",
+                file=sys.stderr,
+                flush=True,
+            )
             session.scene.cycles.max_bounces = 0
             session.scene.cycles.diffuse_bounces = 0
-        self.stats = {"horizon_maps": 0, "horizon_s": 0.0, "gbuffers": 0, "gbuffer_s": 0.0, "gbuffer_hits": 0,
-                      "shade_s": 0.0, "fallbacks": 0}
+        self.stats = {
+            "horizon_maps": 0,
+            "horizon_s": 0.0,
+            "gbuffers": 0,
+            "gbuffer_s": 0.0,
+            "gbuffer_hits": 0,
+            "shade_s": 0.0,
+            "fallbacks": 0,
+        }
 
     # -- per sun azimuth ------------------------------------------------------------------------
     def prepare_horizons(self, azimuths, terrain_npz: str, cache_dir: str, log=None) -> None:
@@ -190,8 +205,14 @@ class FastRenderer:
     # -- per camera -----------------------------------------------------------------------------
     @staticmethod
     def camera_key(item: dict) -> tuple:
-        return (float(item["cam_elevation"]), float(item["cam_azimuth"]), float(item["range_m"]),
-                float(item["fov_deg"]), int(item["frame_width"]), tuple(int(c) for c in item["crop"]))
+        return (
+            float(item["cam_elevation"]),
+            float(item["cam_azimuth"]),
+            float(item["range_m"]),
+            float(item["fov_deg"]),
+            int(item["frame_width"]),
+            tuple(int(c) for c in item["crop"]),
+        )
 
     def get_gbuffer(self, item: dict) -> GBuffer:
         key = self.camera_key(item)
@@ -234,31 +255,36 @@ class FastRenderer:
     def render(self, item: dict, to_sun: np.ndarray) -> dict[str, np.ndarray]:
         g = self.get_gbuffer(item)
         if g.n_outside:
-            raise FallbackNeeded(f"{g.n_outside} px see terrain outside the horizon map "
-                                 f"(|x| or |y| > {self.half:.0f} m)")
+            raise FallbackNeeded(
+                f"{g.n_outside} px see terrain outside the horizon map (|x| or |y| > {self.half:.0f} m)"
+            )
         t0 = time.perf_counter()
         h = self.pixel_horizon(item, g)
         theta = math.radians(float(item["sun_elevation"]))
         phi = math.radians(float(item["sun_azimuth"]))
         s = np.asarray(to_sun, dtype=np.float32)
-        ds_dtheta = np.array([-math.sin(theta) * math.sin(phi), -math.sin(theta) * math.cos(phi), math.cos(theta)],
-                             dtype=np.float32)
+        ds_dtheta = np.array(
+            [-math.sin(theta) * math.sin(phi), -math.sin(theta) * math.cos(phi), math.cos(theta)], dtype=np.float32
+        )
         mu0 = g.normals @ s
         sunward = g.valid & (mu0 > 0.0)
         lit = np.zeros(g.shape, dtype=np.float32)
         mu0_s, slope_s = mu0[sunward], g.normals[sunward] @ ds_dtheta
-        lit[sunward] = 0.25 * sum(horizon.disc_lit_factor(np.float32(theta), hk[sunward], mu0_s, slope_s)
-                                  for hk in h)
+        lit[sunward] = 0.25 * sum(horizon.disc_lit_factor(np.float32(theta), hk[sunward], mu0_s, slope_s) for hk in h)
         m = sunward & (g.mu > 0.0) & (lit > 0.0)
         radiance = np.zeros(g.shape, dtype=np.float32)
         if m.any():
-            radiance[m] = (radiance_factor32(mu0[m], g.mu[m], g.view[m] @ s, self.s.params)
-                           * lit[m] * g.cov[m])
+            radiance[m] = radiance_factor32(mu0[m], g.mu[m], g.view[m] @ s, self.s.params) * lit[m] * g.cov[m]
         lit_out = np.clip(lit, 0.0, 1.0)
         self.stats["shade_s"] += time.perf_counter() - t0
-        return {"IF": radiance, "depth": g.depth,
-                "N.X": g.normals[..., 0], "N.Y": g.normals[..., 1], "N.Z": g.normals[..., 2],
-                "lit": lit_out}
+        return {
+            "IF": radiance,
+            "depth": g.depth,
+            "N.X": g.normals[..., 0],
+            "N.Y": g.normals[..., 1],
+            "N.Z": g.normals[..., 2],
+            "lit": lit_out,
+        }
 
 
 __all__ = ["FastRenderer", "FallbackNeeded", "HorizonMap", "GBuffer", "MapGeometry"]

@@ -13,8 +13,18 @@ class JobError(Exception):
     """Bad job file or terrain input; the worker prints ``ERROR <message>`` and exits non-zero."""
 
 
-RENDER_KEYS = ("index", "sun_elevation", "sun_azimuth", "cam_elevation", "cam_azimuth", "range_m",
-               "fov_deg", "frame_width", "crop", "rel_path")
+RENDER_KEYS = (
+    "index",
+    "sun_elevation",
+    "sun_azimuth",
+    "cam_elevation",
+    "cam_azimuth",
+    "range_m",
+    "fov_deg",
+    "frame_width",
+    "crop",
+    "rel_path",
+)
 
 
 def load_job(path: str) -> dict:
@@ -38,11 +48,15 @@ def load_job(path: str) -> dict:
             u0, v0, u1, v1 = (int(c) for c in r["crop"])
             width = int(r["frame_width"])
         except (TypeError, ValueError):
-            raise JobError(f"job file {path}: renders[{i}] needs crop [u0, v0, u1, v1] and frame_width "
-                           f"as integers, got {r['crop']!r}, {r['frame_width']!r}") from None
+            raise JobError(
+                f"job file {path}: renders[{i}] needs crop [u0, v0, u1, v1] and frame_width "
+                f"as integers, got {r['crop']!r}, {r['frame_width']!r}"
+            ) from None
         if not (0 <= u0 < u1 <= width and 0 <= v0 < v1 <= width):
-            raise JobError(f"job file {path}: renders[{i}] (index {r['index']}): crop {r['crop']} is not a "
-                           f"non-empty box inside the {width}-px frame")
+            raise JobError(
+                f"job file {path}: renders[{i}] (index {r['index']}): crop {r['crop']} is not a "
+                f"non-empty box inside the {width}-px frame"
+            )
     job.setdefault("terrain_meta", {})
     job.setdefault("render", {})
     return job
@@ -81,8 +95,10 @@ def load_terrain(path: str) -> dict:
         if keep is not None and keep.size:
             keep = np.asarray(keep).astype(bool)
             if keep.shape != (far.shape[0] - 1, far.shape[1] - 1):
-                raise JobError(f"terrain {path}: far_keep_quads has shape {keep.shape}, expected "
-                               f"{(far.shape[0] - 1, far.shape[1] - 1)}")
+                raise JobError(
+                    f"terrain {path}: far_keep_quads has shape {keep.shape}, expected "
+                    f"{(far.shape[0] - 1, far.shape[1] - 1)}"
+                )
         else:
             keep = None
         out["far_xyz"], out["far_keep_quads"] = far, keep

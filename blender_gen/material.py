@@ -220,5 +220,3 @@ def register_aovs(view_layer) -> None:
             aov = view_layer.aovs.add()
             aov.name = name
             aov.type = typ
-
-

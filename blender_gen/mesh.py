@@ -29,8 +29,9 @@ def _orient_up(q: np.ndarray, verts: np.ndarray) -> np.ndarray:
     return q
 
 
-def build_grid_mesh(name: str, xyz: np.ndarray, keep_quads: np.ndarray | None = None,
-                    grid_uv: bool = False, collection=None) -> bpy.types.Object:
+def build_grid_mesh(
+    name: str, xyz: np.ndarray, keep_quads: np.ndarray | None = None, grid_uv: bool = False, collection=None
+) -> bpy.types.Object:
     """Mesh object with one smooth-shaded quad per kept grid cell (unused vertices dropped)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     rows, cols = xyz.shape[:2]

@@ -35,7 +35,7 @@ def render_settings(job_render: dict | None) -> dict:
     for key in ("samples", "shadow_map_px", "shadow_map_levels"):
         if int(cfg[key]) < 1:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 1")
-    for key in ("max_bounces", "threads", "gbuffer_samples"):
+    for key in ("max_bounces", "threads", "gbuffer_samples"):  # an old job's shadow_map_samples is ignored
         if int(cfg[key]) < 0:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 0")
     if float(cfg["shadow_map_extent_factor"]) <= 0:

@@ -58,8 +58,9 @@ class Session:
 
     @staticmethod
     def pose(item: dict) -> geometry.CameraPose:
-        return geometry.look_at_camera(float(item["cam_elevation"]), float(item["cam_azimuth"]),
-                                       float(item["range_m"]), float(item["fov_deg"]))
+        return geometry.look_at_camera(
+            float(item["cam_elevation"]), float(item["cam_azimuth"]), float(item["range_m"]), float(item["fov_deg"])
+        )
 
     def render_view(self, item: dict) -> dict[str, np.ndarray]:
         camera.set_view(self.scene, self.view_cam, self.pose(item), int(item["frame_width"]), item["crop"])

@@ -27,13 +27,28 @@ RENDERER_VERSION = "blender_gen 1"
 # Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
 # bytes do not depend on the worker/thread layout (docs/distributed.md, "Determinism").
 EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries"}
-_RESERVED_EXR_KEYS = {"compression", "DateTime", "channels", "dataWindow", "displayWindow", "lineOrder",
-                      "pixelAspectRatio", "PixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "tiles",
-                      "type", "name", "version", "chunkCount", "oiio:subimages"}
+_RESERVED_EXR_KEYS = {
+    "compression",
+    "DateTime",
+    "channels",
+    "dataWindow",
+    "displayWindow",
+    "lineOrder",
+    "pixelAspectRatio",
+    "PixelAspectRatio",
+    "screenWindowCenter",
+    "screenWindowWidth",
+    "tiles",
+    "type",
+    "name",
+    "version",
+    "chunkCount",
+    "oiio:subimages",
+}
 
 
 def _args(argv: list[str]) -> list[str]:
-    return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+    return argv[argv.index("--") + 1 :] if "--" in argv else argv[1:]
 
 
 def log(msg: str) -> None:
@@ -63,7 +78,41 @@ def emit(prefix: str, payload) -> None:
         sys.stdout.flush()
         return
     while data:
-        data = data[os.write(_RESULT_FD, data):]
+        data = data[os.write(_RESULT_FD, data) :]
+
+
+# Stopping (SIGTERM/SIGINT from the host or the terminal, or the host gone): the handler only records
+# the signal, and the render loop stops at the next safe point -- between renders, never between
+# writing an EXR and reporting it (the file would have no manifest row), and never inside bpy: Blender
+# turns a SystemExit raised inside an operator (a Cycles render) into a C exit() that skips every
+# Python ``finally``, which would leave the scratch file behind.
+_STOP = {"signal": None}
+
+
+def _on_stop_signal(signum, _frame) -> None:
+    _STOP["signal"] = signum
+
+
+def _stop_if_asked() -> None:
+    if _STOP["signal"] is not None:
+        log(f"stopping on signal {_STOP['signal']}")
+        raise SystemExit(128 + _STOP["signal"])
+
+
+def _watch_parent(interval_s: float = 1.0) -> None:
+    """Stop (SIGTERM to self) when the host process is gone, e.g. killed with -9."""
+    import threading
+
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(interval_s)
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+
+    threading.Thread(target=watch, name="watch-host", daemon=True).start()
 
 
 def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
@@ -84,11 +133,12 @@ def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
         "crater_synth:crater": json.dumps(job["crater"], sort_keys=True),
         "crater_synth:terrain_id": str(job.get("terrain_meta", {}).get("terrain_id", "")),
         "crater_synth:hapke": json.dumps(job["hapke"], sort_keys=True),
-        "crater_synth:render": json.dumps({k: v for k, v in cfg.items() if k not in EXECUTION_ONLY_KEYS},
-                                          sort_keys=True),
+        "crater_synth:render": json.dumps(
+            {k: v for k, v in cfg.items() if k not in EXECUTION_ONLY_KEYS}, sort_keys=True
+        ),
         "crater_synth:sun_strength": "pi (white Lambertian at normal incidence renders 1: pixel = I/F)",
         "crater_synth:channels": "IF=radiance factor; depth=m along view axis; N=ENU unit normal; "
-                                 "lit=illuminated fraction of the solar disk",
+        "lit=illuminated fraction of the solar disk",
     }
     for k, v in (item.get("header") or {}).items():  # the host's entries, verbatim (unless reserved by EXR)
         hdr[str(k) if str(k) not in _RESERVED_EXR_KEYS else f"crater_synth:host:{k}"] = v
@@ -121,14 +171,17 @@ def run(job_path: str) -> int:
     if cfg["mode"] == "fast":
         fast_r = fast.FastRenderer(session, lambda: load_terrain(job["terrain_npz"]))
         cache_dir = job.get("horizon_cache_dir") or os.path.join(
-            os.path.dirname(os.path.abspath(job["terrain_npz"])), "horizon")
-        fast_r.prepare_horizons([float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"],
-                                cache_dir, log=log)
+            os.path.dirname(os.path.abspath(job["terrain_npz"])), "horizon"
+        )
+        fast_r.prepare_horizons(
+            [float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"], cache_dir, log=log
+        )
     out_dir = job["out_dir"]
     t_job = time.perf_counter()
     t_write = 0.0
     try:
         for item in job["renders"]:
+            _stop_if_asked()
             t1 = time.perf_counter()
             to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
             mode_used = cfg["mode"]
@@ -144,13 +197,22 @@ def run(job_path: str) -> int:
                 chans = direct.render(session, item, to_sun)
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
+            radiance = chans["IF"]
             sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
             t_write += time.perf_counter() - t2
-            radiance = chans["IF"]
-            emit("RESULT", {"index": int(item["index"]), "rel_path": item["rel_path"], "sha256": sha,
-                            "lit_fraction": round(float(np.mean(chans["lit"])), 6),
-                            "mean_if": round(float(np.mean(radiance)), 8),
-                            "seconds": round(time.perf_counter() - t1, 4), "mode": mode_used})
+            emit(
+                "RESULT",
+                {
+                    "index": int(item["index"]),
+                    "rel_path": item["rel_path"],
+                    "sha256": sha,
+                    "lit_fraction": round(float(np.mean(chans["lit"])), 6),
+                    "mean_if": round(float(np.mean(radiance)), 8),
+                    "seconds": round(time.perf_counter() - t1, 4),
+                    "mode": mode_used,
+                },
+            )
+            _stop_if_asked()
     finally:
         render.cleanup()
     n = len(job["renders"])
@@ -158,11 +220,19 @@ def run(job_path: str) -> int:
     extra = ""
     if fast_r is not None:
         extra = ", fast path " + json.dumps({k: round(v, 3) for k, v in fast_r.stats.items()})
-    log(f"{n} renders in {dt:.2f} s ({n / dt if dt > 0 else 0:.2f}/s); {session.n_cycles_calls} Cycles calls "
-        f"({session.cycles_seconds:.2f} s); EXR writing {t_write:.2f} s{extra}")
-    stats = {"renders": n, "seconds": round(dt, 3), "setup_s": round(t_job - t0, 3),
-             "cycles_calls": session.n_cycles_calls, "cycles_s": round(session.cycles_seconds, 3),
-             "exr_write_s": round(t_write, 3), "mode": cfg["mode"]}
+    log(
+        f"{n} renders in {dt:.2f} s ({n / dt if dt > 0 else 0:.2f}/s); {session.n_cycles_calls} Cycles calls "
+        f"({session.cycles_seconds:.2f} s); EXR writing {t_write:.2f} s{extra}"
+    )
+    stats = {
+        "renders": n,
+        "seconds": round(dt, 3),
+        "setup_s": round(t_job - t0, 3),
+        "cycles_calls": session.n_cycles_calls,
+        "cycles_s": round(session.cycles_seconds, 3),
+        "exr_write_s": round(t_write, 3),
+        "mode": cfg["mode"],
+    }
     if fast_r is not None:
         stats["fast"] = {k: round(v, 4) for k, v in fast_r.stats.items()}
     print("STATS " + json.dumps(stats), file=sys.stderr, flush=True)
@@ -172,8 +242,11 @@ def run(job_path: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _args(sys.argv if argv is None else argv)
     _protect_stdout()
-    # SIGTERM (host shutting down): unwind normally so the scratch file is removed.
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    # SIGTERM (host shutting down) or SIGINT (Ctrl-C reaches the whole process group): unwind
+    # normally so the scratch file is removed; the same when the host disappears.
+    signal.signal(signal.SIGTERM, _on_stop_signal)
+    signal.signal(signal.SIGINT, _on_stop_signal)
+    _watch_parent()
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
         return 2

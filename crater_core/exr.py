@@ -2,7 +2,8 @@
 
 Dataset EXRs (the render contract, docs/manifest.md): tiled 64x64, float32, lossless zip, exactly the
 channels of :data:`crater_core.schema.EXR_CHANNELS`, the render parameters as header attributes.
-Writes are atomic (temp file in the same directory, fsync, then ``os.replace``) and byte-reproducible
+Writes are atomic (temp file in the same directory, fsync, then ``os.replace``; 0666 less the umask),
+a full disk is an :class:`ExrError` saying so (ENOSPC, naming the file), and files are byte-reproducible
 (no time stamp). Blender's multilayer scratch output (one part per render pass) is read by
 :func:`read_multilayer`.
 
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_core.errors import ContractError
+from crater_core.files import SCRATCH_PREFIXES, disk_full_message, free_bytes, is_disk_full, scratch_file, size_text
 from crater_core.schema import EXR_CHANNELS
 
 CHANNELS = EXR_CHANNELS
@@ -44,8 +46,13 @@ def _header_value(v):
     return json.dumps(v, sort_keys=True)
 
 
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], header: dict | None = None,
-              channel_names: tuple[str, ...] = CHANNELS, tile: int = TILE) -> str:
+def write_exr(
+    path: str | os.PathLike,
+    channels: dict[str, np.ndarray],
+    header: dict | None = None,
+    channel_names: tuple[str, ...] = CHANNELS,
+    tile: int = TILE,
+) -> str:
     """Write ``channels`` (name -> (h, w) array; exactly ``channel_names``, in that order) atomically as
     one tiled, zip-compressed float32 EXR; returns the file's sha256."""
     import OpenImageIO as oiio
@@ -62,31 +69,49 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], header: 
     for key, val in (header or {}).items():
         spec.attribute(str(key), _header_value(val))
 
+    # OpenImageIO/OpenEXR deadlock (never return) when the disk fills during write_image, so the file
+    # is encoded into a scratch file in memory (/dev/shm) first, checked to have room, and its bytes
+    # are then written by Python, where a full disk is a plain OSError (ENOSPC) naming the path.
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp.exr", dir=directory)
-    os.close(fd)
+    scratch = scratch_file(SCRATCH_PREFIXES[1])
     try:
+        room = free_bytes(scratch)
+        if room < 2 * data.nbytes + (1 << 20):  # zip never inflates float tiles much beyond raw size
+            raise ExrError(
+                f"disk full (ENOSPC): no room to encode {path} in {os.path.dirname(scratch)} ({size_text(room)} free)"
+            )
         out = oiio.ImageOutput.create("openexr")
-        if out is None or not out.open(tmp, spec):
-            raise ExrError(f"cannot open {tmp} for writing: {oiio.geterror()}")
+        if out is None or not out.open(scratch, spec):
+            raise ExrError(f"cannot open {scratch} for writing {path}: {oiio.geterror()}")
         ok = out.write_image(data)
         ok = out.close() and ok
         if not ok:
-            raise ExrError(f"cannot write {tmp}: {out.geterror() or oiio.geterror()}")
-        with open(tmp, "rb") as fh:
+            raise ExrError(f"cannot encode {path}: {out.geterror() or oiio.geterror()}")
+        with open(scratch, "rb") as fh:
             blob = fh.read()
-            os.fsync(fh.fileno())
-        digest = hashlib.sha256(blob).hexdigest()
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
+    finally:
         try:
-            os.unlink(tmp)
+            os.unlink(scratch)
         except OSError:
             pass
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp.exr", dir=directory)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: datasets are shared like any file
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(blob)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if is_disk_full(exc):
+            raise ExrError(disk_full_message(path, exc)) from None
         raise
-    return digest
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return hashlib.sha256(blob).hexdigest()
 
 
 def _umask() -> int:
@@ -152,8 +177,13 @@ def exr_info(path: str | os.PathLike) -> dict:
         pixels = inp.read_image("float")
         if pixels is None:
             raise ExrError(f"{path}: cannot decode pixels ({inp.geterror()})")
-        return {"channels": tuple(spec.channelnames), "width": spec.width, "height": spec.height,
-                "tiled": spec.tile_width > 0, "finite": bool(np.isfinite(np.asarray(pixels)).all())}
+        return {
+            "channels": tuple(spec.channelnames),
+            "width": spec.width,
+            "height": spec.height,
+            "tiled": spec.tile_width > 0,
+            "finite": bool(np.isfinite(np.asarray(pixels)).all()),
+        }
     finally:
         inp.close()
 
@@ -179,8 +209,9 @@ def read_multilayer(path: str | os.PathLike) -> dict[str, np.ndarray]:
             px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
             for key, idx in groups.items():
                 chans = [names[i].rsplit(".", 1)[-1] for i in idx]
-                order = sorted(range(len(chans)),
-                               key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99)
+                order = sorted(
+                    range(len(chans)), key=lambda k: "RGBAXYZUVW".find(chans[k][0]) if len(chans[k]) == 1 else 99
+                )
                 arr = px[..., [idx[k] for k in order]]
                 out[key] = arr[..., 0] if arr.shape[-1] == 1 else arr
             sub += 1

@@ -125,8 +125,9 @@ class CameraPose:
         return 0.5 * width_px / math.tan(math.radians(self.fov_deg) / 2.0)
 
 
-def look_at_camera(elevation_deg: float, azimuth_deg: float, range_m: float, fov_deg: float,
-                   target=(0.0, 0.0, 0.0)) -> CameraPose:
+def look_at_camera(
+    elevation_deg: float, azimuth_deg: float, range_m: float, fov_deg: float, target=(0.0, 0.0, 0.0)
+) -> CameraPose:
     """Camera at (elevation, azimuth, range) from ``target`` looking at it.
 
     Image "up" is the horizontal direction pointing away from the camera (the forward ground track);
@@ -199,7 +200,7 @@ def _plane_to_image_homography(center_enu, pose: CameraPose, width_px: int) -> n
 def project_horizontal_circle(center_enu, radius_m: float, pose: CameraPose, width_px: int) -> Ellipse:
     """Exact image of a horizontal circle (the crater rim) as an :class:`Ellipse` (full-frame pixels)."""
     H = _plane_to_image_homography(center_enu, pose, width_px)
-    C = np.diag([1.0, 1.0, -radius_m**2])  # x^2 + y^2 - r^2 = 0
+    C = np.diag([1.0, 1.0, -(radius_m**2)])  # x^2 + y^2 - r^2 = 0
     Hinv = np.linalg.inv(H)
     Q = Hinv.T @ C @ Hinv
     Q = 0.5 * (Q + Q.T)
@@ -212,8 +213,9 @@ def project_horizontal_circle(center_enu, radius_m: float, pose: CameraPose, wid
     semi = np.sqrt(-F0 / evals)  # ascending eigenvalues -> descending semi-axes
     major = int(np.argmax(semi))
     vec = evecs[:, major]
-    return Ellipse(float(centre[0]), float(centre[1]), float(semi.max()), float(semi.min()),
-                   float(math.atan2(vec[1], vec[0])))
+    return Ellipse(
+        float(centre[0]), float(centre[1]), float(semi.max()), float(semi.min()), float(math.atan2(vec[1], vec[0]))
+    )
 
 
 def roi_box(center_uv, major_axis_px: float, sigma: float) -> tuple[float, float, float, float]:
@@ -224,8 +226,9 @@ def roi_box(center_uv, major_axis_px: float, sigma: float) -> tuple[float, float
     return (cu - half, cv - half, cu + half, cv + half)
 
 
-def frame_width_for_roi(pose: CameraPose, rim_center_enu, rim_radius_m: float, min_roi_px: int,
-                        sigma_min: float) -> int:
+def frame_width_for_roi(
+    pose: CameraPose, rim_center_enu, rim_radius_m: float, min_roi_px: int, sigma_min: float
+) -> int:
     """Smallest full-frame width (px) for which the sigma_min ROI box is at least ``min_roi_px`` wide.
 
     The ellipse scales linearly with the frame width at fixed FOV, so one projection suffices.

@@ -48,13 +48,19 @@ class HapkeParams:
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
-            raise ValueError("Hapke parameter(s) out of physical range: "
-                             + ", ".join(f"{k}={getattr(self, k)}" for k in bad))
+            raise ValueError(
+                "Hapke parameter(s) out of physical range: " + ", ".join(f"{k}={getattr(self, k)}" for k in bad)
+            )
 
     @classmethod
     def from_mapping(cls, m) -> "HapkeParams":
-        return cls(w=float(m["w"]), xi=float(m["xi"]), b0=float(m["b0"]), h=float(m["h"]),
-                   theta_bar_deg=float(m["theta_bar_deg"]))
+        return cls(
+            w=float(m["w"]),
+            xi=float(m["xi"]),
+            b0=float(m["b0"]),
+            h=float(m["h"]),
+            theta_bar_deg=float(m["theta_bar_deg"]),
+        )
 
 
 class NumpyOps:

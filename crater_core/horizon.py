@@ -71,13 +71,13 @@ PLANES = ("slope", "distance", "eye_z")  # what a map holds per texel (see horiz
 def disc_fraction_above(sun_elevation_rad, horizon_rad, radius_rad: float = SUN_RADIUS_RAD) -> np.ndarray:
     """Visible fraction of a uniform disc of angular ``radius_rad`` centred at ``sun_elevation_rad``
     above a straight horizon at ``horizon_rad`` (circular segment area / disc area)."""
-    x = np.clip((np.asarray(sun_elevation_rad, dtype=np.float32) - horizon_rad) / np.float32(radius_rad),
-                -1.0, 1.0)
+    x = np.clip((np.asarray(sun_elevation_rad, dtype=np.float32) - horizon_rad) / np.float32(radius_rad), -1.0, 1.0)
     return (1.0 - (np.arccos(x) - x * np.sqrt(1.0 - x * x)) / np.float32(math.pi)).astype(np.float32)
 
 
-def disc_lit_factor(sun_elevation_rad, horizon_rad, mu0, dmu0_delevation,
-                    radius_rad: float = SUN_RADIUS_RAD) -> np.ndarray:
+def disc_lit_factor(
+    sun_elevation_rad, horizon_rad, mu0, dmu0_delevation, radius_rad: float = SUN_RADIUS_RAD
+) -> np.ndarray:
     """<max(N.l, 0) V(l)>_disc / mu0: the factor the disc-centre radiance factor is multiplied by.
 
     The disc element at vertical offset delta (in the sun's elevation direction) has
@@ -86,8 +86,7 @@ def disc_lit_factor(sun_elevation_rad, horizon_rad, mu0, dmu0_delevation,
     Within a solar radius of the local horizon the second term matters (the visible upper part of the
     disc is lit more steeply than its centre), as in Cycles' disc sampling; the value may exceed 1
     there, like direct mode's. ``mu0`` must be > 0."""
-    x = np.clip((np.asarray(sun_elevation_rad, dtype=np.float32) - horizon_rad) / np.float32(radius_rad),
-                -1.0, 1.0)
+    x = np.clip((np.asarray(sun_elevation_rad, dtype=np.float32) - horizon_rad) / np.float32(radius_rad), -1.0, 1.0)
     fraction = 1.0 - (np.arccos(x) - x * np.sqrt(1.0 - x * x)) / np.float32(math.pi)
     moment = np.float32(2.0 * radius_rad / (3.0 * math.pi)) * (1.0 - x * x) ** 1.5
     return (fraction + dmu0_delevation * moment / mu0).astype(np.float32)
@@ -144,8 +143,7 @@ class GridSurface:
             # No overshoot: clamp to the range of the cell's four vertices (a cliff spanning one cell
             # would otherwise ring ~5 % above its top and lengthen its shadow accordingly).
             base = r1 * self.cols + c1
-            corners = np.stack([self.z[base], self.z[base + 1], self.z[base + self.cols],
-                                self.z[base + self.cols + 1]])
+            corners = np.stack([self.z[base], self.z[base + 1], self.z[base + self.cols], self.z[base + self.cols + 1]])
             out = np.clip(out, corners.min(axis=0), corners.max(axis=0))
         else:
             base = r1 * self.cols + c1
@@ -164,8 +162,9 @@ def _catmull_rom_weights(t: np.ndarray) -> list[np.ndarray]:
 class Terrain:
     """The near field (Catmull-Rom) and, outside it, the far field (bilinear, kept quads only)."""
 
-    def __init__(self, near_xyz: np.ndarray, far_xyz: np.ndarray | None = None,
-                 far_keep_quads: np.ndarray | None = None):
+    def __init__(
+        self, near_xyz: np.ndarray, far_xyz: np.ndarray | None = None, far_keep_quads: np.ndarray | None = None
+    ):
         self.near = GridSurface(near_xyz, cubic=True)
         self.far = None
         if far_xyz is not None and np.size(far_xyz) and far_xyz.shape[0] > 1 and far_xyz.shape[1] > 1:
@@ -324,8 +323,15 @@ def horizon_maps(terrain: Terrain, azimuth_deg: float, halves, px: int) -> np.nd
             dist = np.where(better, t_far, dist)
         tx, ty = texel_centres(half, px)
         ti, tj = g.fractional_index(tx, ty)
-        maps.append(np.stack([_bilinear_grid(np.maximum(slope, NO_OCCLUDER_SLOPE), ti, tj),
-                              _bilinear_grid(dist, ti, tj), _bilinear_grid(eye, ti, tj)]))
+        maps.append(
+            np.stack(
+                [
+                    _bilinear_grid(np.maximum(slope, NO_OCCLUDER_SLOPE), ti, tj),
+                    _bilinear_grid(dist, ti, tj),
+                    _bilinear_grid(eye, ti, tj),
+                ]
+            )
+        )
     return np.stack(maps).astype(np.float32)
 
 
@@ -338,10 +344,18 @@ def pixel_slope(slope: np.ndarray, distance: np.ndarray, eye_z: np.ndarray, z: n
 # On-disk cache shared by worker processes
 # ------------------------------------------------------------------------------------------------
 def cache_key(terrain_digest: str, azimuth_deg: float, halves, px: int) -> str:
-    payload = json.dumps({"v": HORIZON_VERSION, "terrain": terrain_digest, "azimuth": round(float(azimuth_deg), 9),
-                          "halves": [round(float(h), 6) for h in halves], "px": int(px),
-                          "window_ratio": WINDOW_RATIO, "min_occluder": MIN_OCCLUDER_DISTANCE_SPACINGS},
-                         sort_keys=True)
+    payload = json.dumps(
+        {
+            "v": HORIZON_VERSION,
+            "terrain": terrain_digest,
+            "azimuth": round(float(azimuth_deg), 9),
+            "halves": [round(float(h), 6) for h in halves],
+            "px": int(px),
+            "window_ratio": WINDOW_RATIO,
+            "min_occluder": MIN_OCCLUDER_DISTANCE_SPACINGS,
+        },
+        sort_keys=True,
+    )
     return hashlib.sha256(payload.encode()).hexdigest()[:24]
 
 
@@ -405,8 +419,17 @@ def _claim(lock_path: str) -> bool:
     return False
 
 
-def ensure_maps(terrain_factory, terrain_digest: str, azimuths, halves, px: int, cache_dir: str,
-                log=None, poll_s: float = 0.2, timeout_s: float = 3600.0) -> dict[float, np.ndarray]:
+def ensure_maps(
+    terrain_factory,
+    terrain_digest: str,
+    azimuths,
+    halves,
+    px: int,
+    cache_dir: str,
+    log=None,
+    poll_s: float = 0.2,
+    timeout_s: float = 3600.0,
+) -> dict[float, np.ndarray]:
     """{azimuth: maps} for every azimuth, computed once and shared through ``cache_dir``.
 
     Several workers may call this at once: each azimuth is computed by the process that first claims

@@ -46,6 +46,7 @@ def max_sun_elevation_deg(lat_deg, azimuth_deg, obliquity_deg: float = LUNAR_OBL
     psi = np.arctan2(b, a)
     south = b < 0.0
     # South: the Sun climbs until s·p falls to -sin ε; north: until s·p rises to +sin ε.
-    theta = np.where(south, psi + np.arccos(np.clip(-sin_eps / r, -1.0, 1.0)),
-                     psi - np.arccos(np.clip(sin_eps / r, -1.0, 1.0)))
+    theta = np.where(
+        south, psi + np.arccos(np.clip(-sin_eps / r, -1.0, 1.0)), psi - np.arccos(np.clip(sin_eps / r, -1.0, 1.0))
+    )
     return np.degrees(np.clip(theta, -np.pi / 2, np.pi / 2))

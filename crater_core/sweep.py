@@ -89,9 +89,14 @@ class RenderParams:
         return self.indices[2], self.indices[3]
 
     def as_dict(self) -> dict:
-        return {"index": self.index, "indices": list(self.indices), "sun_elevation": self.sun_elevation,
-                "sun_azimuth": self.sun_azimuth, "cam_elevation": self.cam_elevation,
-                "cam_azimuth": self.cam_azimuth}
+        return {
+            "index": self.index,
+            "indices": list(self.indices),
+            "sun_elevation": self.sun_elevation,
+            "sun_azimuth": self.sun_azimuth,
+            "cam_elevation": self.cam_elevation,
+            "cam_azimuth": self.cam_azimuth,
+        }
 
 
 @dataclass(frozen=True)
@@ -114,8 +119,10 @@ class SweepGrid:
         if self.sun_model == "physical":
             bad = [v for v in self.sun_elevation if not 0.0 < v <= 1.0]
             if bad:
-                raise SweepError(f"invalid sweep.sun_elevation values {bad}: with sweep.sun_model=physical they are "
-                                 "fractions of the crater's highest sun elevation, in (0, 1]")
+                raise SweepError(
+                    f"invalid sweep.sun_elevation values {bad}: with sweep.sun_model=physical they are "
+                    "fractions of the crater's highest sun elevation, in (0, 1]"
+                )
         for axis in AXES:
             vals = getattr(self, axis)
             if len(vals) == 0:
@@ -159,8 +166,15 @@ class SweepGrid:
             from crater_core.illumination import max_sun_elevation_deg
 
             elevation = round(float(param * max_sun_elevation_deg(lat_deg, self.sun_azimuth[idx[1]])), 6)
-        return RenderParams(index, idx, elevation, self.sun_azimuth[idx[1]],
-                            self.cam_elevation[idx[2]], self.cam_azimuth[idx[3]], sun_elevation_param=param)
+        return RenderParams(
+            index,
+            idx,
+            elevation,
+            self.sun_azimuth[idx[1]],
+            self.cam_elevation[idx[2]],
+            self.cam_azimuth[idx[3]],
+            sun_elevation_param=param,
+        )
 
     def renders(self, params: RenderParams) -> bool:
         """Whether a render is part of the sweep: physical sweeps skip suns that never rise high enough
@@ -182,8 +196,12 @@ class SweepGrid:
 
     def as_dict(self) -> dict:
         return {a: list(getattr(self, a)) for a in AXES} | {
-            "sigmas": list(self.sigmas), "fov_deg": self.fov_deg, "range_factor": self.range_factor,
-            "sun_model": self.sun_model, "min_sun_elevation_deg": self.min_sun_elevation_deg}
+            "sigmas": list(self.sigmas),
+            "fov_deg": self.fov_deg,
+            "range_factor": self.range_factor,
+            "sun_model": self.sun_model,
+            "min_sun_elevation_deg": self.min_sun_elevation_deg,
+        }
 
 
 def _axis_values(cfg_axis: Mapping, axis: str, sun_model: str = "paper") -> tuple[float, ...]:
@@ -259,6 +277,7 @@ def nearest_subset(available: Sequence[float], axis: str, count: int) -> list[fl
         dist = [min(abs(v - target) % 360.0, 360.0 - abs(v - target) % 360.0) for v in avail]
         out.append(avail[int(np.argmin(np.round(dist, 9)))])
     if len(set(out)) != count:
-        raise SweepError(f"{axis}: {count} samples cannot be taken from the rendered values {avail} "
-                         f"without repeats ({out})")
+        raise SweepError(
+            f"{axis}: {count} samples cannot be taken from the rendered values {avail} without repeats ({out})"
+        )
     return out

@@ -50,11 +50,16 @@ def plan_variants(acfg: dict) -> list[dict]:
         off = list((spec or {}).get("when_off") or [])
         if not off:
             raise ConfigError(f"ablation.levers.{name}.when_off: give the overrides that turn the lever off")
-        variants.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""),
-                         "overrides": off})
+        variants.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""), "overrides": off})
     if len(levers) > 1:  # the reference: every lever off at once (the configuration before the levers)
-        variants.append({"name": "all levers off", "lever": "all", "why": "every lever off: the reference",
-                         "overrides": [o for v in variants[1:] for o in v["overrides"]]})
+        variants.append(
+            {
+                "name": "all levers off",
+                "lever": "all",
+                "why": "every lever off: the reference",
+                "overrides": [o for v in variants[1:] for o in v["overrides"]],
+            }
+        )
     return variants
 
 
@@ -67,33 +72,46 @@ def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
     acfg = base["ablation"]
     out = Path(str(acfg["out_dir"]))
     out.mkdir(parents=True, exist_ok=True)
-    budget = [f"train.{k}={json.dumps(v) if isinstance(v, (list, dict)) else v}"
-              for k, v in (acfg.get("train") or {}).items()]
+    budget = [
+        f"train.{k}={json.dumps(v) if isinstance(v, (list, dict)) else v}" for k, v in (acfg.get("train") or {}).items()
+    ]
     results = []
     for var in plan_variants(acfg):
         ovr = overrides + budget + list(var["overrides"])
         cfg_r = resolved(compose(ovr))
         key = render_key(cfg_r)
         slug = (var["lever"] or "baseline").replace("/", "_")
-        ovr += [f"out_dir={Path(str(base['data_dir'])) / 'synth' / ('ablate-' + key)}",
-                f"validate.out_dir={out / slug}"]
+        ovr += [
+            f"out_dir={Path(str(base['data_dir'])) / 'synth' / ('ablate-' + key)}",
+            f"validate.out_dir={out / slug}",
+        ]
         if progress:
             click.echo(f"ablation: {var['name']} (renders {key})", err=True)
         res = run_validation(ovr, progress=progress)
         renders = {r["group"]: r["renders"] for r in res["runs"]}
-        results.append({"variant": var["name"], "lever": var["lever"], "why": var.get("why", ""),
-                        "overrides": var["overrides"], "render_key": key, "renders": renders,
-                        "train_images": {r["group"]: r["train_images"] for r in res["runs"]},
-                        "summary": res["summary"]})
+        results.append(
+            {
+                "variant": var["name"],
+                "lever": var["lever"],
+                "why": var.get("why", ""),
+                "overrides": var["overrides"],
+                "render_key": key,
+                "renders": renders,
+                "train_images": {r["group"]: r["train_images"] for r in res["runs"]},
+                "summary": res["summary"],
+            }
+        )
         _write(out, results, acfg, budget, overrides)
     return _write(out, results, acfg, budget, overrides)
 
 
 def table_markdown(results: list[dict], budget: list[str]) -> str:
     """One row per variant: validation and test mean (LunarNet_ex, LunarSVM_ex), per-crater accuracies."""
-    lines = ["| variant | LunarNet_ex val | LunarNet_ex test | LunarSVM_ex val | LunarSVM_ex test | "
-             "LunarNet_ex per crater (validation groups; test) | renders per group |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| variant | LunarNet_ex val | LunarNet_ex test | LunarSVM_ex val | LunarSVM_ex test | "
+        "LunarNet_ex per crater (validation groups; test) | renders per group |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in results:
         s = r["summary"]
 
@@ -105,10 +123,12 @@ def table_markdown(results: list[dict], budget: list[str]) -> str:
             pc = g["models"]["lunarnet_ex"]["per_crater"]
             per.append(("**test** " if g["role"] == "test" else "") + " ".join(f"{c} {v:.2f}" for c, v in pc.items()))
         renders = sorted(set(r["renders"].values()))
-        lines.append(f"| {r['variant']} | {f(s['validation_mean']['lunarnet_ex'])} | "
-                     f"{f(s['test_mean']['lunarnet_ex'])} | "
-                     f"{f(s['validation_mean']['lunarsvm_ex'])} | {f(s['test_mean']['lunarsvm_ex'])} | "
-                     f"{'; '.join(per)} | {', '.join(map(str, renders))} |")
+        lines.append(
+            f"| {r['variant']} | {f(s['validation_mean']['lunarnet_ex'])} | "
+            f"{f(s['test_mean']['lunarnet_ex'])} | "
+            f"{f(s['validation_mean']['lunarsvm_ex'])} | {f(s['test_mean']['lunarsvm_ex'])} | "
+            f"{'; '.join(per)} | {', '.join(map(str, renders))} |"
+        )
     lines.append("")
     lines.append(f"Training budget for every variant: {' '.join(budget) or 'the configured defaults'}.")
     return "\n".join(lines) + "\n"

@@ -26,10 +26,15 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 
 
 @click.command("bench")
-@click.option("--part", type=click.Choice(["all", "renderer", "train", "distributed"]), default="all",
-              show_default=True)
-@click.option("--keep", type=click.Path(file_okay=False), default=None,
-              help="Keep the benchmark datasets in this directory (default: a temp dir, removed).")
+@click.option(
+    "--part", type=click.Choice(["all", "renderer", "train", "distributed"]), default="all", show_default=True
+)
+@click.option(
+    "--keep",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Keep the benchmark datasets in this directory (default: a temp dir, removed).",
+)
 @OVERRIDES
 @user_errors
 def bench_command(part, keep, overrides):
@@ -57,8 +62,10 @@ def bench_command(part, keep, overrides):
 
                 click.echo("train " + json.dumps(run_train_bench(cfg)))
             else:
-                click.echo(f"train skipped: no rendered dataset at {dataset.parent} (make demo, or "
-                           f"make dataset OVERRIDES=sweep=demo, renders it)")
+                click.echo(
+                    f"train skipped: no rendered dataset at {dataset.parent} (make demo, or "
+                    f"make dataset OVERRIDES=sweep=demo, renders it)"
+                )
         if part in ("all", "renderer"):
             from crater_synth.render_bench import bench_renderer, summary_lines
 

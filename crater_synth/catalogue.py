@@ -109,15 +109,16 @@ class Depression:
         """Which acceptance criteria fail (empty: the entry passes)."""
         out = []
         if not self.closed:
-            out.append(f"not a closed depression: spill depth {self.spill_depth_m:.0f} m "
-                       f"< {MIN_SPILL_DEPTH_D:g} D")
+            out.append(f"not a closed depression: spill depth {self.spill_depth_m:.0f} m < {MIN_SPILL_DEPTH_D:g} D")
         if self.centre_offset_d > MAX_CENTRE_OFFSET_D:
             out.append(f"centre {self.centre_offset_d:.3f} D from the catalogue position > {MAX_CENTRE_OFFSET_D:g} D")
         if not self.converged:
             out.append(f"no stable centre: the rim-circle fit did not settle in {MAX_CENTRE_ITERATIONS} iterations")
         if abs(self.rim_diameter_ratio - 1.0) > MAX_DIAMETER_ERROR:
-            out.append(f"rim diameter {self.rim_diameter_km:.1f} km is {self.rim_diameter_ratio:.2f} x the "
-                       f"catalogue value (tolerance {MAX_DIAMETER_ERROR:.0%})")
+            out.append(
+                f"rim diameter {self.rim_diameter_km:.1f} km is {self.rim_diameter_ratio:.2f} x the "
+                f"catalogue value (tolerance {MAX_DIAMETER_ERROR:.0%})"
+            )
         return out
 
     def as_dict(self) -> dict:
@@ -141,8 +142,9 @@ def _local_grid(dem, lat: float, lon: float, diameter_m: float, what: str):
 def _bilinear(grid: np.ndarray, half_width: float, spacing: float, e, n) -> np.ndarray:
     from scipy.ndimage import map_coordinates
 
-    return map_coordinates(grid, [(np.asarray(n) + half_width) / spacing, (np.asarray(e) + half_width) / spacing],
-                           order=1, mode="nearest")
+    return map_coordinates(
+        grid, [(np.asarray(n) + half_width) / spacing, (np.asarray(e) + half_width) / spacing], order=1, mode="nearest"
+    )
 
 
 def _first_crest(prof: np.ndarray, min_drop: float) -> tuple[np.ndarray, np.ndarray]:
@@ -242,8 +244,12 @@ def _spill_azimuth(grid, level, spill_height, dist, ring_radius, coords, centre)
 
     eps = 1e-6 * max(1.0, abs(spill_height))
     drains = level < spill_height - eps
-    saddle = (binary_dilation(drains, structure=np.ones((3, 3), bool)) & ~drains
-              & (np.abs(level - spill_height) <= eps) & (np.abs(grid - level) <= eps))
+    saddle = (
+        binary_dilation(drains, structure=np.ones((3, 3), bool))
+        & ~drains
+        & (np.abs(level - spill_height) <= eps)
+        & (np.abs(grid - level) <= eps)
+    )
     if not saddle.any():
         return float("nan")
     i, j = np.unravel_index(np.argmin(np.where(saddle, np.abs(dist - ring_radius), np.inf)), grid.shape)
@@ -299,15 +305,24 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
     _, clat, clon = _sphere_points(np.array(centre[0]), np.array(centre[1]), lat, lon)
     spill_depth = spill_height - floor
     return Depression(
-        centre_east_m=float(centre[0]), centre_north_m=float(centre[1]),
-        centre_lat=float(clat), centre_lon=float(clon),
+        centre_east_m=float(centre[0]),
+        centre_north_m=float(centre[1]),
+        centre_lat=float(clat),
+        centre_lon=float(clon),
         centre_offset_d=float(np.hypot(*centre)) / diameter_m,
-        rim_diameter_km=2.0 * rim_radius / 1000.0, rim_diameter_ratio=2.0 * rim_radius / diameter_m,
+        rim_diameter_km=2.0 * rim_radius / 1000.0,
+        rim_diameter_ratio=2.0 * rim_radius / diameter_m,
         rim_inlier_share=float(inliers.mean()),
-        rim_crest_height_m=float(h[inliers].mean()), spill_height_m=spill_height,
-        spill_azimuth_deg=spill_azimuth, floor_height_m=floor,
-        spill_depth_m=spill_depth, spill_depth_d=spill_depth / diameter_m,
-        no_crest_share=float(no_crest.mean()), iterations=iterations, converged=converged)
+        rim_crest_height_m=float(h[inliers].mean()),
+        spill_height_m=spill_height,
+        spill_azimuth_deg=spill_azimuth,
+        floor_height_m=floor,
+        spill_depth_m=spill_depth,
+        spill_depth_d=spill_depth / diameter_m,
+        no_crest_share=float(no_crest.mean()),
+        iterations=iterations,
+        converged=converged,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -362,22 +377,33 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
         failures.append(str(exc))
     half_width = near_radius_factor * crater["diameter_km"] * 1000.0
     if not square_inside(dem, crater["lat"], crater["lon"], half_width):
-        failures.append(f"terrain near field (+-{near_radius_factor:g} D = +-{half_width / 1e3:.0f} km) "
-                        f"leaves DEM {dem.product}")
+        failures.append(
+            f"terrain near field (+-{near_radius_factor:g} D = +-{half_width / 1e3:.0f} km) leaves DEM {dem.product}"
+        )
     return {**crater, "measured": measured, "failures": failures, "passes": not failures}
 
 
 def format_table(rows: list[dict]) -> str:
     """Plain-text table of :func:`check` rows."""
-    head = (f"{'crater':<14}{'lat':>8}{'lon':>9}{'D km':>7}{'offset/D':>9}{'rim D/D':>8}{'spill m':>8}"
-            f"{'spill/D':>8}  result")
+    head = (
+        f"{'crater':<14}{'lat':>8}{'lon':>9}{'D km':>7}{'offset/D':>9}{'rim D/D':>8}{'spill m':>8}"
+        f"{'spill/D':>8}  result"
+    )
     lines = [head, "-" * len(head)]
     for row in rows:
         m = row["measured"]
-        cells = (f"{m['centre_offset_d']:>9.3f}{m['rim_diameter_ratio']:>8.2f}{m['spill_depth_m']:>8.0f}"
-                 f"{m['spill_depth_d']:>8.3f}") if m else f"{'-':>9}{'-':>8}{'-':>8}{'-':>8}"
-        lines.append(f"{row['name']:<14}{row['lat']:>8.2f}{row['lon']:>9.2f}{row['diameter_km']:>7.1f}{cells}  "
-                     + ("ok" if row["passes"] else "FAIL: " + "; ".join(row["failures"])))
+        cells = (
+            (
+                f"{m['centre_offset_d']:>9.3f}{m['rim_diameter_ratio']:>8.2f}{m['spill_depth_m']:>8.0f}"
+                f"{m['spill_depth_d']:>8.3f}"
+            )
+            if m
+            else f"{'-':>9}{'-':>8}{'-':>8}{'-':>8}"
+        )
+        lines.append(
+            f"{row['name']:<14}{row['lat']:>8.2f}{row['lon']:>9.2f}{row['diameter_km']:>7.1f}{cells}  "
+            + ("ok" if row["passes"] else "FAIL: " + "; ".join(row["failures"]))
+        )
     return "\n".join(lines)
 
 
@@ -429,9 +455,14 @@ def box_images(dem, mosaic, crater: dict, sigma: float) -> dict:
     lat, lon = south_polar_stereo_inverse(x, y, mosaic.radius_m)
     spacing = side * mosaic.pixel_m / SHEET_TILE_PX
     h = dem.sample(lat, lon, spacing_m=spacing, what=f"sheet box of crater {crater['name']}").heights
-    return {"wac": wac, "hillshade": _hillshade(h, spacing), "centre_uv": (cu, cv), "side_px": side,
-            "dark_share": float((nearest <= DARK_DN).mean()),
-            "saturated_share": float((nearest >= SATURATED_DN).mean())}
+    return {
+        "wac": wac,
+        "hillshade": _hillshade(h, spacing),
+        "centre_uv": (cu, cv),
+        "side_px": side,
+        "dark_share": float((nearest <= DARK_DN).mean()),
+        "saturated_share": float((nearest >= SATURATED_DN).mean()),
+    }
 
 
 def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | None, dem_png: Path | None) -> dict:
@@ -466,39 +497,63 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
             k = 2.0 / (1.0 - math.sin(math.radians(row["lat"])))
             t = np.linspace(0.0, 2.0 * np.pi, 181)
             r_cat = 0.5 * k * row["diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
-            ax.plot(SHEET_TILE_PX / 2 + r_cat * np.cos(t), SHEET_TILE_PX / 2 + r_cat * np.sin(t), "--",
-                    color="#50c0ff", lw=0.8)
+            ax.plot(
+                SHEET_TILE_PX / 2 + r_cat * np.cos(t),
+                SHEET_TILE_PX / 2 + r_cat * np.sin(t),
+                "--",
+                color="#50c0ff",
+                lw=0.8,
+            )
             m = row["measured"]
             if m:
                 mu, mv = mosaic.latlon_to_uv(m["centre_lat"], m["centre_lon"])
                 r_rim = 0.5 * k * m["rim_diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
-                ax.plot((mu - cu) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.cos(t),
-                        (mv - cv) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.sin(t), "-", color="#ff5050", lw=0.7)
+                ax.plot(
+                    (mu - cu) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.cos(t),
+                    (mv - cv) * to_tile + SHEET_TILE_PX / 2 + r_rim * np.sin(t),
+                    "-",
+                    color="#ff5050",
+                    lw=0.7,
+                )
             title = f"{row['name']}  D {row['diameter_km']:.0f} km"
             if m:
-                title += (f"\noff {m['centre_offset_d']:.2f}D  rim {m['rim_diameter_ratio']:.2f}D  "
-                          f"spill {m['spill_depth_d']:.3f}D")
+                title += (
+                    f"\noff {m['centre_offset_d']:.2f}D  rim {m['rim_diameter_ratio']:.2f}D  "
+                    f"spill {m['spill_depth_d']:.3f}D"
+                )
             if kind == "wac":
                 title += f"\ndark {im['dark_share']:.0%}  saturated {im['saturated_share']:.0%}"
             ax.set_title(title, fontsize=6.5, color="black" if row["passes"] else "#c00000")
         what = "real LROC WAC mosaic (400 m/px)" if kind == "wac" else f"{dem.product} hillshade"
-        fig.suptitle(f"{what}: box side {sigma:g} D about the catalogue position, image up = mosaic up; "
-                     "blue dashed: catalogue D; red: measured rim", fontsize=8)
+        fig.suptitle(
+            f"{what}: box side {sigma:g} D about the catalogue position, image up = mosaic up; "
+            "blue dashed: catalogue D; red: measured rim",
+            fontsize=8,
+        )
         fig.tight_layout(rect=(0, 0, 1, 0.98))
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=110, facecolor="white")
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buf.getvalue())
-    return {name: {"dark_share": im["dark_share"], "saturated_share": im["saturated_share"]}
-            for name, im in images.items()}
+    return {
+        name: {"dark_share": im["dark_share"], "saturated_share": im["saturated_share"]} for name, im in images.items()
+    }
 
 
 @click.command("catalogue")
 @click.option("--json", "as_json", is_flag=True, help="One JSON line per crater instead of a table.")
-@click.option("--wac-sheet", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write a contact sheet of the real WAC crops of every entry to this PNG.")
-@click.option("--dem-sheet", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write a contact sheet of the DEM hillshade of the same boxes to this PNG.")
+@click.option(
+    "--wac-sheet",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write a contact sheet of the real WAC crops of every entry to this PNG.",
+)
+@click.option(
+    "--dem-sheet",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write a contact sheet of the DEM hillshade of the same boxes to this PNG.",
+)
 @click.option("--sigma", type=float, default=1.4, show_default=True, help="Box side of the sheets, in D.")
 @OVERRIDES
 @user_errors
@@ -523,9 +578,11 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
         for row in rows:
             click.echo(json.dumps(row))
     else:
-        click.echo(f"DEM {dem.product} ({dem.pixel_size_m:g} m/px). Pass: centre offset <= {MAX_CENTRE_OFFSET_D:g} D, "
-                   f"|rim D / D - 1| <= {MAX_DIAMETER_ERROR:g}, spill depth >= {MIN_SPILL_DEPTH_D:g} D, "
-                   f"terrain near field (+-{factor:g} D) inside the DEM.")
+        click.echo(
+            f"DEM {dem.product} ({dem.pixel_size_m:g} m/px). Pass: centre offset <= {MAX_CENTRE_OFFSET_D:g} D, "
+            f"|rim D / D - 1| <= {MAX_DIAMETER_ERROR:g}, spill depth >= {MIN_SPILL_DEPTH_D:g} D, "
+            f"terrain near field (+-{factor:g} D) inside the DEM."
+        )
         click.echo(format_table(rows))
     if wac_sheet or dem_sheet:
         from crater_synth.config import resolved

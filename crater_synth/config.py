@@ -1,91 +1,285 @@
-"""Compose the Hydra configuration from ``configs/`` with command-line overrides."""
+"""Compose the Hydra configuration from ``configs/`` with command-line overrides, validated once.
+
+Hydra composes ``configs/config.yaml`` against structured-config schemas derived from the typed
+settings of :mod:`crater_core.settings` (``<group>_schema`` in Hydra's ConfigStore; each yaml file
+names its schema in its ``defaults``), so composition itself rejects a wrong type or an unknown key.
+The result is then converted once into a :class:`~crater_core.settings.Settings`, whose classes check
+the ranges. Every failure is one :class:`ConfigError` line naming the key as the user typed it.
+
+Functions below the CLI take the :class:`Settings`; :func:`compose` still returns the (validated)
+``DictConfig`` for the code that reads the raw mapping (train/, report, loop, experiments, bench).
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import re
+import typing
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from crater_synth.errors import UserError
+from crater_core.errors import ContractError
+from crater_core.settings import GROUPS, Settings, SettingsError
+from crater_synth.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 REPO_ROOT = CONFIG_DIR.parent
+ROOT_SCHEMA = "settings_schema"
+SCHEMA_SUFFIX = "_schema"
+
+__all__ = [
+    "CONFIG_DIR",
+    "REPO_ROOT",
+    "ConfigError",
+    "as_settings",
+    "compose",
+    "compose_settings",
+    "craters",
+    "load_settings",
+    "one_line_config_error",
+    "resolved",
+    "settings_from",
+]
 
 
-class ConfigError(UserError):
-    """A configuration value is missing or makes no sense."""
+# ------------------------------------------------------------------------------------------------
+# Schemas: mutable twins of the frozen settings classes, registered in Hydra's ConfigStore
+# ------------------------------------------------------------------------------------------------
+_TWINS: dict[type, type] = {}
 
 
-def compose(overrides: Sequence[str] = (), config_name: str = "config") -> DictConfig:
-    """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``).
+def _schema_type(tp: Any) -> Any:
+    """The annotation OmegaConf validates against: tuples become lists, settings classes their twins."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is typing.Union:
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) != 1 or typing.get_origin(inner[0]) is dict:
+            # An optional mapping stays untyped for OmegaConf: its None node cannot take
+            # OmegaConf.update(..., {...}) (the loop and Figure 6 set train.select so); the settings
+            # conversion checks its keys and values all the same.
+            return Any
+        return Optional[_schema_type(inner[0])]
+    if origin in (tuple, list):
+        return List[_schema_type(args[0]) if args else Any]
+    if origin is dict:
+        return Dict[str, _schema_type(args[1])]
+    if dataclasses.is_dataclass(tp):
+        return schema_class(tp)
+    return tp
 
-    Raises :class:`ConfigError` with Hydra's message for an unknown group option or a bad override.
-    """
+
+def schema_class(cls: type) -> type:
+    """A mutable dataclass with the fields, types and defaults of the frozen settings class ``cls``.
+
+    OmegaConf turns a frozen dataclass into a read-only node, into which Hydra cannot merge the yaml
+    values: the schema is this twin, generated, so the settings classes stay the one definition."""
+    from omegaconf import MISSING
+
+    if cls not in _TWINS:
+        hints = typing.get_type_hints(cls)
+        specs = []
+        for f in dataclasses.fields(cls):
+            tp = _schema_type(hints[f.name])
+            if f.default is not dataclasses.MISSING:
+                value = f.default
+                default = (
+                    dataclasses.field(default_factory=lambda v=value: list(v))
+                    if isinstance(value, tuple)
+                    else dataclasses.field(default=value)
+                )
+            elif f.default_factory is not dataclasses.MISSING or typing.get_origin(tp) is dict:
+                default = (
+                    dataclasses.field(default_factory=dict)
+                    if typing.get_origin(tp) is dict
+                    else dataclasses.field(default_factory=lambda c=f.default_factory: _plain_default(c()))
+                )
+            else:
+                default = dataclasses.field(default=MISSING)
+            specs.append((f.name, tp, default))
+        _TWINS[cls] = dataclasses.make_dataclass(cls.__name__, specs, kw_only=True)
+    return _TWINS[cls]
+
+
+def _plain_default(value):
+    from crater_core.settings import as_plain
+
+    return as_plain(value)
+
+
+_REGISTERED: list = []
+
+
+def register_schemas() -> None:
+    """Store ``settings_schema`` (the root) and ``<group>_schema`` for every group of configs/ in Hydra's
+    (process-wide) ConfigStore; again only when the settings classes changed (tests extend them)."""
+    from hydra.core.config_store import ConfigStore
+
+    key = (Settings, tuple(GROUPS.items()))
+    if _REGISTERED == [key]:
+        return
+    _REGISTERED[:] = [key]
+    cs = ConfigStore.instance()
+    cs.store(name=ROOT_SCHEMA, node=schema_class(Settings))
+    for group, cls in GROUPS.items():
+        cs.store(group=group, name=f"{group}{SCHEMA_SUFFIX}", node=schema_class(cls))
+
+
+# ------------------------------------------------------------------------------------------------
+# Composition
+# ------------------------------------------------------------------------------------------------
+def compose_settings(overrides: Sequence[str] = (), config_name: str = "config") -> tuple[DictConfig, Settings]:
+    """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``) and
+    validate it: ``(DictConfig, Settings)``. Any bad value or unknown key is a :class:`ConfigError`."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    overrides = list(overrides)
+    register_schemas()
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
+            cfg = hydra_compose(config_name=config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(one_line_config_error(str(exc))) from None
+        raise ConfigError(one_line_config_error(exc, overrides)) from None
     finally:
         GlobalHydra.instance().clear()
-    return cfg
+    return cfg, settings_from(cfg)
 
 
-def one_line_config_error(msg: str) -> str:
-    """Hydra's multi-line composition error as one line (an unknown group option names the choices)."""
+def compose(overrides: Sequence[str] = (), config_name: str = "config") -> DictConfig:
+    """The validated, composed configuration as a ``DictConfig`` (see :func:`compose_settings`)."""
+    return compose_settings(overrides, config_name)[0]
+
+
+def load_settings(overrides: Sequence[str] = ()) -> Settings:
+    """The typed settings of ``configs/config.yaml`` with these overrides (what every command runs on)."""
+    return compose_settings(overrides)[1]
+
+
+def settings_from(cfg: DictConfig | Mapping) -> Settings:
+    """Convert a composed (or plain, resolved) configuration once into :class:`Settings`."""
+    plain = resolved(cfg) if isinstance(cfg, DictConfig) else cfg
+    try:
+        return Settings.from_config(plain)
+    except (SettingsError, ContractError) as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def as_settings(cfg: Settings | DictConfig | Mapping) -> Settings:
+    """``cfg`` itself when it is already :class:`Settings`, else its conversion (the boundary of the
+    functions that still accept the raw mapping from callers that have not moved to settings)."""
+    return cfg if isinstance(cfg, Settings) else settings_from(cfg)
+
+
+def resolved(cfg: DictConfig) -> dict:
+    """Plain-dict copy with all interpolations resolved; ``???`` values are kept (the settings
+    conversion names them); an interpolation that cannot be resolved is a :class:`ConfigError`."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)  # type: ignore[return-value]
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(
+            f"{key}: cannot resolve the value ({first})" if key else f"cannot resolve a config value: {first}"
+        ) from None
+
+
+def craters(cfg: Settings | DictConfig | Mapping) -> list[dict]:
+    """The selected crater entries as plain dicts (name, lat, lon, diameter_km, source), in order."""
+    return [c.as_dict() for c in as_settings(cfg).craters]
+
+
+# ------------------------------------------------------------------------------------------------
+# Hydra/OmegaConf errors as one line naming the key as the user typed it
+# ------------------------------------------------------------------------------------------------
+_EXPECTED = {
+    "Integer": "must be an integer",
+    "Float": "must be a number",
+    "Boolean": "must be true or false",
+    "String": "must be a string",
+}
+
+
+def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = ()) -> str:
+    """Hydra's (often multi-line) composition error as one line."""
+    msg = str(exc)
     m = re.search(r"Could not find '([^']+)/([^'/]+)'", msg)
     if m:
         group, option = m.groups()
         avail = re.search(r"Available options in '[^']*':[ \t]*\n((?:[ \t]+\S[^\n]*\n?)+)", msg)
-        choices = ", ".join(avail.group(1).split()) if avail else "see configs/" + group
+        choices = ", ".join(_user_options(group, avail.group(1).split() if avail else None))
         return f"unknown {group} {option!r} (override {group}={option}): choose one of {choices}"
-    # The same mistake inside a list selection (crater=[a,b,...]): Hydra names no choices then.
-    m = re.search(r"Could not load '([^']+)/([^'/]+)'", msg)
+    m = re.search(r"Could not load '([^']+)/([^'/]+)'", msg)  # the same mistake inside crater=[a,b,...]
     if m and (CONFIG_DIR / m.group(1)).is_dir():
         group, option = m.groups()
-        choices = ", ".join(sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml")))
-        return f"unknown {group} {option!r} (in {group}=[...]): choose from {choices}"
+        return f"unknown {group} {option!r} (in {group}=[...]): choose from {', '.join(_user_options(group, None))}"
+    cause = exc.__cause__ if isinstance(exc, BaseException) else None
+    full_key = getattr(cause, "full_key", None) or getattr(exc, "full_key", None)
+    if full_key:
+        why = str(cause or exc).splitlines()[0]
+        if re.match(r"Key '[^']+' not in '", why) or "Could not override" in msg or "Could not append" in msg:
+            return f"{full_key}: unknown key{_suggest(full_key)}"
+        conv = re.match(r"Value '(.*)' of type '[^']+' could not be converted to (\w+)", why) or re.match(
+            r"Value '(.*)' is not a valid (bool)", why
+        )
+        if conv:
+            kind = "Boolean" if conv.group(2) == "bool" else conv.group(2)
+            why = _EXPECTED.get(kind, f"must be of type {kind}")
+        if re.match(r"field '[^']+' is not Optional", why) or "is not Optional" in why:
+            why = "must not be null"
+        if "is not a ListConfig, list or tuple" in why:
+            why = "must be a list, e.g. [a,b]"
+        typed = _override_for(full_key, overrides)
+        element = re.search(r"\[(\d+)\]$", full_key)
+        if typed and element and conv:
+            return f"{typed}: element {element.group(1)} ({conv.group(1)!r}) {why}"
+        if typed:
+            return f"{typed}: {why}"
+        value = f"={conv.group(1)}" if conv else ""
+        return f"{full_key}{value}: {why} (in configs/)"
     return " ".join(msg.split("\nConfig search path:")[0].split())
 
 
-def resolved(cfg: DictConfig) -> dict:
-    """Plain-dict copy with all interpolations resolved; a missing mandatory value (``???``) is a
-    :class:`ConfigError` naming the key."""
-    from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue
-
-    try:
-        return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)  # type: ignore[return-value]
-    except MissingMandatoryValue as exc:
-        raise ConfigError(f"missing mandatory config value: {exc.full_key} (give it as an override)") from None
-    except InterpolationResolutionError as exc:
-        raise ConfigError(f"cannot resolve config value: {exc}") from None
+def _user_options(group: str, listed: list[str] | None) -> list[str]:
+    """A group's selectable options (the schemas Hydra also lists are not options)."""
+    names = listed if listed is not None else [p.stem for p in (CONFIG_DIR / group).glob("*.yaml")]
+    return sorted(n for n in names if not n.endswith(SCHEMA_SUFFIX))
 
 
-def craters(cfg: DictConfig) -> list[dict]:
-    """The crater entries selected in ``cfg.crater``, validated, in configuration order."""
-    out = []
-    for key, entry in resolved(cfg)["crater"].items():
-        try:
-            lat, lon, diam = float(entry["lat"]), float(entry["lon"]), float(entry["diameter_km"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"crater {key!r}: needs numeric lat, lon, diameter_km ({exc})") from None
-        if not -90.0 <= lat <= 90.0:
-            raise ConfigError(f"crater {key!r}: lat={lat} outside [-90, 90]")
-        if not -360.0 <= lon <= 360.0:
-            raise ConfigError(f"crater {key!r}: lon={lon} outside [-360, 360]")
-        if not 0.0 < diam < 2000.0:
-            raise ConfigError(f"crater {key!r}: diameter_km={diam} must be in (0, 2000)")
-        out.append({"name": str(entry.get("name") or key), "lat": lat, "lon": lon, "diameter_km": diam,
-                    "source": str(entry.get("source", ""))})
-    if not out:
-        raise ConfigError("no crater selected (crater=...)")
-    return out
+def _override_for(full_key: str, overrides: Sequence[str]) -> str | None:
+    """The override (as typed) that sets ``full_key`` or the list holding it."""
+    base = re.sub(r"\[\d+\]$", "", full_key)
+    for o in reversed(list(overrides)):
+        key = o.split("=", 1)[0].lstrip("+~")
+        if key == base or key == full_key:
+            return o.lstrip("+~")
+    return None
+
+
+def _suggest(full_key: str) -> str:
+    """`` (did you mean <key>?)`` for a misspelt key, from the settings classes' fields."""
+    import difflib
+
+    parts = full_key.split(".")
+    cls: Any = Settings
+    i = 0
+    while i < len(parts) - 1:
+        tp = typing.get_type_hints(cls).get(parts[i]) if dataclasses.is_dataclass(cls) else None
+        if tp is None:
+            return ""
+        if typing.get_origin(tp) is typing.Union:
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        if typing.get_origin(tp) is dict:  # crater.<entry>.<key>: the next part names an entry
+            tp, i = typing.get_args(tp)[1], i + 1
+        cls, i = tp, i + 1
+    if not dataclasses.is_dataclass(cls):
+        return ""
+    close = difflib.get_close_matches(parts[-1], [f.name for f in dataclasses.fields(cls)], n=1)
+    return f" (did you mean {'.'.join(parts[:-1] + [close[0]])}?)" if close else ""

@@ -68,11 +68,11 @@ class DemNodataError(DemError):
 class SampleResult:
     """Heights sampled from a DEM, with what was done to get them."""
 
-    heights: np.ndarray          # metres above the reference sphere, shape of the query
-    nodata_fraction: float       # share of query points whose DEM cell was nodata (before filling)
-    filled_pixels: int           # nodata pixels interpolated in the window read
-    filled_holes: int            # connected nodata regions interpolated in the window read
-    decimation: int              # box-average factor applied to the DEM before sampling (1 = native)
+    heights: np.ndarray  # metres above the reference sphere, shape of the query
+    nodata_fraction: float  # share of query points whose DEM cell was nodata (before filling)
+    filled_pixels: int  # nodata pixels interpolated in the window read
+    filled_holes: int  # connected nodata regions interpolated in the window read
+    decimation: int  # box-average factor applied to the DEM before sampling (1 = native)
     window: tuple[int, int, int, int] = field(default=(0, 0, 0, 0))  # col_off, row_off, width, height (native px)
 
 
@@ -82,8 +82,10 @@ def _raster_error(path: Path, exc: Exception) -> DemReadError:
     if cause is not None and str(cause) and str(cause) not in detail:
         detail = f"{detail} ({str(cause).splitlines()[0]})"
     detail = detail.replace(" See previous exception for details.", "")
-    return DemReadError(f"cannot read DEM {path}: {detail.splitlines()[0] if detail else type(exc).__name__} "
-                        "(corrupt, truncated or not a raster GDAL reads)")
+    return DemReadError(
+        f"cannot read DEM {path}: {detail.splitlines()[0] if detail else type(exc).__name__} "
+        "(corrupt, truncated or not a raster GDAL reads)"
+    )
 
 
 def _linear_unit_is_metre(crs) -> bool:
@@ -153,8 +155,10 @@ class Dem:
         if self.crs is None:
             raise DemReadError(f"{where} has no coordinate reference system")
         if not self.crs.is_projected:
-            raise DemReadError(f"{where} is in a geographic CRS; reproject it to a projected one "
-                               "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400')")
+            raise DemReadError(
+                f"{where} is in a geographic CRS; reproject it to a projected one "
+                "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400')"
+            )
         if not _linear_unit_is_metre(self.crs):
             raise DemReadError(f"{where}: CRS linear unit {self.crs.linear_units!r} is not metres")
         t = self.transform
@@ -166,10 +170,12 @@ class Dem:
         a, b = _body_radii(self.crs)
         self.body_radius_m = a
         if abs(a - MOON_RADIUS_M) > LUNAR_RADIUS_TOLERANCE_M or abs(b - MOON_RADIUS_M) > LUNAR_RADIUS_TOLERANCE_M:
-            raise DemReadError(f"{where}: CRS body radii ({a:.0f}, {b:.0f}) m are not lunar "
-                               f"({MOON_RADIUS_M:.0f} m expected)")
+            raise DemReadError(
+                f"{where}: CRS body radii ({a:.0f}, {b:.0f}) m are not lunar ({MOON_RADIUS_M:.0f} m expected)"
+            )
         self.geographic_crs = CRS.from_proj4(
-            f"+proj=longlat +R={a!r} +no_defs" if a == b else f"+proj=longlat +a={a!r} +b={b!r} +no_defs")
+            f"+proj=longlat +R={a!r} +no_defs" if a == b else f"+proj=longlat +a={a!r} +b={b!r} +no_defs"
+        )
         if self.units in _KM_UNITS:
             self.unit_factor = 1000.0
         elif self.units in _M_UNITS:
@@ -183,12 +189,21 @@ class Dem:
     def info(self) -> dict:
         """JSON-ready description: product, path, CRS, pixel size, shape, height convention."""
         return {
-            "product": self.product, "path": str(self.path), "driver": self.driver,
-            "crs_wkt": self.crs.to_wkt(), "crs_proj": self.crs.to_proj4(),
-            "pixel_size_m": self.pixel_size_m, "pixel_size_xy_m": list(self.pixel_size_xy),
-            "shape": [self.height, self.width], "bounds_m": list(self.bounds),
-            "nodata": self.nodata, "scale": self.scale, "offset": self.offset, "units": self.units or "m",
-            "stores_radius": bool(self.stores_radius), "body_radius_m": self.body_radius_m,
+            "product": self.product,
+            "path": str(self.path),
+            "driver": self.driver,
+            "crs_wkt": self.crs.to_wkt(),
+            "crs_proj": self.crs.to_proj4(),
+            "pixel_size_m": self.pixel_size_m,
+            "pixel_size_xy_m": list(self.pixel_size_xy),
+            "shape": [self.height, self.width],
+            "bounds_m": list(self.bounds),
+            "nodata": self.nodata,
+            "scale": self.scale,
+            "offset": self.offset,
+            "units": self.units or "m",
+            "stores_radius": bool(self.stores_radius),
+            "body_radius_m": self.body_radius_m,
         }
 
     @property
@@ -258,8 +273,11 @@ class Dem:
         win = Window(c0, r0, w, h)
         try:
             with rasterio.open(self.path) as ds:
-                kw = dict(window=win, out_shape=out_shape, resampling=Resampling.average) if factor > 1 \
+                kw = (
+                    dict(window=win, out_shape=out_shape, resampling=Resampling.average)
+                    if factor > 1
                     else dict(window=win)
+                )
                 data = ds.read(1, masked=False, **kw).astype(np.float64)
                 mask = ds.read_masks(1, **kw).astype(np.float64) / 255.0
         except RasterioError as exc:
@@ -272,8 +290,9 @@ class Dem:
 
     def read_heights(self) -> tuple[np.ndarray, np.ndarray]:
         """(heights m above the sphere, NaN where nodata; valid mask) of the whole raster, native pixels."""
-        values, valid, _, _ = self._read_window(np.array([0.0, self.width]), np.array([0.0, self.height]), 1,
-                                                margin_px=0)
+        values, valid, _, _ = self._read_window(
+            np.array([0.0, self.width]), np.array([0.0, self.height]), 1, margin_px=0
+        )
         return self._to_height(values), valid
 
     def _to_height(self, values: np.ndarray) -> np.ndarray:
@@ -294,8 +313,9 @@ class Dem:
             valid[inside] = ok[ri, ci]
         return inside, valid
 
-    def sample(self, lat_deg, lon_deg, *, spacing_m: float | None = None, max_nodata_fraction: float = 1.0,
-               what: str = "patch") -> SampleResult:
+    def sample(
+        self, lat_deg, lon_deg, *, spacing_m: float | None = None, max_nodata_fraction: float = 1.0, what: str = "patch"
+    ) -> SampleResult:
         """Heights (m above the sphere) at (lat, lon), bicubic; nodata filled, counted and bounded.
 
         ``spacing_m``: the query grid's spacing, for anti-alias decimation of a finer DEM.
@@ -312,7 +332,8 @@ class Dem:
             raise DemCoverageError(
                 f"{what} extends outside DEM {self.product} ({share:.1%} of its points; DEM covers "
                 f"x [{left / 1e3:.1f}, {right / 1e3:.1f}] km, y [{bottom / 1e3:.1f}, {top / 1e3:.1f}] km "
-                f"in {self.crs.to_proj4()})")
+                f"in {self.crs.to_proj4()})"
+            )
         factor = self._decimation(spacing_m)
         values, valid, (c0, r0), (h, w) = self._read_window(col, row, factor)
         # Continuous decimated-grid coordinates; array index of a cell centre = coordinate - 0.5.
@@ -324,7 +345,8 @@ class Dem:
         if nodata_fraction > max_nodata_fraction:
             raise DemNodataError(
                 f"{what}: {nodata_fraction:.1%} of the patch is nodata in DEM {self.product}, more than "
-                f"dem.max_nodata_fraction={max_nodata_fraction:g}")
+                f"dem.max_nodata_fraction={max_nodata_fraction:g}"
+            )
         values = self._to_height(values)
         holes = ~valid
         filled_pixels = int(holes.sum())
@@ -333,12 +355,23 @@ class Dem:
             if valid.sum() < 1:
                 raise DemNodataError(f"{what}: the DEM window read from {self.product} is entirely nodata")
             filled_holes = int(ndimage.label(holes, structure=np.ones((3, 3)))[1])
-            filled = fillnodata(np.where(valid, values, 0.0).astype(np.float32), mask=valid.astype(np.uint8),
-                                max_search_distance=float(max(values.shape)) * 2.0, smoothing_iterations=0)
+            filled = fillnodata(
+                np.where(valid, values, 0.0).astype(np.float32),
+                mask=valid.astype(np.uint8),
+                max_search_distance=float(max(values.shape)) * 2.0,
+                smoothing_iterations=0,
+            )
             values = np.where(valid, values, filled.astype(np.float64))
             if not np.isfinite(values).all():  # pragma: no cover - GDAL fills everything reachable
                 raise DemNodataError(f"{what}: nodata holes in DEM {self.product} could not be filled")
-        heights = ndimage.map_coordinates(values, [rr.ravel(), cc.ravel()], order=3, mode="nearest",
-                                          prefilter=True).reshape(col.shape)
-        return SampleResult(heights=heights, nodata_fraction=nodata_fraction, filled_pixels=filled_pixels,
-                            filled_holes=filled_holes, decimation=factor, window=(c0, r0, w, h))
+        heights = ndimage.map_coordinates(
+            values, [rr.ravel(), cc.ravel()], order=3, mode="nearest", prefilter=True
+        ).reshape(col.shape)
+        return SampleResult(
+            heights=heights,
+            nodata_fraction=nodata_fraction,
+            filled_pixels=filled_pixels,
+            filled_holes=filled_holes,
+            decimation=factor,
+            window=(c0, r0, w, h),
+        )

@@ -111,10 +111,12 @@ def square_edge_steps(a: np.ndarray, start: int = SQUARE_START, size: int = SQUA
     """Steps (m) across the four edges of the square [start, start + size)^2, and the same statistic's
     spread on rows away from the square (the noise floor)."""
     inner = slice(start + 1, start + size - 1)
-    steps = {"north": _second_difference_step(a, start, 0, inner),
-             "south": -_second_difference_step(a, start + size, 0, inner),
-             "west": _second_difference_step(a, start, 1, inner),
-             "east": -_second_difference_step(a, start + size, 1, inner)}
+    steps = {
+        "north": _second_difference_step(a, start, 0, inner),
+        "south": -_second_difference_step(a, start + size, 0, inner),
+        "west": _second_difference_step(a, start, 1, inner),
+        "east": -_second_difference_step(a, start + size, 1, inner),
+    }
     away = [k for k in range(8, a.shape[0] - 8) if abs(k - start) > 6 and abs(k - start - size) > 6]
     noise = float(np.std([_second_difference_step(a, k, 0, inner) for k in away]))
     return {"steps_m": {k: round(v, 2) for k, v in steps.items()}, "noise_m": round(noise, 2)}
@@ -137,8 +139,11 @@ def fit_zoom_origin(crop200: np.ndarray, crop40: np.ndarray) -> dict:
 
     sol = optimize.least_squares(lambda p: (d := diff(p)).ravel() - d.mean(), [ZOOM_ORIGIN_PX] * 2)
     d = diff(sol.x)
-    return {"origin_px": [round(float(v), 4) for v in sol.x], "lowering_m": round(float(-d.mean()), 2),
-            "lowering_rms_m": round(float(d.std()), 2)}
+    return {
+        "origin_px": [round(float(v), 4) for v in sol.x],
+        "lowering_m": round(float(-d.mean()), 2),
+        "lowering_rms_m": round(float(d.std()), 2),
+    }
 
 
 def repair_square(crop200: np.ndarray, crop40: np.ndarray) -> np.ndarray:
@@ -148,7 +153,7 @@ def repair_square(crop200: np.ndarray, crop40: np.ndarray) -> np.ndarray:
     3 + 5k .. 7 + 5k, so the replacement is an exact 5 x 5 block mean (no interpolation).
     """
     first = round((SQUARE_START - ZOOM_ORIGIN_PX) * ZOOM_FACTOR)
-    zoom = crop40[first:first + SQUARE_SIZE * ZOOM_FACTOR, first:first + SQUARE_SIZE * ZOOM_FACTOR]
+    zoom = crop40[first : first + SQUARE_SIZE * ZOOM_FACTOR, first : first + SQUARE_SIZE * ZOOM_FACTOR]
     out = crop200.copy()
     sq = slice(SQUARE_START, SQUARE_START + SQUARE_SIZE)
     out[sq, sq] = block_mean(zoom, ZOOM_FACTOR)
@@ -233,8 +238,12 @@ class _Model:
         hx, hy = 0.5 * self.ref_px[0] / self.crop_px, 0.5 * self.ref_px[1] / self.crop_px
         c = (self.x - x0) / self.crop_px
         r = (y0 - self.y) / self.crop_px
-        s = (self._sat_at(r + hy, c + hx) - self._sat_at(r - hy, c + hx) - self._sat_at(r + hy, c - hx)
-             + self._sat_at(r - hy, c - hx))
+        s = (
+            self._sat_at(r + hy, c + hx)
+            - self._sat_at(r - hy, c + hx)
+            - self._sat_at(r + hy, c - hx)
+            + self._sat_at(r - hy, c - hx)
+        )
         return s / (4.0 * hx * hy)
 
     def residual(self, x0: float, y0: float, frame: str, sel=None) -> tuple[np.ndarray, float]:
@@ -260,8 +269,15 @@ def _coarse_search(crop: np.ndarray, crop_px: float, ref_h: np.ndarray, ref_vali
             raise RegistrationError("the crop is larger than the reference DEM")
         ncc = match_template(filled, tmpl)
         i, j = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
-        out.append({"rot90": rot, "transpose": tr, "ncc": float(ncc[i, j]),
-                    "x0_m": float(transform.c + transform.a * j), "y0_m": float(transform.f + transform.e * i)})
+        out.append(
+            {
+                "rot90": rot,
+                "transpose": tr,
+                "ncc": float(ncc[i, j]),
+                "x0_m": float(transform.c + transform.a * j),
+                "y0_m": float(transform.f + transform.e * i),
+            }
+        )
     return sorted(out, key=lambda d: -d["ncc"])
 
 
@@ -275,8 +291,9 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
 
     ratio = abs(ref.transform.a) / crop_px
     if ratio < 2.0 or abs(ref.transform.a) != abs(ref.transform.e):
-        raise RegistrationError(f"reference pixel {ref.pixel_size_m:g} m must be square and >= 2 crop pixels "
-                                f"({crop_px:g} m)")
+        raise RegistrationError(
+            f"reference pixel {ref.pixel_size_m:g} m must be square and >= 2 crop pixels ({crop_px:g} m)"
+        )
     ref_h, ref_valid = ref.read_heights()
     coarse = _coarse_search(crop, crop_px, ref_h, ref_valid, ref.transform)
     best = coarse[0]
@@ -308,8 +325,9 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
 
     def solve(frame: str, sel=None, p0=None):
         p0 = [best["x0_m"], best["y0_m"]] if p0 is None else p0
-        sol = optimize.least_squares(lambda p: model.residual(p[0], p[1], frame, sel)[0], p0,
-                                     x_scale=[crop_px, crop_px], diff_step=1e-4)
+        sol = optimize.least_squares(
+            lambda p: model.residual(p[0], p[1], frame, sel)[0], p0, x_scale=[crop_px, crop_px], diff_step=1e-4
+        )
         return sol
 
     fits = {f: solve(f) for f in HEIGHT_FRAMES}
@@ -325,8 +343,7 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
     # Formal 1-sigma: residual variance x (J^T J)^-1 (dz profiled out: 3 parameters).
     s2 = float(np.sum(res**2)) / max(1, n - 3)
     cov = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
-    sigma_formal = {"x": float(math.sqrt(cov[0, 0])), "y": float(math.sqrt(cov[1, 1])),
-                    "dz": float(math.sqrt(s2 / n))}
+    sigma_formal = {"x": float(math.sqrt(cov[0, 0])), "y": float(math.sqrt(cov[1, 1])), "dz": float(math.sqrt(s2 / n))}
 
     # Delete-one-block jackknife over JACKKNIFE_BLOCKS^2 spatial blocks of the compared pixels.
     rb = np.minimum((rows_sel - rows_sel.min()) * JACKKNIFE_BLOCKS // (np.ptp(rows_sel) + 1), JACKKNIFE_BLOCKS - 1)
@@ -364,17 +381,30 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
     design = np.column_stack([np.ones(n), rho2])
     coef, *_ = np.linalg.lstsq(design, d_free, rcond=None)
     diagnostics = {
-        "coarse_ncc_by_orientation": [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in c.items()}
-                                      for c in coarse],
+        "coarse_ncc_by_orientation": [
+            {k: (round(v, 4) if isinstance(v, float) else v) for k, v in c.items()} for c in coarse
+        ],
         "rms_by_height_frame_m": {f: round(v, 3) for f, v in rms.items()},
         "curvature_coefficient_over_1_by_2R": round(float(coef[1] * 2.0 * MOON_RADIUS_M), 4),
         "rotation_scale_free_fit": _rotation_scale_fit(a, crop_px, model, frame, x0, y0),
     }
-    return Registration(rot90=best["rot90"], transpose=best["transpose"], x0_m=x0, y0_m=y0, pixel_m=crop_px,
-                        dz_m=dz, height_frame=frame, rms_m=rms0, correlation=corr, one_minus_correlation=1.0 - corr,
-                        n_reference_pixels=int(n),
-                        sigma_formal_m=sigma_formal, sigma_jackknife_m=sigma_jk, misfit_doubling_shift_m=width,
-                        diagnostics=diagnostics)
+    return Registration(
+        rot90=best["rot90"],
+        transpose=best["transpose"],
+        x0_m=x0,
+        y0_m=y0,
+        pixel_m=crop_px,
+        dz_m=dz,
+        height_frame=frame,
+        rms_m=rms0,
+        correlation=corr,
+        one_minus_correlation=1.0 - corr,
+        n_reference_pixels=int(n),
+        sigma_formal_m=sigma_formal,
+        sigma_jackknife_m=sigma_jk,
+        misfit_doubling_shift_m=width,
+        diagnostics=diagnostics,
+    )
 
 
 def _rotation_scale_fit(a, crop_px, model: _Model, frame, x0, y0) -> dict:
@@ -394,24 +424,30 @@ def _rotation_scale_fit(a, crop_px, model: _Model, frame, x0, y0) -> dict:
         v = (-math.sin(th) * du + math.cos(th) * dv) / sc
         c = (u + 0.5 * w * crop_px) / crop_px - 0.5 + shift
         r = (v + 0.5 * h * crop_px) / crop_px - 0.5 + shift
-        d = model.ref - ndimage.map_coordinates(smooth, [r, c], order=3, mode="nearest") \
+        d = (
+            model.ref
+            - ndimage.map_coordinates(smooth, [r, c], order=3, mode="nearest")
             - frame_correction(model.x, model.y, frame)
+        )
         return d - d.mean()
 
     base = optimize.least_squares(lambda p: resid(p, False), [x0, y0], x_scale=[crop_px] * 2, diff_step=1e-4)
-    free = optimize.least_squares(resid, [x0, y0, 0.0, 1.0], x_scale=[crop_px, crop_px, 1e-3, 1e-3],
-                                  diff_step=1e-4)
-    return {"rotation_deg": round(math.degrees(float(free.x[2])), 4), "scale": round(float(free.x[3]), 5),
-            "rms_m": round(float(np.sqrt(np.mean(free.fun**2))), 3),
-            "rms_without_m": round(float(np.sqrt(np.mean(base.fun**2))), 3),
-            "model": f"{box_r}x{box_r} box filter, bicubic (an approximation of the exact footprint mean)"}
+    free = optimize.least_squares(resid, [x0, y0, 0.0, 1.0], x_scale=[crop_px, crop_px, 1e-3, 1e-3], diff_step=1e-4)
+    return {
+        "rotation_deg": round(math.degrees(float(free.x[2])), 4),
+        "scale": round(float(free.x[3]), 5),
+        "rms_m": round(float(np.sqrt(np.mean(free.fun**2))), 3),
+        "rms_without_m": round(float(np.sqrt(np.mean(base.fun**2))), 3),
+        "model": f"{box_r}x{box_r} box filter, bicubic (an approximation of the exact footprint mean)",
+    }
 
 
 # --------------------------------------------------------------------------------------------
 # Products
 # --------------------------------------------------------------------------------------------
-def layer_heights(crop: np.ndarray, reg: Registration, x0: float | None = None, y0: float | None = None,
-                  pixel_m: float | None = None) -> tuple[np.ndarray, tuple]:
+def layer_heights(
+    crop: np.ndarray, reg: Registration, x0: float | None = None, y0: float | None = None, pixel_m: float | None = None
+) -> tuple[np.ndarray, tuple]:
     """(heights above the sphere on the oriented grid, GDAL geotransform tuple) for a crop placed by ``reg``
     (or at (x0, y0) with ``pixel_m``, in the same orientation and height frame)."""
     from affine import Affine
@@ -432,8 +468,18 @@ def geotiff_bytes(heights: np.ndarray, transform, crs, description: str) -> byte
 
     h, w = heights.shape
     with MemoryFile() as mem:
-        with mem.open(driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=crs, transform=transform,
-                      compress="deflate", predictor=3, nodata=None) as dst:
+        with mem.open(
+            driver="GTiff",
+            width=w,
+            height=h,
+            count=1,
+            dtype="float32",
+            crs=crs,
+            transform=transform,
+            compress="deflate",
+            predictor=3,
+            nodata=None,
+        ) as dst:
             dst.write(heights.astype(np.float32), 1)
             dst.units = ("m",)
             dst.update_tags(1, DESCRIPTION=description)
@@ -487,8 +533,10 @@ def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
     mask[sq, sq] = True
     raw = register_crop(c200, 200.0, ref)
     masked = register_crop(repaired, 200.0, ref, exclude=mask)
-    checks = {name: {"x0_m": r.x0_m, "y0_m": r.y0_m, "dz_m": r.dz_m, "rms_m": r.rms_m, "n": r.n_reference_pixels}
-              for name, r in (("raw_square", raw), ("square_masked", masked))}
+    checks = {
+        name: {"x0_m": r.x0_m, "y0_m": r.y0_m, "dz_m": r.dz_m, "rms_m": r.rms_m, "n": r.n_reference_pixels}
+        for name, r in (("raw_square", raw), ("square_masked", masked))
+    }
 
     crs = ref.crs
     h200, t200 = layer_heights(repaired, reg)
@@ -500,21 +548,32 @@ def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
     out_dir = Path(out_dir)
     files = {}
     for name, heights, transform, what in (
-            ("shackleton_lola_200m.tif", h200, t200, "Shackleton LOLA-derived 200 m DEM (lowered square repaired)"),
-            ("shackleton_lola_40m.tif", h40, t40, "Shackleton west rim LOLA-derived 40 m DEM")):
-        data = geotiff_bytes(heights, transform, crs, f"{what}; m above the 1737.4 km sphere; registered on "
-                             "LDEM_256 (crater_synth.dem_register)")
+        ("shackleton_lola_200m.tif", h200, t200, "Shackleton LOLA-derived 200 m DEM (lowered square repaired)"),
+        ("shackleton_lola_40m.tif", h40, t40, "Shackleton west rim LOLA-derived 40 m DEM"),
+    ):
+        data = geotiff_bytes(
+            heights,
+            transform,
+            crs,
+            f"{what}; m above the 1737.4 km sphere; registered on LDEM_256 (crater_synth.dem_register)",
+        )
         atomic_write_bytes(out_dir / name, data)
-        files[name] = {"sha256": sha256_file(out_dir / name), "size_bytes": len(data), "shape": list(heights.shape),
-                       "transform": list(transform)[:6]}
-    doc = _round({
-        "reference": {"product": ref.product, "pixel_size_m": ref.pixel_size_m, "crs": crs.to_proj4()},
-        "registration": reg.as_dict(),
-        "artefact": artefact,
-        "checks": checks,
-        "outputs": files,
-        "sources": {n: {"pixel_m": px, "sha256": sha} for n, (px, sha) in SHACKLETON_SOURCES.items()},
-    })
+        files[name] = {
+            "sha256": sha256_file(out_dir / name),
+            "size_bytes": len(data),
+            "shape": list(heights.shape),
+            "transform": list(transform)[:6],
+        }
+    doc = _round(
+        {
+            "reference": {"product": ref.product, "pixel_size_m": ref.pixel_size_m, "crs": crs.to_proj4()},
+            "registration": reg.as_dict(),
+            "artefact": artefact,
+            "checks": checks,
+            "outputs": files,
+            "sources": {n: {"pixel_m": px, "sha256": sha} for n, (px, sha) in SHACKLETON_SOURCES.items()},
+        }
+    )
     atomic_write_text(out_dir / "registration.json", json.dumps(doc, indent=1, sort_keys=True) + "\n")
     return doc
 

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crater_core.settings import BLEND_PIXELS_RANGE  # the allowed dem.blend_pixels, checked with the settings
 from crater_synth.dem import Dem, SampleResult
 from crater_synth.errors import UserError
 
@@ -50,7 +51,6 @@ SMOOTH_SIGMA_PER_BAND = 0.25
 DEAD_ZONE_PER_SIGMA = 0.5
 # Gaussian support read beyond the band (in sigmas).
 GAUSS_SUPPORT_SIGMAS = 4.0
-BLEND_PIXELS_RANGE = (0.5, 50.0)
 # Default transition band, in coarse pixels (docs/dem_stack.md: on Shackleton, 1.5 keeps the whole
 # rim circle at full 200 m weight; 2 already lets the 1600 m DEM into 10 % of it).
 DEFAULT_BLEND_PIXELS = 1.5
@@ -64,9 +64,9 @@ class DemStackConfigError(UserError):
 class StackSample(SampleResult):
     """:class:`SampleResult` of the base DEM with the blended heights, plus per-layer weights."""
 
-    layer_names: list = field(default_factory=list)        # base first, then layers finest first
-    layer_weights: list = field(default_factory=list)      # final weight per layer, shape of the query
-    layer_pixel_m: list = field(default_factory=list)      # effective pixel (native x decimation), m
+    layer_names: list = field(default_factory=list)  # base first, then layers finest first
+    layer_weights: list = field(default_factory=list)  # final weight per layer, shape of the query
+    layer_pixel_m: list = field(default_factory=list)  # effective pixel (native x decimation), m
 
     @property
     def fine_weight(self) -> np.ndarray:
@@ -107,10 +107,12 @@ class _Layer:
 
         d = self.dem
         t = np.linspace(0.0, 1.0, n)
-        cols = np.concatenate([0.5 + t * (d.width - 1), np.full(n, d.width - 0.5), 0.5 + t * (d.width - 1),
-                               np.full(n, 0.5)])
-        rows = np.concatenate([np.full(n, 0.5), 0.5 + t * (d.height - 1), np.full(n, d.height - 0.5),
-                               0.5 + t * (d.height - 1)])
+        cols = np.concatenate(
+            [0.5 + t * (d.width - 1), np.full(n, d.width - 0.5), 0.5 + t * (d.width - 1), np.full(n, 0.5)]
+        )
+        rows = np.concatenate(
+            [np.full(n, 0.5), 0.5 + t * (d.height - 1), np.full(n, d.height - 0.5), 0.5 + t * (d.height - 1)]
+        )
         tr = d.transform
         x, y = tr.c + tr.a * cols, tr.f + tr.e * rows
         lon, lat = transform(d.crs, d.geographic_crs, x, y)
@@ -121,8 +123,9 @@ class _Layer:
         band + dead zone; nodata inside the raster is not considered)."""
         col, row = self.dem.latlon_to_pixel(lat, lon)
         inset = (self.band_m + self.dead_m + self.sigma_m) / self.dem.pixel_size_m + 0.5
-        return bool(((col >= inset) & (col <= self.dem.width - inset) & (row >= inset)
-                     & (row <= self.dem.height - inset)).all())
+        return bool(
+            ((col >= inset) & (col <= self.dem.width - inset) & (row >= inset) & (row <= self.dem.height - inset)).all()
+        )
 
     def weight(self, lat, lon) -> np.ndarray:
         """Blend weight w in [0, 1] at (lat, lon) (module docstring)."""
@@ -166,8 +169,14 @@ class _Layer:
 class DemStack:
     """A base :class:`Dem` plus finer layers (finest first), sampled as one blended surface."""
 
-    def __init__(self, base: Dem, layers: list[tuple[Dem, str, str]] | None = None, *, base_sha256: str = "",
-                 blend_pixels: float = DEFAULT_BLEND_PIXELS):
+    def __init__(
+        self,
+        base: Dem,
+        layers: list[tuple[Dem, str, str]] | None = None,
+        *,
+        base_sha256: str = "",
+        blend_pixels: float = DEFAULT_BLEND_PIXELS,
+    ):
         lo, hi = BLEND_PIXELS_RANGE
         if not (lo <= float(blend_pixels) <= hi):
             raise DemStackConfigError(f"dem.blend_pixels={blend_pixels} must lie in [{lo:g}, {hi:g}] (coarse pixels)")
@@ -180,7 +189,7 @@ class DemStack:
         for k in range(len(self.layers) - 1, -1, -1):
             layer = self.layers[k]
             lat, lon = layer.boundary_latlon()
-            under = next((c for c in self.layers[k + 1:] if c.contains_core(lat, lon)), None)
+            under = next((c for c in self.layers[k + 1 :] if c.contains_core(lat, lon)), None)
             coarse_px = under.dem.pixel_size_m if under else base.pixel_size_m
             layer.under = under.dem.product if under else base.product
             layer.band_m = self.blend_pixels * coarse_px
@@ -210,21 +219,33 @@ class DemStack:
 
     def stack_info(self) -> list[dict]:
         """One entry per layer, finest first: product, path, sha256, pixel, blend band."""
-        return [{"product": layer.dem.product, "entry": layer.entry, "path": str(layer.dem.path),
-                 "sha256": layer.sha256, "pixel_size_m": layer.dem.pixel_size_m, "blend_band_m": layer.band_m,
-                 "blends_into": layer.under} for layer in self.layers]
+        return [
+            {
+                "product": layer.dem.product,
+                "entry": layer.entry,
+                "path": str(layer.dem.path),
+                "sha256": layer.sha256,
+                "pixel_size_m": layer.dem.pixel_size_m,
+                "blend_band_m": layer.band_m,
+                "blends_into": layer.under,
+            }
+            for layer in self.layers
+        ]
 
     def key(self) -> dict:
         """What the stack contributes to a terrain_id: layer contents, order and blending."""
-        return {"layers": [{"sha256": layer.sha256, "band_m": layer.band_m} for layer in self.layers],
-                "blend_pixels": self.blend_pixels}
+        return {
+            "layers": [{"sha256": layer.sha256, "band_m": layer.band_m} for layer in self.layers],
+            "blend_pixels": self.blend_pixels,
+        }
 
     def info(self) -> dict:
         return {**self.base.info(), "stack": self.stack_info(), "blend_pixels": self.blend_pixels}
 
     # ------------------------------------------------------------------ sampling
-    def sample(self, lat_deg, lon_deg, *, spacing_m: float | None = None, max_nodata_fraction: float = 1.0,
-               what: str = "patch") -> StackSample:
+    def sample(
+        self, lat_deg, lon_deg, *, spacing_m: float | None = None, max_nodata_fraction: float = 1.0, what: str = "patch"
+    ) -> StackSample:
         """Blended heights (m above the sphere) at (lat, lon): the base DEM's :meth:`Dem.sample`
         (coverage and nodata policy included), refined by every layer where it has data."""
         lat = np.asarray(lat_deg, dtype=np.float64)
@@ -241,8 +262,13 @@ class DemStack:
             pix = layer.dem.pixel_size_m
             sel = w > 0.0
             if sel.any():
-                fine = layer.dem.sample(lat[sel], lon[sel], spacing_m=spacing_m, max_nodata_fraction=1.0,
-                                        what=f"{what} in DEM layer {layer.dem.product}")
+                fine = layer.dem.sample(
+                    lat[sel],
+                    lon[sel],
+                    spacing_m=spacing_m,
+                    max_nodata_fraction=1.0,
+                    what=f"{what} in DEM layer {layer.dem.product}",
+                )
                 heights[sel] += w[sel] * (fine.heights - heights[sel])
                 pix = layer.dem.pixel_size_m * fine.decimation
             raw.append((layer.dem.product, w, pix))
@@ -257,9 +283,17 @@ class DemStack:
             names.append(name)
             weights.append(w)
             pixels.append(pix)
-        return StackSample(heights=heights, nodata_fraction=base.nodata_fraction, filled_pixels=base.filled_pixels,
-                           filled_holes=base.filled_holes, decimation=base.decimation, window=base.window,
-                           layer_names=names, layer_weights=weights, layer_pixel_m=pixels)
+        return StackSample(
+            heights=heights,
+            nodata_fraction=base.nodata_fraction,
+            filled_pixels=base.filled_pixels,
+            filled_holes=base.filled_holes,
+            decimation=base.decimation,
+            window=base.window,
+            layer_names=names,
+            layer_weights=weights,
+            layer_pixel_m=pixels,
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -280,15 +314,18 @@ def open_dem_entry(entry: str, data_dir: str | Path, what: str = "dem.stack entr
         return Dem(p, product=entry), cached_sha256(p)
     p = Path(entry).expanduser()
     if not p.exists():
-        raise DemStackConfigError(f"{what} {entry!r} is neither a registered DEM product "
-                                  f"({', '.join(sorted(k for k, v in products.items() if v.get('kind') == 'dem'))}) "
-                                  "nor an existing file")
+        raise DemStackConfigError(
+            f"{what} {entry!r} is neither a registered DEM product "
+            f"({', '.join(sorted(k for k, v in products.items() if v.get('kind') == 'dem'))}) "
+            "nor an existing file"
+        )
     dem = Dem(p, product=p.name)  # one-line DemReadError for a corrupt or unusable file
     return dem, cached_sha256(p)
 
 
-def open_stack(base: Dem, base_sha256: str, entries, data_dir: str | Path,
-               blend_pixels: float = DEFAULT_BLEND_PIXELS) -> DemStack:
+def open_stack(
+    base: Dem, base_sha256: str, entries, data_dir: str | Path, blend_pixels: float = DEFAULT_BLEND_PIXELS
+) -> DemStack:
     """A :class:`DemStack` over ``base`` from ``dem.stack`` entries (finest first)."""
     if entries is None:
         entries = []
@@ -306,5 +343,6 @@ def open_stack(base: Dem, base_sha256: str, entries, data_dir: str | Path,
         if layers[i][0].pixel_size_m < layers[i - 1][0].pixel_size_m:
             raise DemStackConfigError(
                 f"dem.stack must list the finest DEM first: {layers[i][2]!r} ({layers[i][0].pixel_size_m:g} m) "
-                f"comes after {layers[i - 1][2]!r} ({layers[i - 1][0].pixel_size_m:g} m)")
+                f"comes after {layers[i - 1][2]!r} ({layers[i - 1][0].pixel_size_m:g} m)"
+            )
     return DemStack(base, layers, base_sha256=base_sha256, blend_pixels=blend_pixels)

@@ -26,15 +26,24 @@ def _regions(w: np.ndarray) -> dict[str, np.ndarray]:
 
 def _region_stats(h: np.ndarray, mask: np.ndarray) -> dict:
     """p99 / max of adjacent-vertex steps and second differences with all vertices inside ``mask``."""
-    steps = np.concatenate([np.abs(np.diff(h, axis=1))[mask[:, 1:] & mask[:, :-1]],
-                            np.abs(np.diff(h, axis=0))[mask[1:] & mask[:-1]]])
-    curv = np.concatenate([np.abs(np.diff(h, 2, axis=1))[mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]],
-                           np.abs(np.diff(h, 2, axis=0))[mask[2:] & mask[1:-1] & mask[:-2]]])
+    steps = np.concatenate(
+        [np.abs(np.diff(h, axis=1))[mask[:, 1:] & mask[:, :-1]], np.abs(np.diff(h, axis=0))[mask[1:] & mask[:-1]]]
+    )
+    curv = np.concatenate(
+        [
+            np.abs(np.diff(h, 2, axis=1))[mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]],
+            np.abs(np.diff(h, 2, axis=0))[mask[2:] & mask[1:-1] & mask[:-2]],
+        ]
+    )
     if steps.size == 0 or curv.size == 0:
         return {"vertices": int(mask.sum())}
-    return {"vertices": int(mask.sum()), "step_p99_m": round(float(np.percentile(steps, 99)), 2),
-            "step_max_m": round(float(steps.max()), 2), "second_diff_p99_m": round(float(np.percentile(curv, 99)), 2),
-            "second_diff_max_m": round(float(curv.max()), 2)}
+    return {
+        "vertices": int(mask.sum()),
+        "step_p99_m": round(float(np.percentile(steps, 99)), 2),
+        "step_max_m": round(float(steps.max()), 2),
+        "second_diff_p99_m": round(float(np.percentile(curv, 99)), 2),
+        "second_diff_max_m": round(float(curv.max()), 2),
+    }
 
 
 def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
@@ -55,18 +64,23 @@ def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
     h, hb, w = blended.heights, base.heights, blended.fine_weight
     regions = _regions(w)
     band = regions["band"]
-    metrics = {"crater": crater["name"], "stack": [layer["product"] for layer in stack.stack_info()],
-               "near_spacing_m": round(spacing, 2),
-               **{name: _region_stats(h, mask) for name, mask in regions.items()}}
+    metrics = {
+        "crater": crater["name"],
+        "stack": [layer["product"] for layer in stack.stack_info()],
+        "near_spacing_m": round(spacing, 2),
+        **{name: _region_stats(h, mask) for name, mask in regions.items()},
+    }
     if band.any():
         # What the band blends: the finest-layer-weighted heights minus the base, and whether the
         # blended surface ever leaves the envelope of the two.
         fine_only = np.where(w > 0, (h - (1.0 - w) * hb) / np.where(w > 0, w, 1.0), hb)
         d = (fine_only - hb)[band]
         lo, hi = np.minimum(fine_only, hb)[band], np.maximum(fine_only, hb)[band]
-        metrics["band_fine_minus_base_m"] = {"mean": round(float(d.mean()), 2),
-                                             "rms": round(float(np.sqrt(np.mean(d**2))), 2),
-                                             "max_abs": round(float(np.abs(d).max()), 1)}
+        metrics["band_fine_minus_base_m"] = {
+            "mean": round(float(d.mean()), 2),
+            "rms": round(float(np.sqrt(np.mean(d**2))), 2),
+            "max_abs": round(float(np.abs(d).max()), 1),
+        }
         metrics["band_envelope_excursion_m"] = float(np.max(np.maximum(lo - h[band], h[band] - hi)))
     r = np.hypot(ee, nn)
     radius = 0.5 * float(crater["diameter_km"]) * 1000.0

@@ -41,15 +41,16 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
-from crater_synth.errors import UserError
+from crater_core.settings import DETAIL_MODELS as MODELS  # noqa: F401 - terrain.detail.model choices, re-exported
+from crater_core.settings import FRESH_DEPTH_DIAMETER, DetailSettings, SettingsError
 
 # Pike (1977), "Size-dependence in the shape of fresh impact craters on the Moon", in Impact and
 # Explosion Cratering, 489-509: fresh simple craters, D/d/h in km.
-PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = 0.196, 1.010
+PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = FRESH_DEPTH_DIAMETER, 1.010
 PIKE_RIM_COEF, PIKE_RIM_EXP = 0.036, 1.014
 # McGetchin, Settle & Head (1973), EPSL 20:226: ejecta thickness ~ (r/R)^-3 outside the rim.
 EJECTA_DECAY_EXP = 3.0
@@ -57,14 +58,13 @@ EJECTA_EXTENT_RADII = 3.0  # blanket truncated (smoothly) at 3 crater radii
 # Equilibrium cumulative SFD, N(>=D) = EQ_COEF * D^-EQ_SLOPE per m^2 with D in m
 # (Trask 1966, JPL TR 32-800; Gault 1970, Radio Sci. 5:273); ~5 % of geometric saturation
 # (1.54 D^-2, Gault 1970), "a few percent" in Minton et al. 2019, Icarus 326:63.
-EQ_COEF = 10.0 ** -1.1
+EQ_COEF = 10.0**-1.1
 EQ_SLOPE = 2.0
 # Smallest crater drawn, in grid spacings: below ~2 samples across, a bowl is not represented.
 MIN_CRATER_SAMPLES = 2.0
 # Cap on stamped samples per vectorised batch (memory bound, ~16 MB of float64 per array).
 _BATCH_ELEMENTS = 2_000_000
 
-MODELS = ("calibrated", "legacy")
 # Reference grid of roughness_rms_slope_deg: where the roughness was calibrated against the real
 # 200 m crop (docs/detail.md). The PSD amplitude it implies is used on every grid.
 ROUGHNESS_REFERENCE_SPACING_M = 200.0
@@ -81,84 +81,21 @@ DEGRADED_TAPER_START_RADII = 3.5
 # Nondimensional diffusion times kappa t / D^2 tabulated (0 and a geometric ladder).
 DIFFUSION_TAU_D_RANGE = (1e-5, 2.0)
 DIFFUSION_TAU_D_COUNT = 160
-# Allowed range of min_depth_diameter (the most degraded crater drawn).
-MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
+# The allowed range of min_depth_diameter (the most degraded crater drawn) is checked with the other
+# terrain.detail settings: crater_core.settings.MIN/MAX_RECOGNITION_DEPTH_DIAMETER.
 
 # The pre-calibration model (kept for ablations; docs/detail.md "old").
-LEGACY_PARAMETERS = {"hurst": 0.8, "rms_slope_deg": 6.0, "crater_density_scale": 1.0,
-                     "min_crater_diameter_m": 300.0, "min_depth_diameter": 0.05}
+LEGACY_PARAMETERS = {
+    "hurst": 0.8,
+    "rms_slope_deg": 6.0,
+    "crater_density_scale": 1.0,
+    "min_crater_diameter_m": 300.0,
+    "min_depth_diameter": 0.05,
+}
 
 
-class DetailConfigError(UserError):
-    """A terrain.detail setting is out of range."""
-
-
-@dataclass(frozen=True)
-class DetailSettings:
-    """``terrain.detail`` (configs/terrain/default.yaml); defaults are the calibrated values.
-
-    ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``, ``min_crater_diameter_m`` and
-    ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy`` uses
-    :data:`LEGACY_PARAMETERS`.
-    """
-
-    enabled: bool = True
-    seed: int = 0
-    model: str = "calibrated"
-    hurst: float = 0.8
-    roughness_rms_slope_deg: float = 1.25
-    crater_density_scale: float = 0.8
-    min_crater_diameter_m: float = 300.0
-    min_depth_diameter: float = 0.014
-
-    @classmethod
-    def from_config(cls, d) -> DetailSettings:
-        """Validate a ``terrain.detail`` mapping; errors name the key."""
-        d = dict(d or {})
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise DetailConfigError(f"unknown terrain.detail key(s) {unknown}; known: {sorted(known)}")
-        values = {}
-        for k, v in d.items():
-            if k == "enabled":
-                if not isinstance(v, bool):
-                    raise DetailConfigError(f"terrain.detail.enabled={v!r} must be true or false")
-                values[k] = v
-                continue
-            if k == "model":
-                if v not in MODELS:
-                    raise DetailConfigError(f"terrain.detail.model={v!r} must be one of {list(MODELS)}")
-                values[k] = v
-                continue
-            try:
-                if isinstance(v, bool):
-                    raise ValueError
-                num = float(v)
-                if not math.isfinite(num) or (k == "seed" and num != int(num)):
-                    raise ValueError
-                values[k] = int(num) if k == "seed" else num
-            except (TypeError, ValueError):
-                kind = "an integer" if k == "seed" else "a finite number"
-                raise DetailConfigError(f"terrain.detail.{k}={v!r} must be {kind}") from None
-        s = cls(**values)
-        checks = [
-            ("hurst", 0.0 < s.hurst < 1.0, "must lie in (0, 1)"),
-            ("roughness_rms_slope_deg", 0.0 <= s.roughness_rms_slope_deg < 60.0, "must lie in [0, 60) degrees"),
-            ("crater_density_scale", 0.0 <= s.crater_density_scale <= 100.0, "must lie in [0, 100]"),
-            ("min_crater_diameter_m", s.min_crater_diameter_m > 0.0, "must be > 0"),
-            ("min_depth_diameter",
-             MIN_RECOGNITION_DEPTH_DIAMETER <= s.min_depth_diameter < MAX_RECOGNITION_DEPTH_DIAMETER,
-             (f"must lie in [{MIN_RECOGNITION_DEPTH_DIAMETER}, {MAX_RECOGNITION_DEPTH_DIAMETER}) "
-              "(fresh craters: 0.196, Pike 1977)")),
-        ]
-        for key, ok, why in checks:
-            if not ok:
-                raise DetailConfigError(f"terrain.detail.{key}={getattr(s, key)} {why}")
-        return s
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+# ``terrain.detail`` settings and their validation live with every other setting (one source of truth).
+DetailConfigError = SettingsError
 
 
 # --------------------------------------------------------------------------------------------
@@ -244,8 +181,14 @@ def roughness_psd_coefficient(rms_slope_deg: float, hurst: float) -> float:
     return math.tan(math.radians(rms_slope_deg)) ** 2 / mean_sq_slope
 
 
-def roughness_surface(shape: tuple[int, int], spacing_m: float, hurst: float, psd_coef: float,
-                      weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def roughness_surface(
+    shape: tuple[int, int],
+    spacing_m: float,
+    hurst: float,
+    psd_coef: float,
+    weights: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """High-passed fBm of PSD ``psd_coef |k|^-(2H+2)``: physical amplitude, any grid spacing."""
     noise = rng.standard_normal(shape)
     amp = _unit_psd_amplitude(shape, spacing_m, hurst) * math.sqrt(psd_coef) * weights
@@ -282,10 +225,10 @@ def crater_profile(s: np.ndarray, depth_m: np.ndarray, rim_m: np.ndarray) -> np.
 class DegradationTable:
     """Pike's fresh profile (unit depth) diffused for nondimensional times tau_D = kappa t / D^2."""
 
-    tau_d: np.ndarray          # (T,) ascending, tau_d[0] = 0
-    s: np.ndarray              # (S,) radial samples, units of R, from 0
-    profile: np.ndarray        # (T, S) height / fresh depth, tapered to 0 at DEGRADED_EXTENT_RADII
-    depth_ratio: np.ndarray    # (T,) rim-to-floor depth / fresh depth (1 at tau 0, decreasing)
+    tau_d: np.ndarray  # (T,) ascending, tau_d[0] = 0
+    s: np.ndarray  # (S,) radial samples, units of R, from 0
+    profile: np.ndarray  # (T, S) height / fresh depth, tapered to 0 at DEGRADED_EXTENT_RADII
+    depth_ratio: np.ndarray  # (T,) rim-to-floor depth / fresh depth (1 at tau 0, decreasing)
     max_wall_slope: np.ndarray  # (T,) steepest inner-wall gradient, per unit (fresh depth / R)
 
 
@@ -327,8 +270,13 @@ def degradation_table() -> DegradationTable:
     max_wall_slope = np.where(inner, slope, 0.0).max(axis=1)
     taper = np.clip((DEGRADED_EXTENT_RADII - s_tab) / (DEGRADED_EXTENT_RADII - DEGRADED_TAPER_START_RADII), 0, 1)
     table *= 0.5 - 0.5 * np.cos(np.pi * taper)
-    return DegradationTable(tau_d=tau_d, s=s_tab, profile=table, depth_ratio=np.minimum.accumulate(depth_ratio),
-                            max_wall_slope=max_wall_slope)
+    return DegradationTable(
+        tau_d=tau_d,
+        s=s_tab,
+        profile=table,
+        depth_ratio=np.minimum.accumulate(depth_ratio),
+        max_wall_slope=max_wall_slope,
+    )
 
 
 def depth_ratio_after_diffusion(tau_d) -> np.ndarray:
@@ -362,8 +310,9 @@ def degraded_profile(s: np.ndarray, tau_d: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Populations
 # --------------------------------------------------------------------------------------------
-def _draw_diameters(area_m2: float, d_min: float, d_max: float, density_scale: float,
-                    rng: np.random.Generator) -> np.ndarray:
+def _draw_diameters(
+    area_m2: float, d_min: float, d_max: float, density_scale: float, rng: np.random.Generator
+) -> np.ndarray:
     """Poisson number, then inverse-CDF diameters of the truncated equilibrium power law."""
     expected = density_scale * area_m2 * EQ_COEF * (d_min**-EQ_SLOPE - d_max**-EQ_SLOPE)
     n = int(rng.poisson(expected))
@@ -371,8 +320,14 @@ def _draw_diameters(area_m2: float, d_min: float, d_max: float, density_scale: f
     return (d_min**-EQ_SLOPE - u * (d_min**-EQ_SLOPE - d_max**-EQ_SLOPE)) ** (-1.0 / EQ_SLOPE)
 
 
-def crater_population(area_m2: float, d_min: float, d_max: float, density_scale: float,
-                      min_depth_diameter: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def crater_population(
+    area_m2: float,
+    d_min: float,
+    d_max: float,
+    density_scale: float,
+    min_depth_diameter: float,
+    rng: np.random.Generator,
+) -> dict[str, np.ndarray]:
     """Legacy model: diameters, depths and rim heights (m); d/D uniform in [min, fresh]."""
     if d_max <= d_min or density_scale <= 0.0:
         z = np.zeros(0)
@@ -384,8 +339,14 @@ def crater_population(area_m2: float, d_min: float, d_max: float, density_scale:
     return {"diameter": diam, "depth": fresh_depth_m(diam) * keep, "rim": fresh_rim_m(diam) * keep}
 
 
-def degraded_population(area_m2: float, d_min: float, d_max: float, density_scale: float,
-                        min_depth_diameter: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def degraded_population(
+    area_m2: float,
+    d_min: float,
+    d_max: float,
+    density_scale: float,
+    min_depth_diameter: float,
+    rng: np.random.Generator,
+) -> dict[str, np.ndarray]:
     """Calibrated model: equilibrium SFD, steady-state diffusive degradation.
 
     Each crater's nondimensional diffusion time tau_D = kappa t / D^2 is uniform in [0, tau_vis]:
@@ -404,8 +365,14 @@ def degraded_population(area_m2: float, d_min: float, d_max: float, density_scal
     return {"diameter": diam, "tau_d": tau, "fresh_depth": fresh, "depth": fresh * depth_ratio_after_diffusion(tau)}
 
 
-def _stamp(shape: tuple[int, int], spacing_m: float, centres_px: np.ndarray, diameters_m: np.ndarray,
-           extent_radii: float, heights) -> np.ndarray:
+def _stamp(
+    shape: tuple[int, int],
+    spacing_m: float,
+    centres_px: np.ndarray,
+    diameters_m: np.ndarray,
+    extent_radii: float,
+    heights,
+) -> np.ndarray:
     """Sum of per-crater height functions on a periodic grid (vectorised per stamp-size batch).
 
     ``heights(s, idx)``: heights (m) at normalised radii s (n, k, k) of the craters ``idx`` (n,).
@@ -433,18 +400,42 @@ def _stamp(shape: tuple[int, int], spacing_m: float, centres_px: np.ndarray, dia
     return out.reshape(shape)
 
 
-def stamp_craters(shape: tuple[int, int], spacing_m: float, centres_px: np.ndarray, diameters_m: np.ndarray,
-                  depths_m: np.ndarray, rims_m: np.ndarray) -> np.ndarray:
+def stamp_craters(
+    shape: tuple[int, int],
+    spacing_m: float,
+    centres_px: np.ndarray,
+    diameters_m: np.ndarray,
+    depths_m: np.ndarray,
+    rims_m: np.ndarray,
+) -> np.ndarray:
     """Sum of fresh-shape (legacy) crater profiles on a periodic grid."""
-    return _stamp(shape, spacing_m, centres_px, diameters_m, EJECTA_EXTENT_RADII,
-                  lambda s, i: crater_profile(s, depths_m[i][:, None, None], rims_m[i][:, None, None]))
+    return _stamp(
+        shape,
+        spacing_m,
+        centres_px,
+        diameters_m,
+        EJECTA_EXTENT_RADII,
+        lambda s, i: crater_profile(s, depths_m[i][:, None, None], rims_m[i][:, None, None]),
+    )
 
 
-def stamp_degraded_craters(shape: tuple[int, int], spacing_m: float, centres_px: np.ndarray,
-                           diameters_m: np.ndarray, fresh_depths_m: np.ndarray, tau_d: np.ndarray) -> np.ndarray:
+def stamp_degraded_craters(
+    shape: tuple[int, int],
+    spacing_m: float,
+    centres_px: np.ndarray,
+    diameters_m: np.ndarray,
+    fresh_depths_m: np.ndarray,
+    tau_d: np.ndarray,
+) -> np.ndarray:
     """Sum of diffusion-degraded crater profiles on a periodic grid."""
-    return _stamp(shape, spacing_m, centres_px, diameters_m, DEGRADED_EXTENT_RADII,
-                  lambda s, i: fresh_depths_m[i][:, None, None] * degraded_profile(s, tau_d[i][:, None, None]))
+    return _stamp(
+        shape,
+        spacing_m,
+        centres_px,
+        diameters_m,
+        DEGRADED_EXTENT_RADII,
+        lambda s, i: fresh_depths_m[i][:, None, None] * degraded_profile(s, tau_d[i][:, None, None]),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -459,8 +450,9 @@ def _synthesize_legacy(shape, spacing_m, dem_pixel_m, seed, key, hp):
     rough *= math.tan(math.radians(p["rms_slope_deg"])) / slope if slope > 0 else 0.0
     d_min = max(p["min_crater_diameter_m"], MIN_CRATER_SAMPLES * spacing_m)
     d_max = 2.0 * dem_pixel_m
-    pop = crater_population(ny * nx * spacing_m**2, d_min, d_max, p["crater_density_scale"],
-                            p["min_depth_diameter"], rng)
+    pop = crater_population(
+        ny * nx * spacing_m**2, d_min, d_max, p["crater_density_scale"], p["min_depth_diameter"], rng
+    )
     n = len(pop["diameter"])
     centres = np.column_stack([rng.uniform(0, ny, n), rng.uniform(0, nx, n)]) if n else np.zeros((0, 2))
     craters = hp(stamp_craters((ny, nx), spacing_m, centres, pop["diameter"], pop["depth"], pop["rim"]))
@@ -476,17 +468,18 @@ def _synthesize_calibrated(shape, spacing_m, dem_pixel_m, s: DetailSettings, key
         rough = roughness_surface((ny, nx), spacing_m, s.hurst, coef, weights, rng)
     d_min = max(s.min_crater_diameter_m, MIN_CRATER_SAMPLES * spacing_m)
     d_max = 2.0 * dem_pixel_m
-    pop = degraded_population(ny * nx * spacing_m**2, d_min, d_max, s.crater_density_scale,
-                              s.min_depth_diameter, rng)
+    pop = degraded_population(ny * nx * spacing_m**2, d_min, d_max, s.crater_density_scale, s.min_depth_diameter, rng)
     n = len(pop["diameter"])
     centres = np.column_stack([rng.uniform(0, ny, n), rng.uniform(0, nx, n)]) if n else np.zeros((0, 2))
-    craters = hp(stamp_degraded_craters((ny, nx), spacing_m, centres, pop["diameter"], pop["fresh_depth"],
-                                        pop["tau_d"]))
+    craters = hp(
+        stamp_degraded_craters((ny, nx), spacing_m, centres, pop["diameter"], pop["fresh_depth"], pop["tau_d"])
+    )
     return rough, craters, pop, (d_min, d_max)
 
 
-def synthesize_detail(shape: tuple[int, int], spacing_m: float, dem_pixel_m: float,
-                      settings: DetailSettings, key: str = "") -> tuple[np.ndarray, dict]:
+def synthesize_detail(
+    shape: tuple[int, int], spacing_m: float, dem_pixel_m: float, settings: DetailSettings, key: str = ""
+) -> tuple[np.ndarray, dict]:
     """Sub-DEM height detail (m) on a regular grid of ``shape`` and ``spacing_m``.
 
     Returns (field, stats). The field is zero when detail is disabled or the grid cannot represent
@@ -494,9 +487,16 @@ def synthesize_detail(shape: tuple[int, int], spacing_m: float, dem_pixel_m: flo
     draw between patches for the same seed.
     """
     ny, nx = (int(v) for v in shape)
-    stats = {"enabled": bool(settings.enabled), "active": False, "model": settings.model,
-             "cutoff_wavelength_m": 2.0 * dem_pixel_m, "n_craters": 0, "rms_height_m": 0.0,
-             "rms_slope_deg": 0.0, "settings": settings.as_dict()}
+    stats = {
+        "enabled": bool(settings.enabled),
+        "active": False,
+        "model": settings.model,
+        "cutoff_wavelength_m": 2.0 * dem_pixel_m,
+        "n_craters": 0,
+        "rms_height_m": 0.0,
+        "rms_slope_deg": 0.0,
+        "settings": settings.as_dict(),
+    }
     if not settings.enabled:
         return np.zeros((ny, nx)), stats
     if spacing_m >= dem_pixel_m:
@@ -508,18 +508,25 @@ def synthesize_detail(shape: tuple[int, int], spacing_m: float, dem_pixel_m: flo
         return np.fft.irfft2(np.fft.rfft2(f) * weights, s=(ny, nx))
 
     if settings.model == "legacy":
-        rough, craters, pop, (d_min, d_max) = _synthesize_legacy((ny, nx), spacing_m, dem_pixel_m, settings.seed,
-                                                                 key, hp)
+        rough, craters, pop, (d_min, d_max) = _synthesize_legacy(
+            (ny, nx), spacing_m, dem_pixel_m, settings.seed, key, hp
+        )
     else:
-        rough, craters, pop, (d_min, d_max) = _synthesize_calibrated((ny, nx), spacing_m, dem_pixel_m, settings,
-                                                                     key, weights, hp)
+        rough, craters, pop, (d_min, d_max) = _synthesize_calibrated(
+            (ny, nx), spacing_m, dem_pixel_m, settings, key, weights, hp
+        )
     field = rough + craters
     n = len(pop["diameter"])
     d_over_d = pop["depth"] / pop["diameter"] if n else np.zeros(0)
-    stats.update(active=True, n_craters=n, crater_diameter_range_m=[d_min, d_max],
-                 crater_depth_diameter_percentiles={str(q): float(np.percentile(d_over_d, q)) if n else 0.0
-                                                    for q in (10, 50, 90)},
-                 rms_height_m=float(np.sqrt(np.mean(field**2))),
-                 rms_slope_deg=float(math.degrees(math.atan(_rms_slope(field, spacing_m)))),
-                 roughness_rms_slope_deg=float(math.degrees(math.atan(_rms_slope(rough, spacing_m)))))
+    stats.update(
+        active=True,
+        n_craters=n,
+        crater_diameter_range_m=[d_min, d_max],
+        crater_depth_diameter_percentiles={
+            str(q): float(np.percentile(d_over_d, q)) if n else 0.0 for q in (10, 50, 90)
+        },
+        rms_height_m=float(np.sqrt(np.mean(field**2))),
+        rms_slope_deg=float(math.degrees(math.atan(_rms_slope(field, spacing_m)))),
+        roughness_rms_slope_deg=float(math.degrees(math.atan(_rms_slope(rough, spacing_m)))),
+    )
     return field, stats

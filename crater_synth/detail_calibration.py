@@ -58,8 +58,8 @@ SLOPE_BASELINES_PX = (1, 2, 4)
 LAPLACIAN_BASELINES_PX = (1, 2)
 STRUCTURE_LAGS_PX = (1, 2, 4, 8, 16)
 HURST_FIT_LAGS_PX = (2, 4, 8, 16)  # 400-3200 m
-DEPRESSION_MIN_DEPTH_M = 2.0       # ~ LOLA's vertical precision at 200 m averaging (docs/detail.md)
-DEPRESSION_SIZES_PX = (2, 4, 8)    # equivalent diameters 400, 800, 1600 m
+DEPRESSION_MIN_DEPTH_M = 2.0  # ~ LOLA's vertical precision at 200 m averaging (docs/detail.md)
+DEPRESSION_SIZES_PX = (2, 4, 8)  # equivalent diameters 400, 800, 1600 m
 
 # Measured by measure_real() on the registered product (docs/detail.md has the table; tests use them).
 REAL_CROP_STATS = {
@@ -115,7 +115,7 @@ class RealCrop:
     heights: np.ndarray
     top_left_xy_m: tuple[float, float]  # centre of pixel (0, 0), projected metres; columns +x, rows -y
     spacing_m: float
-    name: str                           # product id or file name
+    name: str  # product id or file name
     path: Path
 
 
@@ -131,19 +131,29 @@ def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAUL
     dem, _ = open_dem_entry(entry, data_dir, what="real crop (--dem)")
     where = f"real crop {entry!r} ({dem.path})"
     t = dem.transform
-    if not (math.isclose(t.a, REAL_CROP_SPACING_M, rel_tol=1e-6) and math.isclose(-t.e, REAL_CROP_SPACING_M,
-                                                                                  rel_tol=1e-6)):
-        raise CalibrationDataError(f"{where}: pixels {t.a:g} x {t.e:g} m; the calibration needs a north-up "
-                                   f"grid of {REAL_CROP_SPACING_M:g} m square pixels")
+    if not (
+        math.isclose(t.a, REAL_CROP_SPACING_M, rel_tol=1e-6) and math.isclose(-t.e, REAL_CROP_SPACING_M, rel_tol=1e-6)
+    ):
+        raise CalibrationDataError(
+            f"{where}: pixels {t.a:g} x {t.e:g} m; the calibration needs a north-up "
+            f"grid of {REAL_CROP_SPACING_M:g} m square pixels"
+        )
     if min(dem.height, dem.width) < MIN_CROP_PX:
-        raise CalibrationDataError(f"{where}: {dem.height} x {dem.width} px, at least {MIN_CROP_PX} x "
-                                   f"{MIN_CROP_PX} needed")
+        raise CalibrationDataError(
+            f"{where}: {dem.height} x {dem.width} px, at least {MIN_CROP_PX} x {MIN_CROP_PX} needed"
+        )
     heights, valid = dem.read_heights()
     if not valid.all():
-        raise CalibrationDataError(f"{where}: {int((~valid).sum())} nodata pixels; the calibration needs a "
-                                   "complete crop")
-    return RealCrop(heights=heights, top_left_xy_m=(t.c + 0.5 * t.a, t.f + 0.5 * t.e), spacing_m=float(t.a),
-                    name=dem.product, path=dem.path)
+        raise CalibrationDataError(
+            f"{where}: {int((~valid).sum())} nodata pixels; the calibration needs a complete crop"
+        )
+    return RealCrop(
+        heights=heights,
+        top_left_xy_m=(t.c + 0.5 * t.a, t.f + 0.5 * t.e),
+        spacing_m=float(t.a),
+        name=dem.product,
+        path=dem.path,
+    )
 
 
 def _open_ldem(data_dir: str | Path = DEFAULT_DATA_DIR):
@@ -193,9 +203,8 @@ def slopes_deg(z: np.ndarray, mask: np.ndarray, k: int, spacing: float) -> np.nd
 def laplacian(z: np.ndarray, mask: np.ndarray, k: int, spacing: float) -> np.ndarray:
     """Five-point Laplacian (1/m) over a k-pixel baseline, on pixels whose stencil is in the mask."""
     c = z[k:-k, k:-k]
-    lap = (z[2 * k:, k:-k] + z[:-2 * k, k:-k] + z[k:-k, 2 * k:] + z[k:-k, :-2 * k] - 4.0 * c) / (k * spacing) ** 2
-    ok = (mask[k:-k, k:-k] & mask[2 * k:, k:-k] & mask[:-2 * k, k:-k] & mask[k:-k, 2 * k:]
-          & mask[k:-k, :-2 * k])
+    lap = (z[2 * k :, k:-k] + z[: -2 * k, k:-k] + z[k:-k, 2 * k :] + z[k:-k, : -2 * k] - 4.0 * c) / (k * spacing) ** 2
+    ok = mask[k:-k, k:-k] & mask[2 * k :, k:-k] & mask[: -2 * k, k:-k] & mask[k:-k, 2 * k :] & mask[k:-k, : -2 * k]
     return lap[ok]
 
 
@@ -223,8 +232,9 @@ def fill_depressions(z: np.ndarray) -> np.ndarray:
     return filled
 
 
-def closed_depressions(z: np.ndarray, mask: np.ndarray, spacing: float,
-                       min_depth_m: float = DEPRESSION_MIN_DEPTH_M) -> tuple[np.ndarray, np.ndarray]:
+def closed_depressions(
+    z: np.ndarray, mask: np.ndarray, spacing: float, min_depth_m: float = DEPRESSION_MIN_DEPTH_M
+) -> tuple[np.ndarray, np.ndarray]:
     """(equivalent diameter m, depth m) of the closed depressions deeper than ``min_depth_m`` that
     lie wholly inside ``mask`` (8-connected regions where the filled surface is above z)."""
     from scipy import ndimage
@@ -269,8 +279,13 @@ def terrain_statistics(z: np.ndarray, mask: np.ndarray, spacing: float = REAL_CR
     return out
 
 
-def subdem_band(real: np.ndarray, ldem: np.ndarray, mask: np.ndarray, dem_pixel_m: float = 1600.0,
-                spacing: float = REAL_CROP_SPACING_M) -> tuple[np.ndarray, np.ndarray]:
+def subdem_band(
+    real: np.ndarray,
+    ldem: np.ndarray,
+    mask: np.ndarray,
+    dem_pixel_m: float = 1600.0,
+    spacing: float = REAL_CROP_SPACING_M,
+) -> tuple[np.ndarray, np.ndarray]:
     """The real terrain's sub-DEM band: (real - LDEM) outside the mask set to 0, mirror-padded to
     twice its size (no wrap-around step), high-passed with the detail's own weights; returned with
     the mask eroded by one DEM pixel (where the filter's reach of masked pixels is negligible)."""
@@ -282,7 +297,7 @@ def subdem_band(real: np.ndarray, ldem: np.ndarray, mask: np.ndarray, dem_pixel_
     ny, nx = res.shape
     padded = np.pad(res, ((ny // 2, ny - ny // 2), (nx // 2, nx - nx // 2)), mode="symmetric")
     w = highpass_weights(padded.shape, spacing, dem_pixel_m)
-    band = np.fft.irfft2(np.fft.rfft2(padded) * w, s=padded.shape)[ny // 2:ny // 2 + ny, nx // 2:nx // 2 + nx]
+    band = np.fft.irfft2(np.fft.rfft2(padded) * w, s=padded.shape)[ny // 2 : ny // 2 + ny, nx // 2 : nx // 2 + nx]
     reach = round(dem_pixel_m / spacing)
     return band, ndimage.binary_erosion(mask, iterations=reach, border_value=0)
 
@@ -290,10 +305,12 @@ def subdem_band(real: np.ndarray, ldem: np.ndarray, mask: np.ndarray, dem_pixel_
 def band_statistics(field: np.ndarray, mask: np.ndarray, spacing: float = REAL_CROP_SPACING_M) -> dict:
     """RMS height, slope and curvature of a sub-DEM band field (detail alone) on ``mask``."""
     s = slopes_deg(field, mask, 1, spacing)
-    out = {"band_rms_height_m": float(np.sqrt(np.mean(field[mask] ** 2))),
-           "band_slope200_rms_deg": float(np.sqrt(np.mean(s**2))),
-           "band_slope200_p99_deg": float(np.percentile(s, 99)),
-           "band_laplacian200_std_per_km": float(laplacian(field, mask, 1, spacing).std() * 1e3)}
+    out = {
+        "band_rms_height_m": float(np.sqrt(np.mean(field[mask] ** 2))),
+        "band_slope200_rms_deg": float(np.sqrt(np.mean(s**2))),
+        "band_slope200_p99_deg": float(np.percentile(s, 99)),
+        "band_laplacian200_std_per_km": float(laplacian(field, mask, 1, spacing).std() * 1e3),
+    }
     for k in STRUCTURE_LAGS_PX:
         out[f"band_sf{int(k * spacing)}_m"] = structure_function(field, mask, k)
     return out
@@ -304,8 +321,20 @@ def band_statistics(field: np.ndarray, mask: np.ndarray, spacing: float = REAL_C
 # --------------------------------------------------------------------------------------------
 # Neukum, Ivanov & Hartmann (2001), Space Sci. Rev. 96:55, Table 1 ("new" lunar production function):
 # log10 N(>=D) = sum_j a_j (log10 D)^j, D in km, N per km^2, for a 1 Ga surface; valid 0.01-300 km.
-NPF_COEFFS = (-3.0876, -3.557528, 0.781027, 1.021521, -0.156012, -0.444058, 0.019977, 0.086850, -0.005874,
-              -0.006809, 8.25e-4, 5.54e-5)
+NPF_COEFFS = (
+    -3.0876,
+    -3.557528,
+    0.781027,
+    1.021521,
+    -0.156012,
+    -0.444058,
+    0.019977,
+    0.086850,
+    -0.005874,
+    -0.006809,
+    8.25e-4,
+    5.54e-5,
+)
 
 
 def neukum_n1(age_ga: float) -> float:
@@ -362,8 +391,7 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
         z = crater_profile(np.abs(x)[None, :], pop["depth"][:, None], pop["rim"][:, None]) / radius
         rim = np.ones(len(pop["diameter"]))
     else:
-        pop = degraded_population(area_m2, *d_range_m, settings.crater_density_scale, settings.min_depth_diameter,
-                                  rng)
+        pop = degraded_population(area_m2, *d_range_m, settings.crater_density_scale, settings.min_depth_diameter, rng)
         t = degradation_table()
         depth_ratio = 2.0 * pop["fresh_depth"] / pop["diameter"]
         z = degraded_profile(np.abs(x)[None, :], pop["tau_d"][:, None]) * depth_ratio[:, None]
@@ -371,11 +399,17 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
         rim = np.maximum(np.interp(pop["tau_d"], t.tau_d, rim_rows), 1.0)
     dd = pop["depth"] / pop["diameter"]
     area_km2 = area_m2 / 1e6
-    out = {f"N(>={d / 1000:g} km)_per_km2": float(np.sum(pop["diameter"] >= d)) / area_km2
-           for d in (400.0, 800.0, 1600.0)}
+    out = {
+        f"N(>={d / 1000:g} km)_per_km2": float(np.sum(pop["diameter"] >= d)) / area_km2 for d in (400.0, 800.0, 1600.0)
+    }
     out.update({f"d/D_p{q}": float(np.percentile(dd, q)) for q in (10, 50, 90)})
-    out.update({"share_d/D<0.05": float(np.mean(dd < 0.05)), "share_d/D>0.1": float(np.mean(dd > 0.1)),
-                "share_d/D>0.15": float(np.mean(dd > 0.15))})
+    out.update(
+        {
+            "share_d/D<0.05": float(np.mean(dd < 0.05)),
+            "share_d/D>0.1": float(np.mean(dd > 0.1)),
+            "share_d/D>0.15": float(np.mean(dd > 0.15)),
+        }
+    )
     for sun in (0.5, 1.6):
         shadow = _interior_shadow(z, x, rim, sun)
         out[f"mean_shadowed_diameter_share_sun{sun:g}"] = float(shadow.mean())
@@ -396,8 +430,17 @@ def measure_real(crop: RealCrop | None = None, data_dir: str | Path = DEFAULT_DA
     mask = background_mask(top_left, real.shape, spacing, dem)
     band, band_mask = subdem_band(real, ldem, mask, dem.pixel_size_m, spacing)
     stats = {**terrain_statistics(real, mask, spacing), **band_statistics(band, band_mask, spacing)}
-    return {"crop": crop.name, "path": str(crop.path), "top_left_xy_m": top_left, "real": real, "ldem": ldem,
-            "mask": mask, "band_mask": band_mask, "stats": stats, "residual_rms_m": float(np.std((real - ldem)[mask]))}
+    return {
+        "crop": crop.name,
+        "path": str(crop.path),
+        "top_left_xy_m": top_left,
+        "real": real,
+        "ldem": ldem,
+        "mask": mask,
+        "band_mask": band_mask,
+        "stats": stats,
+        "residual_rms_m": float(np.std((real - ldem)[mask])),
+    }
 
 
 def model_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarray, settings, seeds=range(4)) -> dict:
@@ -408,8 +451,9 @@ def model_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarray, 
 
     runs = []
     for seed in seeds:
-        field, _ = synthesize_detail(ldem.shape, REAL_CROP_SPACING_M, 1600.0, replace(settings, seed=int(seed)),
-                                     key="calibration")
+        field, _ = synthesize_detail(
+            ldem.shape, REAL_CROP_SPACING_M, 1600.0, replace(settings, seed=int(seed)), key="calibration"
+        )
         runs.append({**terrain_statistics(ldem + field, mask), **band_statistics(field, band_mask)})
     return {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
 
@@ -423,11 +467,21 @@ def ldem_only_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarr
 # are taken from the literature (docs/detail.md). The pits' depth/diameter is a fit key because the
 # other eight leave a ridge (roughness traded for craters at equal misfit) along which it is the
 # statistic that moves: roughness makes shallow closed depressions, craters deep ones.
-FIT_KEYS = ("band_rms_height_m", "band_slope200_rms_deg", "band_laplacian200_std_per_km", "band_sf400_m",
-            "band_sf1600_m", "laplacian200_std_per_km", "pits400_per_1000km2", "pits800_per_1000km2",
-            "pits400_median_depth_diameter")
-FIT_GRID = {"roughness_rms_slope_deg": (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
-            "crater_density_scale": (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2)}
+FIT_KEYS = (
+    "band_rms_height_m",
+    "band_slope200_rms_deg",
+    "band_laplacian200_std_per_km",
+    "band_sf400_m",
+    "band_sf1600_m",
+    "laplacian200_std_per_km",
+    "pits400_per_1000km2",
+    "pits800_per_1000km2",
+    "pits400_median_depth_diameter",
+)
+FIT_GRID = {
+    "roughness_rms_slope_deg": (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
+    "crater_density_scale": (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2),
+}
 
 
 def fit_misfit(model: dict, real: dict, keys=FIT_KEYS) -> float:
@@ -459,9 +513,12 @@ def comparison_rows(m: dict, seeds=range(4)) -> dict:
     from crater_synth.detail import DetailSettings
 
     args = (m["ldem"], m["mask"], m["band_mask"])
-    return {"real 200 m crop": m["stats"], "LDEM 1600 m (bicubic)": ldem_only_statistics(*args),
-            "LDEM + old detail": model_statistics(*args, DetailSettings(**OLD_SETTINGS_KW), seeds),
-            "LDEM + new detail": model_statistics(*args, DetailSettings(), seeds)}
+    return {
+        "real 200 m crop": m["stats"],
+        "LDEM 1600 m (bicubic)": ldem_only_statistics(*args),
+        "LDEM + old detail": model_statistics(*args, DetailSettings(**OLD_SETTINGS_KW), seeds),
+        "LDEM + new detail": model_statistics(*args, DetailSettings(), seeds),
+    }
 
 
 TRANSFER_KEYS = ("band_rms_height_m", "band_slope200_rms_deg", "band_laplacian200_std_per_km")
@@ -484,14 +541,20 @@ def grid_transfer_rows(m: dict, factors=(2, 4), seeds=range(4)) -> dict:
         half = (f - 1) * REAL_CROP_SPACING_M / 2.0  # block centres
         top_left = (m["top_left_xy_m"][0] + half, m["top_left_xy_m"][1] - half)
         ldem = sample_ldem(dem, top_left, real.shape, spacing)
-        band, band_mask = subdem_band(real, ldem, background_mask(top_left, real.shape, spacing, dem),
-                                      dem.pixel_size_m, spacing)
+        band, band_mask = subdem_band(
+            real, ldem, background_mask(top_left, real.shape, spacing, dem), dem.pixel_size_m, spacing
+        )
         row = {"real (block average)": band_statistics(band, band_mask, spacing)}
         for name, settings in (("old detail", DetailSettings(**OLD_SETTINGS_KW)), ("new detail", DetailSettings())):
             runs = []
             for seed in seeds:
-                field, _ = synthesize_detail((2 * real.shape[0], 2 * real.shape[1]), spacing, dem.pixel_size_m,
-                                             replace(settings, seed=int(seed)), key="calibration")
+                field, _ = synthesize_detail(
+                    (2 * real.shape[0], 2 * real.shape[1]),
+                    spacing,
+                    dem.pixel_size_m,
+                    replace(settings, seed=int(seed)),
+                    key="calibration",
+                )
                 runs.append(band_statistics(field, np.ones(field.shape, dtype=bool), spacing))
             row[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
         rows[f"{spacing:g} m"] = row
@@ -535,8 +598,9 @@ def hillshade(z: np.ndarray, spacing: float, sun_elevation_deg: float) -> np.nda
     return np.clip(cos_i, 0.0, None) * lit
 
 
-def write_hillshades(fields: dict, out_dir: Path, elevations=(0.5, 1.6, 5.0),
-                     spacing=REAL_CROP_SPACING_M) -> list[Path]:
+def write_hillshades(
+    fields: dict, out_dir: Path, elevations=(0.5, 1.6, 5.0), spacing=REAL_CROP_SPACING_M
+) -> list[Path]:
     """One PNG per sun elevation (panels left to right in ``fields`` order, same grey scale, set by
     the first panel's 99.5th percentile) and one per field; written atomically."""
     from PIL import Image
@@ -576,11 +640,16 @@ def main(argv=None) -> int:
 
     from crater_synth.detail import DetailSettings, synthesize_detail
 
-    ap = argparse.ArgumentParser(prog="python -m crater_synth.detail_calibration",
-                                 description="Compare LDEM + sub-DEM detail with a real LOLA 200 m crop.")
-    ap.add_argument("--dem", default=REAL_CROP_PRODUCT,
-                    help="the real crop: a registered DEM product id or a georeferenced DEM file with 200 m "
-                         f"pixels and heights above the sphere (default {REAL_CROP_PRODUCT})")
+    ap = argparse.ArgumentParser(
+        prog="python -m crater_synth.detail_calibration",
+        description="Compare LDEM + sub-DEM detail with a real LOLA 200 m crop.",
+    )
+    ap.add_argument(
+        "--dem",
+        default=REAL_CROP_PRODUCT,
+        help="the real crop: a registered DEM product id or a georeferenced DEM file with 200 m "
+        f"pixels and heights above the sphere (default {REAL_CROP_PRODUCT})",
+    )
     ap.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="where downloaded products live (default data)")
     ap.add_argument("--out", help="folder for the hillshade PNGs (none written when omitted)")
     ap.add_argument("--seeds", type=int, default=4, help="detail draws averaged per model (default 4)")
@@ -595,17 +664,33 @@ def main(argv=None) -> int:
         rows = comparison_rows(m, seeds=range(a.seeds))
         fit = fit_parameters(m, seeds=range(a.seeds)) if a.fit else []
         transfer = grid_transfer_rows(m, seeds=range(a.seeds))
-        population = {"old detail": population_summary(DetailSettings(**OLD_SETTINGS_KW)),
-                      "new detail": population_summary(DetailSettings())}
+        population = {
+            "old detail": population_summary(DetailSettings(**OLD_SETTINGS_KW)),
+            "new detail": population_summary(DetailSettings()),
+        }
     except (UserError, ContractError) as exc:
         print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
-    head = {"crop": m["crop"], "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]],
-            "residual_rms_m": m["residual_rms_m"],
-            "background_fraction": float(m["mask"].mean()), "band_fraction": float(m["band_mask"].mean())}
+    head = {
+        "crop": m["crop"],
+        "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]],
+        "residual_rms_m": m["residual_rms_m"],
+        "background_fraction": float(m["mask"].mean()),
+        "band_fraction": float(m["band_mask"].mean()),
+    }
     if a.json:
-        print(json.dumps({**head, "rows": rows, "grid_transfer": transfer, "population": population,
-                          "fit": [{"misfit": e, **kw} for e, kw in fit]}, indent=1))
+        print(
+            json.dumps(
+                {
+                    **head,
+                    "rows": rows,
+                    "grid_transfer": transfer,
+                    "population": population,
+                    "fit": [{"misfit": e, **kw} for e, kw in fit],
+                },
+                indent=1,
+            )
+        )
     else:
         print(json.dumps(head))
         print(markdown_table(rows))

@@ -26,9 +26,13 @@ from train.registry import FIGURE6_MODELS, SPECS
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
 CSV_FIELDS = ("parameter", "count", "sigma", "model", "real_accuracy", "val_accuracy", "train_images", "seconds")
-PANEL_TITLES = {"sun_elevation": "Sun elevation θ1", "sun_azimuth": "Sun azimuth φ1",
-                "cam_elevation": "Camera elevation θ2", "cam_azimuth": "Camera azimuth φ2"}
-MODELS = FIGURE6_MODELS          # the paper's Figure 6 plots LunarNet_ex and LunarSVM_ex
+PANEL_TITLES = {
+    "sun_elevation": "Sun elevation θ1",
+    "sun_azimuth": "Sun azimuth φ1",
+    "cam_elevation": "Camera elevation θ2",
+    "cam_azimuth": "Camera azimuth φ2",
+}
+MODELS = FIGURE6_MODELS  # the paper's Figure 6 plots LunarNet_ex and LunarSVM_ex
 
 
 def plan_points(grid, counts: dict) -> list[dict]:
@@ -43,8 +47,14 @@ def plan_points(grid, counts: dict) -> list[dict]:
     return points
 
 
-_CSV_TYPES = {"count": int, "sigma": float, "real_accuracy": float, "val_accuracy": float, "train_images": int,
-              "seconds": float}
+_CSV_TYPES = {
+    "count": int,
+    "sigma": float,
+    "real_accuracy": float,
+    "val_accuracy": float,
+    "train_images": int,
+    "seconds": float,
+}
 
 
 def read_results(path: Path) -> list[dict]:
@@ -53,9 +63,17 @@ def read_results(path: Path) -> list[dict]:
         return []
     try:
         with open(path, newline="") as fh:
-            return [{k: (_CSV_TYPES[k](v) if k in _CSV_TYPES and v not in ("", "None") else
-                         (None if v in ("", "None") else v)) for k, v in row.items()}
-                    for row in csv.DictReader(fh)]
+            return [
+                {
+                    k: (
+                        _CSV_TYPES[k](v)
+                        if k in _CSV_TYPES and v not in ("", "None")
+                        else (None if v in ("", "None") else v)
+                    )
+                    for k, v in row.items()
+                }
+                for row in csv.DictReader(fh)
+            ]
     except (ValueError, KeyError, TypeError) as exc:
         raise ConfigError(f"{path}: corrupt experiments CSV ({exc}); delete it to start over") from None
 
@@ -80,11 +98,20 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     for ax, axis in zip(axes.ravel(), AXES):
         for sigma in sigmas:
             for model, style in zip(MODELS, ("o-", "s--", "^:", "d-.")):
-                pts = sorted((int(r["count"]), float(r["real_accuracy"])) for r in rows
-                             if r["parameter"] == axis and float(r["sigma"]) == sigma and r["model"] == model)
+                pts = sorted(
+                    (int(r["count"]), float(r["real_accuracy"]))
+                    for r in rows
+                    if r["parameter"] == axis and float(r["sigma"]) == sigma and r["model"] == model
+                )
                 if pts:
-                    ax.plot(*zip(*pts), style, color=colours[sigma], ms=4, lw=1.2,
-                            label=f"{SPECS[model].short} σ={sigma:.1f}")
+                    ax.plot(
+                        *zip(*pts),
+                        style,
+                        color=colours[sigma],
+                        ms=4,
+                        lw=1.2,
+                        label=f"{SPECS[model].short} σ={sigma:.1f}",
+                    )
         counts = sorted({int(r["count"]) for r in rows if r["parameter"] == axis})
         if counts:
             ax.set_xticks(counts)
@@ -101,7 +128,7 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    atomic_write_bytes(png, buf.getvalue())
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
@@ -129,18 +156,27 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
             OmegaConf.update(cfg_p, "train.select", point["select"], force_add=True)
             OmegaConf.update(cfg_p, "train.sigmas", [sigma])
             OmegaConf.update(cfg_p, "realset.sigmas", [sigma])
-            OmegaConf.update(cfg_p, "run_dir",
-                             str(run_dir / "experiments" / f"{point['parameter']}-{point['count']}-s{sigma:.1f}"))
+            OmegaConf.update(
+                cfg_p, "run_dir", str(run_dir / "experiments" / f"{point['parameter']}-{point['count']}-s{sigma:.1f}")
+            )
             if progress:
                 click.echo(f"figure 6: {point['parameter']} count {point['count']} sigma {sigma:.1f}", err=True)
             t0 = time.perf_counter()
             metrics = train_and_evaluate(resolved(cfg_p), progress=False)
             seconds = round(time.perf_counter() - t0, 2)
             for model in MODELS:
-                results.append({"parameter": point["parameter"], "count": point["count"], "sigma": sigma,
-                                "model": model, "real_accuracy": round(float(metrics[model]["real_accuracy"]), 6),
-                                "val_accuracy": metrics[model].get("val_accuracy"),
-                                "train_images": int(metrics["train_images"]), "seconds": seconds})
+                results.append(
+                    {
+                        "parameter": point["parameter"],
+                        "count": point["count"],
+                        "sigma": sigma,
+                        "model": model,
+                        "real_accuracy": round(float(metrics[model]["real_accuracy"]), 6),
+                        "val_accuracy": metrics[model].get("val_accuracy"),
+                        "train_images": int(metrics["train_images"]),
+                        "seconds": seconds,
+                    }
+                )
             write_results(csv_path, results)
             plot_figure6(results, run_dir / FIGURE_FILE)
     if results:

@@ -80,7 +80,8 @@ def file_url(product: dict, entry: dict, base_url: str | None, archives: dict) -
     if not arch.get("base_url"):
         raise FetchError(
             f"data product {product['id']!r}: archive {product.get('archive')!r} ({arch.get('name', '?')}) has no "
-            f"URL known offline; set fetch.base_url=<mirror> serving {entry['path']}")
+            f"URL known offline; set fetch.base_url=<mirror> serving {entry['path']}"
+        )
     return f"{arch['base_url'].rstrip('/')}/{entry['path'].lstrip('/')}"
 
 
@@ -142,9 +143,18 @@ def _download_into(part: Path, url: str, timeout_s: float, chunk: int) -> None:
         raise ConnectionError(f"connection closed after {end} of {expected_end} bytes")
 
 
-def fetch_file(url: str, dest: Path, sha256: str | None, size_bytes: int | None, *, timeout_s: float = 60.0,
-               retries: int = 3, chunk_bytes: int = 1 << 20, backoff_s: float = 1.0,
-               what: str | None = None) -> dict:
+def fetch_file(
+    url: str,
+    dest: Path,
+    sha256: str | None,
+    size_bytes: int | None,
+    *,
+    timeout_s: float = 60.0,
+    retries: int = 3,
+    chunk_bytes: int = 1 << 20,
+    backoff_s: float = 1.0,
+    what: str | None = None,
+) -> dict:
     """Make ``dest`` a verified copy of ``url``; returns {status, sha256, bytes, path}.
 
     status: ``present`` (already there and valid) or ``downloaded``. Network errors keep the
@@ -182,8 +192,11 @@ def fetch_file(url: str, dest: Path, sha256: str | None, size_bytes: int | None,
         if attempt + 1 < retries:
             time.sleep(min(backoff_s * 2.0**attempt, 30.0))
     if last is not None:
-        reason = (f"HTTP {last.code} {last.reason}" if isinstance(last, urllib.error.HTTPError)
-                  else getattr(last, "reason", None) or last)
+        reason = (
+            f"HTTP {last.code} {last.reason}"
+            if isinstance(last, urllib.error.HTTPError)
+            else getattr(last, "reason", None) or last
+        )
         kept = f"; partial data kept in {part} for resume" if part.exists() and part.stat().st_size else ""
         raise FetchError(f"cannot download {what} from {url}: {reason}{kept}")
     try:
@@ -206,15 +219,21 @@ def product_status(product: dict, data_dir: str | os.PathLike) -> dict:
     pid = product["id"]
     if product["source"] == "embedded":
         path = resolve_product(pid, data_dir)
-        return {"product": pid, "source": "embedded", "status": "embedded-verified", "path": str(path),
-                "sha256": product["sha256"]}
+        return {
+            "product": pid,
+            "source": "embedded",
+            "status": "embedded-verified",
+            "path": str(path),
+            "sha256": product["sha256"],
+        }
     files = [{"name": f["name"], "present": (products_dir(data_dir) / f["name"]).is_file()} for f in product["files"]]
     status = "not-pinned" if not files else "present" if all(f["present"] for f in files) else "missing"
     return {"product": pid, "source": "download", "status": status, "files": files}
 
 
-def fetch_product(product: dict, data_dir: str | os.PathLike, settings: dict | None = None,
-                  archives: dict | None = None) -> dict:
+def fetch_product(
+    product: dict, data_dir: str | os.PathLike, settings: dict | None = None, archives: dict | None = None
+) -> dict:
     """Verify an embedded product, or download every file of a downloadable one. Returns a report."""
     from data_manifest.products import ProductError, load_archives, products_dir, resolve_product
 
@@ -222,8 +241,14 @@ def fetch_product(product: dict, data_dir: str | os.PathLike, settings: dict | N
     pid = product["id"]
     if product["source"] == "embedded":
         path = resolve_product(pid, data_dir)
-        return {"product": pid, "source": "embedded", "status": "embedded-verified", "path": str(path),
-                "sha256": product["sha256"], "note": "already present (embedded, sha256 verified)"}
+        return {
+            "product": pid,
+            "source": "embedded",
+            "status": "embedded-verified",
+            "path": str(path),
+            "sha256": product["sha256"],
+            "note": "already present (embedded, sha256 verified)",
+        }
     if not product.get("files"):
         raise ProductError(f"data product {pid!r} has no pinned file in products.yaml (nothing to fetch)")
     archives = load_archives() if archives is None else archives
@@ -232,14 +257,27 @@ def fetch_product(product: dict, data_dir: str | os.PathLike, settings: dict | N
     for entry in product["files"]:
         url = file_url(product, entry, s["base_url"], archives)
         click.echo(f"fetch-data: {pid}: {entry['name']} <- {url}", err=True)
-        rep = fetch_file(url, out_dir / entry["name"], entry.get("sha256"), entry.get("size_bytes"),
-                         timeout_s=s["timeout_s"], retries=s["retries"], chunk_bytes=s["chunk_bytes"],
-                         backoff_s=s["backoff_s"], what=f"data product {pid!r} file {entry['name']}")
+        rep = fetch_file(
+            url,
+            out_dir / entry["name"],
+            entry.get("sha256"),
+            entry.get("size_bytes"),
+            timeout_s=s["timeout_s"],
+            retries=s["retries"],
+            chunk_bytes=s["chunk_bytes"],
+            backoff_s=s["backoff_s"],
+            what=f"data product {pid!r} file {entry['name']}",
+        )
         reports.append({"name": entry["name"], "url": url, **rep})
     status = "downloaded" if any(r["status"] == "downloaded" for r in reports) else "present"
     unpinned = [r["name"] for r in reports if not r["pinned"]]
-    out = {"product": pid, "source": "download", "status": status, "path": str(out_dir / product["open"]),
-           "files": reports}
+    out = {
+        "product": pid,
+        "source": "download",
+        "status": status,
+        "path": str(out_dir / product["open"]),
+        "files": reports,
+    }
     if unpinned:
         out["note"] = f"sha256 not pinned in products.yaml for {unpinned}: pin the digests reported here"
     return out
@@ -293,5 +331,6 @@ def fetch_data_command(args):
             failed.append(product["id"])
             click.echo(json.dumps({"product": product["id"], "status": "error", "error": str(exc)}))
     if failed:
-        raise FetchError(f"{len(failed)} of {len(products)} product(s) not fetched: {', '.join(failed)} "
-                         "(see their JSON lines)")
+        raise FetchError(
+            f"{len(failed)} of {len(products)} product(s) not fetched: {', '.join(failed)} (see their JSON lines)"
+        )

@@ -34,16 +34,25 @@ def round_config(cfg: DictConfig, sun_count: int, round_dir: Path) -> DictConfig
     values = resolved(cfg)["sweep"]["sun_elevation"].get("values")
     if values is not None:  # explicit positions: round k uses the first ``sun_count`` of them (nested rounds)
         if sun_count > len(values):
-            raise ConfigError(f"loop.sun_elevation_schedule asks for {sun_count} sun elevations but "
-                              f"sweep.sun_elevation.values has only {len(values)}")
-        OmegaConf.update(cfg_k, "sweep.sun_elevation.values", list(values)[:int(sun_count)])
+            raise ConfigError(
+                f"loop.sun_elevation_schedule asks for {sun_count} sun elevations but "
+                f"sweep.sun_elevation.values has only {len(values)}"
+            )
+        OmegaConf.update(cfg_k, "sweep.sun_elevation.values", list(values)[: int(sun_count)])
     else:
         OmegaConf.update(cfg_k, "sweep.sun_elevation.count", int(sun_count))
     grid = grid_from_config(resolved(cfg_k)["sweep"])
-    OmegaConf.update(cfg_k, "train.select", {"sun_elevation": list(grid.sun_elevation),
-                                             "sun_azimuth": list(grid.sun_azimuth),
-                                             "cam_elevation": list(grid.cam_elevation),
-                                             "cam_azimuth": list(grid.cam_azimuth)}, force_add=True)
+    OmegaConf.update(
+        cfg_k,
+        "train.select",
+        {
+            "sun_elevation": list(grid.sun_elevation),
+            "sun_azimuth": list(grid.sun_azimuth),
+            "cam_elevation": list(grid.cam_elevation),
+            "cam_azimuth": list(grid.cam_azimuth),
+        },
+        force_add=True,
+    )
     OmegaConf.update(cfg_k, "run_dir", str(round_dir))
     return cfg_k
 
@@ -55,8 +64,10 @@ def load_history(path: Path, threshold: float, schedule: list[int]) -> dict:
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{path}: corrupt loop history ({exc}); delete it to restart the loop") from None
         if hist.get("schedule") != schedule:
-            raise ConfigError(f"{path}: recorded schedule {hist.get('schedule')} != loop.sun_elevation_schedule "
-                              f"{schedule}; use another run_dir or delete the history")
+            raise ConfigError(
+                f"{path}: recorded schedule {hist.get('schedule')} != loop.sun_elevation_schedule "
+                f"{schedule}; use another run_dir or delete the history"
+            )
         hist["threshold"] = threshold
         return hist
     return {"threshold": threshold, "schedule": schedule, "rounds": [], "stopped_because": None}
@@ -84,7 +95,7 @@ def plot_history(hist: dict, png: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    atomic_write_bytes(png, buf.getvalue())
+    atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
 def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
@@ -122,20 +133,27 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
         t1 = time.perf_counter()
         metrics = train_and_evaluate(resolved(cfg_k), progress=progress)
         t2 = time.perf_counter()
-        hist["rounds"].append({
-            "round": k, "sun_elevation_count": count, "renders_new": render["rendered"],
-            "renders_reused": render["skipped_existing"], "images": int(metrics["train_images"]),
-            **{m: float(metrics[m]["real_accuracy"]) for m in MODELS},
-            "val_accuracy": {m: metrics[m].get("val_accuracy") for m in MODELS},
-            "render_s": round(t1 - t0, 2), "train_s": round(t2 - t1, 2), "run_dir": str(round_dir),
-        })
+        hist["rounds"].append(
+            {
+                "round": k,
+                "sun_elevation_count": count,
+                "renders_new": render["rendered"],
+                "renders_reused": render["skipped_existing"],
+                "images": int(metrics["train_images"]),
+                **{m: float(metrics[m]["real_accuracy"]) for m in MODELS},
+                "val_accuracy": {m: metrics[m].get("val_accuracy") for m in MODELS},
+                "render_s": round(t1 - t0, 2),
+                "train_s": round(t2 - t1, 2),
+                "run_dir": str(round_dir),
+            }
+        )
         atomic_write_text(hist_path, json.dumps(hist, indent=2))
         plot_history(hist, run_dir / "loop_history.png")
         if reached(hist["rounds"][-1]):
             break
 
     last = hist["rounds"][-1]
-    hist["stopped_because"] = ("threshold reached" if reached(last) else "sun-elevation schedule exhausted")
+    hist["stopped_because"] = "threshold reached" if reached(last) else "sun-elevation schedule exhausted"
     atomic_write_text(hist_path, json.dumps(hist, indent=2))
     plot_history(hist, run_dir / "loop_history.png")
     final = Path(last["run_dir"])
@@ -161,6 +179,8 @@ def loop_command(overrides):
     hist = run_loop(compose(overrides))
     for r in hist["rounds"]:
         accs = " ".join(f"{m} {r[m]:.3f}" for m in MODELS)
-        click.echo(f"round {r['round']}: sun count {r['sun_elevation_count']:2d}, {r['images']} train images, "
-                   f"real accuracy {accs} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)")
+        click.echo(
+            f"round {r['round']}: sun count {r['sun_elevation_count']:2d}, {r['images']} train images, "
+            f"real accuracy {accs} (render {r['render_s']:.0f} s, train {r['train_s']:.0f} s)"
+        )
     click.echo(f"stopped: {hist['stopped_because']}")

@@ -33,17 +33,34 @@ import numpy as np
 
 PAPER_CRATER = ["crater=shackleton", "sweep=paper", "render.mode=fast"]
 DEMO = ["sweep=demo", "render.mode=fast"]
-GRID = ["sweep=demo", "sweep.name=mid", "sweep.sun_elevation.count=10", "sweep.cam_elevation.count=4",
-        "render.mode=fast"]
+GRID = [
+    "sweep=demo",
+    "sweep.name=mid",
+    "sweep.sun_elevation.count=10",
+    "sweep.cam_elevation.count=4",
+    "render.mode=fast",
+]
 # A sample of (a)'s items: 2 sun elevations x 1 azimuth x 3 camera elevations x 2 azimuths = 12.
-SAMPLE = ["crater=shackleton", "sweep=paper", "sweep.sun_elevation.values=[0.48,1.28]",
-          "sweep.sun_azimuth.values=[48.0]", "sweep.cam_elevation.values=[90.0,70.0,54.0]",
-          "sweep.cam_azimuth.values=[0.0,120.0]"]
+SAMPLE = [
+    "crater=shackleton",
+    "sweep=paper",
+    "sweep.sun_elevation.values=[0.48,1.28]",
+    "sweep.sun_azimuth.values=[48.0]",
+    "sweep.cam_elevation.values=[90.0,70.0,54.0]",
+    "sweep.cam_azimuth.values=[0.0,120.0]",
+]
 DIRECT_ROI = SAMPLE + ["render.mode=direct"]
 # Naive baseline: whole 90 deg frame, direct mode, one render call per image.
-NAIVE = ["crater=shackleton", "sweep=paper", "render.mode=direct", "render.crop_to_roi=false",
-         "sweep.sun_elevation.values=[1.6]", "sweep.sun_azimuth.values=[0.0]",
-         "sweep.cam_elevation.values=[90.0,70.0,54.0]", "sweep.cam_azimuth.values=[0.0,120.0]"]
+NAIVE = [
+    "crater=shackleton",
+    "sweep=paper",
+    "render.mode=direct",
+    "render.crop_to_roi=false",
+    "sweep.sun_elevation.values=[1.6]",
+    "sweep.sun_azimuth.values=[0.0]",
+    "sweep.cam_elevation.values=[90.0,70.0,54.0]",
+    "sweep.cam_azimuth.values=[0.0,120.0]",
+]
 PARTS = {"paper_crater": PAPER_CRATER, "demo": DEMO, "grid": GRID, "direct_roi": DIRECT_ROI, "naive": NAIVE}
 _STATS = re.compile(r"^STATS (\{.*\})$", re.M)
 
@@ -55,8 +72,9 @@ def bowl_crater_z(diameter_m: float):
 
     def z(x, y):
         r = np.hypot(x, y) / radius
-        bowl = np.where(r < 1.0, 0.2 * diameter_m * (r**2 - 1.0) + 0.04 * diameter_m,
-                        0.04 * diameter_m * np.exp(-3.0 * (r - 1.0)))
+        bowl = np.where(
+            r < 1.0, 0.2 * diameter_m * (r**2 - 1.0) + 0.04 * diameter_m, 0.04 * diameter_m * np.exp(-3.0 * (r - 1.0))
+        )
         return bowl + 0.003 * diameter_m * np.sin(x / (0.033 * diameter_m)) * np.cos(y / (0.043 * diameter_m))
 
     return z
@@ -74,15 +92,22 @@ def stage_summary(stats: list[dict]) -> dict:
     """Per-stage worker time (s, summed over workers) and per-render ms: where the time went."""
     n = sum(s["renders"] for s in stats) or 1
     fast = [s["fast"] for s in stats if "fast" in s]
-    out = {"workers": len(stats), "setup_s": round(sum(s["setup_s"] for s in stats), 2),
-           "exr_write_ms_per_render": round(1e3 * sum(s["exr_write_s"] for s in stats) / n, 2)}
+    out = {
+        "workers": len(stats),
+        "setup_s": round(sum(s["setup_s"] for s in stats), 2),
+        "exr_write_ms_per_render": round(1e3 * sum(s["exr_write_s"] for s in stats) / n, 2),
+    }
     if fast:
-        out.update({"horizon_maps": sum(f["horizon_maps"] for f in fast),
-                    "horizon_s": round(sum(f["horizon_s"] for f in fast), 2),
-                    "gbuffers": sum(f["gbuffers"] for f in fast),
-                    "gbuffer_s": round(sum(f["gbuffer_s"] for f in fast), 2),
-                    "shade_ms_per_render": round(1e3 * sum(f["shade_s"] for f in fast) / n, 2),
-                    "fallbacks": sum(f["fallbacks"] for f in fast)})
+        out.update(
+            {
+                "horizon_maps": sum(f["horizon_maps"] for f in fast),
+                "horizon_s": round(sum(f["horizon_s"] for f in fast), 2),
+                "gbuffers": sum(f["gbuffers"] for f in fast),
+                "gbuffer_s": round(sum(f["gbuffer_s"] for f in fast), 2),
+                "shade_ms_per_render": round(1e3 * sum(f["shade_s"] for f in fast) / n, 2),
+                "fallbacks": sum(f["fallbacks"] for f in fast),
+            }
+        )
     else:
         out["cycles_s_per_render"] = round(sum(s["cycles_s"] for s in stats) / n, 3)
     return out
@@ -100,9 +125,12 @@ def timed_dataset(overrides: list[str], out_dir: Path) -> dict:
     t0 = time.perf_counter()
     summary = build_dataset(cfg, progress=False)
     seconds = time.perf_counter() - t0
-    return {"renders": summary["rendered"], "seconds": round(seconds, 2),
-            "renders_per_s": round(summary["rendered"] / seconds, 3) if seconds > 0 else None,
-            "stages": stage_summary(worker_stats(out_dir))}
+    return {
+        "renders": summary["rendered"],
+        "seconds": round(seconds, 2),
+        "renders_per_s": round(summary["rendered"] / seconds, 3) if seconds > 0 else None,
+        "stages": stage_summary(worker_stats(out_dir)),
+    }
 
 
 def compare(reference_dir: Path, test_dir: Path) -> dict:
@@ -120,14 +148,21 @@ def compare(reference_dir: Path, test_dir: Path) -> dict:
         lit_px = d_if[a["lit"] > 0.5]
         med = float(np.median(lit_px)) if lit_px.size else float(d_if.mean())
         diff = np.abs(d_if - f_if)
-        rows.append({"path": ref["path"], "rel_mean": round(float(f_if.mean() / max(d_if.mean(), 1e-12) - 1.0), 5),
-                     "mad_over_median": round(float(diff.mean() / med), 5),
-                     "frac_gt_10pct": round(float((diff > 0.1 * med).mean()), 5),
-                     "lit_mad": round(float(np.abs(a["lit"] - b["lit"]).mean()), 5)})
+        rows.append(
+            {
+                "path": ref["path"],
+                "rel_mean": round(float(f_if.mean() / max(d_if.mean(), 1e-12) - 1.0), 5),
+                "mad_over_median": round(float(diff.mean() / med), 5),
+                "frac_gt_10pct": round(float((diff > 0.1 * med).mean()), 5),
+                "lit_mad": round(float(np.abs(a["lit"] - b["lit"]).mean()), 5),
+            }
+        )
     if not rows:
         return {"renders": 0}
-    agg = {k: round(float(np.mean([abs(r[k]) for r in rows])), 5)
-           for k in ("rel_mean", "mad_over_median", "frac_gt_10pct", "lit_mad")}
+    agg = {
+        k: round(float(np.mean([abs(r[k]) for r in rows])), 5)
+        for k in ("rel_mean", "mad_over_median", "frac_gt_10pct", "lit_mad")
+    }
     agg["max_abs_rel_mean"] = round(float(max(abs(r["rel_mean"]) for r in rows)), 5)
     agg["max_mad_over_median"] = round(float(max(r["mad_over_median"] for r in rows)), 5)
     return {"renders": len(rows), "mean_over_renders": agg, "per_render": rows}
@@ -141,8 +176,10 @@ def bench_renderer(overrides: list[str], work: Path, parts=tuple(PARTS)) -> dict
     if "direct_roi" in report and "paper_crater" in report:
         report["fast_vs_direct"] = compare(work / "direct_roi", work / "paper_crater")
     # ru_maxrss is in KiB on Linux; RUSAGE_CHILDREN reports the largest terminated child (a worker).
-    report["peak_rss_mb"] = {"host": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-                             "worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)}
+    report["peak_rss_mb"] = {
+        "host": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
+    }
     return report
 
 
@@ -152,6 +189,8 @@ def summary_lines(report: dict) -> list[str]:
 
     a, naive = rate("paper_crater"), rate("naive")
     ratio = round(a / naive, 2) if a and naive else None
-    return [f"paper_crater_renders_per_s={a} demo_renders_per_s={rate('demo')} grid_renders_per_s={rate('grid')} "
-            f"direct_roi_renders_per_s={rate('direct_roi')}",
-            f"renders_per_s={a} naive_renders_per_s={naive} ratio={ratio}"]
+    return [
+        f"paper_crater_renders_per_s={a} demo_renders_per_s={rate('demo')} grid_renders_per_s={rate('grid')} "
+        f"direct_roi_renders_per_s={rate('direct_roi')}",
+        f"renders_per_s={a} naive_renders_per_s={naive} ratio={ratio}",
+    ]

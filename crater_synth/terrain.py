@@ -29,6 +29,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.settings import NEAR_VERTICES_RANGE  # noqa: F401 - the range lives with the settings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 
@@ -41,7 +42,6 @@ RIM_SEARCH_FRAC = (0.9, 1.1)
 FLOOR_RADIUS_FRAC = 0.3
 FLOOR_PERCENTILE = 5.0
 N_AZIMUTHS = 360
-NEAR_VERTICES_RANGE = (16, 8193)
 
 
 class TerrainConfigError(UserError):
@@ -51,81 +51,36 @@ class TerrainConfigError(UserError):
 # --------------------------------------------------------------------------------------------
 # Configuration
 # --------------------------------------------------------------------------------------------
-def _section(cfg, key: str) -> dict:
-    """A config subtree as a plain dict (interpolations resolved), ``{}`` when absent."""
-    from omegaconf import DictConfig, OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    if isinstance(cfg, dict):
-        return dict(cfg.get(key) or {})
-    try:
-        node = cfg.get(key) if isinstance(cfg, DictConfig) else None
-        if node is None:
-            return {}
-        return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)  # type: ignore[return-value]
-    except OmegaConfBaseException as exc:
-        raise TerrainConfigError(f"bad {key}.* configuration: {exc}".splitlines()[0]) from None
-
-
-def _number(section: dict, name: str, key: str, integer: bool = False):
-    val = section.get(key)
-    if isinstance(val, bool) or val is None:
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number")
-    try:
-        num = float(val)
-    except (TypeError, ValueError):
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be a number") from None
-    if not math.isfinite(num):
-        raise TerrainConfigError(f"{name}.{key}={val!r} must be finite")
-    if integer:
-        if num != int(num):
-            raise TerrainConfigError(f"{name}.{key}={val!r} must be an integer")
-        return int(num)
-    return num
-
-
 def terrain_settings(cfg) -> dict:
-    """Validated ``terrain.*`` (without ``detail``), ``dem.*`` and ``data_dir``."""
-    from crater_synth.demstack import DEFAULT_BLEND_PIXELS
-    from crater_synth.detail import DetailSettings
+    """``terrain.*`` (without ``detail``), ``detail``, ``dem.*`` and ``data_dir`` of the typed settings
+    (a raw configuration is converted, and so validated, once: crater_core/settings.py)."""
+    from crater_synth.config import as_settings
 
-    t, d = _section(cfg, "terrain"), _section(cfg, "dem")
-    data_dir = cfg.get("data_dir")
+    st = as_settings(cfg)
+    t, d = st.terrain, st.dem
     s = {
-        "near_radius_factor": _number(t, "terrain", "near_radius_factor"),
-        "near_vertices": _number(t, "terrain", "near_vertices", integer=True),
-        "far_radius_km": _number(t, "terrain", "far_radius_km"),
-        "far_spacing_km": _number(t, "terrain", "far_spacing_km"),
-        "max_nodata_fraction": _number(d, "dem", "max_nodata_fraction"),
+        "near_radius_factor": t.near_radius_factor,
+        "near_vertices": t.near_vertices,
+        "far_radius_km": t.far_radius_km,
+        "far_spacing_km": t.far_spacing_km,
+        "max_nodata_fraction": d.max_nodata_fraction,
+        "detail": t.detail,
+        "dem": {
+            "product": d.product,
+            "path": d.path,
+            "far_product": d.far_product,
+            "far_path": d.far_path,
+            "stack": list(d.stack),
+            "blend_pixels": d.blend_pixels,
+        },
     }
-    lo, hi = NEAR_VERTICES_RANGE
-    if not lo <= s["near_vertices"] <= hi:
-        raise TerrainConfigError(f"terrain.near_vertices={s['near_vertices']} must lie in [{lo}, {hi}]")
-    if not 0.6 <= s["near_radius_factor"] <= 50.0:
-        raise TerrainConfigError(f"terrain.near_radius_factor={s['near_radius_factor']} must lie in "
-                                 "[0.6, 50] crater diameters (the near field must contain the rim)")
-    if s["far_radius_km"] < 0.0:
-        raise TerrainConfigError(f"terrain.far_radius_km={s['far_radius_km']} must be >= 0 (0 = no far field)")
-    if s["far_spacing_km"] <= 0.0:
-        raise TerrainConfigError(f"terrain.far_spacing_km={s['far_spacing_km']} must be > 0")
-    if not 0.0 <= s["max_nodata_fraction"] <= 1.0:
-        raise TerrainConfigError(f"dem.max_nodata_fraction={s['max_nodata_fraction']} must lie in [0, 1]")
-    s["detail"] = DetailSettings.from_config(t.get("detail"))
-    s["dem"] = {k: d.get(k) for k in ("product", "path", "far_product", "far_path")}
-    if not s["dem"]["product"] and not s["dem"]["path"]:
-        raise TerrainConfigError("dem.product or dem.path must be set")
-    stack = d.get("stack")
-    if stack is None:
-        stack = []
-    if isinstance(stack, str) or not isinstance(stack, (list, tuple)):
-        raise TerrainConfigError(f"dem.stack={stack!r} must be a list of DEM product ids or file paths "
-                                 "(finest first), e.g. dem.stack=[shackleton_lola_200m]")
-    s["dem"]["stack"] = [str(e) for e in stack]
-    s["dem"]["blend_pixels"] = _number(d, "dem", "blend_pixels") if "blend_pixels" in d else DEFAULT_BLEND_PIXELS
-    if data_dir is None or str(data_dir) == "":
-        raise TerrainConfigError("data_dir must be set")
-    s["data_dir"] = Path(str(data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
+    s["data_dir"] = Path(str(st.data_dir)).expanduser().resolve()  # absolute: workers run elsewhere
     return s
+
+
+def _crater_dict(crater) -> dict:
+    """A crater entry (``CraterSettings`` or its dict) as the plain dict the patch metadata records."""
+    return crater.as_dict() if hasattr(crater, "as_dict") else dict(crater)
 
 
 def _open_stack(s: dict):
@@ -231,8 +186,14 @@ def measure_crater(height: np.ndarray, z: np.ndarray, half_width: float, spacing
     fe, fn = np.outer(sa, fr), np.outer(ca, fr)
     floor_h = float(np.percentile(_bilinear(height, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
     floor_z = float(np.percentile(_bilinear(z, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
-    return {"rim_z_m": rim_z, "rim_height_m": rim_h_ring, "rim_crest_height_m": rim_crest,
-            "floor_z_m": floor_z, "floor_height_m": floor_h, "rim_to_floor_depth_m": rim_crest - floor_h}
+    return {
+        "rim_z_m": rim_z,
+        "rim_height_m": rim_h_ring,
+        "rim_crest_height_m": rim_crest,
+        "floor_z_m": floor_z,
+        "floor_height_m": floor_h,
+        "rim_to_floor_depth_m": rim_crest - floor_h,
+    }
 
 
 def far_keep_quads(far_coords: np.ndarray, near_half_width: float, far_spacing: float) -> np.ndarray:
@@ -280,10 +241,14 @@ def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict, stack_key:
     terrain + detail settings, format version. An empty stack leaves the key as it was before stacks."""
     detail = s["detail"].as_dict() if s["detail"].enabled else {"enabled": False}
     key = {
-        "format": TERRAIN_FORMAT_VERSION, "dem_sha256": dem_sha, "far_dem_sha256": far_dem_sha,
+        "format": TERRAIN_FORMAT_VERSION,
+        "dem_sha256": dem_sha,
+        "far_dem_sha256": far_dem_sha,
         "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km")},
-        "terrain": {k: s[k] for k in ("near_radius_factor", "near_vertices", "far_radius_km", "far_spacing_km",
-                                      "max_nodata_fraction")},
+        "terrain": {
+            k: s[k]
+            for k in ("near_radius_factor", "near_vertices", "far_radius_km", "far_spacing_km", "max_nodata_fraction")
+        },
         "detail": detail,
     }
     if stack_key and stack_key.get("layers"):
@@ -301,16 +266,19 @@ def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
     return meta if meta.get("terrain_id") == tid else None
 
 
-def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
-    """Build (or reuse) the terrain patch of ``crater`` (an entry of ``config.craters(cfg)``).
+def build_terrain(crater, cfg) -> tuple[Path, dict]:
+    """Build (or reuse) the terrain patch of ``crater`` (a ``CraterSettings`` of ``settings.craters``, or
+    its dict) for the settings ``cfg`` (``Settings``; a raw configuration is converted once).
 
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
+    from crater_core.files import ensure_writable_dir
     from crater_core.schema import atomic_write_text
     from crater_synth.dem import DemCoverageError
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
+    crater = _crater_dict(crater)
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
     dem, dem_sha = _open_stack(s)
@@ -321,6 +289,7 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
 
     tid = terrain_id(dem_sha, far_sha, crater, s, dem.key())
     out_dir = s["data_dir"] / TERRAIN_SUBDIR
+    ensure_writable_dir(s["data_dir"], "data_dir")
     npz_path = out_dir / f"{name}-{tid}.npz"
     meta_path = npz_path.with_suffix(".json")
     cached = _load_cached(npz_path, meta_path, tid)
@@ -330,8 +299,10 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
     # Crater centre inside the DEM at all?
     ccol, crow = dem.latlon_to_pixel(lat, lon)
     if not bool(dem.inside(ccol, crow)):
-        raise DemCoverageError(f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
-                               f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})")
+        raise DemCoverageError(
+            f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
+            f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})"
+        )
 
     # ---- near field
     nv = s["near_vertices"]
@@ -340,8 +311,13 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
     coords = np.linspace(-hw, hw, nv)
     ee, nn = np.meshgrid(coords, coords)  # [i, j] = (e_j, n_i)
     dirs, plat, plon = _sphere_points(ee, nn, lat, lon)
-    near = dem.sample(plat, plon, spacing_m=spacing, max_nodata_fraction=s["max_nodata_fraction"],
-                      what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)")
+    near = dem.sample(
+        plat,
+        plon,
+        spacing_m=spacing,
+        max_nodata_fraction=s["max_nodata_fraction"],
+        what=f"near field of crater {name} (+-{hw / 1e3:.1f} km)",
+    )
     detail, detail_stats = stack_detail((nv, nv), spacing, near, s["detail"], key=name)
     near_h = near.heights + detail
     near_xyz = _to_enu(dirs, near_h, lat, lon)
@@ -357,25 +333,38 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
         if k_max < k_min:
             raise TerrainConfigError(
                 f"terrain.far_radius_km={s['far_radius_km']:g} does not reach beyond the near field of crater "
-                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0")
+                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0"
+            )
         m, _ = _far_half_cells(far_dem, lat, lon, k_max, fs, s["max_nodata_fraction"])
         if m < k_min:
             raise DemCoverageError(
                 f"DEM {far_dem.product} does not cover a far field around crater {name} beyond its near field "
                 f"(+-{hw / 1e3:.1f} km + one {fs / 1e3:g} km cell); set dem.far_product to a wider DEM or "
-                "terrain.far_radius_km=0")
+                "terrain.far_radius_km=0"
+            )
         fcoords = np.arange(-m, m + 1) * fs
         fe, fn = np.meshgrid(fcoords, fcoords)
         fdirs, flat, flon = _sphere_points(fe, fn, lat, lon)
-        far = far_dem.sample(flat, flon, spacing_m=fs, max_nodata_fraction=s["max_nodata_fraction"],
-                             what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)")
+        far = far_dem.sample(
+            flat,
+            flon,
+            spacing_m=fs,
+            max_nodata_fraction=s["max_nodata_fraction"],
+            what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)",
+        )
         far_xyz = _to_enu(fdirs, far.heights, lat, lon)
         keep = far_keep_quads(fcoords, hw, fs)
-        far_info.update(half_width_m=float(m * fs), shape=[2 * m + 1, 2 * m + 1],
-                        requested_half_width_m=float(k_max * fs), clipped=bool(m < k_max),
-                        nodata_fraction=far.nodata_fraction, filled_pixels=far.filled_pixels,
-                        filled_holes=far.filled_holes, decimation=far.decimation,
-                        kept_quads=int(keep.sum()))
+        far_info.update(
+            half_width_m=float(m * fs),
+            shape=[2 * m + 1, 2 * m + 1],
+            requested_half_width_m=float(k_max * fs),
+            clipped=bool(m < k_max),
+            nodata_fraction=far.nodata_fraction,
+            filled_pixels=far.filled_pixels,
+            filled_holes=far.filled_holes,
+            decimation=far.decimation,
+            kept_quads=int(keep.sum()),
+        )
 
     meas = measure_crater(near_h, near_xyz[..., 2], hw, spacing, 0.5 * diameter_m)
     arrays = {
@@ -391,17 +380,30 @@ def build_terrain(crater: dict, cfg) -> tuple[Path, dict]:
         "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km", "source") if k in crater},
         "frame": "ENU at the crater centre on the 1737.4 km sphere; x east, y north, z up, metres",
         "dem": {
-            "product": dem.product, "path": str(dem.path), "sha256": dem_sha,
-            "pixel_size_m": dem.pixel_size_m, "crs_wkt": dem_info["crs_wkt"], "crs_proj": dem_info["crs_proj"],
-            "crater_center_px": [float(ccol), float(crow)], "decimation": near.decimation,
-            "far_product": far_dem.product, "far_sha256": far_sha,
-            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m), "blend_pixels": dem.blend_pixels,
+            "product": dem.product,
+            "path": str(dem.path),
+            "sha256": dem_sha,
+            "pixel_size_m": dem.pixel_size_m,
+            "crs_wkt": dem_info["crs_wkt"],
+            "crs_proj": dem_info["crs_proj"],
+            "crater_center_px": [float(ccol), float(crow)],
+            "decimation": near.decimation,
+            "far_product": far_dem.product,
+            "far_sha256": far_sha,
+            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m),
+            "blend_pixels": dem.blend_pixels,
         },
-        "near": {"half_width_m": hw, "spacing_m": spacing, "shape": [nv, nv],
-                 "rows": "n ascending (south to north)", "cols": "e ascending (west to east)"},
+        "near": {
+            "half_width_m": hw,
+            "spacing_m": spacing,
+            "shape": [nv, nv],
+            "rows": "n ascending (south to north)",
+            "cols": "e ascending (west to east)",
+        },
         "far": far_info,
         **{k: meas[k] for k in ("rim_z_m", "floor_z_m", "rim_to_floor_depth_m")},
-        "rim_height_m": meas["rim_height_m"], "rim_crest_height_m": meas["rim_crest_height_m"],
+        "rim_height_m": meas["rim_height_m"],
+        "rim_crest_height_m": meas["rim_crest_height_m"],
         "floor_height_m": meas["floor_height_m"],
         "vertex_count": int(nv * nv + far_xyz.shape[0] * far_xyz.shape[1]),
         "nodata_fraction": near.nodata_fraction,
@@ -422,9 +424,14 @@ def _stack_meta(stack, near, ee: np.ndarray, nn: np.ndarray, radius_m: float) ->
     out = []
     for i, info in enumerate(stack.stack_info()):  # sample weights: base first, then the layers finest first
         w = near.layer_weights[i + 1]
-        out.append({**info, "near_weight_mean": round(float(w.mean()), 4),
-                    "crater_weight_mean": round(float(w[in_crater].mean()), 4),
-                    "effective_pixel_m": float(near.layer_pixel_m[i + 1])})
+        out.append(
+            {
+                **info,
+                "near_weight_mean": round(float(w.mean()), 4),
+                "crater_weight_mean": round(float(w[in_crater].mean()), 4),
+                "effective_pixel_m": float(near.layer_pixel_m[i + 1]),
+            }
+        )
     return out
 
 
@@ -458,11 +465,13 @@ def summary_line(meta: dict) -> dict:
 def terrain_command(overrides):
     """Build (or reuse) each selected crater's terrain patch; print one JSON line per crater.
 
-    Example: ``crater-synth terrain crater=shackleton terrain.near_vertices=256``
+    Example: `crater-synth terrain crater=shackleton terrain.near_vertices=256`
     """
-    from crater_synth.config import compose, craters
+    from crater_core.files import ensure_writable_dir
+    from crater_synth.config import load_settings
 
-    cfg = compose(overrides)
-    for crater in craters(cfg):
-        _, meta = build_terrain(crater, cfg)
+    settings = load_settings(overrides)
+    ensure_writable_dir(settings.data_dir, "data_dir")
+    for crater in settings.craters:
+        _, meta = build_terrain(crater, settings)
         click.echo(json.dumps(summary_line(meta)))

@@ -21,8 +21,10 @@ def _report(metrics: dict, run_dir) -> None:
         r = metrics[m]
         val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"
         click.echo(f"{m:12s} real accuracy {r['real_accuracy']:.3f}  (validation {val})")
-    click.echo(f"train images {metrics['train_images']}, real test images {metrics['test_images']} "
-               f"from {metrics['test_sources']}")
+    click.echo(
+        f"train images {metrics['train_images']}, real test images {metrics['test_images']} "
+        f"from {metrics['test_sources']}"
+    )
     click.echo(f"note: {metrics['limits']}")
     click.echo(f"wrote {run_dir}/metrics.json")
 

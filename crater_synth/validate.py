@@ -54,8 +54,11 @@ class Group:
 
     @property
     def label(self) -> str:
-        return f"{self.role}{self.index}-" + "+".join(self.craters) if self.role == "validation" else \
-            "test-" + "+".join(self.craters)
+        return (
+            f"{self.role}{self.index}-" + "+".join(self.craters)
+            if self.role == "validation"
+            else "test-" + "+".join(self.craters)
+        )
 
     def crater_override(self) -> str:
         return "crater=[" + ",".join(self.craters) + "]"
@@ -79,11 +82,14 @@ def plan_groups(vcfg: dict, known_craters: Sequence[str]) -> list[Group]:
             if n not in known:
                 raise ConfigError(f"validate.groups[{i}]: unknown crater {n!r} (not in configs/crater/)")
             if n in test:
-                raise ConfigError(f"validate.groups[{i}]: {n!r} is a test crater; validation craters must be "
-                                  f"disjoint from validate.test={list(test)}")
+                raise ConfigError(
+                    f"validate.groups[{i}]: {n!r} is a test crater; validation craters must be "
+                    f"disjoint from validate.test={list(test)}"
+                )
             if n in seen:
-                raise ConfigError(f"validate.groups[{i}]: {n!r} is already in validate.groups[{seen[n]}]; "
-                                  "groups must be disjoint")
+                raise ConfigError(
+                    f"validate.groups[{i}]: {n!r} is already in validate.groups[{seen[n]}]; groups must be disjoint"
+                )
             seen[n] = i
         groups.append(Group("validation", i + 1, names))
     if test:
@@ -107,8 +113,11 @@ def run_fingerprint(cfg_resolved: dict) -> str:
     """What decides a run's result: everything but paths, progress and the validate group itself."""
     skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir"}
     payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
-    payload["train"] = {k: v for k, v in payload.get("train", {}).items()
-                        if k not in ("progress", "dataset_dir", "cache_dir", "num_threads", "device")}
+    payload["train"] = {
+        k: v
+        for k, v in payload.get("train", {}).items()
+        if k not in ("progress", "dataset_dir", "cache_dir", "num_threads", "device")
+    }
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -116,8 +125,10 @@ def _check_overrides(overrides: Sequence[str]) -> None:
     for o in overrides:
         key = o.lstrip("+~").split("=", 1)[0]
         if key in _OWNED_KEYS:
-            raise ConfigError(f"override {o!r}: the validation protocol sets {key} itself "
-                              f"(choose craters with validate.groups / validate.test, seeds with validate.seeds)")
+            raise ConfigError(
+                f"override {o!r}: the validation protocol sets {key} itself "
+                f"(choose craters with validate.groups / validate.test, seeds with validate.seeds)"
+            )
 
 
 def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
@@ -160,13 +171,24 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
             t1 = time.perf_counter()
             metrics = train_and_evaluate(cfg_r, progress=progress)
             run = {
-                "group": g.label, "role": g.role, "craters": list(g.craters), "seed": seed, "fingerprint": fp,
-                "train_images": int(metrics["train_images"]), "renders": int(render["renders_total"]),
-                "render_s": round(render_s, 1), "train_s": round(time.perf_counter() - t1, 1),
-                "models": {m: {"real_accuracy": float(metrics[m]["real_accuracy"]),
-                               "val_accuracy": metrics[m].get("val_accuracy"),
-                               "per_crater": {k: float(v) for k, v in metrics[m]["per_crater"].items()},
-                               "confusion": metrics[m]["confusion"]} for m in REPORTED_MODELS},
+                "group": g.label,
+                "role": g.role,
+                "craters": list(g.craters),
+                "seed": seed,
+                "fingerprint": fp,
+                "train_images": int(metrics["train_images"]),
+                "renders": int(render["renders_total"]),
+                "render_s": round(render_s, 1),
+                "train_s": round(time.perf_counter() - t1, 1),
+                "models": {
+                    m: {
+                        "real_accuracy": float(metrics[m]["real_accuracy"]),
+                        "val_accuracy": metrics[m].get("val_accuracy"),
+                        "per_crater": {k: float(v) for k, v in metrics[m]["per_crater"].items()},
+                        "confusion": metrics[m]["confusion"],
+                    }
+                    for m in REPORTED_MODELS
+                },
                 "run_dir": str(run_dir),
             }
             runs.append(run)
@@ -188,8 +210,12 @@ def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:
         for m in REPORTED_MODELS:
             accs = [r["models"][m]["real_accuracy"] for r in rs]
             per = {c: float(np.mean([r["models"][m]["per_crater"][c] for r in rs])) for c in g.craters}
-            entry["models"][m] = {"mean": float(np.mean(accs)), "std_over_seeds": float(np.std(accs)),
-                                  "per_crater": per, "min_crater": float(min(per.values()))}
+            entry["models"][m] = {
+                "mean": float(np.mean(accs)),
+                "std_over_seeds": float(np.std(accs)),
+                "per_crater": per,
+                "min_crater": float(min(per.values())),
+            }
         out["groups"][g.label] = entry
     for m in REPORTED_MODELS:
         val = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == "validation"]
@@ -210,16 +236,23 @@ def table_markdown(summary: dict) -> str:
     lines.append("")
     for m in REPORTED_MODELS:
         v, t = summary["validation_mean"][m], summary["test_mean"][m]
-        lines.append(f"- {m}: validation mean {'n/a' if v is None else f'{v:.3f}'}, "
-                     f"test mean {'n/a' if t is None else f'{t:.3f}'}")
+        lines.append(
+            f"- {m}: validation mean {'n/a' if v is None else f'{v:.3f}'}, "
+            f"test mean {'n/a' if t is None else f'{t:.3f}'}"
+        )
     return "\n".join(lines) + "\n"
 
 
 def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: list[int]) -> dict:
     summary = summarise(runs, groups, seeds)
-    res = {"protocol": "docs/validation.md", "sweep": base["sweep"].get("name"), "seeds": seeds,
-           "groups": [{"label": g.label, "role": g.role, "craters": list(g.craters)} for g in groups],
-           "runs": runs, "summary": summary}
+    res = {
+        "protocol": "docs/validation.md",
+        "sweep": base["sweep"].get("name"),
+        "seeds": seeds,
+        "groups": [{"label": g.label, "role": g.role, "craters": list(g.craters)} for g in groups],
+        "runs": runs,
+        "summary": summary,
+    }
     atomic_write_text(out / RESULTS_FILE, json.dumps(res, indent=1, sort_keys=True) + "\n")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -227,11 +260,23 @@ def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: 
     for r in runs:
         for m in REPORTED_MODELS:
             for c, a in r["models"][m]["per_crater"].items():
-                w.writerow([r["group"], r["role"], r["seed"], m, c, f"{a:.4f}",
-                            f"{r['models'][m]['real_accuracy']:.4f}", r["train_images"]])
+                w.writerow(
+                    [
+                        r["group"],
+                        r["role"],
+                        r["seed"],
+                        m,
+                        c,
+                        f"{a:.4f}",
+                        f"{r['models'][m]['real_accuracy']:.4f}",
+                        r["train_images"],
+                    ]
+                )
     atomic_write_text(out / CSV_FILE, buf.getvalue())
-    head = (f"# Validation protocol results ({res['sweep']}, seeds {seeds})\n\n"
-            "Settings are chosen by the validation mean only; the test group is reported, never used to choose.\n\n")
+    head = (
+        f"# Validation protocol results ({res['sweep']}, seeds {seeds})\n\n"
+        "Settings are chosen by the validation mean only; the test group is reported, never used to choose.\n\n"
+    )
     atomic_write_text(out / TABLE_FILE, head + table_markdown(summary))
     return res
 

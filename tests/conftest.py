@@ -13,9 +13,18 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 # One render in ~0.05 s on 2 cores: a 48^2 near mesh, a coarse 60 km far field, no sub-DEM detail,
 # 1 sample per pixel, 32 px crops, 128 px shadow maps. Later overrides of the same key win.
-TINY = ("crater=shackleton", "sweep=smoke", "terrain.near_vertices=48", "terrain.far_radius_km=60",
-        "terrain.far_spacing_km=6", "terrain.detail.enabled=false", "render.samples=1",
-        "render.shadow_map_px=128", "render.roi_min_px=32", "render.workers=1")
+TINY = (
+    "crater=shackleton",
+    "sweep=smoke",
+    "terrain.near_vertices=48",
+    "terrain.far_radius_km=60",
+    "terrain.far_spacing_km=6",
+    "terrain.detail.enabled=false",
+    "render.samples=1",
+    "render.shadow_map_px=128",
+    "render.roi_min_px=32",
+    "render.workers=1",
+)
 
 
 def cli_command() -> list[str]:
@@ -24,8 +33,7 @@ def cli_command() -> list[str]:
 
 
 def run_cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([*cli_command(), *map(str, args)], capture_output=True, text=True, timeout=timeout,
-                          cwd=REPO)
+    return subprocess.run([*cli_command(), *map(str, args)], capture_output=True, text=True, timeout=timeout, cwd=REPO)
 
 
 def summary(proc: subprocess.CompletedProcess) -> dict:
@@ -59,8 +67,7 @@ def tiny_dataset(tiny_data_dir):
     """``tiny_dataset(out_dir, *overrides, check=True)``: `crater-synth dataset` with :data:`TINY`."""
 
     def run(out_dir, *overrides, check: bool = True, timeout: float = 300) -> subprocess.CompletedProcess:
-        proc = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out_dir}", *overrides,
-                       timeout=timeout)
+        proc = run_cli("dataset", *TINY, f"data_dir={tiny_data_dir}", f"out_dir={out_dir}", *overrides, timeout=timeout)
         if check:
             assert proc.returncode == 0, proc.stderr[-4000:]
         return proc

@@ -54,37 +54,74 @@ def central_crop(frame_width: int, size: int, du: int = 0, dv: int = 0) -> list[
     return [u0, v0, u0 + size, v0 + size]
 
 
-def item(index: int, sun_el: float, sun_az: float, cam_el: float, cam_az: float, range_m: float,
-         frame_width: int = 200, crop: list[int] | None = None, name: str = "t") -> dict:
-    return {"index": index, "indices": [0, 0, 0, 0], "sun_elevation": float(sun_el), "sun_azimuth": float(sun_az),
-            "cam_elevation": float(cam_el), "cam_azimuth": float(cam_az), "range_m": float(range_m),
-            "fov_deg": 90.0, "frame_width": frame_width, "crop": crop or central_crop(frame_width, 80),
-            "rel_path": f"{name}/{index:06d}.exr",
-            "header": {"crater": name, "terrain_id": f"{name}-test", "seed": 7, "crop": json.dumps(crop)}}
+def item(
+    index: int,
+    sun_el: float,
+    sun_az: float,
+    cam_el: float,
+    cam_az: float,
+    range_m: float,
+    frame_width: int = 200,
+    crop: list[int] | None = None,
+    name: str = "t",
+) -> dict:
+    return {
+        "index": index,
+        "indices": [0, 0, 0, 0],
+        "sun_elevation": float(sun_el),
+        "sun_azimuth": float(sun_az),
+        "cam_elevation": float(cam_el),
+        "cam_azimuth": float(cam_az),
+        "range_m": float(range_m),
+        "fov_deg": 90.0,
+        "frame_width": frame_width,
+        "crop": crop or central_crop(frame_width, 80),
+        "rel_path": f"{name}/{index:06d}.exr",
+        "header": {"crater": name, "terrain_id": f"{name}-test", "seed": 7, "crop": json.dumps(crop)},
+    }
 
 
-def job(npz: str, items: list[dict], out_dir: Path, mode: str = "direct", diameter_km: float = 10.0,
-        **render) -> dict:
-    r = {"mode": mode, "samples": 16, "max_bounces": 0, "denoise": False, "threads": 1,
-         "shadow_map_px": 512, "shadow_map_extent_factor": 2.1}
+def job(npz: str, items: list[dict], out_dir: Path, mode: str = "direct", diameter_km: float = 10.0, **render) -> dict:
+    r = {
+        "mode": mode,
+        "samples": 16,
+        "max_bounces": 0,
+        "denoise": False,
+        "threads": 1,
+        "shadow_map_px": 512,
+        "shadow_map_extent_factor": 2.1,
+    }
     r.update(render)
-    return {"terrain_npz": npz, "terrain_meta": {"terrain_id": "test", "rim_z_m": 0.0},
-            "crater": {"name": "test", "lat": -89.9, "lon": 0.0, "diameter_km": diameter_km},
-            "hapke": dict(HAPKE), "render": r, "out_dir": str(out_dir), "renders": items}
+    return {
+        "terrain_npz": npz,
+        "terrain_meta": {"terrain_id": "test", "rim_z_m": 0.0},
+        "crater": {"name": "test", "lat": -89.9, "lon": 0.0, "diameter_km": diameter_km},
+        "hapke": dict(HAPKE),
+        "render": r,
+        "out_dir": str(out_dir),
+        "renders": items,
+    }
 
 
-def run_worker(job_dict: dict, tmp_path: Path, name: str = "job", argv: list[str] | None = None,
-               timeout: float = 600.0):
+def run_worker(
+    job_dict: dict, tmp_path: Path, name: str = "job", argv: list[str] | None = None, timeout: float = 600.0
+):
     """Run the worker on ``job_dict``; returns (results {index: dict}, completed process)."""
     job_file = tmp_path / f"{name}.json"
     job_file.write_text(json.dumps(job_dict))
     cmd = argv or [sys.executable, "-m", "blender_gen.worker"]
-    proc = subprocess.run(cmd + [str(job_file)], cwd=REPO, capture_output=True, text=True, timeout=timeout,
-                          env=os.environ | {"PYTHONUNBUFFERED": "1"})
+    proc = subprocess.run(
+        cmd + [str(job_file)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=os.environ | {"PYTHONUNBUFFERED": "1"},
+    )
     results = {}
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
-            r = json.loads(line[len("RESULT "):])
+            r = json.loads(line[len("RESULT ") :])
             results[r["index"]] = r
     return results, proc
 
@@ -114,8 +151,9 @@ def crater_z(diameter_m: float):
     return bowl_crater_z(diameter_m)
 
 
-def crater_items(diameter_m: float, suns, cams, roi_min_px: int = 100, sigma_max: float = 1.4,
-                 name: str = "crater") -> list[dict]:
+def crater_items(
+    diameter_m: float, suns, cams, roi_min_px: int = 100, sigma_max: float = 1.4, name: str = "crater"
+) -> list[dict]:
     """Render items laid out like the host's plan (ROI-sized crop around the projected rim)."""
     out = []
     rim = np.array([0.0, 0.0, 0.04 * diameter_m])

@@ -64,8 +64,9 @@ def e2(x: float, theta_bar: float) -> float:
 def eta(x: float, theta_bar: float) -> float:
     """eta(x) = chi [cos x + sin x tan(theta_bar) E2(x) / (2 - E1(x))]: the effective cosine at psi = 0
     of a single direction (mu0e(0) for x = i, mue(0) for x = e)."""
-    return chi(theta_bar) * (math.cos(x) + math.sin(x) * math.tan(theta_bar) * e2(x, theta_bar)
-                             / (2.0 - e1(x, theta_bar)))
+    return chi(theta_bar) * (
+        math.cos(x) + math.sin(x) * math.tan(theta_bar) * e2(x, theta_bar) / (2.0 - e1(x, theta_bar))
+    )
 
 
 def f_psi(psi: float) -> float:
@@ -103,8 +104,9 @@ def phase_angle(i: float, e: float, psi: float) -> float:
     return math.acos(math.cos(i) * math.cos(e) + math.sin(i) * math.sin(e) * math.cos(psi))
 
 
-def radiance_factor(i_deg: float, e_deg: float, psi_deg: float, w: float, xi: float, b0: float, h: float,
-                    theta_bar_deg: float) -> float:
+def radiance_factor(
+    i_deg: float, e_deg: float, psi_deg: float, w: float, xi: float, b0: float, h: float, theta_bar_deg: float
+) -> float:
     """I/F = pi r of the five-parameter model at incidence i, emission e and azimuth psi (degrees)."""
     i, e, psi = math.radians(i_deg), math.radians(e_deg), math.radians(psi_deg)
     g = phase_angle(i, e, psi)
@@ -114,7 +116,16 @@ def radiance_factor(i_deg: float, e_deg: float, psi_deg: float, w: float, xi: fl
         mu0e, mue, s = roughness_i_le_e(i, e, psi, math.radians(theta_bar_deg))
     else:
         mu0e, mue, s = roughness_e_lt_i(i, e, psi, math.radians(theta_bar_deg))
-    r = (w / (4.0 * math.pi) * mu0e / (mu0e + mue)
-         * ((1.0 + opposition_surge(g, b0, h)) * henyey_greenstein(g, xi) + h_function(mu0e, w) * h_function(mue, w)
-            - 1.0) * s)
+    r = (
+        w
+        / (4.0 * math.pi)
+        * mu0e
+        / (mu0e + mue)
+        * (
+            (1.0 + opposition_surge(g, b0, h)) * henyey_greenstein(g, xi)
+            + h_function(mu0e, w) * h_function(mue, w)
+            - 1.0
+        )
+        * s
+    )
     return math.pi * r

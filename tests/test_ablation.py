@@ -33,10 +33,13 @@ def test_training_only_levers_share_renders_and_pixel_settings_do_not():
 def test_generated_table_replaces_only_the_marked_section(tmp_path):
     doc = tmp_path / "fidelity.md"
     doc.write_text(f"# Fidelity\n\nintro\n\n{ab.BEGIN}\nold table\n{ab.END}\n\nafter\n")
-    summary = {"groups": {"validation1-a+b": {"role": "validation", "models": {
-        "lunarnet_ex": {"per_crater": {"a": 0.5, "b": 0.7}}}}},
-               "validation_mean": {"lunarnet_ex": 0.6, "lunarsvm_ex": 0.55},
-               "test_mean": {"lunarnet_ex": None, "lunarsvm_ex": None}}
+    summary = {
+        "groups": {
+            "validation1-a+b": {"role": "validation", "models": {"lunarnet_ex": {"per_crater": {"a": 0.5, "b": 0.7}}}}
+        },
+        "validation_mean": {"lunarnet_ex": 0.6, "lunarsvm_ex": 0.55},
+        "test_mean": {"lunarnet_ex": None, "lunarsvm_ex": None},
+    }
     results = [{"variant": "all levers on", "lever": None, "renders": {"validation1-a+b": 10}, "summary": summary}]
     ab._write(tmp_path, results, {"docs_file": str(doc)}, ["train.max_epochs=2"])
     text = doc.read_text()

@@ -80,8 +80,7 @@ def test_entry_is_a_closed_depression_of_its_size(lola, catalogue, name):
 @pytest.mark.parametrize("name", sorted(DROPPED))
 def test_dropped_entries_still_fail(lola, name):
     (lat, lon, d), why = DROPPED[name]
-    row = cat.check(lola, {"name": name, "lat": lat, "lon": lon, "diameter_km": d, "source": ""},
-                    NEAR_RADIUS_FACTOR)
+    row = cat.check(lola, {"name": name, "lat": lat, "lon": lon, "diameter_km": d, "source": ""}, NEAR_RADIUS_FACTOR)
     assert not row["passes"]
     assert any(why in f for f in row["failures"]), row["failures"]
 
@@ -121,8 +120,17 @@ def crater_dem(path, breach: bool = False, flat: bool = False) -> Dem:
         if breach:
             channel = (np.abs(y - CRATER_XY[1]) < 2_000.0) & (x > CRATER_XY[0])
             h = np.where(channel, np.minimum(h, 200.0 - CRATER_DEPTH - 0.02 * (x - CRATER_XY[0])), h)
-    with rasterio.open(path, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32", crs=STEREO_SOUTH,
-                       transform=Affine(PIXEL_M, 0.0, -n / 2 * PIXEL_M, 0.0, -PIXEL_M, n / 2 * PIXEL_M)) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=n,
+        height=n,
+        count=1,
+        dtype="float32",
+        crs=STEREO_SOUTH,
+        transform=Affine(PIXEL_M, 0.0, -n / 2 * PIXEL_M, 0.0, -PIXEL_M, n / 2 * PIXEL_M),
+    ) as dst:
         dst.write(h.astype(np.float32), 1)
     return Dem(path)
 
@@ -139,8 +147,11 @@ def crater_latlon(offset_east_m: float = 0.0):
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
     d = tmp_path_factory.mktemp("synthetic_dem")
-    return {"crater": crater_dem(d / "crater.tif"), "breached": crater_dem(d / "breached.tif", breach=True),
-            "flat": crater_dem(d / "flat.tif", flat=True)}
+    return {
+        "crater": crater_dem(d / "crater.tif"),
+        "breached": crater_dem(d / "breached.tif", breach=True),
+        "flat": crater_dem(d / "flat.tif", flat=True),
+    }
 
 
 def test_synthetic_crater_is_measured_where_and_as_big_as_it_is(synthetic):
@@ -180,8 +191,11 @@ def test_plain_without_crater_fails(synthetic):
 
 
 def test_measuring_grid_outside_the_dem_is_a_failure_not_a_crash(synthetic):
-    row = cat.check(synthetic["crater"], {"name": "far", "lat": -80.0, "lon": 0.0, "diameter_km": 30.0,
-                                          "source": ""}, NEAR_RADIUS_FACTOR)
+    row = cat.check(
+        synthetic["crater"],
+        {"name": "far", "lat": -80.0, "lon": 0.0, "diameter_km": 30.0, "source": ""},
+        NEAR_RADIUS_FACTOR,
+    )
     assert not row["passes"] and row["measured"] is None
     assert any("outside DEM" in f for f in row["failures"])
 
@@ -201,9 +215,18 @@ def test_catalogue_command_lists_a_selection(tmp_path):
 
 def test_catalogue_command_exit_status_reports_a_failing_entry(tmp_path):
     (lat, lon, d), _ = DROPPED["slater"]
-    res = CliRunner().invoke(main, ["catalogue", "crater=custom", "crater.custom.name=slater",
-                                    f"crater.custom.lat={lat}", f"crater.custom.lon={lon}",
-                                    f"crater.custom.diameter_km={d}", f"data_dir={tmp_path}"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "catalogue",
+            "crater=custom",
+            "crater.custom.name=slater",
+            f"crater.custom.lat={lat}",
+            f"crater.custom.lon={lon}",
+            f"crater.custom.diameter_km={d}",
+            f"data_dir={tmp_path}",
+        ],
+    )
     assert res.exit_code == 1
     assert "slater" in res.stdout and "FAIL" in res.stdout
 
@@ -225,7 +248,7 @@ def test_sheets_show_the_crop_and_hillshade_of_each_box(synthetic, tmp_path):
     extent, pixel = 160_000.0, 400.0
     n = int(2 * extent / pixel)
     image = np.zeros((n, n), np.uint8)
-    image[:, n // 2:] = 128
+    image[:, n // 2 :] = 128
     mosaic = Mosaic("synthetic", tmp_path / "mosaic.png", image, extent, pixel, g.MOON_RADIUS_M)
     lat, lon = crater_latlon()
     crater = {"name": "bowl", "lat": lat, "lon": lon, "diameter_km": CRATER_D / 1000.0, "source": ""}

@@ -28,9 +28,18 @@ def write_geotiff(path, data, pixel_m=1600.0, nodata=None, crs=STEREO_SOUTH, sca
     from affine import Affine
 
     h, w = data.shape
-    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype=data.dtype, crs=crs,
-                       transform=Affine(pixel_m, 0.0, -w / 2 * pixel_m, 0.0, -pixel_m, h / 2 * pixel_m),
-                       nodata=nodata) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=w,
+        height=h,
+        count=1,
+        dtype=data.dtype,
+        crs=crs,
+        transform=Affine(pixel_m, 0.0, -w / 2 * pixel_m, 0.0, -pixel_m, h / 2 * pixel_m),
+        nodata=nodata,
+    ) as dst:
         dst.write(data, 1)
         if scale is not None:
             dst.scales = (scale,)
@@ -165,7 +174,7 @@ def test_small_holes_filled_and_counted(tmp_path):
     h = plane().astype(np.float32)
     truth = h.copy()
     for r, c in [(20, 20), (30, 40), (44, 25)]:  # three 2x2 holes
-        h[r:r + 2, c:c + 2] = -32768
+        h[r : r + 2, c : c + 2] = -32768
     dem = Dem(write_geotiff(tmp_path / "holes.tif", h, nodata=-32768))
     n = h.shape[0]
     centres = (np.arange(n) - n / 2 + 0.5) * 1600.0

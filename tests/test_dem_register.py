@@ -54,7 +54,7 @@ def test_source_crops_decode_and_square_repair():
     # Pixels outside the square are untouched.
     out = R.repair_square(c200, c40)
     mask = np.ones_like(c200, dtype=bool)
-    mask[R.SQUARE_START:R.SQUARE_START + R.SQUARE_SIZE, R.SQUARE_START:R.SQUARE_START + R.SQUARE_SIZE] = False
+    mask[R.SQUARE_START : R.SQUARE_START + R.SQUARE_SIZE, R.SQUARE_START : R.SQUARE_START + R.SQUARE_SIZE] = False
     assert np.array_equal(out[mask], c200[mask])
 
 
@@ -72,8 +72,17 @@ def synthetic_reference(tmp_path_factory):
     ref = R.block_mean(truth, 8)
     left = top = n / 2 * px
     path = tmp_path_factory.mktemp("reg") / "ref.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=ref.shape[1], height=ref.shape[0], count=1,
-                       dtype="float32", crs=STEREO_SOUTH, transform=Affine(1600.0, 0, -left, 0, -1600.0, top)) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=ref.shape[1],
+        height=ref.shape[0],
+        count=1,
+        dtype="float32",
+        crs=STEREO_SOUTH,
+        transform=Affine(1600.0, 0, -left, 0, -1600.0, top),
+    ) as dst:
         dst.write(ref.astype(np.float32), 1)
     return truth, Dem(path), -left, top
 

@@ -29,8 +29,18 @@ def write_geotiff(path, heights, pixel_m, left, top, nodata=None):
     from affine import Affine
 
     h, w = heights.shape
-    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=STEREO_SOUTH,
-                       transform=Affine(pixel_m, 0.0, left, 0.0, -pixel_m, top), nodata=nodata) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=w,
+        height=h,
+        count=1,
+        dtype="float32",
+        crs=STEREO_SOUTH,
+        transform=Affine(pixel_m, 0.0, left, 0.0, -pixel_m, top),
+        nodata=nodata,
+    ) as dst:
         dst.write(heights.astype(np.float32), 1)
     return path
 
@@ -184,8 +194,16 @@ def test_stack_detail_scaled_by_layer_weight():
     w = np.broadcast_to(0.5 - 0.5 * np.cos(np.pi * ramp), (n, n))
     base_detail, _ = synthesize_detail((n, n), spacing, 1600.0, settings, key="k")
     assert np.abs(base_detail).max() > 1.0
-    s = StackSample(heights=np.zeros((n, n)), nodata_fraction=0.0, filled_pixels=0, filled_holes=0, decimation=1,
-                    layer_names=["base", "fine"], layer_weights=[1.0 - w, w], layer_pixel_m=[1600.0, 100.0])
+    s = StackSample(
+        heights=np.zeros((n, n)),
+        nodata_fraction=0.0,
+        filled_pixels=0,
+        filled_holes=0,
+        decimation=1,
+        layer_names=["base", "fine"],
+        layer_weights=[1.0 - w, w],
+        layer_pixel_m=[1600.0, 100.0],
+    )
     field, stats = stack_detail((n, n), spacing, s, settings, key="k")
     np.testing.assert_allclose(field, (1.0 - w) * base_detail, atol=1e-9)
     assert np.all(field[:, w[0] == 1.0] == 0.0) and stats["stack"]["base_weight_mean"] < 0.6
@@ -199,8 +217,14 @@ def test_stack_detail_scaled_by_layer_weight():
 
 def test_terrain_id_unchanged_without_layers():
     crater = {"name": "x", "lat": -89.0, "lon": 0.0, "diameter_km": 10.0}
-    s = {"near_radius_factor": 2.5, "near_vertices": 64, "far_radius_km": 0.0, "far_spacing_km": 2.0,
-         "max_nodata_fraction": 0.02, "detail": DetailSettings()}
+    s = {
+        "near_radius_factor": 2.5,
+        "near_vertices": 64,
+        "far_radius_km": 0.0,
+        "far_spacing_km": 2.0,
+        "max_nodata_fraction": 0.02,
+        "detail": DetailSettings(),
+    }
     empty = terrain_id("a" * 64, "a" * 64, crater, s, {"layers": [], "blend_pixels": 2.0})
     assert empty == terrain_id("a" * 64, "a" * 64, crater, s)
     assert empty != terrain_id("a" * 64, "a" * 64, crater, s, {"layers": [{"sha256": "b" * 64, "band_m": 3.2e3}]})
@@ -264,13 +288,16 @@ def test_detail_not_added_on_fine_data(data_dir):
     assert on["detail"]["stack"]["base_weight_mean"] < 0.95
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["dem.stack=[no_such_dem]"], "neither a registered DEM product"),
-    (["dem.stack=[lroc_wac_south]"], "not a DEM"),
-    (["dem.stack=shackleton_lola_200m"], "must be a list"),
-    (["dem.stack=[shackleton_lola_200m,shackleton_lola_40m]"], "finest DEM first"),
-    (["dem.blend_pixels=0"], "dem.blend_pixels"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["dem.stack=[no_such_dem]"], "neither a registered DEM product"),
+        (["dem.stack=[lroc_wac_south]"], "not a DEM"),
+        (["dem.stack=shackleton_lola_200m"], "must be a list"),
+        (["dem.stack=[shackleton_lola_200m,shackleton_lola_40m]"], "finest DEM first"),
+        (["dem.blend_pixels=0"], "dem.blend_pixels"),
+    ],
+)
 def test_bad_stack_config_is_one_error_line(data_dir, args, needle):
     res = CliRunner().invoke(main, ["terrain", "crater=shackleton", f"data_dir={data_dir}", *FAST, *args])
     assert res.exit_code == 2, res.output
@@ -281,8 +308,9 @@ def test_bad_stack_config_is_one_error_line(data_dir, args, needle):
 def test_corrupt_user_dem_is_one_error_line(data_dir, tmp_path):
     bad = tmp_path / "broken.tif"
     bad.write_bytes(b"II*\x00garbage")
-    res = CliRunner().invoke(main, ["terrain", "crater=shackleton", f"data_dir={data_dir}", *FAST,
-                                    f"dem.stack=[{bad}]"])
+    res = CliRunner().invoke(
+        main, ["terrain", "crater=shackleton", f"data_dir={data_dir}", *FAST, f"dem.stack=[{bad}]"]
+    )
     assert res.exit_code == 2 and str(bad) in res.stderr and len(res.stderr.strip().splitlines()) == 1
 
 

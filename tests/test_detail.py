@@ -82,18 +82,30 @@ def test_only_below_dem_resolution(model):
     assert gaussian_filter(f, PIXEL / SPACING, mode="wrap").std() < 0.02 * f.std()
 
 
-@pytest.mark.parametrize("key, value", [("hurst", 1.5), ("roughness_rms_slope_deg", -1.0),
-                                        ("min_depth_diameter", 0.5), ("min_depth_diameter", 0.0),
-                                        ("min_crater_diameter_m", 0.0), ("crater_density_scale", "lots"),
-                                        ("model", "fancy"), ("enabled", "yes"), ("seed", 1.5)])
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("hurst", 1.5),
+        ("roughness_rms_slope_deg", -1.0),
+        ("min_depth_diameter", 0.5),
+        ("min_depth_diameter", 0.0),
+        ("min_crater_diameter_m", 0.0),
+        ("crater_density_scale", "lots"),
+        ("model", "fancy"),
+        ("enabled", "yes"),
+        ("seed", 1.5),
+    ],
+)
 def test_bad_settings_name_the_key(key, value):
     with pytest.raises(DetailConfigError, match=f"terrain.detail.{key}"):
         DetailSettings.from_config({key: value})
 
 
 def test_unknown_key_is_refused():
-    with pytest.raises(DetailConfigError, match="unknown terrain.detail key"):
+    with pytest.raises(DetailConfigError, match=r"terrain\.detail\.rms_slope_deg: unknown key"):
         DetailSettings.from_config({"rms_slope_deg": 6.0})  # the legacy key is not a setting any more
+    with pytest.raises(DetailConfigError, match=r"terrain\.detail\.hurts: unknown key"):
+        DetailSettings.from_config({"hurts": 0.5})
 
 
 # ------------------------------------------------------------------------------------------ legacy
@@ -117,8 +129,7 @@ def test_fresh_crater_shape():
     z = crater_profile(s, depth, rim)
     assert z[0] == pytest.approx(rim - depth) and z[1] == pytest.approx(rim)
     assert 0.0 < z[2] < rim and z[3] == pytest.approx(0.0) and z[4] == 0.0
-    field = stamp_craters((101, 101), 50.0, np.array([[50.0, 50.0]]), np.array([d]), np.array([depth]),
-                          np.array([rim]))
+    field = stamp_craters((101, 101), 50.0, np.array([[50.0, 50.0]]), np.array([d]), np.array([depth]), np.array([rim]))
     assert field.max() - field.min() == pytest.approx(depth, rel=0.02)  # rim crest to floor
 
 
@@ -153,8 +164,9 @@ def test_degraded_profile_fresh_limit_and_stamp_depth():
     np.testing.assert_allclose(degraded_profile(s, 0.0), fresh, atol=2e-3)
     assert degraded_profile(np.array([4.5]), 0.1)[0] == 0.0
     d, fresh_depth, tau = 2000.0, 392.0, 0.03
-    field = stamp_degraded_craters((161, 161), 25.0, np.array([[80.0, 80.0]]), np.array([d]),
-                                   np.array([fresh_depth]), np.array([tau]))
+    field = stamp_degraded_craters(
+        (161, 161), 25.0, np.array([[80.0, 80.0]]), np.array([d]), np.array([fresh_depth]), np.array([tau])
+    )
     assert field.max() - field.min() == pytest.approx(fresh_depth * depth_ratio_after_diffusion(tau), rel=0.03)
 
 
@@ -212,11 +224,18 @@ def calibrated_stats(ldem_grid):
 # Pits' depth/diameter: the real median of 52 pits is uncertain by +-12 % (1 sigma, bootstrap) and the
 # best fit leaves the model's pits 25 % deeper (16 seeds; 32 % with seeds 0-3): +-35 %.
 CALIBRATION_TOLERANCES = [
-    ("band_rms_height_m", 0.2, "rel"), ("band_slope200_rms_deg", 0.2, "rel"),
-    ("band_laplacian200_std_per_km", 0.2, "rel"), ("band_sf400_m", 0.2, "rel"), ("band_sf1600_m", 0.2, "rel"),
-    ("laplacian200_std_per_km", 0.2, "rel"), ("laplacian400_std_per_km", 0.2, "rel"),
-    ("slope200_p50_deg", 1.0, "abs"), ("slope200_p90_deg", 2.0, "abs"), ("slope200_p99_deg", 1.5, "abs"),
-    ("pits400_per_1000km2", 0.5, "rel"), ("pits800_per_1000km2", 0.4, "rel"),
+    ("band_rms_height_m", 0.2, "rel"),
+    ("band_slope200_rms_deg", 0.2, "rel"),
+    ("band_laplacian200_std_per_km", 0.2, "rel"),
+    ("band_sf400_m", 0.2, "rel"),
+    ("band_sf1600_m", 0.2, "rel"),
+    ("laplacian200_std_per_km", 0.2, "rel"),
+    ("laplacian400_std_per_km", 0.2, "rel"),
+    ("slope200_p50_deg", 1.0, "abs"),
+    ("slope200_p90_deg", 2.0, "abs"),
+    ("slope200_p99_deg", 1.5, "abs"),
+    ("pits400_per_1000km2", 0.5, "rel"),
+    ("pits800_per_1000km2", 0.4, "rel"),
     ("pits400_median_depth_diameter", 0.35, "rel"),
 ]
 
@@ -239,9 +258,15 @@ def test_detail_moves_total_slopes_towards_real_without_overshoot(ldem_grid, cal
 
 def test_legacy_fails_the_calibration(ldem_grid):
     old = dc.model_statistics(*ldem_grid, DetailSettings(model="legacy"), seeds=range(2))
-    failed = [k for k, tol, kind in CALIBRATION_TOLERANCES
-              if (abs(old[k] / dc.REAL_CROP_STATS[k] - 1) > tol if kind == "rel"
-                  else abs(old[k] - dc.REAL_CROP_STATS[k]) > tol)]
+    failed = [
+        k
+        for k, tol, kind in CALIBRATION_TOLERANCES
+        if (
+            abs(old[k] / dc.REAL_CROP_STATS[k] - 1) > tol
+            if kind == "rel"
+            else abs(old[k] - dc.REAL_CROP_STATS[k]) > tol
+        )
+    ]
     assert len(failed) >= 8, failed
 
 
@@ -255,8 +280,11 @@ def test_real_crop_is_the_registered_product(real_crop):
     no placement of its own): its grid is registration.json's, its heights are above the sphere."""
     from data_manifest import products
 
-    doc = json.loads((products.PROJECT_ROOT / "data_manifest" / "embedded" / "shackleton_lola_200m"
-                      / "registration.json").read_text())["registration"]
+    doc = json.loads(
+        (
+            products.PROJECT_ROOT / "data_manifest" / "embedded" / "shackleton_lola_200m" / "registration.json"
+        ).read_text()
+    )["registration"]
     assert real_crop["crop"] == dc.REAL_CROP_PRODUCT
     assert Path(real_crop["path"]) == products.resolve_product(dc.REAL_CROP_PRODUCT, "data")
     assert Path(real_crop["path"]).resolve().is_relative_to(products.PROJECT_ROOT)
@@ -278,8 +306,8 @@ def test_repaired_square_is_background(real_crop):
     raw = dr.read_godot_exr(dr.PRODUCT_DIR / "dem_shackridge_200m_256x256.exr")
     repaired = dr.repair_square(raw, dr.read_godot_exr(dr.PRODUCT_DIR / "dem_shackzoom_40m_256x256.exr"))
     inner = np.zeros(raw.shape, dtype=bool)
-    inner[dr.SQUARE_START + 2:dr.SQUARE_START + dr.SQUARE_SIZE - 2] = True
-    inner[:, :dr.SQUARE_START + 2] = inner[:, dr.SQUARE_START + dr.SQUARE_SIZE - 2:] = False
+    inner[dr.SQUARE_START + 2 : dr.SQUARE_START + dr.SQUARE_SIZE - 2] = True
+    inner[:, : dr.SQUARE_START + 2] = inner[:, dr.SQUARE_START + dr.SQUARE_SIZE - 2 :] = False
     native, rep = (dc.terrain_statistics(z, inner) for z in (raw, repaired))
     for k in ("slope200_rms_deg", "laplacian200_std_per_km", "laplacian400_std_per_km", "sf200_m", "sf800_m"):
         assert rep[k] == pytest.approx(native[k], rel=0.05), k
@@ -317,9 +345,18 @@ def _geotiff(path, heights, pixel_m):
     import rasterio
     from affine import Affine
 
-    with rasterio.open(path, "w", driver="GTiff", width=heights.shape[1], height=heights.shape[0], count=1,
-                       dtype="float32", crs=STEREO_SOUTH, transform=Affine(pixel_m, 0, -29000.0, 0, -pixel_m, 15000.0),
-                       nodata=None) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=heights.shape[1],
+        height=heights.shape[0],
+        count=1,
+        dtype="float32",
+        crs=STEREO_SOUTH,
+        transform=Affine(pixel_m, 0, -29000.0, 0, -pixel_m, 15000.0),
+        nodata=None,
+    ) as dst:
         dst.write(heights.astype(np.float32), 1)
     return path
 
@@ -338,9 +375,17 @@ def _bad_crop(tmp_path, case: str) -> str:
     return {"wrong_pixel": dc.BASE_DEM_PRODUCT, "not_a_dem": "lroc_wac_south"}[case]
 
 
-@pytest.mark.parametrize("case, message", [
-    ("missing", "nope.tif"), ("corrupt", "bad.tif"), ("wrong_pixel", "north-up grid of 200 m square pixels"),
-    ("nodata", "nodata pixels"), ("too_small", "at least 64"), ("not_a_dem", "not a DEM")])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("missing", "nope.tif"),
+        ("corrupt", "bad.tif"),
+        ("wrong_pixel", "north-up grid of 200 m square pixels"),
+        ("nodata", "nodata pixels"),
+        ("too_small", "at least 64"),
+        ("not_a_dem", "not a DEM"),
+    ],
+)
 def test_bad_real_crop_is_one_clear_error(tmp_path, capsys, case, message):
     assert dc.main(["--dem", _bad_crop(tmp_path, case), "--seeds", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -26,8 +26,9 @@ def single(tmp_path_factory, tiny_dataset):
 
 
 def _worker_pids(dataset_dir: Path) -> set[str]:
-    """Processes that ran the dataset's shards: job files are named <crater>-<host>-<pid>-<n>.json."""
-    return {p.stem.rsplit("-", 2)[1] for p in (dataset_dir / ".jobs").glob("*.json")}
+    """Processes that ran the dataset's shards: job logs are named <crater>-<host>-<pid>-<n>.log (the
+    job files themselves are removed once their worker succeeds)."""
+    return {p.stem.rsplit("-", 2)[1] for p in (dataset_dir / ".jobs").glob("*.log")}
 
 
 def test_local_dask_cluster_matches_single_process(tmp_path, tiny_dataset, single):
@@ -44,8 +45,7 @@ def test_local_dask_cluster_matches_single_process(tmp_path, tiny_dataset, singl
 
 
 def _start(args: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(args, stdout=open(log, "wb"), stderr=subprocess.STDOUT, cwd=REPO,
-                            start_new_session=True)
+    return subprocess.Popen(args, stdout=open(log, "wb"), stderr=subprocess.STDOUT, cwd=REPO, start_new_session=True)
 
 
 def test_external_scheduler_and_workers(tmp_path, tiny_dataset, single):
@@ -53,12 +53,42 @@ def test_external_scheduler_and_workers(tmp_path, tiny_dataset, single):
     `dask worker ... --nworkers 1 --nthreads 1` per "node", then `launcher.address=`."""
     dask_cli = [str(Path(sys.executable).with_name("dask"))]
     sched_file = tmp_path / "scheduler.json"
-    procs = [_start([*dask_cli, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
+    procs = [
+        _start(
+            [
+                *dask_cli,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            tmp_path / "scheduler.log",
+        )
+    ]
     try:
         for i in range(2):
-            procs.append(_start([*dask_cli, "worker", "--scheduler-file", str(sched_file), "--host", "127.0.0.1",
-                                 "--nworkers", "1", "--nthreads", "1", "--no-dashboard"], tmp_path / f"worker{i}.log"))
+            procs.append(
+                _start(
+                    [
+                        *dask_cli,
+                        "worker",
+                        "--scheduler-file",
+                        str(sched_file),
+                        "--host",
+                        "127.0.0.1",
+                        "--nworkers",
+                        "1",
+                        "--nthreads",
+                        "1",
+                        "--no-dashboard",
+                    ],
+                    tmp_path / f"worker{i}.log",
+                )
+            )
         address = None
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -98,8 +128,9 @@ def test_bench_distributed_reports_both_paths(tmp_path, tiny_data_dir):
     from crater_synth.config import compose
     from crater_synth.launcher import bench_distributed
 
-    cfg = compose([*TINY, f"data_dir={tiny_data_dir}", *EIGHT, "launcher=dask", "launcher.n_workers=2",
-                   "launcher.shards=2"])
+    cfg = compose(
+        [*TINY, f"data_dir={tiny_data_dir}", *EIGHT, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2"]
+    )
     r = bench_distributed(cfg, work_dir=tmp_path)
     assert r["renders"] == 8 and r["identical_manifests"]
     assert r["single"]["renders_per_s"] > 0 and r["dask"]["renders_per_s"] > 0 and r["dask"]["workers"] == 2

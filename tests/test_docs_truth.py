@@ -11,7 +11,8 @@ from crater_synth.config import compose, resolved
 
 ROOT = Path(__file__).resolve().parent.parent
 # Keys of the composed render group that only the host reads (never the Blender worker's RENDER_DEFAULTS).
-HOST_ONLY_RENDER_KEYS = {"device", "crop_to_roi", "roi_min_px", "workers", "horizon_cache_dir"}  # job-level keys
+# (The horizon-map cache directory reaches the worker as the job's own `horizon_cache_dir`, not in `render`.)
+HOST_ONLY_RENDER_KEYS = {"device", "crop_to_roi", "roi_min_px", "workers", "max_retries", "horizon_cache_dir"}
 # Keys of RENDER_DEFAULTS that are not render-group settings: the Cycles seed comes with each render item
 # (crater_synth.dataset derives it from the top-level `seed`); the default is only a fallback.
 WORKER_ONLY_RENDER_KEYS = {"seed"}
@@ -23,12 +24,17 @@ def test_render_defaults_equal_the_composed_render_config():
     from blender_gen.scene import RENDER_DEFAULTS
 
     render = resolved(compose([]))["render"]
-    differ = {k: (v, render.get(k, "<absent>")) for k, v in RENDER_DEFAULTS.items()
-              if k not in WORKER_ONLY_RENDER_KEYS and render.get(k) != v}
+    differ = {
+        k: (v, render.get(k, "<absent>"))
+        for k, v in RENDER_DEFAULTS.items()
+        if k not in WORKER_ONLY_RENDER_KEYS and render.get(k) != v
+    }
     assert not differ, f"RENDER_DEFAULTS vs configs/render ((worker, config) per key): {differ}"
     unmirrored = set(render) - set(RENDER_DEFAULTS) - HOST_ONLY_RENDER_KEYS
-    assert not unmirrored, (f"render keys {sorted(unmirrored)} are in configs/render but not in RENDER_DEFAULTS: "
-                            f"add them there, or to HOST_ONLY_RENDER_KEYS here if the worker never reads them")
+    assert not unmirrored, (
+        f"render keys {sorted(unmirrored)} are in configs/render but not in RENDER_DEFAULTS: "
+        f"add them there, or to HOST_ONLY_RENDER_KEYS here if the worker never reads them"
+    )
 
 
 def _doc_files() -> list[Path]:
@@ -38,8 +44,7 @@ def _doc_files() -> list[Path]:
 @pytest.mark.parametrize("doc", _doc_files(), ids=lambda p: p.name)
 def test_every_file_a_doc_names_exists(doc):
     text = doc.read_text(encoding="utf-8")
-    named = set(re.findall(r"\b((?:%s|tests|configs|docs)/[\w/.-]+\.(?:py|yaml|md|j2|css))" % "|".join(PACKAGES),
-                           text))
+    named = set(re.findall(r"\b((?:%s|tests|configs|docs)/[\w/.-]+\.(?:py|yaml|md|j2|css))" % "|".join(PACKAGES), text))
     missing = sorted(p for p in named if not (ROOT / p).exists())
     assert not missing, f"{doc.name} names files that do not exist: {missing}"
 

@@ -29,8 +29,15 @@ def test_each_subset_has_exactly_the_paper_counts_from_the_rendered_grid(paper_g
 
 def test_training_image_counts_match_the_paper(paper_grid):
     """Camera-elevation counts 1..9 of the paper -> 2,250 .. 20,250 training images (SPEC Table 2)."""
-    rows = [{"sun_elevation": p.sun_elevation, "sun_azimuth": p.sun_azimuth, "cam_elevation": p.cam_elevation,
-             "cam_azimuth": p.cam_azimuth} for p in paper_grid]
+    rows = [
+        {
+            "sun_elevation": p.sun_elevation,
+            "sun_azimuth": p.sun_azimuth,
+            "cam_elevation": p.cam_elevation,
+            "cam_azimuth": p.cam_azimuth,
+        }
+        for p in paper_grid
+    ]
     full = {a: list(getattr(paper_grid, a)) for a in AXES}
     for count, expected in [(1, 2250), (2, 4500), (9, 20250), (10, 22500)]:
         sel = dict(full, cam_elevation=nearest_subset(full["cam_elevation"], "cam_elevation", count))
@@ -54,8 +61,15 @@ def test_small_config_fits_the_demo_sweep():
     cfg = resolved(compose(["sweep=demo", "experiments=small"]))
     points = plan_points(grid_from_config(cfg["sweep"]), cfg["experiments"]["counts"])
     assert {(p["parameter"], p["count"]) for p in points} == {
-        ("sun_elevation", 2), ("sun_elevation", 4), ("sun_azimuth", 3), ("sun_azimuth", 6),
-        ("cam_elevation", 1), ("cam_elevation", 2), ("cam_azimuth", 3), ("cam_azimuth", 6)}
+        ("sun_elevation", 2),
+        ("sun_elevation", 4),
+        ("sun_azimuth", 3),
+        ("sun_azimuth", 6),
+        ("cam_elevation", 1),
+        ("cam_elevation", 2),
+        ("cam_azimuth", 3),
+        ("cam_azimuth", 6),
+    }
 
 
 def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
@@ -71,24 +85,47 @@ def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
 
     torch.set_num_threads(1)
     ds = tmp_path / "toy"
-    write_toy_dataset(ds, sun_elevations=(15.0, 30.0), sun_azimuths=(0.0, 120.0, 240.0), cam_elevations=(90.0,),
-                      cam_azimuths=(0.0, 90.0, 180.0, 270.0), rim_px=40.0)
+    write_toy_dataset(
+        ds,
+        sun_elevations=(15.0, 30.0),
+        sun_azimuths=(0.0, 120.0, 240.0),
+        cam_elevations=(90.0,),
+        cam_azimuths=(0.0, 90.0, 180.0, 270.0),
+        rim_px=40.0,
+    )
     frames = write_toy_frames(tmp_path / "frames")
-    overrides = ["sweep=smoke", "sweep.sun_elevation.values=[15.0,30.0]", "sweep.sun_azimuth.values=[0.0,120.0,240.0]",
-                 "sweep.cam_elevation.values=[90.0]", "sweep.cam_azimuth.values=[0.0,90.0,180.0,270.0]",
-                 "experiments.counts.sun_elevation=[1,2]", "experiments.counts.sun_azimuth=null",
-                 "experiments.counts.cam_elevation=null", "experiments.counts.cam_azimuth=null",
-                 "experiments.sigmas=[1.0]",
-                 f"train.dataset_dir={ds}", f"data_dir={tmp_path}", f"run_dir={tmp_path}/run",
-                 f"train.cache_dir={tmp_path}/cache", "train.num_threads=1", "train.progress=false",
-                 "model.input_size=64", "train.batch_size=16", "train.lr=3e-3", "train.max_epochs=16",
-                 "train.target_val_accuracy=0.85", "train.hog.max_train_images=200",
-                 "realset.include_embedded=false", f"realset.labels_file={frames}"]
+    overrides = [
+        "sweep=smoke",
+        "sweep.sun_elevation.values=[15.0,30.0]",
+        "sweep.sun_azimuth.values=[0.0,120.0,240.0]",
+        "sweep.cam_elevation.values=[90.0]",
+        "sweep.cam_azimuth.values=[0.0,90.0,180.0,270.0]",
+        "experiments.counts.sun_elevation=[1,2]",
+        "experiments.counts.sun_azimuth=null",
+        "experiments.counts.cam_elevation=null",
+        "experiments.counts.cam_azimuth=null",
+        "experiments.sigmas=[1.0]",
+        f"train.dataset_dir={ds}",
+        f"data_dir={tmp_path}",
+        f"run_dir={tmp_path}/run",
+        f"train.cache_dir={tmp_path}/cache",
+        "train.num_threads=1",
+        "train.progress=false",
+        "model.input_size=64",
+        "train.batch_size=16",
+        "train.lr=3e-3",
+        "train.max_epochs=16",
+        "train.target_val_accuracy=0.85",
+        "train.hog.max_train_images=200",
+        "realset.include_embedded=false",
+        f"realset.labels_file={frames}",
+    ]
     results = run_experiments(compose(overrides), progress=False)
     rows = read_results(tmp_path / "run" / "experiments.csv")
     assert rows == results
     assert {(r["parameter"], r["count"], r["model"]) for r in rows} == {
-        ("sun_elevation", c, m) for c in (1, 2) for m in FIGURE6_MODELS}
+        ("sun_elevation", c, m) for c in (1, 2) for m in FIGURE6_MODELS
+    }
     images = {r["count"]: r["train_images"] for r in rows}
     assert images[2] > images[1] > 0  # the bigger subset trains on more rendered rows
     for r in rows:  # the CSV records what evaluation measured for that point

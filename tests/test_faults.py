@@ -12,8 +12,13 @@ from conftest import REPO, TINY, assert_same_dataset, cli_command, exr_files, ru
 
 # 32 renders, direct mode at 16 spp: ~0.09 s each on 2 cores, so a Blender worker runs ~3 s after
 # its first EXR: time to kill it mid-shard.
-SLOW32 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4",
-          "sweep.cam_elevation.count=2")
+SLOW32 = (
+    "render.mode=direct",
+    "render.samples=16",
+    "sweep.sun_azimuth.count=4",
+    "sweep.cam_azimuth.count=4",
+    "sweep.cam_elevation.count=2",
+)
 N32 = 32
 
 
@@ -55,9 +60,14 @@ def _ppid(pid: int) -> int:
 
 
 def _start_sweep(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen([*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
 
 
 def _wait_for(cond, what: str, timeout: float = 120, proc: subprocess.Popen | None = None):

@@ -69,13 +69,23 @@ def server():
 
 
 def product(sha=SHA, size=len(PAYLOAD), path="pds/a.bin"):
-    return {"id": "test_product", "source": "download", "archive": "mirror", "open": "a.bin",
-            "files": [{"name": "a.bin", "path": path, "size_bytes": size, "sha256": sha}]}
+    return {
+        "id": "test_product",
+        "source": "download",
+        "archive": "mirror",
+        "open": "a.bin",
+        "files": [{"name": "a.bin", "path": path, "size_bytes": size, "sha256": sha}],
+    }
 
 
 def settings(srv, **kw):
-    return {"base_url": f"http://127.0.0.1:{srv.server_address[1]}", "timeout_s": 10.0, "retries": 2,
-            "backoff_s": 0.0, **kw}
+    return {
+        "base_url": f"http://127.0.0.1:{srv.server_address[1]}",
+        "timeout_s": 10.0,
+        "retries": 2,
+        "backoff_s": 0.0,
+        **kw,
+    }
 
 
 def test_good_file_downloads_and_verifies(server, tmp_path):
@@ -138,9 +148,17 @@ def test_archive_without_url_needs_a_mirror(tmp_path):
 
 def test_registry_is_consistent():
     reg = products.load_products()
-    for pid in ("lola_ldem256_south", "lroc_wac_south", "lola_ldem_875s_20m", "lola_ldem_85s_40m",
-                "lola_ldem_80s_80m", "lroc_m101457600mc", "lroc_m139810920mc",
-                "selene_tc_tc1w2b0_01_00582s883e2719", "selene_hdtv_shackleton"):
+    for pid in (
+        "lola_ldem256_south",
+        "lroc_wac_south",
+        "lola_ldem_875s_20m",
+        "lola_ldem_85s_40m",
+        "lola_ldem_80s_80m",
+        "lroc_m101457600mc",
+        "lroc_m139810920mc",
+        "selene_tc_tc1w2b0_01_00582s883e2719",
+        "selene_hdtv_shackleton",
+    ):
         assert pid in reg and reg[pid].get("licence"), pid
     assert reg["lola_ldem256_south"]["sha256"].startswith("12c33e28")
     with pytest.raises(ProductError, match="unknown data product"):
@@ -173,8 +191,16 @@ def test_cli_embedded_and_mirror(server, tmp_path, monkeypatch):
     reg = {**products.load_products(), "test_product": {k: v for k, v in product().items() if k != "id"}}
     monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
     monkeypatch.setattr(products, "load_archives", lambda *a, **k: {"mirror": {"name": "m", "base_url": None}})
-    res = runner.invoke(main, ["fetch-data", "test_product", f"data_dir={tmp_path}",
-                               f"fetch.base_url={settings(server)['base_url']}", "fetch.backoff_s=0"])
+    res = runner.invoke(
+        main,
+        [
+            "fetch-data",
+            "test_product",
+            f"data_dir={tmp_path}",
+            f"fetch.base_url={settings(server)['base_url']}",
+            "fetch.backoff_s=0",
+        ],
+    )
     assert res.exit_code == 0, res.output
     row = json.loads(res.stdout)
     assert row["status"] == "downloaded" and (tmp_path / "products" / "a.bin").read_bytes() == PAYLOAD

@@ -21,8 +21,9 @@ def hand_hapke_smooth(mu0, mu, g, w, xi, b0, h):
 def test_zero_roughness_matches_hand_formula(i, e, g):
     p = HapkeParams(w=0.32, xi=-0.25, b0=1.0, h=0.06, theta_bar_deg=0.0)
     got = radiance_factor_np(math.cos(math.radians(i)), math.cos(math.radians(e)), math.cos(math.radians(g)), p)
-    want = hand_hapke_smooth(math.cos(math.radians(i)), math.cos(math.radians(e)), math.radians(g),
-                             0.32, -0.25, 1.0, 0.06)
+    want = hand_hapke_smooth(
+        math.cos(math.radians(i)), math.cos(math.radians(e)), math.radians(g), 0.32, -0.25, 1.0, 0.06
+    )
     assert float(got) == pytest.approx(want, rel=1e-4)
 
 

@@ -24,17 +24,28 @@ import pytest
 from crater_core import hapke
 
 PARAMS = [  # (w, xi, b0, h, theta_bar_deg)
-    (0.32, -0.25, 1.0, 0.06, 23.657),      # configs/hapke/lunar.yaml
+    (0.32, -0.25, 1.0, 0.06, 23.657),  # configs/hapke/lunar.yaml
     (0.32, -0.25, 1.0, 0.06, 10.0),
-    (0.60, 0.30, 0.5, 0.20, 35.0),         # forward-scattering, wide surge, very rough
-    (0.32, -0.25, 1.0, 0.06, 0.0),         # smooth: no roughness correction at all
+    (0.60, 0.30, 0.5, 0.20, 35.0),  # forward-scattering, wide surge, very rough
+    (0.32, -0.25, 1.0, 0.06, 0.0),  # smooth: no roughness correction at all
 ]
 # (i, e, psi) in degrees: both cases (i <= e, e < i), the paper's low Sun (i = 88.4-89.84), near-nadir
 # and oblique views, psi from 0 (sun behind the viewer) to 180.
 GEOMETRIES = [
-    (30.0, 60.0, 40.0), (60.0, 30.0, 40.0), (45.0, 45.0, 90.0), (10.0, 70.0, 150.0), (70.0, 10.0, 150.0),
-    (88.4, 2.0, 90.0), (88.4, 36.0, 0.0), (88.4, 36.0, 180.0), (89.84, 20.0, 120.0), (75.0, 80.0, 10.0),
-    (80.0, 75.0, 170.0), (20.0, 20.0, 0.5), (5.0, 85.0, 60.0), (85.0, 5.0, 60.0),
+    (30.0, 60.0, 40.0),
+    (60.0, 30.0, 40.0),
+    (45.0, 45.0, 90.0),
+    (10.0, 70.0, 150.0),
+    (70.0, 10.0, 150.0),
+    (88.4, 2.0, 90.0),
+    (88.4, 36.0, 0.0),
+    (88.4, 36.0, 180.0),
+    (89.84, 20.0, 120.0),
+    (75.0, 80.0, 10.0),
+    (80.0, 75.0, 170.0),
+    (20.0, 20.0, 0.5),
+    (5.0, 85.0, 60.0),
+    (85.0, 5.0, 60.0),
 ]
 
 
@@ -101,7 +112,7 @@ def _mutant_module(edits):
         src = src.replace(old, new)
     name = "crater_core._hapke_mutant"
     mod = types.ModuleType(name)
-    sys.modules[name] = mod           # dataclasses look their module up while the class is created
+    sys.modules[name] = mod  # dataclasses look their module up while the class is created
     try:
         exec(compile(src, name, "exec"), mod.__dict__)
     finally:

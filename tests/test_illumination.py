@@ -29,9 +29,15 @@ def test_spec_values_colatitude_plus_obliquity():
 
 
 def _physical(**kw) -> SweepGrid:
-    cfg = {"sun_model": "physical", "min_sun_elevation_deg": 0.16, "sun_elevation": {"count": 10},
-           "sun_azimuth": {"count": 4}, "cam_elevation": {"count": 1}, "cam_azimuth": {"count": 1},
-           "sigma": {"count": 1}}
+    cfg = {
+        "sun_model": "physical",
+        "min_sun_elevation_deg": 0.16,
+        "sun_elevation": {"count": 10},
+        "sun_azimuth": {"count": 4},
+        "cam_elevation": {"count": 1},
+        "cam_azimuth": {"count": 1},
+        "sigma": {"count": 1},
+    }
     cfg.update(kw)
     return grid_from_config(cfg)
 
@@ -55,18 +61,37 @@ def test_physical_sweep_places_suns_per_crater_and_direction():
 def test_physical_fractions_are_validated_and_paper_grid_unchanged():
     with pytest.raises(SweepError, match="fractions"):
         _physical(sun_elevation={"values": [0.5, 1.5]})
-    paper = grid_from_config({"sun_elevation": {"count": 3}, "sun_azimuth": {"count": 2},
-                              "cam_elevation": {"count": 1}, "cam_azimuth": {"count": 1}, "sigma": {"count": 1}})
+    paper = grid_from_config(
+        {
+            "sun_elevation": {"count": 3},
+            "sun_azimuth": {"count": 2},
+            "cam_elevation": {"count": 1},
+            "cam_azimuth": {"count": 1},
+            "sigma": {"count": 1},
+        }
+    )
     p = paper.params(paper.index_of((2, 1, 0, 0)), -88.1)
     assert p.sun_elevation == pytest.approx(0.48) and p.sun_elevation_param == pytest.approx(0.48)
     assert paper.renders(p)
 
 
 def test_selection_of_physical_rows_uses_the_fraction():
-    rows = [{"sun_elevation": 1.7, "sun_elevation_param": 0.5, "sun_azimuth": 0.0, "cam_elevation": 90.0,
-             "cam_azimuth": 0.0},
-            {"sun_elevation": 3.4, "sun_elevation_param": 1.0, "sun_azimuth": 0.0, "cam_elevation": 90.0,
-             "cam_azimuth": 0.0},
-            {"sun_elevation": 0.32, "sun_azimuth": 0.0, "cam_elevation": 90.0, "cam_azimuth": 0.0}]
+    rows = [
+        {
+            "sun_elevation": 1.7,
+            "sun_elevation_param": 0.5,
+            "sun_azimuth": 0.0,
+            "cam_elevation": 90.0,
+            "cam_azimuth": 0.0,
+        },
+        {
+            "sun_elevation": 3.4,
+            "sun_elevation_param": 1.0,
+            "sun_azimuth": 0.0,
+            "cam_elevation": 90.0,
+            "cam_azimuth": 0.0,
+        },
+        {"sun_elevation": 0.32, "sun_azimuth": 0.0, "cam_elevation": 90.0, "cam_azimuth": 0.0},
+    ]
     assert rows_in_selection(rows, {"sun_elevation": [0.5]}) == [rows[0]]
     assert rows_in_selection(rows, {"sun_elevation": [0.32]}) == [rows[2]]

@@ -11,10 +11,19 @@ import pytest
 from crater_synth import loop as loop_mod
 from crater_synth.config import compose
 
-TINY = ["crater=shackleton", "sweep=smoke", "sweep.sun_elevation.values=null", "sweep.sun_azimuth.count=1",
-        "sweep.cam_azimuth.count=1", "terrain.near_vertices=48", "terrain.far_radius_km=0",
-        "terrain.detail.enabled=false", "render.samples=1",
-        "render.shadow_map_px=96", "render.roi_min_px=24"]
+TINY = [
+    "crater=shackleton",
+    "sweep=smoke",
+    "sweep.sun_elevation.values=null",
+    "sweep.sun_azimuth.count=1",
+    "sweep.cam_azimuth.count=1",
+    "terrain.near_vertices=48",
+    "terrain.far_radius_km=0",
+    "terrain.detail.enabled=false",
+    "render.samples=1",
+    "render.shadow_map_px=96",
+    "render.roi_min_px=24",
+]
 
 
 @pytest.fixture()
@@ -83,10 +92,13 @@ def test_rounds_take_prefixes_of_explicit_sun_elevations(tmp_path):
     so rounds stay nested and only the new renders are added."""
     from crater_synth.config import resolved
 
-    cfg = compose(TINY + ["sweep.sun_model=physical", "sweep.sun_elevation.values=[0.25,0.5,0.75,1.0]",
-                          f"data_dir={tmp_path}/data"])
-    sel = [resolved(loop_mod.round_config(cfg, n, tmp_path / f"r{n}"))["train"]["select"]["sun_elevation"]
-           for n in (2, 4)]
+    cfg = compose(
+        TINY
+        + ["sweep.sun_model=physical", "sweep.sun_elevation.values=[0.25,0.5,0.75,1.0]", f"data_dir={tmp_path}/data"]
+    )
+    sel = [
+        resolved(loop_mod.round_config(cfg, n, tmp_path / f"r{n}"))["train"]["select"]["sun_elevation"] for n in (2, 4)
+    ]
     assert sel == [[0.25, 0.5], [0.25, 0.5, 0.75, 1.0]]
     from crater_synth.config import ConfigError
 

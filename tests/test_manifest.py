@@ -9,14 +9,32 @@ from crater_core import schema
 
 def make_row(crater="shackleton", index=0, se=0.16, sa=0.0, ce=90.0, ca=0.0, **kw):
     row = {
-        "schema_version": schema.SCHEMA_VERSION, "crater": crater, "index": index, "indices": [0, 0, 0, index],
-        "sun_elevation": se, "sun_azimuth": sa, "cam_elevation": ce, "cam_azimuth": ca,
-        "range_m": 31500.0, "fov_deg": 90.0, "width": 212, "height": 212, "frame_width": 450,
-        "crop_origin": [119, 119], "center_px": [106.0, 106.0],
+        "schema_version": schema.SCHEMA_VERSION,
+        "crater": crater,
+        "index": index,
+        "indices": [0, 0, 0, index],
+        "sun_elevation": se,
+        "sun_azimuth": sa,
+        "cam_elevation": ce,
+        "cam_azimuth": ca,
+        "range_m": 31500.0,
+        "fov_deg": 90.0,
+        "width": 212,
+        "height": 212,
+        "frame_width": 450,
+        "crop_origin": [119, 119],
+        "center_px": [106.0, 106.0],
         "rim_ellipse": {"cu": 106.0, "cv": 106.0, "a": 75.0, "b": 75.0, "angle_rad": 0.0},
-        "sigma_boxes": {"1.0": [31.0, 31.0, 181.0, 181.0]}, "lit_fraction": 0.5, "mean_if": 0.01,
-        "path": schema.render_rel_path(crater, se, sa, ce, ca), "sha256": "0" * 64, "seed": 1,
-        "code_version": "test", "renderer": "fast", "terrain_id": "t", "render_digest": "d",
+        "sigma_boxes": {"1.0": [31.0, 31.0, 181.0, 181.0]},
+        "lit_fraction": 0.5,
+        "mean_if": 0.01,
+        "path": schema.render_rel_path(crater, se, sa, ce, ca),
+        "sha256": "0" * 64,
+        "seed": 1,
+        "code_version": "test",
+        "renderer": "fast",
+        "terrain_id": "t",
+        "render_digest": "d",
     }
     row.update(kw)
     return row
@@ -51,8 +69,11 @@ def test_merge_is_sorted_deduplicated_and_byte_stable(tmp_path):
     assert schema.merge_parts(tmp_path) == 3
     first = (tmp_path / schema.MANIFEST_NAME).read_bytes()
     rows = schema.load_manifest(tmp_path)
-    assert [(r["crater"], r["cam_azimuth"]) for r in rows] == [("shackleton", 0.0), ("shackleton", 24.0),
-                                                               ("shoemaker", 0.0)]
+    assert [(r["crater"], r["cam_azimuth"]) for r in rows] == [
+        ("shackleton", 0.0),
+        ("shackleton", 24.0),
+        ("shoemaker", 0.0),
+    ]
     assert rows[0]["mean_if"] == 0.02
     assert not list(parts.glob("*.jsonl"))
     schema.write_manifest(tmp_path / "again.jsonl", reversed(rows))

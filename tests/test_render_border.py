@@ -45,8 +45,9 @@ def paper_plans(tmp_path_factory):
     out = {}
     for crater in craters(cfg):
         _, meta = build_terrain(crater, cfg)
-        out[crater["name"]] = [plan_render(crater, meta, grid, grid.index_of((0, 0, k, 0)), roi)
-                               for k in range(len(grid.cam_elevation))]
+        out[crater["name"]] = [
+            plan_render(crater, meta, grid, grid.index_of((0, 0, k, 0)), roi) for k in range(len(grid.cam_elevation))
+        ]
     return out
 
 
@@ -87,8 +88,19 @@ def test_exr_size_and_content_position_at_every_paper_camera_elevation(paper_pla
     for name, plans in paper_plans.items():
         for plan in plans:
             p = plan["params"]
-            items.append(cr.item(len(items), 30.0, 0.0, p.cam_elevation, 37.0 + 11 * len(items), plan["range_m"],
-                                 plan["frame_width"], list(plan["crop"]), name=name))
+            items.append(
+                cr.item(
+                    len(items),
+                    30.0,
+                    0.0,
+                    p.cam_elevation,
+                    37.0 + 11 * len(items),
+                    plan["range_m"],
+                    plan["frame_width"],
+                    list(plan["crop"]),
+                    name=name,
+                )
+            )
     job = cr.job(npz, items, tmp_path / "out", mode="direct", diameter_km=20.0, samples=1)
     results, proc = cr.run_worker(job, tmp_path, "border")
     assert proc.returncode == 0, proc.stderr[-3000:]

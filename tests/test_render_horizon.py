@@ -34,16 +34,25 @@ def test_disc_factor_matches_numerical_integration():
     n = 400_000  # uniform points on the unit disc
     rad, ang = np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
     dy = rad * np.sin(ang) * SUN_R  # offset in elevation (the azimuth offset does not matter)
-    for theta_deg, h_deg, tilt in [(0.16, 0.0, 0.0), (0.3, 0.25, 0.0), (0.64, 0.5, 0.3), (1.6, 1.7, -0.2),
-                                   (0.2, -0.5, 0.0), (0.4, 0.9, 0.0)]:
+    for theta_deg, h_deg, tilt in [
+        (0.16, 0.0, 0.0),
+        (0.3, 0.25, 0.0),
+        (0.64, 0.5, 0.3),
+        (1.6, 1.7, -0.2),
+        (0.2, -0.5, 0.0),
+        (0.4, 0.9, 0.0),
+    ]:
         theta, h = math.radians(theta_deg), math.radians(h_deg)
         # a surface tilted away from the sun by `tilt` deg: N.l = sin(elevation of l - tilt)
         n_dot_l = np.sin(theta + dy - math.radians(tilt))
         visible = (theta + dy) > h
         mu0 = math.sin(theta - math.radians(tilt))
         expected = np.mean(np.maximum(n_dot_l, 0) * visible) / mu0
-        got = float(horizon.disc_lit_factor(theta, np.float32(h), np.float32(mu0),
-                                            np.float32(math.cos(theta - math.radians(tilt)))))
+        got = float(
+            horizon.disc_lit_factor(
+                theta, np.float32(h), np.float32(mu0), np.float32(math.cos(theta - math.radians(tilt)))
+            )
+        )
         assert got == pytest.approx(expected, abs=0.01 + 0.01 * expected), (theta_deg, h_deg, tilt, got, expected)
         frac = float(horizon.disc_fraction_above(theta, np.float32(h)))
         assert frac == pytest.approx(np.mean(visible), abs=0.003)
@@ -67,8 +76,17 @@ def bowl(tmp_path_factory):
     far = cr.grid(FAR_HALF, FAR_N, _far_z, curvature=True)
     npz = cr.write_npz(tmp / "bowl.npz", near, far, cr.keep_outside(far, NEAR_HALF))
     items = cr.crater_items(CRATER_D, SUNS, CAMS, roi_min_px=100)
-    job = cr.job(npz, items, tmp / "fast", mode="fast", diameter_km=CRATER_D / 1000.0, samples=8,
-                 shadow_map_px=384, shadow_map_levels=2, shadow_map_extent_factor=1.8)
+    job = cr.job(
+        npz,
+        items,
+        tmp / "fast",
+        mode="fast",
+        diameter_km=CRATER_D / 1000.0,
+        samples=8,
+        shadow_map_px=384,
+        shadow_map_levels=2,
+        shadow_map_extent_factor=1.8,
+    )
     results, proc = cr.run_worker(job, tmp, "bowl")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert '"fallbacks": 0' in proc.stderr
@@ -78,13 +96,13 @@ def bowl(tmp_path_factory):
 def _mesh_height(near_coeffs, far, x, y):
     """Height of the vertex grids (rows north -> south; near field: interpolating cubic spline, far
     field: bilinear), near field first, then far field."""
+
     def index(half, n):
         return [(half - y) / (2 * half) * (n - 1), (x + half) / (2 * half) * (n - 1)]
 
     z = map_coordinates(far[..., 2].astype(np.float64), index(FAR_HALF, FAR_N), order=1, mode="nearest")
     inside = (np.abs(x) <= NEAR_HALF) & (np.abs(y) <= NEAR_HALF)
-    z[inside] = map_coordinates(near_coeffs, index(NEAR_HALF, NEAR_N), order=3, mode="nearest",
-                                prefilter=False)[inside]
+    z[inside] = map_coordinates(near_coeffs, index(NEAR_HALF, NEAR_N), order=3, mode="nearest", prefilter=False)[inside]
     z[(np.abs(x) > FAR_HALF) | (np.abs(y) > FAR_HALF)] = -np.inf
     return z
 
@@ -96,8 +114,9 @@ def _marched_horizon(near, far, px, py, azimuth_deg):
     z0 = _mesh_height(coeffs, far, px, py)
     spacing = 2 * NEAR_HALF / (NEAR_N - 1)
     t_min = max(horizon.MIN_OCCLUDER_DISTANCE_SPACINGS, 0.25) * spacing
-    steps = np.concatenate([np.arange(t_min, 3 * NEAR_HALF, spacing / 3),
-                            np.arange(3 * NEAR_HALF, 3 * FAR_HALF, 250.0)])
+    steps = np.concatenate(
+        [np.arange(t_min, 3 * NEAR_HALF, spacing / 3), np.arange(3 * NEAR_HALF, 3 * FAR_HALF, 250.0)]
+    )
     best = np.full(px.shape, -np.inf)
     for t in steps:
         best = np.maximum(best, (_mesh_height(coeffs, far, px + t * dx, py + t * dy) - z0) / t)
@@ -126,7 +145,7 @@ def test_lit_mask_matches_brute_force_ray_marching(bowl):
         same = np.ones(cls.shape, bool)
         for di in (0, 1, 2):
             for dj in (0, 1, 2):
-                same &= pad[di:di + cls.shape[0], dj:dj + cls.shape[1]] == cls
+                same &= pad[di : di + cls.shape[0], dj : dj + cls.shape[1]] == cls
         check = same & (cls >= 0) & (mu0 > 0.03)
         lit = img["lit"]
         tag = f"sun {it['sun_elevation']}/{it['sun_azimuth']} cam {it['cam_elevation']}/{it['cam_azimuth']}"

@@ -42,12 +42,12 @@ def _run(job_dict, tmp_path, name):
 # ------------------------------------------------------------------------------------------------
 # (sun elevation, sun azimuth, camera elevation, camera azimuth)
 FLAT_ANGLES = [
-    (30.0, 0.0, 90.0, 0.0),      # nadir view
-    (30.0, 0.0, 60.0, 180.0),    # forward scattering side
-    (60.0, 0.0, 60.0, 0.0),      # camera in the sun's direction: phase ~0 (opposition surge)
+    (30.0, 0.0, 90.0, 0.0),  # nadir view
+    (30.0, 0.0, 60.0, 180.0),  # forward scattering side
+    (60.0, 0.0, 60.0, 0.0),  # camera in the sun's direction: phase ~0 (opposition surge)
     (10.0, 90.0, 70.0, 45.0),
-    (60.0, 200.0, 54.0, 10.0),   # lowest camera of the sweep
-    (1.6, 0.0, 90.0, 0.0),       # the sweep's sun elevations
+    (60.0, 200.0, 54.0, 10.0),  # lowest camera of the sweep
+    (1.6, 0.0, 90.0, 0.0),  # the sweep's sun elevations
     (0.5, 45.0, 70.0, 200.0),
 ]
 FLAT_RANGE = 15_000.0
@@ -57,8 +57,10 @@ FLAT_RANGE = 15_000.0
 def flat_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("flat")
     npz = cr.write_npz(tmp / "flat.npz", cr.grid(60_000.0, 33))
-    items = [cr.item(i, *a, range_m=FLAT_RANGE, frame_width=200, crop=cr.central_crop(200, 80, du=7, dv=-5),
-                     name="flat") for i, a in enumerate(FLAT_ANGLES)]
+    items = [
+        cr.item(i, *a, range_m=FLAT_RANGE, frame_width=200, crop=cr.central_crop(200, 80, du=7, dv=-5), name="flat")
+        for i, a in enumerate(FLAT_ANGLES)
+    ]
     runs = {}
     for mode in ("direct", "fast"):
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=20.0, shadow_map_px=256)
@@ -127,9 +129,11 @@ def test_flat_plane_depth_and_crop_alignment(flat_runs):
 # ------------------------------------------------------------------------------------------------
 MESA_H, MESA_HALF = 1500.0, 3000.0
 # (sun elevation, sun azimuth, a point on the mesa's top edge that casts the measured shadow)
-MESA_SUNS = [(20.0, 90.0, (-MESA_HALF, 0.0)),   # sun in the east: shadow west of the west edge
-             (12.0, 0.0, (0.0, -MESA_HALF)),    # sun in the north: shadow south of the south edge
-             (30.0, 225.0, (0.0, MESA_HALF))]   # oblique: the north edge's shadow, towards north-east
+MESA_SUNS = [
+    (20.0, 90.0, (-MESA_HALF, 0.0)),  # sun in the east: shadow west of the west edge
+    (12.0, 0.0, (0.0, -MESA_HALF)),  # sun in the north: shadow south of the south edge
+    (30.0, 225.0, (0.0, MESA_HALF)),
+]  # oblique: the north edge's shadow, towards north-east
 
 
 @pytest.fixture(scope="module")
@@ -140,8 +144,10 @@ def mesa_runs(tmp_path_factory):
         return np.where((np.abs(x) <= MESA_HALF + 1) & (np.abs(y) <= MESA_HALF + 1), MESA_H, 0.0)
 
     npz = cr.write_npz(tmp / "mesa.npz", cr.grid(16_000.0, 321, mesa))  # 100 m grid, edges on vertices
-    items = [cr.item(i, se, sa, 90.0, 0.0, range_m=20_000.0, frame_width=400, crop=cr.central_crop(400, 240),
-                     name="mesa") for i, (se, sa, _) in enumerate(MESA_SUNS)]
+    items = [
+        cr.item(i, se, sa, 90.0, 0.0, range_m=20_000.0, frame_width=400, crop=cr.central_crop(400, 240), name="mesa")
+        for i, (se, sa, _) in enumerate(MESA_SUNS)
+    ]
     runs = {}
     for mode in ("direct", "fast"):
         # horizon maps +-6.3 km and +-12.6 km (covering the crop), 33 / 66 m texels (camera pixels: 100 m)
@@ -176,9 +182,11 @@ def test_step_shadow_length(mesa_runs, mode):
         end_expected = MESA_H / math.tan(math.radians(it["sun_elevation"]))
         px_per_m = pose.focal_px(it["frame_width"]) / it["range_m"]  # nadir view of z = 0
         err_px = abs(end_measured - end_expected) * px_per_m
-        assert err_px <= 2.0, f"{mode} sun {it['sun_elevation']}/{it['sun_azimuth']}: shadow ends at " \
-                              f"{end_measured:.0f} m, expected {end_expected:.0f} m ({err_px:.1f} px)"
-        assert profile[first_lit[0] + 40:].min() > 0.95  # lit beyond it
+        assert err_px <= 2.0, (
+            f"{mode} sun {it['sun_elevation']}/{it['sun_azimuth']}: shadow ends at "
+            f"{end_measured:.0f} m, expected {end_expected:.0f} m ({err_px:.1f} px)"
+        )
+        assert profile[first_lit[0] + 40 :].min() > 0.95  # lit beyond it
         assert profile[: max(first_lit[0] - 40, 1)].max() < 0.05  # in shadow before it
 
 
@@ -199,8 +207,10 @@ def ridge_runs(tmp_path_factory):
     near = cr.grid(NEAR_HALF, 65, curvature=True)
     far = cr.grid(90_000.0, 181, lambda x, y: RIDGE_H * np.exp(-(((y - RIDGE_Y) / 4000.0) ** 2)), curvature=True)
     npz = cr.write_npz(tmp / "ridge.npz", near, far, cr.keep_outside(far, NEAR_HALF))
-    items = [cr.item(i, se, sa, 90.0, 0.0, range_m=15_000.0, frame_width=200, crop=cr.central_crop(200, 100),
-                     name="ridge") for i, (se, sa, _) in enumerate(RIDGE_SUNS)]
+    items = [
+        cr.item(i, se, sa, 90.0, 0.0, range_m=15_000.0, frame_width=200, crop=cr.central_crop(200, 100), name="ridge")
+        for i, (se, sa, _) in enumerate(RIDGE_SUNS)
+    ]
     runs = {}
     for mode in ("direct", "fast"):
         job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=10.0, shadow_map_px=256)
@@ -229,10 +239,10 @@ CRATER_D = 10_000.0
 CRATER_SUNS = [(1.6, 135.0), (0.48, 300.0), (10.0, 45.0)]
 CRATER_CAMS = [(90.0, 0.0), (62.0, 200.0)]
 # Tolerances, per render (measured values on this scene are ~3-5x smaller, docs/renderer.md):
-FAST_MEAN_TOL = 0.015   # |mean(fast) / mean(direct) - 1|
-FAST_MAD_TOL = 0.03     # mean |fast - direct| / median(direct I/F of lit pixels)
+FAST_MEAN_TOL = 0.015  # |mean(fast) / mean(direct) - 1|
+FAST_MAD_TOL = 0.03  # mean |fast - direct| / median(direct I/F of lit pixels)
 FAST_OUTLIER_TOL = 0.05  # fraction of pixels with |fast - direct| > 10 % of that median (shadow edges)
-LIT_MAD_TOL = 0.02      # mean |lit_fast - lit_direct|
+LIT_MAD_TOL = 0.02  # mean |lit_fast - lit_direct|
 
 
 @pytest.fixture(scope="module")
@@ -244,8 +254,17 @@ def crater_runs(tmp_path_factory):
     items = cr.crater_items(CRATER_D, CRATER_SUNS, CRATER_CAMS, roi_min_px=100)
     runs = {}
     for mode in ("direct", "fast"):
-        job = cr.job(npz, items, tmp / mode, mode=mode, diameter_km=CRATER_D / 1000.0, samples=16,
-                     shadow_map_px=384, shadow_map_levels=2, shadow_map_extent_factor=1.8)
+        job = cr.job(
+            npz,
+            items,
+            tmp / mode,
+            mode=mode,
+            diameter_km=CRATER_D / 1000.0,
+            samples=16,
+            shadow_map_px=384,
+            shadow_map_levels=2,
+            shadow_map_extent_factor=1.8,
+        )
         # horizon-map texels 47 m (|x|, |y| < 9 km) and 94 m (out to 18 km); camera pixels ~100 m
         results, proc = _run(job, tmp, f"crater-{mode}")
         runs[mode] = {"items": items, "out": tmp / mode, "results": results, "stderr": proc.stderr}
@@ -253,7 +272,7 @@ def crater_runs(tmp_path_factory):
 
 
 def test_fast_matches_direct(crater_runs):
-    assert "fallbacks\": 0" in crater_runs["fast"]["stderr"]
+    assert 'fallbacks": 0' in crater_runs["fast"]["stderr"]
     for it in crater_runs["direct"]["items"]:
         a = _load(crater_runs["direct"]["out"], it)
         b = _load(crater_runs["fast"]["out"], it)

@@ -28,10 +28,14 @@ def small(tmp_path_factory):
     """Two renders (one per mode) of a bumpy plane, written twice to the same out dir."""
     tmp = tmp_path_factory.mktemp("contract")
     npz = cr.write_npz(tmp / "bumps.npz", cr.grid(20_000.0, 65, lambda x, y: 300 * np.sin(x / 2000) * np.cos(y / 3000)))
-    items = [cr.item(0, 20.0, 30.0, 70.0, 120.0, range_m=15_000.0, frame_width=160,
-                     crop=[30, 41, 30 + 97, 41 + 70], name="bumps"),
-             cr.item(1, 5.0, 200.0, 90.0, 0.0, range_m=15_000.0, frame_width=160,
-                     crop=cr.central_crop(160, 64), name="bumps")]
+    items = [
+        cr.item(
+            0, 20.0, 30.0, 70.0, 120.0, range_m=15_000.0, frame_width=160, crop=[30, 41, 30 + 97, 41 + 70], name="bumps"
+        ),
+        cr.item(
+            1, 5.0, 200.0, 90.0, 0.0, range_m=15_000.0, frame_width=160, crop=cr.central_crop(160, 64), name="bumps"
+        ),
+    ]
     out = {}
     for mode in ("direct", "fast"):
         job = cr.job(npz, items, tmp / "out" / mode, mode=mode, samples=4, shadow_map_px=128)
@@ -95,8 +99,9 @@ def test_overwrite_is_atomic_and_deterministic(small, mode):
     run = small[mode]
     for it in run["job"]["renders"]:
         assert run["first"][it["index"]]["sha256"] == run["second"][it["index"]]["sha256"]
-    leftovers = [p.name for p in (run["dir"] / "bumps").iterdir()
-                 if not p.name.endswith(".exr") or p.name.startswith(".")]
+    leftovers = [
+        p.name for p in (run["dir"] / "bumps").iterdir() if not p.name.endswith(".exr") or p.name.startswith(".")
+    ]
     assert leftovers == []
 
 
@@ -145,10 +150,12 @@ def test_crop_outside_frame_is_a_clean_error(tmp_path):
 def test_script_form_adds_repo_to_path(tmp_path):
     """``python blender_gen/worker.py JOB`` (what ``blender --python`` runs) finds its package."""
     npz = cr.write_npz(tmp_path / "flat.npz", cr.grid(20_000.0, 9))
-    job = cr.job(npz, [cr.item(0, 30, 0, 90, 0, 15_000.0, frame_width=64, crop=[16, 16, 48, 48])],
-                 tmp_path / "out", samples=1)
-    results, proc = cr.run_worker(job, tmp_path, "script",
-                                  argv=[sys.executable, str(cr.REPO / "blender_gen" / "worker.py")])
+    job = cr.job(
+        npz, [cr.item(0, 30, 0, 90, 0, 15_000.0, frame_width=64, crop=[16, 16, 48, 48])], tmp_path / "out", samples=1
+    )
+    results, proc = cr.run_worker(
+        job, tmp_path, "script", argv=[sys.executable, str(cr.REPO / "blender_gen" / "worker.py")]
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert list(results) == [0]
 
@@ -156,10 +163,21 @@ def test_script_form_adds_repo_to_path(tmp_path):
 @pytest.mark.skipif(shutil.which("blender") is None, reason="no blender binary on PATH")
 def test_blender_binary_form(tmp_path):
     npz = cr.write_npz(tmp_path / "flat.npz", cr.grid(20_000.0, 9))
-    job = cr.job(npz, [cr.item(0, 30, 0, 90, 0, 15_000.0, frame_width=64, crop=[16, 16, 48, 48])],
-                 tmp_path / "out", samples=1)
-    results, proc = cr.run_worker(job, tmp_path, "blender", argv=[
-        shutil.which("blender"), "--background", "--factory-startup", "--python",
-        str(cr.REPO / "blender_gen" / "worker.py"), "--"])
+    job = cr.job(
+        npz, [cr.item(0, 30, 0, 90, 0, 15_000.0, frame_width=64, crop=[16, 16, 48, 48])], tmp_path / "out", samples=1
+    )
+    results, proc = cr.run_worker(
+        job,
+        tmp_path,
+        "blender",
+        argv=[
+            shutil.which("blender"),
+            "--background",
+            "--factory-startup",
+            "--python",
+            str(cr.REPO / "blender_gen" / "worker.py"),
+            "--",
+        ],
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert list(results) == [0]

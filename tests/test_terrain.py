@@ -81,7 +81,7 @@ def test_far_quads_overlap_near_field_without_gaps(shackleton):
     dropped = ~keep
     assert dropped.any() and keep[0, 0] and keep[-1, -1]
     # Every dropped quad lies inside the near field; every quad not fully inside it is kept.
-    inside_near = (np.maximum(np.abs(lo), np.abs(hi)) <= hw)
+    inside_near = np.maximum(np.abs(lo), np.abs(hi)) <= hw
     assert (inside_near[:, None] & inside_near[None, :])[dropped].all()
     assert keep[~(inside_near[:, None] & inside_near[None, :])].all()
 
@@ -89,8 +89,20 @@ def test_far_quads_overlap_near_field_without_gaps(shackleton):
 def test_metadata_fields(shackleton):
     _, _, path, meta, _ = shackleton
     on_disk = json.loads(path.with_suffix(".json").read_text())
-    for key in ("terrain_id", "crater", "dem", "near", "far", "rim_z_m", "floor_z_m", "rim_to_floor_depth_m",
-                "vertex_count", "nodata_fraction", "filled_holes", "detail"):
+    for key in (
+        "terrain_id",
+        "crater",
+        "dem",
+        "near",
+        "far",
+        "rim_z_m",
+        "floor_z_m",
+        "rim_to_floor_depth_m",
+        "vertex_count",
+        "nodata_fraction",
+        "filled_holes",
+        "detail",
+    ):
         assert key in on_disk, key
     assert re.fullmatch(r"[0-9a-f]{16}", on_disk["terrain_id"])
     dem = on_disk["dem"]
@@ -122,6 +134,7 @@ def test_cache_and_terrain_id(shackleton, data_dir):
     h_on = np.load(meta_on["patch"])["near_height"].astype(np.float64)
     assert np.abs(h_on - h_off).max() > 1.0  # the detail is there ...
     from crater_synth.detail import lowpass
+
     diff = h_on - h_off  # ... and only below the DEM's resolution (float32 storage aside)
     assert np.abs(lowpass(diff, meta["near"]["spacing_m"], 1600.0)).max() < 0.01 * diff.std() + 0.01
     assert not list((data_dir / "terrain").glob(".*.tmp"))
@@ -133,24 +146,39 @@ def test_cli_prints_one_json_line(data_dir):
     lines = res.stdout.strip().splitlines()
     assert len(lines) == 1
     row = json.loads(lines[0])
-    for key in ("crater", "dem_product", "dem_pixel_m", "crater_center_px", "rim_to_floor_depth_m",
-                "near_extent_km", "far_extent_km", "vertex_count", "nodata_fraction", "patch"):
+    for key in (
+        "crater",
+        "dem_product",
+        "dem_pixel_m",
+        "crater_center_px",
+        "rim_to_floor_depth_m",
+        "near_extent_km",
+        "far_extent_km",
+        "vertex_count",
+        "nodata_fraction",
+        "patch",
+    ):
         assert key in row, key
     assert row["crater"] == "shackleton" and 3000 < row["rim_to_floor_depth_m"] < 5000
     assert row["near_extent_km"] == pytest.approx(105.0) and row["far_extent_km"] == pytest.approx(600.0)
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["terrain.near_vertices=1"], "terrain.near_vertices=1"),
-    (["terrain.near_radius_factor=0.2"], "terrain.near_radius_factor"),
-    (["terrain.far_spacing_km=0"], "terrain.far_spacing_km"),
-    (["dem.max_nodata_fraction=2"], "dem.max_nodata_fraction"),
-    (["terrain.detail.hurst=1.5"], "terrain.detail.hurst"),
-    (["crater=custom", "crater.custom.lon=10", "crater.custom.diameter_km=20"], "crater.custom.lat"),
-    (["crater=custom", "crater.custom.lat=-60", "crater.custom.lon=0", "crater.custom.diameter_km=20"],
-     "outside DEM"),
-    (["dem.path=/nonexistent/dem.tif"], "/nonexistent/dem.tif"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["terrain.near_vertices=1"], "terrain.near_vertices=1"),
+        (["terrain.near_radius_factor=0.2"], "terrain.near_radius_factor"),
+        (["terrain.far_spacing_km=0"], "terrain.far_spacing_km"),
+        (["dem.max_nodata_fraction=2"], "dem.max_nodata_fraction"),
+        (["terrain.detail.hurst=1.5"], "terrain.detail.hurst"),
+        (["crater=custom", "crater.custom.lon=10", "crater.custom.diameter_km=20"], "crater.custom.lat"),
+        (
+            ["crater=custom", "crater.custom.lat=-60", "crater.custom.lon=0", "crater.custom.diameter_km=20"],
+            "outside DEM",
+        ),
+        (["dem.path=/nonexistent/dem.tif"], "/nonexistent/dem.tif"),
+    ],
+)
 def test_cli_bad_input_is_one_error_line(data_dir, args, needle):
     res = CliRunner().invoke(main, ["terrain", "crater=shackleton", f"data_dir={data_dir}", *FAST, *args])
     assert res.exit_code == 2, res.output
@@ -160,8 +188,7 @@ def test_cli_bad_input_is_one_error_line(data_dir, args, needle):
 
 
 def test_far_radius_zero_disables_far_field(data_dir):
-    cfg = compose([f"data_dir={data_dir}", "crater=shoemaker", "terrain.near_vertices=32",
-                   "terrain.far_radius_km=0"])
+    cfg = compose([f"data_dir={data_dir}", "crater=shoemaker", "terrain.near_vertices=32", "terrain.far_radius_km=0"])
     path, meta = build_terrain(craters(cfg)[0], cfg)
     z = np.load(path)
     assert z["far_xyz"].shape == (0, 0, 3) and z["far_keep_quads"].shape == (0, 0)

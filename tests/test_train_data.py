@@ -15,8 +15,13 @@ from train.errors import DatasetError, RealDataLeakError
 from train.toydata import write_toy_dataset
 
 torch.set_num_threads(1)
-TOY = dict(sun_elevations=(15.0, 30.0), sun_azimuths=(0.0, 180.0), cam_elevations=(90.0, 70.0),
-           cam_azimuths=(0.0, 120.0, 240.0), rim_px=32.0)
+TOY = dict(
+    sun_elevations=(15.0, 30.0),
+    sun_azimuths=(0.0, 180.0),
+    cam_elevations=(90.0, 70.0),
+    cam_azimuths=(0.0, 120.0, 240.0),
+    rim_px=32.0,
+)
 
 
 @pytest.fixture(scope="module")
@@ -27,9 +32,19 @@ def toy(tmp_path_factory):
 
 
 def _cfg(dataset_dir, tmp_path, *extra):
-    return resolved(compose([f"train.dataset_dir={dataset_dir}", f"data_dir={tmp_path}", f"run_dir={tmp_path}/run",
-                             f"train.cache_dir={tmp_path}/cache", "train.num_threads=1", "train.progress=false",
-                             *extra]))
+    return resolved(
+        compose(
+            [
+                f"train.dataset_dir={dataset_dir}",
+                f"data_dir={tmp_path}",
+                f"run_dir={tmp_path}/run",
+                f"train.cache_dir={tmp_path}/cache",
+                "train.num_threads=1",
+                "train.progress=false",
+                *extra,
+            ]
+        )
+    )
 
 
 def _copy(toy, tmp_path):
@@ -42,7 +57,7 @@ def test_datasets_cache_and_samples(toy, tmp_path, monkeypatch):
     cfg = _cfg(toy, tmp_path)
     data = build_datasets(cfg)
     n_rows = 3 * 24
-    assert len(data.train) + len(data.val) == n_rows * 3          # one sample per (row, sigma)
+    assert len(data.train) + len(data.val) == n_rows * 3  # one sample per (row, sigma)
     assert data.info["cache_built"] and data.info["sigmas"] == [1.0, 1.2, 1.4]
     x, y = data.train[0]
     assert x.shape == (1, 150, 150) and x.dtype == torch.float32 and 0 <= float(x.min()) and float(x.max()) <= 1
@@ -68,24 +83,33 @@ def test_split_holds_out_whole_camera_poses(toy, tmp_path):
     rows = data.train.rows
 
     def poses(ds):
-        return {(rows[ri]["cam_elevation"], rows[ri]["cam_azimuth"]) for ri, _ in
-                (ds.cache.samples[j] for j in ds.indices)}
+        return {
+            (rows[ri]["cam_elevation"], rows[ri]["cam_azimuth"]) for ri, _ in (ds.cache.samples[j] for j in ds.indices)
+        }
 
     tr, va = poses(data.train), poses(data.val)
     assert tr and va and not (tr & va) and len(tr | va) == 6
     assert data.info["split_by"] == "camera"
     # Seeded: the same seed gives the same split, a different one (typically) another.
     r = load_rows(toy)
-    assert split_rows(r, 0.2, "camera", 0, ["shackleton", "de_gerlache", "shoemaker"])[1] == \
+    assert (
         split_rows(r, 0.2, "camera", 0, ["shackleton", "de_gerlache", "shoemaker"])[1]
+        == split_rows(r, 0.2, "camera", 0, ["shackleton", "de_gerlache", "shoemaker"])[1]
+    )
     sun = split_rows(r, 0.3, "sun", 0, ["shackleton", "de_gerlache", "shoemaker"])
     assert sun[2]["split_by"] == "sun"
 
 
 def test_real_rows_and_real_files_are_refused(toy, tmp_path):
     rows = load_rows(toy)
-    real_like = {"crater": "shackleton", "source": "lroc_wac_south", "image_path": "wac_south.jpg",
-                 "box": [0, 0, 10, 10], "sigma": 1.0, "role": "test"}
+    real_like = {
+        "crater": "shackleton",
+        "source": "lroc_wac_south",
+        "image_path": "wac_south.jpg",
+        "box": [0, 0, 10, 10],
+        "sigma": 1.0,
+        "role": "test",
+    }
     with pytest.raises(RealDataLeakError, match="real images are only ever test data"):
         check_synthetic_rows([rows[0], real_like], toy)
     with pytest.raises(RealDataLeakError, match="not a render-manifest row"):
@@ -103,6 +127,7 @@ def test_real_rows_and_real_files_are_refused(toy, tmp_path):
         build_datasets(_cfg(d, tmp_path))
     # And the trainer accepts nothing but synthetic datasets.
     from train.trainer import _require_synthetic
+
     with pytest.raises(RealDataLeakError):
         _require_synthetic(torch.utils.data.TensorDataset(torch.zeros(2, 1, 150, 150), torch.zeros(2)))
 
@@ -138,8 +163,9 @@ def test_missing_manifest_and_unsplittable_dataset(tmp_path):
     with pytest.raises(DatasetError, match="no manifest.jsonl"):
         build_datasets(_cfg(tmp_path / "nothing", tmp_path))
     d = tmp_path / "one"
-    write_toy_dataset(d, sun_elevations=(20.0,), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0,),
-                      rim_px=16.0)
+    write_toy_dataset(
+        d, sun_elevations=(20.0,), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0,), rim_px=16.0
+    )
     with pytest.raises(DatasetError, match="single camera pose and a single sun direction"):
         build_datasets(_cfg(d, tmp_path))
 

@@ -29,16 +29,24 @@ CRATERS = ["shackleton", "de_gerlache", "shoemaker"]
 ACCURACY_BAR = {"lunarnet_ex": 0.70, "lunarsvm_ex": 0.65, "hog_svm": 0.60}
 # A small network input (64 px instead of the paper's 150) and enough steps to learn the toy set in
 # seconds; early stop at the validation target keeps the run short.
-FAST_TRAINING = ["model.input_size=64", "train.batch_size=16", "train.lr=3e-3", "train.max_epochs=16",
-                 "train.target_val_accuracy=0.85", "train.hog.max_train_images=200"]
+FAST_TRAINING = [
+    "model.input_size=64",
+    "train.batch_size=16",
+    "train.lr=3e-3",
+    "train.max_epochs=16",
+    "train.target_val_accuracy=0.85",
+    "train.hog.max_train_images=200",
+]
 
 
 def shortfalls(metrics: dict) -> list[str]:
     """Every (model, test) below ACCURACY_BAR; empty when the classifiers learned the toy set."""
     out = []
     for m in MODELS:
-        for what, acc in (("validation", metrics[m]["val_accuracy"]),
-                          ("held-out toy frames", metrics[m]["per_source"].get(TOY_FRAME_SOURCE))):
+        for what, acc in (
+            ("validation", metrics[m]["val_accuracy"]),
+            ("held-out toy frames", metrics[m]["per_source"].get(TOY_FRAME_SOURCE)),
+        ):
             if acc is None or not acc >= ACCURACY_BAR[m]:
                 out.append(f"{m} {what} accuracy {acc} < {ACCURACY_BAR[m]}")
     return out
@@ -47,8 +55,14 @@ def shortfalls(metrics: dict) -> list[str]:
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
     d = tmp_path_factory.mktemp("toy_e2e")
-    write_toy_dataset(d, sun_elevations=(15.0, 30.0), sun_azimuths=(0.0, 120.0, 240.0), cam_elevations=(90.0,),
-                      cam_azimuths=(0.0, 90.0, 180.0, 270.0), rim_px=40.0)
+    write_toy_dataset(
+        d,
+        sun_elevations=(15.0, 30.0),
+        sun_azimuths=(0.0, 120.0, 240.0),
+        cam_elevations=(90.0,),
+        cam_azimuths=(0.0, 90.0, 180.0, 270.0),
+        rim_px=40.0,
+    )
     return d
 
 
@@ -58,8 +72,17 @@ def frames(tmp_path_factory):
 
 
 def _overrides(toy, tmp, *extra):
-    return [f"train.dataset_dir={toy}", f"data_dir={tmp}", f"run_dir={tmp}/run", f"train.cache_dir={tmp}/cache",
-            "train.num_threads=1", "train.progress=false", "realset.per_crater=15", *FAST_TRAINING, *extra]
+    return [
+        f"train.dataset_dir={toy}",
+        f"data_dir={tmp}",
+        f"run_dir={tmp}/run",
+        f"train.cache_dir={tmp}/cache",
+        "train.num_threads=1",
+        "train.progress=false",
+        "realset.per_crater=15",
+        *FAST_TRAINING,
+        *extra,
+    ]
 
 
 def _cli():
@@ -83,12 +106,14 @@ def test_train_then_evaluate_writes_valid_metrics(trained, toy):
     assert "one real observation per crater" in output
     run = tmp / "run"
     m = json.loads((run / "metrics.json").read_text())
-    n_frames = 8 * 3 * 3                                   # views x craters x sigmas
+    n_frames = 8 * 3 * 3  # views x craters x sigmas
     for name in MODELS:
         r = m[name]
         assert set(r["per_crater"]) == set(CRATERS)
-        assert set(r["per_sigma"]) == {"1.0", "1.2", "1.4"} and set(r["per_source"]) == {"lroc_wac_south",
-                                                                                          TOY_FRAME_SOURCE}
+        assert set(r["per_sigma"]) == {"1.0", "1.2", "1.4"} and set(r["per_source"]) == {
+            "lroc_wac_south",
+            TOY_FRAME_SOURCE,
+        }
         conf = np.array(r["confusion"])
         assert conf.shape == (3, 3) and conf.sum() == m["test_images"] == 45 + n_frames
         assert np.trace(conf) / conf.sum() == pytest.approx(r["real_accuracy"])
@@ -103,13 +128,14 @@ def test_train_then_evaluate_writes_valid_metrics(trained, toy):
     assert {"box", "sigma", "offset_px", "rotation_deg", "source", "pred_lunarnet_ex"} <= set(rows[0])
     frame_rows = [r for r in rows if r["source"] == TOY_FRAME_SOURCE]
     assert np.mean([r["pred_lunarnet_ex"] == r["crater"] for r in frame_rows]) == pytest.approx(
-        m["lunarnet_ex"]["per_source"][TOY_FRAME_SOURCE])
+        m["lunarnet_ex"]["per_source"][TOY_FRAME_SOURCE]
+    )
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["data"]["split_by"] == "camera" and summary["lunarnet_ex"]["history"]
     ck = torch.load(run / "lunarnet_ex.pt", weights_only=False)
     assert ck["config"]["train"]["dataset_dir"] == str(toy) and ck["class_names"] == CRATERS
     assert {p.name for p in run.glob("*.joblib")} == {"lunarsvm_ex.joblib", "hog_svm.joblib"}
-    assert not list(run.glob("*.pkl")) and not list(run.glob(".*.tmp"))   # joblib; atomic writes
+    assert not list(run.glob("*.pkl")) and not list(run.glob(".*.tmp"))  # joblib; atomic writes
     # `evaluate` reloads the saved models and reproduces the metrics.
     res = CliRunner().invoke(_cli(), ["evaluate", *overrides], catch_exceptions=False)
     assert res.exit_code == 0, res.output
@@ -159,8 +185,9 @@ def test_shuffled_labels_fail_the_bar(toy, frames, tmp_path):
     rows = schema.load_manifest(ds)
     labels = np.random.default_rng(7).permutation([r["crater"] for r in rows])
     schema.write_manifest(ds / schema.MANIFEST_NAME, [dict(r, crater=str(c)) for r, c in zip(rows, labels)])
-    overrides = _overrides(ds, tmp_path, f"realset.labels_file={frames}", "realset.include_embedded=false",
-                           "train.max_epochs=6")
+    overrides = _overrides(
+        ds, tmp_path, f"realset.labels_file={frames}", "realset.include_embedded=false", "train.max_epochs=6"
+    )
     res = CliRunner().invoke(_cli(), ["train", *overrides], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -181,11 +208,14 @@ def test_bench_reports_throughput_and_time_to_target(toy, tmp_path):
     assert r["parameters"] == (16 * 49 + 16) + (32 * 16 * 25 + 32) + (32 * 5 * 5 * 128 + 128) + (128 * 3 + 3)
 
 
-@pytest.mark.parametrize("extra, match", [
-    (("train.dataset_dir=/nonexistent/ds",), "no manifest.jsonl in /nonexistent/ds"),
-    (("realset.labels_file=LABELS",), "unknown crater 'Faustini'"),
-    (("train.split_by=moon",), "train.split_by='moon'"),
-])
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (("train.dataset_dir=/nonexistent/ds",), "no manifest.jsonl in /nonexistent/ds"),
+        (("realset.labels_file=LABELS",), "unknown crater 'Faustini'"),
+        (("train.split_by=moon",), "train.split_by='moon'"),
+    ],
+)
 def test_bad_inputs_give_one_line_errors(toy, tmp_path, extra, match):
     labels = tmp_path / "labels.csv"
     labels.write_text("image_path,crater,center_u,center_v,diameter_px,source\nx.png,Faustini,1,1,1,lroc_nac\n")

@@ -41,7 +41,7 @@ def test_output_shape_and_softmax(mcfg):
 
 def test_parameter_count_and_macs_match_docs(mcfg):
     model = LunarNetEx(mcfg)
-    assert parameter_count(model) == 1_062_723      # docs/classifiers.md
+    assert parameter_count(model) == 1_062_723  # docs/classifiers.md
     assert multiply_adds(mcfg)["total"] == 20_582_784
 
 

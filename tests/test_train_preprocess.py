@@ -24,8 +24,8 @@ def _stats(x):
 @pytest.mark.parametrize("rotation", [0.0, 33.0])
 @pytest.mark.parametrize("offset_dn", [0, 4])
 def test_if_and_8bit_versions_of_a_scene_give_the_same_statistics(scene, rotation, offset_dn):
-    box = (48 - 44.8, 48 - 44.8, 48 + 44.8, 48 + 44.8)          # sigma 1.4 of a 64 px rim
-    gain = 230.0 / float(scene.max())                            # linear camera, unknown exposure
+    box = (48 - 44.8, 48 - 44.8, 48 + 44.8, 48 + 44.8)  # sigma 1.4 of a 64 px rim
+    gain = 230.0 / float(scene.max())  # linear camera, unknown exposure
     dn8 = np.clip(np.rint(scene * gain + offset_dn), 0, 255).astype(np.uint8)
     a = preprocess_crop(scene, box, PP, rotation_deg=rotation)
     b = preprocess_crop(dn8, box, PP, rotation_deg=rotation)
@@ -39,7 +39,7 @@ def test_normalize_is_affine_invariant_and_handles_dark_images():
     rng = np.random.default_rng(0)
     x = rng.gamma(0.5, 0.05, size=(150, 150)).astype(np.float32)
     np.testing.assert_allclose(normalize(x, PP), normalize(7.0 * x + 0.3, PP), atol=1e-5)
-    assert not normalize(np.zeros((150, 150)), PP).any()          # fully shadowed -> zeros, no NaN
+    assert not normalize(np.zeros((150, 150)), PP).any()  # fully shadowed -> zeros, no NaN
     y = normalize(np.where(np.arange(150 * 150).reshape(150, 150) == 7, 1.0, 0.0), PP)
     assert np.isfinite(y).all() and y.max() == 1.0
 
@@ -76,7 +76,7 @@ def test_outside_fraction_and_degenerate_box():
 
 
 def test_sensor_model_is_seeded_and_quantised(scene):
-    crop = resample_box(scene, (0, 0, 96, 96), 150) * (0.2 / float(scene.max()))   # below full well
+    crop = resample_box(scene, (0, 0, 96, 96), 150) * (0.2 / float(scene.max()))  # below full well
     s = SensorModel(resolution_min_px=48, resolution_prob=1.0)
     a = s.apply(crop, np.random.default_rng(5))
     b = s.apply(crop, np.random.default_rng(5))
@@ -97,8 +97,9 @@ def test_sensor_model_samples_at_the_real_products_gsd(scene):
     and JPEG-compressed there, then up-sampled like a real crop: a 21 km sigma-1 box at 400 m/px is a
     52-px image, so the result carries no more detail than 52 samples across."""
     crop = resample_box(scene, (0, 0, 96, 96), 150) * (0.2 / float(scene.max()))
-    s = SensorModel(gsd_m=400.0, jpeg_quality=81, psf_sigma_px=0.0, gain_jitter=0.0, read_noise_dn=0.0,
-                    photons_at_full_well=1e9)
+    s = SensorModel(
+        gsd_m=400.0, jpeg_quality=81, psf_sigma_px=0.0, gain_jitter=0.0, read_noise_dn=0.0, photons_at_full_well=1e9
+    )
     out = s.apply(crop, np.random.default_rng(1), box_side_m=21_000.0)
     assert out.shape == crop.shape
 
@@ -156,8 +157,13 @@ def test_mosaic_partners_share_crater_pose_and_sigma():
     and only among the given split's samples."""
     from train.data import CropCache, same_pose_partners
 
-    rows = [{"crater": c, "cam_elevation": ce, "cam_azimuth": ca, "sun_azimuth": sa}
-            for c in ("x", "y") for ce in (90.0, 70.0) for ca in (0.0,) for sa in (0.0, 90.0, 180.0)]
+    rows = [
+        {"crater": c, "cam_elevation": ce, "cam_azimuth": ca, "sun_azimuth": sa}
+        for c in ("x", "y")
+        for ce in (90.0, 70.0)
+        for ca in (0.0,)
+        for sa in (0.0, 90.0, 180.0)
+    ]
     samples = [(i, s) for i in range(len(rows)) for s in (1.0, 1.4)]
     cache = CropCache(path=None, images=np.zeros((len(samples), 2, 2)), samples=samples)
     split = [j for j, (ri, _) in enumerate(samples) if rows[ri]["sun_azimuth"] != 180.0 or ri < 6]
@@ -168,6 +174,9 @@ def test_mosaic_partners_share_crater_pose_and_sigma():
         for o in partners[j]:
             assert o in split
             ro, so = samples[o]
-            assert (rows[ro]["crater"], rows[ro]["cam_elevation"], so) == (rows[ri]["crater"],
-                                                                           rows[ri]["cam_elevation"], s)
+            assert (rows[ro]["crater"], rows[ro]["cam_elevation"], so) == (
+                rows[ri]["crater"],
+                rows[ri]["cam_elevation"],
+                s,
+            )
     assert len(partners[split[0]]) == 2

@@ -101,29 +101,38 @@ def test_labels_file_plugs_in_user_frames(cfg, craters, mosaic, tmp_path):
     (tmp_path / "labels.csv").write_text(
         "image_path,crater,center_u,center_v,diameter_px,source\n"
         "frame.png,Shackleton,142.7,139.5,52.5,lroc_nac\n"
-        "frame.png,de Gerlache,9.9,117.7,81.25,selene_tc\n")
+        "frame.png,de Gerlache,9.9,117.7,81.25,selene_tc\n"
+    )
     crops = load_labels_file(tmp_path / "labels.csv", CLASSES, [1.0, 1.2])
     assert [(c.crater, c.source, c.sigma) for c in crops] == [
-        ("shackleton", "lroc_nac", 1.0), ("shackleton", "lroc_nac", 1.2),
-        ("de_gerlache", "selene_tc", 1.0), ("de_gerlache", "selene_tc", 1.2)]
+        ("shackleton", "lroc_nac", 1.0),
+        ("shackleton", "lroc_nac", 1.2),
+        ("de_gerlache", "selene_tc", 1.0),
+        ("de_gerlache", "selene_tc", 1.2),
+    ]
     rs = dict(cfg["realset"], include_embedded=False, labels_file=str(tmp_path / "labels.csv"))
     # de Gerlache sits at the frame's edge: its box leaves the image by more than 25 % -> clear error.
     with pytest.raises(RealSetError, match="leaves"):
         plan_real_crops(dict(cfg, realset=rs), craters, CLASSES)
     (tmp_path / "labels.csv").write_text(
-        "image_path,crater,box_u0,box_v0,box_u1,box_v1,source\n"
-        "frame.png,shoemaker,10,10,110,110,selene_hdtv\n")
+        "image_path,crater,box_u0,box_v0,box_u1,box_v1,source\nframe.png,shoemaker,10,10,110,110,selene_hdtv\n"
+    )
     ts = build_real_test_set(dict(cfg, realset=rs), craters, CLASSES)
     assert ts.sources == ["selene_hdtv"] and len(ts.labels) == 3 and set(ts.labels) == {2}
 
 
-@pytest.mark.parametrize("csv, match", [
-    ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,Faustini,10,10,5,x\n",
-     "unknown crater 'Faustini'"),
-    ("image_path,crater,source\nframe.png,shackleton,x\n", "needs columns"),
-    ("image_path,crater,center_u,center_v,diameter_px,source\nnope.png,shackleton,10,10,5,x\n", "does not exist"),
-    ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,shackleton,10,ten,5,x\n", "bad number"),
-])
+@pytest.mark.parametrize(
+    "csv, match",
+    [
+        (
+            "image_path,crater,center_u,center_v,diameter_px,source\nframe.png,Faustini,10,10,5,x\n",
+            "unknown crater 'Faustini'",
+        ),
+        ("image_path,crater,source\nframe.png,shackleton,x\n", "needs columns"),
+        ("image_path,crater,center_u,center_v,diameter_px,source\nnope.png,shackleton,10,10,5,x\n", "does not exist"),
+        ("image_path,crater,center_u,center_v,diameter_px,source\nframe.png,shackleton,10,ten,5,x\n", "bad number"),
+    ],
+)
 def test_bad_labels_files(tmp_path, csv, match):
     _png(tmp_path / "frame.png", np.zeros((20, 20), np.uint8))
     (tmp_path / "labels.csv").write_text(csv)
@@ -155,5 +164,6 @@ def test_realset_has_no_path_to_the_training_loader():
         if f.is_file():
             todo += [m for m in _train_imports(f) if m.startswith("train")]
     assert "train.data" not in seen and "train.trainer" not in seen and "train.pipeline" not in seen
-    assert not any(m.startswith(("bpy", "blender_gen")) for f in (root / "train").glob("*.py")
-                   for m in _train_imports(f))
+    assert not any(
+        m.startswith(("bpy", "blender_gen")) for f in (root / "train").glob("*.py") for m in _train_imports(f)
+    )

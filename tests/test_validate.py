@@ -57,8 +57,13 @@ def scripted(monkeypatch, tmp_path):
         calls.append((tuple(names), seed))
         per = {n: scripted.acc[n] + 0.01 * seed for n in names}
         mean = sum(per.values()) / len(per)
-        return {"train_images": 100, **{m: {"real_accuracy": mean, "val_accuracy": 0.95, "per_crater": per,
-                                            "confusion": [[1]]} for m in v.REPORTED_MODELS}}
+        return {
+            "train_images": 100,
+            **{
+                m: {"real_accuracy": mean, "val_accuracy": 0.95, "per_crater": per, "confusion": [[1]]}
+                for m in v.REPORTED_MODELS
+            },
+        }
 
     import crater_synth.dataset
     import train.pipeline
@@ -74,22 +79,28 @@ def scripted(monkeypatch, tmp_path):
     def compose(overrides):
         crater = next((o for o in overrides if o.startswith("crater=")), None)
         base = [o for o in overrides if not o.startswith("crater=")]
-        cfg = real_compose(base + ["crater=custom", "crater.custom.lat=-88", "crater.custom.lon=0",
-                                   "crater.custom.diameter_km=20"])
+        cfg = real_compose(
+            base + ["crater=custom", "crater.custom.lat=-88", "crater.custom.lon=0", "crater.custom.diameter_km=20"]
+        )
         if crater:
             from omegaconf import OmegaConf
 
-            names = crater[len("crater=["):-1].split(",")
-            OmegaConf.set_struct(cfg, False)
-            cfg.crater = {n: {"name": n, "lat": -88.0, "lon": 0.0, "diameter_km": 20.0, "source": "test"}
-                          for n in names}
+            names = crater[len("crater=[") : -1].split(",")
+            cfg = OmegaConf.create(config_mod.resolved(cfg))  # untyped copy: the schema types crater entries
+            cfg.crater = {
+                n: {"name": n, "lat": -88.0, "lon": 0.0, "diameter_km": 20.0, "source": "test"} for n in names
+            }
         return cfg
 
     monkeypatch.setattr(v, "compose", compose)
     scripted.acc = {n: 0.5 + 0.04 * i for i, n in enumerate(CATALOGUE)}
     scripted.calls = calls
-    scripted.overrides = ["validate.groups=[[a1,a2,a3],[b1,b2,b3]]", "validate.test=[t1,t2,t3]",
-                          "validate.seeds=[0,1]", f"validate.out_dir={tmp_path}/val"]
+    scripted.overrides = [
+        "validate.groups=[[a1,a2,a3],[b1,b2,b3]]",
+        "validate.test=[t1,t2,t3]",
+        "validate.seeds=[0,1]",
+        f"validate.out_dir={tmp_path}/val",
+    ]
     return scripted
 
 

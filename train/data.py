@@ -10,6 +10,10 @@
   training.
 - Only synthetic render rows are accepted: anything else -- a row marked as real/test, or a file whose
   checksum is that of a real test image -- is refused with :class:`RealDataLeakError`.
+
+Length: the one path from a manifest to training batches (leak guard, class selection, split, crop
+cache, the dataset with its sensor model and mosaic partners); each stage is short and used only here,
+and the leak guard must sit next to the loader it guards.
 """
 
 from __future__ import annotations
@@ -74,8 +78,10 @@ def require_manifest(dataset_dir: str | Path) -> Path:
 
     p = Path(dataset_dir) / MANIFEST_NAME
     if not p.is_file():
-        raise DatasetError(f"no {MANIFEST_NAME} in {Path(dataset_dir)}: render a dataset first (crater-synth dataset) "
-                           f"or set train.dataset_dir")
+        raise DatasetError(
+            f"no {MANIFEST_NAME} in {Path(dataset_dir)}: render a dataset first (crater-synth dataset) "
+            f"or set train.dataset_dir"
+        )
     return p
 
 
@@ -100,9 +106,12 @@ def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
     return out
 
 
-def check_synthetic_rows(rows: Iterable[dict], dataset_dir: str | Path,
-                         forbidden_sha256: Iterable[str] = (),
-                         forbidden_paths: Iterable[str | Path] = ()) -> list[dict]:
+def check_synthetic_rows(
+    rows: Iterable[dict],
+    dataset_dir: str | Path,
+    forbidden_sha256: Iterable[str] = (),
+    forbidden_paths: Iterable[str | Path] = (),
+) -> list[dict]:
     """Refuse anything that is not a synthetic render row: a row that fails the render-manifest schema,
     one marked with a non-synthetic ``source``/``role``, or one whose file (by manifest checksum or
     resolved path) is a real test image. Returns the rows."""
@@ -111,10 +120,15 @@ def check_synthetic_rows(rows: Iterable[dict], dataset_dir: str | Path,
     out = []
     for i, row in enumerate(rows):
         where = f"training row {i} ({row.get('path', '?')})"
-        if str(row.get("source", SYNTHETIC)) != SYNTHETIC or str(row.get("role", "train")) == "test" \
-                or "image_path" in row:
-            raise RealDataLeakError(f"{where} is not a synthetic render (source={row.get('source')!r}, "
-                                    f"role={row.get('role')!r}): real images are only ever test data")
+        if (
+            str(row.get("source", SYNTHETIC)) != SYNTHETIC
+            or str(row.get("role", "train")) == "test"
+            or "image_path" in row
+        ):
+            raise RealDataLeakError(
+                f"{where} is not a synthetic render (source={row.get('source')!r}, "
+                f"role={row.get('role')!r}): real images are only ever test data"
+            )
         try:
             validate_row(row, where)
         except ManifestError as exc:
@@ -146,8 +160,9 @@ def select_rows(rows: Sequence[dict], class_names: Sequence[str]) -> tuple[list[
     empty = [n for n, c in counts.items() if c == 0]
     if empty:
         extra = f"; the manifest also has {others}" if others else ""
-        raise DatasetError(f"empty class(es) {empty}: no rendered rows for them in the manifest "
-                           f"(rows per class: {counts}{extra})")
+        raise DatasetError(
+            f"empty class(es) {empty}: no rendered rows for them in the manifest (rows per class: {counts}{extra})"
+        )
     return keep, others
 
 
@@ -159,8 +174,9 @@ def _group_key(row: dict, split_by: str) -> tuple:
     raise DatasetError(f"train.split_by={split_by!r}: use 'camera' or 'sun'")
 
 
-def split_rows(rows: Sequence[dict], val_fraction: float, split_by: str, seed: int,
-               class_names: Sequence[str]) -> tuple[list[int], list[int], dict]:
+def split_rows(
+    rows: Sequence[dict], val_fraction: float, split_by: str, seed: int, class_names: Sequence[str]
+) -> tuple[list[int], list[int], dict]:
     """Hold out whole render groups (camera poses, or sun directions) for validation, seeded.
 
     Falls back to the other axis when the chosen one has a single value. Returns (train row indices,
@@ -173,8 +189,10 @@ def split_rows(rows: Sequence[dict], val_fraction: float, split_by: str, seed: i
         if len(keys) >= 2:
             break
     else:
-        raise DatasetError("cannot split train/validation without leakage: the manifest has a single camera "
-                           "pose and a single sun direction; render at least two of either")
+        raise DatasetError(
+            "cannot split train/validation without leakage: the manifest has a single camera "
+            "pose and a single sun direction; render at least two of either"
+        )
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED])
     perm = rng.permutation(len(keys))
     n_val = min(len(keys) - 1, max(1, int(round(val_fraction * len(keys)))))
@@ -186,10 +204,17 @@ def split_rows(rows: Sequence[dict], val_fraction: float, split_by: str, seed: i
         have = {rows[i]["crater"] for i in idx}
         missing = [n for n in class_names if n not in have]
         if missing:
-            raise DatasetError(f"the {part} split has no rows of {missing} (split by {axis}, {len(keys)} groups): "
-                               f"render the same poses for every crater or change train.val_fraction")
-    info = {"split_by": axis, "groups": len(keys), "val_groups": sorted([list(k) for k in val_keys]),
-            "train_rows": len(tr), "val_rows": len(va)}
+            raise DatasetError(
+                f"the {part} split has no rows of {missing} (split by {axis}, {len(keys)} groups): "
+                f"render the same poses for every crater or change train.val_fraction"
+            )
+    info = {
+        "split_by": axis,
+        "groups": len(keys),
+        "val_groups": sorted([list(k) for k in val_keys]),
+        "train_rows": len(tr),
+        "val_rows": len(va),
+    }
     return tr, va, info
 
 
@@ -227,27 +252,45 @@ class CropCache:
     """The cached resampled (pre-photometry) I/F crops of a set of rows."""
 
     path: Path
-    images: np.ndarray               # (N, size, size) memmap
+    images: np.ndarray  # (N, size, size) memmap
     samples: list[tuple[int, float]]  # (row index, sigma) per cached image
-    built: bool = False              # True when this call decoded EXRs
+    built: bool = False  # True when this call decoded EXRs
     seconds: float = 0.0
 
 
 def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfig, dtype: str) -> str:
-    h = hashlib.sha256(json.dumps({"format": CACHE_FORMAT, "pp": pp.geometry_key(), "sigmas": list(sigmas),
-                                   "dtype": dtype, "max_outside": pp.max_outside_frac}, sort_keys=True).encode())
+    h = hashlib.sha256(
+        json.dumps(
+            {
+                "format": CACHE_FORMAT,
+                "pp": pp.geometry_key(),
+                "sigmas": list(sigmas),
+                "dtype": dtype,
+                "max_outside": pp.max_outside_frac,
+            },
+            sort_keys=True,
+        ).encode()
+    )
     return f"crops-{manifest_digest(rows)}-{h.hexdigest()[:10]}"
 
 
-def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[float], pp: PreprocessConfig,
-                cache_dir: str | Path, dtype: str = "float16", verify_sha256: bool = True,
-                progress: bool = False) -> CropCache:
+def build_cache(
+    rows: Sequence[dict],
+    dataset_dir: str | Path,
+    sigmas: Sequence[float],
+    pp: PreprocessConfig,
+    cache_dir: str | Path,
+    dtype: str = "float16",
+    verify_sha256: bool = True,
+    progress: bool = False,
+) -> CropCache:
     """Resample every (row, sigma) once into ``cache_dir`` (atomic: built in a temp dir, then renamed);
     reuse it when present. Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
     :class:`DatasetError` naming the file."""
     import time
 
-    from tqdm import tqdm
+    from crater_core.files import umask
+    from crater_core.progress import progress_iter
 
     t0 = time.perf_counter()
     if dtype not in ("float16", "float32"):
@@ -268,10 +311,13 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=final.parent))
     try:
-        arr = np.lib.format.open_memmap(tmp / "images.npy", mode="w+", dtype=np.dtype(dtype),
-                                        shape=(len(samples), pp.size, pp.size))
+        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp makes 0700: a cache is shared like the dataset
+        arr = np.lib.format.open_memmap(
+            tmp / "images.npy", mode="w+", dtype=np.dtype(dtype), shape=(len(samples), pp.size, pp.size)
+        )
         j = 0
-        for _i, row in enumerate(tqdm(rows, desc="cache crops", unit="exr", disable=not progress, leave=False)):
+        # Bars on a terminal; otherwise (or with train.progress=false) a line every few seconds.
+        for _i, row in enumerate(progress_iter(rows, len(rows), "cache crops", "exr", "auto" if progress else "lines")):
             path = resolve_path(dataset_dir, row["path"])
             where = f"EXR {path}"
             if not path.is_file():
@@ -279,24 +325,47 @@ def build_cache(rows: Sequence[dict], dataset_dir: str | Path, sigmas: Sequence[
             if verify_sha256:
                 got = sha256_file(path)
                 if got != row["sha256"]:
-                    raise DatasetError(f"{where}: sha256 {got} does not match the manifest's {row['sha256']} "
-                                       f"(file changed or corrupt)")
+                    raise DatasetError(
+                        f"{where}: sha256 {got} does not match the manifest's {row['sha256']} (file changed or corrupt)"
+                    )
             img = read_exr_channel(path, "IF")
             if img.shape != (int(row["height"]), int(row["width"])):
-                raise DatasetError(f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says "
-                                   f"{row['width']}x{row['height']}")
+                raise DatasetError(
+                    f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
+                )
             for s in sigmas:
                 box = _sigma_box(row, s, where)
                 if outside_fraction(box, img.shape) > pp.max_outside_frac:
-                    raise DatasetError(f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
-                                       f"image by more than {pp.max_outside_frac:.0%} of its side")
+                    raise DatasetError(
+                        f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
+                        f"image by more than {pp.max_outside_frac:.0%} of its side"
+                    )
                 arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
                 j += 1
         arr.flush()
         del arr
-        (tmp / "index.json").write_text(json.dumps({"format": CACHE_FORMAT, "key": key, "dataset_dir": str(dataset_dir),
-                                                    "samples": samples, "sigmas": list(sigmas),
-                                                    "pp": pp.geometry_key(), "dtype": dtype}))
+        (tmp / "index.json").write_text(
+            json.dumps(
+                {
+                    "format": CACHE_FORMAT,
+                    "key": key,
+                    "dataset_dir": str(dataset_dir),
+                    "samples": samples,
+                    "sigmas": list(sigmas),
+                    "pp": pp.geometry_key(),
+                    "dtype": dtype,
+                }
+            )
+        )
+        for f in tmp.iterdir():  # durable (files and their directory entries) before the rename publishes it
+            os.chmod(f, 0o666 & ~umask())
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        dir_fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
         try:
             os.replace(tmp, final)
         except OSError:  # another process finished the same cache first
@@ -319,9 +388,19 @@ class SyntheticCropDataset(Dataset):
     uses one fixed noise draw per sample (a stable validation set).
     """
 
-    def __init__(self, cache: CropCache, indices: Sequence[int], labels: Sequence[int], rows: Sequence[dict],
-                 pp: PreprocessConfig, sensor: SensorModel | None, seed: int, train: bool, augment: bool = False,
-                 diameters_m: Mapping[str, float] | None = None):
+    def __init__(
+        self,
+        cache: CropCache,
+        indices: Sequence[int],
+        labels: Sequence[int],
+        rows: Sequence[dict],
+        pp: PreprocessConfig,
+        sensor: SensorModel | None,
+        seed: int,
+        train: bool,
+        augment: bool = False,
+        diameters_m: Mapping[str, float] | None = None,
+    ):
         self.cache = cache
         self.indices = np.asarray(indices, dtype=np.int64)
         self.labels = np.asarray(labels, dtype=np.int64)
@@ -334,8 +413,11 @@ class SyntheticCropDataset(Dataset):
         self.epoch = 0
         self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
         # Mosaic composites draw their extra frames among the same camera pose's renders in this split.
-        self.partners = (same_pose_partners(cache, self.indices, rows)
-                         if self.sensor is not None and self.sensor.mosaic_frames > 1 else None)
+        self.partners = (
+            same_pose_partners(cache, self.indices, rows)
+            if self.sensor is not None and self.sensor.mosaic_frames > 1
+            else None
+        )
         if len(self.indices) != len(self.labels):
             raise DatasetError("internal: indices and labels differ in length")
 
@@ -358,8 +440,10 @@ class SyntheticCropDataset(Dataset):
             others = self.partners[j]
             k = min(int(self.sensor.mosaic_frames) - 1, len(others))
             if k > 0:
-                extra = [np.asarray(self.cache.images[o], dtype=np.float32)
-                         for o in rng.choice(others, size=k, replace=False)]
+                extra = [
+                    np.asarray(self.cache.images[o], dtype=np.float32)
+                    for o in rng.choice(others, size=k, replace=False)
+                ]
                 x = mosaic_composite([x] + extra, rng, self.sensor.mosaic_blend, self.sensor.mosaic_patches)
         if self.sensor is not None:
             ri, sigma = self.cache.samples[j]
@@ -381,7 +465,7 @@ class SyntheticCropDataset(Dataset):
         self.augment, self.epoch = False, 0
         try:
             for k in range(0, len(pos), batch_size):
-                chunk = pos[k:k + batch_size]
+                chunk = pos[k : k + batch_size]
                 yield np.stack([self.image(int(i)) for i in chunk]), self.labels[chunk].copy()
         finally:
             self.augment, self.epoch = saved
@@ -419,8 +503,12 @@ class SyntheticData:
     info: dict = field(default_factory=dict)
 
 
-def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden_paths: Iterable[str | Path] = (),
-                   progress: bool = False) -> SyntheticData:
+def build_datasets(
+    cfg: Mapping,
+    forbidden_sha256: Iterable[str] = (),
+    forbidden_paths: Iterable[str | Path] = (),
+    progress: bool = False,
+) -> SyntheticData:
     """From a resolved config: manifest -> leak guard -> classes -> split -> cache -> datasets."""
     tcfg = cfg["train"]
     dataset_dir = Path(str(tcfg["dataset_dir"]))
@@ -433,31 +521,60 @@ def build_datasets(cfg: Mapping, forbidden_sha256: Iterable[str] = (), forbidden
         rows = rows_in_selection(rows, dict(selection))
         if not rows:
             raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={dict(selection)}")
-    rows = check_synthetic_rows(rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg),
-                                forbidden_paths)
+    rows = check_synthetic_rows(
+        rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg), forbidden_paths
+    )
     rows, others = select_rows(rows, class_names)
     seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
-    tr_rows, va_rows, split_info = split_rows(rows, float(tcfg.get("val_fraction", 0.2)),
-                                              str(tcfg.get("split_by", "camera")), seed, class_names)
+    tr_rows, va_rows, split_info = split_rows(
+        rows, float(tcfg.get("val_fraction", 0.2)), str(tcfg.get("split_by", "camera")), seed, class_names
+    )
     sigmas = row_sigmas(rows, tcfg.get("sigmas"))
     pp = PreprocessConfig.from_config(cfg)
-    cache = build_cache(rows, dataset_dir, sigmas, pp, str(tcfg.get("cache_dir", dataset_dir / ".cache")),
-                        str(tcfg.get("cache_dtype", "float16")), bool(tcfg.get("verify_sha256", True)), progress)
+    cache = build_cache(
+        rows,
+        dataset_dir,
+        sigmas,
+        pp,
+        str(tcfg.get("cache_dir", dataset_dir / ".cache")),
+        str(tcfg.get("cache_dtype", "float16")),
+        bool(tcfg.get("verify_sha256", True)),
+        progress,
+    )
     sensor = SensorModel.from_config(cfg.get("sensor"))
-    diameters = {str((e or {}).get("name") or k): float((e or {})["diameter_km"]) * 1000.0
-                 for k, e in (cfg.get("crater") or {}).items() if (e or {}).get("diameter_km") is not None}
+    diameters = {
+        str((e or {}).get("name") or k): float((e or {})["diameter_km"]) * 1000.0
+        for k, e in (cfg.get("crater") or {}).items()
+        if (e or {}).get("diameter_km") is not None
+    }
     cls = {n: i for i, n in enumerate(class_names)}
     tr_set, va_set = set(tr_rows), set(va_rows)
     tr_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in tr_set]
     va_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in va_set]
     lab = [cls[rows[ri]["crater"]] for ri, _ in cache.samples]
-    train_ds = SyntheticCropDataset(cache, tr_idx, [lab[j] for j in tr_idx], rows, pp, sensor, seed, train=True,
-                                    augment=bool(tcfg.get("augment", True)), diameters_m=diameters)
-    val_ds = SyntheticCropDataset(cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False,
-                                  diameters_m=diameters)
-    info = split_info | {"sigmas": sigmas, "cache": str(cache.path), "cache_built": cache.built,
-                         "cache_seconds": round(cache.seconds, 3), "train_images": len(tr_idx),
-                         "val_images": len(va_idx), "ignored_craters": others,
-                         "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i))
-                                                for n, i in cls.items()}}
+    train_ds = SyntheticCropDataset(
+        cache,
+        tr_idx,
+        [lab[j] for j in tr_idx],
+        rows,
+        pp,
+        sensor,
+        seed,
+        train=True,
+        augment=bool(tcfg.get("augment", True)),
+        diameters_m=diameters,
+    )
+    val_ds = SyntheticCropDataset(
+        cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False, diameters_m=diameters
+    )
+    info = split_info | {
+        "sigmas": sigmas,
+        "cache": str(cache.path),
+        "cache_built": cache.built,
+        "cache_seconds": round(cache.seconds, 3),
+        "train_images": len(tr_idx),
+        "val_images": len(va_idx),
+        "ignored_craters": others,
+        "class_counts_train": {n: int(np.sum(np.asarray(train_ds.labels) == i)) for n, i in cls.items()},
+    }
     return SyntheticData(train_ds, val_ds, class_names, info)

@@ -59,14 +59,20 @@ def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
     by = {}
     for key, e in (cfg.get("crater") or {}).items():
         e = e or {}
-        by[canonical_crater(e.get("name") or key)] = {"name": str(e.get("name") or key), "lat": e.get("lat"),
-                                                      "lon": e.get("lon"), "diameter_km": e.get("diameter_km")}
+        by[canonical_crater(e.get("name") or key)] = {
+            "name": str(e.get("name") or key),
+            "lat": e.get("lat"),
+            "lon": e.get("lon"),
+            "diameter_km": e.get("diameter_km"),
+        }
     out = []
     for n in class_names:
         c = by.get(canonical_crater(n))
         if c is None:
-            raise ModelError(f"the saved models know crater {n!r}, which is not in the configuration's crater "
-                             f"group (select it with crater=[...])")
+            raise ModelError(
+                f"the saved models know crater {n!r}, which is not in the configuration's crater "
+                f"group (select it with crater=[...])"
+            )
         out.append(c)
     return out
 
@@ -82,8 +88,9 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
     class_names = list(ck["class_names"])
     for other, f in ((svm, SVM_FILE), (hog, HOG_FILE)):
         if list(other["class_names"]) != class_names:
-            raise ModelError(f"{run_dir / f} was trained on classes {other['class_names']}, "
-                             f"LunarNet_ex on {class_names}: retrain")
+            raise ModelError(
+                f"{run_dir / f} was trained on classes {other['class_names']}, LunarNet_ex on {class_names}: retrain"
+            )
     summary = {}
     if (run_dir / SUMMARY_FILE).is_file():
         summary = json.loads((run_dir / SUMMARY_FILE).read_text())
@@ -100,26 +107,36 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
         "lunarsvm_ex": svm["model"].predict(fc1_activations(net, test.images, ebs, device)),
         "hog_svm": hog["model"].predict(hog_features(test.images, hog.get("hog") or cfg["train"].get("hog", {}))),
     }
-    vals = {"lunarnet_ex": ck.get("val_accuracy"), "lunarsvm_ex": svm.get("val_accuracy"),
-            "hog_svm": hog.get("val_accuracy")}
+    vals = {
+        "lunarnet_ex": ck.get("val_accuracy"),
+        "lunarsvm_ex": svm.get("val_accuracy"),
+        "hog_svm": hog.get("val_accuracy"),
+    }
     if set(preds) != set(MODELS) or set(vals) != set(MODELS):
         raise AssertionError(f"evaluate_run predicts {sorted(preds)}, train.registry lists {list(MODELS)}")
     metrics: dict = {}
     for name in MODELS:
         metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
-        plot_confusion(run_dir / f"confusion_{name}.png", metrics[name]["confusion"], class_names,
-                       f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}")
-    metrics.update({
-        "classes": class_names,
-        "train_images": int(summary.get("train_images", 0)),
-        "val_images": int(summary.get("val_images", 0)),
-        "test_images": int(len(test.labels)),
-        "test_sources": test.sources,
-        "test_per_crater": {n: int(np.sum(test.labels == i)) for i, n in enumerate(class_names)},
-        "limits": LIMITS_NOTE if any(c.kind == "embedded" for c in test.crops) else
-                  "Real test frames from the labels file only; see realset.jsonl for their sources.",
-        "evaluate_seconds": time.perf_counter() - t0,
-    })
+        plot_confusion(
+            run_dir / f"confusion_{name}.png",
+            metrics[name]["confusion"],
+            class_names,
+            f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}",
+        )
+    metrics.update(
+        {
+            "classes": class_names,
+            "train_images": int(summary.get("train_images", 0)),
+            "val_images": int(summary.get("val_images", 0)),
+            "test_images": int(len(test.labels)),
+            "test_sources": test.sources,
+            "test_per_crater": {n: int(np.sum(test.labels == i)) for i, n in enumerate(class_names)},
+            "limits": LIMITS_NOTE
+            if any(c.kind == "embedded" for c in test.crops)
+            else "Real test frames from the labels file only; see realset.jsonl for their sources.",
+            "evaluate_seconds": time.perf_counter() - t0,
+        }
+    )
     rows = []
     for i, c in enumerate(test.crops):
         r = c.as_row()

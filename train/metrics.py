@@ -16,7 +16,7 @@ def class_mean_accuracy(y_true: np.ndarray, y_pred: np.ndarray) -> float:
     y_true, y_pred = np.asarray(y_true), np.asarray(y_pred)
     if y_true.size == 0:
         return float("nan")
-    with warnings.catch_warnings():   # a predicted class absent from y_true is fine: it only costs recall
+    with warnings.catch_warnings():  # a predicted class absent from y_true is fine: it only costs recall
         warnings.filterwarnings("ignore", message="y_pred contains classes not in y_true")
         return float(balanced_accuracy_score(y_true, y_pred))
 

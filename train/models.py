@@ -55,7 +55,7 @@ class LunarNetEx(nn.Module):
             ("relu1", nn.ReLU(inplace=True)),
             ("pool", nn.MaxPool2d(g["pk"], g["ps"])),
             ("conv2", nn.Conv2d(g["c1"], g["c2"], g["k2"], stride=g["s2"])),
-            ("relu2", nn.ReLU(inplace=True)),          # no pooling after CONV2 (paper)
+            ("relu2", nn.ReLU(inplace=True)),  # no pooling after CONV2 (paper)
             ("flatten", nn.Flatten()),
             ("fc1", nn.Linear(g["c2"] * g["h2"] * g["h2"], g["f1"])),
             ("relu3", nn.ReLU(inplace=True)),
@@ -110,8 +110,13 @@ def make_linear_svm(svm_cfg: Mapping, seed: int):
 
     return make_pipeline(
         StandardScaler(),
-        SGDClassifier(loss="hinge", alpha=float(svm_cfg.get("alpha", 1e-4)), max_iter=int(svm_cfg.get("max_iter", 50)),
-                      tol=float(svm_cfg.get("tol", 1e-4)), random_state=int(seed) & 0x7FFFFFFF),
+        SGDClassifier(
+            loss="hinge",
+            alpha=float(svm_cfg.get("alpha", 1e-4)),
+            max_iter=int(svm_cfg.get("max_iter", 50)),
+            tol=float(svm_cfg.get("tol", 1e-4)),
+            random_state=int(seed) & 0x7FFFFFFF,
+        ),
     )
 
 
@@ -122,6 +127,15 @@ def hog_features(images: np.ndarray, hog_cfg: Mapping) -> np.ndarray:
     ppc = int(hog_cfg.get("pixels_per_cell", 10))
     cpb = int(hog_cfg.get("cells_per_block", 2))
     ori = int(hog_cfg.get("orientations", 9))
-    feats = [hog(im, orientations=ori, pixels_per_cell=(ppc, ppc), cells_per_block=(cpb, cpb),
-                 block_norm="L2-Hys", feature_vector=True) for im in images]
+    feats = [
+        hog(
+            im,
+            orientations=ori,
+            pixels_per_cell=(ppc, ppc),
+            cells_per_block=(cpb, cpb),
+            block_norm="L2-Hys",
+            feature_vector=True,
+        )
+        for im in images
+    ]
     return np.asarray(feats, dtype=np.float32)

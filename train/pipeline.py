@@ -12,12 +12,14 @@ def train_and_evaluate(cfg: Mapping, progress: bool | None = None) -> dict:
 
     The real test set is built first (a broken realset fails before hours of training) and the
     checksums/paths of its image files are handed to the training loader, which refuses them."""
+    from crater_core.files import ensure_writable_dir
     from train.data import build_datasets, class_names_from_config, require_manifest
     from train.evaluate import _craters_for, evaluate_run
     from train.realset import build_real_test_set
     from train.trainer import configure_torch, train_all
 
     progress = bool(cfg["train"].get("progress", True)) if progress is None else progress
+    ensure_writable_dir(str(cfg["run_dir"]), "run_dir")  # before minutes of crop caching, not after
     configure_torch(cfg["train"])
     class_names = class_names_from_config(cfg)
     require_manifest(str(cfg["train"]["dataset_dir"]))

@@ -39,8 +39,15 @@ def plot_confusion(path: str | Path, conf: Sequence[Sequence[int]], class_names:
         for i in range(n):
             for j in range(n):
                 text = f"{int(m[i, j])}\n{frac[i, j]:.0%}" if n <= 8 else f"{int(m[i, j])}"
-                ax.text(j, i, text, ha="center", va="center", fontsize=8 if n <= 8 else 6,
-                        color="white" if frac[i, j] > 0.5 else "black")
+                ax.text(
+                    j,
+                    i,
+                    text,
+                    ha="center",
+                    va="center",
+                    fontsize=8 if n <= 8 else 6,
+                    color="white" if frac[i, j] > 0.5 else "black",
+                )
     fig.colorbar(im, ax=ax, fraction=0.046)
     fig.tight_layout()
     buf = io.BytesIO()

@@ -30,20 +30,22 @@ class PreprocessConfig:
 
     size: int = 150
     antialias: bool = True
-    interp_order: int = 1            # 1 = bilinear sampling of the (pre-filtered) window
-    max_outside_frac: float = 0.05   # a box may leave its image by at most this fraction of its side
-    low_percentile: float = 1.0      # black level
-    high_percentile: float = 99.5    # white level, taken over the lit pixels only
-    lit_threshold: float = 0.02      # lit = above black + this fraction of (max - black)
-    shadow_floor: float = 0.05       # linear values below this (fraction of white) count as shadow -> 0
-    gamma: float = 0.5               # output = clip(linear, 0, 1) ** gamma
+    interp_order: int = 1  # 1 = bilinear sampling of the (pre-filtered) window
+    max_outside_frac: float = 0.05  # a box may leave its image by at most this fraction of its side
+    low_percentile: float = 1.0  # black level
+    high_percentile: float = 99.5  # white level, taken over the lit pixels only
+    lit_threshold: float = 0.02  # lit = above black + this fraction of (max - black)
+    shadow_floor: float = 0.05  # linear values below this (fraction of white) count as shadow -> 0
+    gamma: float = 0.5  # output = clip(linear, 0, 1) ** gamma
 
     def __post_init__(self):
         if self.size < 8:
             raise TrainError(f"preprocess size={self.size} too small (need >= 8)")
         if not 0.0 <= self.low_percentile < self.high_percentile <= 100.0:
-            raise TrainError(f"train.preprocess: need 0 <= low_percentile < high_percentile <= 100, got "
-                             f"{self.low_percentile}, {self.high_percentile}")
+            raise TrainError(
+                f"train.preprocess: need 0 <= low_percentile < high_percentile <= 100, got "
+                f"{self.low_percentile}, {self.high_percentile}"
+            )
         if not 0.0 <= self.lit_threshold < 1.0:
             raise TrainError(f"train.preprocess.lit_threshold={self.lit_threshold} must lie in [0, 1)")
         if not 0.0 <= self.shadow_floor < 1.0:
@@ -99,8 +101,14 @@ def outside_fraction(box: Sequence[float], shape: tuple[int, int], rotation_deg:
     return over / min(w, h)
 
 
-def resample_box(image: np.ndarray, box: Sequence[float], size: int, rotation_deg: float = 0.0,
-                 antialias: bool = True, order: int = 1) -> np.ndarray:
+def resample_box(
+    image: np.ndarray,
+    box: Sequence[float],
+    size: int,
+    rotation_deg: float = 0.0,
+    antialias: bool = True,
+    order: int = 1,
+) -> np.ndarray:
     """Sample the pixel box (u0, v0, u1, v1) of a 2-D ``image`` onto a ``size`` x ``size`` grid.
 
     Pixel coordinates: u right, v down, origin at the top-left *corner* of the image (pixel (i, j)
@@ -180,7 +188,7 @@ def normalize(image: np.ndarray, pp: PreprocessConfig = PreprocessConfig()) -> n
         y = (y - pp.shadow_floor) / (1.0 - pp.shadow_floor)
     y = np.clip(y, 0.0, 1.0)
     if pp.gamma != 1.0:
-        y = y ** pp.gamma
+        y = y**pp.gamma
     return y.astype(np.float32)
 
 
@@ -192,9 +200,15 @@ def dn_to_float(image: np.ndarray) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfig = PreprocessConfig(),
-                    rotation_deg: float = 0.0, sensor: "SensorModel | None" = None,
-                    rng: np.random.Generator | None = None, box_side_m: float | None = None) -> np.ndarray:
+def preprocess_crop(
+    image: np.ndarray,
+    box: Sequence[float],
+    pp: PreprocessConfig = PreprocessConfig(),
+    rotation_deg: float = 0.0,
+    sensor: "SensorModel | None" = None,
+    rng: np.random.Generator | None = None,
+    box_side_m: float | None = None,
+) -> np.ndarray:
     """The whole path for one crop: resample_box -> (sensor) -> normalize. ``image`` may be float I/F
     or integer DN (8-bit real frames); both go through exactly the same steps. ``box_side_m`` (the
     crop's ground width) lets a sensor with ``gsd_m`` sample it on the real product's grid."""
@@ -213,8 +227,9 @@ def preprocess_crop(image: np.ndarray, box: Sequence[float], pp: PreprocessConfi
 MOSAIC_BLENDS = ("max", "patches")
 
 
-def mosaic_composite(frames: Sequence[np.ndarray], rng: np.random.Generator, blend: str = "max",
-                     patches: int = 6) -> np.ndarray:
+def mosaic_composite(
+    frames: Sequence[np.ndarray], rng: np.random.Generator, blend: str = "max", patches: int = 6
+) -> np.ndarray:
     """One image assembled from renders of the same camera pose under different suns, as the real
     polar mosaic is assembled from frames taken over months (docs/preprocessing.md, "Mosaic").
 
@@ -265,21 +280,21 @@ class SensorModel:
 
     enabled: bool = True
     psf_sigma_px: float = 0.7
-    auto_exposure: bool = True        # exposure per image: white level -> U[exposure_white_frac] x full scale
+    auto_exposure: bool = True  # exposure per image: white level -> U[exposure_white_frac] x full scale
     exposure_white_frac: tuple = (0.6, 1.05)
-    full_well_if: float = 0.25        # fixed exposure (auto_exposure=false): this I/F saturates at gain 1
+    full_well_if: float = 0.25  # fixed exposure (auto_exposure=false): this I/F saturates at gain 1
     photons_at_full_well: float = 4000.0
     read_noise_dn: float = 1.0
     gain_jitter: float = 0.15
     quantize_bits: int = 8
-    resolution_min_px: int = 0        # 0 = no resolution jitter
-    resolution_prob: float = 0.5      # probability of applying the resolution jitter
-    gsd_m: float | None = None        # real sensor's ground sample distance (m/px); None = jitter instead
-    gsd_jitter: float = 0.0           # relative jitter of the native grid size
-    jpeg_quality: int | None = None   # JPEG quality of the real product (None = no JPEG)
-    mosaic_frames: int = 1            # renders of one camera pose (different suns) composited per image
-    mosaic_blend: str = "max"         # how they are composited: max (per pixel) or patches (Voronoi cells)
-    mosaic_patches: int = 6           # number of cells for mosaic_blend=patches
+    resolution_min_px: int = 0  # 0 = no resolution jitter
+    resolution_prob: float = 0.5  # probability of applying the resolution jitter
+    gsd_m: float | None = None  # real sensor's ground sample distance (m/px); None = jitter instead
+    gsd_jitter: float = 0.0  # relative jitter of the native grid size
+    jpeg_quality: int | None = None  # JPEG quality of the real product (None = no JPEG)
+    mosaic_frames: int = 1  # renders of one camera pose (different suns) composited per image
+    mosaic_blend: str = "max"  # how they are composited: max (per pixel) or patches (Voronoi cells)
+    mosaic_patches: int = 6  # number of cells for mosaic_blend=patches
 
     def __post_init__(self):
         if self.full_well_if <= 0 or self.photons_at_full_well <= 0:
@@ -292,8 +307,9 @@ class SensorModel:
             raise TrainError(f"sensor.quantize_bits={self.quantize_bits} must lie in [1, 16]")
         lo_hi = tuple(float(v) for v in self.exposure_white_frac)
         if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise TrainError(f"sensor.exposure_white_frac={list(self.exposure_white_frac)} "
-                             "must be [lo, hi], 0 < lo <= hi")
+            raise TrainError(
+                f"sensor.exposure_white_frac={list(self.exposure_white_frac)} must be [lo, hi], 0 < lo <= hi"
+            )
         object.__setattr__(self, "exposure_white_frac", lo_hi)
         if not 0 <= self.resolution_prob <= 1:
             raise TrainError(f"sensor.resolution_prob={self.resolution_prob} must lie in [0, 1]")
@@ -361,7 +377,7 @@ class SensorModel:
         # Shot noise (Poisson, variance = mean) and read noise in one Gaussian draw: the normal
         # approximation of the Poisson law is accurate above ~20 e-, and below that the read noise
         # and the quantisation step (4000 e- / 255 = 16 e- per DN) dominate anyway.
-        sd = np.sqrt(electrons * np.float32(dn_per_e ** 2) + np.float32(self.read_noise_dn ** 2))
+        sd = np.sqrt(electrons * np.float32(dn_per_e**2) + np.float32(self.read_noise_dn**2))
         dn = electrons * np.float32(dn_per_e) + sd * rng.standard_normal(size=x.shape, dtype=np.float32)
         dn = np.clip(np.rint(dn), 0.0, full)
         return (dn / full).astype(np.float32)

@@ -28,10 +28,12 @@ from crater_core.schema import sha256_file
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 
-LIMITS_NOTE = ("The embedded real test set is one real observation per crater (one LROC WAC south-polar "
-               "mosaic, 400 m/px) seen many ways (sigma, slewing offsets, rotations): crops of the same "
-               "crater are strongly correlated, so accuracies measure recognition of that single "
-               "observation, not generalisation over real illumination conditions.")
+LIMITS_NOTE = (
+    "The embedded real test set is one real observation per crater (one LROC WAC south-polar "
+    "mosaic, 400 m/px) seen many ways (sigma, slewing offsets, rotations): crops of the same "
+    "crater are strongly correlated, so accuracies measure recognition of that single "
+    "observation, not generalisation over real illumination conditions."
+)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -54,8 +56,8 @@ class Mosaic:
 
     product_id: str
     path: Path
-    image: np.ndarray                 # (H, W) uint8
-    extent_m: float                   # half-width of the square extent
+    image: np.ndarray  # (H, W) uint8
+    extent_m: float  # half-width of the square extent
     pixel_m: float
     radius_m: float
 
@@ -82,13 +84,17 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
     if expected:
         got = sha256_file(path)
         if got != expected:
-            raise RealSetError(f"real test product {product_id!r}: {path} has sha256 {got}, expected {expected} "
-                               f"(corrupt or a different version)")
+            raise RealSetError(
+                f"real test product {product_id!r}: {path} has sha256 {got}, expected {expected} "
+                f"(corrupt or a different version)"
+            )
     img = read_gray(path, keep_uint8=True)
     size = int(round(2.0 * extent / pixel))
     if img.shape != (size, size):
-        raise RealSetError(f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
-                           f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}")
+        raise RealSetError(
+            f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
+            f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}"
+        )
     return Mosaic(product_id, path, img, extent, pixel, radius)
 
 
@@ -127,14 +133,14 @@ class RealCrop:
     """One labelled real crop: where it comes from and how it was cut. Not a render-manifest row."""
 
     crater: str
-    source: str                       # product id (embedded) or the labels file's ``source`` column
+    source: str  # product id (embedded) or the labels file's ``source`` column
     image_path: str
-    box: tuple[float, float, float, float]   # axis-aligned (u0, v0, u1, v1) before rotation, image px
+    box: tuple[float, float, float, float]  # axis-aligned (u0, v0, u1, v1) before rotation, image px
     sigma: float
     rotation_deg: float = 0.0
     offset_px: tuple[float, float] = (0.0, 0.0)
     offset_frac: tuple[float, float] = (0.0, 0.0)
-    kind: str = "embedded"            # embedded | labels
+    kind: str = "embedded"  # embedded | labels
     index: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -152,8 +158,9 @@ def _crater_seed(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
 
 
-def plan_embedded_crops(mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping],
-                        rs_cfg: Mapping) -> list[RealCrop]:
+def plan_embedded_crops(
+    mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], rs_cfg: Mapping
+) -> list[RealCrop]:
     """The seeded crop plan of the embedded mosaic: ``per_crater`` crops per crater, sigmas cycled,
     uniform offsets in [-max_offset_frac, max_offset_frac] x side per axis, rotations uniform in
     [-max_rotation_deg, max_rotation_deg]. Every rotated box must lie inside the mosaic."""
@@ -179,11 +186,24 @@ def plan_embedded_crops(mosaic_shape: tuple[int, int], mosaic: Mosaic | None, cr
             du, dv = offs[i] * side
             box = (cu + du - side / 2, cv + dv - side / 2, cu + du + side / 2, cv + dv + side / 2)
             if outside_fraction(box, mosaic_shape, rots[i]) > 0:
-                raise RealSetError(f"realset: crop {i} of {name} (sigma={s}, rotation={rots[i]:.1f}) leaves the "
-                                   f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}")
-            out.append(RealCrop(crater=name, source=mosaic.product_id, image_path=str(mosaic.path), box=box,
-                                sigma=s, rotation_deg=float(rots[i]), offset_px=(float(du), float(dv)),
-                                offset_frac=(float(offs[i, 0]), float(offs[i, 1])), kind="embedded", index=i))
+                raise RealSetError(
+                    f"realset: crop {i} of {name} (sigma={s}, rotation={rots[i]:.1f}) leaves the "
+                    f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}"
+                )
+            out.append(
+                RealCrop(
+                    crater=name,
+                    source=mosaic.product_id,
+                    image_path=str(mosaic.path),
+                    box=box,
+                    sigma=s,
+                    rotation_deg=float(rots[i]),
+                    offset_px=(float(du), float(dv)),
+                    offset_frac=(float(offs[i, 0]), float(offs[i, 1])),
+                    kind="embedded",
+                    index=i,
+                )
+            )
     return out
 
 
@@ -209,8 +229,9 @@ def _resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -
         raise RealSetError(f"{where}: cannot resolve {spec!r}: {exc}") from None
 
 
-def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Sequence[float],
-                     data_dir: str | Path | None = None) -> list[RealCrop]:
+def load_labels_file(
+    path: str | Path, class_names: Sequence[str], sigmas: Sequence[float], data_dir: str | Path | None = None
+) -> list[RealCrop]:
     """Crops of user-provided real frames described by a CSV labels file (docs/realset.md).
 
     Columns: ``image_path`` (relative to the CSV's folder, absolute, or ``product:<id>`` for a product
@@ -233,14 +254,17 @@ def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Seque
         has_center = all(c in cols for c in CENTER_COLUMNS)
         has_box = all(c in cols for c in BOX_COLUMNS)
         if missing or not (has_center or has_box):
-            raise RealSetError(f"labels file {path}: needs columns {list(LABEL_COLUMNS)} and either "
-                               f"{list(CENTER_COLUMNS)} or {list(BOX_COLUMNS)}; has {sorted(cols)}")
+            raise RealSetError(
+                f"labels file {path}: needs columns {list(LABEL_COLUMNS)} and either "
+                f"{list(CENTER_COLUMNS)} or {list(BOX_COLUMNS)}; has {sorted(cols)}"
+            )
         for lineno, rec in enumerate(reader, 2):
             where = f"labels file {path}:{lineno}"
             crater = known.get(canonical_crater(rec.get("crater") or ""))
             if crater is None:
-                raise RealSetError(f"{where}: unknown crater {rec.get('crater')!r}; the classifier knows "
-                                   f"{sorted(class_names)}")
+                raise RealSetError(
+                    f"{where}: unknown crater {rec.get('crater')!r}; the classifier knows {sorted(class_names)}"
+                )
             spec = (rec.get("image_path") or "").strip()
             if not spec:
                 raise RealSetError(f"{where}: empty image_path")
@@ -266,9 +290,18 @@ def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Seque
             source = (rec.get("source") or "").strip() or "user"
             for s in sigmas:
                 side = float(s) * d
-                crops.append(RealCrop(crater=crater, source=source, image_path=str(img),
-                                      box=(cu - side / 2, cv - side / 2, cu + side / 2, cv + side / 2),
-                                      sigma=float(s), rotation_deg=rot, kind="labels", index=lineno))
+                crops.append(
+                    RealCrop(
+                        crater=crater,
+                        source=source,
+                        image_path=str(img),
+                        box=(cu - side / 2, cv - side / 2, cu + side / 2, cv + side / 2),
+                        sigma=float(s),
+                        rotation_deg=rot,
+                        kind="labels",
+                        index=lineno,
+                    )
+                )
     if not crops:
         raise RealSetError(f"labels file {path} has no rows")
     return crops
@@ -279,8 +312,8 @@ def load_labels_file(path: str | Path, class_names: Sequence[str], sigmas: Seque
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class RealTestSet:
-    images: np.ndarray            # (N, size, size) float32, normalised
-    labels: np.ndarray            # (N,) int64 class indices
+    images: np.ndarray  # (N, size, size) float32, normalised
+    labels: np.ndarray  # (N,) int64 class indices
     crops: list[RealCrop]
     class_names: list[str]
 
@@ -296,8 +329,9 @@ class RealTestSet:
         return {sha256_file(p) for p in sorted({c.image_path for c in self.crops})}
 
 
-def plan_real_crops(cfg: Mapping, craters: Sequence[Mapping],
-                    class_names: Sequence[str]) -> tuple[list[RealCrop], dict]:
+def plan_real_crops(
+    cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str]
+) -> tuple[list[RealCrop], dict]:
     """All crops of the configured real test set (embedded mosaic and/or labels file) plus the
     loaded images by path."""
     rs = cfg.get("realset") or {}
@@ -317,16 +351,19 @@ def plan_real_crops(cfg: Mapping, craters: Sequence[Mapping],
                 images[c.image_path] = read_gray(c.image_path, keep_uint8=True)
             shape = images[c.image_path].shape
             if outside_fraction(c.box, shape, c.rotation_deg) > 0.25:
-                raise RealSetError(f"labels file {rs['labels_file']}:{c.index}: sigma={c.sigma} box {list(c.box)} "
-                                   f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %")
+                raise RealSetError(
+                    f"labels file {rs['labels_file']}:{c.index}: sigma={c.sigma} box {list(c.box)} "
+                    f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %"
+                )
         crops += lab
     if not crops:
         raise RealSetError("the real test set is empty: realset.include_embedded=false and no realset.labels_file")
     return crops, images
 
 
-def build_real_test_set(cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str],
-                        pp: PreprocessConfig | None = None) -> RealTestSet:
+def build_real_test_set(
+    cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str], pp: PreprocessConfig | None = None
+) -> RealTestSet:
     """Cut, resample and normalise every real crop (same path as the synthetic images, no sensor model)."""
     pp = pp or PreprocessConfig.from_config(cfg)
     crops, images = plan_real_crops(cfg, craters, class_names)

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class ModelSpec:
-    key: str          # metrics.json / loop_history.json key and the artefact's stem
-    label: str        # human-readable name (report, plots)
-    short: str        # legend label in the Figure 6 plot
-    color: str        # plot and report colour
-    artefact: str     # file written into run_dir by `crater-synth train`
-    figure6: bool     # trained at every Figure 6 point (the paper plots LunarNet_ex and LunarSVM_ex)
+    key: str  # metrics.json / loop_history.json key and the artefact's stem
+    label: str  # human-readable name (report, plots)
+    short: str  # legend label in the Figure 6 plot
+    color: str  # plot and report colour
+    artefact: str  # file written into run_dir by `crater-synth train`
+    figure6: bool  # trained at every Figure 6 point (the paper plots LunarNet_ex and LunarSVM_ex)
 
 
 REGISTRY: tuple[ModelSpec, ...] = (

@@ -26,30 +26,46 @@ from crater_core.exr import write_exr
 DEFAULT_CRATERS = ("shackleton", "de_gerlache", "shoemaker")
 # (sun elevation, sun azimuth, camera azimuth) of the held-out frames: none is a pose or sun of the
 # default test datasets (camera azimuths 0/90/180/270, sun azimuths 0/120/240).
-HELD_OUT_VIEWS = ((20.0, 60.0, 45.0), (20.0, 180.0, 135.0), (20.0, 300.0, 225.0), (25.0, 10.0, 315.0),
-                  (15.0, 90.0, 30.0), (30.0, 200.0, 200.0), (25.0, 330.0, 110.0), (18.0, 150.0, 290.0))
+HELD_OUT_VIEWS = (
+    (20.0, 60.0, 45.0),
+    (20.0, 180.0, 135.0),
+    (20.0, 300.0, 225.0),
+    (25.0, 10.0, 315.0),
+    (15.0, 90.0, 30.0),
+    (30.0, 200.0, 200.0),
+    (25.0, 330.0, 110.0),
+    (18.0, 150.0, 290.0),
+)
 TOY_FRAME_SOURCE = "toyframes"
 
 
 def _height(kind: int, x: np.ndarray, y: np.ndarray, rng_bg: np.ndarray) -> np.ndarray:
     """Toy height field in crater radii (rim at r = 1)."""
     r = np.hypot(x, y)
-    rim = 0.15 * np.exp(-((r - 1.0) / 0.12) ** 2)
-    if kind == 0:      # deep simple bowl
-        z = np.where(r < 1, -0.6 * (1 - r ** 2), 0.0) + rim
-    elif kind == 1:    # bowl + satellite crater on the rim (breaks the rotational symmetry)
-        z = np.where(r < 1, -0.45 * (1 - r ** 2), 0.0) + rim
+    rim = 0.15 * np.exp(-(((r - 1.0) / 0.12) ** 2))
+    if kind == 0:  # deep simple bowl
+        z = np.where(r < 1, -0.6 * (1 - r**2), 0.0) + rim
+    elif kind == 1:  # bowl + satellite crater on the rim (breaks the rotational symmetry)
+        z = np.where(r < 1, -0.45 * (1 - r**2), 0.0) + rim
         sx, sy = x - 0.9, y - 0.55
         rs = np.hypot(sx, sy) / 0.35
-        z = z + np.where(rs < 1, -0.2 * (1 - rs ** 2), 0.0) + 0.05 * np.exp(-((rs - 1) / 0.2) ** 2)
-    else:              # flat floor + central peak
-        z = np.where(r < 1, -0.35 * np.clip((1 - r ** 2) * 2.0, 0, 1), 0.0) + rim
-        z = z + 0.25 * np.exp(-(r / 0.18) ** 2)
+        z = z + np.where(rs < 1, -0.2 * (1 - rs**2), 0.0) + 0.05 * np.exp(-(((rs - 1) / 0.2) ** 2))
+    else:  # flat floor + central peak
+        z = np.where(r < 1, -0.35 * np.clip((1 - r**2) * 2.0, 0, 1), 0.0) + rim
+        z = z + 0.25 * np.exp(-((r / 0.18) ** 2))
     return z + rng_bg
 
 
-def render_toy(kind: int, size: int, rim_px: float, sun_elevation: float, sun_azimuth: float,
-               cam_elevation: float, cam_azimuth: float, terrain_seed: int) -> dict[str, np.ndarray]:
+def render_toy(
+    kind: int,
+    size: int,
+    rim_px: float,
+    sun_elevation: float,
+    sun_azimuth: float,
+    cam_elevation: float,
+    cam_azimuth: float,
+    terrain_seed: int,
+) -> dict[str, np.ndarray]:
     """All EXR channels of one toy render (I/F up to ~0.3, unclamped float)."""
     c = size / 2.0
     v, u = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
@@ -72,16 +88,27 @@ def render_toy(kind: int, size: int, rim_px: float, sun_elevation: float, sun_az
     mu0 = np.clip(n @ s, 0.0, None)
     lit = (mu0 > 0).astype(np.float32)
     i_f = (0.12 * mu0 / max(math.sin(el), 0.2)).astype(np.float32)
-    return {"IF": i_f, "depth": (1000.0 - 50.0 * z).astype(np.float32), "N.X": n[..., 0].astype(np.float32),
-            "N.Y": n[..., 1].astype(np.float32), "N.Z": n[..., 2].astype(np.float32), "lit": lit}
+    return {
+        "IF": i_f,
+        "depth": (1000.0 - 50.0 * z).astype(np.float32),
+        "N.X": n[..., 0].astype(np.float32),
+        "N.Y": n[..., 1].astype(np.float32),
+        "N.Z": n[..., 2].astype(np.float32),
+        "lit": lit,
+    }
 
 
-def write_toy_dataset(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRATERS,
-                      sun_elevations: Sequence[float] = (15.0, 30.0),
-                      sun_azimuths: Sequence[float] = (0.0, 120.0, 240.0),
-                      cam_elevations: Sequence[float] = (90.0,),
-                      cam_azimuths: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
-                      rim_px: float = 48.0, sigmas: Sequence[float] = (1.0, 1.2, 1.4), seed: int = 0) -> list[dict]:
+def write_toy_dataset(
+    out_dir: str | Path,
+    craters: Sequence[str] = DEFAULT_CRATERS,
+    sun_elevations: Sequence[float] = (15.0, 30.0),
+    sun_azimuths: Sequence[float] = (0.0, 120.0, 240.0),
+    cam_elevations: Sequence[float] = (90.0,),
+    cam_azimuths: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
+    rim_px: float = 48.0,
+    sigmas: Sequence[float] = (1.0, 1.2, 1.4),
+    seed: int = 0,
+) -> list[dict]:
     """Write EXRs + ``manifest.jsonl`` into ``out_dir``; returns the rows."""
     out_dir = Path(out_dir)
     size = int(math.ceil(max(sigmas) * rim_px))
@@ -99,14 +126,31 @@ def write_toy_dataset(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRAT
             rel = f"{crater}/{flat:05d}.exr"
             write_exr(out_dir / rel, ch)
             row = {
-                "schema_version": schema.SCHEMA_VERSION, "crater": crater, "index": flat, "indices": list(idx),
-                "sun_elevation": float(se), "sun_azimuth": float(sa), "cam_elevation": float(ce),
-                "cam_azimuth": float(ca), "range_m": 1000.0, "fov_deg": 90.0, "width": size, "height": size,
-                "frame_width": size, "crop_origin": [0, 0], "center_px": [c, c],
+                "schema_version": schema.SCHEMA_VERSION,
+                "crater": crater,
+                "index": flat,
+                "indices": list(idx),
+                "sun_elevation": float(se),
+                "sun_azimuth": float(sa),
+                "cam_elevation": float(ce),
+                "cam_azimuth": float(ca),
+                "range_m": 1000.0,
+                "fov_deg": 90.0,
+                "width": size,
+                "height": size,
+                "frame_width": size,
+                "crop_origin": [0, 0],
+                "center_px": [c, c],
                 "rim_ellipse": {"cu": c, "cv": c, "a": rim_px / 2, "b": rim_px / 2, "angle_rad": 0.0},
-                "sigma_boxes": boxes, "lit_fraction": float(ch["lit"].mean()), "mean_if": float(ch["IF"].mean()),
-                "path": rel, "sha256": schema.sha256_file(out_dir / rel), "seed": int(tseed),
-                "code_version": "toydata", "renderer": "toydata", "terrain_id": f"toy-{crater}",
+                "sigma_boxes": boxes,
+                "lit_fraction": float(ch["lit"].mean()),
+                "mean_if": float(ch["IF"].mean()),
+                "path": rel,
+                "sha256": schema.sha256_file(out_dir / rel),
+                "seed": int(tseed),
+                "code_version": "toydata",
+                "renderer": "toydata",
+                "terrain_id": f"toy-{crater}",
                 "render_digest": "toydata",
             }
             rows.append(schema.validate_row(row))
@@ -114,9 +158,14 @@ def write_toy_dataset(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRAT
     return rows
 
 
-def write_toy_frames(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRATERS,
-                     views: Sequence[tuple[float, float, float]] = HELD_OUT_VIEWS, rim_px: float = 40.0,
-                     size: int = 96, seed: int = 0) -> Path:
+def write_toy_frames(
+    out_dir: str | Path,
+    craters: Sequence[str] = DEFAULT_CRATERS,
+    views: Sequence[tuple[float, float, float]] = HELD_OUT_VIEWS,
+    rim_px: float = 40.0,
+    size: int = 96,
+    seed: int = 0,
+) -> Path:
     """Held-out toy frames (8-bit PNG, nadir camera) and their realset labels file; returns the CSV path.
 
     Same toy craters and terrain seeds as :func:`write_toy_dataset` (same ``seed``), new views: use it as
@@ -131,7 +180,7 @@ def write_toy_frames(out_dir: str | Path, craters: Sequence[str] = DEFAULT_CRATE
         for k, (sun_el, sun_az, cam_az) in enumerate(views):
             i_f = render_toy(ci % 3, size, rim_px, sun_el, sun_az, 90.0, cam_az, tseed)["IF"]
             name = f"{crater}_{k:02d}.png"
-            dn = np.clip(np.round(i_f / 0.3 * 255.0), 0, 255).astype(np.uint8)   # 8-bit DN like a real frame
+            dn = np.clip(np.round(i_f / 0.3 * 255.0), 0, 255).astype(np.uint8)  # 8-bit DN like a real frame
             Image.fromarray(dn).save(out_dir / name)
             lines.append(f"{name},{crater},{size / 2},{size / 2},{rim_px},{TOY_FRAME_SOURCE}")
     labels = out_dir / "labels.csv"

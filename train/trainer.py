@@ -13,6 +13,7 @@ import io
 import json
 import os
 import pickle
+import sys
 import time
 from pathlib import Path
 from typing import Mapping
@@ -30,7 +31,7 @@ from train.registry import SPECS
 
 NET_FILE, SVM_FILE, HOG_FILE = (SPECS[k].artefact for k in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"))
 SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
-SKLEARN_FORMAT = 2          # 1: pickle (.pkl, before joblib); 2: joblib
+SKLEARN_FORMAT = 2  # 1: pickle (.pkl, before joblib); 2: joblib
 
 
 # ------------------------------------------------------------------------------------------------
@@ -62,8 +63,9 @@ def _require_synthetic(ds) -> None:
 def _loader(ds, batch_size: int, shuffle: bool, seed: int):
     g = torch.Generator()
     g.manual_seed(int(seed) & 0x7FFFFFFF)
-    return torch.utils.data.DataLoader(ds, batch_size=batch_size, shuffle=shuffle, generator=g, num_workers=0,
-                                       drop_last=False)
+    return torch.utils.data.DataLoader(
+        ds, batch_size=batch_size, shuffle=shuffle, generator=g, num_workers=0, drop_last=False
+    )
 
 
 def _batches(X, batch_size: int):
@@ -72,7 +74,7 @@ def _batches(X, batch_size: int):
         yield from X.iter_arrays(batch_size)
     else:
         for i in range(0, len(X), batch_size):
-            yield X[i:i + batch_size], None
+            yield X[i : i + batch_size], None
 
 
 @torch.no_grad()
@@ -102,8 +104,9 @@ def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.de
 # ------------------------------------------------------------------------------------------------
 # LunarNet_ex
 # ------------------------------------------------------------------------------------------------
-def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None = None,
-                   progress: bool = True) -> tuple[LunarNetEx, dict]:
+def train_lunarnet(
+    data: SyntheticData, cfg: Mapping, run_dir: str | Path | None = None, progress: bool = True
+) -> tuple[LunarNetEx, dict]:
     """Adam on cross-entropy until the class-balanced validation accuracy reaches
     ``train.target_val_accuracy`` or ``train.max_epochs``. The best-validation weights are kept and,
     with ``run_dir``, checkpointed atomically after every epoch that improves them.
@@ -120,8 +123,9 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
     seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
     torch.manual_seed(seed)
     model = LunarNetEx(mcfg).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=float(tcfg.get("lr", 1e-3)),
-                           weight_decay=float(tcfg.get("weight_decay", 0.0)))
+    opt = torch.optim.Adam(
+        model.parameters(), lr=float(tcfg.get("lr", 1e-3)), weight_decay=float(tcfg.get("weight_decay", 0.0))
+    )
     loss_fn = nn.CrossEntropyLoss()  # = the Softmax layer + log-loss
     target = float(tcfg.get("target_val_accuracy", 0.9))
     max_epochs = int(tcfg.get("max_epochs", 30))
@@ -140,8 +144,14 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
         model.train()
         tot_loss, tot_ok, tot_n = 0.0, 0, 0
         t0 = time.perf_counter()
-        bar = tqdm(_loader(data.train, bs, True, seed + epoch), desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
-                   unit="batch", disable=not progress, leave=False)
+        # The batch bar on a terminal only: in a log, the epoch summary line below is the progress.
+        bar = tqdm(
+            _loader(data.train, bs, True, seed + epoch),
+            desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
+            unit="batch",
+            disable=not (progress and sys.stderr.isatty()),
+            leave=False,
+        )
         for xb, yb in bar:
             xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
             opt.zero_grad(set_to_none=True)
@@ -161,28 +171,47 @@ def train_lunarnet(data: SyntheticData, cfg: Mapping, run_dir: str | Path | None
         images_seen += tot_n
         pv = predict_logits(model, data.val, ebs, device).argmax(1)
         val_acc = class_mean_accuracy(yv, pv)
-        rec = {"epoch": epoch, "loss": tot_loss / max(tot_n, 1), "train_accuracy": tot_ok / max(tot_n, 1),
-               "val_accuracy": val_acc, "val_accuracy_overall": accuracy(yv, pv),
-               "epoch_seconds": dt, "images_per_s": tot_n / max(dt, 1e-9),
-               "elapsed_s": time.perf_counter() - t_start}
+        rec = {
+            "epoch": epoch,
+            "loss": tot_loss / max(tot_n, 1),
+            "train_accuracy": tot_ok / max(tot_n, 1),
+            "val_accuracy": val_acc,
+            "val_accuracy_overall": accuracy(yv, pv),
+            "epoch_seconds": dt,
+            "images_per_s": tot_n / max(dt, 1e-9),
+            "elapsed_s": time.perf_counter() - t_start,
+        }
         history.append(rec)
         if progress:
-            tqdm.write(f"lunarnet_ex epoch {epoch}: loss {rec['loss']:.4f} train acc {rec['train_accuracy']:.3f} "
-                       f"val acc (class mean) {val_acc:.3f} [{rec['images_per_s']:.0f} img/s]")
+            tqdm.write(
+                f"lunarnet_ex epoch {epoch}: loss {rec['loss']:.4f} train acc {rec['train_accuracy']:.3f} "
+                f"val acc (class mean) {val_acc:.3f} [{rec['images_per_s']:.0f} img/s]"
+            )
         if val_acc > best["val_accuracy"]:
-            best = {"val_accuracy": val_acc, "epoch": epoch,
-                    "state": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
+            best = {
+                "val_accuracy": val_acc,
+                "epoch": epoch,
+                "state": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+            }
             if run_dir is not None:
                 save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], val_acc)
         if val_acc >= target:
             reached_at = rec["elapsed_s"]
             break
     model.load_state_dict(best["state"])
-    summary = {"history": history, "best_epoch": best["epoch"], "val_accuracy": best["val_accuracy"],
-               "target_val_accuracy": target, "reached_target": reached_at is not None,
-               "time_to_target_s": reached_at, "train_seconds": train_time,
-               "train_images_per_s": images_seen / max(train_time, 1e-9), "device": str(device),
-               "parameters": parameter_count(model), "multiply_adds": multiply_adds(mcfg)["total"]}
+    summary = {
+        "history": history,
+        "best_epoch": best["epoch"],
+        "val_accuracy": best["val_accuracy"],
+        "target_val_accuracy": target,
+        "reached_target": reached_at is not None,
+        "time_to_target_s": reached_at,
+        "train_seconds": train_time,
+        "train_images_per_s": images_seen / max(train_time, 1e-9),
+        "device": str(device),
+        "parameters": parameter_count(model),
+        "multiply_adds": multiply_adds(mcfg)["total"],
+    }
     if run_dir is not None:  # final save carries the complete history
         save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], best["val_accuracy"])
     return model, summary
@@ -192,9 +221,20 @@ def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_ac
     from train.preprocess import PreprocessConfig
 
     buf = io.BytesIO()
-    torch.save({"format": 1, "state_dict": state, "model": dict(mcfg), "class_names": list(class_names),
-                "preprocess": PreprocessConfig.from_config(cfg).__dict__, "epoch": epoch, "val_accuracy": val_acc,
-                "history": history, "config": cfg}, buf)
+    torch.save(
+        {
+            "format": 1,
+            "state_dict": state,
+            "model": dict(mcfg),
+            "class_names": list(class_names),
+            "preprocess": PreprocessConfig.from_config(cfg).__dict__,
+            "epoch": epoch,
+            "val_accuracy": val_acc,
+            "history": history,
+            "config": cfg,
+        },
+        buf,
+    )
     path = Path(run_dir) / NET_FILE
     atomic_write_bytes(path, buf.getvalue())
     return path
@@ -238,8 +278,13 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     svm = make_linear_svm(tcfg.get("svm", {}), seed)
     conv = _fit_quiet(svm, fc1_activations(model, data.train, ebs, device), yt)
     pv = svm.predict(fc1_activations(model, data.val, ebs, device))
-    out["lunarsvm_ex"] = {"model": svm, "val_accuracy": class_mean_accuracy(yv, pv),
-                          "train_images": int(len(yt)), "converged": conv, "seconds": time.perf_counter() - t0}
+    out["lunarsvm_ex"] = {
+        "model": svm,
+        "val_accuracy": class_mean_accuracy(yv, pv),
+        "train_images": int(len(yt)),
+        "converged": conv,
+        "seconds": time.perf_counter() - t0,
+    }
     t0 = time.perf_counter()
     hcfg = tcfg.get("hog", {})
     sel = _subsample(len(data.train), hcfg.get("max_train_images"), seed)
@@ -248,12 +293,20 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     conv = _fit_quiet(hog_svm, Ht, yt[sel])
     del Ht
     Hv = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.val.iter_arrays(ebs)])
-    out["hog_svm"] = {"model": hog_svm, "val_accuracy": class_mean_accuracy(yv, hog_svm.predict(Hv)),
-                      "train_images": int(len(sel)), "converged": conv, "seconds": time.perf_counter() - t0}
+    out["hog_svm"] = {
+        "model": hog_svm,
+        "val_accuracy": class_mean_accuracy(yv, hog_svm.predict(Hv)),
+        "train_images": int(len(sel)),
+        "converged": conv,
+        "seconds": time.perf_counter() - t0,
+    }
     if progress:
         from tqdm import tqdm
-        tqdm.write(f"lunarsvm_ex val acc (class mean) {out['lunarsvm_ex']['val_accuracy']:.3f}; "
-                   f"hog_svm val acc {out['hog_svm']['val_accuracy']:.3f}")
+
+        tqdm.write(
+            f"lunarsvm_ex val acc (class mean) {out['lunarsvm_ex']['val_accuracy']:.3f}; "
+            f"hog_svm val acc {out['hog_svm']['val_accuracy']:.3f}"
+        )
     return out
 
 
@@ -285,16 +338,31 @@ def load_sklearn(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         if path.with_suffix(".pkl").is_file():
-            raise ModelError(f"{path.with_suffix('.pkl')} was saved by an older crater-synth (pickle); "
-                             f"retrain with `crater-synth train` to write {path.name}")
+            raise ModelError(
+                f"{path.with_suffix('.pkl')} was saved by an older crater-synth (pickle); "
+                f"retrain with `crater-synth train` to write {path.name}"
+            )
         raise ModelError(f"no trained model at {path}: run `crater-synth train` first (or set run_dir)")
     try:
         doc = joblib.load(path)
-    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, KeyError, IndexError, ValueError,
-            TypeError, OSError) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        AttributeError,
+        ImportError,
+        KeyError,
+        IndexError,
+        ValueError,
+        TypeError,
+        OSError,
+    ) as exc:
         raise ModelError(f"cannot load {path}: {exc or type(exc).__name__}") from None
-    if not (isinstance(doc, dict) and doc.get("format") == SKLEARN_FORMAT and "model" in doc
-            and isinstance(doc.get("class_names"), list)):
+    if not (
+        isinstance(doc, dict)
+        and doc.get("format") == SKLEARN_FORMAT
+        and "model" in doc
+        and isinstance(doc.get("class_names"), list)
+    ):
         raise ModelError(f"cannot load {path}: not a crater-synth scikit-learn model file (format {SKLEARN_FORMAT})")
     return doc
 
@@ -311,11 +379,18 @@ def train_all(cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: 
     atomic_write_text(run_dir / CONFIG_FILE, yaml.safe_dump(cfg, sort_keys=False))
     model, net = train_lunarnet(data, cfg, run_dir, progress)
     svms = train_svms(model, data, cfg, progress)
-    save_sklearn(run_dir / SVM_FILE, svms["lunarsvm_ex"]["model"], data.class_names,
-                 {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"]})
-    save_sklearn(run_dir / HOG_FILE, svms["hog_svm"]["model"], data.class_names,
-                 {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"],
-                  "hog": dict(cfg["train"].get("hog", {}))})
+    save_sklearn(
+        run_dir / SVM_FILE,
+        svms["lunarsvm_ex"]["model"],
+        data.class_names,
+        {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"]},
+    )
+    save_sklearn(
+        run_dir / HOG_FILE,
+        svms["hog_svm"]["model"],
+        data.class_names,
+        {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"], "hog": dict(cfg["train"].get("hog", {}))},
+    )
     summary = {
         "class_names": data.class_names,
         "data": data.info,

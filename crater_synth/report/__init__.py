@@ -18,5 +18,4 @@ section: data for its template, figures drawn by ``figures``) -> ``page`` (Jinja
 from crater_synth.report.build import INDEX_FILE, REPORT_DIR, build_report, report_command
 from crater_synth.report.inputs import ReportError, RunConfig, effective_config
 
-__all__ = ["INDEX_FILE", "REPORT_DIR", "ReportError", "RunConfig", "build_report", "effective_config",
-           "report_command"]
+__all__ = ["INDEX_FILE", "REPORT_DIR", "ReportError", "RunConfig", "build_report", "effective_config", "report_command"]

@@ -18,6 +18,7 @@ from crater_synth.report.inputs import (
     FIGURE6_FILE,
     LOOP_FILE,
     METRICS_FILE,
+    RUN_CONFIG_FILE,
     SUMMARY_FILE,
     ReportError,
     check_png,
@@ -36,14 +37,27 @@ REPORT_DIR = "report"
 INDEX_FILE = "index.html"
 
 
-def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: int = 36, hist_samples: int = 48,
-                 log: Callable[[str], None] | None = None) -> Path:
+def build_report(
+    run_dir: str | Path,
+    overrides: Sequence[str] = (),
+    max_tiles: int = 36,
+    hist_samples: int = 48,
+    log: Callable[[str], None] | None = None,
+) -> Path:
     """Write ``RUN_DIR/report/index.html`` (+ PNGs) and return its path."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ReportError(f"run directory {run_dir} does not exist (`{gather.PRODUCERS['metrics'][1]}` writes it)")
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
+    run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE, gather.ABLATION_FILE)
+    if not any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE)) and not any(
+        run_dir.glob("confusion_*.png")
+    ):  # nothing of a run here: e.g. a typo in RUN_DIR
+        raise ReportError(
+            f"run directory {run_dir} holds no run to report (none of {', '.join(run_outputs)}): "
+            f"run `{gather.PRODUCERS['metrics'][1]}` first, or give the run_dir it wrote"
+        )
     rc = effective_config(run_dir, overrides)
     metrics = load_metrics(run_dir / METRICS_FILE)
     # Validate every optional input up front: a corrupt one fails before any work.
@@ -66,11 +80,20 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o777 & ~mask)
-        ctx = gather.Ctx(run_dir=run_dir, out=tmp, rc=rc, metrics=metrics, rows=rows, all_rows=all_rows,
-                         craters=gather.crater_order(metrics, rc.cfg, rows), max_tiles=max_tiles,
-                         hist_samples=hist_samples, log=log)
+        ctx = gather.Ctx(
+            run_dir=run_dir,
+            out=tmp,
+            rc=rc,
+            metrics=metrics,
+            rows=rows,
+            all_rows=all_rows,
+            craters=gather.crater_order(metrics, rc.cfg, rows),
+            max_tiles=max_tiles,
+            hist_samples=hist_samples,
+            log=log,
+        )
         page = render_page(ctx)
-        for f in tmp.iterdir():               # mkstemp-written PNGs (preview) are 0600
+        for f in tmp.iterdir():  # mkstemp-written PNGs (preview) are 0600
             os.chmod(f, 0o666 & ~mask)
         with open(tmp / INDEX_FILE, "w", encoding="utf-8") as fh:
             fh.write(page)
@@ -88,8 +111,9 @@ def build_report(run_dir: str | Path, overrides: Sequence[str] = (), max_tiles: 
 @click.argument("run_dir", type=click.Path(file_okay=False))
 @OVERRIDES
 @click.option("--max-tiles", default=36, show_default=True, help="Renders per contact sheet.")
-@click.option("--hist-samples", default=48, show_default=True,
-              help="Renders per crater sampled for the input histograms.")
+@click.option(
+    "--hist-samples", default=48, show_default=True, help="Renders per crater sampled for the input histograms."
+)
 @click.option("--quiet", "-q", is_flag=True, help="Only print the page's path.")
 @user_errors
 def report_command(run_dir, overrides, max_tiles, hist_samples, quiet):

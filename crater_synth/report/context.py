@@ -10,10 +10,11 @@ from crater_synth.report.inputs import RunConfig
 
 # What produces each input, quoted in the "not run" notes: (what, command).
 PRODUCERS = {
-    "dataset": ("rendering a dataset (then point the report at it with train.dataset_dir=DIR)",
-                "crater-synth dataset"),
-    "metrics": ("training and evaluation (crater-synth evaluate for saved models)",
-                "crater-synth train run_dir=RUN_DIR"),
+    "dataset": ("rendering a dataset (then point the report at it with train.dataset_dir=DIR)", "crater-synth dataset"),
+    "metrics": (
+        "training and evaluation (crater-synth evaluate for saved models)",
+        "crater-synth train run_dir=RUN_DIR",
+    ),
     "loop": ("the closed loop (configs/loop)", "crater-synth loop run_dir=RUN_DIR"),
     "experiments": ("the Figure 6 experiments (configs/experiments)", "crater-synth experiments run_dir=RUN_DIR"),
     "ablation": ("the fidelity ablation (configs/ablation, docs/fidelity.md)", "crater-synth ablate"),
@@ -27,22 +28,23 @@ SYNTHETIC_CHOICE = (
     "orbits under different illumination: it has no single sun direction, so no render can match its lighting "
     "exactly; the highest, best-lit Sun of the sweep is the closest analogue of a mosaic assembled for "
     "illumination. The real crop is the realset's own σ = 1.0 box centred on the crater with no slewing offset "
-    "and no rotation.")
+    "and no rotation."
+)
 
 
 @dataclass
 class Ctx:
     run_dir: Path
-    out: Path                                      # the report's temporary directory
+    out: Path  # the report's temporary directory
     rc: RunConfig
     metrics: dict | None
-    rows: list[dict] | None                        # the rows the run trained on (train.select applied)
-    all_rows: list[dict] | None                    # every row of the dataset's manifest
+    rows: list[dict] | None  # the rows the run trained on (train.select applied)
+    all_rows: list[dict] | None  # every row of the dataset's manifest
     craters: list[str]
     max_tiles: int
     hist_samples: int
     log: Callable[[str], None] | None = None
-    real: dict = field(default_factory=dict)       # crater -> {"crop"} (canonical sigma = 1 crop)
+    real: dict = field(default_factory=dict)  # crater -> {"crop"} (canonical sigma = 1 crop)
     real_error: str | None = None
 
     def say(self, msg: str) -> None:

@@ -12,8 +12,16 @@ import numpy as np
 from train.registry import MODELS, SPECS, label
 
 REAL_COLOR, SYN_COLOR, SENSOR_COLOR = "#d9480f", "#1c7ed6", "#5c7cfa"
-_RC = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "axes.spines.top": False,
-       "axes.spines.right": False, "legend.fontsize": 8, "legend.frameon": False, "figure.dpi": 110}
+_RC = {
+    "font.size": 9,
+    "axes.titlesize": 9,
+    "axes.labelsize": 9,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "legend.fontsize": 8,
+    "legend.frameon": False,
+    "figure.dpi": 110,
+}
 
 
 def _rc():
@@ -48,9 +56,21 @@ def stretch(x: np.ndarray, lo: float = 0.5, hi: float = 99.5) -> np.ndarray:
     return np.clip((x - a) / max(b - a, 1e-9), 0.0, 1.0)
 
 
-def compare_panel(path: Path, crater: str, row: dict, real_orig: np.ndarray, syn_orig: np.ndarray, i_f: np.ndarray,
-                  sigma_key: str, sigma_box: Sequence[float], rim_points: np.ndarray, real_pp: np.ndarray,
-                  syn_pp: np.ndarray, syn_sensor: np.ndarray | None, size: int) -> str:
+def compare_panel(
+    path: Path,
+    crater: str,
+    row: dict,
+    real_orig: np.ndarray,
+    syn_orig: np.ndarray,
+    i_f: np.ndarray,
+    sigma_key: str,
+    sigma_box: Sequence[float],
+    rim_points: np.ndarray,
+    real_pp: np.ndarray,
+    syn_pp: np.ndarray,
+    syn_sensor: np.ndarray | None,
+    size: int,
+) -> str:
     """2 x 3 panel: display originals (real, synthetic sigma crop, whole render) over the network inputs."""
     from crater_synth.preview import tone_map
 
@@ -79,16 +99,22 @@ def compare_panel(path: Path, crater: str, row: dict, real_orig: np.ndarray, syn
         a.set_xlim(-0.5, i_f.shape[1] - 0.5)
         a.set_ylim(i_f.shape[0] - 0.5, -0.5)
         a.set_title(f"whole synthetic render ({i_f.shape[1]}×{i_f.shape[0]})\nred: rim, blue: σ box")
-        for a, im, t in ((axes[1, 0], real_pp, "real"), (axes[1, 1], syn_pp, "synthetic"),
-                         (axes[1, 2], syn_sensor, "synthetic + sensor model (training)")):
+        for a, im, t in (
+            (axes[1, 0], real_pp, "real"),
+            (axes[1, 1], syn_pp, "synthetic"),
+            (axes[1, 2], syn_sensor, "synthetic + sensor model (training)"),
+        ):
             a.set_title(t)
             if im is None:
                 a.text(0.5, 0.5, "sensor model disabled", ha="center", va="center", transform=a.transAxes)
                 continue
             a.imshow(im, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-        fig.suptitle(f"{crater}: real WAC vs closest synthetic render "
-                     f"(sun el {row['sun_elevation']:.2f}°, az {row['sun_azimuth']:.0f}°; "
-                     f"camera el {row['cam_elevation']:.0f}°, az {row['cam_azimuth']:.0f}°)", fontsize=10.5)
+        fig.suptitle(
+            f"{crater}: real WAC vs closest synthetic render "
+            f"(sun el {row['sun_elevation']:.2f}°, az {row['sun_azimuth']:.0f}°; "
+            f"camera el {row['cam_elevation']:.0f}°, az {row['cam_azimuth']:.0f}°)",
+            fontsize=10.5,
+        )
         fig.tight_layout()
         return _save(fig, path)
 
@@ -107,8 +133,9 @@ def histograms(path: Path, panels: Sequence[dict], bins: np.ndarray) -> str:
             ax.stairs(p["real_density"], bins, color=REAL_COLOR, lw=1.6, label=f"real ({p['real_crops']} crops)")
             ax.stairs(p["syn_density"], bins, color=SYN_COLOR, lw=1.6, label=f"synthetic ({p['syn_crops']} crops)")
             if p["sensor_density"] is not None:
-                ax.stairs(p["sensor_density"], bins, color=SENSOR_COLOR, lw=1.1, ls="--",
-                          label="synthetic + sensor model")
+                ax.stairs(
+                    p["sensor_density"], bins, color=SENSOR_COLOR, lw=1.1, ls="--", label="synthetic + sensor model"
+                )
             ax.set_yscale("log")
             ax.set_xlim(0, 1)
             ax.set_xlabel("normalised intensity after preprocessing")
@@ -134,8 +161,15 @@ def loop_history(path: Path, rounds: Sequence[dict], threshold: float | None) ->
         if threshold is not None:
             ax.axhline(100.0 * threshold, color="#868e96", ls="--", lw=1, label=f"threshold {100 * threshold:.0f} %")
         for r in rounds:
-            ax.annotate(f"r{r['round']}", (r["sun_elevation_count"], 0), xytext=(0, 3), textcoords="offset points",
-                        ha="center", fontsize=7, color="#868e96")
+            ax.annotate(
+                f"r{r['round']}",
+                (r["sun_elevation_count"], 0),
+                xytext=(0, 3),
+                textcoords="offset points",
+                ha="center",
+                fontsize=7,
+                color="#868e96",
+            )
         ax.set_xticks(sorted(set(x.tolist())))
         ax.set_ylim(0, 102)
         ax.set_xlabel("sun-elevation sample count (round rN)")
@@ -149,8 +183,14 @@ def loop_history(path: Path, rounds: Sequence[dict], threshold: float | None) ->
         ax2.bar(idx, ts, bottom=rs, color="#495057", label="train + evaluate")
         for i, r in enumerate(rounds):
             if r.get("images") is not None:
-                ax2.annotate(f"{int(r['images']):,} img", (i, rs[i] + ts[i]), xytext=(0, 2),
-                             textcoords="offset points", ha="center", fontsize=7)
+                ax2.annotate(
+                    f"{int(r['images']):,} img",
+                    (i, rs[i] + ts[i]),
+                    xytext=(0, 2),
+                    textcoords="offset points",
+                    ha="center",
+                    fontsize=7,
+                )
         ax2.set_xticks(idx, [f"r{r['round']}\n({r['sun_elevation_count']})" for r in rounds])
         ax2.set_ylabel("minutes")
         ax2.set_title("time per round")
@@ -174,11 +214,21 @@ def figure6(path: Path, rows: Sequence[dict], models: Sequence[str]) -> str:
             for si, s in enumerate(sigmas):
                 color = cmap(0.15 + 0.7 * si / max(1, len(sigmas) - 1))
                 for mi, mdl in enumerate(models):
-                    pts = sorted((r["count"], r["real_accuracy"]) for r in rows
-                                 if r["parameter"] == p and r["sigma"] == s and r["model"] == mdl)
+                    pts = sorted(
+                        (r["count"], r["real_accuracy"])
+                        for r in rows
+                        if r["parameter"] == p and r["sigma"] == s and r["model"] == mdl
+                    )
                     if pts:
-                        ax.plot([c for c, _ in pts], [100 * a for _, a in pts], styles[mi % 4], marker="o", ms=3,
-                                color=color, label=f"σ={s:.1f} {label(mdl)}")
+                        ax.plot(
+                            [c for c, _ in pts],
+                            [100 * a for _, a in pts],
+                            styles[mi % 4],
+                            marker="o",
+                            ms=3,
+                            color=color,
+                            label=f"σ={s:.1f} {label(mdl)}",
+                        )
             ax.set_title(p.replace("_", " "))
             ax.set_xticks(sorted({r["count"] for r in rows if r["parameter"] == p}))
             ax.set_xlabel("sample count")
@@ -189,15 +239,18 @@ def figure6(path: Path, rows: Sequence[dict], models: Sequence[str]) -> str:
         return _save(fig, path)
 
 
-def fidelity_panel(path: Path, crater: str, real: np.ndarray, single: np.ndarray, trained: np.ndarray,
-                   frames: int, row: dict) -> str:
+def fidelity_panel(
+    path: Path, crater: str, real: np.ndarray, single: np.ndarray, trained: np.ndarray, frames: int, row: dict
+) -> str:
     """1 x 3 network inputs: the real crop, one render, and the training image (composite + sensor)."""
     with _rc():
         fig = _new_figure(7.5, 2.9)
         axes = fig.subplots(1, 3)
-        for ax, im, t in ((axes[0], real, "real WAC mosaic"),
-                          (axes[1], single, f"one render (sun {row['sun_elevation']:.2f}°)"),
-                          (axes[2], trained, f"training image ({frames} frames + sensor)")):
+        for ax, im, t in (
+            (axes[0], real, "real WAC mosaic"),
+            (axes[1], single, f"one render (sun {row['sun_elevation']:.2f}°)"),
+            (axes[2], trained, f"training image ({frames} frames + sensor)"),
+        ):
             ax.imshow(im, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
             ax.set_title(t, fontsize=9)
             ax.set_xticks([])

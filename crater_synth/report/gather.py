@@ -3,6 +3,9 @@
 report's temporary directory. No HTML here: the templates own the markup.
 
 Any number of craters (classes) is supported: every per-crater item is a list, never three columns.
+
+Length: one gatherer per report section (eight) plus the real-crop planning and synthetic-render
+choice they share; a module per section would import those shared helpers back from here.
 """
 
 from __future__ import annotations
@@ -57,9 +60,13 @@ def contact(ctx: Ctx) -> dict:
             items.append({"crater": crater, "missing": True})
             continue
         ctx.say(f"contact sheet {crater} ({len(crows)} renders)")
-        png = contact_sheet(crows, ds, ctx.out / f"contact_{crater}.png",
-                            f"{crater}: {len(crows)} renders (sun el/az, cam el/az in deg)\n"
-                            f"red: projected rim; blue: sigma boxes", ctx.max_tiles)
+        png = contact_sheet(
+            crows,
+            ds,
+            ctx.out / f"contact_{crater}.png",
+            f"{crater}: {len(crows)} renders (sun el/az, cam el/az in deg)\nred: projected rim; blue: sigma boxes",
+            ctx.max_tiles,
+        )
         shown = min(ctx.max_tiles, len(crows))
         small = small and shown <= 9
         items.append({"crater": crater, "src": png.name, "shown": shown, "total": len(crows)})
@@ -71,8 +78,15 @@ def pick_synthetic(rows: Sequence[dict]) -> dict:
     """Closest to nadir, then the highest sun, then the highest lit fraction, then manifest order."""
     from crater_core import schema
 
-    return min(rows, key=lambda r: (abs(float(r["cam_elevation"]) - 90.0), -float(r["sun_elevation"]),
-                                    -float(r["lit_fraction"]), schema.row_key(r)))
+    return min(
+        rows,
+        key=lambda r: (
+            abs(float(r["cam_elevation"]) - 90.0),
+            -float(r["sun_elevation"]),
+            -float(r["lit_fraction"]),
+            schema.row_key(r),
+        ),
+    )
 
 
 def _box_closest(boxes: Mapping[str, Sequence[float]], sigma: float = 1.0) -> tuple[str, list[float]]:
@@ -102,7 +116,7 @@ def _real_plan(ctx: Ctx, canonical: bool):
 
         try:
             embedded_path(str(rs.get("source_product") or "lroc_wac_south"))
-        except ProductError as exc:   # not installed here: a note, not a failure
+        except ProductError as exc:  # not installed here: a note, not a failure
             ctx.real_error = str(exc)
             return None
     try:
@@ -127,11 +141,17 @@ def compare(ctx: Ctx) -> dict:
     items = []
     for crater in ctx.craters:
         crows = [r for r in ctx.rows if r["crater"] == crater]
-        real = sorted((c for c in crops if canonical_crater(c.crater) == canonical_crater(crater)),
-                      key=lambda c: (c.kind != "embedded", c.index))
+        real = sorted(
+            (c for c in crops if canonical_crater(c.crater) == canonical_crater(crater)),
+            key=lambda c: (c.kind != "embedded", c.index),
+        )
         if not crows or not real:
-            items.append({"crater": crater, "missing": "renders" if not crows else
-                          "a real crop (not in the configured crater group)"})
+            items.append(
+                {
+                    "crater": crater,
+                    "missing": "renders" if not crows else "a real crop (not in the configured crater group)",
+                }
+            )
             continue
         rc, row = real[0], pick_synthetic(crows)
         ctx.real[crater] = {"crop": rc}
@@ -144,16 +164,39 @@ def compare(ctx: Ctx) -> dict:
         i_f = read_channel(ctx.rc.dataset_dir / row["path"])
         skey, sbox = _box_closest(row["sigma_boxes"], 1.0)
         n_s = max(8, int(round(sbox[2] - sbox[0])))
-        syn_sensor = (preprocess_crop(i_f, sbox, pp, sensor=sensor, rng=np.random.default_rng(int(row["seed"])))
-                      if sensor.enabled else None)
+        syn_sensor = (
+            preprocess_crop(i_f, sbox, pp, sensor=sensor, rng=np.random.default_rng(int(row["seed"])))
+            if sensor.enabled
+            else None
+        )
         name = figures.compare_panel(
-            ctx.out / f"compare_{crater}.png", crater, row, real_orig,
-            tone_map(resample_box(i_f, sbox, n_s, 0.0, True, 1)), i_f, skey, sbox, _ellipse_points(row["rim_ellipse"]),
-            preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg), preprocess_crop(i_f, sbox, pp),
-            syn_sensor, pp.size)
-        items.append({"crater": crater, "src": name, "box": list(rc.box), "sigma": rc.sigma,
-                      "rotation_deg": rc.rotation_deg, "source": rc.source, "path": row["path"],
-                      "lit_fraction": row["lit_fraction"], "mean_if": row["mean_if"]})
+            ctx.out / f"compare_{crater}.png",
+            crater,
+            row,
+            real_orig,
+            tone_map(resample_box(i_f, sbox, n_s, 0.0, True, 1)),
+            i_f,
+            skey,
+            sbox,
+            _ellipse_points(row["rim_ellipse"]),
+            preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg),
+            preprocess_crop(i_f, sbox, pp),
+            syn_sensor,
+            pp.size,
+        )
+        items.append(
+            {
+                "crater": crater,
+                "src": name,
+                "box": list(rc.box),
+                "sigma": rc.sigma,
+                "rotation_deg": rc.rotation_deg,
+                "source": rc.source,
+                "path": row["path"],
+                "lit_fraction": row["lit_fraction"],
+                "mean_if": row["mean_if"],
+            }
+        )
     return {"choice": SYNTHETIC_CHOICE, "size": pp.size, "gamma": pp.gamma, "items": items}
 
 
@@ -181,8 +224,9 @@ def histograms(ctx: Ctx) -> dict:
             continue
         ctx.say(f"histograms {crater}: {len(rcs)} real crops, {min(len(crows), ctx.hist_samples)} renders")
         real = np.stack([preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg) for c in rcs])
-        pick = [crows[i] for i in np.unique(np.linspace(0, len(crows) - 1,
-                                                       min(ctx.hist_samples, len(crows))).astype(int))]
+        pick = [
+            crows[i] for i in np.unique(np.linspace(0, len(crows) - 1, min(ctx.hist_samples, len(crows))).astype(int))
+        ]
         syn, sens = [], []
         for row in pick:
             i_f = read_channel(ctx.rc.dataset_dir / row["path"])
@@ -194,15 +238,24 @@ def histograms(ctx: Ctx) -> dict:
         syn_a, sens_a = np.stack(syn), (np.stack(sens) if sens else None)
         hr, _ = np.histogram(real, bins=bins, density=True)
         hs, _ = np.histogram(syn_a, bins=bins, density=True)
-        panels.append({
-            "crater": crater, "real_crops": len(rcs), "syn_crops": syn_a.shape[0], "renders": len(pick),
-            "real_density": hr, "syn_density": hs,
-            "sensor_density": None if sens_a is None else np.histogram(sens_a, bins=bins, density=True)[0],
-            "overlap": float(np.sum(np.minimum(hr, hs)) * width),
-            "real_zero": float(np.mean(real == 0)), "real_mean": float(real.mean()),
-            "syn_zero": float(np.mean(syn_a == 0)), "syn_mean": float(syn_a.mean()),
-            "sensor_zero": None if sens_a is None else float(np.mean(sens_a == 0)),
-            "sensor_mean": None if sens_a is None else float(sens_a.mean())})
+        panels.append(
+            {
+                "crater": crater,
+                "real_crops": len(rcs),
+                "syn_crops": syn_a.shape[0],
+                "renders": len(pick),
+                "real_density": hr,
+                "syn_density": hs,
+                "sensor_density": None if sens_a is None else np.histogram(sens_a, bins=bins, density=True)[0],
+                "overlap": float(np.sum(np.minimum(hr, hs)) * width),
+                "real_zero": float(np.mean(real == 0)),
+                "real_mean": float(real.mean()),
+                "syn_zero": float(np.mean(syn_a == 0)),
+                "syn_mean": float(syn_a.mean()),
+                "sensor_zero": None if sens_a is None else float(np.mean(sens_a == 0)),
+                "sensor_mean": None if sens_a is None else float(sens_a.mean()),
+            }
+        )
     if not panels:
         return {"warning": "No crater has both renders and real crops."}
     name = figures.histograms(ctx.out / "histograms.png", panels, bins)
@@ -223,9 +276,15 @@ def models(ctx: Ctx) -> dict:
         return {"not_run": not_run(f"no {ctx.run_dir / METRICS_FILE}", "metrics")}
     classes = list(m.get("classes") or [])
     present = [s for s in REGISTRY if s.key in m]
-    overall = [{"spec": s, "real": m[s.key].get("real_accuracy"),
-                "class_mean": m[s.key].get("real_accuracy_class_mean"), "val": m[s.key].get("val_accuracy")}
-               for s in present]
+    overall = [
+        {
+            "spec": s,
+            "real": m[s.key].get("real_accuracy"),
+            "class_mean": m[s.key].get("real_accuracy_class_mean"),
+            "val": m[s.key].get("val_accuracy"),
+        }
+        for s in present
+    ]
     # Breakdowns: one row per crater / sigma / source, one column per model (scales to any class count).
     breakdowns = []
     for key, what in (("per_crater", "crater"), ("per_sigma", "ROI σ"), ("per_source", "real source")):
@@ -234,13 +293,19 @@ def models(ctx: Ctx) -> dict:
             names += [n for n in (m[s.key].get(key) or {}) if n not in names]
         if key == "per_sigma":
             names.sort(key=_sigma_order)
-        if key == "per_crater":                    # class order
+        if key == "per_crater":  # class order
             names.sort(key=lambda n: classes.index(n) if n in classes else len(classes))
         if not names:
             continue
         counts = m.get("test_per_crater") if key == "per_crater" else None
-        rows = [{"name": f"σ = {n}" if key == "per_sigma" else n, "n": (counts or {}).get(n, "?") if counts else None,
-                 "accs": [(m[s.key].get(key) or {}).get(n) for s in present]} for n in names]
+        rows = [
+            {
+                "name": f"σ = {n}" if key == "per_sigma" else n,
+                "n": (counts or {}).get(n, "?") if counts else None,
+                "accs": [(m[s.key].get(key) or {}).get(n) for s in present],
+            }
+            for n in names
+        ]
         breakdowns.append({"what": what, "rows": rows, "counted": bool(counts)})
     confusions = []
     for s in present:
@@ -253,21 +318,34 @@ def models(ctx: Ctx) -> dict:
             conf = m[s.key]["confusion"]
             acc = m[s.key].get("real_accuracy")
             title = f"{s.label}: real accuracy " + ("–" if not is_num(acc) else f"{100 * acc:.1f} %")
-            item.update(src=figures.confusion(ctx.out / f"confusion_{s.key}.png", conf,
-                                              classes or [str(i) for i in range(len(conf))], title), replot=True)
+            item.update(
+                src=figures.confusion(
+                    ctx.out / f"confusion_{s.key}.png", conf, classes or [str(i) for i in range(len(conf))], title
+                ),
+                replot=True,
+            )
         confusions.append(item)
 
     def count(v):
         return f"{int(v):,}" if is_num(v) else "–"
 
-    facts = [("classes", ", ".join(classes) or "–"), ("training images (synthetic)", count(m.get("train_images"))),
-             ("validation images (synthetic)", count(m.get("val_images"))),
-             ("real test images", count(m.get("test_images"))),
-             ("real test sources", ", ".join(m.get("test_sources") or []) or "–")]
+    facts = [
+        ("classes", ", ".join(classes) or "–"),
+        ("training images (synthetic)", count(m.get("train_images"))),
+        ("validation images (synthetic)", count(m.get("val_images"))),
+        ("real test images", count(m.get("test_images"))),
+        ("real test sources", ", ".join(m.get("test_sources") or []) or "–"),
+    ]
     if is_num(m.get("evaluate_seconds")):
         facts.append(("evaluation time", f"{m['evaluate_seconds']:.1f} s"))
-    return {"absent": [s.label for s in REGISTRY if s.key not in m], "present": present, "overall": overall,
-            "breakdowns": breakdowns, "confusions": confusions, "facts": facts}
+    return {
+        "absent": [s.label for s in REGISTRY if s.key not in m],
+        "present": present,
+        "overall": overall,
+        "breakdowns": breakdowns,
+        "confusions": confusions,
+        "facts": facts,
+    }
 
 
 # ---- 5. closed loop ------------------------------------------------------------------------------
@@ -277,8 +355,12 @@ def loop(ctx: Ctx) -> dict:
     if doc is None:
         return {"not_run": not_run(f"no {path}", "loop")}
     rounds = sorted(doc["rounds"], key=lambda r: r["round"])
-    out = {"rounds": rounds, "threshold": doc.get("threshold"), "stopped_because": doc.get("stopped_because"),
-           "models": [SPECS[k] for k in MODELS]}
+    out = {
+        "rounds": rounds,
+        "threshold": doc.get("threshold"),
+        "stopped_because": doc.get("stopped_because"),
+        "models": [SPECS[k] for k in MODELS],
+    }
     if rounds:
         out["src"] = figures.loop_history(ctx.out / "loop.png", rounds, doc.get("threshold"))
     return out
@@ -306,15 +388,18 @@ def figure6(ctx: Ctx) -> dict:
     tables = []
     for p in dict.fromkeys(r["parameter"] for r in rows):
         prow = [r for r in rows if r["parameter"] == p]
-        keys = sorted({(r["model"], r["sigma"]) for r in prow},
-                      key=lambda k: (models_.index(k[0]), k[1]))
+        keys = sorted({(r["model"], r["sigma"]) for r in prow}, key=lambda k: (models_.index(k[0]), k[1]))
         look = {(r["count"], r["model"], r["sigma"]): r for r in prow}
         lines = []
         for c in sorted({r["count"] for r in prow}):
             imgs = sorted({look[(c, mdl, s)]["train_images"] for mdl, s in keys if (c, mdl, s) in look})
-            lines.append({"count": c, "images": imgs,
-                          "accs": [look[(c, mdl, s)]["real_accuracy"] if (c, mdl, s) in look else None
-                                   for mdl, s in keys]})
+            lines.append(
+                {
+                    "count": c,
+                    "images": imgs,
+                    "accs": [look[(c, mdl, s)]["real_accuracy"] if (c, mdl, s) in look else None for mdl, s in keys],
+                }
+            )
         tables.append({"parameter": p, "columns": [(mdl, s) for mdl, s in keys], "lines": lines})
     out["tables"] = tables
     return out
@@ -361,15 +446,28 @@ def fidelity(ctx: Ctx) -> dict:
     table = []
     for v in doc["variants"]:
         s = v["summary"]
-        groups = [{"label": label, "role": g["role"],
-                   "per_crater": g["models"].get("lunarnet_ex", {}).get("per_crater", {})}
-                  for label, g in s["groups"].items()]
-        table.append({"variant": v["variant"], "why": v.get("why", ""), "overrides": v.get("overrides", []),
-                      "val": {m: s["validation_mean"].get(m) for m in MODELS},
-                      "test": {m: s["test_mean"].get(m) for m in MODELS}, "groups": groups,
-                      "renders": sorted(set((v.get("renders") or {}).values()))})
-    out = {"path": str(path), "budget": doc.get("budget", []), "overrides": doc.get("overrides"), "table": table,
-           "models": [SPECS[k] for k in MODELS]}
+        groups = [
+            {"label": label, "role": g["role"], "per_crater": g["models"].get("lunarnet_ex", {}).get("per_crater", {})}
+            for label, g in s["groups"].items()
+        ]
+        table.append(
+            {
+                "variant": v["variant"],
+                "why": v.get("why", ""),
+                "overrides": v.get("overrides", []),
+                "val": {m: s["validation_mean"].get(m) for m in MODELS},
+                "test": {m: s["test_mean"].get(m) for m in MODELS},
+                "groups": groups,
+                "renders": sorted(set((v.get("renders") or {}).values())),
+            }
+        )
+    out = {
+        "path": str(path),
+        "budget": doc.get("budget", []),
+        "overrides": doc.get("overrides"),
+        "table": table,
+        "models": [SPECS[k] for k in MODELS],
+    }
     if doc.get("overrides") is None:
         out["no_images"] = "this ablation.json predates the recorded overrides: re-run crater-synth ablate"
         return out
@@ -382,16 +480,18 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
 
     from crater_core.exr import read_channel
     from crater_core.schema import load_manifest
-    from crater_synth.ablation import render_key
     from crater_synth.config import compose, resolved
     from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
     from train.realset import load_mosaic
 
     base = doc["variants"][0]
-    craters = [c for g in base["summary"]["groups"].values()
-               for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})]
+    craters = [
+        c for g in base["summary"]["groups"].values() for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})
+    ]
     cfg = resolved(compose(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"]))
-    ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base.get('render_key') or render_key(cfg)}"
+    if not base.get("render_key"):  # (crater_synth.ablation is not imported: it reaches the training stack)
+        return [{"crater": c, "missing": "the ablation result names no render_key"} for c in craters]
+    ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base['render_key']}"
     if not (ds / "manifest.jsonl").is_file():
         return [{"crater": c, "missing": f"no renders at {ds}"} for c in craters]
     rows = load_manifest(ds)
@@ -411,20 +511,30 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
         side = float(c["diameter_km"]) * 1000.0 / float(mosaic.pixel_m)
         real = preprocess_crop(mosaic.image, (cu - side / 2, cv - side / 2, cu + side / 2, cv + side / 2), pp)
         row = pick_synthetic(crows)
-        pose = [r for r in crows if (r["cam_elevation"], r["cam_azimuth"]) == (row["cam_elevation"],
-                                                                             row["cam_azimuth"])]
+        pose = [
+            r for r in crows if (r["cam_elevation"], r["cam_azimuth"]) == (row["cam_elevation"], row["cam_azimuth"])
+        ]
         rng = np.random.default_rng(int(row["seed"]))
         _, box = _box_closest(row["sigma_boxes"], 1.0)
-        frames = [read_channel(ds / r["path"]) for r in
-                  [row] + [pose[i] for i in rng.permutation(len(pose)) if pose[i] is not row][:max(0, int(
-                      sensor.mosaic_frames) - 1)]]
+        frames = [
+            read_channel(ds / r["path"])
+            for r in [row]
+            + [pose[i] for i in rng.permutation(len(pose)) if pose[i] is not row][
+                : max(0, int(sensor.mosaic_frames) - 1)
+            ]
+        ]
         single = preprocess_crop(frames[0], box, pp)
         composite = mosaic_composite(frames, rng, sensor.mosaic_blend, sensor.mosaic_patches)
-        trained = preprocess_crop(composite, box, pp, sensor=sensor if sensor.enabled else None, rng=rng,
-                                  box_side_m=float(c["diameter_km"]) * 1000.0)
+        trained = preprocess_crop(
+            composite,
+            box,
+            pp,
+            sensor=sensor if sensor.enabled else None,
+            rng=rng,
+            box_side_m=float(c["diameter_km"]) * 1000.0,
+        )
         ctx.say(f"fidelity real vs synthetic {name}")
-        src = figures.fidelity_panel(ctx.out / f"fidelity_{name}.png", name, real, single, trained,
-                                     len(frames), row)
+        src = figures.fidelity_panel(ctx.out / f"fidelity_{name}.png", name, real, single, trained, len(frames), row)
         items.append({"crater": name, "src": src, "path": row["path"], "frames": len(frames)})
     return items
 
@@ -437,31 +547,62 @@ def header(ctx: Ctx) -> dict:
     if m:
         sources = ", ".join(m.get("test_sources") or []) or "?"
         facts.append(f"{m.get('test_images', '?')} real test crops from {sources}")
-        facts.append(f"{m.get('train_images', '?'):,} synthetic training images" if is_num(m.get("train_images"))
-                     else "training images: ?")
+        facts.append(
+            f"{m.get('train_images', '?'):,} synthetic training images"
+            if is_num(m.get("train_images"))
+            else "training images: ?"
+        )
     if ctx.rows is not None:
         facts.append(f"dataset: {len(ctx.rows):,} renders of {len({r['crater'] for r in ctx.rows})} crater(s)")
     facts.append("classes: " + ", ".join(ctx.craters))
-    return {"name": ctx.run_dir.resolve().name, "path": str(ctx.run_dir.resolve()), "cards": cards, "facts": facts,
-            "metrics_cmd": None if m else PRODUCERS["metrics"][1], "limits": limits_text(ctx)}
+    return {
+        "name": ctx.run_dir.resolve().name,
+        "path": str(ctx.run_dir.resolve()),
+        "cards": cards,
+        "facts": facts,
+        "metrics_cmd": None if m else PRODUCERS["metrics"][1],
+        "limits": limits_text(ctx),
+    }
 
 
 # (id, title, gatherer, one-line intro), in page order
 SECTIONS = (
-    ("contact", "1. Contact sheets", contact,
-     "What the renderer produced: a sample of the synthetic dataset per crater."),
-    ("compare", "2. Real vs synthetic", compare,
-     "Does a render look like the real image? The real WAC crop beside the closest synthetic render."),
-    ("histograms", "3. Input histograms", histograms,
-     "Do the two domains look alike to the classifier? Pixel statistics of the network input."),
-    ("models", "4. Classifiers", models,
-     "Accuracy on the real crops (test) and on the synthetic validation split."),
-    ("loop", "5. Closed loop", loop,
-     "The closed loop: rounds of rendering more sun elevations until the real accuracy reaches the threshold."),
-    ("figure6", "6. Figure 6 experiments", figure6,
-     "Accuracy against the number of samples of each sweep parameter."),
-    ("fidelity", "7. Fidelity ablation", fidelity,
-     "Which sim-to-real levers moved the real accuracy (validation craters choose, the test craters are reported)."),
-    ("provenance", "8. Provenance & limits", provenance,
-     "Where every input came from, and what the test set can and cannot tell."),
+    (
+        "contact",
+        "1. Contact sheets",
+        contact,
+        "What the renderer produced: a sample of the synthetic dataset per crater.",
+    ),
+    (
+        "compare",
+        "2. Real vs synthetic",
+        compare,
+        "Does a render look like the real image? The real WAC crop beside the closest synthetic render.",
+    ),
+    (
+        "histograms",
+        "3. Input histograms",
+        histograms,
+        "Do the two domains look alike to the classifier? Pixel statistics of the network input.",
+    ),
+    ("models", "4. Classifiers", models, "Accuracy on the real crops (test) and on the synthetic validation split."),
+    (
+        "loop",
+        "5. Closed loop",
+        loop,
+        "The closed loop: rounds of rendering more sun elevations until the real accuracy reaches the threshold.",
+    ),
+    ("figure6", "6. Figure 6 experiments", figure6, "Accuracy against the number of samples of each sweep parameter."),
+    (
+        "fidelity",
+        "7. Fidelity ablation",
+        fidelity,
+        "Which sim-to-real levers moved the real accuracy (validation craters choose, the test craters are reported).",
+    ),
+    (
+        "provenance",
+        "8. Provenance & limits",
+        provenance,
+        "Where every input came from, and what the test set can and cannot tell.",
+    ),
 )

@@ -17,7 +17,7 @@ METRICS_FILE = "metrics.json"
 LOOP_FILE = "loop_history.json"
 EXPERIMENTS_FILE = "experiments.csv"
 FIGURE6_FILE = "figure6.png"
-RUN_CONFIG_FILE = "config.yaml"          # the resolved config `crater-synth train` saves (train/trainer.py)
+RUN_CONFIG_FILE = "config.yaml"  # the resolved config `crater-synth train` saves (train/trainer.py)
 SUMMARY_FILE = "train_summary.json"
 EXPERIMENT_COLUMNS = ("parameter", "count", "sigma", "model", "real_accuracy", "train_images")
 LOOP_ROUND_FIELDS = ("round", "sun_elevation_count", "images", *MODELS, "render_s", "train_s")
@@ -127,10 +127,14 @@ def load_experiments(path: Path) -> list[dict] | None:
     for lineno, rec in enumerate(reader, 2):
         try:
             acc = (rec["real_accuracy"] or "").strip()
-            row = {"parameter": (rec["parameter"] or "").strip(), "count": int(float(rec["count"])),
-                   "sigma": float(rec["sigma"]), "model": (rec["model"] or "").strip(),
-                   "real_accuracy": float(acc) if acc else float("nan"),
-                   "train_images": int(float(rec["train_images"]))}
+            row = {
+                "parameter": (rec["parameter"] or "").strip(),
+                "count": int(float(rec["count"])),
+                "sigma": float(rec["sigma"]),
+                "model": (rec["model"] or "").strip(),
+                "real_accuracy": float(acc) if acc else float("nan"),
+                "train_images": int(float(rec["train_images"])),
+            }
         except (TypeError, ValueError) as exc:
             raise ReportError(f"{path}:{lineno}: corrupt experiments row ({exc})") from None
         if not row["parameter"] or not row["model"]:
@@ -247,7 +251,7 @@ def effective_config(run_dir: Path, overrides: Sequence[str] = ()) -> RunConfig:
     explicit = _explicit_keys(overrides)
     if saved is not None:
         cfg = copy.deepcopy(saved)
-        for k, v in composed.items():            # sections an older saved config lacks
+        for k, v in composed.items():  # sections an older saved config lacks
             cfg.setdefault(k, copy.deepcopy(v))
         for key in explicit:
             try:
@@ -276,6 +280,12 @@ def config_craters(cfg: Mapping) -> list[dict]:
     out = []
     for key, e in (cfg.get("crater") or {}).items():
         e = e or {}
-        out.append({"name": str(e.get("name") or key), "lat": e.get("lat"), "lon": e.get("lon"),
-                    "diameter_km": e.get("diameter_km")})
+        out.append(
+            {
+                "name": str(e.get("name") or key),
+                "lat": e.get("lat"),
+                "lon": e.get("lon"),
+                "diameter_km": e.get("diameter_km"),
+            }
+        )
     return out

@@ -45,10 +45,16 @@ def thousands(v) -> str:
 def environment():
     import jinja2
 
-    env = jinja2.Environment(loader=jinja2.PackageLoader("crater_synth.report", "templates"), autoescape=True,
-                             trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
-    env.filters.update(pct=pct, hue=hue, duration=duration, thousands=thousands, model_label=label,
-                       fmt=lambda v, spec: spec.format(v))
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("crater_synth.report", "templates"),
+        autoescape=True,
+        trim_blocks=True,
+        lstrip_blocks=True,
+        keep_trailing_newline=True,
+    )
+    env.filters.update(
+        pct=pct, hue=hue, duration=duration, thousands=thousands, model_label=label, fmt=lambda v, spec: spec.format(v)
+    )
     env.tests["finite"] = _finite
     return env
 
@@ -67,5 +73,6 @@ def render_page(ctx: gather.Ctx) -> str:
         sections.append({"id": sid, "title": title, "intro": intro, "html": Markup(html)})
     css = resources.files("crater_synth.report").joinpath("templates/report.css").read_text(encoding="utf-8")
     generated = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return env.get_template("page.html.j2").render(h=gather.header(ctx), sections=sections, css=Markup(css),
-                                                   generated=generated, version=__version__)
+    return env.get_template("page.html.j2").render(
+        h=gather.header(ctx), sections=sections, css=Markup(css), generated=generated, version=__version__
+    )

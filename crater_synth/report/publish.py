@@ -28,7 +28,7 @@ def publish(tmp: Path, final: Path) -> None:
         os.rename(tmp, final)
         return
     if _rename_exchange(tmp, final):
-        shutil.rmtree(tmp, ignore_errors=True)          # tmp now holds the previous report
+        shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the previous report
         return
     old = final.with_name(f".{final.name}.old-{os.getpid()}")
     os.rename(final, old)

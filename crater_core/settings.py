@@ -1,0 +1,530 @@
+"""Typed settings: the configuration validated once, as frozen dataclasses that every layer shares.
+
+``configs/`` (Hydra) is where the values live; this module is where their *types and ranges* live.
+The host composes the yaml files with the user's overrides (``crater_synth.config``), Hydra checks
+types and unknown keys against schemas derived from the classes below, and the result is converted
+once, by :meth:`Settings.from_config`, into a :class:`Settings`. Every range check runs in the
+classes' ``__post_init__``; each failure is a :class:`SettingsError` naming the full key as the user
+types it (``render.samples=0: must be >= 1``). Below the CLI, functions take these objects, never the
+raw mapping.
+
+Standard library only (plus the core's own Hapke and sweep classes): ``train/`` and ``blender_gen/``
+may import it; it never imports omegaconf or Hydra. The training groups live in
+:mod:`crater_core.settings_train` and the mapping -> dataclass converter in
+:mod:`crater_core.typed_config`; both are re-exported here.
+
+How to add a key (e.g. ``render.shadow_method``)
+-------------------------------------------------
+1. Add a field to the group's class below, with a type annotation (``int``, ``float``, ``bool``,
+   ``str``, ``Optional[...]``, ``Tuple[X, ...]`` for a list, ``Dict[str, X]``, or a nested settings
+   class). Give it a default only if a yaml file may omit it; otherwise the yaml supplies the value
+   (one source of truth) and a yaml lacking it is a "missing mandatory value" error.
+2. Check its range in the class's ``_check`` with ``_need(ok, "shadow_method", value, "must be ...")``.
+3. Add the value, with a comment, to every ``configs/<group>/*.yaml``.
+Hydra's schema is derived from these classes (``crater_synth.config.register_schemas``), so there is
+no second list to update. A new group: a class here, a field of :class:`Settings`, an entry in
+:data:`GROUPS`, and ``defaults: [<group>_schema, _self_]`` at the top of each of its yaml files.
+
+Length: one short dataclass per configuration group with its range checks, and the registry that
+binds them to Hydra; the training groups already live in :mod:`crater_core.settings_train`. Splitting
+the rest further would scatter the single list of groups this module exists to keep.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any, Dict, Mapping, Optional, Tuple
+
+from crater_core.hapke import HapkeParams
+from crater_core.settings_train import (
+    ConvSettings,
+    HogSettings,
+    ModelSettings,
+    MosaicSettings,
+    PoolSettings,
+    PreprocessSettings,
+    RealsetSettings,
+    SensorSettings,
+    SvmSettings,
+    TrainSettings,
+)
+from crater_core.sweep import AXES, SweepGrid, grid_from_config
+from crater_core.typed_config import SettingsError, _Group, _need, as_plain, build, replace
+
+# The solar disc's angular radius (deg): the whole Sun is below a flat horizon below -this.
+SUN_ANGULAR_RADIUS_DEG = 0.2665
+
+
+# ------------------------------------------------------------------------------------------------
+# Crater entries, DEM, terrain
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class CraterSettings(_Group):
+    """One crater entry, ``crater.<key>`` (configs/crater/<key>.yaml); ``crater=[a,b,c]`` selects several."""
+
+    name: str
+    lat: float  # deg, planetocentric
+    lon: float  # deg east
+    diameter_km: float
+    source: str = ""
+
+    def _check(self):
+        _need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        _need(-90.0 <= self.lat <= 90.0, "lat", self.lat, "must lie in [-90, 90] degrees")
+        _need(-360.0 <= self.lon <= 360.0, "lon", self.lon, "must lie in [-360, 360] degrees")
+        _need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
+
+
+# dem.blend_pixels: the stack's transition band in coarse pixels (crater_synth/demstack.py, docs/dem_stack.md).
+BLEND_PIXELS_RANGE = (0.5, 50.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DemSettings(_Group):
+    """``dem.*``: the base DEM product (or an explicit file), finer stack layers over it, the far-field one."""
+
+    product: Optional[str]
+    path: Optional[str]
+    stack: Tuple[str, ...]  # finer DEMs over the base, finest first: product ids or file paths
+    blend_pixels: float  # stack layers blend into the coarser data over this many coarse pixels
+    far_product: Optional[str]
+    far_path: Optional[str]
+    max_nodata_fraction: float
+
+    def _check(self):
+        _need(bool(self.product or self.path), "product", self.product, "dem.product or dem.path must be set")
+        lo, hi = BLEND_PIXELS_RANGE
+        _need(
+            lo <= self.blend_pixels <= hi,
+            "blend_pixels",
+            self.blend_pixels,
+            f"must lie in [{lo:g}, {hi:g}] (coarse pixels)",
+        )
+        _need(
+            0.0 <= self.max_nodata_fraction <= 1.0,
+            "max_nodata_fraction",
+            self.max_nodata_fraction,
+            "must lie in [0, 1]",
+        )
+
+
+# Pike (1977) fresh simple craters: depth/diameter 0.196 (kept equal to crater_synth.detail's constant).
+FRESH_DEPTH_DIAMETER = 0.196
+# terrain.detail.model: calibrated (fitted to a real LOLA 200 m crop) or legacy (pre-calibration, for ablations).
+DETAIL_MODELS = ("calibrated", "legacy")
+# Allowed min_depth_diameter: the recognition limit of a degraded crater (docs/detail.md). Above 0.005
+# every allowed diffusion time keeps the 4 R stamp cut below 0.2 % of the fresh depth.
+MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetailSettings(_Group):
+    """``terrain.detail``: sub-DEM detail (crater_synth/detail.py, docs/detail.md); defaults are the
+    calibrated values. ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``,
+    ``min_crater_diameter_m`` and ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy``
+    uses crater_synth.detail.LEGACY_PARAMETERS."""
+
+    enabled: bool = True
+    seed: int = 0
+    model: str = "calibrated"
+    hurst: float = 0.8
+    roughness_rms_slope_deg: float = 1.25
+    crater_density_scale: float = 0.8
+    min_crater_diameter_m: float = 300.0
+    min_depth_diameter: float = 0.014
+
+    @classmethod
+    def from_config(cls, mapping: Mapping | None, path: str = "terrain.detail"):
+        return build(cls, mapping or {}, path)
+
+    def _check(self):
+        _need(self.model in DETAIL_MODELS, "model", self.model, f"must be one of {list(DETAIL_MODELS)}")
+        _need(0.0 < self.hurst < 1.0, "hurst", self.hurst, "must lie in (0, 1)")
+        _need(
+            0.0 <= self.roughness_rms_slope_deg < 60.0,
+            "roughness_rms_slope_deg",
+            self.roughness_rms_slope_deg,
+            "must lie in [0, 60) degrees",
+        )
+        _need(
+            0.0 <= self.crater_density_scale <= 100.0,
+            "crater_density_scale",
+            self.crater_density_scale,
+            "must lie in [0, 100]",
+        )
+        _need(self.min_crater_diameter_m > 0.0, "min_crater_diameter_m", self.min_crater_diameter_m, "must be > 0")
+        lo, hi = MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER
+        _need(
+            lo <= self.min_depth_diameter < hi,
+            "min_depth_diameter",
+            self.min_depth_diameter,
+            f"must lie in [{lo}, {hi}) (fresh craters: {FRESH_DEPTH_DIAMETER}, Pike 1977)",
+        )
+
+
+# Near-field vertices per side: below 16 the rim is not resolved; above 8193 the mesh does not fit memory.
+NEAR_VERTICES_RANGE = (16, 8193)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerrainSettings(_Group):
+    """``terrain.*``: near/far field of the patch around each crater (crater_synth/terrain.py)."""
+
+    near_radius_factor: float
+    near_vertices: int
+    far_radius_km: float
+    far_spacing_km: float
+    detail: DetailSettings
+
+    def _check(self):
+        lo, hi = NEAR_VERTICES_RANGE
+        _need(lo <= self.near_vertices <= hi, "near_vertices", self.near_vertices, f"must lie in [{lo}, {hi}]")
+        _need(
+            0.6 <= self.near_radius_factor <= 50.0,
+            "near_radius_factor",
+            self.near_radius_factor,
+            "must lie in [0.6, 50] crater diameters (the near field must contain the rim)",
+        )
+        _need(self.far_radius_km >= 0.0, "far_radius_km", self.far_radius_km, "must be >= 0 (0 = no far field)")
+        _need(self.far_spacing_km > 0.0, "far_spacing_km", self.far_spacing_km, "must be > 0")
+
+
+# ------------------------------------------------------------------------------------------------
+# Rendering: render, sweep, launcher
+# ------------------------------------------------------------------------------------------------
+RENDER_MODES = ("fast", "direct")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RenderSettings(_Group):
+    """``render.*`` (configs/render/cycles_cpu.yaml, docs/renderer.md)."""
+
+    mode: str
+    device: str
+    samples: int
+    max_bounces: int
+    denoise: bool
+    threads: int
+    crop_to_roi: bool
+    roi_min_px: int
+    shadow_map_px: int
+    shadow_map_levels: int
+    shadow_map_extent_factor: float
+    horizon_cache_dir: Optional[str]  # fast path: shared horizon-map cache (null: <terrain dir>/horizon)
+    gbuffer_samples: int
+    workers: int
+    max_retries: int = 2  # restarts of a dying Blender worker on its unfinished renders
+
+    def _check(self):
+        _need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
+        _need(self.samples >= 1, "samples", self.samples, "must be >= 1")
+        _need(self.max_bounces >= 0, "max_bounces", self.max_bounces, "must be >= 0")
+        _need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0 = all cores)")
+        _need(self.roi_min_px >= 8, "roi_min_px", self.roi_min_px, "must be >= 8")
+        _need(self.shadow_map_px >= 1, "shadow_map_px", self.shadow_map_px, "must be >= 1")
+        _need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
+        _need(
+            self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor, "must be > 0"
+        )
+        _need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
+        _need(self.workers >= 1, "workers", self.workers, "must be >= 1")
+        _need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisSettings(_Group):
+    """One sweep axis: ``count`` paper positions (crater_core/sweep.py), or explicit ``values``."""
+
+    count: int
+    values: Optional[Tuple[float, ...]] = None
+    step_deg: Optional[float] = None
+    step_fraction: Optional[float] = None  # physical sun elevations: fraction step (null: 0.1)
+
+    def _check(self):
+        _need(self.count >= 1, "count", self.count, "must be >= 1")
+        _need(self.values is None or len(self.values) > 0, "values", self.values, "must not be empty (null = count)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SweepSettings(_Group):
+    """``sweep.*``: Table 2 grid (configs/sweep/*.yaml). The grid is built, and so checked, at once."""
+
+    name: str
+    sun_elevation: AxisSettings
+    sun_azimuth: AxisSettings
+    cam_elevation: AxisSettings
+    cam_azimuth: AxisSettings
+    sigma: AxisSettings
+    fov_deg: float
+    range_factor: float
+    # Defaults (a sweep file written before the physical model may omit them) as in crater_core.sweep:
+    sun_model: str = "paper"  # paper: Table 2 positions; physical: fractions of each crater's highest sun
+    min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
+
+    def _check(self):
+        _need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
+        self.grid  # noqa: B018 - raises SweepError naming the axis for a nonsense grid
+
+    @cached_property
+    def grid(self) -> SweepGrid:
+        return grid_from_config(self.as_dict())
+
+    def warnings(self) -> list[str]:
+        if self.sun_model != "paper":  # physical: the values are fractions in (0, 1], checked by the grid
+            return []
+        low = [v for v in self.grid.sun_elevation if v <= 0.0]
+        if not low:
+            return []
+        below = "below" if max(low) < -SUN_ANGULAR_RADIUS_DEG else "at or below"
+        return [
+            f"sweep.sun_elevation values {low} put the Sun {below} the local horizon at the crater: "
+            "those renders will be (almost) all black"
+        ]
+
+
+@dataclass(frozen=True, kw_only=True)
+class LauncherSettings(_Group):
+    """``launcher.*``: one machine (optionally one shard) or a Dask cluster (docs/distributed.md)."""
+
+    name: str
+    shard: Optional[str] = None  # "i/n": render only slice i of n
+    address: Optional[str] = None  # dask: scheduler address; null starts a local cluster
+    n_workers: int = 2  # dask local cluster: worker processes
+    shards: Optional[int] = None  # dask: shards per run; null = 4 x n_workers
+    retries: int = 3  # dask: reschedules of a task whose worker died
+
+    def _check(self):
+        _need(self.name in ("local", "dask"), "name", self.name, "must be 'local' or 'dask'")
+        self.shard_slice  # noqa: B018 - parses (and so checks) "i/n"
+        _need(self.n_workers >= 1, "n_workers", self.n_workers, "must be >= 1")
+        _need(self.shards is None or self.shards >= 1, "shards", self.shards, "must be >= 1 (null = 4 x n_workers)")
+        _need(self.retries >= 0, "retries", self.retries, "must be >= 0")
+
+    @cached_property
+    def shard_slice(self) -> Optional[Tuple[int, int]]:
+        """``(i, n)`` of ``shard`` (None: the whole sweep)."""
+        if self.shard in (None, "", "null"):
+            return None
+        try:
+            i, n = (int(x) for x in str(self.shard).split("/"))
+        except ValueError:
+            raise SettingsError("shard", "expected 'i/n', e.g. 0/4", self.shard) from None
+        _need(n >= 1 and 0 <= i < n, "shard", self.shard, "need 0 <= i < n")
+        return i, n
+
+
+# ------------------------------------------------------------------------------------------------
+# Closed loop, Figure 6 experiments, validation protocol, ablation, data fetching
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class LoopSettings(_Group):
+    """``loop.*``: the closed loop of the paper's Fig. 3."""
+
+    threshold: float
+    sun_elevation_schedule: Tuple[int, ...]
+
+    def _check(self):
+        _need(0.0 < self.threshold <= 1.0, "threshold", self.threshold, "must lie in (0, 1]")
+        s = list(self.sun_elevation_schedule)
+        _need(
+            bool(s) and s == sorted(set(s)) and s[0] >= 1,
+            "sun_elevation_schedule",
+            s,
+            "must be increasing positive counts",
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CountsSettings(_Group):
+    """``experiments.counts``: the sample counts of each axis for Figure 6."""
+
+    sun_elevation: Optional[Tuple[int, ...]]  # null: this axis is not varied
+    sun_azimuth: Optional[Tuple[int, ...]]
+    cam_elevation: Optional[Tuple[int, ...]]
+    cam_azimuth: Optional[Tuple[int, ...]]
+
+    def _check(self):
+        for axis in AXES:
+            counts = getattr(self, axis) or ()
+            _need(all(c >= 1 for c in counts), axis, counts, "counts must be >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExperimentsSettings(_Group):
+    """``experiments.*``: Figure 6 (crater_synth/experiments.py)."""
+
+    counts: CountsSettings
+    sigmas: Optional[Tuple[float, ...]]
+
+    def _check(self):
+        _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ValidateSettings(_Group):
+    """``validate.*``: the real validation protocol (crater_synth/validate.py, docs/validation.md). The
+    groups' rules (disjoint, in the catalogue, no test crater) are checked there, against configs/crater/."""
+
+    groups: Tuple[Tuple[str, ...], ...]  # validation crater groups (configs/crater/ names)
+    test: Tuple[str, ...]  # the test group: reported, never used to choose
+    seeds: Tuple[int, ...]  # training seeds per group
+    out_dir: str
+
+    def _check(self):
+        _need(bool(self.seeds), "seeds", self.seeds, "must list at least one seed")
+        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LeverSettings(_Group):
+    """``ablation.levers.<name>``: one fidelity lever; ``when_off`` are the overrides that turn it off."""
+
+    why: str = ""
+    when_off: Tuple[str, ...] = ()  # empty: crater_synth/ablation.py names the lever in its error
+
+
+@dataclass(frozen=True, kw_only=True)
+class AblationSettings(_Group):
+    """``ablation.*``: each fidelity lever on and off under the validation protocol (crater_synth/ablation.py)."""
+
+    out_dir: str
+    docs_file: Optional[str]  # the generated table goes between its markers (null: docs untouched)
+    train: Dict[str, Any]  # train.<key> overrides: the same training budget for every variant
+    levers: Dict[str, LeverSettings]
+
+    def _check(self):
+        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FetchSettings(_Group):
+    """``fetch.*``: ``crater-synth fetch-data`` (crater_synth/fetch.py, docs/data.md)."""
+
+    base_url: Optional[str]
+    timeout_s: float
+    retries: int
+    chunk_bytes: int
+    backoff_s: float
+
+    def _check(self):
+        _need(self.timeout_s > 0, "timeout_s", self.timeout_s, "must be > 0")
+        _need(self.retries >= 1, "retries", self.retries, "must be >= 1")
+        _need(self.chunk_bytes >= 1024, "chunk_bytes", self.chunk_bytes, "must be >= 1024")
+        _need(self.backoff_s >= 0, "backoff_s", self.backoff_s, "must be >= 0")
+        url = (self.base_url or "").strip()
+        _need(
+            not url or url.startswith(("http://", "https://", "file://")),
+            "base_url",
+            self.base_url,
+            "must start with http://, https:// or file://",
+        )
+
+
+# ------------------------------------------------------------------------------------------------
+# The root
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class Settings(_Group):
+    """The whole configuration (configs/config.yaml and its groups), validated."""
+
+    crater: Dict[str, CraterSettings]
+    dem: DemSettings
+    terrain: TerrainSettings
+    hapke: HapkeParams
+    render: RenderSettings
+    sweep: SweepSettings
+    launcher: LauncherSettings
+    model: ModelSettings
+    train: TrainSettings
+    sensor: SensorSettings
+    realset: RealsetSettings
+    loop: LoopSettings
+    experiments: ExperimentsSettings
+    fetch: FetchSettings
+    validate: ValidateSettings
+    ablation: AblationSettings
+    seed: int
+    data_dir: str
+    out_dir: str
+    run_dir: str
+
+    def _check(self):
+        if not self.crater:
+            raise SettingsError("crater", "no crater selected (crater=NAME or crater=[a,b,...])")
+        seen: dict[str, str] = {}
+        for key, entry in self.crater.items():
+            _need(
+                entry.name not in seen,
+                f"crater.{key}.name",
+                entry.name,
+                f"repeats crater.{seen.get(entry.name)}'s name (names label renders and classes)",
+            )
+            seen[entry.name] = key
+        for key in ("data_dir", "out_dir", "run_dir"):
+            _need(bool(str(getattr(self, key)).strip()), key, getattr(self, key), "must not be empty")
+
+    @property
+    def craters(self) -> Tuple[CraterSettings, ...]:
+        """The selected crater entries, in configuration order."""
+        return tuple(self.crater.values())
+
+    def warnings(self) -> list[str]:
+        """Settings that are legal but almost surely a mistake (printed as ``warning:`` lines)."""
+        return self.sweep.warnings()
+
+
+# Config groups of configs/ and their settings class (Hydra registers ``<group>_schema`` for each).
+GROUPS: Dict[str, type] = {
+    "crater": CraterSettings,
+    "dem": DemSettings,
+    "terrain": TerrainSettings,
+    "hapke": HapkeParams,
+    "render": RenderSettings,
+    "sweep": SweepSettings,
+    "launcher": LauncherSettings,
+    "model": ModelSettings,
+    "train": TrainSettings,
+    "sensor": SensorSettings,
+    "realset": RealsetSettings,
+    "loop": LoopSettings,
+    "experiments": ExperimentsSettings,
+    "fetch": FetchSettings,
+    "validate": ValidateSettings,
+    "ablation": AblationSettings,
+}
+
+__all__ = [
+    "GROUPS",
+    "AblationSettings",
+    "AxisSettings",
+    "ConvSettings",
+    "CountsSettings",
+    "CraterSettings",
+    "DemSettings",
+    "DetailSettings",
+    "ExperimentsSettings",
+    "FetchSettings",
+    "HapkeParams",
+    "HogSettings",
+    "LauncherSettings",
+    "LeverSettings",
+    "LoopSettings",
+    "ModelSettings",
+    "MosaicSettings",
+    "PoolSettings",
+    "PreprocessSettings",
+    "RealsetSettings",
+    "RenderSettings",
+    "SensorSettings",
+    "Settings",
+    "SettingsError",
+    "SvmSettings",
+    "SweepSettings",
+    "TerrainSettings",
+    "TrainSettings",
+    "ValidateSettings",
+    "as_plain",
+    "build",
+    "replace",
+]

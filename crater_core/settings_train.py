@@ -1,0 +1,264 @@
+"""Typed settings of the training stage: ``model``, ``train`` (+ ``preprocess``, ``svm``, ``hog``),
+``sensor`` and ``realset`` (part of :mod:`crater_core.settings`, which re-exports them; how to add a
+key is explained there). Standard library only."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+from crater_core.sweep import AXES
+from crater_core.typed_config import _Group, _need
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConvSettings(_Group):
+    channels: int
+    kernel: int
+    stride: int
+
+    def _check(self):
+        for key in ("channels", "kernel", "stride"):
+            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoolSettings(_Group):
+    kernel: int
+    stride: int
+
+    def _check(self):
+        for key in ("kernel", "stride"):
+            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelSettings(_Group):
+    """``model.*``: LunarNet_ex layer sizes (configs/model/lunarnet_ex.yaml, docs/classifiers.md)."""
+
+    name: str
+    input_size: int
+    num_classes: int
+    conv1: ConvSettings
+    pool: PoolSettings
+    conv2: ConvSettings
+    fc1: int
+    dropout: float = 0.0
+
+    def _check(self):
+        _need(self.input_size >= 8, "input_size", self.input_size, "must be >= 8")
+        _need(self.num_classes >= 2, "num_classes", self.num_classes, "must be >= 2")
+        _need(self.fc1 >= 1, "fc1", self.fc1, "must be >= 1")
+        _need(0.0 <= self.dropout < 1.0, "dropout", self.dropout, "must lie in [0, 1)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PreprocessSettings(_Group):
+    """``train.preprocess``: crop resampling and photometric normalisation (docs/preprocessing.md)."""
+
+    antialias: bool
+    interp_order: int
+    max_outside_frac: float
+    low_percentile: float
+    high_percentile: float
+    lit_threshold: float
+    shadow_floor: float
+    gamma: float
+
+    def _check(self):
+        _need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
+        _need(0.0 <= self.max_outside_frac < 1.0, "max_outside_frac", self.max_outside_frac, "must lie in [0, 1)")
+        _need(
+            0.0 <= self.low_percentile < self.high_percentile,
+            "low_percentile",
+            self.low_percentile,
+            "must lie in [0, high_percentile)",
+        )
+        _need(self.high_percentile <= 100.0, "high_percentile", self.high_percentile, "must be <= 100")
+        _need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
+        _need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
+        _need(self.gamma > 0.0, "gamma", self.gamma, "must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SvmSettings(_Group):
+    """``train.svm``: the SGD linear SVM of LunarSVM_ex."""
+
+    alpha: float
+    max_iter: int
+    tol: float
+
+    def _check(self):
+        _need(self.alpha > 0.0, "alpha", self.alpha, "must be > 0")
+        _need(self.max_iter >= 1, "max_iter", self.max_iter, "must be >= 1")
+        _need(self.tol >= 0.0, "tol", self.tol, "must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class HogSettings(SvmSettings):
+    """``train.hog``: HOG features + SGD linear SVM baseline."""
+
+    orientations: int
+    pixels_per_cell: int
+    cells_per_block: int
+    max_train_images: Optional[int] = None
+
+    def _check(self):
+        super()._check()
+        for key in ("orientations", "pixels_per_cell", "cells_per_block"):
+            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        _need(
+            self.max_train_images is None or self.max_train_images >= 1,
+            "max_train_images",
+            self.max_train_images,
+            "must be >= 1 (null = all)",
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainSettings(_Group):
+    """``train.*`` (configs/train/default.yaml, docs/classifiers.md)."""
+
+    dataset_dir: str
+    seed: int  # split, augmentation, sensor noise and weight initialisation (${seed})
+    val_fraction: float
+    split_by: str
+    sigmas: Optional[Tuple[float, ...]]
+    select: Optional[Dict[str, Optional[Tuple[float, ...]]]]
+    batch_size: int
+    eval_batch_size: int
+    lr: float
+    weight_decay: float
+    max_epochs: int
+    target_val_accuracy: float
+    num_threads: int
+    device: str
+    cache_dir: str
+    cache_dtype: str
+    verify_sha256: bool
+    augment: bool
+    progress: bool
+    preprocess: PreprocessSettings
+    svm: SvmSettings
+    hog: HogSettings
+
+    def _check(self):
+        _need(0.0 < self.val_fraction < 1.0, "val_fraction", self.val_fraction, "must lie in (0, 1)")
+        _need(self.split_by in ("camera", "sun"), "split_by", self.split_by, "must be 'camera' or 'sun'")
+        _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
+        unknown = sorted(set(self.select or {}) - set(AXES))
+        _need(not unknown, "select", unknown, f"unknown axis: use {', '.join(AXES)}")
+        for key in ("batch_size", "eval_batch_size", "max_epochs"):
+            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        _need(self.lr > 0.0, "lr", self.lr, "must be > 0")
+        _need(self.weight_decay >= 0.0, "weight_decay", self.weight_decay, "must be >= 0")
+        _need(
+            0.0 <= self.target_val_accuracy <= 1.0,
+            "target_val_accuracy",
+            self.target_val_accuracy,
+            "must lie in [0, 1]",
+        )
+        _need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
+        _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
+        _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SensorSettings(_Group):
+    """``sensor.*``: the seeded sensor model applied to synthetic crops (docs/preprocessing.md)."""
+
+    enabled: bool
+    resolution_min_px: int
+    resolution_prob: float
+    psf_sigma_px: float
+    auto_exposure: bool
+    exposure_white_frac: Tuple[float, ...]
+    full_well_if: float
+    photons_at_full_well: float
+    read_noise_dn: float
+    gain_jitter: float
+    quantize_bits: int
+    gsd_m: Optional[float]  # the real product's ground sample distance (m/px); null = resolution jitter
+    gsd_jitter: float  # relative jitter of that native grid
+    jpeg_quality: Optional[int]  # JPEG quality of the real product; null = no JPEG
+    mosaic_frames: int  # renders of one camera pose composited per image (1 = a single render)
+    mosaic_blend: str  # max (per pixel) | patches (Voronoi cells)
+    mosaic_patches: int  # cells for mosaic_blend=patches
+
+    def _check(self):
+        _need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
+        _need(0.0 <= self.resolution_prob <= 1.0, "resolution_prob", self.resolution_prob, "must lie in [0, 1]")
+        _need(self.psf_sigma_px >= 0.0, "psf_sigma_px", self.psf_sigma_px, "must be >= 0")
+        lo_hi = self.exposure_white_frac
+        _need(
+            len(lo_hi) == 2 and 0.0 < lo_hi[0] <= lo_hi[1],
+            "exposure_white_frac",
+            lo_hi,
+            "must be [lo, hi] with 0 < lo <= hi",
+        )
+        _need(self.full_well_if > 0.0, "full_well_if", self.full_well_if, "must be > 0")
+        _need(self.photons_at_full_well > 0.0, "photons_at_full_well", self.photons_at_full_well, "must be > 0")
+        _need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
+        _need(0.0 <= self.gain_jitter < 1.0, "gain_jitter", self.gain_jitter, "must lie in [0, 1)")
+        _need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
+        _need(self.gsd_m is None or self.gsd_m > 0.0, "gsd_m", self.gsd_m, "must be > 0 metres (or null)")
+        _need(0.0 <= self.gsd_jitter < 1.0, "gsd_jitter", self.gsd_jitter, "must lie in [0, 1)")
+        _need(
+            self.jpeg_quality is None or 1 <= self.jpeg_quality <= 100,
+            "jpeg_quality",
+            self.jpeg_quality,
+            "must lie in [1, 100] (or null)",
+        )
+        _need(
+            self.jpeg_quality is None or self.quantize_bits == 8,
+            "jpeg_quality",
+            self.jpeg_quality,
+            "needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)",
+        )
+        _need(1 <= self.mosaic_frames <= 64, "mosaic_frames", self.mosaic_frames, "must lie in [1, 64]")
+        _need(self.mosaic_blend in ("max", "patches"), "mosaic_blend", self.mosaic_blend, "must be max or patches")
+        _need(1 <= self.mosaic_patches <= 256, "mosaic_patches", self.mosaic_patches, "must lie in [1, 256]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MosaicSettings(_Group):
+    """``realset.mosaic``: the embedded real image product (data_manifest/products.yaml)."""
+
+    package: str
+    package_path: str
+    path: Optional[str]
+    sha256: Optional[str]
+    extent_m: float
+    pixel_m: float
+    radius_m: float
+    product_id: Optional[str] = None
+
+    def _check(self):
+        for key in ("extent_m", "pixel_m", "radius_m"):
+            _need(getattr(self, key) > 0.0, key, getattr(self, key), "must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RealsetSettings(_Group):
+    """``realset.*``: the real test set (docs/realset.md)."""
+
+    source_product: str
+    per_crater: int
+    sigmas: Tuple[float, ...]
+    max_offset_frac: float
+    max_rotation_deg: float
+    seed: int
+    include_embedded: bool
+    labels_file: Optional[str]
+    mosaic: MosaicSettings
+
+    def _check(self):
+        _need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")
+        _need(
+            len(self.sigmas) > 0 and all(s > 0 for s in self.sigmas),
+            "sigmas",
+            self.sigmas,
+            "must be a non-empty list of ratios > 0",
+        )
+        _need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
+        _need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")

@@ -1,0 +1,249 @@
+"""The dataset directory on disk: writable, room for the renders, one writer at a time, no leftovers.
+
+- :func:`check_output_dir`, :func:`check_free_disk`: before anything is rendered.
+- :class:`DatasetLock`: a second ``crater-synth dataset`` on the same ``out_dir`` (or the same shard
+  of it) refuses to start, naming the process that holds it; shards of one sweep
+  (``launcher.shard=i/n``) still run side by side. ``flock`` locks: released by the kernel when the
+  holder dies, so a killed run never leaves a stale lock.
+- :func:`find_orphans` / :func:`remove_orphans`: EXRs without a manifest row and temp files of
+  interrupted writes (``verify`` names them; the next ``dataset`` run removes them).
+- :func:`prune_jobs`: ``.jobs/`` keeps the files of running writers and the logs of the last runs only.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crater_core.files import ensure_writable_dir, free_bytes, size_text
+from crater_synth.errors import DatasetBusyError, UserError
+
+# Bytes per render used for the free-disk check before any measured value exists
+# (210x210 px x 6 float32 channels, zip-compressed: measured ~0.6-0.9 MB; rounded up).
+DEFAULT_BYTES_PER_RENDER = 1_000_000
+JOBS_DIR = ".jobs"
+LOCK_FILE = ".dataset.lock"
+# Logs of finished writers kept in .jobs/ (the newest; job files of finished writers are removed).
+KEEP_JOB_LOGS = 32
+# Files of writers on other hosts (whose liveness this host cannot check) are pruned after this.
+OTHER_HOST_MAX_AGE_S = 7 * 24 * 3600.0
+# A temp file this old cannot belong to a write in progress (an EXR or manifest write takes ms).
+STALE_TEMP_AGE_S = 3600.0
+
+
+def check_output_dir(out_dir: Path) -> None:
+    """The dataset directory must be creatable and writable (PathError naming ``out_dir``)."""
+    ensure_writable_dir(out_dir, "out_dir")
+
+
+def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
+    sizes = [(out_dir / r["path"]).stat().st_size for r in rows[:50] if (out_dir / r["path"]).exists()]
+    return int(np.mean(sizes)) if sizes else DEFAULT_BYTES_PER_RENDER
+
+
+def check_free_disk(out_dir: Path, n_renders: int, bytes_per_render: int) -> None:
+    need = int(n_renders * bytes_per_render * 1.1)
+    free = free_bytes(out_dir)
+    if need > free:
+        raise UserError(
+            f"not enough free disk in {out_dir}: {n_renders} renders need ~{size_text(need)} "
+            f"({size_text(bytes_per_render)} each, +10 %), {size_text(free)} free"
+        )
+
+
+# ------------------------------------------------------------------------------------------------
+# One writer per dataset (or per shard)
+# ------------------------------------------------------------------------------------------------
+class DatasetLock:
+    """Exclusive lock of a whole dataset directory, or (``shard=(i, n)``) a shared lock of the directory
+    plus an exclusive lock of that shard: shards of one sweep run side by side, while a second writer
+    of the same shard, or of the whole sweep, refuses with :class:`DatasetBusyError`."""
+
+    def __init__(self, out_dir: Path, shard: tuple[int, int] | None = None):
+        self.out_dir = Path(out_dir)
+        self.shard = shard
+        self._files: list = []
+
+    @property
+    def exclusive(self) -> bool:
+        """True when no other writer can touch the directory (the whole sweep is locked)."""
+        return self.shard is None
+
+    def _take(self, name: str, mode: int, what: str) -> None:
+        path = self.out_dir / name
+        fh = open(path, "a+")
+        try:
+            fcntl.flock(fh, mode | fcntl.LOCK_NB)
+        except OSError as exc:
+            fh.close()
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            self.release()
+            raise DatasetBusyError(
+                f"{what} {self.out_dir} is being written by another crater-synth process "
+                f"({_holder(path)}): wait for it to finish, or give another out_dir"
+            ) from None
+        if mode == fcntl.LOCK_EX:  # say who holds it, for the message a second writer prints
+            fh.seek(0)
+            fh.truncate()
+            fh.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            fh.flush()
+        self._files.append(fh)
+
+    def acquire(self) -> "DatasetLock":
+        if self.shard is None:
+            self._take(LOCK_FILE, fcntl.LOCK_EX, "dataset")
+        else:
+            i, n = self.shard
+            self._take(LOCK_FILE, fcntl.LOCK_SH, "dataset")
+            self._take(f".dataset-shard{i}of{n}.lock", fcntl.LOCK_EX, f"shard {i}/{n} of dataset")
+        return self
+
+    def release(self) -> None:
+        for fh in reversed(self._files):
+            try:
+                if self.exclusive or fh is not self._files[0]:
+                    fh.seek(0)
+                    fh.truncate()  # no holder any more (a stale line would mislead the next message)
+                fcntl.flock(fh, fcntl.LOCK_UN)
+            except OSError:
+                pass
+            finally:
+                fh.close()
+        self._files = []
+
+    def __enter__(self) -> "DatasetLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _holder(lock_path: Path) -> str:
+    """Who holds a lock, from the line its exclusive holder wrote (``pid N on HOST, since ...``)."""
+    try:
+        text = lock_path.read_text().strip()
+    except OSError:
+        text = ""
+    parts = text.split()
+    if len(parts) >= 4 and parts[0] == "pid" and parts[1].isdigit() and parts[3].rstrip(",") == socket.gethostname():
+        try:
+            os.kill(int(parts[1]), 0)
+        except ProcessLookupError:
+            text = ""  # written by a holder that has died since: the lock is held by someone else now
+        except OSError:
+            pass
+    if text:
+        return text
+    return "shards of a sweep, launcher.shard=i/n" if lock_path.name == LOCK_FILE else "another process"
+
+
+# ------------------------------------------------------------------------------------------------
+# Orphans: files no manifest row points to
+# ------------------------------------------------------------------------------------------------
+def _is_temp(p: Path) -> bool:
+    """Temp files of interrupted atomic writes (``.<name>.<random>.tmp[.exr]``)."""
+    return p.name.startswith(".") and (p.name.endswith(".tmp") or p.name.endswith(".tmp.exr"))
+
+
+def find_orphans(out_dir: Path, rows: list[dict]) -> list[Path]:
+    """EXRs in ``<out_dir>/<crater>/`` that no row names, and temp files of interrupted writes in
+    ``out_dir`` and its sub-directories (``.jobs/`` has its own pruning), sorted."""
+    out_dir = Path(out_dir)
+    named = {r["path"] for r in rows}
+    found = []
+    if not out_dir.is_dir():
+        return found
+    for sub in [out_dir, *sorted(p for p in out_dir.iterdir() if p.is_dir() and p.name != JOBS_DIR)]:
+        for f in sub.iterdir():
+            if not f.is_file():
+                continue
+            if _is_temp(f):
+                found.append(f)
+            elif (
+                sub != out_dir
+                and f.suffix == ".exr"
+                and not f.name.startswith(".")
+                and str(f.relative_to(out_dir)) not in named
+            ):
+                found.append(f)
+    return sorted(found)
+
+
+def remove_orphans(out_dir: Path, rows: list[dict], exclusive: bool) -> list[Path]:
+    """Remove :func:`find_orphans`. Holding the whole dataset (``exclusive``) every orphan goes; a shard
+    shares the directory with writers whose new EXRs have no row yet, so it removes only old temp files."""
+    now = time.time()
+    removed = []
+    for f in find_orphans(out_dir, rows):
+        try:
+            if not exclusive and not (_is_temp(f) and now - f.stat().st_mtime > STALE_TEMP_AGE_S):
+                continue
+            f.unlink()
+            removed.append(f)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
+# ------------------------------------------------------------------------------------------------
+# .jobs/: worker job files and logs
+# ------------------------------------------------------------------------------------------------
+def _writer_state(stem: str, host: str) -> str:
+    """``running``, ``dead`` or ``other-host`` for a job file stem ``<crater>-<host>-<pid>-<n>``."""
+    parts = stem.rsplit("-", 3)
+    if len(parts) < 4 or not parts[2].isdigit():
+        return "other-host"
+    if parts[1] != host:
+        return "other-host"
+    pid = int(parts[2])
+    if pid == os.getpid():
+        return "running"
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return "dead"
+    except OSError:
+        pass
+    return "running"
+
+
+def prune_jobs(out_dir: Path, keep_logs: int = KEEP_JOB_LOGS) -> int:
+    """Bound ``.jobs/``: remove the job files of writers that have ended, and all but the newest
+    ``keep_logs`` of their logs (files of other hosts: after a week). Returns the files removed."""
+    from crater_synth.dataset.manifest import writer_tag
+
+    jobs = Path(out_dir) / JOBS_DIR
+    if not jobs.is_dir():
+        return 0
+    host = writer_tag().rsplit("-", 1)[0]
+    now = time.time()
+    removable_logs, removed = [], 0
+    for f in jobs.iterdir():
+        if not f.is_file():
+            continue
+        try:
+            mtime = f.stat().st_mtime
+        except FileNotFoundError:
+            continue
+        state = _writer_state(f.stem, host)
+        if state == "running":
+            continue
+        if state == "other-host" and now - mtime < OTHER_HOST_MAX_AGE_S:
+            continue
+        if f.suffix == ".log" and state == "dead":
+            removable_logs.append((mtime, f))
+            continue
+        f.unlink(missing_ok=True)
+        removed += 1
+    removable_logs.sort(reverse=True)
+    for _, f in removable_logs[keep_logs:]:
+        f.unlink(missing_ok=True)
+        removed += 1
+    return removed

@@ -1,0 +1,225 @@
+"""Dispatch: Blender worker processes, their protocol lines, retries, and a clean stop.
+
+The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker JOB``)
+that imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT``
+line per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
+its unfinished renders (``render.max_retries``). When the host stops early (an error, SIGTERM,
+Ctrl-C), every worker gets SIGTERM, the host keeps reading their RESULT lines until they exit (a
+render written is a render recorded), kills what is left after a grace period, and removes the
+scratch files of the workers it started.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from crater_core import schema
+from crater_core.files import remove_stale_scratch
+from crater_core.settings import HapkeParams, RenderSettings
+from crater_synth.dataset.disk import JOBS_DIR
+from crater_synth.dataset.manifest import writer_tag
+from crater_synth.dataset.plan import CraterJob, camera_major, hapke_dict
+from crater_synth.errors import RenderError
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+# Seconds a worker gets to finish its current render and exit after SIGTERM before SIGKILL.
+STOP_GRACE_S = 10.0
+_DISK_FULL_MARKERS = ("ENOSPC", "EDQUOT", "No space left on device", "Disk quota exceeded", "disk full")
+
+
+def worker_command(job_file: Path) -> list[str]:
+    return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
+
+
+def _split_contiguous(items: list, n: int) -> list[list]:
+    n = max(1, min(n, len(items)))
+    return [items[i * len(items) // n : (i + 1) * len(items) // n] for i in range(n)]
+
+
+def _worker_error(crater: str, message: str) -> RenderError:
+    if any(m in message for m in _DISK_FULL_MARKERS):
+        text = message.split("ExrError: ", 1)[-1]
+        return RenderError(
+            f"{text} (while rendering {crater})"
+            if text.startswith("disk full")
+            else f"disk full (ENOSPC) while rendering {crater}: {text}"
+        )
+    return RenderError(f"worker for {crater}: {message}")
+
+
+class _Worker:
+    """One running worker process and what the host knows about it."""
+
+    def __init__(self, proc: subprocess.Popen, job: CraterJob, block: list[dict], unit_id: int, log, job_file: Path):
+        self.proc, self.job, self.id, self.log, self.job_file = proc, job, unit_id, log, job_file
+        self.block = {p["params"].index: p for p in block}
+        self.error: str | None = None
+        self.buf = b""
+
+    def feed(self, chunk: bytes, on_result) -> None:
+        self.buf += chunk
+        *lines, self.buf = self.buf.split(b"\n")
+        for raw in lines:
+            line = raw.decode("utf-8", "replace")
+            if line.startswith("RESULT "):
+                result = json.loads(line[7:])
+                plan = self.block.pop(int(result["index"]), None)
+                if plan is not None:
+                    on_result(self.job, plan, result)
+            elif line.startswith("ERROR "):
+                self.error = line[6:]
+
+
+def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParams, out_dir: Path, on_result) -> None:
+    """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
+    processes; ``on_result(job, plan, result)`` is called for each finished render."""
+    n_workers = render.workers
+    jobs_dir = out_dir / JOBS_DIR
+    jobs_dir.mkdir(parents=True, exist_ok=True)
+    render_cfg = render.as_dict()
+    if n_workers > 1 and render.threads == 0:
+        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
+
+    # Work units: contiguous blocks of one crater's plans, one block per worker slot, camera-major
+    # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
+    # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work").
+    units: list[tuple[CraterJob, list[dict]]] = []
+    total = max(1, sum(len(j.plans) for j in jobs))
+    for job in jobs:
+        if job.plans:
+            share = max(1, round(n_workers * len(job.plans) / total))
+            ordered = sorted(job.plans, key=camera_major)
+            units += [(job, block) for block in _split_contiguous(ordered, share)]
+    pending = list(units)
+    attempts: dict[int, int] = {}
+    running: dict[subprocess.Popen, _Worker] = {}
+    started: set[int] = set()
+    sel = selectors.DefaultSelector()
+    uid = 0
+
+    def start(job: CraterJob, block: list[dict], unit_id: int) -> None:
+        job_file = jobs_dir / f"{job.crater.name}-{writer_tag()}-{unit_id}.json"
+        spec = {
+            "terrain_npz": str(job.npz),
+            "terrain_meta": job.meta,
+            "crater": job.crater.as_dict(),
+            "hapke": hapke_dict(hapke),
+            "render": render_cfg,
+            "out_dir": str(out_dir),
+            "horizon_cache_dir": render.horizon_cache_dir,
+            "renders": [p["item"] for p in block],
+        }
+        schema.atomic_write_text(job_file, json.dumps(spec))
+        log = open(job_file.with_suffix(".log"), "ab")
+        proc = subprocess.Popen(
+            worker_command(job_file),
+            stdout=subprocess.PIPE,
+            stderr=log,
+            cwd=REPO_ROOT,
+            env=os.environ | {"PYTHONUNBUFFERED": "1"},
+        )
+        started.add(proc.pid)
+        running[proc] = _Worker(proc, job, block, unit_id, log, job_file)
+        sel.register(proc.stdout, selectors.EVENT_READ, proc)
+
+    def finish(w: _Worker) -> int:
+        sel.unregister(w.proc.stdout)
+        rc = w.proc.wait()
+        w.log.close()
+        del running[w.proc]
+        if rc == 0 and not w.block:
+            w.job_file.unlink(missing_ok=True)  # done: the log says what happened; the job is not needed
+        return rc
+
+    try:
+        while pending or running:
+            while pending and len(running) < n_workers:
+                job, block = pending.pop(0)
+                uid += 1
+                attempts[uid] = attempts.get(uid, 0)
+                start(job, block, uid)
+            for key, _ in sel.select(timeout=1.0):
+                w = running[key.data]
+                chunk = os.read(w.proc.stdout.fileno(), 65536)
+                if chunk:
+                    w.feed(chunk, on_result)
+                    continue
+                rc = finish(w)
+                if w.error:
+                    raise _worker_error(w.job.crater.name, w.error)
+                left = sorted(w.block.values(), key=camera_major)
+                if left:
+                    tries = attempts.get(w.id, 0) + 1
+                    if tries > render.max_retries:
+                        raise RenderError(
+                            f"worker for {w.job.crater.name} failed {tries} times (exit {rc}); see {jobs_dir}/*.log"
+                        )
+                    uid += 1
+                    attempts[uid] = tries
+                    start(w.job, left, uid)
+    finally:
+        _stop(running, sel, on_result)
+        sel.close()
+        remove_stale_scratch(started)
+
+
+def _stop(running: dict, sel: selectors.BaseSelector, on_result) -> None:
+    """Stop the workers still running: SIGTERM, record the RESULT lines they still print, SIGKILL
+    after :data:`STOP_GRACE_S`. Further SIGINT/SIGTERM to the host wait until this is done."""
+    if not running:
+        return
+    restore = _defer_signals()
+    try:
+        for w in running.values():
+            _signal(w.proc, signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        while running and time.monotonic() < deadline:
+            for key, _ in sel.select(timeout=0.2):
+                w = running[key.data]
+                chunk = os.read(w.proc.stdout.fileno(), 65536)
+                if chunk:
+                    try:
+                        w.feed(chunk, on_result)
+                    except Exception:  # noqa: BLE001 - stopping anyway; the row is merged next run or lost
+                        pass
+                    continue
+                sel.unregister(w.proc.stdout)
+                w.proc.wait()
+                w.log.close()
+                del running[w.proc]
+        for w in list(running.values()):
+            _signal(w.proc, signal.SIGKILL)
+            w.proc.wait()
+            w.log.close()
+            running.pop(w.proc, None)
+    finally:
+        restore()
+
+
+def _signal(proc: subprocess.Popen, signum: int) -> None:
+    try:
+        proc.send_signal(signum)
+    except ProcessLookupError:
+        pass
+
+
+def _defer_signals():
+    """Ignore SIGINT/SIGTERM while the workers are being stopped (main thread only); returns the
+    function restoring the previous handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore():
+        for s, h in old.items():
+            signal.signal(s, h)
+
+    return restore

@@ -1,0 +1,90 @@
+"""Manifest rows of a dataset being rendered: one row per finished render, appended to this writer's
+part file (``manifest.parts/<name>-<host>-<pid>.jsonl``, fsynced in batches: schema.RowAppender) and
+merged into ``manifest.jsonl`` at the end (crater_core/schema.py holds the format and the merge)."""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+from pathlib import Path
+
+from crater_core import schema
+from crater_synth.dataset.plan import code_version
+
+
+def writer_tag() -> str:
+    """``<host>-<pid>`` of this process: names its job and manifest part files, so concurrent shards
+    (several processes, or several nodes on a shared filesystem) never write the same file."""
+    host = re.sub(r"[^A-Za-z0-9.]+", "_", socket.gethostname()) or "host"
+    return f"{host}-{os.getpid()}"
+
+
+def part_file(out_dir: Path, shard: tuple[int, int] | None) -> Path:
+    """This writer's part file for the whole sweep or one shard of it."""
+    name = f"shard{shard[0]}of{shard[1]}" if shard else "all"
+    return out_dir / schema.PARTS_DIR / f"{name}-{writer_tag()}.jsonl"
+
+
+def _dead_writer(tag_and_pid: str) -> bool:
+    """True for ``...-<host>-<pid>`` names of this host whose process no longer runs."""
+    head, _, pid = tag_and_pid.rpartition("-")
+    host = writer_tag().rsplit("-", 1)[0]
+    if not pid.isdigit() or int(pid) == os.getpid() or not head.endswith("-" + host):
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except OSError:
+        pass  # alive (another user's process)
+    return False
+
+
+def stale_parts(out_dir: Path) -> list[Path]:
+    """Manifest part files of writers on this host that are no longer running (e.g. a sweep killed
+    with -9), which are safe to merge. Part names end in ``-<host>-<pid>``; parts of other hosts are
+    merged by their host's next run or by the Dask launcher's final merge."""
+    return [p for p in sorted((out_dir / schema.PARTS_DIR).glob("*.jsonl")) if _dead_writer(p.stem)]
+
+
+def manifest_row(job, plan: dict, result: dict, fov_deg: float, renderer: str) -> dict:
+    """The manifest row of one finished render (``result``: the worker's RESULT line)."""
+    p = plan["params"]
+    return {
+        "schema_version": schema.SCHEMA_VERSION,
+        "crater": job.crater.name,
+        "index": p.index,
+        "indices": list(p.indices),
+        "sun_elevation": p.sun_elevation,
+        "sun_azimuth": p.sun_azimuth,
+        "cam_elevation": p.cam_elevation,
+        "cam_azimuth": p.cam_azimuth,
+        **({"sun_elevation_param": p.sun_elevation_param} if p.sun_elevation_param != p.sun_elevation else {}),
+        "range_m": plan["range_m"],
+        "fov_deg": float(fov_deg),
+        "width": plan["crop"][2] - plan["crop"][0],
+        "height": plan["crop"][3] - plan["crop"][1],
+        "frame_width": plan["frame_width"],
+        "crop_origin": plan["crop"][:2],
+        "center_px": plan["center_px"],
+        "rim_ellipse": plan["rim_ellipse"],
+        "sigma_boxes": plan["sigma_boxes"],
+        "lit_fraction": float(result["lit_fraction"]),
+        "mean_if": float(result["mean_if"]),
+        "path": result["rel_path"],
+        "sha256": result["sha256"],
+        "seed": plan["seed"],
+        "code_version": code_version(),
+        "renderer": renderer,
+        "terrain_id": job.meta["terrain_id"],
+        "render_digest": plan["digest"],
+    }
+
+
+def is_done(row: dict | None, out_dir: Path, digest: str) -> bool:
+    """A render is done when its row has the current digest and its file hashes to the row's sha256."""
+    if row is None or row.get("render_digest") != digest:
+        return False
+    f = out_dir / row["path"]
+    return f.is_file() and schema.sha256_file(f) == row["sha256"]

@@ -1,0 +1,148 @@
+"""Issue 13, signals and leftovers: SIGTERM or SIGINT stops the Blender workers and leaves no scratch file
+and no EXR without its manifest row; a host killed with -9 does not leave its workers rendering;
+`verify` names orphan files and the next `dataset` run removes them."""
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from conftest import REPO, TINY, cli_command, exr_files, run_cli, summary
+
+# 16 direct-mode renders at 16 spp, on 2 workers: time to interrupt the run mid-way.
+SLOW16 = (
+    "render.mode=direct",
+    "render.samples=16",
+    "sweep.sun_azimuth.count=4",
+    "sweep.cam_azimuth.count=4",
+    "render.workers=2",
+)
+N16 = 16
+SCRATCH = re.compile(r"^crater_synth_(?:render|exr)_(\d+)_")
+
+
+def _start(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
+
+
+def _workers(out: Path) -> list[int]:
+    """Live Blender worker processes of this dataset (their job files are under out/.jobs)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z" and "blender_gen.worker" in cmd and str(out / ".jobs") in cmd:
+            found.append(int(entry))
+    return found
+
+
+def _scratch_of(pids) -> list[str]:
+    from crater_core.files import scratch_dir
+
+    return [n for n in os.listdir(scratch_dir()) if (m := SCRATCH.match(n)) and int(m.group(1)) in set(pids)]
+
+
+def _wait_for(cond, what: str, proc: subprocess.Popen, timeout: float = 180):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        if proc.poll() is not None:
+            pytest.fail(f"sweep ended (exit {proc.returncode}) before {what}: {proc.stderr.read()[-2000:]}")
+        time.sleep(0.02)
+    pytest.fail(f"timed out waiting for {what}")
+
+
+def _interrupt(out: Path, data_dir: Path, send) -> tuple[subprocess.Popen, str, list[int]]:
+    """Start the sweep, wait for its first EXR and both workers' scratch files, call ``send(proc)``."""
+    proc = _start(out, data_dir, *SLOW16)
+    try:
+        _wait_for(lambda: exr_files(out), "the first EXR", proc)
+        workers = _wait_for(
+            lambda: (w := _workers(out)) and len(_scratch_of(w)) == len(w) == 2 and w,
+            "two workers with scratch files",
+            proc,
+        )
+        send(proc)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc, stderr, workers
+
+
+def _assert_clean_stop(out: Path, workers: list[int]) -> None:
+    assert not _workers(out), "Blender workers still running after the host stopped"
+    assert not _scratch_of(workers), "scratch files left in /dev/shm"
+    v = run_cli("verify", out)
+    assert v.returncode == 0, v.stderr
+    assert "0 orphan files" in v.stdout, v.stdout + v.stderr  # every EXR on disk has its manifest row
+    assert len(exr_files(out)) < N16
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT"])
+def test_signal_stops_workers_and_leaves_nothing(tmp_path, tiny_data_dir, tiny_dataset, how):
+    out = tmp_path / "ds"
+    if how == "SIGTERM":  # e.g. a batch system ending the job: the host alone gets it
+        send = lambda proc: os.kill(proc.pid, signal.SIGTERM)  # noqa: E731
+    else:  # Ctrl-C: the terminal signals the whole foreground process group
+        send = lambda proc: os.killpg(proc.pid, signal.SIGINT)  # noqa: E731
+    proc, stderr, workers = _interrupt(out, tiny_data_dir, send)
+    signum = getattr(signal, how)
+    assert proc.returncode == 128 + signum, stderr[-3000:]
+    assert stderr.splitlines()[-1] == f"error: interrupted by {how}: stopped; rerun the same command to resume"
+    assert all("renders/s" in line for line in stderr.splitlines()[:-1]), stderr  # progress lines only
+    _assert_clean_stop(out, workers)
+    if how == "SIGTERM":
+        s = summary(tiny_dataset(out, *SLOW16))  # and one rerun completes it
+        assert s["rendered"] + s["skipped_existing"] == N16 and s["manifest_rows"] == N16
+
+
+def test_host_killed_with_minus_9_does_not_leave_workers_rendering(tmp_path, tiny_data_dir):
+    out = tmp_path / "ds"
+    proc, _, workers = _interrupt(out, tiny_data_dir, lambda p: os.kill(p.pid, signal.SIGKILL))
+    deadline = time.monotonic() + 60
+    while (_workers(out) or _scratch_of(workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _workers(out), "workers kept rendering for a dead host"
+    assert not _scratch_of(workers), "the workers' scratch files are left in /dev/shm"
+
+
+def test_verify_names_orphans_and_dataset_removes_them(tmp_path, tiny_dataset):
+    out = tmp_path / "ds"
+    tiny_dataset(out)
+    first = exr_files(out)[0]
+    orphan = first.with_name("se09.000_sa000.000_ce90.000_ca000.000.exr")  # an EXR no row names
+    temp = first.with_name(f".{first.name}.k2j3h4.tmp.exr")  # an interrupted atomic write
+    part_temp = out / ".manifest.jsonl.abc123.tmp"
+    for f in (orphan, temp, part_temp):
+        shutil.copy(first, f)
+    v = run_cli("verify", out)
+    assert v.returncode == 0, v.stderr
+    named = sorted(line.split()[1] for line in v.stderr.splitlines() if line.startswith("orphan: "))
+    assert named == sorted(str(f) for f in (orphan, temp, part_temp))
+    assert "3 orphan files" in v.stdout
+    proc = tiny_dataset(out)
+    assert summary(proc)["rendered"] == 0
+    assert f"warning: removed 3 orphan file(s) of an interrupted run from {out} (no manifest row)" in proc.stderr
+    assert not orphan.exists() and not temp.exists() and not part_temp.exists() and first.exists()
+    v = run_cli("verify", out)
+    assert v.returncode == 0 and "0 orphan files" in v.stdout and "orphan:" not in v.stderr
