@@ -82,9 +82,9 @@ ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/of
 	$(CLI) ablate $(OVERRIDES)
 
 DEMO_DIR ?= outputs/demo
-demo: setup ## The main job on the embedded data: render sweep=demo, closed loop, evaluate, report
-	$(CLI) loop sweep=demo run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
-	$(CLI) report $(DEMO_DIR) sweep=demo $(OVERRIDES)
+demo: setup ## The main job on the embedded data: render sweep=demo_physical, closed loop, evaluate, report
+	$(CLI) loop sweep=demo_physical run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
+	$(CLI) report $(DEMO_DIR) sweep=demo_physical $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
