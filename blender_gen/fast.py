@@ -270,7 +270,7 @@ class FastRenderer:
         sunward = g.valid & (mu0 > 0.0)
         lit = np.zeros(g.shape, dtype=np.float32)
         mu0_s, slope_s = mu0[sunward], g.normals[sunward] @ ds_dtheta
-        lit[sunward] = 0.25 * sum(horizon.disc_lit_factor(np.float32(theta), hk[sunward], mu0_s, slope_s) for hk in h)
+        lit[sunward] = horizon.mean_disc_lit_factor(theta, h[:, sunward], mu0_s, slope_s)
         m = sunward & (g.mu > 0.0) & (lit > 0.0)
         radiance = np.zeros(g.shape, dtype=np.float32)
         if m.any():

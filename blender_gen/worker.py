@@ -206,7 +206,8 @@ def run(job_path: str) -> int:
                     "index": int(item["index"]),
                     "rel_path": item["rel_path"],
                     "sha256": sha,
-                    "lit_fraction": round(float(np.mean(chans["lit"])), 6),
+                    # the file's value: lit is stored as half
+                    "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
                     "mean_if": round(float(np.mean(radiance)), 8),
                     "seconds": round(time.perf_counter() - t1, 4),
                     "mode": mode_used,

@@ -1,7 +1,9 @@
 """The one EXR reader/writer of the project (renderer output, training input, verify, preview, tests).
 
-Dataset EXRs (the render contract, docs/manifest.md): tiled 64x64, float32, lossless zip, exactly the
-channels of :data:`crater_core.schema.EXR_CHANNELS`, the render parameters as header attributes.
+Dataset EXRs (the render contract, docs/manifest.md): tiled 64x64, lossless RLE, exactly the channels
+of :data:`crater_core.schema.EXR_CHANNELS` stored as :data:`crater_core.schema.EXR_CHANNEL_TYPES`
+(float32 I/F and depth, half normals and lit fraction; every reader gets float32), the render
+parameters as header attributes.
 Writes are atomic (temp file in the same directory, fsync, then ``os.replace``; 0666 less the umask),
 a full disk is an :class:`ExrError` saying so (ENOSPC, naming the file), and files are byte-reproducible
 (no time stamp). Blender's multilayer scratch output (one part per render pass) is read by
@@ -23,11 +25,14 @@ import numpy as np
 
 from crater_core.errors import ContractError
 from crater_core.files import SCRATCH_PREFIXES, disk_full_message, free_bytes, is_disk_full, scratch_file, size_text
-from crater_core.schema import EXR_CHANNELS
+from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
 
 CHANNELS = EXR_CHANNELS
 TILE = 64
-COMPRESSION = "zip"
+# Lossless run-length coding: float32 render noise does not compress, so zip saves only ~10 % more
+# bytes than RLE and costs twice the CPU (measured on real renders, docs/renderer.md "EXR size").
+COMPRESSION = "rle"
+_NUMPY_TYPE = {"float": np.float32, "half": np.float16}
 
 
 class ExrError(ContractError):
@@ -46,6 +51,20 @@ def _header_value(v):
     return json.dumps(v, sort_keys=True)
 
 
+def stored_type(channel: str) -> str:
+    """The pixel type ("float" or "half") a channel is stored as; channels outside the contract: float."""
+    return EXR_CHANNEL_TYPES.get(channel, "float")
+
+
+def as_stored(channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``channels`` as float32, each rounded to the precision it is stored with (half channels through
+    float16): statistics taken from the result (lit_fraction, mean I/F) are those of the file."""
+    return {
+        name: np.asarray(a, dtype=_NUMPY_TYPE[stored_type(name)]).astype(np.float32, copy=False)
+        for name, a in channels.items()
+    }
+
+
 def write_exr(
     path: str | os.PathLike,
     channels: dict[str, np.ndarray],
@@ -54,14 +73,16 @@ def write_exr(
     tile: int = TILE,
 ) -> str:
     """Write ``channels`` (name -> (h, w) array; exactly ``channel_names``, in that order) atomically as
-    one tiled, zip-compressed float32 EXR; returns the file's sha256."""
+    one tiled, RLE-compressed EXR, each channel stored as :func:`stored_type`; returns the file's sha256."""
     import OpenImageIO as oiio
 
     if set(channels) != set(channel_names):
         raise ExrError(f"{path}: EXR channels {sorted(channels)} != {sorted(channel_names)}")
     h, w = np.asarray(channels[channel_names[0]]).shape
+    # float32 in; OpenImageIO rounds half channels to nearest even, exactly as :func:`as_stored` does
     data = np.stack([np.asarray(channels[c], dtype=np.float32).reshape(h, w) for c in channel_names], axis=-1)
     spec = oiio.ImageSpec(w, h, len(channel_names), "float")
+    spec.channelformats = tuple(oiio.TypeDesc(stored_type(c)) for c in channel_names)
     spec.channelnames = tuple(channel_names)
     spec.tile_width = spec.tile_height = int(tile)
     spec.attribute("compression", COMPRESSION)
@@ -77,7 +98,7 @@ def write_exr(
     scratch = scratch_file(SCRATCH_PREFIXES[1])
     try:
         room = free_bytes(scratch)
-        if room < 2 * data.nbytes + (1 << 20):  # zip never inflates float tiles much beyond raw size
+        if room < 2 * data.nbytes + (1 << 20):  # RLE never inflates tiles much beyond raw size
             raise ExrError(
                 f"disk full (ENOSPC): no room to encode {path} in {os.path.dirname(scratch)} ({size_text(room)} free)"
             )

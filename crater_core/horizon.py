@@ -92,6 +92,24 @@ def disc_lit_factor(
     return (fraction + dmu0_delevation * moment / mu0).astype(np.float32)
 
 
+def mean_disc_lit_factor(sun_elevation_rad, horizons_rad, mu0, dmu0_delevation, radius_rad: float = SUN_RADIUS_RAD):
+    """Mean of :func:`disc_lit_factor` over sub-pixel horizons ``horizons_rad`` (k, n), for n points.
+
+    Only points with a sub-pixel horizon within a solar radius of the Sun's centre (the penumbra band,
+    usually a few % of them) need the disc integral; every other sub-pixel sees the whole disc (1) or
+    none of it (0), exactly what the formula gives at x = +-1."""
+    theta = np.float32(sun_elevation_rad)
+    r = np.float32(radius_rad)
+    h = np.asarray(horizons_rad, dtype=np.float32)
+    out = (h <= theta - r).sum(axis=0, dtype=np.float32) / np.float32(h.shape[0])
+    band = (np.abs(h - theta) < r).any(axis=0)
+    if band.any():
+        mu0_b, slope_b = np.asarray(mu0)[band], np.asarray(dmu0_delevation)[band]
+        total = sum(disc_lit_factor(theta, hk[band], mu0_b, slope_b, radius_rad) for hk in h)
+        out[band] = total / np.float32(h.shape[0])
+    return out.astype(np.float32, copy=False)
+
+
 # ------------------------------------------------------------------------------------------------
 # Height fields
 # ------------------------------------------------------------------------------------------------

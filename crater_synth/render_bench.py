@@ -12,7 +12,8 @@ building the terrain patches (cached data, built before the clock starts):
 - (d) ``direct_roi``: direct mode (one Cycles render per image, ROI crop) on a sample of (a)'s items;
   the same items of (a) are compared with it per pixel (fast-vs-direct accuracy on real terrain);
 - (e) ``naive``: direct mode rendering the whole 90 deg frame (crop afterwards), 6 items;
-- peak RSS of the host process and of the largest worker process.
+- peak RSS of the host process and of the largest worker process;
+- the EXR storage choices (compression x channel types) on 40 of (a)'s renders: bytes and encode ms.
 
 The last two lines are exactly
 ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C direct_roi_renders_per_s=D`` and
@@ -168,11 +169,74 @@ def compare(reference_dir: Path, test_dir: Path) -> dict:
     return {"renders": len(rows), "mean_over_renders": agg, "per_render": rows}
 
 
+# EXR storage choices compared on real renders: (compression, stored channel types); "contract" is
+# crater_core.schema.EXR_CHANNEL_TYPES (half normals and lit), "float32" is every channel float32.
+EXR_CHOICES = [
+    ("zip", "float32"),
+    ("rle", "float32"),
+    ("none", "float32"),
+    ("zip", "contract"),
+    ("rle", "contract"),
+    ("pxr24", "float32"),
+]
+
+
+def exr_codecs(dataset_dir: Path, n: int = 40, repeats: int = 3) -> list[dict]:
+    """Mean bytes and CPU ms to encode one EXR, for each of :data:`EXR_CHOICES`, on ``n`` renders of
+    ``dataset_dir`` (spread over its manifest); the encoding alone (OpenImageIO to /dev/shm or a temp
+    dir), best of ``repeats`` passes, so the figures compare codecs, not disks."""
+    import os
+    import tempfile
+
+    import OpenImageIO as oiio
+
+    from crater_core import exr, schema
+
+    rows = schema.load_manifest(dataset_dir)
+    rows = rows[:: max(1, len(rows) // n)][:n]
+    images = [exr.read_exr(dataset_dir / r["path"])[0] for r in rows]
+    names = schema.EXR_CHANNELS
+    scratch_dir = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+    out = []
+    for compression, types in EXR_CHOICES:
+        formats = tuple(exr.stored_type(c) if types == "contract" else "float" for c in names)
+        best, size = float("inf"), 0
+        for _ in range(repeats):
+            size, t0 = 0, time.perf_counter()
+            for i, img in enumerate(images):
+                h, w = img["IF"].shape
+                spec = oiio.ImageSpec(w, h, len(names), "float")
+                spec.channelformats = tuple(oiio.TypeDesc(f) for f in formats)
+                spec.channelnames = names
+                spec.tile_width = spec.tile_height = exr.TILE
+                spec.attribute("compression", compression)
+                path = os.path.join(scratch_dir, f"crater-synth-codec-{os.getpid()}-{i}.exr")
+                o = oiio.ImageOutput.create("openexr")
+                o.open(path, spec)
+                o.write_image(np.stack([img[c] for c in names], axis=-1))
+                o.close()
+                size += os.path.getsize(path)
+                os.unlink(path)
+            best = min(best, (time.perf_counter() - t0) / len(images))
+        out.append(
+            {
+                "compression": compression,
+                "channel_types": types,
+                "current": compression == exr.COMPRESSION and types == "contract",
+                "mean_bytes": round(size / len(images)),
+                "encode_ms": round(1e3 * best, 2),
+            }
+        )
+    return out
+
+
 def bench_renderer(overrides: list[str], work: Path, parts=tuple(PARTS)) -> dict:
     """Run the parts, in order, each into ``work/<part>``; returns the report."""
     report: dict = {}
     for name in parts:
         report[name] = timed_dataset(PARTS[name] + list(overrides), work / name)
+        if name == "paper_crater":  # measured right away, while nothing else runs
+            report["exr_codecs"] = exr_codecs(work / name)
     if "direct_roi" in report and "paper_crater" in report:
         report["fast_vs_direct"] = compare(work / "direct_roi", work / "paper_crater")
     # ru_maxrss is in KiB on Linux; RUSAGE_CHILDREN reports the largest terminated child (a worker).

@@ -58,6 +58,26 @@ def test_disc_factor_matches_numerical_integration():
         assert frac == pytest.approx(np.mean(visible), abs=0.003)
 
 
+def test_mean_disc_factor_equals_the_full_formula_everywhere():
+    """The penumbra-band shortcut gives the formula's value for every pixel: in the band, at its
+    edges (a sub-pixel horizon exactly a solar radius from the Sun) and outside it."""
+    rng = np.random.default_rng(2)
+    n = 20_000
+    theta = np.float32(math.radians(0.64))
+    h = (theta + rng.normal(0.0, 3 * SUN_R, (4, n))).astype(np.float32)
+    h[:, :50] = theta - np.float32(SUN_R)  # exactly at the lower limb: whole disc visible
+    h[:, 50:100] = theta + np.float32(SUN_R)  # exactly at the upper limb: none of it
+    h[:2, 100:150] = theta - np.float32(SUN_R)  # mixed sub-pixels
+    mu0 = rng.uniform(0.01, 0.3, n).astype(np.float32)
+    slope = rng.normal(0.0, 0.5, n).astype(np.float32)
+    full = sum(horizon.disc_lit_factor(theta, hk, mu0, slope) for hk in h) / np.float32(4)
+    got = horizon.mean_disc_lit_factor(theta, h, mu0, slope)
+    assert got.dtype == np.float32 and got.shape == (n,)
+    np.testing.assert_allclose(got, full, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(got[:50], 1.0)
+    np.testing.assert_allclose(got[50:100], 0.0, atol=1e-7)
+
+
 CRATER_D = 10_000.0
 NEAR_HALF, NEAR_N = 2.5 * CRATER_D, 256
 FAR_HALF, FAR_N = 60_000.0, 61

@@ -14,7 +14,7 @@ import OpenImageIO as oiio
 import pytest
 
 from crater_core import exr
-from crater_core.schema import EXR_CHANNELS
+from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
 
 _spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
 cr = importlib.util.module_from_spec(_spec)
@@ -57,8 +57,9 @@ def test_exr_layout_and_header(small, mode):
         spec = inp.spec()
         assert (spec.tile_width, spec.tile_height) == (64, 64)
         assert set(spec.channelnames) == set(EXR_CHANNELS) and spec.nchannels == len(EXR_CHANNELS)
-        assert str(spec.format) == "float"
-        assert spec.get_string_attribute("compression") in ("zip", "zips")
+        stored = [str(t) for t in spec.channelformats] or [str(spec.format)] * spec.nchannels
+        assert dict(zip(spec.channelnames, stored)) == EXR_CHANNEL_TYPES
+        assert spec.get_string_attribute("compression") == exr.COMPRESSION
         u0, v0, u1, v1 = it["crop"]
         assert (spec.width, spec.height) == (u1 - u0, v1 - v0)
         inp.close()

@@ -1,0 +1,62 @@
+"""The EXR container (crater_core.exr): stored channel types, lossless round trip, atomicity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crater_core import exr
+from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
+
+oiio = pytest.importorskip("OpenImageIO")
+
+
+def _channels(seed: int = 0, shape=(70, 90)) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    chans = {c: rng.random(shape).astype(np.float32) for c in EXR_CHANNELS}
+    chans["depth"] = (20_000.0 + 30_000.0 * chans["depth"]).astype(np.float32)
+    chans["N.X"] = chans["N.X"] * 2.0 - 1.0  # signed components
+    chans["IF"][0, :5] = [0.0, 1e-7, 3.3e-5, 0.12345678, 2.5]  # tiny and large radiance factors
+    return chans
+
+
+def test_stored_types_are_the_contract(tmp_path):
+    path = tmp_path / "r.exr"
+    exr.write_exr(path, _channels())
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    inp.close()
+    stored = dict(zip(spec.channelnames, (str(t) for t in spec.channelformats)))
+    assert stored == EXR_CHANNEL_TYPES
+    assert spec.get_string_attribute("compression") == exr.COMPRESSION
+    assert (spec.tile_width, spec.tile_height) == (exr.TILE, exr.TILE)
+
+
+def test_float_channels_are_bit_exact_and_half_channels_are_as_stored(tmp_path):
+    chans = _channels(1)
+    path = tmp_path / "r.exr"
+    exr.write_exr(path, chans)
+    back, _ = exr.read_exr(path)
+    expected = exr.as_stored(chans)
+    for name in EXR_CHANNELS:
+        assert back[name].dtype == np.float32
+        np.testing.assert_array_equal(back[name], expected[name], err_msg=name)  # what as_stored says, exactly
+        if EXR_CHANNEL_TYPES[name] == "float":
+            np.testing.assert_array_equal(back[name], chans[name], err_msg=name)  # lossless
+        else:  # half: 11-bit significand, |value| <= 1
+            assert np.abs(back[name] - chans[name]).max() <= 2.0**-12, name
+
+
+def test_the_same_channels_give_the_same_bytes(tmp_path):
+    a = exr.write_exr(tmp_path / "a.exr", _channels(2), {"crater_synth:x": 1})
+    b = exr.write_exr(tmp_path / "b.exr", _channels(2), {"crater_synth:x": 1})
+    assert a == b
+    assert not list(tmp_path.glob("*.tmp*"))
+
+
+def test_wrong_channel_set_names_the_file(tmp_path):
+    chans = _channels()
+    del chans["lit"]
+    with pytest.raises(exr.ExrError, match=r"r\.exr: EXR channels"):
+        exr.write_exr(tmp_path / "r.exr", chans)
+    assert not list(tmp_path.iterdir())
