@@ -10,6 +10,17 @@ from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
 
 oiio = pytest.importorskip("OpenImageIO")
 
+ENCODERS = {"openexr": exr._encode_openexr, "openimageio": exr._encode_oiio}
+
+
+@pytest.fixture(params=sorted(ENCODERS))
+def encoder(request, monkeypatch):
+    """Each test runs with both encoders (OpenEXR binding, OpenImageIO fallback)."""
+    if request.param == "openexr":
+        pytest.importorskip("OpenEXR")
+    monkeypatch.setattr(exr, "encoder", lambda: ENCODERS[request.param])
+    return request.param
+
 
 def _channels(seed: int = 0, shape=(70, 90)) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
@@ -20,7 +31,7 @@ def _channels(seed: int = 0, shape=(70, 90)) -> dict[str, np.ndarray]:
     return chans
 
 
-def test_stored_types_are_the_contract(tmp_path):
+def test_stored_types_are_the_contract(tmp_path, encoder):
     path = tmp_path / "r.exr"
     exr.write_exr(path, _channels())
     inp = oiio.ImageInput.open(str(path))
@@ -32,7 +43,7 @@ def test_stored_types_are_the_contract(tmp_path):
     assert (spec.tile_width, spec.tile_height) == (exr.TILE, exr.TILE)
 
 
-def test_float_channels_are_bit_exact_and_half_channels_are_as_stored(tmp_path):
+def test_float_channels_are_bit_exact_and_half_channels_are_as_stored(tmp_path, encoder):
     chans = _channels(1)
     path = tmp_path / "r.exr"
     exr.write_exr(path, chans)
@@ -47,16 +58,36 @@ def test_float_channels_are_bit_exact_and_half_channels_are_as_stored(tmp_path):
             assert np.abs(back[name] - chans[name]).max() <= 2.0**-12, name
 
 
-def test_the_same_channels_give_the_same_bytes(tmp_path):
+def test_the_same_channels_give_the_same_bytes(tmp_path, encoder):
     a = exr.write_exr(tmp_path / "a.exr", _channels(2), {"crater_synth:x": 1})
     b = exr.write_exr(tmp_path / "b.exr", _channels(2), {"crater_synth:x": 1})
     assert a == b
     assert not list(tmp_path.glob("*.tmp*"))
 
 
-def test_wrong_channel_set_names_the_file(tmp_path):
+def test_wrong_channel_set_names_the_file(tmp_path, encoder):
     chans = _channels()
     del chans["lit"]
     with pytest.raises(exr.ExrError, match=r"r\.exr: EXR channels"):
         exr.write_exr(tmp_path / "r.exr", chans)
     assert not list(tmp_path.iterdir())
+
+
+def test_both_encoders_write_the_same_image_and_header(tmp_path, monkeypatch):
+    pytest.importorskip("OpenEXR")
+    header = {"crater_synth:mode": "fast", "crater_synth:index": 7, "crater_synth:sun_elevation": 0.48}
+    decoded = {}
+    for name, enc in ENCODERS.items():
+        monkeypatch.setattr(exr, "encoder", lambda enc=enc: enc)
+        exr.write_exr(tmp_path / f"{name}.exr", _channels(3), header)
+        decoded[name] = exr.read_exr(tmp_path / f"{name}.exr")
+    (a, ha), (b, hb) = decoded["openexr"], decoded["openimageio"]
+    for c in EXR_CHANNELS:
+        np.testing.assert_array_equal(a[c], b[c], err_msg=c)
+    for key in [*header, "compression", "tile_width", "tile_height"]:
+        assert ha[key] == hb[key], key
+
+
+def test_the_default_encoder_is_the_openexr_binding():
+    pytest.importorskip("OpenEXR")
+    assert exr.encoder() is exr._encode_openexr
