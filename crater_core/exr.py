@@ -134,7 +134,7 @@ def write_exr(
     if set(channels) != set(channel_names):
         raise ExrError(f"{path}: EXR channels {sorted(channels)} != {sorted(channel_names)}")
     h, w = np.asarray(channels[channel_names[0]]).shape
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         c: np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32).reshape(h, w), dtype=stored_dtype(c))
         for c in channel_names
     }
