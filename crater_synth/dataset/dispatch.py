@@ -39,9 +39,45 @@ def worker_command(job_file: Path) -> list[str]:
     return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
 
 
+# A worker's start-up (bpy import, scene and mesh build, horizon maps from the shared cache), in
+# renders' worth of time: ~10 s at ~28 renders/s per worker (docs/renderer.md, bench stages).
+WORKER_STARTUP_RENDERS = 300
+MAX_BLOCKS_PER_WORKER = 4
+
+
 def _split_contiguous(items: list, n: int) -> list[list]:
     n = max(1, min(n, len(items)))
     return [items[i * len(items) // n : (i + 1) * len(items) // n] for i in range(n)]
+
+
+def _makespan(unit_sizes: list[int], n_workers: int, startup: int = WORKER_STARTUP_RENDERS) -> int:
+    """Finish time (in renders) of ``unit_sizes`` taken in order by ``n_workers`` slots, each unit
+    paying a worker start-up: the host's own schedule, simulated."""
+    slots = [0] * max(1, n_workers)
+    for size in unit_sizes:
+        i = slots.index(min(slots))
+        slots[i] += size + startup
+    return max(slots)
+
+
+def blocks_per_crater(sizes: list[int], n_workers: int) -> list[int]:
+    """How many contiguous blocks each crater's renders are split into (one worker per block).
+
+    Proportional to the crater's share of the work, scaled by the smallest factor m (1..
+    :data:`MAX_BLOCKS_PER_WORKER`) whose simulated finish time is best: with 3 craters and 2 workers,
+    m = 1 gives 3 units and a last one rendered alone (a sixth of the paper sweep at half the
+    throughput), m = 3 gives 6 equal units; small sweeps keep few units, since each costs a worker
+    start-up."""
+    total = max(1, sum(sizes))
+    best: tuple[int, list[int]] | None = None
+    for m in range(1, MAX_BLOCKS_PER_WORKER + 1):
+        blocks = [min(n, max(1, round(m * n_workers * n / total))) if n else 0 for n in sizes]
+        units = [size // b + (1 if k < size % b else 0) for size, b in zip(sizes, blocks) for k in range(b)]
+        span = _makespan(units, n_workers)
+        if best is None or span < best[0]:
+            best = (span, blocks)
+    assert best is not None
+    return best[1]
 
 
 def _worker_error(crater: str, message: str) -> RenderError:
@@ -88,14 +124,14 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
     if n_workers > 1 and render.threads == 0:
         render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
 
-    # Work units: contiguous blocks of one crater's plans, one block per worker slot, camera-major
+    # Work units: contiguous blocks of one crater's plans, camera-major
     # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
-    # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work").
+    # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work"); as many
+    # blocks per crater as balance the workers (blocks_per_crater).
     units: list[tuple[CraterJob, list[dict]]] = []
-    total = max(1, sum(len(j.plans) for j in jobs))
-    for job in jobs:
+    shares = blocks_per_crater([len(j.plans) for j in jobs], n_workers)
+    for job, share in zip(jobs, shares):
         if job.plans:
-            share = max(1, round(n_workers * len(job.plans) / total))
             ordered = sorted(job.plans, key=camera_major)
             units += [(job, block) for block in _split_contiguous(ordered, share)]
     pending = list(units)
