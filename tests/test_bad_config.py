@@ -13,7 +13,7 @@ HUGE = (
     "sweep.sun_azimuth.count=1000",
     "sweep.cam_elevation.count=20",
     "sweep.cam_azimuth.count=1000",
-)  # 2e9 renders, ~2 PB at 1 MB each
+)  # 2e9 renders, ~1.3 PB at the 600 kB default each
 
 CASES = {
     "unknown-crater": (
@@ -42,7 +42,7 @@ CASES = {
     "hapke-w": (["hapke.w=-1"], "Hapke parameter(s) out of physical range: w=-1.0"),
     "bad-shard": (["launcher.shard=2/2"], "launcher.shard='2/2': need 0 <= i < n"),
     "unknown-key": (["render.sample=4"], "render.sample: unknown key (did you mean render.samples?)"),
-    "too-little-disk": (list(HUGE), "2000000000 renders need ~2200.00 TB (1.00 MB each, +10 %)"),
+    "too-little-disk": (list(HUGE), "2000000000 renders need ~1320.00 TB (600.00 kB each, +10 %)"),
 }
 
 
@@ -88,7 +88,7 @@ def test_unwritable_output_directory(tmp_path, tiny_data_dir, where):
 
 
 def test_free_disk_estimate_uses_measured_render_size(tmp_path, tiny_data_dir, tiny_dataset, monkeypatch):
-    """Resuming a dataset: the estimate uses the measured size of its EXRs (~40 kB here, not the 1 MB
+    """Resuming a dataset: the estimate uses the measured size of its EXRs (~40 kB here, not the 600 kB
     default). The free space is faked in-process (a real full disk cannot be made here)."""
     from crater_synth.launcher import dataset_command
 
