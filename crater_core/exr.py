@@ -86,18 +86,21 @@ def _encode_openexr(scratch: str, arrays: dict[str, np.ndarray], header: dict, t
         raise ExrError(f"cannot encode {scratch}: {exc}") from None
 
 
-def _encode_oiio(scratch: str, arrays: dict[str, np.ndarray], header: dict, tile: int) -> None:
-    """Encode with OpenImageIO (where the OpenEXR binding is not installed, e.g. Blender's own Python):
-    float32 in, OpenImageIO rounds half channels to nearest even, exactly as :func:`as_stored` does."""
+def _encode_oiio(
+    scratch: str, arrays: dict[str, np.ndarray], header: dict, tile: int, compression: str = COMPRESSION
+) -> None:
+    """Encode with OpenImageIO (where the OpenEXR binding is not installed, e.g. Blender's own Python),
+    each channel stored in its array's type (float16: half, else float); the pixels go in as float32
+    and OpenImageIO rounds them to half to nearest even, exactly as :func:`as_stored` does."""
     import OpenImageIO as oiio
 
     names = tuple(arrays)
     h, w = arrays[names[0]].shape
     spec = oiio.ImageSpec(w, h, len(names), "float")
-    spec.channelformats = tuple(oiio.TypeDesc(stored_type(c)) for c in names)
+    spec.channelformats = tuple(oiio.TypeDesc("half" if a.dtype == np.float16 else "float") for a in arrays.values())
     spec.channelnames = names
     spec.tile_width = spec.tile_height = int(tile)
-    spec.attribute("compression", COMPRESSION)
+    spec.attribute("compression", compression)
     spec.attribute("DateTime", "")  # an empty value stops OpenImageIO stamping the time: same input, same bytes
     for key, val in header.items():
         spec.attribute(str(key), _header_value(val))

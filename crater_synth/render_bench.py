@@ -182,72 +182,68 @@ EXR_CHOICES = [
 ]
 
 
+def _encode_cost(encode, images: list[dict[str, np.ndarray]], scratch_dir: str, repeats: int) -> tuple[int, float]:
+    """(mean bytes, best-of-``repeats`` mean seconds) of ``encode(path, arrays)`` over ``images``."""
+    import os
+
+    best, size = float("inf"), 0
+    for _ in range(repeats):
+        size, t0 = 0, time.perf_counter()
+        for i, arrays in enumerate(images):
+            path = os.path.join(scratch_dir, f"crater-synth-codec-{os.getpid()}-{i}.exr")
+            encode(path, arrays)
+            size += os.path.getsize(path)
+            os.unlink(path)
+        best = min(best, (time.perf_counter() - t0) / len(images))
+    return round(size / len(images)), best
+
+
 def exr_codecs(dataset_dir: Path, n: int = 40, repeats: int = 3) -> list[dict]:
-    """Mean bytes and CPU ms to encode one EXR, for each of :data:`EXR_CHOICES`, on ``n`` renders of
-    ``dataset_dir`` (spread over its manifest); the encoding alone (OpenImageIO to /dev/shm or a temp
-    dir), best of ``repeats`` passes, so the figures compare codecs, not disks."""
+    """Mean bytes and CPU ms to encode one EXR, for each of :data:`EXR_CHOICES` (through OpenImageIO)
+    and for the project's own encoder (:func:`crater_core.exr.encoder`), on ``n`` renders of
+    ``dataset_dir`` (spread over its manifest); the encoding alone (to /dev/shm or a temp dir), best of
+    ``repeats`` passes, so the figures compare codecs, not disks."""
     import os
     import tempfile
-
-    import OpenImageIO as oiio
 
     from crater_core import exr, schema
 
     rows = schema.load_manifest(dataset_dir)
     rows = rows[:: max(1, len(rows) // n)][:n]
     images = [exr.read_exr(dataset_dir / r["path"])[0] for r in rows]
-    names = schema.EXR_CHANNELS
+    contract = [{c: img[c].astype(exr.stored_dtype(c)) for c in schema.EXR_CHANNELS} for img in images]
+    float32 = [{c: img[c].astype(np.float32) for c in schema.EXR_CHANNELS} for img in images]
     scratch_dir = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+    project = exr.encoder()
     out = []
     for compression, types in EXR_CHOICES:
-        formats = tuple(exr.stored_type(c) if types == "contract" else "float" for c in names)
-        best, size = float("inf"), 0
-        for _ in range(repeats):
-            size, t0 = 0, time.perf_counter()
-            for i, img in enumerate(images):
-                h, w = img["IF"].shape
-                spec = oiio.ImageSpec(w, h, len(names), "float")
-                spec.channelformats = tuple(oiio.TypeDesc(f) for f in formats)
-                spec.channelnames = names
-                spec.tile_width = spec.tile_height = exr.TILE
-                spec.attribute("compression", compression)
-                path = os.path.join(scratch_dir, f"crater-synth-codec-{os.getpid()}-{i}.exr")
-                o = oiio.ImageOutput.create("openexr")
-                o.open(path, spec)
-                o.write_image(np.stack([img[c] for c in names], axis=-1))
-                o.close()
-                size += os.path.getsize(path)
-                os.unlink(path)
-            best = min(best, (time.perf_counter() - t0) / len(images))
+
+        def encode(path, arrays, compression=compression):
+            exr._encode_oiio(path, arrays, {}, exr.TILE, compression)
+
+        size, seconds = _encode_cost(encode, contract if types == "contract" else float32, scratch_dir, repeats)
+        current = compression == exr.COMPRESSION and types == "contract" and project is exr._encode_oiio
         out.append(
             {
                 "compression": compression,
                 "channel_types": types,
                 "library": "OpenImageIO",
-                "current": compression == exr.COMPRESSION and types == "contract" and exr.encoder() is exr._encode_oiio,
-                "mean_bytes": round(size / len(images)),
-                "encode_ms": round(1e3 * best, 2),
+                "current": current,
+                "mean_bytes": size,
+                "encode_ms": round(1e3 * seconds, 2),
             }
         )
-    # the project's encoder as it runs (crater_core.exr.encoder: the OpenEXR binding where installed)
-    stored = [{c: img[c].astype(exr.stored_dtype(c)) for c in names} for img in images]
-    best, size = float("inf"), 0
-    for _ in range(repeats):
-        size, t0 = 0, time.perf_counter()
-        for i, arrays in enumerate(stored):
-            path = os.path.join(scratch_dir, f"crater-synth-codec-{os.getpid()}-{i}.exr")
-            exr.encoder()(path, arrays, {}, exr.TILE)
-            size += os.path.getsize(path)
-            os.unlink(path)
-        best = min(best, (time.perf_counter() - t0) / len(images))
+    size, seconds = _encode_cost(
+        lambda path, arrays: project(path, arrays, {}, exr.TILE), contract, scratch_dir, repeats
+    )
     out.append(
         {
             "compression": exr.COMPRESSION,
             "channel_types": "contract",
-            "library": "OpenEXR" if exr.encoder() is exr._encode_openexr else "OpenImageIO",
+            "library": "OpenEXR" if project is exr._encode_openexr else "OpenImageIO",
             "current": True,
-            "mean_bytes": round(size / len(images)),
-            "encode_ms": round(1e3 * best, 2),
+            "mean_bytes": size,
+            "encode_ms": round(1e3 * seconds, 2),
         }
     )
     return out

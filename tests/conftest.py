@@ -4,6 +4,7 @@ test_bad_config): tiny render settings and a `crater-synth` runner. Nothing here
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -34,6 +35,37 @@ def cli_command() -> list[str]:
 
 def run_cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([*cli_command(), *map(str, args)], capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+def start_dataset(out, data_dir, *overrides) -> subprocess.Popen:
+    """`crater-synth dataset` with :data:`TINY` in the background, in its own session (signals sent to
+    the test runner do not reach it)."""
+    return subprocess.Popen(
+        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        start_new_session=True,
+    )
+
+
+def dataset_workers(out) -> list[int]:
+    """Live (not zombie) Blender worker processes of the dataset ``out`` (their job files are under
+    out/.jobs)."""
+    needles = ("blender_gen.worker", str(Path(out) / ".jobs"))
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z" and all(n in cmd for n in needles):
+            found.append(int(entry))
+    return found
 
 
 def summary(proc: subprocess.CompletedProcess) -> dict:

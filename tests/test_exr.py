@@ -91,3 +91,21 @@ def test_both_encoders_write_the_same_image_and_header(tmp_path, monkeypatch):
 def test_the_default_encoder_is_the_openexr_binding():
     pytest.importorskip("OpenEXR")
     assert exr.encoder() is exr._encode_openexr
+
+
+def test_the_bench_compares_every_storage_choice_and_the_project_encoder(tmp_path):
+    """crater_synth.render_bench.exr_codecs on a toy dataset: one row per choice plus the project's
+    encoder; the contract's RLE rows of both libraries store the same data (sizes within 1 %)."""
+    pytest.importorskip("OpenEXR")  # the project encoder row is then the only "current" one
+    from crater_synth.render_bench import EXR_CHOICES, exr_codecs
+    from train.toydata import write_toy_dataset
+
+    write_toy_dataset(tmp_path, craters=("shackleton",), sun_azimuths=(0.0,), cam_azimuths=(0.0, 90.0))
+    rows = exr_codecs(tmp_path, n=2, repeats=1)
+    assert [(r["compression"], r["channel_types"]) for r in rows[:-1]] == EXR_CHOICES
+    assert [r for r in rows if r["current"]] == [rows[-1]]
+    by = {(r["library"], r["compression"], r["channel_types"]): r["mean_bytes"] for r in rows}
+    assert by[("OpenImageIO", "none", "float32")] == max(by.values())
+    oiio_rle = by[("OpenImageIO", "rle", "contract")]
+    assert abs(rows[-1]["mean_bytes"] - oiio_rle) <= 0.01 * oiio_rle
+    assert all(r["encode_ms"] > 0 for r in rows)

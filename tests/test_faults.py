@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, assert_same_dataset, cli_command, exr_files, run_cli, summary
+from conftest import assert_same_dataset, dataset_workers, exr_files, run_cli, start_dataset, summary
 
 # 32 renders, direct mode at 16 spp: ~0.09 s each on 2 cores, so a Blender worker runs ~3 s after
 # its first EXR: time to kill it mid-shard.
@@ -39,35 +39,8 @@ def reference4(tmp_path_factory, tiny_dataset):
 
 
 # -- helpers ------------------------------------------------------------------------------------
-def _pids_with(*needles: str) -> list[int]:
-    """Live processes whose command line contains every needle."""
-    out = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if state != "Z" and all(n in cmd for n in needles):
-            out.append(int(entry))
-    return out
-
-
 def _ppid(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
-
-
-def _start_sweep(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        start_new_session=True,
-    )
 
 
 def _wait_for(cond, what: str, timeout: float = 120, proc: subprocess.Popen | None = None):
@@ -86,12 +59,8 @@ def _part_rows(out: Path) -> int:
     return sum(p.read_text().count("\n") for p in (out / "manifest.parts").glob("*.jsonl"))
 
 
-def _blender_workers(out: Path) -> list[int]:
-    return _pids_with("blender_gen.worker", str(out / ".jobs"))
-
-
 def _kill_leftovers(out: Path) -> None:
-    for pid in _blender_workers(out):  # orphans of a killed parent (started by this test's sweep)
+    for pid in dataset_workers(out):  # orphans of a killed parent (started by this test's sweep)
         try:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
@@ -113,10 +82,10 @@ def _assert_complete(out: Path, reference: Path) -> None:
 # -- (a) a Blender worker killed mid-shard --------------------------------------------------------
 def test_killed_blender_worker_is_retried(tmp_path, tiny_data_dir, reference32):
     out = tmp_path / "ds"
-    proc = _start_sweep(out, tiny_data_dir, *SLOW32)
+    proc = start_dataset(out, tiny_data_dir, *SLOW32)
     try:
         _wait_for(lambda: exr_files(out), "the first EXR", proc=proc)
-        (victim,) = _blender_workers(out)
+        (victim,) = dataset_workers(out)
         os.kill(victim, signal.SIGKILL)
         done_at_kill = len(exr_files(out))
         stdout, stderr = proc.communicate(timeout=300)
@@ -136,14 +105,14 @@ def test_killed_blender_worker_is_retried(tmp_path, tiny_data_dir, reference32):
 # -- (b) the whole sweep killed -------------------------------------------------------------------
 def test_killed_sweep_resumes(tmp_path, tiny_data_dir, tiny_dataset, reference32):
     out = tmp_path / "ds"
-    proc = _start_sweep(out, tiny_data_dir, *SLOW32)
+    proc = start_dataset(out, tiny_data_dir, *SLOW32)
     try:
         _wait_for(lambda: _part_rows(out) >= 3, "3 manifest rows", proc=proc)
         os.killpg(proc.pid, signal.SIGKILL)  # the host and its Blender worker: one process group
         proc.wait()
     finally:
         _kill_leftovers(out)
-    assert not _blender_workers(out)
+    assert not dataset_workers(out)
     assert not (out / "manifest.jsonl").exists()  # killed before the merge
     assert 3 <= _part_rows(out) < N32
     s = summary(tiny_dataset(out, *SLOW32))
@@ -198,10 +167,10 @@ def test_missing_file_is_rerendered(tmp_path, tiny_dataset, reference4):
 # -- (e) a Dask worker process killed mid-task ------------------------------------------------------
 def test_killed_dask_worker_task_is_retried(tmp_path, tiny_data_dir, reference32):
     out = tmp_path / "ds"
-    proc = _start_sweep(out, tiny_data_dir, *SLOW32, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2")
+    proc = start_dataset(out, tiny_data_dir, *SLOW32, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2")
     try:
         _wait_for(lambda: exr_files(out), "the first EXR", proc=proc)
-        blender = _blender_workers(out)
+        blender = dataset_workers(out)
         assert blender
         dask_worker = _ppid(blender[0])
         assert dask_worker != proc.pid and _ppid(dask_worker) == proc.pid  # a worker process of the local cluster

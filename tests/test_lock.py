@@ -10,22 +10,11 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, cli_command, exr_files, run_cli
+from conftest import REPO, TINY, exr_files, run_cli, start_dataset
 
 # 16 direct-mode renders at 16 spp: the first writer is busy for several seconds.
 SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4")
 N16 = 16
-
-
-def _start(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        start_new_session=True,
-    )
 
 
 def _wait_holding(proc: subprocess.Popen, lock: Path, timeout: float = 120) -> None:
@@ -59,7 +48,7 @@ def _refusal(proc: subprocess.CompletedProcess) -> str:
 
 def test_second_writer_of_the_same_dataset_refuses(tmp_path, tiny_data_dir, tiny_dataset):
     out = tmp_path / "ds"
-    first = _start(out, tiny_data_dir, *SLOW16)
+    first = start_dataset(out, tiny_data_dir, *SLOW16)
     try:
         _wait_holding(first, out / ".dataset.lock")
         # Freeze the first writer while the second tries: on a loaded machine the second's start-up can
@@ -88,12 +77,12 @@ def test_second_writer_of_the_same_dataset_refuses(tmp_path, tiny_data_dir, tiny
 def test_shards_run_side_by_side_but_not_twice(tmp_path, tiny_data_dir):
     out = tmp_path / "ds"
     slow = (*SLOW16, "render.samples=48", "sweep.cam_elevation.count=2", "render.workers=1")  # 16 renders a shard
-    shards = [_start(out, tiny_data_dir, *slow, f"launcher.shard={i}/2") for i in range(2)]
+    shards = [start_dataset(out, tiny_data_dir, *slow, f"launcher.shard={i}/2") for i in range(2)]
     try:
         _wait_holding(shards[0], out / ".dataset-shard0of2.lock")
         # Both intruders at once, while the shards are busy.
-        again = _start(out, tiny_data_dir, *slow, "launcher.shard=0/2")
-        whole = _start(out, tiny_data_dir, *slow)
+        again = start_dataset(out, tiny_data_dir, *slow, "launcher.shard=0/2")
+        whole = start_dataset(out, tiny_data_dir, *slow)
         refusals = [subprocess.CompletedProcess(p.args, p.wait(timeout=120), *p.communicate()) for p in (again, whole)]
         assert all(p.poll() is None for p in shards), "the shards ended before the intruders were refused"
         results = [p.communicate(timeout=600) for p in shards]

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, cli_command, exr_files, run_cli, summary
+from conftest import dataset_workers, exr_files, run_cli, start_dataset, summary
 
 # 16 direct-mode renders at 16 spp, on 2 workers: time to interrupt the run mid-way.
 SLOW16 = (
@@ -23,33 +23,6 @@ SLOW16 = (
 )
 N16 = 16
 SCRATCH = re.compile(r"^crater_synth_(?:render|exr)_(\d+)_")
-
-
-def _start(out: Path, data_dir: Path, *overrides) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*cli_command(), "dataset", *TINY, f"data_dir={data_dir}", f"out_dir={out}", *overrides],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        start_new_session=True,
-    )
-
-
-def _workers(out: Path) -> list[int]:
-    """Live Blender worker processes of this dataset (their job files are under out/.jobs)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if state != "Z" and "blender_gen.worker" in cmd and str(out / ".jobs") in cmd:
-            found.append(int(entry))
-    return found
 
 
 def _scratch_of(pids) -> list[str]:
@@ -72,11 +45,11 @@ def _wait_for(cond, what: str, proc: subprocess.Popen, timeout: float = 180):
 
 def _interrupt(out: Path, data_dir: Path, send) -> tuple[subprocess.Popen, str, list[int]]:
     """Start the sweep, wait for its first EXR and both workers' scratch files, call ``send(proc)``."""
-    proc = _start(out, data_dir, *SLOW16)
+    proc = start_dataset(out, data_dir, *SLOW16)
     try:
         _wait_for(lambda: exr_files(out), "the first EXR", proc)
         workers = _wait_for(
-            lambda: (w := _workers(out)) and len(_scratch_of(w)) == len(w) == 2 and w,
+            lambda: (w := dataset_workers(out)) and len(_scratch_of(w)) == len(w) == 2 and w,
             "two workers with scratch files",
             proc,
         )
@@ -90,7 +63,7 @@ def _interrupt(out: Path, data_dir: Path, send) -> tuple[subprocess.Popen, str, 
 
 
 def _assert_clean_stop(out: Path, workers: list[int]) -> None:
-    assert not _workers(out), "Blender workers still running after the host stopped"
+    assert not dataset_workers(out), "Blender workers still running after the host stopped"
     assert not _scratch_of(workers), "scratch files left in /dev/shm"
     v = run_cli("verify", out)
     assert v.returncode == 0, v.stderr
@@ -120,9 +93,9 @@ def test_host_killed_with_minus_9_does_not_leave_workers_rendering(tmp_path, tin
     out = tmp_path / "ds"
     proc, _, workers = _interrupt(out, tiny_data_dir, lambda p: os.kill(p.pid, signal.SIGKILL))
     deadline = time.monotonic() + 60
-    while (_workers(out) or _scratch_of(workers)) and time.monotonic() < deadline:
+    while (dataset_workers(out) or _scratch_of(workers)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not _workers(out), "workers kept rendering for a dead host"
+    assert not dataset_workers(out), "workers kept rendering for a dead host"
     assert not _scratch_of(workers), "the workers' scratch files are left in /dev/shm"
 
 

@@ -72,7 +72,7 @@ def blocks_per_crater(sizes: list[int], n_workers: int) -> list[int]:
     best: tuple[int, list[int]] | None = None
     for m in range(1, MAX_BLOCKS_PER_WORKER + 1):
         blocks = [min(n, max(1, round(m * n_workers * n / total))) if n else 0 for n in sizes]
-        units = [size // b + (1 if k < size % b else 0) for size, b in zip(sizes, blocks) for k in range(b)]
+        units = [len(part) for n, b in zip(sizes, blocks) if n for part in _split_contiguous(range(n), b)]
         span = _makespan(units, n_workers)
         if best is None or span < best[0]:
             best = (span, blocks)
