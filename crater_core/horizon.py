@@ -63,6 +63,9 @@ MIN_OCCLUDER_DISTANCE_SPACINGS = 2.0  # terrain closer than this (near-grid spac
 NO_OCCLUDER_SLOPE = -1.0  # tan of -45 deg: "nothing above" (far below any sun the sweep uses)
 NO_OCCLUDER_DISTANCE_M = 1e12
 PLANES = ("slope", "distance", "eye_z")  # what a map holds per texel (see horizon_maps)
+# Rows of a rotated grid scanned together: a few hundred kB per array, in cache (64-128 measured
+# fastest on this 2-core machine, 2x a scan of the whole array).
+ROW_BLOCK = 128
 
 
 # ------------------------------------------------------------------------------------------------
@@ -129,6 +132,8 @@ class GridSurface:
         self.dy = float(xyz[-1, cm, 1] - self.y0) / (self.rows - 1)
         self.z = np.ascontiguousarray(xyz[..., 2], dtype=np.float32).ravel()
         self.cubic = cubic
+        if cubic:
+            self.z_padded = np.pad(self.z.reshape(self.rows, self.cols), 1, mode="edge").ravel()
         self.keep = None if keep_quads is None else np.asarray(keep_quads, dtype=bool)
         xs = (self.x0, self.x0 + self.dx * (self.cols - 1))
         ys = (self.y0, self.y0 + self.dy * (self.rows - 1))
@@ -149,20 +154,25 @@ class GridSurface:
         tr = fr - r1
         if self.keep is not None:
             ok &= self.keep[r1, c1]
-        out = np.zeros(fc.shape, dtype=np.float32)
         if self.cubic:
+            # Edge-replicated padding: the 4 x 4 stencil needs no index clipping.
+            stride = self.cols + 2
+            base = (r1 + 1) * stride + (c1 + 1)
+            zp = self.z_padded
             wc, wr = _catmull_rom_weights(tc), _catmull_rom_weights(tr)
+            out = np.zeros(fc.shape, dtype=np.float32)
             for i in range(4):
-                ri = np.clip(r1 + (i - 1), 0, self.rows - 1) * self.cols
+                ri = base + (i - 1) * stride
                 row = np.zeros(fc.shape, dtype=np.float32)
                 for j in range(4):
-                    row += wc[j] * self.z[ri + np.clip(c1 + (j - 1), 0, self.cols - 1)]
+                    row += wc[j] * zp[ri + (j - 1)]
                 out += wr[i] * row
             # No overshoot: clamp to the range of the cell's four vertices (a cliff spanning one cell
             # would otherwise ring ~5 % above its top and lengthen its shadow accordingly).
-            base = r1 * self.cols + c1
-            corners = np.stack([self.z[base], self.z[base + 1], self.z[base + self.cols], self.z[base + self.cols + 1]])
-            out = np.clip(out, corners.min(axis=0), corners.max(axis=0))
+            a, b, c, d = zp[base], zp[base + 1], zp[base + stride], zp[base + stride + 1]
+            out = np.clip(
+                out, np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d))
+            )
         else:
             base = r1 * self.cols + c1
             top = self.z[base] * (1 - tc) + self.z[base + 1] * tc
@@ -208,29 +218,44 @@ class Terrain:
 # ------------------------------------------------------------------------------------------------
 # Horizons along rows of a rotated grid
 # ------------------------------------------------------------------------------------------------
-def _row_horizon_slopes(z_occluder: np.ndarray, z_eye: np.ndarray, spacing: float, k_min: int = 1):
+def _row_horizon_slopes(
+    z_occluder: np.ndarray, z_eye: np.ndarray, spacing: float, k_min: int = 1, n_eye: int | None = None
+):
     """(best slope, distance of its occluder) with best slope = max over k >= k_min of
-    (z_occluder[:, j + k] - z_eye[:, j]) / (k * spacing), for every (i, j); NaN occluders never win.
-    Windows of max-pooled occluders beyond k = WINDOW_RATIO (module doc)."""
+    (z_occluder[:, j + k] - z_eye[:, j]) / (k * spacing), for every (i, j) with j < ``n_eye`` (the
+    eyes the map needs; occluders run to the row's end); NaN occluders never win. Windows of
+    max-pooled occluders beyond k = WINDOW_RATIO (module doc).
+
+    Rows are independent: they are scanned in blocks of ``ROW_BLOCK`` that stay in cache (same result
+    as one scan of the whole array, bit for bit, ~2x faster)."""
     rows, n = z_occluder.shape
-    occ = np.where(np.isnan(z_occluder), np.float32(-1e30), z_occluder).astype(np.float32)
-    eye = np.where(np.isnan(z_eye), np.float32(1e30), z_eye).astype(np.float32)
-    best = np.full((rows, n), NO_OCCLUDER_SLOPE, dtype=np.float32)
-    best_t = np.full((rows, n), NO_OCCLUDER_DISTANCE_M, dtype=np.float32)
-    pooled, width = occ, 1  # pooled[:, j] = max(occ[:, j : j + width])
-    k = max(1, int(k_min))
-    while k < n:
-        while k >= WINDOW_RATIO * 2 * width and 2 * width < n:
-            nxt = pooled.copy()
-            nxt[:, :-width] = np.maximum(pooled[:, :-width], pooled[:, width:])
-            pooled, width = nxt, 2 * width
-        dist = (k + 0.5 * (width - 1)) * spacing
-        cand = (pooled[:, k:] - eye[:, :-k]) * np.float32(1.0 / dist)
-        better = cand > best[:, :-k]
-        np.copyto(best[:, :-k], cand, where=better)
-        np.copyto(best_t[:, :-k], np.float32(dist), where=better)
-        k += width
-    return best, best_t
+    m = n if n_eye is None else max(1, min(int(n_eye), n))
+    occ_all = np.where(np.isnan(z_occluder), np.float32(-1e30), z_occluder).astype(np.float32)
+    eye_all = np.where(np.isnan(z_eye[:, :m]), np.float32(1e30), z_eye[:, :m]).astype(np.float32)
+    best_all = np.full((rows, m), NO_OCCLUDER_SLOPE, dtype=np.float32)
+    dist_all = np.full((rows, m), NO_OCCLUDER_DISTANCE_M, dtype=np.float32)
+    cand_buf = np.empty((ROW_BLOCK, m), dtype=np.float32)
+    mask_buf = np.empty((ROW_BLOCK, m), dtype=bool)
+    for r0 in range(0, rows, ROW_BLOCK):
+        r1 = min(rows, r0 + ROW_BLOCK)
+        occ, eye, best, best_t = occ_all[r0:r1], eye_all[r0:r1], best_all[r0:r1], dist_all[r0:r1]
+        pooled, width = occ, 1  # pooled[:, j] = max(occ[:, j : j + width])
+        k = max(1, int(k_min))
+        while k < n:
+            while k >= WINDOW_RATIO * 2 * width and 2 * width < n:
+                nxt = pooled.copy()
+                nxt[:, :-width] = np.maximum(pooled[:, :-width], pooled[:, width:])
+                pooled, width = nxt, 2 * width
+            dist = (k + 0.5 * (width - 1)) * spacing
+            w = min(m, n - k)
+            cand, better = cand_buf[: r1 - r0, :w], mask_buf[: r1 - r0, :w]
+            np.subtract(pooled[:, k : k + w], eye[:, :w], out=cand)
+            cand *= np.float32(1.0 / dist)
+            np.greater(cand, best[:, :w], out=better)
+            np.copyto(best[:, :w], cand, where=better)
+            np.copyto(best_t[:, :w], np.float32(dist), where=better)
+            k += width
+    return best_all, dist_all
 
 
 def _far_row_horizon(z_occluder: np.ndarray, z_eye: np.ndarray, spacing: float):
@@ -260,33 +285,57 @@ class _RotatedGrid:
         self.a0 = float(a_start)
         self.nc = int(math.ceil(2 * c_half / spacing)) + 1
         self.na = max(2, int(math.ceil((a_end - a_start) / spacing)) + 1)
+        self.i_lo = self.j_lo = 0  # first lattice row / column kept (see crop)
+
+    def crop(self, half_extent: float) -> int:
+        """Keep the lattice rows with |c| <= ``half_extent`` and the columns from a >= -``half_extent``
+        on (one sample of margin each way), with the same sample positions; returns how many of the
+        kept columns have a <= ``half_extent``: the eyes a map of that half-width needs. Along a row,
+        an eye only looks at the samples after it, so what is dropped changes no kept value."""
+        i_lo = max(0, int(math.floor((-half_extent - self.c0) / self.ds)) - 1)
+        i_hi = min(self.nc - 1, int(math.ceil((half_extent - self.c0) / self.ds)) + 1)
+        j_lo = max(0, int(math.floor((-half_extent - self.a0) / self.ds)) - 1)
+        j_hi = min(self.na - 1, int(math.ceil((half_extent - self.a0) / self.ds)) + 1)
+        self.nc, self.na = i_hi - i_lo + 1, self.na - j_lo
+        self.i_lo, self.j_lo = i_lo, j_lo
+        return j_hi - j_lo + 1
 
     def points(self):
-        c = (self.c0 + self.ds * np.arange(self.nc, dtype=np.float64))[:, None]
-        a = (self.a0 + self.ds * np.arange(self.na, dtype=np.float64))[None, :]
+        i = np.arange(self.i_lo, self.i_lo + self.nc, dtype=np.float64)
+        j = np.arange(self.j_lo, self.j_lo + self.na, dtype=np.float64)
+        c = (self.c0 + self.ds * i)[:, None]
+        a = (self.a0 + self.ds * j)[None, :]
         return a * self.d[0] + c * self.e[0], a * self.d[1] + c * self.e[1]
 
     def fractional_index(self, x: np.ndarray, y: np.ndarray):
-        """(row i, column j) float indices of ENU points."""
+        """(row i, column j) float indices of ENU points into the kept samples."""
         a = x * self.d[0] + y * self.d[1]
         c = x * self.e[0] + y * self.e[1]
-        return (c - self.c0) / self.ds, (a - self.a0) / self.ds
+        return (c - self.c0) / self.ds - self.i_lo, (a - self.a0) / self.ds - self.j_lo
 
 
-def _bilinear_grid(values: np.ndarray, fi: np.ndarray, fj: np.ndarray) -> np.ndarray:
-    """Bilinear interpolation of a 2-D array at float indices (clamped to the array)."""
-    n0, n1 = values.shape
+def _bilinear_weights(shape: tuple, fi: np.ndarray, fj: np.ndarray):
+    """(flat index of the top-left neighbour, ti, tj, row stride) of float indices into an array of
+    ``shape``, clamped to it: computed once, applied to several planes by :func:`_bilinear_apply`."""
+    n0, n1 = shape
     fi = np.clip(fi, 0.0, n0 - 1.000001)
     fj = np.clip(fj, 0.0, n1 - 1.000001)
     i0 = np.floor(fi).astype(np.int64)
     j0 = np.floor(fj).astype(np.int64)
-    ti = (fi - i0).astype(np.float32)
-    tj = (fj - j0).astype(np.float32)
+    return i0 * n1 + j0, (fi - i0).astype(np.float32), (fj - j0).astype(np.float32), n1
+
+
+def _bilinear_apply(values: np.ndarray, weights) -> np.ndarray:
+    base, ti, tj, n1 = weights
     v = values.ravel()
-    base = i0 * n1 + j0
     top = v[base] * (1 - tj) + v[base + 1] * tj
     bot = v[base + n1] * (1 - tj) + v[base + n1 + 1] * tj
     return top * (1 - ti) + bot * ti
+
+
+def _bilinear_grid(values: np.ndarray, fi: np.ndarray, fj: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a 2-D array at float indices (clamped to the array)."""
+    return _bilinear_apply(values, _bilinear_weights(values.shape, fi, fj))
 
 
 def texel_centres(half_width: float, px: int):
@@ -324,32 +373,29 @@ def horizon_maps(terrain: Terrain, azimuth_deg: float, halves, px: int) -> np.nd
         spacing = 2.0 * half / px
         c_half = half * math.sqrt(2.0) + 2 * spacing
         g = _RotatedGrid(azimuth_deg, c_half, -c_half, max(c_half, near_half * reach) + spacing, spacing)
+        # Only the samples around the map square are eyes: |a|, |c| <= half x reach (its corners along
+        # this azimuth); the occluders beyond it run to the terrain's edge.
+        n_eye = g.crop(half * reach)
         x, y = g.points()
         z_eye = terrain.heights(x, y)
         z_occ = np.where(terrain.near.inside(x, y), z_eye, np.float32(np.nan))  # the near field's occluders
         k_min = int(math.ceil(MIN_OCCLUDER_DISTANCE_SPACINGS * terrain.near.spacing / spacing - 1e-9))
-        slope, dist = _row_horizon_slopes(z_occ, z_eye, spacing, k_min)
+        slope, dist = _row_horizon_slopes(z_occ, z_eye, spacing, k_min, n_eye)
+        x, y, z_eye = x[:, :n_eye], y[:, :n_eye], z_eye[:, :n_eye]
         eye = np.nan_to_num(z_eye, nan=0.0).astype(np.float32)
         if far is not None:
             fg, f_slope, f_dist, f_eye = far
-            fi, fj = fg.fractional_index(x, y)
-            zc = _bilinear_grid(np.nan_to_num(f_eye, nan=0.0), fi, fj)
-            t_far = _bilinear_grid(f_dist, fi, fj)
-            corrected = (_bilinear_grid(f_slope, fi, fj) + (zc - eye) / t_far).astype(np.float32)
+            wf = _bilinear_weights(f_eye.shape, *fg.fractional_index(x, y))
+            zc = _bilinear_apply(np.nan_to_num(f_eye, nan=0.0), wf)
+            t_far = _bilinear_apply(f_dist, wf)
+            corrected = (_bilinear_apply(f_slope, wf) + (zc - eye) / t_far).astype(np.float32)
             better = corrected > slope
             slope = np.where(better, corrected, slope)
             dist = np.where(better, t_far, dist)
         tx, ty = texel_centres(half, px)
-        ti, tj = g.fractional_index(tx, ty)
-        maps.append(
-            np.stack(
-                [
-                    _bilinear_grid(np.maximum(slope, NO_OCCLUDER_SLOPE), ti, tj),
-                    _bilinear_grid(dist, ti, tj),
-                    _bilinear_grid(eye, ti, tj),
-                ]
-            )
-        )
+        wt = _bilinear_weights(slope.shape, *g.fractional_index(tx, ty))
+        planes = (np.maximum(slope, NO_OCCLUDER_SLOPE), dist, eye)
+        maps.append(np.stack([_bilinear_apply(plane, wt) for plane in planes]))
     return np.stack(maps).astype(np.float32)
 
 

@@ -16,8 +16,8 @@ def _units(sizes, blocks):
     [
         ([22500, 22500, 22500], 2, [2, 2, 2]),  # the paper sweep: 6 equal units, no crater rendered alone
         ([1440, 1440, 1440], 2, [2, 2, 2]),  # the 60 x 24 grid
-        ([288, 288, 288], 2, [1, 1, 1]),  # sweep=demo: a worker start-up costs more than the imbalance
-        ([4, 4, 4], 2, [1, 1, 1]),  # the tests' tiny sweeps: one worker per crater
+        ([288, 288, 288], 2, [2, 2, 2]),  # sweep=demo: 6 units beat 3 (one rendered alone)
+        ([4, 4, 4], 2, [1, 1, 1]),  # the tests' tiny sweeps: a start-up costs more than the imbalance
         ([22500], 2, [2]),  # one crater: one block per worker
         ([22500, 22500], 2, [1, 1]),
         ([100, 0, 5], 2, [2, 0, 1]),  # a crater with nothing left to render gets no worker

@@ -188,3 +188,19 @@ def test_killed_dask_worker_task_is_retried(tmp_path, tiny_data_dir, reference32
     s = summary(subprocess.CompletedProcess([], 0, stdout))
     assert s["manifest_rows"] == N32
     _assert_complete(out, reference32)
+
+
+def test_parallel_verify_reports_what_serial_verify_reports(tmp_path, tiny_dataset, monkeypatch):
+    """`verify` checks files in a process pool on big datasets: same faults, same order."""
+    from crater_synth import verify
+
+    out = tmp_path / "ds"
+    tiny_dataset(out)
+    files = exr_files(out)
+    _truncate(files[1])
+    files[2].unlink()
+    serial = verify.verify_dataset(out, jobs=1)
+    monkeypatch.setattr(verify, "PARALLEL_MIN_FILES_PER_JOB", 1)
+    parallel = verify.verify_dataset(out, jobs=2)
+    assert parallel["faults"] == serial["faults"] and len(serial["faults"]) == 2
+    assert (parallel["rows"], parallel["ok"]) == (serial["rows"], False)

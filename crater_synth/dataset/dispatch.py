@@ -39,9 +39,12 @@ def worker_command(job_file: Path) -> list[str]:
     return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
 
 
-# A worker's start-up (bpy import, scene and mesh build, horizon maps from the shared cache), in
-# renders' worth of time: ~10 s at ~28 renders/s per worker (docs/renderer.md, bench stages).
-WORKER_STARTUP_RENDERS = 300
+# What one more work unit costs, in renders' worth of time: a worker start-up (python and bpy import
+# ~1.4 s, scene and mesh build ~1.2 s) at ~27 renders/s per worker. The horizon maps are not in it:
+# they are per crater, and the units of a crater share them through the on-disk cache (units running
+# at the same time split the azimuths between them). Measured with `crater-synth bench --part renderer`
+# (worker logs; docs/renderer.md, "Order of work").
+WORKER_STARTUP_RENDERS = 75
 MAX_BLOCKS_PER_WORKER = 4
 
 
@@ -65,8 +68,8 @@ def blocks_per_crater(sizes: list[int], n_workers: int) -> list[int]:
 
     Proportional to the crater's share of the work, scaled by the smallest factor m (1..
     :data:`MAX_BLOCKS_PER_WORKER`) whose simulated finish time is best: with 3 craters and 2 workers,
-    m = 1 gives 3 units and a last one rendered alone (a sixth of the paper sweep at half the
-    throughput), m = 3 gives 6 equal units; small sweeps keep few units, since each costs a worker
+    m = 1 gives 3 units and a last one rendered alone (a third of the work at half the throughput),
+    m = 3 gives 6 equal units; tiny sweeps keep one unit per crater, since each unit costs a worker
     start-up."""
     total = max(1, sum(sizes))
     best: tuple[int, list[int]] | None = None
