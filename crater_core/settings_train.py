@@ -135,6 +135,7 @@ class TrainSettings(_Group):
     device: str
     cache_dir: str
     cache_dtype: str
+    cache_workers: int
     verify_sha256: bool
     augment: bool
     progress: bool
@@ -161,6 +162,7 @@ class TrainSettings(_Group):
         _need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
         _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
         _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
+        _need(self.cache_workers >= 0, "cache_workers", self.cache_workers, "must be >= 0 (0 = one per core)")
 
 
 @dataclass(frozen=True, kw_only=True)

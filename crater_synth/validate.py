@@ -116,7 +116,7 @@ def run_fingerprint(cfg_resolved: dict) -> str:
     payload["train"] = {
         k: v
         for k, v in payload.get("train", {}).items()
-        if k not in ("progress", "dataset_dir", "cache_dir", "num_threads", "device")
+        if k not in ("progress", "dataset_dir", "cache_dir", "cache_workers", "num_threads", "device")
     }
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 

@@ -174,3 +174,23 @@ def test_cache_index_records_its_key(toy, tmp_path):
     data = build_datasets(_cfg(toy, tmp_path))
     meta = json.loads((tdata.Path(data.info["cache"]) / "index.json").read_text())
     assert meta["key"].startswith("crops-" + schema.manifest_digest(load_rows(toy)))
+
+
+def test_cache_built_by_worker_processes_equals_the_serial_build(toy, tmp_path, monkeypatch):
+    """Large caches are built by a process pool (chunks of rows, each writing its slice of the
+    memmap): the same array, and a bad file still ends the build with an error naming it."""
+    from train.preprocess import PreprocessConfig
+
+    rows = load_rows(toy)
+    monkeypatch.setattr(tdata, "CACHE_ROWS_PER_CHUNK", 10)  # 72 rows: 8 chunks, so the pool is used
+    serial = tdata.build_cache(rows, toy, [1.0, 1.4], PreprocessConfig(), tmp_path / "c1", workers=1)
+    pooled = tdata.build_cache(rows, toy, [1.0, 1.4], PreprocessConfig(), tmp_path / "c2", workers=2)
+    assert pooled.built and pooled.samples == serial.samples
+    np.testing.assert_array_equal(np.asarray(pooled.images), np.asarray(serial.images))
+
+    d = _copy(toy, tmp_path)
+    victim = rows[50]["path"]
+    (d / victim).write_bytes(b"not an exr at all" * 10)
+    with pytest.raises(DatasetError, match=f"{victim}.*sha256"):
+        tdata.build_cache(rows, d, [1.0], PreprocessConfig(), tmp_path / "c3", workers=2)
+    assert not [p for p in (tmp_path / "c3").iterdir() if p.is_dir()], "a half-built cache was left behind"

@@ -18,11 +18,14 @@ and the leak guard must sit next to the loader it guards.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import multiprocessing
 import os
 import shutil
 import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
@@ -274,6 +277,46 @@ def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfi
     return f"crops-{manifest_digest(rows)}-{h.hexdigest()[:10]}"
 
 
+CACHE_ROWS_PER_CHUNK = 256  # rows per task of the cache build (a few seconds of work each)
+
+
+def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_sha256: bool, on_row=None) -> int:
+    """Resample one chunk of rows into the cache's memmap (``chunk`` = images path, dataset dir, rows,
+    first sample index); returns the number of rows. Runs in a pool process or in the caller (which
+    may pass ``on_row``, called after each row)."""
+    images_path, dataset_dir, rows, j = chunk
+    arr = np.load(images_path, mmap_mode="r+")
+    for row in rows:
+        path = resolve_path(dataset_dir, row["path"])
+        where = f"EXR {path}"
+        if not path.is_file():
+            raise DatasetError(f"{where} does not exist (manifest row {row['crater']} index {row['index']})")
+        if verify_sha256:
+            got = sha256_file(path)
+            if got != row["sha256"]:
+                raise DatasetError(
+                    f"{where}: sha256 {got} does not match the manifest's {row['sha256']} (file changed or corrupt)"
+                )
+        img = read_exr_channel(path, "IF")
+        if img.shape != (int(row["height"]), int(row["width"])):
+            raise DatasetError(
+                f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
+            )
+        for s in sigmas:
+            box = _sigma_box(row, s, where)
+            if outside_fraction(box, img.shape) > pp.max_outside_frac:
+                raise DatasetError(
+                    f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
+                    f"image by more than {pp.max_outside_frac:.0%} of its side"
+                )
+            arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
+            j += 1
+        if on_row is not None:
+            on_row()
+    arr.flush()
+    return len(rows)
+
+
 def build_cache(
     rows: Sequence[dict],
     dataset_dir: str | Path,
@@ -283,14 +326,16 @@ def build_cache(
     dtype: str = "float16",
     verify_sha256: bool = True,
     progress: bool = False,
+    workers: int = 1,
 ) -> CropCache:
     """Resample every (row, sigma) once into ``cache_dir`` (atomic: built in a temp dir, then renamed);
-    reuse it when present. Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
+    reuse it when present. ``workers`` processes share the work (0: one per core; small caches are
+    built in this process). Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
     :class:`DatasetError` naming the file."""
     import time
 
     from crater_core.files import umask
-    from crater_core.progress import progress_iter
+    from crater_core.progress import Progress
 
     t0 = time.perf_counter()
     if dtype not in ("float16", "float32"):
@@ -315,35 +360,27 @@ def build_cache(
         arr = np.lib.format.open_memmap(
             tmp / "images.npy", mode="w+", dtype=np.dtype(dtype), shape=(len(samples), pp.size, pp.size)
         )
-        j = 0
-        # Bars on a terminal; otherwise (or with train.progress=false) a line every few seconds.
-        for _i, row in enumerate(progress_iter(rows, len(rows), "cache crops", "exr", "auto" if progress else "lines")):
-            path = resolve_path(dataset_dir, row["path"])
-            where = f"EXR {path}"
-            if not path.is_file():
-                raise DatasetError(f"{where} does not exist (manifest row {row['crater']} index {row['index']})")
-            if verify_sha256:
-                got = sha256_file(path)
-                if got != row["sha256"]:
-                    raise DatasetError(
-                        f"{where}: sha256 {got} does not match the manifest's {row['sha256']} (file changed or corrupt)"
-                    )
-            img = read_exr_channel(path, "IF")
-            if img.shape != (int(row["height"]), int(row["width"])):
-                raise DatasetError(
-                    f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
-                )
-            for s in sigmas:
-                box = _sigma_box(row, s, where)
-                if outside_fraction(box, img.shape) > pp.max_outside_frac:
-                    raise DatasetError(
-                        f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
-                        f"image by more than {pp.max_outside_frac:.0%} of its side"
-                    )
-                arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
-                j += 1
-        arr.flush()
         del arr
+        # Decoding and resampling are CPU-bound: chunks of rows go to ``workers`` processes, each
+        # writing its own slice of the memmap (bars on a terminal, otherwise a line every few seconds).
+        n_jobs = max(1, min(workers or os.cpu_count() or 1, len(rows) // CACHE_ROWS_PER_CHUNK))
+        chunks = [
+            (str(tmp / "images.npy"), str(dataset_dir), rows[lo : lo + CACHE_ROWS_PER_CHUNK], lo * len(sigmas))
+            for lo in range(0, len(rows), CACHE_ROWS_PER_CHUNK)
+        ]
+        fill = functools.partial(_fill_cache_rows, sigmas=tuple(sigmas), pp=pp, verify_sha256=verify_sha256)
+        with Progress(len(rows), "cache crops", "exr", "auto" if progress else "lines") as bar:
+            if n_jobs == 1:
+                for chunk in chunks:
+                    fill(chunk, on_row=bar.update)
+            else:
+                # spawn, not fork: this process has torch's thread pools, which a forked child inherits broken
+                pool = ProcessPoolExecutor(n_jobs, mp_context=multiprocessing.get_context("spawn"))
+                try:
+                    for done in as_completed([pool.submit(fill, chunk) for chunk in chunks]):
+                        bar.update(done.result())
+                finally:  # on an error, do not wait for the other chunks
+                    pool.shutdown(wait=True, cancel_futures=True)
         (tmp / "index.json").write_text(
             json.dumps(
                 {
@@ -540,6 +577,7 @@ def build_datasets(
         str(tcfg.get("cache_dtype", "float16")),
         bool(tcfg.get("verify_sha256", True)),
         progress,
+        int(tcfg.get("cache_workers", 0) or 0),
     )
     sensor = SensorModel.from_config(cfg.get("sensor"))
     diameters = {
