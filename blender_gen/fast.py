@@ -33,7 +33,7 @@ from collections import OrderedDict
 import numpy as np
 
 from blender_gen import direct
-from crater_core import hapke, horizon
+from crater_core import hapke, horizon, horizon_cache
 
 
 class Float32Ops(hapke.NumpyOps):
@@ -181,15 +181,15 @@ class FastRenderer:
     # -- per sun azimuth ------------------------------------------------------------------------
     def prepare_horizons(self, azimuths, terrain_npz: str, cache_dir: str, log=None) -> None:
         """Horizon maps of every sun azimuth of the job: from the shared on-disk cache, or computed
-        once (crater_core.horizon.ensure_maps: one process per azimuth, the others wait)."""
+        once (crater_core.horizon_cache.ensure_maps: one process per azimuth, the others wait)."""
         t0 = time.perf_counter()
-        digest = horizon.file_digest(terrain_npz)
+        digest = horizon_cache.file_digest(terrain_npz)
 
         def build():
             t = self.terrain_loader()
             return horizon.Terrain(t["near_xyz"], t.get("far_xyz"), t.get("far_keep_quads"))
 
-        maps = horizon.ensure_maps(build, digest, azimuths, self.geometry.halves, self.map_px, cache_dir, log=log)
+        maps = horizon_cache.ensure_maps(build, digest, azimuths, self.geometry.halves, self.map_px, cache_dir, log=log)
         for az, m in maps.items():  # (levels, planes, px, px) -> one flat array per plane
             slope, dist, eye = (np.ascontiguousarray(m[:, k]).reshape(-1) for k in range(3))
             self.horizon_maps[az] = HorizonMap(slope, self.geometry, dist, eye)
