@@ -4,6 +4,7 @@ reach the validation target. Orchestration over ``train/``, so it lives in the h
 from __future__ import annotations
 
 import os
+import resource
 import time
 from typing import Mapping
 
@@ -50,7 +51,8 @@ def run_train_bench(cfg) -> dict:
     - ``model_images_per_s``: the same for the network alone on random input (the loop's upper bound);
     - ``time_to_target_s``: wall time from the start of training to the end of the epoch whose
       class-mean validation accuracy first reached the target (``None`` if it never did);
-    - cache build time (first run decodes the EXRs; later runs reuse the cache).
+    - cache build time (first run decodes the EXRs; later runs reuse the cache), its size on disk;
+    - peak RSS of this process and of the cache-build workers.
     Nothing is written except the crop cache (no run_dir artefacts)."""
     import torch
 
@@ -85,4 +87,11 @@ def run_train_bench(cfg) -> dict:
         "cpu_count": os.cpu_count(),
         "parameters": summary["parameters"],
         "multiply_adds_per_image": multiply_adds(mcfg)["total"],
+        # ru_maxrss is in KiB on Linux. The crops stream from the memmap cache, so the training
+        # process stays bounded whatever the sweep's size; children = the largest cache-build worker.
+        "peak_rss_mb": {
+            "process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "cache_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
+        },
+        "cache_bytes": data.info.get("cache_bytes"),
     }

@@ -610,6 +610,7 @@ def build_datasets(
         "cache": str(cache.path),
         "cache_built": cache.built,
         "cache_seconds": round(cache.seconds, 3),
+        "cache_bytes": int(cache.images.nbytes),
         "train_images": len(tr_idx),
         "val_images": len(va_idx),
         "ignored_craters": others,
