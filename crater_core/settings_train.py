@@ -136,6 +136,8 @@ class TrainSettings(_Group):
     cache_dir: str
     cache_dtype: str
     cache_workers: int
+    max_train_images: Optional[int] = None  # seeded subsample of the training samples (a budget cut)
+    max_val_images: Optional[int] = None  # the same for the validation samples
     verify_sha256: bool
     augment: bool
     progress: bool
@@ -163,6 +165,9 @@ class TrainSettings(_Group):
         _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
         _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
         _need(self.cache_workers >= 0, "cache_workers", self.cache_workers, "must be >= 0 (0 = one per core)")
+        for key in ("max_train_images", "max_val_images"):
+            value = getattr(self, key)
+            _need(value is None or value >= 1, key, value, "must be >= 1 (null = all)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -35,6 +35,7 @@ CASES = {
     "bool-not-a-bool": (["render.denoise=maybe"], "error: render.denoise=maybe: must be true or false"),
     "range-after-types": (["terrain.detail.hurst=2"], "error: terrain.detail.hurst=2.0: must lie in (0, 1)"),
     "train-range": (["train.val_fraction=1.5"], "error: train.val_fraction=1.5: must lie in (0, 1)"),
+    "budget-cut": (["train.max_train_images=0"], "error: train.max_train_images=0: must be >= 1 (null = all)"),
     "shard-not-a-slice": (["launcher.shard=3"], "error: launcher.shard='3': expected 'i/n', e.g. 0/4"),
 }
 

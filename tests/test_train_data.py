@@ -194,3 +194,37 @@ def test_cache_built_by_worker_processes_equals_the_serial_build(toy, tmp_path, 
     with pytest.raises(DatasetError, match=f"{victim}.*sha256"):
         tdata.build_cache(rows, d, [1.0], PreprocessConfig(), tmp_path / "c3", workers=2)
     assert not [p for p in (tmp_path / "c3").iterdir() if p.is_dir()], "a half-built cache was left behind"
+
+
+def test_subsets_of_a_dataset_share_its_cache(toy, tmp_path, monkeypatch):
+    """A grid subset at one sigma (a Figure 6 point, a loop round) picks samples from the whole
+    dataset's cache: no EXR is decoded again, and each picked crop is the one the full build made."""
+    full = build_datasets(_cfg(toy, tmp_path))
+    monkeypatch.setattr(tdata, "read_exr_channel", lambda *a, **k: pytest.fail("EXR decoded for a subset"))
+    sub = build_datasets(
+        _cfg(toy, tmp_path, "train.sigmas=[1.2]", "+train.select={sun_azimuth:[0.0],cam_elevation:[90.0]}")
+    )
+    assert not sub.info["cache_built"] and sub.info["cache"] == full.info["cache"]
+    assert sub.info["sigmas"] == [1.2]
+    picked = [sub.train.sample_info(i) for i in range(len(sub.train))] + [
+        sub.val.sample_info(i) for i in range(len(sub.val))
+    ]
+    assert len(picked) == 3 * 2 * 3  # 3 craters x 2 sun elevations x 3 camera azimuths, one sigma
+    assert {p["sigma"] for p in picked} == {1.2}
+    rows = {r["path"]: r for r in load_rows(toy)}
+    assert {rows[p["path"]]["sun_azimuth"] for p in picked} == {0.0}
+    assert {rows[p["path"]]["cam_elevation"] for p in picked} == {90.0}
+    # Same cached array, so the same crop as in the full build.
+    j = int(sub.train.indices[0])
+    assert np.array_equal(np.asarray(sub.train.cache.images[j]), np.asarray(full.train.cache.images[j]))
+
+
+def test_budget_cut_keeps_a_seeded_subsample(toy, tmp_path):
+    full = build_datasets(_cfg(toy, tmp_path))
+    cut = _cfg(toy, tmp_path, "train.max_train_images=50", "train.max_val_images=20")
+    a, b = build_datasets(cut), build_datasets(cut)
+    assert (len(a.train), len(a.val)) == (50, 20) and a.info["train_images"] == 50
+    assert np.array_equal(a.train.indices, b.train.indices)  # same seed, same subsample
+    assert set(a.train.indices) <= set(full.train.indices) and set(a.val.indices) <= set(full.val.indices)
+    other = build_datasets(_cfg(toy, tmp_path, "train.max_train_images=50", "seed=1"))
+    assert not np.array_equal(a.train.indices, other.train.indices)

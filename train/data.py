@@ -532,6 +532,28 @@ def same_pose_partners(cache: CropCache, indices: Sequence[int], rows: Sequence[
     return out
 
 
+def budget_subsample(indices: list[int], limit: int | None, seed: int, stream: int) -> list[int]:
+    """At most ``limit`` of ``indices``, drawn without replacement by ``seed`` (order kept); all if None."""
+    if not limit or limit >= len(indices):
+        return indices
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, stream])
+    keep = np.sort(rng.choice(len(indices), size=int(limit), replace=False))
+    return [indices[k] for k in keep]
+
+
+def selected_positions(rows: Sequence[dict], selection: Mapping | None, dataset_dir: str | Path) -> list[int]:
+    """Positions in ``rows`` of the rows inside ``train.select`` (a grid subset; None: every row)."""
+    if not selection:
+        return list(range(len(rows)))
+    from crater_core.sweep import rows_in_selection
+
+    inside = {id(r) for r in rows_in_selection(rows, dict(selection))}
+    used = [i for i, r in enumerate(rows) if id(r) in inside]
+    if not used:
+        raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={dict(selection)}")
+    return used
+
+
 @dataclass
 class SyntheticData:
     train: SyntheticCropDataset
@@ -550,28 +572,28 @@ def build_datasets(
     tcfg = cfg["train"]
     dataset_dir = Path(str(tcfg["dataset_dir"]))
     class_names = class_names_from_config(cfg)
-    rows = load_rows(dataset_dir)
-    selection = tcfg.get("select")
-    if selection:
-        from crater_core.sweep import rows_in_selection
-
-        rows = rows_in_selection(rows, dict(selection))
-        if not rows:
-            raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={dict(selection)}")
+    # The crop cache covers every row of the configured craters at every sigma of the manifest, so the
+    # subsets of one dataset (Figure 6 points, closed-loop rounds, a sigma) share one cache: a subset
+    # is a choice of cached samples, never a second decode of the EXRs.
     rows = check_synthetic_rows(
-        rows, dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg), forbidden_paths
+        load_rows(dataset_dir), dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg), forbidden_paths
     )
     rows, others = select_rows(rows, class_names)
+    used = selected_positions(rows, tcfg.get("select"), dataset_dir)
+    used_rows = [rows[i] for i in used]
+    select_rows(used_rows, class_names)  # every class keeps rows in the selection
     seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
-    tr_rows, va_rows, split_info = split_rows(
-        rows, float(tcfg.get("val_fraction", 0.2)), str(tcfg.get("split_by", "camera")), seed, class_names
+    tr_used, va_used, split_info = split_rows(
+        used_rows, float(tcfg.get("val_fraction", 0.2)), str(tcfg.get("split_by", "camera")), seed, class_names
     )
-    sigmas = row_sigmas(rows, tcfg.get("sigmas"))
+    tr_rows, va_rows = [used[i] for i in tr_used], [used[i] for i in va_used]
+    sigmas = row_sigmas(used_rows, tcfg.get("sigmas"))
+    cache_sigmas = sorted({round(s, 6) for s in sigmas} | set(row_sigmas(rows, None)))
     pp = PreprocessConfig.from_config(cfg)
     cache = build_cache(
         rows,
         dataset_dir,
-        sigmas,
+        cache_sigmas,
         pp,
         str(tcfg.get("cache_dir", dataset_dir / ".cache")),
         str(tcfg.get("cache_dtype", "float16")),
@@ -586,9 +608,12 @@ def build_datasets(
         if (e or {}).get("diameter_km") is not None
     }
     cls = {n: i for i, n in enumerate(class_names)}
-    tr_set, va_set = set(tr_rows), set(va_rows)
-    tr_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in tr_set]
-    va_idx = [j for j, (ri, _) in enumerate(cache.samples) if ri in va_set]
+    tr_set, va_set, wanted = set(tr_rows), set(va_rows), {round(s, 6) for s in sigmas}
+    tr_idx = [j for j, (ri, s) in enumerate(cache.samples) if ri in tr_set and round(s, 6) in wanted]
+    va_idx = [j for j, (ri, s) in enumerate(cache.samples) if ri in va_set and round(s, 6) in wanted]
+    # A budget cut (train.max_train_images / max_val_images) keeps a seeded subsample, in cache order.
+    tr_idx = budget_subsample(tr_idx, tcfg.get("max_train_images"), seed, 0x7A1)
+    va_idx = budget_subsample(va_idx, tcfg.get("max_val_images"), seed, 0x7A2)
     lab = [cls[rows[ri]["crater"]] for ri, _ in cache.samples]
     train_ds = SyntheticCropDataset(
         cache,
