@@ -69,6 +69,12 @@ loop: setup ## Closed loop: add sun elevations until the real accuracy reaches l
 experiments: setup ## Figure 6 experiments on one rendered dataset (OVERRIDES="sweep=paper")
 	$(CLI) experiments $(OVERRIDES)
 
+EXPERIMENTS_DIR ?= outputs/paper_fig6
+LOOP_DIR ?= outputs/paper_loop
+results: setup ## The paper's findings checked on a Figure 6 run and a loop run, into docs/results/
+	$(CLI) results $$([ -d $(EXPERIMENTS_DIR) ] && echo --experiments $(EXPERIMENTS_DIR)) \
+		$$([ -d $(LOOP_DIR) ] && echo --loop $(LOOP_DIR)) --out docs/results
+
 report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
 	$(CLI) report $(RUN_DIR) $(OVERRIDES)
 

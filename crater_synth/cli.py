@@ -27,6 +27,7 @@ _COMMANDS = (
     ("crater_synth.training", "evaluate_command", "Evaluate saved models on the real crops."),
     ("crater_synth.loop", "loop_command", "Closed loop: add sun elevations until accurate."),
     ("crater_synth.experiments", "experiments_command", "Figure 6: accuracy against each sample count."),
+    ("crater_synth.results", "results_command", "Check the paper's findings; write docs/results/."),
     ("crater_synth.report", "report_command", "Write the HTML report of a run."),
     ("crater_synth.validate", "validate_command", "Validation protocol: choose on validation craters."),
     ("crater_synth.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),

@@ -25,7 +25,17 @@ from crater_synth.config import ConfigError, resolved
 from train.registry import FIGURE6_MODELS, SPECS
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
-CSV_FIELDS = ("parameter", "count", "sigma", "model", "real_accuracy", "val_accuracy", "train_images", "seconds")
+CSV_FIELDS = (
+    "parameter",
+    "count",
+    "sigma",
+    "model",
+    "real_accuracy",
+    "val_accuracy",
+    "train_images",
+    "seconds",
+    "config",  # fingerprint of everything that decides a result (a rerun refuses to mix configurations)
+)
 PANEL_TITLES = {
     "sun_elevation": "Sun elevation θ1",
     "sun_azimuth": "Sun azimuth φ1",
@@ -131,6 +141,14 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
     atomic_write_bytes(png, buf.getvalue())  # temp file, fsync, rename
 
 
+def experiments_fingerprint(cfg_resolved: dict) -> str:
+    """What decides every point's result (renders, training budget, model, sensor, real set), without
+    the Figure 6 plan itself: points with equal fingerprints can share one CSV."""
+    from crater_synth.validate import run_fingerprint
+
+    return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("experiments", "loop")})
+
+
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
     """Train on every Figure 6 subset of the rendered dataset and record real-test accuracy."""
     from train.pipeline import train_and_evaluate
@@ -146,6 +164,13 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
     run_dir.mkdir(parents=True, exist_ok=True)
     csv_path = run_dir / CSV_FILE
     results = read_results(csv_path)
+    config = experiments_fingerprint(cfg_r)
+    other = sorted({str(r.get("config")) for r in results} - {config})
+    if other:
+        raise ConfigError(
+            f"{csv_path}: its results were made with another configuration ({', '.join(other)}; this one is "
+            f"{config}): continue with the same overrides, or use another run_dir"
+        )
     done = {(r["parameter"], r["count"], r["sigma"]) for r in results}
     sigmas = [float(s) for s in cfg_r["experiments"].get("sigmas") or grid.sigmas]
     for point in points:
@@ -175,6 +200,7 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
                         "val_accuracy": metrics[model].get("val_accuracy"),
                         "train_images": int(metrics["train_images"]),
                         "seconds": seconds,
+                        "config": config,
                     }
                 )
             write_results(csv_path, results)

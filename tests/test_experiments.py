@@ -3,7 +3,7 @@
 import pytest
 
 from crater_core.sweep import AXES, SweepError, grid_from_config, nearest_subset, rows_in_selection
-from crater_synth.config import compose, resolved
+from crater_synth.config import ConfigError, compose, resolved
 from crater_synth.experiments import plan_points
 from train.registry import FIGURE6_MODELS
 
@@ -137,3 +137,6 @@ def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
     assert full["lunarnet_ex"] >= 0.7 and full["lunarsvm_ex"] >= 0.6, full
     assert (tmp_path / "run" / "figure6.png").stat().st_size > 10_000
     assert run_experiments(compose(overrides), progress=False) == results  # finished points are skipped
+    assert len({r["config"] for r in rows}) == 1
+    with pytest.raises(ConfigError, match="another configuration"):  # a changed budget never mixes in
+        run_experiments(compose(overrides + ["train.max_train_images=100"]), progress=False)
