@@ -140,3 +140,15 @@ def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
     assert len({r["config"] for r in rows}) == 1
     with pytest.raises(ConfigError, match="another configuration"):  # a changed budget never mixes in
         run_experiments(compose(overrides + ["train.max_train_images=100"]), progress=False)
+
+
+def test_paper_budget_cuts_only_the_budget():
+    """train=paper_budget (the 2-core budget of the paper-scale runs) changes the budget keys and
+    nothing else of the training configuration."""
+    base = resolved(compose(["sweep=paper"]))["train"]
+    cut = resolved(compose(["sweep=paper", "train=paper_budget"]))["train"]
+    assert (cut["max_epochs"], cut["max_train_images"], cut["max_val_images"]) == (2, 6000, 1500)
+    assert cut["hog"]["max_train_images"] == 3000
+    changed = {k for k in base if base[k] != cut[k]}
+    assert changed == {"max_epochs", "max_train_images", "max_val_images", "hog"}
+    assert {k for k in base["hog"] if base["hog"][k] != cut["hog"][k]} == {"max_train_images"}
