@@ -73,7 +73,8 @@ EXPERIMENTS_DIR ?= outputs/paper_fig6
 LOOP_DIR ?= outputs/paper_loop
 results: setup ## The paper's findings checked on a Figure 6 run and a loop run, into docs/results/
 	$(CLI) results $$([ -d $(EXPERIMENTS_DIR) ] && echo --experiments $(EXPERIMENTS_DIR)) \
-		$$([ -d $(LOOP_DIR) ] && echo --loop $(LOOP_DIR)) --out docs/results
+		$$([ -d $(LOOP_DIR) ] && echo --loop $(LOOP_DIR)) \
+		$$([ -f docs/results/notes.md ] && echo --notes docs/results/notes.md) --out docs/results
 
 report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
 	$(CLI) report $(RUN_DIR) $(OVERRIDES)
