@@ -22,6 +22,7 @@ from crater_synth.cli_common import user_errors
 from crater_synth.config import ConfigError
 from crater_synth.experiments import CSV_FILE, FIGURE_FILE, MODELS, PANEL_TITLES, read_results
 from train.registry import LOOP_MODEL, label
+from train.registry import MODELS as ALL_MODELS  # the loop records every classifier
 
 PAGE_FILE = "README.md"
 HISTORY_FILE, HISTORY_PLOT = "loop_history.json", "loop_history.png"
@@ -157,7 +158,9 @@ def loop_converges(history: dict | None) -> Finding:
         return Finding(claim, rule, NOT_MEASURED, [])
     evidence = [
         f"round {r['round']}: {r['sun_elevation_count']} sun elevations, {r['images']} training images, "
-        + ", ".join(f"{label(m)} {r[m]:.3f}" for m in (LOOP_MODEL, *[m for m in MODELS if m != LOOP_MODEL]))
+        + ", ".join(
+            f"{label(m)} {r[m]:.3f}" for m in (LOOP_MODEL, *[m for m in ALL_MODELS if m != LOOP_MODEL]) if m in r
+        )
         for r in rounds
     ]
     evidence.append(f"stopped: {history.get('stopped_because')}")
@@ -190,7 +193,11 @@ def render_page(rows: list[dict], history: dict | None, notes: str = "", figures
         f"{len(PANEL_TITLES)} parameters × 5 counts × 3 σ = 60), models: "
         + ", ".join(label(m) for m in MODELS)
         + "."
-        + (f" Training images per point: {budget[0]:,}–{budget[-1]:,}." if budget else ""),
+        + (
+            f" Training images per point: {budget[0]:,}" + (f"–{budget[-1]:,}." if len(budget) > 1 else ".")
+            if budget
+            else ""
+        ),
         f"- Closed loop: {len((history or {}).get('rounds') or [])} round(s).",
     ]
     if notes:
