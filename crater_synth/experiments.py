@@ -125,6 +125,9 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
         counts = sorted({int(r["count"]) for r in rows if r["parameter"] == axis})
         if counts:
             ax.set_xticks(counts)
+        else:  # a run still in progress: say so rather than leave an unexplained empty panel
+            ax.set_xticks([])
+            ax.text(0.5, 0.5, "no results yet", ha="center", va="center", transform=ax.transAxes, color="grey")
         ax.set_title(PANEL_TITLES[axis], fontsize=10)
         ax.set_xlabel("sample count (others at maximum)")
         ax.set_ylim(0, 1)

@@ -20,7 +20,7 @@ import numpy as np
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import user_errors
 from crater_synth.config import ConfigError
-from crater_synth.experiments import CSV_FILE, FIGURE_FILE, MODELS, PANEL_TITLES, read_results
+from crater_synth.experiments import CSV_FILE, FIGURE_FILE, MODELS, PANEL_TITLES, plot_figure6, read_results
 from train.registry import LOOP_MODEL, label
 from train.registry import MODELS as ALL_MODELS  # the loop records every classifier
 
@@ -226,8 +226,8 @@ def publish(experiments_dir: Path | None, loop_dir: Path | None, out: Path, note
             raise ConfigError(f"{csv_path} does not exist: run `crater-synth experiments` first")
         rows = read_results(csv_path)
         atomic_write_bytes(out / CSV_FILE, csv_path.read_bytes())
-        if (experiments_dir / FIGURE_FILE).is_file():
-            atomic_write_bytes(out / FIGURE_FILE, (experiments_dir / FIGURE_FILE).read_bytes())
+        if rows:  # drawn again from the CSV, so the figure always shows exactly the published results
+            plot_figure6(rows, out / FIGURE_FILE)
             figures.append(FIGURE_FILE)
     if loop_dir is not None:
         hist_path = loop_dir / HISTORY_FILE

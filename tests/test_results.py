@@ -117,6 +117,7 @@ def test_publish_copies_the_results_and_writes_the_page(tmp_path):
     page = (out / PAGE_FILE).read_text()
     assert "120 results" in page and "**does not reproduce**" in page
     assert (out / CSV_FILE).read_bytes() == (exp / CSV_FILE).read_bytes()
+    assert (out / "figure6.png").stat().st_size > 10_000  # drawn from the CSV (the run dir has no figure)
     assert json.loads((out / "loop_history.json").read_text()) == history
     with pytest.raises(ConfigError, match="experiments.csv does not exist"):
         publish(tmp_path / "nowhere", None, out)
