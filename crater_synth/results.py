@@ -200,6 +200,12 @@ def render_page(rows: list[dict], history: dict | None, notes: str = "", figures
         ),
         f"- Closed loop: {len((history or {}).get('rounds') or [])} round(s).",
     ]
+    planned = len(PANEL_TITLES) * 5 * 3
+    if rows and len(points) < planned:
+        lines.append(
+            f"- **Figure 6 is incomplete** ({len(points)} of {planned} trainings): each verdict below is read "
+            "from the counts measured so far and is provisional."
+        )
     if notes:
         lines += ["", notes.strip()]
     lines += ["", "| finding (paper) | here |", "|---|---|"]
