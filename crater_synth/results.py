@@ -83,8 +83,18 @@ def _describe(key: tuple, pts: list[tuple[int, float]]) -> str:
     return f"{label(model)}, σ {sigma:.1f}: {values} (ρ = {spearman(pts):+.2f})"
 
 
+def _measured(rows: list[dict], parameter: str, min_points: int = 2) -> dict[tuple, list[tuple[int, float]]]:
+    """The curves of ``parameter`` with at least ``min_points`` counts measured."""
+    return {k: v for k, v in curves(rows, parameter).items() if len(v) >= min_points}
+
+
+def _mean_gain(cs: dict[tuple, list[tuple[int, float]]]) -> float:
+    """Accuracy at each curve's largest count minus its smallest, averaged over the curves."""
+    return mean(v[-1][1] - v[0][1] for v in cs.values())
+
+
 def sun_elevation_rises(rows: list[dict]) -> Finding:
-    cs = {k: v for k, v in curves(rows, "sun_elevation").items() if len(v) >= 2}
+    cs = _measured(rows, "sun_elevation")
     rule = (
         "reproduces when, averaged over σ and both classifiers, accuracy at the largest count exceeds the "
         f"smallest by more than {NOISE:.2f} and the mean rank correlation ρ(count, accuracy) is positive"
@@ -92,7 +102,7 @@ def sun_elevation_rises(rows: list[dict]) -> Finding:
     claim = "Accuracy rises with the number of sun-elevation samples."
     if not cs:
         return Finding(claim, rule, NOT_MEASURED, [])
-    gain = mean(v[-1][1] - v[0][1] for v in cs.values())
+    gain = _mean_gain(cs)
     rho = mean(spearman(v) for v in cs.values())
     ok = gain > NOISE and rho > 0
     evidence = [_describe(k, v) for k, v in cs.items()] + [f"mean gain {gain:+.3f}, mean ρ {rho:+.2f}"]
@@ -117,7 +127,7 @@ def large_roi_falls(rows: list[dict], sigma: float = 1.4) -> Finding:
 
 
 def camera_elevation_gain(rows: list[dict]) -> Finding:
-    cs = {k: v for k, v in curves(rows, "cam_elevation").items() if len(v) >= 2}
+    cs = _measured(rows, "cam_elevation")
     lo, hi = PAPER_CAMERA_ELEVATION_GAIN - NOISE - 0.01, PAPER_CAMERA_ELEVATION_GAIN + NOISE + 0.03
     rule = (
         "the gain is the accuracy at the largest camera-elevation count minus the smallest, averaged over σ "
@@ -126,13 +136,13 @@ def camera_elevation_gain(rows: list[dict]) -> Finding:
     claim = "Adding camera elevations improves accuracy by about 5 %."
     if not cs:
         return Finding(claim, rule, NOT_MEASURED, [])
-    gain = mean(v[-1][1] - v[0][1] for v in cs.values())
+    gain = _mean_gain(cs)
     evidence = [_describe(k, v) for k, v in cs.items()] + [f"mean gain {gain:+.3f} (paper ≈ +0.05)"]
     return Finding(claim, rule, REPRODUCED if lo <= gain <= hi else NOT_REPRODUCED, evidence)
 
 
 def camera_azimuth_not_monotonic(rows: list[dict]) -> Finding:
-    cs = {k: v for k, v in curves(rows, "cam_azimuth").items() if len(v) >= 3}
+    cs = _measured(rows, "cam_azimuth", min_points=3)
     rule = (
         f"a curve is non-monotonic when it changes direction at least once (steps under {NOISE:.2f} "
         "ignored); it reproduces when most curves are"

@@ -532,13 +532,17 @@ def same_pose_partners(cache: CropCache, indices: Sequence[int], rows: Sequence[
     return out
 
 
+def seeded_subsample(n: int, limit: int | None, seed: int, stream: int) -> np.ndarray:
+    """Sorted positions of at most ``limit`` of ``n`` items, drawn without replacement from the random
+    stream (``seed``, ``stream``); every position if ``limit`` is None or not smaller than ``n``."""
+    if not limit or limit >= n:
+        return np.arange(n)
+    return np.sort(np.random.default_rng([int(seed) & 0xFFFFFFFF, stream]).choice(n, size=int(limit), replace=False))
+
+
 def budget_subsample(indices: list[int], limit: int | None, seed: int, stream: int) -> list[int]:
     """At most ``limit`` of ``indices``, drawn without replacement by ``seed`` (order kept); all if None."""
-    if not limit or limit >= len(indices):
-        return indices
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, stream])
-    keep = np.sort(rng.choice(len(indices), size=int(limit), replace=False))
-    return [indices[k] for k in keep]
+    return [indices[k] for k in seeded_subsample(len(indices), limit, seed, stream)]
 
 
 def selected_positions(rows: Sequence[dict], selection: Mapping | None, dataset_dir: str | Path) -> list[int]:

@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from crater_core.schema import atomic_write_bytes, atomic_write_text
-from train.data import SyntheticCropDataset, SyntheticData
+from train.data import SyntheticCropDataset, SyntheticData, seeded_subsample
 from train.errors import ModelError, RealDataLeakError, TrainError
 from train.metrics import accuracy, class_mean_accuracy
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
@@ -257,12 +257,6 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
 # ------------------------------------------------------------------------------------------------
 # LunarSVM_ex and HOG + SVM
 # ------------------------------------------------------------------------------------------------
-def _subsample(n: int, k: int | None, seed: int) -> np.ndarray:
-    if not k or k >= n:
-        return np.arange(n)
-    return np.sort(np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x406]).choice(n, size=int(k), replace=False))
-
-
 def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: bool = True) -> dict:
     """Fit LunarSVM_ex (FC1 activations) and the HOG+SVM baseline on the synthetic training images
     (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies."""
@@ -287,7 +281,7 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
     }
     t0 = time.perf_counter()
     hcfg = tcfg.get("hog", {})
-    sel = _subsample(len(data.train), hcfg.get("max_train_images"), seed)
+    sel = seeded_subsample(len(data.train), hcfg.get("max_train_images"), seed, 0x406)
     Ht = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.train.iter_arrays(ebs, sel)])
     hog_svm = make_linear_svm(hcfg, seed)
     conv = _fit_quiet(hog_svm, Ht, yt[sel])
