@@ -231,31 +231,39 @@ def render_page(rows: list[dict], history: dict | None, notes: str = "", figures
 
 
 def publish(experiments_dir: Path | None, loop_dir: Path | None, out: Path, notes: str = "") -> list[Finding]:
-    """Copy the results into ``out`` and write the comparison page there (every file atomically)."""
+    """Copy the results into ``out`` and write the comparison page there. Every input is read and
+    checked before the first file is written, so a bad input leaves ``out`` as it was."""
     rows: list[dict] = []
+    csv_bytes = history_bytes = plot_bytes = None
     history = None
-    figures: list[str] = []
-    out.mkdir(parents=True, exist_ok=True)
     if experiments_dir is not None:
         csv_path = experiments_dir / CSV_FILE
         if not csv_path.is_file():
             raise ConfigError(f"{csv_path} does not exist: run `crater-synth experiments` first")
         rows = read_results(csv_path)
-        atomic_write_bytes(out / CSV_FILE, csv_path.read_bytes())
-        if rows:  # drawn again from the CSV, so the figure always shows exactly the published results
-            plot_figure6(rows, out / FIGURE_FILE)
-            figures.append(FIGURE_FILE)
+        csv_bytes = csv_path.read_bytes()
     if loop_dir is not None:
         hist_path = loop_dir / HISTORY_FILE
         try:
-            history = json.loads(hist_path.read_text())
+            history_bytes = hist_path.read_bytes()
+            history = json.loads(history_bytes)
         except FileNotFoundError:
             raise ConfigError(f"{hist_path} does not exist: run `crater-synth loop` first") from None
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{hist_path}: corrupt loop history ({exc})") from None
-        atomic_write_bytes(out / HISTORY_FILE, hist_path.read_bytes())
         if (loop_dir / HISTORY_PLOT).is_file():
-            atomic_write_bytes(out / HISTORY_PLOT, (loop_dir / HISTORY_PLOT).read_bytes())
+            plot_bytes = (loop_dir / HISTORY_PLOT).read_bytes()
+    out.mkdir(parents=True, exist_ok=True)
+    figures: list[str] = []
+    if csv_bytes is not None:
+        atomic_write_bytes(out / CSV_FILE, csv_bytes)
+        if rows:  # drawn again from the CSV, so the figure always shows exactly the published results
+            plot_figure6(rows, out / FIGURE_FILE)
+            figures.append(FIGURE_FILE)
+    if history_bytes is not None:
+        atomic_write_bytes(out / HISTORY_FILE, history_bytes)
+        if plot_bytes is not None:
+            atomic_write_bytes(out / HISTORY_PLOT, plot_bytes)
             figures.append(HISTORY_PLOT)
     atomic_write_text(out / PAGE_FILE, render_page(rows, history, notes, tuple(figures)))
     return findings(rows, history)

@@ -121,3 +121,10 @@ def test_publish_copies_the_results_and_writes_the_page(tmp_path):
     assert json.loads((out / "loop_history.json").read_text()) == history
     with pytest.raises(ConfigError, match="experiments.csv does not exist"):
         publish(tmp_path / "nowhere", None, out)
+    # A corrupt loop history is refused before anything is written: out keeps the last good results.
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    (loop / "loop_history.json").write_text("{not json")
+    write_results(exp / CSV_FILE, _rows(flat))
+    with pytest.raises(ConfigError, match="corrupt loop history"):
+        publish(exp, loop, out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
