@@ -160,6 +160,20 @@ def project_points(points_enu: np.ndarray, pose: CameraPose, width_px: int, heig
     return np.stack([u, v], axis=-1), depth
 
 
+def back_project_pixels(
+    uv: np.ndarray, depth: np.ndarray, pose: CameraPose, width_px: int, height_px: int | None = None
+):
+    """ENU points seen at full-frame pixel coordinates ``uv`` (..., 2) with ``depth`` (...) metres along
+    the view axis: the inverse of :func:`project_points` (a render's ``depth`` channel gives the ground
+    point under every pixel, e.g. to sample a map-projected real image in the render's frame)."""
+    height_px = width_px if height_px is None else height_px
+    uv = np.asarray(uv, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    f = pose.focal_px(width_px)
+    cam = np.stack([(uv[..., 0] - width_px / 2.0) * d / f, -(uv[..., 1] - height_px / 2.0) * d / f, -d], axis=-1)
+    return pose.position + cam @ pose.rotation.T
+
+
 # --------------------------------------------------------------------------------------------
 # Projected crater rim: a 3-D circle through a pinhole is exactly a conic (an ellipse here).
 # --------------------------------------------------------------------------------------------

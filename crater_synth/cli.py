@@ -31,6 +31,7 @@ _COMMANDS = (
     ("crater_synth.report", "report_command", "Write the HTML report of a run."),
     ("crater_synth.validate", "validate_command", "Validation protocol: choose on validation craters."),
     ("crater_synth.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
+    ("crater_synth.sunmatch", "sunmatch_command", "Real crops against renders under a dense sun grid."),
     ("crater_synth.bench", "bench_command", "Benchmarks: renderer, training, distributed."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )

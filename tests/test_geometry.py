@@ -81,6 +81,23 @@ def test_projected_circle_is_the_returned_ellipse(elev, az):
     assert ell.a >= ell.b > 0
 
 
+@pytest.mark.parametrize("elev, az", [(90.0, 180.0), (86.0, 60.0), (54.0, 215.0)])
+def test_back_projection_inverts_projection(elev, az):
+    pose = g.look_at_camera(elev, az, 1.5 * 40e3, 90.0)
+    rng = np.random.default_rng(1)
+    pts = np.stack([rng.uniform(-20e3, 20e3, 500), rng.uniform(-20e3, 20e3, 500), rng.uniform(-3e3, 2e3, 500)], axis=-1)
+    uv, depth = g.project_points(pts, pose, 600)
+    np.testing.assert_allclose(g.back_project_pixels(uv, depth, pose, 600), pts, atol=1e-6)
+
+
+def test_nadir_camera_at_azimuth_180_puts_north_up_and_east_right():
+    pose = g.look_at_camera(90.0, 180.0, 30e3, 90.0)
+    (u_n, v_n), _ = g.project_points(np.array([0.0, 1e3, 0.0]), pose, 400)
+    (u_e, v_e), _ = g.project_points(np.array([1e3, 0.0, 0.0]), pose, 400)
+    assert v_n < 200.0 and abs(u_n - 200.0) < 1e-6  # north is up
+    assert u_e > 200.0 and abs(v_e - 200.0) < 1e-6  # east is right
+
+
 @pytest.mark.parametrize("elev, az", [(90.0, 0.0), (62.0, 120.0), (54.0, 330.0)])
 def test_camera_looks_at_target(elev, az):
     target = np.array([100.0, -50.0, 30.0])
