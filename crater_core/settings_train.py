@@ -64,6 +64,7 @@ class PreprocessSettings(_Group):
     lit_threshold: float
     shadow_floor: float
     gamma: float
+    support: str = "square"  # square | disc (docs/preprocessing.md)
 
     def _check(self):
         _need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
@@ -78,6 +79,7 @@ class PreprocessSettings(_Group):
         _need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
         _need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
         _need(self.gamma > 0.0, "gamma", self.gamma, "must be > 0")
+        _need(self.support in ("square", "disc"), "support", self.support, "must be square or disc")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -140,6 +142,7 @@ class TrainSettings(_Group):
     max_val_images: Optional[int] = None  # the same for the validation samples
     verify_sha256: bool
     augment: bool
+    augment_rotation: str = "right_angles"  # right_angles | any (any needs preprocess.support=disc)
     progress: bool
     preprocess: PreprocessSettings
     svm: SvmSettings
@@ -168,6 +171,18 @@ class TrainSettings(_Group):
         for key in ("max_train_images", "max_val_images"):
             value = getattr(self, key)
             _need(value is None or value >= 1, key, value, "must be >= 1 (null = all)")
+        _need(
+            self.augment_rotation in ("right_angles", "any"),
+            "augment_rotation",
+            self.augment_rotation,
+            "must be right_angles or any",
+        )
+        _need(
+            self.augment_rotation != "any" or self.preprocess.support == "disc",
+            "augment_rotation",
+            self.augment_rotation,
+            "needs train.preprocess.support=disc (a square crop turned by any angle has empty corners)",
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -180,3 +180,52 @@ def test_mosaic_partners_share_crater_pose_and_sigma():
                 s,
             )
     assert len(partners[split[0]]) == 2
+
+
+def test_disc_support_keeps_the_inscribed_disc_only(scene):
+    disc = PreprocessConfig(support="disc")
+    box = (48 - 44.8, 48 - 44.8, 48 + 44.8, 48 + 44.8)
+    sq, dc = preprocess_crop(scene, box, PP), preprocess_crop(scene, box, disc, rotation_deg=0.0)
+    n = PP.size
+    c = (np.arange(n) + 0.5) - n / 2
+    inside = c[None, :] ** 2 + c[:, None] ** 2 <= (n / 2) ** 2
+    np.testing.assert_array_equal(dc[inside], sq[inside])  # the real and synthetic path: mask last
+    assert (dc[~inside] == 0).all() and sq[~inside].any()
+    with pytest.raises(TrainError, match="support"):
+        PreprocessConfig(support="circle")
+
+
+def test_rotating_a_disc_crop_is_a_camera_roll(scene):
+    """Turning a disc-support crop by any angle stays inside the box, and by a right angle it equals
+    the exact rotation (what the right-angle augmentation does)."""
+    from train.preprocess import apply_support, rotate_crop
+
+    disc = PreprocessConfig(support="disc")
+    box = (48 - 44.8, 48 - 44.8, 48 + 44.8, 48 + 44.8)
+    y = preprocess_crop(scene, box, disc)
+    r90 = apply_support(rotate_crop(y, 90.0), disc)
+    np.testing.assert_allclose(r90, np.rot90(y), atol=1e-5)
+    r33 = apply_support(rotate_crop(y, 33.0), disc)
+    real33 = preprocess_crop(scene, box, disc, rotation_deg=-33.0)  # the real crops' rotated sampling grid
+    assert abs(r33.mean() - real33.mean()) < 0.02
+    assert np.abs(r33 - real33).mean() < 0.02  # same pixels (bilinear twice vs once)
+    assert np.abs(r33 - preprocess_crop(scene, box, disc, rotation_deg=33.0)).mean() > 0.1  # the sense matters
+
+
+def test_any_angle_augmentation_needs_disc_support():
+    from train.data import CropCache, SyntheticCropDataset
+    from train.errors import DatasetError
+
+    cache = CropCache(
+        path=None, images=np.random.default_rng(0).random((4, 150, 150)).astype(np.float32), samples=[(0, 1.0)] * 4
+    )
+    rows = [{"crater": "x", "path": "x.exr"}]
+    with pytest.raises(DatasetError, match="support=disc"):
+        SyntheticCropDataset(cache, [0, 1], [0, 0], rows, PP, None, 0, train=True, augment=True, rotation="any")
+    ds = SyntheticCropDataset(
+        cache, [0, 1], [0, 0], rows, PreprocessConfig(support="disc"), None, 0, train=True, augment=True, rotation="any"
+    )
+    a = ds.image(0)
+    ds.set_epoch(1)
+    b = ds.image(0)
+    assert a[0, 0] == 0 and b[0, 0] == 0 and not np.allclose(a, b)  # a new roll every epoch, corners empty

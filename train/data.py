@@ -39,13 +39,16 @@ from train.errors import DatasetError, RealDataLeakError
 from train.preprocess import (
     PreprocessConfig,
     SensorModel,
+    apply_support,
     mosaic_composite,
     normalize,
     outside_fraction,
     resample_box,
+    rotate_crop,
 )
 
 SYNTHETIC = "synthetic"
+ROTATIONS = ("right_angles", "any")  # train.augment_rotation
 CACHE_FORMAT = 1
 
 
@@ -421,7 +424,8 @@ class SyntheticCropDataset(Dataset):
     """Normalised synthetic crops, one per (row, sigma), for the cached samples ``indices``.
 
     ``__getitem__`` -> (float tensor (1, N, N), int label). ``train=True`` draws fresh sensor noise
-    every epoch (:meth:`set_epoch`) and random 90-degree rotations (``augment``); ``train=False``
+    every epoch (:meth:`set_epoch`) and random rotations (``augment``: by right angles, or by any angle
+    with ``rotation="any"`` on disc-support crops); ``train=False``
     uses one fixed noise draw per sample (a stable validation set).
     """
 
@@ -437,6 +441,7 @@ class SyntheticCropDataset(Dataset):
         train: bool,
         augment: bool = False,
         diameters_m: Mapping[str, float] | None = None,
+        rotation: str = "right_angles",
     ):
         self.cache = cache
         self.indices = np.asarray(indices, dtype=np.int64)
@@ -447,6 +452,14 @@ class SyntheticCropDataset(Dataset):
         self.seed = int(seed) & 0xFFFFFFFF
         self.train = train
         self.augment = augment and train
+        if rotation not in ROTATIONS:
+            raise DatasetError(f"train.augment_rotation={rotation!r} must be one of {', '.join(ROTATIONS)}")
+        if rotation == "any" and pp.support != "disc":
+            raise DatasetError(
+                "train.augment_rotation=any needs train.preprocess.support=disc: a square crop turned by an "
+                "arbitrary angle has empty corners that no real crop has"
+            )
+        self.rotation = rotation
         self.epoch = 0
         self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
         # Mosaic composites draw their extra frames among the same camera pose's renders in this split.
@@ -487,8 +500,12 @@ class SyntheticCropDataset(Dataset):
             d = self.diameters_m.get(self.rows[ri]["crater"])
             x = self.sensor.apply(x, rng, box_side_m=None if d is None else sigma * d)
         y = normalize(x, self.pp)
-        if self.augment:
-            y = np.ascontiguousarray(np.rot90(y, int(rng.integers(4))))
+        if self.augment and self.rotation == "any":  # a camera roll about the boresight, like the real crops'
+            y = apply_support(rotate_crop(y, float(rng.uniform(0.0, 360.0))), self.pp)
+        elif self.augment:
+            y = apply_support(np.ascontiguousarray(np.rot90(y, int(rng.integers(4)))), self.pp)
+        else:
+            y = apply_support(y, self.pp)
         return y
 
     def __getitem__(self, i: int):
@@ -630,6 +647,7 @@ def build_datasets(
         train=True,
         augment=bool(tcfg.get("augment", True)),
         diameters_m=diameters,
+        rotation=str(tcfg.get("augment_rotation", "right_angles")),
     )
     val_ds = SyntheticCropDataset(
         cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False, diameters_m=diameters

@@ -5,6 +5,7 @@
          resampled to ``size`` x ``size`` (150 x 150)                       [geometry; cached for renders]
       -> SensorModel.apply (synthetic training/validation images only, seeded; optional)
       -> normalize: robust affine-invariant photometric normalisation into [0, 1]   [photometry]
+      -> apply_support: optionally only the box's inscribed disc (``support: disc``)
 
 ``normalize`` is invariant to any positive affine map ``a * x + b`` of the input, so I/F values and the
 8-bit DN of the same scene under a (linear) camera give the same network input up to quantisation.
@@ -14,6 +15,7 @@ Pure numpy/scipy: no torch, no bpy.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, fields
 from typing import Mapping, Sequence
@@ -22,6 +24,8 @@ import numpy as np
 from scipy import ndimage
 
 from train.errors import TrainError
+
+SUPPORTS = ("square", "disc")
 
 
 @dataclass(frozen=True)
@@ -37,6 +41,7 @@ class PreprocessConfig:
     lit_threshold: float = 0.02  # lit = above black + this fraction of (max - black)
     shadow_floor: float = 0.05  # linear values below this (fraction of white) count as shadow -> 0
     gamma: float = 0.5  # output = clip(linear, 0, 1) ** gamma
+    support: str = "square"  # square: the whole box; disc: only the box's inscribed disc (rotation-invariant)
 
     def __post_init__(self):
         if self.size < 8:
@@ -54,6 +59,8 @@ class PreprocessConfig:
             raise TrainError(f"train.preprocess.gamma={self.gamma} must be > 0")
         if self.interp_order not in (0, 1, 3):
             raise TrainError(f"train.preprocess.interp_order={self.interp_order} must be 0, 1 or 3")
+        if self.support not in SUPPORTS:
+            raise TrainError(f"train.preprocess.support={self.support!r} must be one of {', '.join(SUPPORTS)}")
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "PreprocessConfig":
@@ -218,7 +225,29 @@ def preprocess_crop(
         crop = crop / np.float32(np.iinfo(a.dtype).max)
     if sensor is not None and sensor.enabled:
         crop = sensor.apply(crop, rng if rng is not None else np.random.default_rng(0), box_side_m=box_side_m)
-    return normalize(crop, pp)
+    return apply_support(normalize(crop, pp), pp)
+
+
+@functools.lru_cache(maxsize=8)
+def _disc(size: int) -> np.ndarray:
+    c = (np.arange(size, dtype=np.float32) + 0.5) - size / 2.0
+    return (c[None, :] ** 2 + c[:, None] ** 2 <= (size / 2.0) ** 2).astype(np.float32)
+
+
+def apply_support(y: np.ndarray, pp: PreprocessConfig = PreprocessConfig()) -> np.ndarray:
+    """The last step for every crop, real or synthetic: with ``support="disc"`` everything outside the
+    box's inscribed disc is set to 0 (shadow). A disc is the one support that any rotation of the
+    camera about its boresight maps onto itself, so a training crop can be rotated by any angle
+    without empty corners, exactly as the real crops are (docs/preprocessing.md)."""
+    if pp.support == "square":
+        return y
+    return (y * _disc(y.shape[-1])).astype(np.float32, copy=False)
+
+
+def rotate_crop(y: np.ndarray, angle_deg: float) -> np.ndarray:
+    """``y`` turned by ``angle_deg`` about its centre (bilinear; what leaves the square is dropped, what
+    enters it is 0). Used on disc-support crops, whose content any rotation keeps inside the box."""
+    return ndimage.rotate(y, float(angle_deg), reshape=False, order=1, mode="constant", cval=0.0).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------------
