@@ -130,6 +130,12 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
         "best_iou_on_coarse_grid": float(iou[coarse].max()) if coarse else None,
         "iou_by_azimuth_step": steps,
         "_images": (normalize(real, pp), renders[best]),
+        "_frames": {
+            "real": real,
+            "best": read_channel(dataset_dir / rows[best]["path"]),
+            "grid60": read_channel(dataset_dir / rows[coarse[int(np.argmax(iou[coarse]))]]["path"]) if coarse else None,
+            "rim": rows[0]["rim_ellipse"],
+        },
     }
 
 
@@ -158,6 +164,47 @@ def _sheet(results: dict, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+FRAME_ROLLS_DEG = tuple(range(0, 360, 30))  # on the 30-degree lattice of the demo grid's training crops
+OFF_LATTICE_DEG = 15.0
+
+
+def write_frames(results: dict, out: Path) -> Path:
+    """Paired test frames for ``crater-synth evaluate realset.labels_file=OUT/labels.csv``: per crater
+    the real crop orthorectified into the nadir render's frame (``real``), the best-matching render
+    (``best``) and the best render on the 60-degree sun grid (``grid60``), each rolled by the 12
+    multiples of 30 degrees and by those plus 15 degrees (``*_roll15``). Renders are saved linear (the
+    99.5th percentile of the lit pixels at DN 220), which the affine-invariant normalisation undoes."""
+    import csv
+    import io
+
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for name, res in results.items():
+        fr = res.pop("_frames")
+        rim = fr.pop("rim")
+        for kind, img in fr.items():
+            if img is None:
+                continue
+            if kind != "real":
+                lit = img[img > 0]
+                img = img / (np.percentile(lit, 99.5) if lit.size else 1.0) * 220.0
+            path = out / f"{name}_{kind}.png"
+            buf = io.BytesIO()
+            Image.fromarray(np.clip(np.rint(img), 0, 255).astype(np.uint8)).save(buf, format="PNG")
+            atomic_write_bytes(path, buf.getvalue())
+            for extra, tag in ((0.0, ""), (OFF_LATTICE_DEG, "_roll15")):
+                for roll in FRAME_ROLLS_DEG:
+                    lines.append([path.name, name, rim["cu"], rim["cv"], 2.0 * rim["a"], kind + tag, roll + extra])
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["image_path", "crater", "center_u", "center_v", "diameter_px", "source", "rotation_deg"])
+    writer.writerows(lines)
+    atomic_write_text(out / "labels.csv", buf.getvalue())
+    return out / "labels.csv"
+
+
 def table_markdown(results: dict, roles: dict) -> str:
     steps = list(AZIMUTH_STEPS_DEG)
     head = (
@@ -181,7 +228,12 @@ def table_markdown(results: dict, roles: dict) -> str:
 
 
 def run_sunmatch(
-    overrides: Sequence[str], names: Sequence[str] | None, azimuths: int, fractions: int, out: Path
+    overrides: Sequence[str],
+    names: Sequence[str] | None,
+    azimuths: int,
+    fractions: int,
+    out: Path,
+    frames: bool = False,
 ) -> dict:
     """Render the dense nadir sun grid, compare with the real crops, write the results into ``out``."""
     from crater_synth.dataset import build_dataset
@@ -210,13 +262,15 @@ def run_sunmatch(
         results[c["name"]] = match_crater(by_crater[c["name"]], dataset_dir, c, mosaic, pp)
     out.mkdir(parents=True, exist_ok=True)
     _sheet(results, out / "sunmatch.png")
+    labels = write_frames(results, out / "frames") if frames else None
     payload = {
         "command": "crater-synth sunmatch " + " ".join(overrides),
         "azimuths": azimuths,
         "fractions": fractions,
         "seconds": round(time.perf_counter() - t0, 1),
         "roles": roles,
-        "craters": results,
+        "frames_labels": None if labels is None else str(labels),
+        "craters": {k: {kk: vv for kk, vv in v.items() if not kk.startswith("_")} for k, v in results.items()},
     }
     atomic_write_text(out / "sunmatch.json", json.dumps(payload, indent=1) + "\n")
     atomic_write_text(
@@ -235,13 +289,14 @@ def run_sunmatch(
 @click.option("--azimuths", default=36, show_default=True, type=int, help="sun azimuths (divisor of 360)")
 @click.option("--fractions", default=10, show_default=True, type=int, help="sun elevation fractions of the maximum")
 @click.option("--out", default="outputs/sunmatch", show_default=True, type=click.Path(path_type=Path))
+@click.option("--frames", is_flag=True, help="also write OUT/frames/: paired real/render frames and a labels.csv")
 @user_errors
-def sunmatch_command(overrides, names, azimuths, fractions, out):
+def sunmatch_command(overrides, names, azimuths, fractions, out, frames):
     """Does the renderer reproduce the real images, and under which Sun? (docs/fidelity.md)
 
     Example: crater-synth sunmatch sweep=demo_physical --craters kocher,kuhn
     """
-    res = run_sunmatch(overrides, [n for n in names.split(",") if n], azimuths, fractions, out)
+    res = run_sunmatch(overrides, [n for n in names.split(",") if n], azimuths, fractions, out, frames)
     for name, r in res["craters"].items():
         s = r["best_sun"]
         click.echo(
@@ -250,3 +305,7 @@ def sunmatch_command(overrides, names, azimuths, fractions, out):
             f"{COARSE_AZIMUTH_STEP_DEG} deg grid"
         )
     click.echo(f"table: {out / 'sunmatch.md'}")
+    if res["frames_labels"]:
+        click.echo(
+            f"frames: {res['frames_labels']} (evaluate with realset.labels_file=THAT realset.include_embedded=false)"
+        )

@@ -81,6 +81,7 @@ def test_command_end_to_end(tmp_path):
         "10",
         "--out",
         out,
+        "--frames",
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((out / "sunmatch.json").read_text())
@@ -92,6 +93,13 @@ def test_command_end_to_end(tmp_path):
     assert set(r["iou_by_azimuth_step"]) <= {str(s) for s in sunmatch.AZIMUTH_STEPS_DEG}
     assert "| shackleton | test |" in (out / "sunmatch.md").read_text()
     assert (out / "sunmatch.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The paired frames are a labels file the real-set loader reads (crater-synth evaluate uses it).
+    from train.realset import load_labels_file
+
+    crops = load_labels_file(out / "frames" / "labels.csv", ["shackleton"], [1.0])
+    sources = {c.source for c in crops}
+    assert {"real", "best", "real_roll15", "best_roll15"} <= sources
+    assert len(crops) == len(sources) * len(sunmatch.FRAME_ROLLS_DEG)
 
 
 def test_command_bad_grid_is_one_line_and_writes_nothing(tmp_path):
