@@ -2,6 +2,7 @@
 copied files land in --out."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -128,3 +129,21 @@ def test_publish_copies_the_results_and_writes_the_page(tmp_path):
     with pytest.raises(ConfigError, match="corrupt loop history"):
         publish(exp, loop, out)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_published_figure6_csv_is_resumable_with_todays_configuration():
+    """docs/results/experiments.csv was made with the overrides in docs/results/notes.md; its `config`
+    fingerprint must still be what today's configuration gives for them, or `make experiments` would
+    refuse to continue it (settings added later are neutral at their defaults: validate.NEUTRAL_LATER_KEYS).
+    A change that really alters the training must fail here, and the published results be redone."""
+    import csv
+
+    from crater_synth.config import compose, resolved
+    from crater_synth.experiments import experiments_fingerprint
+
+    csv_path = Path(__file__).resolve().parent.parent / "docs" / "results" / "experiments.csv"
+    published = {row["config"] for row in csv.DictReader(csv_path.open())}
+    overrides = ["sweep=paper", "train=paper_budget", "run_dir=outputs/paper_fig6", "train.progress=false"]
+    assert published == {experiments_fingerprint(resolved(compose(overrides)))}
+    changed = experiments_fingerprint(resolved(compose(overrides + ["train.preprocess.support=disc"])))
+    assert changed not in published
