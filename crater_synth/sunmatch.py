@@ -26,7 +26,7 @@ import json
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import click
 import numpy as np
@@ -168,12 +168,14 @@ FRAME_ROLLS_DEG = tuple(range(0, 360, 30))  # on the 30-degree lattice of the de
 OFF_LATTICE_DEG = 15.0
 
 
-def write_frames(results: dict, out: Path) -> Path:
+def write_frames(results: dict, out: Path, groups: Mapping[str, Sequence[str]] | None = None) -> Path:
     """Paired test frames for ``crater-synth evaluate realset.labels_file=OUT/labels.csv``: per crater
     the real crop orthorectified into the nadir render's frame (``real``), the best-matching render
     (``best``) and the best render on the 60-degree sun grid (``grid60``), each rolled by the 12
     multiples of 30 degrees and by those plus 15 degrees (``*_roll15``). Renders are saved linear (the
-    99.5th percentile of the lit pixels at DN 220), which the affine-invariant normalisation undoes."""
+    99.5th percentile of the lit pixels at DN 220), which the affine-invariant normalisation undoes.
+    ``groups`` (label -> craters) also writes ``labels_<label>.csv`` with only that group's craters, the
+    classes of the models trained on it (``crater-synth validate``)."""
     import csv
     import io
 
@@ -197,11 +199,13 @@ def write_frames(results: dict, out: Path) -> Path:
             for extra, tag in ((0.0, ""), (OFF_LATTICE_DEG, "_roll15")):
                 for roll in FRAME_ROLLS_DEG:
                     lines.append([path.name, name, rim["cu"], rim["cv"], 2.0 * rim["a"], kind + tag, roll + extra])
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["image_path", "crater", "center_u", "center_v", "diameter_px", "source", "rotation_deg"])
-    writer.writerows(lines)
-    atomic_write_text(out / "labels.csv", buf.getvalue())
+    header = ["image_path", "crater", "center_u", "center_v", "diameter_px", "source", "rotation_deg"]
+    for label, keep in [("", None)] + [(f"_{k}", set(v)) for k, v in (groups or {}).items()]:
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(line for line in lines if keep is None or line[1] in keep)
+        atomic_write_text(out / f"labels{label}.csv", buf.getvalue())
     return out / "labels.csv"
 
 
@@ -262,7 +266,10 @@ def run_sunmatch(
         results[c["name"]] = match_crater(by_crater[c["name"]], dataset_dir, c, mosaic, pp)
     out.mkdir(parents=True, exist_ok=True)
     _sheet(results, out / "sunmatch.png")
-    labels = write_frames(results, out / "frames") if frames else None
+    group_craters = {f"validation{i + 1}": list(g) for i, g in enumerate(vcfg.get("groups") or [])}
+    if vcfg.get("test"):
+        group_craters["test"] = list(vcfg["test"])
+    labels = write_frames(results, out / "frames", group_craters) if frames else None
     payload = {
         "command": "crater-synth sunmatch " + " ".join(overrides),
         "azimuths": azimuths,

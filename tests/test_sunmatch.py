@@ -100,6 +100,9 @@ def test_command_end_to_end(tmp_path):
     sources = {c.source for c in crops}
     assert {"real", "best", "real_roll15", "best_roll15"} <= sources
     assert len(crops) == len(sources) * len(sunmatch.FRAME_ROLLS_DEG)
+    # One labels file per validate group, with only its craters (shackleton is in the test group).
+    assert (out / "frames" / "labels_test.csv").read_text() == (out / "frames" / "labels.csv").read_text()
+    assert (out / "frames" / "labels_validation1.csv").read_text().count("\n") == 1  # the header only
 
 
 def test_command_bad_grid_is_one_line_and_writes_nothing(tmp_path):
