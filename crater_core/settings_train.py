@@ -143,6 +143,7 @@ class TrainSettings(_Group):
     verify_sha256: bool
     augment: bool
     augment_rotation: str = "right_angles"  # right_angles | any (any needs preprocess.support=disc)
+    augment_offset_frac: float = 0.0  # slewing: random shift up to this fraction of the side per axis
     progress: bool
     preprocess: PreprocessSettings
     svm: SvmSettings
@@ -176,6 +177,18 @@ class TrainSettings(_Group):
             "augment_rotation",
             self.augment_rotation,
             "must be right_angles or any",
+        )
+        _need(
+            0.0 <= self.augment_offset_frac <= 0.25,
+            "augment_offset_frac",
+            self.augment_offset_frac,
+            "must lie in [0, 0.25]",
+        )
+        _need(
+            self.augment_offset_frac == 0.0 or self.preprocess.support == "disc",
+            "augment_offset_frac",
+            self.augment_offset_frac,
+            "needs train.preprocess.support=disc (a shifted square crop has an empty strip)",
         )
         _need(
             self.augment_rotation != "any" or self.preprocess.support == "disc",

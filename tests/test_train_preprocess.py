@@ -229,3 +229,43 @@ def test_any_angle_augmentation_needs_disc_support():
     ds.set_epoch(1)
     b = ds.image(0)
     assert a[0, 0] == 0 and b[0, 0] == 0 and not np.allclose(a, b)  # a new roll every epoch, corners empty
+
+
+def test_rotate_crop_shift_moves_content_and_matches_plain_rotation():
+    from train.preprocess import rotate_crop
+
+    y = np.random.default_rng(0).random((150, 150)).astype(np.float32)
+    moved = rotate_crop(y, 0.0, (5.0, -3.0))  # 5 px right, 3 px up
+    np.testing.assert_array_equal(moved[10:140, 10:140], y[13:143, 5:135])
+    assert (moved[:, :5] == 0).all()  # what enters the square is 0
+    from scipy import ndimage
+
+    plain = ndimage.rotate(y, 33.0, reshape=False, order=1, mode="constant", cval=0.0)
+    np.testing.assert_allclose(rotate_crop(y, 33.0, (1e-12, 0.0)), plain, atol=1e-5)
+
+
+def test_slewing_augmentation_needs_disc_support_and_moves_the_crop():
+    from train.data import CropCache, SyntheticCropDataset
+    from train.errors import DatasetError
+
+    img = np.zeros((1, 150, 150), np.float32)
+    img[0, 70:80, 70:80] = 1.0  # a bright square at the centre
+    cache = CropCache(path=None, images=img, samples=[(0, 1.0)])
+    rows = [{"crater": "x", "path": "x.exr"}]
+    with pytest.raises(DatasetError, match="support=disc"):
+        SyntheticCropDataset(cache, [0], [0], rows, PP, None, 0, train=True, augment=True, offset_frac=0.08)
+    with pytest.raises(DatasetError, match="0.25"):
+        SyntheticCropDataset(
+            cache, [0], [0], rows, PreprocessConfig(support="disc"), None, 0, train=True, augment=True, offset_frac=0.5
+        )
+    ds = SyntheticCropDataset(
+        cache, [0], [0], rows, PreprocessConfig(support="disc"), None, 0, train=True, augment=True, offset_frac=0.08
+    )
+    centres = []
+    for epoch in range(8):
+        ds.set_epoch(epoch)
+        y = ds.image(0)
+        v, u = np.nonzero(y > 0.5)
+        centres.append((u.mean() - 75.0, v.mean() - 75.0))
+    c = np.abs(np.array(centres))
+    assert c.max() <= 0.08 * 150 + 1.0 and c.max() > 1.0  # moved, within the slewing bound

@@ -442,6 +442,7 @@ class SyntheticCropDataset(Dataset):
         augment: bool = False,
         diameters_m: Mapping[str, float] | None = None,
         rotation: str = "right_angles",
+        offset_frac: float = 0.0,
     ):
         self.cache = cache
         self.indices = np.asarray(indices, dtype=np.int64)
@@ -460,6 +461,14 @@ class SyntheticCropDataset(Dataset):
                 "arbitrary angle has empty corners that no real crop has"
             )
         self.rotation = rotation
+        if not 0.0 <= offset_frac <= 0.25:
+            raise DatasetError(f"train.augment_offset_frac={offset_frac} must lie in [0, 0.25]")
+        if offset_frac > 0.0 and pp.support != "disc":
+            raise DatasetError(
+                "train.augment_offset_frac > 0 needs train.preprocess.support=disc: a shifted square crop has "
+                "an empty strip that no real crop has"
+            )
+        self.offset_frac = float(offset_frac)
         self.epoch = 0
         self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
         # Mosaic composites draw their extra frames among the same camera pose's renders in this split.
@@ -500,8 +509,11 @@ class SyntheticCropDataset(Dataset):
             d = self.diameters_m.get(self.rows[ri]["crater"])
             x = self.sensor.apply(x, rng, box_side_m=None if d is None else sigma * d)
         y = normalize(x, self.pp)
-        if self.augment and self.rotation == "any":  # a camera roll about the boresight, like the real crops'
-            y = apply_support(rotate_crop(y, float(rng.uniform(0.0, 360.0))), self.pp)
+        if self.augment and (self.rotation == "any" or self.offset_frac > 0.0):
+            # A camera roll about the boresight and a slewing offset, as the real crops are taken.
+            angle = float(rng.uniform(0.0, 360.0)) if self.rotation == "any" else 90.0 * int(rng.integers(4))
+            du, dv = rng.uniform(-self.offset_frac, self.offset_frac, size=2) * y.shape[-1]
+            y = apply_support(rotate_crop(y, angle, (float(du), float(dv))), self.pp)
         elif self.augment:
             y = apply_support(np.ascontiguousarray(np.rot90(y, int(rng.integers(4)))), self.pp)
         else:
@@ -648,6 +660,7 @@ def build_datasets(
         augment=bool(tcfg.get("augment", True)),
         diameters_m=diameters,
         rotation=str(tcfg.get("augment_rotation", "right_angles")),
+        offset_frac=float(tcfg.get("augment_offset_frac", 0.0)),
     )
     val_ds = SyntheticCropDataset(
         cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False, diameters_m=diameters

@@ -244,10 +244,21 @@ def apply_support(y: np.ndarray, pp: PreprocessConfig = PreprocessConfig()) -> n
     return (y * _disc(y.shape[-1])).astype(np.float32, copy=False)
 
 
-def rotate_crop(y: np.ndarray, angle_deg: float) -> np.ndarray:
-    """``y`` turned by ``angle_deg`` about its centre (bilinear; what leaves the square is dropped, what
-    enters it is 0). Used on disc-support crops, whose content any rotation keeps inside the box."""
-    return ndimage.rotate(y, float(angle_deg), reshape=False, order=1, mode="constant", cval=0.0).astype(np.float32)
+def rotate_crop(y: np.ndarray, angle_deg: float, shift_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """``y`` turned by ``angle_deg`` about its centre and moved by ``shift_px`` (du right, dv down), in
+    one bilinear resampling; what leaves the square is dropped, what enters it is 0. Used on
+    disc-support crops, whose content any rotation keeps inside the box (a shift brings in a thin
+    crescent of 0 at the disc's edge)."""
+    y = np.asarray(y, dtype=np.float32)
+    if shift_px == (0.0, 0.0):
+        return ndimage.rotate(y, float(angle_deg), reshape=False, order=1, mode="constant", cval=0.0).astype(np.float32)
+    a = math.radians(float(angle_deg))
+    # Output (row, col) -> input: rotate about the centre (as ndimage.rotate does) after undoing the shift.
+    m = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
+    c = (np.array(y.shape, dtype=np.float64) - 1.0) / 2.0
+    d = np.array([shift_px[1], shift_px[0]], dtype=np.float64)
+    offset = c - m @ (c + d)
+    return ndimage.affine_transform(y, m, offset=offset, order=1, mode="constant", cval=0.0).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------------
