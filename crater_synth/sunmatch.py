@@ -78,10 +78,8 @@ def real_in_render_frame(mosaic, lat: np.ndarray, lon: np.ndarray) -> np.ndarray
     """The real map-projected mosaic sampled (bilinear) at the given ground points."""
     from scipy.ndimage import map_coordinates
 
-    x, y = geometry.south_polar_stereo_forward(lat, lon, mosaic.radius_m)
-    u = (np.asarray(x) + mosaic.extent_m) / mosaic.pixel_m - 0.5  # pixel centres at +0.5
-    v = (mosaic.extent_m - np.asarray(y)) / mosaic.pixel_m - 0.5
-    return map_coordinates(mosaic.image.astype(np.float32), [v, u], order=1, mode="nearest")
+    u, v = mosaic.latlon_to_uv(lat, lon)  # corner origin; map_coordinates indexes pixel centres
+    return map_coordinates(mosaic.image.astype(np.float32), [v - 0.5, u - 0.5], order=1, mode="nearest")
 
 
 def lit_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -103,8 +101,10 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
     valid = np.isfinite(depth) & (depth > 0)
     lat, lon = ground_latlon(rows[0], np.where(valid, depth, rows[0]["range_m"]), crater)
     real = real_in_render_frame(mosaic, lat, lon)
-    real_lit = (normalize(real, pp) > 0) & valid
-    renders = [normalize(read_channel(dataset_dir / r["path"]), pp) for r in rows]
+    real_norm = normalize(real, pp)
+    real_lit = (real_norm > 0) & valid
+    radiance = [read_channel(dataset_dir / r["path"]) for r in rows]  # I/F, each EXR read once
+    renders = [normalize(x, pp) for x in radiance]
     lit = np.stack([(y > 0) & valid for y in renders]).reshape(len(rows), -1)
     iou = lit_iou(lit, real_lit.ravel())
     best = int(np.argmax(iou))
@@ -129,11 +129,11 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
         "median_iou": float(np.median(iou)),
         "best_iou_on_coarse_grid": float(iou[coarse].max()) if coarse else None,
         "iou_by_azimuth_step": steps,
-        "_images": (normalize(real, pp), renders[best]),
+        "_images": (real_norm, renders[best]),
         "_frames": {
             "real": real,
-            "best": read_channel(dataset_dir / rows[best]["path"]),
-            "grid60": read_channel(dataset_dir / rows[coarse[int(np.argmax(iou[coarse]))]]["path"]) if coarse else None,
+            "best": radiance[best],
+            "grid60": radiance[coarse[int(np.argmax(iou[coarse]))]] if coarse else None,
             "rim": rows[0]["rim_ellipse"],
         },
     }

@@ -513,12 +513,10 @@ class SyntheticCropDataset(Dataset):
             # A camera roll about the boresight and a slewing offset, as the real crops are taken.
             angle = float(rng.uniform(0.0, 360.0)) if self.rotation == "any" else 90.0 * int(rng.integers(4))
             du, dv = rng.uniform(-self.offset_frac, self.offset_frac, size=2) * y.shape[-1]
-            y = apply_support(rotate_crop(y, angle, (float(du), float(dv))), self.pp)
-        elif self.augment:
-            y = apply_support(np.ascontiguousarray(np.rot90(y, int(rng.integers(4)))), self.pp)
-        else:
-            y = apply_support(y, self.pp)
-        return y
+            y = rotate_crop(y, angle, (float(du), float(dv)))
+        elif self.augment:  # exact right angles, as before the roll and slewing options existed
+            y = np.ascontiguousarray(np.rot90(y, int(rng.integers(4))))
+        return apply_support(y, self.pp)
 
     def __getitem__(self, i: int):
         return torch.from_numpy(self.image(i)[None]), int(self.labels[i])

@@ -250,8 +250,6 @@ def rotate_crop(y: np.ndarray, angle_deg: float, shift_px: tuple[float, float] =
     disc-support crops, whose content any rotation keeps inside the box (a shift brings in a thin
     crescent of 0 at the disc's edge)."""
     y = np.asarray(y, dtype=np.float32)
-    if shift_px == (0.0, 0.0):
-        return ndimage.rotate(y, float(angle_deg), reshape=False, order=1, mode="constant", cval=0.0).astype(np.float32)
     a = math.radians(float(angle_deg))
     # Output (row, col) -> input: rotate about the centre (as ndimage.rotate does) after undoing the shift.
     m = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])

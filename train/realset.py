@@ -61,12 +61,15 @@ class Mosaic:
     pixel_m: float
     radius_m: float
 
-    def latlon_to_uv(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+    def latlon_to_uv(self, lat_deg, lon_deg):
+        """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
+        arrays (the same formula for both)."""
         from crater_core.geometry import south_polar_stereo_forward
 
         x, y = south_polar_stereo_forward(lat_deg, lon_deg, self.radius_m)
-        x, y = float(x), float(y)
-        return (x + self.extent_m) / self.pixel_m, (self.extent_m - y) / self.pixel_m
+        u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
+        v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
+        return (float(u), float(v)) if np.ndim(u) == 0 else (u, v)
 
 
 def load_mosaic(rs_cfg: Mapping) -> Mosaic:
