@@ -144,6 +144,7 @@ class TrainSettings(_Group):
     augment: bool
     augment_rotation: str = "right_angles"  # right_angles | any (any needs preprocess.support=disc)
     augment_offset_frac: float = 0.0  # slewing: random shift up to this fraction of the side per axis
+    tta_rotations: int = 1  # real crops: scores averaged over this many rolls, 360/n apart (>1 needs disc)
     progress: bool
     preprocess: PreprocessSettings
     svm: SvmSettings
@@ -189,6 +190,13 @@ class TrainSettings(_Group):
             "augment_offset_frac",
             self.augment_offset_frac,
             "needs train.preprocess.support=disc (a shifted square crop has an empty strip)",
+        )
+        _need(self.tta_rotations >= 1, "tta_rotations", self.tta_rotations, "must be >= 1 (1 = no roll averaging)")
+        _need(
+            self.tta_rotations == 1 or self.preprocess.support == "disc",
+            "tta_rotations",
+            self.tta_rotations,
+            "needs train.preprocess.support=disc (a square crop turned by any angle has empty corners)",
         )
         _need(
             self.augment_rotation != "any" or self.preprocess.support == "disc",

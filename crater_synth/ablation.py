@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 from typing import Sequence
 
@@ -65,7 +66,7 @@ def plan_variants(acfg: dict) -> list[dict]:
 
 def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
     """Run the validation protocol for every variant; returns (and writes) the results."""
-    from crater_synth.validate import run_validation
+    from crater_synth.validate import evaluation_only, run_validation
 
     overrides = list(overrides)
     base = resolved(compose(overrides))
@@ -85,6 +86,8 @@ def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
             f"out_dir={Path(str(base['data_dir'])) / 'synth' / ('ablate-' + key)}",
             f"validate.out_dir={out / slug}",
         ]
+        if var["lever"] and evaluation_only(var["overrides"]):
+            _seed_from_baseline(out / "baseline", out / slug)  # same models, evaluated again: no training
         if progress:
             click.echo(f"ablation: {var['name']} (renders {key})", err=True)
         res = run_validation(ovr, progress=progress)
@@ -103,6 +106,20 @@ def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
         )
         _write(out, results, acfg, budget, overrides)
     return _write(out, results, acfg, budget, overrides)
+
+
+def _seed_from_baseline(src: Path, dst: Path) -> None:
+    """Copy the baseline's finished runs (models and validation.json) into a variant that changes only
+    evaluation settings, so the protocol evaluates them again instead of retraining them. A variant
+    directory that exists already is left as it is (its own runs resume)."""
+    from crater_synth.validate import RESULTS_FILE as VALIDATION_FILE
+
+    if dst.exists() or not (src / VALIDATION_FILE).is_file():
+        return
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    tmp.rename(dst)
 
 
 def table_markdown(results: list[dict], budget: list[str]) -> str:

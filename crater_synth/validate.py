@@ -114,12 +114,19 @@ def catalogue_names() -> list[str]:
 NEUTRAL_LATER_KEYS = {
     ("train", "augment_rotation"): "right_angles",
     ("train", "augment_offset_frac"): 0.0,
+    ("train", "tta_rotations"): 1,
     ("train", "preprocess", "support"): "square",
 }
 
 
-def run_fingerprint(cfg_resolved: dict) -> str:
-    """What decides a run's result: everything but paths, progress and the validate group itself."""
+# Settings that change how finished models are evaluated on the real crops, not how they are trained:
+# a run that differs from a finished one only in these is re-evaluated, not retrained.
+EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)
+
+
+def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
+    """What decides a run's result: everything but paths, progress and the validate group itself.
+    ``training_only``: what decides its trained models (the evaluation-only keys left out too)."""
     skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir"}
     payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
     payload["train"] = {
@@ -128,13 +135,26 @@ def run_fingerprint(cfg_resolved: dict) -> str:
         if k not in ("progress", "dataset_dir", "cache_dir", "cache_workers", "num_threads", "device")
     }
     payload = json.loads(json.dumps(payload, default=str))  # a deep copy to prune
-    for path, neutral in NEUTRAL_LATER_KEYS.items():
+    drop = dict(NEUTRAL_LATER_KEYS)
+    for path in EVALUATION_ONLY_KEYS if training_only else ():
+        drop[path] = _ANY
+    for path, neutral in drop.items():
         parent = payload
         for key in path[:-1]:
             parent = parent.get(key) if isinstance(parent, dict) else None
-        if isinstance(parent, dict) and parent.get(path[-1]) == neutral:
+        if isinstance(parent, dict) and path[-1] in parent and (neutral is _ANY or parent[path[-1]] == neutral):
             del parent[path[-1]]
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+_ANY = object()  # run_fingerprint: drop the key whatever its value
+
+
+def evaluation_only(overrides: Sequence[str]) -> bool:
+    """True when every override sets an evaluation-only key (``EVALUATION_ONLY_KEYS``): such a variant
+    of a finished protocol run needs no training, only a new evaluation of the same models."""
+    keys = [tuple(o.lstrip("+~").split("=", 1)[0].split(".")) for o in overrides]
+    return bool(keys) and all(k in EVALUATION_ONLY_KEYS for k in keys)
 
 
 def _check_overrides(overrides: Sequence[str]) -> None:
@@ -150,7 +170,7 @@ def _check_overrides(overrides: Sequence[str]) -> None:
 def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
     """Render, train and evaluate every (group, seed); returns the results dict (also written)."""
     from crater_synth.dataset import build_dataset
-    from train.pipeline import train_and_evaluate
+    from train.pipeline import evaluate_saved, train_and_evaluate
 
     overrides = list(overrides)
     _check_overrides(overrides)
@@ -177,6 +197,18 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
             if old is not None and old.get("fingerprint") == fp:
                 runs.append(old)
                 continue
+            tfp = run_fingerprint(cfg_r, training_only=True)
+            if old is not None and old.get("training_fingerprint") == tfp and _has_models(run_dir):
+                if progress:
+                    click.echo(f"validate: {g.label} seed {seed}: same training, evaluating again", err=True)
+                t1 = time.perf_counter()
+                metrics = evaluate_saved(cfg_r, progress=progress)
+                run = _run_record(g, seed, fp, tfp, metrics, old["renders"], old["render_s"], old["train_s"], run_dir)
+                run["evaluate_only_s"] = round(time.perf_counter() - t1, 1)
+                runs.append(run)
+                done[(g.label, seed)] = run
+                _write(out, runs, base, groups, seeds)
+                continue
             if not rendered:
                 if progress:
                     click.echo(f"validate: rendering {g.label} ({', '.join(g.craters)})", err=True)
@@ -186,32 +218,48 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
                 rendered = True
             t1 = time.perf_counter()
             metrics = train_and_evaluate(cfg_r, progress=progress)
-            run = {
-                "group": g.label,
-                "role": g.role,
-                "craters": list(g.craters),
-                "seed": seed,
-                "fingerprint": fp,
-                "train_images": int(metrics["train_images"]),
-                "renders": int(render["renders_total"]),
-                "render_s": round(render_s, 1),
-                "train_s": round(time.perf_counter() - t1, 1),
-                "models": {
-                    m: {
-                        "real_accuracy": float(metrics[m]["real_accuracy"]),
-                        "val_accuracy": metrics[m].get("val_accuracy"),
-                        "per_crater": {k: float(v) for k, v in metrics[m]["per_crater"].items()},
-                        "confusion": metrics[m]["confusion"],
-                    }
-                    for m in REPORTED_MODELS
-                },
-                "run_dir": str(run_dir),
-            }
+            run = _run_record(
+                g, seed, fp, tfp, metrics, int(render["renders_total"]), render_s, time.perf_counter() - t1, run_dir
+            )
             runs.append(run)
             done[(g.label, seed)] = run
             _write(out, runs, base, groups, seeds)
             render_s = 0.0
     return _write(out, runs, base, groups, seeds)
+
+
+def _has_models(run_dir: Path) -> bool:
+    from train.trainer import HOG_FILE, NET_FILE, SVM_FILE
+
+    return all((run_dir / f).is_file() for f in (NET_FILE, SVM_FILE, HOG_FILE))
+
+
+def _run_record(
+    g: Group, seed: int, fp: str, tfp: str, metrics: dict, renders: int, render_s: float, train_s: float, run_dir: Path
+) -> dict:
+    """One (group, seed) entry of validation.json."""
+    return {
+        "group": g.label,
+        "role": g.role,
+        "craters": list(g.craters),
+        "seed": seed,
+        "fingerprint": fp,
+        "training_fingerprint": tfp,
+        "train_images": int(metrics["train_images"]),
+        "renders": int(renders),
+        "render_s": round(render_s, 1),
+        "train_s": round(train_s, 1),
+        "models": {
+            m: {
+                "real_accuracy": float(metrics[m]["real_accuracy"]),
+                "val_accuracy": metrics[m].get("val_accuracy"),
+                "per_crater": {k: float(v) for k, v in metrics[m]["per_crater"].items()},
+                "confusion": metrics[m]["confusion"],
+            }
+            for m in REPORTED_MODELS
+        },
+        "run_dir": str(run_dir),
+    }
 
 
 def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:

@@ -49,3 +49,24 @@ def test_generated_table_replaces_only_the_marked_section(tmp_path):
     doc.write_text("no markers")
     with pytest.raises(ConfigError, match="markers"):
         ab._write(tmp_path, results, {"docs_file": str(doc)}, [])
+
+
+def test_an_evaluation_only_lever_starts_from_the_baselines_models(tmp_path):
+    """A lever that changes only evaluation settings (train.tta_rotations) gets a copy of the baseline's
+    finished runs, which the protocol then evaluates again instead of training; a variant that already
+    has runs keeps them."""
+    from crater_synth.validate import RESULTS_FILE, evaluation_only
+
+    assert evaluation_only(["train.tta_rotations=1"]) and not evaluation_only(["train.augment_offset_frac=0.0"])
+    src = tmp_path / "baseline"
+    (src / "g" / "seed0").mkdir(parents=True)
+    (src / "g" / "seed0" / "lunarnet_ex.pt").write_bytes(b"model")
+    ab._seed_from_baseline(src, tmp_path / "early")  # no finished baseline yet: nothing to copy
+    assert not (tmp_path / "early").exists()
+    (src / RESULTS_FILE).write_text("{}")
+    ab._seed_from_baseline(src, tmp_path / "roll_averaging")
+    assert (tmp_path / "roll_averaging" / "g" / "seed0" / "lunarnet_ex.pt").read_bytes() == b"model"
+    (src / "g" / "seed0" / "lunarnet_ex.pt").write_bytes(b"retrained")
+    ab._seed_from_baseline(src, tmp_path / "roll_averaging")
+    assert (tmp_path / "roll_averaging" / "g" / "seed0" / "lunarnet_ex.pt").read_bytes() == b"model"
+    assert not list(tmp_path.glob(".*.tmp"))

@@ -8,11 +8,13 @@ finished runs are not redone.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
 from crater_synth import validate as v
 from crater_synth.config import ConfigError
+from train.trainer import HOG_FILE, NET_FILE, SVM_FILE
 
 CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "t1", "t2", "t3"]
 
@@ -53,9 +55,17 @@ def scripted(monkeypatch, tmp_path):
 
     def fake_train(cfg, progress=None):
         names = [e["name"] for e in cfg["crater"].values()]
+        calls.append((tuple(names), cfg["train"]["seed"]))
+        run_dir = Path(cfg["run_dir"])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        for f in (NET_FILE, SVM_FILE, HOG_FILE):  # the saved models, as train_all writes them
+            (run_dir / f).write_bytes(b"model")
+        return fake_evaluate(cfg)
+
+    def fake_evaluate(cfg, progress=None):
+        names = [e["name"] for e in cfg["crater"].values()]
         seed = cfg["train"]["seed"]
-        calls.append((tuple(names), seed))
-        per = {n: scripted.acc[n] + 0.01 * seed for n in names}
+        per = {n: scripted.acc[n] + 0.01 * seed + 0.1 * (cfg["train"].get("tta_rotations", 1) > 1) for n in names}
         mean = sum(per.values()) / len(per)
         return {
             "train_images": 100,
@@ -70,6 +80,7 @@ def scripted(monkeypatch, tmp_path):
 
     monkeypatch.setattr(crater_synth.dataset, "build_dataset", fake_build)
     monkeypatch.setattr(train.pipeline, "train_and_evaluate", fake_train)
+    monkeypatch.setattr(train.pipeline, "evaluate_saved", fake_evaluate)
     monkeypatch.setattr(v, "catalogue_names", lambda: CATALOGUE)
     # Hydra needs real crater configs: give the protocol plain entries for the scripted names.
     from crater_synth import config as config_mod
@@ -125,6 +136,28 @@ def test_protocol_trains_every_group_and_seed_and_reports_test_apart(scripted, t
     assert len(scripted.calls) == 6
     v.run_validation(scripted.overrides + ["train.lr=0.002"], progress=False)
     assert len(scripted.calls) == 12
+
+
+def test_an_evaluation_only_change_evaluates_the_saved_models_again(scripted, tmp_path):
+    """Changing only how the models are evaluated (train.tta_rotations) re-evaluates every finished run
+    without training it again; the numbers are the new evaluation's."""
+    base = scripted.overrides + ["train=sim2real"]
+    first = v.run_validation(base, progress=False)
+    assert len(scripted.calls) == 6
+    again = v.run_validation(base + ["train.tta_rotations=8"], progress=False)
+    assert len(scripted.calls) == 6  # nothing trained again
+    assert again["summary"]["validation_mean"]["lunarnet_ex"] == pytest.approx(
+        first["summary"]["validation_mean"]["lunarnet_ex"] + 0.1
+    )
+    assert all("evaluate_only_s" in r for r in again["runs"])
+    assert {r["training_fingerprint"] for r in again["runs"]} == {r["training_fingerprint"] for r in first["runs"]}
+    assert {r["fingerprint"] for r in again["runs"]}.isdisjoint({r["fingerprint"] for r in first["runs"]})
+    # Without the saved models there is nothing to evaluate: the run trains again.
+    (tmp_path / "val" / "validation1-a1+a2+a3" / "seed0" / NET_FILE).unlink()
+    v.run_validation(base, progress=False)
+    assert len(scripted.calls) == 7
+    assert v.evaluation_only(["train.tta_rotations=1"]) and not v.evaluation_only(["train.tta_rotations=1", "seed=2"])
+    assert not v.evaluation_only([])
 
 
 def test_protocol_refuses_overrides_it_owns(scripted):

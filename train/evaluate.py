@@ -77,6 +77,42 @@ def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
     return out
 
 
+def _svm_scores(model, X: np.ndarray) -> np.ndarray:
+    """(N, classes) decision values of a scikit-learn linear classifier; ``model.predict`` is
+    ``classes_[argmax]`` of them (a binary one's single column d becomes [-d, d])."""
+    d = np.asarray(model.decision_function(X), dtype=np.float64)
+    return np.stack([-d, d], axis=1) if d.ndim == 1 else d
+
+
+def roll_averaged_predictions(
+    net, svm_model, hog_model, hog_cfg: Mapping, images: np.ndarray, rolls: int, batch_size: int, device
+) -> dict[str, np.ndarray]:
+    """Each model's predicted class (index into the class names) for every real crop.
+
+    The camera's roll about its boresight is unknown in a real image, so with ``rolls`` > 1 each
+    model's scores (LunarNet_ex: softmax probabilities; the SVMs: decision values) are averaged over
+    the crop turned by ``360 / rolls`` degree steps before the arg-max (test-time averaging over roll;
+    disc-support crops only, which any turn keeps inside the box). ``rolls == 1`` is the plain
+    prediction of each model."""
+    from train.models import hog_features
+    from train.preprocess import rotate_crop
+
+    scores: dict[str, np.ndarray | float] = dict.fromkeys(MODELS, 0.0)
+    for k in range(int(rolls)):
+        x = images if k == 0 else rotate_crop(images, 360.0 * k / rolls)
+        logits = predict_logits(net, x, batch_size, device).astype(np.float64)
+        p = np.exp(logits - logits.max(axis=1, keepdims=True))
+        fc1 = fc1_activations(net, x, batch_size, device)
+        scores["lunarnet_ex"] = scores["lunarnet_ex"] + p / p.sum(axis=1, keepdims=True)
+        scores["lunarsvm_ex"] = scores["lunarsvm_ex"] + _svm_scores(svm_model, fc1)
+        scores["hog_svm"] = scores["hog_svm"] + _svm_scores(hog_model, hog_features(x, hog_cfg))
+    return {
+        "lunarnet_ex": np.asarray(scores["lunarnet_ex"]).argmax(axis=1),
+        "lunarsvm_ex": np.asarray(svm_model.classes_)[np.asarray(scores["lunarsvm_ex"]).argmax(axis=1)],
+        "hog_svm": np.asarray(hog_model.classes_)[np.asarray(scores["hog_svm"]).argmax(axis=1)],
+    }
+
+
 def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test: RealTestSet | None = None) -> dict:
     """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics files."""
     run_dir = Path(run_dir)
@@ -100,13 +136,15 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
         pp = PreprocessConfig(**ck["preprocess"]) if ck.get("preprocess") else None
         test = build_real_test_set(cfg, _craters_for(cfg, class_names), class_names, pp)
     ebs = int(cfg["train"].get("eval_batch_size", 256))
-    from train.models import hog_features
-
-    preds = {  # one entry per model of train.registry
-        "lunarnet_ex": predict_logits(net, test.images, ebs, device).argmax(1),
-        "lunarsvm_ex": svm["model"].predict(fc1_activations(net, test.images, ebs, device)),
-        "hog_svm": hog["model"].predict(hog_features(test.images, hog.get("hog") or cfg["train"].get("hog", {}))),
-    }
+    rolls = int(cfg["train"].get("tta_rotations", 1))
+    if rolls > 1 and (ck.get("preprocess") or {}).get("support", "square") != "disc":
+        raise ModelError(
+            f"train.tta_rotations={rolls}: the models in {run_dir} were trained on square crops; roll averaging "
+            "needs disc-support crops (train.preprocess.support=disc), which any turn keeps inside the box"
+        )
+    preds = roll_averaged_predictions(
+        net, svm["model"], hog["model"], hog.get("hog") or cfg["train"].get("hog", {}), test.images, rolls, ebs, device
+    )
     vals = {
         "lunarnet_ex": ck.get("val_accuracy"),
         "lunarsvm_ex": svm.get("val_accuracy"),
@@ -134,6 +172,7 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
             "limits": LIMITS_NOTE
             if any(c.kind == "embedded" for c in test.crops)
             else "Real test frames from the labels file only; see realset.jsonl for their sources.",
+            "tta_rotations": rolls,
             "evaluate_seconds": time.perf_counter() - t0,
         }
     )

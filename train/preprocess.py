@@ -248,15 +248,22 @@ def rotate_crop(y: np.ndarray, angle_deg: float, shift_px: tuple[float, float] =
     """``y`` turned by ``angle_deg`` about its centre and moved by ``shift_px`` (du right, dv down), in
     one bilinear resampling; what leaves the square is dropped, what enters it is 0. Used on
     disc-support crops, whose content any rotation keeps inside the box (a shift brings in a thin
-    crescent of 0 at the disc's edge)."""
+    crescent of 0 at the disc's edge). ``y`` is one (H, W) crop or a stack (..., H, W), each turned
+    the same way in one call."""
     y = np.asarray(y, dtype=np.float32)
     a = math.radians(float(angle_deg))
     # Output (row, col) -> input: rotate about the centre (as ndimage.rotate does) after undoing the shift.
     m = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
-    c = (np.array(y.shape, dtype=np.float64) - 1.0) / 2.0
+    c = (np.array(y.shape[-2:], dtype=np.float64) - 1.0) / 2.0
     d = np.array([shift_px[1], shift_px[0]], dtype=np.float64)
     offset = c - m @ (c + d)
-    return ndimage.affine_transform(y, m, offset=offset, order=1, mode="constant", cval=0.0).astype(np.float32)
+    if y.ndim == 2:
+        return ndimage.affine_transform(y, m, offset=offset, order=1, mode="constant", cval=0.0).astype(np.float32)
+    stack = y.reshape((-1,) + y.shape[-2:])
+    m3 = np.eye(3)
+    m3[1:, 1:] = m  # the stack axis maps onto itself
+    out = ndimage.affine_transform(stack, m3, offset=np.r_[0.0, offset], order=1, mode="constant", cval=0.0)
+    return out.astype(np.float32).reshape(y.shape)
 
 
 # ------------------------------------------------------------------------------------------------
