@@ -198,7 +198,7 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
                 runs.append(old)
                 continue
             tfp = run_fingerprint(cfg_r, training_only=True)
-            if old is not None and old.get("training_fingerprint") == tfp and _has_models(run_dir):
+            if old is not None and _same_training(old, cfg_r, tfp) and _has_models(run_dir):
                 if progress:
                     click.echo(f"validate: {g.label} seed {seed}: same training, evaluating again", err=True)
                 t1 = time.perf_counter()
@@ -226,6 +226,21 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
             _write(out, runs, base, groups, seeds)
             render_s = 0.0
     return _write(out, runs, base, groups, seeds)
+
+
+def _same_training(old: dict, cfg_resolved: dict, tfp: str) -> bool:
+    """Were ``old``'s models trained exactly as ``cfg_resolved`` would train them? A record written before
+    ``training_fingerprint`` existed was fingerprinted with every evaluation-only key at its neutral
+    value, so it is compared as if those keys were there."""
+    if "training_fingerprint" in old:
+        return old["training_fingerprint"] == tfp
+    neutral = json.loads(json.dumps(cfg_resolved, default=str))
+    for path in EVALUATION_ONLY_KEYS:
+        parent = neutral
+        for key in path[:-1]:
+            parent = parent.setdefault(key, {})
+        parent[path[-1]] = NEUTRAL_LATER_KEYS[path]
+    return old.get("fingerprint") == run_fingerprint(neutral)
 
 
 def _has_models(run_dir: Path) -> bool:

@@ -152,6 +152,15 @@ def test_an_evaluation_only_change_evaluates_the_saved_models_again(scripted, tm
     assert all("evaluate_only_s" in r for r in again["runs"])
     assert {r["training_fingerprint"] for r in again["runs"]} == {r["training_fingerprint"] for r in first["runs"]}
     assert {r["fingerprint"] for r in again["runs"]}.isdisjoint({r["fingerprint"] for r in first["runs"]})
+    # Records written before training fingerprints existed (tta_rotations at its neutral 1) are
+    # re-evaluated the same way.
+    v.run_validation(base, progress=False)
+    saved = json.loads((tmp_path / "val" / v.RESULTS_FILE).read_text())
+    for r in saved["runs"]:
+        del r["training_fingerprint"]
+    (tmp_path / "val" / v.RESULTS_FILE).write_text(json.dumps(saved))
+    v.run_validation(base + ["train.tta_rotations=4"], progress=False)
+    assert len(scripted.calls) == 6
     # Without the saved models there is nothing to evaluate: the run trains again.
     (tmp_path / "val" / "validation1-a1+a2+a3" / "seed0" / NET_FILE).unlink()
     v.run_validation(base, progress=False)
