@@ -122,6 +122,7 @@ NEUTRAL_LATER_KEYS = {
 # Settings that change how finished models are evaluated on the real crops, not how they are trained:
 # a run that differs from a finished one only in these is re-evaluated, not retrained.
 EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)
+_ANY = object()  # run_fingerprint: drop the key whatever its value
 
 
 def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
@@ -145,9 +146,6 @@ def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
         if isinstance(parent, dict) and path[-1] in parent and (neutral is _ANY or parent[path[-1]] == neutral):
             del parent[path[-1]]
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-_ANY = object()  # run_fingerprint: drop the key whatever its value
 
 
 def evaluation_only(overrides: Sequence[str]) -> bool:
