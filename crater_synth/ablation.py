@@ -41,27 +41,29 @@ def render_key(cfg_resolved: dict) -> str:
 
 
 def plan_variants(acfg: dict) -> list[dict]:
-    """[{name, overrides}]: the baseline (all levers on), one variant per lever turned off, and (with more
-    than one lever) every lever off at once, the reference the levers are measured against."""
+    """[{name, overrides}]: the baseline (all levers on), then (with more than one lever) every lever off
+    at once, the reference the levers are measured against, then one variant per lever turned off, in
+    the configured order (a stopped ablation has its two reference rows first)."""
     levers = acfg.get("levers") or {}
     if not levers:
         raise ConfigError("ablation.levers is empty: nothing to ablate")
-    variants = [{"name": "all levers on", "lever": None, "overrides": []}]
+    singles = []
     for name, spec in levers.items():
         off = list((spec or {}).get("when_off") or [])
         if not off:
             raise ConfigError(f"ablation.levers.{name}.when_off: give the overrides that turn the lever off")
-        variants.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""), "overrides": off})
-    if len(levers) > 1:  # the reference: every lever off at once (the configuration before the levers)
+        singles.append({"name": f"{name} off", "lever": name, "why": (spec or {}).get("why", ""), "overrides": off})
+    variants = [{"name": "all levers on", "lever": None, "overrides": []}]
+    if len(singles) > 1:  # the reference: every lever off at once (the configuration before the levers)
         variants.append(
             {
                 "name": "all levers off",
                 "lever": "all",
                 "why": "every lever off: the reference",
-                "overrides": [o for v in variants[1:] for o in v["overrides"]],
+                "overrides": [o for v in singles for o in v["overrides"]],
             }
         )
-    return variants
+    return variants + singles
 
 
 def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:

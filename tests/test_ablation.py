@@ -8,12 +8,12 @@ from crater_synth import ablation as ab
 from crater_synth.config import ConfigError, compose, resolved
 
 
-def test_variants_are_the_baseline_then_one_lever_off_each():
+def test_variants_are_the_baseline_the_reference_then_one_lever_off_each():
     acfg = {"levers": {"a": {"when_off": ["x=1"], "why": "physics"}, "b": {"when_off": ["y=2", "z=3"]}}}
     v = ab.plan_variants(acfg)
-    assert [x["name"] for x in v] == ["all levers on", "a off", "b off", "all levers off"]
-    assert v[0]["overrides"] == [] and v[2]["overrides"] == ["y=2", "z=3"]
-    assert v[3]["overrides"] == v[1]["overrides"] + v[2]["overrides"]
+    assert [x["name"] for x in v] == ["all levers on", "all levers off", "a off", "b off"]
+    assert v[0]["overrides"] == [] and v[3]["overrides"] == ["y=2", "z=3"]
+    assert v[1]["overrides"] == v[2]["overrides"] + v[3]["overrides"]
     assert [x["name"] for x in ab.plan_variants({"levers": {"a": {"when_off": ["x=1"]}}})] == ["all levers on", "a off"]
     with pytest.raises(ConfigError, match="empty"):
         ab.plan_variants({"levers": {}})
