@@ -90,9 +90,10 @@ ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/of
 
 DEMO_DIR ?= outputs/demo
 DEMO_TRAIN ?= sim2real
-demo: setup ## The main job on the embedded data: render sweep=demo_physical, closed loop, evaluate, report
-	$(CLI) loop sweep=demo_physical train=$(DEMO_TRAIN) run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
-	$(CLI) report $(DEMO_DIR) sweep=demo_physical train=$(DEMO_TRAIN) $(OVERRIDES)
+DEMO_SWEEP ?= demo_physical_noon
+demo: setup ## The main job on the embedded data: render sweep=demo_physical_noon (DEMO_SWEEP), closed loop, evaluate, report
+	$(CLI) loop sweep=$(DEMO_SWEEP) train=$(DEMO_TRAIN) run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
+	$(CLI) report $(DEMO_DIR) sweep=$(DEMO_SWEEP) train=$(DEMO_TRAIN) $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
