@@ -141,7 +141,7 @@ def test_protocol_trains_every_group_and_seed_and_reports_test_apart(scripted, t
 def test_an_evaluation_only_change_evaluates_the_saved_models_again(scripted, tmp_path):
     """Changing only how the models are evaluated (train.tta_rotations) re-evaluates every finished run
     without training it again; the numbers are the new evaluation's."""
-    base = scripted.overrides + ["train=sim2real"]
+    base = scripted.overrides + ["train=sim2real", "train.tta_rotations=1"]
     first = v.run_validation(base, progress=False)
     assert len(scripted.calls) == 6
     again = v.run_validation(base + ["train.tta_rotations=8"], progress=False)

@@ -97,6 +97,12 @@ def roll_averaged_predictions(
     from train.models import hog_features
     from train.preprocess import rotate_crop
 
+    if int(rolls) == 1:
+        return {
+            "lunarnet_ex": predict_logits(net, images, batch_size, device).argmax(1),
+            "lunarsvm_ex": svm_model.predict(fc1_activations(net, images, batch_size, device)),
+            "hog_svm": hog_model.predict(hog_features(images, hog_cfg)),
+        }
     scores: dict[str, np.ndarray | float] = dict.fromkeys(MODELS, 0.0)
     for k in range(int(rolls)):
         x = images if k == 0 else rotate_crop(images, 360.0 * k / rolls)
