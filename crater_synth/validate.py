@@ -121,7 +121,7 @@ NEUTRAL_LATER_KEYS = {
 
 # Settings that change how finished models are evaluated on the real crops, not how they are trained:
 # a run that differs from a finished one only in these is re-evaluated, not retrained.
-EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)
+EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)  # each also in NEUTRAL_LATER_KEYS (see _same_training)
 _ANY = object()  # run_fingerprint: drop the key whatever its value
 
 
@@ -196,49 +196,39 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
                 runs.append(old)
                 continue
             tfp = run_fingerprint(cfg_r, training_only=True)
-            if old is not None and _same_training(old, cfg_r, tfp) and _has_models(run_dir):
+            if old is not None and _same_training(old, tfp) and _has_models(run_dir):
                 if progress:
                     click.echo(f"validate: {g.label} seed {seed}: same training, evaluating again", err=True)
                 t1 = time.perf_counter()
                 metrics = evaluate_saved(cfg_r, progress=progress)
                 run = _run_record(g, seed, fp, tfp, metrics, old["renders"], old["render_s"], old["train_s"], run_dir)
                 run["evaluate_only_s"] = round(time.perf_counter() - t1, 1)
-                runs.append(run)
-                done[(g.label, seed)] = run
-                _write(out, runs, base, groups, seeds)
-                continue
-            if not rendered:
-                if progress:
-                    click.echo(f"validate: rendering {g.label} ({', '.join(g.craters)})", err=True)
-                t0 = time.perf_counter()
-                render = build_dataset(cfg, progress=progress)
-                render_s = time.perf_counter() - t0
-                rendered = True
-            t1 = time.perf_counter()
-            metrics = train_and_evaluate(cfg_r, progress=progress)
-            run = _run_record(
-                g, seed, fp, tfp, metrics, int(render["renders_total"]), render_s, time.perf_counter() - t1, run_dir
-            )
+            else:
+                if not rendered:
+                    if progress:
+                        click.echo(f"validate: rendering {g.label} ({', '.join(g.craters)})", err=True)
+                    t0 = time.perf_counter()
+                    render = build_dataset(cfg, progress=progress)
+                    render_s = time.perf_counter() - t0
+                    rendered = True
+                t1 = time.perf_counter()
+                metrics = train_and_evaluate(cfg_r, progress=progress)
+                run = _run_record(
+                    g, seed, fp, tfp, metrics, int(render["renders_total"]), render_s, time.perf_counter() - t1, run_dir
+                )
+                render_s = 0.0
             runs.append(run)
             done[(g.label, seed)] = run
             _write(out, runs, base, groups, seeds)
-            render_s = 0.0
     return _write(out, runs, base, groups, seeds)
 
 
-def _same_training(old: dict, cfg_resolved: dict, tfp: str) -> bool:
-    """Were ``old``'s models trained exactly as ``cfg_resolved`` would train them? A record written before
-    ``training_fingerprint`` existed was fingerprinted with every evaluation-only key at its neutral
-    value, so it is compared as if those keys were there."""
-    if "training_fingerprint" in old:
-        return old["training_fingerprint"] == tfp
-    neutral = json.loads(json.dumps(cfg_resolved, default=str))
-    for path in EVALUATION_ONLY_KEYS:
-        parent = neutral
-        for key in path[:-1]:
-            parent = parent.setdefault(key, {})
-        parent[path[-1]] = NEUTRAL_LATER_KEYS[path]
-    return old.get("fingerprint") == run_fingerprint(neutral)
+def _same_training(old: dict, tfp: str) -> bool:
+    """Were ``old``'s models trained exactly as the configuration with training fingerprint ``tfp``
+    would train them? A record written before ``training_fingerprint`` existed has only its
+    ``fingerprint``, which left every evaluation-only key out at its neutral value (each is also in
+    ``NEUTRAL_LATER_KEYS``), so that fingerprint is its training fingerprint."""
+    return old.get("training_fingerprint", old.get("fingerprint")) == tfp
 
 
 def _has_models(run_dir: Path) -> bool:
