@@ -13,7 +13,10 @@ one shadow definition for both domains):
 - ``per azimuth step``: how much the lit area of a render changes when the Sun's azimuth moves by
   10-90 degrees (median IoU between renders that far apart, same elevation fraction). It is the angular
   scale on which a training sweep has to sample the Sun's azimuth (docs/fidelity.md);
-- ``on the 60-degree grid``: the best overlap among the suns a 6-azimuth sweep contains.
+- ``on the 60-degree grid``: the best overlap among the suns a 6-azimuth sweep contains;
+- ``composite``: the overlap of a mosaic-like composite of 2 and 3 suns (the union of their lit areas,
+  chosen greedily from the best single sun). A real crop taken under one sun gains little from a second
+  one; a crop assembled from frames under different suns gains a lot.
 
 Writes ``sunmatch.json``, ``sunmatch.md`` and ``sunmatch.png`` (real | best render, per crater) into
 ``--out``. It looks at real images, so it is a diagnostic: settings are still chosen only by the
@@ -39,6 +42,7 @@ from crater_synth.errors import ConfigError
 
 AZIMUTH_STEPS_DEG = (10, 20, 30, 40, 60, 90)
 COARSE_AZIMUTH_STEP_DEG = 60  # the demo sweeps' 6 sun azimuths
+COMPOSITE_SUNS = (2, 3)  # composites of this many suns: does one real crop need several frames?
 
 
 def sunmatch_overrides(names: Sequence[str], azimuths: int, fractions: int) -> list[str]:
@@ -91,6 +95,21 @@ def lit_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
 
 
+def greedy_composite(lit: np.ndarray, target: np.ndarray, first: int, suns: int) -> tuple[list[int], list[float]]:
+    """A composite of ``suns`` renders that explains ``target`` (P,) best, built greedily: from render
+    ``first``, each step adds the render of ``lit`` (n, P) whose lit area raises the IoU of the union
+    most. Returns the chosen indices and the IoU after each step (the first is ``first``'s own)."""
+    chosen, union = [first], lit[first].copy()
+    ious = [float(lit_iou(union[None], target)[0])]
+    for _ in range(suns - 1):
+        iou = lit_iou(lit | union, target)
+        nxt = int(np.argmax(iou))
+        chosen.append(nxt)
+        union |= lit[nxt]
+        ious.append(float(iou[nxt]))
+    return chosen, ious
+
+
 def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) -> dict:
     """Lit-area overlap of every render of one crater with its real crop (see the module docstring)."""
     from crater_core.exr import read_channel
@@ -116,6 +135,7 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
             i, j = np.array(pairs).T
             steps[step] = float(np.median(lit_iou(lit[i], lit[j])))
     coarse = [i for i, r in enumerate(rows) if round(r["sun_azimuth"]) % COARSE_AZIMUTH_STEP_DEG == 0]
+    chosen, composite_iou = greedy_composite(lit, real_lit.ravel(), best, max(COMPOSITE_SUNS))
     r = rows[best]
     return {
         "renders": len(rows),
@@ -129,6 +149,15 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
         "median_iou": float(np.median(iou)),
         "best_iou_on_coarse_grid": float(iou[coarse].max()) if coarse else None,
         "iou_by_azimuth_step": steps,
+        "composite": [
+            {
+                "suns": n,
+                "iou": composite_iou[n - 1],
+                "azimuths_deg": [float(rows[i]["sun_azimuth"]) for i in chosen[:n]],
+                "elevations_deg": [float(rows[i]["sun_elevation"]) for i in chosen[:n]],
+            }
+            for n in COMPOSITE_SUNS
+        ],
         "_images": (real_norm, renders[best]),
         "_frames": {
             "real": real,
@@ -215,8 +244,10 @@ def table_markdown(results: dict, roles: dict) -> str:
         "| crater | role | best sun: azimuth / elevation (fraction of max) | lit IoU at best sun | "
         f"best on the {COARSE_AZIMUTH_STEP_DEG} deg grid | median over suns | "
         + " | ".join(f"IoU {s} deg apart" for s in steps)
+        + " | "
+        + " | ".join(f"{n}-sun composite (sun azimuths)" for n in COMPOSITE_SUNS)
         + " |\n|"
-        + "---|" * (6 + len(steps))
+        + "---|" * (6 + len(steps) + len(COMPOSITE_SUNS))
         + "\n"
     )
     lines = []
@@ -226,7 +257,13 @@ def table_markdown(results: dict, roles: dict) -> str:
         lines.append(
             f"| {name} | {roles.get(name, '-')} | {s['azimuth_deg']:.0f} / {s['elevation_deg']:.2f} deg "
             f"({s['fraction_of_max']:.1f}) | {r['best_iou']:.2f} | {r['best_iou_on_coarse_grid']:.2f} | "
-            f"{r['median_iou']:.2f} | " + " | ".join(f"{by[k]:.2f}" if k in by else "-" for k in steps) + " |"
+            f"{r['median_iou']:.2f} | "
+            + " | ".join(f"{by[k]:.2f}" if k in by else "-" for k in steps)
+            + " | "
+            + " | ".join(
+                f"{c['iou']:.2f} ({', '.join(f'{a:.0f}' for a in c['azimuths_deg'])})" for c in r["composite"]
+            )
+            + " |"
         )
     return head + "\n".join(lines) + "\n"
 

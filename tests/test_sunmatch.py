@@ -60,6 +60,18 @@ def test_lit_iou():
     assert sunmatch.lit_iou(np.zeros((1, 4), bool), np.zeros(4, bool))[0] == 1.0  # nothing lit in either
 
 
+def test_greedy_composite_finds_the_frames_of_a_mosaic():
+    # The target is lit where either of renders 1 and 3 is: one sun explains half of it, their union all.
+    lit = np.array([[1, 0, 0, 0, 0, 0], [1, 1, 1, 0, 0, 0], [1, 1, 0, 0, 0, 1], [0, 0, 0, 1, 1, 1]], dtype=bool)
+    target = lit[1] | lit[3]
+    chosen, ious = sunmatch.greedy_composite(lit, target, first=1, suns=3)
+    assert chosen[:2] == [1, 3]
+    np.testing.assert_allclose(ious, [0.5, 1.0, 1.0])
+    # A target that one render explains gains nothing from a second sun.
+    chosen, ious = sunmatch.greedy_composite(lit, lit[2], first=2, suns=2)
+    assert ious[0] == 1.0 and ious[1] <= 1.0 and ious == sorted(ious, reverse=True)
+
+
 @pytest.mark.parametrize("azimuths, fractions", [(7, 10), (2, 10), (36, 0)])
 def test_nonsense_grids_are_refused(azimuths, fractions):
     with pytest.raises(ConfigError):
@@ -91,6 +103,10 @@ def test_command_end_to_end(tmp_path):
     assert 0.0 <= r["median_iou"] <= r["best_iou"] <= 1.0
     assert r["best_iou_on_coarse_grid"] is not None and r["best_iou_on_coarse_grid"] <= r["best_iou"]
     assert set(r["iou_by_azimuth_step"]) <= {str(s) for s in sunmatch.AZIMUTH_STEPS_DEG}
+    assert [c["suns"] for c in r["composite"]] == list(sunmatch.COMPOSITE_SUNS)
+    assert all(len(c["azimuths_deg"]) == c["suns"] for c in r["composite"])
+    # A union of lit areas chosen greedily from the best sun never explains the crop worse than it.
+    assert r["best_iou"] - 1e-9 <= r["composite"][0]["iou"] <= r["composite"][1]["iou"] + 1e-9
     assert "| shackleton | test |" in (out / "sunmatch.md").read_text()
     assert (out / "sunmatch.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # The paired frames are a labels file the real-set loader reads (crater-synth evaluate uses it).
