@@ -260,9 +260,7 @@ def table_markdown(results: dict, roles: dict) -> str:
             f"{r['median_iou']:.2f} | "
             + " | ".join(f"{by[k]:.2f}" if k in by else "-" for k in steps)
             + " | "
-            + " | ".join(
-                f"{c['iou']:.2f} ({', '.join(f'{a:.0f}' for a in c['azimuths_deg'])})" for c in r["composite"]
-            )
+            + " | ".join(f"{c['iou']:.2f} ({', '.join(f'{a:.0f}' for a in c['azimuths_deg'])})" for c in r["composite"])
             + " |"
         )
     return head + "\n".join(lines) + "\n"
