@@ -368,6 +368,7 @@ class ValidateSettings(_Group):
 
     groups: Tuple[Tuple[str, ...], ...]  # validation crater groups (configs/crater/ names)
     test: Tuple[str, ...]  # the test group: reported, never used to choose
+    holdout: Tuple[Tuple[str, ...], ...] = ()  # held-out crater groups: reported, never used to choose
     seeds: Tuple[int, ...]  # training seeds per group
     out_dir: str
 

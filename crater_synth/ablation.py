@@ -141,7 +141,8 @@ def table_markdown(results: list[dict], budget: list[str]) -> str:
         per = []
         for g in s["groups"].values():
             pc = g["models"]["lunarnet_ex"]["per_crater"]
-            per.append(("**test** " if g["role"] == "test" else "") + " ".join(f"{c} {v:.2f}" for c, v in pc.items()))
+            mark = {"test": "**test** ", "holdout": "**held-out** "}.get(g["role"], "")
+            per.append(mark + " ".join(f"{c} {v:.2f}" for c, v in pc.items()))
         renders = sorted(set(r["renders"].values()))
         lines.append(
             f"| {r['variant']} | {f(s['validation_mean']['lunarnet_ex'])} | "

@@ -8,6 +8,10 @@ a setting chosen while watching the paper's three craters would be tuned to the 
   craters only and tested on their real WAC crops. Their mean accuracy (``validation mean``) is the
   ONLY real-image number any setting (renderer, detail, sensor model, preprocessing, model, training)
   may be chosen by.
+- **Held-out groups** (``validate.holdout``; ``validate=holdout`` names the rest of the catalogue):
+  more catalogue craters, disjoint from both, trained and evaluated the same way once the settings are
+  chosen. Their mean (``held-out mean``) says whether what was chosen on the validation craters carries
+  over to craters nobody looked at; like the test, it is reported, never used to choose.
 - **Test group** (``validate.test``): the paper's three craters, trained and evaluated the same way,
   reported next to the validation numbers and never used to choose.
 
@@ -48,50 +52,48 @@ _OWNED_KEYS = ("crater", "run_dir", "train.seed")
 class Group:
     """One set of craters trained and tested together."""
 
-    role: str  # "validation" | "test"
+    role: str  # "validation" | "holdout" | "test"
     index: int
     craters: tuple[str, ...]
 
     @property
     def label(self) -> str:
-        return (
-            f"{self.role}{self.index}-" + "+".join(self.craters)
-            if self.role == "validation"
-            else "test-" + "+".join(self.craters)
-        )
+        prefix = "test" if self.role == "test" else f"{self.role}{self.index}"
+        return f"{prefix}-" + "+".join(self.craters)
 
     def crater_override(self) -> str:
         return "crater=[" + ",".join(self.craters) + "]"
 
 
 def plan_groups(vcfg: dict, known_craters: Sequence[str]) -> list[Group]:
-    """Validation groups then the test group, checked: at least two validation groups of at least two
-    craters each, pairwise disjoint, none sharing a crater with the test group, all in the catalogue."""
+    """Validation groups, held-out groups, then the test group, checked: at least two validation groups;
+    every group of at least two distinct catalogue craters; validation and held-out groups pairwise
+    disjoint and none sharing a crater with the test group."""
     groups_cfg = vcfg.get("groups") or []
     test = tuple(str(c) for c in (vcfg.get("test") or []))
     known = set(known_craters)
     if len(groups_cfg) < 2:
         raise ConfigError(f"validate.groups needs at least two validation groups, got {len(groups_cfg)}")
     groups = []
-    seen: dict[str, int] = {}
-    for i, g in enumerate(groups_cfg):
-        names = tuple(str(c) for c in g)
-        if len(names) < 2 or len(set(names)) != len(names):
-            raise ConfigError(f"validate.groups[{i}]={list(names)}: needs at least two distinct craters")
-        for n in names:
-            if n not in known:
-                raise ConfigError(f"validate.groups[{i}]: unknown crater {n!r} (not in configs/crater/)")
-            if n in test:
-                raise ConfigError(
-                    f"validate.groups[{i}]: {n!r} is a test crater; validation craters must be "
-                    f"disjoint from validate.test={list(test)}"
-                )
-            if n in seen:
-                raise ConfigError(
-                    f"validate.groups[{i}]: {n!r} is already in validate.groups[{seen[n]}]; groups must be disjoint"
-                )
-            seen[n] = i
-        groups.append(Group("validation", i + 1, names))
+    seen: dict[str, str] = {}
+    for key, role in (("groups", "validation"), ("holdout", "holdout")):
+        for i, g in enumerate(vcfg.get(key) or []):
+            where = f"validate.{key}[{i}]"
+            names = tuple(str(c) for c in g)
+            if len(names) < 2 or len(set(names)) != len(names):
+                raise ConfigError(f"{where}={list(names)}: needs at least two distinct craters")
+            for n in names:
+                if n not in known:
+                    raise ConfigError(f"{where}: unknown crater {n!r} (not in configs/crater/)")
+                if n in test:
+                    raise ConfigError(
+                        f"{where}: {n!r} is a test crater; validation and held-out craters must be "
+                        f"disjoint from validate.test={list(test)}"
+                    )
+                if n in seen:
+                    raise ConfigError(f"{where}: {n!r} is already in {seen[n]}; groups must be disjoint")
+                seen[n] = where
+            groups.append(Group(role, i + 1, names))
     if test:
         if len(test) < 2:
             raise ConfigError(f"validate.test={list(test)}: needs at least two craters")
@@ -267,8 +269,8 @@ def _run_record(
 
 def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:
     """Per group and model: mean accuracy over seeds (and its spread), per crater; then the
-    validation mean (mean over validation groups) and the test mean."""
-    out: dict = {"groups": {}, "validation_mean": {}, "test_mean": {}}
+    validation mean (mean over validation groups), the held-out mean and the test mean."""
+    out: dict = {"groups": {}, "validation_mean": {}, "holdout_mean": {}, "test_mean": {}}
     for g in groups:
         rs = [r for r in runs if r["group"] == g.label]
         if not rs:
@@ -285,10 +287,9 @@ def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:
             }
         out["groups"][g.label] = entry
     for m in REPORTED_MODELS:
-        val = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == "validation"]
-        test = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == "test"]
-        out["validation_mean"][m] = float(np.mean(val)) if val else None
-        out["test_mean"][m] = float(np.mean(test)) if test else None
+        for role, key in (("validation", "validation_mean"), ("holdout", "holdout_mean"), ("test", "test_mean")):
+            accs = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == role]
+            out[key][m] = float(np.mean(accs)) if accs else None
     return out
 
 
@@ -302,12 +303,22 @@ def table_markdown(summary: dict) -> str:
             lines.append(f"| {label} | {m} | {d['mean']:.3f} ± {d['std_over_seeds']:.3f} | {per} |")
     lines.append("")
     for m in REPORTED_MODELS:
-        v, t = summary["validation_mean"][m], summary["test_mean"][m]
-        lines.append(
-            f"- {m}: validation mean {'n/a' if v is None else f'{v:.3f}'}, "
-            f"test mean {'n/a' if t is None else f'{t:.3f}'}"
-        )
+        lines.append(f"- {m}: " + means_line(summary, m))
     return "\n".join(lines) + "\n"
+
+
+def means_line(summary: dict, model: str) -> str:
+    """The means of one model as a line: validation, held-out (only when held-out groups ran) and test
+    (``n/a`` without results)."""
+
+    def f(x):
+        return "n/a" if x is None else f"{x:.3f}"
+
+    parts = [f"validation mean {f(summary['validation_mean'][model])}"]
+    if summary.get("holdout_mean", {}).get(model) is not None:
+        parts.append(f"held-out mean {f(summary['holdout_mean'][model])}")
+    parts.append(f"test mean {f(summary['test_mean'][model])}")
+    return ", ".join(parts)
 
 
 def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: list[int]) -> dict:
@@ -342,7 +353,8 @@ def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: 
     atomic_write_text(out / CSV_FILE, buf.getvalue())
     head = (
         f"# Validation protocol results ({res['sweep']}, seeds {seeds})\n\n"
-        "Settings are chosen by the validation mean only; the test group is reported, never used to choose.\n\n"
+        "Settings are chosen by the validation mean only; the held-out and test groups are reported, "
+        "never used to choose.\n\n"
     )
     atomic_write_text(out / TABLE_FILE, head + table_markdown(summary))
     return res
@@ -358,8 +370,6 @@ def validate_command(overrides):
     crater-synth validate sweep=demo validate.seeds=[0,1]
     """
     res = run_validation(overrides)
-    s = res["summary"]
     for m in REPORTED_MODELS:
-        v, t = s["validation_mean"][m], s["test_mean"][m]
-        click.echo(f"{m}: validation mean {v:.3f}" + ("" if t is None else f", test mean {t:.3f}"))
+        click.echo(f"{m}: " + means_line(res["summary"], m))
     click.echo(f"table: {Path(str(resolved(compose(list(overrides)))['validate']['out_dir'])) / TABLE_FILE}")

@@ -16,7 +16,7 @@ from crater_synth import validate as v
 from crater_synth.config import ConfigError
 from train.trainer import HOG_FILE, NET_FILE, SVM_FILE
 
-CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "t1", "t2", "t3"]
+CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "h1", "h2", "h3", "t1", "t2", "t3"]
 
 
 def test_groups_must_be_disjoint_known_and_apart_from_the_test_craters():
@@ -29,10 +29,33 @@ def test_groups_must_be_disjoint_known_and_apart_from_the_test_craters():
         ({"groups": [["a1", "a2", "t1"], ["b1", "b2", "b3"]], "test": ["t1", "t2"]}, "test crater"),
         ({"groups": [["a1", "zz", "a3"], ["b1", "b2", "b3"]], "test": ["t1", "t2"]}, "unknown crater 'zz'"),
         ({"groups": [["a1"], ["b1", "b2", "b3"]], "test": ["t1", "t2"]}, "at least two distinct"),
+        # Held-out groups obey the same rules, and share no crater with a validation group.
+        ({"groups": [["a1", "a2"], ["b1", "b2"]], "holdout": [["h1", "a2"]], "test": ["t1", "t2"]}, "already in"),
+        ({"groups": [["a1", "a2"], ["b1", "b2"]], "holdout": [["h1", "t2"]], "test": ["t1", "t2"]}, "test crater"),
+        ({"groups": [["a1", "a2"], ["b1", "b2"]], "holdout": [["h1"]], "test": ["t1", "t2"]}, "at least two"),
+        ({"groups": [["a1", "a2"], ["b1", "b2"]], "holdout": [["h1", "zz"]], "test": []}, "holdout.0.*'zz'"),
     ]
     for cfg, msg in bad:
         with pytest.raises(ConfigError, match=msg):
             v.plan_groups(cfg, CATALOGUE)
+
+
+def test_holdout_groups_come_between_validation_and_test():
+    cfg = {"groups": [["a1", "a2"], ["b1", "b2"]], "holdout": [["h1", "h2", "h3"]], "test": ["t1", "t2"]}
+    groups = v.plan_groups(cfg, CATALOGUE)
+    assert [g.label for g in groups] == ["validation1-a1+a2", "validation2-b1+b2", "holdout1-h1+h2+h3", "test-t1+t2"]
+
+
+def test_the_holdout_config_holds_out_the_rest_of_the_catalogue():
+    from crater_synth.config import compose, resolved
+
+    vcfg = resolved(compose(["validate=holdout"]))["validate"]
+    groups = v.plan_groups(vcfg, v.catalogue_names())  # disjoint, known, none a test crater
+    held = [g for g in groups if g.role == "holdout"]
+    assert len(held) >= 2 and all(len(g.craters) == 3 for g in held)
+    used = {c for g in groups for c in g.craters}
+    assert used == set(v.catalogue_names())  # every catalogue crater has exactly one role
+    assert resolved(compose([]))["validate"]["holdout"] == []  # the plain protocol trains no held-out group
 
 
 def test_default_groups_are_catalogue_craters_and_not_the_papers():
@@ -136,6 +159,21 @@ def test_protocol_trains_every_group_and_seed_and_reports_test_apart(scripted, t
     assert len(scripted.calls) == 6
     v.run_validation(scripted.overrides + ["train.lr=0.002"], progress=False)
     assert len(scripted.calls) == 12
+
+
+def test_holdout_groups_are_reported_apart_and_never_averaged_into_the_validation_mean(scripted, tmp_path):
+    plain = v.run_validation(scripted.overrides, progress=False)
+    assert plain["summary"]["holdout_mean"]["lunarnet_ex"] is None
+    assert "held-out mean" not in (tmp_path / "val" / v.TABLE_FILE).read_text()
+    res = v.run_validation(scripted.overrides + ["validate.holdout=[[h1,h2,h3]]"], progress=False)
+    assert len(scripted.calls) == 6 + 2  # only the held-out group trains (2 seeds); the rest is reused
+    s, acc = res["summary"], scripted.acc
+    assert s["validation_mean"] == plain["summary"]["validation_mean"]
+    assert s["test_mean"] == plain["summary"]["test_mean"]
+    assert s["holdout_mean"]["lunarnet_ex"] == pytest.approx((acc["h1"] + acc["h2"] + acc["h3"]) / 3 + 0.005)
+    table = (tmp_path / "val" / v.TABLE_FILE).read_text()
+    assert "holdout1-h1+h2+h3" in table and "held-out mean" in table
+    assert "holdout" in (tmp_path / "val" / v.CSV_FILE).read_text()
 
 
 def test_an_evaluation_only_change_evaluates_the_saved_models_again(scripted, tmp_path):
