@@ -126,18 +126,25 @@ def _seed_from_baseline(src: Path, dst: Path) -> None:
 
 
 def table_markdown(results: list[dict], budget: list[str]) -> str:
-    """One row per variant: validation and test mean (LunarNet_ex, LunarSVM_ex), per-crater accuracies."""
+    """One row per variant: validation (and, where held-out groups ran, held-out) and test mean of
+    LunarNet_ex and LunarSVM_ex, then LunarNet_ex per crater and the renders per group."""
+    roles = [("val", "validation_mean")]
+    if any(r["summary"].get("holdout_mean", {}).get("lunarnet_ex") is not None for r in results):
+        roles.append(("held-out", "holdout_mean"))
+    roles.append(("test", "test_mean"))
+    cols = [f"{name} {role}" for name in ("LunarNet_ex", "LunarSVM_ex") for role, _ in roles]
     lines = [
-        "| variant | LunarNet_ex val | LunarNet_ex test | LunarSVM_ex val | LunarSVM_ex test | "
-        "LunarNet_ex per crater (validation groups; test) | renders per group |",
-        "|---|---|---|---|---|---|---|",
+        "| variant | " + " | ".join(cols) + " | LunarNet_ex per crater (validation groups; held-out; test) | "
+        "renders per group |",
+        "|---|" + "---|" * len(cols) + "---|---|",
     ]
+
+    def f(x):
+        return "n/a" if x is None else f"{x:.3f}"
+
     for r in results:
         s = r["summary"]
-
-        def f(x):
-            return "n/a" if x is None else f"{x:.3f}"
-
+        means = [f(s.get(key, {}).get(m)) for m in ("lunarnet_ex", "lunarsvm_ex") for _, key in roles]
         per = []
         for g in s["groups"].values():
             pc = g["models"]["lunarnet_ex"]["per_crater"]
@@ -145,10 +152,7 @@ def table_markdown(results: list[dict], budget: list[str]) -> str:
             per.append(mark + " ".join(f"{c} {v:.2f}" for c, v in pc.items()))
         renders = sorted(set(r["renders"].values()))
         lines.append(
-            f"| {r['variant']} | {f(s['validation_mean']['lunarnet_ex'])} | "
-            f"{f(s['test_mean']['lunarnet_ex'])} | "
-            f"{f(s['validation_mean']['lunarsvm_ex'])} | {f(s['test_mean']['lunarsvm_ex'])} | "
-            f"{'; '.join(per)} | {', '.join(map(str, renders))} |"
+            f"| {r['variant']} | " + " | ".join(means) + f" | {'; '.join(per)} | {', '.join(map(str, renders))} |"
         )
     lines.append("")
     lines.append(f"Training budget for every variant: {' '.join(budget) or 'the configured defaults'}.")

@@ -46,6 +46,16 @@ def test_generated_table_replaces_only_the_marked_section(tmp_path):
     assert "old table" not in text and "intro" in text and "after" in text
     assert "| all levers on | 0.600 | n/a | 0.550 | n/a | a 0.50 b 0.70 | 10 |" in text
     assert (tmp_path / ab.TABLE_FILE).is_file() and (tmp_path / ab.RESULTS_FILE).is_file()
+    # With held-out groups, their means get columns of their own and their craters are marked.
+    held = dict(summary, holdout_mean={"lunarnet_ex": 0.9, "lunarsvm_ex": 0.8})
+    held["groups"] = dict(
+        summary["groups"],
+        **{"holdout1-c+d": {"role": "holdout", "models": {"lunarnet_ex": {"per_crater": {"c": 1.0, "d": 0.8}}}}},
+    )
+    table = ab.table_markdown(results + [dict(results[0], variant="x off", summary=held)], [])
+    assert "LunarNet_ex held-out" in table
+    assert "| all levers on | 0.600 | n/a | n/a | 0.550 | n/a | n/a | a 0.50 b 0.70 | 10 |" in table
+    assert "| x off | 0.600 | 0.900 | n/a | 0.550 | 0.800 | n/a | a 0.50 b 0.70; **held-out** c 1.00 d 0.80 |" in table
     doc.write_text("no markers")
     with pytest.raises(ConfigError, match="markers"):
         ab._write(tmp_path, results, {"docs_file": str(doc)}, [])

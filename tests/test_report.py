@@ -536,3 +536,22 @@ def test_fidelity_section_draws_real_vs_synthetic_for_every_crater(tmp_path):
     for c in CRATERS:
         assert f'src="fidelity_{c}.png"' in text and (run / "report" / f"fidelity_{c}.png").is_file()
     assert "1 frame(s) in the composite" in text  # the fixture has one render per camera pose
+
+
+def test_fidelity_table_gets_held_out_columns_when_held_out_groups_ran(tmp_path):
+    run, _ = make_run(tmp_path, with_optional=False)
+    doc = make_ablation()
+    (run / "ablation.json").write_text(json.dumps(doc))
+    assert _run(run).exit_code == 0
+    assert "held-out</th>" not in (run / "report" / "index.html").read_text()
+    for v in doc["variants"]:
+        v["summary"]["holdout_mean"] = {m: 0.77 for m in MODELS}
+        v["summary"]["groups"]["holdout1-h+i+j"] = {
+            "role": "holdout",
+            "models": {m: {"per_crater": {"h": 0.77}} for m in MODELS},
+        }
+    (run / "ablation.json").write_text(json.dumps(doc))
+    res = _run(run)
+    assert res.exit_code == 0, res.output
+    text = (run / "report" / "index.html").read_text()
+    assert "LunarNet_ex held-out</th>" in text and "<b>held-out</b> h" in text

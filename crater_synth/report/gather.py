@@ -457,6 +457,7 @@ def fidelity(ctx: Ctx) -> dict:
                 "overrides": v.get("overrides", []),
                 "val": {m: s["validation_mean"].get(m) for m in MODELS},
                 "test": {m: s["test_mean"].get(m) for m in MODELS},
+                "holdout": {m: (s.get("holdout_mean") or {}).get(m) for m in MODELS},
                 "groups": groups,
                 "renders": sorted(set((v.get("renders") or {}).values())),
             }
@@ -467,6 +468,7 @@ def fidelity(ctx: Ctx) -> dict:
         "overrides": doc.get("overrides"),
         "table": table,
         "models": [SPECS[k] for k in MODELS],
+        "holdout": any(v is not None for row in table for v in row["holdout"].values()),
     }
     if doc.get("overrides") is None:
         out["no_images"] = "this ablation.json predates the recorded overrides: re-run crater-synth ablate"
