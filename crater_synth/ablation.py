@@ -112,17 +112,35 @@ def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
 
 
 def _seed_from_baseline(src: Path, dst: Path) -> None:
-    """Copy the baseline's finished runs (models and validation.json) into a variant that changes only
-    evaluation settings, so the protocol evaluates them again instead of retraining them. A variant
-    directory that exists already is left as it is (its own runs resume)."""
+    """Give a variant that changes only evaluation settings the baseline's finished runs (models and
+    their validation.json records), so the protocol evaluates them again instead of retraining them.
+    A variant directory that exists already keeps its own runs and gets only the (group, seed) runs it
+    lacks (e.g. held-out groups added later)."""
     from crater_synth.validate import RESULTS_FILE as VALIDATION_FILE
 
-    if dst.exists() or not (src / VALIDATION_FILE).is_file():
+    if not (src / VALIDATION_FILE).is_file():
         return
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(src, tmp)
-    tmp.rename(dst)
+    if not dst.exists():
+        tmp = dst.with_name(f".{dst.name}.tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp)
+        tmp.rename(dst)
+        return
+    mine = json.loads((dst / VALIDATION_FILE).read_text()) if (dst / VALIDATION_FILE).is_file() else {}
+    have = {(r["group"], r["seed"]) for r in mine.get("runs", [])}
+    added = []
+    for run in json.loads((src / VALIDATION_FILE).read_text()).get("runs", []):
+        rel = Path(run["group"]) / f"seed{run['seed']}"
+        if (run["group"], run["seed"]) in have or not (src / rel).is_dir() or (dst / rel).exists():
+            continue
+        tmp = (dst / rel).with_name(f".{rel.name}.tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src / rel, tmp)
+        tmp.rename(dst / rel)
+        added.append(run)
+    if added:
+        mine["runs"] = mine.get("runs", []) + added
+        atomic_write_text(dst / VALIDATION_FILE, json.dumps(mine, indent=1, sort_keys=True) + "\n")
 
 
 def table_markdown(results: list[dict], budget: list[str]) -> str:

@@ -80,3 +80,18 @@ def test_an_evaluation_only_lever_starts_from_the_baselines_models(tmp_path):
     ab._seed_from_baseline(src, tmp_path / "roll_averaging")
     assert (tmp_path / "roll_averaging" / "g" / "seed0" / "lunarnet_ex.pt").read_bytes() == b"model"
     assert not list(tmp_path.glob(".*.tmp"))
+    # Runs the baseline gained later (held-out groups) are added; the variant's own runs stay.
+    import json
+
+    (src / "h" / "seed0").mkdir(parents=True)
+    (src / "h" / "seed0" / "lunarnet_ex.pt").write_bytes(b"held")
+    runs = [{"group": "g", "seed": 0, "tag": "baseline"}, {"group": "h", "seed": 0, "tag": "baseline"}]
+    (src / RESULTS_FILE).write_text(json.dumps({"runs": runs}))
+    dst = tmp_path / "roll_averaging"
+    (dst / RESULTS_FILE).write_text(json.dumps({"runs": [{"group": "g", "seed": 0, "tag": "own"}]}))
+    ab._seed_from_baseline(src, dst)
+    assert (dst / "h" / "seed0" / "lunarnet_ex.pt").read_bytes() == b"held"
+    assert (dst / "g" / "seed0" / "lunarnet_ex.pt").read_bytes() == b"model"
+    got = json.loads((dst / RESULTS_FILE).read_text())["runs"]
+    assert sorted((r["group"], r["tag"]) for r in got) == [("g", "own"), ("h", "baseline")]
+    assert not list(dst.glob("*/.*.tmp"))
