@@ -207,4 +207,9 @@ def ablate_command(overrides):
     for r in res["variants"]:
         s = r["summary"]
         v, t = s["validation_mean"]["lunarnet_ex"], s["test_mean"]["lunarnet_ex"]
-        click.echo(f"{r['variant']}: LunarNet_ex validation {v:.3f}" + ("" if t is None else f", test {t:.3f}"))
+        h = (s.get("holdout_mean") or {}).get("lunarnet_ex")
+        click.echo(
+            f"{r['variant']}: LunarNet_ex validation {v:.3f}"
+            + ("" if h is None else f", held-out {h:.3f}")
+            + ("" if t is None else f", test {t:.3f}")
+        )
