@@ -121,10 +121,7 @@ def _seed_from_baseline(src: Path, dst: Path) -> None:
     if not (src / VALIDATION_FILE).is_file():
         return
     if not dst.exists():
-        tmp = dst.with_name(f".{dst.name}.tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(src, tmp)
-        tmp.rename(dst)
+        _copy_tree_atomically(src, dst)
         return
     mine = json.loads((dst / VALIDATION_FILE).read_text()) if (dst / VALIDATION_FILE).is_file() else {}
     have = {(r["group"], r["seed"]) for r in mine.get("runs", [])}
@@ -133,36 +130,40 @@ def _seed_from_baseline(src: Path, dst: Path) -> None:
         rel = Path(run["group"]) / f"seed{run['seed']}"
         if (run["group"], run["seed"]) in have or not (src / rel).is_dir() or (dst / rel).exists():
             continue
-        tmp = (dst / rel).with_name(f".{rel.name}.tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(src / rel, tmp)
-        tmp.rename(dst / rel)
+        _copy_tree_atomically(src / rel, dst / rel)
         added.append(run)
     if added:
         mine["runs"] = mine.get("runs", []) + added
         atomic_write_text(dst / VALIDATION_FILE, json.dumps(mine, indent=1, sort_keys=True) + "\n")
 
 
+def _copy_tree_atomically(src: Path, dst: Path) -> None:
+    """Copy the directory ``src`` to ``dst`` (which must not exist) through a hidden sibling, so ``dst``
+    appears whole or not at all."""
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    tmp.rename(dst)
+
+
 def table_markdown(results: list[dict], budget: list[str]) -> str:
     """One row per variant: validation (and, where held-out groups ran, held-out) and test mean of
     LunarNet_ex and LunarSVM_ex, then LunarNet_ex per crater and the renders per group."""
-    roles = [("val", "validation_mean")]
-    if any(r["summary"].get("holdout_mean", {}).get("lunarnet_ex") is not None for r in results):
-        roles.append(("held-out", "holdout_mean"))
-    roles.append(("test", "test_mean"))
+    from crater_synth.validate import MEAN_KEYS, format_mean
+
+    roles = [("val", MEAN_KEYS["validation"])]
+    if any(r["summary"].get(MEAN_KEYS["holdout"], {}).get("lunarnet_ex") is not None for r in results):
+        roles.append(("held-out", MEAN_KEYS["holdout"]))
+    roles.append(("test", MEAN_KEYS["test"]))
     cols = [f"{name} {role}" for name in ("LunarNet_ex", "LunarSVM_ex") for role, _ in roles]
     lines = [
         "| variant | " + " | ".join(cols) + " | LunarNet_ex per crater (validation groups; held-out; test) | "
         "renders per group |",
         "|---|" + "---|" * len(cols) + "---|---|",
     ]
-
-    def f(x):
-        return "n/a" if x is None else f"{x:.3f}"
-
     for r in results:
         s = r["summary"]
-        means = [f(s.get(key, {}).get(m)) for m in ("lunarnet_ex", "lunarsvm_ex") for _, key in roles]
+        means = [format_mean(s.get(key, {}).get(m)) for m in ("lunarnet_ex", "lunarsvm_ex") for _, key in roles]
         per = []
         for g in s["groups"].values():
             pc = g["models"]["lunarnet_ex"]["per_crater"]
@@ -203,13 +204,8 @@ def ablate_command(overrides):
     Writes ablation.json/.md under ablation.out_dir and the table into docs/fidelity.md
     (ablation.docs_file). Example: crater-synth ablate sweep=demo
     """
+    from crater_synth.validate import means_line
+
     res = run_ablation(overrides)
     for r in res["variants"]:
-        s = r["summary"]
-        v, t = s["validation_mean"]["lunarnet_ex"], s["test_mean"]["lunarnet_ex"]
-        h = (s.get("holdout_mean") or {}).get("lunarnet_ex")
-        click.echo(
-            f"{r['variant']}: LunarNet_ex validation {v:.3f}"
-            + ("" if h is None else f", held-out {h:.3f}")
-            + ("" if t is None else f", test {t:.3f}")
-        )
+        click.echo(f"{r['variant']}: LunarNet_ex " + means_line(r["summary"], "lunarnet_ex"))

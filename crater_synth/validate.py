@@ -44,6 +44,8 @@ from train.registry import MODELS
 
 RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
 REPORTED_MODELS = MODELS  # every classifier of train.registry
+# Each group role and the summary key of its mean accuracy.
+MEAN_KEYS = {"validation": "validation_mean", "holdout": "holdout_mean", "test": "test_mean"}
 # Overrides the protocol sets itself for each run: a user override of these would be silently lost.
 _OWNED_KEYS = ("crater", "run_dir", "train.seed")
 
@@ -287,7 +289,7 @@ def summarise(runs: list[dict], groups: list[Group], seeds: list[int]) -> dict:
             }
         out["groups"][g.label] = entry
     for m in REPORTED_MODELS:
-        for role, key in (("validation", "validation_mean"), ("holdout", "holdout_mean"), ("test", "test_mean")):
+        for role, key in MEAN_KEYS.items():
             accs = [e["models"][m]["mean"] for e in out["groups"].values() if e["role"] == role]
             out[key][m] = float(np.mean(accs)) if accs else None
     return out
@@ -307,17 +309,17 @@ def table_markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def format_mean(x: float | None) -> str:
+    """An accuracy mean as the tables print it (``n/a`` for a role without results)."""
+    return "n/a" if x is None else f"{x:.3f}"
+
+
 def means_line(summary: dict, model: str) -> str:
-    """The means of one model as a line: validation, held-out (only when held-out groups ran) and test
-    (``n/a`` without results)."""
-
-    def f(x):
-        return "n/a" if x is None else f"{x:.3f}"
-
-    parts = [f"validation mean {f(summary['validation_mean'][model])}"]
+    """The means of one model as a line: validation, held-out (only when held-out groups ran) and test."""
+    parts = [f"validation mean {format_mean(summary['validation_mean'][model])}"]
     if summary.get("holdout_mean", {}).get(model) is not None:
-        parts.append(f"held-out mean {f(summary['holdout_mean'][model])}")
-    parts.append(f"test mean {f(summary['test_mean'][model])}")
+        parts.append(f"held-out mean {format_mean(summary['holdout_mean'][model])}")
+    parts.append(f"test mean {format_mean(summary['test_mean'][model])}")
     return ", ".join(parts)
 
 
