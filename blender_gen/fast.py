@@ -1,4 +1,4 @@
-"""Fast (production) mode: the sweep's sun x camera factorisation (SPEC.md, Performance notes).
+"""Fast (production) mode: the sweep's sun x camera factorisation (docs/specification.md, "Performance model").
 
 Per sun azimuth (once per terrain, shared by every worker through an on-disk cache):
     a *horizon map* (crater_core.horizon): the elevation of the terrain's horizon towards the sun

@@ -7,7 +7,7 @@
 - ``exr``: the EXR channel contract and the project's one EXR reader/writer;
 - ``errors``: :class:`ContractError`, the base of every bad-input error at the contract.
 
-Imports only numpy and the standard library (``exr`` imports OpenImageIO inside its functions), so it
+Imports only numpy and the standard library (``exr`` imports OpenEXR and OpenImageIO inside its functions), so it
 runs inside Blender, on the host and in ``train/``. Nothing here imports an upper layer
 (``blender_gen``, ``train``, ``data_manifest``, ``crater_synth``).
 """

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# IAU/LOLA lunar reference sphere radius (SPEC.md; Archinal et al. 2018, IAU WGCCRE report).
+# IAU/LOLA lunar reference sphere radius (docs/specification.md; Archinal et al. 2018, IAU WGCCRE report).
 MOON_RADIUS_M = 1_737_400.0
 # Mean angular diameter of the Sun seen from the Moon (~1 AU): 2*atan(695,700 km / 149.6e6 km).
 SUN_ANGULAR_DIAMETER_DEG = 0.533

@@ -2,7 +2,7 @@
 
 The Sun's declination in the Moon's equatorial frame never exceeds the obliquity of the lunar
 equator to the ecliptic, ε = 1.54° (Cassini's laws; 1.5424° in the IAU rotation model, Archinal et
-al. 2018, Celest. Mech. Dyn. Astr. 130:22; SPEC.md). At a crater at latitude φ the Sun's elevation
+al. 2018, Celest. Mech. Dyn. Astr. 130:22; docs/specification.md). At a crater at latitude φ the Sun's elevation
 above the local horizon therefore depends on where it stands: towards the equator (local north at
 a south-polar crater) it can reach (90° − |φ|) + ε; towards the pole it stays below ε − (90° − |φ|).
 For a small colatitude c = 90° − |φ| this is θ_max(A) ≈ ε + c·cos A for a Sun at azimuth A
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-# Obliquity of the lunar equator to the ecliptic (SPEC.md; IAU WGCCRE, Archinal et al. 2018).
+# Obliquity of the lunar equator to the ecliptic (docs/specification.md; IAU WGCCRE, Archinal et al. 2018).
 LUNAR_OBLIQUITY_DEG = 1.54
 
 

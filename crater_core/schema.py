@@ -223,6 +223,18 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def atomic_write_json(path: str | os.PathLike, obj, indent: int = 1) -> None:
+    """``obj`` as the project's JSON layout (indented, sorted keys, trailing newline), written atomically."""
+    atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=True) + "\n")
+
+
+def content_key(obj, length: int = 16) -> str:
+    """A short content hash of a JSON-able object: the first ``length`` hex digits of the SHA-256 of its
+    canonical JSON (sorted keys; non-JSON values by ``str``). Fingerprints of terrain patches, renders
+    and training runs all use this one definition, so equal inputs give equal keys everywhere."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:length]
+
+
 def sorted_unique(rows: Iterable[dict]) -> list[dict]:
     """Rows sorted by :func:`row_key`; for duplicate keys the last one wins."""
     by_key = {row_key(r): r for r in rows}

@@ -76,7 +76,7 @@ class CraterSettings(_Group):
         _need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
 
 
-# dem.blend_pixels: the stack's transition band in coarse pixels (crater_synth/demstack.py, docs/dem_stack.md).
+# dem.blend_pixels: the stack's transition band in coarse pixels (crater_synth/terrain/stack.py, docs/dem_stack.md).
 BLEND_PIXELS_RANGE = (0.5, 50.0)
 
 
@@ -109,7 +109,7 @@ class DemSettings(_Group):
         )
 
 
-# Pike (1977) fresh simple craters: depth/diameter 0.196 (kept equal to crater_synth.detail's constant).
+# Pike (1977) fresh simple craters: depth/diameter 0.196 (kept equal to crater_synth.terrain.detail's constant).
 FRESH_DEPTH_DIAMETER = 0.196
 # terrain.detail.model: calibrated (fitted to a real LOLA 200 m crop) or legacy (pre-calibration, for ablations).
 DETAIL_MODELS = ("calibrated", "legacy")
@@ -120,10 +120,10 @@ MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
 
 @dataclass(frozen=True, kw_only=True)
 class DetailSettings(_Group):
-    """``terrain.detail``: sub-DEM detail (crater_synth/detail.py, docs/detail.md); defaults are the
+    """``terrain.detail``: sub-DEM detail (crater_synth/terrain/detail.py, docs/detail.md); defaults are the
     calibrated values. ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``,
     ``min_crater_diameter_m`` and ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy``
-    uses crater_synth.detail.LEGACY_PARAMETERS."""
+    uses crater_synth.terrain.detail.LEGACY_PARAMETERS."""
 
     enabled: bool = True
     seed: int = 0
@@ -169,7 +169,7 @@ NEAR_VERTICES_RANGE = (16, 8193)
 
 @dataclass(frozen=True, kw_only=True)
 class TerrainSettings(_Group):
-    """``terrain.*``: near/far field of the patch around each crater (crater_synth/terrain.py)."""
+    """``terrain.*``: near/far field of the patch around each crater (crater_synth/terrain/patch.py)."""
 
     near_radius_factor: float
     near_vertices: int
@@ -352,7 +352,7 @@ class CountsSettings(_Group):
 
 @dataclass(frozen=True, kw_only=True)
 class ExperimentsSettings(_Group):
-    """``experiments.*``: Figure 6 (crater_synth/experiments.py)."""
+    """``experiments.*``: Figure 6 (crater_synth/evaluation/figure6.py)."""
 
     counts: CountsSettings
     sigmas: Optional[Tuple[float, ...]]
@@ -363,7 +363,7 @@ class ExperimentsSettings(_Group):
 
 @dataclass(frozen=True, kw_only=True)
 class ValidateSettings(_Group):
-    """``validate.*``: the real validation protocol (crater_synth/validate.py, docs/validation.md). The
+    """``validate.*``: the real validation protocol (crater_synth/evaluation/validation.py, docs/validation.md). The
     groups' rules (disjoint, in the catalogue, no test crater) are checked there, against configs/crater/."""
 
     groups: Tuple[Tuple[str, ...], ...]  # validation crater groups (configs/crater/ names)
@@ -382,12 +382,12 @@ class LeverSettings(_Group):
     """``ablation.levers.<name>``: one fidelity lever; ``when_off`` are the overrides that turn it off."""
 
     why: str = ""
-    when_off: Tuple[str, ...] = ()  # empty: crater_synth/ablation.py names the lever in its error
+    when_off: Tuple[str, ...] = ()  # empty: crater_synth/evaluation/ablation.py names the lever in its error
 
 
 @dataclass(frozen=True, kw_only=True)
 class AblationSettings(_Group):
-    """``ablation.*``: each fidelity lever on and off under the validation protocol (crater_synth/ablation.py)."""
+    """``ablation.*``: each fidelity lever on and off under the validation protocol (evaluation/ablation.py)."""
 
     out_dir: str
     docs_file: Optional[str]  # the generated table goes between its markers (null: docs untouched)

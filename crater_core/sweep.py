@@ -2,7 +2,7 @@
 
 Pure numpy + standard library (used by the host orchestration, the Blender worker's jobs and train/).
 
-Sample positions (SPEC.md, "project's reading" of the paper's Table 2):
+Sample positions (docs/specification.md, the project's reading of the paper's Table 2):
     sun elevation   theta1 = 0.16 deg * k,        k = 1..N
     sun azimuth     phi1   = 360 deg * k / N,     k = 0..N-1
     camera elevation theta2 = 90 deg - 4 deg * k, k = 0..N-1

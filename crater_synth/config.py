@@ -25,7 +25,20 @@ from crater_core.settings import GROUPS, Settings, SettingsError
 from crater_synth.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+# Config files in configs/crater/ that are not catalogue entries (the template for any other crater).
+NOT_CATALOGUE_ENTRIES = frozenset({"custom"})
+
+
+def catalogue_names() -> list[str]:
+    """Every crater of the catalogue (``configs/crater/<name>.yaml``, except the ``custom`` template), sorted:
+    the one list the catalogue check, the validation protocol and the landmark map read."""
+    return sorted(p.stem for p in (CONFIG_DIR / "crater").glob("*.yaml") if p.stem not in NOT_CATALOGUE_ENTRIES)
+
+
 REPO_ROOT = CONFIG_DIR.parent
+# Groups of named presets (``# @package _global_``): each file overrides other groups' options and has no
+# schema of its own; every key it sets is validated by the groups it sets.
+PRESET_GROUPS = frozenset({"experiment"})
 ROOT_SCHEMA = "settings_schema"
 SCHEMA_SUFFIX = "_schema"
 

@@ -1,11 +1,11 @@
-"""Fidelity ablation bookkeeping (crater_synth.ablation): variants, shared renders, generated docs."""
+"""Fidelity ablation bookkeeping (crater_synth.evaluation.ablation): variants, shared renders, generated docs."""
 
 from __future__ import annotations
 
 import pytest
 
-from crater_synth import ablation as ab
 from crater_synth.config import ConfigError, compose, resolved
+from crater_synth.evaluation import ablation as ab
 
 
 def test_variants_are_the_baseline_the_reference_then_one_lever_off_each():
@@ -65,7 +65,7 @@ def test_an_evaluation_only_lever_starts_from_the_baselines_models(tmp_path):
     """A lever that changes only evaluation settings (train.tta_rotations) gets a copy of the baseline's
     finished runs, which the protocol then evaluates again instead of training; a variant that already
     has runs keeps them."""
-    from crater_synth.validate import RESULTS_FILE, evaluation_only
+    from crater_synth.evaluation.validation import RESULTS_FILE, evaluation_only
 
     assert evaluation_only(["train.tta_rotations=1"]) and not evaluation_only(["train.augment_offset_frac=0.0"])
     src = tmp_path / "baseline"

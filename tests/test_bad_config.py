@@ -5,7 +5,8 @@ import shutil
 
 import pytest
 from click.testing import CliRunner
-from conftest import TINY, exr_files, run_cli
+
+from helpers.cli import TINY, exr_files, run_cli
 
 HUGE = (
     "sweep.sun_elevation.values=null",
@@ -90,7 +91,7 @@ def test_unwritable_output_directory(tmp_path, tiny_data_dir, where):
 def test_free_disk_estimate_uses_measured_render_size(tmp_path, tiny_data_dir, tiny_dataset, monkeypatch):
     """Resuming a dataset: the estimate uses the measured size of its EXRs (~40 kB here, not the 600 kB
     default). The free space is faked in-process (a real full disk cannot be made here)."""
-    from crater_synth.launcher import dataset_command
+    from crater_synth.dataset.launcher import dataset_command
 
     out = tmp_path / "ds"
     tiny_dataset(out)  # 4 renders of the smoke sweep

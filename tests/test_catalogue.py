@@ -1,9 +1,9 @@
 """The crater catalogue (configs/crater/) against the embedded LOLA DEM, and the measurement behind it.
 
-Issue 9, deliverable 1: every entry is a closed depression whose centre lies within 0.15 D of its IAU
+Every entry is a closed depression whose centre lies within 0.15 D of its IAU
 Gazetteer position and whose rim diameter is within 25 % of the Gazetteer diameter. An entry that fails
 is corrected (with a better published value) or dropped; these thresholds are never loosened.
-Method: crater_synth/catalogue.py, docs/catalogue.md.
+Method: crater_synth/terrain/catalogue.py, docs/catalogue.md.
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import pytest
 from click.testing import CliRunner
 
 from crater_core import geometry as g
-from crater_synth import catalogue as cat
 from crater_synth.cli import main
 from crater_synth.config import compose, craters
-from crater_synth.dem import Dem
+from crater_synth.terrain import catalogue as cat
+from crater_synth.terrain.dem import Dem
 from data_manifest.products import resolve_product
 
-# The paper's three craters keep their SPEC.md values (the test set; not to be edited).
+# The paper's three craters keep their docs/specification.md values (the test set; not to be edited).
 SPEC_CRATERS = {
     "shackleton": (-89.67, 129.78, 21.0),
     "de_gerlache": (-88.5, -87.1, 32.5),
@@ -62,7 +62,7 @@ def test_paper_craters_keep_their_spec_values(catalogue):
 
 
 def test_default_terrain_near_field_factor_is_what_the_catalogue_assumes():
-    from crater_synth.terrain import terrain_settings
+    from crater_synth.terrain.patch import terrain_settings
 
     assert terrain_settings(compose([]))["near_radius_factor"] == NEAR_RADIUS_FACTOR
 

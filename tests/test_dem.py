@@ -1,4 +1,4 @@
-"""crater_synth.dem: the embedded LOLA DEM, sampling, nodata policy, bad files, coverage."""
+"""crater_synth.terrain.dem: the embedded LOLA DEM, sampling, nodata policy, bad files, coverage."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from crater_core import geometry as g
-from crater_synth.dem import Dem, DemCoverageError, DemNodataError, DemReadError
+from crater_synth.terrain.dem import Dem, DemCoverageError, DemNodataError, DemReadError
 from data_manifest.products import resolve_product
 
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
-CRATERS = {  # IAU values (SPEC.md): lat, lon, diameter km
+CRATERS = {  # IAU values (docs/specification.md): lat, lon, diameter km
     "shackleton": (-89.67, 129.78, 21.0),
     "de_gerlache": (-88.5, -87.1, 32.5),
     "shoemaker": (-88.1, 44.9, 51.0),

@@ -1,4 +1,4 @@
-"""crater_synth.dem_register and the committed Shackleton layers: registration, artefact repair, products."""
+"""crater_synth.terrain.register and the committed Shackleton layers: registration, artefact repair, products."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from crater_core import geometry as g
-from crater_synth import dem_register as R
-from crater_synth.dem import Dem
+from crater_synth.terrain import register as R
+from crater_synth.terrain.dem import Dem
 from data_manifest import products
 
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
@@ -119,5 +119,7 @@ def test_register_refuses_bad_ratio(synthetic_reference):
 
 @pytest.mark.slow
 def test_committed_layers_rebuild_byte_identically():
-    """``python -m crater_synth.dem_register --check``: the committed GeoTIFFs are what the fit makes."""
-    assert R.main(["--check"]) == 0
+    """``python -m crater_synth.tools.register_crop --check``: the committed GeoTIFFs are what the fit makes."""
+    from crater_synth.tools.register_crop import main
+
+    assert main(["--check"]) == 0

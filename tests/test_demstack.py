@@ -1,4 +1,4 @@
-"""crater_synth.demstack: multi-resolution DEM stack (blending without seam, user DEMs, terrain, detail)."""
+"""crater_synth.terrain.stack: multi-resolution DEM stack (blending without seam, user DEMs, terrain, detail)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from click.testing import CliRunner
 from crater_core import geometry as g
 from crater_synth.cli import main
 from crater_synth.config import compose, craters
-from crater_synth.dem import Dem
-from crater_synth.demstack import DemStack, StackSample, open_stack
-from crater_synth.detail import DetailSettings, lowpass, synthesize_detail
-from crater_synth.terrain import build_terrain, stack_detail, terrain_id
+from crater_synth.terrain.dem import Dem
+from crater_synth.terrain.detail import DetailSettings, lowpass, synthesize_detail
+from crater_synth.terrain.patch import build_terrain, stack_detail, terrain_id
+from crater_synth.terrain.stack import DemStack, StackSample, open_stack
 
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
 FAST = ["terrain.near_vertices=128", "terrain.far_spacing_km=10"]
@@ -330,9 +330,9 @@ def test_open_stack_skips_the_base_itself(synthetic):
 
 
 def test_seam_report_on_shackleton(tmp_path, capsys):
-    """``python -m crater_synth.demstack_report``: in the blend band of the real 200 m layer the surface
+    """``python -m crater_synth.tools.demstack_seams``: in the blend band of the real 200 m layer the surface
     is no steeper than the terrain on either side and stays between the two DEMs."""
-    from crater_synth.demstack_report import main as report
+    from crater_synth.tools.demstack_seams import main as report
 
     assert report(["crater=shackleton", "terrain.near_vertices=256", "--png", str(tmp_path / "seam")]) == 0
     m = json.loads(capsys.readouterr().out)

@@ -1,5 +1,5 @@
-"""crater_synth.detail: seeded, switchable sub-DEM roughness and craters, only below DEM resolution,
-calibrated against a real LOLA 200 m crop (crater_synth.detail_calibration, docs/detail.md)."""
+"""crater_synth.terrain.detail: seeded, switchable sub-DEM roughness and craters, only below DEM resolution,
+calibrated against a real LOLA 200 m crop (crater_synth.terrain.detail_calibration, docs/detail.md)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_synth import detail_calibration as dc
-from crater_synth.detail import (
+from crater_synth.terrain import detail_calibration as dc
+from crater_synth.terrain.detail import (
     EQ_COEF,
     MODELS,
     PIKE_DEPTH_COEF,
@@ -299,7 +299,7 @@ def test_repaired_square_is_background(real_crop):
     """The product's repaired square (the 40 m crop averaged to 200 m) is kept: only the bowl is
     excluded. In its interior it has the same 200 m statistics as the raw file's (lowered) square,
     i.e. as the crop's native 200 m processing (docs/detail.md)."""
-    from crater_synth import dem_register as dr
+    from crater_synth.terrain import register as dr
 
     sq = slice(dr.SQUARE_START, dr.SQUARE_START + dr.SQUARE_SIZE)
     assert real_crop["mask"][sq, sq].sum() > 1000  # its part outside the bowl is measured
@@ -387,6 +387,8 @@ def _bad_crop(tmp_path, case: str) -> str:
     ],
 )
 def test_bad_real_crop_is_one_clear_error(tmp_path, capsys, case, message):
-    assert dc.main(["--dem", _bad_crop(tmp_path, case), "--seeds", "1"]) == 2
+    from crater_synth.tools.calibrate_detail import main
+
+    assert main(["--dem", _bad_crop(tmp_path, case), "--seeds", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and message in err[0], err

@@ -4,7 +4,8 @@ import json
 
 import numpy as np
 import pytest
-from conftest import assert_same_dataset, exr_files, summary
+
+from helpers.cli import assert_same_dataset, exr_files, summary
 
 EIGHT = ("sweep.cam_elevation.count=2",)  # 1 x 2 x 2 x 2 = 8 renders
 

@@ -1,4 +1,4 @@
-"""Issue 13, a full disk mid-run: one `error:` line that says the disk is full (ENOSPC) and names the
+"""A full disk mid-run: one `error:` line that says the disk is full (ENOSPC) and names the
 file, no temp file left behind, and one rerun after freeing space completes the dataset.
 
 Needs a small filesystem to fill: a tmpfs mounted for the test (root, or a user namespace allowed to
@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, cli_command, exr_files, run_cli, summary
+
+from helpers.cli import REPO, TINY, cli_command, exr_files, run_cli, summary
 
 SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4")
 N16 = 16

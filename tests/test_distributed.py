@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, assert_same_dataset, exr_files, run_cli, summary
+
+from helpers.cli import REPO, TINY, assert_same_dataset, exr_files, run_cli, summary
 
 EIGHT = ("sweep.cam_elevation.count=2",)  # 8 renders
 
@@ -125,8 +126,8 @@ def test_external_scheduler_and_workers(tmp_path, tiny_dataset, single):
 
 @pytest.mark.slow
 def test_bench_distributed_reports_both_paths(tmp_path, tiny_data_dir):
+    from crater_synth.bench.distributed import bench_distributed
     from crater_synth.config import compose
-    from crater_synth.launcher import bench_distributed
 
     cfg = compose(
         [*TINY, f"data_dir={tiny_data_dir}", *EIGHT, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2"]

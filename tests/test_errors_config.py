@@ -1,11 +1,12 @@
-"""Issue 13, configuration values: every nonsense value is ONE `error:` line naming the key as the user
+"""Configuration values: every nonsense value is ONE `error:` line naming the key as the user
 typed it, exit status 2, nothing written -- at composition, before any terrain or render.
 
 In-process (click's CliRunner), so that each case costs a composition, not an interpreter start."""
 
 import pytest
 from click.testing import CliRunner
-from conftest import TINY, exr_files
+
+from helpers.cli import TINY, exr_files
 
 # (overrides, the complete first -- and only -- stderr line)
 CASES = {

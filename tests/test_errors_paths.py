@@ -1,4 +1,4 @@
-"""Issue 13, paths and inputs: a directory that cannot be made, an empty run directory, an unreadable
+"""Paths and inputs: a directory that cannot be made, an empty run directory, an unreadable
 DEM -- each ONE `error:` line naming the key or path, exit status 2, and nothing half-written."""
 
 import subprocess
@@ -6,7 +6,8 @@ import sys
 
 import pytest
 from click.testing import CliRunner
-from conftest import TINY, run_cli
+
+from helpers.cli import TINY, run_cli
 
 TOY = dict(
     sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0), rim_px=32.0

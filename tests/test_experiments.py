@@ -4,7 +4,7 @@ import pytest
 
 from crater_core.sweep import AXES, SweepError, grid_from_config, nearest_subset, rows_in_selection
 from crater_synth.config import ConfigError, compose, resolved
-from crater_synth.experiments import plan_points
+from crater_synth.evaluation.figure6 import plan_points
 from train.registry import FIGURE6_MODELS
 
 
@@ -80,7 +80,7 @@ def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
 
     import torch
 
-    from crater_synth.experiments import read_results, run_experiments
+    from crater_synth.evaluation.figure6 import read_results, run_experiments
     from train.toydata import TOY_FRAME_SOURCE, write_toy_dataset, write_toy_frames
 
     torch.set_num_threads(1)

@@ -94,10 +94,10 @@ def test_the_default_encoder_is_the_openexr_binding():
 
 
 def test_the_bench_compares_every_storage_choice_and_the_project_encoder(tmp_path):
-    """crater_synth.render_bench.exr_codecs on a toy dataset: one row per choice plus the project's
+    """crater_synth.bench.renderer.exr_codecs on a toy dataset: one row per choice plus the project's
     encoder; the contract's RLE rows of both libraries store the same data (sizes within 1 %)."""
     pytest.importorskip("OpenEXR")  # the project encoder row is then the only "current" one
-    from crater_synth.render_bench import EXR_CHOICES, exr_codecs
+    from crater_synth.bench.renderer import EXR_CHOICES, exr_codecs
     from train.toydata import write_toy_dataset
 
     write_toy_dataset(tmp_path, craters=("shackleton",), sun_azimuths=(0.0,), cam_azimuths=(0.0, 90.0))

@@ -8,7 +8,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import assert_same_dataset, dataset_workers, exr_files, run_cli, start_dataset, summary
+
+from helpers.cli import assert_same_dataset, dataset_workers, exr_files, run_cli, start_dataset, summary
 
 # 32 renders, direct mode at 16 spp: ~0.09 s each on 2 cores, so a Blender worker runs ~3 s after
 # its first EXR: time to kill it mid-shard.
@@ -192,7 +193,7 @@ def test_killed_dask_worker_task_is_retried(tmp_path, tiny_data_dir, reference32
 
 def test_parallel_verify_reports_what_serial_verify_reports(tmp_path, tiny_dataset, monkeypatch):
     """`verify` checks files in a process pool on big datasets: same faults, same order."""
-    from crater_synth import verify
+    from crater_synth.dataset import verify
 
     out = tmp_path / "ds"
     tiny_dataset(out)

@@ -1,4 +1,4 @@
-"""Issue 13, files: shareable permissions (0644 files, 0755 directories under umask 022), an fsync before
+"""Files: shareable permissions (0644 files, 0755 directories under umask 022), an fsync before
 every rename that publishes a file, and a `.jobs/` directory that does not grow forever."""
 
 import os
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import exr_files, run_cli
+
+from helpers.cli import exr_files, run_cli
 
 TOY = dict(
     sun_elevations=(15.0, 30.0), sun_azimuths=(0.0,), cam_elevations=(90.0,), cam_azimuths=(0.0, 180.0), rim_px=32.0
@@ -81,7 +82,7 @@ def test_every_rename_is_preceded_by_an_fsync(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "rename", rename)
 
     from crater_core import exr, schema
-    from crater_synth.preview import contact_sheet
+    from crater_synth.dataset.preview import contact_sheet
 
     schema.atomic_write_text(tmp_path / "a.json", "{}")
     chans = {c: np.full((8, 8), 0.5, np.float32) for c in schema.EXR_CHANNELS}
@@ -99,8 +100,8 @@ def test_every_rename_is_preceded_by_an_fsync(tmp_path, monkeypatch):
     }
     contact_sheet([row], tmp_path, tmp_path / "preview" / "contact_shackleton.png", "t")
     _toy_cache(tmp_path)
-    from crater_synth.experiments import plot_figure6
-    from crater_synth.loop import plot_history
+    from crater_synth.evaluation.closed_loop import plot_history
+    from crater_synth.evaluation.figure6 import plot_figure6
 
     plot_history(
         {

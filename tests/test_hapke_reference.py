@@ -1,6 +1,6 @@
 """``crater_core.hapke`` against the published equations, roughness included.
 
-The reference (tests/hapke_reference.py) is a separate scalar transcription of Hapke 1981/1984/2002,
+The reference (tests/helpers/hapke_reference.py) is a separate scalar transcription of Hapke 1981/1984/2002,
 not the implementation run twice: it takes (i, e, psi) and derives g, selects the roughness case with
 an ``if``, and uses ``math`` on floats. The implementation takes (mu0, mu, cos g), derives psi, and
 evaluates both branches vectorised. They must agree to 1e-9 relative at every geometry below.
@@ -17,11 +17,12 @@ import math
 import sys
 import types
 
-import hapke_reference as ref
 import numpy as np
 import pytest
 
 from crater_core import hapke
+
+from helpers import hapke_reference as ref
 
 PARAMS = [  # (w, xi, b0, h, theta_bar_deg)
     (0.32, -0.25, 1.0, 0.06, 23.657),  # configs/hapke/lunar.yaml

@@ -1,4 +1,4 @@
-"""Issue 13, help: `make help` lists every target with no escape codes when piped; the `crater-synth
+"""Help: `make help` lists every target with no escape codes when piped; the `crater-synth
 --help` one-liners are whole sentences without ``double backticks``; `crater-synth config` prints the
 composed configuration."""
 
@@ -9,7 +9,8 @@ import subprocess
 import pytest
 import yaml
 from click.testing import CliRunner
-from conftest import REPO
+
+from helpers.cli import REPO
 
 
 def _make_targets() -> set[str]:

@@ -2,10 +2,16 @@
 
     crater_core  <  data_manifest  <  {blender_gen, train}  <  crater_synth
 
+and inside ``crater_synth``, by what each part does:
+
+    common (errors, config, cli_common, fetch)  <  terrain  <  dataset  <  {evaluation, navigation}
+        <  {report, bench}  <  {tools, cli}
+
 Every ``import`` of every module is read from the source (AST, so imports inside functions count too,
 and nothing is executed). The test fails on
 - an import cycle between modules (a strongly connected component of the module graph);
-- an upward or sideways arrow between packages (``blender_gen`` and ``train`` never import each other);
+- an upward or sideways arrow between packages (``blender_gen`` and ``train`` never import each other),
+  or between the parts of ``crater_synth`` (:data:`SUBRANK`);
 - a third-party import a package must not make: the core is numpy + stdlib (OpenImageIO and OpenEXR only in
   ``crater_core.exr``), ``blender_gen`` runs inside Blender (bpy, mathutils, numpy; OpenImageIO only
   through ``crater_core.exr``), ``train`` never imports bpy or the CLI/config stack.
@@ -23,6 +29,22 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 # Lower rank = lower layer. An import between two packages must go to a strictly lower rank.
 RANK = {"crater_core": 0, "data_manifest": 1, "blender_gen": 2, "train": 2, "crater_synth": 3}
+
+# Inside crater_synth: the rank of each part (a subpackage, or a top-level module). An import from one part
+# into another must go to a strictly lower rank; imports inside a part are free (its cycles are still caught).
+# The top-level modules every command shares form one part, "common".
+COMMON = {"crater_synth", "crater_synth.errors", "crater_synth.config", "crater_synth.cli_common", "crater_synth.fetch"}
+SUBRANK = {
+    "common": 0,
+    "crater_synth.terrain": 1,
+    "crater_synth.dataset": 2,
+    "crater_synth.evaluation": 3,
+    "crater_synth.navigation": 3,
+    "crater_synth.report": 4,
+    "crater_synth.bench": 4,
+    "crater_synth.tools": 5,
+    "crater_synth.cli": 5,
+}
 
 # Third-party top-level modules a package may import (the standard library is always allowed).
 ALLOWED_THIRD_PARTY = {
@@ -116,6 +138,43 @@ def test_no_upward_or_sideways_imports_between_packages(graph):
                     f"{sorted(p for p in RANK if RANK[p] < RANK[src]) or 'nothing of the project'}"
                 )
     assert not bad, "imports against the layering:\n" + "\n".join(bad)
+
+
+def crater_synth_part(module: str) -> str | None:
+    """The :data:`SUBRANK` part a crater_synth module belongs to (None: outside crater_synth)."""
+    parts = module.split(".")
+    if parts[0] != "crater_synth":
+        return None
+    part = ".".join(parts[:2])
+    return "common" if part in COMMON else part
+
+
+def test_every_crater_synth_module_has_a_rank(graph):
+    missing = sorted({crater_synth_part(m) for m in graph if crater_synth_part(m) not in (None, *SUBRANK)})
+    assert not missing, f"give these parts of crater_synth a rank in SUBRANK ({__file__}): {missing}"
+
+
+def test_no_upward_or_sideways_imports_inside_crater_synth(graph):
+    bad = []
+    for mod, imports in graph.items():
+        src = crater_synth_part(mod)
+        if src is None:
+            continue
+        for name, line in imports:
+            dst = crater_synth_part(name)
+            if dst is None or dst == src or dst not in SUBRANK or src not in SUBRANK:
+                continue
+            if not SUBRANK[dst] < SUBRANK[src]:
+                lower = sorted(p for p in SUBRANK if SUBRANK[p] < SUBRANK[src])
+                bad.append(f"{mod} (line {line}) imports {name}: {src} may only import {lower}")
+    assert not bad, "imports against crater_synth's sub-ranks:\n" + "\n".join(bad)
+
+
+def test_subrank_check_catches_an_upward_arrow():
+    fake = {"crater_synth.terrain.patch": [("crater_synth.evaluation.validation", 3)]}
+    src, dst = crater_synth_part("crater_synth.terrain.patch"), crater_synth_part("crater_synth.evaluation.validation")
+    assert (src, dst) == ("crater_synth.terrain", "crater_synth.evaluation")
+    assert not SUBRANK[dst] < SUBRANK[src], fake
 
 
 def test_third_party_imports_fit_each_layer(graph):
@@ -234,7 +293,7 @@ LENGTH_REASON = "Length:"  # a paragraph of the module docstring starting with t
 
 
 def test_long_modules_say_why():
-    """No module over MAX_MODULE_LINES lines without a reason written at its top (issue 12)."""
+    """No module over MAX_MODULE_LINES lines without a reason written at its top."""
     bad = []
     for path in project_modules().values():
         text = path.read_text(encoding="utf-8")

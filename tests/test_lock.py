@@ -1,4 +1,4 @@
-"""Issue 13, concurrency: one writer per dataset (or per shard), tested with real processes.
+"""Concurrency: one writer per dataset (or per shard), tested with real processes.
 
 A second `crater-synth dataset` on the same out_dir refuses at once with one `error:` line naming the
 process that holds it, and renders nothing; shards of one sweep (`launcher.shard=i/n`) run side by side."""
@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, TINY, exr_files, run_cli, start_dataset
+
+from helpers.cli import REPO, TINY, exr_files, run_cli, start_dataset
 
 # 16 direct-mode renders at 16 spp: the first writer is busy for several seconds.
 SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4")

@@ -8,8 +8,8 @@ import json
 
 import pytest
 
-from crater_synth import loop as loop_mod
 from crater_synth.config import compose
+from crater_synth.evaluation import closed_loop as loop_mod
 
 TINY = [
     "crater=shackleton",

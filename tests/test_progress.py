@@ -1,4 +1,4 @@
-"""Issue 13, logs: redirected to a file, progress is one newline-terminated line every few seconds with
+"""Logs: redirected to a file, progress is one newline-terminated line every few seconds with
 the rate and the ETA -- never a carriage return -- while a terminal keeps its tqdm bar; the training
 cache build reports progress even with `train.progress=false`."""
 
@@ -7,7 +7,7 @@ import os
 import re
 import subprocess
 
-from conftest import REPO, TINY, cli_command, summary
+from helpers.cli import REPO, TINY, cli_command, summary
 
 LINE = re.compile(
     r"^rendering \(fast\): (\d+)/8 renders \(\d+ %\), [0-9.]+ renders/s, "

@@ -1,5 +1,5 @@
 """Every render's EXR has exactly the planner's crop size and its content sits where the manifest
-says (issue 10, deliverable 0).
+says (docs/renderer.md).
 
 Blender turns ``render.border_*`` (float32 fractions) back into pixels by truncation, so a border
 of exactly ``u0 / W`` came back as ``u0 - 1`` for 20-30 % of the paper sweep's camera poses: the
@@ -13,18 +13,13 @@ the analytic depth at every pixel centre (must be < 0.1 px).
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from blender_gen.border import border_fractions, pixels_from_border
 from crater_core import exr, geometry
 
-_spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
-cr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(cr)
+from helpers import render as cr
 
 BOWL_RADIUS_M = 60_000.0  # curvature radius of the paraboloid z = (x^2 + y^2) / 2Rc
 TERRAIN_HALF_M = 150_000.0
@@ -36,7 +31,7 @@ def paper_plans(tmp_path_factory):
     from crater_core.sweep import grid_from_config
     from crater_synth.config import compose, craters, resolved
     from crater_synth.dataset import plan_render
-    from crater_synth.terrain import build_terrain
+    from crater_synth.terrain.patch import build_terrain
 
     data = tmp_path_factory.mktemp("data")
     cfg = compose(["sweep=paper", f"data_dir={data}"])

@@ -12,9 +12,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,9 +20,7 @@ from scipy.ndimage import map_coordinates, spline_filter
 
 from crater_core import exr, geometry, horizon
 
-_spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
-cr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(cr)
+from helpers import render as cr
 
 SUN_R = math.radians(geometry.SUN_ANGULAR_DIAMETER_DEG / 2)
 

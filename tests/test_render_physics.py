@@ -12,7 +12,6 @@ tmp dir, in direct and/or fast mode, and the tests inspect the EXRs:
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -21,9 +20,7 @@ import pytest
 
 from crater_core import exr, geometry
 
-_spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
-cr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(cr)
+from helpers import render as cr
 
 
 def _load(out_dir: Path, it: dict) -> dict:
@@ -301,8 +298,8 @@ def test_crater_renders_have_shadows_and_light(crater_runs):
 @pytest.mark.slow
 def test_bench_fast_vs_direct_real_terrain(tmp_path):
     """The production-size comparison: the real Shackleton terrain, planner and config, 12 paper-grid
-    items (crater_synth.render_bench.SAMPLE) in fast and direct mode, compared per pixel."""
-    from crater_synth import render_bench
+    items (crater_synth.bench.renderer.SAMPLE) in fast and direct mode, compared per pixel."""
+    from crater_synth.bench import renderer as render_bench
 
     data = [f"data_dir={tmp_path / 'data'}"]
     render_bench.timed_dataset(render_bench.SAMPLE + ["render.mode=fast"] + data, tmp_path / "fast")

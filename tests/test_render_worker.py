@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import shutil
 import sys
-from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
@@ -16,9 +14,7 @@ import pytest
 from crater_core import exr
 from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
 
-_spec = importlib.util.spec_from_file_location("conftest_render", Path(__file__).with_name("conftest_render.py"))
-cr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(cr)
+from helpers import render as cr
 
 RESULT_KEYS = {"index", "rel_path", "sha256", "lit_fraction", "mean_if", "seconds"}
 

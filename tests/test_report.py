@@ -147,7 +147,7 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
         from train.plots import plot_confusion
 
         plot_confusion(run / "confusion_lunarnet_ex.png", make_metrics()["lunarnet_ex"]["confusion"], CRATERS, "x")
-        # The shape crater_synth/loop.py writes.
+        # The shape crater_synth/evaluation/closed_loop.py writes.
         rounds = [
             {
                 "round": i,
@@ -179,7 +179,7 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
             w = csv.writer(fh)
             w.writerow(
                 ["parameter", "count", "sigma", "model", "real_accuracy", "val_accuracy", "train_images", "seconds"]
-            )  # crater_synth/experiments.py
+            )  # crater_synth/evaluation/figure6.py
             for p, counts in (("sun_elevation", (2, 4)), ("cam_azimuth", (3, 6))):
                 for n in counts:
                     for s in (1.0, 1.2):
@@ -201,7 +201,7 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
 
 
 def make_ablation() -> dict:
-    """The shape crater_synth/ablation.py writes (without recorded overrides: no images)."""
+    """The shape crater_synth/evaluation/ablation.py writes (without recorded overrides: no images)."""
 
     def summary(v):
         return {

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from crater_synth.config import ConfigError
-from crater_synth.experiments import CSV_FILE, write_results
-from crater_synth.results import (
+from crater_synth.evaluation.figure6 import CSV_FILE, write_results
+from crater_synth.evaluation.paper_findings import (
     NOT_MEASURED,
     NOT_REPRODUCED,
     PAGE_FILE,
@@ -139,7 +139,7 @@ def test_published_figure6_csv_is_resumable_with_todays_configuration():
     import csv
 
     from crater_synth.config import compose, resolved
-    from crater_synth.experiments import experiments_fingerprint
+    from crater_synth.evaluation.figure6 import experiments_fingerprint
 
     csv_path = Path(__file__).resolve().parent.parent / "docs" / "results" / "experiments.csv"
     published = {row["config"] for row in csv.DictReader(csv_path.open())}

@@ -17,7 +17,15 @@ from crater_core.settings import (
     build,
     replace,
 )
-from crater_synth.config import CONFIG_DIR, ConfigError, compose, compose_settings, load_settings, resolved
+from crater_synth.config import (
+    CONFIG_DIR,
+    PRESET_GROUPS,
+    ConfigError,
+    compose,
+    compose_settings,
+    load_settings,
+    resolved,
+)
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +51,21 @@ def test_every_crater_entry_composes():
 
 def test_every_yaml_names_its_schema():
     for p in CONFIG_DIR.glob("*/*.yaml"):
+        if p.parent.name in PRESET_GROUPS:
+            assert p.read_text().startswith("# @package _global_"), p
+            continue
         assert f"- {p.parent.name}_schema" in p.read_text(), p
-    assert set(GROUPS) == {p.name for p in CONFIG_DIR.iterdir() if p.is_dir()}
+    assert set(GROUPS) | PRESET_GROUPS == {p.name for p in CONFIG_DIR.iterdir() if p.is_dir()}
+
+
+def test_experiment_chosen_is_the_chosen_configuration():
+    chosen = load_settings(["experiment=chosen"])
+    spelled_out = load_settings(["sweep=demo_physical_noon", "train=sim2real"])
+    assert chosen.as_dict() == spelled_out.as_dict()
+    # later overrides still win over the preset
+    assert load_settings(["experiment=chosen", "train.max_epochs=3"]).train.max_epochs == 3
+    with pytest.raises(ConfigError, match="unknown experiment 'nope'"):  # a typo is an error, never ignored
+        load_settings(["experiment=nope"])
 
 
 def test_types_and_values(default):

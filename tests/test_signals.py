@@ -1,4 +1,4 @@
-"""Issue 13, signals and leftovers: SIGTERM or SIGINT stops the Blender workers and leaves no scratch file
+"""Signals and leftovers: SIGTERM or SIGINT stops the Blender workers and leaves no scratch file
 and no EXR without its manifest row; a host killed with -9 does not leave its workers rendering;
 `verify` names orphan files and the next `dataset` run removes them."""
 
@@ -11,7 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import dataset_workers, exr_files, run_cli, start_dataset, summary
+
+from helpers.cli import dataset_workers, exr_files, run_cli, start_dataset, summary
 
 # 16 direct-mode renders at 16 spp, on 2 workers: time to interrupt the run mid-way.
 SLOW16 = (

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from crater_core import geometry
-from crater_synth import sunmatch
 from crater_synth.errors import ConfigError
-from tests.conftest import TINY, run_cli
+from crater_synth.evaluation import sunmatch
 from train.realset import Mosaic
+
+from helpers.cli import TINY, run_cli
 
 LAT, LON = -85.0, 40.0
 

@@ -1,4 +1,4 @@
-"""crater_synth.terrain: the patch contract consumed by the Blender worker, caching, and the CLI."""
+"""crater_synth.terrain.patch: the patch contract consumed by the Blender worker, caching, and the CLI."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from crater_core import geometry as g
 from crater_synth.cli import main
 from crater_synth.config import compose, craters
-from crater_synth.terrain import build_terrain
+from crater_synth.terrain.patch import build_terrain
 
 FAST = ["terrain.near_vertices=128", "terrain.far_spacing_km=10"]
 
@@ -133,7 +133,7 @@ def test_cache_and_terrain_id(shackleton, data_dir):
     h_off = np.load(meta_off["patch"])["near_height"].astype(np.float64)
     h_on = np.load(meta_on["patch"])["near_height"].astype(np.float64)
     assert np.abs(h_on - h_off).max() > 1.0  # the detail is there ...
-    from crater_synth.detail import lowpass
+    from crater_synth.terrain.detail import lowpass
 
     diff = h_on - h_off  # ... and only below the DEM's resolution (float32 storage aside)
     assert np.abs(lowpass(diff, meta["near"]["spacing_m"], 1600.0)).max() < 0.01 * diff.std() + 0.01

@@ -197,7 +197,7 @@ def test_shuffled_labels_fail_the_bar(toy, frames, tmp_path):
 
 
 def test_bench_reports_throughput_and_time_to_target(toy, tmp_path):
-    from crater_synth.bench_train import run_train_bench
+    from crater_synth.bench.train import run_train_bench
 
     cfg = resolved(compose(_overrides(toy, tmp_path, "train.target_val_accuracy=0.7")))
     r = run_train_bench(cfg)

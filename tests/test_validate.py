@@ -1,4 +1,4 @@
-"""The real validation protocol's bookkeeping (crater_synth.validate): groups, means, resume, table.
+"""The real validation protocol's bookkeeping (crater_synth.evaluation.validation): groups, means, resume, table.
 
 Rendering and training are replaced by scripted results: what is under test is which groups are
 trained, that the test group is reported apart and never averaged into the validation mean, and that
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from crater_synth import validate as v
 from crater_synth.config import ConfigError
+from crater_synth.evaluation import validation as v
 from train.trainer import HOG_FILE, NET_FILE, SVM_FILE
 
 CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "h1", "h2", "h3", "t1", "t2", "t3"]

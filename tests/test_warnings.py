@@ -1,6 +1,6 @@
-"""Issue 13, runs that are legal but almost surely a mistake: a `warning:` line, and the run goes on."""
+"""Runs that are legal but almost surely a mistake: a `warning:` line, and the run goes on."""
 
-from conftest import TINY, exr_files, run_cli, summary
+from helpers.cli import TINY, exr_files, run_cli, summary
 
 
 def test_sun_below_the_horizon_warns_before_and_after_rendering(tmp_path, tiny_data_dir):

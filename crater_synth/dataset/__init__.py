@@ -13,7 +13,7 @@ Modules: :mod:`~crater_synth.dataset.plan` (the geometry of every render),
 :mod:`~crater_synth.dataset.manifest` (rows and part files), :mod:`~crater_synth.dataset.disk`
 (directory checks, free disk, the lock, orphans, ``.jobs/``) and :mod:`~crater_synth.dataset.build`
 (:func:`build_dataset`, which strings them together). The ``dataset`` command lives in
-:mod:`crater_synth.launcher`, which picks the local or the Dask path.
+:mod:`crater_synth.dataset.launcher`, which picks the local or the Dask path.
 """
 
 from crater_synth.dataset.build import build_dataset

@@ -67,7 +67,7 @@ def build_dataset(
 
 
 def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool) -> dict:
-    from crater_synth.terrain import build_terrain
+    from crater_synth.terrain.patch import build_terrain
 
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest

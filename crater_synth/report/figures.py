@@ -72,7 +72,7 @@ def compare_panel(
     size: int,
 ) -> str:
     """2 x 3 panel: display originals (real, synthetic sigma crop, whole render) over the network inputs."""
-    from crater_synth.preview import tone_map
+    from crater_synth.dataset.preview import tone_map
 
     n_r, n_s = real_orig.shape[0], syn_orig.shape[0]
     with _rc():

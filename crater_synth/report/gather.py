@@ -44,7 +44,7 @@ def crater_order(metrics: dict | None, cfg: Mapping, rows: list[dict] | None) ->
 
 # ---- 1. contact sheets ---------------------------------------------------------------------------
 def contact(ctx: Ctx) -> dict:
-    from crater_synth.preview import contact_sheet
+    from crater_synth.dataset.preview import contact_sheet
 
     ds = ctx.rc.dataset_dir
     if ctx.rows is None:
@@ -126,7 +126,7 @@ def _real_plan(ctx: Ctx, canonical: bool):
 
 
 def compare(ctx: Ctx) -> dict:
-    from crater_synth.preview import _ellipse_points, read_channel, tone_map
+    from crater_synth.dataset.preview import _ellipse_points, read_channel, tone_map
     from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop, resample_box
     from train.realset import canonical_crater
 
@@ -202,7 +202,7 @@ def compare(ctx: Ctx) -> dict:
 
 # ---- 3. histograms -------------------------------------------------------------------------------
 def histograms(ctx: Ctx) -> dict:
-    from crater_synth.preview import read_channel
+    from crater_synth.dataset.preview import read_channel
     from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop
     from train.realset import canonical_crater
 
@@ -405,7 +405,7 @@ def figure6(ctx: Ctx) -> dict:
     return out
 
 
-# ---- 7. fidelity (issue 9) -------------------------------------------------------------------------
+# ---- 7. fidelity (docs/fidelity.md) -------------------------------------------------------------------------
 ABLATION_FILE = "ablation.json"
 
 
@@ -491,7 +491,7 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
         c for g in base["summary"]["groups"].values() for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})
     ]
     cfg = resolved(compose(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"]))
-    if not base.get("render_key"):  # (crater_synth.ablation is not imported: it reaches the training stack)
+    if not base.get("render_key"):  # (crater_synth.evaluation.ablation is not imported: it reaches the training stack)
         return [{"crater": c, "missing": "the ablation result names no render_key"} for c in craters]
     ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base['render_key']}"
     if not (ds / "manifest.jsonl").is_file():

@@ -147,7 +147,7 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
 def experiments_fingerprint(cfg_resolved: dict) -> str:
     """What decides every point's result (renders, training budget, model, sensor, real set), without
     the Figure 6 plan itself: points with equal fingerprints can share one CSV."""
-    from crater_synth.validate import run_fingerprint
+    from crater_synth.evaluation.validation import run_fingerprint
 
     return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("experiments", "loop")})
 

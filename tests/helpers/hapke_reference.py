@@ -17,7 +17,7 @@ docs/hapke.md):
 - Hapke, B. (2002) Bidirectional reflectance spectroscopy 5. Icarus 157:523-534: the combination
   r = K w/(4 pi) mu0e/(mu0e + mue) [p (1 + B_SH) + H(mu0e) H(mue) - 1] S used with roughness (here
   K = 1, no porosity term, no coherent backscatter, the 1981 H function: the five-parameter
-  "simplified" model of SPEC.md).
+  "simplified" model of docs/specification.md).
 - Single-lobe Henyey-Greenstein phase function p(g) = (1 - xi^2)/(1 + 2 xi cos g + xi^2)^(3/2)
   (xi < 0: backscattering), as in the lunar fits of Sato et al. 2014 (JGR Planets 119:1775).
 """

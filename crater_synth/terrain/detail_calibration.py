@@ -5,10 +5,10 @@ What it measures, on the same 200 m grid and the same background area:
 - real: the registered LOLA-derived 200 m/px Shackleton crop, the embedded product
   ``shackleton_lola_200m`` (data_manifest/products.yaml; heights above the 1737.4 km sphere, lowered
   square repaired). Its grid comes from the product's georeferencing: the registration lives in
-  :mod:`crater_synth.dem_register` (``registration.json``), nowhere else;
+  :mod:`crater_synth.terrain.register` (``registration.json``), nowhere else;
 - LDEM: the embedded 1600 m/px LDEM_256 sampled on that grid exactly as the terrain patch samples it
   (``Dem.sample``: bicubic);
-- LDEM + detail: the same plus :func:`crater_synth.detail.synthesize_detail` (old and new model).
+- LDEM + detail: the same plus :func:`crater_synth.terrain.detail.synthesize_detail` (old and new model).
 
 Statistics (:func:`terrain_statistics`): slope distributions over 200/400/800 m baselines, the
 Laplacian (curvature) at 200/400 m, the height structure function at 200-3200 m lags and its
@@ -16,7 +16,7 @@ Hurst exponent over 400-3200 m, and the closed depressions (what a low Sun fills
 their number per 1000 km^2 by size and their depth/diameter. The background excludes the
 Shackleton bowl (within 1.3 R of its centre); the repaired square is real data and is kept.
 
-``python -m crater_synth.detail_calibration --out DIR`` prints the table and writes hillshades
+``python -m crater_synth.tools.calibrate_detail --out DIR`` prints the table and writes hillshades
 (sun 0.5, 1.6 and 5 deg, cast shadows) of real / LDEM / old / new to ``DIR``. The numbers in
 :data:`REAL_CROP_STATS` were produced by it (``measure_real``) and are what tests/test_detail.py
 checks the generator against.
@@ -29,15 +29,12 @@ scatter one documented procedure (docs/detail.md) over several files.
 
 from __future__ import annotations
 
-import json
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from crater_core.errors import ContractError
 from crater_synth.errors import UserError
 
 # The registered real crop (data_manifest/products.yaml); --dem takes another product id or DEM file.
@@ -47,7 +44,7 @@ DEFAULT_DATA_DIR = "data"
 # The statistics' baselines and the detail's reference grid are in 200 m pixels.
 REAL_CROP_SPACING_M = 200.0
 MIN_CROP_PX = 64  # the band mask loses 8 px (one DEM pixel) per side; 48 px left for the 16 px lag
-# Shackleton (SPEC.md, IAU): the bowl and its inner rim flank are excluded within 1.3 R. The product's
+# Shackleton (IAU Gazetteer; docs/specification.md): the bowl and its inner rim flank are excluded within 1.3 R. The product's
 # repaired square (rows/cols 103-152: the 40 m crop averaged to 200 m) is NOT excluded: in its interior
 # it has the same 200 m statistics as the raw (lowered) square's native 200 m processing (Laplacian std,
 # RMS slope, structure function within 1-3 %), docs/detail.md.
@@ -121,12 +118,12 @@ class RealCrop:
 
 def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAULT_DATA_DIR) -> RealCrop:
     """The real crop from a registered DEM product id (default ``shackleton_lola_200m``) or a DEM file
-    (through :func:`crater_synth.demstack.open_dem_entry`), with its grid from its georeferencing.
+    (through :func:`crater_synth.terrain.stack.open_dem_entry`), with its grid from its georeferencing.
 
     It must be north-up with square 200 m pixels, at least ``MIN_CROP_PX`` on a side, and have no
     nodata; anything else is one :class:`CalibrationDataError` naming the entry.
     """
-    from crater_synth.demstack import open_dem_entry
+    from crater_synth.terrain.stack import open_dem_entry
 
     dem, _ = open_dem_entry(entry, data_dir, what="real crop (--dem)")
     where = f"real crop {entry!r} ({dem.path})"
@@ -157,7 +154,7 @@ def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAUL
 
 
 def _open_ldem(data_dir: str | Path = DEFAULT_DATA_DIR):
-    from crater_synth.dem import Dem
+    from crater_synth.terrain.dem import Dem
     from data_manifest.products import resolve_product
 
     return Dem(resolve_product(BASE_DEM_PRODUCT, data_dir), product=BASE_DEM_PRODUCT)
@@ -291,7 +288,7 @@ def subdem_band(
     the mask eroded by one DEM pixel (where the filter's reach of masked pixels is negligible)."""
     from scipy import ndimage
 
-    from crater_synth.detail import highpass_weights
+    from crater_synth.terrain.detail import highpass_weights
 
     res = np.where(mask, real - ldem, 0.0)
     ny, nx = res.shape
@@ -351,7 +348,7 @@ def neukum_cumulative(d_km, age_ga: float) -> np.ndarray:
 
 def equilibrium_cumulative(d_km, density_scale: float = 1.0) -> np.ndarray:
     """Equilibrium N(>=D) per km^2 (Trask 1966; Gault 1970) x ``density_scale``."""
-    from crater_synth.detail import EQ_COEF, EQ_SLOPE
+    from crater_synth.terrain.detail import EQ_COEF, EQ_SLOPE
 
     return density_scale * EQ_COEF * (np.asarray(d_km, dtype=float) * 1000.0) ** -EQ_SLOPE * 1e6
 
@@ -373,7 +370,7 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
     d/D percentiles and shares, and how dark the craters are at a low Sun on level ground: the mean
     shadowed share of the diameter along the Sun's line and the share of craters more than 90 %
     shadowed ("black pits"), at 0.5 and 1.6 deg."""
-    from crater_synth.detail import (
+    from crater_synth.terrain.detail import (
         LEGACY_PARAMETERS,
         crater_population,
         crater_profile,
@@ -447,7 +444,7 @@ def model_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarray, 
     """Mean statistics of LDEM + detail (and of the detail alone, on ``band_mask``) over seeds."""
     from dataclasses import replace
 
-    from crater_synth.detail import synthesize_detail
+    from crater_synth.terrain.detail import synthesize_detail
 
     runs = []
     for seed in seeds:
@@ -494,7 +491,7 @@ def fit_parameters(m: dict, seeds=range(4)) -> list[tuple[float, dict]]:
     import itertools
     from dataclasses import replace
 
-    from crater_synth.detail import DetailSettings
+    from crater_synth.terrain.detail import DetailSettings
 
     out = []
     names = list(FIT_GRID)
@@ -510,7 +507,7 @@ OLD_SETTINGS_KW = {"model": "legacy"}
 
 def comparison_rows(m: dict, seeds=range(4)) -> dict:
     """{name: stats} for real, LDEM only, LDEM + old detail, LDEM + new detail."""
-    from crater_synth.detail import DetailSettings
+    from crater_synth.terrain.detail import DetailSettings
 
     args = (m["ldem"], m["mask"], m["band_mask"])
     return {
@@ -530,8 +527,8 @@ def grid_transfer_rows(m: dict, factors=(2, 4), seeds=range(4)) -> dict:
     the detail synthesised at that spacing. Keys keep their 200 m names but are per grid step."""
     from dataclasses import replace
 
-    from crater_synth.dem_register import block_mean
-    from crater_synth.detail import DetailSettings, synthesize_detail
+    from crater_synth.terrain.detail import DetailSettings, synthesize_detail
+    from crater_synth.terrain.register import block_mean
 
     dem = _open_ldem()
     rows = {}
@@ -633,87 +630,3 @@ def write_hillshades(
 
 def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name.lower()).strip("_").replace("__", "_")
-
-
-def main(argv=None) -> int:
-    import argparse
-
-    from crater_synth.detail import DetailSettings, synthesize_detail
-
-    ap = argparse.ArgumentParser(
-        prog="python -m crater_synth.detail_calibration",
-        description="Compare LDEM + sub-DEM detail with a real LOLA 200 m crop.",
-    )
-    ap.add_argument(
-        "--dem",
-        default=REAL_CROP_PRODUCT,
-        help="the real crop: a registered DEM product id or a georeferenced DEM file with 200 m "
-        f"pixels and heights above the sphere (default {REAL_CROP_PRODUCT})",
-    )
-    ap.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="where downloaded products live (default data)")
-    ap.add_argument("--out", help="folder for the hillshade PNGs (none written when omitted)")
-    ap.add_argument("--seeds", type=int, default=4, help="detail draws averaged per model (default 4)")
-    ap.add_argument("--fit", action="store_true", help="also run the parameter grid search (FIT_GRID)")
-    ap.add_argument("--json", action="store_true", help="print JSON instead of markdown")
-    a = ap.parse_args(argv)
-    if a.seeds < 1:
-        print(f"error: --seeds={a.seeds} must be >= 1", file=sys.stderr)
-        return 2
-    try:
-        m = measure_real(load_real_crop(a.dem, a.data_dir), a.data_dir)
-        rows = comparison_rows(m, seeds=range(a.seeds))
-        fit = fit_parameters(m, seeds=range(a.seeds)) if a.fit else []
-        transfer = grid_transfer_rows(m, seeds=range(a.seeds))
-        population = {
-            "old detail": population_summary(DetailSettings(**OLD_SETTINGS_KW)),
-            "new detail": population_summary(DetailSettings()),
-        }
-    except (UserError, ContractError) as exc:
-        print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-    head = {
-        "crop": m["crop"],
-        "top_left_xy_m": [round(v, 1) for v in m["top_left_xy_m"]],
-        "residual_rms_m": m["residual_rms_m"],
-        "background_fraction": float(m["mask"].mean()),
-        "band_fraction": float(m["band_mask"].mean()),
-    }
-    if a.json:
-        print(
-            json.dumps(
-                {
-                    **head,
-                    "rows": rows,
-                    "grid_transfer": transfer,
-                    "population": population,
-                    "fit": [{"misfit": e, **kw} for e, kw in fit],
-                },
-                indent=1,
-            )
-        )
-    else:
-        print(json.dumps(head))
-        print(markdown_table(rows))
-        for grid, row in transfer.items():
-            print(f"\nsub-DEM band on a {grid} grid")
-            print(markdown_table(row, TRANSFER_KEYS))
-        print("\ndrawn crater population, 400 m - 3.2 km, 10,000 km^2 (level ground for the shadows)")
-        print(markdown_table(population))
-        for e, kw in fit:
-            print(f"misfit {e:.4f}  {kw}")
-    if a.out:
-        fields = {"real": m["real"], "ldem": m["ldem"]}
-        for name, settings in (("old", DetailSettings(**OLD_SETTINGS_KW)), ("new", DetailSettings())):
-            field, _ = synthesize_detail(m["ldem"].shape, REAL_CROP_SPACING_M, 1600.0, settings, key="calibration")
-            fields[name] = m["ldem"] + field
-        try:
-            for p in write_hillshades(fields, Path(a.out)):
-                print(p)
-        except OSError as exc:
-            print(f"error: cannot write hillshades to --out {a.out}: {exc.strerror or exc}", file=sys.stderr)
-            return 2
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

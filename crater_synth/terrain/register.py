@@ -21,7 +21,7 @@ sub-pixel least-squares fit of (x0, y0) with dz profiled out. Uncertainty: forma
 residual variance), delete-one-block jackknife over 4 x 4 spatial blocks (accounts for spatially
 correlated residuals), and the half-width of the misfit peak (shift at which the RMS doubles).
 
-Run ``python -m crater_synth.dem_register`` to rebuild ``data_manifest/embedded/shackleton_lola_200m``
+Run ``python -m crater_synth.tools.register_crop`` to rebuild ``data_manifest/embedded/shackleton_lola_200m``
 (``--out DIR`` elsewhere; ``--check`` compares a rebuild with the committed files).
 
 Length: the registration of one product, kept whole: orientation search, sub-pixel fit with its
@@ -31,16 +31,14 @@ form one reproducible rebuild (``--check``).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from crater_core.geometry import MOON_RADIUS_M, curvature_drop_m
+from crater_core.schema import atomic_write_json
 from crater_synth.errors import UserError
 
 # Source crops (AuroraRoboticsLab/GodotRobot demo/terrain_fixed/lunar_south_pole, commit 055ed87a,
@@ -64,7 +62,7 @@ SQUARE_START, SQUARE_SIZE = 103, 50
 # not used, so the set of compared pixels stays fixed while the fit moves the crop by sub-pixels.
 EDGE_INSET_PX = 1.0
 JACKKNIFE_BLOCKS = 4
-PRODUCT_DIR = Path(__file__).resolve().parents[1] / "data_manifest" / "embedded" / "shackleton_lola_200m"
+PRODUCT_DIR = Path(__file__).resolve().parents[2] / "data_manifest" / "embedded" / "shackleton_lola_200m"
 HEIGHT_FRAMES = ("sphere", "pole_tangent_plane")
 
 
@@ -500,7 +498,7 @@ def _round(d):
 def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
     """Verify the source EXRs, repair the 200 m crop, register it on ``ref`` and write
     ``shackleton_lola_200m.tif``, ``shackleton_lola_40m.tif`` and ``registration.json`` into ``out_dir``."""
-    from crater_core.schema import atomic_write_bytes, atomic_write_text, sha256_file
+    from crater_core.schema import atomic_write_bytes, sha256_file
 
     crops = {}
     for name, (px, sha) in SHACKLETON_SOURCES.items():
@@ -555,7 +553,7 @@ def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
             heights,
             transform,
             crs,
-            f"{what}; m above the 1737.4 km sphere; registered on LDEM_256 (crater_synth.dem_register)",
+            f"{what}; m above the 1737.4 km sphere; registered on LDEM_256 (crater_synth.terrain.register)",
         )
         atomic_write_bytes(out_dir / name, data)
         files[name] = {
@@ -574,39 +572,5 @@ def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
             "sources": {n: {"pixel_m": px, "sha256": sha} for n, (px, sha) in SHACKLETON_SOURCES.items()},
         }
     )
-    atomic_write_text(out_dir / "registration.json", json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    atomic_write_json(out_dir / "registration.json", doc)
     return doc
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m crater_synth.dem_register [--out DIR] [--check]``."""
-    import tempfile
-
-    from crater_synth.dem import Dem
-    from data_manifest.products import resolve_product
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--src", type=Path, default=PRODUCT_DIR, help="folder holding the source EXRs")
-    ap.add_argument("--out", type=Path, default=PRODUCT_DIR, help="folder to write the products into")
-    ap.add_argument("--check", action="store_true", help="rebuild in a temp folder and compare with --out")
-    ap.add_argument("--data-dir", default="data")
-    args = ap.parse_args(argv)
-    try:
-        ref = Dem(resolve_product("lola_ldem256_south", args.data_dir), product="lola_ldem256_south")
-        if not args.check:
-            doc = build_shackleton(args.src, args.out, ref)
-            print(json.dumps({"registration": doc["registration"], "outputs": doc["outputs"]}, indent=1))
-            return 0
-        with tempfile.TemporaryDirectory() as tmp:
-            doc = build_shackleton(args.src, Path(tmp), ref)
-        committed = json.loads((args.out / "registration.json").read_text(encoding="utf-8"))
-        same = committed["outputs"] == doc["outputs"]
-        print(json.dumps({"identical": same, "rebuilt": doc["outputs"], "committed": committed["outputs"]}))
-        return 0 if same else 1
-    except (UserError, ValueError, OSError) as exc:
-        print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -26,7 +26,6 @@ group, seed, model and crater) and ``validation.md`` (the table). A rerun skips 
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import json
 import time
@@ -37,9 +36,9 @@ from typing import Sequence
 import click
 import numpy as np
 
-from crater_core.schema import atomic_write_text
+from crater_core.schema import atomic_write_json, atomic_write_text, content_key
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, compose, resolved
+from crater_synth.config import ConfigError, catalogue_names, compose, resolved
 from train.registry import MODELS
 
 RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
@@ -106,13 +105,6 @@ def plan_groups(vcfg: dict, known_craters: Sequence[str]) -> list[Group]:
     return groups
 
 
-def catalogue_names() -> list[str]:
-    """Every crater of the catalogue (configs/crater/*.yaml, except the ``custom`` template)."""
-    from crater_synth.config import CONFIG_DIR
-
-    return sorted(p.stem for p in (CONFIG_DIR / "crater").glob("*.yaml") if p.stem != "custom")
-
-
 # Settings added after fingerprints were published (docs/results/experiments.csv): at these values they
 # train exactly as before the key existed, so they are left out and published runs stay resumable.
 NEUTRAL_LATER_KEYS = {
@@ -149,7 +141,7 @@ def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
             parent = parent.get(key) if isinstance(parent, dict) else None
         if isinstance(parent, dict) and path[-1] in parent and (neutral is _ANY or parent[path[-1]] == neutral):
             del parent[path[-1]]
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return content_key(payload)
 
 
 def evaluation_only(overrides: Sequence[str]) -> bool:
@@ -333,7 +325,7 @@ def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: 
         "runs": runs,
         "summary": summary,
     }
-    atomic_write_text(out / RESULTS_FILE, json.dumps(res, indent=1, sort_keys=True) + "\n")
+    atomic_write_json(out / RESULTS_FILE, res)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["group", "role", "seed", "model", "crater", "accuracy", "group_accuracy", "train_images"])

@@ -20,7 +20,6 @@ Contract with the Blender worker (docs/terrain.md):
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -29,9 +28,11 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.schema import atomic_write_json, content_key
 from crater_core.settings import NEAR_VERTICES_RANGE  # noqa: F401 - the range lives with the settings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
+from crater_synth.terrain.grid import bilinear, sphere_points
 
 # Bump when the patch arrays or their meaning change: it is part of every terrain_id.
 TERRAIN_FORMAT_VERSION = 1
@@ -85,7 +86,7 @@ def _crater_dict(crater) -> dict:
 
 def _open_stack(s: dict):
     """The near-field DEM: the base (dem.product / dem.path) with the dem.stack layers over it."""
-    from crater_synth.demstack import open_stack
+    from crater_synth.terrain.stack import open_stack
 
     base, base_sha = _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
     return open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
@@ -100,7 +101,7 @@ def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key
     detail is zero; where only the 1600 m base covers, it is the base's detail unchanged; across a
     blend band it fades with the weight. A plain :class:`SampleResult` (one DEM) gets the base's detail.
     """
-    from crater_synth.detail import synthesize_detail
+    from crater_synth.terrain.detail import synthesize_detail
 
     weights = getattr(sample, "layer_weights", None) or [np.ones(shape)]
     pixels = getattr(sample, "layer_pixel_m", None) or [None]
@@ -130,7 +131,7 @@ def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key
 
 def _open_dem(product: str | None, path: str | None, data_dir: Path):
     """(Dem, sha256) for a registry product or an explicit file (``path`` wins)."""
-    from crater_synth.dem import Dem
+    from crater_synth.terrain.dem import Dem
     from data_manifest.products import cached_sha256, resolve_product
 
     if path:
@@ -144,27 +145,10 @@ def _open_dem(product: str | None, path: str | None, data_dir: Path):
 # --------------------------------------------------------------------------------------------
 # Geometry helpers
 # --------------------------------------------------------------------------------------------
-def _sphere_points(e: np.ndarray, n: np.ndarray, lat: float, lon: float):
-    """Unit directions (MC) and (lat, lon) of the sphere points below horizontal ENU (e, n)."""
-    from crater_core.geometry import MOON_RADIUS_M, enu_basis, latlon_to_mc, mc_to_latlon
-
-    basis = enu_basis(lat, lon)
-    p = latlon_to_mc(lat, lon) + e[..., None] * basis[0] + n[..., None] * basis[1]
-    dirs = p / np.linalg.norm(p, axis=-1, keepdims=True)
-    plat, plon, _ = mc_to_latlon(dirs * MOON_RADIUS_M)
-    return dirs, plat, plon
-
-
 def _to_enu(dirs: np.ndarray, heights: np.ndarray, lat: float, lon: float) -> np.ndarray:
     from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
 
     return mc_to_enu(dirs * (MOON_RADIUS_M + heights)[..., None], lat, lon)
-
-
-def _bilinear(grid: np.ndarray, half_width: float, spacing: float, e: np.ndarray, n: np.ndarray) -> np.ndarray:
-    from scipy.ndimage import map_coordinates
-
-    return map_coordinates(grid, [(n + half_width) / spacing, (e + half_width) / spacing], order=1, mode="nearest")
 
 
 def measure_crater(height: np.ndarray, z: np.ndarray, half_width: float, spacing: float, radius_m: float) -> dict:
@@ -177,15 +161,15 @@ def measure_crater(height: np.ndarray, z: np.ndarray, half_width: float, spacing
     """
     az = np.radians(np.arange(N_AZIMUTHS) * 360.0 / N_AZIMUTHS)
     sa, ca = np.sin(az), np.cos(az)
-    rim_z = float(_bilinear(z, half_width, spacing, radius_m * sa, radius_m * ca).mean())
-    rim_h_ring = float(_bilinear(height, half_width, spacing, radius_m * sa, radius_m * ca).mean())
+    rim_z = float(bilinear(z, half_width, spacing, radius_m * sa, radius_m * ca).mean())
+    rim_h_ring = float(bilinear(height, half_width, spacing, radius_m * sa, radius_m * ca).mean())
     radii = np.linspace(RIM_SEARCH_FRAC[0], RIM_SEARCH_FRAC[1], 21) * radius_m
-    prof = _bilinear(height, half_width, spacing, np.outer(sa, radii), np.outer(ca, radii))
+    prof = bilinear(height, half_width, spacing, np.outer(sa, radii), np.outer(ca, radii))
     rim_crest = float(prof.max(axis=1).mean())
     fr = np.linspace(0.0, FLOOR_RADIUS_FRAC, 16) * radius_m
     fe, fn = np.outer(sa, fr), np.outer(ca, fr)
-    floor_h = float(np.percentile(_bilinear(height, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
-    floor_z = float(np.percentile(_bilinear(z, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
+    floor_h = float(np.percentile(bilinear(height, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
+    floor_z = float(np.percentile(bilinear(z, half_width, spacing, fe, fn), FLOOR_PERCENTILE))
     return {
         "rim_z_m": rim_z,
         "rim_height_m": rim_h_ring,
@@ -209,7 +193,7 @@ def _far_half_cells(dem, lat: float, lon: float, k_max: int, spacing: float, max
     <= max_nodata; returns (m, nodata vertices within it)."""
     k = np.arange(-k_max, k_max + 1) * spacing
     ee, nn = np.meshgrid(k, k)
-    _, plat, plon = _sphere_points(ee, nn, lat, lon)
+    _, plat, plon = sphere_points(ee, nn, lat, lon)
     inside, valid = dem.coverage(plat, plon, spacing_m=spacing)
     ring = np.maximum(np.abs(np.arange(-k_max, k_max + 1))[None, :], np.abs(np.arange(-k_max, k_max + 1))[:, None])
     total = np.bincount(ring.ravel(), minlength=k_max + 1).cumsum()
@@ -253,7 +237,7 @@ def terrain_id(dem_sha: str, far_dem_sha: str, crater: dict, s: dict, stack_key:
     }
     if stack_key and stack_key.get("layers"):
         key["stack"] = stack_key
-    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    return content_key(key)
 
 
 def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
@@ -273,8 +257,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
     from crater_core.files import ensure_writable_dir
-    from crater_core.schema import atomic_write_text
-    from crater_synth.dem import DemCoverageError
+    from crater_synth.terrain.dem import DemCoverageError
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
@@ -310,7 +293,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     spacing = 2.0 * hw / (nv - 1)
     coords = np.linspace(-hw, hw, nv)
     ee, nn = np.meshgrid(coords, coords)  # [i, j] = (e_j, n_i)
-    dirs, plat, plon = _sphere_points(ee, nn, lat, lon)
+    dirs, plat, plon = sphere_points(ee, nn, lat, lon)
     near = dem.sample(
         plat,
         plon,
@@ -344,7 +327,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
             )
         fcoords = np.arange(-m, m + 1) * fs
         fe, fn = np.meshgrid(fcoords, fcoords)
-        fdirs, flat, flon = _sphere_points(fe, fn, lat, lon)
+        fdirs, flat, flon = sphere_points(fe, fn, lat, lon)
         far = far_dem.sample(
             flat,
             flon,
@@ -414,7 +397,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
         "build_seconds": round(time.perf_counter() - t0, 3),
     }
     _atomic_save_npz(npz_path, arrays)
-    atomic_write_text(meta_path, json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    atomic_write_json(meta_path, meta)
     return npz_path, {**meta, "cached": False}
 
 

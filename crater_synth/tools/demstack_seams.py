@@ -1,9 +1,9 @@
 """Seam metrics and figures of the DEM stack on a crater's near field (docs/dem_stack.md).
 
-``python -m crater_synth.demstack_report [OVERRIDES...] [--png PREFIX]`` samples the configured
+``python -m crater_synth.tools.demstack_seams [OVERRIDES...] [--png PREFIX]`` samples the configured
 stack and the base DEM alone (no detail) on the crater's near grid, prints one JSON line of seam
 metrics per crater, and with ``--png`` writes ``PREFIX_hillshade.png`` and ``PREFIX_profile.png``.
-Example: ``python -m crater_synth.demstack_report crater=shackleton --png /tmp/demstack``.
+Example: ``python -m crater_synth.tools.demstack_seams crater=shackleton --png /tmp/demstack``.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def _region_stats(h: np.ndarray, mask: np.ndarray) -> dict:
 
 def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
     """(metrics, arrays for figures) for one crater's near field under the configured stack."""
-    from crater_synth.terrain import _open_stack, _sphere_points, terrain_settings
+    from crater_synth.terrain.grid import sphere_points
+    from crater_synth.terrain.patch import _open_stack, terrain_settings
 
     s = terrain_settings(cfg)
     stack, _ = _open_stack(s)
@@ -58,7 +59,7 @@ def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
     spacing = 2.0 * hw / (nv - 1)
     coords = np.linspace(-hw, hw, nv)
     ee, nn = np.meshgrid(coords, coords)
-    _, plat, plon = _sphere_points(ee, nn, lat, lon)
+    _, plat, plon = sphere_points(ee, nn, lat, lon)
     blended = stack.sample(plat, plon, spacing_m=spacing)
     base = stack.base.sample(plat, plon, spacing_m=spacing)
     h, hb, w = blended.heights, base.heights, blended.fine_weight

@@ -1,7 +1,7 @@
 """Helpers for the renderer tests (tests/test_render_*.py): synthetic terrain npz files, worker jobs,
 running ``python -m blender_gen.worker`` in a subprocess, and the flat-plane oracle.
 
-Not a pytest conftest (no fixtures here); the test modules import it by path.
+The test modules import it as ``from helpers import render as cr``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from crater_core import geometry, hapke
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 R_MOON = geometry.MOON_RADIUS_M
 HAPKE = {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06, "theta_bar_deg": 23.657}
 
@@ -146,7 +146,7 @@ def flat_expected_if(it: dict, params: dict = HAPKE, z0: float = 0.0) -> np.ndar
 
 def crater_z(diameter_m: float):
     """Bowl crater (depth 0.2 D, raised rim 0.04 D) with gentle undulations: a stand-in for a DEM."""
-    from crater_synth.render_bench import bowl_crater_z
+    from crater_synth.bench.renderer import bowl_crater_z
 
     return bowl_crater_z(diameter_m)
 

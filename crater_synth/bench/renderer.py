@@ -119,7 +119,7 @@ def timed_dataset(overrides: list[str], out_dir: Path) -> dict:
     """Render ``overrides`` into ``out_dir`` (terrain built first, untimed) with a cold horizon cache."""
     from crater_synth.config import compose, craters
     from crater_synth.dataset import build_dataset
-    from crater_synth.terrain import build_terrain
+    from crater_synth.terrain.patch import build_terrain
 
     cfg = compose(overrides + [f"out_dir={out_dir}", f"render.horizon_cache_dir={out_dir / 'horizon-cache'}"])
     for crater in craters(cfg):

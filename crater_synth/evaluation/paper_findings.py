@@ -20,7 +20,7 @@ import numpy as np
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import user_errors
 from crater_synth.config import ConfigError
-from crater_synth.experiments import CSV_FILE, FIGURE_FILE, MODELS, PANEL_TITLES, plot_figure6, read_results
+from crater_synth.evaluation.figure6 import CSV_FILE, FIGURE_FILE, MODELS, PANEL_TITLES, plot_figure6, read_results
 from train.registry import LOOP_MODEL, label
 from train.registry import MODELS as ALL_MODELS  # the loop records every classifier
 
@@ -180,7 +180,7 @@ def loop_converges(history: dict | None) -> Finding:
 
 
 def findings(rows: list[dict], history: dict | None) -> list[Finding]:
-    """The paper's five findings, in the order of issue 11, each with its verdict."""
+    """The paper's five findings, in the order docs/results/README.md lists them, each with its verdict."""
     return [
         sun_elevation_rises(rows),
         large_roi_falls(rows),

@@ -1,10 +1,10 @@
 """``crater-synth bench`` / ``make bench``: the performance goals, measured (never asserted in tests).
 
 Parts (``--part``, default all, in this order):
-- ``distributed``: renders/s of the Dask path vs one process (crater_synth.launcher.bench_distributed);
+- ``distributed``: renders/s of the Dask path vs one process (crater_synth.bench.distributed.bench_distributed);
 - ``train``: LunarNet_ex training images/s and time to the validation target on the demo sweep
-  (crater_synth.bench_train.run_train_bench; skipped with a note if that dataset is not rendered yet);
-- ``renderer``: crater_synth.render_bench: (a) a whole paper crater (22,500 renders), (b) sweep=demo,
+  (crater_synth.bench.train.run_train_bench; skipped with a note if that dataset is not rendered yet);
+- ``renderer``: crater_synth.bench.renderer: (a) a whole paper crater (22,500 renders), (b) sweep=demo,
   (c) a 60-sun x 24-camera grid, (d) direct mode with the ROI crop on a sample of (a)'s items (and
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
   (~10-20 min on 2 cores).
@@ -50,7 +50,7 @@ def bench_command(part, keep, overrides):
     work.mkdir(parents=True, exist_ok=True)
     try:
         if part in ("all", "distributed"):
-            from crater_synth.launcher import bench_distributed
+            from crater_synth.bench.distributed import bench_distributed
 
             cfg = compose(["sweep=smoke", "crater=shackleton", "launcher=dask", *overrides])
             click.echo("distributed " + json.dumps(bench_distributed(cfg, work / "distributed")))
@@ -58,7 +58,7 @@ def bench_command(part, keep, overrides):
             cfg = resolved(compose(["sweep=demo", "train.progress=false", *overrides]))
             dataset = Path(cfg["train"]["dataset_dir"]) / "manifest.jsonl"
             if dataset.is_file():
-                from crater_synth.bench_train import run_train_bench
+                from crater_synth.bench.train import run_train_bench
 
                 click.echo("train " + json.dumps(run_train_bench(cfg)))
             else:
@@ -67,7 +67,7 @@ def bench_command(part, keep, overrides):
                     f"make dataset OVERRIDES=sweep=demo, renders it)"
                 )
         if part in ("all", "renderer"):
-            from crater_synth.render_bench import bench_renderer, summary_lines
+            from crater_synth.bench.renderer import bench_renderer, summary_lines
 
             r = bench_renderer(overrides, work / "renderer")
             click.echo("renderer " + json.dumps(r))

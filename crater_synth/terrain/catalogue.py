@@ -4,9 +4,9 @@ Every catalogue entry (``configs/crater/<name>.yaml``: IAU Gazetteer lat, lon, d
 real crater in the DEM the terrain is built from, or the renders of "crater X" show something else.
 :func:`measure_depression` measures the depression around a catalogue position (docs/catalogue.md):
 
-1. **Local grid.** The DEM is sampled (bicubic, :meth:`crater_synth.dem.Dem.sample`) on a square grid
+1. **Local grid.** The DEM is sampled (bicubic, :meth:`crater_synth.terrain.dem.Dem.sample`) on a square grid
    in the crater's local horizontal plane -- the terrain patch's own construction (the sphere point
-   below each tangent-plane point (e, n), ``crater_synth.terrain``), half-width
+   below each tangent-plane point (e, n), ``crater_synth.terrain.patch``), half-width
    ``GRID_HALF_WIDTH_D`` x D, spacing D / ``GRID_CELLS_PER_D`` but no coarser than half a DEM pixel.
    Heights are above the reference sphere, so the Moon's curvature does not tilt the profiles.
 2. **Rim crest.** From a centre c, ``N_AZIMUTHS`` radial height profiles are read (bilinear on the
@@ -29,7 +29,7 @@ real crater in the DEM the terrain is built from, or the renders of "crater X" s
 
 An entry passes (:func:`check`) when it is a closed depression, its centre lies within
 ``MAX_CENTRE_OFFSET_D`` x D of the catalogue position, its rim diameter within
-``MAX_DIAMETER_ERROR`` of the catalogue diameter (issue 9: these two are never loosened), and its
+``MAX_DIAMETER_ERROR`` of the catalogue diameter (docs/catalogue.md: these two are never loosened), and its
 default terrain patch (near field +-``terrain.near_radius_factor`` x D) lies inside the DEM.
 
 Length: one stage, the catalogue check, kept whole: the depression measurement (rim-circle fit,
@@ -48,9 +48,11 @@ import click
 import numpy as np
 
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import catalogue_names
 from crater_synth.errors import UserError
+from crater_synth.terrain.grid import bilinear, sphere_points
 
-# ---- acceptance thresholds (issue 9, deliverable 1: fixed, never loosened)
+# ---- acceptance thresholds (docs/catalogue.md: fixed, never loosened)
 MAX_CENTRE_OFFSET_D = 0.15  # measured centre within 0.15 D of the catalogue position
 MAX_DIAMETER_ERROR = 0.25  # measured rim diameter within 25 % of the catalogue diameter
 # "Clearly below the spill point" (the project's choice, docs/catalogue.md): the crater must hold water
@@ -127,24 +129,15 @@ class Depression:
 
 def _local_grid(dem, lat: float, lon: float, diameter_m: float, what: str):
     """DEM heights on the crater's local horizontal grid: (heights (n, n), half_width_m, spacing_m)."""
-    from crater_synth.terrain import _sphere_points  # the terrain patch's own (e, n) -> sphere mapping
 
     spacing = min(diameter_m / GRID_CELLS_PER_D, GRID_MAX_SPACING_DEM_PX * dem.pixel_size_m)
     cells = int(math.ceil(GRID_HALF_WIDTH_D * diameter_m / spacing))
     half_width = cells * spacing
     coords = np.linspace(-half_width, half_width, 2 * cells + 1)
     ee, nn = np.meshgrid(coords, coords)  # [i, j] = (e_j, n_i)
-    _, plat, plon = _sphere_points(ee, nn, lat, lon)
+    _, plat, plon = sphere_points(ee, nn, lat, lon)
     heights = dem.sample(plat, plon, spacing_m=spacing, what=what).heights
     return heights, half_width, spacing
-
-
-def _bilinear(grid: np.ndarray, half_width: float, spacing: float, e, n) -> np.ndarray:
-    from scipy.ndimage import map_coordinates
-
-    return map_coordinates(
-        grid, [(np.asarray(n) + half_width) / spacing, (np.asarray(e) + half_width) / spacing], order=1, mode="nearest"
-    )
 
 
 def _first_crest(prof: np.ndarray, min_drop: float) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +182,7 @@ def _rim_crest(grid, half_width, spacing, centre, radius_m, sin_az, cos_az, min_
     radii = np.arange(lo * radius_m, hi * radius_m + 0.5 * step, step)
     e = centre[0] + np.outer(sin_az, radii)
     n = centre[1] + np.outer(cos_az, radii)
-    prof = _bilinear(grid, half_width, spacing, e, n)
+    prof = bilinear(grid, half_width, spacing, e, n)
     k, no_crest = _first_crest(prof, min_drop)
     return radii[k], prof[np.arange(k.size), k], no_crest
 
@@ -259,10 +252,9 @@ def _spill_azimuth(grid, level, spill_height, dist, ring_radius, coords, centre)
 def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name: str = "crater") -> Depression:
     """Measure the depression around catalogue position (lat, lon) of diameter ``diameter_km`` in ``dem``.
 
-    ``dem``: a :class:`crater_synth.dem.Dem`. Raises :class:`crater_synth.dem.DemCoverageError` when
+    ``dem``: a :class:`crater_synth.terrain.dem.Dem`. Raises :class:`crater_synth.terrain.dem.DemCoverageError` when
     the measuring grid (+-1.25 D) leaves the DEM. Method: module docstring and docs/catalogue.md.
     """
-    from crater_synth.terrain import _sphere_points
 
     diameter_m = float(diameter_km) * 1000.0
     radius_m = 0.5 * diameter_m
@@ -302,7 +294,7 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
     floor = float(grid[floor_index])
     spill_height = float(level[floor_index])
     spill_azimuth = _spill_azimuth(grid, level, spill_height, dist, fit_radius, coords, centre)
-    _, clat, clon = _sphere_points(np.array(centre[0]), np.array(centre[1]), lat, lon)
+    _, clat, clon = sphere_points(np.array(centre[0]), np.array(centre[1]), lat, lon)
     spill_depth = spill_height - floor
     return Depression(
         centre_east_m=float(centre[0]),
@@ -328,19 +320,9 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
 # --------------------------------------------------------------------------------------------
 # Catalogue listing
 # --------------------------------------------------------------------------------------------
-CRATER_CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "crater"
-# Config files in configs/crater/ that are not catalogue entries.
-NOT_ENTRIES = frozenset({"custom"})
-
-
-def catalogue_names() -> list[str]:
-    """Every catalogue entry (``configs/crater/<name>.yaml``), sorted."""
-    return sorted(p.stem for p in CRATER_CONFIG_DIR.glob("*.yaml") if p.stem not in NOT_ENTRIES)
-
-
 def open_dem(cfg):
     """The DEM the terrain of ``cfg`` is built from (``dem.path`` or ``dem.product``)."""
-    from crater_synth.terrain import _open_dem, terrain_settings
+    from crater_synth.terrain.patch import _open_dem, terrain_settings
 
     s = terrain_settings(cfg)
     return _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])[0]
@@ -351,13 +333,12 @@ def square_inside(dem, lat: float, lon: float, half_width_m: float, points_per_s
 
     Its border is tested (the DEM is convex in its own projection, the square's image is not a square).
     """
-    from crater_synth.terrain import _sphere_points
 
     t = np.linspace(-half_width_m, half_width_m, points_per_side)
     one = np.full_like(t, half_width_m)
     e = np.concatenate([t, t, -one, one])
     n = np.concatenate([-one, one, t, t])
-    _, plat, plon = _sphere_points(e, n, lat, lon)
+    _, plat, plon = sphere_points(e, n, lat, lon)
     return bool(dem.inside(*dem.latlon_to_pixel(plat, plon)).all())
 
 
@@ -365,7 +346,7 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
     """One catalogue row: the entry, its measured depression (None when it could not be measured) and
     the failed criteria (empty: the entry passes). ``near_radius_factor``: the terrain patch's near-field
     half-width in diameters (``terrain.near_radius_factor``), which must fit inside the DEM."""
-    from crater_synth.dem import DemError
+    from crater_synth.terrain.dem import DemError
 
     failures = []
     try:
@@ -565,7 +546,7 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     'crater=[haworth,faustini]'``
     """
     from crater_synth.config import compose, craters
-    from crater_synth.terrain import terrain_settings
+    from crater_synth.terrain.patch import terrain_settings
 
     selected = any(o.split("=", 1)[0].lstrip("+~") == "crater" for o in overrides)
     if not selected:

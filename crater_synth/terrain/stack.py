@@ -1,7 +1,7 @@
 """Multi-resolution DEM stack: finer DEMs where they exist, the base DEM everywhere else, blended
 with no seam or step (docs/dem_stack.md).
 
-A :class:`DemStack` has the sampling interface of :class:`crater_synth.dem.Dem` (``sample``,
+A :class:`DemStack` has the sampling interface of :class:`crater_synth.terrain.dem.Dem` (``sample``,
 ``coverage``, ``latlon_to_pixel``, ``inside``, ``info``, ``product``, ``pixel_size_m``...). It holds
 a base DEM (which must cover every query, as before) and an ordered list of layers, finest first;
 each layer is any DEM :class:`Dem` opens (a registered product or a user GeoTIFF / PDS3 file).
@@ -41,8 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from crater_core.settings import BLEND_PIXELS_RANGE  # the allowed dem.blend_pixels, checked with the settings
-from crater_synth.dem import Dem, SampleResult
 from crater_synth.errors import UserError
+from crater_synth.terrain.dem import Dem, SampleResult
 
 # Distance-field cell: at most band / DISTANCE_CELLS_PER_BAND (resolution of the weight ramp).
 DISTANCE_CELLS_PER_BAND = 8

@@ -1,9 +1,9 @@
-"""Fidelity ablation (issue 9; docs/fidelity.md): each lever on and off, measured by the validation protocol.
+"""Fidelity ablation (docs/fidelity.md): each lever on and off, measured by the validation protocol.
 
 A *lever* is a change justified by physics or data (a real DEM, calibrated detail, the illumination a
 crater really sees, the real product's sampling, ...). The chosen configuration is the baseline with
 every lever on; each variant turns ONE lever off (its ``when_off`` overrides) and everything else stays.
-Every variant runs the full validation protocol (``crater_synth.validate``: the validation groups, and
+Every variant runs the full validation protocol (``crater_synth.evaluation.validation``: the validation groups, and
 the test group reported apart) with the same training budget (``ablation.train``), so the table says
 which levers moved the accuracy and which did not.
 
@@ -16,7 +16,6 @@ section of docs/fidelity.md between its markers.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Sequence
 
 import click
 
-from crater_core.schema import atomic_write_text
+from crater_core.schema import atomic_write_json, atomic_write_text, content_key
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, compose, resolved
 
@@ -38,7 +37,7 @@ def render_key(cfg_resolved: dict) -> str:
     """Fingerprint of everything that changes the pixels of a render (not training settings)."""
     payload = {k: cfg_resolved.get(k) for k in PIXEL_GROUPS}
     payload["render"] = {k: v for k, v in (payload["render"] or {}).items() if k not in ("workers", "threads")}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    return content_key(payload, 12)
 
 
 def plan_variants(acfg: dict) -> list[dict]:
@@ -69,7 +68,7 @@ def plan_variants(acfg: dict) -> list[dict]:
 
 def run_ablation(overrides: Sequence[str], progress: bool = True) -> dict:
     """Run the validation protocol for every variant; returns (and writes) the results."""
-    from crater_synth.validate import evaluation_only, run_validation
+    from crater_synth.evaluation.validation import evaluation_only, run_validation
 
     overrides = list(overrides)
     base = resolved(compose(overrides))
@@ -116,7 +115,7 @@ def _seed_from_baseline(src: Path, dst: Path) -> None:
     their validation.json records), so the protocol evaluates them again instead of retraining them.
     A variant directory that exists already keeps its own runs and gets only the (group, seed) runs it
     lacks (e.g. held-out groups added later)."""
-    from crater_synth.validate import RESULTS_FILE as VALIDATION_FILE
+    from crater_synth.evaluation.validation import RESULTS_FILE as VALIDATION_FILE
 
     if not (src / VALIDATION_FILE).is_file():
         return
@@ -134,7 +133,7 @@ def _seed_from_baseline(src: Path, dst: Path) -> None:
         added.append(run)
     if added:
         mine["runs"] = mine.get("runs", []) + added
-        atomic_write_text(dst / VALIDATION_FILE, json.dumps(mine, indent=1, sort_keys=True) + "\n")
+        atomic_write_json(dst / VALIDATION_FILE, mine)
 
 
 def _copy_tree_atomically(src: Path, dst: Path) -> None:
@@ -149,7 +148,7 @@ def _copy_tree_atomically(src: Path, dst: Path) -> None:
 def table_markdown(results: list[dict], budget: list[str]) -> str:
     """One row per variant: validation (and, where held-out groups ran, held-out) and test mean of
     LunarNet_ex and LunarSVM_ex, then LunarNet_ex per crater and the renders per group."""
-    from crater_synth.validate import MEAN_KEYS, format_mean
+    from crater_synth.evaluation.validation import MEAN_KEYS, format_mean
 
     roles = [("val", MEAN_KEYS["validation"])]
     if any(r["summary"].get(MEAN_KEYS["holdout"], {}).get("lunarnet_ex") is not None for r in results):
@@ -180,7 +179,7 @@ def table_markdown(results: list[dict], budget: list[str]) -> str:
 
 def _write(out: Path, results: list[dict], acfg: dict, budget: list[str], overrides: Sequence[str] = ()) -> dict:
     res = {"protocol": "docs/validation.md", "budget": budget, "overrides": list(overrides), "variants": results}
-    atomic_write_text(out / RESULTS_FILE, json.dumps(res, indent=1, sort_keys=True) + "\n")
+    atomic_write_json(out / RESULTS_FILE, res)
     table = table_markdown(results, budget)
     atomic_write_text(out / TABLE_FILE, table)
     docs = acfg.get("docs_file")
@@ -204,7 +203,7 @@ def ablate_command(overrides):
     Writes ablation.json/.md under ablation.out_dir and the table into docs/fidelity.md
     (ablation.docs_file). Example: crater-synth ablate sweep=demo
     """
-    from crater_synth.validate import means_line
+    from crater_synth.evaluation.validation import means_line
 
     res = run_ablation(overrides)
     for r in res["variants"]:

@@ -1,0 +1,1 @@
+"""Helpers the tests import (``from helpers.cli import ...``): plain functions, no fixtures."""
