@@ -19,7 +19,8 @@ def test_max_sun_elevation_matches_a_brute_force_scan(lat):
 
 
 def test_spec_values_colatitude_plus_obliquity():
-    """docs/specification.md: about 1.9 deg at Shackleton, 3.0 at de Gerlache, 3.4 at Shoemaker (towards the equator)."""
+    """docs/specification.md: about 1.9 deg at Shackleton, 3.0 at de Gerlache, 3.4 at Shoemaker (towards the
+    equator)."""
     assert max_sun_elevation_deg(-89.67, 0.0) == pytest.approx(0.33 + 1.54, abs=1e-3)
     assert max_sun_elevation_deg(-88.5, 0.0) == pytest.approx(1.5 + 1.54, abs=1e-3)
     assert max_sun_elevation_deg(-88.1, 0.0) == pytest.approx(1.9 + 1.54, abs=1e-3)

@@ -44,7 +44,8 @@ DEFAULT_DATA_DIR = "data"
 # The statistics' baselines and the detail's reference grid are in 200 m pixels.
 REAL_CROP_SPACING_M = 200.0
 MIN_CROP_PX = 64  # the band mask loses 8 px (one DEM pixel) per side; 48 px left for the 16 px lag
-# Shackleton (IAU Gazetteer; docs/specification.md): the bowl and its inner rim flank are excluded within 1.3 R. The product's
+# Shackleton (IAU Gazetteer; docs/specification.md): the bowl and its inner rim flank are excluded within
+# 1.3 R. The product's
 # repaired square (rows/cols 103-152: the 40 m crop averaged to 200 m) is NOT excluded: in its interior
 # it has the same 200 m statistics as the raw (lowered) square's native 200 m processing (Laplacian std,
 # RMS slope, structure function within 1-3 %), docs/detail.md.
