@@ -156,13 +156,13 @@ def duplicate_faults(rows: Iterable[dict]) -> list[str]:
     faults: list[str] = []
     seen: dict[str, dict] = {"key": {}, "path": {}, "sha256": {}}
     for i, row in enumerate(rows):
-        for what, value in (("key", row_key(row)), ("path", row["path"]), ("sha256", row["sha256"])):
+        for what, value in (("path", row["path"]), ("sha256", row["sha256"]), ("key", row_key(row))):
             first = seen[what].setdefault(value, (i, row))
             if first[0] == i:
                 continue
             other = first[1]
             if what == "key":
-                faults.append(f"duplicate row {value}: the same render listed twice")
+                faults.append(f"duplicate row {value}: one render listed twice ({other['path']} and {row['path']})")
             elif what == "path":
                 faults.append(f"duplicate path {value}: one file under two rows ({_label(other)} and {_label(row)})")
             else:

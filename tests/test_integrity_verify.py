@@ -312,3 +312,45 @@ def test_verify_after_sigkill_of_a_resumed_run_names_the_unmerged_rows(ds, tmp_p
         f"{part}: 2 rows of an interrupted run (pid 999999, no longer running) were never merged: "
         "re-run `crater-synth dataset` with the same settings to resume"
     ]
+
+
+# -- a truncated EXR: one line, not a screenful of library output ------------------------------------------
+@pytest.fixture(scope="module")
+def truncated_toy(tmp_path_factory):
+    """A toy dataset of 210 px renders (4x4 tiles of 64 px), its first EXR cut in half."""
+    from train.toydata import write_toy_dataset
+
+    d = tmp_path_factory.mktemp("truncated")
+    rows = write_toy_dataset(d, craters=("shackleton",), sun_elevations=(20.0,), sun_azimuths=(0.0,), rim_px=150.0)
+    victim = d / rows[0]["path"]
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) // 2])
+    return d, victim
+
+
+def test_a_truncated_exr_is_one_line_in_every_reader(truncated_toy):
+    """OpenEXR prints a line per unreadable tile on fd 2 (16 here); the readers keep it out of the terminal."""
+    import sys
+
+    d, victim = truncated_toy
+    code = (
+        "import sys\n"
+        "from crater_core import exr\n"
+        "for read in (exr.read_exr, exr.read_channel, exr.exr_info):\n"
+        "    try:\n"
+        "        read(sys.argv[1])\n"
+        "    except exr.ExrError as e:\n"
+        "        print(e)\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code, victim], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == ""
+    lines = p.stdout.splitlines()
+    assert len(lines) == 3 and all(str(victim) in line for line in lines), p.stdout
+
+
+def test_preview_of_a_truncated_exr_prints_one_line(truncated_toy, tmp_path):
+    d, victim = truncated_toy
+    p = run_cli("preview", d, "--out", tmp_path / "png")
+    assert p.returncode == 2
+    assert p.stderr.splitlines() == [_one_error_line(p)] and str(victim) in p.stderr, p.stderr
