@@ -230,6 +230,26 @@ def test_dataset_drops_a_row_that_leaves_the_dataset(ds, reference, tiny_dataset
     assert_same_dataset(reference, ds)
 
 
+def test_dataset_renders_again_a_file_linked_out_of_the_dataset(ds, reference, tiny_dataset):
+    """The resume check does not take a link to a faithful copy outside the dataset as a done render."""
+    row = json.loads(_lines(ds)[1])
+    f = ds / row["path"]
+    outside = ds.parent / "outside.exr"
+    shutil.move(f, outside)
+    f.symlink_to(outside)
+    proc = tiny_dataset(ds)
+    assert json.loads(proc.stdout.splitlines()[-1])["rendered"] == 1
+    assert not f.is_symlink()
+    assert_same_dataset(reference, ds)
+
+
+def test_verify_no_decode_still_checks_the_labels(ds):
+    row = _edit_row(ds, 3, cam_azimuth=45.0)
+    v = run_cli("verify", "--no-decode", ds)
+    assert v.returncode == 1
+    assert _faults(v) == [f"{ds / row['path']}: row cam_azimuth 45 but the EXR header says 180"], v.stderr
+
+
 def test_preview_refuses_a_path_that_leaves_the_dataset(ds, tmp_path):
     _edit_row(ds, 0, path="/etc/hostname")
     p = run_cli("preview", ds, "--out", tmp_path / "png")
