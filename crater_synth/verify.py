@@ -154,8 +154,11 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True, jobs: int | Non
         else:
             faults.append(error)
     faults += schema.duplicate_faults(rows)
-    if not rows and not faults and (n_files := len(_exr_files(d))):
-        faults.append(f"{manifest} lists no rows, but {n_files} EXR files lie beside it")
+    if not rows and not faults and writer is None:  # an emptied manifest must not pass as an empty dataset
+        unmerged_files = {str(d / r["path"]) for _, part_rows, _ in unmerged for r in part_rows}
+        n_files = sum(str(f) not in unmerged_files for f in _exr_files(d))
+        if n_files:
+            faults.append(f"{manifest} lists no rows, but {n_files} EXR files lie beside it")
     checks = [(str(d), r, decode) for r in rows]
     n_jobs = max(1, min(jobs or os.cpu_count() or 1, len(checks) // PARALLEL_MIN_FILES_PER_JOB))
     if n_jobs > 1:  # hashing and decoding are CPU-bound: one process per core
