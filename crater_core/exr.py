@@ -191,6 +191,46 @@ def _umask() -> int:
     return mask
 
 
+class _LibraryStderr:
+    """Holds what C/C++ code writes to file descriptor 2 while a file is read (OpenEXR prints one line
+    per corrupt tile of a truncated file before OpenImageIO reports the error: 17 lines for a 4x4-tile
+    render). The output is kept in an unnamed temp file; a read that succeeds passes it on to stderr
+    unchanged, a failed one drops it (its :class:`ExrError` is the one line the user sees). The
+    redirection is process-wide: readers run in the main thread or in worker processes."""
+
+    def __enter__(self) -> "_LibraryStderr":
+        import sys
+
+        self.failed = True
+        try:
+            sys.stderr.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+        try:
+            self._sink = tempfile.TemporaryFile()
+            self._saved = os.dup(2)
+            os.dup2(self._sink.fileno(), 2)
+        except OSError:  # no fd 2, or no room for a temp file: read without the redirection
+            self._sink = None
+        return self
+
+    def __exit__(self, exc_type, *_) -> None:
+        if self._sink is None:
+            return
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        try:
+            if exc_type is None and not self.failed:
+                self._sink.seek(0)
+                text = self._sink.read()
+                while text:
+                    text = text[os.write(2, text) :]
+        except OSError:
+            pass
+        finally:
+            self._sink.close()
+
+
 def _open(path: str | os.PathLike):
     import OpenImageIO as oiio
 
@@ -198,22 +238,39 @@ def _open(path: str | os.PathLike):
         raise ExrError(f"EXR {path} does not exist")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise ExrError(f"cannot open EXR {path}: {oiio.geterror() or 'unreadable file'}")
+        raise ExrError(f"cannot open EXR {path}: {_first_line(oiio.geterror()) or 'unreadable file'}")
     return inp
+
+
+def _first_line(text: str) -> str:
+    """Library errors can span lines (one per bad tile): the message keeps its first line."""
+    return (text or "").strip().split("\n", 1)[0]
+
+
+def _header(spec) -> dict:
+    header = {a.name: a.value for a in spec.extra_attribs}
+    header["tile_width"], header["tile_height"] = spec.tile_width, spec.tile_height
+    return header
 
 
 def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
     """(channels by name as float32 (h, w), {header attribute: value}) of a single-part EXR."""
+    with _LibraryStderr() as quiet:
+        out = _read_exr(path)
+        quiet.failed = False
+    return out
+
+
+def _read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
     inp = _open(path)
     try:
         spec = inp.spec()
         px = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if px is None:
-            raise ExrError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
+            raise ExrError(f"cannot decode EXR {path}: {_first_line(inp.geterror()) or 'corrupt file'}")
         px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
         chans = {name: px[..., i] for i, name in enumerate(spec.channelnames)}
-        header = {a.name: a.value for a in spec.extra_attribs}
-        header["tile_width"], header["tile_height"] = spec.tile_width, spec.tile_height
+        header = _header(spec)
     finally:
         inp.close()
     return chans, header
@@ -221,15 +278,29 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
 
 def read_channel(path: str | os.PathLike, channel: str = "IF") -> np.ndarray:
     """One channel looked up by name (OpenImageIO may reorder channels), float32 (h, w), all finite."""
+    return read_channel_and_header(path, channel)[0]
+
+
+def read_channel_and_header(path: str | os.PathLike, channel: str = "IF") -> tuple[np.ndarray, dict]:
+    """:func:`read_channel` and the file's header attributes (the render parameters), from one open."""
+    with _LibraryStderr() as quiet:
+        data, header = _read_channel(path, channel)
+        quiet.failed = False
+    return data, header
+
+
+def _read_channel(path: str | os.PathLike, channel: str) -> tuple[np.ndarray, dict]:
     inp = _open(path)
     try:
-        names = list(inp.spec().channelnames)
+        spec = inp.spec()
+        names = list(spec.channelnames)
         if channel not in names:
             raise ExrError(f"EXR {path} has no channel {channel!r} (channels: {names})")
         c = names.index(channel)
         data = inp.read_image(0, 0, c, c + 1, "float")
         if data is None:
-            raise ExrError(f"cannot decode EXR {path}: {inp.geterror() or 'corrupt file'}")
+            raise ExrError(f"cannot decode EXR {path}: {_first_line(inp.geterror()) or 'corrupt file'}")
+        header = _header(spec)
     finally:
         inp.close()
     data = np.asarray(data, dtype=np.float32)
@@ -237,23 +308,35 @@ def read_channel(path: str | os.PathLike, channel: str = "IF") -> np.ndarray:
         data = data[..., 0]
     if not np.all(np.isfinite(data)):
         raise ExrError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
-    return data
+    return data, header
 
 
-def exr_info(path: str | os.PathLike) -> dict:
-    """Decode every pixel and report the facts ``verify`` checks: channels, size, tiling, finiteness."""
+def exr_info(path: str | os.PathLike, decode: bool = True) -> dict:
+    """The facts ``verify`` checks: channels, size, tiling, header attributes and (``decode``: every
+    pixel decoded) finiteness; ``finite`` is None without ``decode``."""
+    with _LibraryStderr() as quiet:
+        info = _exr_info(path, decode)
+        quiet.failed = False
+    return info
+
+
+def _exr_info(path: str | os.PathLike, decode: bool) -> dict:
     inp = _open(path)
     try:
         spec = inp.spec()
-        pixels = inp.read_image("float")
-        if pixels is None:
-            raise ExrError(f"{path}: cannot decode pixels ({inp.geterror()})")
+        finite = None
+        if decode:
+            pixels = inp.read_image("float")
+            if pixels is None:
+                raise ExrError(f"{path}: cannot decode pixels ({_first_line(inp.geterror())})")
+            finite = bool(np.isfinite(np.asarray(pixels)).all())
         return {
             "channels": tuple(spec.channelnames),
             "width": spec.width,
             "height": spec.height,
             "tiled": spec.tile_width > 0,
-            "finite": bool(np.isfinite(np.asarray(pixels)).all()),
+            "finite": finite,
+            "header": _header(spec),
         }
     finally:
         inp.close()

@@ -48,17 +48,25 @@ def _obstacle(path: Path) -> str:
     return ""
 
 
+def check_dir_path(path: str | os.PathLike, key: str | None = None) -> Path:
+    """Refuse, without creating anything, a ``path`` that cannot become a directory because it, or
+    one of its ancestors, is a file: the :class:`PathError` names ``key`` as :func:`ensure_writable_dir`
+    does. For checks up front, before work whose output would go there."""
+    p = Path(path)
+    why = _obstacle(p)
+    if why:
+        raise PathError(f"{f'{key}={path}' if key else str(path)}: cannot create the directory: {why}")
+    return p
+
+
 def ensure_writable_dir(path: str | os.PathLike, key: str | None = None) -> Path:
     """Create ``path`` (and its parents) if needed and check that files can be created in it.
 
     ``key`` is the configuration key the path came from (``out_dir``, ``data_dir``, ``run_dir``...):
     the :class:`PathError` names it as the user typed it, e.g.
     ``data_dir=/x/file/data: cannot create the directory: /x/file is a regular file, not a directory``."""
-    p = Path(path)
+    p = check_dir_path(path, key)
     label = f"{key}={path}" if key else str(path)
-    why = _obstacle(p)
-    if why:
-        raise PathError(f"{label}: cannot create the directory: {why}")
     try:
         p.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=p)

@@ -99,7 +99,10 @@ def render_rel_path(
 
 
 def validate_row(row: dict, where: str = "manifest row") -> dict:
-    """Check that ``row`` has every required field with the right type; returns it."""
+    """Check that ``row`` is a JSON object with every required field of the right type and a ``path``
+    that stays inside the dataset directory (:func:`check_rel_path`); returns it."""
+    if not isinstance(row, dict):
+        raise ManifestError(f"{where}: a JSON {_json_kind(row)} where a row (a JSON object) should be")
     missing = [k for k in REQUIRED_FIELDS if k not in row]
     if missing:
         raise ManifestError(f"{where}: missing field(s) {missing}")
@@ -110,7 +113,77 @@ def validate_row(row: dict, where: str = "manifest row") -> dict:
             raise ManifestError(f"{where}: field {key!r} should be {typ.__name__}, got {val!r}")
     if row["schema_version"] != SCHEMA_VERSION:
         raise ManifestError(f"{where}: schema_version {row['schema_version']} != {SCHEMA_VERSION}")
+    check_rel_path(row["path"], where)
     return row
+
+
+def _json_kind(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, (int, float)):
+        return "number"
+    return {str: "string", list: "array"}.get(type(value), type(value).__name__)
+
+
+def check_rel_path(rel: str, where: str = "manifest row") -> str:
+    """A row's ``path`` must name a file inside the dataset directory: relative, without ``..``, empty
+    or ``.`` parts, and without a NUL byte. Anything else is refused (a row is never allowed to make a
+    reader hash, decode or train on a file outside the dataset). Returns ``rel``."""
+    parts = rel.split("/")
+    if not rel or rel.startswith("/") or "\0" in rel or any(p in ("", ".", "..") for p in parts):
+        raise ManifestError(f"{where}: path {rel!r} leaves the dataset directory (a path relative to it is required)")
+    return rel
+
+
+def row_file(dataset_dir: str | os.PathLike, row: dict) -> Path:
+    """The file of a validated row: ``dataset_dir / row["path"]``, refused with :class:`ManifestError`
+    when a symbolic link takes it outside ``dataset_dir`` (the path itself is checked by
+    :func:`validate_row`). A file that does not exist is returned as it is (callers report it)."""
+    d = Path(dataset_dir)
+    rel = check_rel_path(row["path"], f"{d}: row")
+    cur = d
+    for part in rel.split("/"):  # without a link below d, a checked relative path stays inside d
+        cur = cur / part
+        if cur.is_symlink():
+            break
+    else:
+        return cur
+    f = d / rel
+    target = f.resolve()
+    if not target.is_relative_to(d.resolve()):
+        raise ManifestError(f"{f}: leaves the dataset directory (a link to {target})")
+    return f
+
+
+def duplicate_faults(rows: Iterable[dict]) -> list[str]:
+    """Rows that must not stand side by side in one manifest: the same render twice (its crater and
+    angles), one file under two rows, or two rows whose files have the same sha256 (a copied file
+    under another label). One line per conflict, in manifest order."""
+    faults: list[str] = []
+    seen: dict[str, dict] = {"key": {}, "path": {}, "sha256": {}}
+    for i, row in enumerate(rows):
+        for what, value in (("path", row["path"]), ("sha256", row["sha256"]), ("key", row_key(row))):
+            first = seen[what].setdefault(value, (i, row))
+            if first[0] == i:
+                continue
+            other = first[1]
+            if what == "key":
+                faults.append(f"duplicate row {value}: one render listed twice ({other['path']} and {row['path']})")
+            elif what == "path":
+                faults.append(f"duplicate path {value}: one file under two rows ({_label(other)} and {_label(row)})")
+            else:
+                faults.append(
+                    f"duplicate sha256 {value[:16]}...: {other['path']} ({_label(other)}) and {row['path']} "
+                    f"({_label(row)}) are the same file"
+                )
+    return faults
+
+
+def _label(row: dict) -> str:
+    sun, cam = f"{row['sun_elevation']}/{row['sun_azimuth']}", f"{row['cam_elevation']}/{row['cam_azimuth']}"
+    return f"{row['crater']} sun {sun} cam {cam}"
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
@@ -179,25 +252,42 @@ class RowAppender:
         self.close()
 
 
+def manifest_lines(path: str | os.PathLike) -> Iterator[tuple[int, dict | None, str | None]]:
+    """``(line number, row, None)`` for every valid row of a JSONL manifest and ``(line number, None,
+    "<path>:<line>: unreadable row (<why>)")`` for every line that is not one: a truncated or corrupt
+    line, JSON that is not an object (``null``, ``42``), bytes that are not UTF-8, a row failing
+    :func:`validate_row` (a missing field, a path leaving the dataset). Blank lines are skipped."""
+    path = Path(path)
+    with open(path, "rb") as fh:  # bytes: one bad line must not make the whole file unreadable
+        for lineno, raw in enumerate(fh, 1):
+            if not raw.strip():
+                continue
+            where = f"{path}:{lineno}"
+            try:
+                yield lineno, validate_row(json.loads(raw.decode("utf-8")), where), None
+            except UnicodeDecodeError as exc:
+                bad = f"byte 0x{raw[exc.start]:02x} at column {exc.start + 1}"
+                yield lineno, None, f"{where}: unreadable row (not UTF-8 text: {bad})"
+            except json.JSONDecodeError as exc:
+                yield lineno, None, f"{where}: unreadable row (not JSON: {exc.msg} at column {exc.colno})"
+            except (ManifestError, RecursionError) as exc:
+                yield lineno, None, f"{where}: unreadable row ({exc})"
+
+
 def iter_rows(path: str | os.PathLike, strict: bool = False) -> Iterator[dict]:
-    """Rows of a JSONL manifest. A truncated or corrupt line (from a killed writer) is skipped unless
-    ``strict``, in which case it raises :class:`ManifestError` naming the file and line."""
+    """Rows of a JSONL manifest. An unreadable line (:func:`manifest_lines`: a truncated line of a
+    killed writer, a corrupt or hand-edited one) is skipped unless ``strict``, in which case it raises
+    :class:`ManifestError` naming the file and line."""
     path = Path(path)
     if not path.exists():
         if strict:
             raise ManifestError(f"manifest {path} does not exist")
         return
-    with open(path, encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                row = validate_row(json.loads(line), f"{path}:{lineno}")
-            except (json.JSONDecodeError, ManifestError) as exc:
-                if strict:
-                    raise ManifestError(f"{path}:{lineno}: unreadable row ({exc})") from None
-                continue
+    for _, row, error in manifest_lines(path):
+        if error is None:
             yield row
+        elif strict:
+            raise ManifestError(error)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

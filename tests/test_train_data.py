@@ -69,7 +69,9 @@ def test_datasets_cache_and_samples(toy, tmp_path, monkeypatch):
     assert not np.array_equal(a, data.train.image(0))
     assert np.array_equal(data.val.image(0), data.val.image(0))
     # Second build: no EXR is decoded.
-    monkeypatch.setattr(tdata, "read_exr_channel", lambda *a, **k: pytest.fail("EXR decoded despite the cache"))
+    monkeypatch.setattr(
+        tdata, "read_exr_channel_and_header", lambda *a, **k: pytest.fail("EXR decoded despite the cache")
+    )
     again = build_datasets(cfg)
     assert not again.info["cache_built"] and again.info["cache"] == data.info["cache"]
     # A different preprocessing configuration is a different cache entry.
@@ -200,7 +202,7 @@ def test_subsets_of_a_dataset_share_its_cache(toy, tmp_path, monkeypatch):
     """A grid subset at one sigma (a Figure 6 point, a loop round) picks samples from the whole
     dataset's cache: no EXR is decoded again, and each picked crop is the one the full build made."""
     full = build_datasets(_cfg(toy, tmp_path))
-    monkeypatch.setattr(tdata, "read_exr_channel", lambda *a, **k: pytest.fail("EXR decoded for a subset"))
+    monkeypatch.setattr(tdata, "read_exr_channel_and_header", lambda *a, **k: pytest.fail("EXR decoded for a subset"))
     sub = build_datasets(
         _cfg(toy, tmp_path, "train.sigmas=[1.2]", "+train.select={sun_azimuth:[0.0],cam_elevation:[90.0]}")
     )

@@ -17,6 +17,8 @@ import torch
 from click.testing import CliRunner
 
 from crater_core import schema
+from crater_core.exr import read_exr, write_exr
+from crater_core.render_labels import header_for_row
 from crater_synth.config import compose, resolved
 from train.registry import MODELS
 from train.toydata import TOY_FRAME_SOURCE, write_toy_dataset, write_toy_frames
@@ -184,7 +186,13 @@ def test_shuffled_labels_fail_the_bar(toy, frames, tmp_path):
     shutil.copytree(toy, ds)
     rows = schema.load_manifest(ds)
     labels = np.random.default_rng(7).permutation([r["crater"] for r in rows])
-    schema.write_manifest(ds / schema.MANIFEST_NAME, [dict(r, crater=str(c)) for r, c in zip(rows, labels)])
+    shuffled = []
+    for r, c in zip(rows, labels):  # each EXR relabelled too: training refuses a row its file contradicts
+        r = dict(r, crater=str(c))
+        chans, _ = read_exr(ds / r["path"])
+        r["sha256"] = write_exr(ds / r["path"], chans, header_for_row(r))
+        shuffled.append(r)
+    schema.write_manifest(ds / schema.MANIFEST_NAME, shuffled)
     overrides = _overrides(
         ds, tmp_path, f"realset.labels_file={frames}", "realset.include_embedded=false", "train.max_epochs=6"
     )

@@ -58,10 +58,15 @@ CACHE_FORMAT = 1
 def read_exr_channel(path: str | Path, channel: str = "IF") -> np.ndarray:
     """One channel of a dataset EXR as float32 (H, W) (``crater_core.exr.read_channel``); a missing or
     corrupt file is a :class:`DatasetError` naming it."""
-    from crater_core.exr import ExrError, read_channel
+    return read_exr_channel_and_header(path, channel)[0]
+
+
+def read_exr_channel_and_header(path: str | Path, channel: str = "IF") -> tuple[np.ndarray, dict]:
+    """:func:`read_exr_channel` and the EXR's header (the render's labels), from one open."""
+    from crater_core.exr import ExrError, read_channel_and_header
 
     try:
-        return read_channel(path, channel)
+        return read_channel_and_header(path, channel)
     except ExrError as exc:
         raise DatasetError(f"{exc} (listed in the manifest)") from None
 
@@ -78,6 +83,23 @@ def class_names_from_config(cfg: Mapping) -> list[str]:
     return names
 
 
+def cache_dir_of(cfg: Mapping) -> str:
+    """``train.cache_dir`` (default: ``<train.dataset_dir>/.cache``)."""
+    tcfg = cfg["train"]
+    return str(tcfg.get("cache_dir") or Path(str(tcfg["dataset_dir"])) / ".cache")
+
+
+def require_classes(class_names: Sequence[str]) -> list[str]:
+    """A classifier needs two classes at least: checked before anything is loaded or trained (the SVMs
+    would refuse a single class only after LunarNet_ex had trained)."""
+    if len(class_names) < 2:
+        raise DatasetError(
+            f"crater= selects one crater ({', '.join(class_names)}): a classifier needs at least two; "
+            "select two or more, e.g. crater=[shackleton,de_gerlache]"
+        )
+    return list(class_names)
+
+
 def require_manifest(dataset_dir: str | Path) -> Path:
     """``<dataset_dir>/manifest.jsonl``, or a clear error when it is missing."""
     from crater_core.schema import MANIFEST_NAME
@@ -92,15 +114,25 @@ def require_manifest(dataset_dir: str | Path) -> Path:
 
 
 def load_rows(dataset_dir: str | Path) -> list[dict]:
-    """Strictly read ``<dataset_dir>/manifest.jsonl``."""
-    from crater_core.schema import load_manifest
+    """Strictly read ``<dataset_dir>/manifest.jsonl``: every line a valid row inside the dataset, no render,
+    file or file content listed twice (a duplicate row with another crater would train on a wrong
+    label). The checks ``verify`` makes without opening a file; the labels in each EXR's header are
+    checked where the crop cache decodes it (:func:`build_cache`)."""
+    from crater_core.schema import duplicate_faults, load_manifest
 
     d = Path(dataset_dir)
-    require_manifest(d)
+    manifest = require_manifest(d)
     try:
-        return load_manifest(d)
+        rows = load_manifest(d)
     except ManifestError as exc:
         raise DatasetError(str(exc)) from None
+    conflicts = duplicate_faults(rows)
+    if conflicts:
+        more = f" (and {len(conflicts) - 1} more)" if len(conflicts) > 1 else ""
+        raise DatasetError(
+            f"{manifest}: {conflicts[0]}{more}: refused for training; `crater-synth verify {d}` lists every fault"
+        )
+    return rows
 
 
 def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
@@ -141,15 +173,21 @@ def check_synthetic_rows(
             raise RealDataLeakError(f"{where} is not a render-manifest row, refused for training: {exc}") from None
         if row["sha256"] in bad_sha:
             raise RealDataLeakError(f"{where} has the sha256 of a real test image: refused for training")
-        if bad_paths and resolve_path(dataset_dir, row["path"]).resolve() in bad_paths:
+        if bad_paths and row_path(dataset_dir, row).resolve() in bad_paths:
             raise RealDataLeakError(f"{where} points at a real test image: refused for training")
         out.append(row)
     return out
 
 
-def resolve_path(dataset_dir: str | Path, rel: str) -> Path:
-    p = Path(rel)
-    return p if p.is_absolute() else Path(dataset_dir) / p
+def row_path(dataset_dir: str | Path, row: dict) -> Path:
+    """The file of a row (``crater_core.schema.row_file``): a :class:`DatasetError` when a link takes
+    it outside the dataset."""
+    from crater_core.schema import row_file
+
+    try:
+        return row_file(dataset_dir, row)
+    except ManifestError as exc:
+        raise DatasetError(f"{exc}: refused for training") from None
 
 
 def select_rows(rows: Sequence[dict], class_names: Sequence[str]) -> tuple[list[dict], dict[str, int]]:
@@ -287,10 +325,12 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
     """Resample one chunk of rows into the cache's memmap (``chunk`` = images path, dataset dir, rows,
     first sample index); returns the number of rows. Runs in a pool process or in the caller (which
     may pass ``on_row``, called after each row)."""
+    from crater_core.render_labels import label_faults
+
     images_path, dataset_dir, rows, j = chunk
     arr = np.load(images_path, mmap_mode="r+")
     for row in rows:
-        path = resolve_path(dataset_dir, row["path"])
+        path = row_path(dataset_dir, row)
         where = f"EXR {path}"
         if not path.is_file():
             raise DatasetError(f"{where} does not exist (manifest row {row['crater']} index {row['index']})")
@@ -300,7 +340,13 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
                 raise DatasetError(
                     f"{where}: sha256 {got} does not match the manifest's {row['sha256']} (file changed or corrupt)"
                 )
-        img = read_exr_channel(path, "IF")
+        img, header = read_exr_channel_and_header(path, "IF")
+        wrong = label_faults(row, header, str(path))
+        if wrong:  # e.g. an edited crater or Sun angle: the file's own labels contradict the row
+            more = f" (and {len(wrong) - 1} more)" if len(wrong) > 1 else ""
+            raise DatasetError(
+                f"{wrong[0]}{more}: refused for training; `crater-synth verify {dataset_dir}` lists every fault"
+            )
         if img.shape != (int(row["height"]), int(row["width"])):
             raise DatasetError(
                 f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
@@ -337,7 +383,7 @@ def build_cache(
     :class:`DatasetError` naming the file."""
     import time
 
-    from crater_core.files import umask
+    from crater_core.files import ensure_writable_dir, umask
     from crater_core.progress import Progress
 
     t0 = time.perf_counter()
@@ -356,7 +402,7 @@ def build_cache(
         except (OSError, ValueError, KeyError, json.JSONDecodeError):
             pass  # unreadable cache: rebuild below
         shutil.rmtree(final, ignore_errors=True)
-    final.parent.mkdir(parents=True, exist_ok=True)
+    ensure_writable_dir(final.parent, "train.cache_dir")
     tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=final.parent))
     try:
         os.chmod(tmp, 0o777 & ~umask())  # mkdtemp makes 0700: a cache is shared like the dataset
@@ -626,7 +672,7 @@ def build_datasets(
         dataset_dir,
         cache_sigmas,
         pp,
-        str(tcfg.get("cache_dir", dataset_dir / ".cache")),
+        cache_dir_of(cfg),
         str(tcfg.get("cache_dtype", "float16")),
         bool(tcfg.get("verify_sha256", True)),
         progress,

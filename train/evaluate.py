@@ -22,6 +22,7 @@ from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonic
 from train.registry import MODELS
 from train.trainer import (
     HOG_FILE,
+    NET_FILE,
     SUMMARY_FILE,
     SVM_FILE,
     configure_torch,
@@ -119,23 +120,43 @@ def roll_averaged_predictions(
     }
 
 
-def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test: RealTestSet | None = None) -> dict:
-    """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics files."""
+def evaluate_run(
+    cfg: Mapping,
+    run_dir: str | Path,
+    progress: bool = True,
+    test: RealTestSet | None = None,
+    out_dir: str | Path | None = None,
+) -> dict:
+    """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics
+    files into ``out_dir`` (default ``run_dir``; the pipeline passes a staging directory, :mod:`train.runs`).
+    The models and the summary must be of one training run (:func:`train.runs.check_one_run`)."""
+    from train.runs import check_one_run
+
     run_dir = Path(run_dir)
+    out_dir = run_dir if out_dir is None else Path(out_dir)
     device = configure_torch(cfg["train"])
     t0 = time.perf_counter()
     net, ck = load_lunarnet(run_dir, device)
     svm = load_sklearn(run_dir / SVM_FILE)
     hog = load_sklearn(run_dir / HOG_FILE)
+    summary = None
+    if (run_dir / SUMMARY_FILE).is_file():
+        try:
+            summary = json.loads((run_dir / SUMMARY_FILE).read_text())
+        except (ValueError, OSError) as exc:
+            raise ModelError(f"cannot read {run_dir / SUMMARY_FILE}: {exc}") from None
+    run_id = check_one_run(
+        run_dir,
+        {NET_FILE: ck.get("run_id"), SVM_FILE: svm.get("run_id"), HOG_FILE: hog.get("run_id")},
+        summary if isinstance(summary, dict) else None,
+    )
+    summary = summary if isinstance(summary, dict) else {}
     class_names = list(ck["class_names"])
     for other, f in ((svm, SVM_FILE), (hog, HOG_FILE)):
         if list(other["class_names"]) != class_names:
             raise ModelError(
                 f"{run_dir / f} was trained on classes {other['class_names']}, LunarNet_ex on {class_names}: retrain"
             )
-    summary = {}
-    if (run_dir / SUMMARY_FILE).is_file():
-        summary = json.loads((run_dir / SUMMARY_FILE).read_text())
     if test is None:  # with the preprocessing the network was trained with
         from train.preprocess import PreprocessConfig
 
@@ -162,7 +183,7 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
     for name in MODELS:
         metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
         plot_confusion(
-            run_dir / f"confusion_{name}.png",
+            out_dir / f"confusion_{name}.png",
             metrics[name]["confusion"],
             class_names,
             f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}",
@@ -180,6 +201,7 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
             else "Real test frames from the labels file only; see realset.jsonl for their sources.",
             "tta_rotations": rolls,
             "evaluate_seconds": time.perf_counter() - t0,
+            "run_id": run_id,
         }
     )
     rows = []
@@ -187,8 +209,8 @@ def evaluate_run(cfg: Mapping, run_dir: str | Path, progress: bool = True, test:
         r = c.as_row()
         r.update({f"pred_{m}": class_names[int(preds[m][i])] for m in MODELS})
         rows.append(json.dumps(r, sort_keys=True))
-    atomic_write_text(run_dir / REALSET_FILE, "\n".join(rows) + "\n")
-    atomic_write_text(run_dir / METRICS_FILE, json_text(_jsonable(metrics)))
+    atomic_write_text(out_dir / REALSET_FILE, "\n".join(rows) + "\n")
+    atomic_write_text(out_dir / METRICS_FILE, json_text(_jsonable(metrics)))
     return metrics
 
 

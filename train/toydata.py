@@ -1,6 +1,7 @@
 """A tiny procedural stand-in for a rendered dataset (tests, benchmarks, demos without Blender).
 
-Writes tiled float32 EXRs with the renderer's channels (``crater_core.schema.EXR_CHANNELS``) and a
+Writes tiled EXRs with the renderer's channels (``crater_core.schema.EXR_CHANNELS``), each carrying its
+labels in its header as the renderer writes them (``crater_core.render_labels``), and a
 ``manifest.jsonl`` whose rows pass ``validate_row``. The "craters" are toy height fields (a deep
 bowl, a bowl with a satellite crater on its rim, a flat-floored crater with a central peak) on a
 seeded rough background, Lambert-shaded for the row's sun direction and rotated by the camera
@@ -22,6 +23,7 @@ import numpy as np
 
 from crater_core import schema
 from crater_core.exr import write_exr
+from crater_core.render_labels import header_for_row
 
 DEFAULT_CRATERS = ("shackleton", "de_gerlache", "shoemaker")
 # (sun elevation, sun azimuth, camera azimuth) of the held-out frames: none is a pose or sun of the
@@ -124,7 +126,6 @@ def write_toy_dataset(
             ce, ca = cam_elevations[idx[2]], cam_azimuths[idx[3]]
             ch = render_toy(ci % 3, size, rim_px, se, sa, ce, ca, tseed)
             rel = f"{crater}/{flat:05d}.exr"
-            write_exr(out_dir / rel, ch)
             row = {
                 "schema_version": schema.SCHEMA_VERSION,
                 "crater": crater,
@@ -146,13 +147,15 @@ def write_toy_dataset(
                 "lit_fraction": float(ch["lit"].mean()),
                 "mean_if": float(ch["IF"].mean()),
                 "path": rel,
-                "sha256": schema.sha256_file(out_dir / rel),
+                "sha256": "",
                 "seed": int(tseed),
                 "code_version": "toydata",
                 "renderer": "toydata",
                 "terrain_id": f"toy-{crater}",
                 "render_digest": "toydata",
             }
+            # The labels go into the header as the renderer writes them, so verify and training can check them.
+            row["sha256"] = write_exr(out_dir / rel, ch, header_for_row(row))
             rows.append(schema.validate_row(row))
     schema.write_manifest(out_dir / schema.MANIFEST_NAME, rows)
     return rows

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_core.schema import atomic_write_bytes, atomic_write_text, sha256_file
 from train.data import SyntheticCropDataset, SyntheticData, seeded_subsample
 from train.errors import ModelError, RealDataLeakError, TrainError
 from train.metrics import accuracy, class_mean_accuracy
@@ -105,11 +105,16 @@ def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.de
 # LunarNet_ex
 # ------------------------------------------------------------------------------------------------
 def train_lunarnet(
-    data: SyntheticData, cfg: Mapping, run_dir: str | Path | None = None, progress: bool = True
+    data: SyntheticData,
+    cfg: Mapping,
+    run_dir: str | Path | None = None,
+    progress: bool = True,
+    run_id: str | None = None,
 ) -> tuple[LunarNetEx, dict]:
     """Adam on cross-entropy until the class-balanced validation accuracy reaches
     ``train.target_val_accuracy`` or ``train.max_epochs``. The best-validation weights are kept and,
-    with ``run_dir``, checkpointed atomically after every epoch that improves them.
+    with ``run_dir``, checkpointed atomically after every epoch that improves them (each checkpoint
+    carrying ``run_id``: :mod:`train.runs`).
 
     Returns (model, history) where history holds per-epoch loss/accuracy/throughput and timings."""
     from tqdm import tqdm
@@ -194,7 +199,9 @@ def train_lunarnet(
                 "state": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
             }
             if run_dir is not None:
-                save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], val_acc)
+                save_lunarnet(
+                    run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], val_acc, run_id
+                )
         if val_acc >= target:
             reached_at = rec["elapsed_s"]
             break
@@ -213,11 +220,13 @@ def train_lunarnet(
         "multiply_adds": multiply_adds(mcfg)["total"],
     }
     if run_dir is not None:  # final save carries the complete history
-        save_lunarnet(run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], best["val_accuracy"])
+        save_lunarnet(
+            run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], best["val_accuracy"], run_id
+        )
     return model, summary
 
 
-def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_acc) -> Path:
+def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_acc, run_id=None) -> Path:
     from train.preprocess import PreprocessConfig
 
     buf = io.BytesIO()
@@ -232,6 +241,7 @@ def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_ac
             "val_accuracy": val_acc,
             "history": history,
             "config": cfg,
+            "run_id": run_id,
         },
         buf,
     )
@@ -368,28 +378,44 @@ def load_sklearn(path: str | Path) -> dict:
 # ------------------------------------------------------------------------------------------------
 # All three
 # ------------------------------------------------------------------------------------------------
-def train_all(cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: bool = True) -> dict:
-    """Train the three classifiers on ``data`` and save them (plus config and summary) in ``run_dir``."""
+def train_all(
+    cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: bool = True, run_id: str | None = None
+) -> dict:
+    """Train the three classifiers on ``data`` and save them (plus config and summary) in ``run_dir``.
+
+    Every model file and the summary carry ``run_id`` (default: a new one), the summary also each
+    model's sha256 (``artefacts``), so that a directory mixing two runs is refused (:mod:`train.runs`;
+    ``crater-synth train`` trains into a staging directory and publishes the run whole)."""
     import yaml
 
+    from train.runs import new_run_id
+
+    run_id = run_id or new_run_id()
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / CONFIG_FILE, yaml.safe_dump(cfg, sort_keys=False))
-    model, net = train_lunarnet(data, cfg, run_dir, progress)
+    model, net = train_lunarnet(data, cfg, run_dir, progress, run_id)
     svms = train_svms(model, data, cfg, progress)
     save_sklearn(
         run_dir / SVM_FILE,
         svms["lunarsvm_ex"]["model"],
         data.class_names,
-        {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"]},
+        {"kind": "lunarsvm_ex", "val_accuracy": svms["lunarsvm_ex"]["val_accuracy"], "run_id": run_id},
     )
     save_sklearn(
         run_dir / HOG_FILE,
         svms["hog_svm"]["model"],
         data.class_names,
-        {"kind": "hog_svm", "val_accuracy": svms["hog_svm"]["val_accuracy"], "hog": dict(cfg["train"].get("hog", {}))},
+        {
+            "kind": "hog_svm",
+            "val_accuracy": svms["hog_svm"]["val_accuracy"],
+            "hog": dict(cfg["train"].get("hog", {})),
+            "run_id": run_id,
+        },
     )
     summary = {
+        "run_id": run_id,
+        "artefacts": {name: sha256_file(run_dir / name) for name in (NET_FILE, SVM_FILE, HOG_FILE)},
         "class_names": data.class_names,
         "data": data.info,
         "train_images": int(len(data.train)),

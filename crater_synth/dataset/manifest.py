@@ -86,5 +86,8 @@ def is_done(row: dict | None, out_dir: Path, digest: str) -> bool:
     """A render is done when its row has the current digest and its file hashes to the row's sha256."""
     if row is None or row.get("render_digest") != digest:
         return False
-    f = out_dir / row["path"]
+    try:
+        f = schema.row_file(out_dir, row)  # a link out of the dataset is never taken as done
+    except schema.ManifestError:
+        return False
     return f.is_file() and schema.sha256_file(f) == row["sha256"]

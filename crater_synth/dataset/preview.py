@@ -51,7 +51,7 @@ def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str
     for ax in axes.ravel():
         ax.axis("off")
     for ax, row in zip(axes.ravel(), pick, strict=False):
-        img = tone_map(read_channel(dataset_dir / row["path"]))
+        img = tone_map(read_channel(schema.row_file(dataset_dir, row)))
         ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         pts = _ellipse_points(row["rim_ellipse"])
         ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)

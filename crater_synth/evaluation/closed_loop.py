@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import io
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from crater_core.sweep import grid_from_config
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, resolved
 from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
+from train.runs import StagedRun
 
 HISTORY_FILE = "loop_history.json"
 # Files of the last round that represent the run as a whole.
@@ -112,6 +114,8 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     if not schedule or schedule != sorted(set(schedule)) or schedule[0] < 1:
         raise ConfigError(f"loop.sun_elevation_schedule={schedule}: must be increasing positive counts")
     run_dir = Path(cfg_r["run_dir"])
+    for k, count in enumerate(schedule):  # every round's configuration, before round 0 renders anything
+        round_config(cfg, count, run_dir / "rounds" / f"round{k}-sun{count}")
     run_dir.mkdir(parents=True, exist_ok=True)
     hist_path = run_dir / HISTORY_FILE
     hist = load_history(hist_path, threshold, schedule)
@@ -157,9 +161,10 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     atomic_write_text(hist_path, json.dumps(hist, indent=2))
     plot_history(hist, run_dir / "loop_history.png")
     final = Path(last["run_dir"])
-    for name in FINAL_FILES + tuple(p.name for p in final.glob("confusion_*.png")):
-        if (final / name).is_file():
-            atomic_write_bytes(run_dir / name, (final / name).read_bytes())
+    with StagedRun(run_dir) as stage:  # the last round's run is published whole, never half of it
+        for name in FINAL_FILES + tuple(p.name for p in final.glob("confusion_*.png")):
+            if (final / name).is_file():
+                shutil.copyfile(final / name, stage / name)
     return hist
 
 

@@ -35,7 +35,7 @@ import click
 import numpy as np
 
 from crater_core import geometry
-from crater_core.schema import atomic_write_bytes, atomic_write_text, load_manifest
+from crater_core.schema import atomic_write_bytes, atomic_write_text, load_manifest, row_file
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose, craters, resolved
 from crater_synth.errors import ConfigError
@@ -116,13 +116,13 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
     from train.preprocess import normalize
 
     rows = sorted(rows, key=lambda r: (r["sun_azimuth"], r["sun_elevation_param"]))
-    depth = read_channel(dataset_dir / rows[0]["path"], "depth")
+    depth = read_channel(row_file(dataset_dir, rows[0]), "depth")
     valid = np.isfinite(depth) & (depth > 0)
     lat, lon = ground_latlon(rows[0], np.where(valid, depth, rows[0]["range_m"]), crater)
     real = real_in_render_frame(mosaic, lat, lon)
     real_norm = normalize(real, pp)
     real_lit = (real_norm > 0) & valid
-    radiance = [read_channel(dataset_dir / r["path"]) for r in rows]  # I/F, each EXR read once
+    radiance = [read_channel(row_file(dataset_dir, r)) for r in rows]  # I/F, each EXR read once
     renders = [normalize(x, pp) for x in radiance]
     lit = np.stack([(y > 0) & valid for y in renders]).reshape(len(rows), -1)
     iou = lit_iou(lit, real_lit.ravel())
