@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import assert_same_dataset, dataset_workers, exr_files, run_cli, start_dataset
+
+from helpers.cli import assert_same_dataset, dataset_workers, exr_files, run_cli, start_dataset
 
 # 16 direct-mode renders at 16 spp on one worker: a run that is still busy when verify looks at it.
 SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4", "sweep.cam_azimuth.count=4")
