@@ -19,6 +19,9 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command", "Build each selected crater's terrain patch."),
     ("crater_synth.catalogue", "catalogue_command", "Check the catalogue craters against the DEM."),
+    ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
+    ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
+    ("crater_synth.navigation.evaluate", "navigate_command", "Detect, identify and fix one nadir frame."),
     ("crater_synth.fetch", "fetch_data_command", "Fetch or check the registered data products."),
     ("crater_synth.launcher", "dataset_command", "Render the sweep into out_dir (resumable)."),
     ("crater_synth.verify", "verify_command", "Check a dataset's files against its manifest."),
