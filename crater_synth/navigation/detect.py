@@ -39,8 +39,8 @@ class DetectorParams:
     min_radius_px: float = 9.0  # D = 7.2 km at 400 m/px: the 10 km landmarks less the 25 % tolerance
     max_radius_px: float = 160.0
     scale_ratio: float = 1.2
-    sigma_per_radius: float = 0.55
-    centre_shift: float = 0.0  # fraction of r, along the light direction
+    sigma_per_radius: float = 0.45
+    centre_shift: float = 0.2  # fraction of r, along the light direction
     threshold: float = 0.5
     n_azimuths: int = 24
     azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
@@ -48,6 +48,9 @@ class DetectorParams:
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
     nms_radius_ratio: float = 1.5
     border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
+    refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
+    rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
+    max_candidates: int = 400  # strongest filter maxima refined per frame
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -189,5 +192,56 @@ def detect(
     b = params.border_r * r
     inside = (u >= b) & (u <= w - b) & (v >= b) & (v <= h - b)
     u, v, r, score = u[inside], v[inside], r[inside], score[inside]
+    if params.refine:
+        top = np.argsort(-score)[: params.max_candidates]
+        u, v, r, score = u[top], v[top], r[top], score[top]
+        u, v, r, ok = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
+        u, v, r, score = u[ok], v[ok], r[ok], score[ok]
     keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
     return [Detection(float(u[k]), float(v[k]), float(r[k]), float(score[k])) for k in keep], theta
+
+
+RIM_AZIMUTHS = 36
+RIM_RADII = np.linspace(0.5, 1.6, 45)  # radial search window, fractions of the filter's radius
+RIM_MIN_SUNWARD = 0.4  # |cos(azimuth - light)| below this: the rim runs along the light, no edge to see
+
+
+def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
+    """Rim circles fitted to the shadow and lit-limb edges around each filter maximum.
+
+    Along a ray from the centre towards the Sun, the rim is where the shadow ends and the lit outer
+    flank begins (the strongest outward *rise* of intensity); along a ray away from the Sun it is where
+    the bright limb ends (the strongest outward *fall*). Rays across the light carry no such edge and are
+    skipped. A robust circle through these edge points (``crater_synth.catalogue._robust_circle``, the
+    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok): ``ok`` False where
+    fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible.
+    """
+    from scipy.ndimage import gaussian_filter, map_coordinates
+
+    from crater_synth.catalogue import _robust_circle
+
+    n = len(u)
+    if n == 0:
+        return u, v, r, np.zeros(0, bool)
+    sm = gaussian_filter(a, 1.0)
+    alpha = np.arange(RIM_AZIMUTHS) * 2.0 * np.pi / RIM_AZIMUTHS
+    c = np.cos(alpha - theta)  # > 0: ray along the light's travel (away from the Sun)
+    use = np.abs(c) >= RIM_MIN_SUNWARD
+    alpha, c = alpha[use], c[use]
+    rho = r[:, None, None] * RIM_RADII[None, None, :]
+    pu = u[:, None, None] + rho * np.cos(alpha)[None, :, None]
+    pv = v[:, None, None] + rho * np.sin(alpha)[None, :, None]
+    prof = map_coordinates(sm, [pv.ravel() - 0.5, pu.ravel() - 0.5], order=1, mode="nearest").reshape(pu.shape)
+    slope = np.diff(prof, axis=2) * -np.sign(c)[None, :, None]  # towards the Sun: rise; away: fall
+    k = slope.argmax(axis=2)
+    mid = 0.5 * (RIM_RADII[k] + RIM_RADII[k + 1]) * r[:, None]
+    ex = mid * np.cos(alpha)[None, :]
+    ey = mid * np.sin(alpha)[None, :]
+    out_u, out_v, out_r = u.copy(), v.copy(), r.copy()
+    ok = np.zeros(n, bool)
+    for i in range(n):
+        centre, rad, inl, _ = _robust_circle(ex[i], ey[i], 0.05 * r[i])
+        if inl.mean() >= min_inliers and 0.6 * r[i] <= rad <= 1.5 * r[i] and np.hypot(*centre) <= 0.5 * r[i]:
+            out_u[i], out_v[i], out_r[i] = u[i] + centre[0], v[i] + centre[1], rad
+            ok[i] = True
+    return out_u, out_v, out_r, ok

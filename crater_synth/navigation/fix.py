@@ -39,12 +39,12 @@ class FixParams:
 
     prior_sigma_km: float = 10.0  # prior position uncertainty the gate allows for
     min_landmark_km: float = 10.0  # smallest landmark predicted in the frame
-    radius_ratio: float = 1.5  # putative pair: detection radius / landmark radius within [1/x, x]
-    inlier_px: float = 3.0
-    inlier_r: float = 0.15
+    radius_ratio: float = 1.3  # putative pair: detection radius / landmark radius within [1/x, x]
+    inlier_px: float = 2.0
+    inlier_r: float = 0.1
     max_scale_error: float = 0.05
     max_heading_deg: float = 5.0
-    min_inliers: int = 3
+    min_inliers: int = 5  # >= 3 by the method; 5 chosen on validation windows (no false fix there)
     ambiguity_margin: int = 1  # a disjoint rival with >= best - margin inliers is ambiguous: no fix
     max_rms_px: float = 4.0
     iterations: int = 400
