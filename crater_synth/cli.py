@@ -19,9 +19,6 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 _COMMANDS = (
     ("crater_synth.terrain", "terrain_command", "Build each selected crater's terrain patch."),
     ("crater_synth.catalogue", "catalogue_command", "Check the catalogue craters against the DEM."),
-    ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
-    ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
-    ("crater_synth.navigation.evaluate", "navigate_command", "Detect, identify and fix one nadir frame."),
     ("crater_synth.fetch", "fetch_data_command", "Fetch or check the registered data products."),
     ("crater_synth.launcher", "dataset_command", "Render the sweep into out_dir (resumable)."),
     ("crater_synth.verify", "verify_command", "Check a dataset's files against its manifest."),
@@ -35,6 +32,9 @@ _COMMANDS = (
     ("crater_synth.validate", "validate_command", "Validation protocol: choose on validation craters."),
     ("crater_synth.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
     ("crater_synth.sunmatch", "sunmatch_command", "Real crops against renders under a dense sun grid."),
+    ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
+    ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
+    ("crater_synth.navigation.navigate", "navigate_command", "Detect, identify and fix one nadir frame."),
     ("crater_synth.bench", "bench_command", "Benchmarks: renderer, training, distributed."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )

@@ -172,15 +172,16 @@ def test_ransac_similarity_recovers_pose_with_outliers_and_refuses_inconsistent(
     det_uv = np.stack([src.real, src.imag], 1) + rng.normal(0, 0.3, (12, 2))
     det_r = np.full(12, 20.0)
     pairs = [(k, k) for k in range(8)] + [(8, 9), (9, 8), (10, 2), (11, 5)]  # 8 right, 4 wrong
-    fix, a, b = nf.ransac_similarity(det_uv, det_r, lm_xy, pairs, complex(400.0, 0.0))
+    three = nf.FixParams(min_inliers=3)
+    fix, a, b = nf.ransac_similarity(det_uv, det_r, lm_xy, pairs, complex(400.0, 0.0), three)
     assert fix.ok and sorted(fix.inliers) == [(k, k) for k in range(8)]
     assert abs(a - a_true) / abs(a_true) < 1e-3 and abs(b - b_true) < 300.0
     # Random pairs: no three agree on one transform near the prior: "no fix", never a wrong one.
     bad = [(k, (k * 7 + 3) % 12) for k in range(12)]
-    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, bad, complex(400.0, 0.0))
+    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, bad, complex(400.0, 0.0), three)
     assert not fix.ok
     # Two landmarks only: no fix.
-    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, [(0, 0), (1, 1)], complex(400.0, 0.0))
+    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, [(0, 0), (1, 1)], complex(400.0, 0.0), three)
     assert not fix.ok and "fewer than 3" in fix.reason
 
 
@@ -214,7 +215,7 @@ def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
     ok, _, r, c, inl = nf.ransac_pnp(pts, uv, k, r0, np.array([0.0, 0.0, 85e3]))
     assert ok and not inl[2] and not inl[7] and inl.sum() == 8
     assert np.linalg.norm(c - c_true) < 1.0
-    ok, reason, *_ = nf.ransac_pnp(pts[:2], uv[:2], k, r0, np.array([0.0, 0.0, 85e3]))
+    ok, reason, *_ = nf.ransac_pnp(pts[:2], uv[:2], k, r0, np.array([0.0, 0.0, 85e3]), nf.FixParams(min_inliers=3))
     assert not ok and "need 3" in reason
 
 
@@ -250,10 +251,10 @@ def test_navigate_bad_input(tmp_path):
     # Corrupt landmark map.
     bad = tmp_path / "bad.geojson"
     bad.write_text("{not json")
-    r = runner.invoke(main, ["navigate", str(empty), "--map", str(bad)])
+    r = runner.invoke(main, ["navigate", str(img), "--map", str(bad)])
     assert r.exit_code == 2 and "corrupt" in r.output
     # Corrupt georeference.
-    (tmp_path / "empty.png.geo.json").write_text("{}")
-    r = runner.invoke(main, ["navigate", str(empty)])
+    (tmp_path / "frame.png.geo.json").write_text("{}")
+    r = runner.invoke(main, ["navigate", str(img)])
     assert r.exit_code == 2 and "georeference" in r.output
     assert not list(tmp_path.glob("*.nav.png"))
