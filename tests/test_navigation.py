@@ -258,3 +258,17 @@ def test_navigate_bad_input(tmp_path):
     r = runner.invoke(main, ["navigate", str(img)])
     assert r.exit_code == 2 and "georeference" in r.output
     assert not list(tmp_path.glob("*.nav.png"))
+
+
+def test_iau_match_uses_the_fixed_tolerances():
+    from crater_synth.navigation.landmark_check import match_iau
+
+    lat, lon = -80.0, 30.0
+    x, y = stereo_forward(lat, lon)
+    d = 60.0
+    near = Landmark("S0001", "", lat, lon, float(x) + 0.1 * d * 1000, float(y), d * 1.2, 1e3, 0.0, 1e2, 1.0, "dem")
+    far = Landmark("S0002", "", lat, lon, float(x) + 0.2 * d * 1000, float(y), d, 1e3, 0.0, 1e2, 1.0, "dem")
+    small = Landmark("S0003", "", lat, lon, float(x), float(y), d * 0.7, 1e3, 0.0, 1e2, 1.0, "dem")
+    iau = [{"diameter_km": d, "lat": lat, "lon": lon}]
+    assert match_iau([near, far, small], iau, "south")[0]["landmark"] == "S0001"
+    assert match_iau([far, small], iau, "south")[0]["landmark"] is None  # 0.2 D off; 30 % too small

@@ -91,7 +91,7 @@ def _apply(a: complex, b: complex, pts: np.ndarray) -> np.ndarray:
     return np.stack([w.real, w.imag], axis=1)
 
 
-def _inliers(a, b, det_uv, det_r, lm_xy, pairs, params: FixParams, prior_a: complex):
+def _inliers(a, b, det_uv, det_r, lm_xy, pairs, params: FixParams):
     """Greedy one-to-one inlier set of ``pairs`` under dst = a src + b (residual in pixels)."""
     inv = 1.0 / a
     pred = _apply(inv, -b * inv, lm_xy[pairs[:, 1]])  # landmark -> pixel
@@ -136,7 +136,7 @@ def ransac_similarity(
             continue
         if abs(math.degrees(np.angle(a / prior_a))) > params.max_heading_deg:
             continue
-        inl = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params, prior_a)
+        inl = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params)
         key = frozenset(inl)
         if len(inl) >= 2 and key not in seen:
             seen.add(key)
@@ -149,7 +149,7 @@ def ransac_similarity(
     for _ in range(2):
         idx = np.array(best)
         a, b = fit_similarity(det_uv[idx[:, 0]], lm_xy[idx[:, 1]])
-        best = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params, prior_a) or best
+        best = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params) or best
     if len(best) < params.min_inliers:
         return Fix(False, f"only {len(best)} landmarks agree (need {params.min_inliers})"), a, b
     idx = np.array(best)
