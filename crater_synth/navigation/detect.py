@@ -47,6 +47,9 @@ class DetectorParams:
     azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
     nms_radius_ratio: float = 1.5
+    # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off
+    # (the evaluated default); a validation-only experiment, docs/navigation.md.
+    concentric_r: float = 0.0
     border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
     refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
@@ -198,6 +201,9 @@ def detect(
         u, v, r, ok = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
         u, v, r, score = u[ok], v[ok], r[ok], score[ok]
     keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
+    if params.concentric_r > 0:
+        u, v, r, score = u[keep], v[keep], r[keep], score[keep]
+        keep = suppress(u, v, r, score, params.concentric_r, math.inf)
     return [Detection(float(u[k]), float(v[k]), float(r[k]), float(score[k])) for k in keep], theta
 
 
