@@ -32,7 +32,10 @@ _COMMANDS = (
     ("crater_synth.evaluation.validation", "validate_command", "Validation protocol: choose on validation craters."),
     ("crater_synth.evaluation.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
     ("crater_synth.evaluation.sunmatch", "sunmatch_command", "Real crops against renders under a dense sun grid."),
-    ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed."),
+    ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
+    ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
+    ("crater_synth.navigation.navigate", "navigate_command", "Detect, identify and fix one nadir frame."),
+    ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed, navigation."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )
 

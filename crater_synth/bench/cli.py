@@ -7,7 +7,9 @@ Parts (``--part``, default all, in this order):
 - ``renderer``: crater_synth.bench.renderer: (a) a whole paper crater (22,500 renders), (b) sweep=demo,
   (c) a 60-sun x 24-camera grid, (d) direct mode with the ROI crop on a sample of (a)'s items (and
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
-  (~10-20 min on 2 cores).
+  (~10-20 min on 2 cores);
+- ``navigation``: detection + identification + fix frames/s on a 1024 x 1024 real mosaic window
+  (crater_synth.navigation.evaluate.bench_navigation).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -27,7 +29,10 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 
 @click.command("bench")
 @click.option(
-    "--part", type=click.Choice(["all", "renderer", "train", "distributed"]), default="all", show_default=True
+    "--part",
+    type=click.Choice(["all", "renderer", "train", "distributed", "navigation"]),
+    default="all",
+    show_default=True,
 )
 @click.option(
     "--keep",
@@ -66,6 +71,10 @@ def bench_command(part, keep, overrides):
                     f"train skipped: no rendered dataset at {dataset.parent} (make demo, or "
                     f"make dataset OVERRIDES=sweep=demo, renders it)"
                 )
+        if part in ("all", "navigation"):
+            from crater_synth.navigation.evaluate import bench_navigation
+
+            click.echo("navigation " + json.dumps(bench_navigation()))
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

@@ -1,0 +1,12 @@
+"""Crater navigation: a landmark map measured in the DEM, crater detection in whole frames,
+identification against the map and a robust camera position fix (docs/navigation.md).
+
+- :mod:`.polar`: polar stereographic frames of either pole (the pole is a parameter everywhere);
+- :mod:`.landmarks`: the landmark map (``crater-synth landmarks``); :mod:`.landmark_check`: its check
+  against the IAU list and the map figure;
+- :mod:`.frames`: real evaluation windows of the LROC WAC polar mosaic and their validation/test split;
+- :mod:`.detect`: the classical shadow/lit-limb crater detector;
+- :mod:`.fix`: identification (prior-guided matching) and the RANSAC position fix;
+- :mod:`.evaluate`: metrics, ``crater-synth nav-eval`` and the benchmark part;
+- :mod:`.navigate`: ``crater-synth navigate IMAGE`` (one frame, annotated PNG).
+"""

@@ -1,0 +1,253 @@
+"""Classical crater detector: shadow / lit-limb pairs as a scale-space matched filter.
+
+At low Sun a crater is a dark shadow on the Sun-facing inner wall followed, along the light's
+travel direction d, by the bright limb of the opposite wall. The intensity therefore *rises* along d
+across the crater, at the crater's own scale; a hill does the opposite (bright slope, then its shadow).
+The detector is the scale-normalised first derivative of the Gaussian-smoothed image along d,
+
+    R_sigma(u, v) = sigma * d . grad (G_sigma * I)(u, v),
+
+a smooth shadow-minus-limb filter. Craters are local maxima of R over (u, v, sigma) above
+``threshold``; a maximum at scale sigma stands for a crater of radius sigma / ``sigma_per_radius``
+whose centre lies ``centre_shift`` x r from the maximum along d (the shadow is wider than the lit limb
+at low Sun, so the maximum is offset). The image is normalised to zero mean and unit standard
+deviation first, so the threshold does not depend on exposure.
+
+d is not given by a mosaic window (each quadrant of the mosaic has its own Sun): it is estimated per
+frame as the azimuth whose derivative at the mid scales has the strongest positive tail (craters
+outnumber hills on the Moon, and a crater's shadow-to-limb rise is its strongest feature). A caller
+that knows the Sun (a lander knows its attitude and the ephemeris) passes it instead.
+
+Every setting (``DetectorParams``) was chosen on validation windows only (docs/navigation.md).
+The filtering is done in the Fourier domain: one forward FFT, one inverse FFT per scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from crater_synth.navigation.frames import check_frame
+
+
+@dataclass(frozen=True)
+class DetectorParams:
+    """Settings of :func:`detect` (values chosen on validation windows; docs/navigation.md)."""
+
+    min_radius_px: float = 9.0  # D = 7.2 km at 400 m/px: the 10 km landmarks less the 25 % tolerance
+    max_radius_px: float = 160.0
+    scale_ratio: float = 1.2
+    sigma_per_radius: float = 0.45
+    centre_shift: float = 0.2  # fraction of r, along the light direction
+    threshold: float = 0.5
+    n_azimuths: int = 24
+    azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
+    azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
+    nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
+    nms_radius_ratio: float = 1.5
+    # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off
+    # (the evaluated default); a validation-only experiment, docs/navigation.md.
+    concentric_r: float = 0.0
+    border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
+    refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
+    rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
+    max_candidates: int = 400  # strongest filter maxima refined per frame
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected crater in frame pixels (u right, v down, origin top-left corner)."""
+
+    u: float
+    v: float
+    r: float  # rim radius, px
+    score: float
+
+    def as_dict(self) -> dict:
+        return {k: round(float(v), 3) for k, v in asdict(self).items()}
+
+
+PAD_PX = 64  # reflected border around the frame before the FFT (the filters' edge effects stay outside)
+PAD_MULTIPLE = 64  # padded size a multiple of this, so every decimated grid is whole
+
+
+def _spectrum(a: np.ndarray):
+    from scipy import fft
+
+    h, w = a.shape
+    hp = -(-(h + 2 * PAD_PX) // PAD_MULTIPLE) * PAD_MULTIPLE
+    wp = -(-(w + 2 * PAD_PX) // PAD_MULTIPLE) * PAD_MULTIPLE
+    p = np.pad(a, ((PAD_PX, hp - h - PAD_PX), (PAD_PX, wp - w - PAD_PX)), mode="reflect")
+    return fft.rfft2(p, workers=-1), p.shape
+
+
+def _decimation(sigma: float) -> int:
+    """Grid step for a filter of scale sigma: a power of two <= sigma / 3 (the Gaussian has < 1e-3 of its
+    transfer beyond the decimated grid's Nyquist frequency), at most 16."""
+    return int(min(16, 2 ** max(0, math.floor(math.log2(max(sigma / 3.0, 1.0))))))
+
+
+def _derivative(spec, shape, sigma: float, du: float, dv: float, step: int = 1) -> np.ndarray:
+    """sigma x d . grad (G_sigma * I) for unit d = (du, dv) on the padded grid decimated by ``step``
+    (the spectrum cropped to the decimated grid's band: one small inverse FFT per scale)."""
+    from scipy import fft
+
+    hp, wp = shape
+    hs, ws = hp // step, wp // step
+    rows = np.r_[0 : hs // 2, hp - hs // 2 : hp]
+    sub = spec[rows, : ws // 2 + 1]
+    ku = 2.0 * np.pi * fft.rfftfreq(ws)[None, :] / step
+    kv = 2.0 * np.pi * fft.fftfreq(hs)[:, None] / step
+    transfer = 1j * (ku * du + kv * dv) * np.exp(-0.5 * sigma * sigma * (ku * ku + kv * kv))
+    return sigma * fft.irfft2(sub * transfer, s=(hs, ws), workers=-1) / (step * step)
+
+
+def light_azimuth(spec, shape, params: DetectorParams) -> float:
+    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring)."""
+    grads = []
+    for s in params.azimuth_sigmas_px:
+        step = _decimation(s)
+        grads.append((_derivative(spec, shape, s, 1.0, 0.0, step), _derivative(spec, shape, s, 0.0, 1.0, step)))
+    best, best_score = 0.0, -np.inf
+    for theta in np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths:
+        c, s = math.cos(theta), math.sin(theta)
+        score = 0.0
+        for gu, gv in grads:
+            r = (c * gu + s * gv).ravel()
+            k = max(1, int(params.azimuth_tail * r.size))
+            score += float(np.partition(r, r.size - k)[-k:].mean())
+        if score > best_score:
+            best, best_score = float(theta), score
+    # The strongest rise is at the Sun-side rim: from the shadow cast by the rim crest up to the lit
+    # terrain beyond it, i.e. towards the Sun (seen on validation windows). The light travels the other way.
+    return (best + math.pi) % (2.0 * math.pi)
+
+
+def _peaks(resp: np.ndarray, threshold: float):
+    """Local maxima (3 x 3) above ``threshold`` with a sub-pixel (parabolic) position: (row, col, value)."""
+    from scipy.ndimage import maximum_filter
+
+    pk = (resp == maximum_filter(resp, size=3, mode="nearest")) & (resp >= threshold)
+    pk[0, :] = pk[-1, :] = pk[:, 0] = pk[:, -1] = False
+    i, j = np.nonzero(pk)
+    c = resp[i, j]
+    d2i = np.minimum(resp[i - 1, j] - 2.0 * c + resp[i + 1, j], -1e-9)  # < 0 at a maximum
+    d2j = np.minimum(resp[i, j - 1] - 2.0 * c + resp[i, j + 1], -1e-9)
+    di = 0.5 * (resp[i - 1, j] - resp[i + 1, j]) / d2i
+    dj = 0.5 * (resp[i, j - 1] - resp[i, j + 1]) / d2j
+    return i + np.clip(di, -0.5, 0.5), j + np.clip(dj, -0.5, 0.5), c
+
+
+def suppress(u, v, r, score, centre_r: float, radius_ratio: float) -> np.ndarray:
+    """Indices kept by greedy non-maximum suppression (best score first): a detection is dropped when a
+    kept one lies within ``centre_r`` x the larger radius and their radii differ by less than
+    ``radius_ratio``."""
+    n = len(u)
+    if n == 0:
+        return np.zeros(0, int)
+    order = np.argsort(-score)
+    u, v, r = u[order], v[order], r[order]
+    big = np.maximum(r[:, None], r[None, :])
+    conflict = (np.hypot(u[:, None] - u[None, :], v[:, None] - v[None, :]) < centre_r * big) & (
+        big / np.minimum(r[:, None], r[None, :]) < radius_ratio
+    )
+    dropped = np.zeros(n, bool)
+    keep = []
+    for i in range(n):
+        if not dropped[i]:
+            keep.append(i)
+            dropped |= conflict[i]
+    return order[np.array(keep)]
+
+
+def detect(
+    image: np.ndarray, params: DetectorParams = DetectorParams(), light_dir: float | None = None, what: str = "frame"
+):
+    """Craters in ``image`` (2-D): (list of :class:`Detection`, light azimuth used in radians)."""
+    a = check_frame(image, what)
+    a = (a - a.mean()) / a.std()
+    h, w = a.shape
+    n_scales = int(math.floor(math.log(params.max_radius_px / params.min_radius_px) / math.log(params.scale_ratio))) + 1
+    radii = params.min_radius_px * params.scale_ratio ** np.arange(n_scales)
+    radii = radii[radii <= 0.5 * min(h, w)]
+    spec, shape = _spectrum(a)
+    theta = light_azimuth(spec, shape, params) if light_dir is None else float(light_dir)
+    du, dv = math.cos(theta), math.sin(theta)
+    us, vs, rs, ss = [], [], [], []
+    for r in radii:
+        sigma = params.sigma_per_radius * r
+        step = _decimation(sigma)
+        resp = _derivative(spec, shape, sigma, du, dv, step)
+        i, j, c = _peaks(resp, params.threshold)
+        # Decimated grid sample k sits at padded pixel k * step (pixel corner convention: + 0.5).
+        us.append(j * step - PAD_PX + 0.5)
+        vs.append(i * step - PAD_PX + 0.5)
+        rs.append(np.full(c.size, r))
+        ss.append(c)
+    u, v, r, score = (np.concatenate(x) for x in (us, vs, rs, ss))
+    u = u - params.centre_shift * r * du
+    v = v - params.centre_shift * r * dv
+    b = params.border_r * r
+    inside = (u >= b) & (u <= w - b) & (v >= b) & (v <= h - b)
+    u, v, r, score = u[inside], v[inside], r[inside], score[inside]
+    if params.refine:
+        top = np.argsort(-score)[: params.max_candidates]
+        u, v, r, score = u[top], v[top], r[top], score[top]
+        u, v, r, ok = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
+        u, v, r, score = u[ok], v[ok], r[ok], score[ok]
+    keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
+    if params.concentric_r > 0:
+        u, v, r, score = u[keep], v[keep], r[keep], score[keep]
+        keep = suppress(u, v, r, score, params.concentric_r, math.inf)
+    return [Detection(float(u[k]), float(v[k]), float(r[k]), float(score[k])) for k in keep], theta
+
+
+RIM_AZIMUTHS = 36
+RIM_RADII = np.linspace(0.5, 1.6, 45)  # radial search window, fractions of the filter's radius
+RIM_MIN_SUNWARD = 0.4  # |cos(azimuth - light)| below this: the rim runs along the light, no edge to see
+
+
+def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
+    """Rim circles fitted to the shadow and lit-limb edges around each filter maximum.
+
+    Along a ray from the centre towards the Sun, the rim is where the shadow ends and the lit outer
+    flank begins (the strongest outward *rise* of intensity); along a ray away from the Sun it is where
+    the bright limb ends (the strongest outward *fall*). Rays across the light carry no such edge and are
+    skipped. A robust circle through these edge points (``crater_synth.terrain.catalogue._robust_circle``, the
+    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok): ``ok`` False where
+    fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible.
+    """
+    from scipy.ndimage import gaussian_filter, map_coordinates
+
+    from crater_synth.terrain.catalogue import _robust_circle
+
+    n = len(u)
+    if n == 0:
+        return u, v, r, np.zeros(0, bool)
+    sm = gaussian_filter(a, 1.0)
+    alpha = np.arange(RIM_AZIMUTHS) * 2.0 * np.pi / RIM_AZIMUTHS
+    c = np.cos(alpha - theta)  # > 0: ray along the light's travel (away from the Sun)
+    use = np.abs(c) >= RIM_MIN_SUNWARD
+    alpha, c = alpha[use], c[use]
+    rho = r[:, None, None] * RIM_RADII[None, None, :]
+    pu = u[:, None, None] + rho * np.cos(alpha)[None, :, None]
+    pv = v[:, None, None] + rho * np.sin(alpha)[None, :, None]
+    prof = map_coordinates(sm, [pv.ravel() - 0.5, pu.ravel() - 0.5], order=1, mode="nearest").reshape(pu.shape)
+    slope = np.diff(prof, axis=2) * -np.sign(c)[None, :, None]  # towards the Sun: rise; away: fall
+    k = slope.argmax(axis=2)
+    mid = 0.5 * (RIM_RADII[k] + RIM_RADII[k + 1]) * r[:, None]
+    ex = mid * np.cos(alpha)[None, :]
+    ey = mid * np.sin(alpha)[None, :]
+    out_u, out_v, out_r = u.copy(), v.copy(), r.copy()
+    ok = np.zeros(n, bool)
+    for i in range(n):
+        centre, rad, inl, _ = _robust_circle(ex[i], ey[i], 0.05 * r[i])
+        if inl.mean() >= min_inliers and 0.6 * r[i] <= rad <= 1.5 * r[i] and np.hypot(*centre) <= 0.5 * r[i]:
+            out_u[i], out_v[i], out_r[i] = u[i] + centre[0], v[i] + centre[1], rad
+            ok[i] = True
+    return out_u, out_v, out_r, ok

@@ -1,0 +1,348 @@
+"""Navigation metrics on real mosaic windows, ``crater-synth nav-eval``, ``crater-synth navigate`` and
+the navigation benchmark.
+
+Protocol (docs/navigation.md): per split (validation, test; the sector rule of :mod:`.frames`), every
+window is a nadir frame at 400 m/px. Truth landmarks are the map's landmarks whose centre lies in the
+frame. A detection matches a truth landmark when its centre is within 0.25 D and its diameter within
+25 % (one-to-one, nearest first). The prior position is the truth frame centre moved by a seeded
+random offset of ``PRIOR_OFFSET_KM`` in a random direction (the prior heading and scale are exact:
+a lander knows its attitude; the fix still estimates both). A fix is false when its position error
+exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of D >= 15 km in view.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import zlib
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.detect import Detection, DetectorParams, detect
+from crater_synth.navigation.fix import FixParams, fix_frame
+from crater_synth.navigation.frames import Frame, Georef, ground_distance_km
+
+MATCH_CENTRE_D = 0.25
+MATCH_DIAMETER = 0.25
+FALSE_FIX_KM = 5.0
+PRIOR_OFFSET_KM = 5.0
+HEADLINE_MIN_D_KM = 15.0
+HEADLINE_MIN_LANDMARKS = 3
+SIZE_BINS_KM = (10.0, 15.0, 30.0, 60.0, 1e9)
+TARGETS = {"fix_rate": 0.9, "median_error_km": 0.8, "false_fix_rate": 0.01, "recall_15km": 0.8, "precision_15km": 0.9}
+RESULTS_JSON = Path(__file__).resolve().parents[2] / "docs" / "results" / "navigation.json"
+
+
+def truth_in_frame(landmarks, georef: Georef, shape, min_d_km: float = 0.0) -> list[int]:
+    """Indices of the landmarks whose centre lies inside a frame of ``shape`` under ``georef``."""
+    h, w = shape
+    xs = np.array([lm.x_m for lm in landmarks])
+    ys = np.array([lm.y_m for lm in landmarks])
+    ds = np.array([lm.diameter_km for lm in landmarks])
+    u, v = georef.xy_to_uv(xs, ys)
+    return list(np.nonzero((u >= 0) & (u < w) & (v >= 0) & (v < h) & (ds >= min_d_km))[0])
+
+
+def match_detections(dets: list[Detection], landmarks, idx: list[int], georef: Georef) -> dict[int, int]:
+    """One-to-one matches detection index -> landmark index (centre within 0.25 D, diameter within 25 %)."""
+    if not dets or not idx:
+        return {}
+    u, v = georef.xy_to_uv(np.array([landmarks[i].x_m for i in idx]), np.array([landmarks[i].y_m for i in idx]))
+    r = np.array([landmarks[i].diameter_km for i in idx]) * 500.0 / georef.pixel_m
+    du = np.array([d.u for d in dets])[:, None] - u[None, :]
+    dv = np.array([d.v for d in dets])[:, None] - v[None, :]
+    dr = np.array([d.r for d in dets])[:, None] / r[None, :]
+    dist = np.hypot(du, dv) / (2.0 * r[None, :])
+    ok = (dist <= MATCH_CENTRE_D) & (np.abs(dr - 1.0) <= MATCH_DIAMETER)
+    pairs = sorted(zip(*np.nonzero(ok)), key=lambda p: dist[p])
+    out: dict[int, int] = {}
+    used: set[int] = set()
+    for i, j in pairs:
+        if i not in out and j not in used:
+            out[int(i)] = int(idx[j])
+            used.add(int(j))
+    return out
+
+
+def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> Georef:
+    """The truth georeference shifted by ``offset_km`` in a seeded random direction (the coarse prior)."""
+    rng = np.random.default_rng([seed, zlib.crc32(frame.id.encode())])
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    g = frame.georef
+    return Georef(
+        g.pole, g.left_m + offset_km * 1000.0 * math.cos(phi), g.top_m + offset_km * 1000.0 * math.sin(phi), g.pixel_m
+    )
+
+
+def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0) -> dict:
+    """Detection, identification and fix of one frame, scored against its truth."""
+    dets, theta = detect(frame.image, dparams, what=f"frame {frame.id}")
+    prior = prior_georef(frame, seed)
+    fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+    truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
+    matched = match_detections(dets, landmarks, truth_idx, frame.georef)
+    # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
+    # false positive of the >= min-size population: count it apart.
+    small_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape)
+    matched_any = match_detections(dets, landmarks, small_idx, frame.georef)
+    row = {
+        "id": frame.id,
+        "split": frame.split,
+        "sector": frame.sector,
+        "light_azimuth_deg": round(math.degrees(theta), 1),
+        "n_detections": len(dets),
+        "truth": [int(i) for i in truth_idx],
+        "truth_d_km": [landmarks[i].diameter_km for i in truth_idx],
+        "det_r_km": [d.r * frame.georef.pixel_m / 1000.0 for d in dets],
+        "matched": {int(k): int(v) for k, v in matched.items()},
+        "matched_any": sorted(int(k) for k in matched_any),
+        "n_headline_landmarks": int(sum(landmarks[i].diameter_km >= HEADLINE_MIN_D_KM for i in truth_idx)),
+        "fix": fix.ok,
+        "reason": fix.reason,
+    }
+    if fix.ok:
+        tx, ty = frame.centre_xy
+        row["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, tx, ty, frame.georef.pole))
+        row["identified"] = len(fix.inliers)
+        # Identification is correct when the fix's landmark is the detection's truth match.
+        row["identified_correct"] = int(sum(matched.get(d) == lm for d, lm in fix.inliers))
+    return row
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Metrics of a list of :func:`run_frame` rows (module docstring)."""
+    out: dict = {"windows": len(rows)}
+    if not rows:
+        return out
+    fixed = [r for r in rows if r["fix"]]
+    err = np.array([r["error_km"] for r in fixed])
+    out["fix_rate"] = round(len(fixed) / len(rows), 4)
+    out["median_error_km"] = round(float(np.median(err)), 3) if err.size else None
+    out["p90_error_km"] = round(float(np.percentile(err, 90)), 3) if err.size else None
+    out["false_fix_rate"] = round(float((err > FALSE_FIX_KM).sum()) / len(rows), 4)
+    out["false_fixes"] = int((err > FALSE_FIX_KM).sum())
+    ident = sum(r["identified"] for r in fixed)
+    out["identification_accuracy"] = round(sum(r["identified_correct"] for r in fixed) / ident, 4) if ident else None
+    out["identified_per_fix"] = round(ident / len(fixed), 2) if fixed else None
+    bins = {}
+    edges = SIZE_BINS_KM
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        tp_t = n_t = tp_d = n_d = 0
+        for r in rows:
+            dt = np.array(r["truth_d_km"])
+            sel = (dt >= lo) & (dt < hi)
+            n_t += int(sel.sum())
+            matched_truth = set(r["matched"].values())
+            tp_t += int(sum(1 for i, d in zip(r["truth"], dt) if lo <= d < hi and i in matched_truth))
+            dr = 2.0 * np.array(r["det_r_km"])
+            seld = (dr >= lo) & (dr < hi)
+            n_d += int(seld.sum())
+            tp_d += int(sum(1 for k in np.nonzero(seld)[0] if int(k) in r["matched"] or int(k) in r["matched_any"]))
+        name = f"{lo:g}-{hi:g}" if hi < 1e8 else f">={lo:g}"
+        bins[name] = {
+            "recall": round(tp_t / n_t, 4) if n_t else None,
+            "precision": round(tp_d / n_d, 4) if n_d else None,
+            "n_truth": n_t,
+            "n_detections": n_d,
+        }
+    out["by_size_km"] = bins
+    # D >= 15 km pooled.
+    tp_t = n_t = tp_d = n_d = 0
+    for r in rows:
+        dt = np.array(r["truth_d_km"])
+        matched_truth = set(r["matched"].values())
+        n_t += int((dt >= HEADLINE_MIN_D_KM).sum())
+        tp_t += int(sum(1 for i, d in zip(r["truth"], dt) if d >= HEADLINE_MIN_D_KM and i in matched_truth))
+        dr = 2.0 * np.array(r["det_r_km"])
+        sel = np.nonzero(dr >= HEADLINE_MIN_D_KM)[0]
+        n_d += int(sel.size)
+        tp_d += int(sum(1 for k in sel if int(k) in r["matched"] or int(k) in r["matched_any"]))
+    out["recall_15km"] = round(tp_t / n_t, 4) if n_t else None
+    out["precision_15km"] = round(tp_d / n_d, 4) if n_d else None
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# nav-eval
+# --------------------------------------------------------------------------------------------
+def _params_with(overrides: tuple[str, ...]) -> tuple[DetectorParams, FixParams]:
+    """Detector and fix settings with ``key=value`` overrides (``detect.threshold=0.8``, ``fix.min_inliers=4``)."""
+    import dataclasses
+
+    groups = {"detect": dataclasses.asdict(DetectorParams()), "fix": dataclasses.asdict(FixParams())}
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        group, _, name = key.partition(".")
+        if not sep or group not in groups or name not in groups[group]:
+            raise UserError(f"--set {o}: expected detect.<name>=<value> or fix.<name>=<value> with a known name")
+        old = groups[group][name]
+        try:
+            groups[group][name] = (
+                type(old)(json.loads(value)) if not isinstance(old, tuple) else tuple(json.loads(value))
+            )
+        except (ValueError, TypeError):
+            raise UserError(f"--set {o}: {value!r} is not a {type(old).__name__}") from None
+    return DetectorParams(**groups["detect"]), FixParams(**groups["fix"])
+
+
+def evaluate_split(
+    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False
+) -> tuple[dict, list[dict]]:
+    """Metrics of one split (all windows, and the headline windows), and the per-window rows."""
+    from crater_synth.navigation.frames import windows
+
+    frames = windows(split)[::every]
+    rows = []
+    for k, f in enumerate(frames):
+        rows.append(run_frame(f, landmarks, dparams, fparams))
+        if progress and k % 20 == 19:
+            click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
+    head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    return {"all_windows": summarise(rows), "headline": summarise(head)}, rows
+
+
+def _row_md(name: str, s: dict) -> str:
+    def f(x, fmt):
+        return "-" if x is None else format(x, fmt)
+
+    return (
+        f"| {name} | {s['windows']} | {f(s.get('fix_rate'), '.3f')} | {f(s.get('median_error_km'), '.2f')} | "
+        f"{f(s.get('p90_error_km'), '.2f')} | {f(s.get('false_fix_rate'), '.3f')} | "
+        f"{f(s.get('identification_accuracy'), '.3f')} | {f(s.get('recall_15km'), '.3f')} | "
+        f"{f(s.get('precision_15km'), '.3f')} |"
+    )
+
+
+def results_markdown(results: dict) -> str:
+    """The results table of docs/navigation.md (generated by ``crater-synth nav-eval``)."""
+    lines = [
+        "| split (windows) | n | fix rate | median error km | p90 error km | false-fix rate | identification | "
+        "recall D>=15 | precision D>=15 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for split, r in results["splits"].items():
+        lines.append(_row_md(f"{split}, >= 3 landmarks D >= 15 km", r["headline"]))
+        lines.append(_row_md(f"{split}, all windows", r["all_windows"]))
+    lines += ["", "Detection by size bin (all windows; recall of map landmarks, precision of detections):", ""]
+    lines.append("| split | bin km | recall | precision | truth | detections |")
+    lines.append("|---|---|---|---|---|---|")
+    for split, r in results["splits"].items():
+        for b, v in r["all_windows"].get("by_size_km", {}).items():
+            rec = "-" if v["recall"] is None else f"{v['recall']:.3f}"
+            pre = "-" if v["precision"] is None else f"{v['precision']:.3f}"
+            lines.append(f"| {split} | {b} | {rec} | {pre} | {v['n_truth']} | {v['n_detections']} |")
+    return "\n".join(lines) + "\n"
+
+
+@click.command("nav-eval")
+@click.option("--split", "splits", type=click.Choice(["validation", "test"]), multiple=True, help="Default: both.")
+@click.option("--every", type=int, default=1, show_default=True, help="Use every N-th window (quick looks).")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
+@click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when both splits run in full).",
+)
+@user_errors
+def nav_eval_command(splits, every, sets, map_path, out):
+    """Real-window navigation metrics per split: detection, identification, fix (docs/navigation.md).
+
+    Choose settings with `--split validation --set ...`; the defaults were chosen that way. Without
+    `--split`, both splits run and the results go to docs/results/navigation.json (and the table to stdout).
+    """
+    from crater_core.schema import atomic_write_text
+    from crater_synth.navigation.landmarks import load_default_map, read_map
+
+    if every < 1:
+        raise UserError(f"--every={every} must be >= 1")
+    landmarks, prov = read_map(map_path) if map_path else load_default_map("south")
+    dparams, fparams = _params_with(sets)
+    splits = splits or ("validation", "test")
+    results = {
+        "protocol": {
+            "mosaic": "lroc_wac_south (400 m/px, polar stereographic)",
+            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector",
+            "window_px": 512,
+            "stride_px": 64,
+            "windows_overlap": True,
+            "prior_offset_km": PRIOR_OFFSET_KM,
+            "false_fix_km": FALSE_FIX_KM,
+            "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
+            "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
+            "every": every,
+        },
+        "landmark_map": {
+            "dem_product": prov.get("dem_product"),
+            "dem_sha256": prov.get("dem_sha256"),
+            "landmarks": len(landmarks),
+        },
+        "detector": {
+            "method": "shadow/lit-limb scale-space matched filter (crater_synth.navigation.detect)",
+            **dparams.as_dict(),
+        },
+        "fix": {
+            "method": "prior-gated identification + RANSAC 2-D similarity (orthographic nadir)",
+            **fparams.as_dict(),
+        },
+        "targets": TARGETS,
+        "splits": {},
+    }
+    t0 = time.time()
+    for split in splits:
+        summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True)
+        results["splits"][split] = summary
+    results["seconds"] = round(time.time() - t0, 1)
+    text = json.dumps(results, indent=1) + "\n"
+    target = out or (RESULTS_JSON if set(splits) == {"validation", "test"} and every == 1 and not sets else None)
+    if target:
+        atomic_write_text(target, text)
+        click.echo(f"wrote {target}", err=True)
+    click.echo(results_markdown(results))
+
+
+# --------------------------------------------------------------------------------------------
+# Benchmark part
+# --------------------------------------------------------------------------------------------
+def bench_navigation(repeats: int = 3) -> dict:
+    """Detection + identification + fix frames/s on a 1024 x 1024 mosaic window (the first validation
+    position that fits), median of ``repeats`` runs after one warm-up."""
+    from crater_synth.navigation.frames import load_mosaic_image
+    from crater_synth.navigation.landmarks import load_default_map
+
+    landmarks, _ = load_default_map("south")
+    img, extent, pixel, _ = load_mosaic_image("south")
+    u0, v0 = 0, 0  # the top-left 1024 px corner (sector 7/0 region)
+    frame = Frame(
+        "bench",
+        "bench",
+        -1,
+        np.ascontiguousarray(img[v0 : v0 + 1024, u0 : u0 + 1024]),
+        Georef("south", -extent, extent, pixel),
+    )
+    prior = prior_georef(frame, 0)
+    times, times_det = [], []
+    fix = None
+    for k in range(repeats + 1):
+        t0 = time.perf_counter()
+        dets, _ = detect(frame.image)
+        t1 = time.perf_counter()
+        fix = fix_frame(dets, landmarks, prior, frame.image.shape)
+        t2 = time.perf_counter()
+        if k:
+            times.append(t2 - t0)
+            times_det.append(t1 - t0)
+    total = float(np.median(times))
+    return {
+        "frame_px": 1024,
+        "seconds_per_frame": round(total, 3),
+        "frames_per_s": round(1.0 / total, 3),
+        "detection_seconds": round(float(np.median(times_det)), 3),
+        "fix": bool(fix.ok) if fix else False,
+    }

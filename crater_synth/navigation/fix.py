@@ -1,0 +1,285 @@
+"""Identification of detected craters against the landmark map, and the robust position fix.
+
+**Identification with a prior** (:func:`identify`). The prior is a coarse camera state: for a mosaic
+window, the map point under the frame centre (error up to ``prior_sigma_km``), the pixel size and the
+heading (a lander knows its attitude from its star tracker; its position only coarsely). The landmarks
+predicted in the frame by the prior are paired with detections whose centre lies within the prior's
+uncertainty (plus a quarter of the radius) and whose radius agrees within ``radius_ratio``: these are
+putative correspondences, several per detection.
+
+**Position fix** (:func:`ransac_similarity`). A mosaic window is an orthographic nadir view of the map
+plane (module docstring of :mod:`.frames`), so map point = s R(phi) (u, v) + t: a 2-D similarity, the
+degenerate (infinite focal length, nadir) case of the pinhole pose. RANSAC draws two correspondences,
+solves the similarity, rejects hypotheses whose scale or heading disagree with the prior beyond
+``max_scale_error`` / ``max_heading_deg``, and counts the inliers (reprojection within
+``inlier_px`` + ``inlier_r`` x r, one landmark per detection). The best set is refitted by least
+squares. **No fix** is answered when fewer than ``min_inliers`` (>= 3) landmarks agree, or when a
+second, disjoint hypothesis nearly as well supported disagrees (ambiguity), or when the inlier RMS
+exceeds ``max_rms_px``: the system says it does not know rather than fix silently wrong.
+
+**Pinhole pose from 3-D landmarks** (:func:`ransac_pnp`): the general case for perspective frames.
+Landmarks are 3-D points (centre on the rim plane, Moon-centred, heights from the DEM); minimal sets
+of 3 correspondences are solved by Gauss-Newton from the prior pose (6 unknowns, 6 equations), scored
+by reprojection inliers, and the winner is refined on all inliers. The same "no fix" rules apply.
+
+Settings were chosen on validation windows only (docs/navigation.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FixParams:
+    """Settings of identification and fix (chosen on validation windows; docs/navigation.md)."""
+
+    prior_sigma_km: float = 10.0  # prior position uncertainty the gate allows for
+    min_landmark_km: float = 10.0  # smallest landmark predicted in the frame
+    radius_ratio: float = 1.3  # putative pair: detection radius / landmark radius within [1/x, x]
+    inlier_px: float = 2.0
+    inlier_r: float = 0.1
+    max_scale_error: float = 0.05
+    max_heading_deg: float = 5.0
+    min_inliers: int = 5  # >= 3 by the method; 5 chosen on validation windows (no false fix there)
+    ambiguity_margin: int = 1  # a disjoint rival with >= best - margin inliers is ambiguous: no fix
+    max_rms_px: float = 4.0
+    iterations: int = 400
+    seed: int = 0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Fix:
+    """Result of a fix: ``ok`` False is "no fix" (``reason`` says why)."""
+
+    ok: bool
+    reason: str = ""
+    x_m: float = math.nan  # map point under the frame centre
+    y_m: float = math.nan
+    scale_m_per_px: float = math.nan
+    heading_deg: float = math.nan
+    inliers: list[tuple[int, int]] = field(default_factory=list)  # (detection index, landmark index)
+    rms_px: float = math.nan
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["inliers"] = [list(p) for p in self.inliers]
+        return d
+
+
+# --------------------------------------------------------------------------------------------
+# 2-D similarity (mosaic windows)
+# --------------------------------------------------------------------------------------------
+def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[complex, complex]:
+    """Least-squares similarity dst = a src + b, points as complex numbers (a = s e^{i phi}).
+    ``src``, ``dst``: (n, 2), n >= 2."""
+    z = src[:, 0] + 1j * src[:, 1]
+    w = dst[:, 0] + 1j * dst[:, 1]
+    zc, wc = z - z.mean(), w - w.mean()
+    a = complex(np.vdot(zc, wc) / np.vdot(zc, zc))
+    return a, complex(w.mean() - a * z.mean())
+
+
+def _apply(a: complex, b: complex, pts: np.ndarray) -> np.ndarray:
+    w = a * (pts[:, 0] + 1j * pts[:, 1]) + b
+    return np.stack([w.real, w.imag], axis=1)
+
+
+def _inliers(a, b, det_uv, det_r, lm_xy, pairs, params: FixParams):
+    """Greedy one-to-one inlier set of ``pairs`` under dst = a src + b (residual in pixels)."""
+    inv = 1.0 / a
+    pred = _apply(inv, -b * inv, lm_xy[pairs[:, 1]])  # landmark -> pixel
+    res = np.hypot(*(pred - det_uv[pairs[:, 0]]).T)
+    ok = res <= params.inlier_px + params.inlier_r * det_r[pairs[:, 0]]
+    order = np.argsort(res[ok])
+    cand = pairs[ok][order]
+    used_d, used_l, out = set(), set(), []
+    for d, lm in cand:
+        if d not in used_d and lm not in used_l:
+            used_d.add(int(d))
+            used_l.add(int(lm))
+            out.append((int(d), int(lm)))
+    return out
+
+
+def ransac_similarity(
+    det_uv, det_r, lm_xy, pairs, prior_a: complex, params: FixParams = FixParams()
+) -> tuple[Fix, complex, complex]:
+    """Robust similarity pixel -> map from putative ``pairs`` (k, 2) of (detection, landmark) indices.
+
+    ``prior_a``: the prior's complex scale-rotation (map metres per pixel x e^{i heading}). Returns
+    (fix without the frame-centre point, a, b); a "no fix" has ``ok`` False.
+    """
+    det_uv, lm_xy = np.asarray(det_uv, float), np.asarray(lm_xy, float)
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    if pairs.size == 0 or len(np.unique(pairs[:, 0])) < params.min_inliers:
+        return Fix(False, f"fewer than {params.min_inliers} detections pair with a predicted landmark"), 0j, 0j
+    rng = np.random.default_rng(params.seed)
+    hyps: list[list[tuple[int, int]]] = []
+    seen: set[frozenset] = set()
+    for _ in range(params.iterations):
+        i, j = rng.choice(len(pairs), 2, replace=False)
+        p, q = pairs[i], pairs[j]
+        if p[0] == q[0] or p[1] == q[1]:
+            continue
+        src = det_uv[[p[0], q[0]]]
+        if np.hypot(*(src[0] - src[1])) < 1e-6:
+            continue
+        a, b = fit_similarity(src, lm_xy[[p[1], q[1]]])
+        if abs(abs(a) / abs(prior_a) - 1.0) > params.max_scale_error:
+            continue
+        if abs(math.degrees(np.angle(a / prior_a))) > params.max_heading_deg:
+            continue
+        inl = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params)
+        key = frozenset(inl)
+        if len(inl) >= 2 and key not in seen:
+            seen.add(key)
+            hyps.append(inl)
+    if not hyps:
+        return Fix(False, "no two pairs agree on a scale and heading near the prior"), 0j, 0j
+    hyps.sort(key=len, reverse=True)
+    best = hyps[0]
+    # Refit on the inliers, then recollect them once under the refined transform.
+    for _ in range(2):
+        idx = np.array(best)
+        a, b = fit_similarity(det_uv[idx[:, 0]], lm_xy[idx[:, 1]])
+        best = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params) or best
+    if len(best) < params.min_inliers:
+        return Fix(False, f"only {len(best)} landmarks agree (need {params.min_inliers})"), a, b
+    idx = np.array(best)
+    a, b = fit_similarity(det_uv[idx[:, 0]], lm_xy[idx[:, 1]])
+    pred = _apply(1.0 / a, -b / a, lm_xy[idx[:, 1]])
+    rms = float(np.sqrt(np.mean(np.sum((pred - det_uv[idx[:, 0]]) ** 2, axis=1))))
+    best_dets = {d for d, _ in best}
+    best_lms = {lm for _, lm in best}
+    for rival in hyps[1:]:
+        disjoint = not ({d for d, _ in rival} & best_dets) or not ({lm for _, lm in rival} & best_lms)
+        if disjoint and len(rival) >= len(best) - params.ambiguity_margin and len(rival) >= params.min_inliers:
+            return Fix(False, f"ambiguous: two disjoint landmark sets agree ({len(best)} and {len(rival)})"), a, b
+    if rms > params.max_rms_px:
+        return Fix(False, f"inlier reprojection RMS {rms:.1f} px > {params.max_rms_px} px"), a, b
+    return Fix(True, "", inliers=best, rms_px=rms), a, b
+
+
+def identify(detections, landmarks, georef_prior, frame_shape, params: FixParams = FixParams()):
+    """Putative pairs between ``detections`` and the landmarks predicted in a frame by a prior
+    georeference (:class:`.frames.Georef`). Returns (pairs (k, 2), predicted landmark indices)."""
+    h, w = frame_shape
+    gate_px = params.prior_sigma_km * 1000.0 / georef_prior.pixel_m
+    xs = np.array([lm.x_m for lm in landmarks])
+    ys = np.array([lm.y_m for lm in landmarks])
+    rs = np.array([lm.diameter_km for lm in landmarks]) * 500.0 / georef_prior.pixel_m
+    u, v = georef_prior.xy_to_uv(xs, ys)
+    big = np.array([lm.diameter_km >= params.min_landmark_km for lm in landmarks])
+    near = big & (u > -gate_px) & (u < w + gate_px) & (v > -gate_px) & (v < h + gate_px)
+    cand = np.nonzero(near)[0]
+    if not detections or cand.size == 0:
+        return np.zeros((0, 2), int), cand
+    du = np.array([d.u for d in detections])[:, None] - u[cand][None, :]
+    dv = np.array([d.v for d in detections])[:, None] - v[cand][None, :]
+    dr = np.array([d.r for d in detections])[:, None] / rs[cand][None, :]
+    ok = (
+        (np.hypot(du, dv) <= gate_px + 0.25 * rs[cand][None, :])
+        & (dr <= params.radius_ratio)
+        & (dr >= 1.0 / params.radius_ratio)
+    )
+    i, j = np.nonzero(ok)
+    return np.stack([i, cand[j]], axis=1), cand
+
+
+def fix_frame(detections, landmarks, georef_prior, frame_shape, params: FixParams = FixParams()) -> Fix:
+    """Identify ``detections`` and fix the frame: the map point under the frame centre, or "no fix"."""
+    pairs, _ = identify(detections, landmarks, georef_prior, frame_shape, params)
+    det_uv = np.array([[d.u, d.v] for d in detections], float).reshape(-1, 2)
+    det_r = np.array([d.r for d in detections], float)
+    lm_xy = np.array([[lm.x_m, lm.y_m] for lm in landmarks], float)
+    prior_a = complex(georef_prior.pixel_m, 0.0) * complex(1.0, 0.0)
+    # Pixel (u, v) -> map (x, y) = (left + u p, top - v p): a reflection, so fit in (u, -v) coordinates.
+    flip = np.array([1.0, -1.0])
+    fix, a, b = ransac_similarity(det_uv * flip, det_r, lm_xy, pairs, prior_a, params)
+    if not fix.ok:
+        return fix
+    h, w = frame_shape
+    c = _apply(a, b, np.array([[w / 2.0, -h / 2.0]]))[0]
+    fix.x_m, fix.y_m = float(c[0]), float(c[1])
+    fix.scale_m_per_px = float(abs(a))
+    fix.heading_deg = float(math.degrees(np.angle(a)))
+    return fix
+
+
+# --------------------------------------------------------------------------------------------
+# Pinhole pose from 3-D points (perspective frames)
+# --------------------------------------------------------------------------------------------
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    t = float(np.linalg.norm(w))
+    if t < 1e-12:
+        return np.eye(3)
+    k = w / t
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(t) * kx + (1 - math.cos(t)) * kx @ kx
+
+
+def project_pinhole(points: np.ndarray, r_wc: np.ndarray, c: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Pixels (u right, v down) of world points for a camera at ``c`` whose world->camera rotation is
+    ``r_wc`` (camera +z forward, +x right, +y down: the computer-vision convention) and intrinsics ``k``."""
+    pc = (np.asarray(points, float) - c) @ r_wc.T
+    uvw = pc @ k.T
+    return uvw[:, :2] / uvw[:, 2:3]
+
+
+def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
+    """Gauss-Newton on (rotation increment, camera centre) minimising reprojection error from (r0, c0)."""
+    r, c = np.array(r0, float), np.array(c0, float)
+    scale = max(float(np.linalg.norm(np.asarray(points) - c, axis=1).mean()), 1.0)
+    for _ in range(iterations):
+        res = (project_pinhole(points, r, c, k) - uv).ravel()
+        jac = np.empty((res.size, 6))
+        eps = 1e-6
+        for q in range(6):
+            dw = np.zeros(3)
+            dc = np.zeros(3)
+            if q < 3:
+                dw[q] = eps
+            else:
+                dc[q - 3] = eps * scale
+            rp = _rodrigues(dw) @ r
+            jac[:, q] = ((project_pinhole(points, rp, c + dc, k) - uv).ravel() - res) / eps
+        step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
+        r = _rodrigues(step[:3]) @ r
+        c = c + step[3:] * scale
+        if np.linalg.norm(step) < 1e-10:
+            break
+    return r, c
+
+
+def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(), inlier_px: float = 2.0):
+    """Robust pinhole pose from 3-D ``points`` (n, 3) and their pixels ``uv`` (n, 2) with known
+    correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask)."""
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    n = len(points)
+    if n < params.min_inliers:
+        return False, f"{n} landmarks identified (need {params.min_inliers})", None, None, np.zeros(n, bool)
+    rng = np.random.default_rng(params.seed)
+    best = np.zeros(n, bool)
+    for _ in range(min(params.iterations, 200)):
+        idx = rng.choice(n, 3, replace=False)
+        r, c = refine_pose(points[idx], uv[idx], k, r_prior, c_prior, iterations=15)
+        err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
+        inl = err <= inlier_px
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < params.min_inliers:
+        return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
+    r, c = refine_pose(points[best], uv[best], k, r_prior, c_prior)
+    err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
+    best = err <= inlier_px
+    if best.sum() < params.min_inliers:
+        return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
+    r, c = refine_pose(points[best], uv[best], k, r, c)
+    return True, "", r, c, best

@@ -1,0 +1,171 @@
+"""Real evaluation frames: windows of the LROC WAC polar mosaic treated as nadir frames.
+
+Split rule (fixed before any evaluation, docs/navigation.md): the mosaic plane is cut into eight
+45-degree longitude sectors about the pole, sector k = [45 k, 45 (k + 1)) deg east. Even sectors
+(0-45, 90-135, 180-225, 270-315 E) are **validation**, odd sectors **test**. A window belongs to a
+sector only when its whole footprint lies inside it, so validation and test windows never share a
+pixel. Each of the mosaic's four quadrants (0-90, 90-180, ... E, each imaged under its own Sun, meeting
+in seams along the 0/90/180/270 E meridians) holds one validation and one test sector, so both splits
+see the same four illuminations.
+
+The polar seams are excluded by the same rule: a window lying wholly inside one 45-degree sector
+crosses no quadrant boundary (those are sector boundaries), and it is at least ~250 km from the pole,
+away from the permanently shadowed, mixed-Sun cap where the quadrants meet.
+
+Camera model of a mosaic window: the mosaic is an orthoimage in the polar stereographic projection,
+so a window is an *orthographic nadir* frame of that map plane: pixel (u, v) (right, down, origin at
+the window's top-left corner) sees map point x = left + (u) p, y = top - (v) p, p = 400 m/px (times
+the projection's scale factor, <= 3 % here). The truth camera position is the map point under the
+window centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from crater_synth.errors import UserError
+from crater_synth.navigation.polar import stereo_inverse
+
+SECTOR_DEG = 45.0
+SPLIT_OF_SECTOR = {k: ("validation" if k % 2 == 0 else "test") for k in range(8)}
+WINDOW_PX = 512
+STRIDE_PX = 64  # overlapping windows: more frames, correlated (every report says so)
+MOSAIC_PRODUCTS = {"south": "lroc_wac_south", "north": "lroc_wac_north"}
+
+
+class FrameError(UserError):
+    """A frame cannot be navigated: no georeference, empty, outside the map."""
+
+
+@dataclass(frozen=True)
+class Georef:
+    """Map georeference of a nadir orthographic frame: map point of pixel (u, v) is
+    (left_m + u pixel_m, top_m - v pixel_m) in ``pole``'s polar stereographic projection (u, v continuous,
+    origin at the top-left corner of the top-left pixel)."""
+
+    pole: str
+    left_m: float
+    top_m: float
+    pixel_m: float
+
+    def uv_to_xy(self, u, v):
+        return self.left_m + np.asarray(u) * self.pixel_m, self.top_m - np.asarray(v) * self.pixel_m
+
+    def xy_to_uv(self, x, y):
+        return (np.asarray(x) - self.left_m) / self.pixel_m, (self.top_m - np.asarray(y)) / self.pixel_m
+
+    def as_dict(self) -> dict:
+        return {"pole": self.pole, "left_m": self.left_m, "top_m": self.top_m, "pixel_m": self.pixel_m}
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One evaluation frame: the image, where it was cut, and its truth georeference."""
+
+    id: str
+    split: str
+    sector: int
+    image: np.ndarray  # (H, W) uint8
+    georef: Georef  # truth
+
+    @property
+    def centre_xy(self) -> tuple[float, float]:
+        h, w = self.image.shape
+        x, y = self.georef.uv_to_xy(w / 2.0, h / 2.0)
+        return float(x), float(y)
+
+    @property
+    def centre_latlon(self) -> tuple[float, float]:
+        lat, lon = stereo_inverse(*self.centre_xy, self.georef.pole)
+        return float(lat), float(lon)
+
+
+def sector_of(x, y) -> np.ndarray:
+    """45-degree longitude sector index (0..7) of map points (south stereographic: lon = atan2(x, y))."""
+    lon = np.degrees(np.arctan2(x, y)) % 360.0
+    return np.floor(lon / SECTOR_DEG).astype(int)
+
+
+@lru_cache(maxsize=2)
+def load_mosaic_image(pole: str = "south"):
+    """(image uint8 (H, W), half-extent m, pixel m, product id) of the pole's embedded WAC mosaic, read
+    and checksummed through the registry (as the real test set reads it)."""
+    from data_manifest.products import get_product
+    from train.realset import embedded_product_path, read_gray
+
+    product = MOSAIC_PRODUCTS[pole]
+    p = get_product(product)
+    path = embedded_product_path(product)  # verifies the sha256
+    img = read_gray(path, keep_uint8=True)
+    left, _, right, _ = (float(v) for v in p["extent_m"])
+    return img, 0.5 * (right - left), float(p["pixel_size_m"]), product
+
+
+def plan_windows(
+    pole: str = "south", size: int = WINDOW_PX, stride: int = STRIDE_PX
+) -> list[tuple[str, str, int, int, int]]:
+    """Every window of the split rule: (id, split, sector, u0, v0), deterministic."""
+    if pole != "south":
+        # The north mosaic is test only (no validation there); its quadrant layout is not checked here.
+        raise FrameError("real evaluation windows are defined for the south mosaic only in this version")
+    img, extent, pixel, _ = load_mosaic_image(pole)
+    n = img.shape[0]
+    out = []
+    for v0 in range(0, n - size + 1, stride):
+        for u0 in range(0, n - size + 1, stride):
+            # The wedge is convex (45 deg < 180 deg), so the square is inside it when its corners are.
+            us = np.array([u0, u0 + size, u0, u0 + size], dtype=float)
+            vs = np.array([v0, v0, v0 + size, v0 + size], dtype=float)
+            x, y = us * pixel - extent, extent - vs * pixel
+            s = sector_of(x, y)
+            if np.all(s == s[0]) and np.all(np.hypot(x, y) > 0):
+                k = int(s[0])
+                out.append((f"{pole[0].upper()}{k}_{u0:04d}_{v0:04d}", SPLIT_OF_SECTOR[k], k, u0, v0))
+    return out
+
+
+def window_frame(pole: str, wid: str, split: str, sector: int, u0: int, v0: int, size: int = WINDOW_PX) -> Frame:
+    img, extent, pixel, _ = load_mosaic_image(pole)
+    geo = Georef(pole, -extent + u0 * pixel, extent - v0 * pixel, pixel)
+    return Frame(wid, split, sector, np.ascontiguousarray(img[v0 : v0 + size, u0 : u0 + size]), geo)
+
+
+def windows(
+    split: str | None = None, pole: str = "south", size: int = WINDOW_PX, stride: int = STRIDE_PX
+) -> list[Frame]:
+    """The real evaluation frames of ``split`` (None: both)."""
+    return [
+        window_frame(pole, *w, size=size) for w in plan_windows(pole, size, stride) if split is None or w[1] == split
+    ]
+
+
+def check_frame(image: np.ndarray, what: str) -> np.ndarray:
+    """``image`` as a float 2-D array, or one clear error: not 2-D, too small, or empty (no contrast)."""
+    a = np.asarray(image)
+    if a.ndim != 2 or min(a.shape) < 32:
+        raise FrameError(f"{what}: expected a grey image of at least 32x32 px, got shape {a.shape}")
+    a = a.astype(np.float32)
+    if not np.isfinite(a).all():
+        raise FrameError(f"{what}: the image has non-finite pixels")
+    if float(a.std()) < 1e-3 * max(float(np.abs(a).max()), 1.0) or float(a.std()) == 0.0:
+        raise FrameError(f"{what}: the frame is empty (constant, no contrast to find craters in)")
+    return a
+
+
+def pixel_scale_m(frame_georef: Georef, u: float, v: float) -> float:
+    """Ground metres per pixel at (u, v): the map pixel divided by the projection's scale factor."""
+    from crater_synth.navigation.polar import scale_factor
+
+    lat, _ = stereo_inverse(*frame_georef.uv_to_xy(u, v), frame_georef.pole)
+    return float(frame_georef.pixel_m / scale_factor(lat, frame_georef.pole))
+
+
+def ground_distance_km(x1, y1, x2, y2, pole: str = "south") -> np.ndarray:
+    """Ground distance (km) between nearby map points: map distance / scale factor at their midpoint."""
+    from crater_synth.navigation.polar import scale_factor
+
+    lat, _ = stereo_inverse(0.5 * (np.asarray(x1) + x2), 0.5 * (np.asarray(y1) + y2), pole)
+    return np.hypot(np.asarray(x1) - x2, np.asarray(y1) - y2) / scale_factor(lat, pole) / 1000.0

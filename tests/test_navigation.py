@@ -1,0 +1,274 @@
+"""crater_synth.navigation: landmark map, split rule, detector, identification and fix, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from crater_synth.cli import main
+from crater_synth.navigation import fix as nf
+from crater_synth.navigation.detect import DetectorParams, detect
+from crater_synth.navigation.frames import FrameError, Georef, check_frame
+from crater_synth.navigation.landmarks import Landmark, LandmarkMapError, read_map, to_geojson
+from crater_synth.navigation.polar import scale_factor, stereo_forward, stereo_inverse
+
+STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
+
+
+def crater_heights(xx, yy, craters):
+    """Bowl-shaped craters (parabolic floor, raised rim decaying outside) on flat ground."""
+    h = np.zeros_like(xx)
+    for cx, cy, d_m in craters:
+        r = np.hypot(xx - cx, yy - cy) / (0.5 * d_m)
+        depth, rim = 0.15 * d_m, 0.04 * d_m
+        h += np.where(r < 1.0, -depth + (depth + rim) * r**2, rim * np.clip(r, 1.0, None) ** -3)
+    return h
+
+
+def write_dem(path, heights, pixel_m, left, top):
+    import rasterio
+    from affine import Affine
+
+    n = heights.shape[0]
+    with rasterio.open(
+        path, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32", crs=STEREO_SOUTH,
+        transform=Affine(pixel_m, 0.0, left, 0.0, -pixel_m, top),
+    ) as dst:  # fmt: skip
+        dst.write(heights.astype(np.float32), 1)
+
+
+# --------------------------------------------------------------------------------------------
+# Polar frames
+# --------------------------------------------------------------------------------------------
+def test_polar_round_trip_both_poles():
+    lat = np.array([-85.0, -72.5, -89.9])
+    lon = np.array([10.0, -120.0, 170.0])
+    for pole, sign in (("south", 1.0), ("north", -1.0)):
+        x, y = stereo_forward(sign * lat, lon, pole)
+        la, lo = stereo_inverse(x, y, pole)
+        np.testing.assert_allclose(la, sign * lat, atol=1e-9)
+        np.testing.assert_allclose((lo - lon + 180) % 360 - 180, 0, atol=1e-9)
+    # North: lon 0 lies below the pole on the map (y < 0), as in PROJ +lat_0=90.
+    assert stereo_forward(80.0, 0.0, "north")[1] < 0 < stereo_forward(-80.0, 0.0, "south")[1]
+    assert scale_factor(-90.0) == pytest.approx(1.0) and scale_factor(-70.0) == pytest.approx(1.0311, abs=1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Landmark map
+# --------------------------------------------------------------------------------------------
+def test_landmark_map_recovers_known_craters(tmp_path):
+    from crater_synth.navigation.landmarks import build_map
+    from crater_synth.terrain.dem import Dem
+
+    n, px = 192, 1600.0
+    left, top = 150_000.0, 400_000.0
+    c = left + (np.arange(n) + 0.5) * px
+    xx, yy = np.meshgrid(c, top - (np.arange(n) + 0.5) * px)
+    # Each crater's measuring square (+-1.25 D, rotated in the map) lies inside the DEM.
+    known = [(left + 60_000.0, top - 60_000.0, 16_000.0), (left + 230_000.0, top - 90_000.0, 30_000.0),
+             (left + 120_000.0, top - 210_000.0, 45_000.0)]  # fmt: skip
+    write_dem(tmp_path / "dem.tif", crater_heights(xx, yy, known), px, left, top)
+    landmarks, stats = build_map(Dem(tmp_path / "dem.tif", product="synthetic"), "south")
+    assert stats["landmarks"] == len(landmarks)
+    for kx, ky, d in known:
+        best = min(landmarks, key=lambda lm: math.hypot(lm.x_m - kx, lm.y_m - ky))
+        assert math.hypot(best.x_m - kx, best.y_m - ky) < 0.1 * d
+        assert best.diameter_km * 1000 == pytest.approx(d, rel=0.15)
+        assert best.depth_m > 0.1 * d
+    # Nothing but the three craters: no landmark far from all of them.
+    for lm in landmarks:
+        assert min(math.hypot(lm.x_m - kx, lm.y_m - ky) / d for kx, ky, d in known) < 1.0
+
+
+def _landmarks(n=30, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        x, y = rng.uniform(200_000, 300_000, 2)
+        lat, lon = stereo_inverse(x, y)
+        out.append(Landmark(f"S{k:04d}", "", float(lat), float(lon), float(x), float(y),
+                            float(rng.uniform(10, 40)), 1000.0, 0.0, 300.0, 1.0, "dem"))  # fmt: skip
+    return out
+
+
+def test_map_file_round_trip_and_corrupt(tmp_path):
+    lms = _landmarks(5)
+    p = tmp_path / "m.geojson"
+    p.write_text(to_geojson(lms, {"pole": "south", "dem_product": "x"}))
+    back, prov = read_map(p)
+    assert [b.id for b in back] == [lm.id for lm in lms] and prov["pole"] == "south"
+    assert back[2].x_m == pytest.approx(lms[2].x_m)
+    p.write_text(p.read_text()[:200])
+    with pytest.raises(LandmarkMapError, match="corrupt"):
+        read_map(p)
+    with pytest.raises(LandmarkMapError, match="does not exist"):
+        read_map(tmp_path / "none.geojson")
+
+
+# --------------------------------------------------------------------------------------------
+# Split rule
+# --------------------------------------------------------------------------------------------
+def test_validation_and_test_windows_are_disjoint():
+    from crater_synth.navigation.frames import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
+
+    img, extent, pixel, _ = load_mosaic_image("south")
+    plan = plan_windows()
+    cover = {"validation": np.zeros(img.shape, bool), "test": np.zeros(img.shape, bool)}
+    for _, split, sector, u0, v0 in plan:
+        cover[split][v0 : v0 + WINDOW_PX, u0 : u0 + WINDOW_PX] = True
+        assert (sector % 2 == 0) == (split == "validation")
+        uu, vv = np.meshgrid(np.arange(u0, u0 + WINDOW_PX, 16) + 0.5, np.arange(v0, v0 + WINDOW_PX, 16) + 0.5)
+        assert (sector_of(uu * pixel - extent, extent - vv * pixel) == sector).all()
+    assert not (cover["validation"] & cover["test"]).any()
+    assert cover["validation"].any() and cover["test"].any()
+
+
+# --------------------------------------------------------------------------------------------
+# Detector
+# --------------------------------------------------------------------------------------------
+def shaded(craters, n=256, sun_az_deg=0.0, sun_el_deg=15.0):
+    """Lambertian image of crater bowls lit from image azimuth ``sun_az_deg`` (from +u towards +v)."""
+    yy, xx = np.mgrid[0:n, 0:n].astype(float) + 0.5
+    h = crater_heights(xx, yy, [(cu, cv, 2 * r) for cu, cv, r in craters])
+    gv, gu = np.gradient(h)
+    az, el = math.radians(sun_az_deg), math.radians(sun_el_deg)
+    s = np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])  # towards the Sun
+    nrm = np.stack([-gu, -gv, np.ones_like(h)])
+    lit = np.tensordot(s, nrm, axes=1) / np.linalg.norm(nrm, axis=0)
+    return np.clip(lit, 0, None) * 200.0 + 20.0
+
+
+def test_detector_finds_shaded_craters():
+    craters = [(70.0, 80.0, 20.0), (170.0, 160.0, 35.0)]
+    img = shaded(craters, sun_az_deg=180.0)  # Sun towards -u: light travels +u
+    dets, _ = detect(img, DetectorParams(), light_dir=0.0)
+    for cu, cv, r in craters:
+        best = min(dets, key=lambda d: math.hypot(d.u - cu, d.v - cv) / r + abs(d.r / r - 1))
+        assert math.hypot(best.u - cu, best.v - cv) < 0.25 * 2 * r
+        assert best.r == pytest.approx(r, rel=0.3)
+
+
+def test_empty_and_malformed_frames_are_refused():
+    with pytest.raises(FrameError, match="empty"):
+        check_frame(np.full((64, 64), 80, np.uint8), "frame x")
+    with pytest.raises(FrameError, match="grey image"):
+        check_frame(np.zeros((10, 10)), "frame x")
+    with pytest.raises(FrameError, match="non-finite"):
+        check_frame(np.full((64, 64), np.nan), "frame x")
+
+
+# --------------------------------------------------------------------------------------------
+# Identification and fix
+# --------------------------------------------------------------------------------------------
+def test_ransac_similarity_recovers_pose_with_outliers_and_refuses_inconsistent():
+    rng = np.random.default_rng(3)
+    lm_xy = rng.uniform(0, 200_000, (12, 2))
+    a_true, b_true = 400.0 * complex(math.cos(0.02), math.sin(0.02)), complex(1000.0, -2000.0)
+    src = (lm_xy[:, 0] + 1j * lm_xy[:, 1] - b_true) / a_true
+    det_uv = np.stack([src.real, src.imag], 1) + rng.normal(0, 0.3, (12, 2))
+    det_r = np.full(12, 20.0)
+    pairs = [(k, k) for k in range(8)] + [(8, 9), (9, 8), (10, 2), (11, 5)]  # 8 right, 4 wrong
+    three = nf.FixParams(min_inliers=3)
+    fix, a, b = nf.ransac_similarity(det_uv, det_r, lm_xy, pairs, complex(400.0, 0.0), three)
+    assert fix.ok and sorted(fix.inliers) == [(k, k) for k in range(8)]
+    assert abs(a - a_true) / abs(a_true) < 1e-3 and abs(b - b_true) < 300.0
+    # Random pairs: no three agree on one transform near the prior: "no fix", never a wrong one.
+    bad = [(k, (k * 7 + 3) % 12) for k in range(12)]
+    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, bad, complex(400.0, 0.0), three)
+    assert not fix.ok
+    # Two landmarks only: no fix.
+    fix, _, _ = nf.ransac_similarity(det_uv, det_r, lm_xy, [(0, 0), (1, 1)], complex(400.0, 0.0), three)
+    assert not fix.ok and "fewer than 3" in fix.reason
+
+
+def test_fix_frame_end_to_end_with_prior_offset():
+    from crater_synth.navigation.detect import Detection
+
+    lms = _landmarks(40)
+    truth = Georef("south", 210_000.0, 290_000.0, 400.0)
+    dets = []
+    for lm in lms:
+        u, v = truth.xy_to_uv(lm.x_m, lm.y_m)
+        if 0 < u < 200 and 0 < v < 200:
+            dets.append(Detection(float(u), float(v), lm.diameter_km * 1.25, 1.0))
+    dets.append(Detection(50.0, 50.0, 30.0, 1.0))  # a false detection
+    prior = Georef("south", truth.left_m + 4000.0, truth.top_m - 3000.0, 400.0)
+    fix = nf.fix_frame(dets, lms, prior, (200, 200))
+    assert fix.ok
+    tx, ty = truth.uv_to_xy(100.0, 100.0)
+    assert math.hypot(fix.x_m - tx, fix.y_m - ty) < 50.0
+
+
+def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-40e3, 40e3, 10), rng.uniform(-40e3, 40e3, 10), rng.uniform(-2e3, 2e3, 10)])
+    k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
+    r_true = nf._rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))  # looking down, slightly off nadir
+    c_true = np.array([1500.0, -800.0, 90e3])
+    uv = nf.project_pinhole(pts, r_true, c_true, k)
+    uv[[2, 7]] += [[60.0, -40.0], [-80.0, 25.0]]  # two wrong identifications
+    r0 = nf._rodrigues(np.array([math.pi, 0.0, 0.0]))
+    ok, _, r, c, inl = nf.ransac_pnp(pts, uv, k, r0, np.array([0.0, 0.0, 85e3]))
+    assert ok and not inl[2] and not inl[7] and inl.sum() == 8
+    assert np.linalg.norm(c - c_true) < 1.0
+    ok, reason, *_ = nf.ransac_pnp(pts[:2], uv[:2], k, r0, np.array([0.0, 0.0, 85e3]), nf.FixParams(min_inliers=3))
+    assert not ok and "need 3" in reason
+
+
+# --------------------------------------------------------------------------------------------
+# navigate: bad input gives one clear error and writes nothing
+# --------------------------------------------------------------------------------------------
+def _png(path, img):
+    import matplotlib.pyplot as plt
+
+    plt.imsave(path, img, cmap="gray", vmin=0, vmax=255)
+
+
+def test_navigate_bad_input(tmp_path):
+    runner = CliRunner()
+    img = tmp_path / "frame.png"
+    _png(img, shaded([(60.0, 60.0, 15.0)], n=128))
+    r = runner.invoke(main, ["navigate", str(img)])
+    assert r.exit_code == 2 and "no georeference" in r.output and len(r.output.strip().splitlines()) == 1
+    # Outside the map: a georeference far beyond the south map.
+    (tmp_path / "frame.png.geo.json").write_text(
+        json.dumps({"pole": "south", "left_m": 5e6, "top_m": 5e6, "pixel_m": 400.0})
+    )
+    r = runner.invoke(main, ["navigate", str(img)])
+    assert r.exit_code == 2 and "outside the landmark map" in r.output
+    # Empty frame.
+    empty = tmp_path / "empty.png"
+    _png(empty, np.full((128, 128), 90.0))
+    (tmp_path / "empty.png.geo.json").write_text(
+        json.dumps({"pole": "south", "left_m": 2e5, "top_m": 2e5, "pixel_m": 400.0})
+    )
+    r = runner.invoke(main, ["navigate", str(empty)])
+    assert r.exit_code == 2 and "empty" in r.output
+    # Corrupt landmark map.
+    bad = tmp_path / "bad.geojson"
+    bad.write_text("{not json")
+    r = runner.invoke(main, ["navigate", str(img), "--map", str(bad)])
+    assert r.exit_code == 2 and "corrupt" in r.output
+    # Corrupt georeference.
+    (tmp_path / "frame.png.geo.json").write_text("{}")
+    r = runner.invoke(main, ["navigate", str(img)])
+    assert r.exit_code == 2 and "georeference" in r.output
+    assert not list(tmp_path.glob("*.nav.png"))
+
+
+def test_iau_match_uses_the_fixed_tolerances():
+    from crater_synth.navigation.landmark_check import match_iau
+
+    lat, lon = -80.0, 30.0
+    x, y = stereo_forward(lat, lon)
+    d = 60.0
+    near = Landmark("S0001", "", lat, lon, float(x) + 0.1 * d * 1000, float(y), d * 1.2, 1e3, 0.0, 1e2, 1.0, "dem")
+    far = Landmark("S0002", "", lat, lon, float(x) + 0.2 * d * 1000, float(y), d, 1e3, 0.0, 1e2, 1.0, "dem")
+    small = Landmark("S0003", "", lat, lon, float(x), float(y), d * 0.7, 1e3, 0.0, 1e2, 1.0, "dem")
+    iau = [{"diameter_km": d, "lat": lat, "lon": lon}]
+    assert match_iau([near, far, small], iau, "south")[0]["landmark"] == "S0001"
+    assert match_iau([far, small], iau, "south")[0]["landmark"] is None  # 0.2 D off; 30 % too small
