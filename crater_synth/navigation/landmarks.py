@@ -444,7 +444,8 @@ def landmarks_command(pole, dem_product, out, figure, no_check, workers):
         "dem_sha256": cached_sha256(path),
         "dem_pixel_m": dem.pixel_size_m,
         "method": "ring-minus-disk scale-space candidates, rim measured by "
-        "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, named catalogue merged (docs/navigation.md)",
+        "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
+        "named catalogue merged (docs/navigation.md)",
         "parameters": parameters(),
         "build": {k: v for k, v in stats.items() if k != "catalogue"},
         "catalogue_merge": stats["catalogue"],
