@@ -51,15 +51,22 @@ def embedded_product_path(product_id: str) -> Path:
 
 
 @dataclass(frozen=True)
-class Mosaic:
-    """A polar-stereographic product: pixel (u right, v down, origin at the top-left corner)."""
+class PolarGrid:
+    """The crop protocol's reference grid: the mosaic's pixel grid (south polar stereographic on the
+    ``radius_m`` sphere, square extent +-``extent_m``, ``pixel_m`` per pixel; u right, v down, origin at
+    the top-left corner). Crops are planned on it, whatever image they are cut from."""
 
-    product_id: str
-    path: Path
-    image: np.ndarray  # (H, W) uint8
-    extent_m: float  # half-width of the square extent
+    extent_m: float
     pixel_m: float
     radius_m: float
+
+    @classmethod
+    def from_config(cls, rs_cfg: Mapping) -> "PolarGrid":
+        m = rs_cfg.get("mosaic") or {}
+        try:
+            return cls(float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"]))
+        except KeyError as exc:
+            raise RealSetError(f"realset.mosaic is missing key {exc}") from None
 
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
@@ -70,6 +77,38 @@ class Mosaic:
         u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
         v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
         return (float(u), float(v)) if np.ndim(u) == 0 else (u, v)
+
+    def uv_to_xy(self, u, v) -> tuple[np.ndarray, np.ndarray]:
+        """Projected metres (x, y) of grid pixel coordinates (the inverse of the affine part)."""
+        x = np.asarray(u, dtype=np.float64) * self.pixel_m - self.extent_m
+        y = self.extent_m - np.asarray(v, dtype=np.float64) * self.pixel_m
+        return x, y
+
+    @property
+    def proj4(self) -> str:
+        """The grid's projection as a PROJ string (the same as the registry's ``crs`` of the mosaic)."""
+        return f"+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R={self.radius_m:g} +units=m +no_defs"
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """A polar-stereographic product: pixel (u right, v down, origin at the top-left corner)."""
+
+    product_id: str
+    path: Path
+    image: np.ndarray  # (H, W) uint8
+    extent_m: float  # half-width of the square extent
+    pixel_m: float
+    radius_m: float
+
+    @property
+    def grid(self) -> PolarGrid:
+        return PolarGrid(self.extent_m, self.pixel_m, self.radius_m)
+
+    def latlon_to_uv(self, lat_deg, lon_deg):
+        """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
+        arrays (the same formula for both)."""
+        return self.grid.latlon_to_uv(lat_deg, lon_deg)
 
 
 def load_mosaic(rs_cfg: Mapping) -> Mosaic:
@@ -143,13 +182,19 @@ class RealCrop:
     rotation_deg: float = 0.0
     offset_px: tuple[float, float] = (0.0, 0.0)
     offset_frac: tuple[float, float] = (0.0, 0.0)
-    kind: str = "embedded"  # embedded | labels
+    kind: str = "embedded"  # embedded | labels | frame
     index: int = 0
     extra: dict = field(default_factory=dict)
+    frame_id: str = ""  # kind "frame": the frame's identifier (product id or file stem)
+    # kind "frame": the sampling parallelogram's axes in frame pixels, row-major 2x2 (train.preprocess.
+    # resample_affine); ``box`` is then its axis-aligned bounds and ``rotation_deg`` the protocol's roll.
+    axes: tuple[float, float, float, float] | None = None
 
     def as_row(self) -> dict:
         d = asdict(self)
         d["box"] = [round(float(b), 4) for b in self.box]
+        if self.axes is not None:
+            d["axes"] = [round(float(a), 6) for a in self.axes]
         d["offset_px"] = [round(float(o), 4) for o in self.offset_px]
         d["offset_frac"] = [round(float(o), 6) for o in self.offset_frac]
         d["rotation_deg"] = round(float(self.rotation_deg), 6)
@@ -161,12 +206,33 @@ def _crater_seed(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
 
 
-def plan_embedded_crops(
-    mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], rs_cfg: Mapping
-) -> list[RealCrop]:
-    """The seeded crop plan of the embedded mosaic: ``per_crater`` crops per crater, sigmas cycled,
-    uniform offsets in [-max_offset_frac, max_offset_frac] x side per axis, rotations uniform in
-    [-max_rotation_deg, max_rotation_deg]. Every rotated box must lie inside the mosaic."""
+@dataclass(frozen=True)
+class ProtocolCrop:
+    """One crop of the seeded protocol, on the reference grid (:class:`PolarGrid` pixels): the box of
+    side ``sigma`` x rim diameter centred on the crater's projected centre plus a slewing offset, and a
+    roll of the sampling grid. The mosaic's crops are these boxes as they are; a frame's crops are the
+    same ground footprints carried into the frame by its georeference (train/realframes.py)."""
+
+    crater: str
+    index: int
+    sigma: float
+    center: tuple[float, float]  # crater centre + offset, reference px
+    side: float  # reference px
+    rotation_deg: float
+    offset_px: tuple[float, float]
+    offset_frac: tuple[float, float]
+
+    @property
+    def box(self) -> tuple[float, float, float, float]:
+        (cu, cv), h = self.center, self.side / 2
+        return (cu - h, cv - h, cu + h, cv + h)
+
+
+def protocol_crops(grid: PolarGrid, craters: Sequence[Mapping], rs_cfg: Mapping) -> list[ProtocolCrop]:
+    """The seeded crop protocol (docs/realset.md), the one definition for the mosaic and for frames:
+    ``per_crater`` crops per crater, sigmas cycled, uniform offsets in [-max_offset_frac,
+    max_offset_frac] x side per axis, rolls uniform in [-max_rotation_deg, max_rotation_deg], drawn
+    from ``default_rng([seed, crc32(name)])``."""
     per = int(rs_cfg.get("per_crater", 300))
     sigmas = [float(s) for s in rs_cfg.get("sigmas", [1.0, 1.2, 1.4])]
     max_off = float(rs_cfg.get("max_offset_frac", 0.0))
@@ -174,12 +240,11 @@ def plan_embedded_crops(
     seed = int(rs_cfg.get("seed", 0))
     if per < 1 or not sigmas or any(s <= 0 for s in sigmas):
         raise RealSetError(f"realset: need per_crater >= 1 and positive sigmas, got {per}, {sigmas}")
-    assert mosaic is not None
-    out: list[RealCrop] = []
+    out: list[ProtocolCrop] = []
     for c in craters:
         name = str(c["name"])
-        cu, cv = mosaic.latlon_to_uv(float(c["lat"]), float(c["lon"]))
-        d_px = float(c["diameter_km"]) * 1000.0 / mosaic.pixel_m
+        cu, cv = grid.latlon_to_uv(float(c["lat"]), float(c["lon"]))
+        d_px = float(c["diameter_km"]) * 1000.0 / grid.pixel_m
         rng = _crater_seed(seed, name)
         offs = rng.uniform(-max_off, max_off, size=(per, 2))
         rots = rng.uniform(-max_rot, max_rot, size=per)
@@ -187,26 +252,49 @@ def plan_embedded_crops(
             s = sigmas[i % len(sigmas)]
             side = s * d_px
             du, dv = offs[i] * side
-            box = (cu + du - side / 2, cv + dv - side / 2, cu + du + side / 2, cv + dv + side / 2)
-            if outside_fraction(box, mosaic_shape, rots[i]) > 0:
-                raise RealSetError(
-                    f"realset: crop {i} of {name} (sigma={s}, rotation={rots[i]:.1f}) leaves the "
-                    f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}"
-                )
             out.append(
-                RealCrop(
+                ProtocolCrop(
                     crater=name,
-                    source=mosaic.product_id,
-                    image_path=str(mosaic.path),
-                    box=box,
+                    index=i,
                     sigma=s,
+                    center=(cu + du, cv + dv),
+                    side=side,
                     rotation_deg=float(rots[i]),
                     offset_px=(float(du), float(dv)),
                     offset_frac=(float(offs[i, 0]), float(offs[i, 1])),
-                    kind="embedded",
-                    index=i,
                 )
             )
+    return out
+
+
+def plan_embedded_crops(
+    mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], rs_cfg: Mapping
+) -> list[RealCrop]:
+    """The protocol's crops of the embedded mosaic (:func:`protocol_crops` on the mosaic's own grid).
+    Every rotated box must lie inside the mosaic."""
+    assert mosaic is not None
+    out: list[RealCrop] = []
+    for p in protocol_crops(mosaic.grid, craters, rs_cfg):
+        box = p.box
+        if outside_fraction(box, mosaic_shape, p.rotation_deg) > 0:
+            raise RealSetError(
+                f"realset: crop {p.index} of {p.crater} (sigma={p.sigma}, rotation={p.rotation_deg:.1f}) leaves the "
+                f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}"
+            )
+        out.append(
+            RealCrop(
+                crater=p.crater,
+                source=mosaic.product_id,
+                image_path=str(mosaic.path),
+                box=box,
+                sigma=p.sigma,
+                rotation_deg=p.rotation_deg,
+                offset_px=p.offset_px,
+                offset_frac=p.offset_frac,
+                kind="embedded",
+                index=p.index,
+            )
+        )
     return out
 
 
@@ -359,8 +447,18 @@ def plan_real_crops(
                     f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %"
                 )
         crops += lab
+    if rs.get("frames"):
+        from train.realframes import plan_frames
+
+        known = {canonical_crater(n) for n in class_names}
+        sel = [c for c in craters if canonical_crater(c["name"]) in known]
+        frame_crops, frame_images = plan_frames(rs, sel, cfg.get("data_dir"))
+        crops += frame_crops
+        images.update(frame_images)
     if not crops:
-        raise RealSetError("the real test set is empty: realset.include_embedded=false and no realset.labels_file")
+        raise RealSetError(
+            "the real test set is empty: realset.include_embedded=false, no realset.labels_file and no realset.frames"
+        )
     return crops, images
 
 
@@ -373,6 +471,6 @@ def build_real_test_set(
     cls = {n: i for i, n in enumerate(class_names)}
     X = np.empty((len(crops), pp.size, pp.size), dtype=np.float32)
     for i, c in enumerate(crops):
-        X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg)
+        X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg, axes=c.axes)
     y = np.array([cls[c.crater] for c in crops], dtype=np.int64)
     return RealTestSet(X, y, crops, list(class_names))
