@@ -3,7 +3,7 @@
 A frame is any raster GDAL reads (through rasterio) with a georeference: a map-projected GeoTIFF, an
 ISIS3 cube or PDS3 image whose label carries a map projection, or an image with ground control
 points. Each crater is located from the georeference, and the crops are the seeded protocol of the
-mosaic (:func:`train.realset.protocol_crops`, one definition): the same sigma, slewing offset and
+mosaic (:func:`train.realcrops.protocol_crops`, one definition): the same sigma, slewing offset and
 roll, planned on the reference grid (the mosaic's south polar stereographic pixels) and carried into
 the frame by the local linear map of "reference pixel -> frame pixel" at each crop centre. A frame
 and the mosaic therefore give crops of the same ground footprint, whatever the frame's projection
@@ -28,7 +28,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from train.errors import RealSetError
-from train.realset import PolarGrid, RealCrop, canonical_crater, protocol_crops
+from train.realcrops import PolarGrid, RealCrop, _resolve_product_image, canonical_crater, protocol_crops
 
 # IAU mean radius of the Moon (Archinal et al. 2018, IAU WGCCRE report), and the tolerance on a
 # frame CRS's semi-major axis: lunar CRSs use 1737.4 km or 1737.15 km; Mars (3396.19 km) and Earth
@@ -210,8 +210,6 @@ def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], rs_cf
 def _frame_path(spec: str, data_dir: str | Path | None, where: str) -> Path:
     """A frame's file: a path, or ``product:<id>`` for a product of data_manifest/products.yaml."""
     if spec.startswith("product:"):
-        from train.realset import _resolve_product_image
-
         return _resolve_product_image(spec, data_dir, where)
     return Path(spec).expanduser()
 
