@@ -23,6 +23,7 @@ _COMMANDS = (
     ("crater_synth.launcher", "dataset_command", "Render the sweep into out_dir (resumable)."),
     ("crater_synth.verify", "verify_command", "Check a dataset's files against its manifest."),
     ("crater_synth.preview", "preview_command", "Write a contact sheet PNG per crater."),
+    ("crater_synth.dataset.export", "export_command", "Export a dataset to Parquet or WebDataset shards."),
     ("crater_synth.training", "train_command", "Train the three classifiers; test on real crops."),
     ("crater_synth.training", "evaluate_command", "Evaluate saved models on the real crops."),
     ("crater_synth.loop", "loop_command", "Closed loop: add sun elevations until accurate."),
