@@ -7,7 +7,9 @@ Parts (``--part``, default all, in this order):
 - ``renderer``: crater_synth.render_bench: (a) a whole paper crater (22,500 renders), (b) sweep=demo,
   (c) a 60-sun x 24-camera grid, (d) direct mode with the ROI crop on a sample of (a)'s items (and
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
-  (~10-20 min on 2 cores).
+  (~10-20 min on 2 cores);
+- ``export``: crater_synth.dataset.export_bench: ``crater-synth export`` time and peak RSS on a
+  generated dataset of ``--export-renders`` EXRs, extrapolated to the 67,500-render sweep.
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -27,7 +29,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 
 @click.command("bench")
 @click.option(
-    "--part", type=click.Choice(["all", "renderer", "train", "distributed"]), default="all", show_default=True
+    "--part", type=click.Choice(["all", "renderer", "train", "distributed", "export"]), default="all", show_default=True
 )
 @click.option(
     "--keep",
@@ -35,9 +37,16 @@ from crater_synth.cli_common import OVERRIDES, user_errors
     default=None,
     help="Keep the benchmark datasets in this directory (default: a temp dir, removed).",
 )
+@click.option(
+    "--export-renders",
+    type=click.IntRange(min=4),
+    default=1000,
+    show_default=True,
+    help="Size of the generated dataset the export part measures.",
+)
 @OVERRIDES
 @user_errors
-def bench_command(part, keep, overrides):
+def bench_command(part, keep, export_renders, overrides):
     """Measure the performance goals: renderer vs naive baseline, training, distributed sweep.
 
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
@@ -66,6 +75,12 @@ def bench_command(part, keep, overrides):
                     f"train skipped: no rendered dataset at {dataset.parent} (make demo, or "
                     f"make dataset OVERRIDES=sweep=demo, renders it)"
                 )
+        if part in ("all", "export"):
+            from crater_synth.dataset.export_bench import bench_export, summary_line
+
+            r = bench_export(work / "export", export_renders)
+            click.echo("export " + json.dumps(r))
+            click.echo(summary_line(r))
         if part in ("all", "renderer"):
             from crater_synth.render_bench import bench_renderer, summary_lines
 

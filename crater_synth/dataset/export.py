@@ -100,7 +100,7 @@ def _render_key(row: dict) -> str:
 
 def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
     """The EXR's channels as stored (lossless), after checking the file against the manifest's sha256."""
-    from crater_core.exr import read_exr, stored_dtype
+    from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
 
     path = dataset_dir / row["path"]
     try:
@@ -113,7 +113,13 @@ def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dic
             f"dataset {dataset_dir}: {row['path']} has sha256 {got}, the manifest says {row['sha256']} "
             "(run `crater-synth verify`)"
         )
-    chans, _ = read_exr(path)
+    try:
+        if len(channels) <= 2:  # decode only what is exported (the default is I/F alone)
+            chans = {c: read_channel(path, c) for c in channels}
+        else:
+            chans, _ = read_exr(path)
+    except ExrError as exc:
+        raise ExportError(str(exc)) from None
     missing = [c for c in channels if c not in chans]
     if missing:
         raise ExportError(f"{path} has no channel(s) {missing}; it has {sorted(chans)}")
