@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pytest
 
-from crater_synth.config import compose, resolved
+from crater_synth.config import ConfigError, compose, resolved
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, box_axes
 from train.realframes import open_frame, plan_frames, reference_to_frame
@@ -153,6 +153,12 @@ def test_frames_config_group_composes():
     rs = c["realset"]
     assert rs["include_embedded"] is False
     assert [f["frame_id"] for f in rs["frames"]] == ["M101457600MC", "M139810920MC", "TC1W2B0_01_00582S883E2719"]
+    over = resolved(compose(["realset=frames", "realset.frames=[{path: /x.tif, frame_id: x, craters: [shoemaker]}]"]))
+    assert over["realset"]["frames"] == [
+        {"path": "/x.tif", "frame_id": "x", "source": None, "band": 1, "craters": ["shoemaker"]}
+    ]
+    with pytest.raises(ConfigError, match=r"realset\.frames\[0\]\.band=0: must be >= 1"):
+        compose(["realset.frames=[{path: /x.tif, band: 0}]"])
     # Offline the frames are not fetched: one clear error naming the product and fetch-data.
     with pytest.raises(RealSetError, match="fetch-data lroc_m101457600mc"):
         plan_frames(rs, [dict(e) for e in c["crater"].values()], "/nonexistent-data-dir")
