@@ -302,7 +302,8 @@ def export_dataset(
 ) -> dict:
     """Export ``dataset_dir`` to ``out_dir`` as ``fmt`` (``parquet`` or ``webdataset``); returns the index
     written to ``out_dir/export.json``. Streams: at most one Parquet row group (``row_group_rows``
-    samples) is held in memory for Parquet, one sample for WebDataset; each shard holds ``shard_rows``."""
+    samples) is held in memory for Parquet, one sample for WebDataset; each shard holds ``shard_rows``.
+    ``progress(done, total)`` is called every ``row_group_rows`` samples."""
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
     if kind not in RECORD_KINDS:
@@ -336,7 +337,9 @@ def export_dataset(
                 )
             else:
                 with tarfile.open(tmp, "w", format=tarfile.PAX_FORMAT) as tf:
-                    for _ in range(count):
+                    for k in range(count):
+                        if progress and k and k % row_group_rows == 0:
+                            progress(done + k, n)
                         s = next(samples)
                         for col, data in s.npy.items():
                             _tar_member(tf, f"{s.key}.{col}.npy", data)
