@@ -240,7 +240,7 @@ def _finish(tmp: Path, final: Path) -> str:
     return digest
 
 
-def _prepare_out(out: Path, overwrite: bool, fmt: str) -> None:
+def _prepare_out(out: Path, overwrite: bool) -> None:
     """An empty directory, an interrupted export of ours (cleaned), or a complete one with ``overwrite``."""
     out.mkdir(parents=True, exist_ok=True)
     index = out / INDEX_FILE
@@ -322,7 +322,7 @@ def export_dataset(
         raise ExportError(f"export directory {out} must lie outside the dataset {dataset_dir}")
     t0 = time.perf_counter()
     n, samples = iter_samples(rk, dataset_dir, channels)  # bad dataset: an error before any file is touched
-    _prepare_out(out, overwrite, fmt)
+    _prepare_out(out, overwrite)
     n_shards = math.ceil(n / shard_rows)
     names = _shard_names(fmt, n_shards)
     shards, done = [], 0
@@ -378,8 +378,11 @@ def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> 
     import pyarrow.parquet as pq
 
     schema = _parquet_schema(rk, channels)
+    labels = [f.name for f in schema if not f.name.endswith("_npy")]
     left = count
-    with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
+    # Dictionaries and min/max statistics only for the label columns: the image columns are large
+    # unique binaries, for which a dictionary only costs memory and time before falling back.
+    with pq.ParquetWriter(tmp, schema, compression="zstd", use_dictionary=labels, write_statistics=labels) as writer:
         while left:
             batch = [next(samples) for _ in range(min(row_group_rows, left))]
             left -= len(batch)

@@ -90,9 +90,9 @@ import json, resource, sys, time
 import pyarrow.parquet  # imported before the clock starts: the time is the export's, linear in the samples
 from crater_synth.dataset.export import export_dataset
 ds, out, fmt, chans = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].split(",")
-trace = []  # (samples done, current RSS in MB) at each progress report
+trace = []  # (samples done, current RSS in MiB, as ru_maxrss / 1024) at each progress report
 def tick(done, total):
-    trace.append((done, int(open("/proc/self/statm").read().split()[1]) * resource.getpagesize() / 1e6))
+    trace.append((done, int(open("/proc/self/statm").read().split()[1]) * resource.getpagesize() / 2**20))
 t0 = time.perf_counter()
 idx = export_dataset(ds, out, fmt, channels=chans, overwrite=True, progress=tick)
 half = idx["rows"] / 2
