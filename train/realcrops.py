@@ -166,3 +166,14 @@ def _resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -
         return Path(resolve_product(pid, data_dir or "data"))
     except Exception as exc:  # noqa: BLE001 - ProductError & co: report with the labels-file line
         raise RealSetError(f"{where}: cannot resolve {spec!r}: {exc}") from None
+
+
+def crop_pixels(image: np.ndarray, crop: "RealCrop", size: int, antialias: bool = True, order: int = 1) -> np.ndarray:
+    """The crop's pixels resampled to ``size`` x ``size`` (no photometry): the rotated box of a mosaic or
+    labels-file crop, the georeferenced parallelogram (``axes``) of a frame crop."""
+    from train.preprocess import box_center_side, resample_affine, resample_box
+
+    if crop.axes is None:
+        return resample_box(image, crop.box, size, crop.rotation_deg, antialias, order)
+    cu, cv, _, _ = box_center_side(crop.box)
+    return resample_affine(image, (cu, cv), crop.axes, size, antialias, order)
