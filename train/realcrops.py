@@ -155,7 +155,7 @@ def canonical_crater(name: str) -> str:
     return "_".join(str(name).strip().lower().replace("-", " ").split())
 
 
-def _resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -> Path:
+def resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -> Path:
     """``product:<id>`` -> the verified local file of a registered data product (data_manifest/products.yaml)."""
     pid = spec.split(":", 1)[1].strip()
     try:

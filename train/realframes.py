@@ -28,7 +28,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from train.errors import RealSetError
-from train.realcrops import PolarGrid, RealCrop, _resolve_product_image, canonical_crater, protocol_crops
+from train.realcrops import PolarGrid, RealCrop, canonical_crater, protocol_crops, resolve_product_image
 
 # IAU mean radius of the Moon (Archinal et al. 2018, IAU WGCCRE report), and the tolerance on a
 # frame CRS's semi-major axis: lunar CRSs use 1737.4 km or 1737.15 km; Mars (3396.19 km) and Earth
@@ -210,7 +210,7 @@ def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], rs_cf
 def _frame_path(spec: str, data_dir: str | Path | None, where: str) -> Path:
     """A frame's file: a path, or ``product:<id>`` for a product of data_manifest/products.yaml."""
     if spec.startswith("product:"):
-        return _resolve_product_image(spec, data_dir, where)
+        return resolve_product_image(spec, data_dir, where)
     return Path(spec).expanduser()
 
 

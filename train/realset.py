@@ -30,9 +30,9 @@ from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is 
     PolarGrid,
     ProtocolCrop,
     RealCrop,
-    _resolve_product_image,
     canonical_crater,
     protocol_crops,
+    resolve_product_image,
 )
 
 LIMITS_NOTE = (
@@ -213,7 +213,7 @@ def load_labels_file(
             if not spec:
                 raise RealSetError(f"{where}: empty image_path")
             if spec.startswith("product:"):
-                img = _resolve_product_image(spec, data_dir, where)
+                img = resolve_product_image(spec, data_dir, where)
             else:
                 img = Path(spec)
                 if not img.is_absolute():
