@@ -24,6 +24,7 @@ labels plug in as another kind, and both writers take it unchanged.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -127,6 +128,7 @@ def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dic
     return {c: chans[c].astype(stored_dtype(c)) for c in channels}
 
 
+@functools.lru_cache(maxsize=None)
 def _render_label_fields() -> list:
     import pyarrow as pa
 
@@ -200,6 +202,8 @@ def npy_bytes(a: np.ndarray) -> bytes:
 
 @dataclass
 class Sample:
+    """One exported sample: its key, typed labels, verbatim manifest row and NPY-encoded channels."""
+
     key: str
     labels: dict  # typed label columns
     row: dict  # the manifest row, verbatim
@@ -207,6 +211,8 @@ class Sample:
 
 
 def iter_samples(kind: RecordKind, dataset_dir: Path, channels: Sequence[str]) -> tuple[int, Iterator[Sample]]:
+    """(row count, lazy iterator of samples): each row's files are read only when its sample is drawn.
+    A bad dataset (no manifest, unmerged parts) fails here, before anything is written."""
     n, rows = kind.rows(dataset_dir)
 
     def gen() -> Iterator[Sample]:
