@@ -39,6 +39,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 from crater_core.hapke import HapkeParams
 from crater_core.settings_train import (
     ConvSettings,
+    FrameSettings,
     HogSettings,
     ModelSettings,
     MosaicSettings,
@@ -506,6 +507,7 @@ __all__ = [
     "DetailSettings",
     "ExperimentsSettings",
     "FetchSettings",
+    "FrameSettings",
     "HapkeParams",
     "HogSettings",
     "LauncherSettings",

@@ -282,6 +282,21 @@ class MosaicSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
+class FrameSettings(_Group):
+    """One entry of ``realset.frames``: a georeferenced real frame (docs/realset.md, train/realframes.py)."""
+
+    path: str  # a file GDAL reads, or product:<id> (data_manifest/products.yaml)
+    frame_id: Optional[str] = None  # default: the product id or the file stem
+    source: Optional[str] = None  # reported per source; default: the frame id
+    band: int = 1
+    craters: Optional[Tuple[str, ...]] = None  # default: every selected crater inside the frame
+
+    def _check(self):
+        _need(bool(str(self.path).strip()), "path", self.path, "must name a file or product:<id>")
+        _need(self.band >= 1, "band", self.band, "must be >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
 class RealsetSettings(_Group):
     """``realset.*``: the real test set (docs/realset.md)."""
 
@@ -294,6 +309,7 @@ class RealsetSettings(_Group):
     include_embedded: bool
     labels_file: Optional[str]
     mosaic: MosaicSettings
+    frames: Tuple[FrameSettings, ...] = ()  # georeferenced real frames (train/realframes.py)
 
     def _check(self):
         _need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")

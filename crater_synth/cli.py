@@ -23,6 +23,7 @@ _COMMANDS = (
     ("crater_synth.dataset.launcher", "dataset_command", "Render the sweep into out_dir (resumable)."),
     ("crater_synth.dataset.verify", "verify_command", "Check a dataset's files against its manifest."),
     ("crater_synth.dataset.preview", "preview_command", "Write a contact sheet PNG per crater."),
+    ("crater_synth.dataset.export", "export_command", "Export a dataset to Parquet or WebDataset shards."),
     ("crater_synth.evaluation.classifiers", "train_command", "Train the three classifiers; test on real crops."),
     ("crater_synth.evaluation.classifiers", "evaluate_command", "Evaluate saved models on the real crops."),
     ("crater_synth.evaluation.closed_loop", "loop_command", "Closed loop: add sun elevations until accurate."),

@@ -34,7 +34,10 @@ _FATAL_HTTP = {400, 401, 403, 404, 405, 410, 451}
 
 
 class FetchError(UserError):
-    """A product could not be downloaded (network, missing URL, bad registry entry)."""
+    """A product could not be downloaded (network, missing URL, bad registry entry). ``http_status``:
+    the server's final HTTP status, when there was one."""
+
+    http_status: int | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -72,17 +75,18 @@ def fetch_settings(cfg) -> dict:
     return s
 
 
-def file_url(product: dict, entry: dict, base_url: str | None, archives: dict) -> str:
-    """Download URL of one file of a product."""
+def file_url(product: dict, entry: dict, base_url: str | None, archives: dict, path: str | None = None) -> str:
+    """Download URL of one file of a product (``path``: one of its ``alt_paths`` instead of ``path``)."""
+    path = path or entry["path"]
     if base_url:
-        return f"{base_url.rstrip('/')}/{entry['path'].lstrip('/')}"
+        return f"{base_url.rstrip('/')}/{path.lstrip('/')}"
     arch = archives.get(product.get("archive"), {})
     if not arch.get("base_url"):
         raise FetchError(
             f"data product {product['id']!r}: archive {product.get('archive')!r} ({arch.get('name', '?')}) has no "
-            f"URL known offline; set fetch.base_url=<mirror> serving {entry['path']}"
+            f"URL known offline; set fetch.base_url=<mirror> serving {path}"
         )
-    return f"{arch['base_url'].rstrip('/')}/{entry['path'].lstrip('/')}"
+    return f"{arch['base_url'].rstrip('/')}/{path.lstrip('/')}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -198,7 +202,9 @@ def fetch_file(
             else getattr(last, "reason", None) or last
         )
         kept = f"; partial data kept in {part} for resume" if part.exists() and part.stat().st_size else ""
-        raise FetchError(f"cannot download {what} from {url}: {reason}{kept}")
+        err = FetchError(f"cannot download {what} from {url}: {reason}{kept}")
+        err.http_status = last.code if isinstance(last, urllib.error.HTTPError) else None
+        raise err
     try:
         digest, size = _check(part, sha256, size_bytes, f"{what} downloaded from {url}")
     except ChecksumError as exc:
@@ -226,7 +232,17 @@ def product_status(product: dict, data_dir: str | os.PathLike) -> dict:
             "path": str(path),
             "sha256": product["sha256"],
         }
-    files = [{"name": f["name"], "present": (products_dir(data_dir) / f["name"]).is_file()} for f in product["files"]]
+    from data_manifest.products import expected_sha256, load_pins
+
+    pins = load_pins(data_dir)
+    files = [
+        {
+            "name": f["name"],
+            "present": (products_dir(data_dir) / f["name"]).is_file(),
+            "sha256_from": expected_sha256(pid, f, pins)[1],
+        }
+        for f in product["files"]
+    ]
     status = "not-pinned" if not files else "present" if all(f["present"] for f in files) else "missing"
     return {"product": pid, "source": "download", "status": status, "files": files}
 
@@ -235,7 +251,17 @@ def fetch_product(
     product: dict, data_dir: str | os.PathLike, settings: dict | None = None, archives: dict | None = None
 ) -> dict:
     """Verify an embedded product, or download every file of a downloadable one. Returns a report."""
-    from data_manifest.products import ProductError, load_archives, products_dir, resolve_product
+    from data_manifest.products import (
+        ProductError,
+        expected_sha256,
+        load_archives,
+        load_pins,
+        local_name,
+        pins_path,
+        products_dir,
+        record_pin,
+        resolve_product,
+    )
 
     s = {**FETCH_DEFAULTS, **(settings or {})}
     pid = product["id"]
@@ -253,24 +279,39 @@ def fetch_product(
         raise ProductError(f"data product {pid!r} has no pinned file in products.yaml (nothing to fetch)")
     archives = load_archives() if archives is None else archives
     out_dir = products_dir(data_dir)
+    pins = load_pins(data_dir)
     reports = []
     for entry in product["files"]:
-        url = file_url(product, entry, s["base_url"], archives)
-        click.echo(f"fetch-data: {pid}: {entry['name']} <- {url}", err=True)
-        rep = fetch_file(
-            url,
-            out_dir / entry["name"],
-            entry.get("sha256"),
-            entry.get("size_bytes"),
-            timeout_s=s["timeout_s"],
-            retries=s["retries"],
-            chunk_bytes=s["chunk_bytes"],
-            backoff_s=s["backoff_s"],
-            what=f"data product {pid!r} file {entry['name']}",
-        )
-        reports.append({"name": entry["name"], "url": url, **rep})
+        expected, origin = expected_sha256(pid, entry, pins)
+        paths = [entry["path"], *entry.get("alt_paths", [])]
+        for k, path in enumerate(paths):
+            url = file_url(product, entry, s["base_url"], archives, path)
+            click.echo(f"fetch-data: {pid}: {entry['name']} <- {url}", err=True)
+            try:
+                rep = fetch_file(
+                    url,
+                    out_dir / entry["name"],
+                    expected,
+                    entry.get("size_bytes"),
+                    timeout_s=s["timeout_s"],
+                    retries=s["retries"],
+                    chunk_bytes=s["chunk_bytes"],
+                    backoff_s=s["backoff_s"],
+                    what=f"data product {pid!r} file {entry['name']}",
+                )
+                break
+            except FetchError as exc:
+                # Not there: try the next candidate location (an archive directory not known exactly offline).
+                if exc.http_status in (404, 410) and k + 1 < len(paths):
+                    continue
+                raise
+        if expected is None:
+            record_pin(data_dir, pid, entry["name"], rep["sha256"], rep["bytes"], url)
+            origin = "pinned now (first fetch)"
+        if entry.get("unpack") == "gzip":
+            _gunzip(out_dir / entry["name"], out_dir / local_name(entry))
+        reports.append({"name": entry["name"], "url": url, **rep, "pinned": origin})
     status = "downloaded" if any(r["status"] == "downloaded" for r in reports) else "present"
-    unpinned = [r["name"] for r in reports if not r["pinned"]]
     out = {
         "product": pid,
         "source": "download",
@@ -278,9 +319,36 @@ def fetch_product(
         "path": str(out_dir / product["open"]),
         "files": reports,
     }
-    if unpinned:
-        out["note"] = f"sha256 not pinned in products.yaml for {unpinned}: pin the digests reported here"
+    first = [r["name"] for r in reports if r["pinned"].startswith("pinned now")]
+    if first:
+        out["note"] = (
+            f"trust on first use: {first} have no sha256 in products.yaml; their digests are now pinned in "
+            f"{pins_path(data_dir)} and checked at every later use"
+        )
     return out
+
+
+def _gunzip(src: Path, dest: Path) -> None:
+    """Decompress ``src`` into ``dest`` through a temporary file and a rename (kept if already there)."""
+    import gzip
+    import shutil
+    import tempfile
+
+    if dest.is_file():
+        return
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        with os.fdopen(fd, "wb") as out, gzip.open(src, "rb") as inp:
+            shutil.copyfileobj(inp, out, 1 << 20)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, dest)
+    except (OSError, EOFError) as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise FetchError(f"cannot decompress {src}: {exc}; nothing kept") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 # --------------------------------------------------------------------------------------------

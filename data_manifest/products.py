@@ -74,6 +74,15 @@ def _validate(products: dict, archives: dict, where: str) -> None:
                     raise ProductError(f"{where}: product {pid!r} has a file entry without name/path: {f!r}")
                 if "/" in f["name"] or f["name"] in (".", ".."):
                     raise ProductError(f"{where}: product {pid!r} file name {f['name']!r} must be a bare name")
+                alts = f.get("alt_paths", [])
+                if not isinstance(alts, list) or not all(isinstance(a, str) and a for a in alts):
+                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} alt_paths must be a list of paths")
+                if f.get("unpack") not in (None, "gzip"):
+                    raise ProductError(f"{where}: product {pid!r} file {f['name']!r} unpack must be gzip or absent")
+                if f.get("unpack") == "gzip" and not f["name"].endswith(".gz"):
+                    raise ProductError(
+                        f"{where}: product {pid!r} file {f['name']!r} has unpack: gzip but no .gz suffix"
+                    )
                 sha = f.get("sha256")
                 if sha is not None and not _SHA256_RE.match(str(sha)):
                     raise ProductError(
@@ -202,6 +211,68 @@ def products_dir(data_dir: str | os.PathLike) -> Path:
     return Path(data_dir) / PRODUCTS_SUBDIR
 
 
+# --------------------------------------------------------------------------------------------
+# Trust on first use: digests of files the registry does not pin
+# --------------------------------------------------------------------------------------------
+PINS_FILE = "pins.json"
+
+
+def pins_path(data_dir: str | os.PathLike) -> Path:
+    """``<data_dir>/products/pins.json``: the sha256 and size of each downloaded file whose registry
+    entry has no sha256, recorded at its first fetch and checked at every later use."""
+    return products_dir(data_dir) / PINS_FILE
+
+
+def load_pins(data_dir: str | os.PathLike) -> dict[str, dict]:
+    """``{"<product>/<file>": {"sha256", "bytes", "url"}}``; empty when nothing was pinned yet."""
+    import json
+
+    p = pins_path(data_dir)
+    if not p.is_file():
+        return {}
+    try:
+        pins = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ProductError(f"pin file {p} is unreadable ({exc}); restore it or delete it to pin again") from None
+    if not isinstance(pins, dict) or not all(
+        isinstance(v, dict) and _SHA256_RE.match(str(v.get("sha256", ""))) for v in pins.values()
+    ):
+        raise ProductError(f"pin file {p} is malformed; restore it or delete it to pin again")
+    return pins
+
+
+def record_pin(data_dir: str | os.PathLike, product_id: str, name: str, sha256: str, size: int, url: str) -> None:
+    """Pin a file at its first fetch (atomic rewrite of the pin file). A different existing pin is
+    an error: a pin is never replaced silently."""
+    import json
+
+    from crater_core.schema import atomic_write_text
+
+    pins = load_pins(data_dir)
+    key = f"{product_id}/{name}"
+    old = pins.get(key)
+    if old and old["sha256"] != sha256:
+        raise ChecksumError(
+            f"data product {product_id!r} file {name}: sha256 {sha256} differs from the digest pinned at its first "
+            f"fetch ({old['sha256']}, {pins_path(data_dir)})"
+        )
+    pins[key] = {"sha256": sha256, "bytes": int(size), "url": url}
+    atomic_write_text(pins_path(data_dir), json.dumps(pins, indent=1, sort_keys=True) + "\n")
+
+
+def expected_sha256(product_id: str, entry: dict, pins: dict) -> tuple[str | None, str]:
+    """(digest a file must have, where it comes from: ``registry``, ``first-fetch pin`` or ``none``)."""
+    if entry.get("sha256"):
+        return str(entry["sha256"]).lower(), "registry"
+    pin = pins.get(f"{product_id}/{entry['name']}")
+    return (pin["sha256"], "first-fetch pin") if pin else (None, "none")
+
+
+def local_name(entry: dict) -> str:
+    """The file's name on disk once fetched: a ``unpack: gzip`` file is kept decompressed."""
+    return entry["name"][:-3] if entry.get("unpack") == "gzip" else entry["name"]
+
+
 def resolve_product(product_id: str, data_dir: str | os.PathLike) -> Path:
     """The verified local file to open for ``product_id``.
 
@@ -222,13 +293,29 @@ def resolve_product(product_id: str, data_dir: str | os.PathLike) -> Path:
             f"data product {product_id!r} has no pinned file in {PRODUCTS_FILE.name}; fill in its 'files' entry first"
         )
     base = products_dir(data_dir)
+    pins = load_pins(data_dir)
     for f in p["files"]:
-        fp = base / f["name"]
+        fp = base / local_name(f)
         if not fp.is_file():
             raise ProductMissingError(
                 f"data product {product_id!r}: {fp} not found; run `crater-synth fetch-data {product_id}` "
                 "(needs network access to its archive or a mirror)"
             )
-        if f.get("sha256"):
-            verify_sha256(fp, f["sha256"])
+        if f.get("unpack"):
+            fp = fp.with_name(f["name"])  # the pinned digest is the archive's compressed file, kept beside
+            if not fp.is_file():
+                raise ProductMissingError(
+                    f"data product {product_id!r}: {fp} (the archive's file, whose digest is pinned) is missing; "
+                    f"run `crater-synth fetch-data {product_id}`"
+                )
+        expected, origin = expected_sha256(product_id, f, pins)
+        if expected is None:
+            raise ProductMissingError(
+                f"data product {product_id!r}: {fp} has no pinned sha256 (not in the registry, not pinned at a first "
+                f"fetch); run `crater-synth fetch-data {product_id}` to pin it"
+            )
+        try:
+            verify_sha256(fp, expected)
+        except ChecksumError as exc:
+            raise ChecksumError(f"data product {product_id!r}: {exc} (pinned by the {origin})") from None
     return base / p["open"]

@@ -209,3 +209,67 @@ def test_cli_embedded_and_mirror(server, tmp_path, monkeypatch):
     assert res.exit_code == 0
     status = {r["product"]: r["status"] for r in map(json.loads, res.stdout.splitlines())}
     assert status["test_product"] == "present" and status["lola_ldem_875s_20m"] == "missing"
+
+
+def test_trust_on_first_use_pins_an_unpinned_file(server, tmp_path, monkeypatch):
+    """A file without a registry sha256 is pinned at its first fetch and checked at every later use."""
+    unpinned = product(sha=None, size=None)
+    rep = fetch.fetch_product(unpinned, tmp_path, settings(server), archives={"mirror": {}})
+    assert rep["files"][0]["pinned"].startswith("pinned now") and "trust on first use" in rep["note"]
+    pins = products.load_pins(tmp_path)
+    assert pins["test_product/a.bin"]["sha256"] == SHA and pins["test_product/a.bin"]["bytes"] == len(PAYLOAD)
+    again = fetch.fetch_product(unpinned, tmp_path, settings(server), archives={"mirror": {}})
+    assert again["files"][0]["pinned"] == "first-fetch pin" and "note" not in again
+
+    reg = {"test_product": {k: v for k, v in unpinned.items() if k != "id"}}
+    monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
+    assert products.resolve_product("test_product", tmp_path).read_bytes() == PAYLOAD
+    # The archive now serves other bytes: a fresh fetch is refused against the pin, nothing kept.
+    (tmp_path / "products" / "a.bin").unlink()
+    server.files["pds/a.bin"] = PAYLOAD[::-1]
+    with pytest.raises(ChecksumError, match="sha256 mismatch"):
+        fetch.fetch_product(unpinned, tmp_path, settings(server), archives={"mirror": {}})
+    assert not (tmp_path / "products" / "a.bin").exists()
+    # A local file changed after pinning is refused when used.
+    (tmp_path / "products" / "a.bin").write_bytes(b"tampered")
+    with pytest.raises(ChecksumError, match="first-fetch pin"):
+        products.resolve_product("test_product", tmp_path)
+
+
+def test_present_but_never_pinned_file_is_not_trusted_silently(tmp_path, monkeypatch):
+    reg = {"test_product": {k: v for k, v in product(sha=None).items() if k != "id"}}
+    monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
+    (tmp_path / "products").mkdir()
+    (tmp_path / "products" / "a.bin").write_bytes(PAYLOAD)
+    with pytest.raises(products.ProductMissingError, match="no pinned sha256.*fetch-data test_product"):
+        products.resolve_product("test_product", tmp_path)
+
+
+def test_alternative_archive_path_after_a_404(server, tmp_path):
+    p = product()
+    p["files"][0] = dict(p["files"][0], path="pds/2009186/a.bin", alt_paths=["pds/a.bin"])
+    rep = fetch.fetch_product(p, tmp_path, settings(server), archives={"mirror": {}})
+    assert rep["files"][0]["url"].endswith("/pds/a.bin") and (tmp_path / "products" / "a.bin").read_bytes() == PAYLOAD
+
+
+def test_gzip_file_is_unpacked_beside_the_pinned_archive_file(server, tmp_path):
+    import gzip
+
+    gz = gzip.compress(PAYLOAD)
+    server.files["pds/a.bin.gz"] = gz
+    p = product(sha=hashlib.sha256(gz).hexdigest(), size=len(gz), path="pds/a.bin.gz")
+    p["files"][0] = dict(p["files"][0], name="a.bin.gz", unpack="gzip")
+    fetch.fetch_product(p, tmp_path, settings(server), archives={"mirror": {}})
+    assert (tmp_path / "products" / "a.bin").read_bytes() == PAYLOAD
+    assert (tmp_path / "products" / "a.bin.gz").read_bytes() == gz
+    assert not [f for f in (tmp_path / "products").iterdir() if f.name.endswith(".tmp")]
+
+
+def test_paper_frames_have_archive_locations():
+    reg, arch = products.load_products(), products.load_archives()
+    for pid in ("lroc_m101457600mc", "lroc_m139810920mc", "selene_tc_tc1w2b0_01_00582s883e2719"):
+        p = reg[pid]
+        assert arch[p["archive"]]["base_url"].startswith("https://"), pid
+        assert p["files"] and all(f["sha256"] is None for f in p["files"])  # pinned at the first fetch
+    assert reg["lroc_m101457600mc"]["files"][0]["path"].startswith("LRO-L-LROC-3-CDR-V1.0/LROLRC_1001/DATA/")
+    assert reg["selene_tc_tc1w2b0_01_00582s883e2719"]["files"][0]["path"].startswith("sln-l-tc-3-w-level2b0-v1.0/")

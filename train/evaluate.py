@@ -198,7 +198,7 @@ def evaluate_run(
             "test_per_crater": {n: int(np.sum(test.labels == i)) for i, n in enumerate(class_names)},
             "limits": LIMITS_NOTE
             if any(c.kind == "embedded" for c in test.crops)
-            else "Real test frames from the labels file only; see realset.jsonl for their sources.",
+            else "Real test frames only (labels file, georeferenced frames); see realset.jsonl for their sources.",
             "tta_rotations": rolls,
             "evaluate_seconds": time.perf_counter() - t0,
             "run_id": run_id,

@@ -125,37 +125,80 @@ def resample_box(
     long as the rotated box stays inside the image. When the
     box side exceeds ``size`` pixels the window is first Gaussian-filtered (sigma = (scale - 1) / 2,
     scikit-image's anti-aliasing rule). Samples that fall outside the image take the nearest edge value.
-    Returns float32 (size, size).
+    Returns float32 (size, size). A rotated box is the special case of :func:`resample_affine`.
+    """
+    cu, cv, w, h = box_center_side(box)
+    return resample_affine(image, (cu, cv), box_axes(w, h, rotation_deg), size, antialias, order)
+
+
+def box_axes(w: float, h: float, rotation_deg: float = 0.0) -> np.ndarray:
+    """The 2x2 sampling axes of a ``w`` x ``h`` box whose grid is turned by ``rotation_deg``
+    (counter-clockwise on screen; v points down): column 0 is the image-pixel vector spanned by the
+    crop's whole width, column 1 by its whole height."""
+    t = math.radians(rotation_deg)
+    ct, st = math.cos(t), math.sin(t)
+    # u' = u cos + v sin, v' = -u sin + v cos.
+    return np.array([[ct * w, st * h], [-st * w, ct * h]], dtype=np.float64)
+
+
+def axes_extent(center: Sequence[float], axes) -> tuple[float, float, float, float]:
+    """Axis-aligned bounds (u0, v0, u1, v1) of the parallelogram ``center + axes @ [-1/2, 1/2]^2``."""
+    a = np.asarray(axes, dtype=np.float64).reshape(2, 2)
+    hu = 0.5 * (abs(a[0, 0]) + abs(a[0, 1]))
+    hv = 0.5 * (abs(a[1, 0]) + abs(a[1, 1]))
+    cu, cv = float(center[0]), float(center[1])
+    return cu - hu, cv - hv, cu + hu, cv + hv
+
+
+def resample_affine(
+    image: np.ndarray,
+    center: Sequence[float],
+    axes,
+    size: int,
+    antialias: bool = True,
+    order: int = 1,
+) -> np.ndarray:
+    """Sample the parallelogram ``center + axes @ (s, t)``, s, t in [-1/2, 1/2], of a 2-D ``image``
+    onto a ``size`` x ``size`` grid (output column <-> s, row <-> t).
+
+    ``axes`` (2x2, image pixels): column 0 is the vector the crop's width spans, column 1 its height;
+    a rotated square box is :func:`box_axes`, a real frame's crop is the local linear map of the
+    georeference times that (train/realframes.py). Anti-aliasing as in :func:`resample_box`, with the
+    footprint of one output pixel along each image axis. Samples outside the image take the nearest
+    edge value. Returns float32 (size, size).
     """
     img = np.asarray(image)
     if img.ndim != 2:
         raise TrainError(f"resample_box needs a 2-D image, got shape {img.shape}")
-    cu, cv, w, h = box_center_side(box)
-    scale_u, scale_v = w / size, h / size
+    a = np.asarray(axes, dtype=np.float64).reshape(2, 2)
+    if not (np.all(np.isfinite(a)) and abs(np.linalg.det(a)) > 0):
+        raise TrainError(f"degenerate sampling axes {a.tolist()}")
+    cu, cv = float(center[0]), float(center[1])
+    # Footprint of one output pixel along the image's u and v axes.
+    scale_u, scale_v = math.hypot(a[0, 0], a[0, 1]) / size, math.hypot(a[1, 0], a[1, 1]) / size
     aa_u = max(0.0, (scale_u - 1.0) / 2.0) if antialias else 0.0
     aa_v = max(0.0, (scale_v - 1.0) / 2.0) if antialias else 0.0
-    # Window holding the rotated grid plus the filter and interpolation support.
-    e0u, e0v, e1u, e1v = rotated_box_extent(box, rotation_deg)
+    # Window holding the grid plus the filter and interpolation support.
+    e0u, e0v, e1u, e1v = axes_extent((cu, cv), a)
     pad = int(math.ceil(4.0 * max(aa_u, aa_v))) + 3
     H, W = img.shape
     r0, r1 = int(math.floor(e0v)) - pad, int(math.ceil(e1v)) + pad
     c0, c1 = int(math.floor(e0u)) - pad, int(math.ceil(e1u)) + pad
     rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
     if rr1 <= rr0 or cc1 <= cc0:
-        raise TrainError(f"pixel box {list(box)} lies entirely outside the {W}x{H} image")
+        raise TrainError(
+            f"sampling box {[round(e, 2) for e in (e0u, e0v, e1u, e1v)]} lies entirely outside the {W}x{H} image"
+        )
     win = img[rr0:rr1, cc0:cc1].astype(np.float32, copy=True)
     if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
         win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
     if aa_u > 0 or aa_v > 0:
         win = ndimage.gaussian_filter(win, sigma=(aa_v, aa_u), mode="nearest", truncate=4.0)
-    # Output pixel centres in the box's own frame (units of source pixels), then rotate.
+    # Output pixel centres in crop-normalised coordinates, then through the axes.
     k = (np.arange(size, dtype=np.float64) + 0.5) / size - 0.5
-    du, dv = np.meshgrid(k * w, k * h, indexing="xy")
-    t = math.radians(rotation_deg)
-    ct, st = math.cos(t), math.sin(t)
-    # Counter-clockwise on screen (v points down): u' = u cos + v sin, v' = -u sin + v cos.
-    su = cu + ct * du + st * dv
-    sv = cv - st * du + ct * dv
+    s, t = np.meshgrid(k, k, indexing="xy")
+    su = cu + a[0, 0] * s + a[0, 1] * t
+    sv = cv + a[1, 0] * s + a[1, 1] * t
     # Continuous coordinate -> array index (pixel centres at i + 0.5) -> window index.
     rows = sv - 0.5 - r0
     cols = su - 0.5 - c0
@@ -215,12 +258,19 @@ def preprocess_crop(
     sensor: "SensorModel | None" = None,
     rng: np.random.Generator | None = None,
     box_side_m: float | None = None,
+    axes=None,
 ) -> np.ndarray:
     """The whole path for one crop: resample_box -> (sensor) -> normalize. ``image`` may be float I/F
     or integer DN (8-bit real frames); both go through exactly the same steps. ``box_side_m`` (the
-    crop's ground width) lets a sensor with ``gsd_m`` sample it on the real product's grid."""
+    crop's ground width) lets a sensor with ``gsd_m`` sample it on the real product's grid. ``axes``
+    (2x2, optional) replaces the box's side and rotation by a general sampling parallelogram centred
+    on the box centre (:func:`resample_affine`; a georeferenced real frame's crop)."""
     a = np.asarray(image)
-    crop = resample_box(a, box, pp.size, rotation_deg, pp.antialias, pp.interp_order)
+    if axes is None:
+        crop = resample_box(a, box, pp.size, rotation_deg, pp.antialias, pp.interp_order)
+    else:
+        cu, cv, _, _ = box_center_side(box)
+        crop = resample_affine(a, (cu, cv), axes, pp.size, pp.antialias, pp.interp_order)
     if np.issubdtype(a.dtype, np.integer):  # DN -> [0, 1] (a pure scale; only the window is converted)
         crop = crop / np.float32(np.iinfo(a.dtype).max)
     if sensor is not None and sensor.enabled:

@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
-import zlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -27,6 +26,14 @@ import numpy as np
 from crater_core.schema import sha256_file
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
+from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is defined there
+    PolarGrid,
+    ProtocolCrop,
+    RealCrop,
+    canonical_crater,
+    protocol_crops,
+    resolve_product_image,
+)
 
 LIMITS_NOTE = (
     "The embedded real test set is one real observation per crater (one LROC WAC south-polar "
@@ -61,15 +68,14 @@ class Mosaic:
     pixel_m: float
     radius_m: float
 
+    @property
+    def grid(self) -> PolarGrid:
+        return PolarGrid(self.extent_m, self.pixel_m, self.radius_m)
+
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
         arrays (the same formula for both)."""
-        from crater_core.geometry import south_polar_stereo_forward
-
-        x, y = south_polar_stereo_forward(lat_deg, lon_deg, self.radius_m)
-        u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
-        v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
-        return (float(u), float(v)) if np.ndim(u) == 0 else (u, v)
+        return self.grid.latlon_to_uv(lat_deg, lon_deg)
 
 
 def load_mosaic(rs_cfg: Mapping) -> Mosaic:
@@ -131,105 +137,40 @@ def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # Crops
 # ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class RealCrop:
-    """One labelled real crop: where it comes from and how it was cut. Not a render-manifest row."""
-
-    crater: str
-    source: str  # product id (embedded) or the labels file's ``source`` column
-    image_path: str
-    box: tuple[float, float, float, float]  # axis-aligned (u0, v0, u1, v1) before rotation, image px
-    sigma: float
-    rotation_deg: float = 0.0
-    offset_px: tuple[float, float] = (0.0, 0.0)
-    offset_frac: tuple[float, float] = (0.0, 0.0)
-    kind: str = "embedded"  # embedded | labels
-    index: int = 0
-    extra: dict = field(default_factory=dict)
-
-    def as_row(self) -> dict:
-        d = asdict(self)
-        d["box"] = [round(float(b), 4) for b in self.box]
-        d["offset_px"] = [round(float(o), 4) for o in self.offset_px]
-        d["offset_frac"] = [round(float(o), 6) for o in self.offset_frac]
-        d["rotation_deg"] = round(float(self.rotation_deg), 6)
-        d["role"] = "test"
-        return d
-
-
-def _crater_seed(seed: int, name: str) -> np.random.Generator:
-    return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
-
-
 def plan_embedded_crops(
     mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], rs_cfg: Mapping
 ) -> list[RealCrop]:
-    """The seeded crop plan of the embedded mosaic: ``per_crater`` crops per crater, sigmas cycled,
-    uniform offsets in [-max_offset_frac, max_offset_frac] x side per axis, rotations uniform in
-    [-max_rotation_deg, max_rotation_deg]. Every rotated box must lie inside the mosaic."""
-    per = int(rs_cfg.get("per_crater", 300))
-    sigmas = [float(s) for s in rs_cfg.get("sigmas", [1.0, 1.2, 1.4])]
-    max_off = float(rs_cfg.get("max_offset_frac", 0.0))
-    max_rot = float(rs_cfg.get("max_rotation_deg", 0.0))
-    seed = int(rs_cfg.get("seed", 0))
-    if per < 1 or not sigmas or any(s <= 0 for s in sigmas):
-        raise RealSetError(f"realset: need per_crater >= 1 and positive sigmas, got {per}, {sigmas}")
+    """The protocol's crops of the embedded mosaic (:func:`protocol_crops` on the mosaic's own grid).
+    Every rotated box must lie inside the mosaic."""
     assert mosaic is not None
     out: list[RealCrop] = []
-    for c in craters:
-        name = str(c["name"])
-        cu, cv = mosaic.latlon_to_uv(float(c["lat"]), float(c["lon"]))
-        d_px = float(c["diameter_km"]) * 1000.0 / mosaic.pixel_m
-        rng = _crater_seed(seed, name)
-        offs = rng.uniform(-max_off, max_off, size=(per, 2))
-        rots = rng.uniform(-max_rot, max_rot, size=per)
-        for i in range(per):
-            s = sigmas[i % len(sigmas)]
-            side = s * d_px
-            du, dv = offs[i] * side
-            box = (cu + du - side / 2, cv + dv - side / 2, cu + du + side / 2, cv + dv + side / 2)
-            if outside_fraction(box, mosaic_shape, rots[i]) > 0:
-                raise RealSetError(
-                    f"realset: crop {i} of {name} (sigma={s}, rotation={rots[i]:.1f}) leaves the "
-                    f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}"
-                )
-            out.append(
-                RealCrop(
-                    crater=name,
-                    source=mosaic.product_id,
-                    image_path=str(mosaic.path),
-                    box=box,
-                    sigma=s,
-                    rotation_deg=float(rots[i]),
-                    offset_px=(float(du), float(dv)),
-                    offset_frac=(float(offs[i, 0]), float(offs[i, 1])),
-                    kind="embedded",
-                    index=i,
-                )
+    for p in protocol_crops(mosaic.grid, craters, rs_cfg):
+        box = p.box
+        if outside_fraction(box, mosaic_shape, p.rotation_deg) > 0:
+            raise RealSetError(
+                f"realset: crop {p.index} of {p.crater} (sigma={p.sigma}, rotation={p.rotation_deg:.1f}) leaves the "
+                f"{mosaic_shape[1]}x{mosaic_shape[0]} mosaic {mosaic.path.name}"
             )
+        out.append(
+            RealCrop(
+                crater=p.crater,
+                source=mosaic.product_id,
+                image_path=str(mosaic.path),
+                box=box,
+                sigma=p.sigma,
+                rotation_deg=p.rotation_deg,
+                offset_px=p.offset_px,
+                offset_frac=p.offset_frac,
+                kind="embedded",
+                index=p.index,
+            )
+        )
     return out
-
-
-def canonical_crater(name: str) -> str:
-    return "_".join(str(name).strip().lower().replace("-", " ").split())
 
 
 LABEL_COLUMNS = ("image_path", "crater", "source")
 CENTER_COLUMNS = ("center_u", "center_v", "diameter_px")
 BOX_COLUMNS = ("box_u0", "box_v0", "box_u1", "box_v1")
-
-
-def _resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -> Path:
-    """``product:<id>`` -> the verified local file of a registered data product (data_manifest/products.yaml)."""
-    pid = spec.split(":", 1)[1].strip()
-    try:
-        from data_manifest.products import resolve_product
-    except ImportError:
-        raise RealSetError(f"{where}: {spec!r} needs data_manifest.products, which is not available") from None
-    try:
-        return Path(resolve_product(pid, data_dir or "data"))
-    except Exception as exc:  # noqa: BLE001 - ProductError & co: report with the labels-file line
-        raise RealSetError(f"{where}: cannot resolve {spec!r}: {exc}") from None
 
 
 def load_labels_file(
@@ -272,7 +213,7 @@ def load_labels_file(
             if not spec:
                 raise RealSetError(f"{where}: empty image_path")
             if spec.startswith("product:"):
-                img = _resolve_product_image(spec, data_dir, where)
+                img = resolve_product_image(spec, data_dir, where)
             else:
                 img = Path(spec)
                 if not img.is_absolute():
@@ -359,8 +300,18 @@ def plan_real_crops(
                     f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %"
                 )
         crops += lab
+    if rs.get("frames"):
+        from train.realframes import plan_frames
+
+        known = {canonical_crater(n) for n in class_names}
+        sel = [c for c in craters if canonical_crater(c["name"]) in known]
+        frame_crops, frame_images = plan_frames(rs, sel, cfg.get("data_dir"))
+        crops += frame_crops
+        images.update(frame_images)
     if not crops:
-        raise RealSetError("the real test set is empty: realset.include_embedded=false and no realset.labels_file")
+        raise RealSetError(
+            "the real test set is empty: realset.include_embedded=false, no realset.labels_file and no realset.frames"
+        )
     return crops, images
 
 
@@ -373,6 +324,6 @@ def build_real_test_set(
     cls = {n: i for i, n in enumerate(class_names)}
     X = np.empty((len(crops), pp.size, pp.size), dtype=np.float32)
     for i, c in enumerate(crops):
-        X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg)
+        X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg, axes=c.axes)
     y = np.array([cls[c.crater] for c in crops], dtype=np.int64)
     return RealTestSet(X, y, crops, list(class_names))

@@ -9,7 +9,9 @@ Parts (``--part``, default all, in this order):
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
   (~10-20 min on 2 cores);
 - ``navigation``: detection + identification + fix frames/s on a 1024 x 1024 real mosaic window
-  (crater_synth.navigation.evaluate.bench_navigation).
+  (crater_synth.navigation.evaluate.bench_navigation);
+- ``export``: ``crater-synth export`` time and peak RSS on a generated dataset of ``--export-renders``
+  EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -30,7 +32,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(["all", "renderer", "train", "distributed", "navigation"]),
+    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export"]),
     default="all",
     show_default=True,
 )
@@ -40,10 +42,17 @@ from crater_synth.cli_common import OVERRIDES, user_errors
     default=None,
     help="Keep the benchmark datasets in this directory (default: a temp dir, removed).",
 )
+@click.option(
+    "--export-renders",
+    type=click.IntRange(min=4),
+    default=1000,
+    show_default=True,
+    help="Size of the generated dataset the export part measures.",
+)
 @OVERRIDES
 @user_errors
-def bench_command(part, keep, overrides):
-    """Measure the performance goals: renderer vs naive baseline, training, distributed sweep.
+def bench_command(part, keep, export_renders, overrides):
+    """Measure the performance goals: renderer vs baselines, training, distributed sweep, navigation, export.
 
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
     ``renders_per_s=X naive_renders_per_s=Y ratio=Z`` (after the renderer's rates line).
@@ -75,6 +84,12 @@ def bench_command(part, keep, overrides):
             from crater_synth.navigation.evaluate import bench_navigation
 
             click.echo("navigation " + json.dumps(bench_navigation()))
+        if part in ("all", "export"):
+            from crater_synth.bench.export import bench_export, summary_line
+
+            r = bench_export(work / "export", export_renders)
+            click.echo("export " + json.dumps(r))
+            click.echo(summary_line(r))
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

@@ -112,6 +112,7 @@ NEUTRAL_LATER_KEYS = {
     ("train", "augment_offset_frac"): 0.0,
     ("train", "tta_rotations"): 1,
     ("train", "preprocess", "support"): "square",
+    ("realset", "frames"): [],  # georeferenced real frames: none unless asked for
 }
 
 

@@ -128,6 +128,7 @@ def _real_plan(ctx: Ctx, canonical: bool):
 def compare(ctx: Ctx) -> dict:
     from crater_synth.dataset.preview import _ellipse_points, read_channel, tone_map
     from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop, resample_box
+    from train.realcrops import crop_pixels
     from train.realset import canonical_crater
 
     if not ctx.rows:
@@ -158,7 +159,7 @@ def compare(ctx: Ctx) -> dict:
         ctx.say(f"real vs synthetic {crater}")
         img = images[rc.image_path]
         n_r = max(8, int(round(rc.box[2] - rc.box[0])))
-        real_orig = resample_box(img, rc.box, n_r, rc.rotation_deg, True, 1)
+        real_orig = crop_pixels(img, rc, n_r)
         if np.issubdtype(img.dtype, np.integer):
             real_orig = real_orig / float(np.iinfo(img.dtype).max)
         i_f = read_channel(ctx.rc.dataset_dir / row["path"])
@@ -179,7 +180,7 @@ def compare(ctx: Ctx) -> dict:
             skey,
             sbox,
             _ellipse_points(row["rim_ellipse"]),
-            preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg),
+            preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg, axes=rc.axes),
             preprocess_crop(i_f, sbox, pp),
             syn_sensor,
             pp.size,
@@ -223,7 +224,9 @@ def histograms(ctx: Ctx) -> dict:
         if not crows or not rcs:
             continue
         ctx.say(f"histograms {crater}: {len(rcs)} real crops, {min(len(crows), ctx.hist_samples)} renders")
-        real = np.stack([preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg) for c in rcs])
+        real = np.stack(
+            [preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg, axes=c.axes) for c in rcs]
+        )
         pick = [
             crows[i] for i in np.unique(np.linspace(0, len(crows) - 1, min(ctx.hist_samples, len(crows))).astype(int))
         ]

@@ -1,0 +1,473 @@
+"""``crater-synth export``: a rendered dataset in the formats trainers load (docs/export.md).
+
+- ``parquet``: Hugging Face's convention, ``<out>/data-00000-of-0000N.parquet``, loaded with
+  ``datasets.load_dataset("parquet", data_files=...)`` (or pyarrow/pandas directly);
+- ``webdataset``: tar shards ``<out>/shard-000000.tar`` ..., loaded with ``webdataset.WebDataset``.
+
+Each sample (a *record*) carries its images losslessly as NPY bytes (the EXR channels as stored:
+float32 I/F and depth, float16 normals and lit) and every label of its manifest row: crater, Sun and
+camera angles, range and field of view, the rim ellipse, the sigma boxes, the EXR's sha256 (checked
+against the file during the export), provenance; the whole row also travels verbatim as JSON.
+
+Streaming: the manifest is read row by row and each sample is written as soon as it is decoded, so
+peak memory is one Parquet row group (``row_group_rows`` samples) or one sample, whatever the
+dataset's size. Atomicity: each shard is written to a hidden temporary file and renamed when
+complete; ``export.json`` (the index: shards, rows, channels, their SHA-256) is written last, and its
+presence is what marks an export complete. An interrupted export leaves complete shards and no
+half-written one (a killed process can leave a hidden ``.*.tmp``, which no loader's glob matches and
+the next run removes); rerunning into the same directory starts it again cleanly.
+
+Record kinds: what a sample is comes from a :class:`RecordKind` (``RECORD_KINDS``): its rows, key,
+arrays and typed labels. Renders are the one kind today; navigation frames with their landmark
+labels plug in as another kind, and both writers take it unchanged.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import json
+import math
+import os
+import tarfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+
+FORMATS = ("parquet", "webdataset")
+INDEX_FILE = "export.json"
+EXPORT_VERSION = 1
+DEFAULT_CHANNELS = ("IF",)
+
+
+class ExportError(UserError):
+    """The dataset cannot be exported as asked (bad dataset, channel, output directory)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Record kinds
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RecordKind:
+    """What one exported sample is. A new kind (e.g. navigation frames and their landmarks) supplies:
+
+    - ``rows(dataset_dir)``: (row count, iterator over its manifest rows, in a stable order);
+    - ``key(row)``: a unique sample key without dots or slashes (WebDataset splits names at the dot);
+    - ``arrays(dataset_dir, row, channels)``: ``{channel: ndarray}``, the lossless images;
+    - ``label_fields()``: ``[(name, pyarrow type)]`` of the typed label columns;
+    - ``labels(row)``: the typed label values (JSON-able) for those columns;
+    - ``channels``: the channel names a user may ask for.
+    """
+
+    name: str
+    rows: Callable[[Path], tuple[int, Iterator[dict]]]
+    key: Callable[[dict], str]
+    arrays: Callable[[Path, dict, Sequence[str]], dict[str, np.ndarray]]
+    label_fields: Callable[[], list]
+    labels: Callable[[dict], dict]
+    channels: tuple[str, ...]
+
+
+def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
+    from crater_core.schema import MANIFEST_NAME, PARTS_DIR, iter_rows
+
+    manifest = dataset_dir / MANIFEST_NAME
+    if not manifest.is_file():
+        raise ExportError(f"dataset {dataset_dir}: no {MANIFEST_NAME} (render it with `crater-synth dataset`)")
+    parts = [p for p in (dataset_dir / PARTS_DIR).glob("*.jsonl") if p.stat().st_size] if dataset_dir.is_dir() else []
+    if parts:
+        raise ExportError(
+            f"dataset {dataset_dir} has {len(parts)} unmerged manifest part(s) in {PARTS_DIR}/ (a run is going on or "
+            "was killed): finish it with `crater-synth dataset` first"
+        )
+    with open(manifest, encoding="utf-8") as fh:
+        n = sum(1 for line in fh if line.strip())
+    if n == 0:
+        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
+    return n, iter_rows(manifest, strict=True)
+
+
+def _render_key(row: dict) -> str:
+    return row["path"].rsplit(".", 1)[0].replace("/", "_").replace(".", "p")
+
+
+def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
+    """The EXR's channels as stored (lossless), after checking the file against the manifest's sha256."""
+    from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
+
+    path = dataset_dir / row["path"]
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ExportError(f"dataset {dataset_dir}: cannot read {row['path']} ({exc.strerror})") from None
+    got = hashlib.sha256(data).hexdigest()
+    if got != row["sha256"]:
+        raise ExportError(
+            f"dataset {dataset_dir}: {row['path']} has sha256 {got}, the manifest says {row['sha256']} "
+            "(run `crater-synth verify`)"
+        )
+    try:
+        if len(channels) <= 2:  # decode only what is exported (the default is I/F alone)
+            chans = {c: read_channel(path, c) for c in channels}
+        else:
+            chans, _ = read_exr(path)
+    except ExrError as exc:
+        raise ExportError(str(exc)) from None
+    missing = [c for c in channels if c not in chans]
+    if missing:
+        raise ExportError(f"{path} has no channel(s) {missing}; it has {sorted(chans)}")
+    # Readers get float32; a half channel converts back to float16 exactly: the file's own values and type.
+    return {c: chans[c].astype(stored_dtype(c)) for c in channels}
+
+
+@functools.lru_cache(maxsize=None)
+def _render_label_fields() -> list:
+    import pyarrow as pa
+
+    f64, i64, s = pa.float64(), pa.int64(), pa.string()
+    return [
+        ("crater", s),
+        ("sun_elevation", f64),
+        ("sun_azimuth", f64),
+        ("cam_elevation", f64),
+        ("cam_azimuth", f64),
+        ("range_m", f64),
+        ("fov_deg", f64),
+        ("frame_width", i64),
+        ("width", i64),
+        ("height", i64),
+        ("crop_origin", pa.list_(f64)),
+        ("center_px", pa.list_(f64)),
+        ("rim_ellipse", pa.struct([("cu", f64), ("cv", f64), ("a", f64), ("b", f64), ("angle_rad", f64)])),
+        ("sigma_boxes", pa.list_(pa.struct([("sigma", f64), ("box", pa.list_(f64))]))),
+        ("lit_fraction", f64),
+        ("mean_if", f64),
+        ("path", s),
+        ("sha256", s),
+        ("index", i64),
+        ("indices", pa.list_(i64)),
+        ("seed", i64),
+        ("terrain_id", s),
+        ("render_digest", s),
+        ("renderer", s),
+        ("code_version", s),
+        ("schema_version", i64),
+    ]
+
+
+def _render_labels(row: dict) -> dict:
+    out = {name: row.get(name) for name, _ in _render_label_fields()}
+    out["crop_origin"] = [float(v) for v in row.get("crop_origin") or []]
+    out["sigma_boxes"] = [
+        {"sigma": float(k), "box": [float(b) for b in v]}
+        for k, v in sorted((row.get("sigma_boxes") or {}).items(), key=lambda kv: float(kv[0]))
+    ]
+    return out
+
+
+RENDER = RecordKind(
+    name="render",
+    rows=_render_rows,
+    key=_render_key,
+    arrays=_render_arrays,
+    label_fields=_render_label_fields,
+    labels=_render_labels,
+    channels=("IF", "depth", "N.X", "N.Y", "N.Z", "lit"),
+)
+RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER}
+
+
+# ------------------------------------------------------------------------------------------------
+# Samples
+# ------------------------------------------------------------------------------------------------
+def column_name(channel: str) -> str:
+    """The column / WebDataset extension stem of a channel: ``IF`` -> ``if``, ``N.X`` -> ``n_x``."""
+    return channel.lower().replace(".", "_")
+
+
+def npy_bytes(a: np.ndarray) -> bytes:
+    """An array as the bytes of a ``.npy`` file (``numpy.load(io.BytesIO(b))`` gives it back exactly)."""
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+@dataclass
+class Sample:
+    """One exported sample: its key, typed labels, verbatim manifest row and NPY-encoded channels."""
+
+    key: str
+    labels: dict  # typed label columns
+    row: dict  # the manifest row, verbatim
+    npy: dict[str, bytes]  # column name -> NPY bytes
+
+
+def iter_samples(kind: RecordKind, dataset_dir: Path, channels: Sequence[str]) -> tuple[int, Iterator[Sample]]:
+    """(row count, lazy iterator of samples): each row's files are read only when its sample is drawn.
+    A bad dataset (no manifest, unmerged parts) fails here, before anything is written."""
+    n, rows = kind.rows(dataset_dir)
+
+    def gen() -> Iterator[Sample]:
+        seen: set[str] = set()
+        for row in rows:
+            key = kind.key(row)
+            if key in seen or "." in key or "/" in key:
+                raise ExportError(f"dataset {dataset_dir}: sample key {key!r} is repeated or not a plain name")
+            seen.add(key)
+            arrays = kind.arrays(dataset_dir, row, channels)
+            yield Sample(key, kind.labels(row), row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
+
+    return n, gen()
+
+
+# ------------------------------------------------------------------------------------------------
+# Shards: temporary file + rename
+# ------------------------------------------------------------------------------------------------
+def _tmp_path(final: Path) -> Path:
+    return final.with_name(f".{final.name}.{os.getpid()}.tmp")
+
+
+def _finish(tmp: Path, final: Path) -> str:
+    """fsync ``tmp``, rename it to ``final``; return its sha256."""
+    from crater_core.schema import sha256_file
+
+    with open(tmp, "rb") as fh:
+        os.fsync(fh.fileno())
+    digest = sha256_file(tmp)
+    os.replace(tmp, final)
+    return digest
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    """An empty directory, an interrupted export of ours (cleaned), or a complete one with ``overwrite``."""
+    out.mkdir(parents=True, exist_ok=True)
+    index = out / INDEX_FILE
+    if index.exists() and not overwrite:
+        raise ExportError(f"{out} already holds a complete export ({INDEX_FILE}); pass --overwrite to replace it")
+    ours = [p for p in out.iterdir() if _is_ours(p.name)]
+    others = [p.name for p in out.iterdir() if not _is_ours(p.name)]
+    if others:
+        raise ExportError(
+            f"output directory {out} holds other files ({', '.join(sorted(others)[:5])}); use an empty one"
+        )
+    index.unlink(missing_ok=True)  # first: the directory is no longer a complete export
+    for p in ours:
+        p.unlink(missing_ok=True)
+
+
+def _is_ours(name: str) -> bool:
+    return (
+        name == INDEX_FILE
+        or (name.startswith("data-") and name.endswith(".parquet"))
+        or (name.startswith("shard-") and name.endswith(".tar"))
+        or (name.startswith(".") and name.endswith(".tmp"))
+    )
+
+
+def _shard_names(fmt: str, n_shards: int) -> list[str]:
+    if fmt == "parquet":
+        return [f"data-{i:05d}-of-{n_shards:05d}.parquet" for i in range(n_shards)]
+    return [f"shard-{i:06d}.tar" for i in range(n_shards)]
+
+
+def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
+    import pyarrow as pa
+
+    fields = [("key", pa.string()), ("record_kind", pa.string())]
+    fields += kind.label_fields()
+    fields += [(f"{column_name(c)}_npy", pa.binary()) for c in channels]
+    fields += [("labels_json", pa.string())]
+    return pa.schema(fields)
+
+
+def _tar_member(tf: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size, info.mode, info.mtime = len(data), 0o644, 0  # mtime 0: the same dataset gives the same bytes
+    tf.addfile(info, io.BytesIO(data))
+
+
+def export_dataset(
+    dataset_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    fmt: str,
+    *,
+    channels: Sequence[str] = DEFAULT_CHANNELS,
+    shard_rows: int = 2048,
+    row_group_rows: int = 128,
+    kind: str = "render",
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Export ``dataset_dir`` to ``out_dir`` as ``fmt`` (``parquet`` or ``webdataset``); returns the index
+    written to ``out_dir/export.json``. Streams: at most one Parquet row group (``row_group_rows``
+    samples) is held in memory for Parquet, one sample for WebDataset; each shard holds ``shard_rows``.
+    ``progress(done, total)`` is called every ``row_group_rows`` samples."""
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if kind not in RECORD_KINDS:
+        raise ExportError(f"unknown record kind {kind!r}; known: {', '.join(RECORD_KINDS)}")
+    rk = RECORD_KINDS[kind]
+    channels = list(dict.fromkeys(channels))
+    bad = [c for c in channels if c not in rk.channels]
+    if not channels or bad:
+        raise ExportError(f"export channels {bad or channels}: choose among {', '.join(rk.channels)}")
+    if shard_rows < 1 or row_group_rows < 1:
+        raise ExportError(f"shard_rows={shard_rows} and row_group_rows={row_group_rows} must be >= 1")
+    dataset_dir, out = Path(dataset_dir), Path(out_dir)
+    if not dataset_dir.is_dir():
+        raise ExportError(f"dataset {dataset_dir} is not a directory")
+    if out.resolve() == dataset_dir.resolve() or dataset_dir.resolve() in out.resolve().parents:
+        raise ExportError(f"export directory {out} must lie outside the dataset {dataset_dir}")
+    t0 = time.perf_counter()
+    n, samples = iter_samples(rk, dataset_dir, channels)  # bad dataset: an error before any file is touched
+    _prepare_out(out, overwrite)
+    n_shards = math.ceil(n / shard_rows)
+    names = _shard_names(fmt, n_shards)
+    shards, done = [], 0
+    for i, name in enumerate(names):
+        final, tmp = out / name, _tmp_path(out / name)
+        count = min(shard_rows, n - i * shard_rows)
+        try:
+            if fmt == "parquet":
+                # Row groups are written as they fill; the shard's samples are held one row group at a time.
+                _stream_parquet(
+                    tmp, samples, count, rk, channels, row_group_rows, lambda k, d=done: progress and progress(d + k, n)
+                )
+            else:
+                with tarfile.open(tmp, "w", format=tarfile.PAX_FORMAT) as tf:
+                    for k in range(count):
+                        if progress and k and k % row_group_rows == 0:
+                            progress(done + k, n)
+                        s = next(samples)
+                        for col, data in s.npy.items():
+                            _tar_member(tf, f"{s.key}.{col}.npy", data)
+                        meta = {"key": s.key, "record_kind": rk.name, **s.labels, "manifest_row": s.row}
+                        _tar_member(tf, f"{s.key}.json", json.dumps(meta, sort_keys=True).encode())
+            digest = _finish(tmp, final)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        done += count
+        if progress and fmt == "webdataset":
+            progress(done, n)
+        shards.append({"file": name, "rows": count, "sha256": digest, "bytes": final.stat().st_size})
+    if next(samples, None) is not None:
+        raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
+    index = {
+        "export_version": EXPORT_VERSION,
+        "format": fmt,
+        "record_kind": rk.name,
+        "dataset": str(dataset_dir.resolve()),
+        "rows": n,
+        "channels": {
+            c: {"column": f"{column_name(c)}_npy" if fmt == "parquet" else f"{column_name(c)}.npy"} for c in channels
+        },
+        "images": "lossless: NPY bytes of each channel as stored in the EXR (float32 IF, depth; float16 N.*, lit)",
+        "shards": shards,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    from crater_core.schema import atomic_write_text
+
+    atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
+    return index
+
+
+def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> None:
+    import pyarrow.parquet as pq
+
+    schema = _parquet_schema(rk, channels)
+    labels = [f.name for f in schema if not f.name.endswith("_npy")]
+    left = count
+    # Dictionaries and min/max statistics only for the label columns: the image columns are large
+    # unique binaries, for which a dictionary only costs memory and time before falling back.
+    with pq.ParquetWriter(tmp, schema, compression="zstd", use_dictionary=labels, write_statistics=labels) as writer:
+        while left:
+            batch = [next(samples) for _ in range(min(row_group_rows, left))]
+            left -= len(batch)
+            writer.write_table(_parquet_table(batch, rk, channels, schema))
+            tick(count - left)
+
+
+def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
+    import pyarrow as pa
+
+    cols = {"key": [s.key for s in batch], "record_kind": [rk.name] * len(batch)}
+    for name, _ in rk.label_fields():
+        cols[name] = [s.labels.get(name) for s in batch]
+    for c in channels:
+        cols[f"{column_name(c)}_npy"] = [s.npy[column_name(c)] for s in batch]
+    cols["labels_json"] = [json.dumps(s.row, sort_keys=True) for s in batch]
+    try:
+        return pa.table(cols, schema=schema)
+    except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+        raise ExportError(
+            f"labels of samples {batch[0].key} .. {batch[-1].key} do not fit the export schema: {exc}"
+        ) from None
+
+
+# ------------------------------------------------------------------------------------------------
+# CLI
+# ------------------------------------------------------------------------------------------------
+@click.command("export")
+@click.argument("dataset", type=click.Path(file_okay=False))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), required=True, help="Output format.")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Output directory [default: DATASET-<format> beside the dataset].",
+)
+@click.option(
+    "--channels",
+    default=",".join(DEFAULT_CHANNELS),
+    show_default=True,
+    help="EXR channels to export, comma-separated: IF, depth, N.X, N.Y, N.Z, lit (or 'all').",
+)
+@click.option("--shard-rows", type=click.IntRange(min=1), default=2048, show_default=True, help="Samples per shard.")
+@click.option(
+    "--row-group-rows", type=click.IntRange(min=1), default=128, show_default=True, help="Parquet row-group size."
+)
+@click.option("--overwrite", is_flag=True, help="Replace a complete export in the output directory.")
+@user_errors
+def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, overwrite):
+    """Export a rendered dataset to Parquet (Hugging Face) or WebDataset tar shards.
+
+    Images go losslessly as NPY bytes; every manifest label goes along. Prints the index (export.json)
+    as one JSON line. Example: ``crater-synth export data/synth/demo --format parquet``.
+    """
+    ds = Path(dataset)
+    chans = (
+        list(RENDER.channels) if channels.strip() == "all" else [c.strip() for c in channels.split(",") if c.strip()]
+    )
+    out_dir = Path(out) if out else ds.with_name(f"{ds.name}-{fmt}")
+
+    last = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        if done == total or time.monotonic() - last[0] >= 5.0:  # a line every 5 s at most
+            last[0] = time.monotonic()
+            click.echo(f"export: {done}/{total} samples", err=True)
+
+    index = export_dataset(
+        ds,
+        out_dir,
+        fmt,
+        channels=chans,
+        shard_rows=shard_rows,
+        row_group_rows=row_group_rows,
+        overwrite=overwrite,
+        progress=progress,
+    )
+    click.echo(
+        json.dumps(
+            {k: v for k, v in index.items() if k != "shards"} | {"out": str(out_dir), "shards": len(index["shards"])}
+        )
+    )
