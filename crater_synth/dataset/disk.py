@@ -1,6 +1,7 @@
 """The dataset directory on disk: writable, room for the renders, one writer at a time, no leftovers.
 
-- :func:`check_output_dir`, :func:`check_free_disk`: before anything is rendered.
+- :func:`check_free_disk`: before anything is rendered (the directory itself:
+  crater_synth.dataset.marker).
 - :class:`DatasetLock`: a second ``crater-synth dataset`` on the same ``out_dir`` (or the same shard
   of it) refuses to start, naming the process that holds it; shards of one sweep
   (``launcher.shard=i/n``) still run side by side. ``flock`` locks: released by the kernel when the
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_core import schema
-from crater_core.files import PathError, disk_full_message, ensure_writable_dir, free_bytes, is_disk_full, size_text
+from crater_core.files import PathError, disk_full_message, free_bytes, is_disk_full, size_text
 from crater_synth.errors import DatasetBusyError, UserError
 
 # Bytes per render used for the free-disk check before any measured value exists
@@ -37,11 +38,6 @@ KEEP_JOB_LOGS = 32
 OTHER_HOST_MAX_AGE_S = 7 * 24 * 3600.0
 # A temp file this old cannot belong to a write in progress (an EXR or manifest write takes ms).
 STALE_TEMP_AGE_S = 3600.0
-
-
-def check_output_dir(out_dir: Path) -> None:
-    """The dataset directory must be creatable and writable (PathError naming ``out_dir``)."""
-    ensure_writable_dir(out_dir, "out_dir")
 
 
 def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
