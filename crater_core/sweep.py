@@ -121,6 +121,11 @@ class SweepGrid:
     min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def __post_init__(self):
+        if len(self) > MAX_GRID_RENDERS:
+            raise SweepError(
+                f"sweep of {' x '.join(map(str, self.shape))} = {len(self):,} renders per crater: at most "
+                f"{MAX_GRID_RENDERS:,} (lower sweep.<axis>.count)"
+            )
         if self.sun_model not in SUN_MODELS:
             raise SweepError(f"invalid sweep.sun_model={self.sun_model!r}: choose one of {list(SUN_MODELS)}")
         if self.sun_model == "physical":
@@ -141,14 +146,10 @@ class SweepGrid:
             lo, hi, msg = _LIMITS[axis]
             bad = [v for v in vals if not (lo < v <= hi) and not (axis.endswith("azimuth") and v == lo)]
             if bad:
-                raise SweepError(f"invalid sweep.{axis} values {bad}: {msg}")
+                shown = f"{bad[:5]}" if len(bad) <= 5 else f"{bad[:5]} (and {len(bad) - 5} more)"
+                raise SweepError(f"invalid sweep.{axis} values {shown}: {msg}")
             if len(set(vals)) != len(vals):
                 raise SweepError(f"sweep.{axis} has duplicate values {list(vals)}")
-        if len(self) > MAX_GRID_RENDERS:
-            raise SweepError(
-                f"sweep of {' x '.join(map(str, self.shape))} = {len(self):,} renders per crater: at most "
-                f"{MAX_GRID_RENDERS:,} (lower sweep.<axis>.count)"
-            )
         self._check_unique_names()
         if not self.sigmas or any(s <= 0 for s in self.sigmas):
             raise SweepError(f"invalid sweep.sigma values {list(self.sigmas)}: ROI ratio must be > 0")
