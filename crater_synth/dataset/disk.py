@@ -32,6 +32,9 @@ from crater_synth.errors import DatasetBusyError, UserError
 DEFAULT_BYTES_PER_RENDER = 600_000
 JOBS_DIR = ".jobs"
 LOCK_FILE = ".dataset.lock"
+# Written when `crater-synth dataset` claims a directory: this directory is a dataset
+# (crater_synth.dataset.marker).
+MARKER_NAME = ".crater-synth-dataset"
 # Logs of finished writers kept in .jobs/ (the newest; job files of finished writers are removed).
 KEEP_JOB_LOGS = 32
 # Files of writers on other hosts (whose liveness this host cannot check) are pruned after this.
@@ -196,8 +199,6 @@ def remove_interrupted_writes(out_dir: Path, planned: set[str], exclusive: bool)
     planned render (``planned``: relative paths), and nothing else. Holding the whole dataset
     (``exclusive``) every such temp file goes; a shard shares the directory with writers whose writes
     are in progress, so it removes only old ones."""
-    from crater_synth.dataset.marker import MARKER_NAME
-
     now = time.time()
     ours = {schema.MANIFEST_NAME, MARKER_NAME} | set(planned)
     removed = []

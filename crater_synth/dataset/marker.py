@@ -20,10 +20,9 @@ from pathlib import Path
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
-from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE
+from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE, MARKER_NAME
 from crater_synth.errors import UserError
 
-MARKER_NAME = ".crater-synth-dataset"
 MANIFEST_LOCK = ".manifest.lock"
 # Names in a dataset's top level that crater-synth writes besides the renders' directories.
 BOOKKEEPING = frozenset({MARKER_NAME, LOCK_FILE, MANIFEST_LOCK, JOBS_DIR, schema.PARTS_DIR, schema.MANIFEST_NAME})
