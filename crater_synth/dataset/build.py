@@ -26,7 +26,7 @@ from crater_synth.dataset.manifest import manifest_row, part_file, planned_row, 
 from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.dataset.plan import CraterJob, plan_render, render_seed, worker_item
 from crater_synth.dataset.recover import prove
-from crater_synth.errors import RenderError, UserError
+from crater_synth.errors import DatasetBusyError, RenderError, UserError
 
 
 def _warn(message: str) -> None:
@@ -62,9 +62,15 @@ def build_dataset(
     claim.create()
     dataset_lock = DatasetLock(out_dir, shard if lock else None)
     state = {"dispatched": False}
-    try:
-        if lock:
+    if lock:
+        try:
             dataset_lock.acquire()
+        except DatasetBusyError:
+            raise  # another writer's directory now: nothing of it is ours to remove
+        except BaseException:
+            claim.discard()
+            raise
+    try:
         claim.mark()
         return _build_locked(s, grid, indices, shard, out_dir, progress, warn, lock and dataset_lock.exclusive, state)
     except BaseException as exc:

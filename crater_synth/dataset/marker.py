@@ -20,7 +20,7 @@ from pathlib import Path
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
-from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE, MARKER_NAME
+from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE, MARKER_NAME, temp_target
 from crater_synth.errors import UserError
 
 MANIFEST_LOCK = ".manifest.lock"
@@ -29,6 +29,9 @@ BOOKKEEPING = frozenset({MARKER_NAME, LOCK_FILE, MANIFEST_LOCK, JOBS_DIR, schema
 
 
 def _is_bookkeeping(name: str) -> bool:
+    """A top-level name crater-synth writes (or its temp file while another run writes it)."""
+    if name.startswith(".") and (name.endswith(".tmp") or name.endswith(".tmp.exr")):
+        name = temp_target(Path(name)) or name
     return name in BOOKKEEPING or (name.startswith(".dataset-shard") and name.endswith(".lock"))
 
 
