@@ -180,6 +180,15 @@ def test_values_that_share_a_file_name_are_refused():
     assert proc.stderr.startswith("error: sweep.cam_azimuth.values=[0.0001,0.0002]: ")
 
 
+def test_physical_sun_elevations_that_share_a_file_name_are_refused(tmp_path, tiny_dataset):
+    """Physical sun elevations are fractions of each crater's highest sun: the names are checked per crater."""
+    out = tmp_path / "ds"
+    proc = tiny_dataset(out, "sweep.sun_model=physical", "sweep.sun_elevation.values=[0.5,0.5001]", check=False)
+    assert proc.returncode == 2 and _errors(proc) == [proc.stderr.splitlines()[-1]], proc.stderr
+    assert _errors(proc)[0].startswith("error: sweep.sun_elevation.values=[0.5,0.5001]: two renders of shackleton")
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # 7. Recover instead of re-render
 # ------------------------------------------------------------------------------------------------
