@@ -225,8 +225,9 @@ def test_a_file_that_cannot_be_proved_is_rendered_again(tmp_path, tiny_dataset, 
         {"lit_fraction": 0.5},
         {"sigma_boxes": {"1.0": [0, 0, 1, 1]}},
         {"path": "shackleton/elsewhere.exr"},
+        {"path": "../../etc/hostname"},  # never followed: the row is dropped and rebuilt from the file
     ],
-    ids=lambda e: next(iter(e)),
+    ids=lambda e: f"{next(iter(e))}={next(iter(e.values()))}",
 )
 def test_edited_rows_are_repaired_from_the_files(tmp_path, tiny_dataset, clean4, edit):
     out = _copy(clean4, tmp_path / "ds")

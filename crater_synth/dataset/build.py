@@ -96,7 +96,8 @@ def _build_locked(
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
         schema.merge_parts(out_dir, parts=stale)
-    existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
+    # A row whose path leaves the dataset is never followed (and is dropped from the manifest below).
+    existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir) if _safe_path(r.get("path"))}
     prune_jobs(out_dir)
     remove_stale_scratch()  # Cycles scratch files of workers killed with -9 (their host never cleaned up)
     craters = s.craters
@@ -150,7 +151,7 @@ def _build_locked(
             recovered.append(proved)
     planned_keys = {key for _, key, _ in planned}
     kept = {
-        k for k, r in existing.items() if k not in planned_keys and _safe_path(r.get("path")) and r["path"] not in names
+        k for k, r in existing.items() if k not in planned_keys and r["path"] not in names
     }  # rows of renders outside this sweep (another shard, a larger grid) that name no planned file
     kept |= {key for _, key, plan in planned if "item" not in plan and existing.get(key) is not None}
     kept -= {schema.row_key(r) for r in recovered}
