@@ -134,6 +134,16 @@ def test_execution_only_settings_keep_the_renders(tmp_path, tiny_dataset, clean4
     assert (s["rendered"], s["skipped_existing"]) == (0, 4)
 
 
+def test_grown_grid_keeps_its_renders(tmp_path, tiny_dataset, clean4):
+    """The sample positions are not in the identity: a grid grown around the rendered values (the closed
+    loop) keeps those renders, whose rows keep the index of the grid that rendered them."""
+    out = _copy(clean4, tmp_path / "ds")
+    s = summary(tiny_dataset(out, "sweep.sun_elevation.values=[0.8,1.6]"))
+    assert (s["rendered"], s["skipped_existing"], s["recovered"]) == (4, 4, 0), s
+    old = {r["path"]: r for r in _rows(clean4)}
+    assert all(r == old[r["path"]] for r in _rows(out) if r["path"] in old)
+
+
 def test_identity_holds_every_setting_but_the_listed_ones():
     """Derived, not listed: every leaf of the typed settings is in the identity's payload except the
     keys of IGNORED (each of which exists), so a key added later cannot be forgotten."""

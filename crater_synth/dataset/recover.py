@@ -28,8 +28,9 @@ ROW_HEADER = "manifest_row"
 STATS_HEADER = "crater_synth:stats"
 SEAL_HEADER = "crater_synth:seal"
 # Row fields a resumed dataset keeps from the file rather than the plan: the version that rendered it
-# (a new crater-synth version does not re-render a dataset whose identity is unchanged).
-KEPT_FROM_FILE = ("code_version",)
+# (a new crater-synth version does not re-render a dataset whose identity is unchanged) and the
+# render's place in the grid that rendered it (a grown grid -- the closed loop -- keeps its renders).
+KEPT_FROM_FILE = ("code_version", "index", "indices")
 
 
 def _same_plan(row: dict, planned: dict) -> bool:
