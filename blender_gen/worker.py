@@ -202,12 +202,10 @@ def run(job_path: str) -> int:
                 "mean_if": round(float(np.mean(chans["IF"])), 8),
             }
             header = header_for(job, cfg, item, mode_used)
-            # The stats and a seal over the host's manifest row, the stats and the pixels: the row can
-            # be rebuilt from the file alone (crater_synth.dataset.recover).
+            # The stats, and a seal over every attribute (the host's manifest row among them) and the
+            # pixels: the row can be rebuilt from the file alone (crater_synth.dataset.recover).
             header["crater_synth:stats"] = json.dumps(stats, sort_keys=True)
-            row_text = str((item.get("header") or {}).get("manifest_row", ""))
-            header["crater_synth:seal"] = exr.content_seal(chans, row_text + "\n" + header["crater_synth:stats"])
-            sha = exr.write_exr(path, chans, header)
+            sha = exr.write_exr(path, chans, exr.sealed_header(chans, header))
             t_write += time.perf_counter() - t2
             emit(
                 "RESULT",

@@ -214,12 +214,16 @@ def test_lost_manifest_is_rebuilt_from_the_files(tmp_path, tiny_dataset, clean4)
     assert v.returncode == 0, v.stderr
 
 
-def test_a_file_that_cannot_be_proved_is_rendered_again(tmp_path, tiny_dataset, clean4):
+@pytest.mark.parametrize("where", ["pixels", "header-text"])
+def test_a_file_that_cannot_be_proved_is_rendered_again(tmp_path, tiny_dataset, clean4, where):
     out = _copy(clean4, tmp_path / "ds")
     (out / "manifest.jsonl").unlink()
     victim = exr_files(out)[1]
     data = bytearray(victim.read_bytes())
-    data[-200] ^= 0x40  # a pixel byte: the header still reads, the seal does not match
+    if where == "pixels":  # the header still reads, the seal does not match
+        data[-200] ^= 0x40
+    else:  # a byte of an attribute recovery does not read: the file no longer encodes to its bytes
+        data[data.find(b"radiance factor") + 3] ^= 0x20
     victim.write_bytes(bytes(data))
     s = summary(tiny_dataset(out))
     assert (s["rendered"], s["recovered"]) == (1, 3), s

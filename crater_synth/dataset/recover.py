@@ -2,8 +2,8 @@
 
 Every EXR the renderer writes carries, in its header, the manifest row it was planned for
 (``manifest_row``: every field but the worker's stats and the file's sha256), the worker's stats
-(``crater_synth:stats``: lit_fraction, mean_if) and a seal (``crater_synth:seal``: the sha256 of that
-row, those stats and the decoded pixels; :func:`crater_core.exr.content_seal`).
+(``crater_synth:stats``: lit_fraction, mean_if) and a seal (``crater_synth:seal``: the sha256 of every
+attribute, that row and those stats among them, and of the pixels; :func:`crater_core.exr.sealed_header`).
 
 :func:`prove` gives the row a clean run would record for a file, or None:
 
@@ -11,7 +11,8 @@ row, those stats and the decoded pixels; :func:`crater_core.exr.content_seal`).
 - when the dataset's row for that render equals the rebuilt row, its sha256 -- recorded when the file
   was rendered -- proves the bytes (no decoding);
 - otherwise (no row: a deleted manifest, a run killed between writing a file and recording it; or an
-  edited row) the pixels are decoded and must give the seal.
+  edited row) the pixels are decoded and, with the attributes, must give the seal, and encoding them
+  again must give the file's bytes (:func:`crater_core.exr.check_seal`): no byte of it changed.
 
 A file that cannot be proved is rendered again; nothing is deleted here.
 """
@@ -26,7 +27,6 @@ from crater_synth.dataset.manifest import RESULT_FIELDS
 
 ROW_HEADER = "manifest_row"
 STATS_HEADER = "crater_synth:stats"
-SEAL_HEADER = "crater_synth:seal"
 # Row fields a resumed dataset keeps from the file rather than the plan: the version that rendered it
 # (a new crater-synth version does not re-render a dataset whose identity is unchanged) and the
 # render's place in the grid that rendered it (a grown grid -- the closed loop -- keeps its renders).
@@ -46,7 +46,6 @@ def prove(path: Path, planned: dict, row: dict | None) -> dict | None:
         header = exr.read_header(path)
         file_row = json.loads(header[ROW_HEADER])
         stats = json.loads(header[STATS_HEADER])
-        seal = header[SEAL_HEADER]
         if not isinstance(file_row, dict) or not isinstance(stats, dict) or not _same_plan(file_row, planned):
             return None
         rebuilt = {
@@ -57,8 +56,12 @@ def prove(path: Path, planned: dict, row: dict | None) -> dict | None:
         }
         if row is not None and schema.dumps_row(row) == schema.dumps_row(rebuilt):
             return rebuilt  # the row's sha256, recorded at render time, proves the bytes
-        channels, _ = exr.read_exr(path)
-        if exr.content_seal(channels, header[ROW_HEADER] + "\n" + header[STATS_HEADER]) != seal:
+        sealed = exr.check_seal(path)  # decodes the pixels, encodes them again
+        if (
+            sealed is None
+            or sealed.get(ROW_HEADER) != header[ROW_HEADER]
+            or sealed.get(STATS_HEADER) != header[STATS_HEADER]
+        ):
             return None
         return schema.validate_row(rebuilt)
     except (exr.ExrError, OSError, KeyError, TypeError, ValueError, schema.ManifestError):
