@@ -324,7 +324,7 @@ def _as_read(value):
 def _seal(channels: dict[str, np.ndarray], sealed: dict) -> str:
     h = hashlib.sha256(json.dumps(sealed, sort_keys=True).encode("utf-8"))
     for c in CHANNELS:
-        a = np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32), dtype=stored_dtype(c))
+        a: np.ndarray = np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32), dtype=stored_dtype(c))
         h.update(c.encode() + b"\0" + str(a.shape).encode() + b"\0")
         h.update(a.tobytes())
     return h.hexdigest()
