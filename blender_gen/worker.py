@@ -26,7 +26,7 @@ from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
 RENDERER_VERSION = "blender_gen 1"
 # Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
 # bytes do not depend on the worker/thread layout (docs/distributed.md, "Determinism").
-EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries"}
+EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries", "horizon_cache_dir"}
 _RESERVED_EXR_KEYS = {
     "compression",
     "DateTime",
@@ -197,8 +197,15 @@ def run(job_path: str) -> int:
                 chans = direct.render(session, item, to_sun)
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
-            radiance = chans["IF"]
-            sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
+            stats = {  # the file's values (lit is stored as half)
+                "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
+                "mean_if": round(float(np.mean(chans["IF"])), 8),
+            }
+            header = header_for(job, cfg, item, mode_used)
+            # The stats, and a seal over every attribute (the host's manifest row among them) and the
+            # pixels: the row can be rebuilt from the file alone (crater_synth.dataset.recover).
+            header["crater_synth:stats"] = json.dumps(stats, sort_keys=True)
+            sha = exr.write_exr(path, chans, exr.sealed_header(chans, header))
             t_write += time.perf_counter() - t2
             emit(
                 "RESULT",
@@ -206,9 +213,7 @@ def run(job_path: str) -> int:
                     "index": int(item["index"]),
                     "rel_path": item["rel_path"],
                     "sha256": sha,
-                    # the file's value: lit is stored as half
-                    "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
-                    "mean_if": round(float(np.mean(radiance)), 8),
+                    **stats,
                     "seconds": round(time.perf_counter() - t1, 4),
                     "mode": mode_used,
                 },
@@ -243,10 +248,11 @@ def run(job_path: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _args(sys.argv if argv is None else argv)
     _protect_stdout()
-    # SIGTERM (host shutting down) or SIGINT (Ctrl-C reaches the whole process group): unwind
+    # SIGTERM (host shutting down), SIGINT (Ctrl-C reaches the whole process group) or SIGHUP: unwind
     # normally so the scratch file is removed; the same when the host disappears.
     signal.signal(signal.SIGTERM, _on_stop_signal)
     signal.signal(signal.SIGINT, _on_stop_signal)
+    signal.signal(signal.SIGHUP, _on_stop_signal)  # the terminal closed: the same clean stop
     _watch_parent()
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")

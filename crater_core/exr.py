@@ -125,6 +125,46 @@ def encoder():
     return _encode_openexr
 
 
+def encode_exr(
+    channels: dict[str, np.ndarray],
+    header: dict | None = None,
+    channel_names: tuple[str, ...] = CHANNELS,
+    tile: int = TILE,
+    what: str = "EXR",
+) -> bytes:
+    """The bytes :func:`write_exr` writes for ``channels`` and ``header`` (``what`` names the file in
+    errors). Same input, same bytes: a file can be checked by encoding its decoded content again."""
+    if set(channels) != set(channel_names):
+        raise ExrError(f"{what}: EXR channels {sorted(channels)} != {sorted(channel_names)}")
+    h, w = np.asarray(channels[channel_names[0]]).shape
+    arrays: dict[str, np.ndarray] = {
+        c: np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32).reshape(h, w), dtype=stored_dtype(c))
+        for c in channel_names
+    }
+    # OpenEXR deadlocks (never returns) when the disk fills during a write, so the file is encoded
+    # into a scratch file in memory (/dev/shm) first, checked to have room, and its bytes are then
+    # written by Python, where a full disk is a plain OSError (ENOSPC) naming the path.
+    scratch = scratch_file(SCRATCH_PREFIXES[1])
+    try:
+        room = free_bytes(scratch)
+        raw = sum(a.nbytes for a in arrays.values())
+        if room < 2 * raw + (1 << 20):  # RLE never inflates tiles much beyond raw size
+            raise ExrError(
+                f"disk full (ENOSPC): no room to encode {what} in {os.path.dirname(scratch)} ({size_text(room)} free)"
+            )
+        try:
+            encoder()(scratch, arrays, header or {}, tile)
+        except ExrError as exc:
+            raise ExrError(f"{what}: {exc}") from None
+        with open(scratch, "rb") as fh:
+            return fh.read()
+    finally:
+        try:
+            os.unlink(scratch)
+        except OSError:
+            pass
+
+
 def write_exr(
     path: str | os.PathLike,
     channels: dict[str, np.ndarray],
@@ -134,38 +174,9 @@ def write_exr(
 ) -> str:
     """Write ``channels`` (name -> (h, w) array; exactly ``channel_names``) atomically as one tiled,
     RLE-compressed EXR, each channel stored as :func:`stored_type`; returns the file's sha256."""
-    if set(channels) != set(channel_names):
-        raise ExrError(f"{path}: EXR channels {sorted(channels)} != {sorted(channel_names)}")
-    h, w = np.asarray(channels[channel_names[0]]).shape
-    arrays: dict[str, np.ndarray] = {
-        c: np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32).reshape(h, w), dtype=stored_dtype(c))
-        for c in channel_names
-    }
-
-    # OpenEXR deadlocks (never returns) when the disk fills during a write, so the file is encoded
-    # into a scratch file in memory (/dev/shm) first, checked to have room, and its bytes are then
-    # written by Python, where a full disk is a plain OSError (ENOSPC) naming the path.
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    scratch = scratch_file(SCRATCH_PREFIXES[1])
-    try:
-        room = free_bytes(scratch)
-        raw = sum(a.nbytes for a in arrays.values())
-        if room < 2 * raw + (1 << 20):  # RLE never inflates tiles much beyond raw size
-            raise ExrError(
-                f"disk full (ENOSPC): no room to encode {path} in {os.path.dirname(scratch)} ({size_text(room)} free)"
-            )
-        try:
-            encoder()(scratch, arrays, header or {}, tile)
-        except ExrError as exc:
-            raise ExrError(f"{path}: {exc}") from None
-        with open(scratch, "rb") as fh:
-            blob = fh.read()
-    finally:
-        try:
-            os.unlink(scratch)
-        except OSError:
-            pass
+    blob = encode_exr(channels, header, channel_names, tile, what=str(path))
     fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp.exr", dir=directory)
     try:
         os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: datasets are shared like any file
@@ -372,3 +383,62 @@ def read_multilayer(path: str | os.PathLike) -> dict[str, np.ndarray]:
     finally:
         inp.close()
     return out
+
+
+def read_header(path: str | os.PathLike) -> dict:
+    """{header attribute: value} of an EXR, without decoding its pixels (the library's own error output
+    kept quiet like every other reader here)."""
+    with _LibraryStderr() as quiet:
+        inp = _open(path)
+        try:
+            header = {a.name: a.value for a in inp.spec().extra_attribs}
+        finally:
+            inp.close()
+        quiet.failed = False
+    return header
+
+
+SEAL_ATTR = "crater_synth:seal"
+SEALED_ATTR = "crater_synth:sealed"
+
+
+def _as_read(value):
+    """A header value as it reads back from the file (floats are stored as float32 attributes)."""
+    v = _header_value(value)
+    return float(np.float32(v)) if isinstance(v, float) else v
+
+
+def _seal(channels: dict[str, np.ndarray], sealed: dict) -> str:
+    h = hashlib.sha256(json.dumps(sealed, sort_keys=True).encode("utf-8"))
+    for c in CHANNELS:
+        a: np.ndarray = np.ascontiguousarray(np.asarray(channels[c], dtype=np.float32), dtype=stored_dtype(c))
+        h.update(c.encode() + b"\0" + str(a.shape).encode() + b"\0")
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def sealed_header(channels: dict[str, np.ndarray], header: dict) -> dict:
+    """``header`` plus a seal: the sha256 of every attribute (as it reads back) and of the pixels as
+    stored. The renderer writes it into each EXR, so that the file alone proves its content
+    (:func:`check_seal`) when the manifest that held its sha256 is lost."""
+    sealed = {k: _as_read(v) for k, v in header.items()}
+    sealed[SEALED_ATTR] = json.dumps(sorted(sealed) + [SEALED_ATTR])
+    return {**header, SEALED_ATTR: sealed[SEALED_ATTR], SEAL_ATTR: _seal(channels, sealed)}
+
+
+def check_seal(path: str | os.PathLike) -> dict | None:
+    """The sealed header attributes of an EXR if the file is exactly what its writer sealed -- the
+    decoded pixels and the attributes give the seal, and encoding them again gives the file's bytes
+    (so no byte outside them changed either) -- else None. Raises :class:`ExrError` for an unreadable file."""
+    channels, header = read_exr(path)
+    try:
+        keys = json.loads(header[SEALED_ATTR])
+        sealed = {k: header[k] for k in keys}
+        seal = header[SEAL_ATTR]
+    except (KeyError, TypeError, ValueError):
+        return None
+    if _seal(channels, sealed) != seal:
+        return None
+    if encode_exr(channels, {**sealed, SEAL_ATTR: seal}, what=str(path)) != Path(path).read_bytes():
+        return None
+    return sealed

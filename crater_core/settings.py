@@ -50,7 +50,7 @@ from crater_core.settings_train import (
     SvmSettings,
     TrainSettings,
 )
-from crater_core.sweep import AXES, SweepGrid, grid_from_config
+from crater_core.sweep import AXES, MAX_AXIS_COUNT, SweepGrid, grid_from_config
 from crater_core.typed_config import SettingsError, _Group, _need, as_plain, build, replace
 
 # The solar disc's angular radius (deg): the whole Sun is below a flat horizon below -this.
@@ -243,7 +243,7 @@ class AxisSettings(_Group):
     step_fraction: Optional[float] = None  # physical sun elevations: fraction step (null: 0.1)
 
     def _check(self):
-        _need(self.count >= 1, "count", self.count, "must be >= 1")
+        _need(1 <= self.count <= MAX_AXIS_COUNT, "count", self.count, f"must lie in [1, {MAX_AXIS_COUNT}]")
         _need(self.values is None or len(self.values) > 0, "values", self.values, "must not be empty (null = count)")
 
 

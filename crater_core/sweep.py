@@ -29,6 +29,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from crater_core.errors import ContractError
+from crater_core.schema import render_rel_path
 
 
 class SweepError(ContractError):
@@ -39,6 +40,12 @@ AXES = ("sun_elevation", "sun_azimuth", "cam_elevation", "cam_azimuth")
 SUN_MODELS = ("paper", "physical")
 # Physical sweeps: sun-elevation fractions 0.1 k (count 10 = the crater's whole range, like 0.16 k deg).
 PHYSICAL_STEP_FRACTION = 0.1
+
+# Largest sample count of one axis: 3600 azimuths are 0.1 deg apart, ten times the paper's finest grid
+# (a count of 10^9 would first build a 15 GB value list). Checked before any list is built.
+MAX_AXIS_COUNT = 3600
+# Largest sweep of one crater (renders): ~440x the paper sweep (22,500), several TB of EXRs at ~0.5 MB each.
+MAX_GRID_RENDERS = 10_000_000
 
 # Physical limits used to reject nonsense configuration before any rendering starts.
 _LIMITS = {
@@ -51,8 +58,8 @@ _LIMITS = {
 
 def default_positions(axis: str, count: int, step_deg: float | None = None) -> list[float]:
     """The paper's sample positions for ``count`` samples of ``axis`` (see module docstring)."""
-    if count < 1:
-        raise SweepError(f"sweep.{axis}.count must be >= 1, got {count}")
+    if not 1 <= count <= MAX_AXIS_COUNT:
+        raise SweepError(f"sweep.{axis}.count={count}: must lie in [1, {MAX_AXIS_COUNT}]")
     k = np.arange(count, dtype=np.float64)
     if axis == "sun_elevation":
         vals = (step_deg or 0.16) * (k + 1.0)
@@ -114,6 +121,11 @@ class SweepGrid:
     min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def __post_init__(self):
+        if len(self) > MAX_GRID_RENDERS:
+            raise SweepError(
+                f"sweep of {' x '.join(map(str, self.shape))} = {len(self):,} renders per crater: at most "
+                f"{MAX_GRID_RENDERS:,} (lower sweep.<axis>.count)"
+            )
         if self.sun_model not in SUN_MODELS:
             raise SweepError(f"invalid sweep.sun_model={self.sun_model!r}: choose one of {list(SUN_MODELS)}")
         if self.sun_model == "physical":
@@ -134,15 +146,38 @@ class SweepGrid:
             lo, hi, msg = _LIMITS[axis]
             bad = [v for v in vals if not (lo < v <= hi) and not (axis.endswith("azimuth") and v == lo)]
             if bad:
-                raise SweepError(f"invalid sweep.{axis} values {bad}: {msg}")
+                shown = f"{bad[:5]}" if len(bad) <= 5 else f"{bad[:5]} (and {len(bad) - 5} more)"
+                raise SweepError(f"invalid sweep.{axis} values {shown}: {msg}")
             if len(set(vals)) != len(vals):
                 raise SweepError(f"sweep.{axis} has duplicate values {list(vals)}")
+        self._check_unique_names()
         if not self.sigmas or any(s <= 0 for s in self.sigmas):
             raise SweepError(f"invalid sweep.sigma values {list(self.sigmas)}: ROI ratio must be > 0")
         if not (0.0 < self.fov_deg < 180.0):
             raise SweepError(f"invalid sweep.fov_deg={self.fov_deg}: field of view must lie in (0, 180)")
         if not self.range_factor > 0:
             raise SweepError(f"invalid sweep.range_factor={self.range_factor}: must be > 0")
+
+    def _check_unique_names(self) -> None:
+        """Every render needs its own file name (:func:`crater_core.schema.render_rel_path`, angles to
+        0.001 deg) and its own manifest key (angles to 1e-6 deg): two values of an axis that the name
+        rounds together would write two renders into one file. Physical sun elevations depend on the
+        crater; the planner checks their names per crater."""
+        for i, axis in enumerate(AXES):
+            if axis == "sun_elevation" and self.sun_model == "physical":
+                continue
+            seen: dict[str, float] = {}
+            for v in getattr(self, axis):
+                angles = [0.0] * 4
+                angles[i] = v
+                name = render_rel_path("c", *angles)
+                if name in seen:
+                    values = ",".join(f"{x:g}" for x in getattr(self, axis))
+                    raise SweepError(
+                        f"sweep.{axis}.values=[{values}]: {seen[name]:g} and {v:g} would share one file name "
+                        "(angles are named to 0.001 deg): space the values at least 0.001 deg apart"
+                    )
+                seen[name] = v
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
@@ -208,10 +243,13 @@ def _axis_values(cfg_axis: Mapping, axis: str, sun_model: str = "paper") -> tupl
     values = cfg_axis.get("values")
     if values is not None:
         return tuple(float(v) for v in values)
+    count = int(cfg_axis["count"])
+    if not 1 <= count <= MAX_AXIS_COUNT:  # before default_positions builds the list
+        raise SweepError(f"sweep.{axis}.count={count}: must lie in [1, {MAX_AXIS_COUNT}]")
     step = cfg_axis.get("step_deg")
     if axis == "sun_elevation" and sun_model == "physical":
         step = cfg_axis.get("step_fraction") or PHYSICAL_STEP_FRACTION
-    return tuple(default_positions(axis, int(cfg_axis["count"]), step))
+    return tuple(default_positions(axis, count, step))
 
 
 def grid_from_config(sweep_cfg: Mapping) -> SweepGrid:

@@ -3,8 +3,9 @@
 :func:`user_errors` wraps each command so that
 - bad input (:class:`UserError`, :class:`ContractError`) and environment errors (``OSError``: a full
   disk, a permission) end it with ONE ``error: ...`` line on stderr and exit status 2;
-- SIGTERM and SIGINT unwind it like an error (its ``finally`` blocks stop the Blender workers and
-  remove scratch files), then print one ``error: interrupted ...`` line and exit 143 / 130;
+- SIGTERM, SIGINT and SIGHUP (the terminal closed) unwind it like an error (its ``finally`` blocks stop
+  the Blender workers and remove scratch files), then print one ``error: interrupted ...`` line and
+  exit 143 / 130 / 129;
 - warnings that libraries raise through Python's :mod:`warnings` (e.g. rasterio's) are held back and
   printed as ``warning:`` lines when the command succeeds; when it fails, the error line is the only
   one (a library warning about the very input that failed would only bury it).
@@ -38,13 +39,17 @@ def _raise_interrupted(signum, _frame):
     raise Interrupted(signum, f"interrupted by {name}: stopped; rerun the same command to resume")
 
 
+# The signals that stop a command cleanly (a resumable stop): kill, Ctrl-C, the terminal closing.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+
 class _Signals:
-    """SIGTERM/SIGINT raise :class:`Interrupted` in the main thread while a command runs."""
+    """SIGTERM/SIGINT/SIGHUP raise :class:`Interrupted` in the main thread while a command runs."""
 
     def __enter__(self):
         self.old = {}
         if threading.current_thread() is threading.main_thread():
-            for s in (signal.SIGTERM, signal.SIGINT):
+            for s in STOP_SIGNALS:
                 self.old[s] = signal.signal(s, _raise_interrupted)
         return self
 

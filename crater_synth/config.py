@@ -257,7 +257,47 @@ def one_line_config_error(exc: BaseException | str, overrides: Sequence[str] = (
             return f"{typed}: {why}"
         value = f"={conv.group(1)}" if conv else ""
         return f"{full_key}{value}: {why} (in configs/)"
+    hint = _quoting_hint(msg, overrides)
+    if hint:
+        return hint
     return " ".join(msg.split("\nConfig search path:")[0].split())
+
+
+# Hydra's override grammar errors: a value with spaces (split by the shell) or special characters.
+_GRAMMAR_ERRORS = ("missing EQUAL", "mismatched input", "token recognition error", "extraneous input", "no viable")
+
+
+def _quoting_hint(msg: str, overrides: Sequence[str]) -> str | None:
+    """One line for an override Hydra cannot parse, with the quoting that fixes it: a path with
+    spaces left unquoted in the shell arrives as two arguments (``out_dir=/my`` and ``data``); one with
+    spaces or ``()[]{},'"`` inside one argument needs quotes for Hydra itself."""
+    if not any(e in msg for e in _GRAMMAR_ERRORS):
+        return None
+    overrides = list(overrides)
+    m = re.search(r"Error parsing override '([^']*)'\s+missing EQUAL", msg)
+    if m and m.group(1) in overrides:
+        i = overrides.index(m.group(1))
+        if i > 0 and "=" in overrides[i - 1]:
+            joined = f"{overrides[i - 1]} {m.group(1)}"
+            return (
+                f"override {m.group(1)!r} is not key=value: if it is the rest of the value before it (a path "
+                f'with spaces), quote the whole override, e.g. "{joined}"'
+            )
+        return f"override {m.group(1)!r} is not key=value (e.g. out_dir=/data/x)"
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for o in overrides:
+        try:
+            parser.parse_override(o)
+        except Exception as exc:  # noqa: BLE001 - any grammar error of this one override
+            key, _, value = o.partition("=")
+            why = " ".join(str(exc).split("See https://")[0].split())
+            return (
+                f"{o}: Hydra cannot parse the value ({why}): quote a value holding spaces or ()[]{{}},'\" "
+                f"for Hydra, e.g. \"{key}='{value}'\""
+            )
+    return None
 
 
 def _user_options(group: str, listed: list[str] | None) -> list[str]:

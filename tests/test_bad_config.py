@@ -11,10 +11,10 @@ from helpers.cli import TINY, exr_files, run_cli
 HUGE = (
     "sweep.sun_elevation.values=null",
     "sweep.sun_elevation.count=100",
-    "sweep.sun_azimuth.count=1000",
+    "sweep.sun_azimuth.count=300",
     "sweep.cam_elevation.count=20",
-    "sweep.cam_azimuth.count=1000",
-)  # 2e9 renders, ~1.3 PB at the 600 kB default each
+    "sweep.cam_azimuth.count=15",
+)  # 9e6 renders (under the 1e7 bound of a sweep), ~5.9 TB at the 600 kB default each
 
 CASES = {
     "unknown-crater": (
@@ -43,7 +43,11 @@ CASES = {
     "hapke-w": (["hapke.w=-1"], "Hapke parameter(s) out of physical range: w=-1.0"),
     "bad-shard": (["launcher.shard=2/2"], "launcher.shard='2/2': need 0 <= i < n"),
     "unknown-key": (["render.sample=4"], "render.sample: unknown key (did you mean render.samples?)"),
-    "too-little-disk": (list(HUGE), "2000000000 renders need ~1320.00 TB (600.00 kB each, +10 %)"),
+    "too-little-disk": (list(HUGE), "9000000 renders need ~5.94 TB (600.00 kB each, +10 %)"),
+    "too-big-sweep": (
+        [*HUGE, "sweep.cam_azimuth.count=1000"],
+        "sweep of 100 x 300 x 20 x 1000 = 600,000,000 renders per crater: at most 10,000,000",
+    ),
 }
 
 

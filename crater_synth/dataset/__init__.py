@@ -2,6 +2,7 @@
 
 Layout of a dataset directory::
 
+    .crater-synth-dataset     marker: this directory is a dataset (crater_synth.dataset.marker)
     manifest.jsonl            merged, sorted rows (crater_core/schema.py)
     manifest.parts/*.jsonl    rows appended while rendering (merged at the end)
     <crater>/<params>.exr     one tiled EXR per render
@@ -18,7 +19,8 @@ Modules: :mod:`~crater_synth.dataset.plan` (the geometry of every render),
 
 from crater_synth.dataset.build import build_dataset
 from crater_synth.dataset.dispatch import run_workers, worker_command
-from crater_synth.dataset.plan import CraterJob, code_version, plan_render, render_digest, render_seed
+from crater_synth.dataset.identity import render_identity
+from crater_synth.dataset.plan import CraterJob, code_version, plan_render, render_seed
 from crater_synth.errors import RenderError
 
 __all__ = [
@@ -27,7 +29,7 @@ __all__ = [
     "build_dataset",
     "code_version",
     "plan_render",
-    "render_digest",
+    "render_identity",
     "render_seed",
     "run_workers",
     "worker_command",

@@ -14,15 +14,18 @@ from crater_core.settings import Settings
 from crater_synth.dataset.disk import (
     DatasetLock,
     check_free_disk,
-    check_output_dir,
     measured_bytes_per_render,
     prune_jobs,
-    remove_orphans,
+    remove_interrupted_writes,
+    unplanned_files,
 )
 from crater_synth.dataset.dispatch import run_workers
-from crater_synth.dataset.manifest import is_done, manifest_row, part_file, stale_parts
-from crater_synth.dataset.plan import CraterJob, plan_render, render_digest, render_seed, worker_item
-from crater_synth.errors import RenderError
+from crater_synth.dataset.identity import render_identity
+from crater_synth.dataset.manifest import manifest_row, part_file, planned_row, stale_parts
+from crater_synth.dataset.marker import DatasetClaim
+from crater_synth.dataset.plan import CraterJob, plan_render, render_seed, worker_item
+from crater_synth.dataset.recover import prove
+from crater_synth.errors import DatasetBusyError, RenderError, UserError
 
 
 def _warn(message: str) -> None:
@@ -32,13 +35,17 @@ def _warn(message: str) -> None:
 def build_dataset(
     settings: Settings | Mapping, progress: bool = True, lock: bool = True, warn: Callable[[str], None] | None = _warn
 ) -> dict:
-    """Render the configured sweep (or ``launcher.shard``) into ``out_dir``, resuming: renders whose row
-    has the current digest and whose file hashes right are skipped.
+    """Render the configured sweep (or ``launcher.shard``) into ``out_dir``, resuming: a planned render
+    whose file is proved (crater_synth.dataset.recover: its header holds the row planned now, and its
+    bytes hash to the row's sha256 or its pixels give the header's seal) is kept, with its row rebuilt
+    from the file if the manifest lost it; every other planned render is rendered (again).
 
     ``settings``: :class:`Settings` (a raw configuration is converted once, here). ``lock=False`` is for
     a launcher that already holds the dataset lock (the Dask tasks). ``warn`` receives the warnings of
-    a legal but suspicious run (a Sun below the horizon; renders that came out all black).
-    Returns a summary dict (counts, timings, dataset path)."""
+    a legal but suspicious run (a Sun below the horizon; renders that came out all black; files left
+    alone). A directory that is neither empty nor a dataset is refused (crater_synth.dataset.marker);
+    a run refused before rendering leaves nothing behind. Returns a summary dict (counts, timings,
+    dataset path)."""
     from crater_synth.config import as_settings
 
     s = as_settings(settings)
@@ -50,32 +57,42 @@ def build_dataset(
     indices = grid.shard(*shard) if shard else range(len(grid))
     ensure_writable_dir(s.data_dir, "data_dir")  # the terrain patches go there
     out_dir = Path(s.out_dir).resolve()
-    check_output_dir(out_dir)
+    claim = DatasetClaim(out_dir)
+    claim.create()
     dataset_lock = DatasetLock(out_dir, shard if lock else None)
+    state = {"dispatched": False}
     if lock:
-        dataset_lock.acquire()
+        try:
+            dataset_lock.acquire()
+        except DatasetBusyError:
+            raise  # another writer's directory now: nothing of it is ours to remove
+        except BaseException:
+            claim.discard()
+            raise
     try:
-        return _build_locked(
-            s, grid, indices, shard, out_dir, progress, warn, exclusive=lock and dataset_lock.exclusive
-        )
-    except OSError as exc:
-        if is_disk_full(exc):
+        claim.mark()
+        return _build_locked(s, grid, indices, shard, out_dir, progress, warn, lock and dataset_lock.exclusive, state)
+    except BaseException as exc:
+        if not state["dispatched"]:  # refused (or stopped) before rendering: no litter
+            claim.discard()
+        if isinstance(exc, OSError) and is_disk_full(exc):
             raise RenderError(os_error_text(exc)) from None
         raise
     finally:
         dataset_lock.release()
 
 
-def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool) -> dict:
+def _build_locked(
+    s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool, state: dict
+) -> dict:
     from crater_synth.terrain.patch import build_terrain
 
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
         schema.merge_parts(out_dir, parts=stale)
+    # A row whose path leaves the dataset is never followed (and is dropped from the manifest below).
+    # dataset_rows drops every unreadable row, one whose path leaves the dataset included (schema.validate_row)
     existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
-    removed = remove_orphans(out_dir, list(existing.values()), exclusive)
-    if removed and warn is not None:
-        warn(f"removed {len(removed)} orphan file(s) of an interrupted run from {out_dir} (no manifest row)")
     prune_jobs(out_dir)
     remove_stale_scratch()  # Cycles scratch files of workers killed with -9 (their host never cleaned up)
     craters = s.craters
@@ -86,26 +103,63 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
         max(0, len(indices) * len(craters) - len(existing)),
         measured_bytes_per_render(list(existing.values()), out_dir),
     )
-    jobs, skipped, total = [], 0, 0
+    jobs: list[CraterJob] = []
+    planned: list[tuple[CraterJob, tuple, dict]] = []
+    names: dict[str, tuple] = {}
     for crater in craters:
         npz, meta = build_terrain(crater, s)
         job = CraterJob(crater=crater, npz=Path(npz), meta=meta)
-        digest = render_digest(s.render, s.hapke, meta["terrain_id"])
+        digest = render_identity(s, crater, meta["terrain_id"])
         for index in indices:
             if not grid.renders(grid.params(index, crater.lat)):
                 continue  # physical sweep: the Sun never stands that high in that direction here
             plan = plan_render(crater, meta, grid, index, s.render.roi_min_px, s.render.crop_to_roi)
             p = plan["params"]
             key = schema.params_key(crater.name, p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
+            if plan["rel_path"] in names:  # physical sun elevations (per crater) that round together
+                values = ",".join(f"{v:g}" for v in grid.sun_elevation)
+                raise UserError(
+                    f"sweep.sun_elevation.values=[{values}]: two renders of {crater.name} would share the "
+                    f"file {plan['rel_path']} (angles are named to 0.001 deg): space the values further apart"
+                )
+            names[plan["rel_path"]] = key
             plan["seed"] = render_seed(s.seed, key)
             plan["digest"] = digest
-            total += 1
-            if is_done(existing.get(key), out_dir, digest):
-                skipped += 1
-            else:
-                plan["item"] = worker_item(crater, meta, plan, s.render, s.hapke, grid.fov_deg)
-                job.plans.append(plan)
+            plan["row"] = planned_row(crater.name, meta["terrain_id"], plan, grid.fov_deg, s.render.mode)
+            planned.append((job, key, plan))
         jobs.append(job)
+
+    removed = remove_interrupted_writes(out_dir, set(names), exclusive)
+    if removed and warn is not None:
+        warn(f"removed {len(removed)} temp file(s) of interrupted writes from {out_dir}, e.g. {removed[0]}")
+    skipped, recovered = 0, []
+    for job, key, plan in planned:
+        f = out_dir / plan["rel_path"]
+        row = existing.get(key)
+        proved = prove(f, plan["row"], row) if f.is_file() else None
+        if proved is None:
+            plan["item"] = worker_item(job.crater, job.meta, plan, s.render, s.hapke, grid.fov_deg)
+            job.plans.append(plan)
+        elif row is not None and schema.dumps_row(row) == schema.dumps_row(proved):
+            skipped += 1
+        else:
+            recovered.append(proved)
+    planned_keys = {key for _, key, _ in planned}
+    kept = {
+        k for k, r in existing.items() if k not in planned_keys and r["path"] not in names
+    }  # rows of renders outside this sweep (another shard, a larger grid) that name no planned file
+    kept |= {key for _, key, plan in planned if "item" not in plan and existing.get(key) is not None}
+    kept -= {schema.row_key(r) for r in recovered}
+    if exclusive and (out_dir / schema.MANIFEST_NAME).exists():
+        # The manifest keeps only rows proved now (and those of renders outside this sweep): a wrong,
+        # stale or edited row is gone before rendering starts, even if this run is stopped.
+        schema.merge_parts(out_dir, parts=[], keep=kept)
+    left = unplanned_files(out_dir, list(existing.values()), set(names))
+    if left and warn is not None:
+        warn(
+            f"left {len(left)} file(s) alone that no manifest row and no planned render names, e.g. {left[0]} "
+            "(crater-synth deletes only files it planned)"
+        )
 
     todo = sum(len(j.plans) for j in jobs)
     check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
@@ -113,15 +167,23 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
     bar = Progress(todo, f"rendering ({s.render.mode})", "render", mode="auto" if progress and todo else "off")
     dark = []
     rows = schema.RowAppender(part)  # each row written at once, fsynced per 256 rows / 2 s
+    for row in recovered:  # proved from their files: recorded, not rendered
+        rows.add(row)
+    if recovered and warn is not None:
+        warn(
+            f"recovered {len(recovered)} manifest row(s) of {out_dir} from their EXR files (header and "
+            "pixel seal): not rendered again"
+        )
     t0 = time.perf_counter()
 
     def on_result(job: CraterJob, plan: dict, result: dict):
-        row = manifest_row(job, plan, result, grid.fov_deg, s.render.mode)
+        row = manifest_row(plan, result)
         rows.add(row)
         if row["lit_fraction"] <= 0.0:
             dark.append(row["path"])
         bar.update(1)
 
+    state["dispatched"] = True
     try:
         run_workers(jobs, s.render, s.hapke, out_dir, on_result)
         rows.close()
@@ -144,9 +206,10 @@ def _build_locked(s: Settings, grid, indices, shard, out_dir: Path, progress: bo
         )
     return {
         "dataset": str(out_dir),
-        "renders_total": total,
+        "renders_total": len(planned),
         "rendered": todo,
         "skipped_existing": skipped,
+        "recovered": len(recovered),
         "manifest_rows": n_rows,
         "seconds": round(elapsed, 2),
         "renders_per_s": round(todo / elapsed, 3) if todo and elapsed > 0 else None,

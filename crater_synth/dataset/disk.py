@@ -1,12 +1,14 @@
 """The dataset directory on disk: writable, room for the renders, one writer at a time, no leftovers.
 
-- :func:`check_output_dir`, :func:`check_free_disk`: before anything is rendered.
+- :func:`check_free_disk`: before anything is rendered (the directory itself:
+  crater_synth.dataset.marker).
 - :class:`DatasetLock`: a second ``crater-synth dataset`` on the same ``out_dir`` (or the same shard
   of it) refuses to start, naming the process that holds it; shards of one sweep
   (``launcher.shard=i/n``) still run side by side. ``flock`` locks: released by the kernel when the
   holder dies, so a killed run never leaves a stale lock.
-- :func:`find_orphans` / :func:`remove_orphans`: EXRs without a manifest row and temp files of
-  interrupted writes (``verify`` names them; the next ``dataset`` run removes them).
+- :func:`find_orphans`: EXRs without a manifest row and temp files of interrupted writes (``verify``
+  names them); :func:`remove_interrupted_writes`: the temp files ``dataset`` removes (those of its
+  own planned files only; crater_synth.dataset.marker says what ``dataset`` may delete).
 - :func:`prune_jobs`: ``.jobs/`` keeps the files of running writers and the logs of the last runs only.
 """
 
@@ -21,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_core.files import ensure_writable_dir, free_bytes, size_text
+from crater_core import schema
+from crater_core.files import PathError, disk_full_message, free_bytes, is_disk_full, size_text
 from crater_synth.errors import DatasetBusyError, UserError
 
 # Bytes per render used for the free-disk check before any measured value exists
@@ -29,17 +32,15 @@ from crater_synth.errors import DatasetBusyError, UserError
 DEFAULT_BYTES_PER_RENDER = 600_000
 JOBS_DIR = ".jobs"
 LOCK_FILE = ".dataset.lock"
+# Written when `crater-synth dataset` claims a directory: this directory is a dataset
+# (crater_synth.dataset.marker).
+MARKER_NAME = ".crater-synth-dataset"
 # Logs of finished writers kept in .jobs/ (the newest; job files of finished writers are removed).
 KEEP_JOB_LOGS = 32
 # Files of writers on other hosts (whose liveness this host cannot check) are pruned after this.
 OTHER_HOST_MAX_AGE_S = 7 * 24 * 3600.0
 # A temp file this old cannot belong to a write in progress (an EXR or manifest write takes ms).
 STALE_TEMP_AGE_S = 3600.0
-
-
-def check_output_dir(out_dir: Path) -> None:
-    """The dataset directory must be creatable and writable (PathError naming ``out_dir``)."""
-    ensure_writable_dir(out_dir, "out_dir")
 
 
 def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
@@ -89,12 +90,18 @@ class DatasetLock:
                 f"{what} {self.out_dir} is being written by another crater-synth process "
                 f"({_holder(path)}): wait for it to finish, or give another out_dir"
             ) from None
-        if mode == fcntl.LOCK_EX:  # say who holds it, for the message a second writer prints
-            fh.seek(0)
-            fh.truncate()
-            fh.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-            fh.flush()
         self._files.append(fh)
+        if mode == fcntl.LOCK_EX:  # say who holds it, for the message a second writer prints
+            try:
+                fh.seek(0)
+                fh.truncate()
+                fh.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+                fh.flush()
+            except OSError as exc:
+                self.release()
+                if is_disk_full(exc):  # e.g. a full disk at start-up: name the file
+                    raise PathError(disk_full_message(path, exc)) from None
+                raise
 
     def acquire(self) -> "DatasetLock":
         if self.shard is None:
@@ -115,7 +122,10 @@ class DatasetLock:
             except OSError:
                 pass
             finally:
-                fh.close()
+                try:
+                    fh.close()
+                except OSError:
+                    pass  # a holder line that never reached a full disk
         self._files = []
 
     def __enter__(self) -> "DatasetLock":
@@ -176,20 +186,41 @@ def find_orphans(out_dir: Path, rows: list[dict]) -> list[Path]:
     return sorted(found)
 
 
-def remove_orphans(out_dir: Path, rows: list[dict], exclusive: bool) -> list[Path]:
-    """Remove :func:`find_orphans`. Holding the whole dataset (``exclusive``) every orphan goes; a shard
-    shares the directory with writers whose new EXRs have no row yet, so it removes only old temp files."""
+def temp_target(p: Path) -> str | None:
+    """The file name an interrupted atomic write ``.<name>.<random>.tmp[.exr]`` was writing, or None."""
+    if not _is_temp(p):
+        return None
+    stem = p.name[1 : p.name.rindex(".tmp")]
+    return stem.rsplit(".", 1)[0] if "." in stem else None
+
+
+def remove_interrupted_writes(out_dir: Path, planned: set[str], exclusive: bool) -> list[Path]:
+    """Remove the temp files of interrupted writes of ``manifest.jsonl``, the dataset marker or a
+    planned render (``planned``: relative paths), and nothing else. Holding the whole dataset
+    (``exclusive``) every such temp file goes; a shard shares the directory with writers whose writes
+    are in progress, so it removes only old ones."""
     now = time.time()
+    ours = {schema.MANIFEST_NAME, MARKER_NAME} | set(planned)
     removed = []
-    for f in find_orphans(out_dir, rows):
+    for f in find_orphans(out_dir, []):
+        target = temp_target(f)
+        if target is None or str(f.parent.joinpath(target).relative_to(out_dir)) not in ours:
+            continue
         try:
-            if not exclusive and not (_is_temp(f) and now - f.stat().st_mtime > STALE_TEMP_AGE_S):
+            if not exclusive and now - f.stat().st_mtime <= STALE_TEMP_AGE_S:
                 continue
             f.unlink()
             removed.append(f)
         except FileNotFoundError:
             pass
     return removed
+
+
+def unplanned_files(out_dir: Path, rows: list[dict], planned: set[str]) -> list[Path]:
+    """Files in the renders' directories that no row and no planned render names (left alone)."""
+    return [
+        f for f in find_orphans(out_dir, rows) if temp_target(f) is None and str(f.relative_to(out_dir)) not in planned
+    ]
 
 
 # ------------------------------------------------------------------------------------------------

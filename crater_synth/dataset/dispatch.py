@@ -212,7 +212,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
 
 def _stop(running: dict, sel: selectors.BaseSelector, on_result) -> None:
     """Stop the workers still running: SIGTERM, record the RESULT lines they still print, SIGKILL
-    after :data:`STOP_GRACE_S`. Further SIGINT/SIGTERM to the host wait until this is done."""
+    after :data:`STOP_GRACE_S`. Further SIGINT/SIGTERM/SIGHUP to the host wait until this is done."""
     if not running:
         return
     restore = _defer_signals()
@@ -251,11 +251,11 @@ def _signal(proc: subprocess.Popen, signum: int) -> None:
 
 
 def _defer_signals():
-    """Ignore SIGINT/SIGTERM while the workers are being stopped (main thread only); returns the
+    """Ignore SIGINT/SIGTERM/SIGHUP while the workers are being stopped (main thread only); returns the
     function restoring the previous handlers."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
 
     def restore():
         for s, h in old.items():

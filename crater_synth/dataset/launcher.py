@@ -33,7 +33,8 @@ from crater_core.settings import Settings, replace
 from crater_synth.cli_common import OVERRIDES, user_errors, warn
 from crater_synth.config import as_settings
 from crater_synth.dataset import build_dataset
-from crater_synth.dataset.disk import DatasetLock, check_free_disk, check_output_dir, measured_bytes_per_render
+from crater_synth.dataset.disk import DatasetLock, check_free_disk, measured_bytes_per_render
+from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.errors import RenderError, UserError
 
 
@@ -63,11 +64,12 @@ def _absolute(s: Settings) -> Settings:
     return replace(s, out_dir=str(Path(s.out_dir).resolve()), data_dir=str(Path(s.data_dir).resolve()))
 
 
-def preflight(settings: Settings | Mapping) -> dict:
+def preflight(settings: Settings | Mapping, claim: DatasetClaim | None = None) -> dict:
     """Every check :func:`build_dataset` makes before rendering, run once on the host before a cluster
     starts: output directory, free disk, craters and their DEM coverage (the terrain patches are built
     here, so tasks reuse them instead of racing to build them), every camera pose's ROI.
-    Returns ``{"renders_total", "craters", "shards"}``."""
+    ``claim`` (:class:`~crater_synth.dataset.marker.DatasetClaim`) remembers what creating the output
+    directory created. Returns ``{"renders_total", "craters", "shards"}``."""
     from crater_core.files import ensure_writable_dir
     from crater_synth.dataset import plan_render
     from crater_synth.terrain.patch import build_terrain
@@ -76,7 +78,7 @@ def preflight(settings: Settings | Mapping) -> dict:
     grid = s.sweep.grid
     ensure_writable_dir(s.data_dir, "data_dir")
     out_dir = Path(s.out_dir)
-    check_output_dir(out_dir)
+    (claim or DatasetClaim(out_dir)).create()  # refuses a directory that is neither empty nor a dataset
     existing = schema.dataset_rows(out_dir)
     check_free_disk(
         out_dir, max(0, len(grid) * len(s.craters) - len(existing)), measured_bytes_per_render(existing, out_dir)
@@ -96,8 +98,14 @@ def preflight(settings: Settings | Mapping) -> dict:
 def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
     """Render the configured sweep on a Dask cluster (local on 127.0.0.1 unless ``launcher.address``)."""
     s = _absolute(as_settings(settings))
-    plan = preflight(s)  # bad values fail here, before any cluster starts
+    claim = DatasetClaim(Path(s.out_dir))
+    try:
+        plan = preflight(s, claim)  # bad values fail here, before any cluster starts
+    except BaseException:
+        claim.discard()  # refused: no litter
+        raise
     with DatasetLock(Path(s.out_dir)):  # the tasks' shards write under this one lock
+        claim.mark()
         return _run_dask_locked(s, plan, progress)
 
 

@@ -48,12 +48,17 @@ def stale_parts(out_dir: Path) -> list[Path]:
     return [p for p in sorted((out_dir / schema.PARTS_DIR).glob("*.jsonl")) if _dead_writer(p.stem)]
 
 
-def manifest_row(job, plan: dict, result: dict, fov_deg: float, renderer: str) -> dict:
-    """The manifest row of one finished render (``result``: the worker's RESULT line)."""
+# Row fields the worker measures or the file gives; every other field is planned before rendering.
+RESULT_FIELDS = ("lit_fraction", "mean_if", "sha256")
+
+
+def planned_row(crater_name: str, terrain_id: str, plan: dict, fov_deg: float, renderer: str) -> dict:
+    """The manifest row of a planned render, less :data:`RESULT_FIELDS` (``plan`` carries its ``seed``
+    and ``digest``, the render identity)."""
     p = plan["params"]
     return {
         "schema_version": schema.SCHEMA_VERSION,
-        "crater": job.crater.name,
+        "crater": crater_name,
         "index": p.index,
         "indices": list(p.indices),
         "sun_elevation": p.sun_elevation,
@@ -70,24 +75,23 @@ def manifest_row(job, plan: dict, result: dict, fov_deg: float, renderer: str) -
         "center_px": plan["center_px"],
         "rim_ellipse": plan["rim_ellipse"],
         "sigma_boxes": plan["sigma_boxes"],
-        "lit_fraction": float(result["lit_fraction"]),
-        "mean_if": float(result["mean_if"]),
-        "path": result["rel_path"],
-        "sha256": result["sha256"],
+        "path": plan["rel_path"],
         "seed": plan["seed"],
         "code_version": code_version(),
         "renderer": renderer,
-        "terrain_id": job.meta["terrain_id"],
+        "terrain_id": terrain_id,
         "render_digest": plan["digest"],
     }
 
 
-def is_done(row: dict | None, out_dir: Path, digest: str) -> bool:
-    """A render is done when its row has the current digest and its file hashes to the row's sha256."""
-    if row is None or row.get("render_digest") != digest:
-        return False
-    try:
-        f = schema.row_file(out_dir, row)  # a link out of the dataset is never taken as done
-    except schema.ManifestError:
-        return False
-    return f.is_file() and schema.sha256_file(f) == row["sha256"]
+def manifest_row(plan: dict, result: dict) -> dict:
+    """The manifest row of one finished render: the planned row (``plan["row"]``) and the worker's
+    RESULT line (``result``)."""
+    if result["rel_path"] != plan["rel_path"]:
+        raise ValueError(f"worker wrote {result['rel_path']}, planned {plan['rel_path']}")
+    return {
+        **plan["row"],
+        "lit_fraction": float(result["lit_fraction"]),
+        "mean_if": float(result["mean_if"]),
+        "sha256": result["sha256"],
+    }

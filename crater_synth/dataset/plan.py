@@ -2,7 +2,8 @@
 
 For each render of the sweep: camera pose, frame size, projected rim ellipse, sigma boxes and the crop
 actually rendered (full-frame pixels -> crop pixels), its seed, and the fingerprint of everything that
-changes its pixels (so a resumed run knows which files are still valid).
+changes its pixels or labels (:mod:`crater_synth.dataset.identity`), so a resumed run knows which
+files are still valid.
 """
 
 from __future__ import annotations
@@ -18,41 +19,14 @@ import numpy as np
 
 from crater_core import geometry, schema
 from crater_core.hapke import HapkeParams
-from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import CraterSettings, RenderSettings
 from crater_core.sweep import SweepGrid
 from crater_synth import __version__
 from crater_synth.errors import UserError
 
-# Render settings that change pixels (the execution-only ones -- threads, workers, retries, the horizon
-# cache directory -- do not). ``shadow_map_samples`` (the retired lit maps) is no setting any more; it
-# stays in the list, as null, so digests match those of datasets rendered since the horizon maps.
-DIGEST_RENDER_KEYS = (
-    "mode",
-    "samples",
-    "max_bounces",
-    "denoise",
-    "shadow_map_px",
-    "shadow_map_levels",
-    "shadow_map_extent_factor",
-    "shadow_map_samples",
-    "gbuffer_samples",
-    "roi_min_px",
-    "crop_to_roi",
-)
-
 
 def code_version() -> str:
     return f"crater-synth {__version__}"
-
-
-def render_digest(render: RenderSettings, hapke: HapkeParams, terrain_id: str) -> str:
-    """Fingerprint of everything besides the angles that changes the pixels of a render."""
-    r = render.as_dict()
-    payload = {"render": {k: r.get(k) for k in DIGEST_RENDER_KEYS}, "hapke": hapke_dict(hapke), "terrain": terrain_id}
-    if render.mode == "fast":  # fast-mode shadows come from horizon maps (crater_core.horizon)
-        payload["horizon_version"] = HORIZON_VERSION
-    return f"{zlib.crc32(json.dumps(payload, sort_keys=True).encode()):08x}"
 
 
 def hapke_dict(hapke: HapkeParams) -> dict:
@@ -97,6 +71,7 @@ def plan_render(
     u0, v0 = crop[0], crop[1]
     return {
         "params": p,
+        "rel_path": schema.render_rel_path(crater.name, p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth),
         "range_m": range_m,
         "frame_width": width,
         "crop": crop,
@@ -128,7 +103,7 @@ def worker_item(
 ) -> dict:
     """One entry of a worker job's ``renders`` list (docs/renderer.md, "Worker contract")."""
     p = plan["params"]
-    rel = schema.render_rel_path(crater.name, p.sun_elevation, p.sun_azimuth, p.cam_elevation, p.cam_azimuth)
+    rel = plan["rel_path"]
     header = {
         "crater": crater.name,
         "terrain_id": meta["terrain_id"],
@@ -143,6 +118,9 @@ def worker_item(
         "rim_ellipse": json.dumps(plan["rim_ellipse"]),
         "hapke": json.dumps(hapke_dict(hapke), sort_keys=True),
         "seed": plan["seed"],
+        # The manifest row this render is made for (less the worker's stats and the file's sha256),
+        # sealed with the pixels by the worker: crater_synth.dataset.recover rebuilds the row from it.
+        "manifest_row": schema.dumps_row(plan["row"]),
     }
     return {
         "index": p.index,
