@@ -21,6 +21,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -213,6 +214,7 @@ class _LibraryStderr:
         import sys
 
         self.failed = True
+        self._sink: "IO[bytes] | None" = None
         try:
             sys.stderr.flush()
         except (AttributeError, ValueError, OSError):

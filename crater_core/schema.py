@@ -124,7 +124,8 @@ def _json_kind(value) -> str:
         return "boolean"
     if isinstance(value, (int, float)):
         return "number"
-    return {str: "string", list: "array"}.get(type(value), type(value).__name__)
+    names: dict[type, str] = {str: "string", list: "array"}
+    return names.get(type(value), type(value).__name__)
 
 
 def check_rel_path(rel: str, where: str = "manifest row") -> str:
@@ -284,10 +285,10 @@ def iter_rows(path: str | os.PathLike, strict: bool = False) -> Iterator[dict]:
             raise ManifestError(f"manifest {path} does not exist")
         return
     for _, row, error in manifest_lines(path):
-        if error is None:
+        if row is not None:
             yield row
         elif strict:
-            raise ManifestError(error)
+            raise ManifestError(str(error))
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
