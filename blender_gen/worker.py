@@ -26,7 +26,9 @@ from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
 RENDERER_VERSION = "blender_gen 1"
 # Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
 # bytes do not depend on the worker/thread layout (docs/distributed.md, "Determinism").
-EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries"}
+# ``blender`` (the host's path to a Blender binary) says where the worker ran; the header records the
+# version that ran instead (crater_synth:blender).
+EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries", "blender"}
 _RESERVED_EXR_KEYS = {
     "compression",
     "DateTime",
@@ -115,10 +117,11 @@ def _watch_parent(interval_s: float = 1.0) -> None:
     threading.Thread(target=watch, name="watch-host", daemon=True).start()
 
 
-def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
+def header_for(job: dict, cfg: dict, item: dict, mode_used: str, blender_version: str = "") -> dict:
     """Every render parameter, as EXR header attributes (str/int/float)."""
     hdr = {
         "crater_synth:renderer": RENDERER_VERSION,
+        "crater_synth:blender": blender_version,
         "crater_synth:mode": mode_used,
         "crater_synth:index": int(item["index"]),
         "crater_synth:indices": json.dumps(item.get("indices", [])),
@@ -151,13 +154,17 @@ def run(job_path: str) -> int:
 
     import numpy as np
 
-    from blender_gen import direct, fast, render
+    from blender_gen import compat, direct, fast, render
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector
     from crater_core import exr
     from crater_core.hapke import HapkeParams
 
+    problem = compat.check_version()
+    if problem:
+        raise JobError(problem)
+    blender_version = compat.version_string()
     try:
         cfg = render_settings(job.get("render"))
         HapkeParams.from_mapping(job["hapke"])
@@ -198,7 +205,7 @@ def run(job_path: str) -> int:
             path = os.path.join(out_dir, item["rel_path"])
             t2 = time.perf_counter()
             radiance = chans["IF"]
-            sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used))
+            sha = exr.write_exr(path, chans, header_for(job, cfg, item, mode_used, blender_version))
             t_write += time.perf_counter() - t2
             emit(
                 "RESULT",
@@ -211,6 +218,7 @@ def run(job_path: str) -> int:
                     "mean_if": round(float(np.mean(radiance)), 8),
                     "seconds": round(time.perf_counter() - t1, 4),
                     "mode": mode_used,
+                    "blender": blender_version,
                 },
             )
             _stop_if_asked()
