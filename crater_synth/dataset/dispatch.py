@@ -1,8 +1,9 @@
 """Dispatch: Blender worker processes, their protocol lines, retries, and a clean stop.
 
 The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker JOB``,
-or ``blender --background --python blender_gen/worker.py -- JOB`` with ``render.blender``) that imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT``
-line per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
+or ``blender --background --python blender_gen/worker.py -- JOB`` with ``render.blender``) that
+imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT`` line
+per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
 its unfinished renders (``render.max_retries``). When the host stops early (an error, SIGTERM,
 Ctrl-C), every worker gets SIGTERM, the host keeps reading their RESULT lines until they exit (a
 render written is a render recorded), kills what is left after a grace period, and removes the
