@@ -21,7 +21,9 @@ import traceback
 if __package__ in (None, ""):  # run as a script (blender --python blender_gen/worker.py)
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
+# Python modules the worker needs besides bpy and the standard library. A Blender binary runs its own
+# (or the system's) Python, which may lack them: checked first, so that the host gets one ERROR line.
+REQUIRED_MODULES = {"numpy": "python3-numpy", "OpenImageIO": "python3-openimageio"}
 
 RENDERER_VERSION = "blender_gen 1"
 # Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
@@ -148,7 +150,28 @@ def header_for(job: dict, cfg: dict, item: dict, mode_used: str, blender_version
     return hdr
 
 
+def missing_modules() -> str | None:
+    """One line naming the required modules this Python lacks (None when it has them all)."""
+    missing = []
+    for name in REQUIRED_MODULES:
+        try:
+            __import__(name)
+        except ImportError:
+            missing.append(name)
+    if not missing:
+        return None
+    debs = " ".join(REQUIRED_MODULES[m] for m in missing)
+    where = f"{sys.version.split()[0]}, modules from {os.path.dirname(os.__file__)}"
+    which = "it" if len(missing) == 1 else "them"
+    return (
+        f"this Blender's Python ({where}) lacks {', '.join(missing)}: "
+        f"install {which} for that Python (Debian: apt-get install {debs})"
+    )
+
+
 def run(job_path: str) -> int:
+    from blender_gen.job import JobError, load_job, load_terrain
+
     job = load_job(job_path)
     terrain = load_terrain(job["terrain_npz"])  # errors before bpy is even imported
 
@@ -259,6 +282,12 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
         return 2
+    problem = missing_modules()
+    if problem:
+        emit("ERROR", problem)
+        return 2
+    from blender_gen.job import JobError
+
     try:
         return run(args[0])
     except BrokenPipeError:  # the host went away: nobody is left to tell

@@ -19,6 +19,8 @@ A missing or too-old binary is one clear error (tested without any Blender: a st
 from __future__ import annotations
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -179,3 +181,17 @@ def test_version_parsing_and_limits():
     assert compat.version_problem((5, 0, 1), "x") is None
     assert "Blender 3.3.0, too old" in compat.version_problem((3, 3, 0), "x")
     assert "cannot tell its Blender version" in compat.version_problem(None, "x")
+
+
+def test_worker_without_openimageio_is_one_clear_error(tmp_path):
+    """A Blender binary's Python without OpenImageIO (Debian: python3-openimageio not installed): the
+    worker's first and only stdout line says what to install, exit 2, before any job is read."""
+    code = (
+        "import runpy, sys; sys.modules['OpenImageIO'] = None; "  # hides the module: its import fails
+        f"sys.argv = ['worker', {str(tmp_path / 'job.json')!r}]; "
+        "runpy.run_module('blender_gen.worker', run_name='__main__')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=cr.REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stdout.splitlines()
+    assert line.startswith("ERROR ") and "lacks OpenImageIO" in line and "python3-openimageio" in line, line
