@@ -120,6 +120,7 @@ NEUTRAL_LATER_KEYS = {
     ("train", "augment_offset_frac"): 0.0,
     ("train", "tta_rotations"): 1,
     ("train", "preprocess", "support"): "square",
+    ("render", "blender"): None,  # null: the bpy module, as every run before the setting existed
 }
 
 
