@@ -26,11 +26,15 @@ $(VENV)/.installed: $(BIN)/activate pyproject.toml
 
 setup: $(VENV)/.installed ## Create .venv, install the project (editable), the embedded real data and the IAU crater list
 
-test-deps: ## Install Debian chromium for the report's browser test (as root; skipped otherwise)
-	@if command -v chromium >/dev/null; then :; \
+# Debian packages of the tests that need programs outside the venv: chromium (the report's browser test) and
+# Blender with its Python modules (tests/test_blender_binary.py: the worker under a real `blender` binary).
+TEST_DEBS := chromium blender python3-numpy python3-openimageio
+test-deps: ## Install Debian chromium and blender (+ python3-numpy, python3-openimageio) for their tests (as root; skipped otherwise)
+	@missing=""; for p in $(TEST_DEBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -z "$$missing" ]; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
-	else echo "warning: chromium missing and not root: the report browser test will be skipped"; fi
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	else echo "warning: not root, missing Debian packages:$$missing: the report browser test and the blender-binary tests will be skipped"; fi
 
 test: setup test-deps ## Run the fast test suite (slow tests: make test-slow)
 	$(BIN)/python -m pytest -q

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import bpy
 
+from blender_gen import compat
 from crater_core import hapke
 
 MU0_EPS = 1e-4  # floor of mu0 in the 1/mu0 colour weights (terminator; r_Hapke ~ mu0 there)
@@ -148,7 +149,7 @@ def _dot(tree, a_socket, b_socket):
 def build_terrain_material(params: hapke.HapkeParams, name: str = "terrain_hapke") -> bpy.types.Material:
     """The terrain material (all three modes); see the module docstring."""
     mat = bpy.data.materials.new(name)
-    tree = mat.node_tree
+    tree = compat.node_tree(mat)
     for node in list(tree.nodes):
         tree.nodes.remove(node)
     ops = NodeOps(tree)
@@ -180,10 +181,10 @@ def build_terrain_material(params: hapke.HapkeParams, name: str = "terrain_hapke
     tree.links.new(diffuse.outputs[0], out.inputs["Surface"])
 
     aov_p = tree.nodes.new("ShaderNodeOutputAOV")
-    aov_p.aov_name = AOV_POSITION
+    compat.set_aov_name(aov_p, AOV_POSITION)
     tree.links.new(geo.outputs["Position"], aov_p.inputs["Color"])
     aov_c = tree.nodes.new("ShaderNodeOutputAOV")
-    aov_c.aov_name = AOV_COVERAGE
+    compat.set_aov_name(aov_c, AOV_COVERAGE)
     aov_c.inputs["Value"].default_value = 1.0
 
     mat["hapke_nodes"] = ops.n_nodes

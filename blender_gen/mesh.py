@@ -11,6 +11,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from blender_gen import compat
+
 
 def _quads(rows: int, cols: int, keep: np.ndarray | None) -> np.ndarray:
     idx = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
@@ -57,7 +59,7 @@ def build_grid_mesh(
     me.loops.add(q.size)
     me.loops.foreach_set("vertex_index", q.astype(np.int32).ravel())
     me.polygons.add(len(q))
-    me.polygons.foreach_set("loop_start", np.arange(0, q.size, 4, dtype=np.int32))
+    compat.set_polygon_loops(me, np.arange(0, q.size, 4, dtype=np.int32), np.full(len(q), 4, dtype=np.int32))
     me.polygons.foreach_set("use_smooth", np.ones(len(q), dtype=bool))
     if grid_uv:
         r, c = np.divmod(uv_src, cols)

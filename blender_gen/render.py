@@ -14,6 +14,7 @@ import time
 import bpy
 import numpy as np
 
+from blender_gen import compat
 from crater_core.exr import read_multilayer
 from crater_core.files import SCRATCH_PREFIXES, remove_stale_scratch, scratch_file
 
@@ -48,4 +49,4 @@ def render_passes(scene) -> tuple[dict[str, np.ndarray], float]:
     t0 = time.perf_counter()
     bpy.ops.render.render(write_still=True)
     t_render = time.perf_counter() - t0
-    return read_multilayer(path), t_render
+    return compat.canonical_passes(read_multilayer(path)), t_render

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import bpy
 
-from blender_gen import material
+from blender_gen import compat, material
 
 # Default render settings: equal to configs/render/cycles_cpu.yaml (tests/test_docs_truth.py compares
 # them); the job's values win.
@@ -78,7 +78,7 @@ def setup_cycles(scene: bpy.types.Scene, cfg: dict) -> None:
     cyc.filter_width = 1.0
     cyc.film_exposure = 1.0
     cyc.use_auto_tile = False
-    cyc.use_light_tree = False  # one light
+    compat.set_optional(cyc, "use_light_tree", False)  # one light; Cycles without a light tree (< 3.5) samples it alike
     cyc.use_camera_cull = False
     cyc.use_distance_cull = False
 
@@ -100,7 +100,7 @@ def setup_cycles(scene: bpy.types.Scene, cfg: dict) -> None:
     scene.view_settings.gamma = 1.0
 
     world = bpy.data.worlds.new("black")
-    for node in world.node_tree.nodes:
+    for node in compat.node_tree(world).nodes:
         if node.bl_idname == "ShaderNodeBackground":
             node.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
             node.inputs["Strength"].default_value = 0.0
@@ -114,7 +114,4 @@ def setup_cycles(scene: bpy.types.Scene, cfg: dict) -> None:
     vl.use_pass_diffuse_direct = True
     material.register_aovs(vl)
 
-    img = r.image_settings
-    img.media_type = "MULTI_LAYER_IMAGE"
-    img.color_depth = "32"
-    img.exr_codec = "NONE"
+    compat.set_multilayer_exr_output(r.image_settings)

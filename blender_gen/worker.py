@@ -21,12 +21,17 @@ import traceback
 if __package__ in (None, ""):  # run as a script (blender --python blender_gen/worker.py)
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from blender_gen.job import JobError, load_job, load_terrain  # noqa: E402
+# Python modules the worker needs besides bpy and the standard library. A Blender binary runs its own
+# (or the system's) Python, which may lack them: checked first, so that the host gets one ERROR line.
+REQUIRED_MODULES = {"numpy": "python3-numpy", "OpenImageIO": "python3-openimageio"}
 
 RENDERER_VERSION = "blender_gen 1"
 # Render settings that change how a job runs, not its pixels: kept out of the EXR header so that the
 # bytes do not depend on the worker/thread layout (docs/distributed.md, "Determinism").
-EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries", "horizon_cache_dir"}
+# Host-side settings that do not change a pixel stay out of the header's render settings: ``blender`` (the
+# host's path to a Blender binary) says where the worker ran, and the header records the version that ran
+# instead (crater_synth:blender).
+EXECUTION_ONLY_KEYS = {"threads", "workers", "max_retries", "horizon_cache_dir", "blender"}
 _RESERVED_EXR_KEYS = {
     "compression",
     "DateTime",
@@ -115,10 +120,11 @@ def _watch_parent(interval_s: float = 1.0) -> None:
     threading.Thread(target=watch, name="watch-host", daemon=True).start()
 
 
-def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
+def header_for(job: dict, cfg: dict, item: dict, mode_used: str, blender_version: str = "") -> dict:
     """Every render parameter, as EXR header attributes (str/int/float)."""
     hdr = {
         "crater_synth:renderer": RENDERER_VERSION,
+        "crater_synth:blender": blender_version,
         "crater_synth:mode": mode_used,
         "crater_synth:index": int(item["index"]),
         "crater_synth:indices": json.dumps(item.get("indices", [])),
@@ -145,19 +151,44 @@ def header_for(job: dict, cfg: dict, item: dict, mode_used: str) -> dict:
     return hdr
 
 
+def missing_modules() -> str | None:
+    """One line naming the required modules this Python lacks (None when it has them all)."""
+    missing = []
+    for name in REQUIRED_MODULES:
+        try:
+            __import__(name)
+        except ImportError:
+            missing.append(name)
+    if not missing:
+        return None
+    debs = " ".join(REQUIRED_MODULES[m] for m in missing)
+    where = f"{sys.version.split()[0]}, modules from {os.path.dirname(os.__file__)}"
+    which = "it" if len(missing) == 1 else "them"
+    return (
+        f"this Blender's Python ({where}) lacks {', '.join(missing)}: "
+        f"install {which} for that Python (Debian: apt-get install {debs})"
+    )
+
+
 def run(job_path: str) -> int:
+    from blender_gen.job import JobError, load_job, load_terrain
+
     job = load_job(job_path)
     terrain = load_terrain(job["terrain_npz"])  # errors before bpy is even imported
 
     import numpy as np
 
-    from blender_gen import direct, fast, render
+    from blender_gen import compat, direct, fast, render
     from blender_gen.scene import render_settings
     from blender_gen.session import Session
     from blender_gen.sun import to_sun_vector
     from crater_core import exr
     from crater_core.hapke import HapkeParams
 
+    problem = compat.check_version()
+    if problem:
+        raise JobError(problem)
+    blender_version = compat.version_string()
     try:
         cfg = render_settings(job.get("render"))
         HapkeParams.from_mapping(job["hapke"])
@@ -201,7 +232,7 @@ def run(job_path: str) -> int:
                 "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
                 "mean_if": round(float(np.mean(chans["IF"])), 8),
             }
-            header = header_for(job, cfg, item, mode_used)
+            header = header_for(job, cfg, item, mode_used, blender_version)
             # The stats, and a seal over every attribute (the host's manifest row among them) and the
             # pixels: the row can be rebuilt from the file alone (crater_synth.dataset.recover).
             header["crater_synth:stats"] = json.dumps(stats, sort_keys=True)
@@ -216,6 +247,7 @@ def run(job_path: str) -> int:
                     **stats,
                     "seconds": round(time.perf_counter() - t1, 4),
                     "mode": mode_used,
+                    "blender": blender_version,
                 },
             )
             _stop_if_asked()
@@ -257,6 +289,12 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1:
         emit("ERROR", "usage: python -m blender_gen.worker JOB.json")
         return 2
+    problem = missing_modules()
+    if problem:
+        emit("ERROR", problem)
+        return 2
+    from blender_gen.job import JobError
+
     try:
         return run(args[0])
     except BrokenPipeError:  # the host went away: nobody is left to tell

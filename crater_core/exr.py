@@ -116,14 +116,15 @@ def _encode_oiio(
 
 def encoder():
     """The EXR encoder in use: the OpenEXR binding (a project dependency: 2-3x faster here, it takes
-    half channels as float16 arrays) or, where it is missing, OpenImageIO. Both write the same
+    half channels as float16 arrays) or, where it is missing or too old to have its ``File`` API
+    (OpenEXR < 3.3, e.g. a Blender binary's system Python), OpenImageIO. Both write the same
     channels, types, tiling, compression and header; their bytes differ, so one installation always
     uses the same one (byte-reproducible datasets)."""
     try:
-        import OpenEXR  # noqa: F401
+        import OpenEXR
     except ImportError:
         return _encode_oiio
-    return _encode_openexr
+    return _encode_openexr if hasattr(OpenEXR, "File") else _encode_oiio
 
 
 def encode_exr(

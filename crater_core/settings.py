@@ -216,6 +216,9 @@ class RenderSettings(_Group):
     gbuffer_samples: int
     workers: int
     max_retries: int = 2  # restarts of a dying Blender worker on its unfinished renders
+    # A Blender binary to run the workers with (``blender --background --python blender_gen/worker.py``);
+    # null: the bpy module of the host's Python. Its version is checked when the workers start.
+    blender: Optional[str] = None
 
     def _check(self):
         _need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
@@ -231,6 +234,12 @@ class RenderSettings(_Group):
         _need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
         _need(self.workers >= 1, "workers", self.workers, "must be >= 1")
         _need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
+        _need(
+            self.blender is None or bool(self.blender.strip()),
+            "blender",
+            self.blender,
+            "must be the path of a Blender binary (or null: the bpy module)",
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

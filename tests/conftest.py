@@ -3,6 +3,7 @@ autouse."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 from pathlib import Path
 
@@ -28,3 +29,30 @@ def tiny_dataset(tiny_data_dir):
         return proc
 
     return run
+
+
+# Set (to 1) where a Blender binary must be present, as in CI (.ci/run): its tests then fail instead of skipping.
+REQUIRE_BLENDER_ENV = "CRATER_SYNTH_REQUIRE_BLENDER"
+
+
+@pytest.fixture(scope="session")
+def blender_exe() -> str:
+    """The `blender` binary on PATH, checked to be a supported version (crater_synth.dataset.dispatch);
+    skips the test when there is none (fails instead with CRATER_SYNTH_REQUIRE_BLENDER=1)."""
+    import shutil
+
+    from crater_synth.dataset.dispatch import blender_binary
+    from crater_synth.errors import RenderError
+
+    required = os.environ.get(REQUIRE_BLENDER_ENV, "") not in ("", "0")
+    exe = shutil.which("blender")
+    if exe is None:
+        reason = "no `blender` binary on PATH (`make test-deps` installs Debian's Blender when run as root)"
+    else:
+        try:
+            return blender_binary(exe)[0]
+        except RenderError as exc:
+            reason = str(exc)
+    if required:
+        pytest.fail(f"{reason} ({REQUIRE_BLENDER_ENV} is set)")
+    pytest.skip(reason)

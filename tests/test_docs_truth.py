@@ -12,7 +12,15 @@ from crater_synth.config import compose, resolved
 ROOT = Path(__file__).resolve().parent.parent
 # Keys of the composed render group that only the host reads (never the Blender worker's RENDER_DEFAULTS).
 # (The horizon-map cache directory reaches the worker as the job's own `horizon_cache_dir`, not in `render`.)
-HOST_ONLY_RENDER_KEYS = {"device", "crop_to_roi", "roi_min_px", "workers", "max_retries", "horizon_cache_dir"}
+HOST_ONLY_RENDER_KEYS = {
+    "device",
+    "crop_to_roi",
+    "roi_min_px",
+    "workers",
+    "max_retries",
+    "horizon_cache_dir",
+    "blender",
+}
 # Keys of RENDER_DEFAULTS that are not render-group settings: the Cycles seed comes with each render item
 # (crater_synth.dataset derives it from the top-level `seed`); the default is only a fallback.
 WORKER_ONLY_RENDER_KEYS = {"seed"}

@@ -1,8 +1,9 @@
 """Dispatch: Blender worker processes, their protocol lines, retries, and a clean stop.
 
-The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker JOB``)
-that imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT``
-line per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
+The host never imports bpy: each worker is a separate process (``python -m blender_gen.worker JOB``,
+or ``blender --background --python blender_gen/worker.py -- JOB`` with ``render.blender``) that
+imports bpy once and renders a contiguous, camera-major block of renders, printing one ``RESULT`` line
+per finished render (docs/renderer.md, "Worker contract"). A worker that dies is restarted on
 its unfinished renders (``render.max_retries``). When the host stops early (an error, SIGTERM,
 Ctrl-C), every worker gets SIGTERM, the host keeps reading their RESULT lines until they exit (a
 render written is a render recorded), kills what is left after a grace period, and removes the
@@ -13,7 +14,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import selectors
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +24,7 @@ import threading
 import time
 from pathlib import Path
 
+from blender_gen import compat
 from crater_core import schema
 from crater_core.files import remove_stale_scratch
 from crater_core.settings import HapkeParams, RenderSettings
@@ -35,8 +39,49 @@ STOP_GRACE_S = 10.0
 _DISK_FULL_MARKERS = ("ENOSPC", "EDQUOT", "No space left on device", "Disk quota exceeded", "disk full")
 
 
-def worker_command(job_file: Path) -> list[str]:
-    return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
+# Seconds `blender --version` may take (a cold start of a Blender binary from a slow disk).
+BLENDER_VERSION_TIMEOUT_S = 120.0
+
+
+def worker_command(job_file: Path, blender: str | None = None) -> list[str]:
+    """The worker process for ``job_file``: the bpy module of this Python, or the Blender binary
+    ``blender`` running the worker script (``--factory-startup``: no user preferences or add-ons)."""
+    if blender is None:
+        return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
+    script = REPO_ROOT / "blender_gen" / "worker.py"
+    return [blender, "--background", "--factory-startup", "--python", str(script), "--", str(job_file)]
+
+
+def blender_binary(path: str) -> tuple[str, str]:
+    """(absolute path, version) of the Blender binary ``render.blender=path`` (a path, or a name on
+    PATH), checked to run and to be a supported version; otherwise one :class:`RenderError` line
+    naming the setting, the version found and the versions supported."""
+    what = f"render.blender={path}"
+    exe = shutil.which(path)
+    if exe is None:
+        found = "not executable" if os.path.exists(path) else "no such file (nor a command on PATH)"
+        raise RenderError(f"{what}: {found}; {compat.supported_text()}")
+    exe = os.path.abspath(exe)
+    try:
+        proc = subprocess.run(
+            [exe, "--factory-startup", "--version"],
+            capture_output=True,
+            text=True,
+            timeout=BLENDER_VERSION_TIMEOUT_S,
+            stdin=subprocess.DEVNULL,
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise RenderError(f"{what}: cannot run `{exe} --version` ({exc}); {compat.supported_text()}") from None
+    lines = (proc.stdout + "\n" + proc.stderr).splitlines()
+    head = next((ln.strip() for ln in lines if re.match(r"\s*Blender\s+\d", ln)), "")
+    version = compat.parse_version(head) if head else None
+    if proc.returncode != 0 and version is None:
+        tail = " ".join(lines[-3:]).strip() or f"exit status {proc.returncode}"
+        raise RenderError(f"{what}: `{exe} --version` failed: {tail}; {compat.supported_text()}")
+    problem = compat.version_problem(version, what)
+    if problem:
+        raise RenderError(problem)
+    return exe, ".".join(str(v) for v in version)  # type: ignore[union-attr]
 
 
 # What one more work unit costs, in renders' worth of time: a worker start-up (python and bpy import
@@ -121,6 +166,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
     """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
     processes; ``on_result(job, plan, result)`` is called for each finished render."""
     n_workers = render.workers
+    blender = blender_binary(render.blender)[0] if render.blender is not None else None
     jobs_dir = out_dir / JOBS_DIR
     jobs_dir.mkdir(parents=True, exist_ok=True)
     render_cfg = render.as_dict()
@@ -159,7 +205,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
         schema.atomic_write_text(job_file, json.dumps(spec))
         log = open(job_file.with_suffix(".log"), "ab")
         proc = subprocess.Popen(
-            worker_command(job_file),
+            worker_command(job_file, blender),
             stdout=subprocess.PIPE,
             stderr=log,
             cwd=REPO_ROOT,

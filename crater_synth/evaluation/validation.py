@@ -113,6 +113,7 @@ NEUTRAL_LATER_KEYS = {
     ("train", "tta_rotations"): 1,
     ("train", "preprocess", "support"): "square",
     ("realset", "frames"): [],  # georeferenced real frames: none unless asked for
+    ("render", "blender"): None,  # null: the bpy module, as every run before the setting existed
 }
 
 

@@ -18,6 +18,12 @@ import numpy as np
 from crater_core import geometry, hapke
 
 REPO = Path(__file__).resolve().parents[2]
+# Fast-vs-direct I/F tolerances, per render (docs/renderer.md, "Accuracy of fast vs direct"); the two
+# Blender backends are held to the same ones (tests/test_blender_binary.py).
+FAST_MEAN_TOL = 0.015  # |mean(fast) / mean(direct) - 1|
+FAST_MAD_TOL = 0.03  # mean |fast - direct| / median(direct I/F of lit pixels)
+FAST_OUTLIER_TOL = 0.05  # fraction of pixels with |fast - direct| > 10 % of that median (shadow edges)
+LIT_MAD_TOL = 0.02  # mean |lit_fast - lit_direct|
 R_MOON = geometry.MOON_RADIUS_M
 HAPKE = {"w": 0.32, "xi": -0.25, "b0": 1.0, "h": 0.06, "theta_bar_deg": 23.657}
 
