@@ -32,8 +32,11 @@ from helpers import render as cr
 from helpers.cli import TINY, run_cli
 
 MODES = ("fast", "direct")
-# Manifest keys measured from the pixels (they differ as the pixels do); every other key is a label.
+# Manifest keys measured from the pixels (they differ as the pixels do), and the render identity, which
+# holds render.blender on purpose: a dataset resumed with the other backend renders again rather than mix
+# two renderers' pixels (docs/manifest.md). Every other key is a label.
 PIXEL_KEYS = {"sha256", "mean_if", "lit_fraction"}
+IDENTITY_KEYS = {"render_digest"}
 GEOMETRY_RTOL = 1e-4
 # At 16 samples the normal pass is a pixel average over each version's own sample pattern: the
 # fast-vs-direct geometry tolerance (tests/test_render_physics.py) bounds the mean difference.
@@ -85,8 +88,9 @@ def _pairs(sweep, mode: str, samples: int):
 def test_same_labels(sweep, mode):
     for samples in (1, 16):
         for row_a, row_b, _, _ in _pairs(sweep, mode, samples):
-            labels_a = {k: v for k, v in row_a.items() if k not in PIXEL_KEYS}
-            labels_b = {k: v for k, v in row_b.items() if k not in PIXEL_KEYS}
+            labels_a = {k: v for k, v in row_a.items() if k not in PIXEL_KEYS | IDENTITY_KEYS}
+            labels_b = {k: v for k, v in row_b.items() if k not in PIXEL_KEYS | IDENTITY_KEYS}
+            assert row_a["render_digest"] != row_b["render_digest"]  # the backend is part of the identity
             assert labels_a == labels_b, {
                 k: (labels_a.get(k), labels_b.get(k)) for k in labels_a if labels_a.get(k) != labels_b.get(k)
             }
