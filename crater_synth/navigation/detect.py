@@ -43,6 +43,10 @@ class DetectorParams:
     centre_shift: float = 0.2  # fraction of r, along the light direction
     threshold: float = 0.5
     n_azimuths: int = 24
+    # The strongest derivative tail points towards the Sun (True: the rise from a rim's cast shadow to
+    # the lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
+    tail_points_to_sun: bool = True
+    light_method: str = "tensor"  # "tensor" (structure-tensor axis + tail sign) or "tail" (tail alone)
     azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
     azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
@@ -50,6 +54,11 @@ class DetectorParams:
     # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off
     # (the evaluated default); a validation-only experiment, docs/navigation.md.
     concentric_r: float = 0.0
+    concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or filter score
+    method: str = "filter"  # "filter" (classical) or "template" (Hapke template NCC, .template)
+    template_threshold: float = 0.35  # NCC of a template candidate
+    template_sun_el_deg: float = 10.0  # Sun elevation the template is shaded at
+    template_depth_d: float = 0.2  # template bowl depth / diameter
     border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
     refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
@@ -92,9 +101,9 @@ def _decimation(sigma: float) -> int:
     return int(min(16, 2 ** max(0, math.floor(math.log2(max(sigma / 3.0, 1.0))))))
 
 
-def _derivative(spec, shape, sigma: float, du: float, dv: float, step: int = 1) -> np.ndarray:
-    """sigma x d . grad (G_sigma * I) for unit d = (du, dv) on the padded grid decimated by ``step``
-    (the spectrum cropped to the decimated grid's band: one small inverse FFT per scale)."""
+def _filtered(spec, shape, sigma: float, step: int, du: float | None = None, dv: float | None = None) -> np.ndarray:
+    """G_sigma * I (``du`` None) or sigma x d . grad (G_sigma * I) for unit d = (du, dv), on the padded
+    grid decimated by ``step`` (the spectrum cropped to the decimated grid's band: one small inverse FFT)."""
     from scipy import fft
 
     hp, wp = shape
@@ -103,18 +112,55 @@ def _derivative(spec, shape, sigma: float, du: float, dv: float, step: int = 1) 
     sub = spec[rows, : ws // 2 + 1]
     ku = 2.0 * np.pi * fft.rfftfreq(ws)[None, :] / step
     kv = 2.0 * np.pi * fft.fftfreq(hs)[:, None] / step
-    transfer = 1j * (ku * du + kv * dv) * np.exp(-0.5 * sigma * sigma * (ku * ku + kv * kv))
+    transfer = np.exp(-0.5 * sigma * sigma * (ku * ku + kv * kv))
+    if du is None:
+        return fft.irfft2(sub * transfer, s=(hs, ws), workers=-1) / (step * step)
+    transfer = 1j * (ku * du + kv * dv) * transfer
     return sigma * fft.irfft2(sub * transfer, s=(hs, ws), workers=-1) / (step * step)
 
 
+def _derivative(spec, shape, sigma: float, du: float, dv: float, step: int = 1) -> np.ndarray:
+    """sigma x d . grad (G_sigma * I) for unit d = (du, dv) on the padded grid decimated by ``step``."""
+    return _filtered(spec, shape, sigma, step, du, dv)
+
+
+def light_axis(grads) -> float:
+    """Axis of the light (radians modulo pi) from the frame's gradient structure tensor.
+
+    Shading at low Sun responds to the terrain slope along the Sun's azimuth only, so for terrain
+    without a preferred direction the image gradient energy is largest along the light's axis
+    (|grad I|^2 spectrum ~ cos^2 of the angle to the light): the principal axis of the tensor
+    sum(grad I grad I^T) over the whole frame, pooled over the scales, is the light's axis. A whole-frame
+    statistic, so one crater field's geometry cannot pull it the way the strongest few responses can.
+    """
+    juu = jvv = juv = 0.0
+    for gu, gv in grads:
+        # Each scale normalised by its total energy, so no scale dominates the pooled estimate.
+        e = float(np.mean(gu * gu + gv * gv)) or 1.0
+        juu += float(np.mean(gu * gu)) / e
+        jvv += float(np.mean(gv * gv)) / e
+        juv += float(np.mean(gu * gv)) / e
+    return 0.5 * math.atan2(2.0 * juv, juu - jvv)
+
+
 def light_azimuth(spec, shape, params: DetectorParams) -> float:
-    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring)."""
+    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring).
+
+    ``params.light_method`` "tensor": the axis from :func:`light_axis`, its sign (of the two opposite
+    directions) by the derivative tail below; "tail": the tail over ``n_azimuths`` directions alone."""
     grads = []
     for s in params.azimuth_sigmas_px:
         step = _decimation(s)
         grads.append((_derivative(spec, shape, s, 1.0, 0.0, step), _derivative(spec, shape, s, 0.0, 1.0, step)))
+    if params.light_method == "tensor":
+        axis = light_axis(grads)
+        candidates = np.array([axis, axis + math.pi])
+    elif params.light_method == "tail":
+        candidates = np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths
+    else:
+        raise ValueError(f"light_method {params.light_method!r}: expected 'tensor' or 'tail'")
     best, best_score = 0.0, -np.inf
-    for theta in np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths:
+    for theta in candidates:
         c, s = math.cos(theta), math.sin(theta)
         score = 0.0
         for gu, gv in grads:
@@ -125,7 +171,7 @@ def light_azimuth(spec, shape, params: DetectorParams) -> float:
             best, best_score = float(theta), score
     # The strongest rise is at the Sun-side rim: from the shadow cast by the rim crest up to the lit
     # terrain beyond it, i.e. towards the Sun (seen on validation windows). The light travels the other way.
-    return (best + math.pi) % (2.0 * math.pi)
+    return (best + (math.pi if params.tail_points_to_sun else 0.0)) % (2.0 * math.pi)
 
 
 def _peaks(resp: np.ndarray, threshold: float):
@@ -165,18 +211,15 @@ def suppress(u, v, r, score, centre_r: float, radius_ratio: float) -> np.ndarray
     return order[np.array(keep)]
 
 
-def detect(
-    image: np.ndarray, params: DetectorParams = DetectorParams(), light_dir: float | None = None, what: str = "frame"
-):
-    """Craters in ``image`` (2-D): (list of :class:`Detection`, light azimuth used in radians)."""
-    a = check_frame(image, what)
-    a = (a - a.mean()) / a.std()
-    h, w = a.shape
+def scale_radii(params: DetectorParams, shape) -> np.ndarray:
+    """Crater radii (px) searched: ``min_radius_px`` up by ``scale_ratio``, at most half the frame."""
     n_scales = int(math.floor(math.log(params.max_radius_px / params.min_radius_px) / math.log(params.scale_ratio))) + 1
     radii = params.min_radius_px * params.scale_ratio ** np.arange(n_scales)
-    radii = radii[radii <= 0.5 * min(h, w)]
-    spec, shape = _spectrum(a)
-    theta = light_azimuth(spec, shape, params) if light_dir is None else float(light_dir)
+    return radii[radii <= 0.5 * min(shape)]
+
+
+def _filter_candidates(spec, shape, radii, theta: float, params: DetectorParams):
+    """Maxima of the shadow-to-limb derivative filter over scales: (u, v, r, score) in frame pixels."""
     du, dv = math.cos(theta), math.sin(theta)
     us, vs, rs, ss = [], [], [], []
     for r in radii:
@@ -190,20 +233,48 @@ def detect(
         rs.append(np.full(c.size, r))
         ss.append(c)
     u, v, r, score = (np.concatenate(x) for x in (us, vs, rs, ss))
-    u = u - params.centre_shift * r * du
-    v = v - params.centre_shift * r * dv
+    return u - params.centre_shift * r * du, v - params.centre_shift * r * dv, r, score
+
+
+def detect(
+    image: np.ndarray, params: DetectorParams = DetectorParams(), light_dir: float | None = None, what: str = "frame"
+):
+    """Craters in ``image`` (2-D): (list of :class:`Detection`, light azimuth used in radians).
+
+    ``params.method`` "filter": the classical shadow/limb derivative filter (module docstring);
+    "template": normalised cross-correlation with a Hapke-shaded crater template at the frame's light
+    direction (:mod:`crater_synth.navigation.template`). Both share the light estimate, the rim fit and
+    the suppression of overlapping and concentric detections."""
+    a = check_frame(image, what)
+    a = (a - a.mean()) / a.std()
+    h, w = a.shape
+    radii = scale_radii(params, a.shape)
+    spec, shape = _spectrum(a)
+    theta = light_azimuth(spec, shape, params) if light_dir is None else float(light_dir)
+    if params.method == "filter":
+        u, v, r, score = _filter_candidates(spec, shape, radii, theta, params)
+    elif params.method == "template":
+        from crater_synth.navigation.template import template_candidates
+
+        u, v, r, score = template_candidates(spec, shape, radii, theta, params)
+    else:
+        raise ValueError(f"detector method {params.method!r}: expected 'filter' or 'template'")
     b = params.border_r * r
     inside = (u >= b) & (u <= w - b) & (v >= b) & (v <= h - b)
     u, v, r, score = u[inside], v[inside], r[inside], score[inside]
+    quality = np.ones_like(score)
     if params.refine:
         top = np.argsort(-score)[: params.max_candidates]
         u, v, r, score = u[top], v[top], r[top], score[top]
-        u, v, r, ok = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
-        u, v, r, score = u[ok], v[ok], r[ok], score[ok]
+        u, v, r, ok, quality = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
+        u, v, r, score, quality = u[ok], v[ok], r[ok], score[ok], quality[ok]
     keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
     if params.concentric_r > 0:
-        u, v, r, score = u[keep], v[keep], r[keep], score[keep]
-        keep = suppress(u, v, r, score, params.concentric_r, math.inf)
+        u, v, r, score, quality = u[keep], v[keep], r[keep], score[keep], quality[keep]
+        # Among concentric detections (one crater seen at several scales) keep the best rim fit: the
+        # share of edge points on the circle, the filter score breaking ties.
+        rank = score if params.concentric_rank == "score" else quality + 1e-3 * score / (1.0 + np.abs(score).max())
+        keep = suppress(u, v, r, rank, params.concentric_r, math.inf)
     return [Detection(float(u[k]), float(v[k]), float(r[k]), float(score[k])) for k in keep], theta
 
 
@@ -219,8 +290,9 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     flank begins (the strongest outward *rise* of intensity); along a ray away from the Sun it is where
     the bright limb ends (the strongest outward *fall*). Rays across the light carry no such edge and are
     skipped. A robust circle through these edge points (``crater_synth.terrain.catalogue._robust_circle``, the
-    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok): ``ok`` False where
-    fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible.
+    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok, quality): ``ok`` False
+    where fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible;
+    ``quality`` the share of edge points on the circle.
     """
     from scipy.ndimage import gaussian_filter, map_coordinates
 
@@ -228,7 +300,7 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
 
     n = len(u)
     if n == 0:
-        return u, v, r, np.zeros(0, bool)
+        return u, v, r, np.zeros(0, bool), np.zeros(0)
     sm = gaussian_filter(a, 1.0)
     alpha = np.arange(RIM_AZIMUTHS) * 2.0 * np.pi / RIM_AZIMUTHS
     c = np.cos(alpha - theta)  # > 0: ray along the light's travel (away from the Sun)
@@ -245,9 +317,11 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     ey = mid * np.sin(alpha)[None, :]
     out_u, out_v, out_r = u.copy(), v.copy(), r.copy()
     ok = np.zeros(n, bool)
+    quality = np.zeros(n)
     for i in range(n):
         centre, rad, inl, _ = _robust_circle(ex[i], ey[i], 0.05 * r[i])
+        quality[i] = inl.mean()
         if inl.mean() >= min_inliers and 0.6 * r[i] <= rad <= 1.5 * r[i] and np.hypot(*centre) <= 0.5 * r[i]:
             out_u[i], out_v[i], out_r[i] = u[i] + centre[0], v[i] + centre[1], rad
             ok[i] = True
-    return out_u, out_v, out_r, ok
+    return out_u, out_v, out_r, ok, quality
