@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from crater_synth.errors import UserError
 from crater_synth.navigation.frames import check_frame
 
 
@@ -46,7 +47,11 @@ class DetectorParams:
     # The strongest derivative tail points towards the Sun (True: the rise from a rim's cast shadow to
     # the lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
     tail_points_to_sun: bool = True
-    light_method: str = "tensor"  # "tensor" (structure-tensor axis + tail sign) or "tail" (tail alone)
+    light_method: str = "tensor"
+    # Real mosaic windows (evaluate.run_frame): "frame" estimates the light per window; "quadrant" uses one
+    # estimate pooled over the validation windows of the window's mosaic quadrant (one Sun per quadrant).
+    # detect() itself always takes light_dir or estimates it on its frame.
+    light_scope: str = "frame"  # "tensor" (structure-tensor axis + tail sign) or "tail" (tail alone)
     azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
     azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
@@ -64,8 +69,30 @@ class DetectorParams:
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
     max_candidates: int = 400  # strongest filter maxima refined per frame
 
+    def __post_init__(self):
+        choices = {
+            "method": ("filter", "template"),
+            "light_method": ("tensor", "tail"),
+            "light_scope": ("frame", "quadrant"),
+            "concentric_rank": ("rim", "score"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise DetectorSettingsError(f"detect.{name}={getattr(self, name)!r}: expected one of {allowed}")
+        if not 0 < self.min_radius_px < self.max_radius_px or self.scale_ratio <= 1.0:
+            raise DetectorSettingsError(
+                f"detect radii: need 0 < min_radius_px ({self.min_radius_px}) < max_radius_px "
+                f"({self.max_radius_px}) and scale_ratio ({self.scale_ratio}) > 1"
+            )
+        if not 0.0 < self.template_sun_el_deg < 90.0:
+            raise DetectorSettingsError(f"detect.template_sun_el_deg={self.template_sun_el_deg}: expected in (0, 90)")
+
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+class DetectorSettingsError(UserError):
+    """A detector setting out of its allowed values."""
 
 
 @dataclass(frozen=True)
@@ -143,35 +170,65 @@ def light_axis(grads) -> float:
     return 0.5 * math.atan2(2.0 * juv, juu - jvv)
 
 
-def light_azimuth(spec, shape, params: DetectorParams) -> float:
-    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring).
-
-    ``params.light_method`` "tensor": the axis from :func:`light_axis`, its sign (of the two opposite
-    directions) by the derivative tail below; "tail": the tail over ``n_azimuths`` directions alone."""
+def _azimuth_grads(spec, shape, params: DetectorParams):
+    """Gaussian-derivative images (d/du, d/dv) at the ``azimuth_sigmas_px`` scales."""
     grads = []
     for s in params.azimuth_sigmas_px:
         step = _decimation(s)
         grads.append((_derivative(spec, shape, s, 1.0, 0.0, step), _derivative(spec, shape, s, 0.0, 1.0, step)))
-    if params.light_method == "tensor":
-        axis = light_axis(grads)
-        candidates = np.array([axis, axis + math.pi])
-    elif params.light_method == "tail":
-        candidates = np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths
-    else:
-        raise ValueError(f"light_method {params.light_method!r}: expected 'tensor' or 'tail'")
-    best, best_score = 0.0, -np.inf
-    for theta in candidates:
+    return grads
+
+
+def _tail_scores(grads, candidates, params: DetectorParams) -> np.ndarray:
+    """Per candidate direction: summed over scales, the mean of the top ``azimuth_tail`` share of the
+    directional derivative."""
+    out = np.zeros(len(candidates))
+    for n, theta in enumerate(candidates):
         c, s = math.cos(theta), math.sin(theta)
-        score = 0.0
         for gu, gv in grads:
             r = (c * gu + s * gv).ravel()
             k = max(1, int(params.azimuth_tail * r.size))
-            score += float(np.partition(r, r.size - k)[-k:].mean())
-        if score > best_score:
-            best, best_score = float(theta), score
+            out[n] += float(np.partition(r, r.size - k)[-k:].mean())
+    return out
+
+
+def _candidates(grads, params: DetectorParams) -> np.ndarray:
+    if params.light_method == "tensor":
+        axis = light_axis(grads)
+        return np.array([axis, axis + math.pi])
+    if params.light_method == "tail":
+        return np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths
+    raise ValueError(f"light_method {params.light_method!r}: expected 'tensor' or 'tail'")
+
+
+def _light_from(candidates, scores, params: DetectorParams) -> float:
     # The strongest rise is at the Sun-side rim: from the shadow cast by the rim crest up to the lit
-    # terrain beyond it, i.e. towards the Sun (seen on validation windows). The light travels the other way.
+    # terrain beyond it, i.e. towards the Sun (validation windows: the opposite sign halves the fix rate).
+    best = float(candidates[int(np.argmax(scores))])
     return (best + (math.pi if params.tail_points_to_sun else 0.0)) % (2.0 * math.pi)
+
+
+def light_azimuth(spec, shape, params: DetectorParams) -> float:
+    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring).
+
+    ``params.light_method`` "tensor": the axis from :func:`light_axis`, its sign (of the two opposite
+    directions) by the derivative tail; "tail": the tail over ``n_azimuths`` directions alone."""
+    grads = _azimuth_grads(spec, shape, params)
+    cand = _candidates(grads, params)
+    return _light_from(cand, _tail_scores(grads, cand, params), params)
+
+
+def pooled_light_azimuth(images, params: DetectorParams) -> float:
+    """One light direction for frames known to share one Sun (e.g. the windows of one mosaic quadrant,
+    imaged under one illumination): the structure tensor and the tail scores pooled over the frames."""
+    grads_all = []
+    for img in images:
+        a = check_frame(img, "frame")
+        spec, shape = _spectrum((a - a.mean()) / a.std())
+        grads_all.append(_azimuth_grads(spec, shape, params))
+    cand = _candidates([g for grads in grads_all for g in grads], params)
+    scores = sum(_tail_scores(grads, cand, params) for grads in grads_all)
+    return _light_from(cand, scores, params)
 
 
 def _peaks(resp: np.ndarray, threshold: float):

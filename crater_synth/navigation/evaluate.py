@@ -12,6 +12,7 @@ exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -79,9 +80,31 @@ def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) ->
     )
 
 
+@functools.lru_cache(maxsize=8)
+def quadrant_light(pole: str, quadrant: int, dparams: DetectorParams) -> float:
+    """Light direction of one mosaic quadrant (one Sun per quadrant, docs/navigation.md), pooled over the
+    *validation* windows of that quadrant only (its even sector), so no test pixel sets it."""
+    from crater_synth.navigation.detect import pooled_light_azimuth
+    from crater_synth.navigation.frames import windows
+
+    frames = [f for f in windows("validation", pole) if f.sector // 2 == quadrant]
+    if not frames:
+        raise UserError(f"no validation window in quadrant {quadrant} of the {pole} mosaic")
+    return pooled_light_azimuth([f.image for f in frames[::2]], dparams)
+
+
+def frame_light(frame: Frame, dparams: DetectorParams) -> float | None:
+    """The light direction to pass to the detector: None (estimate per frame) or the quadrant's."""
+    if dparams.light_scope == "frame":
+        return None
+    if dparams.light_scope == "quadrant":
+        return quadrant_light(frame.georef.pole, frame.sector // 2, dparams)
+    raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame' or 'quadrant'")
+
+
 def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0) -> dict:
     """Detection, identification and fix of one frame, scored against its truth."""
-    dets, theta = detect(frame.image, dparams, what=f"frame {frame.id}")
+    dets, theta = detect(frame.image, dparams, light_dir=frame_light(frame, dparams), what=f"frame {frame.id}")
     prior = prior_georef(frame, seed)
     fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
