@@ -95,6 +95,23 @@ class DetectorSettingsError(UserError):
     """A detector setting out of its allowed values."""
 
 
+# The two detection methods compared in ``nav-eval``, each with the settings chosen for it on validation
+# windows only (docs/navigation.md, "Protocol").
+PRESETS = {
+    "classical": DetectorParams(),
+    "template": DetectorParams(method="template"),
+}
+
+
+def preset(name: str, overrides: dict | None = None) -> DetectorParams:
+    """The detector settings of method ``name`` (a key of :data:`PRESETS`) with ``overrides`` applied."""
+    import dataclasses
+
+    if name not in PRESETS:
+        raise DetectorSettingsError(f"detection method {name!r}: expected one of {sorted(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **(overrides or {}))
+
+
 @dataclass(frozen=True)
 class Detection:
     """One detected crater in frame pixels (u right, v down, origin top-left corner)."""
