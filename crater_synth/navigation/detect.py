@@ -98,8 +98,16 @@ class DetectorSettingsError(UserError):
 # The two detection methods compared in ``nav-eval``, each with the settings chosen for it on validation
 # windows only (docs/navigation.md, "Protocol").
 PRESETS = {
-    "classical": DetectorParams(),
-    "template": DetectorParams(method="template"),
+    "classical": DetectorParams(light_method="tail", light_scope="quadrant", threshold=0.4),
+    "template": DetectorParams(
+        method="template",
+        light_method="tail",
+        light_scope="quadrant",
+        template_threshold=0.35,
+        template_sun_el_deg=10.0,
+        concentric_r=0.5,
+        concentric_rank="score",
+    ),
 }
 
 

@@ -99,7 +99,15 @@ def frame_light(frame: Frame, dparams: DetectorParams) -> float | None:
     if dparams.light_scope == "frame":
         return None
     if dparams.light_scope == "quadrant":
-        return quadrant_light(frame.georef.pole, frame.sector // 2, dparams)
+        # Keyed on the light settings only, so both detection methods share one estimate per quadrant.
+        light = DetectorParams(
+            light_method=dparams.light_method,
+            tail_points_to_sun=dparams.tail_points_to_sun,
+            n_azimuths=dparams.n_azimuths,
+            azimuth_sigmas_px=tuple(dparams.azimuth_sigmas_px),
+            azimuth_tail=dparams.azimuth_tail,
+        )
+        return quadrant_light(frame.georef.pole, frame.sector // 2, light)
     raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame' or 'quadrant'")
 
 
