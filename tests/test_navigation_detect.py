@@ -117,3 +117,16 @@ def test_bad_detector_input_gives_one_clear_error():
         DetectorParams(template_sun_el_deg=0.0)
     with pytest.raises(FrameError, match="empty"):
         detect(np.full((128, 128), 50.0), DetectorParams(method="template"), what="frame x")
+
+
+def test_setting_overrides_are_checked():
+    from crater_synth.navigation.evaluate import _params_with
+
+    d, _ = _params_with(("detect.template_threshold=0.5",), "template")
+    assert d.method == "template" and d.template_threshold == 0.5
+    d, _ = _params_with(('detect.method="template"',), "classical")
+    assert d.method == "template"
+    with pytest.raises(DetectorSettingsError, match="detect.light_scope='moon'"):
+        _params_with(("detect.light_scope=moon",), "classical")
+    with pytest.raises(DetectorSettingsError, match="detection method 'cnn'"):
+        _params_with((), "cnn")
