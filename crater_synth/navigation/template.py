@@ -120,8 +120,8 @@ def ncc(image: np.ndarray, template: np.ndarray) -> np.ndarray:
 
 def template_candidates(spec, shape, radii, theta: float, params):
     """NCC maxima over scales: (u, v, r, score) in frame pixels (``spec``, ``shape``: the padded frame's
-    spectrum from :func:`crater_synth.navigation.detect._spectrum`)."""
-    from crater_synth.navigation.detect import PAD_PX, _filtered, _peaks
+    spectrum from :func:`crater_synth.navigation.scalespace._spectrum`)."""
+    from crater_synth.navigation.scalespace import PAD_PX, _filtered, _peaks
 
     frames: dict[int, np.ndarray] = {}
     us, vs, rs, ss = [], [], [], []
