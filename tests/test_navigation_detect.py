@@ -52,10 +52,10 @@ def test_structure_tensor_recovers_the_light_axis(theta_deg):
 def test_light_direction_sign_on_synthetic_bowls(theta_deg):
     # On clean synthetic bowls the strongest rise runs with the light (shadow -> lit far wall); the real
     # mosaic's validation windows need the opposite convention (DetectorParams.tail_points_to_sun, docs).
-    _, theta = detect(crater_field(theta_deg), DetectorParams(tail_points_to_sun=False))
+    _, theta = detect(crater_field(theta_deg), DetectorParams(light_method="tensor", tail_points_to_sun=False))
     err = (math.degrees(theta) - theta_deg + 180.0) % 360.0 - 180.0
     assert abs(err) < 8.0
-    _, flipped = detect(crater_field(theta_deg), DetectorParams(tail_points_to_sun=True))
+    _, flipped = detect(crater_field(theta_deg), DetectorParams(light_method="tensor", tail_points_to_sun=True))
     assert abs((math.degrees(flipped) - theta_deg) % 360.0 - 180.0) < 8.0
 
 

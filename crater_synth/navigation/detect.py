@@ -13,13 +13,17 @@ whose centre lies ``centre_shift`` x r from the maximum along d (the shadow is w
 at low Sun, so the maximum is offset). The image is normalised to zero mean and unit standard
 deviation first, so the threshold does not depend on exposure.
 
-d is not given by a mosaic window (each quadrant of the mosaic has its own Sun): it is estimated per
-frame as the azimuth whose derivative at the mid scales has the strongest positive tail (craters
-outnumber hills on the Moon, and a crater's shadow-to-limb rise is its strongest feature). A caller
-that knows the Sun (a lander knows its attitude and the ephemeris) passes it instead.
+d is not given by a mosaic window: it is estimated per frame (:func:`light_azimuth`: the azimuth whose
+derivative at the mid scales has the strongest positive tail, or the axis of the frame's gradient
+structure tensor with the tail picking the sign), or pooled over frames known to share one Sun
+(:func:`pooled_light_azimuth`). A caller that knows the Sun (a lander knows its attitude and the
+ephemeris) passes it instead.
 
-Every setting (``DetectorParams``) was chosen on validation windows only (docs/navigation.md).
-The filtering is done in the Fourier domain: one forward FFT, one inverse FFT per scale.
+A second method (:mod:`crater_synth.navigation.template`: Hapke-shaded template, normalised
+cross-correlation) shares the light estimate, the rim fit and the suppression; ``DetectorParams.method``
+picks it. Every setting (``PRESETS``) was chosen on validation windows only (docs/navigation.md).
+The filtering is done in the Fourier domain (:mod:`.scalespace`): one forward FFT, one inverse FFT per
+scale.
 """
 
 from __future__ import annotations
@@ -51,11 +55,12 @@ class DetectorParams:
     # The strongest derivative tail points towards the Sun (True: the rise from a rim's cast shadow to
     # the lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
     tail_points_to_sun: bool = True
-    light_method: str = "tensor"
+    light_method: str = "tail"  # "tail" (tail alone; chosen on validation) or "tensor" (tensor axis + tail sign)
     # Real mosaic windows (evaluate.run_frame): "frame" estimates the light per window; "quadrant" uses one
-    # estimate pooled over the validation windows of the window's mosaic quadrant (one Sun per quadrant).
+    # estimate pooled over the validation windows of the window's mosaic quadrant (assumes one light
+    # direction per quadrant, which the test sectors refuted: docs/navigation.md, section 6).
     # detect() itself always takes light_dir or estimates it on its frame.
-    light_scope: str = "frame"  # "tensor" (structure-tensor axis + tail sign) or "tail" (tail alone)
+    light_scope: str = "frame"
     azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
     azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
