@@ -76,8 +76,9 @@ def test_detectors_leave_one_detection_per_synthetic_crater(method):
     theta = 30.0
     img = crater_field(theta, noise=2.0)
     dets, _ = detect(img, DetectorParams(method=method, concentric_r=0.5), light_dir=math.radians(theta))
-    for cu, cv, r in CRATERS:
-        assert len(_near(dets, cu, cv, r)) <= 1, (method, cu, cv, r, _near(dets, cu, cv, r))
+    counts = [len(_near(dets, cu, cv, r)) for cu, cv, r in CRATERS]
+    assert max(counts) <= 1, (method, counts)  # never two detections of one crater
+    assert sum(counts) >= 4, (method, counts)  # and the craters are found
 
 
 def test_template_method_finds_synthetic_craters():
