@@ -93,6 +93,10 @@ validate: setup ## Real validation protocol (docs/validation.md): choose on the 
 ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/off, validation + test)
 	$(CLI) ablate $(OVERRIDES)
 
+NAV_DEMO_DIR ?= outputs/navigate-demo
+navigate-demo: setup ## Crater navigation on a few real mosaic windows: both detectors, annotated PNGs, the table (NAV_DEMO_DIR)
+	$(BIN)/python -m crater_synth.navigation.demo --out $(NAV_DEMO_DIR)
+
 DEMO_DIR ?= outputs/demo
 DEMO_TRAIN ?= sim2real
 DEMO_SWEEP ?= demo_physical_noon
@@ -102,4 +106,4 @@ demo: setup ## The main job on the embedded data: render sweep=demo_physical_noo
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
-	experiments report bench validate ablate demo
+	experiments report bench validate ablate demo navigate-demo

@@ -13,13 +13,17 @@ whose centre lies ``centre_shift`` x r from the maximum along d (the shadow is w
 at low Sun, so the maximum is offset). The image is normalised to zero mean and unit standard
 deviation first, so the threshold does not depend on exposure.
 
-d is not given by a mosaic window (each quadrant of the mosaic has its own Sun): it is estimated per
-frame as the azimuth whose derivative at the mid scales has the strongest positive tail (craters
-outnumber hills on the Moon, and a crater's shadow-to-limb rise is its strongest feature). A caller
-that knows the Sun (a lander knows its attitude and the ephemeris) passes it instead.
+d is not given by a mosaic window: it is estimated per frame (:func:`light_azimuth`: the azimuth whose
+derivative at the mid scales has the strongest positive tail, or the axis of the frame's gradient
+structure tensor with the tail picking the sign), or pooled over frames known to share one Sun
+(:func:`pooled_light_azimuth`). A caller that knows the Sun (a lander knows its attitude and the
+ephemeris) passes it instead.
 
-Every setting (``DetectorParams``) was chosen on validation windows only (docs/navigation.md).
-The filtering is done in the Fourier domain: one forward FFT, one inverse FFT per scale.
+A second method (:mod:`crater_synth.navigation.template`: Hapke-shaded template, normalised
+cross-correlation) shares the light estimate, the rim fit and the suppression; ``DetectorParams.method``
+picks it. Every setting (``PRESETS``) was chosen on validation windows only (docs/navigation.md).
+The filtering is done in the Fourier domain (:mod:`.scalespace`): one forward FFT, one inverse FFT per
+scale.
 """
 
 from __future__ import annotations
@@ -29,7 +33,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from crater_synth.errors import UserError
 from crater_synth.navigation.frames import check_frame
+from crater_synth.navigation.scalespace import PAD_PX, _decimation, _filtered, _peaks, _spectrum
+from crater_synth.navigation.template import template_candidates
+
+__all__ = ["PAD_PX", "_decimation", "_filtered", "_peaks", "_spectrum"]  # re-exported for callers and tests
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,15 @@ class DetectorParams:
     centre_shift: float = 0.2  # fraction of r, along the light direction
     threshold: float = 0.5
     n_azimuths: int = 24
+    # The strongest derivative tail points towards the Sun (True: the rise from a rim's cast shadow to
+    # the lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
+    tail_points_to_sun: bool = True
+    light_method: str = "tail"  # "tail" (tail alone; chosen on validation) or "tensor" (tensor axis + tail sign)
+    # Real mosaic windows (evaluate.run_frame): "frame" estimates the light per window; "quadrant" uses one
+    # estimate pooled over the validation windows of the window's mosaic quadrant (assumes one light
+    # direction per quadrant, which the test sectors refuted: docs/navigation.md, section 6).
+    # detect() itself always takes light_dir or estimates it on its frame.
+    light_scope: str = "frame"
     azimuth_sigmas_px: tuple = (8.0, 12.0, 20.0)
     azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
@@ -50,13 +68,65 @@ class DetectorParams:
     # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off
     # (the evaluated default); a validation-only experiment, docs/navigation.md.
     concentric_r: float = 0.0
+    concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or filter score
+    method: str = "filter"  # "filter" (classical) or "template" (Hapke template NCC, .template)
+    template_threshold: float = 0.35  # NCC of a template candidate
+    template_sun_el_deg: float = 10.0  # Sun elevation the template is shaded at
+    template_depth_d: float = 0.2  # template bowl depth / diameter
     border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
     refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
     max_candidates: int = 400  # strongest filter maxima refined per frame
 
+    def __post_init__(self):
+        choices = {
+            "method": ("filter", "template"),
+            "light_method": ("tensor", "tail"),
+            "light_scope": ("frame", "quadrant"),
+            "concentric_rank": ("rim", "score"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise DetectorSettingsError(f"detect.{name}={getattr(self, name)!r}: expected one of {allowed}")
+        if not 0 < self.min_radius_px < self.max_radius_px or self.scale_ratio <= 1.0:
+            raise DetectorSettingsError(
+                f"detect radii: need 0 < min_radius_px ({self.min_radius_px}) < max_radius_px "
+                f"({self.max_radius_px}) and scale_ratio ({self.scale_ratio}) > 1"
+            )
+        if not 0.0 < self.template_sun_el_deg < 90.0:
+            raise DetectorSettingsError(f"detect.template_sun_el_deg={self.template_sun_el_deg}: expected in (0, 90)")
+
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+class DetectorSettingsError(UserError):
+    """A detector setting out of its allowed values."""
+
+
+# The two detection methods compared in ``nav-eval``, each with the settings chosen for it on validation
+# windows only (docs/navigation.md, "Protocol").
+PRESETS = {
+    "classical": DetectorParams(light_method="tail", light_scope="quadrant", threshold=0.4),
+    "template": DetectorParams(
+        method="template",
+        light_method="tail",
+        light_scope="quadrant",
+        template_threshold=0.35,
+        template_sun_el_deg=10.0,
+        concentric_r=0.5,
+        concentric_rank="score",
+    ),
+}
+
+
+def preset(name: str, overrides: dict | None = None) -> DetectorParams:
+    """The detector settings of method ``name`` (a key of :data:`PRESETS`) with ``overrides`` applied."""
+    import dataclasses
+
+    if name not in PRESETS:
+        raise DetectorSettingsError(f"detection method {name!r}: expected one of {sorted(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **(overrides or {}))
 
 
 @dataclass(frozen=True)
@@ -72,75 +142,89 @@ class Detection:
         return {k: round(float(v), 3) for k, v in asdict(self).items()}
 
 
-PAD_PX = 64  # reflected border around the frame before the FFT (the filters' edge effects stay outside)
-PAD_MULTIPLE = 64  # padded size a multiple of this, so every decimated grid is whole
-
-
-def _spectrum(a: np.ndarray):
-    from scipy import fft
-
-    h, w = a.shape
-    hp = -(-(h + 2 * PAD_PX) // PAD_MULTIPLE) * PAD_MULTIPLE
-    wp = -(-(w + 2 * PAD_PX) // PAD_MULTIPLE) * PAD_MULTIPLE
-    p = np.pad(a, ((PAD_PX, hp - h - PAD_PX), (PAD_PX, wp - w - PAD_PX)), mode="reflect")
-    return fft.rfft2(p, workers=-1), p.shape
-
-
-def _decimation(sigma: float) -> int:
-    """Grid step for a filter of scale sigma: a power of two <= sigma / 3 (the Gaussian has < 1e-3 of its
-    transfer beyond the decimated grid's Nyquist frequency), at most 16."""
-    return int(min(16, 2 ** max(0, math.floor(math.log2(max(sigma / 3.0, 1.0))))))
-
-
 def _derivative(spec, shape, sigma: float, du: float, dv: float, step: int = 1) -> np.ndarray:
-    """sigma x d . grad (G_sigma * I) for unit d = (du, dv) on the padded grid decimated by ``step``
-    (the spectrum cropped to the decimated grid's band: one small inverse FFT per scale)."""
-    from scipy import fft
-
-    hp, wp = shape
-    hs, ws = hp // step, wp // step
-    rows = np.r_[0 : hs // 2, hp - hs // 2 : hp]
-    sub = spec[rows, : ws // 2 + 1]
-    ku = 2.0 * np.pi * fft.rfftfreq(ws)[None, :] / step
-    kv = 2.0 * np.pi * fft.fftfreq(hs)[:, None] / step
-    transfer = 1j * (ku * du + kv * dv) * np.exp(-0.5 * sigma * sigma * (ku * ku + kv * kv))
-    return sigma * fft.irfft2(sub * transfer, s=(hs, ws), workers=-1) / (step * step)
+    """sigma x d . grad (G_sigma * I) for unit d = (du, dv) on the padded grid decimated by ``step``."""
+    return _filtered(spec, shape, sigma, step, du, dv)
 
 
-def light_azimuth(spec, shape, params: DetectorParams) -> float:
-    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring)."""
+def light_axis(grads) -> float:
+    """Axis of the light (radians modulo pi) from the frame's gradient structure tensor.
+
+    Shading at low Sun responds to the terrain slope along the Sun's azimuth only, so for terrain
+    without a preferred direction the image gradient energy is largest along the light's axis
+    (|grad I|^2 spectrum ~ cos^2 of the angle to the light): the principal axis of the tensor
+    sum(grad I grad I^T) over the whole frame, pooled over the scales, is the light's axis. A whole-frame
+    statistic, so one crater field's geometry cannot pull it the way the strongest few responses can.
+    """
+    juu = jvv = juv = 0.0
+    for gu, gv in grads:
+        # Each scale normalised by its total energy, so no scale dominates the pooled estimate.
+        e = float(np.mean(gu * gu + gv * gv)) or 1.0
+        juu += float(np.mean(gu * gu)) / e
+        jvv += float(np.mean(gv * gv)) / e
+        juv += float(np.mean(gu * gv)) / e
+    return 0.5 * math.atan2(2.0 * juv, juu - jvv)
+
+
+def _azimuth_grads(spec, shape, params: DetectorParams):
+    """Gaussian-derivative images (d/du, d/dv) at the ``azimuth_sigmas_px`` scales."""
     grads = []
     for s in params.azimuth_sigmas_px:
         step = _decimation(s)
         grads.append((_derivative(spec, shape, s, 1.0, 0.0, step), _derivative(spec, shape, s, 0.0, 1.0, step)))
-    best, best_score = 0.0, -np.inf
-    for theta in np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths:
+    return grads
+
+
+def _tail_scores(grads, candidates, params: DetectorParams) -> np.ndarray:
+    """Per candidate direction: summed over scales, the mean of the top ``azimuth_tail`` share of the
+    directional derivative."""
+    out = np.zeros(len(candidates))
+    for n, theta in enumerate(candidates):
         c, s = math.cos(theta), math.sin(theta)
-        score = 0.0
         for gu, gv in grads:
             r = (c * gu + s * gv).ravel()
             k = max(1, int(params.azimuth_tail * r.size))
-            score += float(np.partition(r, r.size - k)[-k:].mean())
-        if score > best_score:
-            best, best_score = float(theta), score
+            out[n] += float(np.partition(r, r.size - k)[-k:].mean())
+    return out
+
+
+def _candidates(grads, params: DetectorParams) -> np.ndarray:
+    if params.light_method == "tensor":
+        axis = light_axis(grads)
+        return np.array([axis, axis + math.pi])
+    if params.light_method == "tail":
+        return np.arange(params.n_azimuths) * 2.0 * np.pi / params.n_azimuths
+    raise ValueError(f"light_method {params.light_method!r}: expected 'tensor' or 'tail'")
+
+
+def _light_from(candidates, scores, params: DetectorParams) -> float:
     # The strongest rise is at the Sun-side rim: from the shadow cast by the rim crest up to the lit
-    # terrain beyond it, i.e. towards the Sun (seen on validation windows). The light travels the other way.
-    return (best + math.pi) % (2.0 * math.pi)
+    # terrain beyond it, i.e. towards the Sun (validation windows: the opposite sign halves the fix rate).
+    best = float(candidates[int(np.argmax(scores))])
+    return (best + (math.pi if params.tail_points_to_sun else 0.0)) % (2.0 * math.pi)
 
 
-def _peaks(resp: np.ndarray, threshold: float):
-    """Local maxima (3 x 3) above ``threshold`` with a sub-pixel (parabolic) position: (row, col, value)."""
-    from scipy.ndimage import maximum_filter
+def light_azimuth(spec, shape, params: DetectorParams) -> float:
+    """Estimated light travel direction (radians, from +u towards +v) of a frame (module docstring).
 
-    pk = (resp == maximum_filter(resp, size=3, mode="nearest")) & (resp >= threshold)
-    pk[0, :] = pk[-1, :] = pk[:, 0] = pk[:, -1] = False
-    i, j = np.nonzero(pk)
-    c = resp[i, j]
-    d2i = np.minimum(resp[i - 1, j] - 2.0 * c + resp[i + 1, j], -1e-9)  # < 0 at a maximum
-    d2j = np.minimum(resp[i, j - 1] - 2.0 * c + resp[i, j + 1], -1e-9)
-    di = 0.5 * (resp[i - 1, j] - resp[i + 1, j]) / d2i
-    dj = 0.5 * (resp[i, j - 1] - resp[i, j + 1]) / d2j
-    return i + np.clip(di, -0.5, 0.5), j + np.clip(dj, -0.5, 0.5), c
+    ``params.light_method`` "tensor": the axis from :func:`light_axis`, its sign (of the two opposite
+    directions) by the derivative tail; "tail": the tail over ``n_azimuths`` directions alone."""
+    grads = _azimuth_grads(spec, shape, params)
+    cand = _candidates(grads, params)
+    return _light_from(cand, _tail_scores(grads, cand, params), params)
+
+
+def pooled_light_azimuth(images, params: DetectorParams) -> float:
+    """One light direction for frames known to share one Sun (e.g. the windows of one mosaic quadrant,
+    imaged under one illumination): the structure tensor and the tail scores pooled over the frames."""
+    grads_all = []
+    for img in images:
+        a = check_frame(img, "frame")
+        spec, shape = _spectrum((a - a.mean()) / a.std())
+        grads_all.append(_azimuth_grads(spec, shape, params))
+    cand = _candidates([g for grads in grads_all for g in grads], params)
+    scores = sum(_tail_scores(grads, cand, params) for grads in grads_all)
+    return _light_from(cand, scores, params)
 
 
 def suppress(u, v, r, score, centre_r: float, radius_ratio: float) -> np.ndarray:
@@ -165,18 +249,15 @@ def suppress(u, v, r, score, centre_r: float, radius_ratio: float) -> np.ndarray
     return order[np.array(keep)]
 
 
-def detect(
-    image: np.ndarray, params: DetectorParams = DetectorParams(), light_dir: float | None = None, what: str = "frame"
-):
-    """Craters in ``image`` (2-D): (list of :class:`Detection`, light azimuth used in radians)."""
-    a = check_frame(image, what)
-    a = (a - a.mean()) / a.std()
-    h, w = a.shape
+def scale_radii(params: DetectorParams, shape) -> np.ndarray:
+    """Crater radii (px) searched: ``min_radius_px`` up by ``scale_ratio``, at most half the frame."""
     n_scales = int(math.floor(math.log(params.max_radius_px / params.min_radius_px) / math.log(params.scale_ratio))) + 1
     radii = params.min_radius_px * params.scale_ratio ** np.arange(n_scales)
-    radii = radii[radii <= 0.5 * min(h, w)]
-    spec, shape = _spectrum(a)
-    theta = light_azimuth(spec, shape, params) if light_dir is None else float(light_dir)
+    return radii[radii <= 0.5 * min(shape)]
+
+
+def _filter_candidates(spec, shape, radii, theta: float, params: DetectorParams):
+    """Maxima of the shadow-to-limb derivative filter over scales: (u, v, r, score) in frame pixels."""
     du, dv = math.cos(theta), math.sin(theta)
     us, vs, rs, ss = [], [], [], []
     for r in radii:
@@ -190,20 +271,46 @@ def detect(
         rs.append(np.full(c.size, r))
         ss.append(c)
     u, v, r, score = (np.concatenate(x) for x in (us, vs, rs, ss))
-    u = u - params.centre_shift * r * du
-    v = v - params.centre_shift * r * dv
+    return u - params.centre_shift * r * du, v - params.centre_shift * r * dv, r, score
+
+
+def detect(
+    image: np.ndarray, params: DetectorParams = DetectorParams(), light_dir: float | None = None, what: str = "frame"
+):
+    """Craters in ``image`` (2-D): (list of :class:`Detection`, light azimuth used in radians).
+
+    ``params.method`` "filter": the classical shadow/limb derivative filter (module docstring);
+    "template": normalised cross-correlation with a Hapke-shaded crater template at the frame's light
+    direction (:mod:`crater_synth.navigation.template`). Both share the light estimate, the rim fit and
+    the suppression of overlapping and concentric detections."""
+    a = check_frame(image, what)
+    a = (a - a.mean()) / a.std()
+    h, w = a.shape
+    radii = scale_radii(params, a.shape)
+    spec, shape = _spectrum(a)
+    theta = light_azimuth(spec, shape, params) if light_dir is None else float(light_dir)
+    if params.method == "filter":
+        u, v, r, score = _filter_candidates(spec, shape, radii, theta, params)
+    elif params.method == "template":
+        u, v, r, score = template_candidates(spec, shape, radii, theta, params)
+    else:
+        raise ValueError(f"detector method {params.method!r}: expected 'filter' or 'template'")
     b = params.border_r * r
     inside = (u >= b) & (u <= w - b) & (v >= b) & (v <= h - b)
     u, v, r, score = u[inside], v[inside], r[inside], score[inside]
+    quality = np.ones_like(score)
     if params.refine:
         top = np.argsort(-score)[: params.max_candidates]
         u, v, r, score = u[top], v[top], r[top], score[top]
-        u, v, r, ok = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
-        u, v, r, score = u[ok], v[ok], r[ok], score[ok]
+        u, v, r, ok, quality = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
+        u, v, r, score, quality = u[ok], v[ok], r[ok], score[ok], quality[ok]
     keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
     if params.concentric_r > 0:
-        u, v, r, score = u[keep], v[keep], r[keep], score[keep]
-        keep = suppress(u, v, r, score, params.concentric_r, math.inf)
+        u, v, r, score, quality = u[keep], v[keep], r[keep], score[keep], quality[keep]
+        # Among concentric detections (one crater seen at several scales) keep the best rim fit: the
+        # share of edge points on the circle, the filter score breaking ties.
+        rank = score if params.concentric_rank == "score" else quality + 1e-3 * score / (1.0 + np.abs(score).max())
+        keep = suppress(u, v, r, rank, params.concentric_r, math.inf)
     return [Detection(float(u[k]), float(v[k]), float(r[k]), float(score[k])) for k in keep], theta
 
 
@@ -219,8 +326,9 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     flank begins (the strongest outward *rise* of intensity); along a ray away from the Sun it is where
     the bright limb ends (the strongest outward *fall*). Rays across the light carry no such edge and are
     skipped. A robust circle through these edge points (``crater_synth.terrain.catalogue._robust_circle``, the
-    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok): ``ok`` False where
-    fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible.
+    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok, quality): ``ok`` False
+    where fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible;
+    ``quality`` the share of edge points on the circle.
     """
     from scipy.ndimage import gaussian_filter, map_coordinates
 
@@ -228,7 +336,7 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
 
     n = len(u)
     if n == 0:
-        return u, v, r, np.zeros(0, bool)
+        return u, v, r, np.zeros(0, bool), np.zeros(0)
     sm = gaussian_filter(a, 1.0)
     alpha = np.arange(RIM_AZIMUTHS) * 2.0 * np.pi / RIM_AZIMUTHS
     c = np.cos(alpha - theta)  # > 0: ray along the light's travel (away from the Sun)
@@ -245,9 +353,11 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     ey = mid * np.sin(alpha)[None, :]
     out_u, out_v, out_r = u.copy(), v.copy(), r.copy()
     ok = np.zeros(n, bool)
+    quality = np.zeros(n)
     for i in range(n):
         centre, rad, inl, _ = _robust_circle(ex[i], ey[i], 0.05 * r[i])
+        quality[i] = inl.mean()
         if inl.mean() >= min_inliers and 0.6 * r[i] <= rad <= 1.5 * r[i] and np.hypot(*centre) <= 0.5 * r[i]:
             out_u[i], out_v[i], out_r[i] = u[i] + centre[0], v[i] + centre[1], rad
             ok[i] = True
-    return out_u, out_v, out_r, ok
+    return out_u, out_v, out_r, ok, quality

@@ -17,7 +17,7 @@ import numpy as np
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detect import DetectorParams, detect
+from crater_synth.navigation.detect import detect, preset
 from crater_synth.navigation.evaluate import prior_georef
 from crater_synth.navigation.fix import FixParams, fix_frame
 from crater_synth.navigation.frames import Frame, FrameError, Georef, ground_distance_km
@@ -109,8 +109,22 @@ def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -
     default=None,
     help="Annotated PNG (default IMAGE.nav.png).",
 )
+@click.option(
+    "--method",
+    type=click.Choice(["classical", "template"]),
+    default="template",
+    show_default=True,
+    help="Detection method (docs/navigation.md compares both).",
+)
+@click.option(
+    "--light-azimuth",
+    type=float,
+    default=None,
+    help="Light travel direction in the image, degrees from +u (right) towards +v (down), e.g. from the "
+    "attitude and the ephemeris; default: estimated on the frame.",
+)
 @user_errors
-def navigate_command(image, prior, pixel_m, pole, map_path, out):
+def navigate_command(image, prior, pixel_m, pole, map_path, out, method, light_azimuth):
     """Detect craters in a nadir frame, identify them against the landmark map and fix the position.
 
     The frame is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
@@ -156,11 +170,13 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out):
     if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
         lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
         raise FrameError(f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map")
-    dparams, fparams = DetectorParams(), FixParams()
-    dets, theta = detect(img, dparams, what=str(image))
+    dparams, fparams = preset(method), FixParams()
+    light = None if light_azimuth is None else math.radians(light_azimuth)
+    dets, theta = detect(img, dparams, light_dir=light, what=str(image))
     fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     result = {
         "image": str(image),
+        "method": method,
         "detections": len(dets),
         "light_azimuth_deg": round(math.degrees(theta), 1),
         "fix": fix.ok,
