@@ -85,7 +85,7 @@ def bench_command(part, keep, export_renders, overrides):
 
             click.echo("navigation " + json.dumps(bench_navigation()))
         if part in ("all", "export"):
-            from crater_synth.bench.cli.export import bench_export, summary_line
+            from crater_synth.bench.export import bench_export, summary_line
 
             r = bench_export(work / "export", export_renders)
             click.echo("export " + json.dumps(r))
