@@ -35,6 +35,7 @@ _COMMANDS = (
     ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
     ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
     ("crater_synth.navigation.navigate", "navigate_command", "Detect, identify and fix one nadir frame."),
+    ("crater_synth.navigation.render_frames", "nav_frames_command", "Render a trajectory's labelled navigation frames."),
     ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed, navigation."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )
