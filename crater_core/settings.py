@@ -472,9 +472,14 @@ class TrajectorySettings(_Group):
         _need(1.0 <= self.fov_deg <= 120.0, "fov_deg", self.fov_deg, "must lie in [1, 120] degrees")
         _need(16 <= self.width_px <= 4096, "width_px", self.width_px, "must lie in [16, 4096] px")
         _need(self.sun in SUN_MODES, "sun", self.sun, "must be 'physical' or 'explicit'")
-        _need(-90.0 <= self.subsolar_lat_deg <= 90.0, "subsolar_lat_deg", self.subsolar_lat_deg, "must lie in [-90, 90]")
         _need(
-            -90.0 <= self.sun_elevation_deg <= 90.0, "sun_elevation_deg", self.sun_elevation_deg, "must lie in [-90, 90]"
+            -90.0 <= self.subsolar_lat_deg <= 90.0, "subsolar_lat_deg", self.subsolar_lat_deg, "must lie in [-90, 90]"
+        )
+        _need(
+            -90.0 <= self.sun_elevation_deg <= 90.0,
+            "sun_elevation_deg",
+            self.sun_elevation_deg,
+            "must lie in [-90, 90]",
         )
 
 

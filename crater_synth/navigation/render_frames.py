@@ -69,7 +69,11 @@ def frame_settings(settings, half_width_m: float):
     if t.far_radius_km <= 0.0:
         return settings
     need = half_width_m / 1000.0 + 2.0 * t.far_spacing_km
-    return replace(settings, **{"terrain.far_radius_km": max(t.far_radius_km, need)}) if need > t.far_radius_km else settings
+    return (
+        replace(settings, **{"terrain.far_radius_km": max(t.far_radius_km, need)})
+        if need > t.far_radius_km
+        else settings
+    )
 
 
 def worker_item(pose: FramePose, lat0: float, lon0: float, seed: int, header: dict) -> dict:
@@ -90,7 +94,10 @@ def worker_item(pose: FramePose, lat0: float, lon0: float, seed: int, header: di
         "fov_deg": pose.fov_deg,
         "frame_width": w,
         "crop": [0, 0, w, w],
-        "camera": {"position": [float(v) for v in cam.position], "rotation": [[float(v) for v in r] for r in cam.rotation]},
+        "camera": {
+            "position": [float(v) for v in cam.position],
+            "rotation": [[float(v) for v in r] for r in cam.rotation],
+        },
         "rel_path": frame_rel_path(pose.index),
         "seed": seed,
         "header": header,
@@ -110,7 +117,9 @@ def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None
     return float(np.mean(lit[v, u]))
 
 
-def landmarks_in_view(pose: FramePose, landmarks, lat0: float, lon0: float, lit: np.ndarray | None = None) -> list[dict]:
+def landmarks_in_view(
+    pose: FramePose, landmarks, lat0: float, lon0: float, lit: np.ndarray | None = None
+) -> list[dict]:
     """Labels of every landmark whose rim-centre point projects inside the frame (in front of the camera)."""
     if not landmarks:
         return []
@@ -183,7 +192,10 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
         hw = entry["diameter_km"] * 1000.0 * settings.terrain.near_radius_factor
         npz, meta = build_terrain(entry, frame_settings(settings, hw))
         if progress:
-            click.echo(f"frame {pose.index}: patch +-{hw / 1e3:.1f} km ({'cached' if meta.get('cached') else 'built'})", err=True)
+            click.echo(
+                f"frame {pose.index}: patch +-{hw / 1e3:.1f} km ({'cached' if meta.get('cached') else 'built'})",
+                err=True,
+            )
         seed = render_seed(settings.seed, ("navframe", traj.name, pose.index))
         header = {
             "trajectory": traj.name,
@@ -239,7 +251,11 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
                 "mode": res["mode"],
                 "render_seconds": res["seconds"],
                 "terrain_id": fr["meta"]["terrain_id"],
-                "frame_origin": {"lat": pose.target_lat, "lon": pose.target_lon, "frame": "ENU on the 1737.4 km sphere"},
+                "frame_origin": {
+                    "lat": pose.target_lat,
+                    "lon": pose.target_lon,
+                    "frame": "ENU on the 1737.4 km sphere",
+                },
                 "pose": pose.as_dict(),
                 "camera_enu": {"position_m": [float(v) for v in cam.position], "rotation": cam.rotation.tolist()},
                 "sun_enu": {"elevation_deg": sun_el, "azimuth_deg": sun_az},
@@ -274,7 +290,9 @@ def trajectory_overrides(overrides) -> list[str]:
 
 @click.command("nav-frames")
 @OVERRIDES
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="Output directory [data_dir/navframes/NAME].")
+@click.option(
+    "--out", type=click.Path(path_type=Path), default=None, help="Output directory [data_dir/navframes/NAME]."
+)
 @click.option("--frames", "only", default="", help="Comma-separated frame indices to render (default: all).")
 @user_errors
 def nav_frames_command(overrides, out, only):
