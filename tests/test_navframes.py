@@ -8,11 +8,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers import render as cr
-from helpers.cli import run_cli
 
 from crater_core import exr, geometry
 from crater_core.trajectory import TrajectoryError, footprint_half_width_m, frame_poses
+
+from helpers import render as cr
+from helpers.cli import run_cli
 
 
 def _traj(**kw):
