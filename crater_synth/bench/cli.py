@@ -9,7 +9,8 @@ Parts (``--part``, default all, in this order):
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
   (~10-20 min on 2 cores);
 - ``navigation``: detection + identification + fix frames/s on a 1024 x 1024 real mosaic window
-  (crater_synth.navigation.evaluate.bench_navigation).
+  (crater_synth.navigation.evaluate.bench_navigation);
+- ``navframes``: navigation-frame renders/s along a trajectory (crater_synth.bench.navframes).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -30,7 +31,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(["all", "renderer", "train", "distributed", "navigation"]),
+    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "navframes"]),
     default="all",
     show_default=True,
 )
@@ -75,6 +76,10 @@ def bench_command(part, keep, overrides):
             from crater_synth.navigation.evaluate import bench_navigation
 
             click.echo("navigation " + json.dumps(bench_navigation()))
+        if part in ("all", "navframes"):
+            from crater_synth.bench.navframes import bench_navframes
+
+            click.echo("navframes " + json.dumps(bench_navframes(overrides, work)))
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

@@ -282,12 +282,6 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
     }
 
 
-def trajectory_overrides(overrides) -> list[str]:
-    """``trajectory=NAME`` selects a group that configs/config.yaml does not list by default: Hydra
-    needs it as ``+trajectory=NAME``."""
-    return [("+" + o) if o.startswith("trajectory=") else o for o in overrides]
-
-
 @click.command("nav-frames")
 @OVERRIDES
 @click.option(
@@ -302,7 +296,7 @@ def nav_frames_command(overrides, out, only):
     """
     from crater_synth.config import load_settings
 
-    settings = load_settings(trajectory_overrides(overrides))
+    settings = load_settings(overrides)
     if settings.trajectory is None:
         raise ConfigError("no trajectory selected: add trajectory=NAME (configs/trajectory/)")
     try:
