@@ -14,9 +14,13 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
 - **Identification**: map landmarks >= ``min_landmark_km`` projected with the prior pose; putative
   pairs within the prior's uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio
   within ``radius_ratio`` (:class:`.fix.FixParams`, the values chosen on real validation windows).
-- **Fix**: :func:`.fix.ransac_pnp` (pinhole pose from the landmarks' 3-D rim-centre points), then one
-  pair per detection and per landmark (smallest reprojection error); "no fix" when fewer than
-  ``min_inliers`` distinct landmarks agree. The error is the 3-D distance between the fixed and the
+- **Fix** (``method``): ``position`` (default): the camera centre with the prior's (true) attitude,
+  :func:`.fix.ransac_position` (linear least squares on the rays through the landmarks' 3-D rim-centre
+  points, minimal sets of 2), then each observation corrected for the offset between the rim
+  ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
+  again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
+  landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
+  agree. The error is the 3-D distance between the fixed and the
   true camera centre; a fix is false beyond ``FALSE_FIX_KM``.
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
@@ -45,7 +49,7 @@ from crater_synth.navigation.evaluate import (
     RESULTS_JSON,
     summarise,
 )
-from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp
+from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, solve_position
 
 PNP_INLIER_PX = 3.0  # reprojection tolerance of the pinhole fix (px); detection centres are good to ~1-2 px
 
@@ -94,7 +98,15 @@ def prior_centre(row: dict, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> np
     return c + offset_km * 1000.0 * np.array([math.cos(phi), math.sin(phi), 0.0])
 
 
-def evaluate_frame(row: dict, image: np.ndarray, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0):
+def evaluate_frame(
+    row: dict,
+    image: np.ndarray,
+    landmarks,
+    dparams: DetectorParams,
+    fparams: FixParams,
+    seed: int = 0,
+    method: str = "position",
+):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
@@ -154,7 +166,11 @@ def evaluate_frame(row: dict, image: np.ndarray, landmarks, dparams: DetectorPar
         return out
     p3 = pts[pairs_lm]
     p2 = np.array([[dets[i].u, dets[i].v] for i in pairs_det])
-    ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, PNP_INLIER_PX)
+    if method == "pnp":
+        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, PNP_INLIER_PX)
+    else:
+        r_fix = r_wc
+        ok, reason, c_fix, inl = ransac_position(p3, p2, k, r_wc, fparams, PNP_INLIER_PX)
     if ok:
         # One pair per detection and per landmark: the smallest reprojection error wins.
         err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
@@ -166,6 +182,28 @@ def evaluate_frame(row: dict, image: np.ndarray, landmarks, dparams: DetectorPar
                 keep.append(q)
         if len(keep) < fparams.min_inliers:
             ok, reason = False, f"only {len(keep)} distinct landmarks agree on one pose"
+        elif method == "position":
+            # A detection measures the rim ellipse's centre, which perspective moves off the image of the
+            # rim's centre point: correct each observation by that offset at the current fix, re-solve.
+            normals = pts[[pairs_lm[q] for q in keep]] + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+            radii = [cand[pairs_lm[q]].diameter_km * 500.0 for q in keep]
+            for _ in range(2):
+                pose = geometry.CameraPose(
+                    position=c_fix, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov
+                )
+                proj = project_pinhole(p3[keep], r_wc, c_fix, k)
+                centres = np.array(
+                    [
+                        [e.cu, e.cv]
+                        for e in (
+                            geometry.project_circle(p3[q], nrm, rad, pose, width)
+                            for q, nrm, rad in zip(keep, normals, radii)
+                        )
+                    ]
+                )
+                c_fix = solve_position(p3[keep], p2[keep] - (centres - proj), k, r_wc)
+            err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
     out["fix"] = bool(ok)
     out["reason"] = reason
     if ok:
@@ -177,7 +215,11 @@ def evaluate_frame(row: dict, image: np.ndarray, landmarks, dparams: DetectorPar
 
 
 def evaluate_dir(
-    frames_dir: Path, dparams: DetectorParams = DetectorParams(), fparams: FixParams = FixParams(), seed: int = 0
+    frames_dir: Path,
+    dparams: DetectorParams = DetectorParams(),
+    fparams: FixParams = FixParams(),
+    seed: int = 0,
+    method: str = "position",
 ):
     """(summary over all frames and headline frames, per-frame rows) of a ``nav-frames`` output."""
     from crater_synth.navigation.landmarks import load_default_map
@@ -195,7 +237,7 @@ def evaluate_dir(
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
-        out.append(evaluate_frame(row, image, maps[pole], dparams, fparams, seed))
+        out.append(evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method))
     head = [r for r in out if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
     summary = {"all": summarise(out), "headline": summarise(head)}
     return summary, out
@@ -207,13 +249,28 @@ def evaluate_dir(
     "--write-results", is_flag=True, help="Record the summary under 'synthetic' in docs/results/navigation.json."
 )
 @click.option("--seed", default=0, show_default=True, help="Seed of the prior offsets.")
+@click.option(
+    "--set", "sets", multiple=True, help="detect.<name>=<value> or fix.<name>=<value> (as in nav-eval); not recorded."
+)
+@click.option(
+    "--method",
+    type=click.Choice(["position", "pnp"]),
+    default="position",
+    show_default=True,
+    help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
+)
 @user_errors
-def nav_frames_eval_command(frames_dir, write_results, seed):
+def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth.
 
     Example: `crater-synth nav-frames-eval data/navframes/descent_ridge`
     """
-    summary, rows = evaluate_dir(frames_dir, seed=seed)
+    from crater_synth.navigation.evaluate import _params_with
+
+    if sets and write_results:
+        raise UserError("--write-results records the default settings only; drop --set")
+    dparams, fparams = _params_with(tuple(sets))
+    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed=seed, method=method)
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
@@ -223,13 +280,14 @@ def nav_frames_eval_command(frames_dir, write_results, seed):
         )
     if write_results:
         results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
-        results.setdefault("synthetic", {})[rows[0]["id"].split("/")[0]] = {
+        results.setdefault("synthetic", {})[f"{rows[0]['id'].split('/')[0]}/{method}"] = {
             "frames_dir": str(frames_dir),
             "protocol": {
                 "prior_offset_km": PRIOR_OFFSET_KM,
                 "prior_attitude": "exact",
                 "light_direction": "given (attitude + ephemeris)",
                 "pnp_inlier_px": PNP_INLIER_PX,
+                "method": method,
                 "error": "3-D camera centre distance",
             },
             "frames": [
