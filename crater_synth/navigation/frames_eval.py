@@ -243,6 +243,18 @@ def evaluate_dir(
     return summary, out
 
 
+def _render_info(frames_dir: Path) -> dict:
+    """Render settings of the first frame, from its EXR header (mode, samples, frame size)."""
+    rows = [json.loads(line) for line in (Path(frames_dir) / schema.MANIFEST_NAME).read_text().splitlines() if line]
+    _, header = exr.read_channel_and_header(Path(frames_dir) / rows[0]["rel_path"], "IF")
+    return {
+        "mode": header.get("crater_synth:mode"),
+        "samples": header.get("samples"),
+        "width_px": rows[0]["pose"]["width_px"],
+        "fov_deg": rows[0]["pose"]["fov_deg"],
+    }
+
+
 @click.command("nav-frames-eval")
 @click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option(
@@ -281,7 +293,8 @@ def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
     if write_results:
         results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
         results.setdefault("synthetic", {})[f"{rows[0]['id'].split('/')[0]}/{method}"] = {
-            "frames_dir": str(frames_dir),
+            "frames": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]}",
+            "render": _render_info(frames_dir),
             "protocol": {
                 "prior_offset_km": PRIOR_OFFSET_KM,
                 "prior_attitude": "exact",
