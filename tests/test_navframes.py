@@ -234,3 +234,17 @@ def test_nav_frames_command_end_to_end(tmp_path):
     with mock.patch.object(frames_eval, "detect", lambda *a, **k: (far, 0.0)):
         r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams())
         assert not r["fix"] or r["error_km"] < 5.0, r
+
+
+def test_worker_rejects_a_bad_explicit_camera(tmp_path):
+    (p,) = frame_poses(_traj())
+    from crater_synth.navigation.render_frames import worker_item
+
+    item = worker_item(p, p.target_lat, p.target_lon, seed=1, header={})
+    item["camera"]["rotation"][0][0] += 0.5  # not a rotation
+    npz = cr.write_npz(tmp_path / "t.npz", cr.grid(50e3, 16))
+    results, proc = cr.run_worker(cr.job(npz, [item], tmp_path / "out"), tmp_path, timeout=120)
+    assert proc.returncode == 2 and not results
+    (line,) = proc.stdout.strip().splitlines()
+    assert line.startswith("ERROR ") and "camera rotation is not orthonormal" in line
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
