@@ -112,6 +112,24 @@ def test_bad_trajectories_give_one_clear_error():
     assert proc.returncode == 2 and "trajectory=NAME" in proc.stderr.strip().splitlines()[-1], proc.stderr
 
 
+def test_frame_outside_the_dem_is_one_error_and_no_output(tmp_path):
+    out = tmp_path / "frames"
+    proc = run_cli(
+        "nav-frames",
+        "trajectory=descent_ridge",
+        "trajectory.start=[-40,0]",
+        "trajectory.end=[-41,0]",
+        f"data_dir={tmp_path / 'data'}",
+        "--out",
+        out,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    (line,) = proc.stderr.strip().splitlines()
+    assert "trajectory=descent_ridge frame 0" in line and "outside DEM" in line
+    assert not out.exists()
+
+
 def _landmark(lat, lon, height, d_km):
     from crater_synth.navigation.landmarks import Landmark
 

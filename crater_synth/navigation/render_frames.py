@@ -182,7 +182,6 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
         poses = [poses[i] for i in sorted(set(only))]
     out_dir = Path(out_dir)
     ensure_writable_dir(settings.data_dir, "data_dir")
-    ensure_writable_dir(out_dir, "--out")
     render = settings.render
     maps: dict[str, list] = {}
     t0 = time.perf_counter()
@@ -190,7 +189,13 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
     for pose in poses:
         entry = patch_entry(traj.name, pose, settings.terrain.near_radius_factor)
         hw = entry["diameter_km"] * 1000.0 * settings.terrain.near_radius_factor
-        npz, meta = build_terrain(entry, frame_settings(settings, hw))
+        try:
+            npz, meta = build_terrain(entry, frame_settings(settings, hw))
+        except UserError as exc:
+            raise UserError(
+                f"trajectory={traj.name} frame {pose.index} (target lat {pose.target_lat:.2f}, "
+                f"lon {pose.target_lon:.2f}): {exc}"
+            ) from None
         if progress:
             click.echo(
                 f"frame {pose.index}: patch +-{hw / 1e3:.1f} km ({'cached' if meta.get('cached') else 'built'})",
@@ -216,6 +221,7 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
         jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=[plan]))
         frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "half_width_m": hw}
     t_patch = time.perf_counter() - t0
+    ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     results: dict[int, dict] = {}
 
     def on_result(_job, plan, result):
