@@ -20,7 +20,8 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
   again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
   landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
-  agree. The error is the 3-D distance between the fixed and the
+  agree or their RMS exceeds ``max_rms_px``. The real-window ambiguity test (a disjoint rival set) is
+  not applied here. The error is the 3-D distance between the fixed and the
   true camera centre; a fix is false beyond ``FALSE_FIX_KM``.
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
@@ -202,15 +203,21 @@ def evaluate_frame(
                         )
                     ]
                 )
-                c_fix = solve_position(p3[keep], p2[keep] - (centres - proj), k, r_wc)
-            err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
+                corrected = p2[keep] - (centres - proj)
+                c_fix = solve_position(p3[keep], corrected, k, r_wc)
+            err = np.hypot(*(project_pinhole(p3[keep], r_fix, c_fix, k) - corrected).T)
+        else:
+            err = err[keep]
+        rms = float(np.sqrt(np.mean(err**2))) if ok else math.nan
+        if ok and rms > fparams.max_rms_px:  # the real-window rule: a loose fit is no fix
+            ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
     out["fix"] = bool(ok)
     out["reason"] = reason
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         out["identified"] = len(keep)
         out["identified_correct"] = int(sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep))
-        out["rms_px"] = float(np.sqrt(np.mean(err[keep] ** 2)))
+        out["rms_px"] = rms
     return out
 
 
@@ -292,9 +299,11 @@ def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
         )
     if write_results:
         results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
+        info = _render_info(frames_dir)
         results.setdefault("synthetic", {})[f"{rows[0]['id'].split('/')[0]}/{method}"] = {
-            "frames": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]}",
-            "render": _render_info(frames_dir),
+            "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
+            f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
+            "render": info,
             "protocol": {
                 "prior_offset_km": PRIOR_OFFSET_KM,
                 "prior_attitude": "exact",
