@@ -25,6 +25,7 @@ forced to 0 here.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -212,6 +213,8 @@ class FastRenderer:
             float(item["fov_deg"]),
             int(item["frame_width"]),
             tuple(int(c) for c in item["crop"]),
+            # an explicit pose (navigation frames) is part of the camera
+            json.dumps(item.get("camera"), sort_keys=True),
         )
 
     def get_gbuffer(self, item: dict) -> GBuffer:

@@ -57,9 +57,24 @@ def load_job(path: str) -> dict:
                 f"job file {path}: renders[{i}] (index {r['index']}): crop {r['crop']} is not a "
                 f"non-empty box inside the {width}-px frame"
             )
+        if r.get("camera") is not None:
+            _check_camera(r["camera"], f"job file {path}: renders[{i}] (index {r['index']})")
     job.setdefault("terrain_meta", {})
     job.setdefault("render", {})
     return job
+
+
+def _check_camera(cam, where: str) -> None:
+    """An explicit camera pose: ``position`` (3 finite m) and ``rotation`` (3 x 3, orthonormal columns)."""
+    try:
+        pos = np.asarray(cam["position"], dtype=np.float64)
+        rot = np.asarray(cam["rotation"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise JobError(f"{where}: camera needs position [x, y, z] and rotation [[...] x 3]") from None
+    if pos.shape != (3,) or rot.shape != (3, 3) or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(rot))):
+        raise JobError(f"{where}: camera position must be 3 finite numbers and rotation a finite 3 x 3 matrix")
+    if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-6):
+        raise JobError(f"{where}: camera rotation is not orthonormal")
 
 
 def _grid(arr, name: str, path: str) -> np.ndarray:

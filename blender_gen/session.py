@@ -58,6 +58,15 @@ class Session:
 
     @staticmethod
     def pose(item: dict) -> geometry.CameraPose:
+        """The item's camera: its explicit ``camera`` pose (``position`` m and ``rotation`` columns
+        right, up, back, in the patch's ENU frame; navigation frames) or the sweep's look-at camera."""
+        cam = item.get("camera")
+        if cam is not None:
+            return geometry.CameraPose(
+                position=np.asarray(cam["position"], dtype=np.float64),
+                rotation=np.asarray(cam["rotation"], dtype=np.float64).reshape(3, 3),
+                fov_deg=float(item["fov_deg"]),
+            )
         return geometry.look_at_camera(
             float(item["cam_elevation"]), float(item["cam_azimuth"]), float(item["range_m"]), float(item["fov_deg"])
         )

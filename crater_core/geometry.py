@@ -198,22 +198,42 @@ class Ellipse:
         return np.stack([self.cu + ca * x - sa * y, self.cv + sa * x + ca * y], axis=-1)
 
 
-def _plane_to_image_homography(center_enu, pose: CameraPose, width_px: int) -> np.ndarray:
-    """Homography mapping (x, y, 1) in the horizontal plane through ``center_enu`` to pixels."""
+def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:
+    """Two orthonormal in-plane axes (e1, e2) of the plane with unit ``normal``, right-handed with it;
+    for the vertical normal (0, 0, 1) they are exactly east and north."""
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = ref - np.dot(ref, n) * n
+    e1 = e1 / np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+def _plane_to_image_homography(center_enu, pose: CameraPose, width_px: int, normal=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Homography mapping (x, y, 1) in the plane through ``center_enu`` with ``normal`` (in-plane axes
+    :func:`plane_basis`) to pixels."""
     f = pose.focal_px(width_px)
     # Projective intrinsics in (u, v) with v down: [u v 1]^T ~ K [Xc, Yc, -Zc]^T
     K = np.array([[f, 0.0, width_px / 2.0], [0.0, -f, width_px / 2.0], [0.0, 0.0, 1.0]])
     flip = np.diag([1.0, 1.0, -1.0])
     R_wc = pose.rotation.T  # world -> camera
     t = R_wc @ (np.asarray(center_enu, dtype=np.float64) - pose.position)
-    # Plane points: world = center + x*e + y*n  ->  camera = R_wc[:, 0]*x + R_wc[:, 1]*y + t
-    M = np.stack([R_wc[:, 0], R_wc[:, 1], t], axis=1)
+    e1, e2 = plane_basis(normal)
+    # Plane points: world = center + x*e1 + y*e2  ->  camera = R_wc e1 x + R_wc e2 y + t
+    M = np.stack([R_wc @ e1, R_wc @ e2, t], axis=1)
     return K @ flip @ M
 
 
 def project_horizontal_circle(center_enu, radius_m: float, pose: CameraPose, width_px: int) -> Ellipse:
     """Exact image of a horizontal circle (the crater rim) as an :class:`Ellipse` (full-frame pixels)."""
-    H = _plane_to_image_homography(center_enu, pose, width_px)
+    return project_circle(center_enu, (0.0, 0.0, 1.0), radius_m, pose, width_px)
+
+
+def project_circle(center_enu, normal_enu, radius_m: float, pose: CameraPose, width_px: int) -> Ellipse:
+    """Exact image of the circle of ``radius_m`` about ``center_enu`` in the plane with ``normal_enu``
+    (e.g. a crater rim far from the frame origin, level with its own local horizontal on the curved
+    Moon) as an :class:`Ellipse` (full-frame pixels). The circle must lie wholly in front of the camera."""
+    H = _plane_to_image_homography(center_enu, pose, width_px, normal_enu)
     C = np.diag([1.0, 1.0, -(radius_m**2)])  # x^2 + y^2 - r^2 = 0
     Hinv = np.linalg.inv(H)
     Q = Hinv.T @ C @ Hinv

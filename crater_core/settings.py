@@ -433,6 +433,67 @@ class FetchSettings(_Group):
 
 
 # ------------------------------------------------------------------------------------------------
+# Navigation frames: a camera trajectory (crater_core/trajectory.py, docs/navigation.md)
+# ------------------------------------------------------------------------------------------------
+SUN_MODES = ("physical", "explicit")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrajectorySettings(_Group):
+    """``trajectory.*`` (configs/trajectory/*.yaml): camera poses of a run of navigation frames.
+
+    The ground track is the great circle from ``start`` to ``end`` (lat, lon deg); the altitude runs
+    linearly from ``altitude_km[0]`` to ``altitude_km[1]`` over ``frames`` evenly spaced frames. The
+    boresight is tilted ``off_nadir_deg`` from nadir towards ``off_nadir_azimuth_deg`` (clockwise from
+    the direction of flight); image up is the direction of flight. The Sun: ``physical`` puts it at
+    the sub-solar point (``subsolar_lat_deg``, ``subsolar_lon_deg``), ``explicit`` at
+    (``sun_elevation_deg``, ``sun_azimuth_deg``) above each frame's ground point."""
+
+    name: str
+    start: Tuple[float, ...]  # (lat, lon) deg of the first frame's sub-camera point
+    end: Tuple[float, ...]  # (lat, lon) deg of the last frame's
+    altitude_km: Tuple[float, ...]  # (first, last) frame altitude above the 1737.4 km sphere
+    frames: int
+    off_nadir_deg: float
+    off_nadir_azimuth_deg: float
+    fov_deg: float
+    width_px: int
+    sun: str
+    subsolar_lat_deg: float
+    subsolar_lon_deg: float
+    sun_elevation_deg: float
+    sun_azimuth_deg: float
+
+    def _check(self):
+        _need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        for key in ("start", "end"):
+            v = getattr(self, key)
+            _need(len(v) == 2, key, list(v), "must be [lat, lon] in degrees")
+            _need(-90.0 <= v[0] <= 90.0, key, list(v), "latitude must lie in [-90, 90] degrees")
+        _need(len(self.altitude_km) == 2, "altitude_km", list(self.altitude_km), "must be [first, last] in km")
+        _need(
+            all(0.5 <= a <= 2000.0 for a in self.altitude_km),
+            "altitude_km",
+            list(self.altitude_km),
+            "must lie in [0.5, 2000] km",
+        )
+        _need(self.frames >= 1, "frames", self.frames, "must be >= 1")
+        _need(0.0 <= self.off_nadir_deg < 60.0, "off_nadir_deg", self.off_nadir_deg, "must lie in [0, 60) degrees")
+        _need(1.0 <= self.fov_deg <= 120.0, "fov_deg", self.fov_deg, "must lie in [1, 120] degrees")
+        _need(16 <= self.width_px <= 4096, "width_px", self.width_px, "must lie in [16, 4096] px")
+        _need(self.sun in SUN_MODES, "sun", self.sun, "must be 'physical' or 'explicit'")
+        _need(
+            -90.0 <= self.subsolar_lat_deg <= 90.0, "subsolar_lat_deg", self.subsolar_lat_deg, "must lie in [-90, 90]"
+        )
+        _need(
+            -90.0 <= self.sun_elevation_deg <= 90.0,
+            "sun_elevation_deg",
+            self.sun_elevation_deg,
+            "must lie in [-90, 90]",
+        )
+
+
+# ------------------------------------------------------------------------------------------------
 # The root
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
@@ -459,6 +520,9 @@ class Settings(_Group):
     data_dir: str
     out_dir: str
     run_dir: str
+    # Not in configs/config.yaml's defaults (no other command reads it): ``crater-synth nav-frames
+    # trajectory=NAME`` selects one.
+    trajectory: Optional[TrajectorySettings] = None
 
     def _check(self):
         if not self.crater:
@@ -503,6 +567,7 @@ GROUPS: Dict[str, type] = {
     "fetch": FetchSettings,
     "validate": ValidateSettings,
     "ablation": AblationSettings,
+    "trajectory": TrajectorySettings,
 }
 
 __all__ = [
@@ -535,6 +600,7 @@ __all__ = [
     "SweepSettings",
     "TerrainSettings",
     "TrainSettings",
+    "TrajectorySettings",
     "ValidateSettings",
     "as_plain",
     "build",

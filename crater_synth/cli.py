@@ -36,7 +36,13 @@ _COMMANDS = (
     ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
     ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
     ("crater_synth.navigation.navigate", "navigate_command", "Detect, identify and fix one nadir frame."),
-    ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed, navigation."),
+    (
+        "crater_synth.navigation.render_frames",
+        "nav_frames_command",
+        "Render a trajectory's labelled nav frames.",
+    ),
+    ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
+    ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed, navigation, export."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )
 

@@ -39,6 +39,9 @@ REPO_ROOT = CONFIG_DIR.parent
 # Groups of named presets (``# @package _global_``): each file overrides other groups' options and has no
 # schema of its own; every key it sets is validated by the groups it sets.
 PRESET_GROUPS = frozenset({"experiment"})
+# Groups that configs/config.yaml does not select by default (only the commands that need them read
+# them; ``Settings.<group>`` is None otherwise): ``group=option`` selects one (Hydra's ``+group=option``).
+OPTIONAL_GROUPS = frozenset({"trajectory"})
 ROOT_SCHEMA = "settings_schema"
 SCHEMA_SUFFIX = "_schema"
 
@@ -151,7 +154,7 @@ def compose_settings(overrides: Sequence[str] = (), config_name: str = "config")
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    overrides = list(overrides)
+    overrides = [f"+{o}" if o.partition("=")[0] in OPTIONAL_GROUPS else o for o in overrides]
     register_schemas()
     GlobalHydra.instance().clear()
     try:

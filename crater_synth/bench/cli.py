@@ -11,7 +11,8 @@ Parts (``--part``, default all, in this order):
 - ``navigation``: detection + identification + fix frames/s on a 1024 x 1024 real mosaic window
   (crater_synth.navigation.evaluate.bench_navigation);
 - ``export``: ``crater-synth export`` time and peak RSS on a generated dataset of ``--export-renders``
-  EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export).
+  EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export);
+- ``navframes``: navigation-frame renders/s along a trajectory (crater_synth.bench.navframes).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -32,7 +33,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export"]),
+    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export", "navframes"]),
     default="all",
     show_default=True,
 )
@@ -90,6 +91,10 @@ def bench_command(part, keep, export_renders, overrides):
             r = bench_export(work / "export", export_renders)
             click.echo("export " + json.dumps(r))
             click.echo(summary_line(r))
+        if part in ("all", "navframes"):
+            from crater_synth.bench.navframes import bench_navframes
+
+            click.echo("navframes " + json.dumps(bench_navframes(overrides, work)))
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

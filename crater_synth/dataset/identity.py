@@ -16,10 +16,8 @@ are the render's key (crater, sun and camera angles), and each render is planned
 
 from __future__ import annotations
 
-import hashlib
-import json
-
 from crater_core.horizon import HORIZON_VERSION
+from crater_core.schema import content_key
 from crater_core.settings import CraterSettings, Settings, as_plain
 
 # Settings that cannot change a pixel or a label of a render, with why. Dotted keys of Settings.
@@ -48,6 +46,7 @@ IGNORED: dict[str, str] = {
     "data_dir": "where terrain patches are cached; their content is in terrain_id",
     "out_dir": "where the dataset is written",
     "run_dir": "where training writes",
+    "trajectory": "navigation frames only (their poses and Sun); a sweep render never reads it",
 }
 
 
@@ -69,6 +68,5 @@ def identity_payload(settings: Settings, crater: CraterSettings, terrain_id: str
 
 
 def render_identity(settings: Settings, crater: CraterSettings, terrain_id: str) -> str:
-    """16 hex digits of the sha256 of :func:`identity_payload` (canonical JSON)."""
-    text = json.dumps(identity_payload(settings, crater, terrain_id), sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    """16 hex digits of the sha256 of :func:`identity_payload` (canonical JSON: crater_core.schema.content_key)."""
+    return content_key(identity_payload(settings, crater, terrain_id))

@@ -126,7 +126,7 @@ _ANY = object()  # run_fingerprint: drop the key whatever its value
 def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
     """What decides a run's result: everything but paths, progress and the validate group itself.
     ``training_only``: what decides its trained models (the evaluation-only keys left out too)."""
-    skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir"}
+    skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir", "trajectory"}  # trajectory: nav frames only
     payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
     payload["train"] = {
         k: v

@@ -283,3 +283,46 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
         return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
     r, c = refine_pose(points[best], uv[best], k, r, c)
     return True, "", r, c, best
+
+
+# --------------------------------------------------------------------------------------------
+# Known attitude: camera position only (perspective frames with a star-tracker attitude)
+# --------------------------------------------------------------------------------------------
+def solve_position(points, uv, k, r_wc) -> np.ndarray:
+    """Camera centre (least squares, linear) from >= 2 landmark ``points`` (n, 3) seen at pixels ``uv``
+    (n, 2) by a camera of known world->camera rotation ``r_wc`` (convention of :func:`project_pinhole`)
+    and intrinsics ``k``: each pixel's ray through the centre must pass through its point, so
+    sum_i (I - d_i d_i^T)(c - P_i) = 0 with d_i the ray's world direction."""
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    rays = np.linalg.solve(k, np.column_stack([uv, np.ones(len(uv))]).T).T @ r_wc  # world directions
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    proj = np.eye(3)[None, :, :] - rays[:, :, None] * rays[:, None, :]
+    return np.linalg.solve(proj.sum(axis=0), np.einsum("nij,nj->i", proj, points))
+
+
+def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier_px: float = 2.0):
+    """Robust camera centre of known attitude from putative correspondences (some wrong): minimal sets
+    of 2, scored by reprojection inliers, refitted on all inliers. Returns (ok, reason, centre, inlier
+    mask); the "no fix" rule of :func:`ransac_pnp` (fewer than ``min_inliers`` agreeing) applies."""
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    n = len(points)
+    if n < params.min_inliers:
+        return False, f"{n} landmarks identified (need {params.min_inliers})", None, np.zeros(n, bool)
+    rng = np.random.default_rng(params.seed)
+    best = np.zeros(n, bool)
+    for _ in range(params.iterations):
+        idx = rng.choice(n, 2, replace=False)
+        c = solve_position(points[idx], uv[idx], k, r_wc)
+        if np.any((points[idx] - c) @ r_wc[2] <= 0):
+            continue  # the landmarks behind the camera
+        inl = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
+        if inl.sum() > best.sum():
+            best = inl
+    for _ in range(2):  # refit on the inliers, then re-collect them
+        if best.sum() < max(params.min_inliers, 2):
+            return False, f"only {int(best.sum())} landmarks agree on one position", None, best
+        c = solve_position(points[best], uv[best], k, r_wc)
+        best = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
+    if best.sum() < params.min_inliers:
+        return False, f"only {int(best.sum())} landmarks agree on one position", None, best
+    return True, "", solve_position(points[best], uv[best], k, r_wc), best

@@ -1,0 +1,322 @@
+"""Navigation metrics on rendered frames with exact truth (``crater-synth nav-frames-eval DIR``).
+
+The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic windows
+(:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
+
+- **Detection**: :func:`.detect.detect` on the I/F channel, with its real-window settings. The light
+  direction in the image is given (the lander knows its attitude and the ephemeris; the detector's
+  docstring allows it): the Sun's travel direction, projected on the image plane.
+- **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
+  projected rim ellipse; :mod:`.render_frames`). A detection matches a label when its centre is
+  within 0.25 D of the ellipse centre and its radius within 25 % of the ellipse's semi-major axis.
+- **Prior**: the true camera moved ``PRIOR_OFFSET_KM`` horizontally in a seeded random direction;
+  the attitude is the true one (the same assumption as nav-eval's exact prior heading and scale).
+- **Identification**: map landmarks >= ``min_landmark_km`` projected with the prior pose; putative
+  pairs within the prior's uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio
+  within ``radius_ratio`` (:class:`.fix.FixParams`, the values chosen on real validation windows).
+- **Fix** (``method``): ``position`` (default): the camera centre with the prior's (true) attitude,
+  :func:`.fix.ransac_position` (linear least squares on the rays through the landmarks' 3-D rim-centre
+  points, minimal sets of 2), then each observation corrected for the offset between the rim
+  ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
+  again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
+  landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
+  agree or their RMS exceeds ``max_rms_px``. The real-window ambiguity test (a disjoint rival set) is
+  not applied here. The error is the 3-D distance between the fixed and the
+  true camera centre; a fix is false beyond ``FALSE_FIX_KM``.
+
+Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_core import exr, geometry, schema
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.detect import DetectorParams, detect
+from crater_synth.navigation.evaluate import (
+    HEADLINE_MIN_D_KM,
+    HEADLINE_MIN_LANDMARKS,
+    MATCH_CENTRE_D,
+    MATCH_DIAMETER,
+    PRIOR_OFFSET_KM,
+    RESULTS_JSON,
+    summarise,
+)
+from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, solve_position
+
+PNP_INLIER_PX = 3.0  # reprojection tolerance of the pinhole fix (px); detection centres are good to ~1-2 px
+
+
+def _cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(world -> camera rotation in the computer-vision convention of :func:`.fix.project_pinhole`, K)
+    of a Blender-convention camera (columns right, up, back)."""
+    right, up, back = rotation[:, 0], rotation[:, 1], rotation[:, 2]
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
+    k = np.array([[f, 0.0, width / 2.0], [0.0, f, width / 2.0], [0.0, 0.0, 1.0]])
+    return np.stack([right, -up, -back]), k
+
+
+def light_direction(rotation: np.ndarray, to_sun: np.ndarray) -> float:
+    """Image azimuth (radians, atan2(dv, du), v down) of the light's travel direction (away from the Sun)."""
+    travel = -np.asarray(to_sun, dtype=np.float64)
+    return math.atan2(-(travel @ rotation[:, 1]), travel @ rotation[:, 0])
+
+
+def match_pixels(dets, labels: list[dict]) -> dict[int, int]:
+    """One-to-one matches detection index -> label index, nearest first (0.25 D, 25 % in radius)."""
+    if not dets or not labels:
+        return {}
+    cu = np.array([lb["ellipse"]["cu"] for lb in labels])
+    cv = np.array([lb["ellipse"]["cv"] for lb in labels])
+    r = np.array([lb["ellipse"]["a"] for lb in labels])
+    du = np.array([d.u for d in dets])[:, None] - cu[None, :]
+    dv = np.array([d.v for d in dets])[:, None] - cv[None, :]
+    dist = np.hypot(du, dv) / (2.0 * r[None, :])
+    dr = np.array([d.r for d in dets])[:, None] / r[None, :]
+    ok = (dist <= MATCH_CENTRE_D) & (np.abs(dr - 1.0) <= MATCH_DIAMETER)
+    out: dict[int, int] = {}
+    used: set[int] = set()
+    for i, j in sorted(zip(*np.nonzero(ok)), key=lambda p: dist[p]):
+        if int(i) not in out and int(j) not in used:
+            out[int(i)] = int(j)
+            used.add(int(j))
+    return out
+
+
+def prior_centre(row: dict, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> np.ndarray:
+    """The true camera centre (frame ENU) moved ``offset_km`` horizontally in a seeded direction."""
+    rng = np.random.default_rng([seed, zlib.crc32(f"{row['trajectory']}:{row['index']}".encode())])
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    c = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
+    return c + offset_km * 1000.0 * np.array([math.cos(phi), math.sin(phi), 0.0])
+
+
+def evaluate_frame(
+    row: dict,
+    image: np.ndarray,
+    landmarks,
+    dparams: DetectorParams,
+    fparams: FixParams,
+    seed: int = 0,
+    method: str = "position",
+):
+    """Detection, identification and fix of one rendered frame, scored against its labels; a row in
+    :func:`.evaluate.summarise`'s format plus the frame's own fields."""
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
+    width = int(row["pose"]["width_px"])
+    fov = float(row["pose"]["fov_deg"])
+    gsd = float(row["ground_sample_m"])
+    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    dets, theta = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    labels = [lb for lb in row["landmarks"] if lb["diameter_km"] >= fparams.min_landmark_km]
+    matched = match_pixels(dets, labels)
+    by_id = {lm.id: k for k, lm in enumerate(landmarks)}
+    out = {
+        "id": f"{row['trajectory']}/{row['index']}",
+        "index": row["index"],
+        "altitude_km": row["pose"]["altitude_m"] / 1000.0,
+        "ground_sample_m": gsd,
+        "n_detections": len(dets),
+        "truth": [by_id[lb["id"]] for lb in labels],
+        "truth_d_km": [lb["diameter_km"] for lb in labels],
+        "det_r_km": [d.r * gsd / 1000.0 for d in dets],
+        "matched": {k: by_id[labels[j]["id"]] for k, j in matched.items()},
+        "matched_any": sorted(matched),
+        "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels)),
+    }
+    # Identification with the prior pose.
+    r_wc, k = _cv_camera(rot, width, fov)
+    c_prior = prior_centre(row, seed)
+    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
+    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
+    ids = [by_id[lm.id] for lm in cand]
+    pairs_det, pairs_lm = [], []
+    if len(pts) and dets:
+        depth = (pts - c_prior) @ r_wc[2]
+        front = depth > 0
+        uv = np.full((len(pts), 2), np.nan)
+        uv[front] = project_pinhole(pts[front], r_wc, c_prior, k)
+        r_pred = np.array([lm.diameter_km * 500.0 for lm in cand]) * k[0, 0] / np.where(front, depth, np.nan)
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < width)
+        gate_base = fparams.prior_sigma_km * 1000.0 / gsd
+        for i, d in enumerate(dets):
+            dist = np.hypot(uv[:, 0] - d.u, uv[:, 1] - d.v)
+            ratio = d.r / r_pred
+            ok = (
+                inside
+                & (dist <= gate_base + d.r / 4.0)
+                & (ratio <= fparams.radius_ratio)
+                & (ratio >= 1 / fparams.radius_ratio)
+            )
+            for j in np.nonzero(ok)[0]:
+                pairs_det.append(i)
+                pairs_lm.append(int(j))
+    out["putative_pairs"] = len(pairs_det)
+    if not pairs_det:
+        out.update(fix=False, reason="no putative landmark pairs")
+        return out
+    p3 = pts[pairs_lm]
+    p2 = np.array([[dets[i].u, dets[i].v] for i in pairs_det])
+    if method == "pnp":
+        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, PNP_INLIER_PX)
+    else:
+        r_fix = r_wc
+        ok, reason, c_fix, inl = ransac_position(p3, p2, k, r_wc, fparams, PNP_INLIER_PX)
+    if ok:
+        # One pair per detection and per landmark: the smallest reprojection error wins.
+        err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
+        used_d, used_l, keep = set(), set(), []
+        for q in sorted(np.nonzero(inl)[0], key=lambda q: err[q]):
+            if pairs_det[q] not in used_d and pairs_lm[q] not in used_l:
+                used_d.add(pairs_det[q])
+                used_l.add(pairs_lm[q])
+                keep.append(q)
+        if len(keep) < fparams.min_inliers:
+            ok, reason = False, f"only {len(keep)} distinct landmarks agree on one pose"
+        elif method == "position":
+            # A detection measures the rim ellipse's centre, which perspective moves off the image of the
+            # rim's centre point: correct each observation by that offset at the current fix, re-solve.
+            normals = pts[[pairs_lm[q] for q in keep]] + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+            radii = [cand[pairs_lm[q]].diameter_km * 500.0 for q in keep]
+            for _ in range(2):
+                pose = geometry.CameraPose(
+                    position=c_fix, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov
+                )
+                proj = project_pinhole(p3[keep], r_wc, c_fix, k)
+                centres = np.array(
+                    [
+                        [e.cu, e.cv]
+                        for e in (
+                            geometry.project_circle(p3[q], nrm, rad, pose, width)
+                            for q, nrm, rad in zip(keep, normals, radii)
+                        )
+                    ]
+                )
+                corrected = p2[keep] - (centres - proj)
+                c_fix = solve_position(p3[keep], corrected, k, r_wc)
+            err = np.hypot(*(project_pinhole(p3[keep], r_fix, c_fix, k) - corrected).T)
+        else:
+            err = err[keep]
+        rms = float(np.sqrt(np.mean(err**2))) if ok else math.nan
+        if ok and rms > fparams.max_rms_px:  # the real-window rule: a loose fit is no fix
+            ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
+    out["fix"] = bool(ok)
+    out["reason"] = reason
+    if ok:
+        out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
+        out["identified"] = len(keep)
+        out["identified_correct"] = int(sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep))
+        out["rms_px"] = rms
+    return out
+
+
+def evaluate_dir(
+    frames_dir: Path,
+    dparams: DetectorParams = DetectorParams(),
+    fparams: FixParams = FixParams(),
+    seed: int = 0,
+    method: str = "position",
+):
+    """(summary over all frames and headline frames, per-frame rows) of a ``nav-frames`` output."""
+    from crater_synth.navigation.landmarks import load_default_map
+
+    manifest = Path(frames_dir) / schema.MANIFEST_NAME
+    if not manifest.is_file():
+        raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
+    rows = [json.loads(line) for line in manifest.read_text(encoding="utf-8").splitlines() if line.strip()]
+    if not rows:
+        raise UserError(f"{manifest}: no frames")
+    maps: dict[str, list] = {}
+    out = []
+    for row in rows:
+        pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+        if pole not in maps:
+            maps[pole] = load_default_map(pole)[0]
+        image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
+        out.append(evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method))
+    head = [r for r in out if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    summary = {"all": summarise(out), "headline": summarise(head)}
+    return summary, out
+
+
+def _render_info(frames_dir: Path) -> dict:
+    """Render settings of the first frame, from its EXR header (mode, samples, frame size)."""
+    rows = [json.loads(line) for line in (Path(frames_dir) / schema.MANIFEST_NAME).read_text().splitlines() if line]
+    _, header = exr.read_channel_and_header(Path(frames_dir) / rows[0]["rel_path"], "IF")
+    return {
+        "mode": header.get("crater_synth:mode"),
+        "samples": header.get("samples"),
+        "width_px": rows[0]["pose"]["width_px"],
+        "fov_deg": rows[0]["pose"]["fov_deg"],
+    }
+
+
+@click.command("nav-frames-eval")
+@click.argument("frames_dir", type=click.Path(path_type=Path))
+@click.option(
+    "--write-results", is_flag=True, help="Record the summary under 'synthetic' in docs/results/navigation.json."
+)
+@click.option("--seed", default=0, show_default=True, help="Seed of the prior offsets.")
+@click.option(
+    "--set", "sets", multiple=True, help="detect.<name>=<value> or fix.<name>=<value> (as in nav-eval); not recorded."
+)
+@click.option(
+    "--method",
+    type=click.Choice(["position", "pnp"]),
+    default="position",
+    show_default=True,
+    help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
+)
+@user_errors
+def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
+    """Navigation metrics (detection, identification, fix) on rendered frames with exact truth.
+
+    Example: `crater-synth nav-frames-eval data/navframes/descent_ridge`
+    """
+    from crater_synth.navigation.evaluate import _params_with
+
+    if sets and write_results:
+        raise UserError("--write-results records the default settings only; drop --set")
+    dparams, fparams = _params_with(tuple(sets))
+    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed=seed, method=method)
+    for r in rows:
+        click.echo(
+            f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
+            f"det {r['n_detections']:3d} truth {len(r['truth']):3d} matched {len(r['matched']):3d} "
+            f"fix {r['fix']!s:5} " + (f"err {r['error_km']:.3f} km" if r["fix"] else r["reason"]),
+            err=True,
+        )
+    if write_results:
+        results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
+        info = _render_info(frames_dir)
+        results.setdefault("synthetic", {})[f"{rows[0]['id'].split('/')[0]}/{method}"] = {
+            "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
+            f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
+            "render": info,
+            "protocol": {
+                "prior_offset_km": PRIOR_OFFSET_KM,
+                "prior_attitude": "exact",
+                "light_direction": "given (attitude + ephemeris)",
+                "pnp_inlier_px": PNP_INLIER_PX,
+                "method": method,
+                "error": "3-D camera centre distance",
+            },
+            "frames": [
+                {k: r.get(k) for k in ("index", "altitude_km", "ground_sample_m", "n_detections", "fix", "error_km")}
+                for r in rows
+            ],
+            **summary,
+        }
+        schema.atomic_write_text(RESULTS_JSON, json.dumps(results, indent=1) + "\n")
+    click.echo(json.dumps(summary))

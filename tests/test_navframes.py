@@ -1,0 +1,268 @@
+"""Navigation frames: trajectory pose maths, explicit-pose frame renders and their landmark labels."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from crater_core import exr, geometry
+from crater_core.trajectory import TrajectoryError, footprint_half_width_m, frame_poses
+
+from helpers import render as cr
+from helpers.cli import run_cli
+
+
+def _traj(**kw):
+    base = dict(
+        name="t",
+        start=(-85.0, 30.0),
+        end=(-85.0, 30.0),
+        altitude_km=(100.0, 100.0),
+        frames=1,
+        off_nadir_deg=0.0,
+        off_nadir_azimuth_deg=0.0,
+        fov_deg=40.0,
+        width_px=96,
+        sun="explicit",
+        subsolar_lat_deg=0.0,
+        subsolar_lon_deg=0.0,
+        sun_elevation_deg=10.0,
+        sun_azimuth_deg=90.0,
+    )
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_nadir_camera_looks_at_its_ground_point_and_footprint_matches_altitude():
+    (p,) = frame_poses(_traj())
+    assert p.target_lat == pytest.approx(-85.0, abs=1e-9) and p.target_lon == pytest.approx(30.0, abs=1e-9)
+    cam = p.pose_enu(p.target_lat, p.target_lon)
+    assert np.allclose(cam.position, [0.0, 0.0, 100e3], atol=1e-6)
+    (u, v), depth = geometry.project_points(np.zeros(3), cam, 96)
+    assert (u, v) == pytest.approx((48.0, 48.0), abs=1e-9) and depth == pytest.approx(100e3)
+    # Flat-ground footprint alt * tan(fov / 2); the sphere falls away under the corners (a little more).
+    flat = 100e3 * math.tan(math.radians(20.0))
+    assert flat < footprint_half_width_m(p) < 1.01 * flat
+    assert p.ground_sample_m() == pytest.approx(100e3 / cam.focal_px(96))
+    # Explicit Sun: (elevation, azimuth) above the frame's target.
+    assert p.sun_enu(p.target_lat, p.target_lon) == pytest.approx((10.0, 90.0))
+
+
+def test_track_heading_tilt_and_image_up():
+    poses = frame_poses(_traj(start=(-80.0, 0.0), end=(-85.0, 0.0), frames=3, altitude_km=(150.0, 50.0)))
+    assert [p.altitude_m for p in poses] == pytest.approx([150e3, 100e3, 50e3])
+    assert [p.subcam_lat for p in poses] == pytest.approx([-80.0, -82.5, -85.0])
+    assert [p.heading_deg for p in poses] == pytest.approx([180.0] * 3)  # flying south along 0 E
+    # Tilted 20 deg to the right of the track (west when flying south): the target moves ~alt tan 20 west.
+    (q,) = frame_poses(_traj(off_nadir_deg=20.0, off_nadir_azimuth_deg=90.0, altitude_km=(50.0, 50.0)))
+    sub = geometry.latlon_to_mc(q.subcam_lat, q.subcam_lon)
+    e, n, _ = geometry.mc_to_enu(geometry.latlon_to_mc(q.target_lat, q.target_lon), q.subcam_lat, q.subcam_lon)
+    assert np.hypot(e, n) == pytest.approx(50e3 * math.tan(math.radians(20.0)), rel=0.01)
+    assert e > 0 and abs(n) < 1e-6 * 50e3  # flying north (a single point travels north): right is east
+    cam = q.pose_enu(q.target_lat, q.target_lon)
+    (u, v), _ = geometry.project_points(np.zeros(3), cam, 96)
+    assert (u, v) == pytest.approx((48.0, 48.0), abs=1e-6)  # the boresight's ground point is the frame centre
+    ahead = geometry.mc_to_enu(geometry.latlon_to_mc(q.target_lat + 0.05, q.target_lon), q.target_lat, q.target_lon)
+    (u2, v2), _ = geometry.project_points(ahead, cam, 96)
+    assert v2 < 48.0  # image up is the direction of flight (north here)
+    assert np.linalg.norm(sub) > 0
+
+
+def test_project_circle_vertical_normal_is_the_horizontal_circle():
+    cam = geometry.look_at_camera(60.0, 30.0, 20e3, 50.0)
+    a = geometry.project_horizontal_circle([300.0, -200.0, 50.0], 2e3, cam, 200)
+    b = geometry.project_circle([300.0, -200.0, 50.0], [0.0, 0.0, 1.0], 2e3, cam, 200)
+    assert a == b
+    # A circle facing the camera head-on images as a circle.
+    n = -cam.forward
+    c = geometry.project_circle(np.zeros(3), n, 2e3, cam, 200)
+    assert c.a == pytest.approx(c.b, rel=1e-9)
+
+
+def test_position_fix_with_known_attitude_is_exact_and_robust():
+    from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_position
+
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-60e3, 60e3, (12, 2)), rng.uniform(-2e3, 2e3, 12)])
+    c = np.array([3e3, -2e3, 120e3])
+    r_wc = np.diag([1.0, -1.0, -1.0])  # nadir: camera +z down
+    k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
+    uv = project_pinhole(pts, r_wc, c, k)
+    uv[:3] += 40.0  # three wrong identifications
+    ok, reason, c_fix, inl = ransac_position(pts, uv, k, r_wc, FixParams(), inlier_px=2.0)
+    assert ok and np.linalg.norm(c_fix - c) < 1e-3 and inl.tolist() == [False] * 3 + [True] * 9, reason
+    ok, reason, *_ = ransac_position(pts[:4], uv[:4], k, r_wc, FixParams(), inlier_px=2.0)
+    assert not ok and "need 5" in reason
+
+
+def test_bad_trajectories_give_one_clear_error():
+    with pytest.raises(TrajectoryError, match="beyond the horizon"):
+        frame_poses(_traj(fov_deg=120.0, off_nadir_deg=50.0, altitude_km=(300.0, 300.0)))
+    with pytest.raises(TrajectoryError, match="antipodal"):
+        frame_poses(_traj(start=(-10.0, 0.0), end=(10.0, 180.0), frames=2))
+    proc = run_cli("nav-frames", "trajectory=descent_ridge", "trajectory.fov_deg=0", timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "trajectory.fov_deg" in lines[0], proc.stderr
+    proc = run_cli("nav-frames", timeout=120)
+    assert proc.returncode == 2 and "trajectory=NAME" in proc.stderr.strip().splitlines()[-1], proc.stderr
+
+
+def test_frame_outside_the_dem_is_one_error_and_no_output(tmp_path):
+    out = tmp_path / "frames"
+    proc = run_cli(
+        "nav-frames",
+        "trajectory=descent_ridge",
+        "trajectory.start=[-40,0]",
+        "trajectory.end=[-41,0]",
+        f"data_dir={tmp_path / 'data'}",
+        "--out",
+        out,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    (line,) = proc.stderr.strip().splitlines()
+    assert "trajectory=descent_ridge frame 0" in line and "outside DEM" in line
+    assert not out.exists()
+
+
+def _landmark(lat, lon, height, d_km):
+    from crater_synth.navigation.landmarks import Landmark
+
+    return Landmark(
+        id="syn-1",
+        name="synthetic",
+        lat=float(lat),
+        lon=float(lon),
+        x_m=0.0,
+        y_m=0.0,
+        diameter_km=d_km,
+        depth_m=0.2 * d_km * 1e3,
+        rim_height_m=float(height),
+        spill_depth_m=0.0,
+        rim_inlier_share=1.0,
+        source="test",
+    )
+
+
+def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
+    """An explicit-pose frame of a bowl crater placed off-centre: its label sits where the depth and lit
+    channels show the crater, and the labelled lit-rim fraction is what the lit channel says."""
+    from crater_synth.navigation.render_frames import landmarks_in_view, worker_item
+
+    (p,) = frame_poses(
+        _traj(altitude_km=(30.0, 30.0), off_nadir_deg=10.0, off_nadir_azimuth_deg=45.0, sun_elevation_deg=25.0)
+    )
+    lat0, lon0 = p.target_lat, p.target_lon
+    d_m, x0, y0 = 8000.0, 4000.0, -3000.0
+    bowl = cr.crater_z(d_m)
+    half = 1.2 * footprint_half_width_m(p)
+    near = cr.grid(half, 161, lambda x, y: bowl(x - x0, y - y0), curvature=True)
+    npz = cr.write_npz(tmp_path / "t.npz", near)
+    item = worker_item(p, lat0, lon0, seed=3, header={"test": "navframe"})
+    job = cr.job(npz, [item], tmp_path / "out", mode="direct", diameter_km=d_m / 1e3, samples=1)
+    results, proc = cr.run_worker(job, tmp_path, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    ch, _ = exr.read_exr(tmp_path / "out" / item["rel_path"])
+    assert ch["IF"].shape == (96, 96)
+    rim_mc = geometry.enu_to_mc(np.array([x0, y0, 0.04 * d_m]), lat0, lon0)
+    lat, lon, h = geometry.mc_to_latlon(rim_mc)
+    labels = landmarks_in_view(p, [_landmark(lat, lon, h, d_m / 1e3)], lat0, lon0, ch["lit"])
+    assert len(labels) == 1
+    e = labels[0]["ellipse"]
+    assert (e["cu"], e["cv"]) != pytest.approx((48.0, 48.0), abs=5.0)  # off-centre, truly
+    # The depth channel, back-projected to the ground: its lowest point (the crater floor) lies inside the
+    # labelled rim, near its centre.
+    uu, vv = np.meshgrid(np.arange(96) + 0.5, np.arange(96) + 0.5)
+    ground = geometry.back_project_pixels(np.stack([uu, vv], -1), ch["depth"], p.pose_enu(lat0, lon0), 96)
+    height = ground[..., 2] + geometry.curvature_drop_m(np.hypot(ground[..., 0], ground[..., 1]))
+    iv, iu = np.unravel_index(np.argmin(height), height.shape)
+    assert math.hypot(iu + 0.5 - e["cu"], iv + 0.5 - e["cv"]) < 0.25 * e["a"]
+    # Sun 25 deg up in the east: the inner wall facing away from it (the east half of the bowl) is in shadow,
+    # the ground outside the rim is lit.
+    ell = geometry.Ellipse(e["cu"], e["cv"], e["a"], e["b"], e["angle_rad"])
+    inside = np.hypot(uu - ell.cu, vv - ell.cv) < 0.8 * ell.b
+    east = geometry.project_points(np.array([x0 + 1000.0, y0, 0.0]), p.pose_enu(lat0, lon0), 96)[0][0] > ell.cu
+    east_half = inside & ((uu > ell.cu) == east)
+    west_half = inside & ((uu > ell.cu) != east)
+    assert ch["lit"][east_half].mean() < 0.5 < ch["lit"][west_half].mean()
+    outside = np.hypot(uu - ell.cu, vv - ell.cv) > 1.5 * ell.a
+    assert ch["lit"][outside].mean() > 0.9
+    frac = labels[0]["lit_rim_fraction"]
+    assert 0.0 < frac < 1.0  # the rim crest is partly in its own shadow near the terminator side
+    pts = ell.points(90)
+    assert frac == pytest.approx(float(np.mean(ch["lit"][pts[:, 1].astype(int), pts[:, 0].astype(int)])), abs=1e-4)
+
+
+def test_nav_frames_command_end_to_end(tmp_path):
+    """`crater-synth nav-frames` on a real-DEM trajectory frame at tiny settings: EXR + manifest + labels."""
+    out = tmp_path / "frames"
+    proc = run_cli(
+        "nav-frames",
+        "trajectory=descent_ridge",
+        "trajectory.width_px=64",
+        f"data_dir={tmp_path / 'data'}",
+        "terrain.near_vertices=64",
+        "terrain.far_spacing_km=8",
+        "terrain.detail.enabled=false",
+        "render.samples=1",
+        "render.shadow_map_px=64",
+        "render.workers=1",
+        "render.mode=fast",
+        "--out",
+        out,
+        "--frames",
+        "0",
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["frames"] == 1 and summary["modes_used"] == ["fast"]
+    (row,) = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    assert row["schema_version"] == 1 and row["index"] == 0 and row["pose"]["altitude_m"] == pytest.approx(150e3)
+    ch, header = exr.read_exr(out / row["rel_path"])
+    assert ch["IF"].shape == (64, 64) and np.isfinite(ch["IF"]).all()
+    assert header["trajectory"] == "descent_ridge" and json.loads(header["pose_mc"])["index"] == 0
+    assert len(row["landmarks"]) > 5
+    for lb in row["landmarks"]:
+        assert 0 <= lb["centre_px"][0] < 64 and 0 <= lb["centre_px"][1] < 64
+        assert lb["lit_rim_fraction"] is None or 0.0 <= lb["lit_rim_fraction"] <= 1.0
+    # Identification and fix from the labels' own ellipses (perfect detections): the chain labels ->
+    # prior -> identification -> known-attitude fix -> ellipse-centre correction is exact; 6-DOF PnP
+    # is close (its tilt/shift ambiguity at nadir makes it looser).
+    from unittest import mock
+
+    from crater_synth.navigation import frames_eval
+    from crater_synth.navigation.detect import Detection
+    from crater_synth.navigation.fix import FixParams
+    from crater_synth.navigation.landmarks import load_default_map
+
+    lms = load_default_map("south")[0]
+    dets = [Detection(lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"], 1.0) for lb in row["landmarks"]]
+    with mock.patch.object(frames_eval, "detect", lambda *a, **k: (dets, 0.0)):
+        r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams())
+        assert r["fix"] and r["error_km"] < 0.01 and r["identified_correct"] == r["identified"] >= 5, r
+        assert len(r["matched"]) == len(r["truth"])  # every label matched by its own ellipse
+        # Shift every detection by 20 px: no consistent landmark set near the prior -> no fix, never a wrong one.
+        far = [Detection(d.u + 20.0, d.v, d.r, 1.0) for d in dets]
+    with mock.patch.object(frames_eval, "detect", lambda *a, **k: (far, 0.0)):
+        r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams())
+        assert not r["fix"] or r["error_km"] < 5.0, r
+
+
+def test_worker_rejects_a_bad_explicit_camera(tmp_path):
+    (p,) = frame_poses(_traj())
+    from crater_synth.navigation.render_frames import worker_item
+
+    item = worker_item(p, p.target_lat, p.target_lon, seed=1, header={})
+    item["camera"]["rotation"][0][0] += 0.5  # not a rotation
+    npz = cr.write_npz(tmp_path / "t.npz", cr.grid(50e3, 16))
+    results, proc = cr.run_worker(cr.job(npz, [item], tmp_path / "out"), tmp_path, timeout=120)
+    assert proc.returncode == 2 and not results
+    (line,) = proc.stdout.strip().splitlines()
+    assert line.startswith("ERROR ") and "camera rotation is not orthonormal" in line
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
