@@ -365,10 +365,11 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
     """One catalogue row: the entry, its measured depression (None when it could not be measured) and
     the failed criteria (empty: the entry passes). ``near_radius_factor``: the terrain patch's near-field
     half-width in diameters (``terrain.near_radius_factor``), which must fit inside the DEM."""
-    from crater_synth.dem import DemError
+    from crater_synth.dem import DemError, check_hemisphere
 
     failures = []
     try:
+        check_hemisphere(dem, crater["name"], crater["lat"])
         m = measure_depression(dem, crater["lat"], crater["lon"], crater["diameter_km"], name=crater["name"])
         measured = m.as_dict()
         failures += m.failures()
@@ -444,15 +445,11 @@ def box_images(dem, mosaic, crater: dict, sigma: float) -> dict:
     statistics: share of near-black pixels (<= DARK_DN: shadow or no data) and saturated ones."""
     from scipy.ndimage import map_coordinates
 
-    from crater_core.geometry import south_polar_stereo_inverse
-
     cu, cv, side = _box_uv(mosaic, crater, sigma)
     uu, vv = _tile_points(mosaic, cu, cv, side)
     wac = map_coordinates(mosaic.image.astype(np.float32), [vv - 0.5, uu - 0.5], order=1, mode="nearest")
     nearest = map_coordinates(mosaic.image, [vv - 0.5, uu - 0.5], order=0, mode="nearest")
-    x = uu * mosaic.pixel_m - mosaic.extent_m
-    y = mosaic.extent_m - vv * mosaic.pixel_m
-    lat, lon = south_polar_stereo_inverse(x, y, mosaic.radius_m)
+    lat, lon = mosaic.uv_to_latlon(uu, vv)
     spacing = side * mosaic.pixel_m / SHEET_TILE_PX
     h = dem.sample(lat, lon, spacing_m=spacing, what=f"sheet box of crater {crater['name']}").heights
     return {
@@ -493,8 +490,8 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
             else:
                 ax.imshow(im["hillshade"], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
             to_tile = SHEET_TILE_PX / side
-            # Circles in the mosaic: polar stereographic scale k = 2 / (1 - sin(lat)) at the crater.
-            k = 2.0 / (1.0 - math.sin(math.radians(row["lat"])))
+            # Circles in the mosaic: polar stereographic scale k = 2 / (1 + sin|lat|) at the crater.
+            k = 2.0 / (1.0 + math.sin(math.radians(abs(row["lat"]))))
             t = np.linspace(0.0, 2.0 * np.pi, 181)
             r_cat = 0.5 * k * row["diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
             ax.plot(

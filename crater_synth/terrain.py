@@ -274,7 +274,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     """
     from crater_core.files import ensure_writable_dir
     from crater_core.schema import atomic_write_text
-    from crater_synth.dem import DemCoverageError
+    from crater_synth.dem import DemCoverageError, check_hemisphere
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
@@ -282,8 +282,10 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
     dem, dem_sha = _open_stack(s)
+    check_hemisphere(dem, name, lat)
     if s["dem"]["far_product"] or s["dem"]["far_path"]:
         far_dem, far_sha = _open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
+        check_hemisphere(far_dem, name, lat)
     else:
         far_dem, far_sha = dem, dem_sha  # the same stack: near and far fields agree in their overlap
 

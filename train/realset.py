@@ -1,7 +1,8 @@
 """The real test set (docs/realset.md): labelled crops of real lunar images. Test data only.
 
-1. Embedded default: the LROC WAC south-polar mosaic shipped inside the ``lunar-toolkit`` wheel (read
-   as a file, never imported). For each crater, ``realset.per_crater`` (300) crops: a square ROI of
+1. Embedded default: the LROC WAC polar mosaics shipped inside the ``lunar-toolkit`` wheel (read
+   as files, never imported): ``realset=wac_south`` (default) or ``realset=wac_north`` for the
+   north-polar craters. For each crater, ``realset.per_crater`` (300) crops: a square ROI of
    side sigma x rim diameter (diameter_m / 400 m px) centred on the crater's projected centre, with a
    seeded "slewing" offset and a rotation of the sampling grid. This is ONE real observation per
    crater seen 300 ways, not 300 observations; every report says so.
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,7 +31,7 @@ from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 
 LIMITS_NOTE = (
-    "The embedded real test set is one real observation per crater (one LROC WAC south-polar "
+    "The embedded real test set is one real observation per crater (one LROC WAC polar "
     "mosaic, 400 m/px) seen many ways (sigma, slewing offsets, rotations): crops of the same "
     "crater are strongly correlated, so accuracies measure recognition of that single "
     "observation, not generalisation over real illumination conditions."
@@ -50,6 +52,23 @@ def embedded_product_path(product_id: str) -> Path:
         raise RealSetError(f"real test product {product_id!r}: {exc}") from None
 
 
+def product_pole(product_id: str) -> str:
+    """The pole (``"south"``/``"north"``) of a registered polar-stereographic product, read from its CRS
+    in data_manifest/products.yaml (``+lat_0=-90`` or ``+lat_0=90``)."""
+    from data_manifest.products import get_product
+
+    try:
+        crs = str(get_product(product_id).get("crs") or "")
+    except Exception as exc:  # noqa: BLE001 - ProductError: unknown id, named below
+        raise RealSetError(f"real test product {product_id!r}: {exc}") from None
+    m = re.search(r"\+lat_0=(-?[0-9.]+)", crs)
+    if not m or abs(abs(float(m.group(1))) - 90.0) > 1e-9:
+        raise RealSetError(
+            f"real test product {product_id!r} is not polar stereographic (crs {crs!r}); set realset.mosaic.pole"
+        )
+    return "north" if float(m.group(1)) > 0 else "south"
+
+
 @dataclass(frozen=True)
 class Mosaic:
     """A polar-stereographic product: pixel (u right, v down, origin at the top-left corner)."""
@@ -60,16 +79,36 @@ class Mosaic:
     extent_m: float  # half-width of the square extent
     pixel_m: float
     radius_m: float
+    pole: str = "south"  # which polar stereographic projection (crater_core.geometry.polar_stereo_forward)
 
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
         arrays (the same formula for both)."""
-        from crater_core.geometry import south_polar_stereo_forward
+        from crater_core.geometry import polar_stereo_forward
 
-        x, y = south_polar_stereo_forward(lat_deg, lon_deg, self.radius_m)
+        x, y = polar_stereo_forward(lat_deg, lon_deg, self.pole, self.radius_m)
         u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
         v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
         return (float(u), float(v)) if np.ndim(u) == 0 else (u, v)
+
+    def uv_to_latlon(self, u, v):
+        """Inverse of :meth:`latlon_to_uv`: (lat_deg, lon_deg) of pixel coordinates (u, v)."""
+        from crater_core.geometry import polar_stereo_inverse
+
+        x = np.asarray(u, dtype=np.float64) * self.pixel_m - self.extent_m
+        y = self.extent_m - np.asarray(v, dtype=np.float64) * self.pixel_m
+        return polar_stereo_inverse(x, y, self.pole, self.radius_m)
+
+    def check_crater(self, crater: Mapping) -> None:
+        """Refuse a crater of the other hemisphere than this mosaic with one line naming both."""
+        from crater_core.geometry import hemisphere
+
+        if hemisphere(crater["lat"]) != self.pole:
+            raise RealSetError(
+                f"crater {crater['name']} (lat {float(crater['lat']):g}) is in the {hemisphere(crater['lat'])}ern "
+                f"hemisphere but real mosaic {self.product_id} is {self.pole}-polar: use realset=wac_"
+                f"{hemisphere(crater['lat'])}"
+            )
 
 
 def load_mosaic(rs_cfg: Mapping) -> Mosaic:
@@ -80,6 +119,7 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
         path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id)
         expected = m.get("sha256")
         extent, pixel, radius = float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"])
+        pole = str(m.get("pole") or product_pole(product_id))
     except KeyError as exc:
         raise RealSetError(f"realset.mosaic is missing key {exc}") from None
     if not path.is_file():
@@ -98,7 +138,9 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
             f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
             f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}"
         )
-    return Mosaic(product_id, path, img, extent, pixel, radius)
+    if pole not in ("south", "north"):
+        raise RealSetError(f"realset.mosaic.pole={pole!r}: choose south or north")
+    return Mosaic(product_id, path, img, extent, pixel, radius, pole)
 
 
 def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
@@ -178,6 +220,7 @@ def plan_embedded_crops(
     out: list[RealCrop] = []
     for c in craters:
         name = str(c["name"])
+        mosaic.check_crater(c)
         cu, cv = mosaic.latlon_to_uv(float(c["lat"]), float(c["lon"]))
         d_px = float(c["diameter_km"]) * 1000.0 / mosaic.pixel_m
         rng = _crater_seed(seed, name)
