@@ -171,9 +171,8 @@ class SweepGrid:
         if self.sun_model == "physical":
             if lat_deg is None:
                 raise SweepError("a physical sweep needs the crater latitude to place its suns")
-            from crater_core.illumination import max_sun_elevation_deg
-
             from crater_core.geometry import noon_azimuth_deg
+            from crater_core.illumination import max_sun_elevation_deg
 
             # South: the grid value itself (the same number as before the north pole was supported);
             # north: mirrored about the noon direction, so that a value v is on the same (morning, east)

@@ -367,9 +367,12 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
     half-width in diameters (``terrain.near_radius_factor``), which must fit inside the DEM."""
     from crater_synth.dem import DemError, check_hemisphere
 
-    failures = []
     try:
         check_hemisphere(dem, crater["name"], crater["lat"])
+    except DemError as exc:  # nothing else about the entry can be measured in this DEM
+        return {**crater, "measured": None, "failures": [str(exc)], "passes": False}
+    failures = []
+    try:
         m = measure_depression(dem, crater["lat"], crater["lon"], crater["diameter_km"], name=crater["name"])
         measured = m.as_dict()
         failures += m.failures()
