@@ -171,14 +171,14 @@ class SweepGrid:
         if self.sun_model == "physical":
             if lat_deg is None:
                 raise SweepError("a physical sweep needs the crater latitude to place its suns")
-            from crater_core.geometry import noon_azimuth_deg
+            from crater_core.geometry import hemisphere, noon_azimuth_deg
             from crater_core.illumination import max_sun_elevation_deg
 
             # South: the grid value itself (the same number as before the north pole was supported);
             # north: mirrored about the noon direction, so that a value v is on the same (morning, east)
             # side of noon at both poles and a mirrored crater sees the mirrored suns.
             v = self.sun_azimuth[idx[1]]
-            azimuth = v if lat_deg < 0.0 else round((noon_azimuth_deg(lat_deg) - v) % 360.0, 6)
+            azimuth = v if hemisphere(lat_deg) == "south" else round((noon_azimuth_deg(lat_deg) - v) % 360.0, 6)
             elevation = round(float(param * max_sun_elevation_deg(lat_deg, azimuth)), 6)
         else:
             azimuth = self.sun_azimuth[idx[1]]
