@@ -178,7 +178,7 @@ class Dem:
         if not self.crs.is_projected:
             raise DemReadError(
                 f"{where} is in a geographic CRS; reproject it to a projected one "
-                "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400')"
+                "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400', or +lat_0=90 at the north pole)"
             )
         if not _linear_unit_is_metre(self.crs):
             raise DemReadError(f"{where}: CRS linear unit {self.crs.linear_units!r} is not metres")
