@@ -312,3 +312,29 @@ def test_a_north_crater_renders_trains_and_evaluates(tmp_path):
         assert set(metrics[m]["per_crater"]) == {"aepinus", "bosch"}
         assert 0.0 <= metrics[m]["real_accuracy"] <= 1.0
         assert list(metrics[m]["per_source"]) == ["lroc_wac_north"]  # the real crops are the north mosaic's
+
+
+def test_a_dem_spanning_the_equator_takes_craters_of_both_hemispheres(tmp_path):
+    """The hemisphere check refuses only a DEM wholly in the other hemisphere: an equirectangular DEM
+    over +-10 deg (any CRS PROJ reads) accepts both, and its coverage decides."""
+    import rasterio
+    from affine import Affine
+
+    from crater_synth.dem import Dem, DemCoverageError, check_hemisphere
+
+    px, n = 3000.0, 200
+    path = tmp_path / "equator.tif"
+    with rasterio.open(
+        path, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+        crs="+proj=eqc +lat_ts=0 +lon_0=0 +R=1737400 +units=m +no_defs",
+        transform=Affine(px, 0.0, -n / 2 * px, 0.0, -px, n / 2 * px),
+    ) as dst:  # fmt: skip
+        dst.write(np.zeros((n, n), np.float32), 1)
+    dem = Dem(path, product="equator")
+    assert dem.hemisphere() is None
+    check_hemisphere(dem, "north_one", 5.0)
+    check_hemisphere(dem, "south_one", -5.0)
+    assert dem.sample(np.array([5.0, -5.0]), np.array([1.0, 1.0])).heights.tolist() == [0.0, 0.0]
+    south = Dem(write_dem(tmp_path / "s.tif", np.zeros((4, 4)), -800.0, 800.0, "south"), product="south_only")
+    with pytest.raises(DemCoverageError, match="crater x .* DEM south_only is south-polar: use dem=lola_ldem256_north"):
+        check_hemisphere(south, "x", 80.0)
