@@ -121,7 +121,7 @@ def group_overrides(overrides: Sequence[str], group: Group, north_overrides: Seq
     if not north_overrides:
         raise ConfigError(
             f"{group.label}: north-polar craters need validate.north_overrides (their DEM and real mosaic, e.g. "
-            "[dem=lola_ldem256_north,realset=wac_north])"
+            "validate.north_overrides=['dem=lola_ldem256_north','realset=wac_north'])"
         )
     owned = {o.lstrip("+~").split("=", 1)[0].split(".")[0] for o in north_overrides}
     kept = [o for o in overrides if o.lstrip("+~").split("=", 1)[0].split(".")[0] not in owned]
