@@ -560,7 +560,9 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
 def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     """Measure each catalogue crater in the DEM: centre offset, rim diameter, spill depth (docs/catalogue.md).
 
-    Default: every entry of configs/crater/. With a ``crater=[a,b,...]`` override, those entries.
+    Default: every entry of configs/crater/ in the DEM's hemisphere (the south-polar ones with the
+    default DEM, the north-polar ones with ``dem=lola_ldem256_north``). With a ``crater=[a,b,...]``
+    override, those entries.
     Exit status 1 when an entry fails the catalogue test. Example: ``crater-synth catalogue
     'crater=[haworth,faustini]'``
     """
@@ -573,7 +575,12 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     cfg = compose(overrides)
     dem = open_dem(cfg)
     factor = terrain_settings(cfg)["near_radius_factor"]
-    rows = [check(dem, c, factor) for c in craters(cfg)]
+    entries = craters(cfg)
+    if not selected and dem.hemisphere() is not None:
+        from crater_core.geometry import hemisphere
+
+        entries = [c for c in entries if hemisphere(c["lat"]) == dem.hemisphere()]
+    rows = [check(dem, c, factor) for c in entries]
     if as_json:
         for row in rows:
             click.echo(json.dumps(row))

@@ -258,6 +258,14 @@ def test_catalogue_command_lists_a_selection(tmp_path):
     assert [r["name"] for r in rows] == ["haworth", "faustini"] and all(r["passes"] for r in rows)
 
 
+def test_catalogue_command_lists_the_entries_of_the_dems_hemisphere(catalogue, tmp_path):
+    res = CliRunner().invoke(main, ["catalogue", "--json", "dem=lola_ldem256_north", f"data_dir={tmp_path}"])
+    assert res.exit_code == 0, res.output
+    rows = [json.loads(line) for line in res.stdout.strip().splitlines()]
+    assert {r["name"] for r in rows} == {n for n, c in catalogue.items() if c["lat"] > 0}
+    assert all(r["passes"] for r in rows)
+
+
 def test_catalogue_command_exit_status_reports_a_failing_entry(tmp_path):
     (lat, lon, d), _ = DROPPED["slater"]
     res = CliRunner().invoke(
