@@ -6,7 +6,8 @@ Conventions (see docs/geometry.md):
 - Moon-centred Cartesian ("MC") frame: +z towards the north pole, +x towards (lat 0, lon 0),
   +y towards (lat 0, lon 90 E).
 - Local east-north-up ("ENU") frame at a crater centre on the reference sphere: the Blender world
-  frame (x = east, y = north, z = up, metres). At the south pole "north" points away from the pole.
+  frame (x = east, y = north, z = up, metres). "North" is geographic north everywhere: at a
+  south-polar crater it points away from the pole, at a north-polar crater towards it.
 - Azimuths are measured clockwise from local north (towards east), elevations above the local
   horizontal plane, both in degrees at the API boundary.
 - Camera: Blender convention (looks along its local -Z, image up is local +Y). Pixel coordinates are
@@ -77,25 +78,60 @@ def curvature_drop_m(distance_m, radius_m: float = MOON_RADIUS_M):
     return radius_m - np.sqrt(radius_m**2 - d**2)
 
 
-def south_polar_stereo_forward(lat_deg, lon_deg, radius_m: float = MOON_RADIUS_M):
-    """Spherical south polar stereographic (lat_ts = -90, lon0 = 0, k0 = 1): (lat, lon) -> (x, y) m.
+POLES = ("south", "north")
 
-    Matches PROJ ``+proj=stere +lat_0=-90 +lon_0=0 +k=1 +R=1737400`` (the LOLA/LROC polar products).
+
+def hemisphere(lat_deg: float) -> str:
+    """``"north"`` for a latitude above the equator, else ``"south"`` (the pole a crater belongs to)."""
+    return "north" if float(lat_deg) > 0.0 else "south"
+
+
+def noon_azimuth_deg(lat_deg: float) -> float:
+    """Local azimuth (clockwise from local north) towards the equator, where the Sun stands highest:
+    0 (local north) in the southern hemisphere, 180 (local south) in the northern, where local north
+    points at the pole (crater_core.illumination)."""
+    return 180.0 if hemisphere(lat_deg) == "north" else 0.0
+
+
+def _pole_sign(pole: str) -> float:
+    if pole not in POLES:
+        raise ValueError(f"pole must be one of {POLES}, got {pole!r}")
+    return 1.0 if pole == "north" else -1.0
+
+
+def polar_stereo_forward(lat_deg, lon_deg, pole: str = "south", radius_m: float = MOON_RADIUS_M):
+    """Spherical polar stereographic (lat_ts = lat_0 = +-90, lon0 = 0, k0 = 1): (lat, lon) -> (x, y) m.
+
+    Matches PROJ ``+proj=stere +lat_0=-90 +lon_0=0 +k=1 +R=1737400`` (``pole="south"``) and
+    ``+proj=stere +lat_0=90 ...`` (``pole="north"``), the LOLA/LROC polar products. Both put lon 90 E
+    on +x; lon 0 is on +y at the south pole and on -y at the north pole (the map is seen from above).
     """
+    s = _pole_sign(pole)
     lat = np.radians(np.asarray(lat_deg, dtype=np.float64))
     lon = np.radians(np.asarray(lon_deg, dtype=np.float64))
-    rho = 2.0 * radius_m * np.tan(np.pi / 4.0 + lat / 2.0)
-    return rho * np.sin(lon), rho * np.cos(lon)
+    rho = 2.0 * radius_m * np.tan(np.pi / 4.0 - s * lat / 2.0)
+    return rho * np.sin(lon), -s * rho * np.cos(lon)
 
 
-def south_polar_stereo_inverse(x, y, radius_m: float = MOON_RADIUS_M):
-    """Inverse of :func:`south_polar_stereo_forward`: (x, y) m -> (lat_deg, lon_deg)."""
+def polar_stereo_inverse(x, y, pole: str = "south", radius_m: float = MOON_RADIUS_M):
+    """Inverse of :func:`polar_stereo_forward`: (x, y) m -> (lat_deg, lon_deg)."""
+    s = _pole_sign(pole)
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     rho = np.hypot(x, y)
-    lat = 2.0 * np.arctan(rho / (2.0 * radius_m)) - np.pi / 2.0
-    lon = np.arctan2(x, y)
+    lat = s * (np.pi / 2.0 - 2.0 * np.arctan(rho / (2.0 * radius_m)))
+    lon = np.arctan2(x, -s * y)
     return np.degrees(lat), np.degrees(lon)
+
+
+def south_polar_stereo_forward(lat_deg, lon_deg, radius_m: float = MOON_RADIUS_M):
+    """:func:`polar_stereo_forward` at the south pole."""
+    return polar_stereo_forward(lat_deg, lon_deg, "south", radius_m)
+
+
+def south_polar_stereo_inverse(x, y, radius_m: float = MOON_RADIUS_M):
+    """:func:`polar_stereo_inverse` at the south pole."""
+    return polar_stereo_inverse(x, y, "south", radius_m)
 
 
 # --------------------------------------------------------------------------------------------

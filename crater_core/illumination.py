@@ -4,9 +4,11 @@ The Sun's declination in the Moon's equatorial frame never exceeds the obliquity
 equator to the ecliptic, ε = 1.54° (Cassini's laws; 1.5424° in the IAU rotation model, Archinal et
 al. 2018, Celest. Mech. Dyn. Astr. 130:22; docs/specification.md). At a crater at latitude φ the Sun's elevation
 above the local horizon therefore depends on where it stands: towards the equator (local north at
-a south-polar crater) it can reach (90° − |φ|) + ε; towards the pole it stays below ε − (90° − |φ|).
-For a small colatitude c = 90° − |φ| this is θ_max(A) ≈ ε + c·cos A for a Sun at azimuth A
-(clockwise from local north); :func:`max_sun_elevation_deg` gives the exact value.
+a south-polar crater, local south at a north-polar one, where local north points at the pole) it can
+reach (90° − |φ|) + ε; towards the pole it stays below ε − (90° − |φ|). For a small colatitude
+c = 90° − |φ| this is θ_max(A) ≈ ε + c·cos(A − A_noon) for a Sun at azimuth A (clockwise from local
+north), A_noon = 0° in the south and 180° in the north (``crater_core.geometry.noon_azimuth_deg``);
+:func:`max_sun_elevation_deg` gives the exact value at either pole.
 
 Pure numpy + math (crater_core).
 """

@@ -381,9 +381,15 @@ class ValidateSettings(_Group):
     holdout: Tuple[Tuple[str, ...], ...] = ()  # held-out crater groups: reported, never used to choose
     seeds: Tuple[int, ...]  # training seeds per group
     out_dir: str
+    # Which roles this run trains and evaluates (the others are planned and checked, not run).
+    roles: Tuple[str, ...] = ("validation", "holdout", "test")
+    # Overrides every north-polar group gets (its DEM and real mosaic; the config's own are south-polar).
+    north_overrides: Tuple[str, ...] = ()
 
     def _check(self):
         _need(bool(self.seeds), "seeds", self.seeds, "must list at least one seed")
+        bad = [r for r in self.roles if r not in ("validation", "holdout", "test")]
+        _need(bool(self.roles) and not bad, "roles", self.roles, "must list some of validation, holdout, test")
         _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
 
 

@@ -275,10 +275,13 @@ class MosaicSettings(_Group):
     pixel_m: float
     radius_m: float
     product_id: Optional[str] = None
+    # south | north polar stereographic; null: from the product's CRS in data_manifest/products.yaml
+    pole: Optional[str] = None
 
     def _check(self):
         for key in ("extent_m", "pixel_m", "radius_m"):
             _need(getattr(self, key) > 0.0, key, getattr(self, key), "must be > 0")
+        _need(self.pole in (None, "south", "north"), "pole", self.pole, "must be south, north or null")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -14,7 +14,14 @@ Sun model (``sweep.sun_model``): ``paper`` uses the positions above for every cr
 fractions f of the highest elevation the Sun really reaches at that crater in that direction,
 theta = f * theta_max(lat, phi1) (``crater_core.illumination``), default f = 0.1 k, k = 1..N, so that
 count 10 spans the crater's whole physical range and smaller counts are prefixes (the closed loop
-stays nested); suns that would stand below ``min_sun_elevation_deg`` are not rendered.
+stays nested); suns that would stand below ``min_sun_elevation_deg`` are not rendered. A physical
+sweep's sun-azimuth values v are measured from the crater's noon direction, where the Sun stands highest
+(``crater_core.geometry.noon_azimuth_deg``: local north at a south-polar crater, local south at a
+north-polar one, whose local north points at the pole), towards local east (the morning side at both
+poles): the rendered azimuth (clockwise from local north) is v in the south and 180 - v in the north, so
+one sweep gives a crater and its mirror image about the equator mirrored suns. A manifest row keeps the
+rendered azimuth as ``sun_azimuth`` and the grid value as ``sun_azimuth_param`` where they differ; at
+the south pole they are the same number.
 
 Render order is sun-major (sun elevation, sun azimuth, camera elevation, camera azimuth), so a
 contiguous shard shares few sun directions: the fast renderer computes one shadow map per sun
@@ -86,6 +93,7 @@ class RenderParams:
     cam_azimuth: float
 
     sun_elevation_param: float | None = None  # the grid value (physical sweeps: the fraction f)
+    sun_azimuth_param: float | None = None  # the grid value (physical sweeps: from the noon direction)
 
     @property
     def sun_key(self) -> tuple[int, int]:
@@ -198,17 +206,26 @@ class SweepGrid:
         if self.sun_model == "physical":
             if lat_deg is None:
                 raise SweepError("a physical sweep needs the crater latitude to place its suns")
+            from crater_core.geometry import hemisphere, noon_azimuth_deg
             from crater_core.illumination import max_sun_elevation_deg
 
-            elevation = round(float(param * max_sun_elevation_deg(lat_deg, self.sun_azimuth[idx[1]])), 6)
+            # South: the grid value itself (the same number as before the north pole was supported);
+            # north: mirrored about the noon direction, so that a value v is on the same (morning, east)
+            # side of noon at both poles and a mirrored crater sees the mirrored suns.
+            v = self.sun_azimuth[idx[1]]
+            azimuth = v if hemisphere(lat_deg) == "south" else round((noon_azimuth_deg(lat_deg) - v) % 360.0, 6)
+            elevation = round(float(param * max_sun_elevation_deg(lat_deg, azimuth)), 6)
+        else:
+            azimuth = self.sun_azimuth[idx[1]]
         return RenderParams(
             index,
             idx,
             elevation,
-            self.sun_azimuth[idx[1]],
+            azimuth,
             self.cam_elevation[idx[2]],
             self.cam_azimuth[idx[3]],
             sun_elevation_param=param,
+            sun_azimuth_param=self.sun_azimuth[idx[1]],
         )
 
     def renders(self, params: RenderParams) -> bool:
@@ -289,9 +306,10 @@ def rows_in_selection(rows: Sequence[Mapping], selection: Mapping[str, Sequence[
 
 
 def _axis_value(row: Mapping, axis: str) -> float:
-    """A row's grid value on ``axis`` (physical sweeps: the sun-elevation fraction, not the angle)."""
-    if axis == "sun_elevation" and row.get("sun_elevation_param") is not None:
-        return row["sun_elevation_param"]
+    """A row's grid value on ``axis`` (physical sweeps: the sun-elevation fraction, not the angle, and
+    the sun azimuth from the noon direction)."""
+    if axis in ("sun_elevation", "sun_azimuth") and row.get(f"{axis}_param") is not None:
+        return row[f"{axis}_param"]
     return row[axis]
 
 

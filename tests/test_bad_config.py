@@ -19,8 +19,13 @@ HUGE = (
 CASES = {
     "unknown-crater": (
         ["crater=atlantis"],  # the choices list every configs/crater/ entry (docs/catalogue.md)
-        "unknown crater 'atlantis' (override crater=atlantis): choose one of amundsen, cabeus, custom, "
-        "de_forest, de_gerlache,",
+        "unknown crater 'atlantis' (override crater=atlantis): choose one of aepinus, amundsen, bi_sheng, bosch, "
+        "cabeus, cai_lun, custom, de_forest, de_gerlache,",
+    ),
+    "crater-in-the-other-hemisphere": (
+        ["crater=peary"],  # a north-polar catalogue crater with the default (south-polar) DEM
+        "crater peary (lat 88.63) is in the northern hemisphere but DEM lola_ldem256_south is south-polar: "
+        "use dem=lola_ldem256_north",
     ),
     "crater-outside-dem": (
         ["crater=custom", "crater.custom.lat=0", "crater.custom.lon=0", "crater.custom.diameter_km=20"],

@@ -33,6 +33,16 @@ DROPPED = {
     "slater": ((-88.08, 111.29, 25.12), "centre"),
     "boguslawsky": ((-72.9, 43.26, 94.59), "near field"),
 }
+# North catalogue (docs/catalogue.md, "North polar region"): every Gazetteer crater north of 78 N, 15-110 km,
+# that passes. Dropped by the test at their Gazetteer values (2020-05-31 export):
+NORTH_DROPPED = {
+    "byrd": ((85.43, 10.07, 97.49), "closed depression"),
+    "lenard": ((85.19, -109.69, 47.65), "closed depression"),
+    "hevesy": ((83.09, 149.15, 49.99), "closed depression"),
+    "main": ((80.87, 10.41, 47.43), "closed depression"),
+    "challis": ((79.58, 9.09, 53.21), "closed depression"),
+    "mouchez": ((78.38, -26.82, 82.78), "closed depression"),
+}
 NEAR_RADIUS_FACTOR = 2.5  # configs/terrain/default.yaml
 
 
@@ -42,17 +52,24 @@ def lola(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def lola_north(tmp_path_factory):
+    return Dem(resolve_product("lola_ldem256_north", tmp_path_factory.mktemp("data")), product="lola_ldem256_north")
+
+
+@pytest.fixture(scope="module")
 def catalogue():
     return {c["name"]: c for c in craters(compose([f"crater=[{','.join(cat.catalogue_names())}]"]))}
 
 
 # ------------------------------------------------------------------------------ the catalogue itself
-def test_catalogue_has_enough_sourced_entries_in_range(catalogue):
-    assert len(catalogue) >= 15
-    for name, c in catalogue.items():
+@pytest.mark.parametrize("pole, lat_range", [("south", (-90.0, -70.0)), ("north", (78.0, 90.0))])
+def test_catalogue_has_enough_sourced_entries_in_range_at_each_pole(catalogue, pole, lat_range):
+    entries = {n: c for n, c in catalogue.items() if g.hemisphere(c["lat"]) == pole}
+    assert len(entries) >= 15
+    for name, c in entries.items():
         assert 15.0 <= c["diameter_km"] <= 110.0, name
         assert c["source"].startswith("IAU Gazetteer of Planetary Nomenclature"), name
-        assert -90.0 <= c["lat"] < -70.0, name
+        assert lat_range[0] <= c["lat"] <= lat_range[1], name
 
 
 def test_paper_craters_keep_their_spec_values(catalogue):
@@ -68,8 +85,10 @@ def test_default_terrain_near_field_factor_is_what_the_catalogue_assumes():
 
 
 @pytest.mark.parametrize("name", cat.catalogue_names())
-def test_entry_is_a_closed_depression_of_its_size(lola, catalogue, name):
-    row = cat.check(lola, catalogue[name], NEAR_RADIUS_FACTOR)
+def test_entry_is_a_closed_depression_of_its_size(lola, lola_north, catalogue, name):
+    """The same test at both poles, each entry against the embedded DEM of its hemisphere."""
+    dem = lola_north if g.hemisphere(catalogue[name]["lat"]) == "north" else lola
+    row = cat.check(dem, catalogue[name], NEAR_RADIUS_FACTOR)
     assert row["passes"], f"{name}: {row['failures']} (measured {row['measured']})"
     m = row["measured"]
     assert m["centre_offset_d"] <= cat.MAX_CENTRE_OFFSET_D
@@ -83,6 +102,32 @@ def test_dropped_entries_still_fail(lola, name):
     row = cat.check(lola, {"name": name, "lat": lat, "lon": lon, "diameter_km": d, "source": ""}, NEAR_RADIUS_FACTOR)
     assert not row["passes"]
     assert any(why in f for f in row["failures"]), row["failures"]
+
+
+@pytest.mark.parametrize("name", sorted(NORTH_DROPPED))
+def test_dropped_north_entries_still_fail(lola_north, name):
+    (lat, lon, d), why = NORTH_DROPPED[name]
+    row = cat.check(lola_north, {"name": name, "lat": lat, "lon": lon, "diameter_km": d, "source": ""}, 2.5)
+    assert not row["passes"]
+    assert any(why in f for f in row["failures"]), row["failures"]
+
+
+def test_crater_in_the_wrong_hemisphere_for_its_dem_is_one_failure_naming_both(lola, catalogue):
+    row = cat.check(lola, catalogue["peary"], NEAR_RADIUS_FACTOR)
+    assert not row["passes"] and row["measured"] is None
+    assert len(row["failures"]) == 1
+    first = row["failures"][0]
+    assert "peary" in first and "lola_ldem256_south" in first and "dem=lola_ldem256_north" in first, first
+
+
+def test_terrain_of_a_crater_in_the_wrong_hemisphere_is_one_error_line(tmp_path):
+    for dem, crater, other in (("lola_ldem256_south", "peary", "north"), ("lola_ldem256_north", "haworth", "south")):
+        res = CliRunner().invoke(main, ["terrain", f"crater={crater}", f"dem={dem}", f"data_dir={tmp_path}"])
+        assert res.exit_code != 0
+        err = res.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: "), err
+        assert crater in err[0] and dem in err[0] and f"dem=lola_ldem256_{other}" in err[0], err
+    assert not list(tmp_path.rglob("*.npz"))  # nothing half-written
 
 
 def test_thresholds_are_the_issue_9_contract():
@@ -211,6 +256,14 @@ def test_catalogue_command_lists_a_selection(tmp_path):
     assert res.exit_code == 0, res.output
     rows = [json.loads(line) for line in res.stdout.strip().splitlines()]
     assert [r["name"] for r in rows] == ["haworth", "faustini"] and all(r["passes"] for r in rows)
+
+
+def test_catalogue_command_lists_the_entries_of_the_dems_hemisphere(catalogue, tmp_path):
+    res = CliRunner().invoke(main, ["catalogue", "--json", "dem=lola_ldem256_north", f"data_dir={tmp_path}"])
+    assert res.exit_code == 0, res.output
+    rows = [json.loads(line) for line in res.stdout.strip().splitlines()]
+    assert {r["name"] for r in rows} == {n for n, c in catalogue.items() if c["lat"] > 0}
+    assert all(r["passes"] for r in rows)
 
 
 def test_catalogue_command_exit_status_reports_a_failing_entry(tmp_path):

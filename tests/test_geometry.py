@@ -27,6 +27,54 @@ def test_south_polar_stereographic_matches_proj():
     np.testing.assert_allclose(lon2, lon, atol=1e-9)
 
 
+STEREO_NORTH = "+proj=stere +lat_0=90 +lat_ts=90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
+
+
+@pytest.mark.parametrize(
+    "pole, crs, lat_range", [("south", STEREO_SOUTH, (-90.0, -60.0)), ("north", STEREO_NORTH, (60.0, 90.0))]
+)
+def test_polar_stereographic_round_trips_and_matches_proj_at_both_poles(pole, crs, lat_range):
+    from rasterio.crs import CRS
+    from rasterio.warp import transform
+
+    rng = np.random.default_rng(1)
+    lat = rng.uniform(*lat_range, 2000)
+    lon = rng.uniform(-180.0, 180.0, 2000)
+    xp, yp = transform(CRS.from_proj4(MOON_LONLAT), CRS.from_proj4(crs), lon, lat)
+    x, y = g.polar_stereo_forward(lat, lon, pole)
+    np.testing.assert_allclose(x, xp, atol=1e-6)
+    np.testing.assert_allclose(y, yp, atol=1e-6)
+    lat2, lon2 = g.polar_stereo_inverse(x, y, pole)
+    np.testing.assert_allclose(lat2, lat, atol=1e-9)
+    np.testing.assert_allclose(lon2, lon, atol=1e-9)
+    # The inverse first: projected points back to the same projected points.
+    xy = rng.uniform(-600e3, 600e3, (2, 500))
+    np.testing.assert_allclose(g.polar_stereo_forward(*g.polar_stereo_inverse(*xy, pole), pole), xy, atol=1e-6)
+
+
+def test_north_projection_is_the_south_one_mirrored():
+    """(lat, lon) in the north lands where (-lat, lon) lands in the south, y mirrored: lon 0 points down
+    the north map and up the south one, lon 90 E to the right on both."""
+    lat, lon = np.array([80.0, 85.0, 89.0]), np.array([0.0, 90.0, -135.0])
+    xn, yn = g.polar_stereo_forward(lat, lon, "north")
+    xs, ys = g.polar_stereo_forward(-lat, lon, "south")
+    np.testing.assert_allclose(xn, xs, atol=1e-9)
+    np.testing.assert_allclose(yn, -ys, atol=1e-9)
+    assert yn[0] < 0 < xn[1]
+    with pytest.raises(ValueError, match="pole"):
+        g.polar_stereo_forward(80.0, 0.0, "east")
+
+
+def test_local_north_points_at_the_north_pole_and_away_from_the_south_pole():
+    for lat, towards in ((85.0, 1.0), (-85.0, -1.0)):
+        north = g.enu_basis(lat, 40.0)[1]
+        pole = np.array([0.0, 0.0, towards])
+        # The pole lies ahead along local north in the north, behind it in the south.
+        assert np.sign(north @ (pole - g.latlon_to_mc(lat, 40.0) / g.MOON_RADIUS_M)) == towards
+    assert g.hemisphere(85.0) == "north" and g.hemisphere(-85.0) == "south"
+    assert g.noon_azimuth_deg(85.0) == 180.0 and g.noon_azimuth_deg(-85.0) == 0.0
+
+
 def test_curvature_drop_at_100_km():
     d, r = 100e3, g.MOON_RADIUS_M
     approx = d**2 / (2.0 * r)

@@ -16,7 +16,8 @@ from crater_synth.config import ConfigError
 from crater_synth.evaluation import validation as v
 from train.trainer import HOG_FILE, NET_FILE, SVM_FILE
 
-CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "h1", "h2", "h3", "t1", "t2", "t3"]
+CATALOGUE = ["a1", "a2", "a3", "b1", "b2", "b3", "h1", "h2", "h3", "t1", "t2", "t3", "n1", "n2", "n3", "s1"]
+NORTH = ("n1", "n2", "n3")  # the scripted catalogue's north-polar craters (lat 88 N; the others 88 S)
 
 
 def test_groups_must_be_disjoint_known_and_apart_from_the_test_craters():
@@ -54,8 +55,56 @@ def test_the_holdout_config_holds_out_the_rest_of_the_catalogue():
     held = [g for g in groups if g.role == "holdout"]
     assert len(held) >= 2 and all(len(g.craters) == 3 for g in held)
     used = {c for g in groups for c in g.craters}
-    assert used == set(v.catalogue_names())  # every catalogue crater has exactly one role
+    south = {n for n in v.catalogue_names() if not n.startswith("_")} - set(_north_catalogue())
+    assert used == south  # every south catalogue crater has exactly one role
     assert resolved(compose([]))["validate"]["holdout"] == []  # the plain protocol trains no held-out group
+
+
+def _north_catalogue() -> list[str]:
+    """The north catalogue entries, from the pole outwards."""
+    from crater_synth.config import compose, craters
+
+    entries = craters(compose([f"crater=[{','.join(v.catalogue_names())}]"]))
+    return [c["name"] for c in sorted(entries, key=lambda c: -c["lat"]) if c["lat"] > 0]
+
+
+def test_the_north_holdout_triples_follow_their_rule():
+    """validate=holdout_north: the north catalogue from the pole outwards, three by three (a remainder of
+    fewer than three left out), held out only, each group with the north DEM and mosaic."""
+    from crater_synth.config import compose, resolved
+
+    vcfg = resolved(compose(["validate=holdout_north"]))["validate"]
+    groups = v.plan_groups(vcfg, v.catalogue_names())
+    north = _north_catalogue()
+    held = [list(g.craters) for g in groups if g.role == "holdout"]
+    assert held == [north[i : i + 3] for i in range(0, len(north) - len(north) % 3, 3)]
+    assert len(held) >= 5
+    assert vcfg["roles"] == ["holdout"]  # the chosen settings are not chosen again here
+    assert "dem=lola_ldem256_north" in vcfg["north_overrides"] and "realset=wac_north" in vcfg["north_overrides"]
+    # The validation groups and the test are the south's: no north crater ever chooses a setting.
+    assert not {c for g in groups if g.role != "holdout" for c in g.craters} & set(north)
+
+
+def test_north_groups_run_with_the_north_dem_and_mosaic_and_only_the_roles_asked(scripted, tmp_path):
+    ovr = scripted.overrides + [
+        "validate.holdout=[[n1,n2,n3]]",
+        "validate.roles=[holdout]",
+        "validate.north_overrides=['dem=lola_ldem256_north','realset=wac_north']",
+        "dem.stack=[]",
+    ]
+    res = v.run_validation(ovr, progress=False)
+    assert [c[0] for c in scripted.calls] == [("n1", "n2", "n3")] * 2  # only the held-out group, 2 seeds
+    assert scripted.products[("n1", "n2", "n3")] == ("lola_ldem256_north", "lroc_wac_north")
+    assert res["summary"]["validation_mean"]["lunarnet_ex"] is None
+    assert v.means_line(res["summary"], "lunarnet_ex").startswith("held-out mean")
+    # South groups keep the configuration's DEM and mosaic.
+    v.run_validation(ovr[:-3] + ["validate.roles=[validation]"], progress=False)
+    assert scripted.products[("a1", "a2", "a3")] == ("lola_ldem256_south", "lroc_wac_south")
+
+
+def test_a_group_mixing_the_hemispheres_is_refused(scripted):
+    with pytest.raises(ConfigError, match="mixes north- and south-polar"):
+        v.run_validation(scripted.overrides + ["validate.holdout=[[n1,n2,s1]]"], progress=False)
 
 
 def test_default_groups_are_catalogue_craters_and_not_the_papers():
@@ -79,6 +128,7 @@ def scripted(monkeypatch, tmp_path):
     def fake_train(cfg, progress=None):
         names = [e["name"] for e in cfg["crater"].values()]
         calls.append((tuple(names), cfg["train"]["seed"]))
+        scripted.products[tuple(names)] = (cfg["dem"]["product"], cfg["realset"]["source_product"])
         run_dir = Path(cfg["run_dir"])
         run_dir.mkdir(parents=True, exist_ok=True)
         for f in (NET_FILE, SVM_FILE, HOG_FILE):  # the saved models, as train_all writes them
@@ -122,13 +172,15 @@ def scripted(monkeypatch, tmp_path):
             names = crater[len("crater=[") : -1].split(",")
             cfg = OmegaConf.create(config_mod.resolved(cfg))  # untyped copy: the schema types crater entries
             cfg.crater = {
-                n: {"name": n, "lat": -88.0, "lon": 0.0, "diameter_km": 20.0, "source": "test"} for n in names
+                n: {"name": n, "lat": 88.0 if n in NORTH else -88.0, "lon": 0.0, "diameter_km": 20.0, "source": "test"}
+                for n in names
             }
         return cfg
 
     monkeypatch.setattr(v, "compose", compose)
     scripted.acc = {n: 0.5 + 0.04 * i for i, n in enumerate(CATALOGUE)}
     scripted.calls = calls
+    scripted.products = {}
     scripted.overrides = [
         "validate.groups=[[a1,a2,a3],[b1,b2,b3]]",
         "validate.test=[t1,t2,t3]",

@@ -4,6 +4,7 @@ draws, and the crop record. Test data only; nothing here reaches the training lo
 
 from __future__ import annotations
 
+import re
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -14,33 +15,60 @@ import numpy as np
 from train.errors import RealSetError
 
 
+def product_pole(product_id: str) -> str:
+    """The pole (``"south"``/``"north"``) of a registered polar-stereographic product, read from its CRS
+    in data_manifest/products.yaml (``+lat_0=-90`` or ``+lat_0=90``)."""
+    from data_manifest.products import get_product
+
+    try:
+        crs = str(get_product(product_id).get("crs") or "")
+    except Exception as exc:  # noqa: BLE001 - ProductError: unknown id, named below
+        raise RealSetError(f"real test product {product_id!r}: {exc}") from None
+    m = re.search(r"\+lat_0=(-?[0-9.]+)", crs)
+    if not m or abs(abs(float(m.group(1))) - 90.0) > 1e-9:
+        raise RealSetError(
+            f"real test product {product_id!r} is not polar stereographic (crs {crs!r}); set realset.mosaic.pole"
+        )
+    return "north" if float(m.group(1)) > 0 else "south"
+
+
 @dataclass(frozen=True)
 class PolarGrid:
-    """The crop protocol's reference grid: the mosaic's pixel grid (south polar stereographic on the
-    ``radius_m`` sphere, square extent +-``extent_m``, ``pixel_m`` per pixel; u right, v down, origin at
-    the top-left corner). Crops are planned on it, whatever image they are cut from."""
+    """The crop protocol's reference grid: the mosaic's pixel grid (polar stereographic at ``pole`` on
+    the ``radius_m`` sphere, square extent +-``extent_m``, ``pixel_m`` per pixel; u right, v down, origin
+    at the top-left corner). Crops are planned on it, whatever image they are cut from."""
 
     extent_m: float
     pixel_m: float
     radius_m: float
+    pole: str = "south"  # crater_core.geometry.polar_stereo_forward
 
     @classmethod
     def from_config(cls, rs_cfg: Mapping) -> "PolarGrid":
         m = rs_cfg.get("mosaic") or {}
         try:
-            return cls(float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"]))
+            product_id = str(rs_cfg.get("source_product") or m.get("product_id") or "")
+            pole = str(m.get("pole") or (product_pole(product_id) if product_id else "south"))
+            return cls(float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"]), pole)
         except KeyError as exc:
             raise RealSetError(f"realset.mosaic is missing key {exc}") from None
 
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
         arrays (the same formula for both)."""
-        from crater_core.geometry import south_polar_stereo_forward
+        from crater_core.geometry import polar_stereo_forward
 
-        x, y = south_polar_stereo_forward(lat_deg, lon_deg, self.radius_m)
+        x, y = polar_stereo_forward(lat_deg, lon_deg, self.pole, self.radius_m)
         u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
         v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
         return (float(u), float(v)) if np.ndim(u) == 0 else (u, v)
+
+    def uv_to_latlon(self, u, v):
+        """Inverse of :meth:`latlon_to_uv`: (lat_deg, lon_deg) of pixel coordinates (u, v)."""
+        from crater_core.geometry import polar_stereo_inverse
+
+        x, y = self.uv_to_xy(u, v)
+        return polar_stereo_inverse(x, y, self.pole, self.radius_m)
 
     def uv_to_xy(self, u, v) -> tuple[np.ndarray, np.ndarray]:
         """Projected metres (x, y) of grid pixel coordinates (the inverse of the affine part)."""
@@ -51,7 +79,11 @@ class PolarGrid:
     @property
     def proj4(self) -> str:
         """The grid's projection as a PROJ string (the same as the registry's ``crs`` of the mosaic)."""
-        return f"+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R={self.radius_m:g} +units=m +no_defs"
+        lat0 = 90 if self.pole == "north" else -90
+        return (
+            f"+proj=stere +lat_0={lat0} +lat_ts={lat0} +lon_0=0 +k=1 +x_0=0 +y_0=0 +R={self.radius_m:g} "
+            "+units=m +no_defs"
+        )
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """The real test set (docs/realset.md): labelled crops of real lunar images. Test data only.
 
-1. Embedded default: the LROC WAC south-polar mosaic shipped inside the ``lunar-toolkit`` wheel (read
-   as a file, never imported). For each crater, ``realset.per_crater`` (300) crops: a square ROI of
+1. Embedded default: the LROC WAC polar mosaics shipped inside the ``lunar-toolkit`` wheel (read
+   as files, never imported): ``realset=wac_south`` (default) or ``realset=wac_north`` for the
+   north-polar craters. For each crater, ``realset.per_crater`` (300) crops: a square ROI of
    side sigma x rim diameter (diameter_m / 400 m px) centred on the crater's projected centre, with a
    seeded "slewing" offset and a rotation of the sampling grid. This is ONE real observation per
    crater seen 300 ways, not 300 observations; every report says so.
@@ -31,12 +32,13 @@ from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is 
     ProtocolCrop,
     RealCrop,
     canonical_crater,
+    product_pole,
     protocol_crops,
     resolve_product_image,
 )
 
 LIMITS_NOTE = (
-    "The embedded real test set is one real observation per crater (one LROC WAC south-polar "
+    "The embedded real test set is one real observation per crater (one LROC WAC polar "
     "mosaic, 400 m/px) seen many ways (sigma, slewing offsets, rotations): crops of the same "
     "crater are strongly correlated, so accuracies measure recognition of that single "
     "observation, not generalisation over real illumination conditions."
@@ -67,15 +69,31 @@ class Mosaic:
     extent_m: float  # half-width of the square extent
     pixel_m: float
     radius_m: float
+    pole: str = "south"  # which polar stereographic projection (crater_core.geometry.polar_stereo_forward)
 
     @property
     def grid(self) -> PolarGrid:
-        return PolarGrid(self.extent_m, self.pixel_m, self.radius_m)
+        return PolarGrid(self.extent_m, self.pixel_m, self.radius_m, self.pole)
 
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
         arrays (the same formula for both)."""
         return self.grid.latlon_to_uv(lat_deg, lon_deg)
+
+    def uv_to_latlon(self, u, v):
+        """Inverse of :meth:`latlon_to_uv`: (lat_deg, lon_deg) of pixel coordinates (u, v)."""
+        return self.grid.uv_to_latlon(u, v)
+
+    def check_crater(self, crater: Mapping) -> None:
+        """Refuse a crater of the other hemisphere than this mosaic with one line naming both."""
+        from crater_core.geometry import hemisphere
+
+        if hemisphere(crater["lat"]) != self.pole:
+            raise RealSetError(
+                f"crater {crater['name']} (lat {float(crater['lat']):g}) is in the {hemisphere(crater['lat'])}ern "
+                f"hemisphere but real mosaic {self.product_id} is {self.pole}-polar: use realset=wac_"
+                f"{hemisphere(crater['lat'])}"
+            )
 
 
 def load_mosaic(rs_cfg: Mapping) -> Mosaic:
@@ -86,6 +104,7 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
         path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id)
         expected = m.get("sha256")
         extent, pixel, radius = float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"])
+        pole = str(m.get("pole") or product_pole(product_id))
     except KeyError as exc:
         raise RealSetError(f"realset.mosaic is missing key {exc}") from None
     if not path.is_file():
@@ -104,7 +123,9 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
             f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
             f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}"
         )
-    return Mosaic(product_id, path, img, extent, pixel, radius)
+    if pole not in ("south", "north"):
+        raise RealSetError(f"realset.mosaic.pole={pole!r}: choose south or north")
+    return Mosaic(product_id, path, img, extent, pixel, radius, pole)
 
 
 def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
@@ -143,6 +164,8 @@ def plan_embedded_crops(
     """The protocol's crops of the embedded mosaic (:func:`protocol_crops` on the mosaic's own grid).
     Every rotated box must lie inside the mosaic."""
     assert mosaic is not None
+    for c in craters:
+        mosaic.check_crater(c)
     out: list[RealCrop] = []
     for p in protocol_crops(mosaic.grid, craters, rs_cfg):
         box = p.box

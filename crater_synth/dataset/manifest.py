@@ -66,6 +66,7 @@ def planned_row(crater_name: str, terrain_id: str, plan: dict, fov_deg: float, r
         "cam_elevation": p.cam_elevation,
         "cam_azimuth": p.cam_azimuth,
         **({"sun_elevation_param": p.sun_elevation_param} if p.sun_elevation_param != p.sun_elevation else {}),
+        **({"sun_azimuth_param": p.sun_azimuth_param} if p.sun_azimuth_param != p.sun_azimuth else {}),
         "range_m": plan["range_m"],
         "fov_deg": float(fov_deg),
         "width": plan["crop"][2] - plan["crop"][0],

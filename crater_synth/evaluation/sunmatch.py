@@ -287,6 +287,8 @@ def run_sunmatch(
     cfg = compose(list(overrides) + sunmatch_overrides(names, azimuths, fractions))
     cfg_r = resolved(cfg)
     mosaic = load_mosaic(cfg_r["realset"])  # checksum first: a bad product stops before rendering
+    for c in craters(cfg):  # and a crater of the other hemisphere than the mosaic
+        mosaic.check_crater(c)
     t0 = time.perf_counter()
     build_dataset(cfg, progress=bool(cfg_r["train"].get("progress", True)))
     dataset_dir = Path(str(cfg_r["out_dir"]))

@@ -105,6 +105,28 @@ def plan_groups(vcfg: dict, known_craters: Sequence[str]) -> list[Group]:
     return groups
 
 
+def group_overrides(overrides: Sequence[str], group: Group, north_overrides: Sequence[str]) -> list[str]:
+    """The overrides a group is run with: the user's, and for a group of north-polar craters
+    ``validate.north_overrides`` (its DEM and real mosaic) in place of any user override of the same
+    keys. A group mixing the hemispheres is refused: one DEM and one mosaic serve a run."""
+    from crater_core.geometry import hemisphere
+    from crater_synth.config import craters
+
+    sides = {hemisphere(c["lat"]) for c in craters(compose([group.crater_override()]))}
+    if len(sides) > 1:
+        raise ConfigError(f"{group.label}: mixes north- and south-polar craters; a group needs one hemisphere")
+    if sides != {"north"}:
+        return list(overrides)
+    if not north_overrides:
+        raise ConfigError(
+            f"{group.label}: north-polar craters need validate.north_overrides (their DEM and real mosaic, e.g. "
+            "validate.north_overrides=['dem=lola_ldem256_north','realset=wac_north'])"
+        )
+    owned = {o.lstrip("+~").split("=", 1)[0].split(".")[0] for o in north_overrides}
+    kept = [o for o in overrides if o.lstrip("+~").split("=", 1)[0].split(".")[0] not in owned]
+    return kept + list(north_overrides)
+
+
 # Settings added after fingerprints were published (docs/results/experiments.csv): at these values they
 # train exactly as before the key existed, so they are left out and published runs stay resumable.
 NEUTRAL_LATER_KEYS = {
@@ -114,6 +136,7 @@ NEUTRAL_LATER_KEYS = {
     ("train", "preprocess", "support"): "square",
     ("realset", "frames"): [],  # georeferenced real frames: none unless asked for
     ("render", "blender"): None,  # null: the bpy module, as every run before the setting existed
+    ("realset", "mosaic", "pole"): None,  # read from the product's CRS unless set
 }
 
 
@@ -175,6 +198,8 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
     vcfg = base["validate"]
     seeds = [int(s) for s in (vcfg.get("seeds") or [0])]
     groups = plan_groups(vcfg, catalogue_names())
+    roles = set(vcfg.get("roles") or MEAN_KEYS)
+    north = [str(o) for o in (vcfg.get("north_overrides") or [])]
     out = Path(str(vcfg["out_dir"]))
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / RESULTS_FILE
@@ -182,10 +207,13 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
     done = {(r["group"], r["seed"]): r for r in previous.get("runs", [])}
     runs = []
     for g in groups:
+        if g.role not in roles:
+            continue
         rendered = False
+        g_ovr = group_overrides(overrides, g, north)
         for seed in seeds:
             run_dir = out / g.label / f"seed{seed}"
-            ovr = overrides + [g.crater_override(), f"run_dir={run_dir}", f"train.seed={seed}"]
+            ovr = g_ovr + [g.crater_override(), f"run_dir={run_dir}", f"train.seed={seed}"]
             cfg = compose(ovr)
             cfg_r = resolved(cfg)
             fp = run_fingerprint(cfg_r)
@@ -309,12 +337,15 @@ def format_mean(x: float | None) -> str:
 
 
 def means_line(summary: dict, model: str) -> str:
-    """The means of one model as a line: validation, held-out (only when held-out groups ran) and test."""
-    parts = [f"validation mean {format_mean(summary['validation_mean'][model])}"]
-    if summary.get("holdout_mean", {}).get(model) is not None:
-        parts.append(f"held-out mean {format_mean(summary['holdout_mean'][model])}")
-    parts.append(f"test mean {format_mean(summary['test_mean'][model])}")
-    return ", ".join(parts)
+    """The means of one model as a line: validation, held-out and test, each only when its groups ran
+    (``n/a`` when none did)."""
+    names = {"validation": "validation mean", "holdout": "held-out mean", "test": "test mean"}
+    parts = [
+        f"{names[role]} {format_mean(summary[key][model])}"
+        for role, key in MEAN_KEYS.items()
+        if summary.get(key, {}).get(model) is not None
+    ]
+    return ", ".join(parts) or "n/a"
 
 
 def _write(out: Path, runs: list[dict], base: dict, groups: list[Group], seeds: list[int]) -> dict:

@@ -24,7 +24,7 @@ PRODUCERS = {
 SYNTHETIC_CHOICE = (
     "For each crater the synthetic render shown is the manifest row whose camera elevation is closest to 90° "
     "(nadir, like the map-projected mosaic), then the one with the highest sun elevation, then the highest lit "
-    "fraction (ties: the first row in manifest order). The LROC WAC south-polar mosaic is a composite of many "
+    "fraction (ties: the first row in manifest order). The LROC WAC polar mosaic is a composite of many "
     "orbits under different illumination: it has no single sun direction, so no render can match its lighting "
     "exactly; the highest, best-lit Sun of the sweep is the closest analogue of a mosaic assembled for "
     "illumination. The real crop is the realset's own σ = 1.0 box centred on the crater with no slewing offset "

@@ -346,8 +346,12 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
     """One catalogue row: the entry, its measured depression (None when it could not be measured) and
     the failed criteria (empty: the entry passes). ``near_radius_factor``: the terrain patch's near-field
     half-width in diameters (``terrain.near_radius_factor``), which must fit inside the DEM."""
-    from crater_synth.terrain.dem import DemError
+    from crater_synth.terrain.dem import DemError, check_hemisphere
 
+    try:
+        check_hemisphere(dem, crater["name"], crater["lat"])
+    except DemError as exc:  # nothing else about the entry can be measured in this DEM
+        return {**crater, "measured": None, "failures": [str(exc)], "passes": False}
     failures = []
     try:
         m = measure_depression(dem, crater["lat"], crater["lon"], crater["diameter_km"], name=crater["name"])
@@ -425,15 +429,11 @@ def box_images(dem, mosaic, crater: dict, sigma: float) -> dict:
     statistics: share of near-black pixels (<= DARK_DN: shadow or no data) and saturated ones."""
     from scipy.ndimage import map_coordinates
 
-    from crater_core.geometry import south_polar_stereo_inverse
-
     cu, cv, side = _box_uv(mosaic, crater, sigma)
     uu, vv = _tile_points(mosaic, cu, cv, side)
     wac = map_coordinates(mosaic.image.astype(np.float32), [vv - 0.5, uu - 0.5], order=1, mode="nearest")
     nearest = map_coordinates(mosaic.image, [vv - 0.5, uu - 0.5], order=0, mode="nearest")
-    x = uu * mosaic.pixel_m - mosaic.extent_m
-    y = mosaic.extent_m - vv * mosaic.pixel_m
-    lat, lon = south_polar_stereo_inverse(x, y, mosaic.radius_m)
+    lat, lon = mosaic.uv_to_latlon(uu, vv)
     spacing = side * mosaic.pixel_m / SHEET_TILE_PX
     h = dem.sample(lat, lon, spacing_m=spacing, what=f"sheet box of crater {crater['name']}").heights
     return {
@@ -474,8 +474,8 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
             else:
                 ax.imshow(im["hillshade"], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
             to_tile = SHEET_TILE_PX / side
-            # Circles in the mosaic: polar stereographic scale k = 2 / (1 - sin(lat)) at the crater.
-            k = 2.0 / (1.0 - math.sin(math.radians(row["lat"])))
+            # Circles in the mosaic: polar stereographic scale k = 2 / (1 + sin|lat|) at the crater.
+            k = 2.0 / (1.0 + math.sin(math.radians(abs(row["lat"]))))
             t = np.linspace(0.0, 2.0 * np.pi, 181)
             r_cat = 0.5 * k * row["diameter_km"] * 1000.0 / mosaic.pixel_m * to_tile
             ax.plot(
@@ -541,7 +541,9 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
 def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     """Measure each catalogue crater in the DEM: centre offset, rim diameter, spill depth (docs/catalogue.md).
 
-    Default: every entry of configs/crater/. With a ``crater=[a,b,...]`` override, those entries.
+    Default: every entry of configs/crater/ in the DEM's hemisphere (the south-polar ones with the
+    default DEM, the north-polar ones with ``dem=lola_ldem256_north``). With a ``crater=[a,b,...]``
+    override, those entries.
     Exit status 1 when an entry fails the catalogue test. Example: ``crater-synth catalogue
     'crater=[haworth,faustini]'``
     """
@@ -554,7 +556,12 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     cfg = compose(overrides)
     dem = open_dem(cfg)
     factor = terrain_settings(cfg)["near_radius_factor"]
-    rows = [check(dem, c, factor) for c in craters(cfg)]
+    entries = craters(cfg)
+    if not selected and dem.hemisphere() is not None:
+        from crater_core.geometry import hemisphere
+
+        entries = [c for c in entries if hemisphere(c["lat"]) == dem.hemisphere()]
+    rows = [check(dem, c, factor) for c in entries]
     if as_json:
         for row in rows:
             click.echo(json.dumps(row))

@@ -64,6 +64,27 @@ class DemNodataError(DemError):
     """Too much of the requested patch is nodata."""
 
 
+# The embedded LDEM_256 polar DEMs (configs/dem/), named in the wrong-hemisphere error.
+POLAR_DEM_OPTION = {"south": "dem=lola_ldem256_south", "north": "dem=lola_ldem256_north"}
+
+
+def check_hemisphere(dem, name: str, lat_deg: float) -> None:
+    """Refuse a crater given in the other hemisphere than its DEM with one line naming both.
+
+    ``dem``: a :class:`Dem` or a DEM stack (its base DEM decides). A DEM spanning the equator accepts
+    both hemispheres (the coverage checks then decide)."""
+    from crater_core.geometry import hemisphere
+
+    base = getattr(dem, "base", dem)
+    dem_side = base.hemisphere()
+    side = hemisphere(lat_deg)
+    if dem_side is not None and dem_side != side:
+        raise DemCoverageError(
+            f"crater {name} (lat {float(lat_deg):g}) is in the {side}ern hemisphere but DEM {base.product} is "
+            f"{dem_side}-polar: use {POLAR_DEM_OPTION[side]} (or a {side}-polar dem.path)"
+        )
+
+
 @dataclass
 class SampleResult:
     """Heights sampled from a DEM, with what was done to get them."""
@@ -157,7 +178,7 @@ class Dem:
         if not self.crs.is_projected:
             raise DemReadError(
                 f"{where} is in a geographic CRS; reproject it to a projected one "
-                "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400')"
+                "(e.g. gdalwarp -t_srs '+proj=stere +lat_0=-90 +R=1737400', or +lat_0=90 at the north pole)"
             )
         if not _linear_unit_is_metre(self.crs):
             raise DemReadError(f"{where}: CRS linear unit {self.crs.linear_units!r} is not metres")
@@ -235,6 +256,23 @@ class Dem:
 
     def latlon_to_pixel(self, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
         return self.xy_to_pixel(*self.latlon_to_xy(lat_deg, lon_deg))
+
+    def hemisphere(self) -> str | None:
+        """``"north"`` or ``"south"`` when the whole raster (its corners, edge midpoints and centre) lies in
+        that hemisphere, else None (a DEM spanning the equator, e.g. a global one)."""
+        from rasterio.warp import transform
+
+        left, bottom, right, top = self.bounds
+        xs = [left, (left + right) / 2, right]
+        ys = [bottom, (bottom + top) / 2, top]
+        x, y = (np.array(v, dtype=np.float64).ravel() for v in np.meshgrid(xs, ys))
+        _, lat = transform(self.crs, self.geographic_crs, x, y)
+        lat = np.asarray(lat, dtype=np.float64)
+        if np.all(lat > 0.0):
+            return "north"
+        if np.all(lat < 0.0):
+            return "south"
+        return None
 
     def inside(self, col, row) -> np.ndarray:
         """True where a continuous pixel position lies within the hull of pixel centres."""

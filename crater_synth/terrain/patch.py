@@ -257,7 +257,7 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
     from crater_core.files import ensure_writable_dir
-    from crater_synth.terrain.dem import DemCoverageError
+    from crater_synth.terrain.dem import DemCoverageError, check_hemisphere
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
@@ -265,8 +265,10 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
     dem, dem_sha = _open_stack(s)
+    check_hemisphere(dem, name, lat)
     if s["dem"]["far_product"] or s["dem"]["far_path"]:
         far_dem, far_sha = _open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
+        check_hemisphere(far_dem, name, lat)
     else:
         far_dem, far_sha = dem, dem_sha  # the same stack: near and far fields agree in their overlap
 
