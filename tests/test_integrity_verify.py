@@ -222,12 +222,14 @@ def test_dataset_repairs_an_unreadable_line(ds, reference, tiny_dataset, what):
 
 
 def test_dataset_drops_a_row_that_leaves_the_dataset(ds, reference, tiny_dataset):
-    """A row pointing at a faithful copy outside the dataset is not taken as done: it is dropped and rendered."""
+    """A row pointing at a faithful copy outside the dataset is never read: it is dropped, and the render's
+    own file inside the dataset, proved by its sealed header, gives its row back (nothing is rendered)."""
     row = json.loads(_lines(ds)[0])
     shutil.copy(ds / row["path"], ds.parent / "outside.exr")
     _edit_row(ds, 0, path="../outside.exr")
     proc = tiny_dataset(ds)
-    assert json.loads(proc.stdout.splitlines()[-1])["rendered"] == 1
+    summary = json.loads(proc.stdout.splitlines()[-1])
+    assert (summary["rendered"], summary["recovered"]) == (0, 1), summary
     assert_same_dataset(reference, ds)
 
 

@@ -134,9 +134,12 @@ def _build_locked(
         warn(f"removed {len(removed)} temp file(s) of interrupted writes from {out_dir}, e.g. {removed[0]}")
     skipped, recovered = 0, []
     for job, key, plan in planned:
-        f = out_dir / plan["rel_path"]
         row = existing.get(key)
-        proved = prove(f, plan["row"], row) if f.is_file() else None
+        try:  # a link out of the dataset is never taken as a done render (schema.row_file refuses it)
+            f = schema.row_file(out_dir, {"path": plan["rel_path"]})
+            proved = prove(f, plan["row"], row) if f.is_file() else None
+        except schema.ManifestError:
+            proved = None
         if proved is None:
             plan["item"] = worker_item(job.crater, job.meta, plan, s.render, s.hapke, grid.fov_deg)
             job.plans.append(plan)
