@@ -42,7 +42,7 @@ _COMMANDS = (
         "Render a trajectory's labelled nav frames.",
     ),
     ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
-    ("crater_synth.bench.cli", "bench_command", "Benchmarks: renderer, training, distributed, navigation, export."),
+    ("crater_synth.bench.cli", "bench_command", "Benchmarks: rendering, training, navigation, export."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )
 

@@ -148,10 +148,10 @@ def test_mirrored_dem_samples_the_mirrored_terrain(mirrored_dems):
     rng = np.random.default_rng(3)
     e, n = rng.uniform(-40e3, 40e3, (2, 500))
     # Local (e, n) about the crater in the south is (e, -n) about the mirrored crater in the north.
-    from crater_synth.terrain.patch import _sphere_points
+    from crater_synth.terrain.grid import sphere_points
 
-    _, slat, slon = _sphere_points(e, n, CRATER_LAT, CRATER_LON)
-    _, nlat, nlon = _sphere_points(e, -n, -CRATER_LAT, CRATER_LON)
+    _, slat, slon = sphere_points(e, n, CRATER_LAT, CRATER_LON)
+    _, nlat, nlon = sphere_points(e, -n, -CRATER_LAT, CRATER_LON)
     np.testing.assert_allclose(nlat, -slat, atol=1e-9)
     np.testing.assert_allclose(north.sample(nlat, nlon).heights, south.sample(slat, slon).heights, atol=1e-2)
 
@@ -244,9 +244,9 @@ def test_mirrored_dem_stack_blends_like_the_south(tmp_path):
         stack = DemStack(stacks[0], [(stacks[1], "f" * 64, "fine")], blend_pixels=2.0)
         e = np.linspace(-20e3, 20e3, 81)
         lat = np.full_like(e, CRATER_LAT if pole == "south" else -CRATER_LAT)
-        from crater_synth.terrain.patch import _sphere_points
+        from crater_synth.terrain.grid import sphere_points
 
-        _, plat, plon = _sphere_points(e, np.full_like(e, 3000.0 if pole == "south" else -3000.0), lat[0], CRATER_LON)
+        _, plat, plon = sphere_points(e, np.full_like(e, 3000.0 if pole == "south" else -3000.0), lat[0], CRATER_LON)
         heights[pole] = stack.sample(plat, plon)
     np.testing.assert_allclose(heights["north"].heights, heights["south"].heights, atol=1e-2)
     np.testing.assert_allclose(heights["north"].fine_weight, heights["south"].fine_weight, atol=1e-6)
