@@ -24,7 +24,7 @@ import pytest
 from helpers.cli import assert_same_dataset, exr_files, run_cli, start_dataset
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 # Files of the user's: names a render could have, temp-file look-alikes, other directories.
@@ -49,7 +49,14 @@ EDITS = (
 )
 # Manifest damage `dataset` repairs. (Lines that are JSON but no object, and non-UTF-8 bytes, are the
 # manifest readers' to report: add b"null\n" and b"\xff\xfe\n" here once they do.)
-MANIFEST_DAMAGE = (b'{"crater": "shackleton", "index"\n', b"not json at all\n", b'{"crater": 1}\n')
+MANIFEST_DAMAGE = (
+    b'{"crater": "shackleton", "index"\n',  # a line cut by a killed writer
+    b"not json at all\n",
+    b'{"crater": 1}\n',  # an object that is not a row
+    b"null\n",  # JSON that is not an object
+    b"42\n",
+    b"\xff\xfe\n",  # bytes that are not UTF-8
+)
 STOPS = (signal.SIGKILL, signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 actions = st.one_of(
@@ -160,6 +167,8 @@ COMMON = dict(deadline=None, database=None, suppress_health_check=[HealthCheck.t
 
 @settings(max_examples=6, derandomize=True, **COMMON)
 @given(sequence=st.lists(actions, min_size=1, max_size=4))
+# Lines that crashed every reader before (JSON that is not an object, bytes that are not UTF-8), always run.
+@example(sequence=[("damage_manifest", b"null\n", False), ("damage_manifest", b"\xff\xfe\n", True)])
 def test_any_damage_is_repaired_to_a_clean_dataset(sequence, clean, tiny_data_dir):
     _check(sequence, clean, tiny_data_dir)
 
