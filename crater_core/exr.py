@@ -394,7 +394,7 @@ def read_header(path: str | os.PathLike) -> dict:
     with _LibraryStderr() as quiet:
         inp = _open(path)
         try:
-            header = {a.name: a.value for a in inp.spec().extra_attribs}
+            header = _header(inp.spec())
         finally:
             inp.close()
         quiet.failed = False

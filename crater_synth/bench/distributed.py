@@ -69,7 +69,7 @@ def _worker_start_seconds(s: Settings, work: Path) -> float:
     times = []
     for _ in range(3):
         t0 = time.perf_counter()
-        subprocess.run(worker_command(job), check=True, capture_output=True)
+        subprocess.run(worker_command(job, s.render.blender), check=True, capture_output=True)
         times.append(time.perf_counter() - t0)
     return sorted(times)[1]
 

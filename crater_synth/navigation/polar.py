@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crater_core.geometry import MOON_RADIUS_M, polar_stereo_forward, polar_stereo_inverse
-
-POLES = ("south", "north")
+from crater_core.geometry import MOON_RADIUS_M, POLES, polar_stereo_forward, polar_stereo_inverse
 
 
 def check_pole(pole: str) -> str:
