@@ -1,4 +1,4 @@
-"""Blender scene reset and Cycles CPU setup from a job's render settings.
+"""Blender scene reset and Cycles setup (CPU, or a GPU backend) from a job's render settings.
 
 Everything the renderer depends on is set explicitly (Cycles' defaults are 4096 samples, denoising on,
 12 bounces, a Blackman-Harris pixel filter and a grey world, none of which we want).
@@ -9,11 +9,13 @@ from __future__ import annotations
 import bpy
 
 from blender_gen import compat, material
+from crater_core.settings import RENDER_DEVICES
 
 # Default render settings: equal to configs/render/cycles_cpu.yaml (tests/test_docs_truth.py compares
 # them); the job's values win.
 RENDER_DEFAULTS = {
     "mode": "fast",
+    "device": "CPU",
     "samples": 16,
     "max_bounces": 0,
     "denoise": False,
@@ -32,6 +34,8 @@ def render_settings(job_render: dict | None) -> dict:
     cfg.update({k: v for k, v in (job_render or {}).items() if v is not None})
     if cfg["mode"] not in ("direct", "fast"):
         raise ValueError(f"render.mode={cfg['mode']!r}: must be 'direct' or 'fast'")
+    if cfg["device"] not in RENDER_DEVICES:
+        raise ValueError(f"render.device={cfg['device']!r}: must be one of {', '.join(RENDER_DEVICES)}")
     for key in ("samples", "shadow_map_px", "shadow_map_levels"):
         if int(cfg[key]) < 1:
             raise ValueError(f"render.{key}={cfg[key]}: must be >= 1")
@@ -49,11 +53,35 @@ def reset() -> bpy.types.Scene:
     return bpy.context.scene
 
 
+def use_device(scene: bpy.types.Scene, device: str) -> None:
+    """Render on ``device`` (one of :data:`RENDER_DEVICES`). A GPU backend uses every device of that type
+    Cycles finds; none found is a ValueError naming the setting and the devices Cycles does see, never a
+    silent fall-back to the CPU."""
+    cyc = scene.cycles
+    if device == "CPU":
+        cyc.device = "CPU"
+        return
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    try:
+        prefs.compute_device_type = device
+    except TypeError:  # this Blender's Cycles was built without that backend
+        raise ValueError(f"render.device={device}: this Blender's Cycles has no {device} backend") from None
+    prefs.refresh_devices()
+    gpus = [d for d in prefs.devices if d.type == device]
+    if not gpus:
+        seen = ", ".join(f"{d.name} ({d.type})" for d in prefs.devices) or "none"
+        raise ValueError(f"render.device={device}: Cycles finds no {device} device (devices seen: {seen})")
+    for d in prefs.devices:
+        d.use = d.type == device
+    cyc.device = "GPU"
+
+
 def setup_cycles(scene: bpy.types.Scene, cfg: dict) -> None:
-    """Cycles on the CPU, direct light only by default, no denoiser, box pixel filter, black world."""
+    """Cycles on ``render.device`` (CPU by default), direct light only by default, no denoiser, box pixel
+    filter, black world."""
     scene.render.engine = "CYCLES"
     cyc = scene.cycles
-    cyc.device = "CPU"
+    use_device(scene, str(cfg.get("device", "CPU")))
     cyc.samples = int(cfg["samples"])
     cyc.use_adaptive_sampling = False  # fixed samples: reproducible noise level
     cyc.use_denoising = bool(cfg["denoise"])

@@ -195,6 +195,9 @@ class TerrainSettings(_Group):
 # Rendering: render, sweep, launcher
 # ------------------------------------------------------------------------------------------------
 RENDER_MODES = ("fast", "direct")
+# Cycles' compute backends: the CPU, or the GPU API Cycles renders with (CUDA or OPTIX on NVIDIA, HIP on
+# AMD, ONEAPI on Intel, METAL on Apple). The shader-node Hapke material runs on all of them (no OSL).
+RENDER_DEVICES = ("CPU", "CUDA", "OPTIX", "HIP", "ONEAPI", "METAL")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -222,6 +225,7 @@ class RenderSettings(_Group):
 
     def _check(self):
         _need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
+        _need(self.device in RENDER_DEVICES, "device", self.device, f"must be one of {', '.join(RENDER_DEVICES)}")
         _need(self.samples >= 1, "samples", self.samples, "must be >= 1")
         _need(self.max_bounces >= 0, "max_bounces", self.max_bounces, "must be >= 0")
         _need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0 = all cores)")
