@@ -8,6 +8,7 @@ reports its own peak RSS. Export time is linear in the number of samples (each i
 encoded and appended once), so the 67,500-render time is ``seconds * 67500 / n``; peak RSS does not
 grow with ``n`` (one Parquet row group or one sample in memory), which the run shows twice: the
 largest RSS seen in the second half of each export against the first half, and a quarter-size export.
+The baseline in the same run is a plain tar of the same EXRs and manifest (``baseline_tar``).
 """
 
 from __future__ import annotations
@@ -104,10 +105,31 @@ print(json.dumps({"seconds": time.perf_counter() - t0, "rows": idx["rows"],
 """
 
 
+# The baseline a careful user would run instead of an export: one tar of the dataset's EXRs and manifest
+# (``tar cf``; what WebDataset-style loaders read as is). It copies bytes only (no decoding, no checksum,
+# no label columns), so it bounds what streaming the same files can cost on this disk.
+_TAR_CHILD = """
+import json, resource, sys, tarfile, time
+from pathlib import Path
+ds, out = Path(sys.argv[1]), Path(sys.argv[2])
+out.mkdir(parents=True, exist_ok=True)
+t0 = time.perf_counter()
+with tarfile.open(out / "dataset.tar", "w") as tar:
+    tar.add(ds / "manifest.jsonl", arcname="manifest.jsonl")
+    files = sorted(ds.rglob("*.exr"))
+    for p in files:
+        tar.add(p, arcname=str(p.relative_to(ds)))
+print(json.dumps({"seconds": time.perf_counter() - t0, "rows": len(files),
+                  "bytes": (out / "dataset.tar").stat().st_size,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "rss_first_half_mb": 0.0, "rss_second_half_mb": 0.0}))
+"""
+
+
 def _run(ds: Path, out: Path, fmt: str, channels: str) -> dict:
-    proc = subprocess.run(
-        [sys.executable, "-c", _CHILD, str(ds), str(out), fmt, channels], capture_output=True, text=True, check=False
-    )
+    child = _TAR_CHILD if fmt == "tar" else _CHILD
+    args = [str(ds), str(out)] if fmt == "tar" else [str(ds), str(out), fmt, channels]
+    proc = subprocess.run([sys.executable, "-c", child, *args], capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"export benchmark child failed: {proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -127,6 +149,7 @@ def bench_export(work: Path, n: int = 1000) -> dict:
         "webdataset_IF": _run(ds, work / "wds", "webdataset", "IF"),
         "parquet_all": _run(ds, work / "pq_all", "parquet", "IF,depth,N.X,N.Y,N.Z,lit"),
         "parquet_IF_quarter": _run(small, work / "pq_q", "parquet", "IF"),
+        "baseline_tar": _run(ds, work / "tar", "tar", ""),
     }
     out: dict = {"renders": n, "generate_seconds": round(gen_s, 2), "exr_mb_per_render": exr_bytes / n / 1e6}
     for name, r in runs.items():
@@ -142,6 +165,9 @@ def bench_export(work: Path, n: int = 1000) -> dict:
         if not name.endswith("quarter"):
             out[name]["paper_sweep_minutes"] = round(r["seconds"] * PAPER_RENDERS / rows / 60, 1)
             out[name]["paper_sweep_gb"] = round(r["bytes"] / rows * PAPER_RENDERS / 1e9, 1)
+    base = out["baseline_tar"]["seconds"]
+    for name in ("parquet_IF", "webdataset_IF", "parquet_all"):
+        out[name]["seconds_vs_tar"] = round(out[name]["seconds"] / base, 2) if base > 0 else None
     return out
 
 
@@ -152,5 +178,6 @@ def summary_line(r: dict) -> str:
     return (
         f"export_parquet_renders_per_s={p['renders_per_s']} export_webdataset_renders_per_s="
         f"{r['webdataset_IF']['renders_per_s']} export_peak_rss_mb={peak} "
-        f"paper_sweep_parquet_minutes={p['paper_sweep_minutes']}"
+        f"paper_sweep_parquet_minutes={p['paper_sweep_minutes']} "
+        f"tar_baseline_renders_per_s={r['baseline_tar']['renders_per_s']} parquet_vs_tar={p['seconds_vs_tar']}"
     )
