@@ -50,6 +50,23 @@ class ModelSettings(_Group):
         _need(self.num_classes >= 2, "num_classes", self.num_classes, "must be >= 2")
         _need(self.fc1 >= 1, "fc1", self.fc1, "must be >= 1")
         _need(0.0 <= self.dropout < 1.0, "dropout", self.dropout, "must lie in [0, 1)")
+        _need(self.conv1.stride == 1, "conv1.stride", self.conv1.stride, "must be 1 (the paper fixes CONV1's stride)")
+        c1, p, c2 = self.conv1, self.pool, self.conv2
+        _need(
+            min(self.feature_sizes()) >= 1,
+            "input_size",
+            self.input_size,
+            f"too small for conv1 kernel {c1.kernel}, pool {p.kernel}/{p.stride} and conv2 kernel {c2.kernel} "
+            f"stride {c2.stride}",
+        )
+
+    def feature_sizes(self) -> Tuple[int, int, int]:
+        """Sides (h1, hp, h2) of the CONV1, POOL and CONV2 output maps for an ``input_size`` square crop
+        (CONV1 stride 1, no padding): the network's shape (train/models.py) and the check above."""
+        h1 = self.input_size - self.conv1.kernel + 1
+        hp = (h1 - self.pool.kernel) // self.pool.stride + 1
+        h2 = (hp - self.conv2.kernel) // self.conv2.stride + 1
+        return h1, hp, h2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -324,3 +341,9 @@ class RealsetSettings(_Group):
         )
         _need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
         _need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")
+        _need(
+            self.include_embedded or bool(self.labels_file) or bool(self.frames),
+            "include_embedded",
+            self.include_embedded,
+            "leaves the real test set empty: give realset.labels_file or realset.frames, or keep the embedded mosaic",
+        )

@@ -6,8 +6,9 @@ names its schema in its ``defaults``), so composition itself rejects a wrong typ
 The result is then converted once into a :class:`~crater_core.settings.Settings`, whose classes check
 the ranges. Every failure is one :class:`ConfigError` line naming the key as the user typed it.
 
-Functions below the CLI take the :class:`Settings`; :func:`compose` still returns the (validated)
-``DictConfig`` for the code that reads the raw mapping (train/, report, loop, experiments, bench).
+Functions below the CLI, ``train/`` included, take the :class:`Settings`; :func:`compose` still returns
+the (validated) ``DictConfig`` for the code that reads the raw mapping for its own keys (report, loop,
+experiments, validation fingerprints).
 """
 
 from __future__ import annotations

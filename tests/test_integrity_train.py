@@ -12,7 +12,7 @@ import torch
 from click.testing import CliRunner
 
 from crater_core import schema
-from crater_synth.config import compose, resolved
+from crater_synth.config import load_settings
 from train.registry import ARTEFACTS
 from train.toydata import write_toy_dataset
 
@@ -208,9 +208,9 @@ def test_an_interrupted_retrain_leaves_the_previous_run_whole(toy, two_runs, tmp
         raise KeyboardInterrupt
 
     monkeypatch.setattr(train.trainer, "train_svms", interrupted)
-    cfg = resolved(compose(_overrides(toy, two_runs, "unused", f"run_dir={run}", "train.seed=7")))
+    settings = load_settings(_overrides(toy, two_runs, "unused", f"run_dir={run}", "train.seed=7"))
     with pytest.raises(KeyboardInterrupt):
-        train_and_evaluate(cfg)
+        train_and_evaluate(settings)
     monkeypatch.undo()
     assert _files(run) == before
     assert [p.name for p in run.iterdir() if p.name.startswith(".")] == []  # no staging left

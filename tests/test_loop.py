@@ -31,8 +31,8 @@ def scripted_training(monkeypatch):
     """Replace training by accuracies read from a script; record the grids it was asked to train on."""
     calls = []
 
-    def fake_train_and_evaluate(cfg, progress=None):
-        n_sun = len(cfg["train"]["select"]["sun_elevation"])
+    def fake_train_and_evaluate(settings, progress=None):
+        n_sun = len(settings.train.select["sun_elevation"])
         calls.append(n_sun)
         acc = fake_train_and_evaluate.accuracy[n_sun]
         return {"train_images": n_sun, **{m: {"real_accuracy": acc, "val_accuracy": 0.9} for m in loop_mod.MODELS}}

@@ -256,25 +256,25 @@ def test_mirrored_dem_stack_blends_like_the_south(tmp_path):
 
 # ------------------------------------------------------------------------------ real crops
 def test_north_craters_are_cut_from_the_north_mosaic():
-    from crater_synth.config import compose, craters, resolved
+    from crater_synth.config import compose, craters, load_settings
     from train.errors import RealSetError
     from train.realset import load_mosaic, plan_embedded_crops
 
     names = ["peary", "hermite", "de_sitter"]
-    cfg = resolved(compose(["realset=wac_north", "realset.per_crater=20"]))
-    mosaic = load_mosaic(cfg["realset"])
+    realset = load_settings(["realset=wac_north", "realset.per_crater=20"]).realset
+    mosaic = load_mosaic(realset)
     assert mosaic.pole == "north" and mosaic.product_id == "lroc_wac_north"
     entries = craters(compose([f"crater=[{','.join(names)}]"]))
-    crops = plan_embedded_crops(mosaic.image.shape, mosaic, entries, cfg["realset"])
+    crops = plan_embedded_crops(mosaic.image.shape, mosaic, entries, realset)
     assert len(crops) == 60 and {c.source for c in crops} == {"lroc_wac_north"}
     for c in entries:  # the crater's box is centred where the north projection puts it
         u, v = mosaic.latlon_to_uv(c["lat"], c["lon"])
         lat, lon = mosaic.uv_to_latlon(u, v)
         assert (float(lat), float(lon)) == pytest.approx((c["lat"], c["lon"]), abs=1e-9)
-    south = load_mosaic(resolved(compose([]))["realset"])
+    south = load_mosaic(load_settings([]).realset)
     assert south.pole == "south"
     with pytest.raises(RealSetError, match="crater peary .* lroc_wac_south .* realset=wac_north"):
-        plan_embedded_crops(south.image.shape, south, entries[:1], cfg["realset"])
+        plan_embedded_crops(south.image.shape, south, entries[:1], realset)
 
 
 # ------------------------------------------------------------------------------ end to end

@@ -10,7 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from crater_synth.config import ConfigError, compose, resolved
+from crater_core.settings import FrameSettings, replace
+from crater_synth.config import ConfigError, compose, load_settings, resolved
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, box_axes
 from train.realframes import open_frame, plan_frames, reference_to_frame
@@ -23,14 +24,17 @@ PER = 100  # crops per crater: 300 in all, so 0.01 of accuracy is 3 crops
 
 @pytest.fixture(scope="module")
 def cfg():
-    c = resolved(compose([]))
-    c["realset"] = dict(c["realset"], per_crater=PER)
-    return c
+    return replace(load_settings([]), **{"realset.per_crater": PER})
 
 
 @pytest.fixture(scope="module")
 def craters(cfg):
-    return [dict(e) for e in cfg["crater"].values() if e["name"] in CLASSES]
+    return [c.as_dict() for c in cfg.craters if c.name in CLASSES]
+
+
+def _with_frames(rs, *entries, **changes):
+    """``realset`` settings whose ``frames`` are these entries (FrameSettings fields)."""
+    return replace(rs, frames=tuple(FrameSettings(**e) for e in entries), **changes)
 
 
 def _write(path, array, crs, transform, **extra):
@@ -72,12 +76,12 @@ def _reprojected(mosaic, path, pixel_m=300.0, half_m=(62_000.0, 100_000.0), cent
 
 @pytest.fixture(scope="module")
 def frame_tif(cfg, tmp_path_factory):
-    mosaic = load_mosaic(cfg["realset"])
+    mosaic = load_mosaic(cfg.realset)
     return _reprojected(mosaic, tmp_path_factory.mktemp("frames") / "wac_ortho_300m.tif")
 
 
 def _frame_cfg(cfg, **entry):
-    return dict(cfg, realset=dict(cfg["realset"], include_embedded=False, frames=[entry]))
+    return replace(cfg, realset=_with_frames(cfg.realset, entry, include_embedded=False))
 
 
 def _features(images: np.ndarray) -> np.ndarray:
@@ -93,11 +97,11 @@ def _features(images: np.ndarray) -> np.ndarray:
 
 
 def test_reprojected_mosaic_frame_matches_the_mosaic(cfg, craters, frame_tif):
-    rs = cfg["realset"]
+    rs = cfg.realset
     mosaic = load_mosaic(rs)
     grid = mosaic.grid
     ref = plan_embedded_crops(mosaic.image.shape, mosaic, craters, rs)
-    crops, images = plan_frames(dict(rs, frames=[{"path": str(frame_tif), "frame_id": "ortho300"}]), craters)
+    crops, images = plan_frames(_with_frames(rs, {"path": str(frame_tif), "frame_id": "ortho300"}), craters)
     assert len(crops) == len(ref) == 3 * PER
     frame = open_frame(frame_tif, "ortho300")
     assert frame.image.shape == (666, 413)
@@ -136,7 +140,7 @@ def test_reprojected_mosaic_frame_matches_the_mosaic(cfg, craters, frame_tif):
     mos_set = build_real_test_set(cfg, craters, CLASSES, pp)
     frm_set = build_real_test_set(_frame_cfg(cfg, path=str(frame_tif), frame_id="ortho300"), craters, CLASSES, pp)
     assert [c.kind for c in frm_set.crops] == ["frame"] * 3 * PER
-    train_cfg = dict(cfg, realset=dict(cfg["realset"], seed=99, per_crater=30))
+    train_cfg = replace(cfg, **{"realset.seed": 99, "realset.per_crater": 30})
     tr = build_real_test_set(train_cfg, craters, CLASSES, pp)
     ftr = _features(tr.images)
     cent = np.stack([ftr[tr.labels == k].mean(0) for k in range(3)])
@@ -167,20 +171,22 @@ def test_frames_config_group_composes():
         compose(["realset.frames=[{path: /x.tif, band: 0}]"])
     # Offline the frames are not fetched: one clear error naming the product and fetch-data.
     with pytest.raises(RealSetError, match="fetch-data lroc_m101457600mc"):
-        plan_frames(rs, [dict(e) for e in c["crater"].values()], "/nonexistent-data-dir")
+        plan_frames(
+            load_settings(["realset=frames"]).realset, [dict(e) for e in c["crater"].values()], "/nonexistent-data-dir"
+        )
 
 
 def test_no_georeference(cfg, craters, tmp_path):
     p = _write(tmp_path / "bare.tif", np.ones((64, 64), np.uint8), None, None)
     with pytest.raises(RealSetError, match="has no georeference.*cam2map"):
-        plan_frames(dict(cfg["realset"], frames=[{"path": str(p)}]), craters)
+        plan_frames(_with_frames(cfg.realset, {"path": str(p)}), craters)
 
 
 def test_crater_outside_the_frame(cfg, craters, tmp_path):
-    mosaic = load_mosaic(cfg["realset"])
+    mosaic = load_mosaic(cfg.realset)
     # A window around Shackleton only; Shoemaker's centre is ~58 km away.
     p = _reprojected(mosaic, tmp_path / "small.tif", half_m=(20_000.0, 20_000.0), center=(9_400.0, -32_900.0))
-    rs = dict(cfg["realset"], frames=[{"path": str(p), "craters": ["Shoemaker"]}])
+    rs = _with_frames(cfg.realset, {"path": str(p), "craters": ("Shoemaker",)})
     with pytest.raises(RealSetError, match=r"crater shoemaker .* lies outside the frame"):
         plan_frames(rs, craters)
 
@@ -197,7 +203,7 @@ def test_frame_of_another_body(cfg, craters, tmp_path, crs, body):
 
     p = _write(tmp_path / "other.tif", np.ones((64, 64), np.uint8), crs, from_origin(0, 0, 1, 1))
     with pytest.raises(RealSetError, match=r"not the Moon") as exc:
-        plan_frames(dict(cfg["realset"], frames=[{"path": str(p)}]), craters)
+        plan_frames(_with_frames(cfg.realset, {"path": str(p)}), craters)
     assert body in str(exc.value)
 
 
@@ -206,12 +212,12 @@ def test_truncated_frame(cfg, craters, frame_tif, tmp_path):
     p = tmp_path / "truncated.tif"
     p.write_bytes(data[: len(data) // 2])
     with pytest.raises(RealSetError, match="truncated or corrupt"):
-        plan_frames(dict(cfg["realset"], frames=[{"path": str(p)}]), craters)
+        plan_frames(_with_frames(cfg.realset, {"path": str(p)}), craters)
 
 
 def test_reference_grid_is_the_mosaic_grid(cfg):
-    grid = PolarGrid.from_config(cfg["realset"])
-    mosaic = load_mosaic(cfg["realset"])
+    grid = PolarGrid.from_settings(cfg.realset)
+    mosaic = load_mosaic(cfg.realset)
     assert mosaic.grid == grid
     # A frame that IS the mosaic grid maps reference pixels onto themselves.
     from rasterio.crs import CRS

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from crater_core import schema
-from crater_synth.config import compose, resolved
+from crater_synth.config import load_settings
 from train import data as tdata
 from train.data import build_datasets, check_synthetic_rows, load_rows, split_rows
 from train.errors import DatasetError, RealDataLeakError
@@ -32,18 +32,17 @@ def toy(tmp_path_factory):
 
 
 def _cfg(dataset_dir, tmp_path, *extra):
-    return resolved(
-        compose(
-            [
-                f"train.dataset_dir={dataset_dir}",
-                f"data_dir={tmp_path}",
-                f"run_dir={tmp_path}/run",
-                f"train.cache_dir={tmp_path}/cache",
-                "train.num_threads=1",
-                "train.progress=false",
-                *extra,
-            ]
-        )
+    """The typed settings train/ takes, for the toy dataset."""
+    return load_settings(
+        [
+            f"train.dataset_dir={dataset_dir}",
+            f"data_dir={tmp_path}",
+            f"run_dir={tmp_path}/run",
+            f"train.cache_dir={tmp_path}/cache",
+            "train.num_threads=1",
+            "train.progress=false",
+            *extra,
+        ]
     )
 
 
@@ -123,7 +122,7 @@ def test_real_rows_and_real_files_are_refused(toy, tmp_path):
     # The configured mosaic's checksum is refused even when the caller forgets to pass it.
     d = _copy(toy, tmp_path)
     r = load_rows(d)
-    r[0]["sha256"] = resolved(compose([]))["realset"]["mosaic"]["sha256"]
+    r[0]["sha256"] = load_settings([]).realset.mosaic.sha256
     schema.write_manifest(d / schema.MANIFEST_NAME, r)
     with pytest.raises(RealDataLeakError):
         build_datasets(_cfg(d, tmp_path))

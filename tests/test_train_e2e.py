@@ -19,7 +19,7 @@ from click.testing import CliRunner
 from crater_core import schema
 from crater_core.exr import read_exr, write_exr
 from crater_core.render_labels import header_for_row
-from crater_synth.config import compose, resolved
+from crater_synth.config import load_settings
 from train.registry import MODELS
 from train.toydata import TOY_FRAME_SOURCE, write_toy_dataset, write_toy_frames
 
@@ -207,8 +207,7 @@ def test_shuffled_labels_fail_the_bar(toy, frames, tmp_path):
 def test_bench_reports_throughput_and_time_to_target(toy, tmp_path):
     from crater_synth.bench.train import run_train_bench
 
-    cfg = resolved(compose(_overrides(toy, tmp_path, "train.target_val_accuracy=0.7")))
-    r = run_train_bench(cfg)
+    r = run_train_bench(load_settings(_overrides(toy, tmp_path, "train.target_val_accuracy=0.7")))
     assert r["train_images_per_s"] > 0 and r["model_images_per_s"] > 0
     assert r["reached_target"] and r["val_accuracy"] >= 0.7 and 1 <= r["epochs"] <= 16
     assert 0 < r["time_to_target_s"] <= r["train_seconds"] + 60

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from crater_synth.config import ConfigError, compose, resolved
+from crater_core.settings import replace
+from crater_synth.config import ConfigError, compose, load_settings, resolved
 from train.evaluate import roll_averaged_predictions
 from train.models import LunarNetEx, hog_features, make_linear_svm
 from train.preprocess import PreprocessConfig, apply_support
@@ -12,21 +13,21 @@ from train.trainer import fc1_activations, predict_logits
 
 torch.set_num_threads(1)
 SIZE = 48
-HOG = {"pixels_per_cell": 8, "cells_per_block": 2, "orientations": 9}
+SETTINGS = load_settings([])
+HOG = replace(SETTINGS.train.hog, pixels_per_cell=8, cells_per_block=2, orientations=9, max_iter=2000)
 
 
 @pytest.fixture(scope="module")
 def models():
     """A small random LunarNet_ex and two linear SVMs fitted on random disc crops (3 classes)."""
     torch.manual_seed(0)
-    mcfg = dict(resolved(compose([]))["model"], input_size=SIZE)
-    net = LunarNetEx(mcfg).eval()
+    net = LunarNetEx(replace(SETTINGS.model, input_size=SIZE)).eval()
     rng = np.random.default_rng(0)
     disc = PreprocessConfig(support="disc", size=SIZE)
     x = apply_support(rng.random((60, SIZE, SIZE), dtype=np.float32), disc)
     y = np.arange(60) % 3
-    svm = make_linear_svm({"max_iter": 2000}, 0).fit(fc1_activations(net, x), y)
-    hog = make_linear_svm({"max_iter": 2000}, 1).fit(hog_features(x, HOG), y)
+    svm = make_linear_svm(replace(SETTINGS.train.svm, max_iter=2000), 0).fit(fc1_activations(net, x), y)
+    hog = make_linear_svm(HOG, 1).fit(hog_features(x, HOG), y)
     images = apply_support(rng.random((12, SIZE, SIZE), dtype=np.float32), disc)
     return net, svm, hog, images
 

@@ -4,8 +4,8 @@ import pytest
 import torch
 from torch import nn
 
-from crater_synth.config import compose, resolved
-from train.errors import ModelError
+from crater_core.settings import ConvSettings, SettingsError, replace
+from crater_synth.config import load_settings
 from train.models import PAPER_LAYER_ORDER, LunarNetEx, multiply_adds, parameter_count
 
 torch.set_num_threads(1)
@@ -13,7 +13,7 @@ torch.set_num_threads(1)
 
 @pytest.fixture(scope="module")
 def mcfg():
-    return resolved(compose([]))["model"]
+    return load_settings([]).model
 
 
 def test_layer_order_is_the_papers(mcfg):
@@ -36,7 +36,7 @@ def test_output_shape_and_softmax(mcfg):
     assert model(x).shape == (2, 3)
     p = model.predict_proba(x)
     assert torch.allclose(p.sum(1), torch.ones(2), atol=1e-5)
-    assert model.fc1_features(x).shape == (2, mcfg["fc1"])
+    assert model.fc1_features(x).shape == (2, mcfg.fc1)
 
 
 def test_parameter_count_and_macs_match_docs(mcfg):
@@ -45,8 +45,8 @@ def test_parameter_count_and_macs_match_docs(mcfg):
     assert multiply_adds(mcfg)["total"] == 20_582_784
 
 
-def test_bad_model_config(mcfg):
-    with pytest.raises(ModelError, match="stride"):
-        LunarNetEx(dict(mcfg, conv1={"channels": 8, "kernel": 5, "stride": 2}))
-    with pytest.raises(ModelError, match="too small"):
-        LunarNetEx(dict(mcfg, input_size=12))
+def test_bad_model_config_is_refused_by_the_settings(mcfg):
+    with pytest.raises(SettingsError, match="conv1.stride=2: must be 1"):
+        replace(mcfg, conv1=ConvSettings(channels=8, kernel=5, stride=2))
+    with pytest.raises(SettingsError, match="input_size=12: too small"):
+        replace(mcfg, input_size=12)

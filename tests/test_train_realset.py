@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_synth.config import compose, resolved
+from crater_core.settings import replace
+from crater_synth.config import load_settings
 from train.errors import RealSetError
 from train.realset import build_real_test_set, load_labels_file, load_mosaic, plan_embedded_crops, plan_real_crops
 
@@ -17,21 +18,21 @@ CLASSES = ["shackleton", "de_gerlache", "shoemaker"]
 
 @pytest.fixture(scope="module")
 def cfg():
-    return resolved(compose([]))
+    return load_settings([])
 
 
 @pytest.fixture(scope="module")
 def craters(cfg):
-    return [dict(e) for e in cfg["crater"].values()]
+    return [c.as_dict() for c in cfg.craters]
 
 
 @pytest.fixture(scope="module")
 def mosaic(cfg):
-    return load_mosaic(cfg["realset"])
+    return load_mosaic(cfg.realset)
 
 
 def test_300_crops_per_crater_inside_the_mosaic(cfg, craters, mosaic):
-    crops = plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg["realset"])
+    crops = plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg.realset)
     assert mosaic.image.shape == (3048, 3048) and mosaic.image.dtype == np.uint8
     for c in craters:
         mine = [k for k in crops if k.crater == c["name"]]
@@ -54,9 +55,9 @@ def test_300_crops_per_crater_inside_the_mosaic(cfg, craters, mosaic):
 
 
 def test_crop_plan_is_deterministic_for_the_seed(cfg, craters, mosaic):
-    a = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg["realset"])]
-    b = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg["realset"])]
-    c = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, dict(cfg["realset"], seed=7))]
+    a = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg.realset)]
+    b = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, cfg.realset)]
+    c = [k.as_row() for k in plan_embedded_crops(mosaic.image.shape, mosaic, craters, replace(cfg.realset, seed=7))]
     assert a == b and a != c
 
 
@@ -70,7 +71,7 @@ def test_projection_matches_the_shared_geometry(mosaic):
 
 
 def test_real_test_set_images(cfg, craters):
-    small = dict(cfg, realset=dict(cfg["realset"], per_crater=6))
+    small = replace(cfg, **{"realset.per_crater": 6})
     ts = build_real_test_set(small, craters, CLASSES)
     assert ts.images.shape == (18, 150, 150) and ts.images.dtype == np.float32
     assert ts.images.min() >= 0 and ts.images.max() <= 1 and ts.images.max() > 0.5
@@ -84,7 +85,7 @@ def test_tampered_mosaic_is_refused(cfg, mosaic, tmp_path):
         fh.seek(5000)
         fh.write(b"\x00\x01\x02")
     with pytest.raises(RealSetError, match="sha256"):
-        load_mosaic(dict(cfg["realset"], mosaic=dict(cfg["realset"]["mosaic"], path=str(bad))))
+        load_mosaic(replace(cfg.realset, **{"mosaic.path": str(bad)}))
 
 
 def _png(path, arr):
@@ -110,14 +111,14 @@ def test_labels_file_plugs_in_user_frames(cfg, craters, mosaic, tmp_path):
         ("de_gerlache", "selene_tc", 1.0),
         ("de_gerlache", "selene_tc", 1.2),
     ]
-    rs = dict(cfg["realset"], include_embedded=False, labels_file=str(tmp_path / "labels.csv"))
+    rs = replace(cfg.realset, include_embedded=False, labels_file=str(tmp_path / "labels.csv"))
     # de Gerlache sits at the frame's edge: its box leaves the image by more than 25 % -> clear error.
     with pytest.raises(RealSetError, match="leaves"):
-        plan_real_crops(dict(cfg, realset=rs), craters, CLASSES)
+        plan_real_crops(rs, craters, CLASSES)
     (tmp_path / "labels.csv").write_text(
         "image_path,crater,box_u0,box_v0,box_u1,box_v1,source\nframe.png,shoemaker,10,10,110,110,selene_hdtv\n"
     )
-    ts = build_real_test_set(dict(cfg, realset=rs), craters, CLASSES)
+    ts = build_real_test_set(replace(cfg, realset=rs), craters, CLASSES)
     assert ts.sources == ["selene_hdtv"] and len(ts.labels) == 3 and set(ts.labels) == {2}
 
 

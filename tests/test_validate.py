@@ -122,23 +122,23 @@ def scripted(monkeypatch, tmp_path):
     """build_dataset -> counts only; train_and_evaluate -> per-crater accuracies from a table."""
     calls = []
 
-    def fake_build(cfg, progress=True):
-        return {"renders_total": 10 * len(cfg["crater"]), "rendered": 0, "skipped_existing": 0}
+    def fake_build(settings, progress=True):
+        return {"renders_total": 10 * len(settings.crater), "rendered": 0, "skipped_existing": 0}
 
-    def fake_train(cfg, progress=None):
-        names = [e["name"] for e in cfg["crater"].values()]
-        calls.append((tuple(names), cfg["train"]["seed"]))
-        scripted.products[tuple(names)] = (cfg["dem"]["product"], cfg["realset"]["source_product"])
-        run_dir = Path(cfg["run_dir"])
+    def fake_train(settings, progress=None):
+        names = [c.name for c in settings.craters]
+        calls.append((tuple(names), settings.train.seed))
+        scripted.products[tuple(names)] = (settings.dem.product, settings.realset.source_product)
+        run_dir = Path(settings.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         for f in (NET_FILE, SVM_FILE, HOG_FILE):  # the saved models, as train_all writes them
             (run_dir / f).write_bytes(b"model")
-        return fake_evaluate(cfg)
+        return fake_evaluate(settings)
 
-    def fake_evaluate(cfg, progress=None):
-        names = [e["name"] for e in cfg["crater"].values()]
-        seed = cfg["train"]["seed"]
-        per = {n: scripted.acc[n] + 0.01 * seed + 0.1 * (cfg["train"].get("tta_rotations", 1) > 1) for n in names}
+    def fake_evaluate(settings, progress=None):
+        names = [c.name for c in settings.craters]
+        seed = settings.train.seed
+        per = {n: scripted.acc[n] + 0.01 * seed + 0.1 * (settings.train.tta_rotations > 1) for n in names}
         mean = sum(per.values()) / len(per)
         return {
             "train_images": 100,
@@ -178,6 +178,12 @@ def scripted(monkeypatch, tmp_path):
         return cfg
 
     monkeypatch.setattr(v, "compose", compose)
+
+    def compose_settings(overrides):
+        cfg = compose(overrides)
+        return cfg, config_mod.settings_from(cfg)
+
+    monkeypatch.setattr(v, "compose_settings", compose_settings)
     scripted.acc = {n: 0.5 + 0.04 * i for i, n in enumerate(CATALOGUE)}
     scripted.calls = calls
     scripted.products = {}

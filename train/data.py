@@ -35,6 +35,7 @@ import torch
 from torch.utils.data import Dataset
 
 from crater_core.schema import ManifestError, manifest_digest, sha256_file, validate_row
+from crater_core.settings import Settings, TrainSettings, as_plain
 from train.errors import DatasetError, RealDataLeakError
 from train.preprocess import (
     PreprocessConfig,
@@ -48,7 +49,6 @@ from train.preprocess import (
 )
 
 SYNTHETIC = "synthetic"
-ROTATIONS = ("right_angles", "any")  # train.augment_rotation
 CACHE_FORMAT = 1
 
 
@@ -74,19 +74,14 @@ def read_exr_channel_and_header(path: str | Path, channel: str = "IF") -> tuple[
 # ------------------------------------------------------------------------------------------------
 # Rows, classes, leak guard, split
 # ------------------------------------------------------------------------------------------------
-def class_names_from_config(cfg: Mapping) -> list[str]:
-    """Class names in configuration order (the ``crater`` group)."""
-    craters = cfg.get("crater") or {}
-    names = [str((entry or {}).get("name") or key) for key, entry in craters.items()]
-    if not names:
-        raise DatasetError("no crater selected (crater=...): nothing to classify")
-    return names
+def class_names_of(settings: Settings) -> list[str]:
+    """Class names in configuration order (the ``crater`` group; the settings refuse an empty one)."""
+    return [c.name for c in settings.craters]
 
 
-def cache_dir_of(cfg: Mapping) -> str:
+def cache_dir_of(train: TrainSettings) -> str:
     """``train.cache_dir`` (default: ``<train.dataset_dir>/.cache``)."""
-    tcfg = cfg["train"]
-    return str(tcfg.get("cache_dir") or Path(str(tcfg["dataset_dir"])) / ".cache")
+    return str(train.cache_dir or Path(train.dataset_dir) / ".cache")
 
 
 def require_classes(class_names: Sequence[str]) -> list[str]:
@@ -135,13 +130,10 @@ def load_rows(dataset_dir: str | Path) -> list[dict]:
     return rows
 
 
-def forbidden_sha256_from_config(cfg: Mapping) -> set[str]:
+def forbidden_sha256_of(settings: Settings) -> set[str]:
     """Checksums of real test products named in the configuration (training must never read them)."""
-    out = set()
-    sha = ((cfg.get("realset") or {}).get("mosaic") or {}).get("sha256")
-    if sha:
-        out.add(str(sha))
-    return out
+    sha = settings.realset.mosaic.sha256
+    return {sha} if sha else set()
 
 
 def check_synthetic_rows(
@@ -211,11 +203,9 @@ def select_rows(rows: Sequence[dict], class_names: Sequence[str]) -> tuple[list[
 
 
 def _group_key(row: dict, split_by: str) -> tuple:
-    if split_by == "camera":
-        return round(float(row["cam_elevation"]), 6), round(float(row["cam_azimuth"]), 6)
-    if split_by == "sun":
-        return round(float(row["sun_elevation"]), 6), round(float(row["sun_azimuth"]), 6)
-    raise DatasetError(f"train.split_by={split_by!r}: use 'camera' or 'sun'")
+    """The render group of ``row``: its camera pose (``split_by="camera"``) or its sun direction (``"sun"``)."""
+    elevation, azimuth = ("sun_elevation", "sun_azimuth") if split_by == "sun" else ("cam_elevation", "cam_azimuth")
+    return round(float(row[elevation]), 6), round(float(row[azimuth]), 6)
 
 
 def split_rows(
@@ -224,9 +214,7 @@ def split_rows(
     """Hold out whole render groups (camera poses, or sun directions) for validation, seeded.
 
     Falls back to the other axis when the chosen one has a single value. Returns (train row indices,
-    val row indices, info)."""
-    if not 0.0 < val_fraction < 1.0:
-        raise DatasetError(f"train.val_fraction={val_fraction} must lie in (0, 1)")
+    val row indices, info). ``split_by`` and ``val_fraction`` come from the validated ``train`` settings."""
     order = [split_by] + [a for a in ("camera", "sun") if a != split_by]
     for axis in order:
         keys = sorted({_group_key(r, axis) for r in rows})
@@ -387,8 +375,6 @@ def build_cache(
     from crater_core.progress import Progress
 
     t0 = time.perf_counter()
-    if dtype not in ("float16", "float32"):
-        raise DatasetError(f"train.cache_dtype={dtype!r}: use float16 or float32")
     rows = list(rows)
     key = cache_key(rows, sigmas, pp, dtype)
     final = Path(cache_dir) / key
@@ -499,21 +485,9 @@ class SyntheticCropDataset(Dataset):
         self.seed = int(seed) & 0xFFFFFFFF
         self.train = train
         self.augment = augment and train
-        if rotation not in ROTATIONS:
-            raise DatasetError(f"train.augment_rotation={rotation!r} must be one of {', '.join(ROTATIONS)}")
-        if rotation == "any" and pp.support != "disc":
-            raise DatasetError(
-                "train.augment_rotation=any needs train.preprocess.support=disc: a square crop turned by an "
-                "arbitrary angle has empty corners that no real crop has"
-            )
+        # rotation and offset_frac: train.augment_rotation / augment_offset_frac, whose ranges and need of
+        # disc support the settings check (crater_core.settings.TrainSettings).
         self.rotation = rotation
-        if not 0.0 <= offset_frac <= 0.25:
-            raise DatasetError(f"train.augment_offset_frac={offset_frac} must lie in [0, 0.25]")
-        if offset_frac > 0.0 and pp.support != "disc":
-            raise DatasetError(
-                "train.augment_offset_frac > 0 needs train.preprocess.support=disc: a shifted square crop has "
-                "an empty strip that no real crop has"
-            )
         self.offset_frac = float(offset_frac)
         self.epoch = 0
         self.diameters_m = dict(diameters_m or {})  # crater -> rim diameter: a crop's ground width is sigma x D
@@ -627,7 +601,7 @@ def selected_positions(rows: Sequence[dict], selection: Mapping | None, dataset_
     inside = {id(r) for r in rows_in_selection(rows, dict(selection))}
     used = [i for i, r in enumerate(rows) if id(r) in inside]
     if not used:
-        raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={dict(selection)}")
+        raise DatasetError(f"{dataset_dir}: no manifest row matches train.select={as_plain(dict(selection))}")
     return used
 
 
@@ -640,57 +614,51 @@ class SyntheticData:
 
 
 def build_datasets(
-    cfg: Mapping,
+    settings: Settings,
     forbidden_sha256: Iterable[str] = (),
     forbidden_paths: Iterable[str | Path] = (),
     progress: bool = False,
 ) -> SyntheticData:
-    """From a resolved config: manifest -> leak guard -> classes -> split -> cache -> datasets."""
-    tcfg = cfg["train"]
-    dataset_dir = Path(str(tcfg["dataset_dir"]))
-    class_names = class_names_from_config(cfg)
+    """From the validated settings: manifest -> leak guard -> classes -> split -> cache -> datasets."""
+    ts = settings.train
+    dataset_dir = Path(ts.dataset_dir)
+    class_names = class_names_of(settings)
     # The crop cache covers every row of the configured craters at every sigma of the manifest, so the
     # subsets of one dataset (Figure 6 points, closed-loop rounds, a sigma) share one cache: a subset
     # is a choice of cached samples, never a second decode of the EXRs.
     rows = check_synthetic_rows(
-        load_rows(dataset_dir), dataset_dir, set(forbidden_sha256) | forbidden_sha256_from_config(cfg), forbidden_paths
+        load_rows(dataset_dir), dataset_dir, set(forbidden_sha256) | forbidden_sha256_of(settings), forbidden_paths
     )
     rows, others = select_rows(rows, class_names)
-    used = selected_positions(rows, tcfg.get("select"), dataset_dir)
+    used = selected_positions(rows, ts.select, dataset_dir)
     used_rows = [rows[i] for i in used]
     select_rows(used_rows, class_names)  # every class keeps rows in the selection
-    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
-    tr_used, va_used, split_info = split_rows(
-        used_rows, float(tcfg.get("val_fraction", 0.2)), str(tcfg.get("split_by", "camera")), seed, class_names
-    )
+    seed = ts.seed
+    tr_used, va_used, split_info = split_rows(used_rows, ts.val_fraction, ts.split_by, seed, class_names)
     tr_rows, va_rows = [used[i] for i in tr_used], [used[i] for i in va_used]
-    sigmas = row_sigmas(used_rows, tcfg.get("sigmas"))
+    sigmas = row_sigmas(used_rows, ts.sigmas)
     cache_sigmas = sorted({round(s, 6) for s in sigmas} | set(row_sigmas(rows, None)))
-    pp = PreprocessConfig.from_config(cfg)
+    pp = PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
     cache = build_cache(
         rows,
         dataset_dir,
         cache_sigmas,
         pp,
-        cache_dir_of(cfg),
-        str(tcfg.get("cache_dtype", "float16")),
-        bool(tcfg.get("verify_sha256", True)),
+        cache_dir_of(ts),
+        ts.cache_dtype,
+        ts.verify_sha256,
         progress,
-        int(tcfg.get("cache_workers", 0) or 0),
+        ts.cache_workers,
     )
-    sensor = SensorModel.from_config(cfg.get("sensor"))
-    diameters = {
-        str((e or {}).get("name") or k): float((e or {})["diameter_km"]) * 1000.0
-        for k, e in (cfg.get("crater") or {}).items()
-        if (e or {}).get("diameter_km") is not None
-    }
+    sensor = SensorModel.from_settings(settings.sensor)
+    diameters = {c.name: c.diameter_km * 1000.0 for c in settings.craters}
     cls = {n: i for i, n in enumerate(class_names)}
     tr_set, va_set, wanted = set(tr_rows), set(va_rows), {round(s, 6) for s in sigmas}
     tr_idx = [j for j, (ri, s) in enumerate(cache.samples) if ri in tr_set and round(s, 6) in wanted]
     va_idx = [j for j, (ri, s) in enumerate(cache.samples) if ri in va_set and round(s, 6) in wanted]
     # A budget cut (train.max_train_images / max_val_images) keeps a seeded subsample, in cache order.
-    tr_idx = budget_subsample(tr_idx, tcfg.get("max_train_images"), seed, 0x7A1)
-    va_idx = budget_subsample(va_idx, tcfg.get("max_val_images"), seed, 0x7A2)
+    tr_idx = budget_subsample(tr_idx, ts.max_train_images, seed, 0x7A1)
+    va_idx = budget_subsample(va_idx, ts.max_val_images, seed, 0x7A2)
     lab = [cls[rows[ri]["crater"]] for ri, _ in cache.samples]
     train_ds = SyntheticCropDataset(
         cache,
@@ -701,10 +669,10 @@ def build_datasets(
         sensor,
         seed,
         train=True,
-        augment=bool(tcfg.get("augment", True)),
+        augment=ts.augment,
         diameters_m=diameters,
-        rotation=str(tcfg.get("augment_rotation", "right_angles")),
-        offset_frac=float(tcfg.get("augment_offset_frac", 0.0)),
+        rotation=ts.augment_rotation,
+        offset_frac=ts.augment_offset_frac,
     )
     val_ds = SyntheticCropDataset(
         cache, va_idx, [lab[j] for j in va_idx], rows, pp, sensor, seed, train=False, diameters_m=diameters

@@ -10,11 +10,12 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from crater_core.schema import atomic_write_text
+from crater_core.settings import HogSettings, Settings, SettingsError
 from train.errors import ModelError
 from train.metrics import accuracy, class_mean_accuracy, confusion
 from train.plots import plot_confusion
@@ -56,16 +57,11 @@ def model_metrics(y_true: np.ndarray, y_pred: np.ndarray, test: RealTestSet, val
     }
 
 
-def _craters_for(cfg: Mapping, class_names: Sequence[str]) -> list[dict]:
+def _craters_for(settings: Settings, class_names: Sequence[str]) -> list[dict]:
+    """The configured crater entry (name, lat, lon, diameter_km) of each class, in class order."""
     by = {}
-    for key, e in (cfg.get("crater") or {}).items():
-        e = e or {}
-        by[canonical_crater(e.get("name") or key)] = {
-            "name": str(e.get("name") or key),
-            "lat": e.get("lat"),
-            "lon": e.get("lon"),
-            "diameter_km": e.get("diameter_km"),
-        }
+    for e in settings.craters:
+        by[canonical_crater(e.name)] = {"name": e.name, "lat": e.lat, "lon": e.lon, "diameter_km": e.diameter_km}
     out = []
     for n in class_names:
         c = by.get(canonical_crater(n))
@@ -86,7 +82,7 @@ def _svm_scores(model, X: np.ndarray) -> np.ndarray:
 
 
 def roll_averaged_predictions(
-    net, svm_model, hog_model, hog_cfg: Mapping, images: np.ndarray, rolls: int, batch_size: int, device
+    net, svm_model, hog_model, hog_settings: HogSettings, images: np.ndarray, rolls: int, batch_size: int, device
 ) -> dict[str, np.ndarray]:
     """Each model's predicted class (index into the class names) for every real crop.
 
@@ -102,7 +98,7 @@ def roll_averaged_predictions(
         return {
             "lunarnet_ex": predict_logits(net, images, batch_size, device).argmax(1),
             "lunarsvm_ex": svm_model.predict(fc1_activations(net, images, batch_size, device)),
-            "hog_svm": hog_model.predict(hog_features(images, hog_cfg)),
+            "hog_svm": hog_model.predict(hog_features(images, hog_settings)),
         }
     scores: dict[str, np.ndarray | float] = dict.fromkeys(MODELS, 0.0)
     for k in range(int(rolls)):
@@ -112,7 +108,7 @@ def roll_averaged_predictions(
         fc1 = fc1_activations(net, x, batch_size, device)
         scores["lunarnet_ex"] = scores["lunarnet_ex"] + p / p.sum(axis=1, keepdims=True)
         scores["lunarsvm_ex"] = scores["lunarsvm_ex"] + _svm_scores(svm_model, fc1)
-        scores["hog_svm"] = scores["hog_svm"] + _svm_scores(hog_model, hog_features(x, hog_cfg))
+        scores["hog_svm"] = scores["hog_svm"] + _svm_scores(hog_model, hog_features(x, hog_settings))
     return {
         "lunarnet_ex": np.asarray(scores["lunarnet_ex"]).argmax(axis=1),
         "lunarsvm_ex": np.asarray(svm_model.classes_)[np.asarray(scores["lunarsvm_ex"]).argmax(axis=1)],
@@ -121,7 +117,7 @@ def roll_averaged_predictions(
 
 
 def evaluate_run(
-    cfg: Mapping,
+    settings: Settings,
     run_dir: str | Path,
     progress: bool = True,
     test: RealTestSet | None = None,
@@ -134,7 +130,7 @@ def evaluate_run(
 
     run_dir = Path(run_dir)
     out_dir = run_dir if out_dir is None else Path(out_dir)
-    device = configure_torch(cfg["train"])
+    device = configure_torch(settings.train)
     t0 = time.perf_counter()
     net, ck = load_lunarnet(run_dir, device)
     svm = load_sklearn(run_dir / SVM_FILE)
@@ -161,16 +157,16 @@ def evaluate_run(
         from train.preprocess import PreprocessConfig
 
         pp = PreprocessConfig(**ck["preprocess"]) if ck.get("preprocess") else None
-        test = build_real_test_set(cfg, _craters_for(cfg, class_names), class_names, pp)
-    ebs = int(cfg["train"].get("eval_batch_size", 256))
-    rolls = int(cfg["train"].get("tta_rotations", 1))
+        test = build_real_test_set(settings, _craters_for(settings, class_names), class_names, pp)
+    ebs = settings.train.eval_batch_size
+    rolls = settings.train.tta_rotations
     if rolls > 1 and (ck.get("preprocess") or {}).get("support", "square") != "disc":
         raise ModelError(
             f"train.tta_rotations={rolls}: the models in {run_dir} were trained on square crops; roll averaging "
             "needs disc-support crops (train.preprocess.support=disc), which any turn keeps inside the box"
         )
     preds = roll_averaged_predictions(
-        net, svm["model"], hog["model"], hog.get("hog") or cfg["train"].get("hog", {}), test.images, rolls, ebs, device
+        net, svm["model"], hog["model"], _saved_hog(hog, run_dir / HOG_FILE, settings), test.images, rolls, ebs, device
     )
     vals = {
         "lunarnet_ex": ck.get("val_accuracy"),
@@ -212,6 +208,17 @@ def evaluate_run(
     atomic_write_text(out_dir / REALSET_FILE, "\n".join(rows) + "\n")
     atomic_write_text(out_dir / METRICS_FILE, json_text(_jsonable(metrics)))
     return metrics
+
+
+def _saved_hog(doc: dict, path: Path, settings: Settings) -> HogSettings:
+    """The HOG parameters the saved HOG+SVM was trained with (recorded in its file; the configured
+    ``train.hog`` for a file that records none)."""
+    if not doc.get("hog"):
+        return settings.train.hog
+    try:
+        return HogSettings.from_config(doc["hog"], "hog")
+    except SettingsError as exc:
+        raise ModelError(f"cannot load {path}: its recorded {exc}") from None
 
 
 def _jsonable(obj):

@@ -12,44 +12,45 @@
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Mapping
 
 import numpy as np
 import torch
 from torch import nn
 
-from train.errors import ModelError
+from crater_core.settings import HogSettings, ModelSettings, SvmSettings
 
 PAPER_LAYER_ORDER = ("conv1", "relu1", "pool", "conv2", "relu2", "flatten", "fc1", "relu3", "fc2")
 
 
-def _geometry(mcfg: Mapping) -> dict:
-    try:
-        n = int(mcfg["input_size"])
-        c1, k1, s1 = int(mcfg["conv1"]["channels"]), int(mcfg["conv1"]["kernel"]), int(mcfg["conv1"].get("stride", 1))
-        pk, ps = int(mcfg["pool"]["kernel"]), int(mcfg["pool"].get("stride", mcfg["pool"]["kernel"]))
-        c2, k2, s2 = int(mcfg["conv2"]["channels"]), int(mcfg["conv2"]["kernel"]), int(mcfg["conv2"].get("stride", 1))
-        f1, nc = int(mcfg["fc1"]), int(mcfg["num_classes"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ModelError(f"model config incomplete or not numeric: {exc}") from None
-    if s1 != 1:
-        raise ModelError(f"model.conv1.stride={s1}: the paper fixes CONV1's stride to 1")
-    h1 = n - k1 + 1
-    hp = (h1 - pk) // ps + 1
-    h2 = (hp - k2) // s2 + 1
-    if min(h1, hp, h2) < 1:
-        raise ModelError(f"model: input {n} too small for conv1 k{k1} / pool {pk}/{ps} / conv2 k{k2} s{s2}")
-    return dict(n=n, c1=c1, k1=k1, pk=pk, ps=ps, c2=c2, k2=k2, s2=s2, f1=f1, nc=nc, h1=h1, hp=hp, h2=h2)
+def _geometry(model: ModelSettings) -> dict:
+    """Layer sizes of LunarNet_ex from the (validated) ``model`` settings."""
+    h1, hp, h2 = model.feature_sizes()
+    c1, pool, c2 = model.conv1, model.pool, model.conv2
+    return dict(
+        n=model.input_size,
+        c1=c1.channels,
+        k1=c1.kernel,
+        pk=pool.kernel,
+        ps=pool.stride,
+        c2=c2.channels,
+        k2=c2.kernel,
+        s2=c2.stride,
+        f1=model.fc1,
+        nc=model.num_classes,
+        h1=h1,
+        hp=hp,
+        h2=h2,
+    )
 
 
 class LunarNetEx(nn.Module):
     """LunarNet_ex; input (B, 1, N, N) normalised crops, output (B, num_classes) logits."""
 
-    def __init__(self, mcfg: Mapping):
+    def __init__(self, model: ModelSettings):
         super().__init__()
-        g = _geometry(mcfg)
+        g = _geometry(model)
         self.geometry = g
-        dropout = float(mcfg.get("dropout", 0.0) or 0.0)
+        dropout = model.dropout
         layers: list[tuple[str, nn.Module]] = [
             ("conv1", nn.Conv2d(1, g["c1"], g["k1"], stride=1)),
             ("relu1", nn.ReLU(inplace=True)),
@@ -86,9 +87,9 @@ def parameter_count(model: nn.Module) -> int:
     return int(sum(p.numel() for p in model.parameters()))
 
 
-def multiply_adds(mcfg: Mapping) -> dict:
+def multiply_adds(model: ModelSettings) -> dict:
     """Multiply-accumulate operations per image, by layer (FLOPs ~= 2 x MACs)."""
-    g = _geometry(mcfg)
+    g = _geometry(model)
     macs = {
         "conv1": g["h1"] ** 2 * g["c1"] * g["k1"] ** 2,
         "conv2": g["h2"] ** 2 * g["c2"] * g["c1"] * g["k2"] ** 2,
@@ -102,7 +103,7 @@ def multiply_adds(mcfg: Mapping) -> dict:
 # ------------------------------------------------------------------------------------------------
 # Linear SVMs (scikit-learn)
 # ------------------------------------------------------------------------------------------------
-def make_linear_svm(svm_cfg: Mapping, seed: int):
+def make_linear_svm(svm: SvmSettings, seed: int):
     """Standardise -> multiclass (one-vs-rest) linear SVM trained by SGD on the hinge loss."""
     from sklearn.linear_model import SGDClassifier
     from sklearn.pipeline import make_pipeline
@@ -112,21 +113,21 @@ def make_linear_svm(svm_cfg: Mapping, seed: int):
         StandardScaler(),
         SGDClassifier(
             loss="hinge",
-            alpha=float(svm_cfg.get("alpha", 1e-4)),
-            max_iter=int(svm_cfg.get("max_iter", 50)),
-            tol=float(svm_cfg.get("tol", 1e-4)),
+            alpha=svm.alpha,
+            max_iter=svm.max_iter,
+            tol=svm.tol,
             random_state=int(seed) & 0x7FFFFFFF,
         ),
     )
 
 
-def hog_features(images: np.ndarray, hog_cfg: Mapping) -> np.ndarray:
+def hog_features(images: np.ndarray, hog_settings: HogSettings) -> np.ndarray:
     """HOG descriptors (skimage) of normalised (N, H, W) images -> (N, D) float32."""
     from skimage.feature import hog
 
-    ppc = int(hog_cfg.get("pixels_per_cell", 10))
-    cpb = int(hog_cfg.get("cells_per_block", 2))
-    ori = int(hog_cfg.get("orientations", 9))
+    ppc = hog_settings.pixels_per_cell
+    cpb = hog_settings.cells_per_block
+    ori = hog_settings.orientations
     feats = [
         hog(
             im,

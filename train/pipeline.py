@@ -1,12 +1,17 @@
-"""`crater-synth train` / `evaluate` as functions (the closed loop and `make bench` call these too)."""
+"""`crater-synth train` / `evaluate` as functions (the closed loop and `make bench` call these too).
+
+Both take the configuration as the typed, already validated :class:`crater_core.settings.Settings`
+(``crater_synth.config.load_settings`` / ``settings_from``); nothing in ``train/`` checks it again.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Mapping
+
+from crater_core.settings import Settings
 
 
-def train_and_evaluate(cfg: Mapping, progress: bool | None = None) -> dict:
+def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict:
     """Train LunarNet_ex, LunarSVM_ex and HOG+SVM on the synthetic manifest at ``train.dataset_dir``
     and evaluate them on the real test set into ``run_dir``. Returns metrics.json's content.
 
@@ -16,31 +21,33 @@ def train_and_evaluate(cfg: Mapping, progress: bool | None = None) -> dict:
     staging directory and published into ``run_dir`` together (:class:`train.runs.StagedRun`): an
     interrupted or refused run leaves ``run_dir`` as it was (and none where there was none)."""
     from crater_core.files import check_dir_path
-    from train.data import build_datasets, cache_dir_of, class_names_from_config, require_classes, require_manifest
+    from train.data import build_datasets, cache_dir_of, class_names_of, require_classes, require_manifest
     from train.evaluate import _craters_for, evaluate_run
     from train.realset import build_real_test_set
     from train.runs import StagedRun
     from train.trainer import configure_torch, train_all
 
-    progress = bool(cfg["train"].get("progress", True)) if progress is None else progress
-    class_names = require_classes(class_names_from_config(cfg))
-    check_dir_path(cache_dir_of(cfg), "train.cache_dir")
-    with StagedRun(str(cfg["run_dir"])) as stage:  # creates and checks run_dir before minutes of caching
-        configure_torch(cfg["train"])
-        require_manifest(str(cfg["train"]["dataset_dir"]))
-        test = build_real_test_set(cfg, _craters_for(cfg, class_names), class_names)
+    progress = settings.train.progress if progress is None else progress
+    class_names = require_classes(class_names_of(settings))
+    check_dir_path(cache_dir_of(settings.train), "train.cache_dir")
+    with StagedRun(settings.run_dir) as stage:  # creates and checks run_dir before minutes of caching
+        configure_torch(settings.train)
+        require_manifest(settings.train.dataset_dir)
+        test = build_real_test_set(settings, _craters_for(settings, class_names), class_names)
         real_paths = sorted({c.image_path for c in test.crops})
-        data = build_datasets(cfg, forbidden_sha256=test.image_sha256s(), forbidden_paths=real_paths, progress=progress)
-        train_all(cfg, data, stage, progress)
-        return evaluate_run(cfg, stage, progress, test=test)
+        data = build_datasets(
+            settings, forbidden_sha256=test.image_sha256s(), forbidden_paths=real_paths, progress=progress
+        )
+        train_all(settings, data, stage, progress)
+        return evaluate_run(settings, stage, progress, test=test)
 
 
-def evaluate_saved(cfg: Mapping, progress: bool | None = None) -> dict:
+def evaluate_saved(settings: Settings, progress: bool | None = None) -> dict:
     """Evaluate the models saved in ``run_dir``; the metrics files are published together (staged)."""
     from train.evaluate import evaluate_run
     from train.runs import StagedRun
 
-    progress = bool(cfg["train"].get("progress", True)) if progress is None else progress
-    run_dir = Path(str(cfg["run_dir"]))
+    progress = settings.train.progress if progress is None else progress
+    run_dir = Path(settings.run_dir)
     with StagedRun(run_dir) as stage:
-        return evaluate_run(cfg, run_dir, progress, out_dir=stage)
+        return evaluate_run(settings, run_dir, progress, out_dir=stage)

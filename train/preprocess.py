@@ -17,20 +17,26 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import asdict, dataclass, fields
-from typing import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from scipy import ndimage
 
 from train.errors import TrainError
 
-SUPPORTS = ("square", "disc")
+if TYPE_CHECKING:
+    from crater_core.settings import PreprocessSettings, SensorSettings
 
 
 @dataclass(frozen=True)
 class PreprocessConfig:
-    """Geometry + photometry settings (``train.preprocess`` plus ``model.input_size``)."""
+    """Geometry + photometry of one crop: ``train.preprocess`` plus ``model.input_size`` as ``size``.
+
+    A plain runtime value (what the crop cache key and the LunarNet_ex checkpoint record): the pipeline
+    builds it with :meth:`from_settings` from the validated settings, and evaluation from a checkpoint's
+    record; it checks nothing itself (the ranges live in :class:`crater_core.settings.PreprocessSettings`).
+    The defaults are the paper's values, for the library functions' default arguments."""
 
     size: int = 150
     antialias: bool = True
@@ -43,36 +49,11 @@ class PreprocessConfig:
     gamma: float = 0.5  # output = clip(linear, 0, 1) ** gamma
     support: str = "square"  # square: the whole box; disc: only the box's inscribed disc (rotation-invariant)
 
-    def __post_init__(self):
-        if self.size < 8:
-            raise TrainError(f"preprocess size={self.size} too small (need >= 8)")
-        if not 0.0 <= self.low_percentile < self.high_percentile <= 100.0:
-            raise TrainError(
-                f"train.preprocess: need 0 <= low_percentile < high_percentile <= 100, got "
-                f"{self.low_percentile}, {self.high_percentile}"
-            )
-        if not 0.0 <= self.lit_threshold < 1.0:
-            raise TrainError(f"train.preprocess.lit_threshold={self.lit_threshold} must lie in [0, 1)")
-        if not 0.0 <= self.shadow_floor < 1.0:
-            raise TrainError(f"train.preprocess.shadow_floor={self.shadow_floor} must lie in [0, 1)")
-        if not self.gamma > 0:
-            raise TrainError(f"train.preprocess.gamma={self.gamma} must be > 0")
-        if self.interp_order not in (0, 1, 3):
-            raise TrainError(f"train.preprocess.interp_order={self.interp_order} must be 0, 1 or 3")
-        if self.support not in SUPPORTS:
-            raise TrainError(f"train.preprocess.support={self.support!r} must be one of {', '.join(SUPPORTS)}")
-
     @classmethod
-    def from_config(cls, cfg: Mapping) -> "PreprocessConfig":
-        """From a resolved root config (``model.input_size`` and ``train.preprocess``)."""
-        pp = dict(cfg.get("train", {}).get("preprocess", {}) or {})
-        names = {f.name for f in fields(cls)}
-        unknown = set(pp) - names
-        if unknown:
-            raise TrainError(f"unknown train.preprocess key(s) {sorted(unknown)}; known: {sorted(names)}")
-        size = int(cfg.get("model", {}).get("input_size", pp.pop("size", 150)))
-        pp.pop("size", None)
-        return cls(size=size, **pp)
+    def from_settings(cls, preprocess: "PreprocessSettings", size: int) -> "PreprocessConfig":
+        """The validated ``train.preprocess`` at the network's input size ``size`` (``model.input_size``);
+        every range is checked there, once (:class:`crater_core.settings.PreprocessSettings`)."""
+        return cls(size=size, **asdict(preprocess))
 
     def geometry_key(self) -> dict:
         """The settings that determine the cached (pre-photometry) arrays."""
@@ -371,6 +352,9 @@ class SensorModel:
     ``mosaic_frames`` > 1 asks the training dataset to composite that many renders of the same camera
     pose under different suns (:func:`mosaic_composite`) before :meth:`apply`; it needs several
     renders, so the dataset (train/data.py), not this class, does it.
+
+    Built by :meth:`from_settings` from the validated ``sensor`` group; it checks nothing itself (the
+    ranges live in :class:`crater_core.settings.SensorSettings`).
     """
 
     enabled: bool = True
@@ -391,46 +375,11 @@ class SensorModel:
     mosaic_blend: str = "max"  # how they are composited: max (per pixel) or patches (Voronoi cells)
     mosaic_patches: int = 6  # number of cells for mosaic_blend=patches
 
-    def __post_init__(self):
-        if self.full_well_if <= 0 or self.photons_at_full_well <= 0:
-            raise TrainError("sensor.full_well_if and sensor.photons_at_full_well must be > 0")
-        if not 0 <= self.gain_jitter < 1:
-            raise TrainError(f"sensor.gain_jitter={self.gain_jitter} must lie in [0, 1)")
-        if self.psf_sigma_px < 0 or self.read_noise_dn < 0:
-            raise TrainError("sensor.psf_sigma_px and sensor.read_noise_dn must be >= 0")
-        if not 1 <= int(self.quantize_bits) <= 16:
-            raise TrainError(f"sensor.quantize_bits={self.quantize_bits} must lie in [1, 16]")
-        lo_hi = tuple(float(v) for v in self.exposure_white_frac)
-        if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise TrainError(
-                f"sensor.exposure_white_frac={list(self.exposure_white_frac)} must be [lo, hi], 0 < lo <= hi"
-            )
-        object.__setattr__(self, "exposure_white_frac", lo_hi)
-        if not 0 <= self.resolution_prob <= 1:
-            raise TrainError(f"sensor.resolution_prob={self.resolution_prob} must lie in [0, 1]")
-        if self.gsd_m is not None and not self.gsd_m > 0:
-            raise TrainError(f"sensor.gsd_m={self.gsd_m} must be > 0 metres (or null)")
-        if not 0 <= self.gsd_jitter < 1:
-            raise TrainError(f"sensor.gsd_jitter={self.gsd_jitter} must lie in [0, 1)")
-        if self.jpeg_quality is not None and not 1 <= int(self.jpeg_quality) <= 100:
-            raise TrainError(f"sensor.jpeg_quality={self.jpeg_quality} must lie in [1, 100] (or null)")
-        if self.jpeg_quality is not None and int(self.quantize_bits) != 8:
-            raise TrainError("sensor.jpeg_quality needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)")
-        if not 1 <= int(self.mosaic_frames) <= 64:
-            raise TrainError(f"sensor.mosaic_frames={self.mosaic_frames} must lie in [1, 64] (1: a single render)")
-        if self.mosaic_blend not in MOSAIC_BLENDS:
-            raise TrainError(f"sensor.mosaic_blend={self.mosaic_blend!r}: choose one of {', '.join(MOSAIC_BLENDS)}")
-        if not 1 <= int(self.mosaic_patches) <= 256:
-            raise TrainError(f"sensor.mosaic_patches={self.mosaic_patches} must lie in [1, 256]")
-
     @classmethod
-    def from_config(cls, sensor_cfg: Mapping | None) -> "SensorModel":
-        d = dict(sensor_cfg or {})
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise TrainError(f"unknown sensor key(s) {sorted(unknown)}; known: {sorted(names)}")
-        return cls(**d)
+    def from_settings(cls, sensor: "SensorSettings") -> "SensorModel":
+        """The camera of the validated ``sensor`` group (ranges checked there, once:
+        :class:`crater_core.settings.SensorSettings`)."""
+        return cls(**asdict(sensor))
 
     def apply(self, image_if: np.ndarray, rng: np.random.Generator, box_side_m: float | None = None) -> np.ndarray:
         """The camera applied to one square I/F crop; ``box_side_m`` (the crop's ground width, needed

@@ -12,6 +12,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from crater_core.settings import RealsetSettings
 from train.errors import RealSetError
 
 
@@ -44,14 +45,12 @@ class PolarGrid:
     pole: str = "south"  # crater_core.geometry.polar_stereo_forward
 
     @classmethod
-    def from_config(cls, rs_cfg: Mapping) -> "PolarGrid":
-        m = rs_cfg.get("mosaic") or {}
-        try:
-            product_id = str(rs_cfg.get("source_product") or m.get("product_id") or "")
-            pole = str(m.get("pole") or (product_pole(product_id) if product_id else "south"))
-            return cls(float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"]), pole)
-        except KeyError as exc:
-            raise RealSetError(f"realset.mosaic is missing key {exc}") from None
+    def from_settings(cls, realset: RealsetSettings) -> "PolarGrid":
+        """The grid of ``realset.mosaic`` (its pole: ``realset.mosaic.pole``, else the product's CRS)."""
+        m = realset.mosaic
+        product_id = realset.source_product or m.product_id or ""
+        pole = m.pole or (product_pole(product_id) if product_id else "south")
+        return cls(m.extent_m, m.pixel_m, m.radius_m, pole)
 
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
@@ -144,18 +143,13 @@ class ProtocolCrop:
         return (cu - h, cv - h, cu + h, cv + h)
 
 
-def protocol_crops(grid: PolarGrid, craters: Sequence[Mapping], rs_cfg: Mapping) -> list[ProtocolCrop]:
+def protocol_crops(grid: PolarGrid, craters: Sequence[Mapping], realset: RealsetSettings) -> list[ProtocolCrop]:
     """The seeded crop protocol (docs/realset.md), the one definition for the mosaic and for frames:
     ``per_crater`` crops per crater, sigmas cycled, uniform offsets in [-max_offset_frac,
     max_offset_frac] x side per axis, rolls uniform in [-max_rotation_deg, max_rotation_deg], drawn
     from ``default_rng([seed, crc32(name)])``."""
-    per = int(rs_cfg.get("per_crater", 300))
-    sigmas = [float(s) for s in rs_cfg.get("sigmas", [1.0, 1.2, 1.4])]
-    max_off = float(rs_cfg.get("max_offset_frac", 0.0))
-    max_rot = float(rs_cfg.get("max_rotation_deg", 0.0))
-    seed = int(rs_cfg.get("seed", 0))
-    if per < 1 or not sigmas or any(s <= 0 for s in sigmas):
-        raise RealSetError(f"realset: need per_crater >= 1 and positive sigmas, got {per}, {sigmas}")
+    per, sigmas, seed = realset.per_crater, realset.sigmas, realset.seed
+    max_off, max_rot = realset.max_offset_frac, realset.max_rotation_deg
     out: list[ProtocolCrop] = []
     for c in craters:
         name = str(c["name"])

@@ -27,6 +27,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from crater_core.settings import RealsetSettings
 from train.errors import RealSetError
 from train.realcrops import PolarGrid, RealCrop, canonical_crater, protocol_crops, resolve_product_image
 
@@ -159,7 +160,7 @@ def _local_map(grid: PolarGrid, frame: Frame, center: tuple[float, float], h: fl
     return np.array([fu[0], fv[0]]), jac
 
 
-def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], rs_cfg: Mapping) -> list[RealCrop]:
+def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], realset: RealsetSettings) -> list[RealCrop]:
     """The protocol's crops of ``craters`` in ``frame``; every crater must lie in the frame."""
     from train.preprocess import axes_extent, box_axes
 
@@ -174,7 +175,7 @@ def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], rs_cf
                 f"(at pixel {fu[0]:.1f}, {fv[0]:.1f})"
             )
     out: list[RealCrop] = []
-    for p in protocol_crops(grid, craters, rs_cfg):
+    for p in protocol_crops(grid, craters, realset):
         centre, jac = _local_map(grid, frame, p.center, p.side / 2)
         axes = jac @ box_axes(p.side, p.side, p.rotation_deg)
         u0, v0, u1, v1 = axes_extent(centre, axes)
@@ -215,28 +216,26 @@ def _frame_path(spec: str, data_dir: str | Path | None, where: str) -> Path:
 
 
 def plan_frames(
-    rs_cfg: Mapping, craters: Sequence[Mapping], data_dir: str | Path | None = None
+    realset: RealsetSettings, craters: Sequence[Mapping], data_dir: str | Path | None = None
 ) -> tuple[list[RealCrop], dict[str, np.ndarray]]:
     """Crops and decoded images of every frame of ``realset.frames``.
 
     Each entry: ``path`` (a file, or ``product:<id>``), optional ``frame_id`` (default: the product
     id or the file stem), ``source`` (default: the frame id), ``band`` (default 1) and ``craters``
     (names; default: every selected crater whose centre lies in the frame, at least one)."""
-    grid = PolarGrid.from_config(rs_cfg)
+    grid = PolarGrid.from_settings(realset)
     by_name = {canonical_crater(c["name"]): c for c in craters}
     crops: list[RealCrop] = []
     images: dict[str, np.ndarray] = {}
-    for i, entry in enumerate(rs_cfg.get("frames") or ()):
-        spec = str(entry.get("path") or "").strip()
+    for i, entry in enumerate(realset.frames):
+        spec = entry.path.strip()
         where = f"realset.frames[{i}]"
-        if not spec:
-            raise RealSetError(f"{where}: needs a path (a file or product:<id>)")
         path = _frame_path(spec, data_dir, where)
         default_id = spec.split(":", 1)[1] if spec.startswith("product:") else None
-        frame = open_frame(path, entry.get("frame_id") or default_id, entry.get("source"), int(entry.get("band") or 1))
-        if entry.get("craters"):
+        frame = open_frame(path, entry.frame_id or default_id, entry.source, entry.band)
+        if entry.craters:
             sel = []
-            for name in entry["craters"]:
+            for name in entry.craters:
                 c = by_name.get(canonical_crater(name))
                 if c is None:
                     raise RealSetError(f"{where}: crater {name!r} is not selected; selected: {sorted(by_name)}")
@@ -247,7 +246,7 @@ def plan_frames(
                 raise RealSetError(
                     f"{where}: no selected crater ({', '.join(sorted(by_name))}) lies in frame {frame.frame_id!r}"
                 )
-        crops += frame_crops(frame, grid, sel, rs_cfg)
+        crops += frame_crops(frame, grid, sel, realset)
         images[str(frame.path)] = frame.image
     return crops, images
 

@@ -25,6 +25,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from crater_core.schema import sha256_file
+from crater_core.settings import RealsetSettings, Settings
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is defined there
@@ -96,17 +97,14 @@ class Mosaic:
             )
 
 
-def load_mosaic(rs_cfg: Mapping) -> Mosaic:
+def load_mosaic(realset: RealsetSettings) -> Mosaic:
     """Locate, checksum and decode the embedded mosaic of ``realset.mosaic``."""
-    m = rs_cfg.get("mosaic") or {}
-    try:
-        product_id = str(rs_cfg.get("source_product") or m["product_id"])
-        path = Path(m["path"]) if m.get("path") else embedded_product_path(product_id)
-        expected = m.get("sha256")
-        extent, pixel, radius = float(m["extent_m"]), float(m["pixel_m"]), float(m["radius_m"])
-        pole = str(m.get("pole") or product_pole(product_id))
-    except KeyError as exc:
-        raise RealSetError(f"realset.mosaic is missing key {exc}") from None
+    m = realset.mosaic
+    product_id = str(realset.source_product or m.product_id)
+    path = Path(m.path) if m.path else embedded_product_path(product_id)
+    expected = m.sha256
+    extent, pixel, radius = m.extent_m, m.pixel_m, m.radius_m
+    pole = m.pole or product_pole(product_id)
     if not path.is_file():
         raise RealSetError(f"real test product {product_id!r}: {path} does not exist")
     if expected:
@@ -123,8 +121,6 @@ def load_mosaic(rs_cfg: Mapping) -> Mosaic:
             f"real test product {product_id!r}: {path} is {img.shape[1]}x{img.shape[0]}, "
             f"expected {size}x{size} from extent_m={extent} and pixel_m={pixel}"
         )
-    if pole not in ("south", "north"):
-        raise RealSetError(f"realset.mosaic.pole={pole!r}: choose south or north")
     return Mosaic(product_id, path, img, extent, pixel, radius, pole)
 
 
@@ -159,7 +155,7 @@ def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
 # Crops
 # ------------------------------------------------------------------------------------------------
 def plan_embedded_crops(
-    mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], rs_cfg: Mapping
+    mosaic_shape: tuple[int, int], mosaic: Mosaic | None, craters: Sequence[Mapping], realset: RealsetSettings
 ) -> list[RealCrop]:
     """The protocol's crops of the embedded mosaic (:func:`protocol_crops` on the mosaic's own grid).
     Every rotated box must lie inside the mosaic."""
@@ -167,7 +163,7 @@ def plan_embedded_crops(
     for c in craters:
         mosaic.check_crater(c)
     out: list[RealCrop] = []
-    for p in protocol_crops(mosaic.grid, craters, rs_cfg):
+    for p in protocol_crops(mosaic.grid, craters, realset):
         box = p.box
         if outside_fraction(box, mosaic_shape, p.rotation_deg) > 0:
             raise RealSetError(
@@ -297,53 +293,51 @@ class RealTestSet:
 
 
 def plan_real_crops(
-    cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str]
+    rs: RealsetSettings, craters: Sequence[Mapping], class_names: Sequence[str], data_dir: str | Path | None = None
 ) -> tuple[list[RealCrop], dict]:
-    """All crops of the configured real test set (embedded mosaic and/or labels file) plus the
-    loaded images by path."""
-    rs = cfg.get("realset") or {}
-    sigmas = [float(s) for s in rs.get("sigmas", [1.0, 1.2, 1.4])]
+    """All crops of the real test set of ``realset`` (embedded mosaic, labels file and/or frames) plus the
+    loaded images by path; ``data_dir`` holds the data products that ``product:<id>`` paths name."""
+    sigmas = list(rs.sigmas)
     crops: list[RealCrop] = []
     images: dict[str, np.ndarray] = {}
-    if rs.get("include_embedded", True):
+    if rs.include_embedded:
         mosaic = load_mosaic(rs)
         images[str(mosaic.path)] = mosaic.image
         known = {canonical_crater(n) for n in class_names}
         sel = [c for c in craters if canonical_crater(c["name"]) in known]
         crops += plan_embedded_crops(mosaic.image.shape, mosaic, sel, rs)
-    if rs.get("labels_file"):
-        lab = load_labels_file(rs["labels_file"], class_names, sigmas, cfg.get("data_dir"))
+    if rs.labels_file:
+        lab = load_labels_file(rs.labels_file, class_names, sigmas, data_dir)
         for c in lab:
             if c.image_path not in images:
                 images[c.image_path] = read_gray(c.image_path, keep_uint8=True)
             shape = images[c.image_path].shape
             if outside_fraction(c.box, shape, c.rotation_deg) > 0.25:
                 raise RealSetError(
-                    f"labels file {rs['labels_file']}:{c.index}: sigma={c.sigma} box {list(c.box)} "
+                    f"labels file {rs.labels_file}:{c.index}: sigma={c.sigma} box {list(c.box)} "
                     f"leaves the {shape[1]}x{shape[0]} image {c.image_path} by more than 25 %"
                 )
         crops += lab
-    if rs.get("frames"):
+    if rs.frames:
         from train.realframes import plan_frames
 
         known = {canonical_crater(n) for n in class_names}
         sel = [c for c in craters if canonical_crater(c["name"]) in known]
-        frame_crops, frame_images = plan_frames(rs, sel, cfg.get("data_dir"))
+        frame_crops, frame_images = plan_frames(rs, sel, data_dir)
         crops += frame_crops
         images.update(frame_images)
-    if not crops:
-        raise RealSetError(
-            "the real test set is empty: realset.include_embedded=false, no realset.labels_file and no realset.frames"
-        )
+    if not crops:  # the settings refuse a realset with no source; this is none of the classes' crops
+        raise RealSetError(f"the real test set has no crop of the classes {list(class_names)}")
     return crops, images
 
 
 def build_real_test_set(
-    cfg: Mapping, craters: Sequence[Mapping], class_names: Sequence[str], pp: PreprocessConfig | None = None
+    settings: Settings, craters: Sequence[Mapping], class_names: Sequence[str], pp: PreprocessConfig | None = None
 ) -> RealTestSet:
-    """Cut, resample and normalise every real crop (same path as the synthetic images, no sensor model)."""
-    pp = pp or PreprocessConfig.from_config(cfg)
-    crops, images = plan_real_crops(cfg, craters, class_names)
+    """Cut, resample and normalise every real crop (same path as the synthetic images, no sensor model);
+    ``pp``: the preprocessing (default: the configured one, :meth:`PreprocessConfig.from_settings`)."""
+    pp = pp or PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
+    crops, images = plan_real_crops(settings.realset, craters, class_names, settings.data_dir)
     cls = {n: i for i, n in enumerate(class_names)}
     X = np.empty((len(crops), pp.size, pp.size), dtype=np.float32)
     for i, c in enumerate(crops):

@@ -16,13 +16,13 @@ import pickle
 import sys
 import time
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import torch
 from torch import nn
 
 from crater_core.schema import atomic_write_bytes, atomic_write_text, sha256_file
+from crater_core.settings import ModelSettings, Settings, SettingsError, TrainSettings, replace
 from train.data import SyntheticCropDataset, SyntheticData, seeded_subsample
 from train.errors import ModelError, RealDataLeakError, TrainError
 from train.metrics import accuracy, class_mean_accuracy
@@ -42,16 +42,16 @@ def json_text(obj) -> str:
     return json.dumps(obj, indent=2, sort_keys=True) + "\n"
 
 
-def configure_torch(tcfg: Mapping) -> torch.device:
-    n = int(tcfg.get("num_threads", 0) or 0)
+def configure_torch(train: TrainSettings) -> torch.device:
+    """Set torch's thread count (``train.num_threads``, 0 = every core) and return the device of
+    ``train.device`` (``auto``: CUDA when there is one); CUDA asked for and absent is a TrainError."""
+    n = train.num_threads
     torch.set_num_threads(n if n > 0 else max(1, os.cpu_count() or 1))
-    dev = str(tcfg.get("device", "auto"))
+    dev = train.device
     if dev == "auto":
         dev = "cuda" if torch.cuda.is_available() else "cpu"
     if dev == "cuda" and not torch.cuda.is_available():
         raise TrainError("train.device=cuda but no CUDA device is available (use train.device=cpu)")
-    if dev not in ("cpu", "cuda"):
-        raise TrainError(f"train.device={dev!r}: use auto, cpu or cuda")
     return torch.device(dev)
 
 
@@ -106,7 +106,7 @@ def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.de
 # ------------------------------------------------------------------------------------------------
 def train_lunarnet(
     data: SyntheticData,
-    cfg: Mapping,
+    settings: Settings,
     run_dir: str | Path | None = None,
     progress: bool = True,
     run_id: str | None = None,
@@ -121,22 +121,17 @@ def train_lunarnet(
 
     _require_synthetic(data.train)
     _require_synthetic(data.val)
-    tcfg, mcfg = cfg["train"], dict(cfg["model"])
-    if int(mcfg.get("num_classes", len(data.class_names))) != len(data.class_names):
-        mcfg["num_classes"] = len(data.class_names)
-    device = configure_torch(tcfg)
-    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
+    ts = settings.train
+    arch = model_for(settings.model, data.class_names)
+    device = configure_torch(ts)
+    seed = ts.seed
     torch.manual_seed(seed)
-    model = LunarNetEx(mcfg).to(device)
-    opt = torch.optim.Adam(
-        model.parameters(), lr=float(tcfg.get("lr", 1e-3)), weight_decay=float(tcfg.get("weight_decay", 0.0))
-    )
+    model = LunarNetEx(arch).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=ts.lr, weight_decay=ts.weight_decay)
     loss_fn = nn.CrossEntropyLoss()  # = the Softmax layer + log-loss
-    target = float(tcfg.get("target_val_accuracy", 0.9))
-    max_epochs = int(tcfg.get("max_epochs", 30))
-    bs, ebs = int(tcfg.get("batch_size", 64)), int(tcfg.get("eval_batch_size", 256))
-    if max_epochs < 1 or bs < 1:
-        raise TrainError(f"train.max_epochs={max_epochs} and train.batch_size={bs} must be >= 1")
+    target = ts.target_val_accuracy
+    max_epochs = ts.max_epochs
+    bs, ebs = ts.batch_size, ts.eval_batch_size
     yv = data.val.labels
     history: list[dict] = []
     best = {"val_accuracy": -1.0, "state": None, "epoch": 0}
@@ -200,7 +195,7 @@ def train_lunarnet(
             }
             if run_dir is not None:
                 save_lunarnet(
-                    run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], val_acc, run_id
+                    run_dir, best["state"], arch, data.class_names, settings, history, best["epoch"], val_acc, run_id
                 )
         if val_acc >= target:
             reached_at = rec["elapsed_s"]
@@ -217,16 +212,34 @@ def train_lunarnet(
         "train_images_per_s": images_seen / max(train_time, 1e-9),
         "device": str(device),
         "parameters": parameter_count(model),
-        "multiply_adds": multiply_adds(mcfg)["total"],
+        "multiply_adds": multiply_adds(arch)["total"],
     }
     if run_dir is not None:  # final save carries the complete history
         save_lunarnet(
-            run_dir, best["state"], mcfg, data.class_names, cfg, history, best["epoch"], best["val_accuracy"], run_id
+            run_dir,
+            best["state"],
+            arch,
+            data.class_names,
+            settings,
+            history,
+            best["epoch"],
+            best["val_accuracy"],
+            run_id,
         )
     return model, summary
 
 
-def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_acc, run_id=None) -> Path:
+def model_for(model: ModelSettings, class_names) -> ModelSettings:
+    """The ``model`` settings with ``num_classes`` set to the number of classes trained."""
+    n = len(class_names)
+    return model if model.num_classes == n else replace(model, num_classes=n)
+
+
+def save_lunarnet(
+    run_dir, state, model: ModelSettings, class_names, settings: Settings, history, epoch, val_acc, run_id=None
+) -> Path:
+    """The checkpoint: weights, the model's layer sizes, classes, preprocessing, history and the whole
+    configuration (plain mappings, as the run's config.yaml), written atomically."""
     from train.preprocess import PreprocessConfig
 
     buf = io.BytesIO()
@@ -234,13 +247,13 @@ def save_lunarnet(run_dir, state, mcfg, class_names, cfg, history, epoch, val_ac
         {
             "format": 1,
             "state_dict": state,
-            "model": dict(mcfg),
+            "model": model.as_dict(),
             "class_names": list(class_names),
-            "preprocess": PreprocessConfig.from_config(cfg).__dict__,
+            "preprocess": PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size).__dict__,
             "epoch": epoch,
             "val_accuracy": val_acc,
             "history": history,
-            "config": cfg,
+            "config": settings.as_dict(),
             "run_id": run_id,
         },
         buf,
@@ -256,9 +269,9 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
         raise ModelError(f"no trained LunarNet_ex at {path}: run `crater-synth train` first (or set run_dir)")
     try:
         ck = torch.load(path, map_location=device, weights_only=False)
-        model = LunarNetEx(ck["model"]).to(device)
+        model = LunarNetEx(ModelSettings.from_config(ck["model"], "model")).to(device)
         model.load_state_dict(ck["state_dict"])
-    except (RuntimeError, KeyError, pickle.UnpicklingError, EOFError) as exc:
+    except (RuntimeError, KeyError, TypeError, SettingsError, pickle.UnpicklingError, EOFError) as exc:
         raise ModelError(f"cannot load {path}: {exc}") from None
     model.eval()
     return model, ck
@@ -267,19 +280,19 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
 # ------------------------------------------------------------------------------------------------
 # LunarSVM_ex and HOG + SVM
 # ------------------------------------------------------------------------------------------------
-def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: bool = True) -> dict:
+def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progress: bool = True) -> dict:
     """Fit LunarSVM_ex (FC1 activations) and the HOG+SVM baseline on the synthetic training images
     (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies."""
     _require_synthetic(data.train)
     _require_synthetic(data.val)
-    tcfg = cfg["train"]
-    seed = int(cfg["train"].get("seed", cfg.get("seed", 0)))
+    ts = settings.train
+    seed = ts.seed
     device = next(model.parameters()).device
-    ebs = int(tcfg.get("eval_batch_size", 256))
+    ebs = ts.eval_batch_size
     yt, yv = data.train.labels, data.val.labels
     out = {}
     t0 = time.perf_counter()
-    svm = make_linear_svm(tcfg.get("svm", {}), seed)
+    svm = make_linear_svm(ts.svm, seed)
     conv = _fit_quiet(svm, fc1_activations(model, data.train, ebs, device), yt)
     pv = svm.predict(fc1_activations(model, data.val, ebs, device))
     out["lunarsvm_ex"] = {
@@ -290,16 +303,16 @@ def train_svms(model: LunarNetEx, data: SyntheticData, cfg: Mapping, progress: b
         "seconds": time.perf_counter() - t0,
     }
     t0 = time.perf_counter()
-    hcfg = tcfg.get("hog", {})
-    sel = seeded_subsample(len(data.train), hcfg.get("max_train_images"), seed, 0x406)
-    Ht = np.concatenate([hog_features(xb, hcfg) for xb, _ in data.train.iter_arrays(ebs, sel)])
-    hog_svm = make_linear_svm(hcfg, seed)
+    hog_s = ts.hog
+    sel = seeded_subsample(len(data.train), hog_s.max_train_images, seed, 0x406)
+    Ht = np.concatenate([hog_features(xb, hog_s) for xb, _ in data.train.iter_arrays(ebs, sel)])
+    hog_svm = make_linear_svm(hog_s, seed)
     conv = _fit_quiet(hog_svm, Ht, yt[sel])
     del Ht
     # Validation HOG is predicted batch by batch: at paper scale (40,500 validation crops, 7,056
     # features each) the whole matrix would be 2.3 GB of RAM.
     pv = np.concatenate(
-        [hog_svm.predict(hog_features(xb, hcfg)) for xb, _ in data.val.iter_arrays(ebs)] or [np.zeros(0, np.int64)]
+        [hog_svm.predict(hog_features(xb, hog_s)) for xb, _ in data.val.iter_arrays(ebs)] or [np.zeros(0, np.int64)]
     )
     out["hog_svm"] = {
         "model": hog_svm,
@@ -379,7 +392,7 @@ def load_sklearn(path: str | Path) -> dict:
 # All three
 # ------------------------------------------------------------------------------------------------
 def train_all(
-    cfg: Mapping, data: SyntheticData, run_dir: str | Path, progress: bool = True, run_id: str | None = None
+    settings: Settings, data: SyntheticData, run_dir: str | Path, progress: bool = True, run_id: str | None = None
 ) -> dict:
     """Train the three classifiers on ``data`` and save them (plus config and summary) in ``run_dir``.
 
@@ -393,9 +406,9 @@ def train_all(
     run_id = run_id or new_run_id()
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / CONFIG_FILE, yaml.safe_dump(cfg, sort_keys=False))
-    model, net = train_lunarnet(data, cfg, run_dir, progress, run_id)
-    svms = train_svms(model, data, cfg, progress)
+    atomic_write_text(run_dir / CONFIG_FILE, yaml.safe_dump(settings.as_dict(), sort_keys=False))
+    model, net = train_lunarnet(data, settings, run_dir, progress, run_id)
+    svms = train_svms(model, data, settings, progress)
     save_sklearn(
         run_dir / SVM_FILE,
         svms["lunarsvm_ex"]["model"],
@@ -409,7 +422,7 @@ def train_all(
         {
             "kind": "hog_svm",
             "val_accuracy": svms["hog_svm"]["val_accuracy"],
-            "hog": dict(cfg["train"].get("hog", {})),
+            "hog": settings.train.hog.as_dict(),
             "run_id": run_id,
         },
     )

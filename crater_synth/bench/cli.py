@@ -58,7 +58,7 @@ def bench_command(part, keep, export_renders, overrides):
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
     ``renders_per_s=X naive_renders_per_s=Y ratio=Z`` (after the renderer's rates line).
     """
-    from crater_synth.config import compose, resolved
+    from crater_synth.config import compose, load_settings
 
     overrides = list(overrides)
     work = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="crater-synth-bench-"))
@@ -70,12 +70,12 @@ def bench_command(part, keep, export_renders, overrides):
             cfg = compose(["sweep=smoke", "crater=shackleton", "launcher=dask", *overrides])
             click.echo("distributed " + json.dumps(bench_distributed(cfg, work / "distributed")))
         if part in ("all", "train"):
-            cfg = resolved(compose(["sweep=demo", "train.progress=false", *overrides]))
-            dataset = Path(cfg["train"]["dataset_dir"]) / "manifest.jsonl"
+            settings = load_settings(["sweep=demo", "train.progress=false", *overrides])
+            dataset = Path(settings.train.dataset_dir) / "manifest.jsonl"
             if dataset.is_file():
                 from crater_synth.bench.train import run_train_bench
 
-                click.echo("train " + json.dumps(run_train_bench(cfg)))
+                click.echo("train " + json.dumps(run_train_bench(settings)))
             else:
                 click.echo(
                     f"train skipped: no rendered dataset at {dataset.parent} (make demo, or "

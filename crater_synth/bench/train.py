@@ -6,28 +6,23 @@ from __future__ import annotations
 import os
 import resource
 import time
-from typing import Mapping
 
-from crater_synth.config import resolved
-
-
-def _as_dict(cfg) -> dict:
-    if isinstance(cfg, Mapping) and not hasattr(cfg, "_metadata"):
-        return dict(cfg)
-    return resolved(cfg)
+from crater_core.settings import ModelSettings, Settings
 
 
-def model_throughput(mcfg: Mapping, batch_size: int = 64, steps: int = 10, device: str = "cpu") -> float:
+def model_throughput(
+    model_settings: ModelSettings, batch_size: int = 64, steps: int = 10, device: str = "cpu"
+) -> float:
     """Forward+backward+Adam images/s of LunarNet_ex alone on random input (no data loading)."""
     import torch
 
     from train.models import LunarNetEx
 
-    model = LunarNetEx(mcfg).to(device)
+    model = LunarNetEx(model_settings).to(device)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
-    n = int(mcfg["input_size"])
+    n = model_settings.input_size
     x = torch.rand(batch_size, 1, n, n, device=device)
-    y = torch.randint(0, int(mcfg["num_classes"]), (batch_size,), device=device)
+    y = torch.randint(0, model_settings.num_classes, (batch_size,), device=device)
     loss_fn = torch.nn.CrossEntropyLoss()
     for i in range(steps + 2):  # two warm-up steps
         if i == 2:
@@ -42,7 +37,7 @@ def model_throughput(mcfg: Mapping, batch_size: int = 64, steps: int = 10, devic
     return steps * batch_size / (time.perf_counter() - t0)
 
 
-def run_train_bench(cfg) -> dict:
+def run_train_bench(settings: Settings) -> dict:
     """Train LunarNet_ex on the manifest at ``train.dataset_dir`` (config as given: ``max_epochs``,
     ``target_val_accuracy``, threads, ...) and report:
 
@@ -58,17 +53,16 @@ def run_train_bench(cfg) -> dict:
 
     from train.data import build_datasets
     from train.models import multiply_adds
-    from train.trainer import configure_torch, train_lunarnet
+    from train.trainer import configure_torch, model_for, train_lunarnet
 
-    cfg = _as_dict(cfg)
-    device = configure_torch(cfg["train"])
+    device = configure_torch(settings.train)
     t0 = time.perf_counter()
-    data = build_datasets(cfg, progress=False)
+    data = build_datasets(settings, progress=False)
     data_s = time.perf_counter() - t0
-    _, summary = train_lunarnet(data, cfg, run_dir=None, progress=bool(cfg["train"].get("progress", False)))
-    mcfg = dict(cfg["model"]) | {"num_classes": len(data.class_names)}
+    _, summary = train_lunarnet(data, settings, run_dir=None, progress=settings.train.progress)
+    arch = model_for(settings.model, data.class_names)
     return {
-        "dataset_dir": str(cfg["train"]["dataset_dir"]),
+        "dataset_dir": settings.train.dataset_dir,
         "train_images": len(data.train),
         "val_images": len(data.val),
         "data_setup_s": round(data_s, 3),
@@ -76,7 +70,7 @@ def run_train_bench(cfg) -> dict:
         "cache_seconds": data.info.get("cache_seconds"),
         "epochs": len(summary["history"]),
         "train_images_per_s": round(summary["train_images_per_s"], 2),
-        "model_images_per_s": round(model_throughput(mcfg, int(cfg["train"].get("batch_size", 64)), 5, device.type), 2),
+        "model_images_per_s": round(model_throughput(arch, settings.train.batch_size, 5, device.type), 2),
         "time_to_target_s": None if summary["time_to_target_s"] is None else round(summary["time_to_target_s"], 3),
         "reached_target": summary["reached_target"],
         "target_val_accuracy": summary["target_val_accuracy"],
@@ -86,7 +80,7 @@ def run_train_bench(cfg) -> dict:
         "torch_threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
         "parameters": summary["parameters"],
-        "multiply_adds_per_image": multiply_adds(mcfg)["total"],
+        "multiply_adds_per_image": multiply_adds(arch)["total"],
         # ru_maxrss is in KiB on Linux. The crops stream from the memmap cache, so the training
         # process stays bounded whatever the sweep's size; children = the largest cache-build worker.
         "peak_rss_mb": {

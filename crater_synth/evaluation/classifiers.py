@@ -8,10 +8,10 @@ import click
 from crater_synth.cli_common import OVERRIDES, user_errors
 
 
-def _cfg(overrides):
-    from crater_synth.config import compose, resolved
+def _settings(overrides):
+    from crater_synth.config import load_settings
 
-    return resolved(compose(overrides))
+    return load_settings(overrides)
 
 
 def _report(metrics: dict, run_dir) -> None:
@@ -40,9 +40,9 @@ def train_command(overrides):
     """
     from train.pipeline import train_and_evaluate
 
-    cfg = _cfg(overrides)
-    metrics = train_and_evaluate(cfg)
-    _report(metrics, cfg["run_dir"])
+    settings = _settings(overrides)
+    metrics = train_and_evaluate(settings)
+    _report(metrics, settings.run_dir)
 
 
 @click.command("evaluate")
@@ -52,6 +52,6 @@ def evaluate_command(overrides):
     """Evaluate the models saved in run_dir on the real test set (metrics.json, confusion PNGs)."""
     from train.pipeline import evaluate_saved
 
-    cfg = _cfg(overrides)
-    metrics = evaluate_saved(cfg)
-    _report(metrics, cfg["run_dir"])
+    settings = _settings(overrides)
+    metrics = evaluate_saved(settings)
+    _report(metrics, settings.run_dir)

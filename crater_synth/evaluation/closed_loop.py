@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import grid_from_config
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved
+from crater_synth.config import ConfigError, resolved, settings_from
 from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
 from train.runs import StagedRun
 
@@ -133,9 +133,10 @@ def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
         if progress:
             click.echo(f"loop round {k}: {count} sun elevations", err=True)
         t0 = time.perf_counter()
-        render = build_dataset(cfg_k, progress=progress)
+        settings_k = settings_from(cfg_k)  # the round's configuration, validated once: renders and trains
+        render = build_dataset(settings_k, progress=progress)
         t1 = time.perf_counter()
-        metrics = train_and_evaluate(resolved(cfg_k), progress=progress)
+        metrics = train_and_evaluate(settings_k, progress=progress)
         t2 = time.perf_counter()
         hist["rounds"].append(
             {

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import AXES, grid_from_config, nearest_subset
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved
+from crater_synth.config import ConfigError, resolved, settings_from
 from train.registry import FIGURE6_MODELS, SPECS
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
@@ -190,7 +190,7 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
             if progress:
                 click.echo(f"figure 6: {point['parameter']} count {point['count']} sigma {sigma:.1f}", err=True)
             t0 = time.perf_counter()
-            metrics = train_and_evaluate(resolved(cfg_p), progress=False)
+            metrics = train_and_evaluate(settings_from(cfg_p), progress=False)
             seconds = round(time.perf_counter() - t0, 2)
             for model in MODELS:
                 results.append(

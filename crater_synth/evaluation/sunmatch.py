@@ -37,7 +37,7 @@ import numpy as np
 from crater_core import geometry
 from crater_core.schema import atomic_write_bytes, atomic_write_text, load_manifest, row_file
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import compose, craters, resolved
+from crater_synth.config import compose, craters, load_settings, resolved
 from crater_synth.errors import ConfigError
 
 AZIMUTH_STEPS_DEG = (10, 20, 30, 40, 60, 90)
@@ -284,20 +284,19 @@ def run_sunmatch(
     roles = {c: "validation" for g in (vcfg.get("groups") or []) for c in g}
     roles.update({c: "test" for c in (vcfg.get("test") or [])})
     names = list(names) if names else list(roles)
-    cfg = compose(list(overrides) + sunmatch_overrides(names, azimuths, fractions))
-    cfg_r = resolved(cfg)
-    mosaic = load_mosaic(cfg_r["realset"])  # checksum first: a bad product stops before rendering
-    for c in craters(cfg):  # and a crater of the other hemisphere than the mosaic
+    settings = load_settings(list(overrides) + sunmatch_overrides(names, azimuths, fractions))
+    mosaic = load_mosaic(settings.realset)  # checksum first: a bad product stops before rendering
+    for c in craters(settings):  # and a crater of the other hemisphere than the mosaic
         mosaic.check_crater(c)
     t0 = time.perf_counter()
-    build_dataset(cfg, progress=bool(cfg_r["train"].get("progress", True)))
-    dataset_dir = Path(str(cfg_r["out_dir"]))
+    build_dataset(settings, progress=settings.train.progress)
+    dataset_dir = Path(settings.out_dir)
     by_crater = defaultdict(list)
     for row in load_manifest(dataset_dir):
         by_crater[row["crater"]].append(row)
-    pp = PreprocessConfig.from_config(cfg_r)
+    pp = PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
     results = {}
-    for c in craters(cfg):
+    for c in craters(settings):
         if not by_crater.get(c["name"]):
             raise ConfigError(f"sunmatch: no render of {c['name']} in {dataset_dir} (every sun below the horizon?)")
         results[c["name"]] = match_crater(by_crater[c["name"]], dataset_dir, c, mosaic, pp)

@@ -38,7 +38,7 @@ import numpy as np
 
 from crater_core.schema import atomic_write_json, atomic_write_text, content_key
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, catalogue_names, compose, resolved
+from crater_synth.config import ConfigError, catalogue_names, compose, compose_settings, resolved
 from train.registry import MODELS
 
 RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
@@ -214,7 +214,7 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
         for seed in seeds:
             run_dir = out / g.label / f"seed{seed}"
             ovr = g_ovr + [g.crater_override(), f"run_dir={run_dir}", f"train.seed={seed}"]
-            cfg = compose(ovr)
+            cfg, settings = compose_settings(ovr)
             cfg_r = resolved(cfg)
             fp = run_fingerprint(cfg_r)
             old = done.get((g.label, seed))
@@ -226,7 +226,7 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
                 if progress:
                     click.echo(f"validate: {g.label} seed {seed}: same training, evaluating again", err=True)
                 t1 = time.perf_counter()
-                metrics = evaluate_saved(cfg_r, progress=progress)
+                metrics = evaluate_saved(settings, progress=progress)
                 run = _run_record(g, seed, fp, tfp, metrics, old["renders"], old["render_s"], old["train_s"], run_dir)
                 run["evaluate_only_s"] = round(time.perf_counter() - t1, 1)
             else:
@@ -234,11 +234,11 @@ def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
                     if progress:
                         click.echo(f"validate: rendering {g.label} ({', '.join(g.craters)})", err=True)
                     t0 = time.perf_counter()
-                    render = build_dataset(cfg, progress=progress)
+                    render = build_dataset(settings, progress=progress)
                     render_s = time.perf_counter() - t0
                     rendered = True
                 t1 = time.perf_counter()
-                metrics = train_and_evaluate(cfg_r, progress=progress)
+                metrics = train_and_evaluate(settings, progress=progress)
                 run = _run_record(
                     g, seed, fp, tfp, metrics, int(render["renders_total"]), render_s, time.perf_counter() - t1, run_dir
                 )

@@ -94,18 +94,39 @@ def _box_closest(boxes: Mapping[str, Sequence[float]], sigma: float = 1.0) -> tu
     return key, [float(b) for b in boxes[key]]
 
 
+def _typed(cls: type, mapping, key: str):
+    """One group of the run's (saved or composed) configuration as its validated settings class; a value
+    the settings refuse is a :class:`ReportError` naming the key."""
+    from crater_core.settings import SettingsError
+
+    try:
+        return cls.from_config(mapping, key)
+    except SettingsError as exc:
+        raise ReportError(f"the run's configuration: {exc}") from None
+
+
+def _preprocess_and_sensor(cfg: Mapping):
+    """The run's crop preprocessing (``train.preprocess`` at ``model.input_size``) and sensor model."""
+    from crater_core.settings import ModelSettings, PreprocessSettings, SensorSettings
+    from train.preprocess import PreprocessConfig, SensorModel
+
+    pre = _typed(PreprocessSettings, (cfg.get("train") or {}).get("preprocess"), "train.preprocess")
+    size = _typed(ModelSettings, cfg.get("model"), "model").input_size
+    sensor = _typed(SensorSettings, cfg.get("sensor"), "sensor")
+    return PreprocessConfig.from_settings(pre, size), SensorModel.from_settings(sensor)
+
+
 def _real_plan(ctx: Ctx, canonical: bool):
     """Crops (and images) of the real test set of the run's configuration; ``canonical``: one sigma = 1.0
     crop per crater, centred, no offset, no rotation. Returns (crops, images), or None with
     ``ctx.real_error`` set when the real product is not installed."""
+    from crater_core.settings import RealsetSettings
     from train.errors import RealSetError
     from train.realset import canonical_crater, plan_real_crops
 
     rs = dict(ctx.rc.cfg.get("realset") or {})
     if canonical:
         rs.update(per_crater=1, sigmas=[1.0], max_offset_frac=0.0, max_rotation_deg=0.0)
-    cfg = dict(ctx.rc.cfg)
-    cfg["realset"] = rs
     known = {canonical_crater(c) for c in ctx.craters}
     craters = [c for c in config_craters(ctx.rc.cfg) if canonical_crater(c["name"]) in known]
     if not craters:
@@ -120,14 +141,16 @@ def _real_plan(ctx: Ctx, canonical: bool):
             ctx.real_error = str(exc)
             return None
     try:
-        return plan_real_crops(cfg, craters, [c["name"] for c in craters])
+        return plan_real_crops(
+            _typed(RealsetSettings, rs, "realset"), craters, [c["name"] for c in craters], ctx.rc.cfg.get("data_dir")
+        )
     except RealSetError as exc:
         raise ReportError(f"real test set: {exc}") from None
 
 
 def compare(ctx: Ctx) -> dict:
     from crater_synth.dataset.preview import _ellipse_points, read_channel, tone_map
-    from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop, resample_box
+    from train.preprocess import preprocess_crop, resample_box
     from train.realcrops import crop_pixels
     from train.realset import canonical_crater
 
@@ -137,8 +160,7 @@ def compare(ctx: Ctx) -> dict:
     if plan is None:
         return {"unavailable": ctx.real_error}
     crops, images = plan
-    pp = PreprocessConfig.from_config(ctx.rc.cfg)
-    sensor = SensorModel.from_config(ctx.rc.cfg.get("sensor"))
+    pp, sensor = _preprocess_and_sensor(ctx.rc.cfg)
     items = []
     for crater in ctx.craters:
         crows = [r for r in ctx.rows if r["crater"] == crater]
@@ -204,7 +226,7 @@ def compare(ctx: Ctx) -> dict:
 # ---- 3. histograms -------------------------------------------------------------------------------
 def histograms(ctx: Ctx) -> dict:
     from crater_synth.dataset.preview import read_channel
-    from train.preprocess import PreprocessConfig, SensorModel, preprocess_crop
+    from train.preprocess import preprocess_crop
     from train.realset import canonical_crater
 
     if not ctx.rows:
@@ -213,8 +235,7 @@ def histograms(ctx: Ctx) -> dict:
     if plan is None:
         return {"unavailable": ctx.real_error}
     crops, images = plan
-    pp = PreprocessConfig.from_config(ctx.rc.cfg)
-    sensor = SensorModel.from_config(ctx.rc.cfg.get("sensor"))
+    pp, sensor = _preprocess_and_sensor(ctx.rc.cfg)
     bins = np.linspace(0.0, 1.0, 41)
     width = bins[1] - bins[0]
     panels = []
@@ -485,7 +506,7 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
 
     from crater_core.exr import read_channel
     from crater_core.schema import load_manifest
-    from crater_synth.config import compose, resolved
+    from crater_synth.config import compose_settings, resolved
     from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
     from train.realset import load_mosaic
 
@@ -493,16 +514,18 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
     craters = [
         c for g in base["summary"]["groups"].values() for c in g["models"].get("lunarnet_ex", {}).get("per_crater", {})
     ]
-    cfg = resolved(compose(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"]))
+    composed, settings = compose_settings(list(doc["overrides"]) + [f"crater=[{','.join(craters)}]"])
+    cfg = resolved(composed)
     if not base.get("render_key"):  # (crater_synth.evaluation.ablation is not imported: it reaches the training stack)
         return [{"crater": c, "missing": "the ablation result names no render_key"} for c in craters]
     ds = Path(str(cfg["data_dir"])) / "synth" / f"ablate-{base['render_key']}"
     if not (ds / "manifest.jsonl").is_file():
         return [{"crater": c, "missing": f"no renders at {ds}"} for c in craters]
     rows = load_manifest(ds)
-    pp, sensor = PreprocessConfig.from_config(cfg), SensorModel.from_config(cfg.get("sensor"))
+    pp = PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
+    sensor = SensorModel.from_settings(settings.sensor)
     try:
-        mosaic = load_mosaic(cfg["realset"])
+        mosaic = load_mosaic(settings.realset)
     except Exception as exc:  # the real product is optional for the report
         return [{"crater": c, "missing": f"real mosaic unavailable ({exc})"} for c in craters]
     items = []

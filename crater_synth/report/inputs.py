@@ -233,6 +233,21 @@ def _set_path(d: dict, dotted: str, value) -> None:
     d[parts[-1]] = copy.deepcopy(value)
 
 
+# Mappings that are a run's own choice, not a group of keys: never completed from the composed defaults.
+_CHOICES = ("crater", "train.select", "ablation.train", "ablation.levers")
+
+
+def _fill_missing(cfg: dict, composed: Mapping, path: str = "") -> None:
+    """Complete ``cfg`` in place with every key it lacks, group by group, from ``composed``: a saved
+    configuration from before a key existed (or a partial one) still converts to its settings."""
+    for key, value in composed.items():
+        full = f"{path}.{key}" if path else str(key)
+        if key not in cfg:
+            cfg[key] = copy.deepcopy(value)
+        elif isinstance(cfg[key], dict) and isinstance(value, Mapping) and full not in _CHOICES:
+            _fill_missing(cfg[key], value, full)
+
+
 @dataclass
 class RunConfig:
     cfg: dict
@@ -251,8 +266,7 @@ def effective_config(run_dir: Path, overrides: Sequence[str] = ()) -> RunConfig:
     explicit = _explicit_keys(overrides)
     if saved is not None:
         cfg = copy.deepcopy(saved)
-        for k, v in composed.items():  # sections an older saved config lacks
-            cfg.setdefault(k, copy.deepcopy(v))
+        _fill_missing(cfg, composed)  # sections and keys an older saved config lacks
         for key in explicit:
             try:
                 _set_path(cfg, key, _get_path(composed, key))

@@ -547,13 +547,13 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     Exit status 1 when an entry fails the catalogue test. Example: ``crater-synth catalogue
     'crater=[haworth,faustini]'``
     """
-    from crater_synth.config import compose, craters
+    from crater_synth.config import compose_settings, craters
     from crater_synth.terrain.patch import terrain_settings
 
     selected = any(o.split("=", 1)[0].lstrip("+~") == "crater" for o in overrides)
     if not selected:
         overrides = (f"crater=[{','.join(catalogue_names())}]", *overrides)
-    cfg = compose(overrides)
+    cfg, settings = compose_settings(overrides)
     dem = open_dem(cfg)
     factor = terrain_settings(cfg)["near_radius_factor"]
     entries = craters(cfg)
@@ -573,12 +573,11 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
         )
         click.echo(format_table(rows))
     if wac_sheet or dem_sheet:
-        from crater_synth.config import resolved
         from train.realset import load_mosaic
 
         if not sigma > 0:
             raise UserError(f"--sigma={sigma} must be > 0")
-        stats = write_sheets(rows, dem, load_mosaic(resolved(cfg)["realset"]), sigma, wac_sheet, dem_sheet)
+        stats = write_sheets(rows, dem, load_mosaic(settings.realset), sigma, wac_sheet, dem_sheet)
         for path in (wac_sheet, dem_sheet):
             if path:
                 click.echo(f"wrote {path}", err=True)
