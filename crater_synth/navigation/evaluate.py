@@ -94,28 +94,100 @@ def quadrant_light(pole: str, quadrant: int, dparams: DetectorParams) -> float:
     return pooled_light_azimuth([f.image for f in frames[::2]], dparams)
 
 
-def frame_light(frame: Frame, dparams: DetectorParams) -> float | None:
-    """The light direction to pass to the detector: None (estimate per frame) or the quadrant's."""
+def _light_settings(dparams: DetectorParams) -> DetectorParams:
+    """The light-estimate settings of ``dparams`` alone (the cache key: both detection methods share one
+    pooled light per quadrant or sector)."""
+    return DetectorParams(
+        light_method=dparams.light_method,
+        tail_points_to_sun=dparams.tail_points_to_sun,
+        n_azimuths=dparams.n_azimuths,
+        azimuth_sigmas_px=tuple(dparams.azimuth_sigmas_px),
+        azimuth_tail=dparams.azimuth_tail,
+    )
+
+
+LOCAL_POOL_EVERY = 2  # every 2nd window of a quadrant or sector is pooled (the windows overlap: stride 64 px)
+LOCAL_POOL_AZIMUTHS = 72  # 5-degree grid of local azimuths
+
+
+def pool_windows(pole: str, pool: str, index: int) -> list[Frame]:
+    """The windows of ``pole`` whose local light azimuth is pooled together: every window of mosaic
+    quadrant ``index`` (``pool`` "quadrant") or 45-degree sector ``index`` ("sector"), whatever its split,
+    every :data:`LOCAL_POOL_EVERY`-th. Only their pixels are used (image statistics, no landmark, no truth)."""
+    from crater_synth.navigation.frames import windows
+
+    if pool not in ("quadrant", "sector"):
+        raise UserError(f"detect.light_pool={pool!r}: expected 'quadrant' or 'sector'")
+    key = (lambda f: f.sector // 2) if pool == "quadrant" else (lambda f: f.sector)
+    frames = [f for f in windows(None, pole) if key(f) == index][::LOCAL_POOL_EVERY]
+    if not frames:
+        raise UserError(f"no window in {pool} {index} of the {pole} mosaic")
+    return frames
+
+
+@functools.lru_cache(maxsize=32)
+def local_light(pole: str, pool: str, index: int, light: DetectorParams) -> float:
+    """Local azimuth (radians, clockwise from local north) of the light in one mosaic quadrant or sector of
+    ``pole``: the tail scores of :func:`pool_windows` pooled in each window's local (east, north) frame
+    (:func:`crater_synth.navigation.detect.pooled_light_azimuth` with each window's local-north image
+    angle at its centre as rotation). A Sun at one local azimuth (images taken at similar local solar
+    times) turns with longitude in the map image; this model follows it."""
+    from crater_synth.navigation.detect import pooled_light_azimuth
+    from crater_synth.navigation.polar import local_north_image_angle
+
+    frames = pool_windows(pole, pool, index)
+    rot = [float(local_north_image_angle(*f.centre_xy, pole)) for f in frames]
+    return pooled_light_azimuth([f.image for f in frames], light, rotations=rot, n_azimuths=LOCAL_POOL_AZIMUTHS)
+
+
+def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
+    """The light arguments of :func:`detect` for a mosaic window: ``light_dir`` (None: estimate on the
+    frame) and ``light_prior`` ((direction, half-width) radians restricting the frame's estimate, or None)."""
     if dparams.light_scope == "frame":
-        return None
+        return {"light_dir": None, "light_prior": None}
     if dparams.light_scope == "quadrant":
-        # Keyed on the light settings only, so both detection methods share one estimate per quadrant.
-        light = DetectorParams(
-            light_method=dparams.light_method,
-            tail_points_to_sun=dparams.tail_points_to_sun,
-            n_azimuths=dparams.n_azimuths,
-            azimuth_sigmas_px=tuple(dparams.azimuth_sigmas_px),
-            azimuth_tail=dparams.azimuth_tail,
-        )
-        return quadrant_light(frame.georef.pole, frame.sector // 2, light)
-    raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame' or 'quadrant'")
+        return {
+            "light_dir": quadrant_light(frame.georef.pole, frame.sector // 2, _light_settings(dparams)),
+            "light_prior": None,
+        }
+    if dparams.light_scope == "local":
+        from crater_synth.navigation.polar import local_north_image_angle
+
+        pole = frame.georef.pole
+        index = frame.sector // 2 if dparams.light_pool == "quadrant" else frame.sector
+        alpha = local_light(pole, dparams.light_pool, index, _light_settings(dparams))
+        theta = float((local_north_image_angle(*frame.centre_xy, pole) + alpha) % (2.0 * math.pi))
+        if dparams.light_seed_deg > 0:
+            return {"light_dir": None, "light_prior": (theta, math.radians(dparams.light_seed_deg))}
+        return {"light_dir": theta, "light_prior": None}
+    raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame', 'quadrant' or 'local'")
+
+
+def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0):
+    """Detection and fix of one mosaic window with its light model: (detections, light azimuth rad, fix,
+    prior georef). With several ``dparams.light_tries_deg`` the detector and the fix run once per offset
+    added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
+    offset) is kept; with none fixed, the first offset's detections are returned."""
+    prior = prior_georef(frame, seed)
+    dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
+    best = None
+    for k, off in enumerate(dparams.light_tries_deg):
+        if off == 0.0:
+            dets, theta = dets0, theta0
+        else:
+            theta = (theta0 + math.radians(off)) % (2.0 * math.pi)
+            dets, theta = detect(frame.image, dparams, light_dir=theta, what=f"frame {frame.id}")
+        fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+        key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
+        if best is None or key > best[0]:
+            best = (key, dets, theta, fix)
+    _, dets, theta, fix = best
+    return dets, theta, fix, prior
 
 
 def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0) -> dict:
     """Detection, identification and fix of one frame, scored against its truth."""
-    dets, theta = detect(frame.image, dparams, light_dir=frame_light(frame, dparams), what=f"frame {frame.id}")
-    prior = prior_georef(frame, seed)
-    fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
     # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
@@ -224,12 +296,15 @@ def _params_with(overrides: tuple[str, ...], method: str = "classical") -> tuple
 
 
 def evaluate_split(
-    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False
+    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False, pole: str = "south"
 ) -> tuple[dict, list[dict]]:
-    """Metrics of one split (all windows, and the headline windows), and the per-window rows."""
+    """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
+    headline windows, and the per-window rows."""
     from crater_synth.navigation.frames import windows
 
-    frames = windows(split)[::every]
+    frames = windows(None if split == "all" else split, pole)[::every]
+    if not frames:
+        raise UserError(f"no {split} window in the {pole} mosaic (north windows are all test)")
     rows = []
     for k, f in enumerate(frames):
         rows.append(run_frame(f, landmarks, dparams, fparams))
@@ -283,8 +358,45 @@ METHOD_DESCRIPTIONS = {
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
 
+SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
+
+
+def merge_results(path: Path, pole: str, results: dict) -> dict:
+    """The results file's content with ``pole``'s results put in, the other entries kept: the south at the
+    top level (the structure of earlier files), each pole also under ``regions``; the rendered frames'
+    ``synthetic`` entry and other regions are never dropped."""
+    old = json.loads(path.read_text()) if path.exists() else {}
+    if pole == "south":
+        merged = {k: old[k] for k in ("synthetic",) if k in old}
+        merged.update(results)
+    else:
+        merged = dict(old)
+    regions = {k: v for k, v in old.get("regions", {}).items() if k != pole}
+    if pole != "south":
+        regions[pole] = results
+    if "methods" in merged:
+        regions["south"] = "the top level of this file"  # a pointer, not a second copy
+    merged["regions"] = dict(sorted(regions.items()))
+    return merged
+
+
 @click.command("nav-eval")
-@click.option("--split", "splits", type=click.Choice(["validation", "test"]), multiple=True, help="Default: both.")
+@click.option(
+    "--pole",
+    "--region",
+    "pole",
+    type=click.Choice(["south", "north"]),
+    default="south",
+    show_default=True,
+    help="Mosaic whose windows are evaluated (north: all windows are test).",
+)
+@click.option(
+    "--split",
+    "splits",
+    type=click.Choice(["validation", "test", "all"]),
+    multiple=True,
+    help="Default: both splits (south), test (north). 'all': every window of the pole in one row.",
+)
 @click.option(
     "--method",
     "methods",
@@ -299,30 +411,41 @@ PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" 
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when both splits and both "
+    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when the pole's splits and both "
     "methods run in full).",
 )
 @user_errors
-def nav_eval_command(splits, methods, every, sets, map_path, out):
+def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
     Choose settings with `--split validation --set ...`; the defaults were chosen that way. Without
-    `--split`, both splits run and the results go to docs/results/navigation.json (and the table to stdout).
+    `--split`, the pole's splits run (south: validation and test; north: test) and the results go to
+    docs/results/navigation.json (the south at the top level, the north under regions.north; the table to
+    stdout). The map is the pole's committed landmark map unless `--map` names one.
     """
     from crater_core.schema import atomic_write_text
     from crater_synth.navigation.landmarks import load_default_map, read_map
 
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
-    landmarks, prov = read_map(map_path) if map_path else load_default_map("south")
+    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
+    if prov.get("pole", pole) != pole:
+        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
     methods = methods or ("classical", "template")
     params = {m: _params_with(sets, m) for m in methods}
-    splits = splits or ("validation", "test")
+    splits = splits or SPLITS_OF_POLE[pole]
+    if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
+        raise UserError(f"--split validation: the {pole} windows are test only (docs/navigation.md, section 2)")
+    from crater_synth.navigation.frames import MOSAIC_PRODUCTS
+
     results = {
         "protocol": {
-            "mosaic": "lroc_wac_south (400 m/px, polar stereographic)",
-            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector",
+            "pole": pole,
+            "mosaic": f"{MOSAIC_PRODUCTS[pole]} (400 m/px, polar stereographic)",
+            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector"
+            if pole == "south"
+            else "every window test (no setting chosen on this pole); window inside one 45-degree sector",
             "window_px": 512,
             "stride_px": 64,
             "windows_overlap": True,
@@ -353,20 +476,21 @@ def nav_eval_command(splits, methods, every, sets, map_path, out):
             "splits": {},
         }
         for split in splits:
-            click.echo(f"{m}: {split}", err=True)
-            summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True)
+            click.echo(f"{m}: {pole} {split}", err=True)
+            summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True, pole=pole)
             entry["splits"][split] = summary
         results["methods"][m] = entry
     # The primary method also at the top level (the structure of earlier results files).
     primary = results["methods"][results["primary_method"]]
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
-    text = json.dumps(results, indent=1) + "\n"
-    full = set(splits) == {"validation", "test"} and set(methods) == {"classical", "template"}
-    target = out or (RESULTS_JSON if full and every == 1 and not sets else None)
-    if target:
-        atomic_write_text(target, text)
-        click.echo(f"wrote {target}", err=True)
+    full = set(splits) == set(SPLITS_OF_POLE[pole]) and set(methods) == {"classical", "template"}
+    if out:
+        atomic_write_text(out, json.dumps(results, indent=1) + "\n")
+        click.echo(f"wrote {out}", err=True)
+    elif full and every == 1 and not sets and not map_path:
+        atomic_write_text(RESULTS_JSON, json.dumps(merge_results(RESULTS_JSON, pole, results), indent=1) + "\n")
+        click.echo(f"wrote {RESULTS_JSON} ({pole})", err=True)
     click.echo(results_markdown(results))
 
 
