@@ -178,3 +178,4 @@ def test_results_merge_keeps_the_other_region(tmp_path):
     again = merge_results(path, "south", {"methods": {"classical": 5}, "splits": 6})
     assert again["methods"] == {"classical": 5} and again["regions"]["north"] == {"methods": {"template": 3}}
     assert again["synthetic"] == {"a": 1}
+    assert again["history"] == [{"methods": {"classical": 1}, "splits": 2}]  # the replaced south result is kept

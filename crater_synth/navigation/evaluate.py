@@ -112,13 +112,15 @@ LOCAL_POOL_AZIMUTHS = 72  # 5-degree grid of local azimuths
 
 def pool_windows(pole: str, pool: str, index: int) -> list[Frame]:
     """The windows of ``pole`` whose local light azimuth is pooled together: every window of mosaic
-    quadrant ``index`` (``pool`` "quadrant") or 45-degree sector ``index`` ("sector"), whatever its split,
+    quadrant ``index`` (``pool`` "quadrant"), of 45-degree sector ``index`` ("sector") or of the whole
+    mosaic ("pole", index 0), whatever its split,
     every :data:`LOCAL_POOL_EVERY`-th. Only their pixels are used (image statistics, no landmark, no truth)."""
     from crater_synth.navigation.frames import windows
 
-    if pool not in ("quadrant", "sector"):
-        raise UserError(f"detect.light_pool={pool!r}: expected 'quadrant' or 'sector'")
-    key = (lambda f: f.sector // 2) if pool == "quadrant" else (lambda f: f.sector)
+    keys = {"quadrant": lambda f: f.sector // 2, "sector": lambda f: f.sector, "pole": lambda f: 0}
+    if pool not in keys:
+        raise UserError(f"detect.light_pool={pool!r}: expected one of {sorted(keys)}")
+    key = keys[pool]
     frames = [f for f in windows(None, pole) if key(f) == index][::LOCAL_POOL_EVERY]
     if not frames:
         raise UserError(f"no window in {pool} {index} of the {pole} mosaic")
@@ -154,7 +156,7 @@ def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
         from crater_synth.navigation.polar import local_north_image_angle
 
         pole = frame.georef.pole
-        index = frame.sector // 2 if dparams.light_pool == "quadrant" else frame.sector
+        index = {"quadrant": frame.sector // 2, "sector": frame.sector, "pole": 0}[dparams.light_pool]
         alpha = local_light(pole, dparams.light_pool, index, _light_settings(dparams))
         theta = float((local_north_image_angle(*frame.centre_xy, pole) + alpha) % (2.0 * math.pi))
         if dparams.light_seed_deg > 0:
@@ -363,11 +365,16 @@ SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
 
 def merge_results(path: Path, pole: str, results: dict) -> dict:
     """The results file's content with ``pole``'s results put in, the other entries kept: the south at the
-    top level (the structure of earlier files), each pole also under ``regions``; the rendered frames'
-    ``synthetic`` entry and other regions are never dropped."""
+    top level (the structure of earlier files; a south result it replaces moves to ``history``), the other
+    poles under ``regions``; the rendered frames' ``synthetic`` entry and other regions are never dropped."""
     old = json.loads(path.read_text()) if path.exists() else {}
     if pole == "south":
-        merged = {k: old[k] for k in ("synthetic",) if k in old}
+        merged = {k: old[k] for k in ("synthetic", "history") if k in old}
+        if "methods" in old:
+            # A south result is never deleted: the one replaced moves to the history (e.g. the second
+            # round's, with which the south test split was run once).
+            replaced = {k: v for k, v in old.items() if k not in ("synthetic", "history", "regions")}
+            merged["history"] = [*old.get("history", []), replaced]
         merged.update(results)
     else:
         merged = dict(old)
