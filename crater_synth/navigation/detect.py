@@ -57,18 +57,18 @@ class DetectorParams:
     # the lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
     tail_points_to_sun: bool = True
     light_method: str = "tail"  # "tail" (tail alone; chosen on validation) or "tensor" (tensor axis + tail sign)
-    # Real mosaic windows (evaluate.run_frame): "frame" estimates the light per window; "quadrant" uses one
-    # estimate pooled over the validation windows of the window's mosaic quadrant (assumes one light
-    # direction per quadrant, which the test sectors refuted: docs/navigation.md, section 6).
-    # detect() itself always takes light_dir or estimates it on its frame.
+    # Real mosaic windows (crater_synth.navigation.light.frame_light): "frame" estimates the light per
+    # window; "quadrant" uses one estimate pooled over the validation windows of the window's mosaic
+    # quadrant (assumes one light direction per quadrant, which the test sectors refuted:
+    # docs/navigation.md, section 6); "local": the light at one fixed *local* azimuth (clockwise from local
+    # north), so it turns with the window's longitude in the map image; that azimuth is pooled from the
+    # image statistics of the windows of one mosaic quadrant ("quadrant"), 45-degree sector ("sector") or
+    # the whole mosaic ("pole") of the same pole, no truth used. light_seed_deg > 0: the frame's own
+    # estimate, searched only within +-this many degrees of the pooled local direction. light_tries_deg:
+    # the detector and the fix run once per offset added to the light direction, and the fix with most
+    # inliers is kept (a lander without the Sun). detect() itself always takes light_dir (or light_prior)
+    # or estimates the light on its frame.
     light_scope: str = "frame"
-    # "local" (evaluate.frame_light): the light at one fixed *local* azimuth (clockwise from local north),
-    # so it turns with the window's longitude in the map image; that azimuth is pooled from the image
-    # statistics of the windows of one mosaic quadrant ("quadrant"), 45-degree sector ("sector") or the
-    # whole mosaic ("pole") of the same pole, no truth used. light_seed_deg > 0: the frame's own estimate,
-    # searched only within +-this many degrees of the pooled local direction. light_tries_deg: the detector
-    # and the fix run once per offset added to the light direction, and the fix with most inliers is kept
-    # (a lander without the Sun).
     light_pool: str = "quadrant"
     light_seed_deg: float = 0.0
     light_tries_deg: tuple = (0.0,)
