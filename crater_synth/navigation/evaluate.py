@@ -342,7 +342,8 @@ def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
-    Choose settings with `--split validation --set ...`; the defaults were chosen that way. Without
+    Choose settings on south windows with `--set ...` (the defaults were: the light model on the whole
+    south mosaic, `--split all`, the other settings on `--split validation`); never on the north. Without
     `--split`, the pole's splits run (south: validation and test; north: test) and the results go to
     docs/results/navigation.json (the south at the top level, the north under regions.north; the table to
     stdout). The map is the pole's committed landmark map unless `--map` names one.
