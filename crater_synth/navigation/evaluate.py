@@ -1,13 +1,15 @@
 """Navigation metrics on real mosaic windows, ``crater-synth nav-eval``, ``crater-synth navigate`` and
 the navigation benchmark.
 
-Protocol (docs/navigation.md): per split (validation, test; the sector rule of :mod:`.frames`), every
-window is a nadir frame at 400 m/px. Truth landmarks are the map's landmarks whose centre lies in the
-frame. A detection matches a truth landmark when its centre is within 0.25 D and its diameter within
-25 % (one-to-one, nearest first). The prior position is the truth frame centre moved by a seeded
-random offset of ``PRIOR_OFFSET_KM`` in a random direction (the prior heading and scale are exact:
-a lander knows its attitude; the fix still estimates both). A fix is false when its position error
-exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of D >= 15 km in view.
+Protocol (docs/navigation.md): per pole and split (south: validation and test by the sector rule of
+:mod:`.frames`; north: test only), every window is a nadir frame at 400 m/px, navigated against the
+pole's landmark map, with the light model of :mod:`.light`. Truth landmarks are the map's landmarks
+whose centre lies in the frame. A detection matches a truth landmark when its centre is within 0.25 D
+and its diameter within 25 % (one-to-one, nearest first). The prior position is the truth frame centre
+moved by a seeded random offset of ``PRIOR_OFFSET_KM`` in a random direction (the prior heading and
+scale are exact: a lander knows its attitude; the fix still estimates both). A fix is false when its
+position error exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of
+D >= 15 km in view.
 """
 
 from __future__ import annotations
