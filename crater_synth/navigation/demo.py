@@ -44,17 +44,14 @@ def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
 def main(out: Path, per_sector: int):
     """Annotated real windows and one table, both detection methods (module docstring)."""
     from crater_core.schema import atomic_write_bytes, atomic_write_text
-    from crater_synth.navigation.detect import detect
     from crater_synth.navigation.evaluate import (
         HEADLINE_MIN_LANDMARKS,
         _params_with,
-        frame_light,
-        prior_georef,
+        navigate_frame,
         results_markdown,
         run_frame,
         summarise,
     )
-    from crater_synth.navigation.fix import fix_frame
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.navigate import annotate
 
@@ -71,9 +68,7 @@ def main(out: Path, per_sector: int):
         for f in frames:
             row = run_frame(f, landmarks, dparams, fparams)
             splits.setdefault(f.split, []).append(row)
-            dets, _ = detect(f.image, dparams, light_dir=frame_light(f, dparams), what=f"frame {f.id}")
-            prior = prior_georef(f, 0)
-            fix = fix_frame(dets, landmarks, prior, f.image.shape, fparams)
+            dets, _, fix, prior = navigate_frame(f, landmarks, dparams, fparams)
             png = out / f"{f.id}_{method}.png"
             atomic_write_bytes(png, annotate(f.image, dets, landmarks, fix, prior, f.georef))
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"

@@ -1,19 +1,20 @@
 """Navigation metrics on real mosaic windows, ``crater-synth nav-eval``, ``crater-synth navigate`` and
 the navigation benchmark.
 
-Protocol (docs/navigation.md): per split (validation, test; the sector rule of :mod:`.frames`), every
-window is a nadir frame at 400 m/px. Truth landmarks are the map's landmarks whose centre lies in the
-frame. A detection matches a truth landmark when its centre is within 0.25 D and its diameter within
-25 % (one-to-one, nearest first). The prior position is the truth frame centre moved by a seeded
-random offset of ``PRIOR_OFFSET_KM`` in a random direction (the prior heading and scale are exact:
-a lander knows its attitude; the fix still estimates both). A fix is false when its position error
-exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of D >= 15 km in view.
+Protocol (docs/navigation.md): per pole and split (south: validation and test by the sector rule of
+:mod:`.frames`; north: test only), every window is a nadir frame at 400 m/px, navigated against the
+pole's landmark map, with the light model of :mod:`.light`. Truth landmarks are the map's landmarks
+whose centre lies in the frame. A detection matches a truth landmark when its centre is within 0.25 D
+and its diameter within 25 % (one-to-one, nearest first). The prior position is the truth frame centre
+moved by a seeded random offset of ``PRIOR_OFFSET_KM`` in a random direction (the prior heading and
+scale are exact: a lander knows its attitude; the fix still estimates both). A fix is false when its
+position error exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of
+D >= 15 km in view.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import math
 import time
@@ -28,6 +29,7 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detect import Detection, DetectorParams, detect
 from crater_synth.navigation.fix import FixParams, fix_frame
 from crater_synth.navigation.frames import Frame, Georef, ground_distance_km
+from crater_synth.navigation.light import frame_light
 
 MATCH_CENTRE_D = 0.25
 MATCH_DIAMETER = 0.25
@@ -81,41 +83,31 @@ def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) ->
     )
 
 
-@functools.lru_cache(maxsize=8)
-def quadrant_light(pole: str, quadrant: int, dparams: DetectorParams) -> float:
-    """Light direction of one mosaic quadrant (one Sun per quadrant, docs/navigation.md), pooled over the
-    *validation* windows of that quadrant only (its even sector), so no test pixel sets it."""
-    from crater_synth.navigation.detect import pooled_light_azimuth
-    from crater_synth.navigation.frames import windows
-
-    frames = [f for f in windows("validation", pole) if f.sector // 2 == quadrant]
-    if not frames:
-        raise UserError(f"no validation window in quadrant {quadrant} of the {pole} mosaic")
-    return pooled_light_azimuth([f.image for f in frames[::2]], dparams)
-
-
-def frame_light(frame: Frame, dparams: DetectorParams) -> float | None:
-    """The light direction to pass to the detector: None (estimate per frame) or the quadrant's."""
-    if dparams.light_scope == "frame":
-        return None
-    if dparams.light_scope == "quadrant":
-        # Keyed on the light settings only, so both detection methods share one estimate per quadrant.
-        light = DetectorParams(
-            light_method=dparams.light_method,
-            tail_points_to_sun=dparams.tail_points_to_sun,
-            n_azimuths=dparams.n_azimuths,
-            azimuth_sigmas_px=tuple(dparams.azimuth_sigmas_px),
-            azimuth_tail=dparams.azimuth_tail,
-        )
-        return quadrant_light(frame.georef.pole, frame.sector // 2, light)
-    raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame' or 'quadrant'")
+def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0):
+    """Detection and fix of one mosaic window with its light model: (detections, light azimuth rad, fix,
+    prior georef). With several ``dparams.light_tries_deg`` the detector and the fix run once per offset
+    added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
+    offset) is kept; with none fixed, the first offset's detections are returned."""
+    prior = prior_georef(frame, seed)
+    dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
+    best = None
+    for k, off in enumerate(dparams.light_tries_deg):
+        if off == 0.0:
+            dets, theta = dets0, theta0
+        else:
+            theta = (theta0 + math.radians(off)) % (2.0 * math.pi)
+            dets, theta = detect(frame.image, dparams, light_dir=theta, what=f"frame {frame.id}")
+        fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+        key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
+        if best is None or key > best[0]:
+            best = (key, dets, theta, fix)
+    _, dets, theta, fix = best
+    return dets, theta, fix, prior
 
 
 def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0) -> dict:
     """Detection, identification and fix of one frame, scored against its truth."""
-    dets, theta = detect(frame.image, dparams, light_dir=frame_light(frame, dparams), what=f"frame {frame.id}")
-    prior = prior_georef(frame, seed)
-    fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
     # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
@@ -224,12 +216,15 @@ def _params_with(overrides: tuple[str, ...], method: str = "classical") -> tuple
 
 
 def evaluate_split(
-    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False
+    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False, pole: str = "south"
 ) -> tuple[dict, list[dict]]:
-    """Metrics of one split (all windows, and the headline windows), and the per-window rows."""
+    """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
+    headline windows, and the per-window rows."""
     from crater_synth.navigation.frames import windows
 
-    frames = windows(split)[::every]
+    frames = windows(None if split == "all" else split, pole)[::every]
+    if not frames:
+        raise UserError(f"no {split} window in the {pole} mosaic (north windows are all test)")
     rows = []
     for k, f in enumerate(frames):
         rows.append(run_frame(f, landmarks, dparams, fparams))
@@ -283,8 +278,50 @@ METHOD_DESCRIPTIONS = {
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
 
+SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
+
+
+def merge_results(path: Path, pole: str, results: dict) -> dict:
+    """The results file's content with ``pole``'s results put in, the other entries kept: the south at the
+    top level (the structure of earlier files; a south result it replaces moves to ``history``), the other
+    poles under ``regions``; the rendered frames' ``synthetic`` entry and other regions are never dropped."""
+    old = json.loads(path.read_text()) if path.exists() else {}
+    if pole == "south":
+        merged = {k: old[k] for k in ("synthetic", "history") if k in old}
+        if "methods" in old:
+            # A south result is never deleted: the one replaced moves to the history (e.g. the second
+            # round's, with which the south test split was run once).
+            replaced = {k: v for k, v in old.items() if k not in ("synthetic", "history", "regions")}
+            merged["history"] = [*old.get("history", []), replaced]
+        merged.update(results)
+    else:
+        merged = dict(old)
+    regions = {k: v for k, v in old.get("regions", {}).items() if k != pole}
+    if pole != "south":
+        regions[pole] = results
+    if "methods" in merged:
+        regions["south"] = "the top level of this file"  # a pointer, not a second copy
+    merged["regions"] = dict(sorted(regions.items()))
+    return merged
+
+
 @click.command("nav-eval")
-@click.option("--split", "splits", type=click.Choice(["validation", "test"]), multiple=True, help="Default: both.")
+@click.option(
+    "--pole",
+    "--region",
+    "pole",
+    type=click.Choice(["south", "north"]),
+    default="south",
+    show_default=True,
+    help="Mosaic whose windows are evaluated (north: all windows are test).",
+)
+@click.option(
+    "--split",
+    "splits",
+    type=click.Choice(["validation", "test", "all"]),
+    multiple=True,
+    help="Default: both splits (south), test (north). 'all': every window of the pole in one row.",
+)
 @click.option(
     "--method",
     "methods",
@@ -299,30 +336,42 @@ PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" 
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when both splits and both "
+    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when the pole's splits and both "
     "methods run in full).",
 )
 @user_errors
-def nav_eval_command(splits, methods, every, sets, map_path, out):
+def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
-    Choose settings with `--split validation --set ...`; the defaults were chosen that way. Without
-    `--split`, both splits run and the results go to docs/results/navigation.json (and the table to stdout).
+    Choose settings on south windows with `--set ...` (the defaults were: the light model on the whole
+    south mosaic, `--split all`, the other settings on `--split validation`); never on the north. Without
+    `--split`, the pole's splits run (south: validation and test; north: test) and the results go to
+    docs/results/navigation.json (the south at the top level, the north under regions.north; the table to
+    stdout). The map is the pole's committed landmark map unless `--map` names one.
     """
     from crater_core.schema import atomic_write_text
     from crater_synth.navigation.landmarks import load_default_map, read_map
 
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
-    landmarks, prov = read_map(map_path) if map_path else load_default_map("south")
+    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
+    if prov.get("pole", pole) != pole:
+        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
     methods = methods or ("classical", "template")
     params = {m: _params_with(sets, m) for m in methods}
-    splits = splits or ("validation", "test")
+    splits = splits or SPLITS_OF_POLE[pole]
+    if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
+        raise UserError(f"--split validation: the {pole} windows are test only (docs/navigation.md, section 2)")
+    from crater_synth.navigation.frames import MOSAIC_PRODUCTS
+
     results = {
         "protocol": {
-            "mosaic": "lroc_wac_south (400 m/px, polar stereographic)",
-            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector",
+            "pole": pole,
+            "mosaic": f"{MOSAIC_PRODUCTS[pole]} (400 m/px, polar stereographic)",
+            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector"
+            if pole == "south"
+            else "every window test (no setting chosen on this pole); window inside one 45-degree sector",
             "window_px": 512,
             "stride_px": 64,
             "windows_overlap": True,
@@ -353,20 +402,21 @@ def nav_eval_command(splits, methods, every, sets, map_path, out):
             "splits": {},
         }
         for split in splits:
-            click.echo(f"{m}: {split}", err=True)
-            summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True)
+            click.echo(f"{m}: {pole} {split}", err=True)
+            summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True, pole=pole)
             entry["splits"][split] = summary
         results["methods"][m] = entry
     # The primary method also at the top level (the structure of earlier results files).
     primary = results["methods"][results["primary_method"]]
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
-    text = json.dumps(results, indent=1) + "\n"
-    full = set(splits) == {"validation", "test"} and set(methods) == {"classical", "template"}
-    target = out or (RESULTS_JSON if full and every == 1 and not sets else None)
-    if target:
-        atomic_write_text(target, text)
-        click.echo(f"wrote {target}", err=True)
+    full = set(splits) == set(SPLITS_OF_POLE[pole]) and set(methods) == {"classical", "template"}
+    if out:
+        atomic_write_text(out, json.dumps(results, indent=1) + "\n")
+        click.echo(f"wrote {out}", err=True)
+    elif full and every == 1 and not sets and not map_path:
+        atomic_write_text(RESULTS_JSON, json.dumps(merge_results(RESULTS_JSON, pole, results), indent=1) + "\n")
+        click.echo(f"wrote {RESULTS_JSON} ({pole})", err=True)
     click.echo(results_markdown(results))
 
 

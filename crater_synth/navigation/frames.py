@@ -8,6 +8,12 @@ pixel. Each of the mosaic's four quadrants (0-90, 90-180, ... E, each imaged und
 in seams along the 0/90/180/270 E meridians) holds one validation and one test sector, so both splits
 see the same four illuminations.
 
+North: the north mosaic (``lroc_wac_north``) is also four quadrants (0-90, 90-180, ... E) meeting at
+the pole, and its windows are cut by the same geometry (512 px, stride 64, wholly inside one 45-degree
+sector, so off the seams and off the polar cap). **Every north window is test** (split "test" whatever
+its sector): no setting is chosen on the north; it is the held-out pole of the light-model choice made
+on the south mosaic (docs/navigation.md, section 2).
+
 The polar seams are excluded by the same rule: a window lying wholly inside one 45-degree sector
 crosses no quadrant boundary (those are sector boundaries), and it is at least ~250 km from the pole,
 away from the permanently shadowed, mixed-Sun cap where the quadrants meet.
@@ -30,7 +36,9 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.polar import stereo_inverse
 
 SECTOR_DEG = 45.0
-SPLIT_OF_SECTOR = {k: ("validation" if k % 2 == 0 else "test") for k in range(8)}
+SPLIT_OF_SECTOR = {k: ("validation" if k % 2 == 0 else "test") for k in range(8)}  # south mosaic
+# The split of a window by pole and sector: the south alternates, the north is test only.
+SPLITS = {"south": SPLIT_OF_SECTOR, "north": {k: "test" for k in range(8)}}
 WINDOW_PX = 512
 STRIDE_PX = 64  # overlapping windows: more frames, correlated (every report says so)
 MOSAIC_PRODUCTS = {"south": "lroc_wac_south", "north": "lroc_wac_north"}
@@ -83,10 +91,11 @@ class Frame:
         return float(lat), float(lon)
 
 
-def sector_of(x, y) -> np.ndarray:
-    """45-degree longitude sector index (0..7) of map points (south stereographic: lon = atan2(x, y))."""
-    lon = np.degrees(np.arctan2(x, y)) % 360.0
-    return np.floor(lon / SECTOR_DEG).astype(int)
+def sector_of(x, y, pole: str = "south") -> np.ndarray:
+    """45-degree longitude sector index (0..7) of map points of ``pole``'s polar stereographic plane
+    (lon = atan2(x, y) at the south pole, atan2(x, -y) at the north: the core's projection)."""
+    _, lon = stereo_inverse(np.asarray(x, dtype=float), np.asarray(y, dtype=float), pole)
+    return np.floor((np.asarray(lon) % 360.0) / SECTOR_DEG).astype(int) % 8
 
 
 @lru_cache(maxsize=2)
@@ -107,10 +116,10 @@ def load_mosaic_image(pole: str = "south"):
 def plan_windows(
     pole: str = "south", size: int = WINDOW_PX, stride: int = STRIDE_PX
 ) -> list[tuple[str, str, int, int, int]]:
-    """Every window of the split rule: (id, split, sector, u0, v0), deterministic."""
-    if pole != "south":
-        # The north mosaic is test only (no validation there); its quadrant layout is not checked here.
-        raise FrameError("real evaluation windows are defined for the south mosaic only in this version")
+    """Every window of the split rule: (id, split, sector, u0, v0), deterministic. South: even sectors
+    validation, odd test; north: every window test (module docstring)."""
+    if pole not in SPLITS:
+        raise FrameError(f"pole {pole!r}: real evaluation windows exist for {', '.join(SPLITS)}")
     img, extent, pixel, _ = load_mosaic_image(pole)
     n = img.shape[0]
     out = []
@@ -120,10 +129,10 @@ def plan_windows(
             us = np.array([u0, u0 + size, u0, u0 + size], dtype=float)
             vs = np.array([v0, v0, v0 + size, v0 + size], dtype=float)
             x, y = us * pixel - extent, extent - vs * pixel
-            s = sector_of(x, y)
+            s = sector_of(x, y, pole)
             if np.all(s == s[0]) and np.all(np.hypot(x, y) > 0):
                 k = int(s[0])
-                out.append((f"{pole[0].upper()}{k}_{u0:04d}_{v0:04d}", SPLIT_OF_SECTOR[k], k, u0, v0))
+                out.append((f"{pole[0].upper()}{k}_{u0:04d}_{v0:04d}", SPLITS[pole][k], k, u0, v0))
     return out
 
 

@@ -62,8 +62,8 @@ DUPLICATE_CENTRE_D = 0.25
 DUPLICATE_DIAMETER = 0.25
 DEM_PRODUCTS = {"south": "lola_ldem256_south", "north": "lola_ldem256_north"}
 _ROOT = Path(__file__).resolve().parents[2]
-COMMITTED_MAP = {"south": _ROOT / "data_manifest" / "landmarks" / "south.geojson"}
-COMMITTED_FIGURE = {"south": _ROOT / "docs" / "img" / "landmarks_south.png"}
+COMMITTED_MAP = {pole: _ROOT / "data_manifest" / "landmarks" / f"{pole}.geojson" for pole in ("south", "north")}
+COMMITTED_FIGURE = {pole: _ROOT / "docs" / "img" / f"landmarks_{pole}.png" for pole in ("south", "north")}
 
 
 class LandmarkMapError(UserError):
@@ -384,7 +384,7 @@ def read_map(path: str | Path) -> tuple[list[Landmark], dict]:
 def load_default_map(pole: str = "south") -> tuple[list[Landmark], dict]:
     """The committed map of ``pole`` (data_manifest/landmarks/<pole>.geojson)."""
     path = COMMITTED_MAP.get(check_pole(pole))
-    if path is None:
+    if path is None or not path.exists():
         raise LandmarkMapError(
             f"no committed landmark map for the {pole} pole: run crater-synth landmarks --pole {pole}"
         )

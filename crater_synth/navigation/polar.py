@@ -34,3 +34,21 @@ def scale_factor(lat_deg, pole: str = "south"):
     """
     check_pole(pole)
     return 2.0 / (1.0 + np.sin(np.radians(np.abs(np.asarray(lat_deg, dtype=np.float64)))))
+
+
+def local_north_image_angle(x, y, pole: str = "south"):
+    """Angle (radians, from image +u towards image +v, i.e. clockwise on a north-up map image) of local
+    north (the direction of increasing latitude) at map points (x, y) of ``pole``'s polar stereographic
+    plane, in a map image whose pixel (u, v) is (left + u p, top - v p).
+
+    Local north points away from the pole at the south pole and towards it at the north pole
+    (:func:`crater_core.geometry.noon_azimuth_deg`). The map is seen from above at both poles, so local
+    east is 90 degrees clockwise of local north in the image at both: a direction at local azimuth
+    ``alpha`` (clockwise from local north) lies at image angle ``local_north_image_angle + alpha``.
+    """
+    s = 1.0 if check_pole(pole) == "north" else -1.0
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    # Map direction of local north: -(x, y) (towards the pole) in the north, +(x, y) in the south;
+    # image (du, dv) = (dx, -dy).
+    return np.arctan2(s * y, -s * x)
