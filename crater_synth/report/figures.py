@@ -258,3 +258,100 @@ def fidelity_panel(
         fig.suptitle(crater, fontsize=10.5)
         fig.tight_layout()
         return _save(fig, path)
+
+
+NAV_DETECTOR_COLOR, NAV_PERFECT_COLOR = "#d9480f", "#1c7ed6"
+
+
+def nav_trajectory(path: Path, trajectory: str, frames: Sequence[dict], false_fix_km: float = 5.0) -> str:
+    """Per frame of a rendered trajectory (x: frame number, with its altitude): top, the position error
+    of the fix (log scale) of the detector and of the perfect-detection check, a cross in the strip at
+    the bottom where a frame has no fix; bottom, the landmarks in view, those the detector matched and
+    those the perfect-detection fix identified, with the detection count on the right axis."""
+    idx = np.array([f["index"] for f in frames], dtype=float)
+    alt = [f["altitude_km"] for f in frames]
+    with _rc():
+        fig = _new_figure(9.0, 6.2)
+        ax, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [1.3, 1.0]})
+        strip = ax.get_xaxis_transform()  # x in data, y in axes fraction: the "no fix" strip
+        errs = []
+        for key, color, marker, y_nofix, name in (
+            ("detector", NAV_DETECTOR_COLOR, "o", 0.05, "detector"),
+            ("perfect", NAV_PERFECT_COLOR, "s", 0.12, "perfect detections"),
+        ):
+            recs = [f if key == "detector" else f["perfect"] for f in frames]
+            fixed = np.array([bool(r["fix"]) for r in recs])
+            e = np.array([r["error_km"] if r["fix"] else np.nan for r in recs], dtype=float)
+            e = np.maximum(e, 1e-6)  # an exact fix still shows on the log axis (1 mm)
+            errs += e[fixed].tolist()
+            ax.plot(
+                idx[fixed],
+                e[fixed],
+                marker,
+                color=color,
+                ms=6,
+                ls="-" if fixed.sum() > 1 else "none",
+                lw=1,
+                label=f"{name}: fix ({int(fixed.sum())} of {len(recs)})",
+            )
+            ax.plot(
+                idx[~fixed],
+                np.full((~fixed).sum(), y_nofix),
+                "x",
+                color=color,
+                ms=7,
+                mew=1.6,
+                transform=strip,
+                label=f"{name}: no fix ({int((~fixed).sum())})",
+            )
+        ax.set_yscale("log")
+        lo = min(errs) if errs else 1e-3
+        hi = max(errs) if errs else 1.0
+        ax.set_ylim(lo / 30.0, max(hi, false_fix_km) * 3.0)  # room at the bottom for the no-fix strip
+        ax.axhline(false_fix_km, color="#868e96", ls="--", lw=1)
+        ax.annotate(
+            f"false fix > {false_fix_km:g} km",
+            (idx.min(), false_fix_km),
+            xytext=(2, 3),
+            textcoords="offset points",
+            fontsize=7,
+            color="#868e96",
+        )
+        ax.set_ylabel("position error of the fix (km, log)")
+        ax.set_title(f"{trajectory}: fix error per frame (crosses at the bottom: no fix)")
+        ax.legend(loc="upper left", ncol=2)
+        view = np.array([f["landmarks_in_view"] for f in frames], dtype=float)
+        ax2.bar(idx, view, color="#dee2e6", width=0.7, label="landmarks in view")
+        ax2.plot(
+            idx,
+            [f["matched"] for f in frames],
+            "o-",
+            color=NAV_DETECTOR_COLOR,
+            ms=4,
+            lw=1.2,
+            label="matched by the detector",
+        )
+        ax2.plot(
+            idx,
+            [f["perfect"].get("identified") or 0 for f in frames],
+            "s--",
+            color=NAV_PERFECT_COLOR,
+            ms=4,
+            lw=1.0,
+            label="identified in the perfect-detection fix",
+        )
+        ax2.set_ylabel("landmarks")
+        ax2.set_ylim(0, max(1.0, view.max()) * 1.25)
+        ax3 = ax2.twinx()
+        ax3.plot(idx, [f["n_detections"] for f in frames], ":", color="#495057", lw=1.2, label="detections")
+        ax3.set_ylabel("detections", color="#495057")
+        ax3.spines["right"].set_visible(True)
+        ax3.set_ylim(0, max(1.0, max(f["n_detections"] for f in frames)) * 1.25)
+        h1, l1 = ax2.get_legend_handles_labels()
+        h2, l2 = ax3.get_legend_handles_labels()
+        ax2.legend(h1 + h2, l1 + l2, loc="upper right", ncol=2)
+        step = max(1, len(idx) // 16)
+        ax2.set_xticks(idx[::step], [f"{int(i)}\n{a:.0f} km" for i, a in zip(idx[::step], alt[::step])])
+        ax2.set_xlabel("frame (altitude)")
+        fig.tight_layout()
+        return _save(fig, path)
