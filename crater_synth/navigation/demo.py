@@ -52,7 +52,9 @@ def main(out: Path, per_sector: int):
     from crater_core.schema import atomic_write_bytes, atomic_write_text
     from crater_synth.navigation.detect import detect
     from crater_synth.navigation.evaluate import (
+        FALSE_FIX_KM,
         HEADLINE_MIN_LANDMARKS,
+        PRIOR_OFFSET_KM,
         _params_with,
         frame_light,
         prior_georef,
@@ -116,6 +118,8 @@ def main(out: Path, per_sector: int):
         "windows_per_method": len(frames),
         "min_landmark_km": fparams.min_landmark_km,
         "headline_min_landmarks": HEADLINE_MIN_LANDMARKS,
+        "prior_offset_km": PRIOR_OFFSET_KM,
+        "false_fix_km": FALSE_FIX_KM,
         "methods": methods,
         "windows": windows_out,
         "seconds": round(time.time() - t0, 1),

@@ -308,6 +308,7 @@ def frames_record(
         "seed": seed,
         "settings": list(sets),
         "min_landmark_km": fparams.min_landmark_km,
+        "min_inliers": fparams.min_inliers,
         "false_fix_km": FALSE_FIX_KM,
         "render": _render_info(frames_dir),
         "summary": summary,

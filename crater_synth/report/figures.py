@@ -263,65 +263,64 @@ def fidelity_panel(
 NAV_DETECTOR_COLOR, NAV_PERFECT_COLOR = "#d9480f", "#1c7ed6"
 
 
-def nav_trajectory(path: Path, trajectory: str, frames: Sequence[dict], false_fix_km: float = 5.0) -> str:
-    """Per frame of a rendered trajectory (x: frame number, with its altitude): top, the position error
-    of the fix (log scale) of the detector and of the perfect-detection check, a cross in the strip at
-    the bottom where a frame has no fix; bottom, the landmarks in view, those the detector matched and
-    those the perfect-detection fix identified, with the detection count on the right axis."""
+def nav_trajectory(
+    path: Path, trajectory: str, frames: Sequence[dict], false_fix_km: float = 5.0, min_inliers: int | None = None
+) -> str:
+    """Per frame of a rendered trajectory (x: frame number, with its altitude). Top: the position error
+    of the fix (metres, log scale) of the detector and of the perfect-detection check; below it, a strip
+    with a cross where a frame has no fix. Bottom: the landmarks in view (all labels, and those of the
+    map's minimum size the fix can use), those the detector matched, those the perfect-detection fix
+    identified, and the detection count (right axis)."""
     idx = np.array([f["index"] for f in frames], dtype=float)
     alt = [f["altitude_km"] for f in frames]
+    runs = (
+        ("detector", NAV_DETECTOR_COLOR, "o", "detector", "detector"),
+        ("perfect", NAV_PERFECT_COLOR, "s", "perfect detections", "perfect"),
+    )
     with _rc():
-        fig = _new_figure(9.0, 6.2)
-        ax, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [1.3, 1.0]})
-        strip = ax.get_xaxis_transform()  # x in data, y in axes fraction: the "no fix" strip
+        fig = _new_figure(9.0, 7.0)
+        ax, strip, ax2 = fig.subplots(
+            3, 1, sharex=True, gridspec_kw={"height_ratios": [1.5, 0.32, 1.1], "hspace": 0.08}
+        )
         errs = []
-        for key, color, marker, y_nofix, name in (
-            ("detector", NAV_DETECTOR_COLOR, "o", 0.05, "detector"),
-            ("perfect", NAV_PERFECT_COLOR, "s", 0.12, "perfect detections"),
-        ):
+        for row, (key, color, marker, name, _) in enumerate(runs):
             recs = [f if key == "detector" else f["perfect"] for f in frames]
             fixed = np.array([bool(r["fix"]) for r in recs])
-            e = np.array([r["error_km"] if r["fix"] else np.nan for r in recs], dtype=float)
-            e = np.maximum(e, 1e-6)  # an exact fix still shows on the log axis (1 mm)
-            errs += e[fixed].tolist()
+            e_m = np.array([1000.0 * r["error_km"] if r["fix"] else np.nan for r in recs], dtype=float)
+            e_m = np.maximum(e_m, 1e-4)  # an exact fix still shows on the log axis (0.1 mm)
+            errs += e_m[fixed].tolist()
             ax.plot(
                 idx[fixed],
-                e[fixed],
+                e_m[fixed],
                 marker,
                 color=color,
                 ms=6,
                 ls="-" if fixed.sum() > 1 else "none",
                 lw=1,
-                label=f"{name}: fix ({int(fixed.sum())} of {len(recs)})",
+                label=f"{name}: {int(fixed.sum())} of {len(recs)} frames fixed",
             )
-            ax.plot(
-                idx[~fixed],
-                np.full((~fixed).sum(), y_nofix),
-                "x",
-                color=color,
-                ms=7,
-                mew=1.6,
-                transform=strip,
-                label=f"{name}: no fix ({int((~fixed).sum())})",
-            )
-        ax.set_yscale("log")
-        lo = min(errs) if errs else 1e-3
-        hi = max(errs) if errs else 1.0
-        ax.set_ylim(lo / 30.0, max(hi, false_fix_km) * 3.0)  # room at the bottom for the no-fix strip
-        ax.axhline(false_fix_km, color="#868e96", ls="--", lw=1)
-        ax.annotate(
-            f"false fix > {false_fix_km:g} km",
-            (idx.min(), false_fix_km),
-            xytext=(2, 3),
-            textcoords="offset points",
-            fontsize=7,
-            color="#868e96",
+            strip.plot(idx[~fixed], np.full(int((~fixed).sum()), row), "x", color=color, ms=7, mew=1.6)
+        fx = 1000.0 * false_fix_km
+        ax.axhline(fx, color="#868e96", ls="--", lw=1)
+        ax.text(
+            idx.max(), fx, f"false fix > {false_fix_km:g} km ", ha="right", va="bottom", fontsize=7, color="#868e96"
         )
-        ax.set_ylabel("position error of the fix (km, log)")
-        ax.set_title(f"{trajectory}: fix error per frame (crosses at the bottom: no fix)")
+        lo, hi = (min(errs), max(errs)) if errs else (1e-2, 1e3)
+        ax.set_yscale("log")
+        ax.set_ylim(lo / 10.0, max(hi, fx) * 10.0)
+        ax.set_ylabel("position error of the fix (m, log)")
+        ax.set_title(f"{trajectory}: fix error per frame")
         ax.legend(loc="upper left", ncol=2)
+        strip.set_ylim(-0.7, 1.7)
+        strip.set_yticks([0, 1], [short for *_, short in runs], fontsize=7)
+        strip.set_ylabel("no fix", fontsize=8, rotation=0, ha="right", va="center", labelpad=4)
+        strip.spines["left"].set_visible(False)
+        strip.tick_params(axis="y", length=0)
         view = np.array([f["landmarks_in_view"] for f in frames], dtype=float)
-        ax2.bar(idx, view, color="#dee2e6", width=0.7, label="landmarks in view")
+        usable = [f.get("landmarks_in_view_min_d") for f in frames]
+        ax2.bar(idx, view, color="#e9ecef", width=0.75, label="landmarks in view (all labels)")
+        if all(is_n is not None for is_n in usable):
+            ax2.bar(idx, usable, color="#adb5bd", width=0.45, label="of the map's minimum size (usable)")
         ax2.plot(
             idx,
             [f["matched"] for f in frames],
@@ -331,27 +330,40 @@ def nav_trajectory(path: Path, trajectory: str, frames: Sequence[dict], false_fi
             lw=1.2,
             label="matched by the detector",
         )
+        pf = np.array([bool(f["perfect"]["fix"]) for f in frames])
         ax2.plot(
-            idx,
-            [f["perfect"].get("identified") or 0 for f in frames],
-            "s--",
+            idx[pf],
+            [f["perfect"]["identified"] for f, ok in zip(frames, pf) if ok],
+            "s",
             color=NAV_PERFECT_COLOR,
-            ms=4,
-            lw=1.0,
+            ms=5,
             label="identified in the perfect-detection fix",
         )
+        if min_inliers:
+            ax2.axhline(min_inliers, color="#868e96", ls="--", lw=1)
+            ax2.text(
+                idx.max(),
+                min_inliers,
+                f"a fix needs {min_inliers} ",
+                ha="right",
+                va="bottom",
+                fontsize=7,
+                color="#868e96",
+            )
         ax2.set_ylabel("landmarks")
-        ax2.set_ylim(0, max(1.0, view.max()) * 1.25)
+        ax2.set_ylim(0, max(1.0, view.max()) * 1.5)
         ax3 = ax2.twinx()
-        ax3.plot(idx, [f["n_detections"] for f in frames], ":", color="#495057", lw=1.2, label="detections")
+        ax3.plot(
+            idx, [f["n_detections"] for f in frames], ":", color="#495057", lw=1.2, label="detections (right axis)"
+        )
         ax3.set_ylabel("detections", color="#495057")
         ax3.spines["right"].set_visible(True)
-        ax3.set_ylim(0, max(1.0, max(f["n_detections"] for f in frames)) * 1.25)
+        ax3.set_ylim(0, max(1.0, max(f["n_detections"] for f in frames)) * 1.5)
         h1, l1 = ax2.get_legend_handles_labels()
         h2, l2 = ax3.get_legend_handles_labels()
         ax2.legend(h1 + h2, l1 + l2, loc="upper right", ncol=2)
         step = max(1, len(idx) // 16)
         ax2.set_xticks(idx[::step], [f"{int(i)}\n{a:.0f} km" for i, a in zip(idx[::step], alt[::step])])
         ax2.set_xlabel("frame (altitude)")
-        fig.tight_layout()
+        fig.subplots_adjust(left=0.15, right=0.9, top=0.95, bottom=0.1)
         return _save(fig, path)

@@ -583,6 +583,9 @@ def navigation(ctx: Ctx) -> dict:
             gallery=gallery,
             methods=list(demo["methods"]),
             per_sector=demo.get("per_sector"),
+            min_landmark_km=demo.get("min_landmark_km"),
+            prior_offset_km=demo.get("prior_offset_km"),
+            false_fix_km=demo.get("false_fix_km"),
             n_windows=len(windows),
         )
     trajectories = []
@@ -590,7 +593,13 @@ def navigation(ctx: Ctx) -> dict:
         doc = load_nav_frames(path)
         ctx.say(f"navigation error plot {path.name}")
         frames = sorted(doc["frames"], key=lambda f: f["index"])
-        src = figures.nav_trajectory(ctx.out / f"nav_trajectory_{k}.png", doc["trajectory"], frames)
+        src = figures.nav_trajectory(
+            ctx.out / f"nav_trajectory_{k}.png",
+            doc["trajectory"],
+            frames,
+            float(doc.get("false_fix_km") or 5.0),
+            doc.get("min_inliers"),
+        )
         trajectories.append(
             {
                 "path": str(path),

@@ -338,6 +338,9 @@ def load_nav_demo(path: Path) -> dict | None:
         or not isinstance(doc.get("methods"), dict)
     ):
         raise ReportError(f"{bad}: expected an object with a 'windows' list and a 'methods' object")
+    for key in ("per_sector", "min_landmark_km", "prior_offset_km", "false_fix_km"):
+        if not _num_or_none(doc.get(key)):
+            raise ReportError(f"{bad}: {key} is not a number")
     for m, res in doc["methods"].items():
         splits = res.get("splits") if isinstance(res, dict) else None
         if not isinstance(splits, dict):
@@ -376,6 +379,9 @@ def load_nav_frames(path: Path) -> dict | None:
         raise ReportError(f"{bad}: expected an object with a non-empty 'frames' list")
     if not isinstance(doc.get("trajectory"), str):
         raise ReportError(f"{bad}: 'trajectory' missing or not text")
+    for key in ("false_fix_km", "min_inliers", "min_landmark_km"):
+        if not _num_or_none(doc.get(key)):
+            raise ReportError(f"{bad}: {key} is not a number")
     summary = doc.get("summary")
     if not isinstance(summary, dict) or not isinstance(summary.get("perfect"), dict):
         raise ReportError(f"{bad}: 'summary' should hold the detector's and the perfect-detection summaries")
