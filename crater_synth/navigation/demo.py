@@ -28,6 +28,21 @@ DEMO_JSON = "navigation.json"
 WINDOW_FIELDS = ("id", "split", "sector", "light_azimuth_deg", "n_detections", "fix", "reason", "error_km")
 
 
+def window_entry(method: str, row: dict, png_name: str) -> dict:
+    """One window of ``navigation.json``: the scalars of a :func:`.evaluate.run_frame` row, the counts
+    of map landmarks in view (>= the fix's minimum size), matched and identified, and the PNG's name."""
+    return {
+        "method": method,
+        **{k: row.get(k) for k in WINDOW_FIELDS},
+        "landmarks_in_view": len(row["truth"]),
+        "headline_landmarks": row["n_headline_landmarks"],
+        "matched": len(row["matched"]),
+        "identified": row.get("identified", 0),
+        "identified_correct": row.get("identified_correct", 0),
+        "png": png_name,
+    }
+
+
 def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
     """``per_sector`` windows of every sector (the middle ones of its list), both splits."""
     from crater_synth.navigation.frames import windows
@@ -87,18 +102,7 @@ def main(out: Path, per_sector: int):
             atomic_write_bytes(png, annotate(f.image, dets, landmarks, fix, prior, f.georef))
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
             click.echo(f"{method:9s} {f.split:10s} {f.id}: {row['n_detections']} detections, {err} -> {png}")
-            windows_out.append(
-                {
-                    "method": method,
-                    **{k: row.get(k) for k in WINDOW_FIELDS},
-                    "landmarks_in_view": len(row["truth"]),
-                    "headline_landmarks": row["n_headline_landmarks"],
-                    "matched": len(row["matched"]),
-                    "identified": row.get("identified", 0),
-                    "identified_correct": row.get("identified_correct", 0),
-                    "png": png.name,
-                }
-            )
+            windows_out.append(window_entry(method, row, png.name))
         methods[method] = {
             "splits": {
                 s: {
