@@ -67,7 +67,7 @@ def test_report_of_an_empty_directory_is_an_error(tmp_path):
     assert res.exit_code == 2, res.output
     assert res.stderr.splitlines() == [
         f"error: run directory {run} holds no run to report (none of metrics.json, loop_history.json, "
-        "experiments.csv, train_summary.json, config.yaml, ablation.json): "
+        "experiments.csv, train_summary.json, config.yaml, ablation.json, navigation/): "
         "run `crater-synth train run_dir=RUN_DIR` first, or give the run_dir it wrote"
     ]
     assert list(run.iterdir()) == []  # no page of "not run" sections

@@ -234,24 +234,37 @@ def test_nav_frames_command_end_to_end(tmp_path):
     # Identification and fix from the labels' own ellipses (perfect detections): the chain labels ->
     # prior -> identification -> known-attitude fix -> ellipse-centre correction is exact; 6-DOF PnP
     # is close (its tilt/shift ambiguity at nadir makes it looser).
-    from unittest import mock
-
     from crater_synth.navigation import frames_eval
     from crater_synth.navigation.detect import Detection
     from crater_synth.navigation.fix import FixParams
     from crater_synth.navigation.landmarks import load_default_map
 
     lms = load_default_map("south")[0]
-    dets = [Detection(lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"], 1.0) for lb in row["landmarks"]]
-    with mock.patch.object(frames_eval, "detect", lambda *a, **k: (dets, 0.0)):
-        r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams())
-        assert r["fix"] and r["error_km"] < 0.01 and r["identified_correct"] == r["identified"] >= 5, r
-        assert len(r["matched"]) == len(r["truth"])  # every label matched by its own ellipse
-        # Shift every detection by 20 px: no consistent landmark set near the prior -> no fix, never a wrong one.
-        far = [Detection(d.u + 20.0, d.v, d.r, 1.0) for d in dets]
-    with mock.patch.object(frames_eval, "detect", lambda *a, **k: (far, 0.0)):
-        r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams())
-        assert not r["fix"] or r["error_km"] < 5.0, r
+    dets = frames_eval.perfect_detections(row)  # what nav-frames-eval's perfect-detection check uses
+    assert [(d.u, d.v, d.r) for d in dets] == [
+        (lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"]) for lb in row["landmarks"]
+    ]
+    r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets)
+    assert r["fix"] and r["error_km"] < 0.01 and r["identified_correct"] == r["identified"] >= 5, r
+    assert len(r["matched"]) == len(r["truth"])  # every label matched by its own ellipse
+    assert r["n_detections"] == r["landmarks_in_view"] == len(row["landmarks"])
+    # Shift every detection by 20 px: no consistent landmark set near the prior -> no fix, never a wrong one.
+    far = [Detection(d.u + 20.0, d.v, d.r, 1.0) for d in dets]
+    r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=far)
+    assert not r["fix"] or r["error_km"] < 5.0, r
+    # nav-frames-eval's JSON (what `crater-synth report` reads): detector and perfect-detection fix per frame.
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.report.inputs import load_nav_frames
+
+    res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "nav" / "frames_eval.json")])
+    assert res.exit_code == 0, res.output
+    doc = load_nav_frames(tmp_path / "nav" / "frames_eval.json")
+    (f,) = doc["frames"]
+    assert doc["trajectory"] == "descent_ridge" and f["index"] == 0 and f["altitude_km"] == pytest.approx(150.0)
+    assert f["landmarks_in_view"] == len(row["landmarks"]) and f["perfect"]["n_detections"] == len(row["landmarks"])
+    assert f["perfect"]["fix"] and f["perfect"]["error_km"] < 0.01 and doc["summary"]["perfect"]["all"]["fix_rate"] == 1
 
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):

@@ -20,6 +20,8 @@ from crater_core import schema
 from crater_core.exr import write_exr
 from train.registry import MODELS
 
+from helpers.navresult import make_demo, make_frames
+
 CRATERS = ("shackleton", "de_gerlache", "shoemaker")
 SIZE, RIM_PX = 64, 40.0
 
@@ -197,6 +199,8 @@ def make_run(tmp: Path, with_optional: bool = True) -> tuple[Path, Path]:
                                 ]
                             )
         (run / "ablation.json").write_text(json.dumps(make_ablation()))
+        make_demo(run / "navigation")  # what `make navigate-demo` and `nav-frames-eval --json` write
+        make_frames(run / "navigation")
     return run, ds
 
 
@@ -302,12 +306,22 @@ def test_report_page_loads_in_chromium(tmp_path):
     text = page.read_text()
     # Self-contained: relative image links only, no external URLs, no scripts.
     srcs = re.findall(r'<img[^>]+src="([^"]+)"', text)
-    assert len(srcs) >= 3 + 3 + 1 + 3 + 1 + 1
+    assert len(srcs) >= 3 + 3 + 1 + 3 + 1 + 1 + 2 + 1  # ... + annotated navigation windows + error plot
     for s in srcs:
         assert "/" not in s and (page.parent / s).is_file(), s
     assert not re.search(r'(src|href)="(https?:)?//', text) and "<script" not in text
     # The sections and what they must say.
-    for anchor in ("contact", "compare", "histograms", "models", "loop", "figure6", "fidelity", "provenance"):
+    for anchor in (
+        "contact",
+        "compare",
+        "histograms",
+        "models",
+        "loop",
+        "figure6",
+        "fidelity",
+        "navigation",
+        "provenance",
+    ):
         assert f'id="{anchor}"' in text and f'href="#{anchor}"' in text
     assert "ONE real LROC WAC observation per crater, seen 10 ways" in text
     assert "no single sun direction" in text
@@ -337,7 +351,7 @@ def test_report_page_loads_in_chromium(tmp_path):
     assert m, f"chromium printed no check line; stderr: {out.stderr[-2000:]}"
     total, loaded, broken, chars, sections = map(int, m.groups())
     assert total == len(srcs) and loaded == total and broken == 0, m.group(0)
-    assert chars > 2000 and sections == 8
+    assert chars > 2000 and sections == 9
     # Not blank: a screenshot of the top of the page has real contrast.
     shot = tmp_path / "shot.png"
     subprocess.run(

@@ -3,14 +3,17 @@
 A few real south-mosaic windows of each split (fixed, spread over the sectors), both detection methods
 with their frozen settings, the committed landmark map: per window and method an annotated PNG
 (detections, identified landmarks, error arrow) and one table of the metrics over these windows, written
-to ``OUT/table.md`` and printed. Nothing heavy is built (no landmark map, no rendering). The numbers are a
-smoke view of a handful of windows; the evaluation is ``crater-synth nav-eval`` (docs/navigation.md).
+to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
+(:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). Nothing heavy is
+built (no landmark map, no rendering). The numbers are a smoke view of a handful of windows; the
+evaluation is ``crater-synth nav-eval`` (docs/navigation.md).
 
 Run: ``python -m crater_synth.navigation.demo --out outputs/navigate-demo``.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -20,6 +23,24 @@ from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 
 DEMO_WINDOWS_PER_SECTOR = 1
+DEMO_JSON = "navigation.json"
+# The per-window fields of navigation.json (crater_synth.navigation.evaluate.run_frame's scalars).
+WINDOW_FIELDS = ("id", "split", "sector", "light_azimuth_deg", "n_detections", "fix", "reason", "error_km")
+
+
+def window_entry(method: str, row: dict, png_name: str) -> dict:
+    """One window of ``navigation.json``: the scalars of a :func:`.evaluate.run_frame` row, the counts
+    of map landmarks in view (>= the fix's minimum size), matched and identified, and the PNG's name."""
+    return {
+        "method": method,
+        **{k: row.get(k) for k in WINDOW_FIELDS},
+        "landmarks_in_view": len(row["truth"]),
+        "headline_landmarks": row["n_headline_landmarks"],
+        "matched": len(row["matched"]),
+        "identified": row.get("identified", 0),
+        "identified_correct": row.get("identified_correct", 0),
+        "png": png_name,
+    }
 
 
 def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
@@ -45,7 +66,9 @@ def main(out: Path, per_sector: int):
     """Annotated real windows and one table, both detection methods (module docstring)."""
     from crater_core.schema import atomic_write_bytes, atomic_write_text
     from crater_synth.navigation.evaluate import (
+        FALSE_FIX_KM,
         HEADLINE_MIN_LANDMARKS,
+        PRIOR_OFFSET_KM,
         _params_with,
         navigate_frame,
         results_markdown,
@@ -62,6 +85,7 @@ def main(out: Path, per_sector: int):
     landmarks, _ = load_default_map("south")
     frames = demo_frames(per_sector)
     methods = {}
+    windows_out = []
     for method in ("classical", "template"):
         dparams, fparams = _params_with((), method)
         splits: dict = {}
@@ -73,6 +97,7 @@ def main(out: Path, per_sector: int):
             atomic_write_bytes(png, annotate(f.image, dets, landmarks, fix, prior, f.georef))
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
             click.echo(f"{method:9s} {f.split:10s} {f.id}: {row['n_detections']} detections, {err} -> {png}")
+            windows_out.append(window_entry(method, row, png.name))
         methods[method] = {
             "splits": {
                 s: {
@@ -85,8 +110,24 @@ def main(out: Path, per_sector: int):
     table = results_markdown({"methods": methods})
     head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), both detection methods.\n\n"
     atomic_write_text(out / "table.md", head + table)
+    record = {
+        "kind": "crater-synth navigate-demo",
+        "schema_version": 1,
+        "per_sector": per_sector,
+        "windows_per_method": len(frames),
+        "min_landmark_km": fparams.min_landmark_km,
+        "headline_min_landmarks": HEADLINE_MIN_LANDMARKS,
+        "prior_offset_km": PRIOR_OFFSET_KM,
+        "false_fix_km": FALSE_FIX_KM,
+        "methods": methods,
+        "windows": windows_out,
+        "seconds": round(time.time() - t0, 1),
+    }
+    atomic_write_text(out / DEMO_JSON, json.dumps(record, indent=1) + "\n")
     click.echo(table)
-    click.echo(f"wrote {out}/table.md and {2 * len(frames)} annotated PNGs in {time.time() - t0:.0f} s")
+    click.echo(
+        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {2 * len(frames)} annotated PNGs in {time.time() - t0:.0f} s"
+    )
 
 
 if __name__ == "__main__":

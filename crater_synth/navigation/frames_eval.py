@@ -40,8 +40,9 @@ import numpy as np
 from crater_core import exr, geometry, schema
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detect import DetectorParams, detect
+from crater_synth.navigation.detect import Detection, DetectorParams, detect
 from crater_synth.navigation.evaluate import (
+    FALSE_FIX_KM,
     HEADLINE_MIN_D_KM,
     HEADLINE_MIN_LANDMARKS,
     MATCH_CENTRE_D,
@@ -107,9 +108,11 @@ def evaluate_frame(
     fparams: FixParams,
     seed: int = 0,
     method: str = "position",
+    detections: list | None = None,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
-    :func:`.evaluate.summarise`'s format plus the frame's own fields."""
+    :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
+    detector's output (the perfect-detection check, :func:`perfect_detections`)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
@@ -117,7 +120,10 @@ def evaluate_frame(
     fov = float(row["pose"]["fov_deg"])
     gsd = float(row["ground_sample_m"])
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
-    dets, theta = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    if detections is None:
+        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    else:
+        dets = list(detections)
     labels = [lb for lb in row["landmarks"] if lb["diameter_km"] >= fparams.min_landmark_km]
     matched = match_pixels(dets, labels)
     by_id = {lm.id: k for k, lm in enumerate(landmarks)}
@@ -127,6 +133,7 @@ def evaluate_frame(
         "altitude_km": row["pose"]["altitude_m"] / 1000.0,
         "ground_sample_m": gsd,
         "n_detections": len(dets),
+        "landmarks_in_view": len(row["landmarks"]),
         "truth": [by_id[lb["id"]] for lb in labels],
         "truth_d_km": [lb["diameter_km"] for lb in labels],
         "det_r_km": [d.r * gsd / 1000.0 for d in dets],
@@ -221,6 +228,12 @@ def evaluate_frame(
     return out
 
 
+def perfect_detections(row: dict) -> list[Detection]:
+    """Every label's own rim ellipse as a detection (centre, semi-major axis): the input of the
+    perfect-detection check, which tests labels, projection, identification and fix without the detector."""
+    return [Detection(lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"], 1.0) for lb in row["landmarks"]]
+
+
 def evaluate_dir(
     frames_dir: Path,
     dparams: DetectorParams = DetectorParams(),
@@ -228,7 +241,9 @@ def evaluate_dir(
     seed: int = 0,
     method: str = "position",
 ):
-    """(summary over all frames and headline frames, per-frame rows) of a ``nav-frames`` output."""
+    """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames and the
+    headline frames, with the detector and with perfect detections (``"perfect"``); each row is the
+    detector's, with the perfect-detection row of the same frame under ``"perfect"``."""
     from crater_synth.navigation.landmarks import load_default_map
 
     manifest = Path(frames_dir) / schema.MANIFEST_NAME
@@ -244,10 +259,61 @@ def evaluate_dir(
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
-        out.append(evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method))
+        r = evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method)
+        r["perfect"] = evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method, perfect_detections(row))
+        out.append(r)
     head = [r for r in out if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
-    summary = {"all": summarise(out), "headline": summarise(head)}
+    summary = {
+        "all": summarise(out),
+        "headline": summarise(head),
+        "perfect": {"all": summarise([r["perfect"] for r in out]), "headline": summarise([r["perfect"] for r in head])},
+    }
     return summary, out
+
+
+FRAMES_EVAL_JSON = "frames_eval.json"
+FRAME_FIELDS = ("fix", "reason", "error_km", "identified", "identified_correct", "rms_px", "putative_pairs")
+
+
+def frames_record(
+    frames_dir: Path, summary: dict, rows: list[dict], seed: int, method: str, fparams: FixParams, sets=()
+) -> dict:
+    """The machine-readable result of ``nav-frames-eval`` (``--json``; read by ``crater-synth report``):
+    per frame the altitude, ground sample, landmarks in view (all labels; and >= the fix's minimum size),
+    detections, matched labels and the fix (or the reason for none) of the detector and of the
+    perfect-detection check."""
+    frames = []
+    for r in rows:
+        p = r["perfect"]
+        frames.append(
+            {
+                "index": r["index"],
+                "altitude_km": r["altitude_km"],
+                "ground_sample_m": r["ground_sample_m"],
+                "landmarks_in_view": r["landmarks_in_view"],
+                "landmarks_in_view_min_d": len(r["truth"]),
+                "headline_landmarks": r["n_headline_landmarks"],
+                "n_detections": r["n_detections"],
+                "matched": len(r["matched"]),
+                **{k: r.get(k) for k in FRAME_FIELDS},
+                "perfect": {"n_detections": p["n_detections"], **{k: p.get(k) for k in FRAME_FIELDS}},
+            }
+        )
+    return {
+        "kind": "crater-synth nav-frames-eval",
+        "schema_version": 1,
+        "frames_dir": str(Path(frames_dir).resolve()),
+        "trajectory": rows[0]["id"].split("/")[0],
+        "method": method,
+        "seed": seed,
+        "settings": list(sets),
+        "min_landmark_km": fparams.min_landmark_km,
+        "min_inliers": fparams.min_inliers,
+        "false_fix_km": FALSE_FIX_KM,
+        "render": _render_info(frames_dir),
+        "summary": summary,
+        "frames": frames,
+    }
 
 
 def _render_info(frames_dir: Path) -> dict:
@@ -267,6 +333,14 @@ def _render_info(frames_dir: Path) -> dict:
 @click.option(
     "--write-results", is_flag=True, help="Record the summary under 'synthetic' in docs/results/navigation.json."
 )
+@click.option(
+    "--json",
+    "json_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Per-frame results (detector and perfect-detection check) as JSON [FRAMES_DIR/frames_eval.json]; "
+    "crater-synth report reads RUN_DIR/navigation/frames_eval*.json.",
+)
 @click.option("--seed", default=0, show_default=True, help="Seed of the prior offsets.")
 @click.option(
     "--set", "sets", multiple=True, help="detect.<name>=<value> or fix.<name>=<value> (as in nav-eval); not recorded."
@@ -279,8 +353,9 @@ def _render_info(frames_dir: Path) -> dict:
     help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
 )
 @user_errors
-def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
-    """Navigation metrics (detection, identification, fix) on rendered frames with exact truth.
+def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, method):
+    """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
+    perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
 
     Example: `crater-synth nav-frames-eval data/navframes/descent_ridge`
     """
@@ -294,9 +369,16 @@ def nav_frames_eval_command(frames_dir, write_results, seed, sets, method):
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
             f"det {r['n_detections']:3d} truth {len(r['truth']):3d} matched {len(r['matched']):3d} "
-            f"fix {r['fix']!s:5} " + (f"err {r['error_km']:.3f} km" if r["fix"] else r["reason"]),
+            f"fix {r['fix']!s:5} "
+            + (f"err {r['error_km']:.3f} km" if r["fix"] else r["reason"])
+            + "; perfect detections: "
+            + (f"err {r['perfect']['error_km'] * 1000:.3f} m" if r["perfect"]["fix"] else r["perfect"]["reason"]),
             err=True,
         )
+    json_path = json_path or Path(frames_dir) / FRAMES_EVAL_JSON
+    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets)
+    schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
+    click.echo(f"wrote {json_path}", err=True)
     if write_results:
         results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
         info = _render_info(frames_dir)

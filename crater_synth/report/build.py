@@ -18,6 +18,7 @@ from crater_synth.report.inputs import (
     FIGURE6_FILE,
     LOOP_FILE,
     METRICS_FILE,
+    NAVIGATION_DIR,
     RUN_CONFIG_FILE,
     SUMMARY_FILE,
     ReportError,
@@ -27,7 +28,10 @@ from crater_synth.report.inputs import (
     load_experiments,
     load_loop_history,
     load_metrics,
+    load_nav_demo,
+    load_nav_frames,
     load_summary,
+    nav_paths,
 )
 from crater_synth.report.page import render_page
 from crater_synth.report.publish import publish
@@ -51,11 +55,11 @@ def build_report(
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
     run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE, gather.ABLATION_FILE)
-    if not any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE)) and not any(
-        run_dir.glob("confusion_*.png")
-    ):  # nothing of a run here: e.g. a typo in RUN_DIR
+    has_run = any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE))
+    if not has_run and not any(run_dir.glob("confusion_*.png")) and not (run_dir / NAVIGATION_DIR).is_dir():
+        # nothing of a run here: e.g. a typo in RUN_DIR
         raise ReportError(
-            f"run directory {run_dir} holds no run to report (none of {', '.join(run_outputs)}): "
+            f"run directory {run_dir} holds no run to report (none of {', '.join(run_outputs)}, {NAVIGATION_DIR}/): "
             f"run `{gather.PRODUCERS['metrics'][1]}` first, or give the run_dir it wrote"
         )
     rc = effective_config(run_dir, overrides)
@@ -68,6 +72,10 @@ def build_report(
     gather.load_ablation(gather.ablation_path(run_dir, rc.cfg))
     for m in MODELS:
         check_png(run_dir / f"confusion_{m}.png")
+    nav_demo, nav_frames = nav_paths(run_dir)
+    load_nav_demo(nav_demo)
+    for path in nav_frames:
+        load_nav_frames(path)
     all_rows = dataset_rows(rc.dataset_dir)
     rows = all_rows
     selection = (rc.cfg.get("train") or {}).get("select")
@@ -118,7 +126,8 @@ def build_report(
 @user_errors
 def report_command(run_dir, overrides, max_tiles, hist_samples, quiet):
     """Write RUN_DIR/report/index.html: contact sheets, real vs synthetic, input histograms, accuracies and
-    confusion matrices, closed-loop history, Figure 6, provenance and test-set limits.
+    confusion matrices, closed-loop history, Figure 6, fidelity ablation, crater navigation (RUN_DIR/navigation/),
+    provenance and test-set limits.
 
     The dataset is the run's train.dataset_dir (from RUN_DIR/config.yaml when train saved it), or
     give train.dataset_dir=DIR. Absent inputs become "not run" notes; a corrupt one is an error.

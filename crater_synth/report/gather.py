@@ -4,7 +4,7 @@ report's temporary directory. No HTML here: the templates own the markup.
 
 Any number of craters (classes) is supported: every per-crater item is a list, never three columns.
 
-Length: one gatherer per report section (eight) plus the real-crop planning and synthetic-render
+Length: one gatherer per report section (nine) plus the real-crop planning and synthetic-render
 choice they share; a module per section would import those shared helpers back from here.
 """
 
@@ -22,12 +22,16 @@ from crater_synth.report.inputs import (
     FIGURE6_FILE,
     LOOP_FILE,
     METRICS_FILE,
+    NAV_FRAMES_GLOB,
     ReportError,
     check_png,
     config_craters,
     is_num,
     load_experiments,
     load_loop_history,
+    load_nav_demo,
+    load_nav_frames,
+    nav_paths,
 )
 from crater_synth.report.provenance import limits_text, provenance
 from train.registry import MODELS, REGISTRY, SPECS
@@ -567,6 +571,78 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
     return items
 
 
+# ---- 8. navigation (docs/navigation.md) ---------------------------------------------------------
+NAV_SPLIT_ORDER = {"validation": 0, "test": 1}
+
+
+def navigation(ctx: Ctx) -> dict:
+    """The navigate-demo metrics table and its annotated real windows (copied in), and per rendered
+    trajectory the per-frame fix error of the detector and of the perfect-detection check."""
+    demo_path, frame_paths = nav_paths(ctx.run_dir)
+    demo = load_nav_demo(demo_path)
+    if demo is None and not frame_paths:
+        return {"not_run": not_run(f"no {demo_path} and no {demo_path.parent}/{NAV_FRAMES_GLOB}", "navigation")}
+    out: dict = {"demo_path": str(demo_path)}
+    if demo is None:
+        out["demo_missing"] = not_run(f"no {demo_path}", "navigation")
+    else:
+        rows = []
+        for method, res in demo["methods"].items():
+            for split in sorted(res["splits"], key=lambda s: (NAV_SPLIT_ORDER.get(s, 2), s)):
+                r = res["splits"][split]
+                rows.append({"method": method, "split": split, "which": "≥ 3 landmarks D ≥ 15 km", "s": r["headline"]})
+                rows.append({"method": method, "split": split, "which": "all windows", "s": r["all_windows"]})
+        windows: dict[str, dict] = {}
+        for w in demo["windows"]:
+            item = windows.setdefault(
+                w["id"], {"id": w["id"], "split": w["split"], "sector": w.get("sector"), "by": []}
+            )
+            src = f"nav_{w['png']}"
+            shutil.copyfile(demo_path.parent / w["png"], ctx.out / src)
+            item["by"].append({**w, "src": src})
+        gallery = sorted(windows.values(), key=lambda it: (NAV_SPLIT_ORDER.get(it["split"], 2), it["id"]))
+        out.update(
+            table=rows,
+            gallery=gallery,
+            methods=list(demo["methods"]),
+            per_sector=demo.get("per_sector"),
+            min_landmark_km=demo.get("min_landmark_km"),
+            prior_offset_km=demo.get("prior_offset_km"),
+            false_fix_km=demo.get("false_fix_km"),
+            n_windows=len(windows),
+        )
+    trajectories = []
+    for k, path in enumerate(frame_paths):
+        doc = load_nav_frames(path)
+        ctx.say(f"navigation error plot {path.name}")
+        frames = sorted(doc["frames"], key=lambda f: f["index"])
+        src = figures.nav_trajectory(
+            ctx.out / f"nav_trajectory_{k}.png",
+            doc["trajectory"],
+            frames,
+            float(doc.get("false_fix_km") or 5.0),
+            doc.get("min_inliers"),
+        )
+        trajectories.append(
+            {
+                "path": str(path),
+                "name": doc["trajectory"],
+                "method": doc.get("method", "position"),
+                "render": doc.get("render") or {},
+                "settings": doc.get("settings") or [],
+                "summary": doc["summary"],
+                "frames": frames,
+                "src": src,
+                "fixes": sum(f["fix"] for f in frames),
+                "perfect_fixes": sum(f["perfect"]["fix"] for f in frames),
+            }
+        )
+    out["trajectories"] = trajectories
+    if not trajectories:
+        out["frames_missing"] = not_run(f"no {demo_path.parent}/{NAV_FRAMES_GLOB}", "navframes")
+    return out
+
+
 # ---- header --------------------------------------------------------------------------------------
 def header(ctx: Ctx) -> dict:
     m = ctx.metrics
@@ -628,8 +704,14 @@ SECTIONS = (
         "Which sim-to-real levers moved the real accuracy (validation craters choose, the test craters are reported).",
     ),
     (
+        "navigation",
+        "8. Crater navigation",
+        navigation,
+        "Position fixes from crater landmarks: annotated real windows and the fix error along a rendered trajectory.",
+    ),
+    (
         "provenance",
-        "8. Provenance & limits",
+        "9. Provenance & limits",
         provenance,
         "Where every input came from, and what the test set can and cannot tell.",
     ),

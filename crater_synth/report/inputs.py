@@ -303,3 +303,120 @@ def config_craters(cfg: Mapping) -> list[dict]:
             }
         )
     return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Navigation (docs/navigation.md): RUN_DIR/navigation/ holds what `make navigate-demo` and
+# `crater-synth nav-frames-eval --json` write
+# ------------------------------------------------------------------------------------------------
+NAVIGATION_DIR = "navigation"
+NAV_FRAMES_GLOB = "frames_eval*.json"  # one per rendered trajectory (FRAMES_EVAL_JSON, or frames_eval_NAME.json)
+NAV_SUMMARY_KEYS = (
+    "fix_rate",
+    "median_error_km",
+    "p90_error_km",
+    "false_fix_rate",
+    "identification_accuracy",
+    "recall_15km",
+    "precision_15km",
+)
+
+
+def _check_summary(s, where: str, bad: str) -> None:
+    if not isinstance(s, dict) or not is_num(s.get("windows")):
+        raise ReportError(f"{bad}: {where} should be a summary object with a 'windows' count")
+    for key in NAV_SUMMARY_KEYS:
+        if not _num_or_none(s.get(key)):
+            raise ReportError(f"{bad}: {where}.{key} is not a number")
+
+
+def _check_fix(f: dict, where: str, bad: str) -> None:
+    if not isinstance(f.get("fix"), bool):
+        raise ReportError(f"{bad}: {where}.fix missing or not true/false")
+    if f["fix"] and not is_num(f.get("error_km")):
+        raise ReportError(f"{bad}: {where} has a fix but no error_km")
+    if not f["fix"] and not isinstance(f.get("reason"), str):
+        raise ReportError(f"{bad}: {where} has no fix and no reason")
+
+
+def load_nav_demo(path: Path) -> dict | None:
+    """``navigation.json`` of ``make navigate-demo`` (crater_synth/navigation/demo.py), shape-checked;
+    every annotated PNG it names must sit next to it and be a PNG."""
+    if not path.exists():
+        return None
+    doc = _read_json(path)
+    bad = f"{path}: corrupt navigation demo result"
+    if (
+        not isinstance(doc, dict)
+        or not isinstance(doc.get("windows"), list)
+        or not isinstance(doc.get("methods"), dict)
+    ):
+        raise ReportError(f"{bad}: expected an object with a 'windows' list and a 'methods' object")
+    for key in ("per_sector", "min_landmark_km", "prior_offset_km", "false_fix_km"):
+        if not _num_or_none(doc.get(key)):
+            raise ReportError(f"{bad}: {key} is not a number")
+    for m, res in doc["methods"].items():
+        splits = res.get("splits") if isinstance(res, dict) else None
+        if not isinstance(splits, dict):
+            raise ReportError(f"{bad}: methods.{m} should have a 'splits' object")
+        for s, r in splits.items():
+            for part in ("headline", "all_windows"):
+                _check_summary((r or {}).get(part) if isinstance(r, dict) else None, f"methods.{m}.{s}.{part}", bad)
+    for i, w in enumerate(doc["windows"]):
+        where = f"windows[{i}]"
+        if not isinstance(w, dict):
+            raise ReportError(f"{bad}: {where} is not an object")
+        for key in ("id", "method", "split", "png"):
+            if not isinstance(w.get(key), str) or not w[key]:
+                raise ReportError(f"{bad}: {where}.{key} missing or not text")
+        for key in ("n_detections", "landmarks_in_view", "matched", "identified"):
+            if not is_num(w.get(key)):
+                raise ReportError(f"{bad}: {where}.{key} missing or not a number")
+        _check_fix(w, where, bad)
+        png = path.parent / w["png"]
+        if Path(w["png"]).name != w["png"]:
+            raise ReportError(f"{bad}: {where}.png should be a file name next to it, not {w['png']!r}")
+        if check_png(png) is None:
+            raise ReportError(f"{bad}: {where}.png names {png}, which does not exist")
+    return doc
+
+
+def load_nav_frames(path: Path) -> dict | None:
+    """A trajectory's ``nav-frames-eval --json`` result (crater_synth/navigation/frames_eval.py),
+    shape-checked: per frame the altitude, landmarks in view, detections, matches and the fixes of the
+    detector and of the perfect-detection check."""
+    if not path.exists():
+        return None
+    doc = _read_json(path)
+    bad = f"{path}: corrupt nav-frames-eval result"
+    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list) or not doc["frames"]:
+        raise ReportError(f"{bad}: expected an object with a non-empty 'frames' list")
+    if not isinstance(doc.get("trajectory"), str):
+        raise ReportError(f"{bad}: 'trajectory' missing or not text")
+    for key in ("false_fix_km", "min_inliers", "min_landmark_km"):
+        if not _num_or_none(doc.get(key)):
+            raise ReportError(f"{bad}: {key} is not a number")
+    summary = doc.get("summary")
+    if not isinstance(summary, dict) or not isinstance(summary.get("perfect"), dict):
+        raise ReportError(f"{bad}: 'summary' should hold the detector's and the perfect-detection summaries")
+    for part in ("all", "headline"):
+        _check_summary(summary.get(part), f"summary.{part}", bad)
+        _check_summary(summary["perfect"].get(part), f"summary.perfect.{part}", bad)
+    for i, f in enumerate(doc["frames"]):
+        where = f"frames[{i}]"
+        if not isinstance(f, dict) or not isinstance(f.get("perfect"), dict):
+            raise ReportError(f"{bad}: {where} should be an object with a 'perfect' object")
+        for key in ("index", "altitude_km", "ground_sample_m", "landmarks_in_view", "n_detections", "matched"):
+            if not is_num(f.get(key)):
+                raise ReportError(f"{bad}: {where}.{key} missing or not a number")
+        _check_fix(f, where, bad)
+        _check_fix(f["perfect"], f"{where}.perfect", bad)
+    return doc
+
+
+def nav_paths(run_dir: Path) -> tuple[Path, list[Path]]:
+    """(the navigate-demo result, the trajectories' nav-frames-eval results) of ``RUN_DIR/navigation/``."""
+    from crater_synth.navigation.demo import DEMO_JSON
+
+    nav = run_dir / NAVIGATION_DIR
+    return nav / DEMO_JSON, sorted(nav.glob(NAV_FRAMES_GLOB)) if nav.is_dir() else []

@@ -37,6 +37,14 @@ def duration(s) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.2f} h"
 
 
+def distance_km(x) -> str:
+    """A position error: km from 0.1 km up, metres (3 significant digits) below ("–" when missing)."""
+    if not _finite(x):
+        return "–"
+    x = float(x)
+    return f"{x:.2f} km" if x >= 0.1 else f"{1000.0 * x:.3g} m"
+
+
 def thousands(v) -> str:
     return f"{int(v):,}" if _finite(v) else "–"
 
@@ -53,7 +61,13 @@ def environment():
         keep_trailing_newline=True,
     )
     env.filters.update(
-        pct=pct, hue=hue, duration=duration, thousands=thousands, model_label=label, fmt=lambda v, spec: spec.format(v)
+        pct=pct,
+        hue=hue,
+        duration=duration,
+        thousands=thousands,
+        distance_km=distance_km,
+        model_label=label,
+        fmt=lambda v, spec: spec.format(v),
     )
     env.tests["finite"] = _finite
     return env

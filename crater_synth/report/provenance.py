@@ -1,5 +1,5 @@
-"""Section 7 (provenance of every data product, the dataset and the run) and the test-set limit that the
-header and section 7 state."""
+"""Section 9 (provenance of every data product, the dataset and the run) and the test-set limit that the
+header and section 9 state."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def _product_rows(cfg: Mapping) -> list[dict]:
 
 
 def limits_text(ctx: Ctx) -> str:
-    """The limit of the test set, stated in the header and in section 7."""
+    """The limit of the test set, stated in the header and in section 9."""
     from train.realset import LIMITS_NOTE
 
     rs = ctx.rc.cfg.get("realset") or {}

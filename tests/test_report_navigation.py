@@ -1,0 +1,201 @@
+"""The report's crater-navigation section (section 8) from a small synthetic navigation result: what
+`make navigate-demo` and `crater-synth nav-frames-eval --json` write into RUN_DIR/navigation/. Nothing
+is detected or rendered here."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from helpers.navresult import make_demo, make_frames
+
+
+def _report(run: Path, *extra: str):
+    from crater_synth.cli import main
+
+    return CliRunner().invoke(
+        main,
+        ["report", str(run), f"train.dataset_dir={run}/no_dataset", "realset.per_crater=12", "-q", *extra],
+    )
+
+
+def _section(html: str) -> str:
+    start = html.index('<section id="navigation">')
+    return html[start : html.index("</section>", start)]
+
+
+def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_path):
+    run = tmp_path / "run"
+    nav = run / "navigation"  # only a navigation result: still a run to report
+    demo = make_demo(nav)
+    make_frames(nav)
+    res = _report(run)
+    assert res.exit_code == 0, res.output
+    out = run / "report"
+    html = (out / "index.html").read_text()
+    assert '<a href="#navigation">8. Crater navigation</a>' in html and 'id="provenance"' in html
+    sec = _section(html)
+    # The metrics table: one row per method, split and window set, the summary values as written.
+    rows = re.findall(r"<tr><td>classical</td><td>(\w+)</td><td>([^<]+)</td>(.*?)</tr>", sec)
+    assert [(s, w) for s, w, _ in rows] == [
+        ("validation", "≥ 3 landmarks D ≥ 15 km"),
+        ("validation", "all windows"),
+        ("test", "≥ 3 landmarks D ≥ 15 km"),
+        ("test", "all windows"),
+    ]
+    cells = re.findall(r'<td class="num">([^<]*)</td>', rows[1][2])
+    assert cells == ["1", "1.000", "1.30", "1.30", "0.000", "0.857", "0.522", "0.194"]
+    assert re.findall(r'<td class="num">([^<]*)</td>', rows[3][2]) == ["1", "0.000", "–", "–", "0.000", "–"] + [
+        "0.086",
+        "0.031",
+    ]
+    # The annotated windows: copied next to the page, linked relatively, captioned with their result.
+    for w in demo["windows"]:
+        assert (out / f"nav_{w['png']}").read_bytes() == (nav / w["png"]).read_bytes()
+        assert f'<img src="nav_{w["png"]}"' in sec
+    assert "155 detections" in sec and "error <b>1.30 km</b>" in sec and "6 correct" in sec
+    assert "<b>no fix</b>: only 4 landmarks agree (need 5)" in sec
+    assert "25 map landmarks (D ≥ 10.0 km) in view" in sec
+    # The descent's error plot and its per-frame table (detector and perfect-detection check).
+    assert '<img src="nav_trajectory_0.png"' in sec
+    assert (out / "nav_trajectory_0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<b>1 of 3</b> frames fixed" in sec and "<b>2 of 3</b>" in sec
+    assert "0.41 km" in sec and "0.0102 m" in sec and "0.0063 m" in sec
+    assert "no fix: only 3 landmarks agree on one position" in sec and "no fix: no putative landmark pairs" in sec
+    assert "not run:" not in sec
+    # Self-contained: every link of the section is a file next to the page; no script.
+    for link in re.findall(r'(?:src|href)="([^"#][^"]*)"', sec):
+        assert "/" not in link and ":" not in link and (out / link).is_file(), link
+    assert "<script" not in html.lower()
+
+
+def test_missing_navigation_is_a_not_run_note(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("seed: 0\n")
+    res = _report(run)
+    assert res.exit_code == 0, res.output
+    sec = _section((run / "report" / "index.html").read_text())
+    assert "not run:" in sec and "make navigate-demo NAV_DEMO_DIR=RUN_DIR/navigation" in sec
+    assert "<img" not in sec
+
+
+@pytest.mark.parametrize("part", ["demo", "frames"])
+def test_one_missing_half_is_its_own_not_run_note(tmp_path, part):
+    run = tmp_path / "run"
+    (make_frames if part == "demo" else make_demo)(run / "navigation")
+    res = _report(run)
+    assert res.exit_code == 0, res.output
+    sec = _section((run / "report" / "index.html").read_text())
+    assert sec.count("not run:") == 1
+    if part == "demo":
+        assert "make navigate-demo" in sec and "nav_trajectory_0.png" in sec
+    else:
+        assert "crater-synth nav-frames-eval FRAMES_DIR --json RUN_DIR/navigation/frames_eval.json" in sec
+        assert "nav_S0_1728_0128_classical.png" in sec and "nav_trajectory" not in sec
+
+
+def _corrupt_demo_json(nav: Path) -> Path:
+    (nav / "navigation.json").write_text("{not json")
+    return nav / "navigation.json"
+
+
+def _demo_without_png(nav: Path) -> Path:
+    (nav / "S0_1728_0128_classical.png").unlink()
+    return nav / "navigation.json"
+
+
+def _demo_png_not_png(nav: Path) -> Path:
+    (nav / "S1_2496_0832_classical.png").write_text("GIF89a")
+    return nav / "S1_2496_0832_classical.png"
+
+
+def _frames_without_perfect(nav: Path) -> Path:
+    doc = json.loads((nav / "frames_eval.json").read_text())
+    del doc["frames"][1]["perfect"]
+    path = nav / "frames_eval_arc.json"  # any frames_eval*.json is read
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _frames_fix_without_error(nav: Path) -> Path:
+    doc = json.loads((nav / "frames_eval.json").read_text())
+    doc["frames"][0]["error_km"] = "small"
+    (nav / "frames_eval.json").write_text(json.dumps(doc))
+    return nav / "frames_eval.json"
+
+
+@pytest.mark.parametrize(
+    "corrupt, match",
+    [
+        (_corrupt_demo_json, "corrupt JSON"),
+        (_demo_without_png, "which does not exist"),
+        (_demo_png_not_png, "corrupt PNG"),
+        (_frames_without_perfect, "frames[1] should be an object with a 'perfect' object"),
+        (_frames_fix_without_error, "frames[0] has a fix but no error_km"),
+    ],
+)
+def test_corrupt_navigation_input_is_one_error_naming_the_file(tmp_path, corrupt, match):
+    run = tmp_path / "run"
+    make_demo(run / "navigation")
+    make_frames(run / "navigation")
+    bad = corrupt(run / "navigation")
+    res = _report(run)
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {bad}") and match in lines[0], res.output
+    assert not (run / "report").exists() and not list(run.glob(".report.*"))
+
+
+def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
+    """nav-frames-eval's JSON writer (frames_record) against the report's loader, on rows in
+    evaluate_frame's shape (no rendering: the render settings are stubbed)."""
+    from crater_synth.navigation import frames_eval
+    from crater_synth.navigation.fix import FixParams
+    from crater_synth.report.inputs import load_nav_frames
+
+    def row(i, fix):
+        r = {
+            "id": f"descent_ridge/{i}",
+            "index": i,
+            "altitude_km": 150.0 - i,
+            "ground_sample_m": 338.0,
+            "n_detections": 140,
+            "landmarks_in_view": 27,
+            "truth": list(range(16)),
+            "matched": {0: 1, 3: 4},
+            "n_headline_landmarks": 4,
+            "putative_pairs": 30,
+            "fix": fix,
+            "reason": "" if fix else "only 3 landmarks agree on one position",
+        }
+        if fix:
+            r.update(error_km=1e-5, identified=15, identified_correct=15, rms_px=0.01)
+        return r
+
+    rows = [
+        {**row(0, False), "perfect": {**row(0, True), "n_detections": 27}},
+        {**row(1, False), "perfect": row(1, False)},
+    ]
+    monkeypatch.setattr(frames_eval, "_render_info", lambda d: {"mode": "fast", "samples": 1})
+    summary = {
+        "all": {"windows": 2},
+        "headline": {"windows": 2},
+        "perfect": {"all": {"windows": 2}, "headline": {"windows": 2}},
+    }
+    doc = frames_eval.frames_record(tmp_path, summary, rows, 0, "position", FixParams(), ())
+    (tmp_path / "frames_eval.json").write_text(json.dumps(doc))
+    got = load_nav_frames(tmp_path / "frames_eval.json")
+    f0 = got["frames"][0]
+    assert (f0["landmarks_in_view"], f0["landmarks_in_view_min_d"], f0["matched"], f0["n_detections"]) == (
+        27,
+        16,
+        2,
+        140,
+    )
+    assert not f0["fix"] and f0["perfect"]["fix"] and f0["perfect"]["error_km"] == 1e-5
+    assert got["min_inliers"] == FixParams().min_inliers and got["trajectory"] == "descent_ridge"
