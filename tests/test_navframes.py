@@ -354,3 +354,13 @@ def test_worker_rejects_a_bad_explicit_camera(tmp_path):
     (line,) = proc.stdout.strip().splitlines()
     assert line.startswith("ERROR ") and "camera rotation is not orthonormal" in line
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
+
+
+def test_synthetic_preset_refuses_the_6dof_fix(tmp_path):
+    """The synthetic preset (3 agreeing landmarks) serves the known-attitude fix only: one error line."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    res = CliRunner().invoke(main, ["nav-frames-eval", str(tmp_path), "--method", "pnp"])
+    assert res.exit_code != 0 and "--preset real-window" in res.output and "Traceback" not in res.output

@@ -68,6 +68,7 @@ class FramesPreset:
     sets: tuple = ()
     scales_from_map: bool = False
     inlier_px: float = PNP_INLIER_PX
+    methods: tuple = ("position", "pnp")  # the fix methods the preset serves
 
 
 # "real-window": the real-window settings unchanged (the classical preset, every scale, 5 agreeing
@@ -75,24 +76,36 @@ class FramesPreset:
 # descent_ridge and polar_orbit_arc (render.samples=4, fast, 512 px; development data, no real window
 # used) by the rule of the real windows: no false fix, then the most fixes, then the lowest median
 # error (docs/navigation.md, section 9, the grid): the classical detector at threshold 0.3 on the map's
-# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers.
+# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers; for the known-attitude fix
+# only: three points determine a full pinhole pose exactly (any three pairs "agree": 4 and 6 false
+# fixes), and even with 5 the 6-DOF RANSAC (no ambiguity test) fixed 2 descent frames 19.5 km wrong.
 FRAMES_PRESETS = {
     "real-window": FramesPreset("classical"),
     "synthetic": FramesPreset(
-        "classical", ("detect.threshold=0.3", "fix.min_inliers=3"), scales_from_map=True, inlier_px=5.0
+        "classical",
+        ("detect.threshold=0.3", "fix.min_inliers=3"),
+        scales_from_map=True,
+        inlier_px=5.0,
+        methods=("position",),
     ),
 }
 DEFAULT_FRAMES_PRESET = "synthetic"
 
 
-def frames_params(name: str, sets=()) -> tuple[DetectorParams, FixParams, FramesPreset]:
+def frames_params(name: str, sets=(), method: str = "position") -> tuple[DetectorParams, FixParams, FramesPreset]:
     """(detector settings, fix settings, preset) of the ``nav-frames-eval`` preset ``name`` with the
-    ``--set`` overrides ``sets`` applied after the preset's own."""
+    ``--set`` overrides ``sets`` applied after the preset's own; a preset serves the fix ``method`` s it
+    names only (a user error otherwise)."""
     from crater_synth.navigation.evaluate import _params_with
 
     if name not in FRAMES_PRESETS:
         raise UserError(f"nav-frames-eval preset {name!r}: expected one of {sorted(FRAMES_PRESETS)}")
     pre = FRAMES_PRESETS[name]
+    if method not in pre.methods:
+        raise UserError(
+            f"nav-frames-eval --preset {name} was chosen for --method {'/'.join(pre.methods)} only "
+            f"(docs/navigation.md, section 9); use --preset real-window with --method {method}"
+        )
     dparams, fparams = _params_with(tuple(pre.sets) + tuple(sets), pre.detector)
     return dparams, fparams, pre
 
@@ -489,7 +502,7 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
     """
     if sets and write_results:
         raise UserError("--write-results records a preset's settings only; drop --set")
-    dparams, fparams, pre = frames_params(preset, sets)
+    dparams, fparams, pre = frames_params(preset, sets, method)
     summary, rows = evaluate_dir(
         frames_dir, dparams, fparams, seed, method, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px
     )
