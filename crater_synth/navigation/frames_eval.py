@@ -3,9 +3,12 @@
 The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic windows
 (:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
 
-- **Detection**: :func:`.detect.detect` on the I/F channel, with its real-window settings. The light
-  direction in the image is given (the lander knows its attitude and the ephemeris; the detector's
-  docstring allows it): the Sun's travel direction, projected on the image plane.
+- **Detection**: :func:`.detect.detect` on the I/F channel, with the settings of a preset
+  (:data:`FRAMES_PRESETS`; default "synthetic", chosen on rendered frames; "real-window": the real
+  windows' settings unchanged). The light direction in the image is given (the lander knows its
+  attitude and the ephemeris; the detector's docstring allows it): the Sun's travel direction,
+  projected on the image plane. The "synthetic" preset searches only the radii the landmark map can
+  use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
 - **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
   projected rim ellipse; :mod:`.render_frames`). A detection matches a label when its centre is
   within 0.25 D of the ellipse centre and its radius within 25 % of the ellipse's semi-major axis.
@@ -20,9 +23,11 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
   again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
   landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
-  agree or their RMS exceeds ``max_rms_px``. The real-window ambiguity test (a disjoint rival set) is
-  not applied here. The error is the 3-D distance between the fixed and the
-  true camera centre; a fix is false beyond ``FALSE_FIX_KM``.
+  agree, when a disjoint rival set nearly as large agrees (the real windows' ambiguity test; known-attitude
+  fix) or when their RMS exceeds ``max_rms_px``. A frame with fewer than ``min_inliers`` landmarks in
+  view is flagged and summarised apart (no detector could fix it). The error is the 3-D distance
+  between the fixed and the true camera centre (its horizontal part is reported too); a fix is false
+  beyond ``FALSE_FIX_KM``.
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
 """
