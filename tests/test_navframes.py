@@ -99,6 +99,78 @@ def test_position_fix_with_known_attitude_is_exact_and_robust():
     assert not ok and "need 5" in reason
 
 
+def test_position_fix_refuses_an_ambiguous_set():
+    """Two disjoint landmark sets (a pattern and its shifted copy) explain the same detections from two
+    camera positions: with the (detection, landmark) ids the known-attitude fix answers "ambiguous";
+    the true set alone fixes exactly."""
+    from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_position
+
+    r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
+    k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
+    c = np.array([0.0, 0.0, 100e3])
+    a = np.array([[-30e3, 20e3, 0.0], [25e3, 15e3, 500.0], [5e3, -30e3, -300.0], [-10e3, -5e3, 200.0]])
+    b = a + np.array([18e3, -7e3, 0.0])  # the same pattern elsewhere: seen from c + shift it looks identical
+    uv = project_pinhole(a, r_wc, c, k)
+    points = np.vstack([a, b])
+    pix = np.vstack([uv, uv])
+    pairs = np.array([[i, i] for i in range(4)] + [[i, 4 + i] for i in range(4)])
+    params = FixParams(min_inliers=3)
+    ok, reason, _, _ = ransac_position(points, pix, k, r_wc, params, 3.0, pairs=pairs)
+    assert not ok and reason.startswith("ambiguous"), reason
+    # Without the ids no rival is seen: one of the two positions is answered (the test is what refuses).
+    ok, _, c_fix, _ = ransac_position(points, pix, k, r_wc, params, 3.0)
+    assert ok and min(np.linalg.norm(c_fix - c), np.linalg.norm(c_fix - c - [18e3, -7e3, 0.0])) < 1.0
+    ok, reason, c_fix, inl = ransac_position(a, uv, k, r_wc, params, 3.0, pairs=pairs[:4])
+    assert ok and np.linalg.norm(c_fix - c) < 1e-3 and inl.all(), reason
+
+
+def test_map_scales_follow_the_ground_sample_and_the_predicted_landmarks():
+    from crater_synth.navigation.detect import DetectorParams
+    from crater_synth.navigation.fix import FixParams
+    from crater_synth.navigation.frames_eval import map_scales
+
+    fp = FixParams()  # 10 km landmarks, radius ratio 1.3
+    d = map_scales(DetectorParams(), fp, 338.0, [20.0, 60.0])
+    assert d.min_radius_px == pytest.approx(5000.0 / 338.0 / 1.3) and d.max_radius_px == pytest.approx(60.0 * 1.3)
+    # Lower down the same landmarks are bigger in pixels; with none predicted the smallest landmark's radius.
+    d = map_scales(DetectorParams(), fp, 100.0, [])
+    assert d.min_radius_px == pytest.approx(50.0 / 1.3) and d.max_radius_px > d.min_radius_px
+
+
+@pytest.mark.parametrize("theta_deg", [30.0, 200.0])
+def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg):
+    """The nav-frames-eval "synthetic" detector on a Hapke-shaded crater field at a rendered frame's
+    scale (338 m/px, Sun 7 degrees): the five map-sized craters (D 11-26 km) among ~50 detail craters of
+    D 3.4-6 km are found (centre within 0.25 D, radius within 25 %), with fewer detections than the
+    real-window settings (which search every scale) and none far below the map's smallest radius."""
+    from crater_synth.navigation import frames_eval as fe
+    from crater_synth.navigation.detect import detect
+    from crater_synth.navigation.template import crater_heights, shade_heights
+
+    gsd, n = 338.0, 384
+    big = [(100.0, 110.0, 17.0), (300.0, 90.0, 24.0), (200.0, 250.0, 38.0), (330.0, 320.0, 21.0), (90.0, 330.0, 29.0)]
+    rng = np.random.default_rng(3)
+    small = [
+        (u, v, r)
+        for u, v, r in zip(rng.uniform(10, 374, 80), rng.uniform(10, 374, 80), rng.uniform(5.0, 9.0, 80))
+        if all(math.hypot(u - bu, v - bv) > 1.6 * br + 2 * r for bu, bv, br in big)
+    ]
+    assert len(small) > 40
+    vv, uu = np.mgrid[0:n, 0:n] + 0.5
+    z = sum(crater_heights(np.hypot(uu - cu, vv - cv) / r, 0.2) * r for cu, cv, r in big + small)
+    theta = math.radians(theta_deg)
+    img = shade_heights(z, theta, 7.0) * 200.0 + 20.0 + np.random.default_rng(0).normal(0.0, 2.0, (n, n))
+    labels = [{"ellipse": {"cu": u, "cv": v, "a": r}} for u, v, r in big]
+    dp, fp, pre = fe.frames_params("synthetic")
+    assert pre.scales_from_map
+    dp = fe.map_scales(dp, fp, gsd, [r for *_, r in big])
+    dets, _ = detect(img, dp, light_dir=theta)
+    assert len(fe.match_pixels(dets, labels)) >= 4
+    assert min(d.r for d in dets) >= 0.6 * dp.min_radius_px  # the rim fit may shrink a circle to 0.6 r
+    every_scale, _ = detect(img, fe.frames_params("real-window")[0], light_dir=theta)
+    assert len(dets) < len(every_scale)
+
+
 def test_bad_trajectories_give_one_clear_error():
     with pytest.raises(TrajectoryError, match="beyond the horizon"):
         frame_poses(_traj(fov_deg=120.0, off_nadir_deg=50.0, altitude_km=(300.0, 300.0)))
@@ -265,6 +337,9 @@ def test_nav_frames_command_end_to_end(tmp_path):
     assert doc["trajectory"] == "descent_ridge" and f["index"] == 0 and f["altitude_km"] == pytest.approx(150.0)
     assert f["landmarks_in_view"] == len(row["landmarks"]) and f["perfect"]["n_detections"] == len(row["landmarks"])
     assert f["perfect"]["fix"] and f["perfect"]["error_km"] < 0.01 and doc["summary"]["perfect"]["all"]["fix_rate"] == 1
+    # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
+    assert doc["preset"] == "synthetic" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
+    assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
 
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):
@@ -279,3 +354,13 @@ def test_worker_rejects_a_bad_explicit_camera(tmp_path):
     (line,) = proc.stdout.strip().splitlines()
     assert line.startswith("ERROR ") and "camera rotation is not orthonormal" in line
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
+
+
+def test_synthetic_preset_refuses_the_6dof_fix(tmp_path):
+    """The synthetic preset (3 agreeing landmarks) serves the known-attitude fix only: one error line."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    res = CliRunner().invoke(main, ["nav-frames-eval", str(tmp_path), "--method", "pnp"])
+    assert res.exit_code != 0 and "--preset real-window" in res.output and "Traceback" not in res.output

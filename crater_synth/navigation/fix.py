@@ -300,22 +300,38 @@ def solve_position(points, uv, k, r_wc) -> np.ndarray:
     return np.linalg.solve(proj.sum(axis=0), np.einsum("nij,nj->i", proj, points))
 
 
-def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier_px: float = 2.0):
+def _distinct(pairs: np.ndarray, mask: np.ndarray) -> int:
+    """Upper bound of the one-to-one pairs in ``pairs[mask]`` (fewest distinct detections or landmarks)."""
+    sel = pairs[mask]
+    return min(len(np.unique(sel[:, 0])), len(np.unique(sel[:, 1]))) if len(sel) else 0
+
+
+def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
     """Robust camera centre of known attitude from putative correspondences (some wrong): minimal sets
     of 2, scored by reprojection inliers, refitted on all inliers. Returns (ok, reason, centre, inlier
-    mask); the "no fix" rule of :func:`ransac_pnp` (fewer than ``min_inliers`` agreeing) applies."""
+    mask); the "no fix" rule of :func:`ransac_pnp` (fewer than ``min_inliers`` agreeing) applies.
+
+    ``pairs`` (n, 2): the (detection, landmark) ids of the correspondences; when given, the ambiguity
+    rule of :func:`ransac_similarity` applies too: a hypothesis sharing no detection or no landmark with
+    the winner, supported by at least ``min_inliers`` and the winner's count less ``ambiguity_margin``
+    distinct landmarks, is a rival position as well explained as the winner: "no fix"."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     n = len(points)
     if n < params.min_inliers:
         return False, f"{n} landmarks identified (need {params.min_inliers})", None, np.zeros(n, bool)
     rng = np.random.default_rng(params.seed)
     best = np.zeros(n, bool)
+    hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
     for _ in range(params.iterations):
         idx = rng.choice(n, 2, replace=False)
+        if np.allclose(uv[idx[0]], uv[idx[1]]) or np.allclose(points[idx[0]], points[idx[1]]):
+            continue  # one detection (or one landmark) in two pairs: parallel rays, no position
         c = solve_position(points[idx], uv[idx], k, r_wc)
         if np.any((points[idx] - c) @ r_wc[2] <= 0):
             continue  # the landmarks behind the camera
         inl = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
+        if pairs is not None and inl.sum() >= params.min_inliers:
+            hyps.setdefault(np.packbits(inl).tobytes(), inl)
         if inl.sum() > best.sum():
             best = inl
     for _ in range(2):  # refit on the inliers, then re-collect them
@@ -325,4 +341,13 @@ def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier
         best = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
     if best.sum() < params.min_inliers:
         return False, f"only {int(best.sum())} landmarks agree on one position", None, best
+    if pairs is not None:
+        pairs = np.asarray(pairs, int).reshape(-1, 2)
+        n_best = _distinct(pairs, best)
+        dets, lms = set(pairs[best, 0].tolist()), set(pairs[best, 1].tolist())
+        for inl in hyps.values():
+            n_rival = _distinct(pairs, inl)
+            disjoint = not (set(pairs[inl, 0].tolist()) & dets) or not (set(pairs[inl, 1].tolist()) & lms)
+            if disjoint and n_rival >= max(params.min_inliers, n_best - params.ambiguity_margin):
+                return False, f"ambiguous: two disjoint landmark sets agree ({n_best} and {n_rival})", None, best
     return True, "", solve_position(points[best], uv[best], k, r_wc), best

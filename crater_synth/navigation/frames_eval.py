@@ -3,9 +3,12 @@
 The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic windows
 (:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
 
-- **Detection**: :func:`.detect.detect` on the I/F channel, with its real-window settings. The light
-  direction in the image is given (the lander knows its attitude and the ephemeris; the detector's
-  docstring allows it): the Sun's travel direction, projected on the image plane.
+- **Detection**: :func:`.detect.detect` on the I/F channel, with the settings of a preset
+  (:data:`FRAMES_PRESETS`; default "synthetic", chosen on rendered frames; "real-window": the real
+  windows' settings unchanged). The light direction in the image is given (the lander knows its
+  attitude and the ephemeris; the detector's docstring allows it): the Sun's travel direction,
+  projected on the image plane. The "synthetic" preset searches only the radii the landmark map can
+  use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
 - **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
   projected rim ellipse; :mod:`.render_frames`). A detection matches a label when its centre is
   within 0.25 D of the ellipse centre and its radius within 25 % of the ellipse's semi-major axis.
@@ -20,9 +23,11 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
   again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
   landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
-  agree or their RMS exceeds ``max_rms_px``. The real-window ambiguity test (a disjoint rival set) is
-  not applied here. The error is the 3-D distance between the fixed and the
-  true camera centre; a fix is false beyond ``FALSE_FIX_KM``.
+  agree, when a disjoint rival set nearly as large agrees (the real windows' ambiguity test; known-attitude
+  fix) or when their RMS exceeds ``max_rms_px``. A frame with fewer than ``min_inliers`` landmarks in
+  view is flagged and summarised apart (no detector could fix it). The error is the 3-D distance
+  between the fixed and the true camera centre (its horizontal part is reported too); a fix is false
+  beyond ``FALSE_FIX_KM``.
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
 """
@@ -52,8 +57,15 @@ from crater_synth.navigation.evaluate import (
     summarise,
 )
 from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, solve_position
+from crater_synth.navigation.frames_presets import (
+    DEFAULT_FRAMES_PRESET,
+    FRAMES_PRESETS,
+    PNP_INLIER_PX,
+    frames_params,
+    map_scales,
+)
 
-PNP_INLIER_PX = 3.0  # reprojection tolerance of the pinhole fix (px); detection centres are good to ~1-2 px
+NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
 
 
 def _cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -109,10 +121,16 @@ def evaluate_frame(
     seed: int = 0,
     method: str = "position",
     detections: list | None = None,
+    scales_from_map: bool = False,
+    inlier_px: float = PNP_INLIER_PX,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
-    detector's output (the perfect-detection check, :func:`perfect_detections`)."""
+    detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
+    the detector searches only the radii of the map landmarks the prior predicts in the frame
+    (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance. A frame with fewer
+    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` is flagged (``enough_landmarks``
+    False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
@@ -120,7 +138,20 @@ def evaluate_frame(
     fov = float(row["pose"]["fov_deg"])
     gsd = float(row["ground_sample_m"])
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    # The map landmarks the prior predicts in the frame (position and radius, px).
+    r_wc, k = _cv_camera(rot, width, fov)
+    c_prior = prior_centre(row, seed)
+    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
+    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
+    depth = (pts - c_prior) @ r_wc[2]
+    front = depth > 0
+    uv = np.full((len(pts), 2), np.nan)
+    uv[front] = project_pinhole(pts[front], r_wc, c_prior, k)
+    r_pred = np.array([lm.diameter_km * 500.0 for lm in cand]) * k[0, 0] / np.where(front, depth, np.nan)
+    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < width)
     if detections is None:
+        if scales_from_map:
+            dparams = map_scales(dparams, fparams, gsd, r_pred[inside])
         dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
     else:
         dets = list(detections)
@@ -141,20 +172,14 @@ def evaluate_frame(
         "matched_any": sorted(matched),
         "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels)),
     }
+    out["detector_radii_px"] = [round(dparams.min_radius_px, 2), round(dparams.max_radius_px, 2)]
+    # Fewer map landmarks in the frame than a fix needs: a "no fix" there is no failure of detection
+    # (reported apart); the pipeline still runs, so a wrong fix there still counts as one.
+    out["enough_landmarks"] = len(labels) >= fparams.min_inliers
     # Identification with the prior pose.
-    r_wc, k = _cv_camera(rot, width, fov)
-    c_prior = prior_centre(row, seed)
-    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
-    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
     ids = [by_id[lm.id] for lm in cand]
     pairs_det, pairs_lm = [], []
     if len(pts) and dets:
-        depth = (pts - c_prior) @ r_wc[2]
-        front = depth > 0
-        uv = np.full((len(pts), 2), np.nan)
-        uv[front] = project_pinhole(pts[front], r_wc, c_prior, k)
-        r_pred = np.array([lm.diameter_km * 500.0 for lm in cand]) * k[0, 0] / np.where(front, depth, np.nan)
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < width)
         gate_base = fparams.prior_sigma_km * 1000.0 / gsd
         for i, d in enumerate(dets):
             dist = np.hypot(uv[:, 0] - d.u, uv[:, 1] - d.v)
@@ -171,14 +196,18 @@ def evaluate_frame(
     out["putative_pairs"] = len(pairs_det)
     if not pairs_det:
         out.update(fix=False, reason="no putative landmark pairs")
+        if not out["enough_landmarks"]:
+            out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels)} >= {fparams.min_landmark_km:g} km (no pairs)"
         return out
     p3 = pts[pairs_lm]
     p2 = np.array([[dets[i].u, dets[i].v] for i in pairs_det])
     if method == "pnp":
-        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, PNP_INLIER_PX)
+        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, inlier_px)
     else:
         r_fix = r_wc
-        ok, reason, c_fix, inl = ransac_position(p3, p2, k, r_wc, fparams, PNP_INLIER_PX)
+        ok, reason, c_fix, inl = ransac_position(
+            p3, p2, k, r_wc, fparams, inlier_px, pairs=np.column_stack([pairs_det, pairs_lm])
+        )
     if ok:
         # One pair per detection and per landmark: the smallest reprojection error wins.
         err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
@@ -220,8 +249,12 @@ def evaluate_frame(
             ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
     out["fix"] = bool(ok)
     out["reason"] = reason
+    if not ok and not out["enough_landmarks"]:
+        out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
+        # The horizontal part: a few close landmarks fix the altitude less well than the position.
+        out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
         out["identified"] = len(keep)
         out["identified_correct"] = int(sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep))
         out["rms_px"] = rms
@@ -240,10 +273,13 @@ def evaluate_dir(
     fparams: FixParams = FixParams(),
     seed: int = 0,
     method: str = "position",
+    scales_from_map: bool = False,
+    inlier_px: float = PNP_INLIER_PX,
 ):
-    """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames and the
-    headline frames, with the detector and with perfect detections (``"perfect"``); each row is the
-    detector's, with the perfect-detection row of the same frame under ``"perfect"``."""
+    """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
+    headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
+    with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
+    perfect-detection row of the same frame under ``"perfect"``."""
     from crater_synth.navigation.landmarks import load_default_map
 
     manifest = Path(frames_dir) / schema.MANIFEST_NAME
@@ -259,24 +295,62 @@ def evaluate_dir(
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
-        r = evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method)
-        r["perfect"] = evaluate_frame(row, image, maps[pole], dparams, fparams, seed, method, perfect_detections(row))
+        kw = dict(seed=seed, method=method, inlier_px=inlier_px)
+        r = evaluate_frame(row, image, maps[pole], dparams, fparams, scales_from_map=scales_from_map, **kw)
+        r["perfect"] = evaluate_frame(
+            row, image, maps[pole], dparams, fparams, detections=perfect_detections(row), **kw
+        )
         out.append(r)
     head = [r for r in out if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    enough = [r for r in out if r["enough_landmarks"]]
     summary = {
-        "all": summarise(out),
-        "headline": summarise(head),
-        "perfect": {"all": summarise([r["perfect"] for r in out]), "headline": summarise([r["perfect"] for r in head])},
+        "all": _summary(out),
+        "headline": _summary(head),
+        "enough_landmarks": _summary(enough),
+        "not_enough_landmarks": len(out) - len(enough),
+        "perfect": {
+            "all": _summary([r["perfect"] for r in out]),
+            "headline": _summary([r["perfect"] for r in head]),
+            "enough_landmarks": _summary([r["perfect"] for r in enough]),
+        },
     }
     return summary, out
 
 
+def _summary(rows: list[dict]) -> dict:
+    """:func:`.evaluate.summarise` plus the median horizontal part of the fixes' errors."""
+    out = summarise(rows)
+    h = [r["error_horizontal_km"] for r in rows if r["fix"]]
+    if rows:
+        out["median_horizontal_error_km"] = round(float(np.median(h)), 3) if h else None
+    return out
+
+
 FRAMES_EVAL_JSON = "frames_eval.json"
-FRAME_FIELDS = ("fix", "reason", "error_km", "identified", "identified_correct", "rms_px", "putative_pairs")
+FRAME_FIELDS = (
+    "fix",
+    "reason",
+    "error_km",
+    "error_horizontal_km",
+    "identified",
+    "identified_correct",
+    "rms_px",
+    "putative_pairs",
+    "enough_landmarks",
+)
 
 
 def frames_record(
-    frames_dir: Path, summary: dict, rows: list[dict], seed: int, method: str, fparams: FixParams, sets=()
+    frames_dir: Path,
+    summary: dict,
+    rows: list[dict],
+    seed: int,
+    method: str,
+    fparams: FixParams,
+    sets=(),
+    preset: str | None = None,
+    dparams: DetectorParams | None = None,
+    inlier_px: float = PNP_INLIER_PX,
 ) -> dict:
     """The machine-readable result of ``nav-frames-eval`` (``--json``; read by ``crater-synth report``):
     per frame the altitude, ground sample, landmarks in view (all labels; and >= the fix's minimum size),
@@ -307,6 +381,10 @@ def frames_record(
         "method": method,
         "seed": seed,
         "settings": list(sets),
+        "preset": preset,
+        "detector": dparams.as_dict() if dparams is not None else None,
+        "fix_settings": fparams.as_dict(),
+        "inlier_px": inlier_px,
         "min_landmark_km": fparams.min_landmark_km,
         "min_inliers": fparams.min_inliers,
         "false_fix_km": FALSE_FIX_KM,
@@ -346,6 +424,13 @@ def _render_info(frames_dir: Path) -> dict:
     "--set", "sets", multiple=True, help="detect.<name>=<value> or fix.<name>=<value> (as in nav-eval); not recorded."
 )
 @click.option(
+    "--preset",
+    type=click.Choice(sorted(FRAMES_PRESETS)),
+    default=DEFAULT_FRAMES_PRESET,
+    show_default=True,
+    help="synthetic: the settings chosen on rendered frames; real-window: the real windows' settings unchanged.",
+)
+@click.option(
     "--method",
     type=click.Choice(["position", "pnp"]),
     default="position",
@@ -353,18 +438,18 @@ def _render_info(frames_dir: Path) -> dict:
     help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
 )
 @user_errors
-def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, method):
+def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, preset, method):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
 
     Example: `crater-synth nav-frames-eval data/navframes/descent_ridge`
     """
-    from crater_synth.navigation.evaluate import _params_with
-
     if sets and write_results:
-        raise UserError("--write-results records the default settings only; drop --set")
-    dparams, fparams = _params_with(tuple(sets))
-    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed=seed, method=method)
+        raise UserError("--write-results records a preset's settings only; drop --set")
+    dparams, fparams, pre = frames_params(preset, sets, method)
+    summary, rows = evaluate_dir(
+        frames_dir, dparams, fparams, seed, method, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px
+    )
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
@@ -376,13 +461,14 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, me
             err=True,
         )
     json_path = json_path or Path(frames_dir) / FRAMES_EVAL_JSON
-    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets)
+    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets, preset, dparams, pre.inlier_px)
     schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
     click.echo(f"wrote {json_path}", err=True)
     if write_results:
         results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
         info = _render_info(frames_dir)
-        results.setdefault("synthetic", {})[f"{rows[0]['id'].split('/')[0]}/{method}"] = {
+        key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == DEFAULT_FRAMES_PRESET else f"/{preset}")
+        results.setdefault("synthetic", {})[key] = {
             "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
             f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
             "render": info,
@@ -390,12 +476,21 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, me
                 "prior_offset_km": PRIOR_OFFSET_KM,
                 "prior_attitude": "exact",
                 "light_direction": "given (attitude + ephemeris)",
-                "pnp_inlier_px": PNP_INLIER_PX,
+                "preset": preset,
+                "preset_settings": {
+                    "detector": pre.detector,
+                    "sets": list(pre.sets),
+                    "scales_from_map": pre.scales_from_map,
+                    "inlier_px": pre.inlier_px,
+                },
                 "method": method,
                 "error": "3-D camera centre distance",
             },
             "frames": [
-                {k: r.get(k) for k in ("index", "altitude_km", "ground_sample_m", "n_detections", "fix", "error_km")}
+                {
+                    k: r.get(k)
+                    for k in ("index", "altitude_km", "ground_sample_m", "n_detections", "fix", "error_km", "reason")
+                }
                 for r in rows
             ],
             **summary,

@@ -1,0 +1,80 @@
+"""Settings of ``crater-synth nav-frames-eval`` (:mod:`.frames_eval`): its presets and the detector's
+scale range from the landmark map (docs/navigation.md, section 9, where the "synthetic" preset was
+chosen on rendered frames)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crater_synth.errors import UserError
+from crater_synth.navigation.detect import DetectorParams
+from crater_synth.navigation.fix import FixParams
+
+PNP_INLIER_PX = 3.0  # the first runs' reprojection tolerance of the pinhole fix (px): the "real-window" preset's
+
+
+@dataclasses.dataclass(frozen=True)
+class FramesPreset:
+    """The settings of ``nav-frames-eval``: a detector of :data:`.detect.PRESETS` and ``--set``-style
+    overrides of it and of :class:`.fix.FixParams`, whether the detector searches only the landmark
+    map's radii (:func:`map_scales`), and the fix's reprojection inlier tolerance (px)."""
+
+    detector: str
+    sets: tuple = ()
+    scales_from_map: bool = False
+    inlier_px: float = PNP_INLIER_PX
+    methods: tuple = ("position", "pnp")  # the fix methods the preset serves
+
+
+# "real-window": the real-window settings unchanged (the classical preset, every scale, 5 agreeing
+# landmarks, 3 px), the first runs on rendered frames. "synthetic": chosen on the rendered frames of
+# descent_ridge and polar_orbit_arc (render.samples=4, fast, 512 px; development data, no real window
+# used) by the rule of the real windows: no false fix, then the most fixes, then the lowest median
+# error (docs/navigation.md, section 9, the grid): the classical detector at threshold 0.3 on the map's
+# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers; for the known-attitude fix
+# only: three points determine a full pinhole pose exactly (any three pairs "agree": 4 and 6 false
+# fixes), and even with 5 the 6-DOF RANSAC (no ambiguity test) fixed 2 descent frames 19.5 km wrong.
+FRAMES_PRESETS = {
+    "real-window": FramesPreset("classical"),
+    "synthetic": FramesPreset(
+        "classical",
+        ("detect.threshold=0.3", "fix.min_inliers=3"),
+        scales_from_map=True,
+        inlier_px=5.0,
+        methods=("position",),
+    ),
+}
+DEFAULT_FRAMES_PRESET = "synthetic"
+
+
+def frames_params(name: str, sets=(), method: str = "position") -> tuple[DetectorParams, FixParams, FramesPreset]:
+    """(detector settings, fix settings, preset) of the ``nav-frames-eval`` preset ``name`` with the
+    ``--set`` overrides ``sets`` applied after the preset's own; a preset serves the fix ``method`` s it
+    names only (a user error otherwise)."""
+    from crater_synth.navigation.evaluate import _params_with
+
+    if name not in FRAMES_PRESETS:
+        raise UserError(f"nav-frames-eval preset {name!r}: expected one of {sorted(FRAMES_PRESETS)}")
+    pre = FRAMES_PRESETS[name]
+    if method not in pre.methods:
+        raise UserError(
+            f"nav-frames-eval --preset {name} was chosen for --method {'/'.join(pre.methods)} only "
+            f"(docs/navigation.md, section 9); use --preset real-window with --method {method}"
+        )
+    dparams, fparams = _params_with(tuple(pre.sets) + tuple(sets), pre.detector)
+    return dparams, fparams, pre
+
+
+def map_scales(dparams: DetectorParams, fparams: FixParams, gsd_m: float, predicted_r_px) -> DetectorParams:
+    """Detector settings searching only the crater radii the landmark map can use in this frame, as a
+    lander knowing its altitude (hence its ground sample) and its coarse position would: from the
+    smallest landmark's radius (``min_landmark_km`` / 2 at ``gsd_m``) to the largest radius of the
+    landmarks the prior predicts in the frame (``predicted_r_px``), each widened by the identification's
+    ``radius_ratio`` (a detection outside it could never pair with a landmark). Without a predicted
+    landmark the range is the smallest landmark's alone."""
+    lo = fparams.min_landmark_km * 500.0 / gsd_m / fparams.radius_ratio
+    big = float(np.max(predicted_r_px)) if len(predicted_r_px) else fparams.min_landmark_km * 500.0 / gsd_m
+    hi = max(big * fparams.radius_ratio, lo * dparams.scale_ratio**2)
+    return dataclasses.replace(dparams, min_radius_px=lo, max_radius_px=hi)
