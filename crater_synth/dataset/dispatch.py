@@ -162,9 +162,18 @@ class _Worker:
                 self.error = line[6:]
 
 
-def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParams, out_dir: Path, on_result) -> None:
+def run_workers(
+    jobs: list[CraterJob],
+    render: RenderSettings,
+    hapke: HapkeParams,
+    out_dir: Path,
+    on_result,
+    split_jobs: bool = True,
+) -> None:
     """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
-    processes; ``on_result(job, plan, result)`` is called for each finished render."""
+    processes; ``on_result(job, plan, result)`` is called for each finished render. ``split_jobs=False``:
+    one work unit (one worker) per job, when a job's fixed cost (scene, BVH, horizon map) outweighs
+    its renders (navigation frames on a shared patch)."""
     n_workers = render.workers
     blender = blender_binary(render.blender)[0] if render.blender is not None else None
     jobs_dir = out_dir / JOBS_DIR
@@ -178,7 +187,8 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
     # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work"); as many
     # blocks per crater as balance the workers (blocks_per_crater).
     units: list[tuple[CraterJob, list[dict]]] = []
-    shares = blocks_per_crater([len(j.plans) for j in jobs], n_workers)
+    sizes = [len(j.plans) for j in jobs]
+    shares = blocks_per_crater(sizes, n_workers) if split_jobs else [1] * len(jobs)
     for job, share in zip(jobs, shares):
         if job.plans:
             ordered = sorted(job.plans, key=camera_major)
@@ -197,7 +207,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
             "terrain_meta": job.meta,
             "crater": job.crater.as_dict(),
             "hapke": hapke_dict(hapke),
-            "render": render_cfg,
+            "render": render_cfg | job.render_overrides,
             "out_dir": str(out_dir),
             "horizon_cache_dir": render.horizon_cache_dir,
             "renders": [p["item"] for p in block],
