@@ -49,7 +49,11 @@ def _run(settings, out: Path, n: int, share: bool) -> dict:
         "dispatch_s": summary["render_seconds"],
         "dispatch_frames_per_s": round(n / summary["render_seconds"], 3),
         "render_s_per_frame": round(summary["worker_render_seconds"] / n, 3),
-        "render_frames_per_s": round(settings.render.workers * n / summary["worker_render_seconds"], 3),
+        # the workers' per-frame seconds, as many running at once as there are patches (one worker each), at most
+        # render.workers: the steady rate once scene, BVH and horizon maps are built
+        "render_frames_per_s": round(
+            min(settings.render.workers, summary["patches"]) * n / summary["worker_render_seconds"], 3
+        ),
         "worker_setup_s": round(sum(s.get("setup_s", 0.0) for s in stats), 2),
         "fast_breakdown_s": fast,
     }

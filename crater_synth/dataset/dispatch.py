@@ -179,9 +179,6 @@ def run_workers(
     jobs_dir = out_dir / JOBS_DIR
     jobs_dir.mkdir(parents=True, exist_ok=True)
     render_cfg = render.as_dict()
-    if n_workers > 1 and render.threads == 0:
-        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
-
     # Work units: contiguous blocks of one crater's plans, camera-major
     # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
     # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work"); as many
@@ -193,6 +190,10 @@ def run_workers(
         if job.plans:
             ordered = sorted(job.plans, key=camera_major)
             units += [(job, block) for block in _split_contiguous(ordered, share)]
+    # the cores split between the workers that can run at once (fewer units than workers: more threads each)
+    concurrent = max(1, min(n_workers, len(units)))
+    if concurrent > 1 and render.threads == 0:
+        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // concurrent)
     pending = list(units)
     attempts: dict[int, int] = {}
     running: dict[subprocess.Popen, _Worker] = {}
