@@ -221,6 +221,45 @@ def landmarks_in_view(
     return out
 
 
+def _compute_horizons(specs: list[tuple]) -> None:
+    """(Child process) the horizon maps of ``specs`` (:func:`blender_gen.fast.ensure_horizons` arguments)
+    into the shared cache. A failure is left to the workers, which compute what is missing themselves."""
+    from blender_gen.fast import ensure_horizons
+
+    for spec in specs:
+        try:
+            ensure_horizons(*spec)
+        except Exception:  # noqa: BLE001 - only a head start: the worker computes the map itself
+            pass
+
+
+def _horizons_ahead(jobs, render):
+    """Fast mode with fewer patches than ``render.workers``: a core would idle while each worker imports
+    bpy and builds its scene (single-threaded, seconds), so a host-side process computes the patches'
+    horizon maps meanwhile (the workers then read them from the cache, or wait on its lock). Returns the
+    process, or None."""
+    if render.mode != "fast" or len(jobs) >= render.workers:
+        return None
+    import multiprocessing
+
+    from blender_gen.fast import horizon_cache_dir
+
+    base = render.as_dict()
+    specs = [
+        (
+            str(job.npz),
+            base | job.render_overrides,
+            job.crater.diameter_km * 1000.0,
+            sorted({float(p["item"]["sun_azimuth"]) for p in job.plans}),
+            horizon_cache_dir(render.horizon_cache_dir, str(job.npz)),
+        )
+        for job in jobs
+    ]
+    proc = multiprocessing.get_context("fork").Process(target=_compute_horizons, args=(specs,), daemon=True)
+    proc.start()
+    return proc
+
+
 def _pole(lat: float) -> str:
     return "south" if lat < 0 else "north"
 
@@ -315,7 +354,13 @@ def render_frames(
 
     t1 = time.perf_counter()
     # A shared patch stays with one worker: its scene, BVH and horizon map are built once.
-    run_workers(jobs, render, settings.hapke, out_dir, on_result, split_jobs=not share_patches)
+    ahead = _horizons_ahead(jobs, render)
+    try:
+        run_workers(jobs, render, settings.hapke, out_dir, on_result, split_jobs=not share_patches)
+    finally:
+        if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
+            ahead.terminate()
+            ahead.join()
     t_render = time.perf_counter() - t1
     from crater_core import exr
 
