@@ -379,3 +379,32 @@ def test_shared_patch_frames_match_per_frame_patches(tmp_path):
         assert diff.mean() / lit_med < 0.04
         assert np.mean(diff > 0.1 * lit_med) < 0.08
         assert np.abs(ca["lit"] - cb["lit"]).mean() < 0.03
+
+
+def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):
+    """`crater-synth bench --part navframes` renders the same frames shared and per-frame in one call (no
+    timing is asserted: benchmarks are not timed tests)."""
+    from crater_synth.bench.navframes import bench_navframes
+
+    r = bench_navframes(
+        [
+            "trajectory.width_px=48",
+            f"data_dir={tmp_path / 'data'}",
+            "terrain.near_vertices=64",
+            "terrain.far_spacing_km=8",
+            "terrain.detail.enabled=false",
+            "render.samples=1",
+            "render.shadow_map_px=48",
+            "render.workers=1",
+        ],
+        tmp_path / "work",
+        frames=2,
+    )
+    assert r["trajectory"] == "descent_ridge" and r["frames"] == 2
+    assert r["shared"]["patches"] == 1 and r["per_frame"]["patches"] == 2
+    for k in ("shared", "per_frame"):
+        assert r[k]["modes_used"] == ["fast"] and r[k]["frames_per_s"] > 0 and r[k]["render_frames_per_s"] > 0
+    assert r["speedup_end_to_end"] == pytest.approx(r["shared"]["frames_per_s"] / r["per_frame"]["frames_per_s"], 0.02)
+    a = [json.loads(x) for x in (tmp_path / "work" / "navframes_shared" / "manifest.jsonl").read_text().splitlines()]
+    b = [json.loads(x) for x in (tmp_path / "work" / "navframes_per_frame" / "manifest.jsonl").read_text().splitlines()]
+    assert [r["pose"] for r in a] == [r["pose"] for r in b] and len(a) == 2
