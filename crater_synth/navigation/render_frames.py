@@ -224,8 +224,11 @@ def landmarks_in_view(
 def _compute_horizons(specs: list[tuple]) -> None:
     """(Child process) the horizon maps of ``specs`` (:func:`blender_gen.fast.ensure_horizons` arguments)
     into the shared cache. A failure is left to the workers, which compute what is missing themselves."""
+    import signal
+
     from blender_gen.fast import ensure_horizons
 
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the process group: end quietly, the host reports
     for spec in specs:
         try:
             ensure_horizons(*spec)
