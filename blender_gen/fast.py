@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from collections import OrderedDict
@@ -147,6 +148,34 @@ class GBuffer:
         return top + (bot - top) * self.fy
 
 
+def horizon_cache_dir(job_value: str | None, terrain_npz: str) -> str:
+    """Where a job's horizon maps are cached: the job's ``horizon_cache_dir``, or ``<terrain dir>/horizon``."""
+    return job_value or os.path.join(os.path.dirname(os.path.abspath(terrain_npz)), "horizon")
+
+
+def horizon_terrain(t: dict) -> horizon.Terrain:
+    """The horizon computation's terrain from a loaded terrain npz (``blender_gen.job.load_terrain``)."""
+    return horizon.Terrain(t["near_xyz"], t.get("far_xyz"), t.get("far_keep_quads"))
+
+
+def ensure_horizons(terrain_npz: str, render_cfg: dict, diameter_m: float, azimuths, cache_dir: str, log=None):
+    """The horizon maps a fast-mode job over ``terrain_npz`` needs (its geometry from ``render_cfg`` and the
+    job's crater diameter), from the shared cache or computed into it: what a worker's
+    :meth:`FastRenderer.prepare_horizons` reads. Needs no bpy, so a host may compute them ahead of its
+    workers (the cache's lock files make each map computed once)."""
+    from blender_gen.job import load_terrain
+
+    geom = MapGeometry(
+        float(render_cfg["shadow_map_extent_factor"]) * diameter_m,
+        int(render_cfg["shadow_map_px"]),
+        int(render_cfg["shadow_map_levels"]),
+    )
+    digest = horizon_cache.file_digest(terrain_npz)
+    return horizon_cache.ensure_maps(
+        lambda: horizon_terrain(load_terrain(terrain_npz)), digest, azimuths, geom.halves, geom.px, cache_dir, log=log
+    )
+
+
 class FastRenderer:
     def __init__(self, session, terrain_loader, gbuffer_cache_size: int = 256, horizon_cache_size: int = 64):
         self.s = session
@@ -187,8 +216,7 @@ class FastRenderer:
         digest = horizon_cache.file_digest(terrain_npz)
 
         def build():
-            t = self.terrain_loader()
-            return horizon.Terrain(t["near_xyz"], t.get("far_xyz"), t.get("far_keep_quads"))
+            return horizon_terrain(self.terrain_loader())
 
         maps = horizon_cache.ensure_maps(build, digest, azimuths, self.geometry.halves, self.map_px, cache_dir, log=log)
         for az, m in maps.items():  # (levels, planes, px, px) -> one flat array per plane

@@ -201,9 +201,7 @@ def run(job_path: str) -> int:
     fast_r = None
     if cfg["mode"] == "fast":
         fast_r = fast.FastRenderer(session, lambda: load_terrain(job["terrain_npz"]))
-        cache_dir = job.get("horizon_cache_dir") or os.path.join(
-            os.path.dirname(os.path.abspath(job["terrain_npz"])), "horizon"
-        )
+        cache_dir = fast.horizon_cache_dir(job.get("horizon_cache_dir"), job["terrain_npz"])
         fast_r.prepare_horizons(
             [float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"], cache_dir, log=log
         )

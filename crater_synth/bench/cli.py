@@ -50,9 +50,16 @@ from crater_synth.cli_common import OVERRIDES, user_errors
     show_default=True,
     help="Size of the generated dataset the export part measures.",
 )
+@click.option(
+    "--navframes-frames",
+    type=click.IntRange(min=1),
+    default=4,
+    show_default=True,
+    help="navframes part: how many of the trajectory's first frames to render (each path).",
+)
 @OVERRIDES
 @user_errors
-def bench_command(part, keep, export_renders, overrides):
+def bench_command(part, keep, export_renders, navframes_frames, overrides):
     """Measure the performance goals: renderer vs baselines, training, distributed sweep, navigation, export.
 
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
@@ -94,7 +101,7 @@ def bench_command(part, keep, export_renders, overrides):
         if part in ("all", "navframes"):
             from crater_synth.bench.navframes import bench_navframes
 
-            click.echo("navframes " + json.dumps(bench_navframes(overrides, work)))
+            click.echo("navframes " + json.dumps(bench_navframes(overrides, work, navframes_frames)))
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

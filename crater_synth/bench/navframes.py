@@ -5,9 +5,12 @@ applies, e.g. ``render.mode=direct trajectory.width_px=1024``) into a scratch di
 end-to-end frames/s (terrain patches, worker start-up, rendering, labels), the rendering-only rate
 (the workers' per-frame seconds, summed over workers' wall time), and the fast path's breakdown
 (horizon maps, G-buffers, shading) from the workers' STATS lines. The horizon maps are computed afresh
-(a scratch cache); terrain patches come from ``data_dir``'s cache when there (``patch_s`` says). Each
-frame has its own terrain patch, so the fast path's sharing of horizon maps and G-buffers between renders (the sweep's
-factorisation) does not apply: a frame pays one horizon map and one G-buffer.
+(a scratch cache per run); terrain patches come from ``data_dir``'s cache when there (``patch_s`` says).
+The same frames are rendered twice in one call, with the same settings: ``shared`` (consecutive frames
+on one terrain patch: one worker start-up, scene, BVH and horizon map per patch and worker) and
+``per_frame`` (each frame its own patch, worker and horizon map), with the ratio of their rates.
+"dispatch" is the wall time of the workers (start-up, horizon maps, rendering; patches and labels not in
+it).
 """
 
 from __future__ import annotations
@@ -26,23 +29,11 @@ def _worker_stats(out_dir: Path) -> list[dict]:
     return stats
 
 
-def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
-    """Render the first ``frames`` frames of the trajectory (``trajectory=descent_ridge`` unless an
-    override names another) and time them."""
-    from crater_synth.config import load_settings
+def _run(settings, out: Path, n: int, share: bool) -> dict:
     from crater_synth.navigation.render_frames import render_frames
 
-    overrides = list(overrides)
-    if not any(o.startswith("trajectory=") for o in overrides):
-        overrides.insert(0, "trajectory=descent_ridge")
-    if not any(o.startswith("render.horizon_cache_dir=") for o in overrides):
-        # a fresh horizon cache: every frame pays its horizon map, as a new frame does
-        overrides.append(f"render.horizon_cache_dir={work / 'horizon'}")
-    settings = load_settings(overrides)
-    n = min(frames, settings.trajectory.frames)
-    out = work / "navframes"
     t0 = time.perf_counter()
-    summary = render_frames(settings, out, list(range(n)))
+    summary = render_frames(settings, out, list(range(n)), share_patches=share)
     wall = time.perf_counter() - t0
     stats = _worker_stats(out)
     fast = {}
@@ -50,19 +41,54 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
         for k, v in (s.get("fast") or {}).items():
             fast[k] = round(fast.get(k, 0.0) + v, 3)
     return {
-        "trajectory": settings.trajectory.name,
-        "frames": n,
-        "width_px": settings.trajectory.width_px,
-        "mode": settings.render.mode,
+        "patches": summary["patches"],
         "modes_used": summary["modes_used"],
-        "samples": settings.render.samples,
-        "workers": settings.render.workers,
         "wall_s": round(wall, 2),
         "frames_per_s": round(n / wall, 3),
         "patch_s": summary["patch_seconds"],
         "dispatch_s": summary["render_seconds"],
+        "dispatch_frames_per_s": round(n / summary["render_seconds"], 3),
         "render_s_per_frame": round(summary["worker_render_seconds"] / n, 3),
-        "render_frames_per_s": round(settings.render.workers * n / summary["worker_render_seconds"], 3),
+        # the workers' per-frame seconds, as many running at once as there are patches (one worker each), at most
+        # render.workers: the steady rate once scene, BVH and horizon maps are built
+        "render_frames_per_s": round(
+            min(settings.render.workers, summary["patches"]) * n / summary["worker_render_seconds"], 3
+        ),
         "worker_setup_s": round(sum(s.get("setup_s", 0.0) for s in stats), 2),
         "fast_breakdown_s": fast,
+    }
+
+
+def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
+    """Render the first ``frames`` frames of the trajectory (``trajectory=descent_ridge`` unless an
+    override names another) twice, with the same settings: frames sharing terrain patches (the default
+    path) and every frame on its own patch (the per-frame path); times both and gives their ratio."""
+    from crater_synth.config import load_settings
+
+    overrides = list(overrides)
+    if not any(o.startswith("trajectory=") for o in overrides):
+        overrides.insert(0, "trajectory=descent_ridge")
+    runs = {}
+    settings = None
+    for name, share in (("shared", True), ("per_frame", False)):
+        ov = list(overrides)
+        if not any(o.startswith("render.horizon_cache_dir=") for o in overrides):
+            # a fresh horizon cache per run: every patch pays its horizon map, as a new one does
+            ov.append(f"render.horizon_cache_dir={work / ('horizon_' + name)}")
+        settings = load_settings(ov)
+        n = min(frames, settings.trajectory.frames)
+        runs[name] = _run(settings, work / f"navframes_{name}", n, share)
+    assert settings is not None
+    a, b = runs["shared"], runs["per_frame"]
+    return {
+        "trajectory": settings.trajectory.name,
+        "frames": n,
+        "width_px": settings.trajectory.width_px,
+        "mode": settings.render.mode,
+        "samples": settings.render.samples,
+        "workers": settings.render.workers,
+        **runs,
+        "speedup_end_to_end": round(a["frames_per_s"] / b["frames_per_s"], 2),
+        "speedup_dispatch": round(a["dispatch_frames_per_s"] / b["dispatch_frames_per_s"], 2),
+        "speedup_render": round(a["render_frames_per_s"] / b["render_frames_per_s"], 2),
     }

@@ -162,27 +162,38 @@ class _Worker:
                 self.error = line[6:]
 
 
-def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParams, out_dir: Path, on_result) -> None:
+def run_workers(
+    jobs: list[CraterJob],
+    render: RenderSettings,
+    hapke: HapkeParams,
+    out_dir: Path,
+    on_result,
+    split_jobs: bool = True,
+) -> None:
     """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
-    processes; ``on_result(job, plan, result)`` is called for each finished render."""
+    processes; ``on_result(job, plan, result)`` is called for each finished render. ``split_jobs=False``:
+    one work unit (one worker) per job, when a job's fixed cost (scene, BVH, horizon map) outweighs
+    its renders (navigation frames on a shared patch)."""
     n_workers = render.workers
     blender = blender_binary(render.blender)[0] if render.blender is not None else None
     jobs_dir = out_dir / JOBS_DIR
     jobs_dir.mkdir(parents=True, exist_ok=True)
     render_cfg = render.as_dict()
-    if n_workers > 1 and render.threads == 0:
-        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // n_workers)
-
     # Work units: contiguous blocks of one crater's plans, camera-major
     # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
     # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work"); as many
     # blocks per crater as balance the workers (blocks_per_crater).
     units: list[tuple[CraterJob, list[dict]]] = []
-    shares = blocks_per_crater([len(j.plans) for j in jobs], n_workers)
+    sizes = [len(j.plans) for j in jobs]
+    shares = blocks_per_crater(sizes, n_workers) if split_jobs else [1] * len(jobs)
     for job, share in zip(jobs, shares):
         if job.plans:
             ordered = sorted(job.plans, key=camera_major)
             units += [(job, block) for block in _split_contiguous(ordered, share)]
+    # the cores split between the workers that can run at once (fewer units than workers: more threads each)
+    concurrent = max(1, min(n_workers, len(units)))
+    if concurrent > 1 and render.threads == 0:
+        render_cfg["threads"] = max(1, (os.cpu_count() or 1) // concurrent)
     pending = list(units)
     attempts: dict[int, int] = {}
     running: dict[subprocess.Popen, _Worker] = {}
@@ -197,7 +208,7 @@ def run_workers(jobs: list[CraterJob], render: RenderSettings, hapke: HapkeParam
             "terrain_meta": job.meta,
             "crater": job.crater.as_dict(),
             "hapke": hapke_dict(hapke),
-            "render": render_cfg,
+            "render": render_cfg | job.render_overrides,
             "out_dir": str(out_dir),
             "horizon_cache_dir": render.horizon_cache_dir,
             "renders": [p["item"] for p in block],

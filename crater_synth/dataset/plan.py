@@ -90,6 +90,8 @@ class CraterJob:
     npz: Path
     meta: dict
     plans: list[dict] = field(default_factory=list)
+    # render settings of this job only, over the run's (navigation frames: a shared patch's larger horizon map)
+    render_overrides: dict = field(default_factory=dict)
 
 
 def camera_major(plan: dict) -> tuple[int, int, int, int]:

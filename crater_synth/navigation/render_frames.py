@@ -3,15 +3,20 @@ their truth labels (``crater-synth nav-frames trajectory=NAME``; docs/navigation
 
 Per frame (poses: :mod:`crater_core.trajectory`):
 
-1. **Terrain**: the dataset's patch builder (:func:`crater_synth.terrain.patch.build_terrain`) around the
-   frame's target (the boresight's ground point), its near field sized to the frame's footprint
-   (:data:`PATCH_MARGIN` x the half-width of the square holding the four corner rays' ground
-   points) rather than to a crater's diameter; the far field reaches at least two far cells beyond.
-   Each frame has its own patch (cached by its content key like every patch).
-2. **Render**: one worker item with an explicit camera (position and rotation in the patch's ENU
-   frame), no crop, the Sun's (elevation, azimuth) in the same frame; direct or fast mode as
+1. **Terrain**: the dataset's patch builder (:func:`crater_synth.terrain.patch.build_terrain`). A frame's
+   own patch is centred on its target (the boresight's ground point), its near field sized to the
+   frame's footprint (:data:`PATCH_MARGIN` x the half-width of the square holding the four corner rays'
+   ground points) rather than to a crater's diameter. By default consecutive frames share one patch
+   (:func:`group_frames`): it holds all their footprints at a vertex spacing no coarser than any of their
+   own patches', with up to :data:`SHARE_MAX_VERTEX_FACTOR` x ``terrain.near_vertices`` per side. The far
+   field reaches at least two far cells beyond the near field. Patches are cached by their content key
+   like every patch.
+2. **Render**: one worker item per frame with an explicit camera (position and rotation in the patch's
+   ENU frame), no crop, the Sun's (elevation, azimuth) in the same frame (parallel rays: one Sun
+   direction, one horizon map, for every frame of a patch); one worker job per patch, so a worker
+   imports bpy, builds the scene and Cycles' BVH once for all its frames. Direct or fast mode as
    ``render.mode`` says. In fast mode the job's "crater" diameter sets the horizon map to cover the
-   near field (:data:`FAST_MAP_MARGIN`).
+   near field (:data:`FAST_MAP_MARGIN`), its texels scaled with the vertices.
 3. **Labels**: every landmark of the map whose 3-D rim-centre point projects inside the frame, with
    its projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's
    curvature tilts it against the frame's) and its lit-rim fraction (mean of the ``lit`` channel at
@@ -27,6 +32,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -35,7 +41,7 @@ import numpy as np
 
 from crater_core import geometry, schema
 from crater_core.settings import CraterSettings, replace
-from crater_core.trajectory import FramePose, TrajectoryError, footprint_half_width_m, frame_poses
+from crater_core.trajectory import FramePose, TrajectoryError, footprint_half_width_m, frame_corners_mc, frame_poses
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import ConfigError, UserError
 
@@ -44,23 +50,83 @@ FAST_MAP_MARGIN = 1.02  # fast path: horizon map half-width / near-field half-wi
 RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
 MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
 FRAME_LABEL_VERSION = 1
+# Frames sharing a patch: its near field at most this many times the configured vertices per side (4 x the
+# vertices: one BVH and one horizon map for several frames instead of one per frame).
+SHARE_MAX_VERTEX_FACTOR = 2.0
 
 
 def frame_rel_path(index: int) -> str:
     return f"frame_{index:04d}.exr"
 
 
-def patch_entry(traj_name: str, pose: FramePose, near_radius_factor: float) -> dict:
-    """The patch builder's crater entry for a frame: centred on the target, its diameter chosen so that
-    the near field (``near_radius_factor`` x D) holds the footprint with :data:`PATCH_MARGIN`."""
-    hw = footprint_half_width_m(pose) * PATCH_MARGIN
-    return {
-        "name": f"nav-{traj_name}-{pose.index:04d}",
-        "lat": pose.target_lat,
-        "lon": pose.target_lon,
-        "diameter_km": hw / near_radius_factor / 1000.0,
-        "source": "navigation frame footprint",
-    }
+@dataclass(frozen=True)
+class PatchGroup:
+    """Consecutive frames rendered on one terrain patch: its centre, near-field half-width and vertices."""
+
+    poses: tuple
+    lat: float
+    lon: float
+    half_width_m: float
+    near_vertices: int
+
+    def entry(self, traj_name: str, near_radius_factor: float) -> dict:
+        """The patch builder's crater entry: centred on the patch, its diameter chosen so that the near field
+        (``near_radius_factor`` x D) is the patch's half-width."""
+        first, last = self.poses[0].index, self.poses[-1].index
+        name = f"nav-{traj_name}-{first:04d}" if first == last else f"nav-{traj_name}-{first:04d}-{last:04d}"
+        return {
+            "name": name,
+            "lat": self.lat,
+            "lon": self.lon,
+            "diameter_km": self.half_width_m / near_radius_factor / 1000.0,
+            "source": "navigation frame footprint" if first == last else "navigation frames' joint footprint",
+        }
+
+
+def own_half_width_m(pose: FramePose) -> float:
+    """Near-field half-width of the frame's own patch (per-frame rendering): footprint x :data:`PATCH_MARGIN`."""
+    return footprint_half_width_m(pose) * PATCH_MARGIN
+
+
+def joint_patch(poses, near_vertices: int) -> PatchGroup:
+    """The patch that holds every footprint of ``poses`` with :data:`PATCH_MARGIN`, at a vertex spacing no
+    coarser than any of the frames' own patches (``near_vertices`` over :func:`own_half_width_m`): centred
+    on the middle of the footprints' corners (in the middle frame's ENU plane), its vertex count raised to
+    keep the spacing. A single frame's patch is its own (centred on its target, ``near_vertices``)."""
+    poses = tuple(poses)
+    if len(poses) == 1:
+        p = poses[0]
+        return PatchGroup(poses, p.target_lat, p.target_lon, own_half_width_m(p), int(near_vertices))
+    mid = poses[len(poses) // 2]
+    corners = np.concatenate([frame_corners_mc(p) for p in poses])
+    enu = geometry.mc_to_enu(corners, mid.target_lat, mid.target_lon)[:, :2]
+    ce, cn = (enu.max(axis=0) + enu.min(axis=0)) / 2.0
+    lat, lon, _ = geometry.mc_to_latlon(geometry.enu_to_mc(np.array([ce, cn, 0.0]), mid.target_lat, mid.target_lon))
+    lat, lon = float(lat), float(lon)
+    hw = float(np.max(np.abs(geometry.mc_to_enu(corners, lat, lon)[:, :2]))) * PATCH_MARGIN
+    finest = min(own_half_width_m(p) for p in poses)  # the smallest own patch has the finest spacing
+    n = int(math.ceil((near_vertices - 1) * hw / finest - 1e-9)) + 1
+    return PatchGroup(poses, lat, lon, hw, n)
+
+
+def group_frames(poses, near_vertices: int, share: bool = True) -> list[PatchGroup]:
+    """Consecutive frames grouped onto shared terrain patches (:func:`joint_patch`): a frame joins the
+    current group while the joint patch needs at most :data:`SHARE_MAX_VERTEX_FACTOR` x ``near_vertices``
+    per side. ``share=False``: every frame on its own patch (the per-frame path)."""
+    if not share:
+        return [joint_patch([p], near_vertices) for p in poses]
+    groups: list[PatchGroup] = []
+    cur: list = []
+    for p in poses:
+        trial = joint_patch(cur + [p], near_vertices)
+        if cur and trial.near_vertices > SHARE_MAX_VERTEX_FACTOR * near_vertices:
+            groups.append(joint_patch(cur, near_vertices))
+            cur = [p]
+        else:
+            cur.append(p)
+    if cur:
+        groups.append(joint_patch(cur, near_vertices))
+    return groups
 
 
 def frame_settings(settings, half_width_m: float):
@@ -155,13 +221,58 @@ def landmarks_in_view(
     return out
 
 
+def _compute_horizons(specs: list[tuple]) -> None:
+    """(Child process) the horizon maps of ``specs`` (:func:`blender_gen.fast.ensure_horizons` arguments)
+    into the shared cache. A failure is left to the workers, which compute what is missing themselves."""
+    import signal
+
+    from blender_gen.fast import ensure_horizons
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the process group: end quietly, the host reports
+    for spec in specs:
+        try:
+            ensure_horizons(*spec)
+        except Exception:  # noqa: BLE001 - only a head start: the worker computes the map itself
+            pass
+
+
+def _horizons_ahead(jobs, render):
+    """Fast mode with fewer patches than ``render.workers``: a core would idle while each worker imports
+    bpy and builds its scene (single-threaded, seconds), so a host-side process computes the patches'
+    horizon maps meanwhile (the workers then read them from the cache, or wait on its lock). Returns the
+    process, or None."""
+    if render.mode != "fast" or len(jobs) >= render.workers:
+        return None
+    import multiprocessing
+
+    from blender_gen.fast import horizon_cache_dir
+
+    base = render.as_dict()
+    specs = [
+        (
+            str(job.npz),
+            base | job.render_overrides,
+            job.crater.diameter_km * 1000.0,
+            sorted({float(p["item"]["sun_azimuth"]) for p in job.plans}),
+            horizon_cache_dir(render.horizon_cache_dir, str(job.npz)),
+        )
+        for job in jobs
+    ]
+    proc = multiprocessing.get_context("fork").Process(target=_compute_horizons, args=(specs,), daemon=True)
+    proc.start()
+    return proc
+
+
 def _pole(lat: float) -> str:
     return "south" if lat < 0 else "north"
 
 
-def render_frames(settings, out_dir: Path, only: list[int] | None = None, progress: bool = False) -> dict:
+def render_frames(
+    settings, out_dir: Path, only: list[int] | None = None, progress: bool = False, share_patches: bool = True
+) -> dict:
     """Render the trajectory's frames (all, or the indices ``only``) into ``out_dir`` with labels;
-    returns a summary. Raises :class:`UserError` on bad input before anything is rendered."""
+    returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
+    False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
     from crater_core.files import ensure_writable_dir
     from crater_synth.dataset.dispatch import run_workers
     from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
@@ -186,40 +297,55 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
     maps: dict[str, list] = {}
     t0 = time.perf_counter()
     jobs, frames = [], {}
-    for pose in poses:
-        entry = patch_entry(traj.name, pose, settings.terrain.near_radius_factor)
-        hw = entry["diameter_km"] * 1000.0 * settings.terrain.near_radius_factor
+    n_near = int(settings.terrain.near_vertices)
+    groups = group_frames(poses, n_near, share=share_patches)
+    for group in groups:
+        entry = group.entry(traj.name, settings.terrain.near_radius_factor)
+        hw = group.half_width_m
+        gsettings = frame_settings(settings, hw)
+        if group.near_vertices != n_near:
+            gsettings = replace(gsettings, **{"terrain.near_vertices": group.near_vertices})
+        first = group.poses[0]
         try:
-            npz, meta = build_terrain(entry, frame_settings(settings, hw))
+            npz, meta = build_terrain(entry, gsettings)
         except UserError as exc:
+            which = f"frame {first.index}" if len(group.poses) == 1 else f"frames {first.index}-{group.poses[-1].index}"
             raise UserError(
-                f"trajectory={traj.name} frame {pose.index} (target lat {pose.target_lat:.2f}, "
-                f"lon {pose.target_lon:.2f}): {exc}"
+                f"trajectory={traj.name} {which} (target lat {first.target_lat:.2f}, lon {first.target_lon:.2f}): {exc}"
             ) from None
         if progress:
             click.echo(
-                f"frame {pose.index}: patch +-{hw / 1e3:.1f} km ({'cached' if meta.get('cached') else 'built'})",
+                f"frames {[p.index for p in group.poses]}: patch +-{hw / 1e3:.1f} km, {group.near_vertices}^2 "
+                f"vertices ({'cached' if meta.get('cached') else 'built'})",
                 err=True,
             )
-        seed = render_seed(settings.seed, ("navframe", traj.name, pose.index))
-        header = {
-            "trajectory": traj.name,
-            "frame": pose.index,
-            "terrain_id": meta["terrain_id"],
-            "code_version": code_version(),
-            "renderer": render.mode,
-            "samples": int(render.samples),
-            "pose_mc": json.dumps(pose.as_dict(), sort_keys=True),
-            "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
-            "seed": seed,
-        }
-        item = worker_item(pose, pose.target_lat, pose.target_lon, seed, header)
+        # The fast path's horizon map: as many texels as keep its texel no coarser than a frame's own patch's.
+        scale = group.near_vertices / n_near
+        overrides = {}
+        if scale > 1.0:
+            overrides["shadow_map_px"] = int(math.ceil(render.shadow_map_px * scale / 8.0)) * 8
+        plans = []
+        for pose in group.poses:
+            seed = render_seed(settings.seed, ("navframe", traj.name, pose.index))
+            header = {
+                "trajectory": traj.name,
+                "frame": pose.index,
+                "terrain_id": meta["terrain_id"],
+                "code_version": code_version(),
+                "renderer": render.mode,
+                "samples": int(render.samples),
+                "pose_mc": json.dumps(pose.as_dict(), sort_keys=True),
+                "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
+                "seed": seed,
+                "patch_origin": json.dumps([group.lat, group.lon]),
+            }
+            item = worker_item(pose, group.lat, group.lon, seed, header)
+            plans.append({"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item})
+            frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "group": group}
         # The job's crater diameter sets only the fast path's horizon-map extent (blender_gen/fast.py).
         map_d_km = hw * FAST_MAP_MARGIN / render.shadow_map_extent_factor / 1000.0
         crater = CraterSettings(name=entry["name"], lat=entry["lat"], lon=entry["lon"], diameter_km=map_d_km)
-        plan = {"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item}
-        jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=[plan]))
-        frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "half_width_m": hw}
+        jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
     t_patch = time.perf_counter() - t0
     ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     results: dict[int, dict] = {}
@@ -230,7 +356,14 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
             click.echo(f"frame {result['index']}: rendered in {result['seconds']:.2f} s ({result['mode']})", err=True)
 
     t1 = time.perf_counter()
-    run_workers(jobs, render, settings.hapke, out_dir, on_result)
+    # A shared patch stays with one worker: its scene, BVH and horizon map are built once.
+    ahead = _horizons_ahead(jobs, render)
+    try:
+        run_workers(jobs, render, settings.hapke, out_dir, on_result, split_jobs=not share_patches)
+    finally:
+        if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
+            ahead.terminate()
+            ahead.join()
     t_render = time.perf_counter() - t1
     from crater_core import exr
 
@@ -257,6 +390,15 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
                 "mode": res["mode"],
                 "render_seconds": res["seconds"],
                 "terrain_id": fr["meta"]["terrain_id"],
+                "patch": {
+                    "lat": fr["group"].lat,
+                    "lon": fr["group"].lon,
+                    "half_width_m": fr["group"].half_width_m,
+                    "near_vertices": fr["group"].near_vertices,
+                    "frames": [p.index for p in fr["group"].poses],
+                    "camera_enu_m": fr["item"]["camera"]["position"],
+                    "sun_enu": {"elevation_deg": fr["item"]["sun_elevation"], "azimuth_deg": fr["item"]["sun_azimuth"]},
+                },
                 "frame_origin": {
                     "lat": pose.target_lat,
                     "lon": pose.target_lon,
@@ -285,6 +427,7 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
         "render_seconds": round(t_render, 2),
         "worker_render_seconds": round(sum(r["render_seconds"] for r in rows), 2),
         "landmarks_in_view": [len(r["landmarks"]) for r in rows],
+        "patches": len(groups),
     }
 
 
@@ -294,8 +437,13 @@ def render_frames(settings, out_dir: Path, only: list[int] | None = None, progre
     "--out", type=click.Path(path_type=Path), default=None, help="Output directory [data_dir/navframes/NAME]."
 )
 @click.option("--frames", "only", default="", help="Comma-separated frame indices to render (default: all).")
+@click.option(
+    "--per-frame-patches",
+    is_flag=True,
+    help="Render every frame on its own terrain patch (the slower per-frame path; default: frames share patches).",
+)
 @user_errors
-def nav_frames_command(overrides, out, only):
+def nav_frames_command(overrides, out, only, per_frame_patches):
     """Render a trajectory's navigation frames (EXR + labelled manifest).
 
     Example: `crater-synth nav-frames trajectory=descent_ridge render.mode=direct`
@@ -310,5 +458,5 @@ def nav_frames_command(overrides, out, only):
     except ValueError:
         raise UserError(f"--frames {only!r}: must be comma-separated integers") from None
     out = out or Path(str(settings.data_dir)) / "navframes" / settings.trajectory.name
-    summary = render_frames(settings, out, idx, progress=True)
+    summary = render_frames(settings, out, idx, progress=True, share_patches=not per_frame_patches)
     click.echo(json.dumps(summary))
