@@ -1,4 +1,4 @@
-"""``crater-synth export``: a rendered dataset in the formats trainers load (docs/export.md).
+"""``crater-synth export``: a rendered dataset or navigation frames in the formats trainers load (docs/export.md).
 
 - ``parquet``: Hugging Face's convention, ``<out>/data-00000-of-0000N.parquet``, loaded with
   ``datasets.load_dataset("parquet", data_files=...)`` (or pyarrow/pandas directly);
@@ -18,14 +18,13 @@ half-written one (a killed process can leave a hidden ``.*.tmp``, which no loade
 the next run removes); rerunning into the same directory starts it again cleanly.
 
 Record kinds: what a sample is comes from a :class:`RecordKind` (``RECORD_KINDS``): its rows, key,
-arrays and typed labels. Renders are the one kind today; navigation frames with their landmark
-labels plug in as another kind, and both writers take it unchanged.
+arrays and typed labels: ``render`` (a ``crater-synth dataset`` directory) and ``navframe`` (a
+``crater-synth nav-frames`` directory: whole frames with their pose, Sun and landmark labels, the
+landmarks a list of structs). The kind is detected from the manifest's row fields (:func:`detect_kind`).
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import io
 import json
 import math
@@ -40,149 +39,19 @@ import click
 import numpy as np
 
 from crater_synth.cli_common import user_errors
-from crater_synth.errors import UserError
+from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part of this API)
+    NAVFRAME,
+    RECORD_KINDS,
+    RENDER,
+    ExportError,
+    RecordKind,
+    detect_kind,
+)
 
 FORMATS = ("parquet", "webdataset")
 INDEX_FILE = "export.json"
 EXPORT_VERSION = 1
 DEFAULT_CHANNELS = ("IF",)
-
-
-class ExportError(UserError):
-    """The dataset cannot be exported as asked (bad dataset, channel, output directory)."""
-
-
-# ------------------------------------------------------------------------------------------------
-# Record kinds
-# ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class RecordKind:
-    """What one exported sample is. A new kind (e.g. navigation frames and their landmarks) supplies:
-
-    - ``rows(dataset_dir)``: (row count, iterator over its manifest rows, in a stable order);
-    - ``key(row)``: a unique sample key without dots or slashes (WebDataset splits names at the dot);
-    - ``arrays(dataset_dir, row, channels)``: ``{channel: ndarray}``, the lossless images;
-    - ``label_fields()``: ``[(name, pyarrow type)]`` of the typed label columns;
-    - ``labels(row)``: the typed label values (JSON-able) for those columns;
-    - ``channels``: the channel names a user may ask for.
-    """
-
-    name: str
-    rows: Callable[[Path], tuple[int, Iterator[dict]]]
-    key: Callable[[dict], str]
-    arrays: Callable[[Path, dict, Sequence[str]], dict[str, np.ndarray]]
-    label_fields: Callable[[], list]
-    labels: Callable[[dict], dict]
-    channels: tuple[str, ...]
-
-
-def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
-    from crater_core.schema import MANIFEST_NAME, PARTS_DIR, iter_rows
-
-    manifest = dataset_dir / MANIFEST_NAME
-    if not manifest.is_file():
-        raise ExportError(f"dataset {dataset_dir}: no {MANIFEST_NAME} (render it with `crater-synth dataset`)")
-    parts = [p for p in (dataset_dir / PARTS_DIR).glob("*.jsonl") if p.stat().st_size] if dataset_dir.is_dir() else []
-    if parts:
-        raise ExportError(
-            f"dataset {dataset_dir} has {len(parts)} unmerged manifest part(s) in {PARTS_DIR}/ (a run is going on or "
-            "was killed): finish it with `crater-synth dataset` first"
-        )
-    with open(manifest, encoding="utf-8") as fh:
-        n = sum(1 for line in fh if line.strip())
-    if n == 0:
-        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
-    return n, iter_rows(manifest, strict=True)
-
-
-def _render_key(row: dict) -> str:
-    return row["path"].rsplit(".", 1)[0].replace("/", "_").replace(".", "p")
-
-
-def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
-    """The EXR's channels as stored (lossless), after checking the file against the manifest's sha256."""
-    from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
-
-    path = dataset_dir / row["path"]
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise ExportError(f"dataset {dataset_dir}: cannot read {row['path']} ({exc.strerror})") from None
-    got = hashlib.sha256(data).hexdigest()
-    if got != row["sha256"]:
-        raise ExportError(
-            f"dataset {dataset_dir}: {row['path']} has sha256 {got}, the manifest says {row['sha256']} "
-            "(run `crater-synth verify`)"
-        )
-    try:
-        if len(channels) <= 2:  # decode only what is exported (the default is I/F alone)
-            chans = {c: read_channel(path, c) for c in channels}
-        else:
-            chans, _ = read_exr(path)
-    except ExrError as exc:
-        raise ExportError(str(exc)) from None
-    missing = [c for c in channels if c not in chans]
-    if missing:
-        raise ExportError(f"{path} has no channel(s) {missing}; it has {sorted(chans)}")
-    # Readers get float32; a half channel converts back to float16 exactly: the file's own values and type.
-    return {c: chans[c].astype(stored_dtype(c)) for c in channels}
-
-
-@functools.lru_cache(maxsize=None)
-def _render_label_fields() -> list:
-    import pyarrow as pa
-
-    f64, i64, s = pa.float64(), pa.int64(), pa.string()
-    return [
-        ("crater", s),
-        ("sun_elevation", f64),
-        ("sun_azimuth", f64),
-        ("cam_elevation", f64),
-        ("cam_azimuth", f64),
-        ("range_m", f64),
-        ("fov_deg", f64),
-        ("frame_width", i64),
-        ("width", i64),
-        ("height", i64),
-        ("crop_origin", pa.list_(f64)),
-        ("center_px", pa.list_(f64)),
-        ("rim_ellipse", pa.struct([("cu", f64), ("cv", f64), ("a", f64), ("b", f64), ("angle_rad", f64)])),
-        ("sigma_boxes", pa.list_(pa.struct([("sigma", f64), ("box", pa.list_(f64))]))),
-        ("lit_fraction", f64),
-        ("mean_if", f64),
-        ("path", s),
-        ("sha256", s),
-        ("index", i64),
-        ("indices", pa.list_(i64)),
-        ("seed", i64),
-        ("terrain_id", s),
-        ("render_digest", s),
-        ("renderer", s),
-        ("code_version", s),
-        ("schema_version", i64),
-    ]
-
-
-def _render_labels(row: dict) -> dict:
-    out = {name: row.get(name) for name, _ in _render_label_fields()}
-    out["crop_origin"] = [float(v) for v in row.get("crop_origin") or []]
-    out["sigma_boxes"] = [
-        {"sigma": float(k), "box": [float(b) for b in v]}
-        for k, v in sorted((row.get("sigma_boxes") or {}).items(), key=lambda kv: float(kv[0]))
-    ]
-    return out
-
-
-RENDER = RecordKind(
-    name="render",
-    rows=_render_rows,
-    key=_render_key,
-    arrays=_render_arrays,
-    label_fields=_render_label_fields,
-    labels=_render_labels,
-    channels=("IF", "depth", "N.X", "N.Y", "N.Z", "lit"),
-)
-RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -302,7 +171,7 @@ def export_dataset(
     channels: Sequence[str] = DEFAULT_CHANNELS,
     shard_rows: int = 2048,
     row_group_rows: int = 128,
-    kind: str = "render",
+    kind: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
@@ -312,9 +181,14 @@ def export_dataset(
     ``progress(done, total)`` is called every ``row_group_rows`` samples."""
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
-    if kind not in RECORD_KINDS:
+    if kind is not None and kind not in RECORD_KINDS:
         raise ExportError(f"unknown record kind {kind!r}; known: {', '.join(RECORD_KINDS)}")
-    rk = RECORD_KINDS[kind]
+    found = detect_kind(dataset_dir)
+    if kind is not None and found is not None and found != kind:
+        raise ExportError(
+            f"dataset {dataset_dir} holds {found} records, not {kind} ones: pass --kind {found} or leave --kind out"
+        )
+    rk = RECORD_KINDS[kind or found or "render"]
     channels = list(dict.fromkeys(channels))
     bad = [c for c in channels if c not in rk.channels]
     if not channels or bad:
@@ -435,13 +309,21 @@ def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
 @click.option(
     "--row-group-rows", type=click.IntRange(min=1), default=128, show_default=True, help="Parquet row-group size."
 )
+@click.option(
+    "--kind",
+    type=click.Choice(sorted(RECORD_KINDS)),
+    default=None,
+    help="Record kind: render (a `dataset` directory) or navframe (a `nav-frames` directory) "
+    "[default: detected from the manifest's rows].",
+)
 @click.option("--overwrite", is_flag=True, help="Replace a complete export in the output directory.")
 @user_errors
-def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, overwrite):
-    """Export a rendered dataset to Parquet (Hugging Face) or WebDataset tar shards.
+def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, kind, overwrite):
+    """Export a rendered dataset or navigation frames to Parquet (Hugging Face) or WebDataset tar shards.
 
-    Images go losslessly as NPY bytes; every manifest label goes along. Prints the index (export.json)
-    as one JSON line. Example: ``crater-synth export data/synth/demo --format parquet``.
+    Images go losslessly as NPY bytes; every manifest label goes along (for navigation frames, the landmarks
+    in view with their projected rim ellipses). Prints the index (export.json) as one JSON line. Example:
+    ``crater-synth export data/synth/demo --format parquet``.
     """
     ds = Path(dataset)
     chans = (
@@ -463,6 +345,7 @@ def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, over
         channels=chans,
         shard_rows=shard_rows,
         row_group_rows=row_group_rows,
+        kind=kind,
         overwrite=overwrite,
         progress=progress,
     )

@@ -1,0 +1,344 @@
+"""Record kinds of ``crater-synth export`` (docs/export.md, "Record kinds"): what one exported sample is.
+
+- ``render``: a ``crater-synth dataset`` directory (crater-centred crops, crater_core.schema's manifest);
+- ``navframe``: a ``crater-synth nav-frames`` directory (whole frames along a trajectory, their pose, Sun
+  and the landmarks in view with projected rim ellipses and lit-rim fractions). Its manifest is read as
+  data: this layer (dataset/) sits below crater_synth.navigation and never imports it.
+
+:func:`detect_kind` tells the two manifests apart by their rows' fields. The writers are in
+:mod:`crater_synth.dataset.export`.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+
+from crater_synth.errors import UserError
+
+
+class ExportError(UserError):
+    """The dataset cannot be exported as asked (bad dataset, channel, output directory)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Record kinds
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RecordKind:
+    """What one exported sample is. A new kind (e.g. navigation frames and their landmarks) supplies:
+
+    - ``rows(dataset_dir)``: (row count, iterator over its manifest rows, in a stable order);
+    - ``key(row)``: a unique sample key without dots or slashes (WebDataset splits names at the dot);
+    - ``arrays(dataset_dir, row, channels)``: ``{channel: ndarray}``, the lossless images;
+    - ``label_fields()``: ``[(name, pyarrow type)]`` of the typed label columns;
+    - ``labels(row)``: the typed label values (JSON-able) for those columns;
+    - ``channels``: the channel names a user may ask for.
+    """
+
+    name: str
+    rows: Callable[[Path], tuple[int, Iterator[dict]]]
+    key: Callable[[dict], str]
+    arrays: Callable[[Path, dict, Sequence[str]], dict[str, np.ndarray]]
+    label_fields: Callable[[], list]
+    labels: Callable[[dict], dict]
+    channels: tuple[str, ...]
+
+
+def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
+    from crater_core.schema import MANIFEST_NAME, PARTS_DIR, iter_rows
+
+    manifest = dataset_dir / MANIFEST_NAME
+    if not manifest.is_file():
+        raise ExportError(f"dataset {dataset_dir}: no {MANIFEST_NAME} (render it with `crater-synth dataset`)")
+    parts = [p for p in (dataset_dir / PARTS_DIR).glob("*.jsonl") if p.stat().st_size] if dataset_dir.is_dir() else []
+    if parts:
+        raise ExportError(
+            f"dataset {dataset_dir} has {len(parts)} unmerged manifest part(s) in {PARTS_DIR}/ (a run is going on or "
+            "was killed): finish it with `crater-synth dataset` first"
+        )
+    with open(manifest, encoding="utf-8") as fh:
+        n = sum(1 for line in fh if line.strip())
+    if n == 0:
+        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
+    return n, iter_rows(manifest, strict=True)
+
+
+def _render_key(row: dict) -> str:
+    return row["path"].rsplit(".", 1)[0].replace("/", "_").replace(".", "p")
+
+
+def _exr_arrays(dataset_dir: Path, rel: str, sha256: str, channels: Sequence[str]) -> dict[str, np.ndarray]:
+    """The EXR's channels as stored (lossless), after checking the file against the manifest's sha256."""
+    from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
+
+    path = dataset_dir / rel
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ExportError(f"dataset {dataset_dir}: cannot read {rel} ({exc.strerror})") from None
+    got = hashlib.sha256(data).hexdigest()
+    if got != sha256:
+        raise ExportError(
+            f"dataset {dataset_dir}: {rel} has sha256 {got}, the manifest says {sha256} (run `crater-synth verify`)"
+        )
+    try:
+        if len(channels) <= 2:  # decode only what is exported (the default is I/F alone)
+            chans = {c: read_channel(path, c) for c in channels}
+        else:
+            chans, _ = read_exr(path)
+    except ExrError as exc:
+        raise ExportError(str(exc)) from None
+    missing = [c for c in channels if c not in chans]
+    if missing:
+        raise ExportError(f"{path} has no channel(s) {missing}; it has {sorted(chans)}")
+    # Readers get float32; a half channel converts back to float16 exactly: the file's own values and type.
+    return {c: chans[c].astype(stored_dtype(c)) for c in channels}
+
+
+def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
+    return _exr_arrays(dataset_dir, row["path"], row["sha256"], channels)
+
+
+@functools.lru_cache(maxsize=None)
+def _render_label_fields() -> list:
+    import pyarrow as pa
+
+    f64, i64, s = pa.float64(), pa.int64(), pa.string()
+    return [
+        ("crater", s),
+        ("sun_elevation", f64),
+        ("sun_azimuth", f64),
+        ("cam_elevation", f64),
+        ("cam_azimuth", f64),
+        ("range_m", f64),
+        ("fov_deg", f64),
+        ("frame_width", i64),
+        ("width", i64),
+        ("height", i64),
+        ("crop_origin", pa.list_(f64)),
+        ("center_px", pa.list_(f64)),
+        ("rim_ellipse", pa.struct([("cu", f64), ("cv", f64), ("a", f64), ("b", f64), ("angle_rad", f64)])),
+        ("sigma_boxes", pa.list_(pa.struct([("sigma", f64), ("box", pa.list_(f64))]))),
+        ("lit_fraction", f64),
+        ("mean_if", f64),
+        ("path", s),
+        ("sha256", s),
+        ("index", i64),
+        ("indices", pa.list_(i64)),
+        ("seed", i64),
+        ("terrain_id", s),
+        ("render_digest", s),
+        ("renderer", s),
+        ("code_version", s),
+        ("schema_version", i64),
+    ]
+
+
+def _render_labels(row: dict) -> dict:
+    out = {name: row.get(name) for name, _ in _render_label_fields()}
+    out["crop_origin"] = [float(v) for v in row.get("crop_origin") or []]
+    out["sigma_boxes"] = [
+        {"sigma": float(k), "box": [float(b) for b in v]}
+        for k, v in sorted((row.get("sigma_boxes") or {}).items(), key=lambda kv: float(kv[0]))
+    ]
+    return out
+
+
+RENDER = RecordKind(
+    name="render",
+    rows=_render_rows,
+    key=_render_key,
+    arrays=_render_arrays,
+    label_fields=_render_label_fields,
+    labels=_render_labels,
+    channels=("IF", "depth", "N.X", "N.Y", "N.Z", "lit"),
+)
+
+
+# Navigation frames (``crater-synth nav-frames``, docs/navigation.md "Rendered frames"): ``frame_NNNN.exr``
+# and a manifest row per frame with its pose and landmark labels. Read as data: this layer sits below
+# crater_synth.navigation and never imports it.
+_NAVFRAME_REQUIRED = ("trajectory", "index", "rel_path", "sha256", "landmarks")
+
+
+def _json_rows(manifest: Path) -> Iterator[tuple[int, dict]]:
+    """``(line number, row)`` of a JSON Lines file; a line that is not a JSON object is one error naming it."""
+    with open(manifest, "rb") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            if not raw.strip():
+                continue
+            try:
+                row = json.loads(raw.decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise ExportError(f"{manifest}:{lineno}: unreadable row ({exc})") from None
+            if not isinstance(row, dict):
+                raise ExportError(f"{manifest}:{lineno}: unreadable row (not a JSON object)")
+            yield lineno, row
+
+
+def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
+    from crater_core.schema import MANIFEST_NAME
+
+    manifest = dataset_dir / MANIFEST_NAME
+    if not manifest.is_file():
+        raise ExportError(
+            f"dataset {dataset_dir}: no {MANIFEST_NAME} (render the frames with `crater-synth nav-frames`)"
+        )
+    with open(manifest, encoding="utf-8", errors="replace") as fh:
+        n = sum(1 for line in fh if line.strip())
+    if n == 0:
+        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
+
+    def gen() -> Iterator[dict]:
+        # nav-frames writes its manifest once, atomically, sorted by frame index: file order is the stable order.
+        for lineno, row in _json_rows(manifest):
+            missing = [f for f in _NAVFRAME_REQUIRED if f not in row]
+            rel = str(row.get("rel_path", ""))
+            if missing or rel.startswith("/") or ".." in Path(rel).parts:
+                why = f"missing field(s) {missing}" if missing else f"rel_path {rel!r} leaves the directory"
+                raise ExportError(f"{manifest}:{lineno}: not a nav-frames row ({why})")
+            yield row
+
+    return n, gen()
+
+
+def _navframe_key(row: dict) -> str:
+    return f"{row['trajectory']}_{Path(row['rel_path']).stem}".replace("/", "_").replace(".", "p")
+
+
+def _navframe_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
+    return _exr_arrays(dataset_dir, row["rel_path"], row["sha256"], channels)
+
+
+@functools.lru_cache(maxsize=None)
+def _navframe_label_fields() -> list:
+    import pyarrow as pa
+
+    f64, i64, s = pa.float64(), pa.int64(), pa.string()
+    ellipse = pa.struct([("cu", f64), ("cv", f64), ("a", f64), ("b", f64), ("angle_rad", f64)])
+    landmark = pa.struct(
+        [
+            ("id", s),
+            ("name", s),
+            ("diameter_km", f64),
+            ("lat", f64),
+            ("lon", f64),
+            ("centre_px", pa.list_(f64)),
+            ("depth_m", f64),
+            ("ellipse", ellipse),
+            ("rim_inside", pa.bool_()),
+            ("lit_rim_fraction", f64),  # null: under half of the rim lies in the frame
+        ]
+    )
+    return [
+        ("trajectory", s),
+        ("frame_index", i64),
+        ("rel_path", s),
+        ("sha256", s),
+        ("width_px", i64),
+        ("fov_deg", f64),
+        ("altitude_m", f64),
+        ("frame_origin_lat", f64),
+        ("frame_origin_lon", f64),
+        ("camera_position_m", pa.list_(f64)),  # in the frame's ENU (origin: frame_origin_lat/lon)
+        ("camera_rotation", pa.list_(pa.list_(f64))),  # 3 x 3, rows as in the manifest
+        ("camera_position_mc_m", pa.list_(f64)),  # Moon-centred
+        ("sun_elevation_deg", f64),
+        ("sun_azimuth_deg", f64),
+        ("ground_sample_m", f64),
+        ("footprint_half_width_m", f64),
+        ("lit_fraction", f64),
+        ("mean_if", f64),
+        ("landmarks", pa.list_(landmark)),
+        ("mode", s),
+        ("terrain_id", s),
+        ("label_version", i64),
+        ("schema_version", i64),
+    ]
+
+
+def _navframe_labels(row: dict) -> dict:
+    pose, cam, sun = row.get("pose") or {}, row.get("camera_enu") or {}, row.get("sun_enu") or {}
+    origin = row.get("frame_origin") or {}
+    landmarks = [
+        {
+            "id": None if lm.get("id") is None else str(lm["id"]),
+            "name": lm.get("name"),
+            "diameter_km": lm.get("diameter_km"),
+            "lat": lm.get("lat"),
+            "lon": lm.get("lon"),
+            "centre_px": lm.get("centre_px"),
+            "depth_m": lm.get("depth_m"),
+            "ellipse": lm.get("ellipse"),
+            "rim_inside": lm.get("rim_inside"),
+            "lit_rim_fraction": lm.get("lit_rim_fraction"),
+        }
+        for lm in row.get("landmarks") or []
+    ]
+    return {
+        "trajectory": row.get("trajectory"),
+        "frame_index": row.get("index"),
+        "rel_path": row.get("rel_path"),
+        "sha256": row.get("sha256"),
+        "width_px": pose.get("width_px"),
+        "fov_deg": pose.get("fov_deg"),
+        "altitude_m": pose.get("altitude_m"),
+        "frame_origin_lat": origin.get("lat"),
+        "frame_origin_lon": origin.get("lon"),
+        "camera_position_m": cam.get("position_m"),
+        "camera_rotation": cam.get("rotation"),
+        "camera_position_mc_m": pose.get("position_mc_m"),
+        "sun_elevation_deg": sun.get("elevation_deg"),
+        "sun_azimuth_deg": sun.get("azimuth_deg"),
+        "ground_sample_m": row.get("ground_sample_m"),
+        "footprint_half_width_m": row.get("footprint_half_width_m"),
+        "lit_fraction": row.get("lit_fraction"),
+        "mean_if": row.get("mean_if"),
+        "landmarks": landmarks,
+        "mode": row.get("mode"),
+        "terrain_id": row.get("terrain_id"),
+        "label_version": row.get("label_version"),
+        "schema_version": row.get("schema_version"),
+    }
+
+
+NAVFRAME = RecordKind(
+    name="navframe",
+    rows=_navframe_rows,
+    key=_navframe_key,
+    arrays=_navframe_arrays,
+    label_fields=_navframe_label_fields,
+    labels=_navframe_labels,
+    channels=RENDER.channels,
+)
+RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER, NAVFRAME.name: NAVFRAME}
+
+# The fields that tell one manifest from the other (each kind's rows carry all of its own, none of the other's).
+_KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajectory", "landmarks")}
+
+
+def detect_kind(dataset_dir: str | os.PathLike) -> str | None:
+    """The record kind of ``dataset_dir``'s manifest, from its first row's fields (None: no readable row)."""
+    from crater_core.schema import MANIFEST_NAME
+
+    manifest = Path(dataset_dir) / MANIFEST_NAME
+    if not manifest.is_file():
+        return None
+    _, first = next(_json_rows(manifest), (0, None))
+    if first is None:
+        return None
+    found = [k for k, fields in _KIND_FIELDS.items() if all(f in first for f in fields)]
+    if len(found) != 1:
+        raise ExportError(
+            f"dataset {dataset_dir}: {MANIFEST_NAME} is neither a render manifest (rows with path, crater) nor a "
+            "nav-frames manifest (rows with rel_path, trajectory, landmarks)"
+        )
+    return found[0]
