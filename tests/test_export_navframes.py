@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from crater_core.exr import read_exr, stored_dtype
 from crater_synth.dataset import export as ex
 
-from helpers.cli import run_cli
+from helpers.cli import run_nav_frames
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # local files only: the test never needs the network
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
@@ -43,24 +43,7 @@ def frames(tmp_path_factory):
     """Two real frames (64 px, fast mode, one sample) of descent_ridge, as in tests/test_navframes.py."""
     tmp = tmp_path_factory.mktemp("navexport")
     out = tmp / "frames"
-    proc = run_cli(
-        "nav-frames",
-        "trajectory=descent_ridge",
-        "trajectory.width_px=64",
-        f"data_dir={tmp / 'data'}",
-        "terrain.near_vertices=64",
-        "terrain.far_spacing_km=8",
-        "terrain.detail.enabled=false",
-        "render.samples=1",
-        "render.shadow_map_px=64",
-        "render.workers=1",
-        "render.mode=fast",
-        "--out",
-        out,
-        "--frames",
-        "0,1",
-        timeout=240,
-    )
+    proc = run_nav_frames(tmp / "data", out, "0,1")
     assert proc.returncode == 0, proc.stderr[-2000:]
     return out
 

@@ -13,7 +13,7 @@ from crater_core import exr, geometry
 from crater_core.trajectory import TrajectoryError, footprint_half_width_m, frame_poses
 
 from helpers import render as cr
-from helpers.cli import run_cli
+from helpers.cli import run_cli, run_nav_frames
 
 
 def _traj(**kw):
@@ -273,24 +273,7 @@ def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
 def test_nav_frames_command_end_to_end(tmp_path):
     """`crater-synth nav-frames` on a real-DEM trajectory frame at tiny settings: EXR + manifest + labels."""
     out = tmp_path / "frames"
-    proc = run_cli(
-        "nav-frames",
-        "trajectory=descent_ridge",
-        "trajectory.width_px=64",
-        f"data_dir={tmp_path / 'data'}",
-        "terrain.near_vertices=64",
-        "terrain.far_spacing_km=8",
-        "terrain.detail.enabled=false",
-        "render.samples=1",
-        "render.shadow_map_px=64",
-        "render.workers=1",
-        "render.mode=fast",
-        "--out",
-        out,
-        "--frames",
-        "0",
-        timeout=240,
-    )
+    proc = run_nav_frames(tmp_path / "data", out, "0")
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["frames"] == 1 and summary["modes_used"] == ["fast"]
@@ -398,24 +381,8 @@ def test_frames_are_grouped_onto_patches_no_coarser_than_their_own():
 
 
 def _nav_frames(tmp_path, out, *extra):
-    return run_cli(
-        "nav-frames",
-        "trajectory=descent_ridge",
-        "trajectory.width_px=64",
-        f"data_dir={tmp_path / 'data'}",
-        "terrain.near_vertices=128",
-        "terrain.far_spacing_km=8",
-        "terrain.detail.enabled=false",
-        "render.samples=4",
-        "render.shadow_map_px=64",
-        "render.workers=1",
-        "render.mode=fast",
-        "--out",
-        out,
-        "--frames",
-        "0,1,2",
-        *extra,
-        timeout=300,
+    return run_nav_frames(
+        tmp_path / "data", out, "0,1,2", "terrain.near_vertices=128", "render.samples=4", *extra, timeout=300
     )
 
 

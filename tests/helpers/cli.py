@@ -25,6 +25,28 @@ TINY = (
 )
 
 
+# A nav-frames trajectory frame at tiny settings (64 px, fast mode, one sample, no sub-DEM detail): seconds.
+TINY_NAV = (
+    "trajectory=descent_ridge",
+    "trajectory.width_px=64",
+    "terrain.near_vertices=64",
+    "terrain.far_spacing_km=8",
+    "terrain.detail.enabled=false",
+    "render.samples=1",
+    "render.shadow_map_px=64",
+    "render.workers=1",
+    "render.mode=fast",
+)
+
+
+def run_nav_frames(data_dir, out, frames: str, *overrides, timeout: float = 240) -> subprocess.CompletedProcess:
+    """`crater-synth nav-frames` with :data:`TINY_NAV` (later ``overrides`` win) for the frames ``frames``
+    ("0,1")."""
+    return run_cli(
+        "nav-frames", *TINY_NAV, f"data_dir={data_dir}", *overrides, "--out", out, "--frames", frames, timeout=timeout
+    )
+
+
 def cli_command() -> list[str]:
     exe = Path(sys.executable).with_name("crater-synth")
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "crater_synth.cli"]
