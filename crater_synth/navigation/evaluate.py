@@ -83,9 +83,11 @@ def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) ->
     )
 
 
-def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0):
+def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0, lis=None):
     """Detection and fix of one mosaic window with its light model: (detections, light azimuth rad, fix,
-    prior georef). With several ``dparams.light_tries_deg`` the detector and the fix run once per offset
+    prior georef). ``lis``: (:class:`.lost_in_space.LostInSpaceParams`, its pair index) for the fix with
+    no position prior (the prior georef is then not used; the pixel size is known). With several
+    ``dparams.light_tries_deg`` the detector and the fix run once per offset
     added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
     offset) is kept; with none fixed, the first offset's detections are returned."""
     prior = prior_georef(frame, seed)
@@ -97,7 +99,12 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
         else:
             theta = (theta0 + math.radians(off)) % (2.0 * math.pi)
             dets, theta = detect(frame.image, dparams, light_dir=theta, what=f"frame {frame.id}")
-        fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+        if lis is None:
+            fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+        else:
+            from crater_synth.navigation.lost_in_space import lost_in_space_fix
+
+            fix = lost_in_space_fix(dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1])
         key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
         if best is None or key > best[0]:
             best = (key, dets, theta, fix)
@@ -105,9 +112,10 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
     return dets, theta, fix, prior
 
 
-def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0) -> dict:
-    """Detection, identification and fix of one frame, scored against its truth."""
-    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed)
+def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0, lis=None) -> dict:
+    """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
+    :func:`navigate_frame`)."""
+    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed, lis=lis)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
     # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
@@ -215,19 +223,51 @@ def _params_with(overrides: tuple[str, ...], method: str = "classical") -> tuple
     return DetectorParams(**groups["detect"]), FixParams(**groups["fix"])
 
 
+def _lis_params(name: str, overrides: tuple[str, ...]):
+    """Lost-in-space settings of preset ``name`` with ``lis.<name>=<value>`` overrides."""
+    from crater_synth.navigation.lost_in_space import LIS_PRESETS
+
+    if name not in LIS_PRESETS:
+        raise UserError(f"--lis-preset {name}: expected one of {sorted(LIS_PRESETS)}")
+    values = dataclasses.asdict(LIS_PRESETS[name])
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        field_name = key.partition(".")[2]
+        if not sep or field_name not in values:
+            raise UserError(f"--set {o}: expected lis.<name>=<value> with a known name")
+        try:
+            values[field_name] = type(values[field_name])(json.loads(value))
+        except (ValueError, TypeError):
+            raise UserError(f"--set {o}: {value!r} is not a {type(values[field_name]).__name__}") from None
+    return dataclasses.replace(LIS_PRESETS[name], **values)
+
+
 def evaluate_split(
-    split: str, landmarks, dparams, fparams, every: int = 1, progress: bool = False, pole: str = "south"
+    split: str,
+    landmarks,
+    dparams,
+    fparams,
+    every: int = 1,
+    progress: bool = False,
+    pole: str = "south",
+    lis_params=None,
 ) -> tuple[dict, list[dict]]:
     """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
-    headline windows, and the per-window rows."""
+    headline windows, and the per-window rows. ``lis_params``: the lost-in-space fix with these
+    :class:`.lost_in_space.LostInSpaceParams` (no position prior) instead of the prior-gated one."""
     from crater_synth.navigation.frames import windows
 
     frames = windows(None if split == "all" else split, pole)[::every]
     if not frames:
         raise UserError(f"no {split} window in the {pole} mosaic (north windows are all test)")
+    lis = None
+    if lis_params is not None:
+        from crater_synth.navigation.lost_in_space import build_index
+
+        lis = (lis_params, build_index(landmarks, lis_params))
     rows = []
     for k, f in enumerate(frames):
-        rows.append(run_frame(f, landmarks, dparams, fparams))
+        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis))
         if progress and k % 20 == 19:
             click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
     head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
@@ -330,6 +370,20 @@ def merge_results(path: Path, pole: str, results: dict) -> dict:
     help="Detection method(s); default both, in one table.",
 )
 @click.option("--every", type=int, default=1, show_default=True, help="Use every N-th window (quick looks).")
+@click.option(
+    "--lost-in-space",
+    "--no-prior",
+    "lost_in_space",
+    is_flag=True,
+    help="Identify with no position prior (crater-pair votes over the whole map, crater_synth.navigation."
+    "lost_in_space); settings from --lis-preset and --set lis.<name>=<value>.",
+)
+@click.option(
+    "--lis-preset",
+    default="south-choice",
+    show_default=True,
+    help="Lost-in-space settings (a key of crater_synth.navigation.lost_in_space.LIS_PRESETS).",
+)
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
 @click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
 @click.option(
@@ -340,7 +394,7 @@ def merge_results(path: Path, pole: str, results: dict) -> dict:
     "methods run in full).",
 )
 @user_errors
-def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
+def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, sets, map_path, out):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
@@ -359,6 +413,11 @@ def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
     methods = methods or ("classical", "template")
+    lis_sets = tuple(o for o in sets if o.startswith("lis."))
+    sets = tuple(o for o in sets if not o.startswith("lis."))
+    lis_params = _lis_params(lis_preset, lis_sets) if lost_in_space else None
+    if lis_sets and not lost_in_space:
+        raise UserError(f"--set {lis_sets[0]}: lost-in-space settings need --lost-in-space")
     params = {m: _params_with(sets, m) for m in methods}
     splits = splits or SPLITS_OF_POLE[pole]
     if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
@@ -380,6 +439,7 @@ def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
             "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
             "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
             "every": every,
+            "position_prior": "none (lost in space)" if lost_in_space else f"truth + {PRIOR_OFFSET_KM:g} km",
         },
         "landmark_map": {
             "dem_product": prov.get("dem_product"),
@@ -401,9 +461,14 @@ def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
             },
             "splits": {},
         }
+        if lis_params is not None:
+            entry["fix"]["method"] = "lost in space: crater-pair votes over the map + RANSAC 2-D similarity"
+            entry["lost_in_space"] = {"preset": lis_preset, **lis_params.as_dict()}
         for split in splits:
             click.echo(f"{m}: {pole} {split}", err=True)
-            summary, _ = evaluate_split(split, landmarks, dparams, fparams, every=every, progress=True, pole=pole)
+            summary, _ = evaluate_split(
+                split, landmarks, dparams, fparams, every=every, progress=True, pole=pole, lis_params=lis_params
+            )
             entry["splits"][split] = summary
         results["methods"][m] = entry
     # The primary method also at the top level (the structure of earlier results files).
@@ -414,7 +479,7 @@ def nav_eval_command(pole, splits, methods, every, sets, map_path, out):
     if out:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)
-    elif full and every == 1 and not sets and not map_path:
+    elif full and every == 1 and not sets and not map_path and not lost_in_space:
         atomic_write_text(RESULTS_JSON, json.dumps(merge_results(RESULTS_JSON, pole, results), indent=1) + "\n")
         click.echo(f"wrote {RESULTS_JSON} ({pole})", err=True)
     click.echo(results_markdown(results))

@@ -1,0 +1,80 @@
+"""Lost-in-space identification (no position prior) on synthetic maps and detection lists."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+
+from crater_synth.navigation.detect import Detection
+from crater_synth.navigation.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
+
+PIXEL_M = 400.0
+SHAPE = (512, 512)
+
+
+def _map(rng, n=800, half_km=500.0):
+    xy = rng.uniform(-half_km, half_km, (n, 2)) * 1000.0
+    d = 10.0 + rng.pareto(1.8, n) * 8.0
+    return [SimpleNamespace(x_m=float(x), y_m=float(y), diameter_km=float(min(k, 120.0))) for (x, y), k in zip(xy, d)]
+
+
+def _frame(landmarks, centre_xy, heading_deg, rng, keep=0.6, clutter=25, noise_px=1.0):
+    """Detections of the landmarks inside a frame whose pixel -> map similarity has the given centre and
+    heading (pixel size PIXEL_M), a random subset kept, with centre and radius noise and clutter."""
+    h, w = SHAPE
+    a = PIXEL_M * complex(math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg)))
+    b = complex(*centre_xy) - a * (w / 2.0 - 1j * h / 2.0)
+    dets = []
+    for lm in landmarks:
+        z = (complex(lm.x_m, lm.y_m) - b) / a
+        u, v = z.real, -z.imag
+        r = lm.diameter_km * 500.0 / PIXEL_M
+        if 0 <= u < w and 0 <= v < h and rng.random() < keep:
+            u, v = u + rng.normal(0, noise_px), v + rng.normal(0, noise_px)
+            dets.append(Detection(u, v, r * rng.uniform(0.9, 1.1), 1.0))
+    for _ in range(clutter):
+        dets.append(Detection(rng.uniform(0, w), rng.uniform(0, h), rng.uniform(9, 60), 0.5))
+    rng.shuffle(dets)
+    return dets
+
+
+def test_recovers_known_transform_without_prior():
+    rng = np.random.default_rng(3)
+    lms = _map(rng)
+    index = build_index(lms)
+    for centre, heading in (((120e3, -80e3), 0.0), ((-250e3, 300e3), 37.0), ((10e3, 20e3), -140.0)):
+        dets = _frame(lms, centre, heading, rng)
+        fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index)
+        assert fix.ok, fix.reason
+        assert math.hypot(fix.x_m - centre[0], fix.y_m - centre[1]) < 1000.0
+        assert abs((fix.heading_deg - heading + 180.0) % 360.0 - 180.0) < 1.0
+        assert abs(fix.scale_m_per_px / PIXEL_M - 1.0) < 0.01
+
+
+def test_no_map_craters_gives_no_fix():
+    rng = np.random.default_rng(4)
+    lms = _map(rng)
+    dets = [Detection(*rng.uniform(0, 512, 2), rng.uniform(12, 60), 0.5) for _ in range(40)]
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
+    assert not fix.ok and fix.reason
+
+
+def test_repeated_pattern_is_ambiguous():
+    rng = np.random.default_rng(5)
+    motif = _map(rng, n=14, half_km=90.0)
+    # The same crater pattern twice on the map, 400 km apart: the frame sees one copy, no fix is safe.
+    lms = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
+    dets = _frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
+    assert not fix.ok
+    assert "ambiguous" in fix.reason
+    # The same frame against a map holding one copy only is fixed (the refusal is the repetition's).
+    fix1 = lost_in_space_fix(dets, motif, SHAPE, PIXEL_M)
+    assert fix1.ok, fix1.reason
+    assert math.hypot(fix1.x_m, fix1.y_m) < 1000.0
+
+
+def test_params_round_trip():
+    assert LostInSpaceParams().as_dict()["n_detections"] == 30
