@@ -177,8 +177,9 @@ def lost_in_space_fix(
     cell = (base[:, None, :] + offs[None, :, :]).reshape(-1, 3)
     cell[:, 2] %= n_head
     vote_of = np.repeat(np.arange(len(centre)), len(offs))
-    cells, inv, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    # One int64 key per cell (x, y offsets of 2^20 cells cover any map): np.unique on a 1-D array is fast.
+    key = ((cell[:, 0] + (1 << 20)) << 22 | (cell[:, 1] + (1 << 20))) * (n_head + 1) + cell[:, 2]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     best_cells = np.argsort(-counts, kind="stable")[: params.n_verify]
     flip = np.array([1.0, -1.0])
     # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
@@ -217,6 +218,8 @@ def lost_in_space_fix(
     idx = np.array(fix.inliers)
     a, b = fit_similarity((det_uv * flip)[idx[:, 0]], index.lm_xy[idx[:, 1]])
     c = _apply(a, b, np.array([[w / 2.0, -h / 2.0]]))[0]
+    if not np.all(np.isfinite(c)):
+        return Fix(False, "degenerate inlier set (coincident detections)")
     fix.x_m, fix.y_m = float(c[0]), float(c[1])
     fix.scale_m_per_px = float(abs(a))
     fix.heading_deg = float(math.degrees(np.angle(a)))
