@@ -55,7 +55,7 @@ class LostInSpaceParams:
     bin_deg: float = 10.0  # vote cell of the heading
     max_matches: int = 200000
     n_verify: int = 8  # best-voted cells verified by the RANSAC fix
-    gate_km: float = 8.0  # verification: detection within gate + r/4 of a landmark predicted by a candidate
+    gate_km: float = 4.0  # verification gate (+ r/4) around the landmarks a candidate predicts; chosen on south
     min_inliers: int = 6  # a lost-in-space fix needs more agreeing landmarks than a prior-gated one
     ambiguity_margin: int = 2  # a rival elsewhere with >= best - margin inliers: no fix
     rival_km: float = 5.0  # candidates whose centres are closer than this are the same solution
@@ -65,7 +65,7 @@ class LostInSpaceParams:
 
 
 # Frozen settings, chosen on south windows (docs/navigation.md, "Lost in space").
-LIS_PRESETS = {"south-choice": LostInSpaceParams()}
+LIS_PRESETS = {"south-choice": LostInSpaceParams(gate_km=4.0)}
 
 
 @dataclass(frozen=True)
