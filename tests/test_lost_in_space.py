@@ -78,3 +78,18 @@ def test_repeated_pattern_is_ambiguous():
 
 def test_params_round_trip():
     assert LostInSpaceParams().as_dict()["n_detections"] == 30
+
+
+def test_lis_settings_overrides_and_errors():
+    import pytest
+
+    from crater_synth.errors import UserError
+    from crater_synth.navigation.lost_in_space import LIS_PRESETS, lis_params_with
+
+    p = lis_params_with("south-choice", ("lis.n_detections=40", "lis.gate_km=6"))
+    assert p.n_detections == 40 and p.gate_km == 6.0
+    assert p.min_inliers == LIS_PRESETS["south-choice"].min_inliers
+    with pytest.raises(UserError, match="lis.nope"):
+        lis_params_with("south-choice", ("lis.nope=1",))
+    with pytest.raises(UserError, match="--lis-preset"):
+        lis_params_with("missing", ())

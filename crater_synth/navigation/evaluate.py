@@ -10,6 +10,10 @@ moved by a seeded random offset of ``PRIOR_OFFSET_KM`` in a random direction (th
 scale are exact: a lander knows its attitude; the fix still estimates both). A fix is false when its
 position error exceeds ``FALSE_FIX_KM``. The headline rows are the windows with >= 3 landmarks of
 D >= 15 km in view.
+
+Length: the metrics, ``nav-eval`` (with the prior and lost in space) and the navigation benchmark run the
+same per-frame pipeline (:func:`navigate_frame`, :func:`run_frame`) and scoring, kept in one module so the
+three cannot drift apart.
 """
 
 from __future__ import annotations
@@ -223,25 +227,6 @@ def _params_with(overrides: tuple[str, ...], method: str = "classical") -> tuple
     return DetectorParams(**groups["detect"]), FixParams(**groups["fix"])
 
 
-def _lis_params(name: str, overrides: tuple[str, ...]):
-    """Lost-in-space settings of preset ``name`` with ``lis.<name>=<value>`` overrides."""
-    from crater_synth.navigation.lost_in_space import LIS_PRESETS
-
-    if name not in LIS_PRESETS:
-        raise UserError(f"--lis-preset {name}: expected one of {sorted(LIS_PRESETS)}")
-    values = dataclasses.asdict(LIS_PRESETS[name])
-    for o in overrides:
-        key, sep, value = o.partition("=")
-        field_name = key.partition(".")[2]
-        if not sep or field_name not in values:
-            raise UserError(f"--set {o}: expected lis.<name>=<value> with a known name")
-        try:
-            values[field_name] = type(values[field_name])(json.loads(value))
-        except (ValueError, TypeError):
-            raise UserError(f"--set {o}: {value!r} is not a {type(values[field_name]).__name__}") from None
-    return dataclasses.replace(LIS_PRESETS[name], **values)
-
-
 def evaluate_split(
     split: str,
     landmarks,
@@ -415,7 +400,12 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
     methods = methods or ("classical", "template")
     lis_sets = tuple(o for o in sets if o.startswith("lis."))
     sets = tuple(o for o in sets if not o.startswith("lis."))
-    lis_params = _lis_params(lis_preset, lis_sets) if lost_in_space else None
+    if lost_in_space:
+        from crater_synth.navigation.lost_in_space import lis_params_with
+
+        lis_params = lis_params_with(lis_preset, lis_sets)
+    else:
+        lis_params = None
     if lis_sets and not lost_in_space:
         raise UserError(f"--set {lis_sets[0]}: lost-in-space settings need --lost-in-space")
     params = {m: _params_with(sets, m) for m in methods}

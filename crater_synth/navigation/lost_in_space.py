@@ -33,11 +33,13 @@ south windows only (docs/navigation.md, "Lost in space").
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from crater_synth.errors import UserError
 from crater_synth.navigation.fix import Fix, FixParams, _apply, _inliers, fit_similarity, ransac_similarity
 
 
@@ -66,6 +68,23 @@ class LostInSpaceParams:
 
 # Frozen settings, chosen on south windows (docs/navigation.md, "Lost in space").
 LIS_PRESETS = {"south-choice": LostInSpaceParams(gate_km=4.0)}
+
+
+def lis_params_with(name: str, overrides: tuple[str, ...]):
+    """Lost-in-space settings of preset ``name`` with ``lis.<name>=<value>`` overrides."""
+    if name not in LIS_PRESETS:
+        raise UserError(f"--lis-preset {name}: expected one of {sorted(LIS_PRESETS)}")
+    values = asdict(LIS_PRESETS[name])
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        field_name = key.partition(".")[2]
+        if not sep or field_name not in values:
+            raise UserError(f"--set {o}: expected lis.<name>=<value> with a known name")
+        try:
+            values[field_name] = type(values[field_name])(json.loads(value))
+        except (ValueError, TypeError):
+            raise UserError(f"--set {o}: {value!r} is not a {type(values[field_name]).__name__}") from None
+    return replace(LIS_PRESETS[name], **values)
 
 
 @dataclass(frozen=True)
