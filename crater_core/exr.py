@@ -26,7 +26,15 @@ from typing import IO
 import numpy as np
 
 from crater_core.errors import ContractError
-from crater_core.files import SCRATCH_PREFIXES, disk_full_message, free_bytes, is_disk_full, scratch_file, size_text
+from crater_core.files import (
+    SCRATCH_PREFIXES,
+    disk_full_message,
+    free_bytes,
+    is_disk_full,
+    scratch_file,
+    size_text,
+    umask,
+)
 from crater_core.schema import EXR_CHANNEL_TYPES, EXR_CHANNELS
 
 CHANNELS = EXR_CHANNELS
@@ -181,7 +189,7 @@ def write_exr(
     blob = encode_exr(channels, header, channel_names, tile, what=str(path))
     fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp.exr", dir=directory)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: datasets are shared like any file
+        os.fchmod(fd, 0o666 & ~umask())  # mkstemp makes 0600: datasets are shared like any file
         with os.fdopen(fd, "wb") as fh:
             fh.write(blob)
             fh.flush()
@@ -196,12 +204,6 @@ def write_exr(
         Path(tmp).unlink(missing_ok=True)
         raise
     return hashlib.sha256(blob).hexdigest()
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 class _LibraryStderr:

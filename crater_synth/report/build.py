@@ -11,6 +11,7 @@ from typing import Callable, Sequence
 
 import click
 
+from crater_core.files import umask
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.report import gather
 from crater_synth.report.inputs import (
@@ -85,8 +86,7 @@ def build_report(
         rows = rows_in_selection(all_rows, dict(selection))
     tmp = Path(tempfile.mkdtemp(prefix=".report.tmp-", dir=run_dir))
     try:
-        mask = os.umask(0)
-        os.umask(mask)
+        mask = umask()
         os.chmod(tmp, 0o777 & ~mask)
         ctx = gather.Ctx(
             run_dir=run_dir,
