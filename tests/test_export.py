@@ -17,6 +17,8 @@ from crater_core.exr import read_exr, stored_dtype
 from crater_core.schema import load_manifest
 from crater_synth.dataset import export as ex
 
+from helpers.export import interrupt_at_sample
+
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # local files only: the test never needs the network
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 
@@ -90,16 +92,7 @@ def test_webdataset_round_trip(dataset, tmp_path):
 @pytest.mark.parametrize("fmt", ex.FORMATS)
 def test_interrupted_export_leaves_no_half_written_shard(dataset, tmp_path, monkeypatch, fmt):
     out = tmp_path / fmt
-    calls = {"n": 0}
-    real = ex.RENDER.arrays
-
-    def dying(d, row, channels):
-        calls["n"] += 1
-        if calls["n"] == 4:  # the second shard's second sample
-            raise KeyboardInterrupt
-        return real(d, row, channels)
-
-    monkeypatch.setitem(ex.RECORD_KINDS, "render", ex.RecordKind(**{**ex.RENDER.__dict__, "arrays": dying}))
+    interrupt_at_sample(monkeypatch, "render", 4)  # the second shard's second sample
     with pytest.raises(KeyboardInterrupt):
         ex.export_dataset(dataset, out, fmt, shard_rows=2, row_group_rows=1)
     names = sorted(p.name for p in out.iterdir())

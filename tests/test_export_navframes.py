@@ -19,6 +19,7 @@ from crater_core.exr import read_exr, stored_dtype
 from crater_synth.dataset import export as ex
 
 from helpers.cli import run_nav_frames
+from helpers.export import interrupt_at_sample
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # local files only: the test never needs the network
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
@@ -149,16 +150,7 @@ def test_webdataset_round_trip(frames, tmp_path):
 @pytest.mark.parametrize("fmt", ex.FORMATS)
 def test_interrupted_export_leaves_no_half_written_shard(frames, tmp_path, monkeypatch, fmt):
     out = tmp_path / fmt
-    calls = {"n": 0}
-    real = ex.NAVFRAME.arrays
-
-    def dying(d, row, channels):
-        calls["n"] += 1
-        if calls["n"] == 2:  # the second shard's only sample
-            raise KeyboardInterrupt
-        return real(d, row, channels)
-
-    monkeypatch.setitem(ex.RECORD_KINDS, "navframe", ex.RecordKind(**{**ex.NAVFRAME.__dict__, "arrays": dying}))
+    interrupt_at_sample(monkeypatch, "navframe", 2)  # the second shard's only sample
     with pytest.raises(KeyboardInterrupt):
         ex.export_dataset(frames, out, fmt, shard_rows=1)
     first = ex._shard_names(fmt, 2)[0]
