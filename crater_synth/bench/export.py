@@ -121,15 +121,17 @@ with tarfile.open(out / "dataset.tar", "w") as tar:
         tar.add(p, arcname=str(p.relative_to(ds)))
 print(json.dumps({"seconds": time.perf_counter() - t0, "rows": len(files),
                   "bytes": (out / "dataset.tar").stat().st_size,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "rss_first_half_mb": 0.0, "rss_second_half_mb": 0.0}))
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 
 def _run(ds: Path, out: Path, fmt: str, channels: str) -> dict:
-    child = _TAR_CHILD if fmt == "tar" else _CHILD
-    args = [str(ds), str(out)] if fmt == "tar" else [str(ds), str(out), fmt, channels]
-    proc = subprocess.run([sys.executable, "-c", child, *args], capture_output=True, text=True, check=False)
+    return _child(_CHILD, str(ds), str(out), fmt, channels)
+
+
+def _child(script: str, *args: str) -> dict:
+    """Run ``script`` in a fresh interpreter (its own peak RSS) and return the JSON of its last line."""
+    proc = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"export benchmark child failed: {proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -149,7 +151,7 @@ def bench_export(work: Path, n: int = 1000) -> dict:
         "webdataset_IF": _run(ds, work / "wds", "webdataset", "IF"),
         "parquet_all": _run(ds, work / "pq_all", "parquet", "IF,depth,N.X,N.Y,N.Z,lit"),
         "parquet_IF_quarter": _run(small, work / "pq_q", "parquet", "IF"),
-        "baseline_tar": _run(ds, work / "tar", "tar", ""),
+        "baseline_tar": _child(_TAR_CHILD, str(ds), str(work / "tar")),
     }
     out: dict = {"renders": n, "generate_seconds": round(gen_s, 2), "exr_mb_per_render": exr_bytes / n / 1e6}
     for name, r in runs.items():
@@ -158,8 +160,9 @@ def bench_export(work: Path, n: int = 1000) -> dict:
             "seconds": round(r["seconds"], 2),
             "renders_per_s": round(rows / r["seconds"], 1),
             "peak_rss_mb": round(r["peak_rss_mb"], 1),
-            "rss_first_half_mb": round(r["rss_first_half_mb"], 1),
-            "rss_second_half_mb": round(r["rss_second_half_mb"], 1),
+            # the exports' RSS per half of their samples (the tar baseline reports none)
+            "rss_first_half_mb": round(r["rss_first_half_mb"], 1) if "rss_first_half_mb" in r else None,
+            "rss_second_half_mb": round(r["rss_second_half_mb"], 1) if "rss_second_half_mb" in r else None,
             "mb_per_render": round(r["bytes"] / rows / 1e6, 4),
         }
         if not name.endswith("quarter"):
