@@ -97,6 +97,12 @@ NAV_DEMO_DIR ?= outputs/navigate-demo
 navigate-demo: setup ## Crater navigation on a few real mosaic windows: both detectors, annotated PNGs, the table, navigation.json (NAV_DEMO_DIR; the report reads RUN_DIR/navigation)
 	$(BIN)/python -m crater_synth.navigation.demo --out $(NAV_DEMO_DIR)
 
+DETECTOR_FRAMES ?= data/detector_frames/south
+DETECTOR_MODEL ?= data_manifest/models/crater_detector_south.pt
+nav-detector: setup ## The learned crater detector: render its 70 survey tracks (~25 min), train (~15 min on 2 cores), score the 10 held-out tracks
+	$(CLI) nav-detector-frames render.samples=4 --out $(DETECTOR_FRAMES) $(OVERRIDES)
+	$(CLI) nav-detector-train $(DETECTOR_FRAMES) --out $(DETECTOR_MODEL)
+
 DEMO_DIR ?= outputs/demo
 DEMO_TRAIN ?= sim2real
 DEMO_SWEEP ?= demo_physical_noon
@@ -106,4 +112,4 @@ demo: setup ## The main job on the embedded data: render sweep=demo_physical_noo
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
-	experiments report bench validate ablate demo navigate-demo
+	experiments report bench validate ablate demo navigate-demo nav-detector

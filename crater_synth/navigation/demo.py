@@ -86,7 +86,7 @@ def main(out: Path, per_sector: int):
     frames = demo_frames(per_sector)
     methods = {}
     windows_out = []
-    for method in ("classical", "template"):
+    for method in ("classical", "template", "learned"):
         dparams, fparams = _params_with((), method)
         splits: dict = {}
         for f in frames:

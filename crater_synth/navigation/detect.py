@@ -80,10 +80,12 @@ class DetectorParams:
     # (the evaluated default); a validation-only experiment, docs/navigation.md.
     concentric_r: float = 0.0
     concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or filter score
-    method: str = "filter"  # "filter" (classical) or "template" (Hapke template NCC, .template)
+    method: str = "filter"  # "filter" (classical), "template" (Hapke template NCC, .template) or "learned" (.learned)
     template_threshold: float = 0.35  # NCC of a template candidate
     template_sun_el_deg: float = 10.0  # Sun elevation the template is shaded at
     template_depth_d: float = 0.2  # template bowl depth / diameter
+    learned_threshold: float = 0.3  # heat-map peak of a learned-detector candidate
+    learned_model: str = ""  # model file of the learned detector ("": the committed south model)
     border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
     refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
@@ -91,7 +93,7 @@ class DetectorParams:
 
     def __post_init__(self):
         choices = {
-            "method": ("filter", "template"),
+            "method": ("filter", "template", "learned"),
             "light_method": ("tensor", "tail"),
             "light_scope": ("frame", "quadrant", "local"),
             "light_pool": ("quadrant", "sector", "pole"),
@@ -140,6 +142,10 @@ PRESETS = {
         concentric_r=0.5,
         concentric_rank="score",
     ),
+    # The network of .learned, trained on rendered frames only. It needs no light direction (no Sun
+    # knowledge, no pooling over a quadrant); threshold, rim fit and suppression chosen on the south windows.
+    "learned": DetectorParams(method="learned", light_scope="frame", refine=False, learned_threshold=0.3,
+                              concentric_r=0.5, concentric_rank="score"),
 }
 # The second round's presets (light pooled per quadrant over the south validation sectors), with which
 # the south test split was run once: kept to reproduce that historic result (`nav-eval --set
@@ -351,13 +357,22 @@ def detect(
     h, w = a.shape
     radii = scale_radii(params, a.shape)
     spec, shape = _spectrum(a)
-    theta = light_azimuth(spec, shape, params, light_prior) if light_dir is None else float(light_dir)
+    if light_dir is not None:
+        theta = float(light_dir)
+    elif params.method == "learned" and not params.refine:
+        theta = math.nan  # the network needs no light direction, and without the rim fit nothing uses it
+    else:
+        theta = light_azimuth(spec, shape, params, light_prior)
     if params.method == "filter":
         u, v, r, score = _filter_candidates(spec, shape, radii, theta, params)
     elif params.method == "template":
         u, v, r, score = template_candidates(spec, shape, radii, theta, params)
+    elif params.method == "learned":
+        from crater_synth.navigation.learned import learned_candidates
+
+        u, v, r, score = learned_candidates(a, params)
     else:
-        raise ValueError(f"detector method {params.method!r}: expected 'filter' or 'template'")
+        raise ValueError(f"detector method {params.method!r}: expected 'filter', 'template' or 'learned'")
     b = params.border_r * r
     inside = (u >= b) & (u <= w - b) & (v >= b) & (v <= h - b)
     u, v, r, score = u[inside], v[inside], r[inside], score[inside]

@@ -130,7 +130,7 @@ def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixPara
         "id": frame.id,
         "split": frame.split,
         "sector": frame.sector,
-        "light_azimuth_deg": round(math.degrees(theta), 1),
+        "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "n_detections": len(dets),
         "truth": [int(i) for i in truth_idx],
         "truth_d_km": [landmarks[i].diameter_km for i in truth_idx],
@@ -299,6 +299,8 @@ def results_markdown(results: dict) -> str:
 METHOD_DESCRIPTIONS = {
     "classical": "shadow/lit-limb scale-space matched filter (crater_synth.navigation.detect)",
     "template": "normalised cross-correlation with a Hapke-shaded crater template (crater_synth.navigation.template)",
+    "learned": "fully convolutional network on an image pyramid, trained on rendered frames only "
+    "(crater_synth.navigation.learned, train.crater_detector)",
 }
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
@@ -330,6 +332,21 @@ def merge_results(path: Path, pole: str, results: dict) -> dict:
     return merged
 
 
+def add_methods(path: Path, pole: str, results: dict) -> dict:
+    """The results file's content with the methods of ``results`` added to (or replaced in) ``pole``'s
+    entry, everything else kept; the protocol must be the entry's own."""
+    old = json.loads(path.read_text()) if path.exists() else {}
+    entry = old if pole == "south" else old.get("regions", {}).get(pole)
+    if not isinstance(entry, dict) or "methods" not in entry:
+        raise UserError(f"{path}: no {pole} result to add {sorted(results['methods'])} to (run nav-eval in full first)")
+    mine, theirs = results["protocol"], entry.get("protocol", {})
+    shared = (set(mine) & set(theirs)) - {"every"}  # keys added to the protocol since are not compared
+    if any(mine[k] != theirs[k] for k in shared) or results["landmark_map"] != entry.get("landmark_map"):
+        raise UserError(f"{path}: the {pole} entry was made with another protocol or map; rerun every method")
+    entry["methods"] = {**entry["methods"], **results["methods"]}
+    return old
+
+
 @click.command("nav-eval")
 @click.option(
     "--pole",
@@ -350,7 +367,7 @@ def merge_results(path: Path, pole: str, results: dict) -> dict:
 @click.option(
     "--method",
     "methods",
-    type=click.Choice(["classical", "template"]),
+    type=click.Choice(["classical", "template", "learned"]),
     multiple=True,
     help="Detection method(s); default both, in one table.",
 )
@@ -465,13 +482,18 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
     primary = results["methods"][results["primary_method"]]
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
-    full = set(splits) == set(SPLITS_OF_POLE[pole]) and set(methods) == {"classical", "template"}
+    full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not sets and not map_path and not lost_in_space
     if out:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)
-    elif full and every == 1 and not sets and not map_path and not lost_in_space:
+    elif full and {"classical", "template"} <= set(methods):
         atomic_write_text(RESULTS_JSON, json.dumps(merge_results(RESULTS_JSON, pole, results), indent=1) + "\n")
         click.echo(f"wrote {RESULTS_JSON} ({pole})", err=True)
+    elif full:
+        # A method run on its own (the learned detector, added after the others' test runs) joins the
+        # pole's existing entry without running the others' test windows again.
+        atomic_write_text(RESULTS_JSON, json.dumps(add_methods(RESULTS_JSON, pole, results), indent=1) + "\n")
+        click.echo(f"wrote {RESULTS_JSON} ({pole}: {', '.join(methods)})", err=True)
     click.echo(results_markdown(results))
 
 
@@ -480,9 +502,10 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
 # --------------------------------------------------------------------------------------------
 def bench_navigation(repeats: int = 3) -> dict:
     """Frames/s of detection, identification and fix, each timed apart, on one 1024 x 1024 mosaic window
-    (the top-left corner of the south mosaic), for both detection methods in the same run (the classical
-    baseline and the template detector): median of ``repeats`` runs after one warm-up. The light direction
-    is estimated on the frame (its cost is part of detection)."""
+    (the top-left corner of the south mosaic), for every detection method in the same run (the classical
+    baseline, the template detector and the learned detector): median of ``repeats`` runs after one
+    warm-up. The light direction is estimated on the frame where the method uses it (its cost is part of
+    detection)."""
     from crater_synth.navigation.detect import preset
     from crater_synth.navigation.fix import identify, ransac_similarity
     from crater_synth.navigation.frames import load_mosaic_image
@@ -497,7 +520,7 @@ def bench_navigation(repeats: int = 3) -> dict:
     fparams = FixParams()
     lm_xy = np.array([[lm.x_m for lm in landmarks], [lm.y_m for lm in landmarks]]).T
     out: dict = {"frame_px": 1024, "repeats": repeats}
-    for method in ("classical", "template"):
+    for method in ("classical", "template", "learned"):
         dparams = dataclasses.replace(preset(method), light_scope="frame")
         t_det, t_id, t_fix = [], [], []
         fix = None

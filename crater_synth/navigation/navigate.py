@@ -111,10 +111,17 @@ def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -
 )
 @click.option(
     "--method",
-    type=click.Choice(["classical", "template"]),
+    type=click.Choice(["classical", "template", "learned"]),
     default="template",
     show_default=True,
-    help="Detection method (docs/navigation.md compares both).",
+    help="Detection method (docs/navigation.md compares the three).",
+)
+@click.option(
+    "--model",
+    "model_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Learned detector's model file (default: the committed south model; --method learned only).",
 )
 @click.option(
     "--light-azimuth",
@@ -124,7 +131,7 @@ def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -
     "attitude and the ephemeris; default: estimated on the frame.",
 )
 @user_errors
-def navigate_command(image, prior, pixel_m, pole, map_path, out, method, light_azimuth):
+def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth):
     """Detect craters in a nadir frame, identify them against the landmark map and fix the position.
 
     The frame is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
@@ -170,7 +177,9 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, light_a
     if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
         lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
         raise FrameError(f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map")
-    dparams, fparams = preset(method), FixParams()
+    if model_path is not None and method != "learned":
+        raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
+    dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
     light = None if light_azimuth is None else math.radians(light_azimuth)
     dets, theta = detect(img, dparams, light_dir=light, what=str(image))
     fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
@@ -178,7 +187,7 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, light_a
         "image": str(image),
         "method": method,
         "detections": len(dets),
-        "light_azimuth_deg": round(math.degrees(theta), 1),
+        "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "fix": fix.ok,
     }
     if fix.ok:

@@ -1,0 +1,265 @@
+"""The learned crater detector (train/crater_detector.py, crater_synth/navigation/learned.py): targets,
+augmentation geometry, pyramid bookkeeping, model files, a small learning run on shaded crater fields,
+training from a survey directory, and its use through detect() and the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from crater_synth.navigation import learned
+from crater_synth.navigation.detect import DetectorParams, detect, preset
+from crater_synth.navigation.template import crater_heights, shade_heights
+from train import crater_detector as cd
+
+
+# ------------------------------------------------------------------------------------------------
+# Targets and geometry
+# ------------------------------------------------------------------------------------------------
+def test_level_targets_mark_band_craters_and_ignore_their_neighbours():
+    t = cd.level_targets((64, 64), u=[20.3, 45.0, 10.0], v=[30.8, 45.0, 50.0], r=[8.0, 14.0, 3.0])
+    # The band crater (r 8): heat 1 at the pixel holding its centre, offset and log-radius there.
+    assert t["heat"][30, 20] == 1.0 and t["centre"].sum() == 1
+    np.testing.assert_allclose(t["offset"][:, 30, 20], [20.3 - 20.5, 30.8 - 30.5], atol=1e-6)
+    assert t["logr"][30, 20] == pytest.approx(math.log(8.0 / cd.BAND_LO_PX))
+    # r 14 lies just above the band: its disc carries no loss, it is no positive either.
+    assert t["weight"][45, 45] == 0.0 and t["heat"][45, 45] < 0.05
+    # r 3 is far below the band: an ordinary negative.
+    assert t["weight"][50, 10] == 1.0 and t["heat"][50, 10] < 0.05
+    # A rim in shadow all round (hidden): no positive, and no loss over its whole disc.
+    h = cd.level_targets((64, 64), u=[20.3], v=[30.8], r=[8.0], hidden=[True])
+    assert h["centre"].sum() == 0 and h["heat"].max() == 0.0
+    assert h["weight"][30, 20] == 0.0 and h["weight"][30, 27] == 0.0 and h["weight"][30, 30] == 1.0
+
+
+@pytest.mark.parametrize("k", range(4))
+@pytest.mark.parametrize("flip", [False, True])
+def test_dihedral_moves_the_targets_and_turns_the_offsets(k, flip):
+    """After a rotation/mirroring of a stacked sample, the centre pixel plus its offset is the crater's
+    transformed position, and the brightness moved with it."""
+    image = np.zeros((40, 56), np.float32)
+    image[7, 31] = 1.0  # the brightness pixel under the crater centre (31.3, 7.8)
+    u, v, h, w = 31.3, 7.8, 40, 56
+    t = cd.dihedral(torch.from_numpy(cd.stack_sample(cd.LevelSample(image, np.array([u]), np.array([v]),
+                                                                     np.array([8.0]), np.zeros(1, bool)), 32)), k, flip)
+    for _ in range(k):
+        u, v, h, w = v, w - u, w, h
+    if flip:
+        v = h - v
+    i, j = (int(x) for x in torch.nonzero(t[cd._CENTRE])[0])
+    assert (j + 0.5 + float(t[cd._DU, i, j]), i + 0.5 + float(t[cd._DV, i, j])) == pytest.approx((u, v), abs=1e-5)
+    assert torch.nonzero(t[cd._IMG] == 1.0)[0].tolist() == [i, j]
+    assert float(t[cd._HEAT, i, j]) == 1.0
+
+
+def test_augmentation_standardises_the_valid_pixels_only():
+    t = torch.zeros(2, 8, 32, 32)
+    t[:, cd._IMG] = torch.rand(2, 32, 32)
+    t[:, cd._VALID, :16, :] = 1.0
+    s = cd.DetectorTrainSettings(noise=(0.0, 0.0))
+    x = cd.augment(t, s, torch.Generator().manual_seed(0))
+    valid = x[:, 0, :16]
+    assert torch.allclose(valid.mean((1, 2)), torch.zeros(2), atol=1e-4)
+    assert torch.allclose(valid.std((1, 2), unbiased=False), torch.ones(2), atol=1e-3)
+    assert float(x[:, 0, 16:].abs().max()) == 0.0
+
+
+def test_pyramid_levels_and_their_coordinates():
+    levels = cd.pyramid(np.ones((256, 200)), first_level=1)
+    assert [k for k, _ in levels] == [1, 2, 3]  # level 4 (16 x 12 px) is below MIN_LEVEL_PX
+    assert levels[0][1].shape == (128, 100)
+    samples = cd.level_samples(np.ones((64, 64)), [40.0], [20.0], [16.0])
+    assert [(s.u[0], s.v[0], s.r[0]) for s in samples] == [(40.0, 20.0, 16.0), (20.0, 10.0, 8.0)]
+
+
+def test_detect_pyramid_scales_level_peaks_back_to_frame_pixels(monkeypatch):
+    """A peak at level pixel (10, 5) of level 2 with offset (0.25, -0.25) and radius 9 px is a crater at
+    frame pixel (4 x 10.75, 4 x 5.25) of radius 36 px."""
+
+    def fake_output(model, a):
+        out = np.zeros((4,) + a.shape, np.float32)
+        if a.shape[0] == 32:  # level 2 of a 128 px frame
+            out[0, 5, 10] = 0.9
+            out[1:3, 5, 10] = (0.25, -0.25)
+            out[3, 5, 10] = math.log(9.0 / cd.BAND_LO_PX)
+        return out
+
+    monkeypatch.setattr(cd, "level_output", fake_output)
+    u, v, r, s, level = cd.detect_pyramid(None, np.zeros((128, 128)), threshold=0.5)
+    assert (u[0], v[0], r[0], s[0], level[0]) == pytest.approx((43.0, 21.0, 36.0, 0.9, 2))
+    assert u.size == 1
+
+
+def test_first_level_searches_the_wanted_radii_inside_a_band():
+    assert learned.first_level(9.0) == 1  # a 400 m/px mosaic window: from 800 m/px, r >= 12 px
+    for rmin in (5.0, 11.0, 30.0, 83.0):
+        k = learned.first_level(rmin)
+        # the wanted smallest radius lies in (or just below, within the 25 % match) the first band
+        assert 0.75 * cd.BAND_LO_PX * 2**k / math.sqrt(2) <= rmin <= 0.75 * cd.BAND_LO_PX * 2**k * math.sqrt(2)
+
+
+# ------------------------------------------------------------------------------------------------
+# Model files
+# ------------------------------------------------------------------------------------------------
+def test_model_file_round_trip_and_bad_files(tmp_path):
+    model = cd.CraterNet(4)
+    path = tmp_path / "m.pt"
+    cd.save_model(path, model, {"note": "x"})
+    loaded, meta = cd.load_model(path)
+    assert meta == {"note": "x"}
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, loaded.state_dict()[k])
+    assert not list(tmp_path.glob("*.tmp*"))  # atomic: no temp file left
+    with pytest.raises(cd.DetectorModelError, match="no such file"):
+        cd.load_model(tmp_path / "missing.pt")
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(cd.DetectorModelError, match="broken.pt"):
+        cd.load_model(broken)
+    foreign = tmp_path / "foreign.pt"
+    torch.save(model.state_dict(), foreign)  # a bare state dict, not a model file
+    with pytest.raises(cd.DetectorModelError, match="not a crater-synth-detector"):
+        cd.load_model(foreign)
+
+
+def test_committed_model_loads_and_carries_its_provenance():
+    _model, meta = cd.load_model(learned.DEFAULT_MODEL)
+    assert meta["trained_on"].startswith("rendered survey frames only")
+    assert meta["synthetic_holdout"]["frames"] > 0
+    assert set(meta["train_tracks"]).isdisjoint(meta["holdout_tracks"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Learning on shaded crater fields
+# ------------------------------------------------------------------------------------------------
+def crater_field(seed: int, size: int = 128, n: int = 7):
+    """A height field of analytic bowls (radii 5-28 px), Hapke-shaded at low Sun with cast shadows:
+    (image, u, v, r)."""
+    rng = np.random.default_rng(seed)
+    z = np.zeros((size, size))
+    jj, ii = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    us, vs, rs = [], [], []
+    while len(rs) < n:
+        r = float(np.exp(rng.uniform(np.log(5.0), np.log(28.0))))
+        u, v = rng.uniform(r, size - r, 2)
+        if any(math.hypot(u - a, v - b) < r + c for a, b, c in zip(us, vs, rs)):
+            continue
+        z += r * crater_heights(np.hypot(jj - u, ii - v) / r, 0.2)
+        us.append(u)
+        vs.append(v)
+        rs.append(r)
+    image = shade_heights(z, theta=float(rng.uniform(0, 2 * np.pi)), sun_el_deg=float(rng.uniform(8, 20)))
+    return image.astype(np.float32), np.array(us), np.array(vs), np.array(rs)
+
+
+def test_a_short_training_run_learns_to_find_shaded_craters():
+    samples = []
+    for seed in range(12):
+        img, u, v, r = crater_field(seed)
+        samples.extend(cd.level_samples(img, u, v, r))
+    s = cd.DetectorTrainSettings(steps=250, batch=8, crop_px=48, width=8, lr=5e-3, threads=2, noise=(0.0, 0.02))
+    result = cd.train_detector(samples, s)
+    assert result["history"][-1]["loss"] < 0.6 * result["history"][0]["loss"]
+    found = total = hits = 0
+    for seed in (100, 101, 102):
+        img, u, v, r = crater_field(seed)
+        du, dv, dr, _, _ = cd.detect_pyramid(result["model"], img, threshold=0.3)
+        total += u.size
+        found += du.size
+        for a, b, c in zip(u, v, r):
+            d = np.hypot(du - a, dv - b)
+            hits += bool(np.any((d <= 0.5 * c) & (np.abs(dr / c - 1.0) <= 0.25)))
+    assert hits / total >= 0.6, (hits, total, found)
+    assert found <= 2 * total
+
+
+# ------------------------------------------------------------------------------------------------
+# Training from a survey directory, and use through detect() and the CLI
+# ------------------------------------------------------------------------------------------------
+def fake_survey(root, tracks: int = 3, frames: int = 2):
+    """Survey track directories as ``nav-frames`` writes them (I/F EXR + labelled manifest rows)."""
+    from crater_core import exr
+
+    for t in range(tracks):
+        d = root / f"track_{t:03d}"
+        rows = []
+        for k in range(frames):
+            img, u, v, r = crater_field(1000 + 10 * t + k)
+            rel = f"frame_{k:04d}.exr"
+            exr.write_exr(d / rel, {"IF": img}, channel_names=("IF",))
+            rows.append({
+                "rel_path": rel, "index": k, "ground_sample_m": 800.0,
+                "landmarks": [{"id": f"L{i}", "diameter_km": 2 * c * 0.8,
+                               "ellipse": {"cu": a, "cv": b, "a": c, "b": c, "angle_rad": 0.0}}
+                              for i, (a, b, c) in enumerate(zip(u, v, r))],
+            })
+        (d / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return root
+
+
+def test_train_from_survey_holds_out_the_last_tracks_and_writes_a_usable_model(tmp_path):
+    frames = fake_survey(tmp_path / "survey")
+    out = tmp_path / "model.pt"
+    s = cd.DetectorTrainSettings(steps=4, batch=2, crop_px=32, width=4, threads=1, checkpoints=(2,))
+    summary = learned.train_from_survey(frames, out, s, holdout=1)
+    assert summary["train_tracks"] == ["track_000", "track_001"] and summary["holdout_tracks"] == ["track_002"]
+    assert summary["synthetic_holdout"]["frames"] == 2
+    assert out.is_file() and (tmp_path / "model.step2.pt").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt", "model.step2.pt", "survey"]
+    params = dataclasses.replace(preset("learned"), learned_model=str(out), learned_threshold=0.0)
+    dets, theta = detect(crater_field(5)[0], params)
+    assert math.isnan(theta)  # no light needed without the rim fit
+    assert all(params.min_radius_px <= d.r <= params.max_radius_px for d in dets)
+
+
+def test_train_from_survey_refuses_too_few_tracks(tmp_path):
+    from crater_synth.errors import UserError
+
+    frames = fake_survey(tmp_path / "survey", tracks=1, frames=1)
+    with pytest.raises(UserError, match="need more than"):
+        learned.train_from_survey(frames, tmp_path / "m.pt", cd.DetectorTrainSettings(steps=1), holdout=1)
+    assert not (tmp_path / "m.pt").exists()
+
+
+def test_a_corrupt_model_file_is_one_error_line_and_detect_stops(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a model")
+    params = DetectorParams(method="learned", learned_model=str(bad))
+    with pytest.raises(learned.DetectorModelFileError, match="bad.pt: cannot be read"):
+        detect(crater_field(1)[0], params)
+
+
+def test_the_committed_model_finds_craters_in_a_shaded_field():
+    """Trained on rendered DEM frames only, the committed model still finds analytic bowls."""
+    img, u, v, r = crater_field(7, size=256, n=12)
+    params = dataclasses.replace(preset("learned"), min_radius_px=4.5)
+    dets, _ = detect(img, params)
+    hits = sum(
+        any(math.hypot(d.u - a, d.v - b) <= 0.5 * c and abs(d.r / c - 1.0) <= 0.25 for d in dets) for a, b, c in zip(u, v, r)
+    )
+    assert hits >= 0.5 * len(r), (hits, len(r), len(dets))
+
+
+def test_a_method_run_alone_joins_the_poles_results_and_a_foreign_protocol_is_refused(tmp_path):
+    from crater_synth.errors import UserError
+    from crater_synth.navigation.evaluate import add_methods
+
+    protocol = {"pole": "north", "window_px": 512, "every": 1}
+    old = {"methods": {"classical": {"splits": {}}}, "regions": {
+        "north": {"protocol": protocol, "landmark_map": {"landmarks": 845}, "methods": {"template": {"splits": {}}}}}}
+    path = tmp_path / "navigation.json"
+    path.write_text(json.dumps(old))
+    new = {"protocol": {**protocol, "position_prior": "truth + 5 km"}, "landmark_map": {"landmarks": 845},
+           "methods": {"learned": {"splits": {"test": {"fix_rate": 0.9}}}}}
+    merged = add_methods(path, "north", new)
+    assert sorted(merged["regions"]["north"]["methods"]) == ["learned", "template"]
+    assert merged["methods"] == old["methods"]  # the south entry untouched
+    with pytest.raises(UserError, match="another protocol or map"):
+        add_methods(path, "north", {**new, "landmark_map": {"landmarks": 1}})
+    with pytest.raises(UserError, match="no south result"):
+        add_methods(tmp_path / "missing.json", "south", new)

@@ -1,0 +1,416 @@
+"""A learned crater detector: a small fully convolutional network run on an image pyramid.
+
+Scale is handled by the pyramid, not by the network: the network finds craters whose rim radius lies in
+one octave, [``BAND_LO_PX``, ``BAND_HI_PX``) pixels, and it is run on the frame decimated by 1, 2, 4, ...
+(area means), so each level covers the next octave of crater sizes with the same weights. The network
+therefore needs a receptive field of a few band radii only (about 70 px), it is small (~60 k weights),
+and every training frame teaches every size at once.
+
+Output, per level pixel (CenterNet-style, Zhou et al. 2019, "Objects as Points"): a centre heat map
+(logit), the sub-pixel offset of the centre from the pixel centre, and log(r / ``BAND_LO_PX``). Targets: a
+Gaussian of sigma ``HEAT_SIGMA_R`` x r about each crater of the band, 1 at the pixel holding its centre;
+craters just outside the band (``IGNORE_LO_PX``, ``IGNORE_HI_PX``) are neither positive nor negative
+(their disc carries no loss), so the octave edges are not learned as hard boundaries. The heat map is
+trained with the penalty-reduced focal loss of CenterNet, the offset and the radius with L1 at the
+centre pixels.
+
+Inputs are standardised per level image (zero mean, unit variance), so exposure and the units (I/F of a
+render, DN of a mosaic) do not matter. numpy + torch + core only: the navigation layer gives the frames
+and labels and calls :func:`detect_pyramid`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from crater_core.schema import atomic_write_bytes
+
+BAND_LO_PX = 6.0  # rim radius band of one pyramid level, px
+BAND_HI_PX = 12.0
+IGNORE_LO_PX = 4.5  # craters between these and the band carry no loss at that level
+IGNORE_HI_PX = 16.0
+HEAT_SIGMA_R = 0.25  # heat-map Gaussian sigma, fraction of the rim radius
+MIN_LEVEL_PX = 24  # a pyramid level smaller than this is not searched
+MODEL_FORMAT = "crater-synth-detector/1"
+
+
+class DetectorModelError(ValueError):
+    """A detector model file that cannot be used (missing, corrupt, wrong format)."""
+
+
+@dataclass(frozen=True)
+class DetectorTrainSettings:
+    """Training settings of :func:`train_detector` (defaults: docs/navigation.md, "Learned detector")."""
+
+    steps: int = 1500
+    batch: int = 16
+    crop_px: int = 96
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    width: int = 16  # channels of the first stage (x2, x4 deeper)
+    seed: int = 0
+    threads: int = 0  # 0: every core
+    # Photometric augmentation: the real mosaic is a stretched 8-bit product with lifted shadows and
+    # finer texture than the rendered DEM; the network must not rely on render-specific intensities.
+    gamma: tuple = (0.5, 1.5)
+    shadow_lift: tuple = (0.0, 0.2)  # x the frame mean, added before standardisation
+    blur_sigma_px: tuple = (0.0, 1.0)
+    noise: tuple = (0.0, 0.08)  # x the standard deviation, after standardisation
+    checkpoints: tuple = field(default_factory=tuple)  # also keep the weights after these steps
+
+
+def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+class CraterNet(nn.Module):
+    """Encoder (1, 1/2, 1/4 resolution, dilated at 1/4) and a two-step decoder with skips back to full
+    resolution; 4 outputs per pixel: heat logit, centre offset (du, dv), log(r / ``BAND_LO_PX``)."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        w = width
+        self.enc0 = nn.Sequential(_block(1, w), _block(w, w))
+        self.enc1 = nn.Sequential(_block(w, 2 * w, stride=2), _block(2 * w, 2 * w))
+        self.enc2 = nn.Sequential(
+            _block(2 * w, 4 * w, stride=2), _block(4 * w, 4 * w, dilation=2), _block(4 * w, 4 * w, dilation=4)
+        )
+        self.dec1 = _block(6 * w, 2 * w)
+        self.dec0 = _block(3 * w, w)
+        self.head = nn.Conv2d(w, 4, 1)
+        with torch.no_grad():  # start from a low heat everywhere (CenterNet's prior of ~0.01)
+            self.head.bias.copy_(torch.tensor([-4.6, 0.0, 0.0, 0.0]))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f0 = self.enc0(x)
+        f1 = self.enc1(f0)
+        f2 = self.enc2(f1)
+        d1 = self.dec1(torch.cat([F.interpolate(f2, size=f1.shape[-2:], mode="bilinear", align_corners=False), f1], 1))
+        d0 = self.dec0(torch.cat([F.interpolate(d1, size=f0.shape[-2:], mode="bilinear", align_corners=False), f0], 1))
+        return self.head(d0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Pyramid and targets
+# ------------------------------------------------------------------------------------------------
+def decimate2(a: np.ndarray) -> np.ndarray:
+    """Area mean over 2 x 2 blocks (an odd last row or column is dropped)."""
+    h, w = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
+    a = a[:h, :w]
+    return 0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2])
+
+
+def pyramid(image: np.ndarray, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> list[tuple[int, np.ndarray]]:
+    """(level, image decimated by 2**level) from ``first_level`` while the smaller side is >= ``min_px``."""
+    a = np.asarray(image, dtype=np.float32)
+    out = []
+    level = 0
+    while min(a.shape) >= min_px:
+        if level >= first_level:
+            out.append((level, a))
+        a = decimate2(a)
+        level += 1
+    return out
+
+
+def standardise(a: np.ndarray) -> np.ndarray:
+    """Zero mean, unit standard deviation (a constant image becomes zeros)."""
+    a = np.asarray(a, dtype=np.float32)
+    s = float(a.std())
+    return (a - float(a.mean())) / (s if s > 0 else 1.0)
+
+
+def level_targets(shape, u, v, r, hidden=None) -> dict[str, np.ndarray]:
+    """Training targets of one level image of ``shape`` for craters at level pixels (u, v) of rim radius
+    r (arrays; continuous coordinates, origin at the top-left pixel corner): heat (H, W), loss weight
+    (H, W; 0 on the discs of craters just outside the band, and on the whole disc of ``hidden`` craters,
+    a boolean per crater: rims the image does not show, neither positive nor negative), and at the centre
+    pixels the offset and log-radius targets with their mask."""
+    h, w = shape
+    heat = np.zeros(shape, np.float32)
+    weight = np.ones(shape, np.float32)
+    offset = np.zeros((2, h, w), np.float32)
+    logr = np.zeros(shape, np.float32)
+    centre = np.zeros(shape, bool)
+    u, v, r = (np.asarray(x, dtype=np.float64).ravel() for x in (u, v, r))
+    hidden = np.zeros(u.size, bool) if hidden is None else np.asarray(hidden, bool).ravel()
+    band = (r >= BAND_LO_PX) & (r < BAND_HI_PX) & ~hidden
+    near = ((r >= IGNORE_LO_PX) & (r < BAND_LO_PX)) | ((r >= BAND_HI_PX) & (r < IGNORE_HI_PX))
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    for k in np.nonzero(near & ~hidden)[0]:
+        weight[(jj - u[k]) ** 2 + (ii - v[k]) ** 2 <= (0.5 * r[k]) ** 2] = 0.0
+    for k in np.nonzero(hidden & (r >= IGNORE_LO_PX) & (r < IGNORE_HI_PX))[0]:
+        weight[(jj - u[k]) ** 2 + (ii - v[k]) ** 2 <= r[k] ** 2] = 0.0
+    for k in np.nonzero(band)[0]:
+        ci, cj = int(math.floor(v[k])), int(math.floor(u[k]))
+        if not (0 <= ci < h and 0 <= cj < w):
+            continue
+        s = HEAT_SIGMA_R * r[k]
+        g = np.exp(-((jj - u[k]) ** 2 + (ii - v[k]) ** 2) / (2.0 * s * s)).astype(np.float32)
+        np.maximum(heat, g, out=heat)
+        heat[ci, cj] = 1.0
+        weight[ci, cj] = 1.0
+        centre[ci, cj] = True
+        offset[:, ci, cj] = (u[k] - (cj + 0.5), v[k] - (ci + 0.5))
+        logr[ci, cj] = math.log(r[k] / BAND_LO_PX)
+    # A weight of 0 never hides a band crater's Gaussian.
+    weight[heat > 0.05] = 1.0
+    return {"heat": heat, "weight": weight, "offset": offset, "logr": logr, "centre": centre}
+
+
+def detector_loss(out: torch.Tensor, heat, weight, offset, logr, centre) -> tuple[torch.Tensor, dict]:
+    """CenterNet's penalty-reduced focal loss on the heat map plus L1 on offset and log-radius at the
+    centre pixels, each normalised by the number of centres in the batch."""
+    p = torch.sigmoid(out[:, 0]).clamp(1e-4, 1 - 1e-4)
+    pos = centre.float()
+    n = pos.sum().clamp(min=1.0)
+    pos_loss = -(torch.log(p) * (1 - p) ** 2 * pos).sum()
+    neg_loss = -(torch.log(1 - p) * p**2 * (1 - heat) ** 4 * (1 - pos) * weight).sum()
+    heat_loss = (pos_loss + neg_loss) / n
+    off_loss = (torch.abs(out[:, 1:3] - offset).sum(1) * pos).sum() / n
+    r_loss = (torch.abs(out[:, 3] - logr) * pos).sum() / n
+    total = heat_loss + off_loss + 2.0 * r_loss
+    return total, {"heat": float(heat_loss.detach()), "offset": float(off_loss.detach()), "logr": float(r_loss.detach())}
+
+
+# ------------------------------------------------------------------------------------------------
+# Training
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class LevelSample:
+    """One pyramid level of one training frame: its image and its craters in level pixels."""
+
+    image: np.ndarray  # float32, not standardised (augmentation acts on the physical values)
+    u: np.ndarray
+    v: np.ndarray
+    r: np.ndarray
+    hidden: np.ndarray  # bool per crater: no loss on its disc (:func:`level_targets`)
+
+
+def level_samples(image: np.ndarray, u, v, r, hidden=None) -> list[LevelSample]:
+    """Every pyramid level of a training frame with its craters (native-pixel u, v, r scaled by level)."""
+    u, v, r = (np.asarray(x, dtype=np.float64) for x in (u, v, r))
+    hidden = np.zeros(u.size, bool) if hidden is None else np.asarray(hidden, bool)
+    return [LevelSample(a, u / 2**k, v / 2**k, r / 2**k, hidden) for k, a in pyramid(image)]
+
+
+# Channels of a stacked sample: the brightness (0-1, before augmentation), then the targets of
+# :func:`level_targets` (heat, loss weight, offset u, offset v, log-radius, centre mask), then the mask of
+# real (not padded) pixels.
+_IMG, _HEAT, _WEIGHT, _DU, _DV, _LOGR, _CENTRE, _VALID = range(8)
+
+
+def stack_sample(sample: LevelSample, crop_px: int) -> np.ndarray:
+    """(8, H, W) float32 of one level: brightness scaled to its 99.5th percentile, the targets computed
+    once, and the valid-pixel mask; padded with zeros (no loss) to at least ``crop_px`` a side."""
+    a = np.clip(np.asarray(sample.image, np.float32), 0.0, None)
+    top = float(np.percentile(a, 99.5)) or 1.0
+    t = level_targets(a.shape, sample.u, sample.v, sample.r, sample.hidden)
+    h, w = a.shape
+    out = np.zeros((8, max(h, crop_px), max(w, crop_px)), np.float32)
+    out[_IMG, :h, :w] = a / top
+    out[_HEAT, :h, :w] = t["heat"]
+    out[_WEIGHT, :h, :w] = t["weight"]
+    out[_DU : _DV + 1, :h, :w] = t["offset"]
+    out[_LOGR, :h, :w] = t["logr"]
+    out[_CENTRE, :h, :w] = t["centre"]
+    out[_VALID, :h, :w] = 1.0
+    return out
+
+
+def dihedral(t: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
+    """A stacked sample (8, H, W) rotated by k x 90 degrees counter-clockwise (``torch.rot90``, as
+    ``np.rot90``) and then mirrored top to bottom, the offset vectors turned with it. A nadir frame so
+    transformed is the same terrain under a Sun rotated or mirrored alike: still physical."""
+    for _ in range(k):  # a quarter turn moves (u, v) to (v, W - u): the offset (du, dv) becomes (dv, -du)
+        t = torch.rot90(t, 1, dims=(-2, -1))
+        du, dv = t[_DU].clone(), t[_DV].clone()
+        t[_DU], t[_DV] = dv, -du
+    if flip:  # (u, v) -> (u, H - v)
+        t = torch.flip(t, dims=(-2,))
+        t[_DV] = -t[_DV]
+    return t
+
+
+def _blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """Each image of (B, 1, H, W) blurred by its own Gaussian sigma (px; 0 leaves it unchanged)."""
+    half = 3
+    k = torch.arange(-half, half + 1, device=x.device, dtype=x.dtype)
+    g = torch.exp(-0.5 * (k[None, :] / sigma.clamp(min=1e-3)[:, None]) ** 2)
+    g = g / g.sum(1, keepdim=True)
+    b = x.shape[0]
+    y = F.conv2d(F.pad(x.transpose(0, 1), (half, half, 0, 0), mode="replicate"), g[:, None, None, :], groups=b)
+    y = F.conv2d(F.pad(y, (0, 0, half, half), mode="replicate"), g[:, None, :, None], groups=b)
+    return y.transpose(0, 1)
+
+
+def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> torch.Tensor:
+    """The network input of a batch of stacked crops (B, 8, c, c): photometric augmentation of the
+    brightness (gamma, shadow floor, blur), standardisation over the valid pixels, noise."""
+    b = t.shape[0]
+
+    def uniform(lo_hi):
+        lo, hi = lo_hi
+        return lo + (hi - lo) * torch.rand(b, 1, 1, 1, generator=gen, device=t.device)
+
+    valid = t[:, _VALID : _VALID + 1]
+    n = valid.sum((2, 3), keepdim=True).clamp(min=1.0)
+    x = t[:, _IMG : _IMG + 1].clamp(min=0.0) ** uniform(s.gamma)
+    x = x + uniform(s.shadow_lift) * (x * valid).sum((2, 3), keepdim=True) / n
+    sigma = uniform(s.blur_sigma_px).flatten()
+    x = torch.where((sigma > 0.2)[:, None, None, None], _blur(x, sigma), x)
+    mean = (x * valid).sum((2, 3), keepdim=True) / n
+    std = (((x - mean) ** 2 * valid).sum((2, 3), keepdim=True) / n).sqrt().clamp(min=1e-6)
+    x = (x - mean) / std
+    x = x + uniform(s.noise) * torch.randn(x.shape, generator=gen, device=t.device)
+    return x * valid
+
+
+def _batch(stacks: list[torch.Tensor], s: DetectorTrainSettings, rng: np.random.Generator) -> torch.Tensor:
+    """A batch of random ``crop_px`` crops of random stacked samples, each rotated and mirrored at random."""
+    c = s.crop_px
+    crops = []
+    for i in rng.integers(0, len(stacks), s.batch):
+        t = stacks[int(i)]
+        h, w = t.shape[-2:]
+        i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        crops.append(dihedral(t[:, i0 : i0 + c, j0 : j0 + c].clone(), int(rng.integers(4)), bool(rng.integers(2))))
+    return torch.stack(crops)
+
+
+def train_detector(samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu") -> dict:
+    """Train :class:`CraterNet` on level samples; returns {"model" (on the CPU), "history", "seconds",
+    "checkpoints"} (``checkpoints``: step -> state dict copies at ``settings.checkpoints``). The targets
+    are computed once per level; crops, rotations and augmentation are tensor operations on ``device``."""
+    if not samples:
+        raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
+    torch.manual_seed(settings.seed)
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
+    rng = np.random.default_rng(settings.seed)
+    gen = torch.Generator(device=device)
+    gen.manual_seed(settings.seed)
+    stacks = [torch.from_numpy(stack_sample(x, settings.crop_px)).to(device) for x in samples]
+    model = CraterNet(settings.width).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
+    history = []
+    checkpoints = {}
+    t0 = time.perf_counter()
+    model.train()
+    for step in range(1, settings.steps + 1):
+        t = _batch(stacks, settings, rng)
+        out = model(augment(t, settings, gen))
+        w = t[:, _WEIGHT] * t[:, _VALID]
+        loss, parts = detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % 50 == 0 or step == settings.steps:
+            history.append({"step": step, "loss": round(float(loss.detach()), 4), **{k: round(v, 4) for k, v in parts.items()}})
+            if log:
+                log(f"step {step}/{settings.steps}: loss {float(loss.detach()):.3f} ({parts['heat']:.3f} heat)")
+        if step in settings.checkpoints:
+            checkpoints[step] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    model.eval()
+    return {"model": model.cpu(), "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
+
+
+# ------------------------------------------------------------------------------------------------
+# Model files
+# ------------------------------------------------------------------------------------------------
+def save_model(path: Path, model: CraterNet, meta: dict) -> None:
+    """Write the weights and ``meta`` (provenance, settings) atomically, with a sha256 of the weights."""
+    import json
+
+    meta = json.loads(json.dumps(meta, default=str))  # plain JSON types only: the file loads with weights_only
+    buf = io.BytesIO()
+    torch.save(model.state_dict(), buf)
+    weights = buf.getvalue()
+    payload = {"format": MODEL_FORMAT, "width": model.head.in_channels, "meta": meta,
+               "weights_sha256": hashlib.sha256(weights).hexdigest(), "weights": weights}
+    out = io.BytesIO()
+    torch.save(payload, out)
+    atomic_write_bytes(Path(path), out.getvalue())
+
+
+def load_model(path: Path) -> tuple[CraterNet, dict]:
+    """The model and its meta from a :func:`save_model` file; a missing, corrupt or foreign file raises
+    :class:`DetectorModelError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise DetectorModelError(f"detector model {path}: no such file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
+            raise DetectorModelError(f"detector model {path}: not a {MODEL_FORMAT} file")
+        weights = payload["weights"]
+        if hashlib.sha256(weights).hexdigest() != payload["weights_sha256"]:
+            raise DetectorModelError(f"detector model {path}: weights checksum mismatch (corrupt file)")
+        model = CraterNet(int(payload["width"]))
+        model.load_state_dict(torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True))
+    except DetectorModelError:
+        raise
+    except Exception as exc:  # torch raises many types on a damaged file
+        raise DetectorModelError(f"detector model {path}: cannot be read ({type(exc).__name__})") from None
+    model.eval()
+    return model, dict(payload["meta"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Inference
+# ------------------------------------------------------------------------------------------------
+@torch.no_grad()
+def level_output(model: CraterNet, a: np.ndarray) -> np.ndarray:
+    """The network's 4 output maps on one level image (standardised here): (4, H, W), heat as probability."""
+    x = torch.from_numpy(standardise(a))[None, None]
+    out = model(x)[0].numpy()
+    out[0] = 1.0 / (1.0 + np.exp(-out[0]))
+    return out
+
+
+def peaks(out: np.ndarray, threshold: float) -> tuple[np.ndarray, ...]:
+    """Local maxima (3 x 3) of the heat map above ``threshold``: (u, v, r, score) in level pixels."""
+    from scipy.ndimage import maximum_filter
+
+    heat = out[0]
+    i, j = np.nonzero((heat >= threshold) & (heat == maximum_filter(heat, size=3, mode="constant")))
+    u = j + 0.5 + out[1, i, j]
+    v = i + 0.5 + out[2, i, j]
+    r = BAND_LO_PX * np.exp(out[3, i, j])
+    return u, v, r, heat[i, j]
+
+
+def detect_pyramid(model: CraterNet, image: np.ndarray, threshold: float, first_level: int = 0):
+    """Craters of every pyramid level from ``first_level``: (u, v, r, score, level) in frame pixels."""
+    us, vs, rs, ss, ls = [], [], [], [], []
+    for level, a in pyramid(image, first_level):
+        u, v, r, s = peaks(level_output(model, a), threshold)
+        f = 2.0**level
+        us.append(u * f)
+        vs.append(v * f)
+        rs.append(r * f)
+        ss.append(s)
+        ls.append(np.full(u.size, level))
+    if not us:
+        return tuple(np.zeros(0) for _ in range(5))
+    return tuple(np.concatenate(x) for x in (us, vs, rs, ss, ls))
+
+
+def settings_dict(s: DetectorTrainSettings) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(s).items()}
