@@ -43,11 +43,11 @@ _COMMANDS = (
     ),
     ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
     (
-        "crater_synth.navigation.learned",
+        "crater_synth.navigation.learned_train",
         "nav_detector_frames_command",
         "Render the learned crater detector's training frames.",
     ),
-    ("crater_synth.navigation.learned", "nav_detector_train_command", "Train the learned crater detector."),
+    ("crater_synth.navigation.learned_train", "nav_detector_train_command", "Train the learned crater detector."),
     ("crater_synth.bench.cli", "bench_command", "Benchmarks: rendering, training, navigation, export."),
     ("crater_synth.cli", "config_command", "Print the composed configuration (YAML)."),
 )

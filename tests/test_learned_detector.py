@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from crater_synth.navigation import learned
+from crater_synth.navigation import learned, learned_train
 from crater_synth.navigation.detect import DetectorParams, detect, preset
 from crater_synth.navigation.template import crater_heights, shade_heights
 from train import crater_detector as cd
@@ -206,7 +206,7 @@ def test_train_from_survey_holds_out_the_last_tracks_and_writes_a_usable_model(t
     frames = fake_survey(tmp_path / "survey")
     out = tmp_path / "model.pt"
     s = cd.DetectorTrainSettings(steps=4, batch=2, crop_px=32, width=4, threads=1, checkpoints=(2,))
-    summary = learned.train_from_survey(frames, out, s, holdout=1)
+    summary = learned_train.train_from_survey(frames, out, s, holdout=1)
     assert summary["train_tracks"] == ["track_000", "track_001"] and summary["holdout_tracks"] == ["track_002"]
     assert summary["synthetic_holdout"]["frames"] == 2
     assert out.is_file() and (tmp_path / "model.step2.pt").is_file()
@@ -222,7 +222,7 @@ def test_train_from_survey_refuses_too_few_tracks(tmp_path):
 
     frames = fake_survey(tmp_path / "survey", tracks=1, frames=1)
     with pytest.raises(UserError, match="need more than"):
-        learned.train_from_survey(frames, tmp_path / "m.pt", cd.DetectorTrainSettings(steps=1), holdout=1)
+        learned_train.train_from_survey(frames, tmp_path / "m.pt", cd.DetectorTrainSettings(steps=1), holdout=1)
     assert not (tmp_path / "m.pt").exists()
 
 

@@ -1,6 +1,6 @@
 """``make navigate-demo``: a small end-to-end navigation run on the embedded data.
 
-A few real south-mosaic windows of each split (fixed, spread over the sectors), both detection methods
+A few real south-mosaic windows of each split (fixed, spread over the sectors), the three detection methods
 with their frozen settings, the committed landmark map: per window and method an annotated PNG
 (detections, identified landmarks, error arrow) and one table of the metrics over these windows, written
 to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
@@ -21,9 +21,9 @@ import click
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
+from crater_synth.navigation import DEMO_JSON
 
 DEMO_WINDOWS_PER_SECTOR = 1
-DEMO_JSON = "navigation.json"
 # The per-window fields of navigation.json (crater_synth.navigation.evaluate.run_frame's scalars).
 WINDOW_FIELDS = ("id", "split", "sector", "light_azimuth_deg", "n_detections", "fix", "reason", "error_km")
 
@@ -126,7 +126,7 @@ def main(out: Path, per_sector: int):
     atomic_write_text(out / DEMO_JSON, json.dumps(record, indent=1) + "\n")
     click.echo(table)
     click.echo(
-        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {2 * len(frames)} annotated PNGs in {time.time() - t0:.0f} s"
+        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {len(methods) * len(frames)} annotated PNGs in {time.time() - t0:.0f} s"
     )
 
 

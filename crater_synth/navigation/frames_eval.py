@@ -267,23 +267,6 @@ def perfect_detections(row: dict) -> list[Detection]:
     return [Detection(lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"], 1.0) for lb in row["landmarks"]]
 
 
-def frame_rows(frames_dir) -> list[dict]:
-    """The rows of a ``nav-frames`` directory's manifest; a missing, empty or unreadable one is one error line."""
-    manifest = Path(frames_dir) / schema.MANIFEST_NAME
-    if not manifest.is_file():
-        raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
-    rows = []
-    for n, line in enumerate(manifest.read_text(encoding="utf-8").splitlines(), 1):
-        if line.strip():
-            try:
-                rows.append(json.loads(line))
-            except ValueError:
-                raise UserError(f"{manifest} line {n}: not a JSON row") from None
-    if not rows:
-        raise UserError(f"{manifest}: no frames")
-    return rows
-
-
 def evaluate_dir(
     frames_dir: Path,
     dparams: DetectorParams = DetectorParams(),
@@ -298,6 +281,8 @@ def evaluate_dir(
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``."""
     from crater_synth.navigation.landmarks import load_default_map
+
+    from crater_synth.navigation.render_frames import frame_rows
 
     rows = frame_rows(frames_dir)
     maps: dict[str, list] = {}

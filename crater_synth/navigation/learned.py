@@ -8,29 +8,23 @@ the training frames' own ground sample). Its detections go through the same bord
 fit and suppression as the other two methods (:func:`crater_synth.navigation.detect.detect`).
 
 The committed model (``DEFAULT_MODEL``) carries its provenance (survey seed and tracks, training
-settings, code commit, synthetic hold-out metrics) inside the file; ``crater-synth nav-detector-train``
-makes it again. Commands: ``crater-synth nav-detector-frames`` (render the survey) and
-``crater-synth nav-detector-train`` (train, then score the held-out survey tracks).
+settings, code commit, synthetic hold-out metrics) inside the file; :mod:`.learned_train`
+(``crater-synth nav-detector-frames``, ``crater-synth nav-detector-train``) makes it again. This module
+is inference only.
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import math
 from pathlib import Path
 
-import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detector_frames import render_survey, track_dirs
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_MODEL = ROOT / "data_manifest" / "models" / "crater_detector_south.pt"
-DEFAULT_FRAMES = Path("data") / "detector_frames" / "south"
-HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never trained on
 
 
 class DetectorModelFileError(UserError):
@@ -69,182 +63,3 @@ def learned_candidates(a: np.ndarray, params):
     u, v, r, s, _level = detect_pyramid(model, a, params.learned_threshold, first_level(params.min_radius_px))
     keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
     return u[keep], v[keep], r[keep], s[keep]
-
-
-# ------------------------------------------------------------------------------------------------
-# Training data and synthetic scoring
-# ------------------------------------------------------------------------------------------------
-def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
-    """(I/F image, manifest row) of every frame of the survey tracks ``tracks`` under ``root``."""
-    from crater_core import exr
-    from crater_synth.navigation.frames_eval import frame_rows
-
-    dirs = track_dirs(root)
-    if not dirs:
-        raise UserError(f"{root}: no rendered survey track (run `crater-synth nav-detector-frames --out {root}`)")
-    out = []
-    for d in dirs[tracks]:
-        for row in frame_rows(d):
-            out.append((exr.read_channel(d / row["rel_path"], "IF"), row))
-    return out
-
-
-MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
-
-
-def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
-    """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
-    label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden)."""
-    h, w = shape
-    lms = row["landmarks"]
-    u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
-    v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
-    r = np.array([lm["ellipse"]["a"] for lm in lms], float)
-    d = np.array([lm["diameter_km"] for lm in lms], float)
-    lit = np.array([1.0 if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return u[inside], v[inside], r[inside], d[inside], lit[inside] < MIN_LIT_RIM
-
-
-def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
-    """Detection recall and precision against the exact labels of rendered frames (centre within 0.25 D,
-    radius within 25 %, one-to-one), for labels and detections of D >= ``min_d_km``."""
-    from crater_synth.navigation.detect import detect
-
-    tp_t = n_t = tp_d = n_d = 0
-    for image, row in records:
-        u, v, r, _, _ = label_circles(row, image.shape)
-        km_per_px = float(row["ground_sample_m"]) / 1000.0
-        dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
-        du = np.array([x.u for x in dets])[:, None] - u[None, :] if dets else np.zeros((0, u.size))
-        dv = np.array([x.v for x in dets])[:, None] - v[None, :] if dets else np.zeros((0, u.size))
-        dr = np.array([x.r for x in dets])[:, None] / r[None, :] if dets else np.zeros((0, u.size))
-        ok = (np.hypot(du, dv) <= 0.5 * r[None, :]) & (np.abs(dr - 1.0) <= 0.25)
-        matched_t, matched_d = set(), set()
-        for i, j in sorted(zip(*np.nonzero(ok)), key=lambda p: np.hypot(du[p], dv[p])):
-            if i not in matched_d and j not in matched_t:
-                matched_d.add(int(i))
-                matched_t.add(int(j))
-        big_t = 2.0 * r * km_per_px >= min_d_km
-        n_t += int(big_t.sum())
-        tp_t += int(sum(1 for j in matched_t if big_t[j]))
-        det_d = np.array([2.0 * x.r * km_per_px for x in dets])
-        big_d = det_d >= min_d_km
-        n_d += int(big_d.sum())
-        tp_d += int(sum(1 for i in matched_d if big_d[i]))
-    return {
-        "frames": len(records),
-        "recall": round(tp_t / n_t, 4) if n_t else None,
-        "precision": round(tp_d / n_d, 4) if n_d else None,
-        "n_labels": n_t,
-        "n_detections": n_d,
-        "min_diameter_km": min_d_km,
-    }
-
-
-def _code_commit() -> str:
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def train_from_survey(
-    frames_dir: Path, out: Path, settings, holdout: int = HOLDOUT_TRACKS, log=None, device: str = "cpu"
-) -> dict:
-    """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
-    to ``out`` with its provenance; returns the summary written into the model."""
-    import dataclasses
-
-    from crater_synth.navigation.detect import DetectorParams
-    from train.crater_detector import level_samples, save_model, settings_dict, train_detector
-
-    dirs = track_dirs(frames_dir)
-    if len(dirs) <= holdout:
-        raise UserError(f"{frames_dir}: {len(dirs)} rendered tracks, need more than the {holdout} held out")
-    train_records = frame_records(frames_dir, slice(0, len(dirs) - holdout))
-    samples = []
-    for image, row in train_records:
-        u, v, r, _, hidden = label_circles(row, image.shape)
-        samples.extend(level_samples(image, u, v, r, hidden))
-    result = train_detector(samples, settings, log=log, device=device)
-    holdout_records = frame_records(frames_dir, slice(len(dirs) - holdout, None))
-    meta = {
-        "trained_on": "rendered survey frames only (crater-synth nav-detector-frames); no real pixel",
-        "frames_dir": str(frames_dir),
-        "train_tracks": [d.name for d in dirs[: len(dirs) - holdout]],
-        "holdout_tracks": [d.name for d in dirs[len(dirs) - holdout :]],
-        "train_frames": len(train_records),
-        "level_samples": len(samples),
-        "settings": settings_dict(settings),
-        "seconds": round(result["seconds"], 1),
-        "device": device,
-        "history": result["history"],
-        "code_commit": _code_commit(),
-    }
-    tmp = Path(str(out) + ".scoring.pt")
-    save_model(tmp, result["model"], meta)
-    try:
-        params = DetectorParams(method="learned", learned_model=str(tmp), min_radius_px=4.5, refine=False)
-        meta["synthetic_holdout"] = score_synthetic(holdout_records, params)
-    finally:
-        tmp.unlink(missing_ok=True)
-        _load.cache_clear()
-    for step, state in sorted(result["checkpoints"].items()):
-        model = result["model"]
-        final = {k: v.clone() for k, v in model.state_dict().items()}
-        model.load_state_dict(state)
-        save_model(Path(out).with_name(f"{Path(out).stem}.step{step}.pt"), model, dict(meta, steps_done=step))
-        model.load_state_dict(final)
-    save_model(Path(out), result["model"], meta)
-    del dataclasses
-    return {k: v for k, v in meta.items() if k != "history"}
-
-
-# ------------------------------------------------------------------------------------------------
-# Commands
-# ------------------------------------------------------------------------------------------------
-@click.command("nav-detector-frames")
-@click.argument("overrides", nargs=-1)
-@click.option("--tracks", default=70, show_default=True, help="Survey tracks (4 frames each); the last 10 are held out.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the track draw.")
-@click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Directory (default: {DEFAULT_FRAMES}).")
-@user_errors
-def nav_detector_frames_command(overrides, tracks, seed, out):
-    """Render the learned detector's training frames: nadir survey tracks over the south map.
-
-    Resumable (a finished track is skipped). Example: `crater-synth nav-detector-frames render.samples=4`
-    """
-    summary = render_survey(out or DEFAULT_FRAMES, tracks, seed, tuple(overrides))
-    click.echo(json.dumps(summary))
-
-
-@click.command("nav-detector-train")
-@click.argument("frames_dir", type=click.Path(path_type=Path), required=False)
-@click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
-@click.option("--steps", default=None, type=int, help="Training steps (default: the training settings').")
-@click.option("--checkpoint", "checkpoints", multiple=True, type=int, help="Also save the weights after this step.")
-@click.option("--threads", default=0, show_default=True, help="Torch threads (0: every core).")
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
-@user_errors
-def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, device):
-    """Train the learned crater detector on rendered survey frames; score it on the held-out tracks.
-
-    Example: `crater-synth nav-detector-train data/detector_frames/south --out model.pt`
-    """
-    import dataclasses
-
-    from train.crater_detector import DetectorTrainSettings
-
-    import torch
-
-    if device == "cuda" and not torch.cuda.is_available():
-        raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    s = DetectorTrainSettings()
-    s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
-    summary = train_from_survey(frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s,
-                                log=lambda m: click.echo(m, err=True), device=device)
-    click.echo(json.dumps(summary, indent=1))

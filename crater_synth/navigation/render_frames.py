@@ -263,6 +263,23 @@ def _horizons_ahead(jobs, render):
     return proc
 
 
+def frame_rows(frames_dir) -> list[dict]:
+    """The rows of a ``nav-frames`` directory's manifest; a missing, empty or unreadable one is one error line."""
+    manifest = Path(frames_dir) / schema.MANIFEST_NAME
+    if not manifest.is_file():
+        raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
+    rows = []
+    for n, line in enumerate(manifest.read_text(encoding="utf-8").splitlines(), 1):
+        if line.strip():
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                raise UserError(f"{manifest} line {n}: not a JSON row") from None
+    if not rows:
+        raise UserError(f"{manifest}: no frames")
+    return rows
+
+
 def _pole(lat: float) -> str:
     return "south" if lat < 0 else "north"
 

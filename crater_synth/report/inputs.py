@@ -416,7 +416,7 @@ def load_nav_frames(path: Path) -> dict | None:
 
 def nav_paths(run_dir: Path) -> tuple[Path, list[Path]]:
     """(the navigate-demo result, the trajectories' nav-frames-eval results) of ``RUN_DIR/navigation/``."""
-    from crater_synth.navigation.demo import DEMO_JSON
+    from crater_synth.navigation import DEMO_JSON
 
     nav = run_dir / NAVIGATION_DIR
     return nav / DEMO_JSON, sorted(nav.glob(NAV_FRAMES_GLOB)) if nav.is_dir() else []
