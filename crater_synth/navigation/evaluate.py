@@ -300,7 +300,8 @@ METHOD_DESCRIPTIONS = {
     "classical": "shadow/lit-limb scale-space matched filter (crater_synth.navigation.detect)",
     "template": "normalised cross-correlation with a Hapke-shaded crater template (crater_synth.navigation.template)",
     "learned": "fully convolutional network on an image pyramid, trained on rendered frames only "
-    "(crater_synth.navigation.learned, train.crater_detector)",
+    "(crater_synth.navigation.learned, train.crater_detector); navigation operating point",
+    "learned-detect": "the learned detector at its detection operating point (best F1 on the south)",
 }
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
@@ -367,9 +368,9 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
 @click.option(
     "--method",
     "methods",
-    type=click.Choice(["classical", "template", "learned"]),
+    type=click.Choice(["classical", "template", "learned", "learned-detect"]),
     multiple=True,
-    help="Detection method(s); default both, in one table.",
+    help="Detection method(s); default all, in one table.",
 )
 @click.option("--every", type=int, default=1, show_default=True, help="Use every N-th window (quick looks).")
 @click.option(
@@ -414,7 +415,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
     landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
-    methods = methods or ("classical", "template")
+    methods = methods or tuple(METHOD_DESCRIPTIONS)
     lis_sets = tuple(o for o in sets if o.startswith("lis."))
     sets = tuple(o for o in sets if not o.startswith("lis."))
     if lost_in_space:

@@ -46,6 +46,11 @@ FRAMES_PRESETS = {
         methods=("position",),
     ),
 }
+# "learned": the learned detector with its frozen real-window preset (chosen on the south windows, not on
+# these frames) and the "synthetic" preset's fix settings; nothing was chosen on the rendered trajectories.
+FRAMES_PRESETS["learned"] = FramesPreset(
+    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, methods=("position",)
+)
 DEFAULT_FRAMES_PRESET = "synthetic"
 
 

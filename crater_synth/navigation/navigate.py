@@ -111,7 +111,7 @@ def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -
 )
 @click.option(
     "--method",
-    type=click.Choice(["classical", "template", "learned"]),
+    type=click.Choice(["classical", "template", "learned", "learned-detect"]),
     default="template",
     show_default=True,
     help="Detection method (docs/navigation.md compares the three).",
@@ -177,7 +177,7 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
     if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
         lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
         raise FrameError(f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map")
-    if model_path is not None and method != "learned":
+    if model_path is not None and not method.startswith("learned"):
         raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
     dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
     light = None if light_azimuth is None else math.radians(light_azimuth)
