@@ -45,8 +45,13 @@ def test_dihedral_moves_the_targets_and_turns_the_offsets(k, flip):
     image = np.zeros((40, 56), np.float32)
     image[7, 31] = 1.0  # the brightness pixel under the crater centre (31.3, 7.8)
     u, v, h, w = 31.3, 7.8, 40, 56
-    t = cd.dihedral(torch.from_numpy(cd.stack_sample(cd.LevelSample(image, np.array([u]), np.array([v]),
-                                                                     np.array([8.0]), np.zeros(1, bool)), 32)), k, flip)
+    t = cd.dihedral(
+        torch.from_numpy(
+            cd.stack_sample(cd.LevelSample(image, np.array([u]), np.array([v]), np.array([8.0]), np.zeros(1, bool)), 32)
+        ),
+        k,
+        flip,
+    )
     for _ in range(k):
         u, v, h, w = v, w - u, w, h
     if flip:
@@ -192,12 +197,21 @@ def fake_survey(root, tracks: int = 3, frames: int = 2):
             img, u, v, r = crater_field(1000 + 10 * t + k)
             rel = f"frame_{k:04d}.exr"
             exr.write_exr(d / rel, {"IF": img}, channel_names=("IF",))
-            rows.append({
-                "rel_path": rel, "index": k, "ground_sample_m": 800.0,
-                "landmarks": [{"id": f"L{i}", "diameter_km": 2 * c * 0.8,
-                               "ellipse": {"cu": a, "cv": b, "a": c, "b": c, "angle_rad": 0.0}}
-                              for i, (a, b, c) in enumerate(zip(u, v, r))],
-            })
+            rows.append(
+                {
+                    "rel_path": rel,
+                    "index": k,
+                    "ground_sample_m": 800.0,
+                    "landmarks": [
+                        {
+                            "id": f"L{i}",
+                            "diameter_km": 2 * c * 0.8,
+                            "ellipse": {"cu": a, "cv": b, "a": c, "b": c, "angle_rad": 0.0},
+                        }
+                        for i, (a, b, c) in enumerate(zip(u, v, r))
+                    ],
+                }
+            )
         (d / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
     return root
 
@@ -240,7 +254,8 @@ def test_the_committed_model_finds_craters_in_a_shaded_field():
     params = dataclasses.replace(preset("learned"), min_radius_px=4.5)
     dets, _ = detect(img, params)
     hits = sum(
-        any(math.hypot(d.u - a, d.v - b) <= 0.5 * c and abs(d.r / c - 1.0) <= 0.25 for d in dets) for a, b, c in zip(u, v, r)
+        any(math.hypot(d.u - a, d.v - b) <= 0.5 * c and abs(d.r / c - 1.0) <= 0.25 for d in dets)
+        for a, b, c in zip(u, v, r)
     )
     assert hits >= 0.5 * len(r), (hits, len(r), len(dets))
 
@@ -250,12 +265,19 @@ def test_a_method_run_alone_joins_the_poles_results_and_a_foreign_protocol_is_re
     from crater_synth.navigation.evaluate import add_methods
 
     protocol = {"pole": "north", "window_px": 512, "every": 1}
-    old = {"methods": {"classical": {"splits": {}}}, "regions": {
-        "north": {"protocol": protocol, "landmark_map": {"landmarks": 845}, "methods": {"template": {"splits": {}}}}}}
+    old = {
+        "methods": {"classical": {"splits": {}}},
+        "regions": {
+            "north": {"protocol": protocol, "landmark_map": {"landmarks": 845}, "methods": {"template": {"splits": {}}}}
+        },
+    }
     path = tmp_path / "navigation.json"
     path.write_text(json.dumps(old))
-    new = {"protocol": {**protocol, "position_prior": "truth + 5 km"}, "landmark_map": {"landmarks": 845},
-           "methods": {"learned": {"splits": {"test": {"fix_rate": 0.9}}}}}
+    new = {
+        "protocol": {**protocol, "position_prior": "truth + 5 km"},
+        "landmark_map": {"landmarks": 845},
+        "methods": {"learned": {"splits": {"test": {"fix_rate": 0.9}}}},
+    }
     merged = add_methods(path, "north", new)
     assert sorted(merged["regions"]["north"]["methods"]) == ["learned", "template"]
     assert merged["methods"] == old["methods"]  # the south entry untouched
@@ -263,3 +285,30 @@ def test_a_method_run_alone_joins_the_poles_results_and_a_foreign_protocol_is_re
         add_methods(path, "north", {**new, "landmark_map": {"landmarks": 1}})
     with pytest.raises(UserError, match="no south result"):
         add_methods(tmp_path / "missing.json", "south", new)
+
+
+def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model(tmp_path):
+    """`crater-synth navigate --method learned` on a south mosaic window (development data) fixes it;
+    a corrupt model file is one error line and writes no PNG; --model needs the learned method."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.navigation.frames import windows
+    from crater_synth.navigation.navigate import write_window
+
+    frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
+    img = tmp_path / "w.png"
+    write_window(img, frame)
+    runner = CliRunner()
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00" * 64)
+    r = runner.invoke(main, ["navigate", str(img), "--method", "learned", "--model", str(bad)])
+    assert r.exit_code == 2 and "bad.pt: cannot be read" in r.output and len(r.output.strip().splitlines()) == 1
+    assert not (tmp_path / "w.nav.png").exists()
+    r = runner.invoke(main, ["navigate", str(img), "--method", "template", "--model", str(bad)])
+    assert r.exit_code == 2 and "--method learned" in r.output
+    r = runner.invoke(main, ["navigate", str(img), "--method", "learned"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert out["fix"] and out["error_km"] < 2.0 and out["light_azimuth_deg"] is None
+    assert (tmp_path / "w.nav.png").is_file()

@@ -184,7 +184,11 @@ def detector_loss(out: torch.Tensor, heat, weight, offset, logr, centre) -> tupl
     off_loss = (torch.abs(out[:, 1:3] - offset).sum(1) * pos).sum() / n
     r_loss = (torch.abs(out[:, 3] - logr) * pos).sum() / n
     total = heat_loss + off_loss + 2.0 * r_loss
-    return total, {"heat": float(heat_loss.detach()), "offset": float(off_loss.detach()), "logr": float(r_loss.detach())}
+    return total, {
+        "heat": float(heat_loss.detach()),
+        "offset": float(off_loss.detach()),
+        "logr": float(r_loss.detach()),
+    }
 
 
 # ------------------------------------------------------------------------------------------------
@@ -322,7 +326,9 @@ def train_detector(samples: list[LevelSample], settings: DetectorTrainSettings, 
         opt.step()
         sched.step()
         if step % 50 == 0 or step == settings.steps:
-            history.append({"step": step, "loss": round(float(loss.detach()), 4), **{k: round(v, 4) for k, v in parts.items()}})
+            history.append(
+                {"step": step, "loss": round(float(loss.detach()), 4), **{k: round(v, 4) for k, v in parts.items()}}
+            )
             if log:
                 log(f"step {step}/{settings.steps}: loss {float(loss.detach()):.3f} ({parts['heat']:.3f} heat)")
         if step in settings.checkpoints:
@@ -342,8 +348,13 @@ def save_model(path: Path, model: CraterNet, meta: dict) -> None:
     buf = io.BytesIO()
     torch.save(model.state_dict(), buf)
     weights = buf.getvalue()
-    payload = {"format": MODEL_FORMAT, "width": model.head.in_channels, "meta": meta,
-               "weights_sha256": hashlib.sha256(weights).hexdigest(), "weights": weights}
+    payload = {
+        "format": MODEL_FORMAT,
+        "width": model.head.in_channels,
+        "meta": meta,
+        "weights_sha256": hashlib.sha256(weights).hexdigest(),
+        "weights": weights,
+    }
     out = io.BytesIO()
     torch.save(payload, out)
     atomic_write_bytes(Path(path), out.getvalue())

@@ -126,7 +126,8 @@ def main(out: Path, per_sector: int):
     atomic_write_text(out / DEMO_JSON, json.dumps(record, indent=1) + "\n")
     click.echo(table)
     click.echo(
-        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {len(methods) * len(frames)} annotated PNGs in {time.time() - t0:.0f} s"
+        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {len(methods) * len(frames)} annotated PNGs "
+        f"in {time.time() - t0:.0f} s"
     )
 
 

@@ -149,11 +149,19 @@ PRESETS = {
     # 5), no rim fit (it added a false fix); "learned-detect" is the same model at the threshold with the
     # best detection F1 (D >= 15 km), the detection operating point.
     "learned": DetectorParams(
-        method="learned", light_scope="frame", refine=False, learned_threshold=0.07, concentric_r=0.5,
+        method="learned",
+        light_scope="frame",
+        refine=False,
+        learned_threshold=0.07,
+        concentric_r=0.5,
         concentric_rank="score",
     ),
     "learned-detect": DetectorParams(
-        method="learned", light_scope="frame", refine=False, learned_threshold=0.3, concentric_r=0.5,
+        method="learned",
+        light_scope="frame",
+        refine=False,
+        learned_threshold=0.3,
+        concentric_r=0.5,
         concentric_rank="score",
     ),
 }

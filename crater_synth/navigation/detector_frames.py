@@ -70,7 +70,9 @@ def plan_tracks(n_tracks: int, seed: int = 0, pole: str = "south") -> list[dict]
             heading = float(rng.uniform(0.0, 360.0))
             start = _destination(*mid, heading, -TRACK_LENGTH_KM / 2.0)
             end = _destination(*mid, heading, TRACK_LENGTH_KM / 2.0)
-            if max(90.0 - sign * start[0], 90.0 - sign * end[0]) > math.degrees(MAX_RADIUS_KM * 1000.0 / geometry.MOON_RADIUS_M):
+            if max(90.0 - sign * start[0], 90.0 - sign * end[0]) > math.degrees(
+                MAX_RADIUS_KM * 1000.0 / geometry.MOON_RADIUS_M
+            ):
                 continue
             sub_lat = sign * float(rng.uniform(0.0, OBLIQUITY_DEG))
             sub_lon = mid[1] - float(rng.uniform(-MAX_HOUR_ANGLE_DEG, MAX_HOUR_ANGLE_DEG))
@@ -109,7 +111,9 @@ def track_dirs(root: Path) -> list[Path]:
     return sorted(p.parent for p in Path(root).glob("track_*/manifest.jsonl"))
 
 
-def render_survey(out: Path, n_tracks: int, seed: int = 0, overrides: tuple[str, ...] = (), progress: bool = True) -> dict:
+def render_survey(
+    out: Path, n_tracks: int, seed: int = 0, overrides: tuple[str, ...] = (), progress: bool = True
+) -> dict:
     """Render the survey's tracks into ``out/track_NNN`` (skipping finished ones); returns a summary."""
     import click
 

@@ -281,7 +281,6 @@ def evaluate_dir(
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``."""
     from crater_synth.navigation.landmarks import load_default_map
-
     from crater_synth.navigation.render_frames import frame_rows
 
     rows = frame_rows(frames_dir)

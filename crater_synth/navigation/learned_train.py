@@ -98,8 +98,9 @@ def _code_commit() -> str:
     import subprocess
 
     try:
-        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
-                              check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -161,7 +162,9 @@ def train_from_survey(
 # ------------------------------------------------------------------------------------------------
 @click.command("nav-detector-frames")
 @click.argument("overrides", nargs=-1)
-@click.option("--tracks", default=70, show_default=True, help="Survey tracks (4 frames each); the last 10 are held out.")
+@click.option(
+    "--tracks", default=70, show_default=True, help="Survey tracks (4 frames each); the last 10 are held out."
+)
 @click.option("--seed", default=0, show_default=True, help="Seed of the track draw.")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Directory (default: {DEFAULT_FRAMES}).")
 @user_errors
@@ -189,14 +192,15 @@ def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, dev
     """
     import dataclasses
 
-    from train.crater_detector import DetectorTrainSettings
-
     import torch
+
+    from train.crater_detector import DetectorTrainSettings
 
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
     s = DetectorTrainSettings()
     s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
-    summary = train_from_survey(frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s,
-                                log=lambda m: click.echo(m, err=True), device=device)
+    summary = train_from_survey(
+        frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s, log=lambda m: click.echo(m, err=True), device=device
+    )
     click.echo(json.dumps(summary, indent=1))
