@@ -156,15 +156,8 @@ PRESETS = {
         concentric_r=0.5,
         concentric_rank="score",
     ),
-    "learned-detect": DetectorParams(
-        method="learned",
-        light_scope="frame",
-        refine=False,
-        learned_threshold=0.3,
-        concentric_r=0.5,
-        concentric_rank="score",
-    ),
 }
+PRESETS["learned-detect"] = dataclasses.replace(PRESETS["learned"], learned_threshold=0.3)
 # The second round's presets (light pooled per quadrant over the south validation sectors), with which
 # the south test split was run once: kept to reproduce that historic result (`nav-eval --set
 # detect.light_scope=quadrant --set detect.light_seed_deg=0`).

@@ -14,7 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detector_frames import render_survey, track_dirs
 from crater_synth.navigation.learned import DEFAULT_MODEL, ROOT, _load
@@ -161,7 +161,7 @@ def train_from_survey(
 # Commands
 # ------------------------------------------------------------------------------------------------
 @click.command("nav-detector-frames")
-@click.argument("overrides", nargs=-1)
+@OVERRIDES
 @click.option(
     "--tracks", default=70, show_default=True, help="Survey tracks (4 frames each); the last 10 are held out."
 )
