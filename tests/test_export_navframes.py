@@ -36,6 +36,7 @@ LANDMARK_FIELDS = (
     "ellipse",
     "rim_inside",
     "lit_rim_fraction",
+    "occluded_rim_fraction",
 )
 
 

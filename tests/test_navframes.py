@@ -243,8 +243,9 @@ def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     assert ch["IF"].shape == (96, 96)
     rim_mc = geometry.enu_to_mc(np.array([x0, y0, 0.04 * d_m]), lat0, lon0)
     lat, lon, h = geometry.mc_to_latlon(rim_mc)
-    labels = landmarks_in_view(p, [_landmark(lat, lon, h, d_m / 1e3)], lat0, lon0, ch["lit"])
+    labels = landmarks_in_view(p, [_landmark(lat, lon, h, d_m / 1e3)], lat0, lon0, ch["lit"], ch["depth"])
     assert len(labels) == 1
+    assert labels[0]["occluded_rim_fraction"] == 0.0  # nothing stands between the camera and the rim
     e = labels[0]["ellipse"]
     assert (e["cu"], e["cv"]) != pytest.approx((48.0, 48.0), abs=5.0)  # off-centre, truly
     # The depth channel, back-projected to the ground: its lowest point (the crater floor) lies inside the
@@ -460,3 +461,23 @@ def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):
     a = [json.loads(x) for x in (tmp_path / "work" / "navframes_shared" / "manifest.jsonl").read_text().splitlines()]
     b = [json.loads(x) for x in (tmp_path / "work" / "navframes_per_frame" / "manifest.jsonl").read_text().splitlines()]
     assert [r["pose"] for r in a] == [r["pose"] for r in b] and len(a) == 2
+
+
+def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
+    """A rim 100 km away along the view axis, a depth map showing terrain at the rim's own depth except
+    over the left third of the frame, where relief 20 km nearer stands in front: that third of the rim is
+    hidden; within the margin (a rim crest higher than the map's mean) nothing is."""
+    from crater_synth.navigation.render_frames import OCCLUSION_MARGIN_M, occluded_rim_fraction
+
+    theta = np.arange(360) * np.pi / 180.0
+    rim_uv = np.stack([50.0 + 30.0 * np.cos(theta), 50.0 + 30.0 * np.sin(theta)], 1)
+    rim_depth = np.full(360, 100e3)
+    depth = np.full((100, 100), 100e3)
+    assert occluded_rim_fraction(depth, rim_uv, rim_depth, 10e3) == 0.0
+    depth[:, :30] = 80e3
+    expected = float(np.mean(rim_uv[:, 0] < 30.0))
+    assert occluded_rim_fraction(depth, rim_uv, rim_depth, 10e3) == pytest.approx(expected)
+    depth[:, :30] = 100e3 - OCCLUSION_MARGIN_M  # within the margin: a higher crest, not an occluder
+    assert occluded_rim_fraction(depth, rim_uv, rim_depth, 10e3) == 0.0
+    assert occluded_rim_fraction(depth, rim_uv + 80.0, rim_depth, 10e3) is None  # most of the rim outside
+

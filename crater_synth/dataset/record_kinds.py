@@ -236,6 +236,7 @@ def _navframe_label_fields() -> list:
             ("ellipse", ellipse),
             ("rim_inside", pa.bool_()),
             ("lit_rim_fraction", f64),  # null: under half of the rim lies in the frame
+            ("occluded_rim_fraction", f64),  # null likewise, and in frames labelled before it existed
         ]
     )
     return [
@@ -280,6 +281,7 @@ def _navframe_labels(row: dict) -> dict:
             "ellipse": lm.get("ellipse"),
             "rim_inside": lm.get("rim_inside"),
             "lit_rim_fraction": lm.get("lit_rim_fraction"),
+            "occluded_rim_fraction": lm.get("occluded_rim_fraction"),
         }
         for lm in row.get("landmarks") or []
     ]

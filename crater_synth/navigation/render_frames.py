@@ -49,7 +49,13 @@ PATCH_MARGIN = 1.1  # near-field half-width / footprint half-width: terrain reli
 FAST_MAP_MARGIN = 1.02  # fast path: horizon map half-width / near-field half-width
 RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
 MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
-FRAME_LABEL_VERSION = 1
+# A rim point is hidden when the rendered depth there is nearer than the rim point itself by more than
+# this margin: a fixed part (terrain detail) plus a share of the diameter (a real rim crest rises and falls
+# around the map's mean rim height, by a few per cent of D); relief in front of a rim in an oblique view
+# is nearer by far more.
+OCCLUSION_MARGIN_M = 1000.0
+OCCLUSION_MARGIN_D = 0.05
+FRAME_LABEL_VERSION = 2  # 2: labels carry occluded_rim_fraction
 # Frames sharing a patch: its near field at most this many times the configured vertices per side (4 x the
 # vertices: one BVH and one horizon map for several frames instead of one per frame).
 SHARE_MAX_VERTEX_FACTOR = 2.0
@@ -183,10 +189,31 @@ def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None
     return float(np.mean(lit[v, u]))
 
 
+def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, diameter_m: float):
+    """Share of the rim points inside the frame that relief nearer to the camera hides: the rendered
+    ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
+    ``rim_depth`` by more than the occlusion margin. None when less than :data:`MIN_RIM_INSIDE` of the rim
+    is in the frame."""
+    h, w = depth.shape
+    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h) & (rim_depth > 0)
+    if inside.mean() < MIN_RIM_INSIDE:
+        return None
+    u = np.floor(rim_uv[inside, 0]).astype(int)
+    v = np.floor(rim_uv[inside, 1]).astype(int)
+    margin = OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m
+    return float(np.mean(depth[v, u] < rim_depth[inside] - margin))
+
+
 def landmarks_in_view(
-    pose: FramePose, landmarks, lat0: float, lon0: float, lit: np.ndarray | None = None
+    pose: FramePose,
+    landmarks,
+    lat0: float,
+    lon0: float,
+    lit: np.ndarray | None = None,
+    depth_image: np.ndarray | None = None,
 ) -> list[dict]:
-    """Labels of every landmark whose rim-centre point projects inside the frame (in front of the camera)."""
+    """Labels of every landmark whose rim-centre point projects inside the frame (in front of the camera);
+    with the frame's ``lit`` and ``depth`` channels, each rim's lit and occluded fractions."""
     if not landmarks:
         return []
     cam = pose.pose_enu(lat0, lon0)
@@ -217,6 +244,14 @@ def landmarks_in_view(
         if lit is not None:
             frac = lit_rim_fraction(lit, ell)
             row["lit_rim_fraction"] = None if frac is None else round(frac, 4)
+        if depth_image is not None:
+            e1, e2 = geometry.plane_basis(normal)
+            theta = np.arange(RIM_POINTS) * 2.0 * np.pi / RIM_POINTS
+            radius = lm.diameter_km * 500.0
+            rim = pts[k] + radius * (np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2)
+            rim_uv, rim_depth = geometry.project_points(rim, cam, w)
+            hidden = occluded_rim_fraction(depth_image, rim_uv, rim_depth, 2.0 * radius)
+            row["occluded_rim_fraction"] = None if hidden is None else round(hidden, 4)
         out.append(row)
     return out
 
@@ -394,6 +429,7 @@ def render_frames(
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         lit = exr.read_channel(out_dir / res["rel_path"], "lit")
+        depth = exr.read_channel(out_dir / res["rel_path"], "depth")
         cam = pose.pose_enu(pose.target_lat, pose.target_lon)
         sun_el, sun_az = pose.sun_enu(pose.target_lat, pose.target_lon)
         rows.append(
@@ -428,7 +464,7 @@ def render_frames(
                 "footprint_half_width_m": footprint_half_width_m(pose),
                 "lit_fraction": res["lit_fraction"],
                 "mean_if": res["mean_if"],
-                "landmarks": landmarks_in_view(pose, maps[pole], pose.target_lat, pose.target_lon, lit),
+                "landmarks": landmarks_in_view(pose, maps[pole], pose.target_lat, pose.target_lon, lit, depth),
             }
         )
     text = "".join(schema.dumps_row(r) + "\n" for r in rows)
