@@ -480,4 +480,3 @@ def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
     depth[:, :30] = 100e3 - OCCLUSION_MARGIN_M  # within the margin: a higher crest, not an occluder
     assert occluded_rim_fraction(depth, rim_uv, rim_depth, 10e3) == 0.0
     assert occluded_rim_fraction(depth, rim_uv + 80.0, rim_depth, 10e3) is None  # most of the rim outside
-
