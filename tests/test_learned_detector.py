@@ -312,3 +312,17 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 2.0 and out["light_azimuth_deg"] is None
     assert (tmp_path / "w.nav.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [(["--steps", "0"], "--steps 0: must be >= 1"), (["--steps", "10", "--checkpoint", "10"], "--checkpoint 10")],
+)
+def test_nav_detector_train_refuses_nonsense_steps_before_reading_anything(tmp_path, args, message):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    r = CliRunner().invoke(main, ["nav-detector-train", str(tmp_path / "none"), "--out", str(tmp_path / "m.pt"), *args])
+    assert r.exit_code == 2 and message in r.output and len(r.output.strip().splitlines()) == 1
+    assert not list(tmp_path.iterdir())

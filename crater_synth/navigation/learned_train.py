@@ -110,8 +110,6 @@ def train_from_survey(
 ) -> dict:
     """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
     to ``out`` with its provenance; returns the summary written into the model."""
-    import dataclasses
-
     from crater_synth.navigation.detect import DetectorParams
     from train.crater_detector import level_samples, save_model, settings_dict, train_detector
 
@@ -153,7 +151,6 @@ def train_from_survey(
         save_model(Path(out).with_name(f"{Path(out).stem}.step{step}.pt"), model, dict(meta, steps_done=step))
         model.load_state_dict(final)
     save_model(Path(out), result["model"], meta)
-    del dataclasses
     return {k: v for k, v in meta.items() if k != "history"}
 
 
@@ -199,6 +196,12 @@ def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, dev
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
     s = DetectorTrainSettings()
+    if steps is not None and steps < 1:
+        raise UserError(f"--steps {steps}: must be >= 1")
+    last = steps or s.steps
+    bad = [c for c in checkpoints if not 1 <= c < last]
+    if bad:
+        raise UserError(f"--checkpoint {bad[0]}: must lie in [1, {last - 1}] (the last step is the model itself)")
     s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
     summary = train_from_survey(
         frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s, log=lambda m: click.echo(m, err=True), device=device
