@@ -93,3 +93,31 @@ def test_lis_settings_overrides_and_errors():
         lis_params_with("south-choice", ("lis.nope=1",))
     with pytest.raises(UserError, match="--lis-preset"):
         lis_params_with("missing", ())
+
+
+def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
+    """`crater-synth navigate IMAGE --lost-in-space --pixel-m 400`: a south window (development data) with
+    no georeference and no prior is placed on the map; --prior with --lost-in-space is refused."""
+    import json
+
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.navigation.frames import ground_distance_km, windows
+    from crater_synth.navigation.navigate import write_window
+    from crater_synth.navigation.polar import stereo_forward
+
+    frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
+    img = tmp_path / "w.png"
+    write_window(img, frame)
+    (tmp_path / "w.png.geo.json").unlink()  # the lander does not know where it is
+    runner = CliRunner()
+    r = runner.invoke(main, ["navigate", str(img), "--lost-in-space", "--prior", "-80,20", "--pixel-m", "400"])
+    assert r.exit_code == 2 and "takes no prior" in r.output
+    r = runner.invoke(main, ["navigate", str(img), "--lost-in-space", "--pixel-m", "400", "--pole", "south"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert out["fix"] and out["position_prior"] == "none (lost in space)" and "error_km" not in out
+    x, y = stereo_forward(out["lat"], out["lon"], "south")
+    assert float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
+    assert (tmp_path / "w.nav.png").is_file()

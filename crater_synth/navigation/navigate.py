@@ -61,8 +61,9 @@ def _png_gray(img: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -> bytes:
-    """Annotated PNG: detections (red), identified landmarks with names (yellow), error arrow (cyan)."""
+def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | None) -> bytes:
+    """Annotated PNG: detections (red), identified landmarks with names (yellow), error arrow (cyan).
+    ``prior`` (None for a lost-in-space fix) is not drawn."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,8 +131,16 @@ def annotate(image, dets, landmarks, fix, prior: Georef, truth: Georef | None) -
     help="Light travel direction in the image, degrees from +u (right) towards +v (down), e.g. from the "
     "attitude and the ephemeris; default: estimated on the frame.",
 )
+@click.option(
+    "--lost-in-space",
+    "--no-prior",
+    "lost_in_space",
+    is_flag=True,
+    help="Identify with no position prior: crater-pair votes over the whole map (the frozen `south-choice` "
+    "settings, docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
+)
 @user_errors
-def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth):
+def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth, lost_in_space):
     """Detect craters in a nadir frame, identify them against the landmark map and fix the position.
 
     The frame is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
@@ -152,14 +161,20 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
 
     check_frame(img, str(image))
     truth = read_georef(image)
-    if truth is None and prior is None:
-        raise FrameError(f"{image} has no georeference ({image.name}.geo.json) and no --prior LAT,LON was given")
+    if lost_in_space and prior is not None:
+        raise UserError(f"--prior {prior} with --lost-in-space: a lost-in-space fix takes no prior; give one of them")
+    if truth is None and prior is None and not lost_in_space:
+        raise FrameError(
+            f"{image} has no georeference ({image.name}.geo.json) and neither --prior LAT,LON nor --lost-in-space "
+            "was given"
+        )
     pole = pole or (truth.pole if truth else "south")
     pixel = pixel_m or (truth.pixel_m if truth else None)
     if pixel is None:
         raise FrameError(f"{image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
     landmarks, _ = read_map(map_path) if map_path else load_default_map(pole)
     h, w = img.shape[:2]
+    prior_g: Georef | None = None
     if prior is not None:
         try:
             lat, lon = (float(p) for p in prior.split(","))
@@ -167,25 +182,34 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
             raise UserError(f"--prior {prior!r}: expected LAT,LON in degrees") from None
         cx, cy = stereo_forward(lat, lon, pole)
         prior_g = Georef(pole, float(cx) - w / 2 * pixel, float(cy) + h / 2 * pixel, pixel)
-    else:
+    elif not lost_in_space:
         assert truth is not None
         fr = Frame(image.name, "user", -1, img, truth)
         prior_g = prior_georef(fr, 0)
-    xs = np.array([lm.x_m for lm in landmarks])
-    ys = np.array([lm.y_m for lm in landmarks])
-    u, v = prior_g.xy_to_uv(xs, ys)
-    if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
-        lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
-        raise FrameError(f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map")
+    if prior_g is not None:
+        xs = np.array([lm.x_m for lm in landmarks])
+        ys = np.array([lm.y_m for lm in landmarks])
+        u, v = prior_g.xy_to_uv(xs, ys)
+        if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
+            lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
+            raise FrameError(
+                f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map"
+            )
     if model_path is not None and not method.startswith("learned"):
         raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
     dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
     light = None if light_azimuth is None else math.radians(light_azimuth)
     dets, theta = detect(img, dparams, light_dir=light, what=str(image))
-    fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+    if prior_g is None:
+        from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix
+
+        fix = lost_in_space_fix(dets, landmarks, img.shape, pixel, LIS_PRESETS["south-choice"], fparams)
+    else:
+        fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     result = {
         "image": str(image),
         "method": method,
+        "position_prior": "none (lost in space)" if prior_g is None else ("--prior" if prior else "truth + 5 km"),
         "detections": len(dets),
         "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "fix": fix.ok,
