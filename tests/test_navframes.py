@@ -224,7 +224,8 @@ def _landmark(lat, lon, height, d_km):
 def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     """An explicit-pose frame of a bowl crater placed off-centre: its label sits where the depth and lit
     channels show the crater, and the labelled lit-rim fraction is what the lit channel says."""
-    from crater_synth.navigation.render_frames import landmarks_in_view, worker_item
+    from crater_synth.navigation.frame_labels import landmarks_in_view
+    from crater_synth.navigation.render_frames import worker_item
 
     (p,) = frame_poses(
         _traj(altitude_km=(30.0, 30.0), off_nadir_deg=10.0, off_nadir_azimuth_deg=45.0, sun_elevation_deg=25.0)
@@ -467,7 +468,7 @@ def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
     """A rim 100 km away along the view axis, a depth map showing terrain at the rim's own depth except
     over the left third of the frame, where relief 20 km nearer stands in front: that third of the rim is
     hidden; within the margin (a rim crest higher than the map's mean) nothing is."""
-    from crater_synth.navigation.render_frames import OCCLUSION_MARGIN_M, occluded_rim_fraction
+    from crater_synth.navigation.frame_labels import OCCLUSION_MARGIN_M, occluded_rim_fraction
 
     theta = np.arange(360) * np.pi / 180.0
     rim_uv = np.stack([50.0 + 30.0 * np.cos(theta), 50.0 + 30.0 * np.sin(theta)], 1)

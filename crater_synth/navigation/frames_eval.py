@@ -280,8 +280,8 @@ def evaluate_dir(
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``."""
+    from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
-    from crater_synth.navigation.render_frames import frame_rows
 
     rows = frame_rows(frames_dir)
     maps: dict[str, list] = {}

@@ -29,7 +29,7 @@ HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never train
 def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
     """(I/F image, manifest row) of every frame of the survey tracks ``tracks`` under ``root``."""
     from crater_core import exr
-    from crater_synth.navigation.render_frames import frame_rows
+    from crater_synth.navigation.frame_labels import frame_rows
 
     dirs = track_dirs(root)
     if not dirs:

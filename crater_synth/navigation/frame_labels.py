@@ -1,0 +1,126 @@
+"""Truth labels of a rendered navigation frame, and the reader of a ``nav-frames`` manifest.
+
+Every landmark of the map whose 3-D rim-centre point projects inside the frame is labelled with its
+projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's curvature
+tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at :data:`RIM_POINTS`
+points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
+points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from crater_core import geometry, schema
+from crater_core.trajectory import FramePose
+from crater_synth.errors import UserError
+
+RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
+MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
+# A rim point is hidden when the rendered depth there is nearer than the rim point itself by more than
+# this margin: a fixed part (terrain detail) plus a share of the diameter (a real rim crest rises and falls
+# around the map's mean rim height, by a few per cent of D); relief in front of a rim in an oblique view
+# is nearer by far more.
+OCCLUSION_MARGIN_M = 1000.0
+OCCLUSION_MARGIN_D = 0.05
+FRAME_LABEL_VERSION = 2  # 2: labels carry occluded_rim_fraction
+
+
+def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None:
+    """Mean of the ``lit`` channel (illuminated fraction of the solar disc) at :data:`RIM_POINTS` points
+    of the projected rim inside the frame; None when less than :data:`MIN_RIM_INSIDE` of it is inside."""
+    h, w = lit.shape
+    pts = ellipse.points(RIM_POINTS)
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
+    if inside.mean() < MIN_RIM_INSIDE:
+        return None
+    u = np.floor(pts[inside, 0]).astype(int)
+    v = np.floor(pts[inside, 1]).astype(int)
+    return float(np.mean(lit[v, u]))
+
+
+def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, diameter_m: float):
+    """Share of the rim points inside the frame that relief nearer to the camera hides: the rendered
+    ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
+    ``rim_depth`` by more than the occlusion margin. None when less than :data:`MIN_RIM_INSIDE` of the rim
+    is in the frame."""
+    h, w = depth.shape
+    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h) & (rim_depth > 0)
+    if inside.mean() < MIN_RIM_INSIDE:
+        return None
+    u = np.floor(rim_uv[inside, 0]).astype(int)
+    v = np.floor(rim_uv[inside, 1]).astype(int)
+    margin = OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m
+    return float(np.mean(depth[v, u] < rim_depth[inside] - margin))
+
+
+def landmarks_in_view(
+    pose: FramePose,
+    landmarks,
+    lat0: float,
+    lon0: float,
+    lit: np.ndarray | None = None,
+    depth_image: np.ndarray | None = None,
+) -> list[dict]:
+    """Labels of every landmark whose rim-centre point projects inside the frame (in front of the camera);
+    with the frame's ``lit`` and ``depth`` channels, each rim's lit and occluded fractions."""
+    if not landmarks:
+        return []
+    cam = pose.pose_enu(lat0, lon0)
+    w = int(pose.width_px)
+    pts_mc = np.array([lm.position_mc() for lm in landmarks])
+    pts = geometry.mc_to_enu(pts_mc, lat0, lon0)
+    uv, depth = geometry.project_points(pts, cam, w)
+    inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < w)
+    basis = geometry.enu_basis(lat0, lon0)
+    out = []
+    for k in np.nonzero(inside)[0]:
+        lm = landmarks[k]
+        normal = basis @ (pts_mc[k] / np.linalg.norm(pts_mc[k]))  # the landmark's local up, in the frame's ENU
+        ell = geometry.project_circle(pts[k], normal, lm.diameter_km * 500.0, cam, w)
+        row = {
+            "id": lm.id,
+            "name": lm.name,
+            "diameter_km": lm.diameter_km,
+            "lat": lm.lat,
+            "lon": lm.lon,
+            "centre_px": [round(float(uv[k, 0]), 3), round(float(uv[k, 1]), 3)],
+            "depth_m": round(float(depth[k]), 1),
+            "ellipse": {key: round(float(v), 4) for key, v in ell.as_dict().items()},
+            "rim_inside": bool(
+                ell.cu - ell.a >= 0 and ell.cv - ell.a >= 0 and ell.cu + ell.a <= w and ell.cv + ell.a <= w
+            ),
+        }
+        if lit is not None:
+            frac = lit_rim_fraction(lit, ell)
+            row["lit_rim_fraction"] = None if frac is None else round(frac, 4)
+        if depth_image is not None:
+            e1, e2 = geometry.plane_basis(normal)
+            theta = np.arange(RIM_POINTS) * 2.0 * np.pi / RIM_POINTS
+            radius = lm.diameter_km * 500.0
+            rim = pts[k] + radius * (np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2)
+            rim_uv, rim_depth = geometry.project_points(rim, cam, w)
+            hidden = occluded_rim_fraction(depth_image, rim_uv, rim_depth, 2.0 * radius)
+            row["occluded_rim_fraction"] = None if hidden is None else round(hidden, 4)
+        out.append(row)
+    return out
+
+
+def frame_rows(frames_dir) -> list[dict]:
+    """The rows of a ``nav-frames`` directory's manifest; a missing, empty or unreadable one is one error line."""
+    manifest = Path(frames_dir) / schema.MANIFEST_NAME
+    if not manifest.is_file():
+        raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
+    rows = []
+    for n, line in enumerate(manifest.read_text(encoding="utf-8").splitlines(), 1):
+        if line.strip():
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                raise UserError(f"{manifest} line {n}: not a JSON row") from None
+    if not rows:
+        raise UserError(f"{manifest}: no frames")
+    return rows
