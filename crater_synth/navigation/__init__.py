@@ -10,7 +10,9 @@ identification against the map and a robust camera position fix (docs/navigation
   training frames and training);
 - :mod:`.fix`: identification (prior-guided matching) and the RANSAC position fix;
 - :mod:`.evaluate`: metrics, ``crater-synth nav-eval`` and the benchmark part;
-- :mod:`.navigate`: ``crater-synth navigate IMAGE`` (one frame, annotated PNG).
+- :mod:`.navigate`: ``crater-synth navigate IMAGE`` (one frame, annotated PNG);
+- :mod:`.render_frames`: rendered navigation frames along a trajectory, labelled by :mod:`.frame_labels`;
+  :mod:`.frames_eval`: their metrics; :mod:`.lost_in_space`: the fix with no position prior.
 """
 
 # The navigate-demo record's file name in RUN_DIR/navigation/ (written by .demo, read by the report, which
