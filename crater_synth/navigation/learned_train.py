@@ -44,46 +44,43 @@ def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
 MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
 
 
+def labels_in_frame(row: dict, shape) -> list[dict]:
+    """The frame's landmark labels whose rim-ellipse centre lies inside a frame of ``shape``."""
+    h, w = shape
+    return [lm for lm in row["landmarks"] if 0 <= lm["ellipse"]["cu"] < w and 0 <= lm["ellipse"]["cv"] < h]
+
+
 def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
     label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden)."""
-    h, w = shape
-    lms = row["landmarks"]
+    lms = labels_in_frame(row, shape)
     u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
     v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
     r = np.array([lm["ellipse"]["a"] for lm in lms], float)
     d = np.array([lm["diameter_km"] for lm in lms], float)
     lit = np.array([1.0 if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return u[inside], v[inside], r[inside], d[inside], lit[inside] < MIN_LIT_RIM
+    return u, v, r, d, lit < MIN_LIT_RIM
 
 
 def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
-    """Detection recall and precision against the exact labels of rendered frames (centre within 0.25 D,
-    radius within 25 %, one-to-one), for labels and detections of D >= ``min_d_km``."""
+    """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
+    matching, :func:`crater_synth.navigation.frames_eval.match_pixels`), for labels and detections of
+    D >= ``min_d_km``."""
     from crater_synth.navigation.detect import detect
+    from crater_synth.navigation.frames_eval import match_pixels
 
     tp_t = n_t = tp_d = n_d = 0
     for image, row in records:
-        u, v, r, _, _ = label_circles(row, image.shape)
+        labels = labels_in_frame(row, image.shape)
         km_per_px = float(row["ground_sample_m"]) / 1000.0
         dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
-        du = np.array([x.u for x in dets])[:, None] - u[None, :] if dets else np.zeros((0, u.size))
-        dv = np.array([x.v for x in dets])[:, None] - v[None, :] if dets else np.zeros((0, u.size))
-        dr = np.array([x.r for x in dets])[:, None] / r[None, :] if dets else np.zeros((0, u.size))
-        ok = (np.hypot(du, dv) <= 0.5 * r[None, :]) & (np.abs(dr - 1.0) <= 0.25)
-        matched_t, matched_d = set(), set()
-        for i, j in sorted(zip(*np.nonzero(ok)), key=lambda p: np.hypot(du[p], dv[p])):
-            if i not in matched_d and j not in matched_t:
-                matched_d.add(int(i))
-                matched_t.add(int(j))
-        big_t = 2.0 * r * km_per_px >= min_d_km
-        n_t += int(big_t.sum())
-        tp_t += int(sum(1 for j in matched_t if big_t[j]))
-        det_d = np.array([2.0 * x.r * km_per_px for x in dets])
-        big_d = det_d >= min_d_km
-        n_d += int(big_d.sum())
-        tp_d += int(sum(1 for i in matched_d if big_d[i]))
+        matched = match_pixels(dets, labels)  # detection index -> label index
+        big_t = [2.0 * lb["ellipse"]["a"] * km_per_px >= min_d_km for lb in labels]
+        big_d = [2.0 * d.r * km_per_px >= min_d_km for d in dets]
+        n_t += sum(big_t)
+        tp_t += sum(1 for j in matched.values() if big_t[j])
+        n_d += sum(big_d)
+        tp_d += sum(1 for i in matched if big_d[i])
     return {
         "frames": len(records),
         "recall": round(tp_t / n_t, 4) if n_t else None,
@@ -144,12 +141,12 @@ def train_from_survey(
     finally:
         tmp.unlink(missing_ok=True)
         _load.cache_clear()
+    model = result["model"]
+    final = {k: v.clone() for k, v in model.state_dict().items()}
     for step, state in sorted(result["checkpoints"].items()):
-        model = result["model"]
-        final = {k: v.clone() for k, v in model.state_dict().items()}
         model.load_state_dict(state)
         save_model(Path(out).with_name(f"{Path(out).stem}.step{step}.pt"), model, dict(meta, steps_done=step))
-        model.load_state_dict(final)
+    model.load_state_dict(final)
     save_model(Path(out), result["model"], meta)
     return {k: v for k, v in meta.items() if k != "history"}
 
