@@ -29,17 +29,23 @@ OCCLUSION_MARGIN_D = 0.05
 FRAME_LABEL_VERSION = 2  # 2: labels carry occluded_rim_fraction
 
 
+def _rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):
+    """(mask of the rim points inside a frame of ``shape`` (and ``valid``), their pixel rows, their pixel
+    columns), or None when less than :data:`MIN_RIM_INSIDE` of the rim is inside."""
+    h, w = shape
+    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h)
+    if valid is not None:
+        inside &= valid
+    if inside.mean() < MIN_RIM_INSIDE:
+        return None
+    return inside, np.floor(rim_uv[inside, 1]).astype(int), np.floor(rim_uv[inside, 0]).astype(int)
+
+
 def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None:
     """Mean of the ``lit`` channel (illuminated fraction of the solar disc) at :data:`RIM_POINTS` points
     of the projected rim inside the frame; None when less than :data:`MIN_RIM_INSIDE` of it is inside."""
-    h, w = lit.shape
-    pts = ellipse.points(RIM_POINTS)
-    inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
-    if inside.mean() < MIN_RIM_INSIDE:
-        return None
-    u = np.floor(pts[inside, 0]).astype(int)
-    v = np.floor(pts[inside, 1]).astype(int)
-    return float(np.mean(lit[v, u]))
+    px = _rim_pixels(lit.shape, ellipse.points(RIM_POINTS))
+    return None if px is None else float(np.mean(lit[px[1], px[2]]))
 
 
 def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, diameter_m: float):
@@ -47,12 +53,10 @@ def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.n
     ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
     ``rim_depth`` by more than the occlusion margin. None when less than :data:`MIN_RIM_INSIDE` of the rim
     is in the frame."""
-    h, w = depth.shape
-    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h) & (rim_depth > 0)
-    if inside.mean() < MIN_RIM_INSIDE:
+    px = _rim_pixels(depth.shape, rim_uv, rim_depth > 0)
+    if px is None:
         return None
-    u = np.floor(rim_uv[inside, 0]).astype(int)
-    v = np.floor(rim_uv[inside, 1]).astype(int)
+    inside, v, u = px
     margin = OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m
     return float(np.mean(depth[v, u] < rim_depth[inside] - margin))
 
