@@ -367,12 +367,15 @@ def detect(
     a = (a - a.mean()) / a.std()
     h, w = a.shape
     radii = scale_radii(params, a.shape)
-    spec, shape = _spectrum(a)
+    # The Fourier spectrum serves the two filter methods and the light estimate; the network needs neither.
+    spec, shape = (None, None) if params.method == "learned" else _spectrum(a)
     if light_dir is not None:
         theta = float(light_dir)
     elif params.method == "learned" and not params.refine:
         theta = math.nan  # the network needs no light direction, and without the rim fit nothing uses it
     else:
+        if spec is None:
+            spec, shape = _spectrum(a)
         theta = light_azimuth(spec, shape, params, light_prior)
     if params.method == "filter":
         u, v, r, score = _filter_candidates(spec, shape, radii, theta, params)
