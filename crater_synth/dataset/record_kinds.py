@@ -21,6 +21,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from crater_core.schema import EXR_CHANNELS
 from crater_synth.errors import UserError
 
 
@@ -159,7 +160,7 @@ RENDER = RecordKind(
     arrays=_render_arrays,
     label_fields=_render_label_fields,
     labels=_render_labels,
-    channels=("IF", "depth", "N.X", "N.Y", "N.Z", "lit"),
+    channels=EXR_CHANNELS,
 )
 
 
