@@ -39,6 +39,26 @@ EXR_CHANNELS = ("IF", "depth", "N.X", "N.Y", "N.Z", "lit")
 # 45 % off every EXR and off its encoding time (docs/renderer.md, "EXR size").
 EXR_CHANNEL_TYPES = {"IF": "float", "depth": "float", "N.X": "half", "N.Y": "half", "N.Z": "half", "lit": "half"}
 
+# One landmark label of a navigation frame's manifest row (``crater-synth nav-frames``), in order, with its
+# value type: written by crater_synth.navigation.frame_labels, exported column by column by
+# crater_synth.dataset.record_kinds. "ellipse" is the projected rim (cu, cv, a, b, angle_rad; px, rad);
+# the two fractions are null when under half of the rim lies in the frame (and the occluded one in
+# frames labelled before it existed).
+NAVFRAME_LANDMARK_FIELDS = (
+    ("id", "string"),
+    ("name", "string"),
+    ("diameter_km", "float"),
+    ("lat", "float"),
+    ("lon", "float"),
+    ("centre_px", "float list"),
+    ("depth_m", "float"),
+    ("ellipse", "ellipse"),
+    ("rim_inside", "bool"),
+    ("lit_rim_fraction", "float"),
+    ("occluded_rim_fraction", "float"),
+)
+NAVFRAME_ELLIPSE_FIELDS = ("cu", "cv", "a", "b", "angle_rad")
+
 REQUIRED_FIELDS = {
     "schema_version": int,
     "crater": str,

@@ -43,3 +43,20 @@ def test_every_render_is_in_exactly_one_unit():
         blocks = blocks_per_crater(sizes, workers)
         assert all(1 <= b <= n for b, n in zip(blocks, sizes))
         assert sum(_units(sizes, blocks)) == sum(sizes)
+
+
+def test_refined_blocks_split_a_shared_patch_only_when_it_pays():
+    """Navigation frames on shared patches (start-up ~10 frames): 3 patches of ~20 frames on 2 workers
+    finish sooner with one split (taken largest first); a handful of small patches stay whole."""
+    sizes, startup = [21, 22, 21], 10
+    refined = blocks_per_crater(sizes, 2, startup, refine=True)
+    assert sum(refined) == 4
+    lpt = sorted(_units(sizes, refined), reverse=True)
+    assert _makespan(lpt, 2, startup) < 0.9 * _makespan(_units(sizes, blocks_per_crater(sizes, 2, startup)), 2, startup)
+    assert blocks_per_crater([3, 2, 2, 2, 3], 2, startup, refine=True) == [1] * 5
+    assert blocks_per_crater([64], 2, startup, refine=True) == [2]
+    assert blocks_per_crater([64], 1, startup, refine=True) == [1]
+    for workers in (1, 2, 3):
+        blocks = blocks_per_crater([40, 1, 30, 0, 50], workers, startup, refine=True)
+        assert all(1 <= b <= n for b, n in zip(blocks, [40, 1, 30, 0, 50]) if n) and blocks[3] == 0
+        assert sum(_units([40, 1, 30, 0, 50], blocks)) == 121

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from crater_core import exr, geometry
+from crater_core import exr, geometry, schema
 from crater_core.trajectory import TrajectoryError, footprint_half_width_m, frame_poses
 
 from helpers import render as cr
@@ -246,6 +246,9 @@ def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     lat, lon, h = geometry.mc_to_latlon(rim_mc)
     labels = landmarks_in_view(p, [_landmark(lat, lon, h, d_m / 1e3)], lat0, lon0, ch["lit"], ch["depth"])
     assert len(labels) == 1
+    # the label is the manifest schema's, field for field (what `crater-synth export` writes as columns)
+    assert list(labels[0]) == [name for name, _ in schema.NAVFRAME_LANDMARK_FIELDS]
+    assert tuple(labels[0]["ellipse"]) == schema.NAVFRAME_ELLIPSE_FIELDS
     assert labels[0]["occluded_rim_fraction"] == 0.0  # nothing stands between the camera and the rim
     e = labels[0]["ellipse"]
     assert (e["cu"], e["cv"]) != pytest.approx((48.0, 48.0), abs=5.0)  # off-centre, truly
@@ -309,6 +312,17 @@ def test_nav_frames_command_end_to_end(tmp_path):
     far = [Detection(d.u + 20.0, d.v, d.r, 1.0) for d in dets]
     r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=far)
     assert not r["fix"] or r["error_km"] < 5.0, r
+    # Two rims mostly hidden behind nearer relief: no longer truth (no miss), their detections not false.
+    from crater_synth.navigation.frame_labels import HIDDEN_RIM_MAX
+
+    hid = json.loads(json.dumps(row))
+    big = [lb for lb in hid["landmarks"] if lb["diameter_km"] >= FixParams().min_landmark_km]
+    for lb in big[:2]:
+        lb["occluded_rim_fraction"] = HIDDEN_RIM_MAX + 0.1
+    big[2]["occluded_rim_fraction"] = HIDDEN_RIM_MAX  # at the bound: still in sight
+    r = frames_eval.evaluate_frame(hid, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets)
+    assert len(r["truth"]) == len(big) - 2 and len(r["matched_any"]) == len(big)
+    assert frames_eval.summarise([r])["recall_15km"] in (1.0, None)  # the hidden ones are no misses
     # nav-frames-eval's JSON (what `crater-synth report` reads): detector and perfect-detection fix per frame.
     from click.testing import CliRunner
 

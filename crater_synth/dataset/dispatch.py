@@ -108,24 +108,56 @@ def _makespan(unit_sizes: list[int], n_workers: int, startup: int = WORKER_START
     return max(slots)
 
 
-def blocks_per_crater(sizes: list[int], n_workers: int) -> list[int]:
+def _units_of(sizes: list[int], blocks: list[int]) -> list[int]:
+    return [len(part) for n, b in zip(sizes, blocks) if n for part in _split_contiguous(range(n), b)]
+
+
+def blocks_per_crater(
+    sizes: list[int], n_workers: int, startup: int = WORKER_STARTUP_RENDERS, refine: bool = False
+) -> list[int]:
     """How many contiguous blocks each crater's renders are split into (one worker per block).
 
     Proportional to the crater's share of the work, scaled by the smallest factor m (1..
     :data:`MAX_BLOCKS_PER_WORKER`) whose simulated finish time is best: with 3 craters and 2 workers,
     m = 1 gives 3 units and a last one rendered alone (a third of the work at half the throughput),
     m = 3 gives 6 equal units; tiny sweeps keep one unit per crater, since each unit costs a worker
-    start-up."""
+    start-up (``startup``, in renders' worth of time).
+
+    ``refine``: :func:`_refined_blocks`, for jobs of a few dozen renders whose start-up is a sizeable
+    share (navigation frames on shared patches: 3 patches of ~20 frames on 2 workers finish ~20 % sooner
+    with one of them split in two than with the proportional 6 units; :func:`run_workers` then takes the
+    units largest first)."""
+    if refine:
+        return _refined_blocks(sizes, n_workers, startup)
     total = max(1, sum(sizes))
     best: tuple[int, list[int]] | None = None
     for m in range(1, MAX_BLOCKS_PER_WORKER + 1):
         blocks = [min(n, max(1, round(m * n_workers * n / total))) if n else 0 for n in sizes]
-        units = [len(part) for n, b in zip(sizes, blocks) if n for part in _split_contiguous(range(n), b)]
-        span = _makespan(units, n_workers)
+        span = _makespan(_units_of(sizes, blocks), n_workers, startup)
         if best is None or span < best[0]:
             best = (span, blocks)
     assert best is not None
     return best[1]
+
+
+def _refined_blocks(sizes: list[int], n_workers: int, startup: int) -> list[int]:
+    """From one block per job, one more block at a time to the job whose split shortens the simulated
+    finish time (units largest first) most, while that gains at least half a start-up (the start-up is
+    an estimate: a split that gains less may well lose)."""
+
+    def span_of(blocks: list[int]) -> int:
+        return _makespan(sorted(_units_of(sizes, blocks), reverse=True), n_workers, startup)
+
+    blocks = [1 if n else 0 for n in sizes]
+    span = span_of(blocks)
+    while True:
+        trials = [
+            (span_of(blocks[:j] + [b + 1] + blocks[j + 1 :]), j) for j, (n, b) in enumerate(zip(sizes, blocks)) if b < n
+        ]
+        if not trials or min(trials)[0] > span - startup / 2:
+            return blocks
+        span, j = min(trials)
+        blocks[j] += 1
 
 
 def _worker_error(crater: str, message: str) -> RenderError:
@@ -169,11 +201,14 @@ def run_workers(
     out_dir: Path,
     on_result,
     split_jobs: bool = True,
+    startup_renders: int | None = None,
 ) -> None:
     """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
     processes; ``on_result(job, plan, result)`` is called for each finished render. ``split_jobs=False``:
     one work unit (one worker) per job, when a job's fixed cost (scene, BVH, horizon map) outweighs
-    its renders (navigation frames on a shared patch)."""
+    its renders. ``startup_renders``: a worker start-up in renders' worth for jobs unlike the sweep's
+    craters (navigation frames on shared patches): the blocks are then refined by
+    :func:`blocks_per_crater` and the units taken largest first."""
     n_workers = render.workers
     blender = blender_binary(render.blender)[0] if render.blender is not None else None
     jobs_dir = out_dir / JOBS_DIR
@@ -185,11 +220,18 @@ def run_workers(
     # blocks per crater as balance the workers (blocks_per_crater).
     units: list[tuple[CraterJob, list[dict]]] = []
     sizes = [len(j.plans) for j in jobs]
-    shares = blocks_per_crater(sizes, n_workers) if split_jobs else [1] * len(jobs)
+    if not split_jobs:
+        shares = [1] * len(jobs)
+    elif startup_renders is None:
+        shares = blocks_per_crater(sizes, n_workers)
+    else:
+        shares = blocks_per_crater(sizes, n_workers, startup_renders, refine=True)
     for job, share in zip(jobs, shares):
         if job.plans:
             ordered = sorted(job.plans, key=camera_major)
             units += [(job, block) for block in _split_contiguous(ordered, share)]
+    if startup_renders is not None:
+        units.sort(key=lambda unit: len(unit[1]), reverse=True)  # stable: equal units keep their order
     # the cores split between the workers that can run at once (fewer units than workers: more threads each)
     concurrent = max(1, min(n_workers, len(units)))
     if concurrent > 1 and render.threads == 0:

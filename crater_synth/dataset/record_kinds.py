@@ -21,7 +21,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from crater_core.schema import EXR_CHANNELS
+from crater_core.schema import EXR_CHANNELS, NAVFRAME_ELLIPSE_FIELDS, NAVFRAME_LANDMARK_FIELDS
 from crater_synth.errors import UserError
 
 
@@ -224,22 +224,9 @@ def _navframe_label_fields() -> list:
     import pyarrow as pa
 
     f64, i64, s = pa.float64(), pa.int64(), pa.string()
-    ellipse = pa.struct([("cu", f64), ("cv", f64), ("a", f64), ("b", f64), ("angle_rad", f64)])
-    landmark = pa.struct(
-        [
-            ("id", s),
-            ("name", s),
-            ("diameter_km", f64),
-            ("lat", f64),
-            ("lon", f64),
-            ("centre_px", pa.list_(f64)),
-            ("depth_m", f64),
-            ("ellipse", ellipse),
-            ("rim_inside", pa.bool_()),
-            ("lit_rim_fraction", f64),  # null: under half of the rim lies in the frame
-            ("occluded_rim_fraction", f64),  # null likewise, and in frames labelled before it existed
-        ]
-    )
+    ellipse = pa.struct([(name, f64) for name in NAVFRAME_ELLIPSE_FIELDS])
+    types = {"string": s, "float": f64, "float list": pa.list_(f64), "ellipse": ellipse, "bool": pa.bool_()}
+    landmark = pa.struct([(name, types[kind]) for name, kind in NAVFRAME_LANDMARK_FIELDS])
     return [
         ("trajectory", s),
         ("frame_index", i64),
@@ -271,19 +258,8 @@ def _navframe_labels(row: dict) -> dict:
     pose, cam, sun = row.get("pose") or {}, row.get("camera_enu") or {}, row.get("sun_enu") or {}
     origin = row.get("frame_origin") or {}
     landmarks = [
-        {
-            "id": None if lm.get("id") is None else str(lm["id"]),
-            "name": lm.get("name"),
-            "diameter_km": lm.get("diameter_km"),
-            "lat": lm.get("lat"),
-            "lon": lm.get("lon"),
-            "centre_px": lm.get("centre_px"),
-            "depth_m": lm.get("depth_m"),
-            "ellipse": lm.get("ellipse"),
-            "rim_inside": lm.get("rim_inside"),
-            "lit_rim_fraction": lm.get("lit_rim_fraction"),
-            "occluded_rim_fraction": lm.get("occluded_rim_fraction"),
-        }
+        {name: lm.get(name) for name, _ in NAVFRAME_LANDMARK_FIELDS}
+        | {"id": None if lm.get("id") is None else str(lm["id"])}
         for lm in row.get("landmarks") or []
     ]
     return {

@@ -4,7 +4,8 @@ Every landmark of the map whose 3-D rim-centre point projects inside the frame i
 projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's curvature
 tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at :data:`RIM_POINTS`
 points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
-points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9.
+points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9. A label's
+fields, in order, are ``crater_core.schema.NAVFRAME_LANDMARK_FIELDS``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,18 @@ MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the ri
 OCCLUSION_MARGIN_M = 1000.0
 OCCLUSION_MARGIN_D = 0.05
 FRAME_LABEL_VERSION = 2  # 2: labels carry occluded_rim_fraction
+# A label whose 3-D rim is more than half hidden behind nearer relief is no rim ellipse a detector could
+# see: nav-frames-eval counts it neither as a miss nor towards the landmarks a fix could use, and a
+# detection on it not as false. Half: most of the ellipse must be in sight to fit it (an assumption, not
+# tuned: on the committed trajectories no label is past a quarter hidden).
+HIDDEN_RIM_MAX = 0.5
+
+
+def hidden(label: dict) -> bool:
+    """Whether the label's rim is mostly hidden (:data:`HIDDEN_RIM_MAX`; labels before version 2 carry no
+    fraction and count as seen)."""
+    frac = label.get("occluded_rim_fraction")
+    return frac is not None and frac > HIDDEN_RIM_MAX
 
 
 def _rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):

@@ -10,8 +10,10 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   projected on the image plane. The "synthetic" preset searches only the radii the landmark map can
   use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
 - **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
-  projected rim ellipse; :mod:`.render_frames`). A detection matches a label when its centre is
-  within 0.25 D of the ellipse centre and its radius within 25 % of the ellipse's semi-major axis.
+  projected rim ellipse; :mod:`.render_frames`), less those whose rim is mostly hidden behind nearer
+  relief (:data:`.frame_labels.HIDDEN_RIM_MAX`): they are not counted as misses, nor a detection on
+  them as false. A detection matches a label when its centre is within 0.25 D of the ellipse centre
+  and its radius within 25 % of the ellipse's semi-major axis.
 - **Prior**: the true camera moved ``PRIOR_OFFSET_KM`` horizontally in a seeded random direction;
   the attitude is the true one (the same assumption as nav-eval's exact prior heading and scale).
 - **Identification**: map landmarks >= ``min_landmark_km`` projected with the prior pose; putative
@@ -57,6 +59,7 @@ from crater_synth.navigation.evaluate import (
     summarise,
 )
 from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, solve_position
+from crater_synth.navigation.frame_labels import hidden
 from crater_synth.navigation.frames_presets import (
     DEFAULT_FRAMES_PRESET,
     FRAMES_PRESETS,
@@ -129,7 +132,7 @@ def evaluate_frame(
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance. A frame with fewer
-    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` is flagged (``enough_landmarks``
+    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
     False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
@@ -157,6 +160,7 @@ def evaluate_frame(
         dets = list(detections)
     labels = [lb for lb in row["landmarks"] if lb["diameter_km"] >= fparams.min_landmark_km]
     matched = match_pixels(dets, labels)
+    labels_seen = [lb for lb in labels if not hidden(lb)]
     by_id = {lm.id: k for k, lm in enumerate(landmarks)}
     out = {
         "id": f"{row['trajectory']}/{row['index']}",
@@ -165,17 +169,17 @@ def evaluate_frame(
         "ground_sample_m": gsd,
         "n_detections": len(dets),
         "landmarks_in_view": len(row["landmarks"]),
-        "truth": [by_id[lb["id"]] for lb in labels],
-        "truth_d_km": [lb["diameter_km"] for lb in labels],
+        "truth": [by_id[lb["id"]] for lb in labels_seen],
+        "truth_d_km": [lb["diameter_km"] for lb in labels_seen],
         "det_r_km": [d.r * gsd / 1000.0 for d in dets],
         "matched": {k: by_id[labels[j]["id"]] for k, j in matched.items()},
         "matched_any": sorted(matched),
-        "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels)),
+        "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels_seen)),
     }
     out["detector_radii_px"] = [round(dparams.min_radius_px, 2), round(dparams.max_radius_px, 2)]
     # Fewer map landmarks in the frame than a fix needs: a "no fix" there is no failure of detection
     # (reported apart); the pipeline still runs, so a wrong fix there still counts as one.
-    out["enough_landmarks"] = len(labels) >= fparams.min_inliers
+    out["enough_landmarks"] = len(labels_seen) >= fparams.min_inliers
     # Identification with the prior pose.
     ids = [by_id[lm.id] for lm in cand]
     pairs_det, pairs_lm = [], []
@@ -197,7 +201,7 @@ def evaluate_frame(
     if not pairs_det:
         out.update(fix=False, reason="no putative landmark pairs")
         if not out["enough_landmarks"]:
-            out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels)} >= {fparams.min_landmark_km:g} km (no pairs)"
+            out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km (no pairs)"
         return out
     p3 = pts[pairs_lm]
     p2 = np.array([[dets[i].u, dets[i].v] for i in pairs_det])
@@ -250,7 +254,7 @@ def evaluate_frame(
     out["fix"] = bool(ok)
     out["reason"] = reason
     if not ok and not out["enough_landmarks"]:
-        out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels)} >= {fparams.min_landmark_km:g} km ({reason})"
+        out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.

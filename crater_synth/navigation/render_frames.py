@@ -49,6 +49,12 @@ FAST_MAP_MARGIN = 1.02  # fast path: horizon map half-width / near-field half-wi
 # Frames sharing a patch: its near field at most this many times the configured vertices per side (4 x the
 # vertices: one BVH and one horizon map for several frames instead of one per frame).
 SHARE_MAX_VERTEX_FACTOR = 2.0
+# A worker's start-up in frames' worth, for splitting shared patches between workers
+# (crater_synth.dataset.dispatch.blocks_per_crater): python and bpy import ~0.6 s, the scene of a
+# ~1000^2-vertex patch ~1.4 s, the first frame's Cycles sync and BVH ~1.5 s (the horizon map, ~2.7 s, is
+# made once per patch), against ~0.33 s per further frame on one thread at 1 sample, ~0.85 s at 4
+# (worker logs of `crater-synth nav-frames trajectory=polar_orbit_arc`, unloaded 2-core machine).
+FRAME_STARTUP_RENDERS = 10
 
 
 def frame_rel_path(index: int) -> str:
@@ -208,6 +214,51 @@ def _horizons_ahead(jobs, render):
     return proc
 
 
+def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map) -> dict:
+    """The manifest row of one rendered frame: the worker's ``res``, the pose and patch of ``fr``, and the
+    labels of the landmarks in view (their lit and occluded rim fractions read from the frame's EXR)."""
+    from crater_core import exr
+
+    pose = fr["pose"]
+    lit = exr.read_channel(out_dir / res["rel_path"], "lit")
+    depth = exr.read_channel(out_dir / res["rel_path"], "depth")
+    cam = pose.pose_enu(pose.target_lat, pose.target_lon)
+    sun_el, sun_az = pose.sun_enu(pose.target_lat, pose.target_lon)
+    return {
+        "schema_version": schema.SCHEMA_VERSION,
+        "label_version": FRAME_LABEL_VERSION,
+        "trajectory": trajectory,
+        "index": int(res["index"]),
+        "rel_path": res["rel_path"],
+        "sha256": res["sha256"],
+        "mode": res["mode"],
+        "render_seconds": res["seconds"],
+        "terrain_id": fr["meta"]["terrain_id"],
+        "patch": {
+            "lat": fr["group"].lat,
+            "lon": fr["group"].lon,
+            "half_width_m": fr["group"].half_width_m,
+            "near_vertices": fr["group"].near_vertices,
+            "frames": [p.index for p in fr["group"].poses],
+            "camera_enu_m": fr["item"]["camera"]["position"],
+            "sun_enu": {"elevation_deg": fr["item"]["sun_elevation"], "azimuth_deg": fr["item"]["sun_azimuth"]},
+        },
+        "frame_origin": {
+            "lat": pose.target_lat,
+            "lon": pose.target_lon,
+            "frame": "ENU on the 1737.4 km sphere",
+        },
+        "pose": pose.as_dict(),
+        "camera_enu": {"position_m": [float(v) for v in cam.position], "rotation": cam.rotation.tolist()},
+        "sun_enu": {"elevation_deg": sun_el, "azimuth_deg": sun_az},
+        "ground_sample_m": pose.ground_sample_m(),
+        "footprint_half_width_m": footprint_half_width_m(pose),
+        "lit_fraction": res["lit_fraction"],
+        "mean_if": res["mean_if"],
+        "landmarks": landmarks_in_view(pose, landmark_map, pose.target_lat, pose.target_lon, lit, depth),
+    }
+
+
 def _pole(lat: float) -> str:
     return "south" if lat < 0 else "north"
 
@@ -293,86 +344,46 @@ def render_frames(
         jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
     t_patch = time.perf_counter() - t0
     ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
-    results: dict[int, dict] = {}
+    rows: dict[int, dict] = {}
 
     def on_result(_job, plan, result):
-        results[int(result["index"])] = result
+        # labelled as each frame arrives: the host's work overlaps the workers'
+        idx = int(result["index"])
+        pole = _pole(frames[idx]["pose"].target_lat)
+        if pole not in maps:
+            maps[pole] = load_default_map(pole)[0]
+        rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, maps[pole])
         if progress:
             click.echo(f"frame {result['index']}: rendered in {result['seconds']:.2f} s ({result['mode']})", err=True)
 
     t1 = time.perf_counter()
-    # A shared patch stays with one worker: its scene, BVH and horizon map are built once.
+    # A shared patch's frames stay with one worker (its scene and BVH built once) unless splitting them
+    # between two finishes sooner; the horizon map is computed once either way (the on-disk cache).
     ahead = _horizons_ahead(jobs, render)
     try:
-        run_workers(jobs, render, settings.hapke, out_dir, on_result, split_jobs=not share_patches)
+        run_workers(jobs, render, settings.hapke, out_dir, on_result, startup_renders=FRAME_STARTUP_RENDERS)
     finally:
         if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
             ahead.terminate()
             ahead.join()
     t_render = time.perf_counter() - t1
-    from crater_core import exr
-
-    rows = []
-    for idx, fr in sorted(frames.items()):
-        res = results.get(idx)
-        if res is None:
-            raise UserError(f"frame {idx} of trajectory {traj.name} was not rendered (see {out_dir}/.jobs/*.log)")
-        pose = fr["pose"]
-        pole = _pole(pose.target_lat)
-        if pole not in maps:
-            maps[pole] = load_default_map(pole)[0]
-        lit = exr.read_channel(out_dir / res["rel_path"], "lit")
-        depth = exr.read_channel(out_dir / res["rel_path"], "depth")
-        cam = pose.pose_enu(pose.target_lat, pose.target_lon)
-        sun_el, sun_az = pose.sun_enu(pose.target_lat, pose.target_lon)
-        rows.append(
-            {
-                "schema_version": schema.SCHEMA_VERSION,
-                "label_version": FRAME_LABEL_VERSION,
-                "trajectory": traj.name,
-                "index": idx,
-                "rel_path": res["rel_path"],
-                "sha256": res["sha256"],
-                "mode": res["mode"],
-                "render_seconds": res["seconds"],
-                "terrain_id": fr["meta"]["terrain_id"],
-                "patch": {
-                    "lat": fr["group"].lat,
-                    "lon": fr["group"].lon,
-                    "half_width_m": fr["group"].half_width_m,
-                    "near_vertices": fr["group"].near_vertices,
-                    "frames": [p.index for p in fr["group"].poses],
-                    "camera_enu_m": fr["item"]["camera"]["position"],
-                    "sun_enu": {"elevation_deg": fr["item"]["sun_elevation"], "azimuth_deg": fr["item"]["sun_azimuth"]},
-                },
-                "frame_origin": {
-                    "lat": pose.target_lat,
-                    "lon": pose.target_lon,
-                    "frame": "ENU on the 1737.4 km sphere",
-                },
-                "pose": pose.as_dict(),
-                "camera_enu": {"position_m": [float(v) for v in cam.position], "rotation": cam.rotation.tolist()},
-                "sun_enu": {"elevation_deg": sun_el, "azimuth_deg": sun_az},
-                "ground_sample_m": pose.ground_sample_m(),
-                "footprint_half_width_m": footprint_half_width_m(pose),
-                "lit_fraction": res["lit_fraction"],
-                "mean_if": res["mean_if"],
-                "landmarks": landmarks_in_view(pose, maps[pole], pose.target_lat, pose.target_lon, lit, depth),
-            }
-        )
-    text = "".join(schema.dumps_row(r) + "\n" for r in rows)
+    missing = sorted(set(frames) - set(rows))
+    if missing:
+        raise UserError(f"frames {missing} of trajectory {traj.name} were not rendered (see {out_dir}/.jobs/*.log)")
+    ordered = [rows[i] for i in sorted(rows)]
+    text = "".join(schema.dumps_row(r) + "\n" for r in ordered)
     schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
     return {
         "trajectory": traj.name,
-        "frames": len(rows),
+        "frames": len(ordered),
         "out_dir": str(out_dir),
         "mode": render.mode,
-        "modes_used": sorted({r["mode"] for r in rows}),
+        "modes_used": sorted({r["mode"] for r in ordered}),
         "width_px": int(traj.width_px),
         "patch_seconds": round(t_patch, 2),
         "render_seconds": round(t_render, 2),
-        "worker_render_seconds": round(sum(r["render_seconds"] for r in rows), 2),
-        "landmarks_in_view": [len(r["landmarks"]) for r in rows],
+        "worker_render_seconds": round(sum(r["render_seconds"] for r in ordered), 2),
+        "landmarks_in_view": [len(r["landmarks"]) for r in ordered],
         "patches": len(groups),
     }
 
