@@ -339,6 +339,26 @@ def test_nav_frames_command_end_to_end(tmp_path):
     # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
     assert doc["preset"] == "synthetic" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
+    # `crater-synth navigate` on the rendered frame: nav-frames-eval's pipeline for one frame, and its PNG.
+    exr_path, png = out / row["rel_path"], tmp_path / "nav.png"
+    res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(png)])
+    assert res.exit_code == 0, res.output
+    nav = json.loads(res.output.strip().splitlines()[-1])
+    assert nav["preset"] == "synthetic" and nav["landmarks_in_view"] == len(row["landmarks"]) and png.is_file()
+    assert nav["fix"] == f["fix"] and nav.get("error_km") == (round(f["error_km"], 3) if f["fix"] else None)
+    for args, message in (
+        (["--prior", "-89,0"], "--prior apply to map windows only"),
+        (["--method", "template"], "rendered frames have presets for"),
+    ):
+        res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png"), *args])
+        assert res.exit_code != 0 and message in res.output and not (tmp_path / "x.png").exists()
+    stray = tmp_path / "frames" / "stray.exr"
+    stray.write_bytes(exr_path.read_bytes())
+    res = CliRunner().invoke(main, ["navigate", str(stray), "--out", str(tmp_path / "x.png")])
+    assert res.exit_code != 0 and "not a frame of" in res.output and not (tmp_path / "x.png").exists()
+    exr_path.write_bytes(exr_path.read_bytes()[:-100])  # truncated: its sha256 no longer matches the manifest
+    res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png")])
+    assert res.exit_code != 0 and "sha256 differs" in res.output and not (tmp_path / "x.png").exists()
 
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):

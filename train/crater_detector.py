@@ -52,7 +52,9 @@ class DetectorModelError(ValueError):
 class DetectorTrainSettings:
     """Training settings of :func:`train_detector` (defaults: docs/navigation.md, "Learned detector")."""
 
-    steps: int = 1500
+    # The committed model's length (docs/navigation.md, section 5); the one-cycle schedule spans all steps,
+    # so a shorter run is not that model's checkpoint.
+    steps: int = 2000
     batch: int = 16
     crop_px: int = 96
     lr: float = 3e-3

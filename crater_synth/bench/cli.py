@@ -12,7 +12,9 @@ Parts (``--part``, default all, in this order):
   (crater_synth.navigation.evaluate.bench_navigation);
 - ``export``: ``crater-synth export`` time and peak RSS on a generated dataset of ``--export-renders``
   EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export);
-- ``navframes``: navigation-frame renders/s along a trajectory (crater_synth.bench.navframes).
+- ``navframes``: navigation-frame renders/s along a trajectory (crater_synth.bench.navframes);
+- ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
+  (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -33,7 +35,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export", "navframes"]),
+    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export", "navframes", "detector"]),
     default="all",
     show_default=True,
 )
@@ -102,6 +104,20 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
             from crater_synth.bench.navframes import bench_navframes
 
             click.echo("navframes " + json.dumps(bench_navframes(overrides, work, navframes_frames)))
+        if part in ("all", "detector"):
+            from crater_synth.navigation.learned_train import DEFAULT_FRAMES
+
+            if (DEFAULT_FRAMES / "track_000").is_dir():
+                from crater_synth.bench.detector import bench_detector_training
+                from train.crater_detector import DetectorTrainSettings
+
+                r = bench_detector_training(DEFAULT_FRAMES, work / "detector", DetectorTrainSettings().steps)
+                click.echo("detector " + json.dumps(r))
+            else:
+                click.echo(
+                    f"detector skipped: no survey frames at {DEFAULT_FRAMES} (crater-synth nav-detector-frames, "
+                    "or make nav-detector, renders them)"
+                )
         if part in ("all", "renderer"):
             from crater_synth.bench.renderer import bench_renderer, summary_lines
 

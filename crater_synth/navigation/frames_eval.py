@@ -174,6 +174,7 @@ def evaluate_frame(
         "det_r_km": [d.r * gsd / 1000.0 for d in dets],
         "matched": {k: by_id[labels[j]["id"]] for k, j in matched.items()},
         "matched_any": sorted(matched),
+        "detections_px": [[d.u, d.v, d.r] for d in dets],  # not in the JSON (FRAME_FIELDS): navigate draws them
         "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels_seen)),
     }
     out["detector_radii_px"] = [round(dparams.min_radius_px, 2), round(dparams.max_radius_px, 2)]
@@ -251,23 +252,22 @@ def evaluate_frame(
         rms = float(np.sqrt(np.mean(err**2))) if ok else math.nan
         if ok and rms > fparams.max_rms_px:  # the real-window rule: a loose fit is no fix
             ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
-    out["fix"] = bool(ok)
-    out["reason"] = reason
+    out.update(fix=bool(ok), reason=reason)
     if not ok and not out["enough_landmarks"]:
         out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
-        out["identified"] = len(keep)
+        out.update(identified=len(keep), identified_pairs=[[int(pairs_det[q]), int(ids[pairs_lm[q]])] for q in keep])
         out["identified_correct"] = int(sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep))
         out["rms_px"] = rms
     return out
 
 
 def perfect_detections(row: dict) -> list[Detection]:
-    """Every label's own rim ellipse as a detection (centre, semi-major axis): the input of the
-    perfect-detection check, which tests labels, projection, identification and fix without the detector."""
+    """Every label's own rim ellipse as a detection (centre, semi-major axis): the perfect-detection check's
+    input (labels, projection, identification and fix tested without the detector)."""
     return [Detection(lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"], 1.0) for lb in row["landmarks"]]
 
 

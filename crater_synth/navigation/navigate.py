@@ -141,12 +141,41 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 )
 @user_errors
 def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth, lost_in_space):
-    """Detect craters in a nadir frame, identify them against the landmark map and fix the position.
+    """Detect craters in a frame, identify them against the landmark map and fix the position.
 
-    The frame is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
+    A map window is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
     `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
-    position (default: the georeference centre moved by 5 km). Prints one JSON line.
+    position (default: the georeference centre moved by 5 km). A rendered frame (`frame_NNNN.exr` of
+    `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose and Sun from its manifest,
+    prior the true camera moved by 5 km, `--method classical` (default) or `learned`. Prints one JSON line.
     """
+    if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
+        given = {
+            "--prior": prior,
+            "--pixel-m": pixel_m,
+            "--pole": pole,
+            "--map": map_path,
+            "--model": model_path,
+            "--light-azimuth": light_azimuth,
+            "--lost-in-space": lost_in_space or None,
+        }
+        extra = [name for name, value in given.items() if value is not None]
+        if extra:
+            raise UserError(
+                f"{image}: a rendered frame is navigated with its manifest's pose, Sun and landmark map; "
+                f"{', '.join(extra)} apply to map windows only"
+            )
+        from click.core import ParameterSource
+
+        from crater_synth.navigation.navigate_frame import navigate_frame
+
+        chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
+        frame_presets = {"classical": "synthetic", "learned": "learned"}  # nav-frames-eval's presets
+        if chosen and method not in frame_presets:
+            raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
+        name = frame_presets[method] if chosen else "synthetic"
+        click.echo(json.dumps(navigate_frame(image, name, out or image.with_name(image.stem + ".nav.png"))))
+        return
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.landmarks import load_default_map, read_map
     from crater_synth.navigation.polar import stereo_forward, stereo_inverse

@@ -1,0 +1,137 @@
+"""``crater-synth navigate FRAME.exr``: one rendered navigation frame through ``nav-frames-eval``'s pipeline.
+
+A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a north-up map window, so
+``navigate`` hands it here: its row in the ``manifest.jsonl`` beside it gives the camera pose and the Sun;
+the detector and fix settings are a ``nav-frames-eval`` preset (:data:`.frames_presets.FRAMES_PRESETS`);
+the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
+known-attitude camera centre (:func:`.frames_eval.evaluate_frame`). Its truth is exact, so the error is
+the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG: the labelled
+rims (thin green), the detections (red, dashed), the identified landmarks with their names (yellow).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from crater_core import exr, schema
+from crater_synth.navigation.frames import FrameError
+
+
+def frame_row_of(image: Path) -> dict:
+    """The manifest row of the rendered frame ``image``, its file checked against the row's sha256; a frame
+    with no manifest beside it, or not in it, or changed since it was written, is one error line."""
+    manifest = image.parent / schema.MANIFEST_NAME
+    if not image.is_file():
+        raise FrameError(f"{image}: no such file")
+    if not manifest.is_file():
+        raise FrameError(
+            f"{image}: no {schema.MANIFEST_NAME} beside it; a rendered frame is navigated with the pose its "
+            "manifest row holds (render frames with `crater-synth nav-frames`)"
+        )
+    from crater_synth.navigation.frame_labels import frame_rows
+
+    rows = [r for r in frame_rows(image.parent) if r.get("rel_path") == image.name]
+    if not rows:
+        raise FrameError(f"{image}: not a frame of {manifest}")
+    row = rows[0]
+    if schema.sha256_file(image) != row.get("sha256"):
+        raise FrameError(f"{image}: sha256 differs from its manifest row (the file changed or is corrupt)")
+    return row
+
+
+def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
+    """Detect, identify and fix one rendered frame with the ``nav-frames-eval`` preset ``preset``; writes
+    the annotated PNG ``out`` and returns the result (one JSON object)."""
+    from crater_synth.navigation.frames_eval import evaluate_frame
+    from crater_synth.navigation.frames_presets import frames_params
+    from crater_synth.navigation.landmarks import load_default_map
+
+    row = frame_row_of(image)
+    try:
+        img = exr.read_channel(image, "IF")
+    except exr.ExrError as exc:
+        raise FrameError(str(exc)) from None
+    pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+    landmarks = load_default_map(pole)[0]
+    dparams, fparams, pre = frames_params(preset)
+    r = evaluate_frame(
+        row, img, landmarks, dparams, fparams, seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px
+    )
+    result = {
+        "image": str(image),
+        "preset": preset,
+        "detector": pre.detector,
+        "position_prior": "true camera + 5 km, true attitude",
+        "altitude_km": round(r["altitude_km"], 3),
+        "ground_sample_m": round(r["ground_sample_m"], 1),
+        "landmarks_in_view": r["landmarks_in_view"],
+        "detections": r["n_detections"],
+        "fix": r["fix"],
+    }
+    if r["fix"]:
+        names = [landmarks[li].name or landmarks[li].id for _, li in r["identified_pairs"]]
+        result.update(
+            landmarks=names,
+            identified_correct=r["identified_correct"],
+            rms_px=round(r["rms_px"], 2),
+            error_km=round(r["error_km"], 3),
+            error_horizontal_km=round(r["error_horizontal_km"], 3),
+        )
+    else:
+        result["reason"] = r["reason"]
+    schema.atomic_write_bytes(out, annotate_frame(img, r, row, landmarks))
+    result["annotated"] = str(out)
+    return result
+
+
+def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
+    """The annotated PNG of :func:`navigate_frame`'s result ``r`` on the frame ``image`` (I/F, stretched
+    to its 99.5th percentile)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Ellipse
+
+    h, w = image.shape
+    top = float(np.percentile(image, 99.5)) or 1.0
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.imshow(np.clip(image / top, 0.0, 1.0), cmap="gray", vmin=0.0, vmax=1.0)
+    for lb in row["landmarks"]:
+        e = lb["ellipse"]
+        ax.add_patch(
+            Ellipse(
+                (e["cu"], e["cv"]),
+                2 * e["a"],
+                2 * e["b"],
+                angle=np.degrees(e["angle_rad"]),
+                fill=False,
+                ec="#40c040",
+                lw=0.5,
+            )
+        )
+    dets = r["detections_px"]
+    for u, v, rad in dets:
+        ax.add_patch(Circle((u, v), rad, fill=False, ec="#ff4040", lw=0.6, ls="--"))
+    if r["fix"]:
+        for di, li in r["identified_pairs"]:
+            u, v, rad = dets[di]
+            ax.add_patch(Circle((u, v), rad, fill=False, ec="#ffd000", lw=1.2))
+            ax.text(u, v, landmarks[li].name or landmarks[li].id, color="#ffd000", fontsize=7, ha="center", va="center")
+        title = (
+            f"fix: {len(r['identified_pairs'])} landmarks, RMS {r['rms_px']:.1f} px; error {r['error_km']:.2f} km "
+            f"(horizontal {r['error_horizontal_km']:.2f} km)"
+        )
+    else:
+        title = f"no fix: {r['reason']}"
+    ax.set_title(f"{row['trajectory']} frame {row['index']}, {r['altitude_km']:.0f} km up: {title}", fontsize=9)
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
