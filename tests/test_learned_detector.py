@@ -312,6 +312,11 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 2.0 and out["light_azimuth_deg"] is None
     assert (tmp_path / "w.nav.png").is_file()
+    # Every detection listed with its circle, confidence and landmark id (or "unknown"), beside the PNG.
+    listed = json.loads((tmp_path / "w.nav.json").read_text())["detections"]
+    assert out["detections_file"] == str(tmp_path / "w.nav.json") and len(listed) == out["detections"]
+    assert sorted(d["landmark"] for d in listed if d["landmark"] != "unknown") == sorted(out["landmarks"])
+    assert all({"u", "v", "r", "score"} <= set(d) for d in listed)
 
 
 @pytest.mark.parametrize(

@@ -346,6 +346,9 @@ def test_nav_frames_command_end_to_end(tmp_path):
     nav = json.loads(res.output.strip().splitlines()[-1])
     assert nav["preset"] == "synthetic" and nav["landmarks_in_view"] == len(row["landmarks"]) and png.is_file()
     assert nav["fix"] == f["fix"] and nav.get("error_km") == (round(f["error_km"], 3) if f["fix"] else None)
+    listed = json.loads((tmp_path / "nav.json").read_text())["detections"]
+    assert len(listed) == nav["detections"] and all("truth_landmark" in d and "landmark" in d for d in listed)
+    assert sum(d["truth_landmark"] is not None for d in listed) == f["matched"]  # the JSON counts them
     for args, message in (
         (["--prior", "-89,0"], "--prior apply to map windows only"),
         (["--method", "template"], "rendered frames have presets for"),

@@ -174,7 +174,7 @@ def evaluate_frame(
         "det_r_km": [d.r * gsd / 1000.0 for d in dets],
         "matched": {k: by_id[labels[j]["id"]] for k, j in matched.items()},
         "matched_any": sorted(matched),
-        "detections_px": [[d.u, d.v, d.r] for d in dets],  # not in the JSON (FRAME_FIELDS): navigate draws them
+        "detections_px": [[d.u, d.v, d.r, d.score] for d in dets],  # for navigate; not in the JSON
         "n_headline_landmarks": int(sum(lb["diameter_km"] >= HEADLINE_MIN_D_KM for lb in labels_seen)),
     }
     out["detector_radii_px"] = [round(dparams.min_radius_px, 2), round(dparams.max_radius_px, 2)]

@@ -257,6 +257,10 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
     else:
         result["reason"] = fix.reason
     out = out or image.with_name(image.stem + ".nav.png")
+    listing = out.with_suffix(".json")
+    from crater_synth.navigation.detection_list import detection_records, write_detections
+
+    write_detections(listing, image, detection_records(dets, dict(fix.inliers) if fix.ok else {}, landmarks))
     atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))
-    result["annotated"] = str(out)
+    result.update(annotated=str(out), detections_file=str(listing))
     click.echo(json.dumps(result))

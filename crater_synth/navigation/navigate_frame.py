@@ -5,8 +5,10 @@ A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a nort
 the detector and fix settings are a ``nav-frames-eval`` preset (:data:`.frames_presets.FRAMES_PRESETS`);
 the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
 known-attitude camera centre (:func:`.frames_eval.evaluate_frame`). Its truth is exact, so the error is
-the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG: the labelled
-rims (thin green), the detections (red, dashed), the identified landmarks with their names (yellow).
+the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG (the labelled
+rims thin green, the detections red dashed, the identified landmarks yellow with their names) and the
+per-detection list (circle, confidence, landmark identified or "unknown", the labelled landmark it
+matches) as JSON beside it.
 """
 
 from __future__ import annotations
@@ -82,8 +84,15 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
         )
     else:
         result["reason"] = r["reason"]
+    from crater_synth.navigation.detect import Detection
+    from crater_synth.navigation.detection_list import detection_records, write_detections
+
+    dets = [Detection(*d) for d in r["detections_px"]]
+    identified = dict(r["identified_pairs"]) if r["fix"] else {}
+    listing = out.with_suffix(".json")
+    write_detections(listing, image, detection_records(dets, identified, landmarks, r["matched"]))
     schema.atomic_write_bytes(out, annotate_frame(img, r, row, landmarks))
-    result["annotated"] = str(out)
+    result.update(annotated=str(out), detections_file=str(listing))
     return result
 
 
@@ -114,11 +123,11 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
             )
         )
     dets = r["detections_px"]
-    for u, v, rad in dets:
+    for u, v, rad, _ in dets:
         ax.add_patch(Circle((u, v), rad, fill=False, ec="#ff4040", lw=0.6, ls="--"))
     if r["fix"]:
         for di, li in r["identified_pairs"]:
-            u, v, rad = dets[di]
+            u, v, rad, _ = dets[di]
             ax.add_patch(Circle((u, v), rad, fill=False, ec="#ffd000", lw=1.2))
             ax.text(u, v, landmarks[li].name or landmarks[li].id, color="#ffd000", fontsize=7, ha="center", va="center")
         title = (
