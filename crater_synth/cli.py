@@ -43,6 +43,11 @@ _COMMANDS = (
     ),
     ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
     (
+        "crater_synth.navigation.lost_in_space_frames",
+        "nav_frames_lis_command",
+        "Lost in space on rendered frames (no position prior).",
+    ),
+    (
         "crater_synth.navigation.learned_train",
         "nav_detector_frames_command",
         "Render the learned crater detector's training frames.",

@@ -339,6 +339,16 @@ def test_nav_frames_command_end_to_end(tmp_path):
     # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
     assert doc["preset"] == "synthetic" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
+    # Lost in space (no prior): the labels' own ellipses, rectified onto the ground with the attitude and the
+    # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
+    # detector on this toy 64 px frame may find nothing, but never a wrong position.
+    from crater_synth.navigation.lost_in_space_frames import evaluate_lis_dir
+
+    lis = evaluate_lis_dir(out, "synthetic")
+    (lr,) = lis["rows"]
+    assert lr["perfect"]["fix"] and lr["perfect"]["error_km"] < 1.5, lr["perfect"]
+    assert lr["perfect"]["identified_correct"] == lr["perfect"]["identified"] >= 6
+    assert not lr["fix"] or lr["error_km"] < 5.0
     # `crater-synth navigate` on the rendered frame: nav-frames-eval's pipeline for one frame, and its PNG.
     exr_path, png = out / row["rel_path"], tmp_path / "nav.png"
     res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(png)])
