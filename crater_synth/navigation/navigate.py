@@ -68,34 +68,20 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle
+
+    from crater_synth.navigation.nav_output import draw_detections, png_of
 
     h, w = image.shape
     fig, ax = plt.subplots(figsize=(8, 8))
     ax.imshow(image, cmap="gray")
-    for d in dets:
-        ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ff4040", lw=0.6, ls="--"))
+    draw_detections(ax, dets, fix.inliers if fix.ok else [], landmarks)
     title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} landmarks, RMS {fix.rms_px:.1f} px"
-    if fix.ok:
-        for di, li in fix.inliers:
-            lm, d = landmarks[li], dets[di]
-            ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ffd000", lw=1.2))
-            ax.text(d.u, d.v, lm.name or lm.id, color="#ffd000", fontsize=7, ha="center", va="center")
-        if truth is not None:
-            tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
-            ax.annotate(
-                "", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2}
-            )
-            err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
-            title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
-    ax.set_title(title, fontsize=9)
-    ax.set_xlim(0, w)
-    ax.set_ylim(h, 0)
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return buf.getvalue()
+    if fix.ok and truth is not None:
+        tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
+        ax.annotate("", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2})
+        err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
+        title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
+    return png_of(fig, ax, w, h, title)
 
 
 @click.command("navigate")
@@ -258,7 +244,7 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
         result["reason"] = fix.reason
     out = out or image.with_name(image.stem + ".nav.png")
     listing = out.with_suffix(".json")
-    from crater_synth.navigation.detection_list import detection_records, write_detections
+    from crater_synth.navigation.nav_output import detection_records, write_detections
 
     write_detections(listing, image, detection_records(dets, dict(fix.inliers) if fix.ok else {}, landmarks))
     atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))

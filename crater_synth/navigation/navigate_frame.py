@@ -13,7 +13,6 @@ matches) as JSON beside it.
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +84,7 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     else:
         result["reason"] = r["reason"]
     from crater_synth.navigation.detect import Detection
-    from crater_synth.navigation.detection_list import detection_records, write_detections
+    from crater_synth.navigation.nav_output import detection_records, write_detections
 
     dets = [Detection(*d) for d in r["detections_px"]]
     identified = dict(r["identified_pairs"]) if r["fix"] else {}
@@ -103,7 +102,10 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle, Ellipse
+    from matplotlib.patches import Ellipse
+
+    from crater_synth.navigation.detect import Detection
+    from crater_synth.navigation.nav_output import draw_detections, png_of
 
     h, w = image.shape
     top = float(np.percentile(image, 99.5)) or 1.0
@@ -111,36 +113,14 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
     ax.imshow(np.clip(image / top, 0.0, 1.0), cmap="gray", vmin=0.0, vmax=1.0)
     for lb in row["landmarks"]:
         e = lb["ellipse"]
-        ax.add_patch(
-            Ellipse(
-                (e["cu"], e["cv"]),
-                2 * e["a"],
-                2 * e["b"],
-                angle=np.degrees(e["angle_rad"]),
-                fill=False,
-                ec="#40c040",
-                lw=0.5,
-            )
-        )
-    dets = r["detections_px"]
-    for u, v, rad, _ in dets:
-        ax.add_patch(Circle((u, v), rad, fill=False, ec="#ff4040", lw=0.6, ls="--"))
+        angle = np.degrees(e["angle_rad"])
+        ax.add_patch(Ellipse((e["cu"], e["cv"]), 2 * e["a"], 2 * e["b"], angle=angle, fill=False, ec="#40c040", lw=0.5))
+    draw_detections(ax, [Detection(*d) for d in r["detections_px"]], r.get("identified_pairs", []), landmarks)
     if r["fix"]:
-        for di, li in r["identified_pairs"]:
-            u, v, rad, _ = dets[di]
-            ax.add_patch(Circle((u, v), rad, fill=False, ec="#ffd000", lw=1.2))
-            ax.text(u, v, landmarks[li].name or landmarks[li].id, color="#ffd000", fontsize=7, ha="center", va="center")
         title = (
             f"fix: {len(r['identified_pairs'])} landmarks, RMS {r['rms_px']:.1f} px; error {r['error_km']:.2f} km "
             f"(horizontal {r['error_horizontal_km']:.2f} km)"
         )
     else:
         title = f"no fix: {r['reason']}"
-    ax.set_title(f"{row['trajectory']} frame {row['index']}, {r['altitude_km']:.0f} km up: {title}", fontsize=9)
-    ax.set_xlim(0, w)
-    ax.set_ylim(h, 0)
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return buf.getvalue()
+    return png_of(fig, ax, w, h, f"{row['trajectory']} frame {row['index']}, {r['altitude_km']:.0f} km up: {title}")
