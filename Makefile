@@ -99,7 +99,7 @@ navigate-demo: setup ## Crater navigation on a few real mosaic windows: both det
 
 DETECTOR_FRAMES ?= data/detector_frames/south
 DETECTOR_MODEL ?= data_manifest/models/crater_detector_south.pt
-nav-detector: setup ## The learned crater detector: render its 70 survey tracks (~25 min), train (~15 min on 2 cores), score the 10 held-out tracks
+nav-detector: setup ## The learned crater detector: render its 70 survey tracks (~17-25 min), train 2000 steps (~10 min on 2 cores), score the 10 held-out tracks
 	$(CLI) nav-detector-frames render.samples=4 --out $(DETECTOR_FRAMES) $(OVERRIDES)
 	$(CLI) nav-detector-train $(DETECTOR_FRAMES) --out $(DETECTOR_MODEL)
 
