@@ -331,3 +331,36 @@ def test_nav_detector_train_refuses_nonsense_steps_before_reading_anything(tmp_p
     r = CliRunner().invoke(main, ["nav-detector-train", str(tmp_path / "none"), "--out", str(tmp_path / "m.pt"), *args])
     assert r.exit_code == 2 and message in r.output and len(r.output.strip().splitlines()) == 1
     assert not list(tmp_path.iterdir())
+
+
+def test_detector_bench_takes_the_step_time_from_two_runs(monkeypatch, tmp_path):
+    """`bench --part detector`: seconds per step from the difference of a short and a long run (after an
+    untimed warm-up), the rest of the short run as fixed cost; timings that make no sense are one error."""
+    from crater_synth.bench import detector as bd
+
+    walls = {1: 30.0, bd.SHORT_STEPS: 12.0, bd.LONG_STEPS: 12.0 + 0.25 * (bd.LONG_STEPS - bd.SHORT_STEPS)}
+    calls = []
+
+    def fake_train(frames_dir, out, steps):
+        calls.append(steps)
+        return {"steps": steps, "wall_s": walls[steps], "peak_rss_mb": 1000.0 + steps}
+
+    monkeypatch.setattr(bd, "_train", fake_train)
+    r = bd.bench_detector_training(tmp_path, tmp_path / "w", 2000)
+    assert calls == [1, bd.SHORT_STEPS, bd.LONG_STEPS]
+    assert r["s_per_step"] == pytest.approx(0.25) and r["fixed_s"] == pytest.approx(12.0 - 0.25 * bd.SHORT_STEPS)
+    assert r["full_training_s"] == pytest.approx(r["fixed_s"] + 500.0, abs=0.1)
+    assert r["peak_rss_mb"] == 1000.0 + bd.LONG_STEPS
+    walls[bd.LONG_STEPS] = 11.0
+    with pytest.raises(RuntimeError, match="timing noise"):
+        bd.bench_detector_training(tmp_path, tmp_path / "w", 2000)
+
+
+def test_bench_detector_skips_without_a_survey(monkeypatch, tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    monkeypatch.chdir(tmp_path)  # the survey's default path is relative: none here
+    res = CliRunner().invoke(main, ["bench", "--part", "detector", "--keep", str(tmp_path / "b")])
+    assert res.exit_code == 0 and "detector skipped: no survey frames" in res.output

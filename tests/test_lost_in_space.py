@@ -121,3 +121,12 @@ def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
     x, y = stereo_forward(out["lat"], out["lon"], "south")
     assert float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
     assert (tmp_path / "w.nav.png").is_file()
+
+
+def test_nav_frames_lis_without_a_manifest_is_one_error(tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    res = CliRunner().invoke(main, ["nav-frames-lis", str(tmp_path)])
+    assert res.exit_code == 2 and "manifest.jsonl" in res.output and len(res.output.strip().splitlines()) == 1
