@@ -413,6 +413,11 @@ def _as_read(value):
     return float(np.float32(v)) if isinstance(v, float) else v
 
 
+def as_read(header: dict) -> dict:
+    """``header`` as its attributes read back from a written file (what :func:`check_seal` returns)."""
+    return {k: _as_read(v) for k, v in header.items()}
+
+
 def _seal(channels: dict[str, np.ndarray], sealed: dict) -> str:
     h = hashlib.sha256(json.dumps(sealed, sort_keys=True).encode("utf-8"))
     for c in CHANNELS:
@@ -426,7 +431,7 @@ def sealed_header(channels: dict[str, np.ndarray], header: dict) -> dict:
     """``header`` plus a seal: the sha256 of every attribute (as it reads back) and of the pixels as
     stored. The renderer writes it into each EXR, so that the file alone proves its content
     (:func:`check_seal`) when the manifest that held its sha256 is lost."""
-    sealed = {k: _as_read(v) for k, v in header.items()}
+    sealed = as_read(header)
     sealed[SEALED_ATTR] = json.dumps(sorted(sealed) + [SEALED_ATTR])
     return {**header, SEALED_ATTR: sealed[SEALED_ATTR], SEAL_ATTR: _seal(channels, sealed)}
 

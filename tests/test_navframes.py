@@ -528,3 +528,34 @@ def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
     depth[:, :30] = 100e3 - OCCLUSION_MARGIN_M  # within the margin: a higher crest, not an occluder
     assert occluded_rim_fraction(depth, rim_uv, rim_depth, 10e3) == 0.0
     assert occluded_rim_fraction(depth, rim_uv + 80.0, rim_depth, 10e3) is None  # most of the rim outside
+
+
+def test_nav_frames_rerun_keeps_intact_frames_and_renders_changed_ones(tmp_path):
+    """A re-run keeps a frame whose EXR is intact and was rendered with the same settings (an interrupted
+    trajectory resumes); a changed setting that alters pixels, or a damaged file, renders it again."""
+    out, data = tmp_path / "frames", tmp_path / "data"
+    first = run_nav_frames(data, out, "0,1")
+    assert first.returncode == 0, first.stderr[-2000:]
+    f0, f1 = out / "frame_0000.exr", out / "frame_0001.exr"
+
+    def rows():  # the manifest less the seconds each frame took in this run (0 for a frame kept)
+        return [
+            {k: v for k, v in json.loads(x).items() if k != "render_seconds"} for x in (out / "manifest.jsonl").open()
+        ]
+
+    manifest = rows()
+    stamp = f0.stat().st_mtime_ns
+    again = run_nav_frames(data, out, "0,1")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads(again.stdout.strip().splitlines()[-1])["reused"] == 2
+    assert f0.stat().st_mtime_ns == stamp and rows() == manifest
+    # A damaged frame (one byte of its pixels) is rendered again; the intact one is kept.
+    raw = bytearray(f1.read_bytes())
+    raw[-200] ^= 0xFF
+    f1.write_bytes(bytes(raw))
+    fixed = run_nav_frames(data, out, "0,1")
+    assert fixed.returncode == 0 and json.loads(fixed.stdout.strip().splitlines()[-1])["reused"] == 1
+    assert rows() == manifest  # the same render, sha256 and labels again
+    # A setting that changes pixels (the horizon map's texels): nothing is kept.
+    changed = run_nav_frames(data, out, "0,1", "render.shadow_map_px=40")
+    assert changed.returncode == 0 and json.loads(changed.stdout.strip().splitlines()[-1])["reused"] == 0

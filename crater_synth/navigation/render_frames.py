@@ -259,6 +259,35 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map)
     }
 
 
+def reusable_frame(out_dir: Path, index: int, header: dict) -> dict | None:
+    """The worker result of frame ``index`` already in ``out_dir``, when its EXR is intact (its seal:
+    pixels and attributes as written) and was rendered with the planned ``header`` (pose, patch, seed,
+    code version and the digest of every setting that can change a pixel); else None (it is rendered again,
+    the file replaced atomically). What a re-run of an interrupted or finished trajectory keeps."""
+    from crater_core import exr
+
+    path = out_dir / frame_rel_path(index)
+    if not path.is_file():
+        return None
+    try:
+        sealed = exr.check_seal(path)
+    except exr.ExrError:
+        return None
+    if sealed is None or any(sealed.get(k) != v for k, v in exr.as_read(header).items()):
+        return None
+    stats = json.loads(sealed["crater_synth:stats"])
+    return {
+        "index": index,
+        "rel_path": frame_rel_path(index),
+        "sha256": schema.sha256_file(path),
+        "lit_fraction": stats["lit_fraction"],
+        "mean_if": stats["mean_if"],
+        "seconds": 0.0,
+        "mode": sealed["crater_synth:mode"],
+        "reused": True,
+    }
+
+
 def _pole(lat: float) -> str:
     return "south" if lat < 0 else "north"
 
@@ -270,7 +299,9 @@ def render_frames(
     returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
     False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
     from crater_core.files import ensure_writable_dir
+    from crater_core.schema import content_key
     from crater_synth.dataset.dispatch import run_workers
+    from crater_synth.dataset.identity import render_identity
     from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.terrain.patch import build_terrain
@@ -292,7 +323,7 @@ def render_frames(
     render = settings.render
     maps: dict[str, list] = {}
     t0 = time.perf_counter()
-    jobs, frames = [], {}
+    jobs, frames, reused = [], {}, {}
     n_near = int(settings.terrain.near_vertices)
     groups = group_frames(poses, n_near, share=share_patches)
     for group in groups:
@@ -320,6 +351,11 @@ def render_frames(
         overrides = {}
         if scale > 1.0:
             overrides["shadow_map_px"] = int(math.ceil(render.shadow_map_px * scale / 8.0)) * 8
+        # The job's crater diameter sets only the fast path's horizon-map extent (blender_gen/fast.py).
+        map_d_km = hw * FAST_MAP_MARGIN / render.shadow_map_extent_factor / 1000.0
+        crater = CraterSettings(name=entry["name"], lat=entry["lat"], lon=entry["lon"], diameter_km=map_d_km)
+        # Every setting that can change a pixel (crater_synth.dataset.identity), the patch and the map overrides.
+        digest = content_key([render_identity(gsettings, crater, meta["terrain_id"]), overrides])
         plans = []
         for pose in group.poses:
             seed = render_seed(settings.seed, ("navframe", traj.name, pose.index))
@@ -334,14 +370,17 @@ def render_frames(
                 "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
                 "seed": seed,
                 "patch_origin": json.dumps([group.lat, group.lon]),
+                "render_digest": digest,
             }
             item = worker_item(pose, group.lat, group.lon, seed, header)
-            plans.append({"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item})
             frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "group": group}
-        # The job's crater diameter sets only the fast path's horizon-map extent (blender_gen/fast.py).
-        map_d_km = hw * FAST_MAP_MARGIN / render.shadow_map_extent_factor / 1000.0
-        crater = CraterSettings(name=entry["name"], lat=entry["lat"], lon=entry["lon"], diameter_km=map_d_km)
-        jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
+            kept = reusable_frame(out_dir, pose.index, header)
+            if kept is not None:
+                reused[pose.index] = kept
+            else:
+                plans.append({"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item})
+        if plans:
+            jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
     t_patch = time.perf_counter() - t0
     ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     rows: dict[int, dict] = {}
@@ -354,14 +393,23 @@ def render_frames(
             maps[pole] = load_default_map(pole)[0]
         rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, maps[pole])
         if progress:
-            click.echo(f"frame {result['index']}: rendered in {result['seconds']:.2f} s ({result['mode']})", err=True)
+            done = (
+                "kept (same settings, seal intact)"
+                if result.get("reused")
+                else f"rendered in {result['seconds']:.2f} s"
+            )
+            click.echo(f"frame {result['index']}: {done} ({result['mode']})", err=True)
+
+    for result in reused.values():
+        on_result(None, None, result)
 
     t1 = time.perf_counter()
     # A shared patch's frames stay with one worker (its scene and BVH built once) unless splitting them
     # between two finishes sooner; the horizon map is computed once either way (the on-disk cache).
     ahead = _horizons_ahead(jobs, render)
     try:
-        run_workers(jobs, render, settings.hapke, out_dir, on_result, startup_renders=FRAME_STARTUP_RENDERS)
+        if jobs:
+            run_workers(jobs, render, settings.hapke, out_dir, on_result, startup_renders=FRAME_STARTUP_RENDERS)
     finally:
         if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
             ahead.terminate()
@@ -385,6 +433,7 @@ def render_frames(
         "worker_render_seconds": round(sum(r["render_seconds"] for r in ordered), 2),
         "landmarks_in_view": [len(r["landmarks"]) for r in ordered],
         "patches": len(groups),
+        "reused": len(reused),
     }
 
 
