@@ -261,9 +261,10 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map)
 
 def reusable_frame(out_dir: Path, index: int, header: dict) -> dict | None:
     """The worker result of frame ``index`` already in ``out_dir``, when its EXR is intact (its seal:
-    pixels and attributes as written) and was rendered with the planned ``header`` (pose, patch, seed,
-    code version and the digest of every setting that can change a pixel); else None (it is rendered again,
-    the file replaced atomically). What a re-run of an interrupted or finished trajectory keeps."""
+    pixels and attributes as written) and was rendered with the planned ``header`` (pose: camera, field of
+    view, size and Sun; patch, seed, code version and the digest of every setting that can change a
+    pixel); else None (it is rendered again, the file replaced atomically). What a re-run of an
+    interrupted or finished trajectory keeps."""
     from crater_core import exr
 
     path = out_dir / frame_rel_path(index)
