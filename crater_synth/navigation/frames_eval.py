@@ -71,7 +71,7 @@ from crater_synth.navigation.frames_presets import (
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
 
 
-def _cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """(world -> camera rotation in the computer-vision convention of :func:`.fix.project_pinhole`, K)
     of a Blender-convention camera (columns right, up, back)."""
     right, up, back = rotation[:, 0], rotation[:, 1], rotation[:, 2]
@@ -142,7 +142,7 @@ def evaluate_frame(
     gsd = float(row["ground_sample_m"])
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     # The map landmarks the prior predicts in the frame (position and radius, px).
-    r_wc, k = _cv_camera(rot, width, fov)
+    r_wc, k = cv_camera(rot, width, fov)
     c_prior = prior_centre(row, seed)
     cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
@@ -286,12 +286,12 @@ def evaluate_dir(
     perfect-detection row of the same frame under ``"perfect"``."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.polar import pole_of
 
-    rows = frame_rows(frames_dir)
     maps: dict[str, list] = {}
     out = []
-    for row in rows:
-        pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+    for row in frame_rows(frames_dir):
+        pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")

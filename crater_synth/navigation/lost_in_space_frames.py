@@ -31,9 +31,9 @@ from crater_core import exr, geometry
 from crater_synth.cli_common import user_errors
 from crater_synth.navigation.detect import Detection, detect
 from crater_synth.navigation.evaluate import FALSE_FIX_KM
-from crater_synth.navigation.frames_eval import _cv_camera, light_direction, match_pixels, perfect_detections
+from crater_synth.navigation.frames_eval import cv_camera, light_direction, match_pixels, perfect_detections
 from crater_synth.navigation.frames_presets import FRAMES_PRESETS, frames_params, map_scales
-from crater_synth.navigation.polar import stereo_forward
+from crater_synth.navigation.polar import pole_of, stereo_forward
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
 
@@ -45,7 +45,7 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     misses the plane is dropped)."""
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     width, fov = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"])
-    r_wc, k = _cv_camera(rot, width, fov)
+    r_wc, k = cv_camera(rot, width, fov)
     if not dets:
         return [], (1, 1), []
     pix = np.array([[d.u, d.v, 1.0] for d in dets])
@@ -93,7 +93,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index
     rng = boresight_range_m(depth)
     flat, shape, kept = rectify(dets, row, rng)
     fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index)
-    pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+    pole = pole_of(row["frame_origin"]["lat"])
     lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
     tx, ty = stereo_forward(float(lat), float(lon), pole)
     out = {
@@ -130,7 +130,7 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
     maps: dict[str, tuple] = {}
     out = []
     for row in frame_rows(frames_dir):
-        pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+        pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             lms = load_default_map(pole)[0]
             maps[pole] = (lms, build_index(lms, lis))

@@ -49,13 +49,14 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     from crater_synth.navigation.frames_eval import evaluate_frame
     from crater_synth.navigation.frames_presets import frames_params
     from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.polar import pole_of
 
     row = frame_row_of(image)
     try:
         img = exr.read_channel(image, "IF")
     except exr.ExrError as exc:
         raise FrameError(str(exc)) from None
-    pole = "south" if row["frame_origin"]["lat"] < 0 else "north"
+    pole = pole_of(row["frame_origin"]["lat"])
     landmarks = load_default_map(pole)[0]
     dparams, fparams, pre = frames_params(preset)
     r = evaluate_frame(

@@ -17,6 +17,11 @@ def check_pole(pole: str) -> str:
     return pole
 
 
+def pole_of(lat_deg: float) -> str:
+    """The pole whose map holds a point at latitude ``lat_deg`` (a frame's target, a camera's ground point)."""
+    return "south" if lat_deg < 0 else "north"
+
+
 def stereo_forward(lat_deg, lon_deg, pole: str = "south", radius_m: float = MOON_RADIUS_M):
     """(lat, lon) deg -> polar stereographic (x, y) m of ``pole``."""
     return polar_stereo_forward(lat_deg, lon_deg, check_pole(pole), radius_m)

@@ -43,6 +43,7 @@ from crater_core.trajectory import FramePose, TrajectoryError, footprint_half_wi
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.navigation.frame_labels import FRAME_LABEL_VERSION, landmarks_in_view
+from crater_synth.navigation.polar import pole_of
 
 PATCH_MARGIN = 1.1  # near-field half-width / footprint half-width: terrain relief and rounding stay inside
 FAST_MAP_MARGIN = 1.02  # fast path: horizon map half-width / near-field half-width
@@ -289,10 +290,6 @@ def reusable_frame(out_dir: Path, index: int, header: dict) -> dict | None:
     }
 
 
-def _pole(lat: float) -> str:
-    return "south" if lat < 0 else "north"
-
-
 def render_frames(
     settings, out_dir: Path, only: list[int] | None = None, progress: bool = False, share_patches: bool = True
 ) -> dict:
@@ -389,7 +386,7 @@ def render_frames(
     def on_result(_job, plan, result):
         # labelled as each frame arrives: the host's work overlaps the workers'
         idx = int(result["index"])
-        pole = _pole(frames[idx]["pose"].target_lat)
+        pole = pole_of(frames[idx]["pose"].target_lat)
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
         rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, maps[pole])
