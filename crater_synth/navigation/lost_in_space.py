@@ -161,10 +161,13 @@ def lost_in_space_fix(
     params: LostInSpaceParams = LostInSpaceParams(),
     fparams: FixParams = FixParams(),
     index: PairIndex | None = None,
+    heading_deg: float | None = None,
 ) -> Fix:
     """Fix of a nadir frame of known pixel size ``pixel_m`` (map metres) with no position or heading
     prior: the map point under the frame centre, or "no fix" (module docstring). ``index``: a prebuilt
-    :func:`build_index` of ``landmarks`` (built here when None)."""
+    :func:`build_index` of ``landmarks`` (built here when None). ``heading_deg``: the frame's heading on
+    the map when an attitude gives it (the angle of the pixel -> map similarity); only votes within one
+    heading cell (``bin_deg``) of it count."""
     index = index if index is not None else build_index(landmarks, params)
     if len(detections) < max(3, params.min_inliers):
         return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})")
@@ -176,6 +179,11 @@ def lost_in_space_fix(
     if votes is None or votes[0].size == 0:
         return Fix(False, "no crater pair of the frame matches a pair of the map")
     _, _, _, _, va, vb = votes
+    if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
+        off = np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)
+        va, vb = va[np.abs(off) <= params.bin_deg], vb[np.abs(off) <= params.bin_deg]
+        if va.size == 0:
+            return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading")
     h, w = frame_shape
     zc = w / 2.0 - 1j * h / 2.0
     centre = va * zc + vb

@@ -68,15 +68,28 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     return out, (size, size), idx
 
 
+def map_heading_deg(row: dict, pole: str) -> float:
+    """The rectified frame's heading on the polar stereographic map: the angle of the map direction of
+    the frame's east axis (its +u), which the camera's Moon-fixed attitude gives without its position."""
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    steps = geometry.enu_to_mc(np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]]), lat0, lon0)
+    lat, lon, _ = geometry.mc_to_latlon(steps)
+    x, y = stereo_forward(lat, lon, pole)
+    return math.degrees(math.atan2(float(y[1] - y[0]), float(x[1] - x[0])))
+
+
 def boresight_range_m(depth: np.ndarray) -> float:
     """The altimeter's range: the rendered depth (along the view axis) at the image centre (2 x 2 pixels)."""
     h, w = depth.shape
     return float(np.mean(depth[h // 2 - 1 : h // 2 + 1, w // 2 - 1 : w // 2 + 1]))
 
 
-def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None) -> dict:
+def lis_frame(
+    row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None, known_heading=False
+) -> dict:
     """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
-    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check)."""
+    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check);
+    ``known_heading``: the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
     from crater_synth.navigation.lost_in_space import lost_in_space_fix
 
     dparams, fparams, _ = frames_params(preset)
@@ -92,8 +105,9 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index
         dets = list(detections)
     rng = boresight_range_m(depth)
     flat, shape, kept = rectify(dets, row, rng)
-    fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index)
     pole = pole_of(row["frame_origin"]["lat"])
+    heading = map_heading_deg(row, pole) if known_heading else None
+    fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index, heading_deg=heading)
     lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
     tx, ty = stereo_forward(float(lat), float(lon), pole)
     out = {
@@ -118,7 +132,9 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index
     return out
 
 
-def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = ()) -> dict:
+def evaluate_lis_dir(
+    frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = (), known_heading: bool = False
+) -> dict:
     """Every frame of a ``nav-frames`` directory lost in space (pair vote settings: ``lis_preset`` with
     ``lis.<name>=<value>`` overrides ``sets``), with the detector and with perfect detections; per-frame
     rows and both summaries."""
@@ -136,19 +152,22 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
             maps[pole] = (lms, build_index(lms, lis))
         path = Path(frames_dir) / row["rel_path"]
         image, depth = exr.read_channel(path, "IF"), exr.read_channel(path, "depth")
-        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis)
+        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis, known_heading=known_heading)
         # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
         # given as a detection (its own ellipse): what the detector's result is to be read against.
         big = [
             d for d, lb in zip(perfect_detections(row), row["landmarks"]) if lb["diameter_km"] >= lis.min_landmark_km
         ]
-        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big)
+        r["perfect"] = lis_frame(
+            row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big, known_heading=known_heading
+        )
         out.append(r)
     return {
         "frames_dir": str(frames_dir),
         "preset": preset,
         "lis_preset": lis_preset,
         "lis_settings": lis.as_dict(),
+        "known_heading": known_heading,
         "summary": _summary(out),
         "perfect_summary": _summary([r["perfect"] for r in out]),
         "rows": out,
@@ -184,17 +203,22 @@ def _summary(out: list[dict]) -> dict:
 )
 @click.option("--set", "sets", multiple=True, help="lis.<name>=<value> override of the pair-vote settings.")
 @click.option(
+    "--known-heading",
+    is_flag=True,
+    help="The attitude gives the frame's heading on the map: the vote keeps only that heading.",
+)
+@click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the rows."
 )
 @user_errors
-def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, json_path):
+def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, known_heading, json_path):
     """Lost in space on rendered frames: no position prior; attitude, altimeter range and pixel scale known.
 
     Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
     """
     from crater_core.schema import atomic_write_json
 
-    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets)
+    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets, known_heading)
     for r in result["rows"]:
         p = r["perfect"]
         tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]
