@@ -350,7 +350,7 @@ def test_nav_frames_command_end_to_end(tmp_path):
     assert lr["perfect"]["identified_correct"] == lr["perfect"]["identified"] >= 6
     assert not lr["fix"] or lr["error_km"] < 5.0
     # The heading the attitude gives is the one the vote finds (only votes near it are kept).
-    (lh,) = evaluate_lis_dir(out, "synthetic", known_heading=True)["rows"]
+    (lh,) = evaluate_lis_dir(out, "synthetic", sets=("lis.known_heading=true",))["rows"]
     assert lh["perfect"]["fix"] and lh["perfect"]["error_km"] == pytest.approx(lr["perfect"]["error_km"], abs=0.05)
     # `crater-synth navigate` on the rendered frame: nav-frames-eval's pipeline for one frame, and its PNG.
     exr_path, png = out / row["rel_path"], tmp_path / "nav.png"

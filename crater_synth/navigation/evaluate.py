@@ -108,7 +108,10 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
         else:
             from crater_synth.navigation.lost_in_space import lost_in_space_fix
 
-            fix = lost_in_space_fix(dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1])
+            heading = 0.0 if lis[0].known_heading else None  # the windows are north-up on the map
+            fix = lost_in_space_fix(
+                dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1], heading_deg=heading
+            )
         key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
         if best is None or key > best[0]:
             best = (key, dets, theta, fix)

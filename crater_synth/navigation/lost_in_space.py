@@ -61,6 +61,9 @@ class LostInSpaceParams:
     min_inliers: int = 6  # a lost-in-space fix needs more agreeing landmarks than a prior-gated one
     ambiguity_margin: int = 2  # a rival elsewhere with >= best - margin inliers: no fix
     rival_km: float = 5.0  # candidates whose centres are closer than this are the same solution
+    # The attitude gives the frame's heading on the map (a north-up mosaic window: 0; a rendered frame: its
+    # camera's): only votes within one heading cell of it count. Off in the frozen preset.
+    known_heading: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -84,12 +84,10 @@ def boresight_range_m(depth: np.ndarray) -> float:
     return float(np.mean(depth[h // 2 - 1 : h // 2 + 1, w // 2 - 1 : w // 2 + 1]))
 
 
-def lis_frame(
-    row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None, known_heading=False
-) -> dict:
+def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None) -> dict:
     """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
-    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check);
-    ``known_heading``: the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
+    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check). With
+    ``lis.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
     from crater_synth.navigation.lost_in_space import lost_in_space_fix
 
     dparams, fparams, _ = frames_params(preset)
@@ -106,7 +104,7 @@ def lis_frame(
     rng = boresight_range_m(depth)
     flat, shape, kept = rectify(dets, row, rng)
     pole = pole_of(row["frame_origin"]["lat"])
-    heading = map_heading_deg(row, pole) if known_heading else None
+    heading = map_heading_deg(row, pole) if lis.known_heading else None
     fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index, heading_deg=heading)
     lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
     tx, ty = stereo_forward(float(lat), float(lon), pole)
@@ -132,9 +130,7 @@ def lis_frame(
     return out
 
 
-def evaluate_lis_dir(
-    frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = (), known_heading: bool = False
-) -> dict:
+def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = ()) -> dict:
     """Every frame of a ``nav-frames`` directory lost in space (pair vote settings: ``lis_preset`` with
     ``lis.<name>=<value>`` overrides ``sets``), with the detector and with perfect detections; per-frame
     rows and both summaries."""
@@ -152,22 +148,19 @@ def evaluate_lis_dir(
             maps[pole] = (lms, build_index(lms, lis))
         path = Path(frames_dir) / row["rel_path"]
         image, depth = exr.read_channel(path, "IF"), exr.read_channel(path, "depth")
-        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis, known_heading=known_heading)
+        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis)
         # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
         # given as a detection (its own ellipse): what the detector's result is to be read against.
         big = [
             d for d, lb in zip(perfect_detections(row), row["landmarks"]) if lb["diameter_km"] >= lis.min_landmark_km
         ]
-        r["perfect"] = lis_frame(
-            row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big, known_heading=known_heading
-        )
+        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big)
         out.append(r)
     return {
         "frames_dir": str(frames_dir),
         "preset": preset,
         "lis_preset": lis_preset,
         "lis_settings": lis.as_dict(),
-        "known_heading": known_heading,
         "summary": _summary(out),
         "perfect_summary": _summary([r["perfect"] for r in out]),
         "rows": out,
@@ -203,22 +196,17 @@ def _summary(out: list[dict]) -> dict:
 )
 @click.option("--set", "sets", multiple=True, help="lis.<name>=<value> override of the pair-vote settings.")
 @click.option(
-    "--known-heading",
-    is_flag=True,
-    help="The attitude gives the frame's heading on the map: the vote keeps only that heading.",
-)
-@click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the rows."
 )
 @user_errors
-def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, known_heading, json_path):
+def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, json_path):
     """Lost in space on rendered frames: no position prior; attitude, altimeter range and pixel scale known.
 
     Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
     """
     from crater_core.schema import atomic_write_json
 
-    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets, known_heading)
+    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets)
     for r in result["rows"]:
         p = r["perfect"]
         tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]
