@@ -130,3 +130,17 @@ def test_nav_frames_lis_without_a_manifest_is_one_error(tmp_path):
 
     res = CliRunner().invoke(main, ["nav-frames-lis", str(tmp_path)])
     assert res.exit_code == 2 and "manifest.jsonl" in res.output and len(res.output.strip().splitlines()) == 1
+
+
+def test_a_known_heading_keeps_only_the_votes_that_agree_with_it():
+    """With the attitude's heading the true solution is still found; told a heading 90 degrees off, the
+    vote finds nothing there (the true pairs all point the other way): no fix, never a wrong one."""
+    rng = np.random.default_rng(7)
+    lms = _map(rng)
+    index = build_index(lms)
+    dets = _frame(lms, (-250e3, 300e3), 37.0, rng)
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=37.0)
+    assert fix.ok and math.hypot(fix.x_m + 250e3, fix.y_m - 300e3) < 1000.0
+    off = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=127.0)
+    assert not off.ok or math.hypot(off.x_m + 250e3, off.y_m - 300e3) < 1000.0
+    assert not off.ok
