@@ -121,6 +121,15 @@ def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
     x, y = stereo_forward(out["lat"], out["lon"], "south")
     assert float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
     assert (tmp_path / "w.nav.png").is_file()
+    # The window is north-up: with the heading known it is placed on the map as well.
+    args = ["navigate", str(img), "--lost-in-space", "--known-heading", "--pixel-m", "400", "--pole", "south"]
+    r = runner.invoke(main, args)
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    x, y = stereo_forward(out["lat"], out["lon"], "south")
+    assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
+    r = runner.invoke(main, ["navigate", str(img), "--known-heading", "--pixel-m", "400"])
+    assert r.exit_code == 2 and "--lost-in-space only" in r.output
 
 
 def test_nav_frames_lis_without_a_manifest_is_one_error(tmp_path):

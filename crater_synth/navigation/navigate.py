@@ -125,8 +125,16 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     help="Identify with no position prior: crater-pair votes over the whole map (the frozen `south-choice` "
     "settings, docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
 )
+@click.option(
+    "--known-heading",
+    is_flag=True,
+    help="With --lost-in-space: the frame is north-up on the map, so only crater-pair votes at that heading "
+    "count (docs/navigation.md, 'Lost in space with the heading known').",
+)
 @user_errors
-def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth, lost_in_space):
+def navigate_command(
+    image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth, lost_in_space, known_heading
+):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
     A map window is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
@@ -144,6 +152,7 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
             "--model": model_path,
             "--light-azimuth": light_azimuth,
             "--lost-in-space": lost_in_space or None,
+            "--known-heading": known_heading or None,
         }
         extra = [name for name, value in given.items() if value is not None]
         if extra:
@@ -176,6 +185,8 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
 
     check_frame(img, str(image))
     truth = read_georef(image)
+    if known_heading and not lost_in_space:
+        raise UserError("--known-heading applies to --lost-in-space only (a prior gives the heading already)")
     if lost_in_space and prior is not None:
         raise UserError(f"--prior {prior} with --lost-in-space: a lost-in-space fix takes no prior; give one of them")
     if truth is None and prior is None and not lost_in_space:
@@ -218,7 +229,10 @@ def navigate_command(image, prior, pixel_m, pole, map_path, out, method, model_p
     if prior_g is None:
         from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix
 
-        fix = lost_in_space_fix(dets, landmarks, img.shape, pixel, LIS_PRESETS["south-choice"], fparams)
+        heading = 0.0 if known_heading else None  # a map window is north-up
+        fix = lost_in_space_fix(
+            dets, landmarks, img.shape, pixel, LIS_PRESETS["south-choice"], fparams, heading_deg=heading
+        )
     else:
         fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     result = {
