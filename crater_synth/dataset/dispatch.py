@@ -200,14 +200,12 @@ def run_workers(
     hapke: HapkeParams,
     out_dir: Path,
     on_result,
-    split_jobs: bool = True,
     startup_renders: int | None = None,
 ) -> None:
     """Render every plan of ``jobs`` (each plan carries its worker ``item``) with ``render.workers``
-    processes; ``on_result(job, plan, result)`` is called for each finished render. ``split_jobs=False``:
-    one work unit (one worker) per job, when a job's fixed cost (scene, BVH, horizon map) outweighs
-    its renders. ``startup_renders``: a worker start-up in renders' worth for jobs unlike the sweep's
-    craters (navigation frames on shared patches): the blocks are then refined by
+    processes; ``on_result(job, plan, result)`` is called for each finished render. ``startup_renders``:
+    a worker start-up in renders' worth for jobs unlike the sweep's craters (navigation frames on shared
+    patches, whose scene, BVH and horizon map outweigh a few frames): the blocks are then refined by
     :func:`blocks_per_crater` and the units taken largest first."""
     n_workers = render.workers
     blender = blender_binary(render.blender)[0] if render.blender is not None else None
@@ -220,9 +218,7 @@ def run_workers(
     # blocks per crater as balance the workers (blocks_per_crater).
     units: list[tuple[CraterJob, list[dict]]] = []
     sizes = [len(j.plans) for j in jobs]
-    if not split_jobs:
-        shares = [1] * len(jobs)
-    elif startup_renders is None:
+    if startup_renders is None:
         shares = blocks_per_crater(sizes, n_workers)
     else:
         shares = blocks_per_crater(sizes, n_workers, startup_renders, refine=True)
