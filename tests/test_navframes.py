@@ -559,6 +559,11 @@ def test_nav_frames_rerun_keeps_intact_frames_and_renders_changed_ones(tmp_path)
     fixed = run_nav_frames(data, out, "0,1")
     assert fixed.returncode == 0 and json.loads(fixed.stdout.strip().splitlines()[-1])["reused"] == 1
     assert rows() == manifest  # the same render, sha256 and labels again
+    # With no manifest recording their sha256, intact frames prove themselves by their seal.
+    (out / "manifest.jsonl").unlink()
+    sealed = run_nav_frames(data, out, "0,1")
+    assert sealed.returncode == 0 and json.loads(sealed.stdout.strip().splitlines()[-1])["reused"] == 2
+    assert rows() == manifest
     # A setting that changes pixels (the horizon map's texels): nothing is kept.
     changed = run_nav_frames(data, out, "0,1", "render.shadow_map_px=40")
     assert changed.returncode == 0 and json.loads(changed.stdout.strip().splitlines()[-1])["reused"] == 0

@@ -260,34 +260,40 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map)
     }
 
 
-def reusable_frame(out_dir: Path, index: int, header: dict) -> dict | None:
-    """The worker result of frame ``index`` already in ``out_dir``, when its EXR is intact (its seal:
-    pixels and attributes as written) and was rendered with the planned ``header`` (pose: camera, field of
-    view, size and Sun; patch, seed, code version and the digest of every setting that can change a
-    pixel); else None (it is rendered again, the file replaced atomically). What a re-run of an
-    interrupted or finished trajectory keeps."""
+def reusable_frame(out_dir: Path, index: int, header: dict, recorded_sha256: str | None) -> dict | None:
+    """The worker result of frame ``index`` already in ``out_dir``, when it was rendered with the planned
+    ``header`` (pose: camera, field of view, size and Sun; patch, seed, code version and the digest of
+    every setting that can change a pixel) and its bytes are proved as the sweep proves a kept render
+    (:mod:`crater_synth.dataset.recover`): by ``recorded_sha256``, the sha256 the previous manifest
+    recorded for it, or else by its seal (pixels and attributes as written, decoded and encoded again).
+    Else None: it is rendered again, the file replaced atomically. What a re-run keeps."""
     from crater_core import exr
+    from crater_synth.dataset.recover import STATS_HEADER
 
     path = out_dir / frame_rel_path(index)
-    if not path.is_file():
-        return None
+    planned = exr.as_read(header)
     try:
-        sealed = exr.check_seal(path)
-    except exr.ExrError:
-        return None
-    if sealed is None or any(sealed.get(k) != v for k, v in exr.as_read(header).items()):
-        return None
-    stats = json.loads(sealed["crater_synth:stats"])
-    return {
-        "index": index,
-        "rel_path": frame_rel_path(index),
-        "sha256": schema.sha256_file(path),
-        "lit_fraction": stats["lit_fraction"],
-        "mean_if": stats["mean_if"],
-        "seconds": 0.0,
-        "mode": sealed["crater_synth:mode"],
-        "reused": True,
-    }
+        attrs = exr.read_header(path)
+        if any(attrs.get(k) != v for k, v in planned.items()):
+            return None
+        sha = schema.sha256_file(path)
+        if sha != recorded_sha256:  # no row records these bytes: the file must prove itself
+            attrs = exr.check_seal(path) or {}
+            if any(attrs.get(k) != v for k, v in planned.items()):
+                return None
+        stats = json.loads(attrs[STATS_HEADER])
+        return {
+            "index": index,
+            "rel_path": frame_rel_path(index),
+            "sha256": sha,
+            "lit_fraction": stats["lit_fraction"],
+            "mean_if": stats["mean_if"],
+            "seconds": 0.0,
+            "mode": attrs["crater_synth:mode"],
+            "reused": True,
+        }
+    except (exr.ExrError, OSError, KeyError, TypeError, ValueError):
+        return None  # missing, unreadable, or not a frame of this project
 
 
 def render_frames(
@@ -322,6 +328,7 @@ def render_frames(
     maps: dict[str, list] = {}
     t0 = time.perf_counter()
     jobs, frames, reused = [], {}, {}
+    recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
     n_near = int(settings.terrain.near_vertices)
     groups = group_frames(poses, n_near, share=share_patches)
     for group in groups:
@@ -372,7 +379,7 @@ def render_frames(
             }
             item = worker_item(pose, group.lat, group.lon, seed, header)
             frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "group": group}
-            kept = reusable_frame(out_dir, pose.index, header)
+            kept = reusable_frame(out_dir, pose.index, header, recorded.get(frame_rel_path(pose.index)))
             if kept is not None:
                 reused[pose.index] = kept
             else:
