@@ -106,9 +106,9 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
         if lis is None:
             fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
         else:
-            from crater_synth.navigation.lost_in_space import lost_in_space_fix
+            from crater_synth.navigation.lost_in_space import lost_in_space_fix, window_heading_deg
 
-            heading = 0.0 if lis[0].known_heading else None  # the windows are north-up on the map
+            heading = window_heading_deg(lis[0])
             fix = lost_in_space_fix(
                 dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1], heading_deg=heading
             )

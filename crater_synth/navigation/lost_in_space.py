@@ -69,6 +69,12 @@ class LostInSpaceParams:
         return asdict(self)
 
 
+def window_heading_deg(params: LostInSpaceParams) -> float | None:
+    """The heading :func:`lost_in_space_fix` is given for a map window: 0 (north-up on the map) when the
+    settings say the attitude gives it, else None (the vote's heading is free)."""
+    return 0.0 if params.known_heading else None
+
+
 # Frozen settings, chosen on south windows (docs/navigation.md, "Lost in space").
 LIS_PRESETS = {"south-choice": LostInSpaceParams(gate_km=4.0)}
 
@@ -183,8 +189,8 @@ def lost_in_space_fix(
         return Fix(False, "no crater pair of the frame matches a pair of the map")
     _, _, _, _, va, vb = votes
     if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
-        off = np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)
-        va, vb = va[np.abs(off) <= params.bin_deg], vb[np.abs(off) <= params.bin_deg]
+        near = np.abs(np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)) <= params.bin_deg
+        va, vb = va[near], vb[near]
         if va.size == 0:
             return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading")
     h, w = frame_shape

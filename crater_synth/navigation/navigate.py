@@ -7,6 +7,7 @@ The frame is a north-up polar-stereographic nadir view (e.g. a mosaic window wri
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -227,12 +228,10 @@ def navigate_command(
     light = None if light_azimuth is None else math.radians(light_azimuth)
     dets, theta = detect(img, dparams, light_dir=light, what=str(image))
     if prior_g is None:
-        from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix
+        from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
 
-        heading = 0.0 if known_heading else None  # a map window is north-up
-        fix = lost_in_space_fix(
-            dets, landmarks, img.shape, pixel, LIS_PRESETS["south-choice"], fparams, heading_deg=heading
-        )
+        lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
+        fix = lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
     else:
         fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     result = {
