@@ -91,21 +91,20 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     identified = dict(r["identified_pairs"]) if r["fix"] else {}
     listing = out.with_suffix(".json")
     write_detections(listing, image, detection_records(dets, identified, landmarks, r["matched"]))
-    schema.atomic_write_bytes(out, annotate_frame(img, r, row, landmarks))
+    schema.atomic_write_bytes(out, annotate_frame(img, r, row, landmarks, dets))
     result.update(annotated=str(out), detections_file=str(listing))
     return result
 
 
-def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
-    """The annotated PNG of :func:`navigate_frame`'s result ``r`` on the frame ``image`` (I/F, stretched
-    to its 99.5th percentile)."""
+def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> bytes:
+    """The annotated PNG of :func:`navigate_frame`'s result ``r`` (its detections ``dets``) on the frame
+    ``image`` (I/F, stretched to its 99.5th percentile)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse
 
-    from crater_synth.navigation.detect import Detection
     from crater_synth.navigation.nav_output import draw_detections, png_of
 
     h, w = image.shape
@@ -116,7 +115,7 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks) -> bytes:
         e = lb["ellipse"]
         angle = np.degrees(e["angle_rad"])
         ax.add_patch(Ellipse((e["cu"], e["cv"]), 2 * e["a"], 2 * e["b"], angle=angle, fill=False, ec="#40c040", lw=0.5))
-    draw_detections(ax, [Detection(*d) for d in r["detections_px"]], r.get("identified_pairs", []), landmarks)
+    draw_detections(ax, dets, r.get("identified_pairs", []), landmarks)
     if r["fix"]:
         title = (
             f"fix: {len(r['identified_pairs'])} landmarks, RMS {r['rms_px']:.1f} px; error {r['error_km']:.2f} km "
