@@ -137,6 +137,11 @@ def test_committed_model_loads_and_carries_its_provenance():
     assert meta["trained_on"].startswith("rendered survey frames only")
     assert meta["synthetic_holdout"]["frames"] > 0
     assert set(meta["train_tracks"]).isdisjoint(meta["holdout_tracks"])
+    # `make nav-detector` (the training defaults) trains this model again: the same settings, steps among
+    # them (the one-cycle schedule spans all steps, so a shorter run is not its checkpoint).
+    defaults = dataclasses.asdict(cd.DetectorTrainSettings())
+    for key in ("steps", "batch", "crop_px", "lr", "weight_decay", "width", "seed"):
+        assert meta["settings"][key] == defaults[key], key
 
 
 # ------------------------------------------------------------------------------------------------
