@@ -20,16 +20,15 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   pairs within the prior's uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio
   within ``radius_ratio`` (:class:`.fix.FixParams`, the values chosen on real validation windows).
 - **Fix** (``method``): ``position`` (default): the camera centre with the prior's (true) attitude,
-  :func:`.fix.ransac_position` (linear least squares on the rays through the landmarks' 3-D rim-centre
-  points, minimal sets of 2), then each observation corrected for the offset between the rim
-  ellipse's centre (what a detection measures) and the image of the rim's centre point, and solved
-  again (twice); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. Then one pair per detection and per
-  landmark (smallest reprojection error); "no fix" when fewer than ``min_inliers`` distinct landmarks
-  agree, when a disjoint rival set nearly as large agrees (the real windows' ambiguity test; known-attitude
-  fix) or when their RMS exceeds ``max_rms_px``. A frame with fewer than ``min_inliers`` landmarks in
-  view is flagged and summarised apart (no detector could fix it). The error is the 3-D distance
-  between the fixed and the true camera centre (its horizontal part is reported too); a fix is false
-  beyond ``FALSE_FIX_KM``.
+  :func:`.fix.ransac_position` (least squares on the rays through the landmarks' 3-D rim-centre
+  points, minimal sets of 2), corrected for the perspective offset of the rim ellipses' centres
+  (:func:`.refine.ellipse_centre_fix`); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. One pair per
+  detection and landmark; "no fix" when fewer than ``min_inliers`` distinct landmarks agree, when a
+  disjoint rival set nearly as large agrees (the ambiguity test; known attitude) or when their RMS
+  exceeds ``max_rms_px``. Presets with ``refine`` then register each fix landmark's predicted
+  appearance on the frame and solve again (:mod:`.refine`). A frame with fewer than ``min_inliers``
+  landmarks in view is flagged and summarised apart. The error is the 3-D distance between the fixed
+  and the true camera centre (horizontal part too); a fix is false beyond ``FALSE_FIX_KM``.
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames).
 """
@@ -58,7 +57,7 @@ from crater_synth.navigation.evaluate import (
     RESULTS_JSON,
     summarise,
 )
-from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, solve_position
+from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position
 from crater_synth.navigation.frame_labels import hidden
 from crater_synth.navigation.frames_presets import (
     DEFAULT_FRAMES_PRESET,
@@ -67,6 +66,7 @@ from crater_synth.navigation.frames_presets import (
     frames_params,
     map_scales,
 )
+from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
 
@@ -126,12 +126,14 @@ def evaluate_frame(
     detections: list | None = None,
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
+    refiner=None,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
-    (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance. A frame with fewer
+    (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
+    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance. A frame with fewer
     than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
     False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
@@ -224,28 +226,9 @@ def evaluate_frame(
                 keep.append(q)
         if len(keep) < fparams.min_inliers:
             ok, reason = False, f"only {len(keep)} distinct landmarks agree on one pose"
-        elif method == "position":
-            # A detection measures the rim ellipse's centre, which perspective moves off the image of the
-            # rim's centre point: correct each observation by that offset at the current fix, re-solve.
-            normals = pts[[pairs_lm[q] for q in keep]] + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
-            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        elif method == "position":  # the ellipse-centre correction (refine.ellipse_centre_fix)
             radii = [cand[pairs_lm[q]].diameter_km * 500.0 for q in keep]
-            for _ in range(2):
-                pose = geometry.CameraPose(
-                    position=c_fix, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov
-                )
-                proj = project_pinhole(p3[keep], r_wc, c_fix, k)
-                centres = np.array(
-                    [
-                        [e.cu, e.cv]
-                        for e in (
-                            geometry.project_circle(p3[q], nrm, rad, pose, width)
-                            for q, nrm, rad in zip(keep, normals, radii)
-                        )
-                    ]
-                )
-                corrected = p2[keep] - (centres - proj)
-                c_fix = solve_position(p3[keep], corrected, k, r_wc)
+            c_fix, corrected = ellipse_centre_fix(p3[keep], p2[keep], radii, c_fix, r_wc, k, fov, width)
             err = np.hypot(*(project_pinhole(p3[keep], r_fix, c_fix, k) - corrected).T)
         else:
             err = err[keep]
@@ -255,6 +238,13 @@ def evaluate_frame(
     out.update(fix=bool(ok), reason=reason)
     if not ok and not out["enough_landmarks"]:
         out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
+    if ok and refiner is not None and method == "position":
+        d = c_fix - c_true
+        out["unrefined"] = {"error_km": np.linalg.norm(d) / 1000.0, "error_horizontal_km": np.hypot(*d[:2]) / 1000.0}
+        lms, origin = [cand[pairs_lm[q]] for q in keep], (lat0, lon0)
+        c_fix, out["refinement"] = refiner.refine(
+            image, lms, corrected, p3[keep], c_fix, r_wc, k, origin, row["pose"]["to_sun_mc"]
+        )
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
@@ -279,24 +269,30 @@ def evaluate_dir(
     method: str = "position",
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
+    refine: bool = False,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
-    perfect-detection row of the same frame under ``"perfect"``."""
+    perfect-detection row of the same frame under ``"perfect"``. ``refine``: the detector's fixes are refined
+    by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``)."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
 
     maps: dict[str, list] = {}
+    refiners: dict[str, Refiner] = {}
     out = []
     for row in frame_rows(frames_dir):
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
+            refiners[pole] = Refiner(lander_dem(pole)) if refine else None
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
         kw = dict(seed=seed, method=method, inlier_px=inlier_px)
-        r = evaluate_frame(row, image, maps[pole], dparams, fparams, scales_from_map=scales_from_map, **kw)
+        r = evaluate_frame(
+            row, image, maps[pole], dparams, fparams, scales_from_map=scales_from_map, refiner=refiners[pole], **kw
+        )
         r["perfect"] = evaluate_frame(
             row, image, maps[pole], dparams, fparams, detections=perfect_detections(row), **kw
         )
@@ -314,6 +310,10 @@ def evaluate_dir(
             "enough_landmarks": _summary([r["perfect"] for r in enough]),
         },
     }
+    if refine:  # the same fixes before their refinement: the plain fix's accuracy, in the same run
+        plain = {r["id"]: {**r, **r.get("unrefined", {})} for r in out}
+        groups = (("all", out), ("headline", head), ("enough_landmarks", enough))
+        summary["unrefined"] = {name: _summary([plain[r["id"]] for r in rows]) for name, rows in groups}
     return summary, out
 
 
@@ -332,6 +332,7 @@ FRAME_FIELDS = (
     "reason",
     "error_km",
     "error_horizontal_km",
+    "unrefined",
     "identified",
     "identified_correct",
     "rms_px",
@@ -448,7 +449,7 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
         raise UserError("--write-results records a preset's settings only; drop --set")
     dparams, fparams, pre = frames_params(preset, sets, method)
     summary, rows = evaluate_dir(
-        frames_dir, dparams, fparams, seed, method, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px
+        frames_dir, dparams, fparams, seed, method, pre.scales_from_map, pre.inlier_px, pre.refine
     )
     for r in rows:
         click.echo(

@@ -26,6 +26,7 @@ class FramesPreset:
     scales_from_map: bool = False
     inlier_px: float = PNP_INLIER_PX
     methods: tuple = ("position", "pnp")  # the fix methods the preset serves
+    refine: bool = False  # known-attitude fixes refined by appearance (:mod:`.refine`)
 
 
 # "real-window": the real-window settings unchanged (the classical preset, every scale, 5 agreeing
@@ -44,12 +45,13 @@ FRAMES_PRESETS = {
         scales_from_map=True,
         inlier_px=5.0,
         methods=("position",),
+        refine=True,
     ),
 }
 # "learned": the learned detector with its frozen real-window preset (chosen on the south windows, not on
 # these frames) and the "synthetic" preset's fix settings; nothing was chosen on the rendered trajectories.
 FRAMES_PRESETS["learned"] = FramesPreset(
-    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, methods=("position",)
+    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, methods=("position",), refine=True
 )
 DEFAULT_FRAMES_PRESET = "synthetic"
 

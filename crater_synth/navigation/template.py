@@ -32,7 +32,7 @@ HAPKE_YAML = Path(__file__).resolve().parents[2] / "configs" / "hapke" / "lunar.
 
 
 @functools.lru_cache(maxsize=1)
-def _hapke():
+def hapke_params():
     """The project's lunar Hapke parameters (configs/hapke/lunar.yaml)."""
     import yaml
 
@@ -74,7 +74,7 @@ def shade_heights(z: np.ndarray, theta: float, sun_el_deg: float) -> np.ndarray:
     su, sv = -math.cos(theta), -math.sin(theta)  # towards the Sun: against the light's travel
     to_sun = np.array([su * math.cos(el), sv * math.cos(el), math.sin(el)])
     view = np.broadcast_to(np.array([0.0, 0.0, 1.0]), normals.shape)
-    img = shade_np(normals, to_sun, view, _hapke())
+    img = shade_np(normals, to_sun, view, hapke_params())
     img[_cast_shadow(z, su, sv, math.tan(el))] = 0.0
     return img
 

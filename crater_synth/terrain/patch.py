@@ -92,6 +92,11 @@ def _open_stack(s: dict):
     return open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
 
 
+def open_dem_stack(cfg):
+    """The near-field DEM stack of the settings ``cfg`` (dem.product or dem.path, with dem.stack over it)."""
+    return _open_stack(terrain_settings(cfg))[0]
+
+
 def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key: str) -> tuple[np.ndarray, dict]:
     """Sub-DEM detail weighted by the data behind each vertex (docs/dem_stack.md).
 
