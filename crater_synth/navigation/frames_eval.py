@@ -241,10 +241,8 @@ def evaluate_frame(
     if ok and refiner is not None and method == "position":
         d = c_fix - c_true
         out["unrefined"] = {"error_km": np.linalg.norm(d) / 1000.0, "error_horizontal_km": np.hypot(*d[:2]) / 1000.0}
-        lms, origin = [cand[pairs_lm[q]] for q in keep], (lat0, lon0)
-        c_fix, out["refinement"] = refiner.refine(
-            image, lms, corrected, p3[keep], c_fix, r_wc, k, origin, row["pose"]["to_sun_mc"]
-        )
+        lms, sun = [cand[pairs_lm[q]] for q in keep], row["pose"]["to_sun_mc"]
+        c_fix, out["refinement"] = refiner.refine(image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.

@@ -4,7 +4,8 @@ A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a nort
 ``navigate`` hands it here: its row in the ``manifest.jsonl`` beside it gives the camera pose and the Sun;
 the detector and fix settings are a ``nav-frames-eval`` preset (:data:`.frames_presets.FRAMES_PRESETS`);
 the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
-known-attitude camera centre (:func:`.frames_eval.evaluate_frame`). Its truth is exact, so the error is
+known-attitude camera centre (:func:`.frames_eval.evaluate_frame`), refined by appearance where the preset
+says so (:mod:`.refine`). Its truth is exact, so the error is
 the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG (the labelled
 rims thin green, the detections red dashed, the identified landmarks yellow with their names) and the
 per-detection list (circle, confidence, landmark identified or "unknown", the labelled landmark it
@@ -50,6 +51,7 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     from crater_synth.navigation.frames_presets import frames_params
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
+    from crater_synth.navigation.refine import Refiner, lander_dem
 
     row = frame_row_of(image)
     try:
@@ -59,9 +61,9 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     pole = pole_of(row["frame_origin"]["lat"])
     landmarks = load_default_map(pole)[0]
     dparams, fparams, pre = frames_params(preset)
-    r = evaluate_frame(
-        row, img, landmarks, dparams, fparams, seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px
-    )
+    refiner = Refiner(lander_dem(pole)) if pre.refine else None
+    kw = dict(seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px, refiner=refiner)
+    r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
     result = {
         "image": str(image),
         "preset": preset,
@@ -82,6 +84,8 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
             error_km=round(r["error_km"], 3),
             error_horizontal_km=round(r["error_horizontal_km"], 3),
         )
+        if "unrefined" in r:  # the fix before the appearance refinement
+            result["error_unrefined_km"] = round(r["unrefined"]["error_km"], 3)
     else:
         result["reason"] = r["reason"]
     from crater_synth.navigation.detect import Detection

@@ -35,6 +35,9 @@ import numpy as np
 from crater_core import geometry
 from crater_core.horizon import Terrain, disc_fraction_above, horizon_maps, texel_centres
 
+# After the first solve the predictions sit within a pixel of their images: later passes search +-3 px.
+FOLLOW_UP_SEARCH_PX = 3
+
 
 @dataclasses.dataclass(frozen=True)
 class RefineParams:
@@ -91,32 +94,53 @@ def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefinePar
     return geometry.enu_to_mc(near, lat, lon), np.nan_to_num(shade * lit, nan=0.0)
 
 
-def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int):
-    """(shift (du, dv) px, NCC) that best aligns ``predicted`` (values at pixels ``uv``, (..., 2), the
-    continuous convention of :func:`.fix.project_pinhole`: pixel i spans [i, i + 1]) with ``image``; a
-    shift of None when the peak is on the search border or no sample lies in the frame."""
+def _ncc(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:
+    """NCC of ``predicted`` with ``image`` read (bilinear) at array coordinates (u, v) + each offset (du, dv)."""
     from scipy.ndimage import map_coordinates
 
+    su = (u[None, :] + offsets[:, :1]).ravel()
+    sv = (v[None, :] + offsets[:, 1:]).ravel()
+    vals = map_coordinates(image, [sv, su], order=1).reshape(len(offsets), -1)
+    a = predicted - predicted.mean()
+    b = vals - vals.mean(axis=1, keepdims=True)
+    return (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-30)
+
+
+def _square(centre, half: int, step: int) -> np.ndarray:
+    s = np.arange(-half, half + 1) * step
+    dv, du = np.meshgrid(s, s, indexing="ij")
+    return np.column_stack([du.ravel(), dv.ravel()]) + np.asarray(centre)
+
+
+def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int):
+    """(shift (du, dv) px, NCC) that best aligns ``predicted`` (values at pixels ``uv``, (..., 2), the
+    continuous convention of :func:`.fix.project_pinhole`: pixel i spans [i, i + 1]) with ``image``.
+
+    Whole-pixel shifts within ``search_px`` are searched (every second pixel first when the search is
+    wider than 3 px, then every pixel around the best: the predicted windows hold DEM-scale relief, several
+    pixels wide, so the correlation peak is too), and the peak is refined by a parabola through its
+    neighbours. The shift is None when the peak lies on the search border, or when fewer than 16 samples
+    stay in the frame under every shift (the same samples for every shift: NCCs comparable)."""
     h, w = image.shape
     u = uv[..., 0].ravel() - 0.5
     v = uv[..., 1].ravel() - 0.5
-    p = predicted.ravel().astype(np.float64)
-    s = np.arange(-search_px, search_px + 1)
-    dv, du = np.meshgrid(s, s, indexing="ij")
-    su = u[None, :] + du.ravel()[:, None]
-    sv = v[None, :] + dv.ravel()[:, None]
-    inside = (su >= 0) & (su <= w - 1) & (sv >= 0) & (sv <= h - 1)
-    ok = inside.all(axis=0)  # the same samples for every shift: NCCs comparable
-    if ok.sum() < 16 or np.ptp(p[ok]) <= 0:
+    reach = search_px + 2
+    ok = (u >= reach) & (u <= w - 1 - reach) & (v >= reach) & (v <= h - 1 - reach)  # False for NaN
+    p = np.asarray(predicted, dtype=np.float64).ravel()[ok]
+    if ok.sum() < 16 or np.ptp(p) <= 0:
         return None, float("nan")
-    vals = map_coordinates(image.astype(np.float64), [sv[:, ok].ravel(), su[:, ok].ravel()], order=1)
-    vals = vals.reshape(len(su), -1)
-    a = p[ok] - p[ok].mean()
-    b = vals - vals.mean(axis=1, keepdims=True)
-    ncc = (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-30)
-    surf = ncc.reshape(len(s), len(s))
+    img, u, v = np.asarray(image, dtype=np.float64), u[ok], v[ok]
+    centre = np.zeros(2)
+    if search_px > 3:
+        half = search_px // 2
+        coarse = _ncc(img, u, v, p, _square(centre, half, 2)).reshape(2 * half + 1, -1)
+        i, j = np.unravel_index(int(np.argmax(coarse)), coarse.shape)
+        if i in (0, 2 * half) or j in (0, 2 * half):
+            return None, float(coarse[i, j])
+        centre, search_px = np.array([2 * (j - half), 2 * (i - half)], dtype=float), 2
+    surf = _ncc(img, u, v, p, _square(centre, search_px, 1)).reshape(2 * search_px + 1, -1)
     i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
-    if i in (0, len(s) - 1) or j in (0, len(s) - 1):
+    if i in (0, 2 * search_px) or j in (0, 2 * search_px):
         return None, float(surf[i, j])
 
     def vertex(m1, c0, p1):
@@ -125,7 +149,7 @@ def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px
 
     ddu = vertex(surf[i, j - 1], surf[i, j], surf[i, j + 1])
     ddv = vertex(surf[i - 1, j], surf[i, j], surf[i + 1, j])
-    return np.array([s[j] + ddu, s[i] + ddv]), float(surf[i, j])
+    return centre + np.array([j - search_px + ddu, i - search_px + ddv]), float(surf[i, j])
 
 
 def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, width: int, iterations: int = 2):
@@ -182,8 +206,9 @@ class Refiner:
                 windows.append(str(exc))
         obs = np.asarray(observed_uv, dtype=np.float64)
         records: list[dict] = []
-        for _ in range(p.iterations):
+        for it in range(p.iterations):
             moved, records = obs.copy(), []
+            search = p.search_px if it == 0 else FOLLOW_UP_SEARCH_PX
             for q, win in enumerate(windows):
                 if isinstance(win, str):
                     records.append({"used": False, "reason": win})
@@ -192,7 +217,7 @@ class Refiner:
                 uv = np.full((len(pts), 2), np.nan)
                 front = (pts - c) @ r_wc[2] > 0
                 uv[front] = project_pinhole(pts[front], r_wc, c, k)
-                shift, ncc = register(image, uv, pred, p.search_px)
+                shift, ncc = register(image, uv, pred, search)
                 used = shift is not None and ncc >= p.min_ncc
                 if used:
                     moved[q] = project_pinhole(points_enu[q : q + 1], r_wc, c, k)[0] + shift
