@@ -91,9 +91,10 @@ def test_refiner_recovers_the_camera_from_scattered_detections():
     c_fix = solve_position(pts[sel], observed, k, r_wc)
     plain = np.linalg.norm(c_fix - c_true)
     refiner = refine.Refiner(dem)
-    c_new, records = refiner.refine(
+    c_new, info = refiner.refine(
         image, [lms[i] for i in sel], observed, pts[sel], c_fix, r_wc, k, (lat0, lon0), to_sun_mc
     )
     assert plain > 1000.0  # the scatter costs kilometres
+    records = info["landmarks"]
     assert all(r["used"] and r["ncc"] > 0.9 for r in records), records
     assert np.linalg.norm(c_new - c_true) < 150.0 < plain / 5

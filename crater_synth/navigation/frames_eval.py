@@ -312,6 +312,7 @@ def evaluate_dir(
         plain = {r["id"]: {**r, **r.get("unrefined", {})} for r in out}
         groups = (("all", out), ("headline", head), ("enough_landmarks", enough))
         summary["unrefined"] = {name: _summary([plain[r["id"]] for r in rows]) for name, rows in groups}
+        summary["refine_seconds"] = [r["refinement"]["seconds"] for r in out if "refinement" in r]
     return summary, out
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 
@@ -186,13 +187,15 @@ class Refiner:
 
         ``landmarks``: the fix's landmarks; ``observed_uv`` (n, 2): their observations as the plain fix
         used them; ``points_enu`` (n, 3): their rim-centre points in the ENU frame of ``origin`` (lat,
-        lon); ``c_fix``, ``r_wc``, ``k``: the plain fix's camera. Returns (centre, per-landmark records:
-        NCC, shift, whether the registration replaced the observation, or why it was not tried). The
+        lon); ``c_fix``, ``r_wc``, ``k``: the plain fix's camera. Returns (centre, {"seconds": wall time,
+        "landmarks": per-landmark records: NCC, shift, whether the registration replaced the observation,
+        or why it was not tried}). The
         windows are predicted once, from the plain fix (a pixel or two of camera motion changes the view
         angle by microradians), and registered again after each solve."""
         from crater_synth.navigation.fix import project_pinhole, solve_position
         from crater_synth.terrain.dem import DemError
 
+        t0 = time.perf_counter()
         p = self.params
         lat0, lon0 = origin
         c = np.asarray(c_fix, dtype=np.float64)
@@ -231,7 +234,7 @@ class Refiner:
             if sum(r["used"] for r in records) < 2:  # one landmark alone cannot move a position
                 break
             c = solve_position(points_enu, moved, k, r_wc)
-        return c, records
+        return c, {"seconds": round(time.perf_counter() - t0, 3), "landmarks": records}
 
 
 def lander_dem(pole: str):
