@@ -179,7 +179,7 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
 
     rows = [
         {**row(0, False), "perfect": {**row(0, True), "n_detections": 27}},
-        {**row(1, False), "perfect": row(1, False)},
+        {**row(1, True), "unrefined": {"error_km": 0.9, "error_horizontal_km": 0.3}, "perfect": row(1, False)},
     ]
     monkeypatch.setattr(frames_eval, "_render_info", lambda d: {"mode": "fast", "samples": 1})
     summary = {
@@ -198,4 +198,10 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
         140,
     )
     assert not f0["fix"] and f0["perfect"]["fix"] and f0["perfect"]["error_km"] == 1e-5
+    # A refined fix keeps its error before the refinement; the report's error plot draws both.
+    assert got["frames"][1]["unrefined"]["error_km"] == 0.9 and f0["perfect"]["unrefined"] is None
+    from crater_synth.report import figures
+
+    figures.nav_trajectory(tmp_path / "errors.png", "descent_ridge", got["frames"])
+    assert (tmp_path / "errors.png").stat().st_size > 0
     assert got["min_inliers"] == FixParams().min_inliers and got["trajectory"] == "descent_ridge"

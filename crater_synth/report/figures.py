@@ -267,7 +267,8 @@ def nav_trajectory(
     path: Path, trajectory: str, frames: Sequence[dict], false_fix_km: float = 5.0, min_inliers: int | None = None
 ) -> str:
     """Per frame of a rendered trajectory (x: frame number, with its altitude). Top: the position error
-    of the fix (metres, log scale) of the detector and of the perfect-detection check; below it, a strip
+    of the fix (metres, log scale) of the detector (hollow: before its appearance refinement, where the
+    frames record it) and of the perfect-detection check; below it, a strip
     with a cross where a frame has no fix. Bottom: the landmarks in view (all labels, and those of the
     map's minimum size the fix can use), those the detector matched, those the perfect-detection fix
     identified, and the detection count (right axis)."""
@@ -300,6 +301,12 @@ def nav_trajectory(
                 label=f"{name}: {int(fixed.sum())} of {len(recs)} frames fixed",
             )
             strip.plot(idx[~fixed], np.full(int((~fixed).sum()), row), "x", color=color, ms=7, mew=1.6)
+        plain = [(i, 1000.0 * f["unrefined"]["error_km"]) for i, f in zip(idx, frames) if f.get("unrefined")]
+        if plain:  # the same fixes before the appearance refinement (hollow)
+            ax.plot(
+                *np.array(plain).T, "o", mfc="none", color=NAV_DETECTOR_COLOR, ms=6, label="detector, before refinement"
+            )
+            errs += [e for _, e in plain]
         fx = 1000.0 * false_fix_km
         ax.axhline(fx, color="#868e96", ls="--", lw=1)
         ax.text(
