@@ -125,6 +125,8 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
             f"fix: {len(r['identified_pairs'])} landmarks, RMS {r['rms_px']:.1f} px; error {r['error_km']:.2f} km "
             f"(horizontal {r['error_horizontal_km']:.2f} km)"
         )
+        if "unrefined" in r:
+            title += f"\nbefore the appearance refinement: {r['unrefined']['error_km']:.2f} km"
     else:
         title = f"no fix: {r['reason']}"
     return png_of(fig, ax, w, h, f"{row['trajectory']} frame {row['index']}, {r['altitude_km']:.0f} km up: {title}")
