@@ -154,7 +154,7 @@ def test_corrupt_navigation_input_is_one_error_naming_the_file(tmp_path, corrupt
 def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
     """nav-frames-eval's JSON writer (frames_record) against the report's loader, on rows in
     evaluate_frame's shape (no rendering: the render settings are stubbed)."""
-    from crater_synth.navigation import frames_eval
+    from crater_synth.navigation import frames_record
     from crater_synth.navigation.fix import FixParams
     from crater_synth.report.inputs import load_nav_frames
 
@@ -181,13 +181,13 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
         {**row(0, False), "perfect": {**row(0, True), "n_detections": 27}},
         {**row(1, True), "unrefined": {"error_km": 0.9, "error_horizontal_km": 0.3}, "perfect": row(1, False)},
     ]
-    monkeypatch.setattr(frames_eval, "_render_info", lambda d: {"mode": "fast", "samples": 1})
+    monkeypatch.setattr(frames_record, "_render_info", lambda d: {"mode": "fast", "samples": 1})
     summary = {
         "all": {"windows": 2},
         "headline": {"windows": 2},
         "perfect": {"all": {"windows": 2}, "headline": {"windows": 2}},
     }
-    doc = frames_eval.frames_record(tmp_path, summary, rows, 0, "position", FixParams(), ())
+    doc = frames_record.frames_record(tmp_path, summary, rows, 0, "position", FixParams(), ())
     (tmp_path / "frames_eval.json").write_text(json.dumps(doc))
     got = load_nav_frames(tmp_path / "frames_eval.json")
     f0 = got["frames"][0]

@@ -48,13 +48,11 @@ from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detect import Detection, DetectorParams, detect
 from crater_synth.navigation.evaluate import (
-    FALSE_FIX_KM,
     HEADLINE_MIN_D_KM,
     HEADLINE_MIN_LANDMARKS,
     MATCH_CENTRE_D,
     MATCH_DIAMETER,
     PRIOR_OFFSET_KM,
-    RESULTS_JSON,
     summarise,
 )
 from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position
@@ -66,6 +64,7 @@ from crater_synth.navigation.frames_presets import (
     frames_params,
     map_scales,
 )
+from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_record
 from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -325,87 +324,6 @@ def _summary(rows: list[dict]) -> dict:
     return out
 
 
-FRAMES_EVAL_JSON = "frames_eval.json"
-FRAME_FIELDS = (
-    "fix",
-    "reason",
-    "error_km",
-    "error_horizontal_km",
-    "unrefined",
-    "identified",
-    "identified_correct",
-    "rms_px",
-    "putative_pairs",
-    "enough_landmarks",
-)
-
-
-def frames_record(
-    frames_dir: Path,
-    summary: dict,
-    rows: list[dict],
-    seed: int,
-    method: str,
-    fparams: FixParams,
-    sets=(),
-    preset: str | None = None,
-    dparams: DetectorParams | None = None,
-    inlier_px: float = PNP_INLIER_PX,
-) -> dict:
-    """The machine-readable result of ``nav-frames-eval`` (``--json``; read by ``crater-synth report``):
-    per frame the altitude, ground sample, landmarks in view (all labels; and >= the fix's minimum size),
-    detections, matched labels and the fix (or the reason for none) of the detector and of the
-    perfect-detection check."""
-    frames = []
-    for r in rows:
-        p = r["perfect"]
-        frames.append(
-            {
-                "index": r["index"],
-                "altitude_km": r["altitude_km"],
-                "ground_sample_m": r["ground_sample_m"],
-                "landmarks_in_view": r["landmarks_in_view"],
-                "landmarks_in_view_min_d": len(r["truth"]),
-                "headline_landmarks": r["n_headline_landmarks"],
-                "n_detections": r["n_detections"],
-                "matched": len(r["matched"]),
-                **{k: r.get(k) for k in FRAME_FIELDS},
-                "perfect": {"n_detections": p["n_detections"], **{k: p.get(k) for k in FRAME_FIELDS}},
-            }
-        )
-    return {
-        "kind": "crater-synth nav-frames-eval",
-        "schema_version": 1,
-        "frames_dir": str(Path(frames_dir).resolve()),
-        "trajectory": rows[0]["id"].split("/")[0],
-        "method": method,
-        "seed": seed,
-        "settings": list(sets),
-        "preset": preset,
-        "detector": dparams.as_dict() if dparams is not None else None,
-        "fix_settings": fparams.as_dict(),
-        "inlier_px": inlier_px,
-        "min_landmark_km": fparams.min_landmark_km,
-        "min_inliers": fparams.min_inliers,
-        "false_fix_km": FALSE_FIX_KM,
-        "render": _render_info(frames_dir),
-        "summary": summary,
-        "frames": frames,
-    }
-
-
-def _render_info(frames_dir: Path) -> dict:
-    """Render settings of the first frame, from its EXR header (mode, samples, frame size)."""
-    rows = [json.loads(line) for line in (Path(frames_dir) / schema.MANIFEST_NAME).read_text().splitlines() if line]
-    _, header = exr.read_channel_and_header(Path(frames_dir) / rows[0]["rel_path"], "IF")
-    return {
-        "mode": header.get("crater_synth:mode"),
-        "samples": header.get("samples"),
-        "width_px": rows[0]["pose"]["width_px"],
-        "fov_deg": rows[0]["pose"]["fov_deg"],
-    }
-
-
 @click.command("nav-frames-eval")
 @click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option(
@@ -465,35 +383,5 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
     schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
     click.echo(f"wrote {json_path}", err=True)
     if write_results:
-        results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
-        info = _render_info(frames_dir)
-        key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == DEFAULT_FRAMES_PRESET else f"/{preset}")
-        results.setdefault("synthetic", {})[key] = {
-            "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
-            f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
-            "render": info,
-            "protocol": {
-                "prior_offset_km": PRIOR_OFFSET_KM,
-                "prior_attitude": "exact",
-                "light_direction": "given (attitude + ephemeris)",
-                "preset": preset,
-                "preset_settings": {
-                    "detector": pre.detector,
-                    "sets": list(pre.sets),
-                    "scales_from_map": pre.scales_from_map,
-                    "inlier_px": pre.inlier_px,
-                },
-                "method": method,
-                "error": "3-D camera centre distance",
-            },
-            "frames": [
-                {
-                    k: r.get(k)
-                    for k in ("index", "altitude_km", "ground_sample_m", "n_detections", "fix", "error_km", "reason")
-                }
-                for r in rows
-            ],
-            **summary,
-        }
-        schema.atomic_write_text(RESULTS_JSON, json.dumps(results, indent=1) + "\n")
+        write_results(frames_dir, rows, summary, preset, method, pre)
     click.echo(json.dumps(summary))

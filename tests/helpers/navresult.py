@@ -119,7 +119,7 @@ def _frame(i, alt, fix_err, perfect_err, reason="2 landmarks identified (need 5)
 
 
 def make_frames(nav: Path, name: str = "frames_eval.json") -> dict:
-    """A nav-frames-eval result in the shape crater_synth/navigation/frames_eval.py's frames_record writes."""
+    """A nav-frames-eval result in the shape crater_synth/navigation/frames_record.py's frames_record writes."""
     nav.mkdir(parents=True, exist_ok=True)
     empty = _summary(3, 0.0, None, None, None, 0.2, 0.05)
     doc = {
