@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 import zlib
 from pathlib import Path
 
@@ -46,6 +47,7 @@ import numpy as np
 from crater_core import exr, geometry, schema
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
+from crater_synth.navigation.appearance import AppearanceParams, appearance_detections
 from crater_synth.navigation.detect import Detection, DetectorParams, detect
 from crater_synth.navigation.evaluate import (
     HEADLINE_MIN_D_KM,
@@ -126,13 +128,16 @@ def evaluate_frame(
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
     refiner=None,
+    appearance: AppearanceParams | None = None,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
-    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance. A frame with fewer
+    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance; ``appearance``: no
+    detector, the landmarks are searched for by their predicted appearance (:mod:`.appearance`, with the
+    refiner's DEM). A frame with fewer
     than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
     False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
@@ -153,7 +158,13 @@ def evaluate_frame(
     uv[front] = project_pinhole(pts[front], r_wc, c_prior, k)
     r_pred = np.array([lm.diameter_km * 500.0 for lm in cand]) * k[0, 0] / np.where(front, depth, np.nan)
     inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < width)
-    if detections is None:
+    windows = None  # the appearance search's predicted windows, for the refinement to reuse
+    if detections is None and appearance is not None:
+        sun = row["pose"]["to_sun_mc"]
+        dets, windows = appearance_detections(
+            image, landmarks, refiner, fparams, c_prior, r_wc, k, (lat0, lon0), sun, appearance
+        )
+    elif detections is None:
         if scales_from_map:
             dparams = map_scales(dparams, fparams, gsd, r_pred[inside])
         dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
@@ -241,7 +252,8 @@ def evaluate_frame(
         d = c_fix - c_true
         out["unrefined"] = {"error_km": np.linalg.norm(d) / 1000.0, "error_horizontal_km": np.hypot(*d[:2]) / 1000.0}
         lms, sun = [cand[pairs_lm[q]] for q in keep], row["pose"]["to_sun_mc"]
-        c_fix, out["refinement"] = refiner.refine(image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
+        args = (image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
+        c_fix, out["refinement"] = refiner.refine(*args, predicted=windows)
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
@@ -267,12 +279,14 @@ def evaluate_dir(
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
     refine: bool = False,
+    appearance: AppearanceParams | None = None,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``. ``refine``: the detector's fixes are refined
-    by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``)."""
+    by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``);
+    ``appearance``: the landmarks are searched for by their predicted appearance instead of detected."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
@@ -284,12 +298,22 @@ def evaluate_dir(
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
-            refiners[pole] = Refiner(lander_dem(pole)) if refine else None
+            refiners[pole] = Refiner(lander_dem(pole)) if refine or appearance else None
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
         kw = dict(seed=seed, method=method, inlier_px=inlier_px)
+        t0 = time.perf_counter()
         r = evaluate_frame(
-            row, image, maps[pole], dparams, fparams, scales_from_map=scales_from_map, refiner=refiners[pole], **kw
+            row,
+            image,
+            maps[pole],
+            dparams,
+            fparams,
+            scales_from_map=scales_from_map,
+            refiner=refiners[pole],
+            appearance=appearance,
+            **kw,
         )
+        r["seconds"] = round(time.perf_counter() - t0, 3)  # detection, identification, fix and refinement
         r["perfect"] = evaluate_frame(
             row, image, maps[pole], dparams, fparams, detections=perfect_detections(row), **kw
         )
@@ -306,6 +330,7 @@ def evaluate_dir(
             "headline": _summary([r["perfect"] for r in head]),
             "enough_landmarks": _summary([r["perfect"] for r in enough]),
         },
+        "seconds_per_frame": sorted(r["seconds"] for r in out),
     }
     if refine:  # the same fixes before their refinement: the plain fix's accuracy, in the same run
         plain = {r["id"]: {**r, **r.get("unrefined", {})} for r in out}
@@ -366,7 +391,7 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
         raise UserError("--write-results records a preset's settings only; drop --set")
     dparams, fparams, pre = frames_params(preset, sets, method)
     summary, rows = evaluate_dir(
-        frames_dir, dparams, fparams, seed, method, pre.scales_from_map, pre.inlier_px, pre.refine
+        frames_dir, dparams, fparams, seed, method, pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance
     )
     for r in rows:
         click.echo(
@@ -379,7 +404,8 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
             err=True,
         )
     json_path = json_path or Path(frames_dir) / FRAMES_EVAL_JSON
-    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets, preset, dparams, pre.inlier_px)
+    used = None if pre.appearance else dparams  # the appearance search runs no crater detector
+    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets, preset, used, pre.inlier_px)
     schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
     click.echo(f"wrote {json_path}", err=True)
     if write_results:

@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 
 from crater_synth.errors import UserError
+from crater_synth.navigation.appearance import AppearanceParams
 from crater_synth.navigation.detect import DetectorParams
 from crater_synth.navigation.fix import FixParams
 
@@ -27,6 +28,7 @@ class FramesPreset:
     inlier_px: float = PNP_INLIER_PX
     methods: tuple = ("position", "pnp")  # the fix methods the preset serves
     refine: bool = False  # known-attitude fixes refined by appearance (:mod:`.refine`)
+    appearance: AppearanceParams | None = None  # no detector: the appearance search (:mod:`.appearance`)
 
 
 # "real-window": the real-window settings unchanged (the classical preset, every scale, 5 agreeing
@@ -53,6 +55,17 @@ FRAMES_PRESETS = {
 FRAMES_PRESETS["learned"] = FramesPreset(
     "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, methods=("position",), refine=True
 )
+# "appearance": no crater detector; the map's landmarks searched for by their predicted appearance
+# (:mod:`.appearance`, settings chosen on descent_ridge and polar_orbit_arc), then the synthetic preset's
+# identification, fix and refinement.
+FRAMES_PRESETS["appearance"] = FramesPreset(
+    "appearance",
+    ("fix.min_inliers=3",),
+    inlier_px=5.0,
+    methods=("position",),
+    refine=True,
+    appearance=AppearanceParams(),
+)
 DEFAULT_FRAMES_PRESET = "synthetic"
 
 
@@ -70,7 +83,8 @@ def frames_params(name: str, sets=(), method: str = "position") -> tuple[Detecto
             f"nav-frames-eval --preset {name} was chosen for --method {'/'.join(pre.methods)} only "
             f"(docs/navigation.md, section 9); use --preset real-window with --method {method}"
         )
-    dparams, fparams = _params_with(tuple(pre.sets) + tuple(sets), pre.detector)
+    # The appearance search runs no crater detector: its detector settings are the defaults, unused.
+    dparams, fparams = _params_with(tuple(pre.sets) + tuple(sets), "classical" if pre.appearance else pre.detector)
     return dparams, fparams, pre
 
 

@@ -53,49 +53,67 @@ class RefineParams:
     far_spacing_m: float = 1600.0  # the polar DEMs' base pixel
 
 
-def _tangent_grid(dem, lat: float, lon: float, half_m: float, n: int, what: str):
-    """ENU (of (lat, lon)) points of the DEM surface under an n x n tangent-plane grid of half-width
-    ``half_m`` at :func:`~crater_core.horizon.texel_centres` (row 0 north, column 0 west)."""
-    from crater_synth.terrain.grid import sphere_points
+def _sun_frame(lat: float, lon: float, to_sun_mc) -> np.ndarray:
+    """Rows: the unit vectors (MC) of a local frame at (lat, lon) whose y axis points to the Sun's azimuth
+    (x to its right, z up): the Sun's rays then run along the frame's rows, so the far field needed for
+    the shadows is a strip towards the Sun."""
+    east, north, up = geometry.enu_basis(lat, lon)
+    e, n, _ = geometry.enu_basis(lat, lon) @ np.asarray(to_sun_mc, dtype=np.float64)
+    phi = math.atan2(e, n)
+    return np.stack([math.cos(phi) * east - math.sin(phi) * north, math.sin(phi) * east + math.cos(phi) * north, up])
 
-    e, nn = texel_centres(half_m, n)
-    dirs, plat, plon = sphere_points(e, nn, lat, lon)
-    h = dem.sample(plat, plon, spacing_m=2.0 * half_m / n, what=what).heights
-    return geometry.mc_to_enu(dirs * (geometry.MOON_RADIUS_M + h)[..., None], lat, lon)
+
+def _surface(dem, lat: float, lon: float, frame: np.ndarray, x: np.ndarray, y: np.ndarray, spacing: float, what: str):
+    """Local-frame (``frame``'s rows, origin on the sphere at (lat, lon)) points of the DEM surface below the
+    tangent-plane offsets (x, y) m, projected radially (curvature included)."""
+    origin = geometry.latlon_to_mc(lat, lon)
+    p = origin + x[..., None] * frame[0] + y[..., None] * frame[1]
+    dirs = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    plat, plon, _ = geometry.mc_to_latlon(dirs * geometry.MOON_RADIUS_M)
+    h = dem.sample(plat, plon, spacing_m=spacing, what=what).heights
+    return (dirs * (geometry.MOON_RADIUS_M + h)[..., None] - origin) @ frame.T
 
 
 def _normals(xyz: np.ndarray) -> np.ndarray:
-    east = np.gradient(xyz, axis=1)
-    north = -np.gradient(xyz, axis=0)  # rows run southwards
-    nrm = np.cross(east, north)
+    along_x = np.gradient(xyz, axis=1)
+    along_y = -np.gradient(xyz, axis=0)  # rows run towards -y
+    nrm = np.cross(along_x, along_y)
     return nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
 
 
 def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefineParams = RefineParams()):
-    """(MC points (n, n, 3), predicted I/F (n, n)) of ``landmark``'s window seen from ``camera_mc``."""
+    """(MC points (n, n, 3), predicted I/F (n, n)) of ``landmark``'s window seen from ``camera_mc``.
+
+    Computed in the landmark's Sun frame (:func:`_sun_frame`): the window is the square of half-width
+    ``window_diameters`` x D there, and the far field only the strip of the window's width (and two far
+    cells) running ``far_radius_km`` towards the Sun: the occluders of the window's shadows."""
     lat, lon = float(landmark.lat), float(landmark.lon)
     half = params.window_diameters * landmark.diameter_km * 1000.0
     n = int(params.samples)
-    near = _tangent_grid(dem, lat, lon, half, n, f"landmark {landmark.id} window")
-    far_n = 2 * int(math.ceil(params.far_radius_km * 1000.0 / params.far_spacing_m)) + 1
-    far = _tangent_grid(dem, lat, lon, far_n * params.far_spacing_m / 2.0, far_n, f"landmark {landmark.id} far field")
-    basis = geometry.enu_basis(lat, lon)
-    to_sun = basis @ np.asarray(to_sun_mc, dtype=np.float64)
+    frame = _sun_frame(lat, lon, to_sun_mc)
+    x, y = texel_centres(half, n)
+    near = _surface(dem, lat, lon, frame, x, y, 2.0 * half / n, f"landmark {landmark.id} window")
+    fs = params.far_spacing_m
+    side = math.ceil(half / fs) + 2
+    fx, fy = np.meshgrid(
+        np.arange(-side, side + 1) * fs, np.arange(-side, math.ceil(params.far_radius_km * 1000.0 / fs) + 1) * fs
+    )
+    far = _surface(dem, lat, lon, frame, fx, fy, fs, f"landmark {landmark.id} far field")
+    to_sun = frame @ np.asarray(to_sun_mc, dtype=np.float64)
     elevation = math.asin(max(-1.0, min(1.0, float(to_sun[2]))))
-    azimuth = math.degrees(math.atan2(to_sun[0], to_sun[1])) % 360.0
-    slope = horizon_maps(Terrain(near, far), azimuth, [half], n)[0, 0]
+    slope = horizon_maps(Terrain(near, far), 0.0, [half], n)[0, 0]
     lit = disc_fraction_above(elevation, np.arctan(slope))
-    cam = geometry.mc_to_enu(np.asarray(camera_mc, dtype=np.float64), lat, lon)
+    cam = (np.asarray(camera_mc, dtype=np.float64) - geometry.latlon_to_mc(lat, lon)) @ frame.T
     view = cam - near
     view /= np.linalg.norm(view, axis=-1, keepdims=True)
     from crater_core.hapke import shade_np
 
     nrm = _normals(near)
     shade = np.where(nrm @ to_sun > 0.0, shade_np(nrm, to_sun, view, hapke), 0.0)
-    return geometry.enu_to_mc(near, lat, lon), np.nan_to_num(shade * lit, nan=0.0)
+    return near @ frame + geometry.latlon_to_mc(lat, lon), np.nan_to_num(shade * lit, nan=0.0)
 
 
-def _ncc(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:
+def ncc_at_offsets(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:
     """NCC of ``predicted`` with ``image`` read (bilinear) at array coordinates (u, v) + each offset (du, dv)."""
     from scipy.ndimage import map_coordinates
 
@@ -107,7 +125,15 @@ def _ncc(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:
     return (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-30)
 
 
-def _square(centre, half: int, step: int) -> np.ndarray:
+def parabola_vertex(left: float, centre: float, right: float) -> float:
+    """Offset (in [-0.5, 0.5] steps) of the peak of the parabola through three equally spaced samples whose
+    middle one is the largest; 0 where they do not curve down."""
+    den = left - 2.0 * centre + right
+    return 0.0 if den >= 0 else float(np.clip(0.5 * (left - right) / den, -0.5, 0.5))
+
+
+def square_offsets(centre, half: int, step: int) -> np.ndarray:
+    """(du, dv) offsets of a (2 half + 1)^2 grid of spacing ``step`` around ``centre``, row by row (dv outer)."""
     s = np.arange(-half, half + 1) * step
     dv, du = np.meshgrid(s, s, indexing="ij")
     return np.column_stack([du.ravel(), dv.ravel()]) + np.asarray(centre)
@@ -134,22 +160,17 @@ def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px
     centre = np.zeros(2)
     if search_px > 3:
         half = search_px // 2
-        coarse = _ncc(img, u, v, p, _square(centre, half, 2)).reshape(2 * half + 1, -1)
+        coarse = ncc_at_offsets(img, u, v, p, square_offsets(centre, half, 2)).reshape(2 * half + 1, -1)
         i, j = np.unravel_index(int(np.argmax(coarse)), coarse.shape)
         if i in (0, 2 * half) or j in (0, 2 * half):
             return None, float(coarse[i, j])
         centre, search_px = np.array([2 * (j - half), 2 * (i - half)], dtype=float), 2
-    surf = _ncc(img, u, v, p, _square(centre, search_px, 1)).reshape(2 * search_px + 1, -1)
+    surf = ncc_at_offsets(img, u, v, p, square_offsets(centre, search_px, 1)).reshape(2 * search_px + 1, -1)
     i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
     if i in (0, 2 * search_px) or j in (0, 2 * search_px):
         return None, float(surf[i, j])
-
-    def vertex(m1, c0, p1):
-        den = m1 - 2.0 * c0 + p1
-        return 0.0 if den >= 0 else float(np.clip(0.5 * (m1 - p1) / den, -0.5, 0.5))
-
-    ddu = vertex(surf[i, j - 1], surf[i, j], surf[i, j + 1])
-    ddv = vertex(surf[i - 1, j], surf[i, j], surf[i + 1, j])
+    ddu = parabola_vertex(surf[i, j - 1], surf[i, j], surf[i, j + 1])
+    ddv = parabola_vertex(surf[i - 1, j], surf[i, j], surf[i + 1, j])
     return centre + np.array([j - search_px + ddu, i - search_px + ddv]), float(surf[i, j])
 
 
@@ -182,7 +203,7 @@ class Refiner:
 
         self.dem, self.params, self.hapke = dem, params, hapke_params()
 
-    def refine(self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc):
+    def refine(self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc, predicted=None):
         """Camera centre (frame ENU) after registering each identified landmark's predicted window.
 
         ``landmarks``: the fix's landmarks; ``observed_uv`` (n, 2): their observations as the plain fix
@@ -191,7 +212,8 @@ class Refiner:
         "landmarks": per-landmark records: NCC, shift, whether the registration replaced the observation,
         or why it was not tried}). The
         windows are predicted once, from the plain fix (a pixel or two of camera motion changes the view
-        angle by microradians), and registered again after each solve."""
+        angle by microradians), and registered again after each solve; ``predicted`` (landmark id -> (MC
+        points, I/F)) are predictions already made for this frame (:mod:`.appearance`), used as they are."""
         from crater_synth.navigation.fix import project_pinhole, solve_position
         from crater_synth.terrain.dem import DemError
 
@@ -203,7 +225,9 @@ class Refiner:
         windows = []
         for lm in landmarks:
             try:
-                pts_mc, pred = predict_window(self.dem, lm, to_sun_mc, cam_mc, self.hapke, p)
+                pts_mc, pred = (predicted or {}).get(lm.id) or predict_window(
+                    self.dem, lm, to_sun_mc, cam_mc, self.hapke, p
+                )
                 windows.append((geometry.mc_to_enu(pts_mc.reshape(-1, 3), lat0, lon0), pred.ravel()))
             except DemError as exc:  # the window or its far field leaves the DEM: keep the detection
                 windows.append(str(exc))

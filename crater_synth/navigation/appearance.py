@@ -1,0 +1,131 @@
+"""Landmark search by predicted appearance: the map's landmarks found in a frame without a crater detector.
+
+A lander that knows its attitude, the Sun and its position to a few kilometres (the prior) can predict
+how each map landmark in view should look, from the DEM the map was measured in
+(:func:`.refine.predict_window`: Hapke shading and horizon-map shadows), and where it should be. Each
+landmark the prior places in the frame is searched for around its predicted place by normalised
+cross-correlation (NCC):
+
+- the search reaches the prior's uncertainty (``prior_sigma_km`` of :class:`.fix.FixParams`, at the
+  landmark's depth) plus ``margin_px``;
+- coarse to fine: first a grid of about ``coarse_steps`` steps each way across the whole search, on the
+  frame blurred to the step (sigma = step / 2, so the coarse samples do not alias), then around the best
+  a 5 x 5 grid at half the step, and so on down to one pixel; a parabola through the last 3 x 3 gives
+  the sub-pixel peak. A peak on the border of the first grid is refused (the landmark is not there);
+- a peak of NCC below ``min_ncc`` gives no detection.
+
+Each landmark found becomes a :class:`.detect.Detection` where a detector would report its rim ellipse
+(the ellipse predicted from the prior, moved by the search's shift), with the NCC as its score. The
+identification and the fix are then the detectors' own (:func:`.frames_eval.evaluate_frame`: pairs
+gated by the prior, RANSAC with at least three agreeing landmarks, the ambiguity test), so a landmark
+found in the wrong place is an outlier the fix must reject, as a false detection is.
+
+This needs what a real frame from a lander's camera has and a mosaic window has not: one exposure, a
+known Sun and attitude. It is evaluated on rendered frames only (docs/navigation.md, section 9).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from crater_core import geometry
+from crater_synth.navigation.detect import Detection
+from crater_synth.navigation.refine import ncc_at_offsets, parabola_vertex, predict_window, square_offsets
+
+
+@dataclasses.dataclass(frozen=True)
+class AppearanceParams:
+    """Settings of the appearance search (chosen on development frames: docs/navigation.md, section 9)."""
+
+    min_ncc: float = 0.9  # a weaker peak is no detection
+    coarse_steps: int = 8  # the first grid's steps each way across the search
+    margin_px: int = 3  # added to the prior's uncertainty (px)
+
+
+def register_wide(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int, coarse_steps: int, blurred):
+    """(shift (du, dv) px, NCC) of ``predicted`` (values at pixels ``uv``, the convention of
+    :func:`.refine.register`) in ``image`` within ``search_px``, coarse to fine (module docstring);
+    ``blurred(step)`` is the frame blurred for a grid of that step. None when the first grid's peak lies
+    on its border or fewer than 16 samples stay in the frame under every shift."""
+    h, w = image.shape
+    u = uv[..., 0].ravel() - 0.5
+    v = uv[..., 1].ravel() - 0.5
+    reach = search_px + 2
+    ok = (u >= reach) & (u <= w - 1 - reach) & (v >= reach) & (v <= h - 1 - reach)  # False for NaN
+    p = np.asarray(predicted, dtype=np.float64).ravel()[ok]
+    if ok.sum() < 16 or np.ptp(p) <= 0:
+        return None, float("nan")
+    u, v = u[ok], v[ok]
+    step = max(1, math.ceil(search_px / coarse_steps))
+    n = math.ceil(search_px / step)
+    surf = ncc_at_offsets(blurred(step), u, v, p, square_offsets(np.zeros(2), n, step)).reshape(2 * n + 1, -1)
+    i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
+    if i in (0, 2 * n) or j in (0, 2 * n):
+        return None, float(surf[i, j])
+    centre = np.array([(j - n) * step, (i - n) * step], dtype=float)
+    while step > 1:
+        step = max(1, step // 2)
+        surf = ncc_at_offsets(blurred(step), u, v, p, square_offsets(centre, 2, step)).reshape(5, -1)
+        i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
+        centre += np.array([(j - 2) * step, (i - 2) * step])
+    surf = ncc_at_offsets(blurred(1), u, v, p, square_offsets(centre, 1, 1)).reshape(3, -1)
+    i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
+    if (i, j) != (1, 1):  # the peak moved a pixel: no parabola about the old centre
+        return centre + np.array([j - 1, i - 1]), float(surf[i, j])
+    return centre + np.array([parabola_vertex(*surf[1]), parabola_vertex(*surf[:, 1])]), float(surf[1, 1])
+
+
+def appearance_detections(image, landmarks, refiner, fparams, c_prior, r_wc, k, origin, to_sun_mc, params=None):
+    """Detections of the map ``landmarks`` (>= ``fparams.min_landmark_km``) that a camera at ``c_prior``
+    (ENU of ``origin`` (lat, lon)) with world->camera rotation ``r_wc`` and intrinsics ``k`` (the
+    convention of :func:`.fix.project_pinhole`) places in the frame ``image``, found by their predicted
+    appearance under the Sun ``to_sun_mc`` (module docstring); ``refiner``: the :class:`.refine.Refiner`
+    holding the DEM and the Hapke model. Returns (detections, the predicted windows by landmark id, for
+    the refinement to reuse)."""
+    from scipy.ndimage import gaussian_filter
+
+    from crater_synth.navigation.fix import project_pinhole
+    from crater_synth.terrain.dem import DemError
+
+    params = params or AppearanceParams()
+    lat0, lon0 = origin
+    height, width = image.shape
+    fov = math.degrees(2.0 * math.atan(0.5 * width / k[0, 0]))
+    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
+    if not cand:
+        return [], {}
+    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0)
+    depth = (pts - c_prior) @ r_wc[2]
+    uv = np.full((len(pts), 2), np.nan)
+    uv[depth > 0] = project_pinhole(pts[depth > 0], r_wc, c_prior, k)
+    in_frame = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    cam_mc = geometry.enu_to_mc(c_prior, lat0, lon0)
+    pose = geometry.CameraPose(position=c_prior, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov)
+    frame = np.asarray(image, dtype=np.float64)
+    cache: dict[int, np.ndarray] = {1: frame}
+
+    def blurred(step: int) -> np.ndarray:
+        if step not in cache:
+            cache[step] = gaussian_filter(frame, step / 2.0)
+        return cache[step]
+
+    dets, windows = [], {}
+    for q in np.nonzero(in_frame)[0]:
+        lm = cand[q]
+        try:
+            win_mc, pred = predict_window(refiner.dem, lm, to_sun_mc, cam_mc, refiner.hapke, refiner.params)
+        except DemError:  # the window or its far field leaves the DEM: not searched
+            continue
+        windows[lm.id] = (win_mc, pred)
+        win_uv = project_pinhole(geometry.mc_to_enu(win_mc.reshape(-1, 3), lat0, lon0), r_wc, c_prior, k)
+        search = math.ceil(fparams.prior_sigma_km * 1000.0 * k[0, 0] / depth[q]) + params.margin_px
+        shift, ncc = register_wide(frame, win_uv, pred, search, params.coarse_steps, blurred)
+        if shift is None or not ncc >= params.min_ncc:
+            continue
+        normal = pts[q] + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
+        rim = geometry.project_circle(pts[q], normal / np.linalg.norm(normal), lm.diameter_km * 500.0, pose, width)
+        dets.append(Detection(rim.cu + shift[0], rim.cv + shift[1], rim.a, float(ncc)))
+    return dets, windows
