@@ -10,7 +10,7 @@ import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from crater_core import geometry
-from crater_synth.navigation import refine
+from crater_synth.navigation import appearance, refine
 from crater_synth.navigation.fix import project_pinhole, solve_position
 
 
@@ -50,11 +50,11 @@ def test_register_refuses_a_peak_beyond_the_search_or_a_window_outside_the_frame
     assert refine.register(image, uv, flat, 10)[0] is None  # nothing to correlate
 
 
-def test_refiner_recovers_the_camera_from_scattered_detections():
-    """A nadir frame synthesised from the real DEM with the refinement's own physics (DEM, Hapke,
-    horizon-map shadows), projected as a camera sees it; landmark observations scattered by ~3 px
-    spoil the plain fix by kilometres; registering the landmarks' predicted windows brings it back to
-    the image's precision."""
+@pytest.fixture(scope="module")
+def scene():
+    """A nadir frame synthesised from the real south DEM with the refinement's own physics (DEM, Hapke,
+    horizon-map shadows): one window over the whole footprint, projected as the camera sees it and
+    interpolated onto the pixel grid (pixel centres at i + 0.5); and the map's landmarks well inside it."""
     from scipy.interpolate import griddata
 
     from crater_synth.navigation.frames_eval import cv_camera
@@ -67,18 +67,16 @@ def test_refiner_recovers_the_camera_from_scattered_detections():
     c_true = np.array([0.0, 0.0, altitude])
     cam_mc = geometry.enu_to_mc(c_true, lat0, lon0)
     to_sun_mc = geometry.enu_basis(lat0, lon0).T @ geometry.direction_from_elevation_azimuth(6.0, 60.0)
-    # The "frame": one window over the whole footprint, splatted onto the pixel grid.
-    scene = SimpleNamespace(
+    whole = SimpleNamespace(
         id="scene", lat=lat0, lon=lon0, diameter_km=2 * altitude * math.tan(math.radians(fov / 2)) / 1000
     )
     pts_mc, pred = refine.predict_window(
-        dem, scene, to_sun_mc, cam_mc, hapke_params(), refine.RefineParams(samples=320)
+        dem, whole, to_sun_mc, cam_mc, hapke_params(), refine.RefineParams(samples=320)
     )
     uv = project_pinhole(geometry.mc_to_enu(pts_mc.reshape(-1, 3), lat0, lon0), r_wc, c_true, k)
     jj, ii = np.meshgrid(np.arange(width) + 0.5, np.arange(width) + 0.5)
     image = griddata(uv, pred.ravel(), (jj, ii), method="linear")
     assert np.isfinite(image).all() and image.std() > 0
-    # The map's landmarks well inside the frame.
     lms = [lm for lm in load_default_map("south")[0] if lm.diameter_km >= 10.0]
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in lms]), lat0, lon0)
     uv_lm = project_pinhole(pts, r_wc, c_true, k)
@@ -86,15 +84,73 @@ def test_refiner_recovers_the_camera_from_scattered_detections():
     inside = np.all((uv_lm >= margin[:, None]) & (uv_lm <= width - margin[:, None]), axis=1)
     sel = np.nonzero(inside)[0][:5]
     assert len(sel) >= 3, "the test scene needs three landmarks in view"
+    return SimpleNamespace(
+        image=image,
+        dem=dem,
+        r_wc=r_wc,
+        k=k,
+        c_true=c_true,
+        origin=(lat0, lon0),
+        to_sun_mc=to_sun_mc,
+        landmarks=[lms[i] for i in sel],
+        points=pts[sel],
+        uv=uv_lm[sel],
+        all_landmarks=lms,
+        width=width,
+        fov=fov,
+    )
+
+
+def test_refiner_recovers_the_camera_from_scattered_detections(scene):
+    """Landmark observations scattered by ~3 px spoil the plain fix by kilometres; registering the
+    landmarks' predicted windows brings it back to the image's precision."""
     rng = np.random.default_rng(3)
-    observed = uv_lm[sel] + rng.normal(scale=3.0, size=(len(sel), 2))
-    c_fix = solve_position(pts[sel], observed, k, r_wc)
-    plain = np.linalg.norm(c_fix - c_true)
-    refiner = refine.Refiner(dem)
+    observed = scene.uv + rng.normal(scale=3.0, size=scene.uv.shape)
+    c_fix = solve_position(scene.points, observed, scene.k, scene.r_wc)
+    plain = np.linalg.norm(c_fix - scene.c_true)
+    refiner = refine.Refiner(scene.dem)
     c_new, info = refiner.refine(
-        image, [lms[i] for i in sel], observed, pts[sel], c_fix, r_wc, k, (lat0, lon0), to_sun_mc
+        scene.image, scene.landmarks, observed, scene.points, c_fix, scene.r_wc, scene.k, scene.origin, scene.to_sun_mc
     )
     assert plain > 1000.0  # the scatter costs kilometres
     records = info["landmarks"]
     assert all(r["used"] and r["ncc"] > 0.9 for r in records), records
-    assert np.linalg.norm(c_new - c_true) < 150.0 < plain / 5
+    assert np.linalg.norm(c_new - scene.c_true) < 150.0 < plain / 5
+
+
+def test_register_wide_recovers_a_shift_far_beyond_the_fine_search():
+    image = _smooth_image(size=240)
+    uv = _window(centre=(120.0, 120.0), n=40)
+    shift = (23.4, -17.2)
+    pred = map_coordinates(image, [uv[..., 1] + shift[1] - 0.5, uv[..., 0] + shift[0] - 0.5], order=3)
+    cache = {1: image}
+
+    def blurred(step):
+        return cache.setdefault(step, gaussian_filter(image, step / 2.0))
+
+    got, ncc = appearance.register_wide(image, uv, pred, 30, 8, blurred)
+    assert got is not None and ncc > 0.98
+    np.testing.assert_allclose(got, shift, atol=0.15)
+    assert appearance.register_wide(image, uv, pred, 12, 8, blurred)[0] is None  # beyond the search: refused
+
+
+def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene):
+    """From a prior 5 km off, each landmark is found where its rim ellipse lies in the frame (within a
+    pixel), so the fix from these detections alone lands within the image's precision; on a frame of
+    noise nothing is found."""
+    from crater_synth.navigation.fix import FixParams
+
+    c_prior = scene.c_true + np.array([3000.0, -4000.0, 0.0])
+    refiner = refine.Refiner(scene.dem)
+    args = (scene.landmarks, refiner, FixParams(), c_prior, scene.r_wc, scene.k, scene.origin, scene.to_sun_mc)
+    dets, windows = appearance.appearance_detections(scene.image, *args)
+    assert len(dets) == len(scene.landmarks) and set(windows) == {lm.id for lm in scene.landmarks}
+    pose = geometry.CameraPose(
+        position=scene.c_true, rotation=np.stack([scene.r_wc[0], -scene.r_wc[1], -scene.r_wc[2]], 1), fov_deg=scene.fov
+    )
+    for d, p, lm in zip(dets, scene.points, scene.landmarks):
+        normal = (p + [0.0, 0.0, geometry.MOON_RADIUS_M]) / np.linalg.norm(p + [0.0, 0.0, geometry.MOON_RADIUS_M])
+        rim = geometry.project_circle(p, normal, lm.diameter_km * 500.0, pose, scene.width)
+        assert math.hypot(d.u - rim.cu, d.v - rim.cv) < 1.0 and d.score >= appearance.AppearanceParams().min_ncc
+    noise = np.random.default_rng(0).uniform(size=scene.image.shape) * scene.image.max()
+    assert appearance.appearance_detections(noise, *args)[0] == []

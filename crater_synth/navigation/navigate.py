@@ -99,10 +99,10 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 )
 @click.option(
     "--method",
-    type=click.Choice(["classical", "template", "learned", "learned-detect"]),
+    type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
     default="template",
     show_default=True,
-    help="Detection method (docs/navigation.md compares the three).",
+    help="Detection method (docs/navigation.md compares them); appearance: rendered frames only (their Sun).",
 )
 @click.option(
     "--model",
@@ -166,7 +166,11 @@ def navigate_command(
         from crater_synth.navigation.navigate_frame import navigate_frame
 
         chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
-        frame_presets = {"classical": "synthetic", "learned": "learned"}  # nav-frames-eval's presets
+        frame_presets = {
+            "classical": "synthetic",
+            "learned": "learned",
+            "appearance": "appearance",
+        }  # nav-frames-eval's
         if chosen and method not in frame_presets:
             raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
         name = frame_presets[method] if chosen else "synthetic"
@@ -178,6 +182,11 @@ def navigate_command(
     from train.errors import RealSetError
     from train.realset import read_gray
 
+    if method == "appearance":
+        raise UserError(
+            f"--method appearance needs a rendered frame (its Sun and pose); {image} is a map window: "
+            "use classical, template or learned"
+        )
     try:
         img = read_gray(image)
     except RealSetError as exc:

@@ -61,8 +61,9 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     pole = pole_of(row["frame_origin"]["lat"])
     landmarks = load_default_map(pole)[0]
     dparams, fparams, pre = frames_params(preset)
-    refiner = Refiner(lander_dem(pole)) if pre.refine else None
+    refiner = Refiner(lander_dem(pole)) if pre.refine or pre.appearance else None
     kw = dict(seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px, refiner=refiner)
+    kw["appearance"] = pre.appearance
     r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
     result = {
         "image": str(image),
