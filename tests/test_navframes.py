@@ -275,7 +275,7 @@ def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     assert frac == pytest.approx(float(np.mean(ch["lit"][pts[:, 1].astype(int), pts[:, 0].astype(int)])), abs=1e-4)
 
 
-def test_nav_frames_command_end_to_end(tmp_path):
+def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     """`crater-synth nav-frames` on a real-DEM trajectory frame at tiny settings: EXR + manifest + labels."""
     out = tmp_path / "frames"
     proc = run_nav_frames(tmp_path / "data", out, "0")
@@ -339,6 +339,14 @@ def test_nav_frames_command_end_to_end(tmp_path):
     # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
     assert doc["preset"] == "synthetic" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
+    # --write-results records the summary under "synthetic", keyed by trajectory, method and preset.
+    from crater_synth.navigation import frames_record
+
+    monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
+    res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--preset", "appearance", "--write-results"])
+    assert res.exit_code == 0, res.output
+    rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]["descent_ridge/position/appearance"]
+    assert rec["protocol"]["preset_settings"]["refine"] and rec["all"]["windows"] == 1
     # Lost in space (no prior): the labels' own ellipses, rectified onto the ground with the attitude and the
     # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
     # detector on this toy 64 px frame may find nothing, but never a wrong position.

@@ -66,7 +66,7 @@ from crater_synth.navigation.frames_presets import (
     frames_params,
     map_scales,
 )
-from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_record
+from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_record, record_results
 from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -409,5 +409,5 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
     schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
     click.echo(f"wrote {json_path}", err=True)
     if write_results:
-        write_results(frames_dir, rows, summary, preset, method, pre)
+        record_results(frames_dir, rows, summary, preset, method, pre)
     click.echo(json.dumps(summary))

@@ -1,6 +1,6 @@
 """What ``crater-synth nav-frames-eval`` writes (:mod:`.frames_eval`): the per-frame JSON the report reads
 (:func:`frames_record`) and the summary recorded under ``synthetic`` in docs/results/navigation.json
-(:func:`write_results`)."""
+(:func:`record_results`)."""
 
 from __future__ import annotations
 
@@ -94,7 +94,7 @@ def _render_info(frames_dir: Path) -> dict:
     }
 
 
-def write_results(frames_dir: Path, rows: list[dict], summary: dict, preset: str, method: str, pre) -> None:
+def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: str, method: str, pre) -> None:
     """Record ``summary`` (a trajectory's, with the preset ``pre`` named ``preset``) under ``synthetic`` in
     docs/results/navigation.json, keyed by trajectory, fix method and preset."""
     results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
