@@ -155,6 +155,13 @@ def test_detector_finds_shaded_craters():
 def test_empty_and_malformed_frames_are_refused():
     with pytest.raises(FrameError, match="empty"):
         check_frame(np.full((64, 64), 80, np.uint8), "frame x")
+    with pytest.raises(FrameError, match="empty"):
+        check_frame(np.zeros((64, 64), np.float32), "frame x")
+    # An I/F frame mostly in shadow (peak 0.014, 1 % lit, std < 0.001) is dark, not empty: its contrast
+    # is relative to its own peak.
+    dark = np.zeros((64, 64), np.float32)
+    dark[:1, :40] = np.linspace(0.002, 0.014, 40)
+    assert 0 < check_frame(dark, "frame x").std() < 1e-3
     with pytest.raises(FrameError, match="grey image"):
         check_frame(np.zeros((10, 10)), "frame x")
     with pytest.raises(FrameError, match="non-finite"):
