@@ -154,3 +154,20 @@ def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene
         assert math.hypot(d.u - rim.cu, d.v - rim.cv) < 1.0 and d.score >= appearance.AppearanceParams().min_ncc
     noise = np.random.default_rng(0).uniform(size=scene.image.shape) * scene.image.max()
     assert appearance.appearance_detections(noise, *args)[0] == []
+
+
+def test_a_fix_its_landmarks_contradict_is_refused(scene):
+    """A fix 12 km off whose landmark pixels agree with it (as a wrong set of three detections can): no
+    landmark registers near where it predicts them, so the appearance check refuses it; the true fix
+    passes; the check can be switched off."""
+    refiner = refine.Refiner(scene.dem)
+    wrong = scene.c_true + np.array([12e3, 0.0, 0.0])
+    uv_wrong = project_pinhole(scene.points, scene.r_wc, wrong, scene.k)
+    args = (scene.r_wc, scene.k, scene.origin, scene.to_sun_mc)
+    _, info = refiner.refine(scene.image, scene.landmarks, uv_wrong, scene.points, wrong, *args)
+    ok, reason = refiner.verified(info)
+    assert not ok and reason.startswith("appearance check: 0 of")
+    _, info = refiner.refine(scene.image, scene.landmarks, scene.uv, scene.points, scene.c_true, *args)
+    assert refiner.verified(info) == (True, "")
+    lax = refine.Refiner(scene.dem, refine.RefineParams(verify=False))
+    assert lax.verified({"landmarks": [{"used": False}]}) == (True, "")

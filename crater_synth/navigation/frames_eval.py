@@ -245,15 +245,18 @@ def evaluate_frame(
         rms = float(np.sqrt(np.mean(err**2))) if ok else math.nan
         if ok and rms > fparams.max_rms_px:  # the real-window rule: a loose fit is no fix
             ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
-    out.update(fix=bool(ok), reason=reason)
-    if not ok and not out["enough_landmarks"]:
-        out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok and refiner is not None and method == "position":
         d = c_fix - c_true
-        out["unrefined"] = {"error_km": np.linalg.norm(d) / 1000.0, "error_horizontal_km": np.hypot(*d[:2]) / 1000.0}
+        out["unrefined"] = dict(fix=True, error_km=np.linalg.norm(d) / 1e3, error_horizontal_km=np.hypot(*d[:2]) / 1e3)
+        good = sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep)
+        out["unrefined"].update(identified=len(keep), identified_correct=int(good))
         lms, sun = [cand[pairs_lm[q]] for q in keep], row["pose"]["to_sun_mc"]
         args = (image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
         c_fix, out["refinement"] = refiner.refine(*args, predicted=windows)
+        ok, reason = refiner.verified(out["refinement"])
+    out.update(fix=bool(ok), reason=reason)
+    if not ok and not out["enough_landmarks"]:
+        out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
@@ -333,7 +336,7 @@ def evaluate_dir(
         "seconds_per_frame": sorted(r["seconds"] for r in out),
     }
     if refine:  # the same fixes before their refinement: the plain fix's accuracy, in the same run
-        plain = {r["id"]: {**r, **r.get("unrefined", {})} for r in out}
+        plain = {r["id"]: {**r, **r.get("unrefined", {})} for r in out}  # a fix the appearance check refused too
         groups = (("all", out), ("headline", head), ("enough_landmarks", enough))
         summary["unrefined"] = {name: _summary([plain[r["id"]] for r in rows]) for name, rows in groups}
         summary["refine_seconds"] = [r["refinement"]["seconds"] for r in out if "refinement" in r]

@@ -20,6 +20,8 @@ registered on the frame:
    A peak on the search border or below ``min_ncc`` leaves the landmark's detector observation as it was.
 4. The camera centre is solved again from the moved observations (:func:`.fix.solve_position`) and the
    whole is repeated ``iterations`` times.
+5. Appearance check (``verify``): when fewer than two of the fix's landmarks register, the frame
+   contradicts the fix and the evaluation gives no fix (:meth:`Refiner.verified`).
 
 The registration measures the image of the landmark's 3-D rim-centre point directly, so the
 ellipse-centre correction of the plain fix is not needed for a refined landmark.
@@ -49,6 +51,7 @@ class RefineParams:
     search_px: int = 10  # largest shift searched (px, each way)
     min_ncc: float = 0.5  # a weaker peak leaves the detector's observation
     iterations: int = 2
+    verify: bool = True  # no fix when fewer than two of its landmarks register (:meth:`Refiner.verified`)
     far_radius_km: float = 150.0  # far-field occluders around the landmark (1 deg Sun, 2.6 km relief)
     far_spacing_m: float = 1600.0  # the polar DEMs' base pixel
 
@@ -259,6 +262,17 @@ class Refiner:
                 break
             c = solve_position(points_enu, moved, k, r_wc)
         return c, {"seconds": round(time.perf_counter() - t0, 3), "landmarks": records}
+
+    def verified(self, refinement: dict) -> tuple[bool, str]:
+        """(fix stands, reason if not) after :meth:`refine`: a fix whose landmarks do not appear where it
+        predicts them is no fix. Two registered landmarks are what the refinement needs to move a
+        position; with fewer, the frame's appearance contradicts the fix, which the detector's circles
+        alone could not tell (a wrong set of three can agree in pixel positions)."""
+        used = sum(r["used"] for r in refinement["landmarks"])
+        if self.params.verify and used < 2:
+            n = len(refinement["landmarks"])
+            return False, f"appearance check: {used} of {n} landmarks appear where the fix predicts them (need 2)"
+        return True, ""
 
 
 def lander_dem(pole: str):
