@@ -59,6 +59,7 @@ from crater_synth.navigation.evaluate import (
 )
 from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position
 from crater_synth.navigation.frame_labels import hidden
+from crater_synth.navigation.frames import FrameError
 from crater_synth.navigation.frames_presets import (
     DEFAULT_FRAMES_PRESET,
     FRAMES_PRESETS,
@@ -158,7 +159,7 @@ def evaluate_frame(
     uv[front] = project_pinhole(pts[front], r_wc, c_prior, k)
     r_pred = np.array([lm.diameter_km * 500.0 for lm in cand]) * k[0, 0] / np.where(front, depth, np.nan)
     inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < width)
-    windows = None  # the appearance search's predicted windows, for the refinement to reuse
+    windows, empty = None, ""  # the appearance search's predicted windows (for the refinement); why no detections
     if detections is None and appearance is not None:
         sun = row["pose"]["to_sun_mc"]
         dets, windows = appearance_detections(
@@ -167,7 +168,10 @@ def evaluate_frame(
     elif detections is None:
         if scales_from_map:
             dparams = map_scales(dparams, fparams, gsd, r_pred[inside])
-        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+        try:
+            dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+        except FrameError as exc:  # a frame all in shadow: nothing to detect, an answer of "no fix"
+            dets, empty = [], str(exc)
     else:
         dets = list(detections)
     labels = [lb for lb in row["landmarks"] if lb["diameter_km"] >= fparams.min_landmark_km]
@@ -212,7 +216,7 @@ def evaluate_frame(
                 pairs_lm.append(int(j))
     out["putative_pairs"] = len(pairs_det)
     if not pairs_det:
-        out.update(fix=False, reason="no putative landmark pairs")
+        out.update(fix=False, reason=empty or "no putative landmark pairs")
         if not out["enough_landmarks"]:
             out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km (no pairs)"
         return out
