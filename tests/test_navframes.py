@@ -340,7 +340,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert f["landmarks_in_view"] == len(row["landmarks"]) and f["perfect"]["n_detections"] == len(row["landmarks"])
     assert f["perfect"]["fix"] and f["perfect"]["error_km"] < 0.01 and doc["summary"]["perfect"]["all"]["fix_rate"] == 1
     # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
-    assert doc["preset"] == "synthetic" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
+    assert doc["preset"] == "appearance" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
     # --write-results records the summary under "synthetic", keyed by trajectory, method and preset.
     from crater_synth.navigation import frames_record
@@ -368,7 +368,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(png)])
     assert res.exit_code == 0, res.output
     nav = json.loads(res.output.strip().splitlines()[-1])
-    assert nav["preset"] == "synthetic" and nav["landmarks_in_view"] == len(row["landmarks"]) and png.is_file()
+    assert nav["preset"] == "appearance" and nav["landmarks_in_view"] == len(row["landmarks"]) and png.is_file()
     assert nav["fix"] == f["fix"] and nav.get("error_km") == (round(f["error_km"], 3) if f["fix"] else None)
     listed = json.loads((tmp_path / "nav.json").read_text())["detections"]
     assert len(listed) == nav["detections"] and all("truth_landmark" in d and "landmark" in d for d in listed)

@@ -4,8 +4,10 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
 (:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
 
 - **Detection**: :func:`.detect.detect` on the I/F channel, with the settings of a preset
-  (:data:`FRAMES_PRESETS`; default "synthetic", chosen on rendered frames; "real-window": the real
-  windows' settings unchanged). The light direction in the image is given (the lander knows its
+  (:data:`FRAMES_PRESETS`; "synthetic", the classical detector's settings chosen on rendered frames;
+  "learned"; "real-window": the real windows' settings unchanged), or no detector: the default
+  "appearance" preset searches for the map's landmarks by their predicted appearance (:mod:`.appearance`).
+  The light direction in the image is given (the lander knows its
   attitude and the ephemeris; the detector's docstring allows it): the Sun's travel direction,
   projected on the image plane. The "synthetic" preset searches only the radii the landmark map can
   use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
@@ -378,7 +380,9 @@ def _summary(rows: list[dict]) -> dict:
     type=click.Choice(sorted(FRAMES_PRESETS)),
     default=DEFAULT_FRAMES_PRESET,
     show_default=True,
-    help="synthetic: the settings chosen on rendered frames; real-window: the real windows' settings unchanged.",
+    help="appearance: landmarks found by their predicted appearance (no detector); synthetic: the classical "
+    "detector's settings chosen on rendered frames; learned: the learned detector; real-window: the real "
+    "windows' settings unchanged.",
 )
 @click.option(
     "--method",

@@ -11,7 +11,7 @@ from crater_core import exr, schema
 from crater_synth.navigation.detect import DetectorParams
 from crater_synth.navigation.evaluate import FALSE_FIX_KM, PRIOR_OFFSET_KM, RESULTS_JSON
 from crater_synth.navigation.fix import FixParams
-from crater_synth.navigation.frames_presets import DEFAULT_FRAMES_PRESET, PNP_INLIER_PX
+from crater_synth.navigation.frames_presets import PNP_INLIER_PX, RESULTS_UNSUFFIXED_PRESET
 
 FRAMES_EVAL_JSON = "frames_eval.json"
 FRAME_FIELDS = (
@@ -99,7 +99,7 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
     docs/results/navigation.json, keyed by trajectory, fix method and preset."""
     results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
     info = _render_info(frames_dir)
-    key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == DEFAULT_FRAMES_PRESET else f"/{preset}")
+    key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == RESULTS_UNSUFFIXED_PRESET else f"/{preset}")
     results.setdefault("synthetic", {})[key] = {
         "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
         f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",

@@ -142,7 +142,8 @@ def navigate_command(
     `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
     position (default: the georeference centre moved by 5 km). A rendered frame (`frame_NNNN.exr` of
     `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose and Sun from its manifest,
-    prior the true camera moved by 5 km, `--method classical` (default) or `learned`. Prints one JSON line.
+    prior the true camera moved by 5 km, `--method appearance` (default), `classical` or `learned`. Prints one
+    JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -163,6 +164,7 @@ def navigate_command(
             )
         from click.core import ParameterSource
 
+        from crater_synth.navigation.frames_presets import DEFAULT_FRAMES_PRESET
         from crater_synth.navigation.navigate_frame import navigate_frame
 
         chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
@@ -173,7 +175,7 @@ def navigate_command(
         }  # nav-frames-eval's
         if chosen and method not in frame_presets:
             raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
-        name = frame_presets[method] if chosen else "synthetic"
+        name = frame_presets[method] if chosen else DEFAULT_FRAMES_PRESET
         click.echo(json.dumps(navigate_frame(image, name, out or image.with_name(image.stem + ".nav.png"))))
         return
     from crater_core.schema import atomic_write_bytes
