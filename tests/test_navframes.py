@@ -523,6 +523,9 @@ def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):
     a = [json.loads(x) for x in (tmp_path / "work" / "navframes_shared" / "manifest.jsonl").read_text().splitlines()]
     b = [json.loads(x) for x in (tmp_path / "work" / "navframes_per_frame" / "manifest.jsonl").read_text().splitlines()]
     assert [r["pose"] for r in a] == [r["pose"] for r in b] and len(a) == 2
+    nav = r["navigate"]  # the same frames through nav-frames-eval's pipeline, appearance and classical
+    for k in ("appearance", "synthetic"):
+        assert 0 <= nav[k]["fixes"] <= 2 and 0 < nav[k]["median_s_per_frame"] <= nav[k]["max_s_per_frame"]
 
 
 def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():

@@ -12,7 +12,8 @@ Parts (``--part``, default all, in this order):
   (crater_synth.navigation.evaluate.bench_navigation);
 - ``export``: ``crater-synth export`` time and peak RSS on a generated dataset of ``--export-renders``
   EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export);
-- ``navframes``: navigation-frame renders/s along a trajectory (crater_synth.bench.navframes);
+- ``navframes``: navigation-frame renders/s along a trajectory, then their navigation time per frame,
+  appearance search against the classical detector (crater_synth.bench.navframes);
 - ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
   (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet).
 

@@ -11,6 +11,12 @@ on one terrain patch: one worker start-up, scene, BVH and horizon map per patch 
 ``per_frame`` (each frame its own patch, worker and horizon map), with the ratio of their rates.
 "dispatch" is the wall time of the workers (start-up, horizon maps, rendering; patches and labels not in
 it).
+
+``navigate``: the shared run's frames then go through ``nav-frames-eval``'s per-frame pipeline with the
+default ``appearance`` preset (the landmarks searched for by their predicted appearance) and with the
+``synthetic`` preset (the classical detector) as the baseline, on the same frames in the same call:
+seconds per frame (search or detection, identification, fix, refinement and check; the DEM and map loads
+are outside it), frames/s and fixes of each, and the ratio of their median times.
 """
 
 from __future__ import annotations
@@ -59,6 +65,28 @@ def _run(settings, out: Path, n: int, share: bool) -> dict:
     }
 
 
+def _navigate(frames_dir: Path) -> dict:
+    from crater_synth.navigation.frames_eval import evaluate_dir
+    from crater_synth.navigation.frames_presets import frames_params
+
+    out: dict = {}
+    for name in ("appearance", "synthetic"):
+        dparams, fparams, pre = frames_params(name)
+        args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
+        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args)
+        secs = sorted(r["seconds"] for r in rows)
+        out[name] = {
+            "fixes": sum(bool(r["fix"]) for r in rows),
+            "median_s_per_frame": secs[len(secs) // 2],
+            "max_s_per_frame": secs[-1],
+            "frames_per_s": round(len(secs) / max(sum(secs), 1e-9), 3),
+        }
+    out["median_time_ratio_appearance_to_synthetic"] = round(
+        out["appearance"]["median_s_per_frame"] / max(out["synthetic"]["median_s_per_frame"], 1e-3), 2
+    )
+    return out
+
+
 def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
     """Render the first ``frames`` frames of the trajectory (``trajectory=descent_ridge`` unless an
     override names another) twice, with the same settings: frames sharing terrain patches (the default
@@ -91,4 +119,5 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
         "speedup_end_to_end": round(a["frames_per_s"] / b["frames_per_s"], 2),
         "speedup_dispatch": round(a["dispatch_frames_per_s"] / b["dispatch_frames_per_s"], 2),
         "speedup_render": round(a["render_frames_per_s"] / b["render_frames_per_s"], 2),
+        "navigate": _navigate(work / "navframes_shared"),
     }
