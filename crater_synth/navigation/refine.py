@@ -117,12 +117,20 @@ def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefinePar
 
 
 def ncc_at_offsets(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:
-    """NCC of ``predicted`` with ``image`` read (bilinear) at array coordinates (u, v) + each offset (du, dv)."""
-    from scipy.ndimage import map_coordinates
-
-    su = (u[None, :] + offsets[:, :1]).ravel()
-    sv = (v[None, :] + offsets[:, 1:]).ravel()
-    vals = map_coordinates(image, [sv, su], order=1).reshape(len(offsets), -1)
+    """NCC of ``predicted`` with ``image`` read (bilinear) at array coordinates (u, v) + each whole-pixel
+    offset (du, dv). The offsets are whole pixels, so every shifted sample has the same bilinear weights:
+    they are computed once and the four neighbours gathered per offset (indices clamped to the frame)."""
+    h, w = image.shape
+    iu, iv = np.floor(u).astype(np.intp), np.floor(v).astype(np.intp)
+    fu, fv = u - iu, v - iv
+    whole = np.rint(offsets).astype(np.intp)
+    c = np.clip(iu[None, :] + whole[:, :1], 0, w - 2)
+    r = np.clip(iv[None, :] + whole[:, 1:], 0, h - 2)
+    flat = np.ascontiguousarray(image, dtype=np.float64).ravel()
+    base = r * w + c
+    vals = (flat[base] * (1.0 - fu) + flat[base + 1] * fu) * (1.0 - fv) + (
+        flat[base + w] * (1.0 - fu) + flat[base + w + 1] * fu
+    ) * fv
     a = predicted - predicted.mean()
     b = vals - vals.mean(axis=1, keepdims=True)
     return (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-30)
