@@ -33,7 +33,13 @@ import numpy as np
 
 from crater_core import geometry
 from crater_synth.navigation.detect import Detection
-from crater_synth.navigation.refine import ncc_at_offsets, parabola_vertex, predict_window, square_offsets
+from crater_synth.navigation.refine import (
+    ncc_at_offsets,
+    parabola_vertex,
+    predict_window,
+    samples_in_reach,
+    square_offsets,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,15 +56,10 @@ def register_wide(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, sear
     :func:`.refine.register`) in ``image`` within ``search_px``, coarse to fine (module docstring);
     ``blurred(step)`` is the frame blurred for a grid of that step. None when the first grid's peak lies
     on its border or fewer than 16 samples stay in the frame under every shift."""
-    h, w = image.shape
-    u = uv[..., 0].ravel() - 0.5
-    v = uv[..., 1].ravel() - 0.5
-    reach = search_px + 2
-    ok = (u >= reach) & (u <= w - 1 - reach) & (v >= reach) & (v <= h - 1 - reach)  # False for NaN
-    p = np.asarray(predicted, dtype=np.float64).ravel()[ok]
-    if ok.sum() < 16 or np.ptp(p) <= 0:
+    inside = samples_in_reach(image.shape, uv, predicted, search_px)
+    if inside is None:
         return None, float("nan")
-    u, v = u[ok], v[ok]
+    u, v, p = inside
     step = max(1, math.ceil(search_px / coarse_steps))
     n = math.ceil(search_px / step)
     surf = ncc_at_offsets(blurred(step), u, v, p, square_offsets(np.zeros(2), n, step)).reshape(2 * n + 1, -1)

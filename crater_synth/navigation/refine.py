@@ -150,6 +150,21 @@ def square_offsets(centre, half: int, step: int) -> np.ndarray:
     return np.column_stack([du.ravel(), dv.ravel()]) + np.asarray(centre)
 
 
+def samples_in_reach(shape: tuple, uv: np.ndarray, predicted: np.ndarray, search_px: int):
+    """(u, v, values) of the predicted samples (pixels ``uv``, convention of :func:`register`; array
+    coordinates u - 0.5) that stay in a frame of ``shape`` under every shift within ``search_px`` (the
+    same samples for every shift, so their NCCs compare); None when fewer than 16 do or they are flat."""
+    h, w = shape
+    u = uv[..., 0].ravel() - 0.5
+    v = uv[..., 1].ravel() - 0.5
+    reach = search_px + 2
+    ok = (u >= reach) & (u <= w - 1 - reach) & (v >= reach) & (v <= h - 1 - reach)  # False for NaN
+    p = np.asarray(predicted, dtype=np.float64).ravel()[ok]
+    if ok.sum() < 16 or np.ptp(p) <= 0:
+        return None
+    return u[ok], v[ok], p
+
+
 def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int):
     """(shift (du, dv) px, NCC) that best aligns ``predicted`` (values at pixels ``uv``, (..., 2), the
     continuous convention of :func:`.fix.project_pinhole`: pixel i spans [i, i + 1]) with ``image``.
@@ -158,16 +173,12 @@ def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px
     wider than 3 px, then every pixel around the best: the predicted windows hold DEM-scale relief, several
     pixels wide, so the correlation peak is too), and the peak is refined by a parabola through its
     neighbours. The shift is None when the peak lies on the search border, or when fewer than 16 samples
-    stay in the frame under every shift (the same samples for every shift: NCCs comparable)."""
-    h, w = image.shape
-    u = uv[..., 0].ravel() - 0.5
-    v = uv[..., 1].ravel() - 0.5
-    reach = search_px + 2
-    ok = (u >= reach) & (u <= w - 1 - reach) & (v >= reach) & (v <= h - 1 - reach)  # False for NaN
-    p = np.asarray(predicted, dtype=np.float64).ravel()[ok]
-    if ok.sum() < 16 or np.ptp(p) <= 0:
+    stay in the frame under every shift (:func:`samples_in_reach`)."""
+    inside = samples_in_reach(image.shape, uv, predicted, search_px)
+    if inside is None:
         return None, float("nan")
-    img, u, v = np.asarray(image, dtype=np.float64), u[ok], v[ok]
+    u, v, p = inside
+    img = np.asarray(image, dtype=np.float64)
     centre = np.zeros(2)
     if search_px > 3:
         half = search_px // 2
