@@ -8,15 +8,17 @@ pose. So each identified landmark's neighbourhood is predicted as the camera sho
 registered on the frame:
 
 1. A square of the landmark's tangent plane (half-width ``window_diameters`` x D, ``samples`` per
-   side) is sampled from the DEM (bicubic, on the sphere: curvature included), with a coarse far
-   field around it for distant occluders.
+   side), laid out with one axis towards the Sun, is sampled from the DEM (bicubic, on the sphere:
+   curvature included), with a coarse far-field strip running ``far_radius_km`` towards the Sun for
+   distant occluders.
 2. Its I/F is the project's Hapke model (:func:`crater_core.hapke.shade_np`) times the visible
    fraction of the solar disc above the horizon along the Sun's azimuth
    (:func:`crater_core.horizon.horizon_maps`, :func:`~crater_core.horizon.disc_fraction_above`):
    the renderer's physics, without the sub-DEM detail a DEM cannot know.
 3. The samples are projected into the frame with the current fix and the frame is read there, shifted
-   by every whole pixel within ``search_px``; the shift of highest normalised cross-correlation (NCC),
-   refined to a sub-pixel by a parabola through its neighbours, moves the landmark's predicted pixel.
+   by whole pixels within ``search_px`` (every second one, then every one around the best); the shift of
+   highest normalised cross-correlation (NCC), refined to a sub-pixel by a parabola through its
+   neighbours, moves the landmark's predicted pixel.
    A peak on the search border or below ``min_ncc`` leaves the landmark's detector observation as it was.
 4. The camera centre is solved again from the moved observations (:func:`.fix.solve_position`) and the
    whole is repeated ``iterations`` times.
