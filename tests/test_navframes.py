@@ -350,6 +350,21 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]["descent_ridge/position/appearance"]
     assert rec["protocol"]["preset_settings"]["refine"] and rec["all"]["windows"] == 1
+    # --sensor puts a camera (noise, PSF, 8 bits) on each frame first; recorded, and keyed apart.
+    res = CliRunner().invoke(
+        main,
+        ["nav-frames-eval", str(out), "--sensor", "nav_camera", "--json", str(tmp_path / "s.json"), "--write-results"],
+    )
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "s.json").read_text())["summary"]["sensor"] == "nav_camera"
+    assert (
+        "descent_ridge/position/appearance/sensor=nav_camera"
+        in json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
+    )
+    res = CliRunner().invoke(
+        main, ["nav-frames-eval", str(out), "--sensor", "nope", "--json", str(tmp_path / "t.json")]
+    )
+    assert res.exit_code != 0 and "unknown sensor 'nope'" in res.output and not (tmp_path / "t.json").exists()
     # Lost in space (no prior): the labels' own ellipses, rectified onto the ground with the attitude and the
     # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
     # detector on this toy 64 px frame may find nothing, but never a wrong position.

@@ -289,13 +289,15 @@ def evaluate_dir(
     inlier_px: float = PNP_INLIER_PX,
     refine: bool = False,
     appearance: AppearanceParams | None = None,
+    sensor=None,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
     with the detector and with perfect detections (``"perfect"``); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``. ``refine``: the detector's fixes are refined
     by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``);
-    ``appearance``: the landmarks are searched for by their predicted appearance instead of detected."""
+    ``appearance``: the landmarks are searched for by their predicted appearance instead of detected;
+    ``sensor``: a camera model applied to each frame first (``--sensor``)."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
@@ -309,6 +311,8 @@ def evaluate_dir(
             maps[pole] = load_default_map(pole)[0]
             refiners[pole] = Refiner(lander_dem(pole)) if refine or appearance else None
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
+        if sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
+            image = sensor.apply(image, np.random.default_rng([seed, zlib.crc32(row["rel_path"].encode())]))
         kw = dict(seed=seed, method=method, inlier_px=inlier_px)
         t0 = time.perf_counter()
         r = evaluate_frame(
@@ -391,8 +395,13 @@ def _summary(rows: list[dict]) -> dict:
     show_default=True,
     help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
 )
+@click.option(
+    "--sensor",
+    default=None,
+    help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
+)
 @user_errors
-def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, preset, method):
+def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, preset, method, sensor):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
 
@@ -401,9 +410,15 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
     if sets and write_results:
         raise UserError("--write-results records a preset's settings only; drop --set")
     dparams, fparams, pre = frames_params(preset, sets, method)
-    summary, rows = evaluate_dir(
-        frames_dir, dparams, fparams, seed, method, pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance
-    )
+    camera = None
+    if sensor is not None:
+        from crater_synth.config import load_settings
+        from train.preprocess import SensorModel
+
+        camera = SensorModel.from_settings(load_settings([f"sensor={sensor}"]).sensor)
+    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera)
+    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args)
+    summary["sensor"] = sensor
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
