@@ -64,6 +64,7 @@ def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_pat
     assert '<img src="nav_trajectory_0.png"' in sec
     assert (out / "nav_trajectory_0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "<b>1 of 3</b> frames fixed" in sec and "<b>2 of 3</b>" in sec
+    assert "preset <code>appearance</code>" in sec and "0.93 km before the appearance refinement" in sec
     assert "0.41 km" in sec and "0.0102 m" in sec and "0.0063 m" in sec
     assert "no fix: only 3 landmarks agree on one position" in sec and "no fix: no putative landmark pairs" in sec
     assert "not run:" not in sec

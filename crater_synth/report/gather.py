@@ -628,6 +628,7 @@ def navigation(ctx: Ctx) -> dict:
                 "path": str(path),
                 "name": doc["trajectory"],
                 "method": doc.get("method", "position"),
+                "preset": doc.get("preset"),
                 "render": doc.get("render") or {},
                 "settings": doc.get("settings") or [],
                 "summary": doc["summary"],
