@@ -308,6 +308,11 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert r["fix"] and r["error_km"] < 0.01 and r["identified_correct"] == r["identified"] >= 5, r
     assert len(r["matched"]) == len(r["truth"])  # every label matched by its own ellipse
     assert r["n_detections"] == r["landmarks_in_view"] == len(row["landmarks"])
+    # An attitude error of 0.1 deg moves the known-attitude fix by about altitude x angle (150 km: 0.26 km).
+    tilted = frames_eval.evaluate_frame(
+        row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets, attitude_error_deg=0.1
+    )
+    assert tilted["fix"] and 0.1 < tilted["error_km"] < 0.5, tilted
     # A frame all in shadow (a descent's last frame over a dark floor) is an answer of "no fix", not an error.
     r = frames_eval.evaluate_frame(row, np.zeros_like(ch["IF"]), lms, frames_eval.DetectorParams(), FixParams())
     assert not r["fix"] and "empty" in r["reason"] and r["n_detections"] == 0

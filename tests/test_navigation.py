@@ -214,11 +214,11 @@ def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, 10), rng.uniform(-40e3, 40e3, 10), rng.uniform(-2e3, 2e3, 10)])
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r_true = nf._rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))  # looking down, slightly off nadir
+    r_true = nf.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))  # looking down, slightly off nadir
     c_true = np.array([1500.0, -800.0, 90e3])
     uv = nf.project_pinhole(pts, r_true, c_true, k)
     uv[[2, 7]] += [[60.0, -40.0], [-80.0, 25.0]]  # two wrong identifications
-    r0 = nf._rodrigues(np.array([math.pi, 0.0, 0.0]))
+    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
     ok, _, r, c, inl = nf.ransac_pnp(pts, uv, k, r0, np.array([0.0, 0.0, 85e3]))
     assert ok and not inl[2] and not inl[7] and inl.sum() == 8
     assert np.linalg.norm(c - c_true) < 1.0

@@ -216,7 +216,8 @@ def fix_frame(detections, landmarks, georef_prior, frame_shape, params: FixParam
 # --------------------------------------------------------------------------------------------
 # Pinhole pose from 3-D points (perspective frames)
 # --------------------------------------------------------------------------------------------
-def _rodrigues(w: np.ndarray) -> np.ndarray:
+def rodrigues(w: np.ndarray) -> np.ndarray:
+    """The rotation matrix of the rotation vector ``w`` (axis times angle, radians)."""
     t = float(np.linalg.norm(w))
     if t < 1e-12:
         return np.eye(3)
@@ -248,10 +249,10 @@ def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
                 dw[q] = eps
             else:
                 dc[q - 3] = eps * scale
-            rp = _rodrigues(dw) @ r
+            rp = rodrigues(dw) @ r
             jac[:, q] = ((project_pinhole(points, rp, c + dc, k) - uv).ravel() - res) / eps
         step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
-        r = _rodrigues(step[:3]) @ r
+        r = rodrigues(step[:3]) @ r
         c = c + step[3:] * scale
         if np.linalg.norm(step) < 1e-10:
             break

@@ -59,7 +59,7 @@ from crater_synth.navigation.evaluate import (
     PRIOR_OFFSET_KM,
     summarise,
 )
-from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position
+from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, rodrigues
 from crater_synth.navigation.frame_labels import hidden
 from crater_synth.navigation.frames import FrameError
 from crater_synth.navigation.frames_presets import (
@@ -132,19 +132,25 @@ def evaluate_frame(
     inlier_px: float = PNP_INLIER_PX,
     refiner=None,
     appearance: AppearanceParams | None = None,
+    attitude_error_deg: float = 0.0,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
-    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance; ``appearance``: no
+    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance; ``attitude_error_deg``:
+    the pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
+    error; the image and the truth are the frame's); ``appearance``: no
     detector, the landmarks are searched for by their predicted appearance (:mod:`.appearance`, with the
     refiner's DEM). A frame with fewer
     than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
     False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    if attitude_error_deg:  # the attitude the lander believes: the true one turned about a seeded axis
+        axis = np.random.default_rng([seed, 7, zlib.crc32(row["rel_path"].encode())]).normal(size=3)
+        rot = rodrigues(axis / np.linalg.norm(axis) * math.radians(attitude_error_deg)) @ rot
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
     width = int(row["pose"]["width_px"])
     fov = float(row["pose"]["fov_deg"])
@@ -290,6 +296,7 @@ def evaluate_dir(
     refine: bool = False,
     appearance: AppearanceParams | None = None,
     sensor=None,
+    attitude_error_deg: float = 0.0,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -297,7 +304,8 @@ def evaluate_dir(
     perfect-detection row of the same frame under ``"perfect"``. ``refine``: the detector's fixes are refined
     by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``);
     ``appearance``: the landmarks are searched for by their predicted appearance instead of detected;
-    ``sensor``: a camera model applied to each frame first (``--sensor``)."""
+    ``sensor``: a camera model applied to each frame first (``--sensor``); ``attitude_error_deg``: the
+    lander's attitude error (:func:`evaluate_frame`; the perfect-detection check keeps the true attitude)."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
@@ -324,6 +332,7 @@ def evaluate_dir(
             scales_from_map=scales_from_map,
             refiner=refiners[pole],
             appearance=appearance,
+            attitude_error_deg=attitude_error_deg,
             **kw,
         )
         r["seconds"] = round(time.perf_counter() - t0, 3)  # detection, identification, fix and refinement
@@ -396,12 +405,21 @@ def _summary(rows: list[dict]) -> dict:
     help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
 )
 @click.option(
+    "--attitude-error-deg",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="The lander's attitude error: the pipeline uses the true attitude turned by this angle (seeded axis).",
+)
+@click.option(
     "--sensor",
     default=None,
     help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
 )
 @user_errors
-def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, preset, method, sensor):
+def nav_frames_eval_command(
+    frames_dir, json_path, write_results, seed, sets, preset, method, attitude_error_deg, sensor
+):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
 
@@ -416,9 +434,11 @@ def nav_frames_eval_command(frames_dir, json_path, write_results, seed, sets, pr
         from train.preprocess import SensorModel
 
         camera = SensorModel.from_settings(load_settings([f"sensor={sensor}"]).sensor)
-    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera)
+    if not 0.0 <= attitude_error_deg <= 10.0:
+        raise UserError(f"--attitude-error-deg {attitude_error_deg:g}: expected 0 to 10 degrees")
+    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg)
     summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args)
-    summary["sensor"] = sensor
+    summary["sensor"], summary["attitude_error_deg"] = sensor, attitude_error_deg
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
