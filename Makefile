@@ -97,6 +97,13 @@ NAV_DEMO_DIR ?= outputs/navigate-demo
 navigate-demo: setup ## Crater navigation on a few real mosaic windows: both detectors, annotated PNGs, the table, navigation.json (NAV_DEMO_DIR; the report reads RUN_DIR/navigation)
 	$(BIN)/python -m crater_synth.navigation.demo --out $(NAV_DEMO_DIR)
 
+NAV_FRAMES_DEMO_DIR ?= outputs/navigate-frames-demo
+navigate-frames-demo: setup ## Rendered-frame navigation: 6 frames of the polar orbit arc (1 sample), appearance search and classical detector, frames_eval*.json for the report, one annotated frame (~2 min)
+	$(CLI) nav-frames trajectory=polar_orbit_arc trajectory.frames=6 render.samples=1 --out $(NAV_FRAMES_DEMO_DIR)/frames $(OVERRIDES)
+	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/frames --json $(NAV_FRAMES_DEMO_DIR)/frames_eval.json
+	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/frames --preset synthetic --json $(NAV_FRAMES_DEMO_DIR)/frames_eval_classical.json
+	$(CLI) navigate $(NAV_FRAMES_DEMO_DIR)/frames/frame_0002.exr --out $(NAV_FRAMES_DEMO_DIR)/frame_0002.png
+
 DETECTOR_FRAMES ?= data/detector_frames/south
 DETECTOR_MODEL ?= data_manifest/models/crater_detector_south.pt
 nav-detector: setup ## The learned crater detector: render its 70 survey tracks (~17-25 min), train 2000 steps (~10 min on 2 cores), score the 10 held-out tracks
@@ -112,4 +119,4 @@ demo: setup ## The main job on the embedded data: render sweep=demo_physical_noo
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
-	experiments report bench validate ablate demo navigate-demo nav-detector
+	experiments report bench validate ablate demo navigate-demo navigate-frames-demo nav-detector
