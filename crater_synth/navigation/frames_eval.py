@@ -139,13 +139,13 @@ def evaluate_frame(
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
-    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance; ``attitude_error_deg``:
-    the pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
-    error; the image and the truth are the frame's); ``appearance``: no
-    detector, the landmarks are searched for by their predicted appearance (:mod:`.appearance`, with the
-    refiner's DEM). A frame with fewer
-    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
-    False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
+    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance, and refused when its
+    landmarks do not register; ``appearance``: no detector, the landmarks are searched for by their
+    predicted appearance (:mod:`.appearance`, with the refiner's DEM); ``attitude_error_deg``: the
+    pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
+    error; the image and the truth are the frame's). A frame with fewer than ``min_inliers`` labelled
+    landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks`` False; a "no fix" there
+    gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     if attitude_error_deg:  # the attitude the lander believes: the true one turned about a seeded axis
