@@ -370,6 +370,16 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
         main, ["nav-frames-eval", str(out), "--sensor", "nope", "--json", str(tmp_path / "t.json")]
     )
     assert res.exit_code != 0 and "unknown sensor 'nope'" in res.output and not (tmp_path / "t.json").exists()
+    for args, message in (
+        (["--prior-offset-km", "200"], "expected 0 to 100 km"),
+        (["--attitude-error-deg", "0.1", "--write-results"], "standard prior and attitude only"),
+    ):
+        res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
+        assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
+    res = CliRunner().invoke(
+        main, ["nav-frames-eval", str(out), "--prior-offset-km", "12", "--json", str(tmp_path / "p.json")]
+    )
+    assert res.exit_code == 0 and json.loads((tmp_path / "p.json").read_text())["summary"]["prior_offset_km"] == 12.0
     # Lost in space (no prior): the labels' own ellipses, rectified onto the ground with the attitude and the
     # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
     # detector on this toy 64 px frame may find nothing, but never a wrong position.

@@ -133,6 +133,7 @@ def evaluate_frame(
     refiner=None,
     appearance: AppearanceParams | None = None,
     attitude_error_deg: float = 0.0,
+    prior_offset_km: float = PRIOR_OFFSET_KM,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
@@ -143,7 +144,8 @@ def evaluate_frame(
     landmarks do not register; ``appearance``: no detector, the landmarks are searched for by their
     predicted appearance (:mod:`.appearance`, with the refiner's DEM); ``attitude_error_deg``: the
     pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
-    error; the image and the truth are the frame's). A frame with fewer than ``min_inliers`` labelled
+    error; the image and the truth are the frame's); ``prior_offset_km``: how far the prior is from the
+    true camera (horizontally, seeded direction). A frame with fewer than ``min_inliers`` labelled
     landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks`` False; a "no fix" there
     gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
@@ -158,7 +160,7 @@ def evaluate_frame(
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     # The map landmarks the prior predicts in the frame (position and radius, px).
     r_wc, k = cv_camera(rot, width, fov)
-    c_prior = prior_centre(row, seed)
+    c_prior = prior_centre(row, seed, prior_offset_km)
     cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
     depth = (pts - c_prior) @ r_wc[2]
@@ -297,6 +299,7 @@ def evaluate_dir(
     appearance: AppearanceParams | None = None,
     sensor=None,
     attitude_error_deg: float = 0.0,
+    prior_offset_km: float = PRIOR_OFFSET_KM,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -305,7 +308,8 @@ def evaluate_dir(
     by appearance with the pole's :func:`.refine.lander_dem` (summarised without it under ``"unrefined"``);
     ``appearance``: the landmarks are searched for by their predicted appearance instead of detected;
     ``sensor``: a camera model applied to each frame first (``--sensor``); ``attitude_error_deg``: the
-    lander's attitude error (:func:`evaluate_frame`; the perfect-detection check keeps the true attitude)."""
+    lander's attitude error and ``prior_offset_km`` the prior's distance from the truth (:func:`evaluate_frame`;
+    the perfect-detection check keeps the true attitude and the default prior)."""
     from crater_synth.navigation.frame_labels import frame_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
@@ -333,6 +337,7 @@ def evaluate_dir(
             refiner=refiners[pole],
             appearance=appearance,
             attitude_error_deg=attitude_error_deg,
+            prior_offset_km=prior_offset_km,
             **kw,
         )
         r["seconds"] = round(time.perf_counter() - t0, 3)  # detection, identification, fix and refinement
@@ -412,13 +417,20 @@ def _summary(rows: list[dict]) -> dict:
     help="The lander's attitude error: the pipeline uses the true attitude turned by this angle (seeded axis).",
 )
 @click.option(
+    "--prior-offset-km",
+    type=float,
+    default=PRIOR_OFFSET_KM,
+    show_default=True,
+    help="How far the position prior is from the true camera (seeded direction); the gate is fix.prior_sigma_km.",
+)
+@click.option(
     "--sensor",
     default=None,
     help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
 )
 @user_errors
 def nav_frames_eval_command(
-    frames_dir, json_path, write_results, seed, sets, preset, method, attitude_error_deg, sensor
+    frames_dir, json_path, write_results, seed, sets, preset, method, attitude_error_deg, prior_offset_km, sensor
 ):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
@@ -436,9 +448,13 @@ def nav_frames_eval_command(
         camera = SensorModel.from_settings(load_settings([f"sensor={sensor}"]).sensor)
     if not 0.0 <= attitude_error_deg <= 10.0:
         raise UserError(f"--attitude-error-deg {attitude_error_deg:g}: expected 0 to 10 degrees")
-    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg)
+    if not 0.0 <= prior_offset_km <= 100.0:
+        raise UserError(f"--prior-offset-km {prior_offset_km:g}: expected 0 to 100 km")
+    if write_results and (attitude_error_deg or prior_offset_km != PRIOR_OFFSET_KM):
+        raise UserError("--write-results records the standard prior and attitude only")
+    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
     summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args)
-    summary["sensor"], summary["attitude_error_deg"] = sensor, attitude_error_deg
+    summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "

@@ -101,7 +101,6 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
     info = _render_info(frames_dir)
     key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == RESULTS_UNSUFFIXED_PRESET else f"/{preset}")
     key += f"/sensor={summary['sensor']}" if summary.get("sensor") else ""
-    key += f"/attitude_error_deg={summary['attitude_error_deg']:g}" if summary.get("attitude_error_deg") else ""
     results.setdefault("synthetic", {})[key] = {
         "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
         f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
