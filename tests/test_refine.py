@@ -142,7 +142,18 @@ def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene
 
     c_prior = scene.c_true + np.array([3000.0, -4000.0, 0.0])
     refiner = refine.Refiner(scene.dem)
-    args = (scene.landmarks, refiner, FixParams(), c_prior, scene.r_wc, scene.k, scene.origin, scene.to_sun_mc)
+    search_km = FixParams().prior_sigma_km
+    args = (
+        scene.landmarks,
+        scene.points,
+        refiner,
+        c_prior,
+        scene.r_wc,
+        scene.k,
+        scene.origin,
+        scene.to_sun_mc,
+        search_km,
+    )
     dets, windows = appearance.appearance_detections(scene.image, *args)
     assert len(dets) == len(scene.landmarks) and set(windows) == {lm.id for lm in scene.landmarks}
     pose = geometry.CameraPose(

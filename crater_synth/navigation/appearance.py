@@ -37,6 +37,7 @@ from crater_synth.navigation.refine import (
     ncc_at_offsets,
     parabola_vertex,
     predict_window,
+    rim_ellipses,
     samples_in_reach,
     square_offsets,
 )
@@ -79,13 +80,15 @@ def register_wide(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, sear
     return centre + np.array([parabola_vertex(*surf[1]), parabola_vertex(*surf[:, 1])]), float(surf[1, 1])
 
 
-def appearance_detections(image, landmarks, refiner, fparams, c_prior, r_wc, k, origin, to_sun_mc, params=None):
-    """Detections of the map ``landmarks`` (>= ``fparams.min_landmark_km``) that a camera at ``c_prior``
-    (ENU of ``origin`` (lat, lon)) with world->camera rotation ``r_wc`` and intrinsics ``k`` (the
-    convention of :func:`.fix.project_pinhole`) places in the frame ``image``, found by their predicted
-    appearance under the Sun ``to_sun_mc`` (module docstring); ``refiner``: the :class:`.refine.Refiner`
-    holding the DEM and the Hapke model. Returns (detections, the predicted windows by landmark id, for
-    the refinement to reuse)."""
+def appearance_detections(
+    image, landmarks, points_enu, refiner, c_prior, r_wc, k, origin, to_sun_mc, search_km, params=None
+):
+    """Detections of the map ``landmarks`` (rim-centre points ``points_enu`` in the ENU frame of ``origin``
+    (lat, lon)) that a camera at ``c_prior`` with world->camera rotation ``r_wc`` and intrinsics ``k`` (the
+    convention of :func:`.fix.project_pinhole`) places in the frame ``image``, each searched for by its
+    predicted appearance under the Sun ``to_sun_mc`` as far as ``search_km`` (the prior's uncertainty) at
+    its depth (module docstring); ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke
+    model. Returns (detections, the predicted windows by landmark id, for the refinement to reuse)."""
     from scipy.ndimage import gaussian_filter
 
     from crater_synth.navigation.fix import project_pinhole
@@ -94,17 +97,15 @@ def appearance_detections(image, landmarks, refiner, fparams, c_prior, r_wc, k, 
     params = params or AppearanceParams()
     lat0, lon0 = origin
     height, width = image.shape
-    fov = math.degrees(2.0 * math.atan(0.5 * width / k[0, 0]))
-    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
-    if not cand:
+    if not len(landmarks):
         return [], {}
-    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0)
+    pts = np.asarray(points_enu, dtype=np.float64)
     depth = (pts - c_prior) @ r_wc[2]
     uv = np.full((len(pts), 2), np.nan)
     uv[depth > 0] = project_pinhole(pts[depth > 0], r_wc, c_prior, k)
     in_frame = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
     cam_mc = geometry.enu_to_mc(c_prior, lat0, lon0)
-    pose = geometry.CameraPose(position=c_prior, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov)
+    fov = math.degrees(2.0 * math.atan(0.5 * width / k[0, 0]))
     frame = np.asarray(image, dtype=np.float64)
     cache: dict[int, np.ndarray] = {1: frame}
 
@@ -115,18 +116,17 @@ def appearance_detections(image, landmarks, refiner, fparams, c_prior, r_wc, k, 
 
     dets, windows = [], {}
     for q in np.nonzero(in_frame)[0]:
-        lm = cand[q]
+        lm = landmarks[q]
         try:
             win_mc, pred = predict_window(refiner.dem, lm, to_sun_mc, cam_mc, refiner.hapke, refiner.params)
         except DemError:  # the window or its far field leaves the DEM: not searched
             continue
         windows[lm.id] = (win_mc, pred)
         win_uv = project_pinhole(geometry.mc_to_enu(win_mc.reshape(-1, 3), lat0, lon0), r_wc, c_prior, k)
-        search = math.ceil(fparams.prior_sigma_km * 1000.0 * k[0, 0] / depth[q]) + params.margin_px
+        search = math.ceil(search_km * 1000.0 * k[0, 0] / depth[q]) + params.margin_px
         shift, ncc = register_wide(frame, win_uv, pred, search, params.coarse_steps, blurred)
         if shift is None or not ncc >= params.min_ncc:
             continue
-        normal = pts[q] + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
-        rim = geometry.project_circle(pts[q], normal / np.linalg.norm(normal), lm.diameter_km * 500.0, pose, width)
+        (rim,) = rim_ellipses(pts[q : q + 1], [lm.diameter_km * 500.0], c_prior, r_wc, fov, width)
         dets.append(Detection(rim.cu + shift[0], rim.cv + shift[1], rim.a, float(ncc)))
     return dets, windows

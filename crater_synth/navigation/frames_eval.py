@@ -172,9 +172,8 @@ def evaluate_frame(
     windows, empty = None, ""  # the appearance search's predicted windows (for the refinement); why no detections
     if detections is None and appearance is not None:
         sun = row["pose"]["to_sun_mc"]
-        dets, windows = appearance_detections(
-            image, landmarks, refiner, fparams, c_prior, r_wc, k, (lat0, lon0), sun, appearance
-        )
+        args = (refiner, c_prior, r_wc, k, (lat0, lon0), sun, fparams.prior_sigma_km, appearance)
+        dets, windows = appearance_detections(image, cand, pts, *args)
     elif detections is None:
         if scales_from_map:
             dparams = map_scales(dparams, fparams, gsd, r_pred[inside])

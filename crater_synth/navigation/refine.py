@@ -62,21 +62,24 @@ def _sun_frame(lat: float, lon: float, to_sun_mc) -> np.ndarray:
     """Rows: the unit vectors (MC) of a local frame at (lat, lon) whose y axis points to the Sun's azimuth
     (x to its right, z up): the Sun's rays then run along the frame's rows, so the far field needed for
     the shadows is a strip towards the Sun."""
-    east, north, up = geometry.enu_basis(lat, lon)
-    e, n, _ = geometry.enu_basis(lat, lon) @ np.asarray(to_sun_mc, dtype=np.float64)
+    basis = geometry.enu_basis(lat, lon)
+    east, north, up = basis
+    e, n, _ = basis @ np.asarray(to_sun_mc, dtype=np.float64)
     phi = math.atan2(e, n)
     return np.stack([math.cos(phi) * east - math.sin(phi) * north, math.sin(phi) * east + math.cos(phi) * north, up])
 
 
 def _surface(dem, lat: float, lon: float, frame: np.ndarray, x: np.ndarray, y: np.ndarray, spacing: float, what: str):
     """Local-frame (``frame``'s rows, origin on the sphere at (lat, lon)) points of the DEM surface below the
-    tangent-plane offsets (x, y) m, projected radially (curvature included)."""
-    origin = geometry.latlon_to_mc(lat, lon)
-    p = origin + x[..., None] * frame[0] + y[..., None] * frame[1]
-    dirs = p / np.linalg.norm(p, axis=-1, keepdims=True)
-    plat, plon, _ = geometry.mc_to_latlon(dirs * geometry.MOON_RADIUS_M)
+    tangent-plane offsets (x, y) m, projected radially (curvature included: the terrain grids' own
+    :func:`crater_synth.terrain.grid.sphere_points`)."""
+    from crater_synth.terrain.grid import sphere_points
+
+    # The frame's x and y axes in (east, north) components: the same tangent-plane points as ENU offsets.
+    x_en, y_en = frame[:2] @ geometry.enu_basis(lat, lon)[:2].T
+    dirs, plat, plon = sphere_points(x * x_en[0] + y * y_en[0], x * x_en[1] + y * y_en[1], lat, lon)
     h = dem.sample(plat, plon, spacing_m=spacing, what=what).heights
-    return (dirs * (geometry.MOON_RADIUS_M + h)[..., None] - origin) @ frame.T
+    return (dirs * (geometry.MOON_RADIUS_M + h)[..., None] - geometry.latlon_to_mc(lat, lon)) @ frame.T
 
 
 def _normals(xyz: np.ndarray) -> np.ndarray:
@@ -198,6 +201,17 @@ def register(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px
     return centre + np.array([j - search_px + ddu, i - search_px + ddv]), float(surf[i, j])
 
 
+def rim_ellipses(points, radii_m, c, r_wc, fov_deg: float, width: int) -> list:
+    """Image ellipses of rims of ``radii_m`` around the rim-centre ``points`` (n, 3; ENU of an origin on the
+    reference sphere, the rims in their local horizontal planes) seen by a camera at ``c`` with
+    world->camera rotation ``r_wc`` (the convention of :func:`.fix.project_pinhole`)."""
+    points = np.asarray(points, dtype=np.float64)
+    normals = points + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])  # local up: from the Moon's centre
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    pose = geometry.CameraPose(position=c, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov_deg)
+    return [geometry.project_circle(p, nrm, rad, pose, width) for p, nrm, rad in zip(points, normals, radii_m)]
+
+
 def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, width: int, iterations: int = 2):
     """(camera centre, corrected observations): a detection measures the rim ellipse's centre, which
     perspective moves off the image of the rim's centre point; each observation ``uv`` (n, 2) of a rim
@@ -207,13 +221,9 @@ def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, widt
     from crater_synth.navigation.fix import project_pinhole, solve_position
 
     points, uv = np.asarray(points, dtype=np.float64), np.asarray(uv, dtype=np.float64)
-    normals = points + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     c, corrected = np.asarray(c_fix, dtype=np.float64), uv
     for _ in range(iterations):
-        pose = geometry.CameraPose(position=c, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov_deg)
-        ellipses = [geometry.project_circle(p, nrm, rad, pose, width) for p, nrm, rad in zip(points, normals, radii_m)]
-        centres = np.array([[e.cu, e.cv] for e in ellipses])
+        centres = np.array([[e.cu, e.cv] for e in rim_ellipses(points, radii_m, c, r_wc, fov_deg, width)])
         corrected = uv - (centres - project_pinhole(points, r_wc, c, k))
         c = solve_position(points, corrected, k, r_wc)
     return c, corrected
