@@ -168,11 +168,8 @@ def navigate_command(
         from crater_synth.navigation.navigate_frame import navigate_frame
 
         chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
-        frame_presets = {
-            "classical": "synthetic",
-            "learned": "learned",
-            "appearance": "appearance",
-        }  # nav-frames-eval's
+        # --method -> the nav-frames-eval preset it names for rendered frames.
+        frame_presets = {"classical": "synthetic", "learned": "learned", "appearance": "appearance"}
         if chosen and method not in frame_presets:
             raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
         name = frame_presets[method] if chosen else DEFAULT_FRAMES_PRESET
