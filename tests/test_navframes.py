@@ -372,6 +372,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert res.exit_code != 0 and "unknown sensor 'nope'" in res.output and not (tmp_path / "t.json").exists()
     for args, message in (
         (["--prior-offset-km", "200"], "expected 0 to 100 km"),
+        (["--attitude-error-deg", "20"], "expected 0 to 10 degrees"),
         (["--attitude-error-deg", "0.1", "--write-results"], "standard prior and attitude only"),
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
