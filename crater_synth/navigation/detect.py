@@ -81,6 +81,8 @@ class DetectorParams:
     concentric_r: float = 0.0
     concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or filter score
     method: str = "filter"  # "filter" (classical), "template" (Hapke template NCC, .template) or "learned" (.learned)
+    # "appearance": no detector, the map's landmarks searched for by their predicted appearance under the
+    # prior (.appearance_window; needs the map and the prior, so nav-eval and navigate run it, not detect()).
     template_threshold: float = 0.35  # NCC of a template candidate
     template_sun_el_deg: float = 10.0  # Sun elevation the template is shaded at
     template_depth_d: float = 0.2  # template bowl depth / diameter
@@ -90,10 +92,14 @@ class DetectorParams:
     refine: bool = True  # fit the rim to the shadow and limb edges (:func:`refine_rims`)
     rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else the detection is dropped
     max_candidates: int = 400  # strongest filter maxima refined per frame
+    appearance_sun_el_deg: tuple = (8.0,)  # Sun elevations tried per window (the best-correlating kept)
+    appearance_min_ncc: float = 0.7  # a weaker correlation peak is no detection
+    appearance_coarse_steps: int = 8  # the search's first grid, steps each way
+    appearance_margin_px: int = 3  # added to the prior's uncertainty
 
     def __post_init__(self):
         choices = {
-            "method": ("filter", "template", "learned"),
+            "method": ("filter", "template", "learned", "appearance"),
             "light_method": ("tensor", "tail"),
             "light_scope": ("frame", "quadrant", "local"),
             "light_pool": ("quadrant", "sector", "pole"),
@@ -111,6 +117,16 @@ class DetectorParams:
             raise DetectorSettingsError(
                 f"detect.light_seed_deg={self.light_seed_deg} must be in [0, 180] and detect.light_tries_deg="
                 f"{self.light_tries_deg} must name at least one offset"
+            )
+        if not self.appearance_sun_el_deg or not all(0.0 < e < 90.0 for e in self.appearance_sun_el_deg):
+            raise DetectorSettingsError(
+                f"detect.appearance_sun_el_deg={self.appearance_sun_el_deg}: expected elevations in (0, 90)"
+            )
+        search = (self.appearance_coarse_steps, self.appearance_margin_px)
+        if not -1.0 <= self.appearance_min_ncc <= 1.0 or search[0] < 1 or search[1] < 0:
+            raise DetectorSettingsError(
+                f"detect.appearance_min_ncc={self.appearance_min_ncc} must be in [-1, 1], appearance_coarse_steps="
+                f"{self.appearance_coarse_steps} >= 1 and appearance_margin_px={self.appearance_margin_px} >= 0"
             )
         if not 0.0 < self.template_sun_el_deg < 90.0:
             raise DetectorSettingsError(f"detect.template_sun_el_deg={self.template_sun_el_deg}: expected in (0, 90)")
@@ -158,6 +174,9 @@ PRESETS = {
     ),
 }
 PRESETS["learned-detect"] = dataclasses.replace(PRESETS["learned"], learned_threshold=0.3)
+# No detector: the map's landmarks searched for by their predicted appearance (.appearance_window) under
+# the frozen light model's azimuth.
+PRESETS["appearance"] = DetectorParams(method="appearance", light_scope="local", light_pool="quadrant")
 # The second round's presets (light pooled per quadrant over the south validation sectors), with which
 # the south test split was run once: kept to reproduce that historic result (`nav-eval --set
 # detect.light_scope=quadrant --set detect.light_seed_deg=0`).
@@ -385,6 +404,11 @@ def detect(
         from crater_synth.navigation.learned import learned_candidates
 
         u, v, r, score = learned_candidates(a, params)
+    elif params.method == "appearance":
+        raise DetectorSettingsError(
+            f"{what}: detect.method='appearance' searches for map landmarks under a position prior; "
+            "run it through nav-eval or navigate, not as a detector"
+        )
     else:
         raise ValueError(f"detector method {params.method!r}: expected 'filter', 'template' or 'learned'")
     b = params.border_r * r

@@ -95,6 +95,8 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
     added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
     offset) is kept; with none fixed, the first offset's detections are returned."""
     prior = prior_georef(frame, seed)
+    if dparams.method == "appearance":
+        return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
     best = None
     for k, off in enumerate(dparams.light_tries_deg):
@@ -117,6 +119,25 @@ def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: Fi
             best = (key, dets, theta, fix)
     _, dets, theta, fix = best
     return dets, theta, fix, prior
+
+
+def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, prior: Georef, lis):
+    """:func:`navigate_frame` for ``detect.method="appearance"`` (:mod:`.appearance_window`): the landmarks
+    searched for under the prior, the light of the local model, then the same fix."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
+    from crater_synth.navigation.frames import check_frame
+    from crater_synth.navigation.light import frame_local_light
+
+    if lis is not None:
+        raise UserError("the appearance method searches under a position prior: it has no lost-in-space fix")
+    if dparams.light_scope != "local":
+        raise UserError(f"detect.light_scope={dparams.light_scope!r}: the appearance method needs 'local'")
+    image = check_frame(frame.image, f"frame {frame.id}")
+    alpha = frame_local_light(frame, dparams)
+    refiner = lander_refiner(frame.georef.pole)
+    dets, _ = window_detections(image, prior, landmarks, alpha, dparams, fparams, refiner)
+    theta = frame_light(frame, dparams)["light_dir"]
+    return dets, theta, fix_frame(dets, landmarks, prior, frame.image.shape, fparams), prior
 
 
 def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0, lis=None) -> dict:
@@ -305,6 +326,8 @@ METHOD_DESCRIPTIONS = {
     "learned": "fully convolutional network on an image pyramid, trained on rendered frames only "
     "(crater_synth.navigation.learned, train.crater_detector); navigation operating point",
     "learned-detect": "the learned detector at its detection operating point (best F1 on the south)",
+    "appearance": "no detector: each map landmark predicted from the DEM (Hapke, horizon shadows) and searched "
+    "for by NCC under the prior (crater_synth.navigation.appearance_window)",
 }
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
@@ -371,7 +394,7 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
 @click.option(
     "--method",
     "methods",
-    type=click.Choice(["classical", "template", "learned", "learned-detect"]),
+    type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
     multiple=True,
     help="Detection method(s); default all, in one table.",
 )

@@ -73,6 +73,13 @@ def local_light(pole: str, pool: str, index: int, light: DetectorParams) -> floa
     return pooled_light_azimuth([f.image for f in frames], light, rotations=rot, n_azimuths=LOCAL_POOL_AZIMUTHS)
 
 
+def frame_local_light(frame: Frame, dparams: DetectorParams) -> float:
+    """The local azimuth (radians, clockwise from local north) the light travels along in ``frame`` under
+    the "local" light model (:func:`local_light` of the frame's quadrant, sector or pole)."""
+    index = {"quadrant": frame.sector // 2, "sector": frame.sector, "pole": 0}[dparams.light_pool]
+    return local_light(frame.georef.pole, dparams.light_pool, index, _light_settings(dparams))
+
+
 def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
     """The light arguments of :func:`detect` for a mosaic window: ``light_dir`` (None: estimate on the
     frame) and ``light_prior`` ((direction, half-width) radians restricting the frame's estimate, or None)."""
@@ -85,8 +92,7 @@ def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
         }
     if dparams.light_scope == "local":
         pole = frame.georef.pole
-        index = {"quadrant": frame.sector // 2, "sector": frame.sector, "pole": 0}[dparams.light_pool]
-        alpha = local_light(pole, dparams.light_pool, index, _light_settings(dparams))
+        alpha = frame_local_light(frame, dparams)
         theta = float((local_north_image_angle(*frame.centre_xy, pole) + alpha) % (2.0 * math.pi))
         if dparams.light_seed_deg > 0:
             return {"light_dir": None, "light_prior": (theta, math.radians(dparams.light_seed_deg))}

@@ -89,8 +89,19 @@ def _normals(xyz: np.ndarray) -> np.ndarray:
     return nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
 
 
-def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefineParams = RefineParams()):
-    """(MC points (n, n, 3), predicted I/F (n, n)) of ``landmark``'s window seen from ``camera_mc``.
+@dataclasses.dataclass(frozen=True)
+class WindowTerrain:
+    """A landmark's predicted window before shading: what depends on the Sun's azimuth but not on its
+    elevation (:func:`window_terrain`), so several elevations share one DEM read."""
+
+    origin_mc: np.ndarray  # the window's origin on the sphere below the landmark
+    frame: np.ndarray  # rows: the Sun frame's unit vectors (MC), :func:`_sun_frame`
+    near: np.ndarray  # (n, n, 3) window surface points in the Sun frame
+    slope: np.ndarray  # (n, n) horizon slope towards the Sun
+
+
+def window_terrain(dem, landmark, to_sun_mc, params: RefineParams = RefineParams()) -> WindowTerrain:
+    """The DEM surface of ``landmark``'s window and its horizon towards the Sun's azimuth.
 
     Computed in the landmark's Sun frame (:func:`_sun_frame`): the window is the square of half-width
     ``window_diameters`` x D there, and the far field only the strip of the window's width (and two far
@@ -107,18 +118,32 @@ def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefinePar
         np.arange(-side, side + 1) * fs, np.arange(-side, math.ceil(params.far_radius_km * 1000.0 / fs) + 1) * fs
     )
     far = _surface(dem, lat, lon, frame, fx, fy, fs, f"landmark {landmark.id} far field")
-    to_sun = frame @ np.asarray(to_sun_mc, dtype=np.float64)
-    elevation = math.asin(max(-1.0, min(1.0, float(to_sun[2]))))
     slope = horizon_maps(Terrain(near, far), 0.0, [half], n)[0, 0]
-    lit = disc_fraction_above(elevation, np.arctan(slope))
-    cam = (np.asarray(camera_mc, dtype=np.float64) - geometry.latlon_to_mc(lat, lon)) @ frame.T
-    view = cam - near
-    view /= np.linalg.norm(view, axis=-1, keepdims=True)
+    return WindowTerrain(geometry.latlon_to_mc(lat, lon), frame, near, slope)
+
+
+def shade_window(terrain: WindowTerrain, to_sun_mc, camera_mc, hapke):
+    """(MC points (n, n, 3), predicted I/F (n, n)) of a :func:`window_terrain` seen from ``camera_mc``
+    under the Sun ``to_sun_mc`` (at the azimuth the terrain was computed for): Hapke shading times the
+    visible fraction of the solar disc."""
     from crater_core.hapke import shade_np
 
+    frame, near = terrain.frame, terrain.near
+    to_sun = frame @ np.asarray(to_sun_mc, dtype=np.float64)
+    elevation = math.asin(max(-1.0, min(1.0, float(to_sun[2]))))
+    lit = disc_fraction_above(elevation, np.arctan(terrain.slope))
+    cam = (np.asarray(camera_mc, dtype=np.float64) - terrain.origin_mc) @ frame.T
+    view = cam - near
+    view /= np.linalg.norm(view, axis=-1, keepdims=True)
     nrm = _normals(near)
     shade = np.where(nrm @ to_sun > 0.0, shade_np(nrm, to_sun, view, hapke), 0.0)
-    return near @ frame + geometry.latlon_to_mc(lat, lon), np.nan_to_num(shade * lit, nan=0.0)
+    return near @ frame + terrain.origin_mc, np.nan_to_num(shade * lit, nan=0.0)
+
+
+def predict_window(dem, landmark, to_sun_mc, camera_mc, hapke, params: RefineParams = RefineParams()):
+    """(MC points (n, n, 3), predicted I/F (n, n)) of ``landmark``'s window seen from ``camera_mc``
+    (:func:`window_terrain`, then :func:`shade_window`)."""
+    return shade_window(window_terrain(dem, landmark, to_sun_mc, params), to_sun_mc, camera_mc, hapke)
 
 
 def ncc_at_offsets(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> np.ndarray:

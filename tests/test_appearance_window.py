@@ -1,0 +1,78 @@
+"""The appearance search on real mosaic windows (crater_synth.navigation.appearance_window): the Sun
+direction, a fix on a real south window, the refusal of a frame that does not match, bad settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from crater_core import geometry
+from crater_synth.errors import UserError
+from crater_synth.navigation.appearance_window import sun_direction_mc
+from crater_synth.navigation.detect import PRESETS, DetectorParams, DetectorSettingsError, detect
+from crater_synth.navigation.fix import FixParams
+
+# A south window (development data: the south's settings are chosen on every south window) with 26 map
+# landmarks of D >= 15 km in view.
+WINDOW_ID = "S0_1600_0384"
+
+
+@pytest.fixture(scope="module")
+def south():
+    from crater_synth.navigation.frames import plan_windows, window_frame
+    from crater_synth.navigation.landmarks import load_default_map
+
+    (w,) = [w for w in plan_windows("south") if w[0] == WINDOW_ID]
+    return window_frame("south", *w), load_default_map("south")[0]
+
+
+@pytest.mark.parametrize("lat, lon", [(-85.0, 30.0), (82.0, 250.0)])
+def test_sun_direction_is_at_its_local_azimuth_and_elevation(lat, lon):
+    east, north, up = geometry.enu_basis(lat, lon)
+    s = sun_direction_mc(lat, lon, 0.0, 10.0)
+    assert np.isclose(s @ up, math.sin(math.radians(10.0))) and np.isclose(s @ north, math.cos(math.radians(10.0)))
+    s = sun_direction_mc(lat, lon, math.pi / 2, 3.0)
+    assert np.isclose(s @ east, math.cos(math.radians(3.0))) and abs(s @ north) < 1e-12
+
+
+def test_appearance_finds_the_map_landmarks_and_fixes_a_real_window(south):
+    from crater_synth.navigation.evaluate import run_frame
+
+    frame, landmarks = south
+    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams())
+    assert row["fix"], row["reason"]
+    assert row["error_km"] < 0.8  # 2 mosaic pixels
+    assert row["identified"] >= 5 and row["identified_correct"] >= 0.9 * row["identified"]
+    # Nearly every detection is one of the map's landmarks where the mosaic shows it.
+    assert row["n_detections"] >= 10 and len(row["matched"]) >= 0.9 * row["n_detections"]
+
+
+def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
+    """The window turned upside down: every landmark is predicted where the image shows something else.
+    The search may still find a few look-alikes, but no consistent set: "no fix", never a wrong one."""
+    from crater_synth.navigation.evaluate import run_frame
+
+    frame, landmarks = south
+    turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
+    row = run_frame(turned, landmarks, PRESETS["appearance"], FixParams())
+    assert not row["fix"]
+    assert row["n_detections"] < 0.5 * len(row["truth"])
+
+
+def test_appearance_settings_and_misuse_are_refused(south):
+    from crater_synth.navigation.evaluate import navigate_frame
+
+    with pytest.raises(DetectorSettingsError, match="appearance_sun_el_deg"):
+        DetectorParams(method="appearance", appearance_sun_el_deg=(0.0,))
+    with pytest.raises(DetectorSettingsError, match="appearance_min_ncc"):
+        DetectorParams(method="appearance", appearance_min_ncc=1.5)
+    frame, landmarks = south
+    with pytest.raises(DetectorSettingsError, match="position prior"):
+        detect(frame.image, PRESETS["appearance"], what="window")
+    with pytest.raises(UserError, match="lost-in-space"):
+        navigate_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=(None, None))
+    with pytest.raises(UserError, match="light_scope"):
+        navigate_frame(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
