@@ -76,3 +76,26 @@ def test_appearance_settings_and_misuse_are_refused(south):
         navigate_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=(None, None))
     with pytest.raises(UserError, match="light_scope"):
         navigate_frame(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
+
+
+def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
+    """`crater-synth navigate WINDOW.png --method appearance --light-azimuth A`: the window written as a PNG
+    with its georeference sidecar, the light's image direction from the local light model."""
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from crater_synth.cli import main
+    from crater_synth.navigation.light import frame_light
+
+    frame, _ = south
+    png = tmp_path / "window.png"
+    Image.fromarray(frame.image).save(png)
+    (tmp_path / "window.png.geo.json").write_text(json.dumps(frame.georef.as_dict()))
+    theta = math.degrees(frame_light(frame, PRESETS["appearance"])["light_dir"])
+    r = CliRunner().invoke(main, ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert out["fix"] and out["error_km"] < 0.8 and len(out["landmarks"]) >= 5
+    assert (tmp_path / "window.nav.png").is_file() and (tmp_path / "window.nav.json").is_file()

@@ -260,9 +260,11 @@ def test_navigate_bad_input(tmp_path):
     bad.write_text("{not json")
     r = runner.invoke(main, ["navigate", str(img), "--map", str(bad)])
     assert r.exit_code == 2 and "corrupt" in r.output
-    # The appearance search needs a rendered frame's Sun and pose: a map window refuses it.
+    # The appearance search predicts under the Sun: on a map window it needs the light's direction.
     r = runner.invoke(main, ["navigate", str(img), "--method", "appearance"])
-    assert r.exit_code == 2 and "needs a rendered frame" in r.output and len(r.output.strip().splitlines()) == 1
+    assert r.exit_code == 2 and "--light-azimuth" in r.output and len(r.output.strip().splitlines()) == 1
+    r = runner.invoke(main, ["navigate", str(img), "--sun-elevation", "5"])
+    assert r.exit_code == 2 and "only with --method appearance" in r.output
     # Corrupt georeference.
     (tmp_path / "frame.png.geo.json").write_text("{}")
     r = runner.invoke(main, ["navigate", str(img)])

@@ -132,6 +132,11 @@ def test_register_wide_recovers_a_shift_far_beyond_the_fine_search():
     assert got is not None and ncc > 0.98
     np.testing.assert_allclose(got, shift, atol=0.15)
     assert appearance.register_wide(image, uv, pred, 12, 8, blurred)[0] is None  # beyond the search: refused
+    # Thinned coarse grids (every k-th sample where the step spans k samples) find the same peak: the last
+    # stage correlates every sample.
+    thin, thin_ncc = appearance.register_wide(image, uv, pred, 30, 8, blurred, thin=True)
+    np.testing.assert_allclose(thin, got, atol=1e-9)
+    assert thin_ncc == ncc
 
 
 def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene):

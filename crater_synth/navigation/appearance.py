@@ -52,27 +52,45 @@ class AppearanceParams:
     margin_px: int = 3  # added to the prior's uncertainty (px)
 
 
-def register_wide(image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int, coarse_steps: int, blurred):
+def register_wide(
+    image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int, coarse_steps: int, blurred, thin=False
+):
     """(shift (du, dv) px, NCC) of ``predicted`` (values at pixels ``uv``, the convention of
     :func:`.refine.register`) in ``image`` within ``search_px``, coarse to fine (module docstring);
     ``blurred(step)`` is the frame blurred for a grid of that step. None when the first grid's peak lies
-    on its border or fewer than 16 samples stay in the frame under every shift."""
+    on its border or fewer than 16 samples stay in the frame under every shift.
+
+    ``thin``: a grid of step s > 1 px correlates only every k-th predicted sample each way, k the samples
+    per s px (``predicted`` a 2-D window): on a frame blurred to the step the dropped samples add little,
+    and the coarse grid costs k^2 times less."""
     inside = samples_in_reach(image.shape, uv, predicted, search_px)
     if inside is None:
         return None, float("nan")
-    u, v, p = inside
+    thinned = {1: inside}
+
+    def samples(step: int):
+        if not thin or step == 1:
+            return inside
+        grid = np.asarray(uv, dtype=np.float64).reshape(*np.shape(predicted), 2)
+        spacing = float(np.hypot(*(grid[0, 1] - grid[0, 0]))) or 1.0
+        k = max(1, int(step / spacing))
+        if k not in thinned:
+            thinned[k] = samples_in_reach(image.shape, grid[::k, ::k], predicted[::k, ::k], search_px) or inside
+        return thinned[k]
+
     step = max(1, math.ceil(search_px / coarse_steps))
     n = math.ceil(search_px / step)
-    surf = ncc_at_offsets(blurred(step), u, v, p, square_offsets(np.zeros(2), n, step)).reshape(2 * n + 1, -1)
+    surf = ncc_at_offsets(blurred(step), *samples(step), square_offsets(np.zeros(2), n, step)).reshape(2 * n + 1, -1)
     i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
     if i in (0, 2 * n) or j in (0, 2 * n):
         return None, float(surf[i, j])
     centre = np.array([(j - n) * step, (i - n) * step], dtype=float)
     while step > 1:
         step = max(1, step // 2)
-        surf = ncc_at_offsets(blurred(step), u, v, p, square_offsets(centre, 2, step)).reshape(5, -1)
+        surf = ncc_at_offsets(blurred(step), *samples(step), square_offsets(centre, 2, step)).reshape(5, -1)
         i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
         centre += np.array([(j - 2) * step, (i - 2) * step])
+    u, v, p = inside
     surf = ncc_at_offsets(blurred(1), u, v, p, square_offsets(centre, 1, 1)).reshape(3, -1)
     i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
     if (i, j) != (1, 1):  # the peak moved a pixel: no parabola about the old centre

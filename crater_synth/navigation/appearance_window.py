@@ -98,7 +98,9 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
             if uv is None:
                 lat, lon, _ = geometry.mc_to_latlon(points)
                 uv = np.stack(georef.xy_to_uv(*stereo_forward(lat, lon, georef.pole)), axis=-1)
-            shift, ncc = register_wide(frame, uv, predicted, search, dparams.appearance_coarse_steps, blurred)
+            shift, ncc = register_wide(
+                frame, uv, predicted, search, dparams.appearance_coarse_steps, blurred, dparams.appearance_thin
+            )
             found[k].append((lm, shift, ncc, (u0, v0)))
     if not any(found):
         return [], None

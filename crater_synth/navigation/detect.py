@@ -96,6 +96,7 @@ class DetectorParams:
     appearance_min_ncc: float = 0.7  # a weaker correlation peak is no detection
     appearance_coarse_steps: int = 8  # the search's first grid, steps each way
     appearance_margin_px: int = 3  # added to the prior's uncertainty
+    appearance_thin: bool = False  # coarse search grids correlate fewer samples (.appearance.register_wide)
 
     def __post_init__(self):
         choices = {
@@ -175,8 +176,17 @@ PRESETS = {
 }
 PRESETS["learned-detect"] = dataclasses.replace(PRESETS["learned"], learned_threshold=0.3)
 # No detector: the map's landmarks searched for by their predicted appearance (.appearance_window) under
-# the frozen light model's azimuth.
-PRESETS["appearance"] = DetectorParams(method="appearance", light_scope="local", light_pool="quadrant")
+# the frozen light model's azimuth. Fifth round, chosen on the south windows (development data) and
+# frozen before the north windows were run: one Sun elevation, NCC threshold and thinned coarse grids by
+# the declared rule (docs/navigation.md, section 5).
+PRESETS["appearance"] = DetectorParams(
+    method="appearance",
+    light_scope="local",
+    light_pool="quadrant",
+    appearance_sun_el_deg=(8.0,),
+    appearance_min_ncc=0.5,
+    appearance_thin=True,
+)
 # The second round's presets (light pooled per quadrant over the south validation sectors), with which
 # the south test split was run once: kept to reproduce that historic result (`nav-eval --set
 # detect.light_scope=quadrant --set detect.light_seed_deg=0`).

@@ -102,7 +102,8 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
     default="template",
     show_default=True,
-    help="Detection method (docs/navigation.md compares them); appearance: rendered frames only (their Sun).",
+    help="Detection method (docs/navigation.md compares them); appearance: map landmarks searched for by their "
+    "predicted appearance (a map window needs --light-azimuth).",
 )
 @click.option(
     "--model",
@@ -117,6 +118,13 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     default=None,
     help="Light travel direction in the image, degrees from +u (right) towards +v (down), e.g. from the "
     "attitude and the ephemeris; default: estimated on the frame.",
+)
+@click.option(
+    "--sun-elevation",
+    type=float,
+    default=None,
+    help="--method appearance on a map window: the Sun's elevation in degrees (default: the preset's, chosen "
+    "on the WAC mosaic's south windows).",
 )
 @click.option(
     "--lost-in-space",
@@ -134,7 +142,18 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 )
 @user_errors
 def navigate_command(
-    image, prior, pixel_m, pole, map_path, out, method, model_path, light_azimuth, lost_in_space, known_heading
+    image,
+    prior,
+    pixel_m,
+    pole,
+    map_path,
+    out,
+    method,
+    model_path,
+    light_azimuth,
+    sun_elevation,
+    lost_in_space,
+    known_heading,
 ):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
@@ -153,6 +172,7 @@ def navigate_command(
             "--map": map_path,
             "--model": model_path,
             "--light-azimuth": light_azimuth,
+            "--sun-elevation": sun_elevation,
             "--lost-in-space": lost_in_space or None,
             "--known-heading": known_heading or None,
         }
@@ -181,11 +201,13 @@ def navigate_command(
     from train.errors import RealSetError
     from train.realset import read_gray
 
-    if method == "appearance":
+    if method == "appearance" and (light_azimuth is None or lost_in_space):
         raise UserError(
-            f"--method appearance needs a rendered frame (its Sun and pose); {image} is a map window: "
-            "use classical, template or learned"
+            f"--method appearance on the map window {image} predicts each landmark under the Sun: give "
+            "--light-azimuth (from the attitude and the ephemeris) and a position prior, not --lost-in-space"
         )
+    if sun_elevation is not None and (method != "appearance" or not 0.0 < sun_elevation < 90.0):
+        raise UserError(f"--sun-elevation {sun_elevation}: only with --method appearance, in (0, 90) degrees")
     try:
         img = read_gray(image)
     except RealSetError as exc:
@@ -234,7 +256,11 @@ def navigate_command(
         raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
     dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
     light = None if light_azimuth is None else math.radians(light_azimuth)
-    dets, theta = detect(img, dparams, light_dir=light, what=str(image))
+    if method == "appearance":
+        assert prior_g is not None and light is not None
+        dets, theta = _appearance_detections(img, prior_g, landmarks, light, sun_elevation, dparams, fparams), light
+    else:
+        dets, theta = detect(img, dparams, light_dir=light, what=str(image))
     if prior_g is None:
         from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
 
@@ -271,3 +297,17 @@ def navigate_command(
     atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))
     result.update(annotated=str(out), detections_file=str(listing))
     click.echo(json.dumps(result))
+
+
+def _appearance_detections(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams):
+    """The appearance search (:mod:`.appearance_window`) on a map window: the light's image direction
+    ``light`` (radians) turned into its local azimuth at the prior's frame centre."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
+    from crater_synth.navigation.polar import local_north_image_angle
+
+    h, w = img.shape[:2]
+    alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
+    if sun_elevation is not None:
+        dparams = dataclasses.replace(dparams, appearance_sun_el_deg=(float(sun_elevation),))
+    dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, lander_refiner(prior_g.pole))
+    return dets
