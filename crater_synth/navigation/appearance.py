@@ -85,13 +85,18 @@ def register_wide(
     if i in (0, 2 * n) or j in (0, 2 * n):
         return None, float(surf[i, j])
     centre = np.array([(j - n) * step, (i - n) * step], dtype=float)
+    last = None  # the 5 x 5 one-pixel grid, when the last stage was one
     while step > 1:
         step = max(1, step // 2)
         surf = ncc_at_offsets(blurred(step), *samples(step), square_offsets(centre, 2, step)).reshape(5, -1)
         i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
         centre += np.array([(j - 2) * step, (i - 2) * step])
+        last = (surf, i, j) if step == 1 else None
     u, v, p = inside
-    surf = ncc_at_offsets(blurred(1), u, v, p, square_offsets(centre, 1, 1)).reshape(3, -1)
+    if last is not None and 0 < last[1] < 4 and 0 < last[2] < 4:  # its 3 x 3 around the peak, already computed
+        surf = last[0][last[1] - 1 : last[1] + 2, last[2] - 1 : last[2] + 2]
+    else:
+        surf = ncc_at_offsets(blurred(1), u, v, p, square_offsets(centre, 1, 1)).reshape(3, -1)
     i, j = np.unravel_index(int(np.argmax(surf)), surf.shape)
     if (i, j) != (1, 1):  # the peak moved a pixel: no parabola about the old centre
         return centre + np.array([j - 1, i - 1]), float(surf[i, j])

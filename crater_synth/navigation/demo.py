@@ -1,7 +1,7 @@
 """``make navigate-demo``: a small end-to-end navigation run on the embedded data.
 
 A few real south-mosaic windows of each split (fixed, spread over the sectors), the three detection methods
-with their frozen settings, the committed landmark map: per window and method an annotated PNG
+and the appearance search with their frozen settings, the committed landmark map: per window and method an annotated PNG
 (detections, identified landmarks, error arrow) and one table of the metrics over these windows, written
 to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
 (:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). Nothing heavy is
@@ -63,7 +63,7 @@ def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
 @click.option("--per-sector", type=int, default=DEMO_WINDOWS_PER_SECTOR, show_default=True)
 @user_errors
 def main(out: Path, per_sector: int):
-    """Annotated real windows and one table, both detection methods (module docstring)."""
+    """Annotated real windows and one table, every method (module docstring)."""
     from crater_core.schema import atomic_write_bytes, atomic_write_text
     from crater_synth.navigation.evaluate import (
         FALSE_FIX_KM,
@@ -86,7 +86,7 @@ def main(out: Path, per_sector: int):
     frames = demo_frames(per_sector)
     methods = {}
     windows_out = []
-    for method in ("classical", "template", "learned"):
+    for method in ("classical", "template", "learned", "appearance"):
         dparams, fparams = _params_with((), method)
         splits: dict = {}
         for f in frames:
@@ -108,7 +108,7 @@ def main(out: Path, per_sector: int):
             }
         }
     table = results_markdown({"methods": methods})
-    head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), both detection methods.\n\n"
+    head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), {len(methods)} methods.\n\n"
     atomic_write_text(out / "table.md", head + table)
     record = {
         "kind": "crater-synth navigate-demo",

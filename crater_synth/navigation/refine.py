@@ -154,10 +154,19 @@ def ncc_at_offsets(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> n
     iu, iv = np.floor(u).astype(np.intp), np.floor(v).astype(np.intp)
     fu, fv = u - iu, v - iv
     whole = np.rint(offsets).astype(np.intp)
-    c = np.clip(iu[None, :] + whole[:, :1], 0, w - 2)
-    r = np.clip(iv[None, :] + whole[:, 1:], 0, h - 2)
+    du, dv = whole[:, 0], whole[:, 1]
+    if (
+        iu.min() + du.min() >= 0
+        and iu.max() + du.max() <= w - 2
+        and iv.min() + dv.min() >= 0
+        and iv.max() + dv.max() <= h - 2
+    ):
+        base = (iv * w + iu)[None, :] + (dv * w + du)[:, None]  # every read inside: no clamping
+    else:
+        c = np.clip(iu[None, :] + whole[:, :1], 0, w - 2)
+        r = np.clip(iv[None, :] + whole[:, 1:], 0, h - 2)
+        base = r * w + c
     flat = np.ascontiguousarray(image, dtype=np.float64).ravel()
-    base = r * w + c
     vals = (flat[base] * (1.0 - fu) + flat[base + 1] * fu) * (1.0 - fv) + (
         flat[base + w] * (1.0 - fu) + flat[base + w + 1] * fu
     ) * fv
