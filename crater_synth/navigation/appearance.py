@@ -2,7 +2,7 @@
 
 A lander that knows its attitude, the Sun and its position to a few kilometres (the prior) can predict
 how each map landmark in view should look, from the DEM the map was measured in
-(:func:`.refine.predict_window`: Hapke shading and horizon-map shadows), and where it should be. Each
+(:meth:`.refine.Refiner.predict`: Hapke shading and horizon-map shadows), and where it should be. Each
 landmark the prior places in the frame is searched for around its predicted place by normalised
 cross-correlation (NCC):
 
@@ -36,7 +36,6 @@ from crater_synth.navigation.detect import Detection
 from crater_synth.navigation.refine import (
     ncc_at_offsets,
     parabola_vertex,
-    predict_window,
     rim_ellipses,
     samples_in_reach,
     square_offsets,
@@ -141,7 +140,7 @@ def appearance_detections(
     for q in np.nonzero(in_frame)[0]:
         lm = landmarks[q]
         try:
-            win_mc, pred = predict_window(refiner.dem, lm, to_sun_mc, cam_mc, refiner.hapke, refiner.params)
+            win_mc, pred = refiner.predict(lm, to_sun_mc, cam_mc)
         except DemError:  # the window or its far field leaves the DEM: not searched
             continue
         windows[lm.id] = (win_mc, pred)

@@ -17,8 +17,8 @@ Sun lies opposite), turned into each landmark's own local frame. Its elevation i
 mosaic's images were taken over many orbits and the elevation changes with latitude. Each window tries
 the ``appearance_sun_el_deg`` elevations and keeps the one whose predictions correlate best with the
 window (the median peak NCC over the landmarks searched): image statistics under the prior, no truth.
-The terrain of a window is read once per landmark and Sun azimuth (:func:`landmark_terrain`, kept
-between frames); only the shading changes with the elevation.
+The terrain of a window is read once per landmark and Sun azimuth (:meth:`.refine.Refiner.terrain`,
+kept between frames); only the shading changes with the elevation.
 
 What it cannot see: craters missing from the map (it looks only where the map and the prior say a
 landmark is), so its detection precision is measured against the map's own landmarks.
@@ -38,6 +38,9 @@ from crater_synth.navigation.polar import stereo_forward
 # The view of a mosaic window is nadir; a camera this far above the landmark sees every sample along its
 # local vertical to within 1e-5 rad (the WAC's own view angles are not known per mosaic pixel).
 NADIR_CAMERA_M = 1.0e7
+# The terrain of a landmark's window depends on the Sun's azimuth only: it is computed (and kept) for a Sun
+# at this elevation, and shaded at each elevation tried.
+TERRAIN_SUN_EL_DEG = 10.0
 
 
 @functools.lru_cache(maxsize=2)
@@ -46,27 +49,6 @@ def lander_refiner(pole: str):
     from crater_synth.navigation.refine import Refiner, lander_dem
 
     return Refiner(lander_dem(pole))
-
-
-# Landmark windows kept between frames (about 130 kB each): consecutive frames of a descent, and
-# overlapping mosaic windows under one quadrant's light, see the same landmarks under the same Sun azimuth.
-TERRAIN_CACHE_SIZE = 1024
-
-
-@functools.lru_cache(maxsize=TERRAIN_CACHE_SIZE)
-def landmark_terrain(refiner, landmark, sun_azimuth_rad: float):
-    """The :func:`.refine.window_terrain` of ``landmark`` for a Sun at local azimuth ``sun_azimuth_rad``
-    (it does not depend on the elevation), or None where its window or far field leaves the DEM. Cached:
-    a lander computes each landmark's window once for its descent's Sun, not once per frame (the
-    benchmark times both, ``cache_clear`` for the first)."""
-    from crater_synth.navigation.refine import window_terrain
-    from crater_synth.terrain.dem import DemError
-
-    sun = sun_direction_mc(landmark.lat, landmark.lon, sun_azimuth_rad, 10.0)
-    try:
-        return window_terrain(refiner.dem, landmark, sun, refiner.params)
-    except DemError:
-        return None
 
 
 def sun_direction_mc(lat: float, lon: float, azimuth_rad: float, elevation_deg: float) -> np.ndarray:
@@ -86,6 +68,7 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
 
     from crater_synth.navigation.appearance import register_wide
     from crater_synth.navigation.refine import shade_window
+    from crater_synth.terrain.dem import DemError
 
     frame = np.asarray(image, dtype=np.float64)
     height, width = frame.shape
@@ -106,8 +89,9 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
         u0, v0 = georef.xy_to_uv(lm.x_m, lm.y_m)
         if not (0.0 <= u0 < width and 0.0 <= v0 < height):
             continue
-        terrain = landmark_terrain(refiner, lm, sun_az)
-        if terrain is None:  # the window or its far field leaves the DEM: not searched
+        try:  # kept between frames under the same Sun azimuth (:meth:`.refine.Refiner.terrain`)
+            terrain = refiner.terrain(lm, sun_direction_mc(lm.lat, lm.lon, sun_az, TERRAIN_SUN_EL_DEG))
+        except DemError:  # the window or its far field leaves the DEM: not searched
             continue
         camera = lm.position_mc() + NADIR_CAMERA_M * geometry.enu_basis(lm.lat, lm.lon)[2]
         uv = None

@@ -585,9 +585,9 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
     landmark the prior places in the frame; its light from the local model of the frame's quadrant, pooled
     once before timing) in place of detection, then the same identification and fix. Timed twice: "cold",
     every landmark's window read from the DEM and its horizon computed in the frame, and "warm", those
-    windows kept from an earlier frame (:func:`.appearance_window.landmark_terrain`), as on a descent
-    whose landmarks were prepared for its Sun before it began."""
-    from crater_synth.navigation.appearance_window import lander_refiner, landmark_terrain, window_detections
+    windows kept from an earlier frame (:meth:`.refine.Refiner.terrain`), as on a descent whose
+    landmarks were prepared for its Sun before it began."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
     from crater_synth.navigation.detect import preset
     from crater_synth.navigation.frames import sector_of
     from crater_synth.navigation.light import frame_local_light
@@ -600,7 +600,7 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
         t_search, t_fix = [], []
         for k in range(repeats + 1):
             if mode == "cold":
-                landmark_terrain.cache_clear()
+                refiner.clear_terrains()
             t0 = time.perf_counter()
             dets, _ = window_detections(frame.image, prior, landmarks, alpha, dparams, fparams, refiner)
             t1 = time.perf_counter()

@@ -266,10 +266,46 @@ def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, widt
 class Refiner:
     """The appearance refinement with a lander's DEM (:func:`lander_dem`) and the project's Hapke model."""
 
+    # Landmark terrains kept (about 130 kB each): a trajectory's frames share one Sun, so each landmark's
+    # DEM window and horizon are computed once for all the frames that see it.
+    TERRAIN_CACHE_SIZE = 1024
+
     def __init__(self, dem, params: RefineParams = RefineParams()):
+        from collections import OrderedDict
+
         from crater_synth.navigation.template import hapke_params
 
         self.dem, self.params, self.hapke = dem, params, hapke_params()
+        self._terrains: OrderedDict = OrderedDict()
+
+    def terrain(self, landmark, to_sun_mc) -> WindowTerrain:
+        """:func:`window_terrain` of ``landmark`` with this refiner's DEM and settings, kept per landmark
+        and Sun vector (least recently used dropped first); a window that leaves the DEM raises its
+        :class:`~crater_synth.terrain.dem.DemError` again without reading it again."""
+        from crater_synth.terrain.dem import DemError
+
+        key = (landmark.id, tuple(np.asarray(to_sun_mc, dtype=np.float64).tolist()))
+        if key in self._terrains:
+            self._terrains.move_to_end(key)
+        else:
+            try:
+                self._terrains[key] = window_terrain(self.dem, landmark, to_sun_mc, self.params)
+            except DemError as exc:
+                self._terrains[key] = exc
+            if len(self._terrains) > self.TERRAIN_CACHE_SIZE:
+                self._terrains.popitem(last=False)
+        got = self._terrains[key]
+        if isinstance(got, DemError):
+            raise got
+        return got
+
+    def clear_terrains(self) -> None:
+        """Forget the kept terrains (the benchmark's cold runs)."""
+        self._terrains.clear()
+
+    def predict(self, landmark, to_sun_mc, camera_mc):
+        """:func:`predict_window` with this refiner's DEM, Hapke model and settings (:meth:`terrain`)."""
+        return shade_window(self.terrain(landmark, to_sun_mc), to_sun_mc, camera_mc, self.hapke)
 
     def refine(self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc, predicted=None):
         """Camera centre (frame ENU) after registering each identified landmark's predicted window.
@@ -293,9 +329,7 @@ class Refiner:
         windows = []
         for lm in landmarks:
             try:
-                pts_mc, pred = (predicted or {}).get(lm.id) or predict_window(
-                    self.dem, lm, to_sun_mc, cam_mc, self.hapke, p
-                )
+                pts_mc, pred = (predicted or {}).get(lm.id) or self.predict(lm, to_sun_mc, cam_mc)
                 windows.append((geometry.mc_to_enu(pts_mc.reshape(-1, 3), lat0, lon0), pred.ravel()))
             except DemError as exc:  # the window or its far field leaves the DEM: keep the detection
                 windows.append(str(exc))
