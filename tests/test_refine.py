@@ -187,3 +187,38 @@ def test_a_fix_its_landmarks_contradict_is_refused(scene):
     assert refiner.verified(info) == (True, "")
     lax = refine.Refiner(scene.dem, refine.RefineParams(verify=False))
     assert lax.verified({"landmarks": [{"used": False}]}) == (True, "")
+
+
+def test_refiner_keeps_each_landmark_terrain_for_its_sun_and_a_refusal_too(scene):
+    """A trajectory's frames share one Sun: the second prediction of a landmark reuses its DEM window and
+    horizon (identical to predicting afresh), a new Sun vector computes anew, and a window that leaves the
+    DEM is refused again without reading the DEM again."""
+    from crater_synth.terrain.dem import DemError
+
+    refiner = refine.Refiner(scene.dem)
+    reads = []
+    sample = scene.dem.sample
+    refiner.dem = SimpleNamespace(sample=lambda *a, **kw: reads.append(1) or sample(*a, **kw))
+    lm = scene.landmarks[0]
+    cam = geometry.enu_to_mc(scene.c_true, *scene.origin)
+    first = refiner.predict(lm, scene.to_sun_mc, cam)
+    n = len(reads)
+    again = refiner.predict(lm, scene.to_sun_mc, cam)
+    assert len(reads) == n and refiner.terrain(lm, scene.to_sun_mc) is refiner.terrain(lm, scene.to_sun_mc)
+    fresh = refine.predict_window(scene.dem, lm, scene.to_sun_mc, cam, refiner.hapke, refiner.params)
+    for a, b in zip(again, fresh):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(first[1], fresh[1])
+    other_sun = geometry.enu_basis(*scene.origin).T @ geometry.direction_from_elevation_azimuth(6.0, 90.0)
+    refiner.predict(lm, other_sun, cam)
+    assert len(reads) > n
+    outside = SimpleNamespace(id="far", lat=-60.0, lon=0.0, diameter_km=20.0)
+    with pytest.raises(DemError):
+        refiner.terrain(outside, scene.to_sun_mc)
+    n = len(reads)
+    with pytest.raises(DemError):
+        refiner.terrain(outside, scene.to_sun_mc)
+    assert len(reads) == n
+    refiner.clear_terrains()
+    refiner.predict(lm, scene.to_sun_mc, cam)
+    assert len(reads) > n
