@@ -99,3 +99,32 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 0.8 and len(out["landmarks"]) >= 5
     assert (tmp_path / "window.nav.png").is_file() and (tmp_path / "window.nav.json").is_file()
+
+
+def test_nav_eval_takes_the_prior_offset_and_refuses_a_nonsense_one(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    out = tmp_path / "nav.json"
+    args = ["nav-eval", "--pole", "south", "--split", "validation", "--every", "60", "--method", "appearance"]
+    r = CliRunner().invoke(main, [*args, "--prior-offset-km", "8", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    assert doc["protocol"]["prior_offset_km"] == 8.0 and doc["protocol"]["position_prior"] == "truth + 8 km"
+    assert doc["methods"]["appearance"]["splits"]["validation"]["all_windows"]["windows"] == 2
+    r = CliRunner().invoke(main, [*args, "--prior-offset-km", "200", "--out", str(tmp_path / "bad.json")])
+    assert r.exit_code == 2 and "--prior-offset-km=200" in r.output and len(r.output.strip().splitlines()) == 1
+    assert not (tmp_path / "bad.json").exists()
+
+
+def test_a_prior_beyond_the_search_gives_no_fix(south):
+    """The prior offset reaches the search: 60 km off (six times the 10 km the search reaches), no landmark
+    is where it is looked for, and the answer is "no fix"."""
+    from crater_synth.navigation.evaluate import run_frame
+
+    frame, landmarks = south
+    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), prior_offset_km=60.0)
+    assert not row["fix"] and len(row["matched"]) <= 2

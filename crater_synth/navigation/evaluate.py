@@ -87,14 +87,22 @@ def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) ->
     )
 
 
-def navigate_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0, lis=None):
+def navigate_frame(
+    frame: Frame,
+    landmarks,
+    dparams: DetectorParams,
+    fparams: FixParams,
+    seed: int = 0,
+    lis=None,
+    prior_offset_km: float = PRIOR_OFFSET_KM,
+):
     """Detection and fix of one mosaic window with its light model: (detections, light azimuth rad, fix,
     prior georef). ``lis``: (:class:`.lost_in_space.LostInSpaceParams`, its pair index) for the fix with
     no position prior (the prior georef is then not used; the pixel size is known). With several
     ``dparams.light_tries_deg`` the detector and the fix run once per offset
     added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
     offset) is kept; with none fixed, the first offset's detections are returned."""
-    prior = prior_georef(frame, seed)
+    prior = prior_georef(frame, seed, prior_offset_km)
     if dparams.method == "appearance":
         return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
@@ -140,10 +148,18 @@ def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams:
     return dets, theta, fix_frame(dets, landmarks, prior, frame.image.shape, fparams), prior
 
 
-def run_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, seed: int = 0, lis=None) -> dict:
+def run_frame(
+    frame: Frame,
+    landmarks,
+    dparams: DetectorParams,
+    fparams: FixParams,
+    seed: int = 0,
+    lis=None,
+    prior_offset_km: float = PRIOR_OFFSET_KM,
+) -> dict:
     """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
-    :func:`navigate_frame`)."""
-    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed, lis=lis)
+    :func:`navigate_frame`; ``prior_offset_km``: how far the prior is from the truth)."""
+    dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed, lis, prior_offset_km)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
     # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
@@ -260,6 +276,7 @@ def evaluate_split(
     progress: bool = False,
     pole: str = "south",
     lis_params=None,
+    prior_offset_km: float = PRIOR_OFFSET_KM,
 ) -> tuple[dict, list[dict]]:
     """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
     headline windows, and the per-window rows. ``lis_params``: the lost-in-space fix with these
@@ -276,7 +293,7 @@ def evaluate_split(
         lis = (lis_params, build_index(landmarks, lis_params))
     rows = []
     for k, f in enumerate(frames):
-        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis))
+        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km))
         if progress and k % 20 == 19:
             click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
     head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
@@ -413,6 +430,14 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     show_default=True,
     help="Lost-in-space settings (a key of crater_synth.navigation.lost_in_space.LIS_PRESETS).",
 )
+@click.option(
+    "--prior-offset-km",
+    type=float,
+    default=PRIOR_OFFSET_KM,
+    show_default=True,
+    help="How far the position prior is from the truth (seeded direction); the identification gate is "
+    "fix.prior_sigma_km. Results with another offset are not written to the results file.",
+)
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
 @click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
 @click.option(
@@ -423,7 +448,7 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     "methods run in full).",
 )
 @user_errors
-def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, sets, map_path, out):
+def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, prior_offset_km, sets, map_path, out):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
@@ -438,6 +463,8 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
 
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
+    if not 0.0 <= prior_offset_km <= 100.0:
+        raise UserError(f"--prior-offset-km={prior_offset_km} must be in [0, 100]")
     landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
@@ -468,12 +495,12 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
             "window_px": 512,
             "stride_px": 64,
             "windows_overlap": True,
-            "prior_offset_km": PRIOR_OFFSET_KM,
+            "prior_offset_km": prior_offset_km,
             "false_fix_km": FALSE_FIX_KM,
             "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
             "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
             "every": every,
-            "position_prior": "none (lost in space)" if lost_in_space else f"truth + {PRIOR_OFFSET_KM:g} km",
+            "position_prior": "none (lost in space)" if lost_in_space else f"truth + {prior_offset_km:g} km",
         },
         "landmark_map": {
             "dem_product": prov.get("dem_product"),
@@ -501,7 +528,15 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
         for split in splits:
             click.echo(f"{m}: {pole} {split}", err=True)
             summary, _ = evaluate_split(
-                split, landmarks, dparams, fparams, every=every, progress=True, pole=pole, lis_params=lis_params
+                split,
+                landmarks,
+                dparams,
+                fparams,
+                every=every,
+                progress=True,
+                pole=pole,
+                lis_params=lis_params,
+                prior_offset_km=prior_offset_km,
             )
             entry["splits"][split] = summary
         results["methods"][m] = entry
@@ -510,6 +545,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, se
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
     full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not sets and not map_path and not lost_in_space
+    full = full and prior_offset_km == PRIOR_OFFSET_KM
     if out:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)
