@@ -51,6 +51,21 @@ class AppearanceParams:
     margin_px: int = 3  # added to the prior's uncertainty (px)
 
 
+def blurred_frames(frame: np.ndarray):
+    """``blurred(step)``: ``frame`` blurred for a search grid of that step (Gaussian, sigma = step / 2, so
+    the grid's samples do not alias; step 1 is the frame itself), each step computed once."""
+    from scipy.ndimage import gaussian_filter
+
+    cache: dict[int, np.ndarray] = {1: frame}
+
+    def blurred(step: int) -> np.ndarray:
+        if step not in cache:
+            cache[step] = gaussian_filter(frame, step / 2.0)
+        return cache[step]
+
+    return blurred
+
+
 def register_wide(
     image: np.ndarray, uv: np.ndarray, predicted: np.ndarray, search_px: int, coarse_steps: int, blurred, thin=False
 ):
@@ -111,8 +126,6 @@ def appearance_detections(
     predicted appearance under the Sun ``to_sun_mc`` as far as ``search_km`` (the prior's uncertainty) at
     its depth (module docstring); ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke
     model. Returns (detections, the predicted windows by landmark id, for the refinement to reuse)."""
-    from scipy.ndimage import gaussian_filter
-
     from crater_synth.navigation.fix import project_pinhole
     from crater_synth.terrain.dem import DemError
 
@@ -129,12 +142,7 @@ def appearance_detections(
     cam_mc = geometry.enu_to_mc(c_prior, lat0, lon0)
     fov = math.degrees(2.0 * math.atan(0.5 * width / k[0, 0]))
     frame = np.asarray(image, dtype=np.float64)
-    cache: dict[int, np.ndarray] = {1: frame}
-
-    def blurred(step: int) -> np.ndarray:
-        if step not in cache:
-            cache[step] = gaussian_filter(frame, step / 2.0)
-        return cache[step]
+    blurred = blurred_frames(frame)
 
     dets, windows = [], {}
     for q in np.nonzero(in_frame)[0]:

@@ -64,25 +64,18 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
     whose centre the prior ``georef`` places in ``image``, each searched for by its predicted appearance
     (module docstring). ``light_azimuth_rad``: local azimuth (clockwise from local north) the light
     travels along; ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke model."""
-    from scipy.ndimage import gaussian_filter
-
-    from crater_synth.navigation.appearance import register_wide
+    from crater_synth.navigation.appearance import blurred_frames, register_wide
     from crater_synth.navigation.refine import shade_window
     from crater_synth.terrain.dem import DemError
 
     frame = np.asarray(image, dtype=np.float64)
     height, width = frame.shape
-    cache: dict[int, np.ndarray] = {1: frame}
-
-    def blurred(step: int) -> np.ndarray:
-        if step not in cache:
-            cache[step] = gaussian_filter(frame, step / 2.0)
-        return cache[step]
+    blurred = blurred_frames(frame)
 
     search = math.ceil(fparams.prior_sigma_km * 1000.0 / georef.pixel_m) + dparams.appearance_margin_px
     sun_az = light_azimuth_rad + math.pi
     elevations = tuple(dparams.appearance_sun_el_deg)
-    found: list[list] = [[] for _ in elevations]  # per elevation: (landmark, shift, ncc)
+    found: list[list] = [[] for _ in elevations]  # per elevation: (landmark, shift, NCC, predicted pixel)
     for lm in landmarks:
         if lm.diameter_km < fparams.min_landmark_km:
             continue
