@@ -9,7 +9,7 @@ Parts (``--part``, default all, in this order):
   fast-vs-direct per pixel on them), (e) the naive whole-frame baseline, and peak RSS, in one run
   (~10-20 min on 2 cores);
 - ``navigation``: detection + identification + fix frames/s on a 1024 x 1024 real mosaic window
-  (crater_synth.navigation.evaluate.bench_navigation);
+  (crater_synth.bench.navigation.bench_navigation);
 - ``export``: ``crater-synth export`` time and peak RSS on a generated dataset of ``--export-renders``
   EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export);
 - ``navframes``: navigation-frame renders/s along a trajectory, then their navigation time per frame,
@@ -92,7 +92,7 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                     f"make dataset OVERRIDES=sweep=demo, renders it)"
                 )
         if part in ("all", "navigation"):
-            from crater_synth.navigation.evaluate import bench_navigation
+            from crater_synth.bench.navigation import bench_navigation
 
             click.echo("navigation " + json.dumps(bench_navigation()))
         if part in ("all", "export"):

@@ -1,0 +1,108 @@
+"""``crater-synth bench --part navigation``: detection, identification and fix per second on a 1024 x 1024
+real mosaic window, every method in the same run (the classical baseline first), timed on the very
+functions ``nav-eval`` runs (:mod:`crater_synth.navigation.evaluate`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from crater_synth.navigation.detect import detect
+from crater_synth.navigation.evaluate import prior_georef
+from crater_synth.navigation.fix import FixParams, fix_frame
+from crater_synth.navigation.frames import Frame, Georef
+
+
+def bench_navigation(repeats: int = 3) -> dict:
+    """Frames/s of detection, identification and fix, each timed apart, on one 1024 x 1024 mosaic window
+    (the top-left corner of the south mosaic), for every method in the same run (the classical baseline,
+    the template detector, the learned detector, and the appearance search: :func:`_bench_appearance`):
+    median of ``repeats`` runs after one warm-up. The light direction is estimated on the frame where a
+    detector uses it (its cost is part of detection)."""
+    from crater_synth.navigation.detect import preset
+    from crater_synth.navigation.fix import identify, ransac_similarity
+    from crater_synth.navigation.frames import load_mosaic_image
+    from crater_synth.navigation.landmarks import load_default_map
+
+    landmarks, _ = load_default_map("south")
+    img, extent, pixel, _ = load_mosaic_image("south")
+    frame = Frame(
+        "bench", "bench", -1, np.ascontiguousarray(img[:1024, :1024]), Georef("south", -extent, extent, pixel)
+    )
+    prior = prior_georef(frame, 0)
+    fparams = FixParams()
+    lm_xy = np.array([[lm.x_m for lm in landmarks], [lm.y_m for lm in landmarks]]).T
+    out: dict = {"frame_px": 1024, "repeats": repeats}
+    for method in ("classical", "template", "learned"):
+        dparams = dataclasses.replace(preset(method), light_scope="frame")
+        t_det, t_id, t_fix = [], [], []
+        fix = None
+        for k in range(repeats + 1):
+            t0 = time.perf_counter()
+            dets, _ = detect(frame.image, dparams)
+            t1 = time.perf_counter()
+            pairs, _ = identify(dets, landmarks, prior, frame.image.shape, fparams)
+            t2 = time.perf_counter()
+            det_uv = np.array([[d.u, -d.v] for d in dets], float).reshape(-1, 2)
+            ransac_similarity(det_uv, np.array([d.r for d in dets]), lm_xy, pairs, complex(pixel, 0.0), fparams)
+            t3 = time.perf_counter()
+            fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+            if k:
+                t_det.append(t1 - t0)
+                t_id.append(t2 - t1)
+                t_fix.append(t3 - t2)
+        det_s, id_s, fix_s = (float(np.median(t)) for t in (t_det, t_id, t_fix))
+        total = det_s + id_s + fix_s
+        out[method] = {
+            "detection_s": round(det_s, 3),
+            "identification_s": round(id_s, 4),
+            "fix_s": round(fix_s, 4),
+            "seconds_per_frame": round(total, 3),
+            "frames_per_s": round(1.0 / total, 3),
+            "detections": len(dets),
+            "fix": bool(fix.ok) if fix else False,
+        }
+    out["appearance"] = _bench_appearance(frame, landmarks, prior, fparams, repeats)
+    return out
+
+
+def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams, repeats: int) -> dict:
+    """The appearance search's part of :func:`bench_navigation`: the search (prediction and NCC of every
+    landmark the prior places in the frame; its light from the local model of the frame's quadrant, pooled
+    once before timing) in place of detection, then the same identification and fix. Timed twice: "cold",
+    every landmark's window read from the DEM and its horizon computed in the frame, and "warm", those
+    windows kept from an earlier frame (:meth:`.refine.Refiner.terrain`), as on a descent whose
+    landmarks were prepared for its Sun before it began."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
+    from crater_synth.navigation.detect import preset
+    from crater_synth.navigation.frames import sector_of
+    from crater_synth.navigation.light import frame_local_light
+
+    dparams = preset("appearance")
+    frame = dataclasses.replace(frame, sector=int(sector_of(*frame.centre_xy, frame.georef.pole)))
+    alpha, refiner = frame_local_light(frame, dparams), lander_refiner(frame.georef.pole)
+    out: dict = {}
+    for mode in ("cold", "warm"):
+        t_search, t_fix = [], []
+        for k in range(repeats + 1):
+            if mode == "cold":
+                refiner.clear_terrains()
+            t0 = time.perf_counter()
+            dets, _ = window_detections(frame.image, prior, landmarks, alpha, dparams, fparams, refiner)
+            t1 = time.perf_counter()
+            fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
+            if k:
+                t_search.append(t1 - t0)
+                t_fix.append(time.perf_counter() - t1)
+        search_s, fix_s = float(np.median(t_search)), float(np.median(t_fix))
+        out[mode] = {
+            "search_s": round(search_s, 3),
+            "identification_and_fix_s": round(fix_s, 4),
+            "seconds_per_frame": round(search_s + fix_s, 3),
+            "frames_per_s": round(1.0 / (search_s + fix_s), 3),
+            "detections": len(dets),
+            "fix": bool(fix.ok),
+        }
+    return out
