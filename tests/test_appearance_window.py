@@ -72,8 +72,6 @@ def test_appearance_settings_and_misuse_are_refused(south):
     frame, landmarks = south
     with pytest.raises(DetectorSettingsError, match="position prior"):
         detect(frame.image, PRESETS["appearance"], what="window")
-    with pytest.raises(UserError, match="lost-in-space"):
-        navigate_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=(None, None))
     with pytest.raises(UserError, match="light_scope"):
         navigate_frame(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
 

@@ -129,15 +129,29 @@ def navigate_frame(
     return dets, theta, fix, prior
 
 
+# With no position prior, the appearance search starts from this detector's lost-in-space fix (the best
+# lost-in-space detector on the south and the north, docs/navigation.md section 6).
+LOST_IN_SPACE_FIRST_STAGE = "template"
+
+
 def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, prior: Georef, lis):
     """:func:`navigate_frame` for ``detect.method="appearance"`` (:mod:`.appearance_window`): the landmarks
-    searched for under the prior, the light of the local model, then the same fix."""
+    searched for under the prior, the light of the local model, then the same fix. Lost in space
+    (``lis``): the prior is the :data:`LOST_IN_SPACE_FIRST_STAGE` detector's lost-in-space fix, and a frame
+    it cannot fix is "no fix"."""
     from crater_synth.navigation.appearance_window import lander_refiner, window_detections
     from crater_synth.navigation.frames import check_frame
     from crater_synth.navigation.light import frame_local_light
 
-    if lis is not None:
-        raise UserError("the appearance method searches under a position prior: it has no lost-in-space fix")
+    if lis is not None:  # no prior: the template's lost-in-space fix becomes the search's prior
+        from crater_synth.navigation.detect import PRESETS
+
+        _, _, coarse, _ = navigate_frame(frame, landmarks, PRESETS[LOST_IN_SPACE_FIRST_STAGE], fparams, lis=lis)
+        if not coarse.ok:
+            return [], math.nan, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}"), prior
+        h, w = frame.image.shape
+        p = frame.georef.pixel_m
+        prior = Georef(frame.georef.pole, coarse.x_m - w / 2 * p, coarse.y_m + h / 2 * p, p)
     if dparams.light_scope != "local":
         raise UserError(f"detect.light_scope={dparams.light_scope!r}: the appearance method needs 'local'")
     image = check_frame(frame.image, f"frame {frame.id}")
@@ -524,6 +538,8 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
         }
         if lis_params is not None:
             entry["fix"]["method"] = "lost in space: crater-pair votes over the map + RANSAC 2-D similarity"
+            if dparams.method == "appearance":
+                entry["fix"]["method"] += f" ({LOST_IN_SPACE_FIRST_STAGE}), then the appearance search around it"
             entry["lost_in_space"] = {"preset": lis_preset, **lis_params.as_dict()}
         for split in splits:
             click.echo(f"{m}: {pole} {split}", err=True)
