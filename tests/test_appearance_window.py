@@ -126,3 +126,19 @@ def test_a_prior_beyond_the_search_gives_no_fix(south):
     frame, landmarks = south
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), prior_offset_km=60.0)
     assert not row["fix"] and len(row["matched"]) <= 2
+
+
+def test_lost_in_space_then_the_appearance_search(south):
+    """No prior: the template's lost-in-space fix (heading known) is the search's prior; the chain's fix
+    is the search's (every fix landmark found by its appearance), as accurate as with a prior."""
+    import dataclasses as dc
+
+    from crater_synth.navigation.evaluate import run_frame
+    from crater_synth.navigation.lost_in_space import LIS_PRESETS, build_index
+
+    frame, landmarks = south
+    lis_params = dc.replace(LIS_PRESETS["south-choice"], known_heading=True)
+    lis = (lis_params, build_index(landmarks, lis_params))
+    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=lis)
+    assert row["fix"], row["reason"]
+    assert row["error_km"] < 0.8 and row["identified"] >= 10 and len(row["matched"]) >= 0.9 * row["n_detections"]
