@@ -159,7 +159,9 @@ def navigate_command(
 
     A map window is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
     `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
-    position (default: the georeference centre moved by 5 km). A rendered frame (`frame_NNNN.exr` of
+    position (default: the georeference centre moved by 5 km). `--method appearance` searches for the map's
+    landmarks by their appearance predicted from the DEM under the Sun: give `--light-azimuth` (and
+    `--sun-elevation`). A rendered frame (`frame_NNNN.exr` of
     `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose and Sun from its manifest,
     prior the true camera moved by 5 km, `--method appearance` (default), `classical` or `learned`. Prints one
     JSON line.
