@@ -284,3 +284,25 @@ def test_iau_match_uses_the_fixed_tolerances():
     iau = [{"diameter_km": d, "lat": lat, "lon": lon}]
     assert match_iau([near, far, small], iau, "south")[0]["landmark"] == "S0001"
     assert match_iau([far, small], iau, "south")[0]["landmark"] is None  # 0.2 D off; 30 % too small
+
+
+def test_a_similarity_from_one_repeated_point_is_refused_not_a_nan_fix():
+    """Two pairs that share one detection span no similarity: fit_similarity says so with NaN (no
+    division warning), and ransac_similarity answers "no fix"."""
+    import warnings
+
+    from crater_synth.navigation.fix import FixParams, fit_similarity, ransac_similarity
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a, b = fit_similarity(np.array([[3.0, 4.0], [3.0, 4.0]]), np.array([[10.0, 0.0], [20.0, 5.0]]))
+    assert np.isnan(a) and np.isnan(b)
+    det_uv = np.array([[3.0, -4.0]])
+    lm_xy = np.array([[1200.0, -1600.0], [1200.0, -1600.4]])
+    pairs = np.array([[0, 0], [0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fix, _, _ = ransac_similarity(
+            det_uv, np.array([5.0]), lm_xy, pairs, complex(400.0, 0.0), FixParams(min_inliers=2)
+        )
+    assert not fix.ok

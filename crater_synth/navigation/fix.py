@@ -82,7 +82,10 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[complex, complex]:
     z = src[:, 0] + 1j * src[:, 1]
     w = dst[:, 0] + 1j * dst[:, 1]
     zc, wc = z - z.mean(), w - w.mean()
-    a = complex(np.vdot(zc, wc) / np.vdot(zc, zc))
+    spread = np.vdot(zc, zc)
+    if not spread.real > 0.0:  # every source point the same (one detection paired twice): no similarity
+        return complex(math.nan, math.nan), complex(math.nan, math.nan)
+    a = complex(np.vdot(zc, wc) / spread)
     return a, complex(w.mean() - a * z.mean())
 
 
@@ -149,6 +152,8 @@ def ransac_similarity(
     for _ in range(2):
         idx = np.array(best)
         a, b = fit_similarity(det_uv[idx[:, 0]], lm_xy[idx[:, 1]])
+        if not np.isfinite(a):
+            return Fix(False, "the agreeing pairs share one detection: no similarity"), a, b
         best = _inliers(a, b, det_uv, det_r, lm_xy, pairs, params) or best
     if len(best) < params.min_inliers:
         return Fix(False, f"only {len(best)} landmarks agree (need {params.min_inliers})"), a, b
