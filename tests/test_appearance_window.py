@@ -97,6 +97,14 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 0.8 and len(out["landmarks"]) >= 5
     assert (tmp_path / "window.nav.png").is_file() and (tmp_path / "window.nav.json").is_file()
+    # No prior: the template's lost-in-space fix (heading known) is the search's prior, as in nav-eval.
+    lis = ["--lost-in-space", "--known-heading", "--out", str(tmp_path / "lis.png")]
+    r = CliRunner().invoke(
+        main, ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}", *lis]
+    )
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert out["position_prior"] == "none (lost in space)" and out["fix"] and out["error_km"] < 0.8
 
 
 def test_nav_eval_takes_the_prior_offset_and_refuses_a_nonsense_one(tmp_path):

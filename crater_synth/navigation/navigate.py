@@ -161,10 +161,10 @@ def navigate_command(
     `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
     position (default: the georeference centre moved by 5 km). `--method appearance` searches for the map's
     landmarks by their appearance predicted from the DEM under the Sun: give `--light-azimuth` (and
-    `--sun-elevation`). A rendered frame (`frame_NNNN.exr` of
-    `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose and Sun from its manifest,
-    prior the true camera moved by 5 km, `--method appearance` (default), `classical` or `learned`. Prints one
-    JSON line.
+    `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
+    frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
+    and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
+    `classical` or `learned`. Prints one JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -203,10 +203,10 @@ def navigate_command(
     from train.errors import RealSetError
     from train.realset import read_gray
 
-    if method == "appearance" and (light_azimuth is None or lost_in_space):
+    if method == "appearance" and light_azimuth is None:
         raise UserError(
             f"--method appearance on the map window {image} predicts each landmark under the Sun: give "
-            "--light-azimuth (from the attitude and the ephemeris) and a position prior, not --lost-in-space"
+            "--light-azimuth (from the attitude and the ephemeris)"
         )
     if sun_elevation is not None and (method != "appearance" or not 0.0 < sun_elevation < 90.0):
         raise UserError(f"--sun-elevation {sun_elevation}: only with --method appearance, in (0, 90) degrees")
@@ -258,22 +258,33 @@ def navigate_command(
         raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
     dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
     light = None if light_azimuth is None else math.radians(light_azimuth)
-    if method == "appearance":
-        assert prior_g is not None and light is not None
-        dets, theta = _appearance_detections(img, prior_g, landmarks, light, sun_elevation, dparams, fparams), light
-    else:
-        dets, theta = detect(img, dparams, light_dir=light, what=str(image))
-    if prior_g is None:
+
+    def vote_fix(dets):
         from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
 
         lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
-        fix = lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
+        return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
+
+    if method == "appearance":
+        assert light is not None
+        if prior_g is None:  # no prior: the first stage's lost-in-space fix is the search's prior (as nav-eval)
+            from crater_synth.navigation.evaluate import LOST_IN_SPACE_FIRST_STAGE
+
+            coarse = vote_fix(detect(img, preset(LOST_IN_SPACE_FIRST_STAGE), light_dir=light, what=str(image))[0])
+            if coarse.ok:
+                prior_g = Georef(pole, coarse.x_m - w / 2 * pixel, coarse.y_m + h / 2 * pixel, pixel)
+        if prior_g is None:
+            dets, theta, fix = [], light, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}")
+        else:
+            dets = _appearance_detections(img, prior_g, landmarks, light, sun_elevation, dparams, fparams)
+            theta, fix = light, fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     else:
-        fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+        dets, theta = detect(img, dparams, light_dir=light, what=str(image))
+        fix = vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     result = {
         "image": str(image),
         "method": method,
-        "position_prior": "none (lost in space)" if prior_g is None else ("--prior" if prior else "truth + 5 km"),
+        "position_prior": "none (lost in space)" if lost_in_space else ("--prior" if prior else "truth + 5 km"),
         "detections": len(dets),
         "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "fix": fix.ok,
