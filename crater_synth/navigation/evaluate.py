@@ -149,9 +149,7 @@ def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams:
         _, _, coarse, _ = navigate_frame(frame, landmarks, PRESETS[LOST_IN_SPACE_FIRST_STAGE], fparams, lis=lis)
         if not coarse.ok:
             return [], math.nan, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}"), prior
-        h, w = frame.image.shape
-        p = frame.georef.pixel_m
-        prior = Georef(frame.georef.pole, coarse.x_m - w / 2 * p, coarse.y_m + h / 2 * p, p)
+        prior = Georef.centred_on(frame.georef.pole, coarse.x_m, coarse.y_m, frame.image.shape, frame.georef.pixel_m)
     if dparams.light_scope != "local":
         raise UserError(f"detect.light_scope={dparams.light_scope!r}: the appearance method needs 'local'")
     image = check_frame(frame.image, f"frame {frame.id}")

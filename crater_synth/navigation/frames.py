@@ -59,6 +59,12 @@ class Georef:
     top_m: float
     pixel_m: float
 
+    @classmethod
+    def centred_on(cls, pole: str, x_m: float, y_m: float, shape, pixel_m: float) -> "Georef":
+        """The georeference of a frame of ``shape`` (h, w) whose centre is map point (x_m, y_m)."""
+        h, w = shape[:2]
+        return cls(pole, float(x_m) - w / 2 * pixel_m, float(y_m) + h / 2 * pixel_m, pixel_m)
+
     def uv_to_xy(self, u, v):
         return self.left_m + np.asarray(u) * self.pixel_m, self.top_m - np.asarray(v) * self.pixel_m
 

@@ -240,7 +240,7 @@ def navigate_command(
         except ValueError:
             raise UserError(f"--prior {prior!r}: expected LAT,LON in degrees") from None
         cx, cy = stereo_forward(lat, lon, pole)
-        prior_g = Georef(pole, float(cx) - w / 2 * pixel, float(cy) + h / 2 * pixel, pixel)
+        prior_g = Georef.centred_on(pole, cx, cy, img.shape, pixel)
     elif not lost_in_space:
         assert truth is not None
         fr = Frame(image.name, "user", -1, img, truth)
@@ -272,7 +272,7 @@ def navigate_command(
 
             coarse = vote_fix(detect(img, preset(LOST_IN_SPACE_FIRST_STAGE), light_dir=light, what=str(image))[0])
             if coarse.ok:
-                prior_g = Georef(pole, coarse.x_m - w / 2 * pixel, coarse.y_m + h / 2 * pixel, pixel)
+                prior_g = Georef.centred_on(pole, coarse.x_m, coarse.y_m, img.shape, pixel)
         if prior_g is None:
             dets, theta, fix = [], light, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}")
         else:
