@@ -392,6 +392,11 @@ def detect(
     "template": normalised cross-correlation with a Hapke-shaded crater template at the frame's light
     direction (:mod:`crater_synth.navigation.template`). Both share the light estimate, the rim fit and
     the suppression of overlapping and concentric detections."""
+    if params.method == "appearance":  # refused before any work on the frame
+        raise DetectorSettingsError(
+            f"{what}: detect.method='appearance' searches for map landmarks under a position prior; "
+            "run it through nav-eval or navigate, not as a detector"
+        )
     a = check_frame(image, what)
     a = (a - a.mean()) / a.std()
     h, w = a.shape
@@ -414,11 +419,6 @@ def detect(
         from crater_synth.navigation.learned import learned_candidates
 
         u, v, r, score = learned_candidates(a, params)
-    elif params.method == "appearance":
-        raise DetectorSettingsError(
-            f"{what}: detect.method='appearance' searches for map landmarks under a position prior; "
-            "run it through nav-eval or navigate, not as a detector"
-        )
     else:
         raise ValueError(f"detector method {params.method!r}: expected 'filter', 'template' or 'learned'")
     b = params.border_r * r

@@ -77,6 +77,15 @@ def match_detections(dets: list[Detection], landmarks, idx: list[int], georef: G
     return out
 
 
+MAX_PRIOR_OFFSET_KM = 100.0
+
+
+def check_prior_offset_km(offset_km: float) -> None:
+    """One error line for a ``--prior-offset-km`` (nav-eval, nav-frames-eval) outside [0, 100] km."""
+    if not 0.0 <= offset_km <= MAX_PRIOR_OFFSET_KM:
+        raise UserError(f"--prior-offset-km={offset_km:g}: expected 0 to {MAX_PRIOR_OFFSET_KM:g} km")
+
+
 def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> Georef:
     """The truth georeference shifted by ``offset_km`` in a seeded random direction (the coarse prior)."""
     rng = np.random.default_rng([seed, zlib.crc32(frame.id.encode())])
@@ -475,8 +484,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
 
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
-    if not 0.0 <= prior_offset_km <= 100.0:
-        raise UserError(f"--prior-offset-km={prior_offset_km} must be in [0, 100]")
+    check_prior_offset_km(prior_offset_km)
     landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")

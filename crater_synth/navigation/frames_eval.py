@@ -57,6 +57,7 @@ from crater_synth.navigation.evaluate import (
     MATCH_CENTRE_D,
     MATCH_DIAMETER,
     PRIOR_OFFSET_KM,
+    check_prior_offset_km,
     summarise,
 )
 from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, rodrigues
@@ -447,8 +448,7 @@ def nav_frames_eval_command(
         camera = SensorModel.from_settings(load_settings([f"sensor={sensor}"]).sensor)
     if not 0.0 <= attitude_error_deg <= 10.0:
         raise UserError(f"--attitude-error-deg {attitude_error_deg:g}: expected 0 to 10 degrees")
-    if not 0.0 <= prior_offset_km <= 100.0:
-        raise UserError(f"--prior-offset-km {prior_offset_km:g}: expected 0 to 100 km")
+    check_prior_offset_km(prior_offset_km)
     if write_results and (attitude_error_deg or prior_offset_km != PRIOR_OFFSET_KM):
         raise UserError("--write-results records the standard prior and attitude only")
     args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
