@@ -77,13 +77,53 @@ def test_embedded_dem_metadata(lola):
     assert info["product"] == "lola_ldem256_south" and "stere" in info["crs_proj"]
 
 
-def test_projection_matches_geometry_module(lola):
+def test_projection_matches_proj_and_geometry_module(lola):
+    from rasterio.warp import transform
+
     rng = np.random.default_rng(1)
     lat, lon = rng.uniform(-90, -75, 500), rng.uniform(-180, 180, 500)
+    assert lola.stereo_pole == "south"  # the numpy projection, checked against PROJ below
     x, y = lola.latlon_to_xy(lat, lon)
+    px, py = transform(lola.geographic_crs, lola.crs, lon, lat)
+    np.testing.assert_allclose(x, px, atol=1e-6)
+    np.testing.assert_allclose(y, py, atol=1e-6)
     xs, ys = g.south_polar_stereo_forward(lat, lon)
     np.testing.assert_allclose(x, xs, atol=1e-6)
     np.testing.assert_allclose(y, ys, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "crs, pole",
+    [
+        (STEREO_SOUTH, "south"),
+        (STEREO_SOUTH.replace("-90", "90"), "north"),
+        (STEREO_SOUTH.replace("+x_0=0", "+x_0=5000"), None),  # a false easting: PROJ projects
+        (STEREO_SOUTH.replace("+lat_ts=-90", "+lat_ts=-80"), None),  # another scale: PROJ projects
+        ("+proj=eqc +R=1737400 +units=m +no_defs", None),
+    ],
+)
+def test_projection_in_numpy_only_where_it_is_proj_s(tmp_path, crs, pole):
+    from rasterio.warp import transform
+
+    dem = Dem(write_geotiff(tmp_path / "d.tif", plane().astype(np.float32), crs=crs))
+    assert dem.stereo_pole == pole
+    lat = np.array([-89.0, -88.5, 88.7, 89.2]) if "eqc" not in crs else np.array([0.1, -0.2, 0.3, 0.0])
+    lon = np.array([10.0, -120.0, 45.0, 179.0])
+    x, y = dem.latlon_to_xy(lat, lon)
+    px, py = transform(dem.geographic_crs, dem.crs, lon, lat)
+    np.testing.assert_allclose(np.c_[x, y], np.c_[px, py], atol=1e-6)
+
+
+def test_dem_handle_kept_open_and_reopened_after_pickling(lola):
+    import pickle
+
+    lat, lon = np.array([-88.0, -87.5]), np.array([20.0, 100.0])
+    before = lola.sample(lat, lon).heights
+    handle = lola._dataset()
+    assert lola._dataset() is handle  # one open handle per process
+    copy = pickle.loads(pickle.dumps(lola))  # as a worker receives it
+    assert copy._open is None
+    np.testing.assert_array_equal(copy.sample(lat, lon).heights, before)
 
 
 @pytest.mark.parametrize("name", sorted(CRATERS))

@@ -155,21 +155,33 @@ def ncc_at_offsets(image: np.ndarray, u, v, predicted, offsets: np.ndarray) -> n
     fu, fv = u - iu, v - iv
     whole = np.rint(offsets).astype(np.intp)
     du, dv = whole[:, 0], whole[:, 1]
-    if (
+    flat = np.ascontiguousarray(image, dtype=np.float64).ravel()
+    inside = (
         iu.min() + du.min() >= 0
         and iu.max() + du.max() <= w - 2
         and iv.min() + dv.min() >= 0
         and iv.max() + dv.max() <= h - 2
-    ):
-        base = (iv * w + iu)[None, :] + (dv * w + du)[:, None]  # every read inside: no clamping
+    )
+    rows, row_of = np.unique(np.concatenate([dv, dv + 1]), return_inverse=True)
+    if inside and rows.size < 2 * np.unique(dv).size:
+        # A one-pixel grid: neighbouring offsets share image rows, so each (row, column) offset is
+        # interpolated along the row once and the offsets combine those rows (the same arithmetic, in
+        # the same order, as below: the same values to the bit, ~40 % fewer reads).
+        cols, col_of = np.unique(du, return_inverse=True)
+        base = (iv * w + iu)[None, None, :] + (rows[:, None] * w + cols[None, :])[..., None]
+        along = flat[base] * (1.0 - fu) + flat[base + 1] * fu
+        top, bottom = row_of[: du.size], row_of[du.size :]
+        vals = along[top, col_of] * (1.0 - fv) + along[bottom, col_of] * fv
     else:
-        c = np.clip(iu[None, :] + whole[:, :1], 0, w - 2)
-        r = np.clip(iv[None, :] + whole[:, 1:], 0, h - 2)
-        base = r * w + c
-    flat = np.ascontiguousarray(image, dtype=np.float64).ravel()
-    vals = (flat[base] * (1.0 - fu) + flat[base + 1] * fu) * (1.0 - fv) + (
-        flat[base + w] * (1.0 - fu) + flat[base + w + 1] * fu
-    ) * fv
+        if inside:
+            base = (iv * w + iu)[None, :] + (dv * w + du)[:, None]  # every read inside: no clamping
+        else:
+            c = np.clip(iu[None, :] + whole[:, :1], 0, w - 2)
+            r = np.clip(iv[None, :] + whole[:, 1:], 0, h - 2)
+            base = r * w + c
+        vals = (flat[base] * (1.0 - fu) + flat[base + 1] * fu) * (1.0 - fv) + (
+            flat[base + w] * (1.0 - fu) + flat[base + w + 1] * fu
+        ) * fv
     a = predicted - predicted.mean()
     b = vals - vals.mean(axis=1, keepdims=True)
     return (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-30)
