@@ -222,3 +222,29 @@ def test_refiner_keeps_each_landmark_terrain_for_its_sun_and_a_refusal_too(scene
     refiner.clear_terrains()
     refiner.predict(lm, scene.to_sun_mc, cam)
     assert len(reads) > n
+
+
+def test_terrains_prepared_in_worker_processes_are_the_same_to_the_bit(scene):
+    """A refiner with workers computes a frame's new landmark windows in other processes: the same terrains
+    (and the same refusal of a window that leaves the DEM) as computed in place."""
+    from crater_synth.terrain.dem import DemError
+
+    outside = SimpleNamespace(id="far", lat=-60.0, lon=0.0, diameter_km=20.0)
+    jobs = [(lm, scene.to_sun_mc) for lm in scene.landmarks[:3]] + [(outside, scene.to_sun_mc)]
+    pooled = refine.Refiner(scene.dem, workers=2)
+    try:
+        pooled.prepare(jobs)
+        assert len(pooled._pending) == len(jobs)
+        here = refine.Refiner(scene.dem)
+        for lm, sun in jobs[:3]:
+            a, b = pooled.terrain(lm, sun), here.terrain(lm, sun)
+            for field in ("origin_mc", "frame", "near", "slope"):
+                np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        with pytest.raises(DemError):
+            pooled.terrain(outside, scene.to_sun_mc)
+        pooled.prepare(jobs)  # all kept: nothing submitted again
+        assert not pooled._pending
+    finally:
+        pooled.close()
+    with pytest.raises(ValueError, match="workers"):
+        refine.Refiner(scene.dem, workers=0)

@@ -74,7 +74,9 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
     once before timing) in place of detection, then the same identification and fix. Timed twice: "cold",
     every landmark's window read from the DEM and its horizon computed in the frame, and "warm", those
     windows kept from an earlier frame (:meth:`.refine.Refiner.terrain`), as on a descent whose
-    landmarks were prepared for its Sun before it began."""
+    landmarks were prepared for its Sun before it began. Cold once more with the new windows computed in two
+    worker processes while the search correlates (``cold_2_workers``, :meth:`.refine.Refiner.prepare`;
+    the same detections)."""
     from crater_synth.navigation.appearance_window import lander_refiner, window_detections
     from crater_synth.navigation.detect import preset
     from crater_synth.navigation.frames import sector_of
@@ -82,12 +84,14 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
 
     dparams = preset("appearance")
     frame = dataclasses.replace(frame, sector=int(sector_of(*frame.centre_xy, frame.georef.pole)))
-    alpha, refiner = frame_local_light(frame, dparams), lander_refiner(frame.georef.pole)
+    alpha = frame_local_light(frame, dparams)
     out: dict = {}
-    for mode in ("cold", "warm"):
+    found: dict = {}
+    for mode in ("cold", "warm", "cold_2_workers"):
+        refiner = lander_refiner(frame.georef.pole, workers=2 if mode == "cold_2_workers" else 1)
         t_search, t_fix = [], []
         for k in range(repeats + 1):
-            if mode == "cold":
+            if mode.startswith("cold"):
                 refiner.clear_terrains()
             t0 = time.perf_counter()
             dets, _ = window_detections(frame.image, prior, landmarks, alpha, dparams, fparams, refiner)
@@ -105,4 +109,6 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
             "detections": len(dets),
             "fix": bool(fix.ok),
         }
+        found[mode] = [(d.u, d.v, d.r, d.score) for d in dets]
+    out["cold_2_workers"]["same_detections_as_cold"] = found["cold_2_workers"] == found["cold"]
     return out

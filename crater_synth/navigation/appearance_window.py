@@ -44,11 +44,12 @@ TERRAIN_SUN_EL_DEG = 10.0
 
 
 @functools.lru_cache(maxsize=2)
-def lander_refiner(pole: str):
-    """The :class:`.refine.Refiner` (the pole's DEM stack and the Hapke model) the search predicts with."""
+def lander_refiner(pole: str, workers: int = 1):
+    """The :class:`.refine.Refiner` (the pole's DEM stack and the Hapke model) the search predicts with;
+    ``workers`` > 1 prepares a frame's new landmark windows in that many processes."""
     from crater_synth.navigation.refine import Refiner, lander_dem
 
-    return Refiner(lander_dem(pole))
+    return Refiner(lander_dem(pole), workers=workers)
 
 
 def sun_direction_mc(lat: float, lon: float, azimuth_rad: float, elevation_deg: float) -> np.ndarray:
@@ -76,14 +77,18 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
     sun_az = light_azimuth_rad + math.pi
     elevations = tuple(dparams.appearance_sun_el_deg)
     found: list[list] = [[] for _ in elevations]  # per elevation: (landmark, shift, NCC, predicted pixel)
+    in_view = []
     for lm in landmarks:
         if lm.diameter_km < fparams.min_landmark_km:
             continue
         u0, v0 = georef.xy_to_uv(lm.x_m, lm.y_m)
-        if not (0.0 <= u0 < width and 0.0 <= v0 < height):
-            continue
+        if 0.0 <= u0 < width and 0.0 <= v0 < height:
+            in_view.append((lm, sun_direction_mc(lm.lat, lm.lon, sun_az, TERRAIN_SUN_EL_DEG)))
+    refiner.prepare(in_view)  # new landmark windows computed in the refiner's workers, if it has any
+    for lm, terrain_sun in in_view:
+        u0, v0 = georef.xy_to_uv(lm.x_m, lm.y_m)
         try:  # kept between frames under the same Sun azimuth (:meth:`.refine.Refiner.terrain`)
-            terrain = refiner.terrain(lm, sun_direction_mc(lm.lat, lm.lon, sun_az, TERRAIN_SUN_EL_DEG))
+            terrain = refiner.terrain(lm, terrain_sun)
         except DemError:  # the window or its far field leaves the DEM: not searched
             continue
         camera = lm.position_mc() + NADIR_CAMERA_M * geometry.enu_basis(lm.lat, lm.lon)[2]

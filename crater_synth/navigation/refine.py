@@ -275,20 +275,80 @@ def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, widt
     return c, corrected
 
 
+_POOL_REFINER = None  # a terrain worker's refiner (set by _pool_init in each worker process)
+
+
+def _pool_init(dem, params) -> None:
+    global _POOL_REFINER
+    _POOL_REFINER = Refiner(dem, params)
+
+
+def _pool_terrain(landmark, to_sun_mc):
+    """A terrain worker's :func:`window_terrain`, or the :class:`DemError` it raised (returned, so the
+    caller keeps it like its own)."""
+    from crater_synth.terrain.dem import DemError
+
+    try:
+        return window_terrain(_POOL_REFINER.dem, landmark, to_sun_mc, _POOL_REFINER.params)
+    except DemError as exc:
+        return exc
+
+
 class Refiner:
-    """The appearance refinement with a lander's DEM (:func:`lander_dem`) and the project's Hapke model."""
+    """The appearance refinement with a lander's DEM (:func:`lander_dem`) and the project's Hapke model.
+
+    ``workers`` > 1: :meth:`prepare` computes the landmark terrains a frame needs in that many worker
+    processes while the caller correlates the ones already done (the cold start of a frame whose landmarks
+    are all new); the terrains are the same to the bit (the same function on the same inputs)."""
 
     # Landmark terrains kept (about 130 kB each): a trajectory's frames share one Sun, so each landmark's
     # DEM window and horizon are computed once for all the frames that see it.
     TERRAIN_CACHE_SIZE = 1024
 
-    def __init__(self, dem, params: RefineParams = RefineParams()):
+    def __init__(self, dem, params: RefineParams = RefineParams(), workers: int = 1):
         from collections import OrderedDict
 
         from crater_synth.navigation.template import hapke_params
 
+        if int(workers) < 1:
+            raise ValueError(f"workers={workers} must be >= 1")
         self.dem, self.params, self.hapke = dem, params, hapke_params()
+        self.workers = int(workers)
         self._terrains: OrderedDict = OrderedDict()
+        self._pending: dict = {}  # key -> Future of a terrain being computed by a worker
+        self._pool = None
+
+    @staticmethod
+    def _key(landmark, to_sun_mc) -> tuple:
+        return (landmark.id, tuple(np.asarray(to_sun_mc, dtype=np.float64).tolist()))
+
+    def prepare(self, jobs) -> None:
+        """Start computing the terrains of ``jobs`` ((landmark, to_sun_mc) pairs) that are neither kept nor
+        under way, in the worker processes; :meth:`terrain` then waits for each. Nothing with one worker
+        (the terrains are computed when asked for)."""
+        if self.workers < 2:
+            return
+        missing = [(lm, sun) for lm, sun in jobs if self._key(lm, sun) not in self._terrains]
+        missing = [(lm, sun) for lm, sun in missing if self._key(lm, sun) not in self._pending]
+        if len(missing) < 2:
+            return
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # fork: the workers inherit the opened DEM stack (each reopens its raster handles).
+            ctx = multiprocessing.get_context("fork")
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=ctx, initializer=_pool_init, initargs=(self.dem, self.params)
+            )
+        for lm, sun in missing:
+            self._pending[self._key(lm, sun)] = self._pool.submit(_pool_terrain, lm, sun)
+
+    def close(self) -> None:
+        """Stop the terrain workers (a refiner with workers starts them again when needed)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._pending = None, {}
 
     def terrain(self, landmark, to_sun_mc) -> WindowTerrain:
         """:func:`window_terrain` of ``landmark`` with this refiner's DEM and settings, kept per landmark
@@ -296,14 +356,18 @@ class Refiner:
         :class:`~crater_synth.terrain.dem.DemError` again without reading it again."""
         from crater_synth.terrain.dem import DemError
 
-        key = (landmark.id, tuple(np.asarray(to_sun_mc, dtype=np.float64).tolist()))
+        key = self._key(landmark, to_sun_mc)
         if key in self._terrains:
             self._terrains.move_to_end(key)
         else:
-            try:
-                self._terrains[key] = window_terrain(self.dem, landmark, to_sun_mc, self.params)
-            except DemError as exc:
-                self._terrains[key] = exc
+            pending = self._pending.pop(key, None)
+            if pending is not None:
+                self._terrains[key] = pending.result()
+            else:
+                try:
+                    self._terrains[key] = window_terrain(self.dem, landmark, to_sun_mc, self.params)
+                except DemError as exc:
+                    self._terrains[key] = exc
             if len(self._terrains) > self.TERRAIN_CACHE_SIZE:
                 self._terrains.popitem(last=False)
         got = self._terrains[key]
@@ -313,6 +377,9 @@ class Refiner:
 
     def clear_terrains(self) -> None:
         """Forget the kept terrains (the benchmark's cold runs)."""
+        for fut in self._pending.values():
+            fut.cancel()
+        self._pending.clear()
         self._terrains.clear()
 
     def predict(self, landmark, to_sun_mc, camera_mc):
