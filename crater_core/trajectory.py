@@ -69,6 +69,24 @@ class FramePose:
         slant = float(np.linalg.norm(target - self.position_mc))
         return slant / focal_px(self.fov_deg, self.width_px)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> FramePose:
+        """The pose of an :meth:`as_dict` record (a manifest row's ``pose``), the same values."""
+        return cls(
+            index=int(d["index"]),
+            position_mc=np.asarray(d["position_mc_m"], dtype=np.float64),
+            rotation_mc=np.asarray(d["rotation_mc"], dtype=np.float64),
+            fov_deg=float(d["fov_deg"]),
+            width_px=int(d["width_px"]),
+            altitude_m=float(d["altitude_m"]),
+            subcam_lat=float(d["subcam_lat"]),
+            subcam_lon=float(d["subcam_lon"]),
+            heading_deg=float(d["heading_deg"]),
+            target_lat=float(d["target_lat"]),
+            target_lon=float(d["target_lon"]),
+            to_sun_mc=np.asarray(d["to_sun_mc"], dtype=np.float64),
+        )
+
     def as_dict(self) -> dict:
         """JSON-ready record (the manifest row's pose)."""
         return {

@@ -41,6 +41,11 @@ _COMMANDS = (
         "nav_frames_command",
         "Render a trajectory's labelled nav frames.",
     ),
+    (
+        "crater_synth.navigation.frame_labels",
+        "nav_frames_relabel_command",
+        "Relabel nav frames (new map).",
+    ),
     ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
     (
         "crater_synth.navigation.lost_in_space_frames",

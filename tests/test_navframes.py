@@ -410,6 +410,28 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     ):
         res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "x.png").exists()
+    # The labels record the landmark map they name landmarks from; a row labelled with another map (a rebuilt
+    # map numbers its landmarks anew) is refused by the readers of truth until it is relabelled.
+    from crater_synth.navigation.landmarks import default_map_identity
+
+    manifest = out / "manifest.jsonl"
+    assert row["landmark_map"] == default_map_identity("south") and row["label_version"] == 3
+    res = CliRunner().invoke(main, ["nav-frames-relabel", str(out)])
+    done = json.loads(res.output.strip().splitlines()[-1])
+    assert res.exit_code == 0 and done["labels_changed"] == done["map_record_changed"] == 0, res.output
+    assert [json.loads(line) for line in manifest.read_text().splitlines()] == [row]  # the render's own labels
+    stale = dict(row, landmark_map=dict(row["landmark_map"], sha256="0" * 64, landmarks=830))
+    manifest.write_text(json.dumps(stale) + "\n")
+    for cmd in (
+        ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json")],
+        ["navigate", str(exr_path), "--out", str(tmp_path / "x.png")],
+    ):
+        res = CliRunner().invoke(main, cmd)
+        assert res.exit_code != 0 and "relabel the frames" in res.output and "(830 landmarks)" in res.output
+    res = CliRunner().invoke(main, ["nav-frames-relabel", str(out)])
+    done = json.loads(res.output.strip().splitlines()[-1])
+    assert res.exit_code == 0 and (done["labels_changed"], done["map_record_changed"]) == (0, 1), res.output
+    assert [json.loads(line) for line in manifest.read_text().splitlines()] == [row]
     stray = tmp_path / "frames" / "stray.exr"
     stray.write_bytes(exr_path.read_bytes())
     res = CliRunner().invoke(main, ["navigate", str(stray), "--out", str(tmp_path / "x.png")])
@@ -417,6 +439,9 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     exr_path.write_bytes(exr_path.read_bytes()[:-100])  # truncated: its sha256 no longer matches the manifest
     res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png")])
     assert res.exit_code != 0 and "sha256 differs" in res.output and not (tmp_path / "x.png").exists()
+    before = manifest.read_bytes()
+    res = CliRunner().invoke(main, ["nav-frames-relabel", str(out)])
+    assert res.exit_code != 0 and "nothing relabelled" in res.output and manifest.read_bytes() == before
 
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):

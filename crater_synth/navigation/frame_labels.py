@@ -6,6 +6,10 @@ tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` cha
 points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
 points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9. A label's
 fields, in order, are ``crater_core.schema.NAVFRAME_LANDMARK_FIELDS``.
+
+Each row records the landmark map its labels were computed with (:func:`.landmarks.map_identity`); the
+readers of truth (:func:`labelled_rows`) refuse a row whose map is not the pole's committed one, and
+``crater-synth nav-frames-relabel DIR`` computes the labels again from the frames' own EXRs.
 """
 
 from __future__ import annotations
@@ -13,10 +17,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import click
 import numpy as np
 
 from crater_core import geometry, schema
 from crater_core.trajectory import FramePose
+from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 
 RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
@@ -27,7 +33,7 @@ MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the ri
 # is nearer by far more.
 OCCLUSION_MARGIN_M = 1000.0
 OCCLUSION_MARGIN_D = 0.05
-FRAME_LABEL_VERSION = 2  # 2: labels carry occluded_rim_fraction
+FRAME_LABEL_VERSION = 3  # 2: labels carry occluded_rim_fraction; 3: rows record their landmark map
 # A label whose 3-D rim is more than half hidden behind nearer relief is no rim ellipse a detector could
 # see: nav-frames-eval counts it neither as a miss nor towards the landmarks a fix could use, and a
 # detection on it not as false. Half: most of the ellipse must be in sight to fit it (an assumption, not
@@ -141,3 +147,86 @@ def frame_rows(frames_dir) -> list[dict]:
     if not rows:
         raise UserError(f"{manifest}: no frames")
     return rows
+
+
+def labelled_rows(frames_dir) -> list[dict]:
+    """:func:`frame_rows` for a reader of the labels as truth: one error line when a row's labels were
+    computed with another landmark map than its pole's committed one (a map rebuilt or edited numbers its
+    landmarks anew: the labels would name the wrong craters) or with a map they did not record."""
+    from crater_synth.navigation.landmarks import default_map_identity
+    from crater_synth.navigation.polar import pole_of
+
+    rows = frame_rows(frames_dir)
+    current: dict[str, dict] = {}
+    for row in rows:
+        pole = pole_of(row["frame_origin"]["lat"])
+        if pole not in current:
+            current[pole] = default_map_identity(pole)
+        now, was = current[pole], row.get("landmark_map") or {}
+        if was.get("sha256") != now["sha256"]:
+            made = (
+                f"landmark map sha256 {str(was['sha256'])[:12]} ({was.get('landmarks')} landmarks)"
+                if was.get("sha256")
+                else "a landmark map the row does not record (labels before version 3)"
+            )
+            raise UserError(
+                f"{frames_dir}: frame {row.get('index')} was labelled with {made}, but the committed {pole} map "
+                f"is sha256 {now['sha256'][:12]} ({now['landmarks']} landmarks): relabel the frames with "
+                f"`crater-synth nav-frames-relabel {frames_dir}` (the rendered EXRs are kept)"
+            )
+    return rows
+
+
+def relabel(frames_dir) -> dict:
+    """Compute every frame's labels again with its pole's committed map, from the pose its row records and
+    the lit and depth channels of its EXR (checked against the row's sha256 first); the manifest is
+    rewritten at once (atomically) when every frame is done. Returns a summary: how many frames' labels
+    changed, and how many rows recorded another map (or none)."""
+    from crater_core import exr
+    from crater_synth.navigation.landmarks import default_map_identity, load_default_map
+    from crater_synth.navigation.polar import pole_of
+
+    frames_dir = Path(frames_dir)
+    rows = frame_rows(frames_dir)
+    maps: dict[str, tuple] = {}
+    changed = remapped = 0
+    for row in rows:
+        path = frames_dir / row["rel_path"]
+        if not path.is_file() or schema.sha256_file(path) != row.get("sha256"):
+            raise UserError(
+                f"{path}: missing, or its sha256 differs from its manifest row: nothing relabelled "
+                "(render the frames again with `crater-synth nav-frames`)"
+            )
+        pose = FramePose.from_dict(row["pose"])
+        pole = pole_of(row["frame_origin"]["lat"])
+        if pole not in maps:
+            maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
+        try:
+            lit, depth = exr.read_channel(path, "lit"), exr.read_channel(path, "depth")
+        except exr.ExrError as exc:
+            raise UserError(f"{path}: {exc}; nothing relabelled") from None
+        labels = landmarks_in_view(pose, maps[pole][0], pose.target_lat, pose.target_lon, lit, depth)
+        changed += labels != row["landmarks"]
+        remapped += row.get("landmark_map") != maps[pole][1]
+        row.update(landmarks=labels, label_version=FRAME_LABEL_VERSION, landmark_map=maps[pole][1])
+    manifest = frames_dir / schema.MANIFEST_NAME
+    schema.atomic_write_text(manifest, "".join(schema.dumps_row(r) + "\n" for r in rows))
+    return {
+        "frames_dir": str(frames_dir),
+        "frames": len(rows),
+        "labels_changed": changed,
+        "map_record_changed": remapped,
+    }
+
+
+@click.command("nav-frames-relabel")
+@click.argument("frames_dir", type=click.Path(path_type=Path))
+@user_errors
+def nav_frames_relabel_command(frames_dir):
+    """Label a `nav-frames` directory's frames again with the committed landmark map (after the map changed).
+
+    The labels (every landmark in view, its rim ellipse, lit and occluded rim fractions) are computed from
+    each frame's recorded pose and its EXR; nothing is rendered. Example:
+    `crater-synth nav-frames-relabel data/navframes/descent_ridge`.
+    """
+    click.echo(json.dumps(relabel(frames_dir)))

@@ -310,14 +310,14 @@ def evaluate_dir(
     ``sensor``: a camera model applied to each frame first (``--sensor``); ``attitude_error_deg``: the
     lander's attitude error and ``prior_offset_km`` the prior's distance from the truth (:func:`evaluate_frame`;
     the perfect-detection check keeps the true attitude and the default prior)."""
-    from crater_synth.navigation.frame_labels import frame_rows
+    from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
 
     maps: dict[str, list] = {}
     refiners: dict[str, Refiner] = {}
     out = []
-    for row in frame_rows(frames_dir):
+    for row in labelled_rows(frames_dir):
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]

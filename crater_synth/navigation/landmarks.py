@@ -391,6 +391,22 @@ def load_default_map(pole: str = "south") -> tuple[list[Landmark], dict]:
     return read_map(path)
 
 
+def map_identity(path: str | Path) -> dict:
+    """What a rendered frame's labels record of the map they name landmarks from: its pole, file name,
+    sha256 and number of landmarks. A map rebuilt or edited has another sha256 (and its ids may name other
+    craters: they are numbered by size), so labels are only read against the map they were made with."""
+    from crater_core.schema import sha256_file
+
+    landmarks, prov = read_map(path)
+    return {"pole": prov["pole"], "file": Path(path).name, "sha256": sha256_file(path), "landmarks": len(landmarks)}
+
+
+def default_map_identity(pole: str) -> dict:
+    """:func:`map_identity` of the pole's committed map (:func:`load_default_map`)."""
+    load_default_map(pole)  # its clear errors first
+    return map_identity(COMMITTED_MAP[pole])
+
+
 # --------------------------------------------------------------------------------------------
 # CLI
 # --------------------------------------------------------------------------------------------

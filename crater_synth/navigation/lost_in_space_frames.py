@@ -134,14 +134,14 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
     """Every frame of a ``nav-frames`` directory lost in space (pair vote settings: ``lis_preset`` with
     ``lis.<name>=<value>`` overrides ``sets``), with the detector and with perfect detections; per-frame
     rows and both summaries."""
-    from crater_synth.navigation.frame_labels import frame_rows
+    from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.lost_in_space import build_index, lis_params_with
 
     lis = lis_params_with(lis_preset, tuple(sets))
     maps: dict[str, tuple] = {}
     out = []
-    for row in frame_rows(frames_dir):
+    for row in labelled_rows(frames_dir):
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             lms = load_default_map(pole)[0]

@@ -33,9 +33,9 @@ def frame_row_of(image: Path) -> dict:
             f"{image}: no {schema.MANIFEST_NAME} beside it; a rendered frame is navigated with the pose its "
             "manifest row holds (render frames with `crater-synth nav-frames`)"
         )
-    from crater_synth.navigation.frame_labels import frame_rows
+    from crater_synth.navigation.frame_labels import labelled_rows
 
-    rows = [r for r in frame_rows(image.parent) if r.get("rel_path") == image.name]
+    rows = [r for r in labelled_rows(image.parent) if r.get("rel_path") == image.name]
     if not rows:
         raise FrameError(f"{image}: not a frame of {manifest}")
     row = rows[0]

@@ -215,9 +215,10 @@ def _horizons_ahead(jobs, render):
     return proc
 
 
-def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map) -> dict:
+def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map, map_identity: dict) -> dict:
     """The manifest row of one rendered frame: the worker's ``res``, the pose and patch of ``fr``, and the
-    labels of the landmarks in view (their lit and occluded rim fractions read from the frame's EXR)."""
+    labels of the landmarks in view (their lit and occluded rim fractions read from the frame's EXR), with
+    the identity of the map ``landmark_map`` they come from (:func:`.landmarks.map_identity`)."""
     from crater_core import exr
 
     pose = fr["pose"]
@@ -257,6 +258,7 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map)
         "lit_fraction": res["lit_fraction"],
         "mean_if": res["mean_if"],
         "landmarks": landmarks_in_view(pose, landmark_map, pose.target_lat, pose.target_lon, lit, depth),
+        "landmark_map": map_identity,
     }
 
 
@@ -307,7 +309,7 @@ def render_frames(
     from crater_synth.dataset.dispatch import run_workers
     from crater_synth.dataset.identity import render_identity
     from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
-    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.landmarks import default_map_identity, load_default_map
     from crater_synth.terrain.patch import build_terrain
 
     traj = settings.trajectory
@@ -325,7 +327,7 @@ def render_frames(
     out_dir = Path(out_dir)
     ensure_writable_dir(settings.data_dir, "data_dir")
     render = settings.render
-    maps: dict[str, list] = {}
+    maps: dict[str, tuple] = {}
     t0 = time.perf_counter()
     jobs, frames, reused = [], {}, {}
     recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
@@ -395,8 +397,8 @@ def render_frames(
         idx = int(result["index"])
         pole = pole_of(frames[idx]["pose"].target_lat)
         if pole not in maps:
-            maps[pole] = load_default_map(pole)[0]
-        rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, maps[pole])
+            maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
+        rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, *maps[pole])
         if progress:
             done = (
                 "kept (same settings, seal intact)"
