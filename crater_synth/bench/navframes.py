@@ -65,15 +65,26 @@ def _run(settings, out: Path, n: int, share: bool) -> dict:
     }
 
 
+def _untimed(value):
+    """A result row without its timings (``seconds`` at any depth): what two runs must agree on."""
+    if isinstance(value, dict):
+        return {k: _untimed(v) for k, v in value.items() if k != "seconds"}
+    if isinstance(value, list):
+        return [_untimed(v) for v in value]
+    return value
+
+
 def _navigate(frames_dir: Path) -> dict:
     from crater_synth.navigation.frames_eval import evaluate_dir
     from crater_synth.navigation.frames_presets import frames_params
 
     out: dict = {}
-    for name in ("appearance", "synthetic"):
-        dparams, fparams, pre = frames_params(name)
+    results: dict = {}
+    for name in ("appearance", "synthetic", "appearance_2_workers"):
+        dparams, fparams, pre = frames_params(name.removesuffix("_2_workers"))
         args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
-        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args)
+        workers = 2 if name.endswith("_2_workers") else 1  # the new landmark windows in two processes
+        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args, terrain_workers=workers)
         secs = sorted(r["seconds"] for r in rows)
         out[name] = {
             "fixes": sum(bool(r["fix"]) for r in rows),
@@ -81,6 +92,8 @@ def _navigate(frames_dir: Path) -> dict:
             "max_s_per_frame": secs[-1],
             "frames_per_s": round(len(secs) / max(sum(secs), 1e-9), 3),
         }
+        results[name] = [_untimed(r) for r in rows]
+    out["appearance_2_workers"]["same_results"] = results["appearance_2_workers"] == results["appearance"]
     out["median_time_ratio_appearance_to_synthetic"] = round(
         out["appearance"]["median_s_per_frame"] / max(out["synthetic"]["median_s_per_frame"], 1e-3), 2
     )

@@ -145,6 +145,7 @@ def appearance_detections(
     blurred = blurred_frames(frame)
 
     dets, windows = [], {}
+    refiner.prepare([(landmarks[q], to_sun_mc) for q in np.nonzero(in_frame)[0]])  # in its workers, if any
     for q in np.nonzero(in_frame)[0]:
         lm = landmarks[q]
         try:

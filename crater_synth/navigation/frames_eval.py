@@ -300,6 +300,7 @@ def evaluate_dir(
     sensor=None,
     attitude_error_deg: float = 0.0,
     prior_offset_km: float = PRIOR_OFFSET_KM,
+    terrain_workers: int = 1,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -309,7 +310,8 @@ def evaluate_dir(
     ``appearance``: the landmarks are searched for by their predicted appearance instead of detected;
     ``sensor``: a camera model applied to each frame first (``--sensor``); ``attitude_error_deg``: the
     lander's attitude error and ``prior_offset_km`` the prior's distance from the truth (:func:`evaluate_frame`;
-    the perfect-detection check keeps the true attitude and the default prior)."""
+    the perfect-detection check keeps the true attitude and the default prior); ``terrain_workers``: processes
+    preparing each frame's new landmark windows (:class:`.refine.Refiner`; the same results)."""
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.polar import pole_of
@@ -321,7 +323,7 @@ def evaluate_dir(
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
-            refiners[pole] = Refiner(lander_dem(pole)) if refine or appearance else None
+            refiners[pole] = Refiner(lander_dem(pole), workers=terrain_workers) if refine or appearance else None
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
         if sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
             image = sensor.apply(image, np.random.default_rng([seed, zlib.crc32(row["rel_path"].encode())]))
@@ -345,6 +347,9 @@ def evaluate_dir(
             row, image, maps[pole], dparams, fparams, detections=perfect_detections(row), **kw
         )
         out.append(r)
+    for refiner in refiners.values():
+        if refiner is not None:
+            refiner.close()
     head = [r for r in out if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
     enough = [r for r in out if r["enough_landmarks"]]
     summary = {
