@@ -458,14 +458,25 @@ def test_worker_rejects_a_bad_explicit_camera(tmp_path):
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
 
 
-def test_synthetic_preset_refuses_the_6dof_fix(tmp_path):
-    """The synthetic preset (3 agreeing landmarks) serves the known-attitude fix only: one error line."""
-    from click.testing import CliRunner
+def test_every_preset_serves_the_6dof_fix_with_at_least_four_landmarks():
+    """The presets of 3 agreeing landmarks take 4 for the 6-DOF fix (three points fix a pinhole pose
+    exactly, so any three pairs would agree)."""
+    import dataclasses
 
-    from crater_synth.cli import main
+    from crater_synth.navigation import fix as nf
+    from crater_synth.navigation.frames_presets import FRAMES_PRESETS, frames_params
 
-    res = CliRunner().invoke(main, ["nav-frames-eval", str(tmp_path), "--method", "pnp"])
-    assert res.exit_code != 0 and "--preset real-window" in res.output and "Traceback" not in res.output
+    for name in FRAMES_PRESETS:
+        _, fparams, pre = frames_params(name)
+        assert not hasattr(pre, "methods") and fparams.min_inliers in (3, 5)
+    pts = np.column_stack([np.linspace(-9e3, 9e3, 3), np.zeros(3), np.zeros(3)])
+    k = np.array([[500.0, 0, 256], [0, 500.0, 256], [0, 0, 1]])
+    r0 = nf.rodrigues(np.array([np.pi, 0.0, 0.0]))
+    uv = nf.project_pinhole(pts, r0, np.array([0.0, 0.0, 60e3]), k)
+    ok, reason, *_ = nf.ransac_pnp(
+        pts, uv, k, r0, np.array([0.0, 0.0, 60e3]), dataclasses.replace(fparams, min_inliers=3)
+    )
+    assert not ok and "need 4" in reason
 
 
 def test_frames_are_grouped_onto_patches_no_coarser_than_their_own():

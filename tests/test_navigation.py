@@ -223,7 +223,34 @@ def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
     assert ok and not inl[2] and not inl[7] and inl.sum() == 8
     assert np.linalg.norm(c - c_true) < 1.0
     ok, reason, *_ = nf.ransac_pnp(pts[:2], uv[:2], k, r0, np.array([0.0, 0.0, 85e3]), nf.FixParams(min_inliers=3))
-    assert not ok and "need 3" in reason
+    assert not ok and "need 4" in reason  # three points fix a pinhole pose exactly: never fewer than 4
+
+
+def test_pnp_refuses_a_pose_that_contradicts_its_prior_or_a_rival_set():
+    """The 6-DOF fix answers "no fix" when its pose lies further from the prior than the prior's
+    uncertainty, turns further from the prior attitude than ``max_heading_deg``, or when a disjoint set of
+    landmarks supports another pose as well."""
+    rng = np.random.default_rng(2)
+    pts = np.column_stack([rng.uniform(-40e3, 40e3, 12), rng.uniform(-40e3, 40e3, 12), rng.uniform(-2e3, 2e3, 12)])
+    k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
+    r_true = nf.rodrigues(np.array([math.pi - 0.02, 0.01, 0.0]))
+    c_true = np.array([1000.0, 500.0, 90e3])
+    uv = nf.project_pinhole(pts, r_true, c_true, k)
+    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    ok, reason, _, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true + [4000.0, 0.0, 0.0])
+    assert ok and np.linalg.norm(c - c_true) < 1.0, reason
+    ok, reason, *_ = nf.ransac_pnp(pts, uv, k, r0, c_true + [12000.0, 0.0, 0.0])  # prior 12 km off, sigma 10
+    assert not ok and "km from the prior" in reason
+    tilted = nf.rodrigues(np.array([math.pi - 0.16, 0.0, 0.0]))  # the prior attitude 8 deg away
+    ok, reason, *_ = nf.ransac_pnp(pts, uv, k, tilted, c_true)
+    assert not ok and "from the prior attitude" in reason
+    # Two disjoint halves, each seen from its own position 3 km apart: as well explained either way.
+    uv2 = uv.copy()
+    uv2[6:] = nf.project_pinhole(pts[6:], r_true, c_true + [3000.0, 0.0, 0.0], k)
+    pairs = np.column_stack([np.arange(12), np.arange(12)])
+    ok, reason, *_ = nf.ransac_pnp(pts, uv2, k, r0, c_true, pairs=pairs)
+    assert not ok and "ambiguous" in reason
+    assert nf.ransac_pnp(pts, uv2, k, r0, c_true)[0]  # without the pairs' ids the rule cannot apply
 
 
 # --------------------------------------------------------------------------------------------

@@ -264,30 +264,65 @@ def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
     return r, c
 
 
-def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(), inlier_px: float = 2.0):
+PNP_MIN_INLIERS = 4  # three points determine a pinhole pose exactly: any three pairs "agree"
+
+
+def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """Angle (deg) of the rotation taking the world->camera rotation ``r_a`` to ``r_b``."""
+    cos = (float(np.trace(np.asarray(r_a) @ np.asarray(r_b).T)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
+
+def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
     """Robust pinhole pose from 3-D ``points`` (n, 3) and their pixels ``uv`` (n, 2) with known
-    correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask)."""
+    correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask).
+
+    "No fix" when fewer than ``min_inliers`` (and never fewer than :data:`PNP_MIN_INLIERS`) agree; when the
+    pose contradicts the prior it started from: an attitude more than ``max_heading_deg`` from the prior's
+    (the attitude a star tracker gives, coarsely) or a position further from the prior's than its
+    uncertainty ``prior_sigma_km`` (horizontally: the identification gate assumed no more); and, given
+    ``pairs`` (n, 2, the (detection, landmark) ids of the correspondences), when a disjoint hypothesis is
+    nearly as well supported (the ambiguity rule of :func:`ransac_position`)."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     n = len(points)
-    if n < params.min_inliers:
-        return False, f"{n} landmarks identified (need {params.min_inliers})", None, None, np.zeros(n, bool)
+    need = max(params.min_inliers, PNP_MIN_INLIERS)
+    if n < need:
+        return False, f"{n} landmarks identified (need {need})", None, None, np.zeros(n, bool)
     rng = np.random.default_rng(params.seed)
     best = np.zeros(n, bool)
+    hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
     for _ in range(min(params.iterations, 200)):
         idx = rng.choice(n, 3, replace=False)
         r, c = refine_pose(points[idx], uv[idx], k, r_prior, c_prior, iterations=15)
         err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
         inl = err <= inlier_px
+        if pairs is not None and inl.sum() >= need:
+            hyps.setdefault(np.packbits(inl).tobytes(), inl)
         if inl.sum() > best.sum():
             best = inl
-    if best.sum() < params.min_inliers:
+    if best.sum() < need:
         return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
     r, c = refine_pose(points[best], uv[best], k, r_prior, c_prior)
     err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
     best = err <= inlier_px
-    if best.sum() < params.min_inliers:
+    if best.sum() < need:
         return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
     r, c = refine_pose(points[best], uv[best], k, r, c)
+    turned = attitude_difference_deg(r, r_prior)
+    if turned > params.max_heading_deg:
+        return (
+            False,
+            f"the pose turns {turned:.1f} deg from the prior attitude (> {params.max_heading_deg:g})",
+            None,
+            None,
+            best,
+        )
+    moved = float(np.hypot(*(np.asarray(c) - np.asarray(c_prior))[:2])) / 1000.0
+    if moved > params.prior_sigma_km:
+        return False, f"the pose is {moved:.1f} km from the prior (> {params.prior_sigma_km:g} km)", None, None, best
+    rival = _rival(pairs, best, hyps, need, params.ambiguity_margin)
+    if rival:
+        return False, rival, None, None, best
     return True, "", r, c, best
 
 
@@ -310,6 +345,24 @@ def _distinct(pairs: np.ndarray, mask: np.ndarray) -> int:
     """Upper bound of the one-to-one pairs in ``pairs[mask]`` (fewest distinct detections or landmarks)."""
     sel = pairs[mask]
     return min(len(np.unique(sel[:, 0])), len(np.unique(sel[:, 1]))) if len(sel) else 0
+
+
+def _rival(pairs, best: np.ndarray, hyps: dict, need: int, margin: int) -> str:
+    """The ambiguity rule: the reason for "no fix" when one of the hypotheses ``hyps`` (inlier masks over
+    ``pairs``, the (detection, landmark) ids of the correspondences) shares no detection or no landmark with
+    the winner ``best`` and is supported by at least ``need`` and the winner's count less ``margin`` distinct
+    landmarks: a rival as well explained as the winner. Empty when there is none (or no ``pairs``)."""
+    if pairs is None:
+        return ""
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    n_best = _distinct(pairs, best)
+    dets, lms = set(pairs[best, 0].tolist()), set(pairs[best, 1].tolist())
+    for inl in hyps.values():
+        n_rival = _distinct(pairs, inl)
+        disjoint = not (set(pairs[inl, 0].tolist()) & dets) or not (set(pairs[inl, 1].tolist()) & lms)
+        if disjoint and n_rival >= max(need, n_best - margin):
+            return f"ambiguous: two disjoint landmark sets agree ({n_best} and {n_rival})"
+    return ""
 
 
 def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
@@ -347,13 +400,7 @@ def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier
         best = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
     if best.sum() < params.min_inliers:
         return False, f"only {int(best.sum())} landmarks agree on one position", None, best
-    if pairs is not None:
-        pairs = np.asarray(pairs, int).reshape(-1, 2)
-        n_best = _distinct(pairs, best)
-        dets, lms = set(pairs[best, 0].tolist()), set(pairs[best, 1].tolist())
-        for inl in hyps.values():
-            n_rival = _distinct(pairs, inl)
-            disjoint = not (set(pairs[inl, 0].tolist()) & dets) or not (set(pairs[inl, 1].tolist()) & lms)
-            if disjoint and n_rival >= max(params.min_inliers, n_best - params.ambiguity_margin):
-                return False, f"ambiguous: two disjoint landmark sets agree ({n_best} and {n_rival})", None, best
+    rival = _rival(pairs, best, hyps, params.min_inliers, params.ambiguity_margin)
+    if rival:
+        return False, rival, None, best
     return True, "", solve_position(points[best], uv[best], k, r_wc), best

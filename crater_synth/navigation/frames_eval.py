@@ -232,13 +232,12 @@ def evaluate_frame(
         return out
     p3 = pts[pairs_lm]
     p2 = np.array([[dets[i].u, dets[i].v] for i in pairs_det])
+    pair_ids = np.column_stack([pairs_det, pairs_lm])
     if method == "pnp":
-        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, inlier_px)
+        ok, reason, r_fix, c_fix, inl = ransac_pnp(p3, p2, k, r_wc, c_prior, fparams, inlier_px, pairs=pair_ids)
     else:
         r_fix = r_wc
-        ok, reason, c_fix, inl = ransac_position(
-            p3, p2, k, r_wc, fparams, inlier_px, pairs=np.column_stack([pairs_det, pairs_lm])
-        )
+        ok, reason, c_fix, inl = ransac_position(p3, p2, k, r_wc, fparams, inlier_px, pairs=pair_ids)
     if ok:
         # One pair per detection and per landmark: the smallest reprojection error wins.
         err = np.hypot(*(project_pinhole(p3, r_fix, c_fix, k) - p2).T)
@@ -444,7 +443,7 @@ def nav_frames_eval_command(
     """
     if sets and write_results:
         raise UserError("--write-results records a preset's settings only; drop --set")
-    dparams, fparams, pre = frames_params(preset, sets, method)
+    dparams, fparams, pre = frames_params(preset, sets)
     camera = None
     if sensor is not None:
         from crater_synth.config import load_settings

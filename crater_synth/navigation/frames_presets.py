@@ -26,7 +26,6 @@ class FramesPreset:
     sets: tuple = ()
     scales_from_map: bool = False
     inlier_px: float = PNP_INLIER_PX
-    methods: tuple = ("position", "pnp")  # the fix methods the preset serves
     refine: bool = False  # known-attitude fixes refined by appearance (:mod:`.refine`)
     appearance: AppearanceParams | None = None  # no detector: the appearance search (:mod:`.appearance`)
 
@@ -36,9 +35,8 @@ class FramesPreset:
 # descent_ridge and polar_orbit_arc (render.samples=4, fast, 512 px; development data, no real window
 # used) by the rule of the real windows: no false fix, then the most fixes, then the lowest median
 # error (docs/navigation.md, section 9, the grid): the classical detector at threshold 0.3 on the map's
-# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers; for the known-attitude fix
-# only: three points determine a full pinhole pose exactly (any three pairs "agree": 4 and 6 false
-# fixes), and even with 5 the 6-DOF RANSAC (no ambiguity test) fixed 2 descent frames 19.5 km wrong.
+# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers (the 6-DOF fix takes at least 4:
+# three points determine a pinhole pose exactly).
 FRAMES_PRESETS = {
     "real-window": FramesPreset("classical"),
     "synthetic": FramesPreset(
@@ -46,14 +44,13 @@ FRAMES_PRESETS = {
         ("detect.threshold=0.3", "fix.min_inliers=3"),
         scales_from_map=True,
         inlier_px=5.0,
-        methods=("position",),
         refine=True,
     ),
 }
 # "learned": the learned detector with its frozen real-window preset (chosen on the south windows, not on
 # these frames) and the "synthetic" preset's fix settings; nothing was chosen on the rendered trajectories.
 FRAMES_PRESETS["learned"] = FramesPreset(
-    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, methods=("position",), refine=True
+    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, refine=True
 )
 # "appearance": no crater detector; the map's landmarks searched for by their predicted appearance
 # (:mod:`.appearance`, settings chosen on descent_ridge and polar_orbit_arc), then the synthetic preset's
@@ -62,7 +59,6 @@ FRAMES_PRESETS["appearance"] = FramesPreset(
     "appearance",
     ("fix.min_inliers=3",),
     inlier_px=5.0,
-    methods=("position",),
     refine=True,
     appearance=AppearanceParams(),
 )
@@ -73,20 +69,16 @@ DEFAULT_FRAMES_PRESET = "appearance"
 RESULTS_UNSUFFIXED_PRESET = "synthetic"
 
 
-def frames_params(name: str, sets=(), method: str = "position") -> tuple[DetectorParams, FixParams, FramesPreset]:
+def frames_params(name: str, sets=()) -> tuple[DetectorParams, FixParams, FramesPreset]:
     """(detector settings, fix settings, preset) of the ``nav-frames-eval`` preset ``name`` with the
-    ``--set`` overrides ``sets`` applied after the preset's own; a preset serves the fix ``method`` s it
-    names only (a user error otherwise)."""
+    ``--set`` overrides ``sets`` applied after the preset's own. Every preset serves both fixes: the
+    6-DOF fix never takes fewer than 4 landmarks and refuses an ambiguous pose or one that contradicts its
+    prior (:func:`.fix.ransac_pnp`)."""
     from crater_synth.navigation.evaluate import _params_with
 
     if name not in FRAMES_PRESETS:
         raise UserError(f"nav-frames-eval preset {name!r}: expected one of {sorted(FRAMES_PRESETS)}")
     pre = FRAMES_PRESETS[name]
-    if method not in pre.methods:
-        raise UserError(
-            f"nav-frames-eval --preset {name} was chosen for --method {'/'.join(pre.methods)} only "
-            f"(docs/navigation.md, section 9); use --preset real-window with --method {method}"
-        )
     # The appearance search runs no crater detector: its detector settings are the defaults, unused.
     dparams, fparams = _params_with(tuple(pre.sets) + tuple(sets), "classical" if pre.appearance else pre.detector)
     return dparams, fparams, pre

@@ -186,7 +186,7 @@ def _summary(out: list[dict]) -> dict:
 @click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option(
     "--preset",
-    type=click.Choice(sorted(k for k, v in FRAMES_PRESETS.items() if "position" in v.methods)),
+    type=click.Choice(sorted(FRAMES_PRESETS)),
     default="synthetic",
     show_default=True,
     help="nav-frames-eval preset whose detector settings are used.",
