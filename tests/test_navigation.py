@@ -253,6 +253,26 @@ def test_pnp_refuses_a_pose_that_contradicts_its_prior_or_a_rival_set():
     assert nf.ransac_pnp(pts, uv2, k, r0, c_true)[0]  # without the pairs' ids the rule cannot apply
 
 
+def test_pnp_refuses_an_ill_conditioned_pose():
+    """Five landmarks within 12 km of each other seen from 90 km at nadir: a tilt and a shift explain their
+    pixels nearly alike, so half a pixel of scatter leaves the position kilometres uncertain: no fix. The
+    same scatter on landmarks spread over 80 km fixes the position within its 3-sigma uncertainty."""
+    k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
+    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    c_true = np.array([500.0, -300.0, 90e3])
+    for half_width, fixes in ((12e3, False), (40e3, True)):
+        rng = np.random.default_rng(5)
+        pts = np.column_stack([rng.uniform(-half_width, half_width, (5, 2)), rng.uniform(-500, 500, 5)])
+        uv = nf.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
+        sigma_km = nf.pose_sigma_horizontal_m(pts, uv, k, r0, c_true) / 1000.0
+        ok, reason, _, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0)
+        assert ok == fixes and (nf.PNP_SIGMAS * sigma_km > nf.FALSE_FIX_KM) != fixes, (half_width, reason, sigma_km)
+        if fixes:
+            assert np.hypot(*(c - c_true)[:2]) < nf.PNP_SIGMAS * sigma_km * 1000.0
+        else:
+            assert "ill-conditioned" in reason
+
+
 # --------------------------------------------------------------------------------------------
 # navigate: bad input gives one clear error and writes nothing
 # --------------------------------------------------------------------------------------------

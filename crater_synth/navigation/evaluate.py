@@ -31,13 +31,12 @@ import numpy as np
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detect import Detection, DetectorParams, detect
-from crater_synth.navigation.fix import FixParams, fix_frame
+from crater_synth.navigation.fix import FALSE_FIX_KM, FixParams, fix_frame
 from crater_synth.navigation.frames import Frame, Georef, ground_distance_km
 from crater_synth.navigation.light import frame_light
 
 MATCH_CENTRE_D = 0.25
 MATCH_DIAMETER = 0.25
-FALSE_FIX_KM = 5.0
 PRIOR_OFFSET_KM = 5.0
 HEADLINE_MIN_D_KM = 15.0
 HEADLINE_MIN_LANDMARKS = 3

@@ -239,23 +239,43 @@ def project_pinhole(points: np.ndarray, r_wc: np.ndarray, c: np.ndarray, k: np.n
     return uvw[:, :2] / uvw[:, 2:3]
 
 
+def _pose_jacobian(points, uv, k, r, c, scale: float):
+    """(residuals (2n,), their Jacobian (2n, 6)) of the reprojection of ``points`` at pose (r, c) against
+    ``uv``, by forward differences in (rotation increment, camera centre / ``scale``)."""
+    res = (project_pinhole(points, r, c, k) - uv).ravel()
+    jac = np.empty((res.size, 6))
+    eps = 1e-6
+    for q in range(6):
+        dw = np.zeros(3)
+        dc = np.zeros(3)
+        if q < 3:
+            dw[q] = eps
+        else:
+            dc[q - 3] = eps * scale
+        rp = rodrigues(dw) @ r
+        jac[:, q] = ((project_pinhole(points, rp, c + dc, k) - uv).ravel() - res) / eps
+    return res, jac
+
+
+def pose_sigma_horizontal_m(points, uv, k, r, c) -> float:
+    """1-sigma horizontal (first two axes) uncertainty (m) of the camera centre of pose (r, c) fitted to
+    >= 4 ``points`` at pixels ``uv``: the least-squares covariance sigma^2 (J^T J)^-1, sigma the residuals'
+    own scatter with the fit's 6 unknowns taken off (sum of squares / (2n - 6)). Large where a tilt and a
+    shift of the camera explain the pixels nearly alike (a few landmarks, seen near nadir)."""
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    scale = max(float(np.linalg.norm(points - c, axis=1).mean()), 1.0)
+    res, jac = _pose_jacobian(points, uv, k, r, c, scale)
+    sigma2 = float(res @ res) / max(res.size - 6, 1)
+    cov = np.linalg.pinv(jac.T @ jac) * sigma2
+    return float(math.sqrt(max(cov[3, 3] + cov[4, 4], 0.0))) * scale
+
+
 def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
     """Gauss-Newton on (rotation increment, camera centre) minimising reprojection error from (r0, c0)."""
     r, c = np.array(r0, float), np.array(c0, float)
     scale = max(float(np.linalg.norm(np.asarray(points) - c, axis=1).mean()), 1.0)
     for _ in range(iterations):
-        res = (project_pinhole(points, r, c, k) - uv).ravel()
-        jac = np.empty((res.size, 6))
-        eps = 1e-6
-        for q in range(6):
-            dw = np.zeros(3)
-            dc = np.zeros(3)
-            if q < 3:
-                dw[q] = eps
-            else:
-                dc[q - 3] = eps * scale
-            rp = rodrigues(dw) @ r
-            jac[:, q] = ((project_pinhole(points, rp, c + dc, k) - uv).ravel() - res) / eps
+        res, jac = _pose_jacobian(points, uv, k, r, c, scale)
         step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
         r = rodrigues(step[:3]) @ r
         c = c + step[3:] * scale
@@ -265,6 +285,10 @@ def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
 
 
 PNP_MIN_INLIERS = 4  # three points determine a pinhole pose exactly: any three pairs "agree"
+FALSE_FIX_KM = 5.0  # a fix further than this from the truth is a false fix (the evaluation's definition)
+# A 6-DOF pose whose horizontal 3-sigma uncertainty reaches the false-fix distance is no fix: the pixels
+# cannot tell it from a pose that is false (not tuned: the bound is the definition, 3 the usual coverage).
+PNP_SIGMAS = 3.0
 
 
 def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
@@ -280,9 +304,11 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     "No fix" when fewer than ``min_inliers`` (and never fewer than :data:`PNP_MIN_INLIERS`) agree; when the
     pose contradicts the prior it started from: an attitude more than ``max_heading_deg`` from the prior's
     (the attitude a star tracker gives, coarsely) or a position further from the prior's than its
-    uncertainty ``prior_sigma_km`` (horizontally: the identification gate assumed no more); and, given
-    ``pairs`` (n, 2, the (detection, landmark) ids of the correspondences), when a disjoint hypothesis is
-    nearly as well supported (the ambiguity rule of :func:`ransac_position`)."""
+    uncertainty ``prior_sigma_km`` (horizontally: the identification gate assumed no more); given ``pairs``
+    (n, 2, the (detection, landmark) ids of the correspondences), when a disjoint hypothesis is nearly as
+    well supported (the ambiguity rule of :func:`ransac_position`); and when the pose is ill-conditioned:
+    its horizontal uncertainty (:func:`pose_sigma_horizontal_m`) times :data:`PNP_SIGMAS` exceeds
+    :data:`FALSE_FIX_KM`."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     n = len(points)
     need = max(params.min_inliers, PNP_MIN_INLIERS)
@@ -323,6 +349,10 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     rival = _rival(pairs, best, hyps, need, params.ambiguity_margin)
     if rival:
         return False, rival, None, None, best
+    sigma_km = pose_sigma_horizontal_m(points[best], uv[best], k, r, c) / 1000.0
+    if PNP_SIGMAS * sigma_km > FALSE_FIX_KM:
+        why = f"ill-conditioned pose: {PNP_SIGMAS:g} sigma = {PNP_SIGMAS * sigma_km:.1f} km > {FALSE_FIX_KM:g} km"
+        return False, why, None, None, best
     return True, "", r, c, best
 
 
