@@ -1,8 +1,10 @@
 """DEM ingestion: any raster GDAL reads (GeoTIFF, PDS3 IMG/LBL, ...) in a projected lunar CRS.
 
 Heights are sampled at (lat, lon) on the reference sphere by transforming to the DEM's own CRS
-with PROJ (``rasterio.warp.transform``) and interpolating with a cubic B-spline (interpolating, via
-``scipy.ndimage.map_coordinates(order=3)``). Only the window a patch needs is read. When the
+with PROJ (``rasterio.warp.transform``; for the spherical polar stereographic projection of the LOLA polar
+products the same formula in numpy, checked against PROJ when the DEM is opened) and interpolating with a
+cubic B-spline (interpolating, via ``scipy.ndimage.map_coordinates(order=3)``). Only the window a patch
+needs is read, from the raster kept open per process. When the
 requested grid is much coarser than the DEM, the window is box-averaged to about the grid spacing
 first, so the coarse grid does not alias the fine DEM.
 
