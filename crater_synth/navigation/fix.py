@@ -20,7 +20,9 @@ exceeds ``max_rms_px``: the system says it does not know rather than fix silentl
 **Pinhole pose from 3-D landmarks** (:func:`ransac_pnp`): the general case for perspective frames.
 Landmarks are 3-D points (centre on the rim plane, Moon-centred, heights from the DEM); minimal sets
 of 3 correspondences are solved by Gauss-Newton from the prior pose (6 unknowns, 6 equations), scored
-by reprojection inliers, and the winner is refined on all inliers. The same "no fix" rules apply.
+by reprojection inliers, and the winner is refined on all inliers. "No fix" with fewer than 4 agreeing
+landmarks, for a pose that contradicts its prior (attitude, position), an ambiguous one (the rule above),
+or an ill-conditioned one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
 
 Settings were chosen on validation windows only (docs/navigation.md).
 """
