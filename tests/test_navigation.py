@@ -353,3 +353,27 @@ def test_a_similarity_from_one_repeated_point_is_refused_not_a_nan_fix():
             det_uv, np.array([5.0]), lm_xy, pairs, complex(400.0, 0.0), FixParams(min_inliers=2)
         )
     assert not fix.ok
+
+
+def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_empty_map(tmp_path, monkeypatch):
+    """`crater-synth landmarks` writes outputs/landmarks/<pole>.geojson by default (the committed map is the
+    data of record, replaced only when --out names it); a DEM with no crater is one error line, no file."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.navigation import landmarks as lmod
+
+    committed = lmod.COMMITTED_MAP["south"].read_bytes()
+    lms, _ = lmod.load_default_map("south")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lmod, "build_map", lambda dem, pole, **kw: (lms[:3], {"candidates": 3, "catalogue": []}))
+    res = CliRunner().invoke(main, ["landmarks", "--no-check"])
+    assert res.exit_code == 0, res.output
+    written, prov = lmod.read_map(tmp_path / "outputs" / "landmarks" / "south.geojson")
+    assert [lm.id for lm in written] == [lm.id for lm in lms[:3]] and prov["pole"] == "south"
+    assert (tmp_path / "outputs" / "landmarks" / "south.png").is_file()
+    assert lmod.COMMITTED_MAP["south"].read_bytes() == committed
+    monkeypatch.setattr(lmod, "build_map", lambda dem, pole, **kw: ([], {"candidates": 7, "catalogue": []}))
+    res = CliRunner().invoke(main, ["landmarks", "--no-check", "--out", str(tmp_path / "empty.geojson")])
+    assert res.exit_code != 0 and "no crater of D >= 10 km" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "empty.geojson").exists()

@@ -417,7 +417,7 @@ def default_map_identity(pole: str) -> dict:
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="GeoJSON to write (default: the committed map).",
+    help="GeoJSON to write (default: outputs/landmarks/<pole>.geojson; the committed map only when named).",
 )
 @click.option(
     "--figure",
@@ -433,6 +433,9 @@ def landmarks_command(pole, dem_product, out, figure, no_check, workers):
 
     Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
     a map figure. Exit status 1 when the IAU recall is below 0.95. Example: `crater-synth landmarks`.
+    The committed map (data_manifest/landmarks/<pole>.geojson) is the data of record the navigation and the
+    rendered frames' labels use; a rebuild does not reproduce every landmark (docs/navigation.md, section 1),
+    so it is replaced only when `--out` names it (then `crater-synth nav-frames-relabel` each frames folder).
     """
     from crater_core.schema import atomic_write_bytes, atomic_write_text
     from crater_synth.terrain.dem import Dem
@@ -444,13 +447,18 @@ def landmarks_command(pole, dem_product, out, figure, no_check, workers):
     except Exception as exc:  # the registry names the product and why it is unavailable
         raise UserError(f"DEM product {product!r} for the {pole} pole: {exc}") from None
     dem = Dem(path, product=product)
-    out = out or COMMITTED_MAP.get(pole) or Path(f"landmarks_{pole}.geojson")
-    default_figure = COMMITTED_FIGURE.get(pole) if out == COMMITTED_MAP.get(pole) else None
+    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
+    default_figure = COMMITTED_FIGURE[pole] if out.resolve() == COMMITTED_MAP[pole].resolve() else None
     figure = figure or default_figure or out.with_suffix(".png")
     t0 = time.time()
     if workers < 1:
         raise UserError(f"--workers={workers} must be >= 1")
     landmarks, stats = build_map(dem, pole, progress=True, workers=workers)
+    if not landmarks:
+        raise UserError(
+            f"DEM product {product!r}: no crater of D >= {MIN_DIAMETER_KM:g} km measured in it "
+            f"({stats['candidates']} candidates); nothing written"
+        )
     from crater_synth.navigation.landmark_check import iau_check, map_figure
 
     check = None if no_check else iau_check(landmarks, pole, dem)
