@@ -99,6 +99,23 @@ def test_position_fix_with_known_attitude_is_exact_and_robust():
     assert not ok and "need 5" in reason
 
 
+def test_position_hypotheses_leave_out_degenerate_pairs_and_centres_behind():
+    """All pairs are solved at once: a pair whose two pixels coincide (one detection twice) or whose centre
+    has a landmark behind the camera gives no hypothesis; every other pair of true correspondences gives
+    the true centre, so all its points are inliers."""
+    from crater_synth.navigation.fix import _position_hypotheses, project_pinhole
+
+    r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
+    k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
+    c = np.array([1e3, 2e3, 100e3])
+    pts = np.array([[-30e3, 20e3, 0.0], [25e3, 15e3, 500.0], [5e3, -30e3, -300.0], [5e3, -30e3, -300.0]])
+    uv = project_pinhole(pts, r_wc, c, k)  # the last two: one landmark paired twice
+    masks = _position_hypotheses(pts, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)
+    assert 0 < len(masks) < 60 and masks.all()  # the (2, 3) pairs left out, every other one exact
+    behind = 2.0 * c - pts  # on the same lines through the camera, but above it: behind a nadir camera
+    assert len(_position_hypotheses(behind, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)) == 0
+
+
 def test_position_fix_refuses_an_ambiguous_set():
     """Two disjoint landmark sets (a pattern and its shifted copy) explain the same detections from two
     camera positions: with the (detection, landmark) ids the known-attitude fix answers "ambiguous";

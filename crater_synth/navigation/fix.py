@@ -397,6 +397,29 @@ def _rival(pairs, best: np.ndarray, hyps: dict, need: int, margin: int) -> str:
     return ""
 
 
+def _position_hypotheses(points, uv, k, r_wc, rng, iterations: int, inlier_px: float) -> np.ndarray:
+    """Inlier masks (h, n) of the camera centres solved from ``iterations`` random pairs of
+    correspondences (drawn from ``rng`` one pair at a time, in order), all pairs solved at once: a pair
+    whose two rays or two points coincide (one detection or one landmark twice: no position) and a centre
+    with either landmark behind the camera are left out."""
+    n = len(points)
+    idx = np.array([rng.choice(n, 2, replace=False) for _ in range(iterations)]).reshape(-1, 2)
+    a, b = idx[:, 0], idx[:, 1]
+    same = np.all(np.isclose(uv[a], uv[b]), axis=1) | np.all(np.isclose(points[a], points[b]), axis=1)
+    a, b = a[~same], b[~same]
+    rays = np.linalg.solve(k, np.column_stack([uv, np.ones(n)]).T).T @ r_wc  # world directions
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    proj = np.eye(3)[None, :, :] - rays[:, :, None] * rays[:, None, :]  # (n, 3, 3): I - d d^T
+    lhs = proj[a] + proj[b]
+    rhs = np.einsum("hij,hj->hi", proj[a], points[a]) + np.einsum("hij,hj->hi", proj[b], points[b])
+    centres = np.linalg.solve(lhs, rhs[:, :, None])[:, :, 0]  # (h, 3)
+    ahead = ((points[a] - centres) @ r_wc[2] > 0) & ((points[b] - centres) @ r_wc[2] > 0)
+    centres = centres[ahead]
+    cam = (points[None, :, :] - centres[:, None, :]) @ r_wc.T @ k.T  # (h, n, 3)
+    err = np.hypot(*np.moveaxis(cam[..., :2] / cam[..., 2:3] - uv[None], -1, 0))
+    return err <= inlier_px
+
+
 def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
     """Robust camera centre of known attitude from putative correspondences (some wrong): minimal sets
     of 2, scored by reprojection inliers, refitted on all inliers. Returns (ok, reason, centre, inlier
@@ -413,14 +436,7 @@ def ransac_position(points, uv, k, r_wc, params: FixParams = FixParams(), inlier
     rng = np.random.default_rng(params.seed)
     best = np.zeros(n, bool)
     hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
-    for _ in range(params.iterations):
-        idx = rng.choice(n, 2, replace=False)
-        if np.allclose(uv[idx[0]], uv[idx[1]]) or np.allclose(points[idx[0]], points[idx[1]]):
-            continue  # one detection (or one landmark) in two pairs: parallel rays, no position
-        c = solve_position(points[idx], uv[idx], k, r_wc)
-        if np.any((points[idx] - c) @ r_wc[2] <= 0):
-            continue  # the landmarks behind the camera
-        inl = np.hypot(*(project_pinhole(points, r_wc, c, k) - uv).T) <= inlier_px
+    for inl in _position_hypotheses(points, uv, k, r_wc, rng, params.iterations, inlier_px):
         if pairs is not None and inl.sum() >= params.min_inliers:
             hyps.setdefault(np.packbits(inl).tobytes(), inl)
         if inl.sum() > best.sum():
