@@ -298,7 +298,8 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     proc = run_nav_frames(tmp_path / "data", out, "0")
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert summary["frames"] == 1 and summary["modes_used"] == ["fast"]
+    assert summary["frames"] == 1 and summary["modes_used"] == ["fast"] and summary["sun_below_horizon"] == []
+    assert "below the horizon" not in proc.stderr
     (row,) = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
     assert row["schema_version"] == 1 and row["index"] == 0 and row["pose"]["altitude_m"] == pytest.approx(150e3)
     ch, header = exr.read_exr(out / row["rel_path"])
@@ -459,6 +460,15 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     before = manifest.read_bytes()
     res = CliRunner().invoke(main, ["nav-frames-relabel", str(out)])
     assert res.exit_code != 0 and "nothing relabelled" in res.output and manifest.read_bytes() == before
+
+
+def test_nav_frames_warns_of_a_night_frame(tmp_path):
+    """A trajectory whose Sun is on the far side of the pole renders dark frames: rendered as asked, listed
+    in the summary and named in a warning line."""
+    proc = run_nav_frames(tmp_path / "data", tmp_path / "night", "0", "trajectory.subsolar_lon_deg=120")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["sun_below_horizon"] == [0] and "Sun is below the horizon at the target of frames [0]" in proc.stderr
 
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):

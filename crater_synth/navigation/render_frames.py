@@ -439,6 +439,7 @@ def render_frames(
         "render_seconds": round(t_render, 2),
         "worker_render_seconds": round(sum(r["render_seconds"] for r in ordered), 2),
         "landmarks_in_view": [len(r["landmarks"]) for r in ordered],
+        "sun_below_horizon": [r["index"] for r in ordered if r["sun_enu"]["elevation_deg"] < 0.0],
         "patches": len(groups),
         "reused": len(reused),
     }
@@ -472,4 +473,10 @@ def nav_frames_command(overrides, out, only, per_frame_patches):
         raise UserError(f"--frames {only!r}: must be comma-separated integers") from None
     out = out or Path(str(settings.data_dir)) / "navframes" / settings.trajectory.name
     summary = render_frames(settings, out, idx, progress=True, share_patches=not per_frame_patches)
+    if summary["sun_below_horizon"]:  # rendered as asked, but a night frame shows nothing to navigate by
+        click.echo(
+            f"warning: the Sun is below the horizon at the target of frames {summary['sun_below_horizon']}: "
+            "they are dark (the trajectory's subsolar longitude is on the far side of the pole?)",
+            err=True,
+        )
     click.echo(json.dumps(summary))
