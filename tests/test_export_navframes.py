@@ -95,6 +95,7 @@ def _check_labels(rec: dict, row: dict) -> None:
         row["pose"]["altitude_m"],
     )
     assert rec["landmarks"] == _landmarks(row)  # exactly, ellipses and nullable lit-rim fractions included
+    assert rec["landmark_map_sha256"] == row["landmark_map"]["sha256"] and rec["label_version"] == 3
 
 
 def test_kind_is_detected_from_the_manifest(frames):

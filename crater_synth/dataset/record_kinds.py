@@ -250,6 +250,7 @@ def _navframe_label_fields() -> list:
         ("mode", s),
         ("terrain_id", s),
         ("label_version", i64),
+        ("landmark_map_sha256", s),  # the map the labels name landmarks from (null: labels before version 3)
         ("schema_version", i64),
     ]
 
@@ -285,6 +286,7 @@ def _navframe_labels(row: dict) -> dict:
         "mode": row.get("mode"),
         "terrain_id": row.get("terrain_id"),
         "label_version": row.get("label_version"),
+        "landmark_map_sha256": (row.get("landmark_map") or {}).get("sha256"),
         "schema_version": row.get("schema_version"),
     }
 
