@@ -150,22 +150,15 @@ def _body_radii(crs) -> tuple[float, float]:
 def _polar_stereo_pole(dem) -> str | None:
     """``"south"`` or ``"north"`` when the DEM's CRS is the spherical polar stereographic projection that
     :func:`crater_core.geometry.polar_stereo_forward` computes (the LOLA polar products), checked
-    against PROJ on the raster's corners and centre to 1 mm; else None. Then (lat, lon) -> (x, y) runs
+    against PROJ on the raster's :meth:`Dem.outline_points` to 1 mm; else None. Then (lat, lon) -> (x, y) runs
     in numpy: PROJ's ``transform`` builds its pipeline on every call (~1 ms, a third of reading a
     landmark's terrain window)."""
-    from rasterio.warp import transform
-
     d = dem.crs.to_dict()
     if d.get("proj") != "stere" or abs(abs(float(d.get("lat_0", 0.0))) - 90.0) > 1e-12:
         return None
     pole = "north" if float(d["lat_0"]) > 0 else "south"
-    left, bottom, right, top = dem.bounds
-    x, y = (
-        np.array(v, dtype=np.float64).ravel()
-        for v in np.meshgrid([left, 0.5 * (left + right), right], [bottom, 0.5 * (bottom + top), top])
-    )
-    lon, lat = transform(dem.crs, dem.geographic_crs, x, y)
-    fx, fy = polar_stereo_forward(np.asarray(lat), np.asarray(lon), pole, dem.body_radius_m)
+    x, y, lat, lon = dem.outline_points()
+    fx, fy = polar_stereo_forward(lat, lon, pole, dem.body_radius_m)
     return pole if max(np.max(np.abs(fx - x)), np.max(np.abs(fy - y))) < 1e-3 else None
 
 
@@ -288,17 +281,22 @@ class Dem:
     def latlon_to_pixel(self, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
         return self.xy_to_pixel(*self.latlon_to_xy(lat_deg, lon_deg))
 
-    def hemisphere(self) -> str | None:
-        """``"north"`` or ``"south"`` when the whole raster (its corners, edge midpoints and centre) lies in
-        that hemisphere, else None (a DEM spanning the equator, e.g. a global one)."""
+    def outline_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, lat, lon) of the raster's corners, edge midpoints and centre (projected metres, and their
+        planetocentric degrees through PROJ)."""
         from rasterio.warp import transform
 
         left, bottom, right, top = self.bounds
         xs = [left, (left + right) / 2, right]
         ys = [bottom, (bottom + top) / 2, top]
         x, y = (np.array(v, dtype=np.float64).ravel() for v in np.meshgrid(xs, ys))
-        _, lat = transform(self.crs, self.geographic_crs, x, y)
-        lat = np.asarray(lat, dtype=np.float64)
+        lon, lat = transform(self.crs, self.geographic_crs, x, y)
+        return x, y, np.asarray(lat, dtype=np.float64), np.asarray(lon, dtype=np.float64)
+
+    def hemisphere(self) -> str | None:
+        """``"north"`` or ``"south"`` when the whole raster (its :meth:`outline_points`) lies in that
+        hemisphere, else None (a DEM spanning the equator, e.g. a global one)."""
+        _, _, lat, _ = self.outline_points()
         if np.all(lat > 0.0):
             return "north"
         if np.all(lat < 0.0):
