@@ -377,3 +377,12 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
     res = CliRunner().invoke(main, ["landmarks", "--no-check", "--out", str(tmp_path / "empty.geojson")])
     assert res.exit_code != 0 and "no crater of D >= 10 km" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "empty.geojson").exists()
+
+
+def test_a_missing_committed_map_is_one_error_naming_how_to_write_it(tmp_path, monkeypatch):
+    from crater_synth.navigation import landmarks as lmod
+
+    monkeypatch.setitem(lmod.COMMITTED_MAP, "north", tmp_path / "north.geojson")
+    for load in (lmod.load_default_map, lmod.default_map_identity):
+        with pytest.raises(lmod.LandmarkMapError, match="--out data_manifest/landmarks/north.geojson"):
+            load("north")

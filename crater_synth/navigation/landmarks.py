@@ -381,14 +381,20 @@ def read_map(path: str | Path) -> tuple[list[Landmark], dict]:
     return out, prov
 
 
-def load_default_map(pole: str = "south") -> tuple[list[Landmark], dict]:
-    """The committed map of ``pole`` (data_manifest/landmarks/<pole>.geojson)."""
+def committed_map_path(pole: str) -> Path:
+    """data_manifest/landmarks/<pole>.geojson; one clear error when it is missing."""
     path = COMMITTED_MAP.get(check_pole(pole))
     if path is None or not path.exists():
         raise LandmarkMapError(
-            f"no committed landmark map for the {pole} pole: run crater-synth landmarks --pole {pole}"
+            f"no committed landmark map for the {pole} pole: run crater-synth landmarks --pole {pole} "
+            f"--out data_manifest/landmarks/{pole}.geojson"
         )
-    return read_map(path)
+    return path
+
+
+def load_default_map(pole: str = "south") -> tuple[list[Landmark], dict]:
+    """The committed map of ``pole`` (data_manifest/landmarks/<pole>.geojson)."""
+    return read_map(committed_map_path(pole))
 
 
 def map_identity(path: str | Path) -> dict:
@@ -402,9 +408,8 @@ def map_identity(path: str | Path) -> dict:
 
 
 def default_map_identity(pole: str) -> dict:
-    """:func:`map_identity` of the pole's committed map (:func:`load_default_map`)."""
-    load_default_map(pole)  # its clear errors first
-    return map_identity(COMMITTED_MAP[pole])
+    """:func:`map_identity` of the pole's committed map (:func:`load_default_map`'s)."""
+    return map_identity(committed_map_path(pole))
 
 
 # --------------------------------------------------------------------------------------------

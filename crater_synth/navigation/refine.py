@@ -328,8 +328,8 @@ class Refiner:
         (the terrains are computed when asked for)."""
         if self.workers < 2:
             return
-        missing = [(lm, sun) for lm, sun in jobs if self._key(lm, sun) not in self._terrains]
-        missing = [(lm, sun) for lm, sun in missing if self._key(lm, sun) not in self._pending]
+        keyed = ((self._key(lm, sun), lm, sun) for lm, sun in jobs)
+        missing = [(key, lm, sun) for key, lm, sun in keyed if key not in self._terrains and key not in self._pending]
         if len(missing) < 2:
             return
         if self._pool is None:
@@ -341,8 +341,8 @@ class Refiner:
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=ctx, initializer=_pool_init, initargs=(self.dem, self.params)
             )
-        for lm, sun in missing:
-            self._pending[self._key(lm, sun)] = self._pool.submit(_pool_terrain, lm, sun)
+        for key, lm, sun in missing:
+            self._pending[key] = self._pool.submit(_pool_terrain, lm, sun)
 
     def close(self) -> None:
         """Stop the terrain workers (a refiner with workers starts them again when needed)."""
