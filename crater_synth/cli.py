@@ -34,6 +34,11 @@ _COMMANDS = (
     ("crater_synth.evaluation.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
     ("crater_synth.evaluation.sunmatch", "sunmatch_command", "Real crops against renders under a dense sun grid."),
     ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
+    (
+        "crater_synth.navigation.landmark_check",
+        "landmarks_check_command",
+        "Check a landmark map against two crater lists.",
+    ),
     ("crater_synth.navigation.evaluate", "nav_eval_command", "Navigation metrics on real mosaic windows."),
     ("crater_synth.navigation.navigate", "navigate_command", "Detect, identify and fix one nadir frame."),
     (

@@ -386,3 +386,51 @@ def test_a_missing_committed_map_is_one_error_naming_how_to_write_it(tmp_path, m
     for load in (lmod.load_default_map, lmod.default_map_identity):
         with pytest.raises(lmod.LandmarkMapError, match="--out data_manifest/landmarks/north.geojson"):
             load("north")
+
+
+def test_catalogue_check_counts_recall_by_listed_size_and_precision_by_landmark_size():
+    """Recall of the listed craters >= 10 km and precision of the landmarks >= 10 km, with the IAU
+    tolerances (0.15 D, 25 %); a landmark under 10 km still finds a listed crater but is not scored."""
+    from crater_synth.navigation.landmark_check import catalogue_check
+
+    def lm(i, x_km, d_km):
+        return Landmark(f"S{i:04d}", "", -85.0, 0.0, x_km * 1e3, 0.0, d_km, 1e3, 0.0, 1e2, 1.0, "dem")
+
+    listed = np.array([[0.0, 0.0, 12.0], [100e3, 0.0, 40.0], [300e3, 0.0, 60.0], [500e3, 0.0, 9.0]])
+    landmarks = [lm(1, 1.0, 13.0), lm(2, 108.0, 40.0), lm(3, 300.0, 80.0), lm(4, 700.0, 20.0), lm(5, 500.0, 8.5)]
+    check = catalogue_check(landmarks, "south", dem=None, listed=listed)
+    bins = {b["diameter_km"]: b for b in check["bins"]}
+    # 12 km: found (1 km off, 8 % larger); 40 km: 8 km = 0.2 D off; 60 km: 33 % too large (the rule is the
+    # listed crater's, both ways: the 80 km landmark is not a true one although 60 is 25 % below 80).
+    assert bins["10-15"] == {"diameter_km": "10-15", "listed": 1, "recall": 1.0, "landmarks": 1, "precision": 1.0}
+    assert bins["30-50"]["recall"] == 0.0 and bins[">= 50"]["recall"] == 0.0
+    assert bins[">= 10"]["listed"] == 3 and bins[">= 10"]["recall"] == pytest.approx(1 / 3, abs=1e-4)
+    assert bins[">= 10"]["landmarks"] == 4 and bins[">= 10"]["precision"] == 0.25  # the 8.5 km one not scored
+    assert bins["15-20"]["listed"] == 0 and bins["15-20"]["recall"] is None
+
+
+def test_committed_crater_catalogue_is_checked_and_an_edited_copy_refused(tmp_path):
+    from crater_synth.errors import UserError
+    from crater_synth.navigation import landmark_check as lc
+
+    text = lc.LU_CSV.read_text()
+    assert text.startswith("id,lon,lat,diameter_km,depth_m,source\n") and text.count("\n") == 5273
+    edited = tmp_path / "lu.csv"
+    edited.write_text(text.replace(",8.", ",9.", 1))
+    with pytest.raises(UserError, match="sha256 differs"):
+        lc.lu_craters("south", dem=None, path=edited)
+    with pytest.raises(UserError, match="missing"):
+        lc.lu_craters("south", dem=None, path=tmp_path / "none.csv")
+
+
+def test_landmarks_check_command_reports_both_lists_for_the_committed_map(tmp_path):
+    out = tmp_path / "check.json"
+    res = CliRunner().invoke(main, ["landmarks-check", "--pole", "south", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    record = json.loads(out.read_text())
+    assert record["map"]["landmarks"] == 834 and record["iau_check"]["recall"] == 0.9565
+    assert record["catalogue_check"]["n_inside_dem"] > 1000
+    assert [b["diameter_km"] for b in record["catalogue_check"]["bins"]][-2:] == [">= 10", ">= 15"]
+    assert "precision" in res.output
+    res = CliRunner().invoke(main, ["landmarks-check", "--pole", "north", "--map", str(tmp_path / "none.geojson")])
+    assert res.exit_code == 2 and "does not exist" in res.output

