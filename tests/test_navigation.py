@@ -434,3 +434,30 @@ def test_landmarks_check_command_reports_both_lists_for_the_committed_map(tmp_pa
     assert "precision" in res.output
     res = CliRunner().invoke(main, ["landmarks-check", "--pole", "north", "--map", str(tmp_path / "none.geojson")])
     assert res.exit_code == 2 and "does not exist" in res.output
+
+
+def test_detections_are_also_scored_against_the_complete_catalogue():
+    """A detection of a catalogued crater the map lacks is false for the map's truth but true against the
+    catalogue; the catalogue's recall counts its craters >= 15 km in view."""
+    from crater_synth.navigation.evaluate import summarise
+
+    row = {
+        "fix": False,
+        "truth": [7],
+        "truth_d_km": [20.0],
+        "matched": {0: 7},
+        "matched_any": [0],
+        "det_r_km": [10.0, 9.0, 8.0],  # D 20 (the map's landmark), 18 (catalogued only), 16 (neither)
+        "catalogue_d_km": [20.0, 18.0, 12.0, 30.0],
+        "catalogue_found": [0, 1],
+        "matched_catalogue": [0, 1],
+    }
+    s = summarise([row])
+    assert s["precision_15km"] == pytest.approx(1 / 3, abs=1e-4)
+    assert s["against_catalogue"] == {
+        "recall_15km": pytest.approx(2 / 3, abs=1e-4),  # 20 and 18 found, 30 missed, 12 below 15 km
+        "precision_15km": pytest.approx(2 / 3, abs=1e-4),
+        "n_catalogue_15km": 3,
+        "n_detections_15km": 3,
+    }
+    assert "against_catalogue" not in summarise([{k: v for k, v in row.items() if not k.startswith("catalogue")}])

@@ -176,9 +176,13 @@ def run_frame(
     seed: int = 0,
     lis=None,
     prior_offset_km: float = PRIOR_OFFSET_KM,
+    listed=None,
 ) -> dict:
     """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
-    :func:`navigate_frame`; ``prior_offset_km``: how far the prior is from the truth)."""
+    :func:`navigate_frame`; ``prior_offset_km``: how far the prior is from the truth). ``listed``: a
+    complete crater catalogue (``landmark_check.catalogue_craters``) the detections are also scored
+    against, a diagnostic beside the map's truth (a detection of a crater the map lacks is no landmark,
+    but it is a crater)."""
     dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed, lis, prior_offset_km)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
@@ -201,6 +205,12 @@ def run_frame(
         "fix": fix.ok,
         "reason": fix.reason,
     }
+    if listed is not None:
+        listed_idx = truth_in_frame(listed, frame.georef, frame.image.shape)
+        listed_hits = match_detections(dets, listed, listed_idx, frame.georef)
+        row["catalogue_d_km"] = [listed[i].diameter_km for i in listed_idx]
+        row["catalogue_found"] = sorted(listed_idx.index(i) for i in listed_hits.values())
+        row["matched_catalogue"] = sorted(int(k) for k in listed_hits)
     if fix.ok:
         tx, ty = frame.centre_xy
         row["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, tx, ty, frame.georef.pole))
@@ -260,7 +270,29 @@ def summarise(rows: list[dict]) -> dict:
         tp_d += int(sum(1 for k in sel if int(k) in r["matched"] or int(k) in r["matched_any"]))
     out["recall_15km"] = round(tp_t / n_t, 4) if n_t else None
     out["precision_15km"] = round(tp_d / n_d, 4) if n_d else None
+    if all("catalogue_d_km" in r for r in rows):
+        out["against_catalogue"] = _catalogue_scores(rows)
     return out
+
+
+def _catalogue_scores(rows: list[dict]) -> dict:
+    """D >= 15 km: the catalogue's craters in view that a detection matches, and the detections that match a
+    map landmark (any size) or a catalogued crater (the map's truth misses most catalogued craters)."""
+    n_t = tp_t = n_d = tp_d = 0
+    for r in rows:
+        dt = np.array(r["catalogue_d_km"], dtype=float)
+        n_t += int((dt >= HEADLINE_MIN_D_KM).sum())
+        tp_t += int(sum(1 for k in r["catalogue_found"] if dt[k] >= HEADLINE_MIN_D_KM))
+        sel = np.nonzero(2.0 * np.array(r["det_r_km"], dtype=float) >= HEADLINE_MIN_D_KM)[0]
+        true = set(r["matched"]) | set(r["matched_any"]) | set(r["matched_catalogue"])
+        n_d += int(sel.size)
+        tp_d += int(sum(1 for k in sel if int(k) in true))
+    return {
+        "recall_15km": round(tp_t / n_t, 4) if n_t else None,
+        "precision_15km": round(tp_d / n_d, 4) if n_d else None,
+        "n_catalogue_15km": n_t,
+        "n_detections_15km": n_d,
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -297,6 +329,7 @@ def evaluate_split(
     pole: str = "south",
     lis_params=None,
     prior_offset_km: float = PRIOR_OFFSET_KM,
+    listed=None,
 ) -> tuple[dict, list[dict]]:
     """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
     headline windows, and the per-window rows. ``lis_params``: the lost-in-space fix with these
@@ -313,7 +346,7 @@ def evaluate_split(
         lis = (lis_params, build_index(landmarks, lis_params))
     rows = []
     for k, f in enumerate(frames):
-        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km))
+        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km, listed=listed))
         if progress and k % 20 == 19:
             click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
     head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
@@ -354,6 +387,20 @@ def results_markdown(results: dict) -> str:
                 rec = "-" if v["recall"] is None else f"{v['recall']:.3f}"
                 pre = "-" if v["precision"] is None else f"{v['precision']:.3f}"
                 lines.append(f"| {m} | {split} | {b} | {rec} | {pre} | {v['n_truth']} | {v['n_detections']} |")
+    cat = [
+        (m, split, r["all_windows"]["against_catalogue"])
+        for m, res in methods.items()
+        for split, r in res["splits"].items()
+        if "against_catalogue" in r["all_windows"]
+    ]
+    if cat:
+        lines += ["", "Detections D >= 15 km against the complete crater catalogue as well (all windows):", ""]
+        lines.append("| method | split | catalogue recall | precision (map or catalogue) | catalogued | detections |")
+        lines.append("|---|---|---|---|---|---|")
+        for m, split, c in cat:
+            rec = "-" if c["recall_15km"] is None else f"{c['recall_15km']:.3f}"
+            pre = "-" if c["precision_15km"] is None else f"{c['precision_15km']:.3f}"
+            lines.append(f"| {m} | {split} | {rec} | {pre} | {c['n_catalogue_15km']} | {c['n_detections_15km']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -487,6 +534,9 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
     landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
+    from crater_synth.navigation.landmark_check import LU_SOURCE, catalogue_craters
+
+    listed = catalogue_craters(pole)
     methods = methods or tuple(METHOD_DESCRIPTIONS)
     lis_sets = tuple(o for o in sets if o.startswith("lis."))
     sets = tuple(o for o in sets if not o.startswith("lis."))
@@ -520,6 +570,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
             "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
             "every": every,
             "position_prior": "none (lost in space)" if lost_in_space else f"truth + {prior_offset_km:g} km",
+            "catalogue_diagnostic": f"{LU_SOURCE}: detections D >= 15 km also scored against it (against_catalogue)",
         },
         "landmark_map": {
             "dem_product": prov.get("dem_product"),
@@ -558,6 +609,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
                 pole=pole,
                 lis_params=lis_params,
                 prior_offset_km=prior_offset_km,
+                listed=listed,
             )
             entry["splits"][split] = summary
         results["methods"][m] = entry

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -130,11 +131,19 @@ def iau_check(landmarks: list, pole: str, dem) -> dict:
 # --------------------------------------------------------------------------------------------
 # Complete-catalogue check: LU1319381, craters >= 8 km poleward of 60 degrees
 # --------------------------------------------------------------------------------------------
-def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA256) -> np.ndarray:
-    """(n, 3) array of x_m, y_m, diameter_km: the listed craters on ``pole``'s side whose +-1.25 D measuring
-    square lies inside the DEM (as for the IAU list). The file is checked against its sha256 first."""
+@dataclass(frozen=True)
+class ListedCrater:
+    """A crater of the reference catalogue, in the pole's stereographic projection (the fields a landmark
+    is matched by, so the detection scoring takes either)."""
+
+    x_m: float
+    y_m: float
+    diameter_km: float
+
+
+def _read_lu(path: Path, sha256: str | None) -> list[tuple[float, float, float]]:
+    """(lat, lon, diameter_km) rows of the catalogue file, after its sha256 check; one error otherwise."""
     from crater_core.schema import sha256_file
-    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
 
     if not path.is_file():
         raise UserError(f"crater catalogue {path}: missing")
@@ -142,11 +151,27 @@ def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA2
         raise UserError(f"crater catalogue {path}: sha256 differs from the committed {sha256[:12]}... (edited?)")
     try:
         rows = list(csv.DictReader(io.StringIO(path.read_text())))
-        table = [(float(r["lat"]), float(r["lon"]), float(r["diameter_km"])) for r in rows]
+        return [(float(r["lat"]), float(r["lon"]), float(r["diameter_km"])) for r in rows]
     except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"crater catalogue {path}: unreadable row ({exc})") from None
+
+
+def catalogue_craters(pole: str, path: Path = LU_CSV, sha256: str | None = LU_SHA256) -> list[ListedCrater]:
+    """Every listed crater on ``pole``'s side (>= 8 km, poleward of 60 degrees)."""
+    return [
+        ListedCrater(*(float(v) for v in stereo_forward(lat, lon, pole)), d_km)
+        for lat, lon, d_km in _read_lu(path, sha256)
+        if (lat < 0) == (pole == "south")
+    ]
+
+
+def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA256) -> np.ndarray:
+    """(n, 3) array of x_m, y_m, diameter_km: the listed craters on ``pole``'s side whose +-1.25 D measuring
+    square lies inside the DEM (as for the IAU list). The file is checked against its sha256 first."""
+    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
+
     out = []
-    for lat, lon, d_km in table:
+    for lat, lon, d_km in _read_lu(path, sha256):
         if (lat < 0) != (pole == "south") or not square_inside(dem, lat, lon, GRID_HALF_WIDTH_D * d_km * 1000.0):
             continue
         out.append((*stereo_forward(lat, lon, pole), d_km))
@@ -256,7 +281,13 @@ def map_figure(landmarks: list, dem, check: dict | None, pole: str) -> bytes:
     default=None,
     help="Landmark map GeoJSON (default: the pole's committed map).",
 )
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None)
+@click.option(
+    "--json",
+    "json_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write both checks (and the map's identity) to this JSON file.",
+)
 @user_errors
 def landmarks_check_command(pole, map_path, json_out):
     """Check a landmark map against the IAU craters >= 50 km and the LU1319381 catalogue (recall, precision).
