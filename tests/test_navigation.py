@@ -371,6 +371,7 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
     assert res.exit_code == 0, res.output
     written, prov = lmod.read_map(tmp_path / "outputs" / "landmarks" / "south.geojson")
     assert [lm.id for lm in written] == [lm.id for lm in lms[:3]] and prov["pole"] == "south"
+    assert prov["catalogue_check"]["bins"][-2]["landmarks"] == sum(lm.diameter_km >= 10 for lm in lms[:3])
     assert (tmp_path / "outputs" / "landmarks" / "south.png").is_file()
     assert lmod.COMMITTED_MAP["south"].read_bytes() == committed
     monkeypatch.setattr(lmod, "build_map", lambda dem, pole, **kw: ([], {"candidates": 7, "catalogue": []}))
