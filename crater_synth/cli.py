@@ -33,9 +33,9 @@ _COMMANDS = (
     ("crater_synth.evaluation.validation", "validate_command", "Validation protocol: choose on validation craters."),
     ("crater_synth.evaluation.ablation", "ablate_command", "Ablation: each fidelity lever turned off in turn."),
     ("crater_synth.evaluation.sunmatch", "sunmatch_command", "Real crops against renders under a dense sun grid."),
-    ("crater_synth.navigation.landmarks", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
+    ("crater_synth.navigation.landmarks_cli", "landmarks_command", "Measure the crater landmark map of a polar DEM."),
     (
-        "crater_synth.navigation.landmark_check",
+        "crater_synth.navigation.landmarks_cli",
         "landmarks_check_command",
         "Check a landmark map against two crater lists.",
     ),

@@ -429,7 +429,9 @@ def test_landmarks_check_command_reports_both_lists_for_the_committed_map(tmp_pa
     res = CliRunner().invoke(main, ["landmarks-check", "--pole", "south", "--json", str(out)])
     assert res.exit_code == 0, res.output
     record = json.loads(out.read_text())
-    assert record["map"]["landmarks"] == 834 and record["iau_check"]["recall"] == 0.9565
+    assert record["iau_check"]["recall"] == 0.9565  # the map's own 834 landmarks (the layer's apart)
+    assert record["map"]["landmarks"] == 834 + record["layers"][0]["landmarks"]
+    assert record["layers"][0]["dem_product"] == "shackleton_lola_200m"
     assert record["catalogue_check"]["n_inside_dem"] > 1000
     assert [b["diameter_km"] for b in record["catalogue_check"]["bins"]][-2:] == [">= 10", ">= 15"]
     assert "precision" in res.output
@@ -462,3 +464,52 @@ def test_detections_are_also_scored_against_the_complete_catalogue():
         "n_detections_15km": 3,
     }
     assert "against_catalogue" not in summarise([{k: v for k, v in row.items() if not k.startswith("catalogue")}])
+
+
+def _lm(i, x_km, d_km, product=""):
+    return Landmark(f"S{i:04d}", "", -89.0, 0.0, x_km * 1e3, 0.0, d_km, 1e2, 0.0, 1e1, 1.0, "dem", product)
+
+
+def test_a_finer_layer_adds_only_the_sizes_the_map_does_not_resolve():
+    """Layer landmarks below the map's smallest size and at least the layer's own, duplicating none of the
+    map's, are appended with ids numbered on and the layer's product; the map's own are kept as they were."""
+    from crater_synth.navigation.landmarks import add_layer
+
+    base = [_lm(1, 0.0, 12.0), _lm(2, 50.0, 8.0)]
+    layer = [
+        _lm(1, 100.0, 11.0),  # the map's own sizes: not the layer's to add
+        _lm(2, 50.3, 7.0),  # the map's 8 km crater again (0.3 km off, 12 % smaller)
+        _lm(3, 20.0, 2.0),
+        _lm(4, 30.0, 3.0),
+        _lm(5, 40.0, 1.0),  # under the layer's 1.25 km
+    ]
+    out = add_layer(base, 10.0, layer, "fine_dem", 1.25)
+    assert out[:2] == base
+    assert [(lm.id, lm.diameter_km, lm.dem_product) for lm in out[2:]] == [
+        ("S0003", 3.0, "fine_dem"),
+        ("S0004", 2.0, "fine_dem"),
+    ]
+
+
+def test_rendered_frames_use_layer_landmarks_where_they_resolve_them():
+    from crater_synth.navigation.fix import FixParams
+    from crater_synth.navigation.frames_eval import LAYER_LANDMARK_MIN_PX, usable
+
+    fp = FixParams()
+    assert not usable(_lm(1, 0, 9.9), 45.0, fp) and usable(_lm(1, 0, 10.0), 400.0, fp)
+    layer = _lm(2, 0, 1.5, "fine_dem")
+    assert usable(layer, 1500.0 / LAYER_LANDMARK_MIN_PX, fp) and not usable(layer, 100.0, fp)
+
+
+def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
+    from crater_synth.navigation.landmarks import COMMITTED_MAP
+
+    res = CliRunner().invoke(
+        main, ["landmarks", "--dem-product", "shackleton_lola_200m", "--add-to", str(COMMITTED_MAP["south"])]
+    )
+    assert res.exit_code == 2 and "already in it" in res.output
+    res = CliRunner().invoke(
+        main, ["landmarks", "--dem-product", "lola_ldem256_south", "--add-to", str(COMMITTED_MAP["south"]),
+               "--out", str(tmp_path / "m.geojson")],
+    )  # fmt: skip
+    assert res.exit_code == 2 and "is not finer" in res.output and not (tmp_path / "m.geojson").exists()

@@ -18,9 +18,10 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   and its radius within 25 % of the ellipse's semi-major axis.
 - **Prior**: the true camera moved ``PRIOR_OFFSET_KM`` horizontally in a seeded random direction;
   the attitude is the true one (the same assumption as nav-eval's exact prior heading and scale).
-- **Identification**: map landmarks >= ``min_landmark_km`` projected with the prior pose; putative
-  pairs within the prior's uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio
-  within ``radius_ratio`` (:class:`.fix.FixParams`, the values chosen on real validation windows).
+- **Identification**: map landmarks >= ``min_landmark_km`` (those a finer DEM layer added: from
+  ``LAYER_LANDMARK_MIN_PX`` px) projected with the prior pose; putative pairs within the prior's
+  uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio within ``radius_ratio``
+  (:class:`.fix.FixParams`, the values chosen on real validation windows).
 - **Fix** (``method``): ``position`` (default): the camera centre with the prior's (true) attitude,
   :func:`.fix.ransac_position` (least squares on the rays through the landmarks' 3-D rim-centre
   points, minimal sets of 2), corrected for the perspective offset of the rim ellipses' centres
@@ -74,6 +75,18 @@ from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_recor
 from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
+# A landmark a finer DEM layer added to the map (below the map's own min_landmark_km) is used where the frame
+# resolves it as the real windows resolve their smallest: D >= 25 px (10 km at their 400 m/px).
+LAYER_LANDMARK_MIN_PX = 25.0
+
+
+def usable(landmark, gsd_m: float, fparams: FixParams) -> bool:
+    """Whether a frame of ground sample ``gsd_m`` uses ``landmark``: one of the map's own DEM from
+    ``fparams.min_landmark_km``, one of a finer DEM layer (``dem_product`` set) from
+    :data:`LAYER_LANDMARK_MIN_PX` frame pixels."""
+    if not landmark.dem_product:
+        return landmark.diameter_km >= fparams.min_landmark_km
+    return landmark.diameter_km * 1000.0 >= LAYER_LANDMARK_MIN_PX * gsd_m
 
 
 def cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +175,7 @@ def evaluate_frame(
     # The map landmarks the prior predicts in the frame (position and radius, px).
     r_wc, k = cv_camera(rot, width, fov)
     c_prior = prior_centre(row, seed, prior_offset_km)
-    cand = [lm for lm in landmarks if lm.diameter_km >= fparams.min_landmark_km]
+    cand = [lm for lm in landmarks if usable(lm, gsd, fparams)]
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
     depth = (pts - c_prior) @ r_wc[2]
     front = depth > 0
@@ -184,10 +197,10 @@ def evaluate_frame(
             dets, empty = [], str(exc)
     else:
         dets = list(detections)
-    labels = [lb for lb in row["landmarks"] if lb["diameter_km"] >= fparams.min_landmark_km]
+    by_id = {lm.id: k for k, lm in enumerate(landmarks)}
+    labels = [lb for lb in row["landmarks"] if usable(landmarks[by_id[lb["id"]]], gsd, fparams)]
     matched = match_pixels(dets, labels)
     labels_seen = [lb for lb in labels if not hidden(lb)]
-    by_id = {lm.id: k for k, lm in enumerate(landmarks)}
     out = {
         "id": f"{row['trajectory']}/{row['index']}",
         "index": row["index"],

