@@ -50,6 +50,22 @@ def test_appearance_finds_the_map_landmarks_and_fixes_a_real_window(south):
     assert row["n_detections"] >= 10 and len(row["matched"]) >= 0.9 * row["n_detections"]
 
 
+def test_a_real_window_is_also_scored_against_the_crater_catalogue(south):
+    """With the catalogue, a window's row lists the catalogued craters in view and which detections match
+    them; every map landmark the search found near a catalogued crater counts for both."""
+    from crater_synth.navigation.evaluate import run_frame, summarise
+    from crater_synth.navigation.landmark_check import catalogue_craters
+
+    frame, landmarks = south
+    listed = catalogue_craters("south")
+    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), listed=listed)
+    assert len(row["catalogue_d_km"]) >= 10 and all(d >= 8.0 for d in row["catalogue_d_km"])
+    assert set(row["matched_catalogue"]) <= set(range(row["n_detections"]))
+    assert 0 < len(row["catalogue_found"]) <= len(row["catalogue_d_km"])
+    cat = summarise([row])["against_catalogue"]
+    assert cat["precision_15km"] >= summarise([row])["precision_15km"]  # more truth, never less precise
+
+
 def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
     """The window turned upside down: every landmark is predicted where the image shows something else.
     The search may still find a few look-alikes, but no consistent set: "no fix", never a wrong one."""
