@@ -513,3 +513,10 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
                "--out", str(tmp_path / "m.geojson")],
     )  # fmt: skip
     assert res.exit_code == 2 and "is not finer" in res.output and not (tmp_path / "m.geojson").exists()
+    bare = tmp_path / "bare.geojson"  # a map whose provenance lacks the sizes
+    lms, prov = read_map(COMMITTED_MAP["north"])
+    bare.write_text(to_geojson(lms[:2], {"pole": "north"}))
+    res = CliRunner().invoke(
+        main, ["landmarks", "--pole", "north", "--dem-product", "shackleton_lola_200m", "--add-to", str(bare)]
+    )
+    assert res.exit_code == 2 and "no DEM pixel size" in res.output and "Traceback" not in res.output

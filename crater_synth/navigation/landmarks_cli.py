@@ -73,15 +73,23 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
             raise UserError(f"--add-to {add_to}: a {base_prov['pole']} map, not {pole}")
         if any(layer["dem_product"] == product for layer in base_prov.get("layers", [])):
             raise UserError(f"--add-to {add_to}: DEM layer {product!r} is already in it")
+        try:
+            base_pixel_m = float(base_prov["dem_pixel_m"])
+            base_min = float(base_prov["parameters"]["min_diameter_km"])
+        except (KeyError, TypeError, ValueError):
+            raise UserError(
+                f"--add-to {add_to}: its provenance gives no DEM pixel size or smallest landmark size "
+                "(a map written by crater-synth landmarks has both)"
+            ) from None
     try:
         path = embedded_path(product)
     except Exception as exc:  # the registry names the product and why it is unavailable
         raise UserError(f"DEM product {product!r} for the {pole} pole: {exc}") from None
     dem = Dem(path, product=product)
-    if base is not None and dem.pixel_size_m >= float(base_prov["dem_pixel_m"]):
+    if base is not None and dem.pixel_size_m >= base_pixel_m:
         raise UserError(
             f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
-            f"{base_prov['dem_product']} ({float(base_prov['dem_pixel_m']):g} m/px)"
+            f"{base_prov.get('dem_product')} ({base_pixel_m:g} m/px)"
         )
     out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
     committed = out.resolve() == lmap.COMMITTED_MAP[pole].resolve()
@@ -112,7 +120,6 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     }
     check = None
     if base is not None:
-        base_min = float(base_prov["parameters"]["min_diameter_km"])
         combined = lmap.add_layer(base, base_min, landmarks, product, limits["min_diameter_km"])
         added = len(combined) - len(base)
         provenance = {**base_prov, "layers": [*base_prov.get("layers", []), {**built, "added": added}]}
