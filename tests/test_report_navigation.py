@@ -60,6 +60,10 @@ def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_pat
     assert "155 detections" in sec and "error <b>1.30 km</b>" in sec and "6 correct" in sec
     assert "<b>no fix</b>: only 4 landmarks agree (need 5)" in sec
     assert "25 map landmarks (D ≥ 10.0 km) in view" in sec
+    # The map against the complete catalogue, as written.
+    assert "a crater catalogue (test)" in sec and "diameter within 25 %" in sec
+    assert '<td>10-15</td><td class="num">2</td><td class="num">0.500</td><td class="num">4</td>' in sec
+    assert '<td>&gt;= 50</td><td class="num">0</td><td class="num">–</td><td class="num">1</td>' in sec
     # The descent's error plot and its per-frame table (detector and perfect-detection check).
     assert '<img src="nav_trajectory_0.png"' in sec
     assert (out / "nav_trajectory_0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -115,6 +119,13 @@ def _demo_png_not_png(nav: Path) -> Path:
     return nav / "S1_2496_0832_classical.png"
 
 
+def _demo_map_check_bad(nav: Path) -> Path:
+    doc = json.loads((nav / "navigation.json").read_text())
+    doc["map_check"]["bins"][0]["recall"] = "high"
+    (nav / "navigation.json").write_text(json.dumps(doc))
+    return nav / "navigation.json"
+
+
 def _frames_without_perfect(nav: Path) -> Path:
     doc = json.loads((nav / "frames_eval.json").read_text())
     del doc["frames"][1]["perfect"]
@@ -136,6 +147,7 @@ def _frames_fix_without_error(nav: Path) -> Path:
         (_corrupt_demo_json, "corrupt JSON"),
         (_demo_without_png, "which does not exist"),
         (_demo_png_not_png, "corrupt PNG"),
+        (_demo_map_check_bad, "map_check should hold 'bins'"),
         (_frames_without_perfect, "frames[1] should be an object with a 'perfect' object"),
         (_frames_fix_without_error, "frames[0] has a fix but no error_km"),
     ],

@@ -107,6 +107,15 @@ def main(out: Path, per_sector: int):
                 for s, rows in splits.items()
             }
         }
+    # The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart).
+    from crater_synth.navigation.landmark_check import catalogue_check
+    from crater_synth.navigation.landmarks import DEM_PRODUCTS
+    from crater_synth.terrain.dem import Dem
+    from data_manifest.products import embedded_path
+
+    product = DEM_PRODUCTS["south"]
+    own = [lm for lm in landmarks if not lm.dem_product]
+    map_check = catalogue_check(own, "south", Dem(embedded_path(product), product=product))
     table = results_markdown({"methods": methods})
     head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), {len(methods)} methods.\n\n"
     atomic_write_text(out / "table.md", head + table)
@@ -120,6 +129,7 @@ def main(out: Path, per_sector: int):
         "prior_offset_km": PRIOR_OFFSET_KM,
         "false_fix_km": FALSE_FIX_KM,
         "methods": methods,
+        "map_check": map_check,
         "windows": windows_out,
         "seconds": round(time.time() - t0, 1),
     }

@@ -610,6 +610,7 @@ def navigation(ctx: Ctx) -> dict:
             prior_offset_km=demo.get("prior_offset_km"),
             false_fix_km=demo.get("false_fix_km"),
             n_windows=len(windows),
+            map_check=demo.get("map_check"),
         )
     trajectories = []
     for k, path in enumerate(frame_paths):

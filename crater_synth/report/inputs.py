@@ -362,6 +362,17 @@ def load_nav_demo(path: Path) -> dict | None:
         for s, r in splits.items():
             for part in ("headline", "all_windows"):
                 _check_summary((r or {}).get(part) if isinstance(r, dict) else None, f"methods.{m}.{s}.{part}", bad)
+    check = doc.get("map_check")  # optional: demos written before the catalogue check have none
+    if check is not None:
+        bins = check.get("bins") if isinstance(check, dict) else None
+        if not isinstance(bins, list) or not all(
+            isinstance(b, dict)
+            and isinstance(b.get("diameter_km"), str)
+            and all(is_num(b.get(k)) for k in ("listed", "landmarks"))
+            and all(_num_or_none(b.get(k)) for k in ("recall", "precision"))
+            for b in bins
+        ):
+            raise ReportError(f"{bad}: map_check should hold 'bins' (diameter_km, listed, recall, landmarks, ...)")
     for i, w in enumerate(doc["windows"]):
         where = f"windows[{i}]"
         if not isinstance(w, dict):

@@ -85,6 +85,15 @@ def make_demo(nav: Path) -> dict:
                 }
             }
         },
+        "map_check": {
+            "source": "a crater catalogue (test)",
+            "criteria": {"centre_within_d": 0.15, "diameter_within": 0.25},
+            "n_inside_dem": 3,
+            "bins": [
+                {"diameter_km": "10-15", "listed": 2, "recall": 0.5, "landmarks": 4, "precision": 0.25},
+                {"diameter_km": ">= 50", "listed": 0, "recall": None, "landmarks": 1, "precision": 1.0},
+            ],
+        },
         "windows": windows,
     }
     (nav / DEMO_JSON).write_text(json.dumps(doc))
