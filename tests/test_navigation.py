@@ -520,3 +520,27 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
         main, ["landmarks", "--pole", "north", "--dem-product", "shackleton_lola_200m", "--add-to", str(bare)]
     )
     assert res.exit_code == 2 and "no DEM pixel size" in res.output and "Traceback" not in res.output
+
+
+def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_features():
+    """The learned-rule tool (docs/navigation.md, section 1): duplicates are suppressed in order of
+    probability, not of depth, and the feature matrix has one column per named feature."""
+    from crater_synth.tools.landmark_acceptance import _build, features
+
+    def row(x_km, d_km, depth_m=500.0):
+        return {"name": "", "lat": -85.0, "lon": x_km, "x_m": x_km * 1e3, "y_m": 0.0, "diameter_km": d_km,
+                "depth_m": depth_m, "rim_height_m": 0.0, "spill_depth_m": 50.0, "rim_inlier_share": 1.0,
+                "source": "dem"}  # fmt: skip
+
+    rows = [row(0.0, 20.0), row(1.0, 21.0), row(100.0, 15.0)]
+    p = np.array([0.2, 0.9, 0.5])
+    built = _build(rows, p, np.array([True, True, False]), [], "south")
+    assert [lm.diameter_km for lm in built] == [21.0]  # the likelier of the pair; the third not accepted
+    meas = [
+        {"closed": True, "converged": True, "rim_inlier_share": 1.0, "spill_depth_d": 0.0, "no_crest_share": 0.1,
+         "score": 0.05, "centre_offset_d": 0.02, "kind": k, "rim_diameter_ratio": 1.1}
+        for k in ("3d", "2d", "3d")
+    ]  # fmt: skip
+    x, f = features(rows, meas)
+    assert x.shape == (3, 9) and np.all(np.isfinite(x)) and x[0, 0] == -4.0  # log10 of the 1e-4 floor
+    assert list(f["is3d"]) == [1.0, 0.0, 1.0] and f["ratio_ok"].all()
