@@ -186,21 +186,27 @@ def _to_landmark(m, pole: str, name: str = "", source: str = "dem") -> dict:
     }
 
 
-def suppress_duplicates(rows: list[dict]) -> list[dict]:
-    """Keep one landmark per crater (deepest spill depth / D first; see the module docstring)."""
-    order = sorted(rows, key=lambda r: -r["spill_depth_m"] / r["diameter_km"])
+def same_crater(x1_m: float, y1_m: float, d1_km: float, x2_m: float, y2_m: float, d2_km: float) -> bool:
+    """Two measurements of one crater: centres closer than ``DUPLICATE_CENTRE_D`` x the larger diameter and
+    diameters within ``DUPLICATE_DIAMETER`` (a small crater on a large one's floor is another crater)."""
+    close = math.hypot(x1_m - x2_m, y1_m - y2_m) < DUPLICATE_CENTRE_D * max(d1_km, d2_km) * 1000.0
+    return close and abs(d1_km / d2_km - 1.0) <= DUPLICATE_DIAMETER
+
+
+def first_of_each_crater(rows: list[dict]) -> list[dict]:
+    """``rows`` (dicts with x_m, y_m, diameter_km) without those of a crater an earlier row already stands for."""
     kept: list[dict] = []
-    for r in order:
-        dup = False
-        for k in kept:
-            big = max(r["diameter_km"], k["diameter_km"])
-            close = math.hypot(r["x_m"] - k["x_m"], r["y_m"] - k["y_m"]) < DUPLICATE_CENTRE_D * big * 1000.0
-            if close and abs(r["diameter_km"] / k["diameter_km"] - 1.0) <= DUPLICATE_DIAMETER:
-                dup = True
-                break
-        if not dup:
+    for r in rows:
+        if not any(
+            same_crater(r["x_m"], r["y_m"], r["diameter_km"], k["x_m"], k["y_m"], k["diameter_km"]) for k in kept
+        ):
             kept.append(r)
     return kept
+
+
+def suppress_duplicates(rows: list[dict]) -> list[dict]:
+    """Keep one landmark per crater (deepest spill depth / D first; see the module docstring)."""
+    return first_of_each_crater(sorted(rows, key=lambda r: -r["spill_depth_m"] / r["diameter_km"]))
 
 
 _WORKER_DEM = None
@@ -350,12 +356,7 @@ def add_layer(
     for lm in sorted(layer, key=lambda m: (-m.diameter_km, m.lat, m.lon)):
         if not layer_min_d_km <= lm.diameter_km < base_min_d_km:
             continue
-        dup = any(
-            math.hypot(lm.x_m - b.x_m, lm.y_m - b.y_m) < DUPLICATE_CENTRE_D * max(lm.diameter_km, b.diameter_km) * 1e3
-            and abs(lm.diameter_km / b.diameter_km - 1.0) <= DUPLICATE_DIAMETER
-            for b in base
-        )
-        if not dup:
+        if not any(same_crater(lm.x_m, lm.y_m, lm.diameter_km, b.x_m, b.y_m, b.diameter_km) for b in base):
             kept.append(lm)
     added = [
         Landmark(**{**lm.__dict__, "id": f"{prefix}{start + k:04d}", "dem_product": product})

@@ -164,16 +164,7 @@ def _model():
 
 def _build(rows: list[dict], order_key: np.ndarray, keep: np.ndarray, extra: list, pole: str) -> list:
     """Landmarks from the accepted rows, duplicates suppressed in order of ``order_key`` (highest first)."""
-    kept: list[dict] = []
-    for q in np.nonzero(keep)[0][np.argsort(-order_key[keep])]:
-        r = rows[q]
-        if not any(
-            math.hypot(r["x_m"] - k["x_m"], r["y_m"] - k["y_m"])
-            < lmap.DUPLICATE_CENTRE_D * max(r["diameter_km"], k["diameter_km"]) * 1e3
-            and abs(r["diameter_km"] / k["diameter_km"] - 1.0) <= lmap.DUPLICATE_DIAMETER
-            for k in kept
-        ):
-            kept.append(r)
+    kept = lmap.first_of_each_crater([rows[q] for q in np.nonzero(keep)[0][np.argsort(-order_key[keep])]])
     out = sorted(kept + extra, key=lambda r: (-r["diameter_km"], r["lat"], r["lon"]))
     prefix = "S" if pole == "south" else "N"
     return [lmap.Landmark(id=f"{prefix}{k + 1:04d}", **r) for k, r in enumerate(out)]
