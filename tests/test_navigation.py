@@ -520,6 +520,9 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
         main, ["landmarks", "--pole", "north", "--dem-product", "shackleton_lola_200m", "--add-to", str(bare)]
     )
     assert res.exit_code == 2 and "no DEM pixel size" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, ["landmarks", "--dem-product", "no_such_dem", "--out", str(tmp_path / "n.geojson")])
+    assert res.exit_code == 2 and "'no_such_dem' is neither a registered DEM product" in res.output
+    assert not (tmp_path / "n.geojson").exists()
 
 
 def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_features():

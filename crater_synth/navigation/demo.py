@@ -109,13 +109,11 @@ def main(out: Path, per_sector: int):
         }
     # The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart).
     from crater_synth.navigation.landmark_check import catalogue_check
-    from crater_synth.navigation.landmarks import DEM_PRODUCTS
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import embedded_path
+    from crater_synth.navigation.landmarks import DATA_DIR, DEM_PRODUCTS
+    from crater_synth.terrain.stack import open_dem_entry
 
-    product = DEM_PRODUCTS["south"]
     own = [lm for lm in landmarks if not lm.dem_product]
-    map_check = catalogue_check(own, "south", Dem(embedded_path(product), product=product))
+    map_check = catalogue_check(own, "south", open_dem_entry(DEM_PRODUCTS["south"], DATA_DIR)[0])
     table = results_markdown({"methods": methods})
     head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), {len(methods)} methods.\n\n"
     atomic_write_text(out / "table.md", head + table)

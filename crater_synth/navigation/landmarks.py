@@ -68,6 +68,7 @@ MIN_RIM_INLIER_SHARE = 0.5  # at least half of the azimuths on the fitted rim ci
 DUPLICATE_CENTRE_D = 0.25
 DUPLICATE_DIAMETER = 0.25
 DEM_PRODUCTS = {"south": "lola_ldem256_south", "north": "lola_ldem256_north"}
+DATA_DIR = "data"  # the configuration's default data_dir; the maps' DEMs (and layers) are embedded: none needed
 _ROOT = Path(__file__).resolve().parents[2]
 COMMITTED_MAP = {pole: _ROOT / "data_manifest" / "landmarks" / f"{pole}.geojson" for pole in ("south", "north")}
 COMMITTED_FIGURE = {pole: _ROOT / "docs" / "img" / f"landmarks_{pole}.png" for pole in ("south", "north")}
@@ -135,14 +136,11 @@ def candidate_radii_m(limits: dict | None = None) -> np.ndarray:
     return 500.0 * lo * SCALE_RATIO ** np.arange(n)
 
 
-def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDIDATE_SCORE, limits=None):
-    """Candidate depressions on a north-up map grid: arrays (row, col, diameter_m, score). ``limits``:
-    :func:`size_limits` (default: LDEM_256's)."""
-    from scipy.ndimage import maximum_filter
+def candidate_stack(heights: np.ndarray, pixel_m: float, radii: np.ndarray) -> np.ndarray:
+    """The candidate filter at each radius (m): mean height on the ring [0.85 r, 1.15 r] minus the mean in
+    the disk r / 2, over 2 r (a depth-to-diameter ratio), shape (radii, rows, cols)."""
     from scipy.signal import fftconvolve
 
-    lim = limits or size_limits()
-    radii = candidate_radii_m(lim)
     stack = np.empty((radii.size, *heights.shape))
     for k, r in enumerate(radii):
         rp = r / pixel_m
@@ -153,6 +151,17 @@ def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDI
         disk = (d <= DISK).astype(float)
         kernel = ring / ring.sum() - disk / disk.sum()
         stack[k] = fftconvolve(heights, kernel, mode="same") / (2.0 * r)
+    return stack
+
+
+def candidates(heights: np.ndarray, pixel_m: float, min_score: float = MIN_CANDIDATE_SCORE, limits=None, stack=None):
+    """Candidate depressions on a north-up map grid: arrays (row, col, diameter_m, score). ``limits``:
+    :func:`size_limits` (default: LDEM_256's); ``stack``: its :func:`candidate_stack`, when already made."""
+    from scipy.ndimage import maximum_filter
+
+    lim = limits or size_limits()
+    radii = candidate_radii_m(lim)
+    stack = candidate_stack(heights, pixel_m, radii) if stack is None else stack
     peak = (stack == maximum_filter(stack, size=PEAK_FOOTPRINT, mode="nearest")) & (stack >= min_score)
     k, i, j = np.nonzero(peak)
     d, score = 2.0 * radii[k], stack[k, i, j]

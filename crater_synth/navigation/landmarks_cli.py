@@ -23,6 +23,7 @@ from crater_synth.navigation.landmark_check import (
     iau_check,
     map_figure,
 )
+from crater_synth.terrain.stack import open_dem_entry
 
 
 @click.command("landmarks")
@@ -62,8 +63,6 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     smaller than MAP's smallest size added (those duplicating none of MAP's), the layer in its provenance.
     """
     from crater_core.schema import atomic_write_bytes, atomic_write_text
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import cached_sha256, embedded_path
 
     product = dem_product or lmap.DEM_PRODUCTS[pole]
     base = None
@@ -81,11 +80,7 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
                 f"--add-to {add_to}: its provenance gives no DEM pixel size or smallest landmark size "
                 "(a map written by crater-synth landmarks has both)"
             ) from None
-    try:
-        path = embedded_path(product)
-    except Exception as exc:  # the registry names the product and why it is unavailable
-        raise UserError(f"DEM product {product!r} for the {pole} pole: {exc}") from None
-    dem = Dem(path, product=product)
+    dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
     if base is not None and dem.pixel_size_m >= base_pixel_m:
         raise UserError(
             f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
@@ -111,7 +106,7 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     complete = catalogue_check(landmarks, pole, dem, min_diameter_km=limits["min_diameter_km"])
     built = {
         "dem_product": product,
-        "dem_sha256": cached_sha256(path),
+        "dem_sha256": dem_sha256,
         "dem_pixel_m": dem.pixel_size_m,
         "parameters": lmap.parameters(limits),
         "build": {k: v for k, v in stats.items() if k != "catalogue"},
@@ -187,15 +182,13 @@ def landmarks_check_command(pole, map_path, json_out):
     import json
 
     from crater_core.schema import atomic_write_text
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import embedded_path
 
     path = map_path or lmap.committed_map_path(pole)
     landmarks, prov = lmap.read_map(path)
     if prov["pole"] != pole:
         raise UserError(f"landmark map {path}: a {prov['pole']} map, not {pole} (give --pole {prov['pole']})")
     product = prov.get("dem_product") or lmap.DEM_PRODUCTS[pole]
-    dem = Dem(embedded_path(product), product=product)
+    dem, _ = open_dem_entry(product, lmap.DATA_DIR, what="the map's DEM product")
     own = [lm for lm in landmarks if not lm.dem_product]
     iau = iau_check(own, pole, dem)
     min_d = float(prov.get("parameters", {}).get("min_diameter_km", BINS_FOR_KM))
@@ -211,7 +204,7 @@ def landmarks_check_command(pole, map_path, json_out):
     for layer in prov.get("layers", []):  # each finer DEM layer's added landmarks, in their own DEM and sizes
         lp = layer["dem_product"]
         added = [lm for lm in landmarks if lm.dem_product == lp]
-        ldem = Dem(embedded_path(lp), product=lp)
+        ldem, _ = open_dem_entry(lp, lmap.DATA_DIR, what="the map's DEM layer")
         lcheck = catalogue_check(added, pole, ldem, min_diameter_km=float(layer["parameters"]["min_diameter_km"]))
         click.echo(f"{len(added)} landmarks from layer {lp}, against {lcheck['source']}:\n{catalogue_table(lcheck)}")
         layers.append({"dem_product": lp, "landmarks": len(added), "catalogue_check": lcheck})

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crater_core.errors import ContractError
 from crater_synth.errors import UserError
 from crater_synth.navigation import landmark_check as lc
 from crater_synth.navigation import landmarks as lmap
@@ -39,11 +40,9 @@ SECTORS = 6
 
 
 def _dem(pole: str):
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import embedded_path
+    from crater_synth.terrain.stack import open_dem_entry
 
-    product = lmap.DEM_PRODUCTS[pole]
-    return Dem(embedded_path(product), product=product)
+    return open_dem_entry(lmap.DEM_PRODUCTS[pole], lmap.DATA_DIR)[0]
 
 
 _WORKER_DEM = None
@@ -72,7 +71,6 @@ def measurements(pole: str, cache: Path, workers: int) -> list[dict]:
     from concurrent.futures import ProcessPoolExecutor
 
     from scipy.ndimage import maximum_filter
-    from scipy.signal import fftconvolve
 
     path = cache / f"measurements_{pole}.json"
     if path.exists():
@@ -81,7 +79,8 @@ def measurements(pole: str, cache: Path, workers: int) -> list[dict]:
     heights, _ = dem.read_heights()
     px = dem.pixel_size_m
     radii = lmap.candidate_radii_m()
-    i3, j3, d3, s3 = lmap.candidates(heights, px)
+    stack = lmap.candidate_stack(heights, px, radii)  # the builder's filter: its 3-D maxima, then each scale's
+    i3, j3, d3, s3 = lmap.candidates(heights, px, stack=stack)
     k3 = np.searchsorted(radii, d3 / 2 - 1e-6)
     items = [
         dict(kind="3d", k=int(k), i=int(i), j=int(j), d_m=float(d), score=float(s))
@@ -91,13 +90,7 @@ def measurements(pole: str, cache: Path, workers: int) -> list[dict]:
     for k, r in enumerate(radii):
         if 2 * r < LARGE_KM * 1000.0:
             continue
-        rp = r / px
-        n = int(math.ceil(lmap.RING[1] * rp)) + 1
-        yy, xx = np.mgrid[-n : n + 1, -n : n + 1]
-        dist = np.hypot(xx, yy) / rp
-        ring = ((dist >= lmap.RING[0]) & (dist <= lmap.RING[1])).astype(float)
-        disk = (dist <= lmap.DISK).astype(float)
-        score = fftconvolve(heights, ring / ring.sum() - disk / disk.sum(), mode="same") / (2.0 * r)
+        score = stack[k]
         peak = (score == maximum_filter(score, size=lmap.PEAK_FOOTPRINT[1:], mode="nearest")) & (
             score >= lmap.MIN_CANDIDATE_SCORE
         )
@@ -235,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.north:
             north, _ = evaluate("north", args.cache, args.workers, model=model)
             print(json.dumps({"north (test)": north}, indent=1))
-    except UserError as exc:
+    except (UserError, ContractError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0
