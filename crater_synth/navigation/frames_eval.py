@@ -38,6 +38,7 @@ Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -72,7 +73,10 @@ from crater_synth.navigation.frames_presets import (
     map_scales,
 )
 from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_record, record_results
-from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem
+from crater_synth.navigation.patches import PatchParams, patch_landmarks
+from crater_synth.navigation.polar import pole_of
+from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
+from crater_synth.navigation.sequence import SequenceParams, last_fix, propagated_prior
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
 # A landmark a finer DEM layer added to the map (below the map's own min_landmark_km) is used where the frame
@@ -133,6 +137,16 @@ def prior_centre(row: dict, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> np
     return c + offset_km * 1000.0 * np.array([math.cos(phi), math.sin(phi), 0.0])
 
 
+def believed_rotation(row: dict, seed: int, attitude_error_deg: float) -> np.ndarray:
+    """The camera rotation the lander believes: the true one turned by ``attitude_error_deg`` about a seeded
+    axis (the true one when 0)."""
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    if attitude_error_deg:
+        axis = np.random.default_rng([seed, 7, zlib.crc32(row["rel_path"].encode())]).normal(size=3)
+        rot = rodrigues(axis / np.linalg.norm(axis) * math.radians(attitude_error_deg)) @ rot
+    return rot
+
+
 def evaluate_frame(
     row: dict,
     image: np.ndarray,
@@ -148,6 +162,8 @@ def evaluate_frame(
     appearance: AppearanceParams | None = None,
     attitude_error_deg: float = 0.0,
     prior_offset_km: float = PRIOR_OFFSET_KM,
+    prior_enu: np.ndarray | None = None,
+    candidates: list | None = None,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
@@ -159,14 +175,13 @@ def evaluate_frame(
     predicted appearance (:mod:`.appearance`, with the refiner's DEM); ``attitude_error_deg``: the
     pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
     error; the image and the truth are the frame's); ``prior_offset_km``: how far the prior is from the
-    true camera (horizontally, seeded direction). A frame with fewer than ``min_inliers`` labelled
-    landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks`` False; a "no fix" there
-    gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
+    true camera (horizontally, seeded direction), or ``prior_enu`` the prior itself (frame ENU: a sequence's
+    propagated fix, :mod:`.sequence`); ``candidates``: the landmarks searched for instead of the usable map
+    landmarks (terrain patches, :mod:`.patches`; ``landmarks`` still names the labels). A frame with fewer
+    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
+    False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
-    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    if attitude_error_deg:  # the attitude the lander believes: the true one turned about a seeded axis
-        axis = np.random.default_rng([seed, 7, zlib.crc32(row["rel_path"].encode())]).normal(size=3)
-        rot = rodrigues(axis / np.linalg.norm(axis) * math.radians(attitude_error_deg)) @ rot
+    rot = believed_rotation(row, seed, attitude_error_deg)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
     width = int(row["pose"]["width_px"])
     fov = float(row["pose"]["fov_deg"])
@@ -174,8 +189,8 @@ def evaluate_frame(
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     # The map landmarks the prior predicts in the frame (position and radius, px).
     r_wc, k = cv_camera(rot, width, fov)
-    c_prior = prior_centre(row, seed, prior_offset_km)
-    cand = [lm for lm in landmarks if usable(lm, gsd, fparams)]
+    c_prior = prior_centre(row, seed, prior_offset_km) if prior_enu is None else np.asarray(prior_enu, dtype=float)
+    cand = [lm for lm in landmarks if usable(lm, gsd, fparams)] if candidates is None else list(candidates)
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
     depth = (pts - c_prior) @ r_wc[2]
     front = depth > 0
@@ -198,6 +213,7 @@ def evaluate_frame(
     else:
         dets = list(detections)
     by_id = {lm.id: k for k, lm in enumerate(landmarks)}
+    by_id.update({lm.id: len(landmarks) + k for k, lm in enumerate(cand) if lm.id not in by_id})
     labels = [lb for lb in row["landmarks"] if usable(landmarks[by_id[lb["id"]]], gsd, fparams)]
     matched = match_pixels(dets, labels)
     labels_seen = [lb for lb in labels if not hidden(lb)]
@@ -284,12 +300,65 @@ def evaluate_frame(
     if not ok and not out["enough_landmarks"]:
         out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
+        out["position_enu_m"] = [float(v) for v in c_fix]  # the fix (frame ENU): a sequence's next prior
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
         out.update(identified=len(keep), identified_pairs=[[int(pairs_det[q]), int(ids[pairs_lm[q]])] for q in keep])
         out["identified_correct"] = int(sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep))
         out["rms_px"] = rms
+    return out
+
+
+PATCH_FIX_KEYS = (
+    "fix",
+    "reason",
+    "error_km",
+    "error_horizontal_km",
+    "position_enu_m",
+    "rms_px",
+    "refinement",
+    "unrefined",
+)
+
+
+def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: PatchParams, prior_enu=None, **kw):
+    """``r`` (a frame's :func:`evaluate_frame` row with its craters) or, when it has no fix, the fix of the
+    frame's terrain patches (:mod:`.patches`) searched for by appearance under the same prior, with the same
+    identification, fix, refinement and checks (``kw``: :func:`evaluate_frame`'s settings). The craters'
+    detection metrics stay; ``fix_source`` says which fixed the frame, ``patches`` what the patches gave.
+    A patch counts as identified correctly when its detection lies within ``inlier_px`` of where the true
+    camera sees the patch's point."""
+    if r["fix"]:
+        return {**r, "fix_source": "craters"}
+    seed = kw.get("seed", 0)
+    rot = believed_rotation(row, seed, kw.get("attitude_error_deg", 0.0))
+    width, fov = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"])
+    r_wc, k = cv_camera(rot, width, fov)
+    if prior_enu is None:
+        prior_enu = prior_centre(row, seed, kw.get("prior_offset_km", PRIOR_OFFSET_KM))
+    origin = (row["frame_origin"]["lat"], row["frame_origin"]["lon"])
+    found = patch_landmarks(refiner.dem, prior_enu, r_wc, k, width, origin, pole_of(origin[0]), patches)
+    info = {"searched": len(found)}
+    if not found:
+        return {**r, "fix_source": None, "patches": {**info, "reason": "no patch on the DEM"}}
+    rp = evaluate_frame(row, image, landmarks, refiner=refiner, prior_enu=prior_enu, candidates=found, **kw)
+    info.update(found=rp["n_detections"], reason=rp["reason"])
+    if not rp["fix"]:
+        return {**r, "fix_source": None, "patches": info}
+    # Identification truth of a patch: where the true camera sees its point (the ellipse centre, as detected).
+    r_true, _ = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, fov)
+    c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
+    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in found]), *origin)
+    correct = 0
+    for det, ident in rp["identified_pairs"]:
+        q = ident - len(landmarks)
+        (ell,) = rim_ellipses(pts[q : q + 1], [found[q].diameter_km * 500.0], c_true, r_true, fov, width)
+        u, v = rp["detections_px"][det][:2]
+        correct += int(math.hypot(u - ell.cu, v - ell.cv) <= kw.get("inlier_px", PNP_INLIER_PX))
+    info.update(identified=rp["identified"], identified_correct=correct)
+    out = {**r, **{key: rp[key] for key in PATCH_FIX_KEYS if key in rp}, "fix_source": "patches", "patches": info}
+    out.update(identified=rp["identified"], identified_correct=correct, identified_pairs=[])
     return out
 
 
@@ -313,6 +382,8 @@ def evaluate_dir(
     attitude_error_deg: float = 0.0,
     prior_offset_km: float = PRIOR_OFFSET_KM,
     terrain_workers: int = 1,
+    patches: PatchParams | None = None,
+    sequence: SequenceParams | None = None,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -323,15 +394,22 @@ def evaluate_dir(
     ``sensor``: a camera model applied to each frame first (``--sensor``); ``attitude_error_deg``: the
     lander's attitude error and ``prior_offset_km`` the prior's distance from the truth (:func:`evaluate_frame`;
     the perfect-detection check keeps the true attitude and the default prior); ``terrain_workers``: processes
-    preparing each frame's new landmark windows (:class:`.refine.Refiner`; the same results)."""
+    preparing each frame's new landmark windows (:class:`.refine.Refiner`; the same results); ``patches``
+    (with ``appearance``): a frame its craters do not fix is navigated with its terrain patches
+    (:func:`with_patch_fallback`); ``sequence``: each frame's prior is the last fix of its trajectory carried
+    forward (:mod:`.sequence`; frames in index order; the first, and any the drift leaves no tighter than
+    ``fix.prior_sigma_km``, get the standard prior)."""
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
-    from crater_synth.navigation.polar import pole_of
 
     maps: dict[str, list] = {}
+    last: dict[str, dict] = {}  # trajectory -> its last fix (sequence)
     refiners: dict[str, Refiner] = {}
     out = []
-    for row in labelled_rows(frames_dir):
+    rows = labelled_rows(frames_dir)
+    if sequence is not None:  # each trajectory's frames in flight order
+        rows = sorted(rows, key=lambda r: (r["trajectory"], r["index"]))
+    for row in rows:
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
@@ -340,20 +418,27 @@ def evaluate_dir(
         if sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
             image = sensor.apply(image, np.random.default_rng([seed, zlib.crc32(row["rel_path"].encode())]))
         kw = dict(seed=seed, method=method, inlier_px=inlier_px)
-        t0 = time.perf_counter()
-        r = evaluate_frame(
-            row,
-            image,
-            maps[pole],
-            dparams,
-            fparams,
+        prior = None
+        if sequence is not None and row["trajectory"] in last:
+            prior = propagated_prior(row, last[row["trajectory"]], sequence, seed, fparams.prior_sigma_km)
+        fp = fparams if prior is None else dataclasses.replace(fparams, prior_sigma_km=prior[1])
+        nav = dict(
+            dparams=dparams,
+            fparams=fp,
             scales_from_map=scales_from_map,
-            refiner=refiners[pole],
             appearance=appearance,
             attitude_error_deg=attitude_error_deg,
             prior_offset_km=prior_offset_km,
             **kw,
         )
+        t0 = time.perf_counter()
+        prior_enu = None if prior is None else prior[0]
+        r = evaluate_frame(row, image, maps[pole], refiner=refiners[pole], prior_enu=prior_enu, **nav)
+        if patches is not None and appearance is not None:
+            r = with_patch_fallback(r, row, image, maps[pole], refiners[pole], patches, prior_enu, **nav)
+        r["prior_sigma_km"] = fp.prior_sigma_km
+        if sequence is not None and r["fix"]:
+            last[row["trajectory"]] = last_fix(row, r)
         r["seconds"] = round(time.perf_counter() - t0, 3)  # detection, identification, fix and refinement
         r["perfect"] = evaluate_frame(
             row, image, maps[pole], dparams, fparams, detections=perfect_detections(row), **kw
@@ -445,9 +530,30 @@ def _summary(rows: list[dict]) -> dict:
     default=None,
     help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
 )
+@click.option(
+    "--patches",
+    is_flag=True,
+    help="appearance preset: a frame its craters do not fix is navigated with terrain patches (4 x 4 grid).",
+)
+@click.option(
+    "--sequential",
+    is_flag=True,
+    help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 %% drift.",
+)
 @user_errors
 def nav_frames_eval_command(
-    frames_dir, json_path, write_results, seed, sets, preset, method, attitude_error_deg, prior_offset_km, sensor
+    frames_dir,
+    json_path,
+    write_results,
+    seed,
+    sets,
+    preset,
+    method,
+    attitude_error_deg,
+    prior_offset_km,
+    sensor,
+    patches,
+    sequential,
 ):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
@@ -469,14 +575,25 @@ def nav_frames_eval_command(
     if write_results and (attitude_error_deg or prior_offset_km != PRIOR_OFFSET_KM):
         raise UserError("--write-results records the standard prior and attitude only")
     args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
-    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args)
+    if patches and pre.appearance is None:
+        raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
+    if write_results and (patches or sequential):
+        raise UserError("--write-results records a preset's frame-by-frame results only; drop --patches/--sequential")
+    pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
+    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams)
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
+    summary.update(
+        patches=dataclasses.asdict(pparams) if pparams else None,
+        sequence=dataclasses.asdict(sparams) if sparams else None,
+    )
     for r in rows:
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
             f"det {r['n_detections']:3d} truth {len(r['truth']):3d} matched {len(r['matched']):3d} "
             f"fix {r['fix']!s:5} "
             + (f"err {r['error_km']:.3f} km" if r["fix"] else r["reason"])
+            + (" (terrain patches)" if r.get("fix_source") == "patches" else "")
+            + (f" prior {r['prior_sigma_km']:g} km" if sequential else "")
             + "; perfect detections: "
             + (f"err {r['perfect']['error_km'] * 1000:.3f} m" if r["perfect"]["fix"] else r["perfect"]["reason"]),
             err=True,

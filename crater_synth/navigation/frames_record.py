@@ -25,6 +25,9 @@ FRAME_FIELDS = (
     "rms_px",
     "putative_pairs",
     "enough_landmarks",
+    "fix_source",  # "craters" or "patches" (--patches), None without a fix
+    "patches",  # what the terrain patches gave, when they were searched
+    "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
 )
 
 

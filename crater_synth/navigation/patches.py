@@ -1,0 +1,123 @@
+"""Terrain patches: landmarks that are not craters, for frames in which too few craters can be found.
+
+Below ~70 km a descent's frames hold one or two map craters of D >= 10 km, too few for a fix. The
+appearance search (:mod:`.appearance`) does not need a crater: it predicts a window of the DEM's terrain
+(Hapke shading and horizon shadows, :mod:`.refine`) and finds it by correlation. A *terrain patch* is such
+a window placed where the frame is, not where a crater is: the prior camera's rays through a regular grid
+of frame pixels meet the DEM's surface at points that become landmarks of ``source="patch"`` (their
+3-D point the surface point, their "diameter" the window's size), searched for, identified and used by the
+fix exactly as the craters are. This is terrain-relative navigation by image-to-map correlation (the
+patch-matching of map-relative localisation), here a fallback: a frame is navigated with its craters
+first, and with its patches only when the craters give no fix (:func:`.frames_eval.evaluate_frame`).
+
+A patch holds as much as the DEM resolves: at a 6-8 degree Sun the long shadows of the DEM's relief
+make the texture the correlation finds. Frames rendered from the same DEM share its relief, so the
+accuracy measured on them is an upper bound for a real camera's frames (docs/navigation.md, section 9).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crater_core import geometry
+from crater_synth.navigation.landmarks import Landmark, stereo_forward
+from crater_synth.navigation.refine import RefineParams
+
+PATCH_SOURCE = "patch"
+GROUND_ITERATIONS = 4  # ray / DEM-height iterations: the heights change by < 1 m after three at 20-150 km
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchParams:
+    """Where the patches are placed (set before any evaluation, not tuned: docs/navigation.md, section 9)."""
+
+    grid: int = 4  # grid x grid frame points, at the centres of equal cells
+    half_share: float = 0.1  # a patch window's half-width as a share of the frame's footprint
+
+    def __post_init__(self):
+        if not 1 <= int(self.grid) <= 16:
+            raise ValueError(f"patch grid={self.grid}: expected 1 to 16 points each way")
+        if not 0.01 <= float(self.half_share) <= 0.5:
+            raise ValueError(f"patch half_share={self.half_share}: expected 0.01 to 0.5 of the footprint")
+
+
+def ground_points(dem, c_enu: np.ndarray, dirs_enu: np.ndarray, origin: tuple[float, float]):
+    """(lat, lon, height m) where rays from the camera centre ``c_enu`` along ``dirs_enu`` (N, 3), in the ENU
+    frame of ``origin`` (lat, lon), meet the DEM's surface: the sphere raised to the DEM's height at the
+    last intersection, iterated (curvature included). Rays that miss the Moon give NaN."""
+    lat0, lon0 = origin
+    c_mc = geometry.enu_to_mc(np.asarray(c_enu, dtype=np.float64)[None], lat0, lon0)[0]
+    d_mc = geometry.enu_to_mc(c_enu[None] + np.asarray(dirs_enu, dtype=np.float64), lat0, lon0) - c_mc
+    d_mc /= np.linalg.norm(d_mc, axis=1, keepdims=True)
+    height = np.zeros(len(d_mc))
+    lat = lon = np.full(len(d_mc), np.nan)
+    for _ in range(GROUND_ITERATIONS):
+        b = d_mc @ c_mc
+        disc = b * b - (c_mc @ c_mc - (geometry.MOON_RADIUS_M + height) ** 2)
+        t = -b - np.sqrt(np.where(disc >= 0, disc, np.nan))  # the near intersection
+        lat, lon = geometry.mc_to_latlon(c_mc + t[:, None] * d_mc)[:2]
+        ok = np.isfinite(lat)
+        if not ok.any():
+            break
+        height = np.zeros(len(d_mc))
+        height[ok] = dem.sample(lat[ok], lon[ok], what="terrain patch points").heights
+    return lat, lon, height
+
+
+def patch_landmarks(
+    dem,
+    c_prior: np.ndarray,
+    r_wc: np.ndarray,
+    k: np.ndarray,
+    width: int,
+    origin,
+    pole: str,
+    params: PatchParams = PatchParams(),
+) -> list[Landmark]:
+    """The terrain patches of a ``width`` px square frame seen from ``c_prior`` (ENU of ``origin``) with
+    world->camera rotation ``r_wc`` and intrinsics ``k`` (:func:`.fix.project_pinhole`'s convention): one per
+    cell of a ``params.grid`` square grid, at the ground point under the cell's centre, its window
+    ``params.half_share`` of the footprint wide each way (the footprint at the points' median depth).
+    Points off the Moon or off the DEM are left out. Each id names its place and size, so a Refiner's
+    terrain cache never mixes two patches."""
+    from crater_synth.terrain.dem import DemError
+
+    centres = (np.arange(params.grid) + 0.5) / params.grid * width
+    uu, vv = np.meshgrid(centres, centres)
+    rays = np.column_stack([(uu.ravel() - k[0, 2]) / k[0, 0], (vv.ravel() - k[1, 2]) / k[1, 1], np.ones(uu.size)])
+    try:
+        lat, lon, height = ground_points(dem, c_prior, rays @ r_wc, origin)
+    except DemError:  # the frame reaches past the DEM: patches only where it has data
+        lat, lon, height = _ground_points_each(dem, c_prior, rays @ r_wc, origin)
+    ok = np.isfinite(lat) & np.isfinite(height)
+    if not ok.any():
+        return []
+    pts = geometry.mc_to_enu(geometry.latlon_to_mc(lat[ok], lon[ok], height[ok]), *origin)
+    depth = float(np.median((pts - c_prior) @ r_wc[2]))
+    half_m = params.half_share * width / k[0, 0] * depth
+    diameter_km = half_m / RefineParams().window_diameters / 1000.0
+    out = []
+    for la, lo, h in zip(lat[ok], lon[ok], height[ok]):
+        x, y = stereo_forward(la, lo, pole)
+        pid = f"patch:{la:.5f}:{lo:.5f}:{diameter_km:.3f}"
+        out.append(
+            Landmark(
+                pid, "", float(la), float(lo), float(x), float(y), diameter_km, 0.0, float(h), 0.0, 0.0, PATCH_SOURCE
+            )
+        )
+    return out
+
+
+def _ground_points_each(dem, c_enu, dirs_enu, origin):
+    """:func:`ground_points` one ray at a time, NaN for those that leave the DEM."""
+    from crater_synth.terrain.dem import DemError
+
+    out = np.full((3, len(dirs_enu)), np.nan)
+    for q in range(len(dirs_enu)):
+        try:
+            out[:, q] = np.ravel(ground_points(dem, c_enu, dirs_enu[q : q + 1], origin))
+        except DemError:
+            continue
+    return out[0], out[1], out[2]
