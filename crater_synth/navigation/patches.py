@@ -26,7 +26,8 @@ from crater_synth.navigation.landmarks import Landmark, stereo_forward
 from crater_synth.navigation.refine import RefineParams
 
 PATCH_SOURCE = "patch"
-GROUND_ITERATIONS = 4  # ray / DEM-height iterations: the heights change by < 1 m after three at 20-150 km
+GROUND_ITERATIONS = 12  # at most, ray / DEM-height iterations (they contract by ~slope x tan(off-nadir angle))
+GROUND_TOLERANCE_M = 0.01  # stop when no height changes by more
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,7 +47,8 @@ class PatchParams:
 def ground_points(dem, c_enu: np.ndarray, dirs_enu: np.ndarray, origin: tuple[float, float]):
     """(lat, lon, height m) where rays from the camera centre ``c_enu`` along ``dirs_enu`` (N, 3), in the ENU
     frame of ``origin`` (lat, lon), meet the DEM's surface: the sphere raised to the DEM's height at the
-    last intersection, iterated (curvature included). Rays that miss the Moon give NaN."""
+    last intersection, iterated until the heights settle (curvature included). Rays that miss the Moon (or meet it behind the camera)
+    give NaN."""
     lat0, lon0 = origin
     c_mc = geometry.enu_to_mc(np.asarray(c_enu, dtype=np.float64)[None], lat0, lon0)[0]
     d_mc = geometry.enu_to_mc(c_enu[None] + np.asarray(dirs_enu, dtype=np.float64), lat0, lon0) - c_mc
@@ -57,12 +59,17 @@ def ground_points(dem, c_enu: np.ndarray, dirs_enu: np.ndarray, origin: tuple[fl
         b = d_mc @ c_mc
         disc = b * b - (c_mc @ c_mc - (geometry.MOON_RADIUS_M + height) ** 2)
         t = -b - np.sqrt(np.where(disc >= 0, disc, np.nan))  # the near intersection
+        t = np.where(t > 0, t, np.nan)  # ahead of the camera only
         lat, lon = geometry.mc_to_latlon(c_mc + t[:, None] * d_mc)[:2]
         ok = np.isfinite(lat)
         if not ok.any():
             break
-        height = np.zeros(len(d_mc))
-        height[ok] = dem.sample(lat[ok], lon[ok], what="terrain patch points").heights
+        new = np.zeros(len(d_mc))
+        new[ok] = dem.sample(lat[ok], lon[ok], what="terrain patch points").heights
+        done = np.nanmax(np.abs(new - height)[ok]) < GROUND_TOLERANCE_M
+        height = new
+        if done:
+            break
     return lat, lon, height
 
 

@@ -1,0 +1,151 @@
+"""Terrain patches (navigation/patches.py) and sequential priors (navigation/sequence.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from crater_core import exr, geometry
+from crater_synth.navigation import frames_eval
+from crater_synth.navigation.fix import FixParams
+from crater_synth.navigation.patches import PATCH_SOURCE, PatchParams, ground_points, patch_landmarks
+from crater_synth.navigation.sequence import SequenceParams, frame_point_mc, last_fix, propagated_prior
+
+
+def _row(index: int, lat0: float, lon0: float, position_enu) -> dict:
+    return {
+        "trajectory": "t",
+        "index": index,
+        "frame_origin": {"lat": lat0, "lon": lon0},
+        "camera_enu": {"position_m": list(map(float, position_enu))},
+    }
+
+
+def test_prior_is_the_last_fix_carried_by_the_motion_and_its_bound_grows_with_the_distance():
+    first = _row(0, -85.0, 10.0, [0.0, 0.0, 100e3])
+    fix_enu = np.array([120.0, -80.0, 100e3 + 30.0])  # the fix's own error: 0.15 km
+    last = last_fix(first, {"position_enu_m": fix_enu.tolist()})
+    # The next frame 40 km along, in another frame's ENU (each frame has its own origin).
+    second = _row(1, -85.3, 12.0, [500.0, 300.0, 90e3])
+    exact = SequenceParams(drift_share=0.0)
+    prior, sigma = propagated_prior(second, last, exact, seed=0, default_sigma_km=10.0)
+    truth_mc = frame_point_mc(second, second["camera_enu"]["position_m"])
+    error_mc = frame_point_mc(first, fix_enu) - frame_point_mc(first, first["camera_enu"]["position_m"])
+    # No drift: the prior is the true camera plus the last fix's error, exactly.
+    assert np.allclose(frame_point_mc(second, prior) - truth_mc, error_mc, atol=1e-6)
+    assert sigma == exact.min_sigma_km
+    # With drift: the prior moves by drift_share x distance travelled, horizontally; the bound is 3 x that.
+    travelled = float(np.linalg.norm(truth_mc - last["true_mc"]))
+    params = SequenceParams(drift_share=0.05)
+    prior_d, sigma_d = propagated_prior(second, last, params, seed=0, default_sigma_km=100.0)
+    drift = prior_d - prior
+    assert abs(drift[2]) < 1e-6 and math.hypot(*drift[:2]) == pytest.approx(0.05 * travelled, rel=1e-9)
+    assert sigma_d == pytest.approx(3 * 0.05 * travelled / 1000.0)
+    assert propagated_prior(second, last, params, seed=1, default_sigma_km=100.0)[0] != pytest.approx(prior_d)
+    # A bound no tighter than the lone frame's prior: the frame is navigated alone.
+    assert propagated_prior(second, last, params, seed=0, default_sigma_km=sigma_d) is None
+
+
+@pytest.mark.parametrize(
+    "kw", [dict(drift_share=-0.1), dict(sigma_factor=0.5), dict(min_sigma_km=0.0), dict(drift_share=1.0)]
+)
+def test_bad_sequence_settings_are_refused(kw):
+    with pytest.raises(ValueError, match="sequence"):
+        SequenceParams(**kw)
+
+
+@pytest.mark.parametrize("kw", [dict(grid=0), dict(grid=40), dict(half_share=0.0), dict(half_share=0.9)])
+def test_bad_patch_settings_are_refused(kw):
+    with pytest.raises(ValueError, match="patch"):
+        PatchParams(**kw)
+
+
+def test_patches_lie_on_the_dem_under_the_frame_grid():
+    from crater_synth.navigation.refine import lander_dem
+
+    dem = lander_dem("south")
+    lat0, lon0 = -85.0, 30.0
+    c = np.array([0.0, 0.0, 100e3])
+    nadir = np.array([[0.0, 0.0, -1.0]])
+    lat, lon, h = ground_points(dem, c, nadir, (lat0, lon0))
+    assert lat[0] == pytest.approx(lat0, abs=1e-9) and lon[0] == pytest.approx(lon0, abs=1e-9)
+    assert h[0] == pytest.approx(float(dem.sample(np.array([lat0]), np.array([lon0])).heights[0]), abs=1e-6)
+    # A ray that misses the Moon gives no point.
+    up = ground_points(dem, c, np.array([[0.0, 0.0, 1.0]]), (lat0, lon0))
+    assert np.isnan(up[0]).all()
+    # A nadir 60-degree frame: grid x grid patches, unique ids, windows a tenth of the footprint each way.
+    r_wc, k = frames_eval.cv_camera(np.eye(3), 512, 60.0)  # Blender camera: right east, up north, looking down
+    params = PatchParams(grid=3, half_share=0.1)
+    lms = patch_landmarks(dem, c, r_wc, k, 512, (lat0, lon0), "south", params)
+    assert len(lms) == 9 and len({lm.id for lm in lms}) == 9 and {lm.source for lm in lms} == {PATCH_SOURCE}
+    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in lms]), lat0, lon0)
+    from crater_synth.navigation.fix import project_pinhole
+
+    uv = project_pinhole(pts, r_wc, c, k)  # each point is seen at its cell's centre
+    centres = (np.arange(3) + 0.5) / 3 * 512
+    assert np.allclose(np.sort(uv[:, 0]), np.repeat(centres, 3), atol=1e-3)
+    footprint = 512 / k[0, 0] * np.median((pts - c) @ r_wc[2])
+    assert lms[0].diameter_km == pytest.approx(0.1 * footprint / 0.75 / 1000.0, rel=1e-9)
+
+
+def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
+    """Two descent frames (67 and 55 km up: two map craters >= 10 km in view, no fix from craters) at 256 px:
+    --patches fixes both from terrain patches, every patch identification correct; --sequential carries
+    frame 7's fix into frame 8's prior."""
+    from click.testing import CliRunner
+    from helpers.cli import run_nav_frames
+
+    from crater_synth.cli import main
+
+    out = tmp_path / "frames"
+    proc = run_nav_frames(tmp_path / "data", out, "7,8", "trajectory.width_px=256")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+    def run(*args):
+        res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "e.json"), *args])
+        assert res.exit_code == 0, res.output
+        return json.loads((tmp_path / "e.json").read_text())
+
+    plain = run()
+    assert [f["fix"] for f in plain["frames"]] == [False, False]
+    doc = run("--patches", "--sequential")
+    assert doc["summary"]["patches"] == {"grid": 4, "half_share": 0.1} and doc["summary"]["sequence"]["drift_share"]
+    for f in doc["frames"]:
+        assert f["fix"] and f["fix_source"] == "patches" and f["error_km"] < 1.0, f
+        assert f["patches"]["identified"] >= 3 and f["patches"]["identified_correct"] == f["patches"]["identified"]
+    assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
+    assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
+    # A frame all in shadow: the patches find nothing, an answer of "no fix".
+    from crater_synth.navigation.frame_labels import labelled_rows
+    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.refine import Refiner, lander_dem
+
+    row = labelled_rows(out)[0]
+    image = exr.read_channel(out / row["rel_path"], "IF")
+    lms = load_default_map("south")[0]
+    dparams, fparams, pre = frames_eval.frames_params("appearance")
+    kw = dict(dparams=dparams, fparams=fparams, appearance=pre.appearance, inlier_px=pre.inlier_px)
+    refiner = Refiner(lander_dem("south"))
+    dark = np.zeros_like(image)
+    r = frames_eval.evaluate_frame(row, dark, lms, refiner=refiner, **kw)
+    r = frames_eval.with_patch_fallback(r, row, dark, lms, refiner, PatchParams(), **kw)
+    assert not r["fix"] and r["fix_source"] is None and r["patches"]["searched"] == 16
+
+
+def test_patch_and_sequence_options_are_refused_where_they_do_not_apply(tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    out = tmp_path / "none"
+    out.mkdir()
+    for args, message in (
+        (["--patches", "--preset", "synthetic"], "--patches needs the appearance search"),
+        (["--patches", "--write-results"], "drop --patches/--sequential"),
+        (["--sequential", "--write-results"], "drop --patches/--sequential"),
+    ):
+        res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
+        assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
