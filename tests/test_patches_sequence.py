@@ -96,9 +96,10 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
     --patches fixes both from terrain patches, every patch identification correct; --sequential carries
     frame 7's fix into frame 8's prior."""
     from click.testing import CliRunner
-    from helpers.cli import run_nav_frames
 
     from crater_synth.cli import main
+
+    from helpers.cli import run_nav_frames
 
     out = tmp_path / "frames"
     proc = run_nav_frames(tmp_path / "data", out, "7,8", "trajectory.width_px=256")

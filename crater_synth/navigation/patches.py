@@ -47,8 +47,8 @@ class PatchParams:
 def ground_points(dem, c_enu: np.ndarray, dirs_enu: np.ndarray, origin: tuple[float, float]):
     """(lat, lon, height m) where rays from the camera centre ``c_enu`` along ``dirs_enu`` (N, 3), in the ENU
     frame of ``origin`` (lat, lon), meet the DEM's surface: the sphere raised to the DEM's height at the
-    last intersection, iterated until the heights settle (curvature included). Rays that miss the Moon (or meet it behind the camera)
-    give NaN."""
+    last intersection, iterated until the heights settle (curvature included). Rays that miss the Moon (or
+    meet it behind the camera) give NaN."""
     lat0, lon0 = origin
     c_mc = geometry.enu_to_mc(np.asarray(c_enu, dtype=np.float64)[None], lat0, lon0)[0]
     d_mc = geometry.enu_to_mc(c_enu[None] + np.asarray(dirs_enu, dtype=np.float64), lat0, lon0) - c_mc
