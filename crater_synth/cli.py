@@ -51,7 +51,7 @@ _COMMANDS = (
         "nav_frames_relabel_command",
         "Relabel nav frames (new map).",
     ),
-    ("crater_synth.navigation.frames_eval", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
+    ("crater_synth.navigation.frames_eval_cli", "nav_frames_eval_command", "Navigation metrics on rendered frames."),
     (
         "crater_synth.navigation.lost_in_space_frames",
         "nav_frames_lis_command",

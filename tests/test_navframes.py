@@ -162,6 +162,7 @@ def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg
     real-window settings (which search every scale) and none far below the map's smallest radius."""
     from crater_synth.navigation import frames_eval as fe
     from crater_synth.navigation.detect import detect
+    from crater_synth.navigation.frames_presets import frames_params
     from crater_synth.navigation.template import crater_heights, shade_heights
 
     gsd, n = 338.0, 384
@@ -178,13 +179,13 @@ def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg
     theta = math.radians(theta_deg)
     img = shade_heights(z, theta, 7.0) * 200.0 + 20.0 + np.random.default_rng(0).normal(0.0, 2.0, (n, n))
     labels = [{"ellipse": {"cu": u, "cv": v, "a": r}} for u, v, r in big]
-    dp, fp, pre = fe.frames_params("synthetic")
+    dp, fp, pre = frames_params("synthetic")
     assert pre.scales_from_map
     dp = fe.map_scales(dp, fp, gsd, [r for *_, r in big])
     dets, _ = detect(img, dp, light_dir=theta)
     assert len(fe.match_pixels(dets, labels)) >= 4
     assert min(d.r for d in dets) >= 0.6 * dp.min_radius_px  # the rim fit may shrink a circle to 0.6 r
-    every_scale, _ = detect(img, fe.frames_params("real-window")[0], light_dir=theta)
+    every_scale, _ = detect(img, frames_params("real-window")[0], light_dir=theta)
     assert len(dets) < len(every_scale)
 
 

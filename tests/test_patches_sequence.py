@@ -127,7 +127,9 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
     row = labelled_rows(out)[0]
     image = exr.read_channel(out / row["rel_path"], "IF")
     lms = load_default_map("south")[0]
-    dparams, fparams, pre = frames_eval.frames_params("appearance")
+    from crater_synth.navigation.frames_presets import frames_params
+
+    dparams, fparams, pre = frames_params("appearance")
     kw = dict(dparams=dparams, fparams=fparams, appearance=pre.appearance, inlier_px=pre.inlier_px)
     refiner = Refiner(lander_dem("south"))
     dark = np.zeros_like(image)

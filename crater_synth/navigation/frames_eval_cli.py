@@ -1,0 +1,151 @@
+"""``crater-synth nav-frames-eval DIR``: the metrics of :mod:`.frames_eval` on a ``nav-frames`` directory,
+printed per frame, written as JSON for the report and, with ``--write-results``, recorded in
+docs/results/navigation.json."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import click
+
+from crater_core import schema
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.evaluate import PRIOR_OFFSET_KM, check_prior_offset_km
+from crater_synth.navigation.frames_eval import evaluate_dir
+from crater_synth.navigation.frames_presets import DEFAULT_FRAMES_PRESET, FRAMES_PRESETS, frames_params
+from crater_synth.navigation.frames_record import FRAMES_EVAL_JSON, frames_record, record_results
+from crater_synth.navigation.patches import PatchParams
+from crater_synth.navigation.sequence import SequenceParams
+
+
+@click.command("nav-frames-eval")
+@click.argument("frames_dir", type=click.Path(path_type=Path))
+@click.option(
+    "--write-results", is_flag=True, help="Record the summary under 'synthetic' in docs/results/navigation.json."
+)
+@click.option(
+    "--json",
+    "json_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Per-frame results (detector and perfect-detection check) as JSON [FRAMES_DIR/frames_eval.json]; "
+    "crater-synth report reads RUN_DIR/navigation/frames_eval*.json.",
+)
+@click.option("--seed", default=0, show_default=True, help="Seed of the prior offsets.")
+@click.option(
+    "--set", "sets", multiple=True, help="detect.<name>=<value> or fix.<name>=<value> (as in nav-eval); not recorded."
+)
+@click.option(
+    "--preset",
+    type=click.Choice(sorted(FRAMES_PRESETS)),
+    default=DEFAULT_FRAMES_PRESET,
+    show_default=True,
+    help="appearance: landmarks found by their predicted appearance (no detector); synthetic: the classical "
+    "detector's settings chosen on rendered frames; learned: the learned detector; real-window: the real "
+    "windows' settings unchanged.",
+)
+@click.option(
+    "--method",
+    type=click.Choice(["position", "pnp"]),
+    default="position",
+    show_default=True,
+    help="position: camera centre with the known attitude; pnp: full pose (ransac_pnp).",
+)
+@click.option(
+    "--attitude-error-deg",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="The lander's attitude error: the pipeline uses the true attitude turned by this angle (seeded axis).",
+)
+@click.option(
+    "--prior-offset-km",
+    type=float,
+    default=PRIOR_OFFSET_KM,
+    show_default=True,
+    help="How far the position prior is from the true camera (seeded direction); the gate is fix.prior_sigma_km.",
+)
+@click.option(
+    "--sensor",
+    default=None,
+    help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
+)
+@click.option(
+    "--patches",
+    is_flag=True,
+    help="appearance preset: a frame its craters do not fix is navigated with terrain patches (4 x 4 grid).",
+)
+@click.option(
+    "--sequential",
+    is_flag=True,
+    help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 %% drift.",
+)
+@user_errors
+def nav_frames_eval_command(
+    frames_dir,
+    json_path,
+    write_results,
+    seed,
+    sets,
+    preset,
+    method,
+    attitude_error_deg,
+    prior_offset_km,
+    sensor,
+    patches,
+    sequential,
+):
+    """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
+    perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
+
+    Example: `crater-synth nav-frames-eval data/navframes/descent_ridge`
+    """
+    if sets and write_results:
+        raise UserError("--write-results records a preset's settings only; drop --set")
+    dparams, fparams, pre = frames_params(preset, sets)
+    camera = None
+    if sensor is not None:
+        from crater_synth.config import load_settings
+        from train.preprocess import SensorModel
+
+        camera = SensorModel.from_settings(load_settings([f"sensor={sensor}"]).sensor)
+    if not 0.0 <= attitude_error_deg <= 10.0:
+        raise UserError(f"--attitude-error-deg {attitude_error_deg:g}: expected 0 to 10 degrees")
+    check_prior_offset_km(prior_offset_km)
+    if write_results and (attitude_error_deg or prior_offset_km != PRIOR_OFFSET_KM):
+        raise UserError("--write-results records the standard prior and attitude only")
+    args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
+    if patches and pre.appearance is None:
+        raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
+    if write_results and (patches or sequential):
+        raise UserError("--write-results records a preset's frame-by-frame results only; drop --patches/--sequential")
+    pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
+    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams)
+    summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
+    summary.update(
+        patches=dataclasses.asdict(pparams) if pparams else None,
+        sequence=dataclasses.asdict(sparams) if sparams else None,
+    )
+    for r in rows:
+        click.echo(
+            f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km gsd {r['ground_sample_m']:6.1f} m "
+            f"det {r['n_detections']:3d} truth {len(r['truth']):3d} matched {len(r['matched']):3d} "
+            f"fix {r['fix']!s:5} "
+            + (f"err {r['error_km']:.3f} km" if r["fix"] else r["reason"])
+            + (" (terrain patches)" if r.get("fix_source") == "patches" else "")
+            + (f" prior {r['prior_sigma_km']:g} km" if sequential else "")
+            + "; perfect detections: "
+            + (f"err {r['perfect']['error_km'] * 1000:.3f} m" if r["perfect"]["fix"] else r["perfect"]["reason"]),
+            err=True,
+        )
+    json_path = json_path or Path(frames_dir) / FRAMES_EVAL_JSON
+    used = None if pre.appearance else dparams  # the appearance search runs no crater detector
+    record = frames_record(frames_dir, summary, rows, seed, method, fparams, sets, preset, used, pre.inlier_px)
+    schema.atomic_write_text(json_path, json.dumps(record, indent=1) + "\n")
+    click.echo(f"wrote {json_path}", err=True)
+    if write_results:
+        record_results(frames_dir, rows, summary, preset, method, pre)
+    click.echo(json.dumps(summary))
