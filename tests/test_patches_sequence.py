@@ -119,6 +119,19 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
         assert f["patches"]["identified"] >= 3 and f["patches"]["identified_correct"] == f["patches"]["identified"]
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
+    # `navigate FRAME --patches`: the same fix for one frame, the patches drawn.
+    frame7 = out / "frame_0007.exr"
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--out", str(tmp_path / "n.png")])
+    assert res.exit_code == 0, res.output
+    nav = json.loads(res.output.strip().splitlines()[-1])
+    assert (
+        nav["fix"]
+        and nav["fix_source"] == "patches"
+        and nav["error_km"] == pytest.approx(doc["frames"][0]["error_km"], abs=5e-4)
+    )
+    assert (tmp_path / "n.png").stat().st_size > 1000
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--method", "classical"])
+    assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     # A frame all in shadow: the patches find nothing, an answer of "no fix".
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
@@ -152,3 +165,14 @@ def test_patch_and_sequence_options_are_refused_where_they_do_not_apply(tmp_path
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
+
+
+def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    window = tmp_path / "window.png"
+    window.write_bytes(b"")
+    res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])
+    assert res.exit_code != 0 and "--patches applies to rendered frames" in res.output

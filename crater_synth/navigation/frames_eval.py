@@ -71,7 +71,7 @@ from crater_synth.navigation.frames_presets import (
 )
 from crater_synth.navigation.patches import PatchParams, patch_landmarks
 from crater_synth.navigation.polar import pole_of
-from crater_synth.navigation.refine import Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
+from crater_synth.navigation.refine import RefineParams, Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
 from crater_synth.navigation.sequence import SequenceParams, last_fix, propagated_prior
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -353,6 +353,19 @@ def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: 
         u, v = rp["detections_px"][det][:2]
         correct += int(math.hypot(u - ell.cu, v - ell.cv) <= kw.get("inlier_px", PNP_INLIER_PX))
     info.update(identified=rp["identified"], identified_correct=correct)
+    # Where they were found (centre and the window's half-width, px): what `navigate` draws.
+    half = [
+        found[ident - len(landmarks)].diameter_km * RefineParams().window_diameters
+        for _, ident in rp["identified_pairs"]
+    ]
+    info["identified_px"] = [
+        [
+            round(rp["detections_px"][det][0], 2),
+            round(rp["detections_px"][det][1], 2),
+            round(h * 1000.0 / float(row["ground_sample_m"]), 1),
+        ]
+        for (det, _), h in zip(rp["identified_pairs"], half)
+    ]
     out = {**r, **{key: rp[key] for key in PATCH_FIX_KEYS if key in rp}, "fix_source": "patches", "patches": info}
     out.update(identified=rp["identified"], identified_correct=correct, identified_pairs=[])
     return out

@@ -81,7 +81,7 @@ from crater_synth.navigation.sequence import SequenceParams
 @click.option(
     "--sequential",
     is_flag=True,
-    help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 %% drift.",
+    help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 % drift.",
 )
 @user_errors
 def nav_frames_eval_command(

@@ -140,6 +140,12 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     help="With --lost-in-space: the frame is north-up on the map, so only crater-pair votes at that heading "
     "count (docs/navigation.md, 'Lost in space with the heading known').",
 )
+@click.option(
+    "--patches",
+    is_flag=True,
+    help="Rendered frames, appearance preset: a frame its craters do not fix is navigated with terrain patches "
+    "(docs/navigation.md, 'Terrain patches and sequential priors').",
+)
 @user_errors
 def navigate_command(
     image,
@@ -154,6 +160,7 @@ def navigate_command(
     sun_elevation,
     lost_in_space,
     known_heading,
+    patches,
 ):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
@@ -164,7 +171,8 @@ def navigate_command(
     `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
     frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
     and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
-    `classical` or `learned`. Prints one JSON line.
+    `classical` or `learned`; `--patches` lets terrain patches fix a frame its craters do not. Prints one
+    JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -195,8 +203,13 @@ def navigate_command(
         if chosen and method not in frame_presets:
             raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
         name = frame_presets[method] if chosen else DEFAULT_FRAMES_PRESET
-        click.echo(json.dumps(navigate_frame(image, name, out or image.with_name(image.stem + ".nav.png"))))
+        if patches and name != "appearance":
+            raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
+        nav_png = out or image.with_name(image.stem + ".nav.png")
+        click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches)))
         return
+    if patches:
+        raise UserError(f"{image}: --patches applies to rendered frames (frame_NNNN.exr) only")
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.landmarks import load_default_map, read_map
     from crater_synth.navigation.polar import stereo_forward, stereo_inverse

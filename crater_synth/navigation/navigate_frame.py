@@ -44,12 +44,15 @@ def frame_row_of(image: Path) -> dict:
     return row
 
 
-def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
+def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: bool = False) -> dict:
     """Detect, identify and fix one rendered frame with the ``nav-frames-eval`` preset ``preset``; writes
-    the annotated PNG ``out`` and returns the result (one JSON object)."""
-    from crater_synth.navigation.frames_eval import evaluate_frame
+    the annotated PNG ``out`` and returns the result (one JSON object). ``patches``: a frame its craters do
+    not fix is navigated with terrain patches (:func:`.frames_eval.with_patch_fallback`; the appearance
+    preset only)."""
+    from crater_synth.navigation.frames_eval import evaluate_frame, with_patch_fallback
     from crater_synth.navigation.frames_presets import frames_params
     from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.patches import PatchParams
     from crater_synth.navigation.polar import pole_of
     from crater_synth.navigation.refine import Refiner, lander_dem
 
@@ -65,6 +68,11 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
     kw = dict(seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px, refiner=refiner)
     kw["appearance"] = pre.appearance
     r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
+    if patches:
+        if pre.appearance is None:
+            raise FrameError(f"--patches needs the appearance search, not the {preset} preset")
+        kw.pop("refiner")
+        r = with_patch_fallback(r, row, img, landmarks, refiner, PatchParams(), dparams=dparams, fparams=fparams, **kw)
     result = {
         "image": str(image),
         "preset": preset,
@@ -89,6 +97,9 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0) -> dict:
             result["error_unrefined_km"] = round(r["unrefined"]["error_km"], 3)
     else:
         result["reason"] = r["reason"]
+    if patches:
+        result["fix_source"] = r["fix_source"]
+        result["patches"] = {k: v for k, v in r.get("patches", {}).items() if k != "identified_px"}
     from crater_synth.navigation.detect import Detection
     from crater_synth.navigation.nav_output import detection_records, write_detections
 
@@ -108,7 +119,7 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse
+    from matplotlib.patches import Ellipse, Rectangle
 
     from crater_synth.navigation.nav_output import draw_detections, png_of
 
@@ -121,7 +132,14 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
         angle = np.degrees(e["angle_rad"])
         ax.add_patch(Ellipse((e["cu"], e["cv"]), 2 * e["a"], 2 * e["b"], angle=angle, fill=False, ec="#40c040", lw=0.5))
     draw_detections(ax, dets, r.get("identified_pairs", []), landmarks)
-    if r["fix"]:
+    for u, v, half in (r.get("patches") or {}).get("identified_px", []):  # the terrain patches that fixed it
+        ax.add_patch(Rectangle((u - half, v - half), 2 * half, 2 * half, fill=False, ec="#30c0ff", lw=1.0))
+    if r.get("fix_source") == "patches":
+        title = (
+            f"fix from {r['identified']} terrain patches (cyan), RMS {r['rms_px']:.1f} px; "
+            f"error {r['error_km']:.2f} km (horizontal {r['error_horizontal_km']:.2f} km)"
+        )
+    elif r["fix"]:
         title = (
             f"fix: {len(r['identified_pairs'])} landmarks, RMS {r['rms_px']:.1f} px; error {r['error_km']:.2f} km "
             f"(horizontal {r['error_horizontal_km']:.2f} km)"
