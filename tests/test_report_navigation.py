@@ -218,3 +218,20 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
     figures.nav_trajectory(tmp_path / "errors.png", "descent_ridge", got["frames"])
     assert (tmp_path / "errors.png").stat().st_size > 0
     assert got["min_inliers"] == FixParams().min_inliers and got["trajectory"] == "descent_ridge"
+
+
+def test_trajectory_fixed_by_terrain_patches_says_so(tmp_path):
+    """A nav-frames-eval --patches --sequential result: the patch fixes are counted and ringed in the plot."""
+    run = tmp_path / "run"
+    nav = run / "navigation"
+    make_demo(nav)
+    doc = make_frames(nav)
+    fixed = [f for f in doc["frames"] if f["fix"]]
+    fixed[0]["fix_source"] = "patches"
+    doc["summary"]["sequence"] = {"drift_share": 0.01, "sigma_factor": 3.0, "min_sigma_km": 1.0}
+    (nav / "frames_eval.json").write_text(json.dumps(doc))
+    res = _report(run)
+    assert res.exit_code == 0, res.output
+    sec = _section((run / "report" / "index.html").read_text())
+    assert "1 of them by terrain patches" in sec and "each frame's prior carried from the last fix" in sec
+    assert "a cyan diamond, a fix from terrain patches" in sec

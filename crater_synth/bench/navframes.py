@@ -16,7 +16,9 @@ it).
 default ``appearance`` preset (the landmarks searched for by their predicted appearance) and with the
 ``synthetic`` preset (the classical detector) as the baseline, on the same frames in the same call:
 seconds per frame (search or detection, identification, fix, refinement and check; the DEM and map loads
-are outside it), frames/s and fixes of each, and the ratio of their median times.
+are outside it), frames/s and fixes of each, and the ratio of their median times; and the appearance
+preset with terrain patches and sequential priors (``appearance_patches_sequential``: how many frames the
+patches fixed and what the fallback costs on them).
 """
 
 from __future__ import annotations
@@ -77,17 +79,22 @@ def _untimed(value):
 def _navigate(frames_dir: Path) -> dict:
     from crater_synth.navigation.frames_eval import evaluate_dir
     from crater_synth.navigation.frames_presets import frames_params
+    from crater_synth.navigation.patches import PatchParams
+    from crater_synth.navigation.sequence import SequenceParams
 
     out: dict = {}
     results: dict = {}
-    for name in ("appearance", "synthetic", "appearance_2_workers"):
-        dparams, fparams, pre = frames_params(name.removesuffix("_2_workers"))
+    for name in ("appearance", "synthetic", "appearance_2_workers", "appearance_patches_sequential"):
+        dparams, fparams, pre = frames_params(name.split("_")[0])
         args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
         workers = 2 if name.endswith("_2_workers") else 1  # the new landmark windows in two processes
-        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args, terrain_workers=workers)
+        # A frame its craters do not fix navigated with terrain patches, priors carried along the trajectory.
+        extra = dict(patches=PatchParams(), sequence=SequenceParams()) if name.endswith("_patches_sequential") else {}
+        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args, terrain_workers=workers, **extra)
         secs = sorted(r["seconds"] for r in rows)
         out[name] = {
             "fixes": sum(bool(r["fix"]) for r in rows),
+            "patch_fixes": sum(r.get("fix_source") == "patches" for r in rows),
             "median_s_per_frame": secs[len(secs) // 2],
             "max_s_per_frame": secs[-1],
             "frames_per_s": round(len(secs) / max(sum(secs), 1e-9), 3),

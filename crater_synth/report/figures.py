@@ -271,7 +271,7 @@ def nav_trajectory(
     frames record it) and of the perfect-detection check; below it, a strip
     with a cross where a frame has no fix. Bottom: the landmarks in view (all labels, and those of the
     map's minimum size the fix can use), those the detector matched, those the perfect-detection fix
-    identified, and the detection count (right axis)."""
+    identified, and the detection count (right axis). A fix from terrain patches is ringed (a diamond)."""
     idx = np.array([f["index"] for f in frames], dtype=float)
     alt = [f["altitude_km"] for f in frames]
     runs = (
@@ -307,6 +307,11 @@ def nav_trajectory(
                 *np.array(plain).T, "o", mfc="none", color=NAV_DETECTOR_COLOR, ms=6, label="detector, before refinement"
             )
             errs += [e for _, e in plain]
+        patched = [
+            (i, 1000.0 * f["error_km"]) for i, f in zip(idx, frames) if f["fix"] and f.get("fix_source") == "patches"
+        ]
+        if patched:  # the frames the craters did not fix and terrain patches did (nav-frames-eval --patches)
+            ax.plot(*np.array(patched).T, "D", mfc="none", color="#1c9fd6", ms=11, label="fixed by terrain patches")
         fx = 1000.0 * false_fix_km
         ax.axhline(fx, color="#868e96", ls="--", lw=1)
         ax.text(

@@ -636,6 +636,7 @@ def navigation(ctx: Ctx) -> dict:
                 "frames": frames,
                 "src": src,
                 "fixes": sum(f["fix"] for f in frames),
+                "patch_fixes": sum(bool(f["fix"]) and f.get("fix_source") == "patches" for f in frames),
                 "perfect_fixes": sum(f["perfect"]["fix"] for f in frames),
             }
         )
