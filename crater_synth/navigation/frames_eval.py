@@ -368,6 +368,8 @@ def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: 
     ]
     out = {**r, **{key: rp[key] for key in PATCH_FIX_KEYS if key in rp}, "fix_source": "patches", "patches": info}
     out.update(identified=rp["identified"], identified_correct=correct, identified_pairs=[])
+    if "unrefined" in out:  # the same identifications before the refinement
+        out["unrefined"] = {**out["unrefined"], "identified_correct": correct}
     return out
 
 
