@@ -99,6 +99,28 @@ def test_position_fix_with_known_attitude_is_exact_and_robust():
     assert not ok and "need 5" in reason
 
 
+def test_known_attitude_fix_sigma_follows_its_scatter_under_pixel_noise():
+    """position_sigma_horizontal_m: the fit's own covariance; with Gaussian pixel noise it is the
+    horizontal error's spread (Monte Carlo of the same least-squares solve)."""
+    from crater_synth.navigation.fix import position_sigma_horizontal_m, project_pinhole, solve_position
+
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-40e3, 40e3, (6, 2)), rng.uniform(-2e3, 2e3, 6)])
+    c = np.array([1e3, 2e3, 100e3])
+    r_wc = np.diag([1.0, -1.0, -1.0])
+    k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
+    exact = project_pinhole(pts, r_wc, c, k)
+    errors, sigmas = [], []
+    for _ in range(300):
+        uv = exact + rng.normal(0.0, 0.5, exact.shape)
+        c_fix = solve_position(pts, uv, k, r_wc)
+        errors.append(np.hypot(*(c_fix - c)[:2]))
+        sigmas.append(position_sigma_horizontal_m(pts, uv, k, r_wc, c_fix))
+    rms = float(np.sqrt(np.mean(np.square(errors))))
+    assert 0.8 < float(np.median(sigmas)) / rms < 1.25, (np.median(sigmas), rms)
+    assert position_sigma_horizontal_m(pts, exact, k, r_wc, c) < 1e-3  # exact pixels: no scatter
+
+
 def test_position_hypotheses_leave_out_degenerate_pairs_and_centres_behind():
     """All pairs are solved at once: a pair whose two pixels coincide (one detection twice) or whose centre
     has a landmark behind the camera gives no hypothesis; every other pair of true correspondences gives

@@ -117,6 +117,7 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
     for f in doc["frames"]:
         assert f["fix"] and f["fix_source"] == "patches" and f["error_km"] < 1.0, f
         assert f["patches"]["identified"] >= 3 and f["patches"]["identified_correct"] == f["patches"]["identified"]
+        assert 0.0 < f["sigma_horizontal_km"] < 1.0  # the fix's own 1-sigma, recorded with it
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
     # `navigate FRAME --patches`: the same fix for one frame, the patches drawn.

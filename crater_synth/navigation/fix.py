@@ -272,6 +272,20 @@ def pose_sigma_horizontal_m(points, uv, k, r, c) -> float:
     return float(math.sqrt(max(cov[3, 3] + cov[4, 4], 0.0))) * scale
 
 
+def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
+    """1-sigma horizontal (first two axes) uncertainty (m) of the known-attitude camera centre ``c`` fitted
+    to >= 3 ``points`` at pixels ``uv``: :func:`pose_sigma_horizontal_m`'s covariance with the attitude
+    held (the centre's 3 unknowns taken off the residuals' degrees of freedom). It measures how well the
+    landmarks agree with each other, not an error they share (a DEM or attitude bias moves them alike)."""
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    scale = max(float(np.linalg.norm(points - c, axis=1).mean()), 1.0)
+    res, jac = _pose_jacobian(points, uv, k, r, c, scale)
+    jac = jac[:, 3:]
+    sigma2 = float(res @ res) / max(res.size - 3, 1)
+    cov = np.linalg.pinv(jac.T @ jac) * sigma2
+    return float(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))) * scale
+
+
 def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
     """Gauss-Newton on (rotation increment, camera centre) minimising reprojection error from (r0, c0)."""
     r, c = np.array(r0, float), np.array(c0, float)

@@ -62,7 +62,14 @@ from crater_synth.navigation.evaluate import (
     PRIOR_OFFSET_KM,
     summarise,
 )
-from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_pnp, ransac_position, rodrigues
+from crater_synth.navigation.fix import (
+    FixParams,
+    position_sigma_horizontal_m,
+    project_pinhole,
+    ransac_pnp,
+    ransac_position,
+    rodrigues,
+)
 from crater_synth.navigation.frame_labels import hidden
 from crater_synth.navigation.frames import FrameError
 from crater_synth.navigation.frames_presets import (
@@ -297,6 +304,10 @@ def evaluate_frame(
         out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["position_enu_m"] = [float(v) for v in c_fix]  # the fix (frame ENU): a sequence's next prior
+        if method == "position":  # its own uncertainty: how well its landmarks agree (fix.position_sigma_...)
+            final = (out.get("refinement") or {}).get("observed_px", corrected)
+            sigma = position_sigma_horizontal_m(p3[keep], final, k, r_wc, c_fix)
+            out["sigma_horizontal_km"] = sigma / 1000.0
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
@@ -312,6 +323,7 @@ PATCH_FIX_KEYS = (
     "error_km",
     "error_horizontal_km",
     "position_enu_m",
+    "sigma_horizontal_km",
     "rms_px",
     "refinement",
     "unrefined",

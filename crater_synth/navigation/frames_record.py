@@ -28,6 +28,7 @@ FRAME_FIELDS = (
     "fix_source",  # "craters" or "patches" (--patches), None without a fix
     "patches",  # what the terrain patches gave, when they were searched
     "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
+    "sigma_horizontal_km",  # the known-attitude fix's own 1-sigma horizontal uncertainty
 )
 
 

@@ -393,7 +393,7 @@ class Refiner:
         used them; ``points_enu`` (n, 3): their rim-centre points in the ENU frame of ``origin`` (lat,
         lon); ``c_fix``, ``r_wc``, ``k``: the plain fix's camera. Returns (centre, {"seconds": wall time,
         "landmarks": per-landmark records: NCC, shift, whether the registration replaced the observation,
-        or why it was not tried}). The
+        or why it was not tried; "observed_px": the observations the centre was solved from}). The
         windows are predicted once, from the plain fix (a pixel or two of camera motion changes the view
         angle by microradians), and registered again after each solve; ``predicted`` (landmark id -> (MC
         points, I/F)) are predictions already made for this frame (:mod:`.appearance`), used as they are."""
@@ -413,6 +413,7 @@ class Refiner:
             except DemError as exc:  # the window or its far field leaves the DEM: keep the detection
                 windows.append(str(exc))
         obs = np.asarray(observed_uv, dtype=np.float64)
+        solved_from = obs  # the observations the returned centre was solved from
         records: list[dict] = []
         for it in range(p.iterations):
             moved, records = obs.copy(), []
@@ -439,7 +440,12 @@ class Refiner:
             if sum(r["used"] for r in records) < 2:  # one landmark alone cannot move a position
                 break
             c = solve_position(points_enu, moved, k, r_wc)
-        return c, {"seconds": round(time.perf_counter() - t0, 3), "landmarks": records}
+            solved_from = moved
+        return c, {
+            "seconds": round(time.perf_counter() - t0, 3),
+            "landmarks": records,
+            "observed_px": np.round(solved_from, 4).tolist(),  # the last solve's observations: its residuals
+        }
 
     def verified(self, refinement: dict) -> tuple[bool, str]:
         """(fix stands, reason if not) after :meth:`refine`: a fix whose landmarks do not appear where it
