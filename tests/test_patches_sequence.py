@@ -91,7 +91,7 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
     assert lms[0].diameter_km == pytest.approx(0.1 * footprint / 0.75 / 1000.0, rel=1e-9)
 
 
-def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
+def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     """Two descent frames (67 and 55 km up: two map craters >= 10 km in view, no fix from craters) at 256 px:
     --patches fixes both from terrain patches, every patch identification correct; --sequential carries
     frame 7's fix into frame 8's prior."""
@@ -120,6 +120,16 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
         assert 0.0 < f["sigma_horizontal_km"] < 1.0  # the fix's own 1-sigma, recorded with it
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
+    # --write-results keys the record by the options and states them in its protocol.
+    from crater_synth.navigation import frames_record
+
+    monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
+    run("--patches", "--sequential", "--write-results")
+    rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
+    (key,) = rec
+    assert key == "descent_ridge/position/appearance/patches/sequential", key
+    assert rec[key]["protocol"]["patches"]["grid"] == 4 and rec[key]["protocol"]["sequence"]["min_sigma_km"] == 1.0
+    assert [f["fix_source"] for f in rec[key]["frames"]] == ["patches", "patches"]
     # `navigate FRAME --patches`: the same fix for one frame, the patches drawn.
     frame7 = out / "frame_0007.exr"
     res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--out", str(tmp_path / "n.png")])
@@ -159,11 +169,7 @@ def test_patch_and_sequence_options_are_refused_where_they_do_not_apply(tmp_path
 
     out = tmp_path / "none"
     out.mkdir()
-    for args, message in (
-        (["--patches", "--preset", "synthetic"], "--patches needs the appearance search"),
-        (["--patches", "--write-results"], "drop --patches/--sequential"),
-        (["--sequential", "--write-results"], "drop --patches/--sequential"),
-    ):
+    for args, message in ((["--patches", "--preset", "synthetic"], "--patches needs the appearance search"),):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
 

@@ -120,8 +120,6 @@ def nav_frames_eval_command(
     args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
     if patches and pre.appearance is None:
         raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
-    if write_results and (patches or sequential):
-        raise UserError("--write-results records a preset's frame-by-frame results only; drop --patches/--sequential")
     pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
     summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams)
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)

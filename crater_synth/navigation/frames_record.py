@@ -100,11 +100,14 @@ def _render_info(frames_dir: Path) -> dict:
 
 def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: str, method: str, pre) -> None:
     """Record ``summary`` (a trajectory's, with the preset ``pre`` named ``preset``) under ``synthetic`` in
-    docs/results/navigation.json, keyed by trajectory, fix method and preset."""
+    docs/results/navigation.json, keyed by trajectory, fix method and preset (and the sensor, terrain patches
+    and sequential priors where they were used)."""
     results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
     info = _render_info(frames_dir)
     key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == RESULTS_UNSUFFIXED_PRESET else f"/{preset}")
     key += f"/sensor={summary['sensor']}" if summary.get("sensor") else ""
+    key += "/patches" if summary.get("patches") else ""
+    key += "/sequential" if summary.get("sequence") else ""
     results.setdefault("synthetic", {})[key] = {
         "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
         f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
@@ -122,12 +125,15 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
                 "refine": pre.refine,
             },
             "method": method,
+            "patches": summary.get("patches"),  # terrain patches where the craters give no fix (None: off)
+            "sequence": summary.get("sequence"),  # priors carried from the last fix (None: every frame alone)
             "error": "3-D camera centre distance",
         },
         "frames": [
             {
                 k: r.get(k)
                 for k in ("index", "altitude_km", "ground_sample_m", "n_detections", "fix", "error_km", "reason")
+                + (("fix_source",) if summary.get("patches") else ())
             }
             for r in rows
         ],
