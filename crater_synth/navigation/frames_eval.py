@@ -354,30 +354,20 @@ def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: 
     info.update(found=rp["n_detections"], reason=rp["reason"])
     if not rp["fix"]:
         return {**r, "fix_source": None, "patches": info}
-    # Identification truth of a patch: where the true camera sees its point (the ellipse centre, as detected).
+    # Identification truth of a patch: where the true camera sees its point (the ellipse centre, as detected);
+    # and where each was found (centre, window half-width px): what `navigate` draws.
     r_true, _ = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, fov)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
-    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in found]), *origin)
-    correct = 0
+    correct, drawn = 0, []
     for det, ident in rp["identified_pairs"]:
-        q = ident - len(landmarks)
-        (ell,) = rim_ellipses(pts[q : q + 1], [found[q].diameter_km * 500.0], c_true, r_true, fov, width)
+        lm = found[ident - len(landmarks)]
+        point = geometry.mc_to_enu(lm.position_mc()[None], *origin)
+        (ell,) = rim_ellipses(point, [lm.diameter_km * 500.0], c_true, r_true, fov, width)
         u, v = rp["detections_px"][det][:2]
         correct += int(math.hypot(u - ell.cu, v - ell.cv) <= kw.get("inlier_px", PNP_INLIER_PX))
-    info.update(identified=rp["identified"], identified_correct=correct)
-    # Where they were found (centre and the window's half-width, px): what `navigate` draws.
-    half = [
-        found[ident - len(landmarks)].diameter_km * RefineParams().window_diameters
-        for _, ident in rp["identified_pairs"]
-    ]
-    info["identified_px"] = [
-        [
-            round(rp["detections_px"][det][0], 2),
-            round(rp["detections_px"][det][1], 2),
-            round(h * 1000.0 / float(row["ground_sample_m"]), 1),
-        ]
-        for (det, _), h in zip(rp["identified_pairs"], half)
-    ]
+        half_px = lm.diameter_km * RefineParams().window_diameters * 1000.0 / float(row["ground_sample_m"])
+        drawn.append([round(u, 2), round(v, 2), round(half_px, 1)])
+    info.update(identified=rp["identified"], identified_correct=correct, identified_px=drawn)
     out = {**r, **{key: rp[key] for key in PATCH_FIX_KEYS if key in rp}, "fix_source": "patches", "patches": info}
     out.update(identified=rp["identified"], identified_correct=correct, identified_pairs=[])
     if "unrefined" in out:  # the same identifications before the refinement

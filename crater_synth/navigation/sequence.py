@@ -51,7 +51,6 @@ def last_fix(row: dict, result: dict) -> dict:
     return {
         "fix_mc": frame_point_mc(row, result["position_enu_m"]),
         "true_mc": frame_point_mc(row, row["camera_enu"]["position_m"]),
-        "index": row["index"],
     }
 
 
