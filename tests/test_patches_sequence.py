@@ -183,3 +183,12 @@ def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
     window.write_bytes(b"")
     res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])
     assert res.exit_code != 0 and "--patches applies to rendered frames" in res.output
+
+
+def test_patches_at_the_dem_edge_are_those_on_the_dem():
+    """A frame reaching past the DEM: patches only where the DEM has data, no error."""
+    from crater_synth.navigation.refine import lander_dem
+
+    r_wc, k = frames_eval.cv_camera(np.eye(3), 512, 60.0)
+    lms = patch_landmarks(lander_dem("south"), np.array([0.0, 0.0, 150e3]), r_wc, k, 512, (-71.0, 0.0), "south")
+    assert 0 < len(lms) < 16 and all(-74.0 < lm.lat < -68.0 for lm in lms)
