@@ -120,6 +120,10 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
         assert 0.0 < f["sigma_horizontal_km"] < 1.0  # the fix's own 1-sigma, recorded with it
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
+    # A lander DEM with a 10 m error: recorded, and no false fix from it.
+    noisy = run("--patches", "--dem-error-m", "10")
+    assert noisy["summary"]["dem_error"] == {"rms_m": 10.0, "wavelength_km": 5.0}
+    assert all(not f["fix"] or f["error_km"] < 5.0 for f in noisy["frames"])
     # --write-results keys the record by the options and states them in its protocol.
     from crater_synth.navigation import frames_record
 
@@ -192,3 +196,42 @@ def test_patches_at_the_dem_edge_are_those_on_the_dem():
     r_wc, k = frames_eval.cv_camera(np.eye(3), 512, 60.0)
     lms = patch_landmarks(lander_dem("south"), np.array([0.0, 0.0, 150e3]), r_wc, k, 512, (-71.0, 0.0), "south")
     assert 0 < len(lms) < 16 and all(-74.0 < lm.lat < -68.0 for lm in lms)
+
+
+def test_perturbed_dem_adds_a_seeded_field_of_the_asked_rms():
+    import pickle
+
+    from crater_synth.navigation.dem_error import DemErrorParams, PerturbedDem
+    from crater_synth.navigation.refine import lander_dem
+
+    dem = lander_dem("south")
+    noisy = PerturbedDem(dem, DemErrorParams(30.0, 5.0), "south", seed=0)
+    rng = np.random.default_rng(0)
+    lat, lon = rng.uniform(-89.0, -80.0, 4000), rng.uniform(-180.0, 180.0, 4000)
+    err = noisy.error_m(lat, lon)
+    assert 20.0 < float(np.sqrt(np.mean(err**2))) < 40.0  # a random field: its RMS near the asked one
+    got = noisy.sample(lat[:50], lon[:50]).heights - dem.sample(lat[:50], lon[:50]).heights
+    assert np.allclose(got, err[:50])
+    assert noisy.pixel_size_m == dem.pixel_size_m  # everything else is the DEM's
+    again = pickle.loads(pickle.dumps(noisy))  # what a terrain worker receives
+    assert np.allclose(again.error_m(lat[:5], lon[:5]), err[:5])
+    other = PerturbedDem(dem, DemErrorParams(30.0, 5.0), "south", seed=1)
+    assert not np.allclose(other.error_m(lat[:5], lon[:5]), err[:5])
+    with pytest.raises(ValueError, match="DEM error"):
+        DemErrorParams(-1.0)
+
+
+def test_dem_error_option_is_refused_where_it_does_not_apply(tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    out = tmp_path / "none"
+    out.mkdir()
+    for args, message in (
+        (["--dem-error-m", "30", "--write-results"], "drop --dem-error-m"),
+        (["--dem-error-m", "30", "--dem-error-km", "0.1"], "expected 0.5 to 500 km"),
+        (["--dem-error-m", "30", "--preset", "real-window"], "does not use the lander's DEM"),
+    ):
+        res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
+        assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists(), res.output

@@ -53,6 +53,7 @@ import numpy as np
 
 from crater_core import exr, geometry
 from crater_synth.navigation.appearance import AppearanceParams, appearance_detections
+from crater_synth.navigation.dem_error import DemErrorParams, PerturbedDem
 from crater_synth.navigation.detect import Detection, DetectorParams, detect
 from crater_synth.navigation.evaluate import (
     HEADLINE_MIN_D_KM,
@@ -397,6 +398,7 @@ def evaluate_dir(
     terrain_workers: int = 1,
     patches: PatchParams | None = None,
     sequence: SequenceParams | None = None,
+    dem_error: DemErrorParams | None = None,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -411,7 +413,8 @@ def evaluate_dir(
     (with ``appearance``): a frame its craters do not fix is navigated with its terrain patches
     (:func:`with_patch_fallback`); ``sequence``: each frame's prior is the last fix of its trajectory carried
     forward (:mod:`.sequence`; frames in index order; the first, and any the drift leaves no tighter than
-    ``fix.prior_sigma_km``, get the standard prior)."""
+    ``fix.prior_sigma_km``, get the standard prior); ``dem_error``: the lander's DEM carries this height
+    error (:mod:`.dem_error`; the frames stay as rendered, the perfect-detection check is unaffected)."""
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
 
@@ -426,7 +429,10 @@ def evaluate_dir(
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
-            refiners[pole] = Refiner(lander_dem(pole), workers=terrain_workers) if refine or appearance else None
+            dem = lander_dem(pole)
+            if dem_error is not None:  # seeded like the prior offsets
+                dem = PerturbedDem(dem, dem_error, pole, seed)
+            refiners[pole] = Refiner(dem, workers=terrain_workers) if refine or appearance else None
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
         if sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
             image = sensor.apply(image, np.random.default_rng([seed, zlib.crc32(row["rel_path"].encode())]))

@@ -13,6 +13,7 @@ import click
 from crater_core import schema
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
+from crater_synth.navigation.dem_error import DemErrorParams
 from crater_synth.navigation.evaluate import PRIOR_OFFSET_KM, check_prior_offset_km
 from crater_synth.navigation.frames_eval import evaluate_dir
 from crater_synth.navigation.frames_presets import DEFAULT_FRAMES_PRESET, FRAMES_PRESETS, frames_params
@@ -83,6 +84,20 @@ from crater_synth.navigation.sequence import SequenceParams
     is_flag=True,
     help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 % drift.",
 )
+@click.option(
+    "--dem-error-m",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="The lander's DEM carries a smooth seeded height error of this RMS (m; the frames stay as rendered).",
+)
+@click.option(
+    "--dem-error-km",
+    type=float,
+    default=5.0,
+    show_default=True,
+    help="Central wavelength of that error (km).",
+)
 @user_errors
 def nav_frames_eval_command(
     frames_dir,
@@ -97,6 +112,8 @@ def nav_frames_eval_command(
     sensor,
     patches,
     sequential,
+    dem_error_m,
+    dem_error_km,
 ):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
@@ -121,11 +138,22 @@ def nav_frames_eval_command(
     if patches and pre.appearance is None:
         raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
     pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
-    summary, rows = evaluate_dir(frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams)
+    try:
+        eparams = DemErrorParams(dem_error_m, dem_error_km) if dem_error_m else None
+    except ValueError as exc:
+        raise UserError(f"--dem-error-m/--dem-error-km: {exc}") from None
+    if write_results and eparams is not None:
+        raise UserError("--write-results records the lander's DEM as it is; drop --dem-error-m")
+    if eparams is not None and pre.appearance is None and not pre.refine:
+        raise UserError(f"--dem-error-m: the {preset} preset does not use the lander's DEM")
+    summary, rows = evaluate_dir(
+        frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams, dem_error=eparams
+    )
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
     summary.update(
         patches=dataclasses.asdict(pparams) if pparams else None,
         sequence=dataclasses.asdict(sparams) if sparams else None,
+        dem_error=dataclasses.asdict(eparams) if eparams else None,
     )
     for r in rows:
         click.echo(
