@@ -572,3 +572,15 @@ def test_acceptance_tool_bounds_the_iau_recall_by_the_measured_candidates(tmp_pa
     (tmp_path / "measurements_south.json").write_text(json.dumps(cands))
     bound = la.iau_bound("south", tmp_path, workers=1)
     assert bound == {"iau_craters": len(south), "any_candidate": 2, "closed_candidate": 1}
+
+
+def test_acceptance_tool_measures_missed_listed_craters_from_their_own_place(tmp_path):
+    """--seeded: with no candidate at all, every listed crater of the size is missed and measured again
+    from its listed centre and diameter."""
+    from crater_synth.tools import landmark_acceptance as la
+
+    (tmp_path / "measurements_south.json").write_text("[]")
+    out = la.seeded_misses("south", tmp_path, workers=1, min_diameter_km=150.0)
+    assert out["listed"] == out["no_candidate_matches"] == len(out["seeded"]) > 0
+    assert out["seeded_matches"] == sum(s["matches"] for s in out["seeded"])
+    assert all(s["rim_diameter_km"] > 0 for s in out["seeded"])

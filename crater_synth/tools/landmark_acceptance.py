@@ -17,6 +17,7 @@ adopted); it recomputes the two tables recorded there.
 
     python -m crater_synth.tools.landmark_acceptance --cache DIR [--north] [--workers 2]
     python -m crater_synth.tools.landmark_acceptance --cache DIR --iau-bound
+    python -m crater_synth.tools.landmark_acceptance --cache DIR --seeded
 """
 
 from __future__ import annotations
@@ -232,14 +233,50 @@ def iau_bound(pole: str, cache: Path, workers: int) -> dict:
     return out
 
 
+def seeded_misses(pole: str, cache: Path, workers: int, min_diameter_km: float = LARGE_KM) -> dict:
+    """The listed (LU1319381) craters >= ``min_diameter_km`` no measured candidate matches, measured again
+    from their own listed centre and diameter: how many that seeded measurement matches (the rest drift
+    away in the rim measurement's centre iteration, whatever the candidate), with each one's centre offset."""
+    from crater_synth.terrain.catalogue import measure_depression
+
+    dem = _dem(pole)
+    meas = measurements(pole, cache, workers)
+    rows = [lmap._to_landmark(_M(m), pole) for m in meas]
+    listed = lc.lu_craters(pole, dem)
+    mx, my, md = (np.array([r[k] for r in rows]) for k in ("x_m", "y_m", "diameter_km"))
+    matched = lc._within(listed[:, 0], listed[:, 1], listed[:, 2], mx, my, md).any(axis=1)
+    missed = [i for i in np.nonzero(listed[:, 2] >= min_diameter_km)[0] if not matched[i]]
+    out = {"listed": int((listed[:, 2] >= min_diameter_km).sum()), "no_candidate_matches": len(missed), "seeded": []}
+    for i in missed:
+        x, y, d = listed[i]
+        lat, lon = lmap.stereo_inverse(x, y, pole)
+        m = measure_depression(dem, float(lat), float(lon), float(d), name="listed crater")
+        r = lmap._to_landmark(m, pole)
+        hit = lc._within(*(np.array([v]) for v in (x, y, d, r["x_m"], r["y_m"], r["diameter_km"]))).any()
+        out["seeded"].append(
+            {
+                "diameter_km": round(float(d), 1),
+                "matches": bool(hit),
+                "centre_offset_d": round(m.centre_offset_d, 2),
+                "rim_diameter_km": round(m.rim_diameter_km, 1),
+            }
+        )
+    out["seeded_matches"] = sum(s["matches"] for s in out["seeded"])
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, required=True, help="folder of the measurements (written once)")
     ap.add_argument("--north", action="store_true", help="also apply the south's model to the north (the test)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--iau-bound", action="store_true", help="print the IAU recall no rule can exceed, both poles")
+    ap.add_argument("--seeded", action="store_true", help="the south's missed listed craters >= 30 km, seeded")
     args = ap.parse_args(argv)
     try:
+        if args.seeded:
+            print(json.dumps({"south seeded": seeded_misses("south", args.cache, args.workers)}, indent=1))
+            return 0
         if args.iau_bound:
             bound = {pole: iau_bound(pole, args.cache, args.workers) for pole in ("south", "north")}
             print(json.dumps({"iau bound": bound}, indent=1))
