@@ -305,6 +305,8 @@ def evaluate_frame(
         out["reason"] = f"{NOT_ENOUGH_LANDMARKS}: {len(labels_seen)} >= {fparams.min_landmark_km:g} km ({reason})"
     if ok:
         out["position_enu_m"] = [float(v) for v in c_fix]  # the fix (frame ENU): a sequence's next prior
+        lat, lon, height = geometry.mc_to_latlon(geometry.enu_to_mc(c_fix, lat0, lon0))
+        out["fix_position"] = {"lat": float(lat), "lon": float(lon), "altitude_m": float(height)}  # sphere
         if method == "position":  # its own uncertainty: how well its landmarks agree (fix.position_sigma_...)
             final = (out.get("refinement") or {}).get("observed_px", corrected)
             sigma = position_sigma_horizontal_m(p3[keep], final, k, r_wc, c_fix)
@@ -324,6 +326,7 @@ PATCH_FIX_KEYS = (
     "error_km",
     "error_horizontal_km",
     "position_enu_m",
+    "fix_position",
     "sigma_horizontal_km",
     "rms_px",
     "refinement",

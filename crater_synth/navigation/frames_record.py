@@ -29,6 +29,7 @@ FRAME_FIELDS = (
     "patches",  # what the terrain patches gave, when they were searched
     "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
     "sigma_horizontal_km",  # the known-attitude fix's own 1-sigma horizontal uncertainty
+    "fix_position",  # the fixed camera centre: planetocentric lat, lon (deg), altitude above the sphere (m)
 )
 
 

@@ -93,6 +93,7 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: 
             error_km=round(r["error_km"], 3),
             error_horizontal_km=round(r["error_horizontal_km"], 3),
         )
+        result["fix_position"] = {k: round(v, 6 if k != "altitude_m" else 1) for k, v in r["fix_position"].items()}
         if r.get("sigma_horizontal_km") is not None:  # the fix's own 1-sigma (fix.position_sigma_horizontal_m)
             result["sigma_horizontal_km"] = round(r["sigma_horizontal_km"], 4)
         if "unrefined" in r:  # the fix before the appearance refinement
