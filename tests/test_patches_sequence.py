@@ -118,7 +118,8 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
         assert f["fix"] and f["fix_source"] == "patches" and f["error_km"] < 1.0, f
         assert f["patches"]["identified"] >= 3 and f["patches"]["identified_correct"] == f["patches"]["identified"]
         assert 0.0 < f["sigma_horizontal_km"] < 1.0  # the fix's own 1-sigma, recorded with it
-        assert abs(f["fix_position"]["altitude_m"] / 1e3 - f["altitude_km"]) < 5.0 and -90 < f["fix_position"]["lat"] < -80
+        position = f["fix_position"]  # the fixed camera: lat, lon, altitude above the sphere
+        assert abs(position["altitude_m"] / 1e3 - f["altitude_km"]) < 5.0 and -90 < position["lat"] < -80
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
     # A lander DEM with a 10 m error: recorded, and no false fix from it.
