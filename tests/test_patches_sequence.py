@@ -237,3 +237,26 @@ def test_dem_error_option_is_refused_where_it_does_not_apply(tmp_path):
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists(), res.output
+
+
+def test_error_arrow_is_magnified_by_a_stated_step():
+    """navigate's error arrow on a rendered frame: truth -> fix, at least MIN_ARROW_PX long, its
+    magnification a 1-2-5 step written beside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from crater_synth.navigation.navigate_frame import MIN_ARROW_PX, _error_arrow
+
+    row = {
+        "frame_origin": {"lat": -85.0, "lon": 0.0},
+        "pose": {"width_px": 512, "fov_deg": 60.0, "target_lat": -85.0, "target_lon": 0.0},
+        "camera_enu": {"rotation": np.eye(3).tolist(), "position_m": [0.0, 0.0, 100e3]},
+    }
+    fig, ax = plt.subplots()
+    caption = _error_arrow(ax, {"position_enu_m": [30.0, 0.0, 100e3]}, row)  # 30 m east at 100 km: 0.13 px
+    tip = np.array(ax.texts[-1].get_position())
+    assert np.hypot(*(tip - 256.0)) >= MIN_ARROW_PX and caption.endswith("x500"), caption
+    assert "x500" in ax.texts[-1].get_text()
+    plt.close(fig)

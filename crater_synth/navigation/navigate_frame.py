@@ -14,6 +14,7 @@ matches) as JSON beside it.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +138,9 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
     draw_detections(ax, dets, r.get("identified_pairs", []), landmarks)
     for u, v, half in (r.get("patches") or {}).get("identified_px", []):  # the terrain patches that fixed it
         ax.add_patch(Rectangle((u - half, v - half), 2 * half, 2 * half, fill=False, ec="#30c0ff", lw=1.0))
+    arrow = ""
+    if r["fix"] and r.get("position_enu_m") is not None:
+        arrow = _error_arrow(ax, r, row)
     if r.get("fix_source") == "patches":
         title = (
             f"fix from {r['identified']} terrain patches (cyan), RMS {r['rms_px']:.1f} px; "
@@ -151,4 +155,40 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
             title += f"\nbefore the appearance refinement: {r['unrefined']['error_km']:.2f} km"
     else:
         title = f"no fix: {r['reason']}"
+    if arrow:
+        title += ("; " if "\n" in title else "\n") + arrow
     return png_of(fig, ax, w, h, f"{row['trajectory']} frame {row['index']}, {r['altitude_km']:.0f} km up: {title}")
+
+
+# The error arrow is drawn at least this long (px): a fix tens of metres off is a fraction of a pixel.
+MIN_ARROW_PX = 40.0
+
+
+def _error_arrow(ax, r: dict, row: dict) -> str:
+    """Draw the fix's error on the frame: from the frame centre (where the true camera sees its boresight's
+    ground point) to where the fixed camera would see that point, magnified to at least ``MIN_ARROW_PX``
+    (by a 1-2-5 step, written beside its tip); returns the title's short caption."""
+    from crater_core import geometry
+    from crater_synth.navigation.fix import project_pinhole
+    from crater_synth.navigation.frames_eval import cv_camera
+
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    width = int(row["pose"]["width_px"])
+    r_wc, k = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, float(row["pose"]["fov_deg"]))
+    target = geometry.mc_to_enu(geometry.latlon_to_mc(row["pose"]["target_lat"], row["pose"]["target_lon"]), lat0, lon0)
+    seen = {
+        name: project_pinhole(target[None], r_wc, np.asarray(c, dtype=np.float64), k)[0]
+        for name, c in (("truth", row["camera_enu"]["position_m"]), ("fix", r["position_enu_m"]))
+    }
+    shift = seen["fix"] - seen["truth"]
+    length = float(np.hypot(*shift))
+    scale = 1.0
+    if 0.0 < length < MIN_ARROW_PX:  # the smallest 1-2-5 step that makes it visible (at most 2.5 x the minimum)
+        base = 10.0 ** math.floor(math.log10(MIN_ARROW_PX / length))
+        scale = next(base * f for f in (1.0, 2.0, 5.0, 10.0) if length * base * f >= MIN_ARROW_PX)
+    tip = seen["truth"] + scale * shift
+    ax.annotate(
+        "", xy=tuple(tip), xytext=tuple(seen["truth"]), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2}
+    )
+    ax.text(*tip, f" error x{scale:g}" if scale > 1 else " error", color="cyan", fontsize=8, va="center")
+    return f"arrow {length:.2f} px, x{scale:g}"
