@@ -320,18 +320,9 @@ def evaluate_frame(
     return out
 
 
-PATCH_FIX_KEYS = (
-    "fix",
-    "reason",
-    "error_km",
-    "error_horizontal_km",
-    "position_enu_m",
-    "fix_position",
-    "sigma_horizontal_km",
-    "rms_px",
-    "refinement",
-    "unrefined",
-)
+# What a frame's row takes from its terrain patches' fix (the rest, detection metrics included, is the craters').
+PATCH_FIX_KEYS = ("fix", "reason", "error_km", "error_horizontal_km", "position_enu_m", "fix_position",
+                  "sigma_horizontal_km", "rms_px", "refinement", "unrefined")  # fmt: skip
 
 
 def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: PatchParams, prior_enu=None, **kw):
