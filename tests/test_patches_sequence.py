@@ -122,6 +122,8 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
         assert abs(position["altitude_m"] / 1e3 - f["altitude_km"]) < 5.0 and -90 < position["lat"] < -80
     assert doc["frames"][0]["prior_sigma_km"] == FixParams().prior_sigma_km
     assert doc["frames"][1]["prior_sigma_km"] < FixParams().prior_sigma_km  # carried from frame 7's fix
+    # Two terrain workers prepare the windows: the same frames, to the bit.
+    assert run("--patches", "--sequential", "--terrain-workers", "2")["frames"] == doc["frames"]
     # A lander DEM with a 10 m error: recorded, and no false fix from it.
     noisy = run("--patches", "--dem-error-m", "10")
     assert noisy["summary"]["dem_error"] == {"rms_m": 10.0, "wavelength_km": 5.0}

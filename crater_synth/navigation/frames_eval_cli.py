@@ -98,6 +98,13 @@ from crater_synth.navigation.sequence import SequenceParams
     show_default=True,
     help="Central wavelength of that error (km).",
 )
+@click.option(
+    "--terrain-workers",
+    type=click.IntRange(1, 16),
+    default=1,
+    show_default=True,
+    help="Processes preparing each frame's new landmark and patch windows (the same results, sooner cold).",
+)
 @user_errors
 def nav_frames_eval_command(
     frames_dir,
@@ -114,6 +121,7 @@ def nav_frames_eval_command(
     sequential,
     dem_error_m,
     dem_error_km,
+    terrain_workers,
 ):
     """Navigation metrics (detection, identification, fix) on rendered frames with exact truth, and the
     perfect-detection check (each label's own ellipse as a detection: the same identification and fix).
@@ -147,7 +155,16 @@ def nav_frames_eval_command(
     if eparams is not None and pre.appearance is None and not pre.refine:
         raise UserError(f"--dem-error-m: the {preset} preset does not use the lander's DEM")
     summary, rows = evaluate_dir(
-        frames_dir, dparams, fparams, seed, method, *args, patches=pparams, sequence=sparams, dem_error=eparams
+        frames_dir,
+        dparams,
+        fparams,
+        seed,
+        method,
+        *args,
+        patches=pparams,
+        sequence=sparams,
+        dem_error=eparams,
+        terrain_workers=terrain_workers,
     )
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
     summary.update(
