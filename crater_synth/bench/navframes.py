@@ -17,8 +17,8 @@ default ``appearance`` preset (the landmarks searched for by their predicted app
 ``synthetic`` preset (the classical detector) as the baseline, on the same frames in the same call:
 seconds per frame (search or detection, identification, fix, refinement and check; the DEM and map loads
 are outside it), frames/s and fixes of each, and the ratio of their median times; and the appearance
-preset with terrain patches and sequential priors (``appearance_patches_sequential``: how many frames the
-patches fixed and what the fallback costs on them).
+preset with terrain patches and sequential priors (``appearance_patches_sequential``, and with two terrain
+workers: how many frames the patches fixed and what the fallback costs on them).
 """
 
 from __future__ import annotations
@@ -84,12 +84,13 @@ def _navigate(frames_dir: Path) -> dict:
 
     out: dict = {}
     results: dict = {}
-    for name in ("appearance", "synthetic", "appearance_2_workers", "appearance_patches_sequential"):
+    names = ("appearance", "synthetic", "appearance_2_workers", "appearance_patches_sequential")
+    for name in names + ("appearance_patches_sequential_2_workers",):
         dparams, fparams, pre = frames_params(name.split("_")[0])
         args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
         workers = 2 if name.endswith("_2_workers") else 1  # the new landmark windows in two processes
         # A frame its craters do not fix navigated with terrain patches, priors carried along the trajectory.
-        extra = dict(patches=PatchParams(), sequence=SequenceParams()) if name.endswith("_patches_sequential") else {}
+        extra = dict(patches=PatchParams(), sequence=SequenceParams()) if "_patches_sequential" in name else {}
         _, rows = evaluate_dir(frames_dir, dparams, fparams, *args, terrain_workers=workers, **extra)
         secs = sorted(r["seconds"] for r in rows)
         out[name] = {
@@ -101,6 +102,9 @@ def _navigate(frames_dir: Path) -> dict:
         }
         results[name] = [_untimed(r) for r in rows]
     out["appearance_2_workers"]["same_results"] = results["appearance_2_workers"] == results["appearance"]
+    out["appearance_patches_sequential_2_workers"]["same_results"] = (
+        results["appearance_patches_sequential_2_workers"] == results["appearance_patches_sequential"]
+    )
     out["median_time_ratio_appearance_to_synthetic"] = round(
         out["appearance"]["median_s_per_frame"] / max(out["synthetic"]["median_s_per_frame"], 1e-3), 2
     )
