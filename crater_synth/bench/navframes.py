@@ -84,8 +84,13 @@ def _navigate(frames_dir: Path) -> dict:
 
     out: dict = {}
     results: dict = {}
-    names = ("appearance", "synthetic", "appearance_2_workers", "appearance_patches_sequential")
-    for name in names + ("appearance_patches_sequential_2_workers",):
+    for name in (
+        "appearance",
+        "synthetic",
+        "appearance_2_workers",
+        "appearance_patches_sequential",
+        "appearance_patches_sequential_2_workers",
+    ):
         dparams, fparams, pre = frames_params(name.split("_")[0])
         args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
         workers = 2 if name.endswith("_2_workers") else 1  # the new landmark windows in two processes

