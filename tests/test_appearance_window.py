@@ -166,3 +166,63 @@ def test_lost_in_space_then_the_appearance_search(south):
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=lis)
     assert row["fix"], row["reason"]
     assert row["error_km"] < 0.8 and row["identified"] >= 10 and len(row["matched"]) >= 0.9 * row["n_detections"]
+
+
+def test_window_patches_lie_on_the_dem_under_the_window_grid(south):
+    from crater_synth.navigation.patches import PATCH_SOURCE, PatchParams, window_patches
+    from crater_synth.navigation.refine import RefineParams, lander_dem
+
+    frame, _ = south
+    dem = lander_dem("south")
+    found = window_patches(dem, frame.georef, frame.image.shape, PatchParams(grid=3, half_share=0.1))
+    assert len(found) == 9 and len({p.id for p in found}) == 9 and {p.source for p in found} == {PATCH_SOURCE}
+    u, v = frame.georef.xy_to_uv(np.array([p.x_m for p in found]), np.array([p.y_m for p in found]))
+    cells = (np.arange(3) + 0.5) / 3 * 512
+    assert np.allclose(np.unique(np.round(u, 6)), cells) and np.allclose(np.unique(np.round(v, 6)), cells)
+    heights = dem.sample(np.array([p.lat for p in found]), np.array([p.lon for p in found])).heights
+    assert np.allclose([p.rim_height_m for p in found], heights)
+    # Each window is a tenth of the frame's width each way.
+    half_km = RefineParams().window_diameters * found[0].diameter_km
+    assert half_km == pytest.approx(0.1 * 512 * frame.georef.pixel_m / 1000.0)
+
+
+def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(south):
+    """The window navigated with terrain patches alone (no crater): found by their predicted appearance, the
+    identifications where the true georeference places the patches' points; turned upside down, no fix."""
+    from crater_synth.navigation.evaluate import run_frame, summarise
+    from crater_synth.navigation.patches import PatchParams
+
+    frame, landmarks = south
+    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
+    p = row["patches"]
+    assert p["n_patches"] == 16 and p["fix"], p["reason"]
+    assert p["error_km"] < 0.8 and p["identified"] >= 5 and p["identified_correct"] >= 0.9 * p["identified"]
+    assert row["fix_source"] == "craters"  # the craters fix it first; the patches are scored alone beside them
+    s = summarise([row])
+    assert s["fixed_by_patches"] == 0 and s["patches_alone"]["fix_rate"] == 1.0
+    turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
+    row = run_frame(turned, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
+    assert not row["patches"]["fix"] and not row["fix"] and row["fix_source"] is None
+
+
+def test_a_window_its_craters_do_not_fix_takes_the_patches_fix(south, monkeypatch):
+    """Where the craters give no fix (here: no crater in the map), the patches' fix is the window's."""
+    from crater_synth.navigation.evaluate import run_frame
+    from crater_synth.navigation.patches import PatchParams
+
+    frame, landmarks = south
+    row = run_frame(frame, [], PRESETS["appearance"], FixParams(), patches=PatchParams())
+    assert row["fix"] and row["fix_source"] == "patches" and row["error_km"] == row["patches"]["error_km"]
+    assert row["identified_correct"] == row["patches"]["identified_correct"]
+
+
+def test_nav_eval_patches_needs_the_appearance_search(tmp_path):
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    args = ["nav-eval", "--pole", "south", "--split", "validation", "--every", "60", "--patches"]
+    for extra in (["--method", "template"], ["--method", "appearance", "--lost-in-space"]):
+        r = CliRunner().invoke(main, [*args, *extra, "--out", str(tmp_path / "x.json")])
+        assert r.exit_code == 2 and "--patches needs --method appearance" in r.output
+        assert not (tmp_path / "x.json").exists()

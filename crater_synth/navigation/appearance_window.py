@@ -116,3 +116,29 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
         if shift is not None and ncc >= dparams.appearance_min_ncc
     ]
     return dets, elevations[best]
+
+
+def window_patch_fix(image, prior, light_azimuth_rad: float, dparams, fparams, refiner, params):
+    """(patches, detections, fix) of a map window navigated with its terrain patches (:mod:`.patches`,
+    :func:`~.patches.window_patches` under the prior georeference ``prior``) instead of its craters: each
+    patch searched for by its predicted appearance (:func:`window_detections`, the same Sun and settings as
+    a crater), then the detectors' identification and fix (:func:`.fix.fix_frame`)."""
+    from crater_synth.navigation.fix import Fix, fix_frame
+    from crater_synth.navigation.patches import window_patches
+
+    patches = window_patches(refiner.dem, prior, np.shape(image), params)
+    if not patches:
+        return [], [], Fix(False, "no patch on the DEM")
+    dets, _ = window_detections(image, prior, patches, light_azimuth_rad, dparams, fparams, refiner)
+    return patches, dets, fix_frame(dets, patches, prior, np.shape(image), fparams)
+
+
+def patch_truth_correct(dets, patches, inliers, truth, inlier_px: float) -> int:
+    """How many of a patch fix's ``inliers`` ((detection, patch) index pairs) are identified correctly: the
+    detection lies within ``inlier_px`` of where the true georeference ``truth`` places the patch's point
+    (a patch is a place, not a crater: there is no rim to match)."""
+    hits = 0
+    for d, p in inliers:
+        u, v = truth.xy_to_uv(patches[p].x_m, patches[p].y_m)
+        hits += int(math.hypot(dets[d].u - float(u), dets[d].v - float(v)) <= inlier_px)
+    return hits

@@ -177,12 +177,14 @@ def run_frame(
     lis=None,
     prior_offset_km: float = PRIOR_OFFSET_KM,
     listed=None,
+    patches=None,
 ) -> dict:
     """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
     :func:`navigate_frame`; ``prior_offset_km``: how far the prior is from the truth). ``listed``: a
     complete crater catalogue (``landmark_check.catalogue_craters``) the detections are also scored
     against, a diagnostic beside the map's truth (a detection of a crater the map lacks is no landmark,
-    but it is a crater)."""
+    but it is a crater). ``patches`` (:class:`.patches.PatchParams`, appearance method with a prior): the
+    frame is also navigated with its terrain patches alone (:func:`with_window_patches`)."""
     dets, theta, fix, prior = navigate_frame(frame, landmarks, dparams, fparams, seed, lis, prior_offset_km)
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
@@ -217,7 +219,37 @@ def run_frame(
         row["identified"] = len(fix.inliers)
         # Identification is correct when the fix's landmark is the detection's truth match.
         row["identified_correct"] = int(sum(matched.get(d) == lm for d, lm in fix.inliers))
+    if patches is not None:
+        row = with_window_patches(row, frame, prior, dparams, fparams, patches)
     return row
+
+
+def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams, patches) -> dict:
+    """``row`` with the window's terrain-patch navigation (:func:`.appearance_window.window_patch_fix`, under
+    the same prior and light) in ``row["patches"]``, scored alone; a window its craters do not fix takes the
+    patches' fix (``fix_source`` says which fixed it), as a lander would use them. A patch identification
+    is correct when its detection lies within ``fix.inlier_px`` of where the true georeference places the
+    patch's point. The row's detection metrics stay the craters'."""
+    from crater_synth.navigation.appearance_window import lander_refiner, patch_truth_correct, window_patch_fix
+    from crater_synth.navigation.frames import check_frame
+    from crater_synth.navigation.light import frame_local_light
+
+    if dparams.method != "appearance" or prior is None:
+        raise UserError("terrain patches need the appearance method and a position prior (not lost in space)")
+    image = check_frame(frame.image, f"frame {frame.id}")
+    alpha = frame_local_light(frame, dparams)
+    refiner = lander_refiner(frame.georef.pole)
+    found, dets, fix = window_patch_fix(image, prior, alpha, dparams, fparams, refiner, patches)
+    info: dict = {"n_patches": len(found), "n_detections": len(dets), "fix": fix.ok, "reason": fix.reason}
+    if fix.ok:
+        info["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, frame.georef.pole))
+        info["identified"] = len(fix.inliers)
+        info["identified_correct"] = patch_truth_correct(dets, found, fix.inliers, frame.georef, fparams.inlier_px)
+    out = {**row, "patches": info, "fix_source": "craters" if row["fix"] else None}
+    if not row["fix"] and fix.ok:
+        keys = ("error_km", "identified", "identified_correct")
+        out.update(fix=True, reason="", fix_source="patches", **{k: info[k] for k in keys})
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -272,7 +304,27 @@ def summarise(rows: list[dict]) -> dict:
     out["precision_15km"] = round(tp_d / n_d, 4) if n_d else None
     if all("catalogue_d_km" in r for r in rows):
         out["against_catalogue"] = _catalogue_scores(rows)
+    if all("patches" in r for r in rows):
+        out["fixed_by_patches"] = sum(r["fix_source"] == "patches" for r in rows)
+        out["patches_alone"] = _patches_alone(rows)
     return out
+
+
+def _patches_alone(rows: list[dict]) -> dict:
+    """Fix metrics of the windows navigated with their terrain patches alone (:func:`with_window_patches`)."""
+    fixed = [r["patches"] for r in rows if r["patches"]["fix"]]
+    err = np.array([p["error_km"] for p in fixed])
+    ident = sum(p["identified"] for p in fixed)
+    return {
+        "fix_rate": round(len(fixed) / len(rows), 4),
+        "median_error_km": round(float(np.median(err)), 3) if err.size else None,
+        "p90_error_km": round(float(np.percentile(err, 90)), 3) if err.size else None,
+        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+        "false_fix_rate": round(float((err > FALSE_FIX_KM).sum()) / len(rows), 4),
+        "identification_accuracy": round(sum(p["identified_correct"] for p in fixed) / ident, 4) if ident else None,
+        "identified_per_fix": round(ident / len(fixed), 2) if fixed else None,
+        "patches_per_window": round(float(np.mean([r["patches"]["n_patches"] for r in rows])), 2),
+    }
 
 
 def _catalogue_scores(rows: list[dict]) -> dict:
@@ -330,10 +382,12 @@ def evaluate_split(
     lis_params=None,
     prior_offset_km: float = PRIOR_OFFSET_KM,
     listed=None,
+    patches=None,
 ) -> tuple[dict, list[dict]]:
     """Metrics of one split of ``pole``'s windows ("all": every window, both splits), all windows and the
     headline windows, and the per-window rows. ``lis_params``: the lost-in-space fix with these
-    :class:`.lost_in_space.LostInSpaceParams` (no position prior) instead of the prior-gated one."""
+    :class:`.lost_in_space.LostInSpaceParams` (no position prior) instead of the prior-gated one;
+    ``patches``: each window also navigated with its terrain patches (:func:`with_window_patches`)."""
     from crater_synth.navigation.frames import windows
 
     frames = windows(None if split == "all" else split, pole)[::every]
@@ -346,11 +400,18 @@ def evaluate_split(
         lis = (lis_params, build_index(landmarks, lis_params))
     rows = []
     for k, f in enumerate(frames):
-        rows.append(run_frame(f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km, listed=listed))
+        rows.append(
+            run_frame(
+                f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km, listed=listed, patches=patches
+            )
+        )
         if progress and k % 20 == 19:
             click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
     head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
-    return {"all_windows": summarise(rows), "headline": summarise(head)}, rows
+    out = {"all_windows": summarise(rows), "headline": summarise(head)}
+    if patches is not None:  # where the craters cannot serve: fewer than the headline's landmarks in view
+        out["few_landmarks"] = summarise([r for r in rows if r["n_headline_landmarks"] < HEADLINE_MIN_LANDMARKS])
+    return out, rows
 
 
 def _row_md(name: str, s: dict) -> str:
@@ -363,6 +424,41 @@ def _row_md(name: str, s: dict) -> str:
         f"{f(s.get('identification_accuracy'), '.3f')} | {f(s.get('recall_15km'), '.3f')} | "
         f"{f(s.get('precision_15km'), '.3f')} |"
     )
+
+
+def _patches_markdown(methods: dict) -> list[str]:
+    """The terrain-patch table (``nav-eval --patches``): per split and window set, the patches alone and the
+    craters with the patches where the craters give no fix."""
+    lines = [
+        "",
+        "Terrain patches (fix rate, median and p90 error km, false fixes, identification; patches: alone; "
+        "fallback: the craters' fix, else the patches'):",
+        "",
+        "| method | split | windows | n | patches alone | fallback | fixed by patches |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def cell(s: dict) -> str:
+        if not s.get("fix_rate") and s.get("fix_rate") != 0.0:
+            return "-"
+        med, p90 = s.get("median_error_km"), s.get("p90_error_km")
+        errors = "-" if med is None else f"{med:.2f} / {p90:.2f}"
+        ident = s.get("identification_accuracy")
+        return f"{s['fix_rate']:.3f}, {errors}, {s['false_fixes']}, {'-' if ident is None else f'{ident:.3f}'}"
+
+    rows = 0
+    for m, res in methods.items():
+        for split, r in res["splits"].items():
+            for name in ("headline", "all_windows", "few_landmarks"):
+                s = r.get(name, {})
+                if "patches_alone" not in s:
+                    continue
+                rows += 1
+                lines.append(
+                    f"| {m} | {split} | {name} | {s['windows']} | {cell(s['patches_alone'])} | {cell(s)} | "
+                    f"{s['fixed_by_patches']} |"
+                )
+    return lines if rows else []
 
 
 def results_markdown(results: dict) -> str:
@@ -378,6 +474,7 @@ def results_markdown(results: dict) -> str:
         for split, r in res["splits"].items():
             lines.append(f"| {m} " + _row_md(f"{split}, >= 3 landmarks D >= 15 km", r["headline"]))
             lines.append(f"| {m} " + _row_md(f"{split}, all windows", r["all_windows"]))
+    lines += _patches_markdown(methods)
     lines += ["", "Detection by size bin (all windows; recall of map landmarks, precision of detections):", ""]
     lines.append("| method | split | bin km | recall | precision | truth | detections |")
     lines.append("|---|---|---|---|---|---|---|")
@@ -505,6 +602,12 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     help="How far the position prior is from the truth (seeded direction); the identification gate is "
     "fix.prior_sigma_km. Results with another offset are not written to the results file.",
 )
+@click.option(
+    "--patches",
+    is_flag=True,
+    help="Appearance method: navigate each window with its terrain patches too (scored alone, and used where "
+    "the craters give no fix; docs/navigation.md, section 6). Results go to --out only.",
+)
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
 @click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
 @click.option(
@@ -515,7 +618,9 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     "methods run in full).",
 )
 @user_errors
-def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, prior_offset_km, sets, map_path, out):
+def nav_eval_command(
+    pole, splits, methods, every, lost_in_space, lis_preset, prior_offset_km, patches, sets, map_path, out
+):
     """Real-window navigation metrics per split and detection method: detection, identification, fix
     (docs/navigation.md).
 
@@ -548,6 +653,13 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
         lis_params = None
     if lis_sets and not lost_in_space:
         raise UserError(f"--set {lis_sets[0]}: lost-in-space settings need --lost-in-space")
+    patch_params = None
+    if patches:
+        from crater_synth.navigation.patches import PatchParams
+
+        if methods != ("appearance",) or lost_in_space:
+            raise UserError("--patches needs --method appearance alone and a position prior (not --lost-in-space)")
+        patch_params = PatchParams()
     params = {m: _params_with(sets, m) for m in methods}
     splits = splits or SPLITS_OF_POLE[pole]
     if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
@@ -571,6 +683,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
             "every": every,
             "position_prior": "none (lost in space)" if lost_in_space else f"truth + {prior_offset_km:g} km",
             "catalogue_diagnostic": f"{LU_SOURCE}: detections D >= 15 km also scored against it (against_catalogue)",
+            **({"terrain_patches": dataclasses.asdict(patch_params)} if patch_params else {}),
         },
         "landmark_map": {
             "dem_product": prov.get("dem_product"),
@@ -610,6 +723,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
                 lis_params=lis_params,
                 prior_offset_km=prior_offset_km,
                 listed=listed,
+                patches=patch_params,
             )
             entry["splits"][split] = summary
         results["methods"][m] = entry
@@ -618,7 +732,7 @@ def nav_eval_command(pole, splits, methods, every, lost_in_space, lis_preset, pr
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
     full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not sets and not map_path and not lost_in_space
-    full = full and prior_offset_km == PRIOR_OFFSET_KM
+    full = full and prior_offset_km == PRIOR_OFFSET_KM and not patches
     if out:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)

@@ -183,7 +183,7 @@ def identify(detections, landmarks, georef_prior, frame_shape, params: FixParams
     ys = np.array([lm.y_m for lm in landmarks])
     rs = np.array([lm.diameter_km for lm in landmarks]) * 500.0 / georef_prior.pixel_m
     u, v = georef_prior.xy_to_uv(xs, ys)
-    big = np.array([lm.diameter_km >= params.min_landmark_km for lm in landmarks])
+    big = np.array([lm.diameter_km >= params.min_landmark_km for lm in landmarks], dtype=bool)  # [] is float
     near = big & (u > -gate_px) & (u < w + gate_px) & (v > -gate_px) & (v < h + gate_px)
     cand = np.nonzero(near)[0]
     if not detections or cand.size == 0:

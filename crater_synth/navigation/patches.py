@@ -87,8 +87,7 @@ def patch_landmarks(
     world->camera rotation ``r_wc`` and intrinsics ``k`` (:func:`.fix.project_pinhole`'s convention): one per
     cell of a ``params.grid`` square grid, at the ground point under the cell's centre, its window
     ``params.half_share`` of the footprint wide each way (the footprint at the points' median depth).
-    Points off the Moon or off the DEM are left out. Each id names its place and size, so a Refiner's
-    terrain cache never mixes two patches."""
+    Points off the Moon or off the DEM are left out."""
     from crater_synth.terrain.dem import DemError
 
     centres = (np.arange(params.grid) + 0.5) / params.grid * width
@@ -103,10 +102,33 @@ def patch_landmarks(
         return []
     pts = geometry.mc_to_enu(geometry.latlon_to_mc(lat[ok], lon[ok], height[ok]), *origin)
     depth = float(np.median((pts - c_prior) @ r_wc[2]))
-    half_m = params.half_share * width / k[0, 0] * depth
+    return _patches(lat[ok], lon[ok], height[ok], params.half_share * width / k[0, 0] * depth, pole)
+
+
+def window_patches(dem, georef, shape, params: PatchParams = PatchParams()) -> list[Landmark]:
+    """The terrain patches of a map window (a north-up polar stereographic nadir frame of ``shape`` placed by
+    ``georef``, :class:`.frames.Georef`, e.g. the prior's): one per cell of a ``params.grid`` square grid, at
+    the map point under the cell's centre and the DEM's height there, its window ``params.half_share`` of
+    the window's width wide each way. Points off the DEM are left out."""
+    from crater_synth.navigation.polar import stereo_inverse
+
+    rows, cols = shape[:2]
+    cells = (np.arange(params.grid) + 0.5) / params.grid
+    uu, vv = np.meshgrid(cells * cols, cells * rows)
+    x, y = georef.uv_to_xy(uu.ravel(), vv.ravel())
+    lat, lon = (np.asarray(a, dtype=np.float64) for a in stereo_inverse(x, y, georef.pole))
+    height = _heights(dem, lat, lon)
+    ok = np.isfinite(height)
+    return _patches(lat[ok], lon[ok], height[ok], params.half_share * cols * georef.pixel_m, georef.pole)
+
+
+def _patches(lat, lon, height, half_m: float, pole: str) -> list[Landmark]:
+    """Patch landmarks at (lat, lon, height) whose windows are ``half_m`` wide each way (the window is
+    ``RefineParams.window_diameters`` landmark diameters wide each way). Each id names its place and size, so a
+    Refiner's terrain cache never mixes two patches."""
     diameter_km = half_m / RefineParams().window_diameters / 1000.0
     out = []
-    for la, lo, h in zip(lat[ok], lon[ok], height[ok]):
+    for la, lo, h in zip(lat, lon, height):
         x, y = stereo_forward(la, lo, pole)
         pid = f"patch:{la:.5f}:{lo:.5f}:{diameter_km:.3f}"
         out.append(
@@ -115,6 +137,23 @@ def patch_landmarks(
             )
         )
     return out
+
+
+def _heights(dem, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """DEM heights at (lat, lon), NaN where a point lies off the DEM."""
+    from crater_synth.terrain.dem import DemError
+
+    try:
+        return np.asarray(dem.sample(lat, lon, what="terrain patch points").heights, dtype=np.float64)
+    except DemError:  # some point is off the DEM: each one alone
+        out = np.full(lat.shape, np.nan)
+        for q in range(lat.size):
+            try:
+                one = dem.sample(lat[q : q + 1], lon[q : q + 1], what="terrain patch points").heights
+                out[q] = float(np.ravel(one)[0])
+            except DemError:
+                continue
+        return out
 
 
 def _ground_points_each(dem, c_enu, dirs_enu, origin):
