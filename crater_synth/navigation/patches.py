@@ -12,7 +12,9 @@ first, and with its patches only when the craters give no fix (:func:`.frames_ev
 
 A patch holds as much as the DEM resolves: at a 6-8 degree Sun the long shadows of the DEM's relief
 make the texture the correlation finds. Frames rendered from the same DEM share its relief, so the
-accuracy measured on them is an upper bound for a real camera's frames (docs/navigation.md, section 9).
+accuracy measured on them is an upper bound for a real camera's frames (docs/navigation.md, section 9);
+on real mosaic windows (:func:`window_patches`, ``nav-eval --patches``) the same patches are placed on the
+window's map grid and tested against the WAC's own images (docs/navigation.md, section 6).
 """
 
 from __future__ import annotations
