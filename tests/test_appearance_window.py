@@ -226,3 +226,39 @@ def test_nav_eval_patches_needs_the_appearance_search(tmp_path):
         r = CliRunner().invoke(main, [*args, *extra, "--out", str(tmp_path / "x.json")])
         assert r.exit_code == 2 and "--patches needs --method appearance" in r.output
         assert not (tmp_path / "x.json").exists()
+
+
+def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
+    """`navigate WINDOW.png --method appearance --patches`: with a map of two craters the craters cannot fix
+    the window; its terrain patches do (drawn as cyan squares), and the JSON says so."""
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from crater_synth.cli import main
+    from crater_synth.navigation.landmarks import load_default_map, to_geojson
+    from crater_synth.navigation.light import frame_light
+
+    frame, _ = south
+    png = tmp_path / "window.png"
+    Image.fromarray(frame.image).save(png)
+    (tmp_path / "window.png.geo.json").write_text(json.dumps(frame.georef.as_dict()))
+    landmarks, prov = load_default_map("south")
+    u, v = frame.georef.xy_to_uv(np.array([lm.x_m for lm in landmarks]), np.array([lm.y_m for lm in landmarks]))
+    inside = [lm for lm, a, b in zip(landmarks, u, v) if 0 <= a < 512 and 0 <= b < 512]
+    (tmp_path / "two.geojson").write_text(to_geojson(inside[:2], prov))
+    theta = math.degrees(frame_light(frame, PRESETS["appearance"])["light_dir"])
+    args = ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}"]
+    args += ["--map", str(tmp_path / "two.geojson")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert not json.loads(r.output.strip().splitlines()[-1])["fix"]
+    r = CliRunner().invoke(main, [*args, "--patches"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert out["fix"] and out["fix_source"] == "patches" and out["error_km"] < 0.8
+    assert all(name.startswith("patch:") for name in out["landmarks"]) and len(out["landmarks"]) >= 5
+    assert (tmp_path / "window.nav.png").stat().st_size > 10_000
+    r = CliRunner().invoke(main, ["navigate", str(png), "--method", "template", "--patches"])
+    assert r.exit_code == 2 and "--patches needs the appearance search" in r.output

@@ -35,13 +35,21 @@ def write_detections(path: Path, image: Path, records: list[dict]) -> None:
 
 def draw_detections(ax, dets, identified, landmarks) -> None:
     """Every detection (``u``, ``v``, ``r`` px) as a red dashed circle; those of ``identified`` ((detection
-    index, landmark index) pairs) yellow, with the landmark's name (or id)."""
-    from matplotlib.patches import Circle
+    index, landmark index) pairs) yellow, with the landmark's name (or id); an identified terrain patch
+    (:mod:`.patches`) as a cyan square, its window."""
+    from matplotlib.patches import Circle, Rectangle
+
+    from crater_synth.navigation.patches import PATCH_SOURCE
+    from crater_synth.navigation.refine import RefineParams
 
     for d in dets:
         ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ff4040", lw=0.6, ls="--"))
     for di, li in identified:
         lm, d = landmarks[li], dets[di]
+        if lm.source == PATCH_SOURCE:
+            half = 2.0 * RefineParams().window_diameters * d.r  # r is half the patch's "diameter"
+            ax.add_patch(Rectangle((d.u - half, d.v - half), 2 * half, 2 * half, fill=False, ec="#30c0ff", lw=1.0))
+            continue
         ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ffd000", lw=1.2))
         ax.text(d.u, d.v, lm.name or lm.id, color="#ffd000", fontsize=7, ha="center", va="center")
 

@@ -71,12 +71,15 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     import matplotlib.pyplot as plt
 
     from crater_synth.navigation.nav_output import draw_detections, png_of
+    from crater_synth.navigation.patches import PATCH_SOURCE
 
     h, w = image.shape
     fig, ax = plt.subplots(figsize=(8, 8))
     ax.imshow(image, cmap="gray")
     draw_detections(ax, dets, fix.inliers if fix.ok else [], landmarks)
-    title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} landmarks, RMS {fix.rms_px:.1f} px"
+    patch_fix = fix.ok and landmarks[fix.inliers[0][1]].source == PATCH_SOURCE
+    what = "terrain patches (cyan)" if patch_fix else "landmarks"
+    title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} {what}, RMS {fix.rms_px:.1f} px"
     if fix.ok and truth is not None:
         tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
         ax.annotate("", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2})
@@ -143,8 +146,8 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 @click.option(
     "--patches",
     is_flag=True,
-    help="Rendered frames, appearance preset: a frame its craters do not fix is navigated with terrain patches "
-    "(docs/navigation.md, 'Terrain patches and sequential priors').",
+    help="Appearance search: a frame its craters do not fix is navigated with terrain patches (rendered frames: "
+    "docs/navigation.md section 9; map windows: section 6, 'Terrain patches on real windows').",
 )
 @user_errors
 def navigate_command(
@@ -171,8 +174,8 @@ def navigate_command(
     `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
     frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
     and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
-    `classical` or `learned`; `--patches` lets terrain patches fix a frame its craters do not. Prints one
-    JSON line.
+    `classical` or `learned`. With the appearance search, `--patches` lets terrain patches fix a frame or
+    window its craters do not. Prints one JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -208,8 +211,8 @@ def navigate_command(
         nav_png = out or image.with_name(image.stem + ".nav.png")
         click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches)))
         return
-    if patches:
-        raise UserError(f"{image}: --patches applies to rendered frames (frame_NNNN.exr) only")
+    if patches and method != "appearance":
+        raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.landmarks import load_default_map, read_map
     from crater_synth.navigation.polar import stereo_forward, stereo_inverse
@@ -278,6 +281,7 @@ def navigate_command(
         lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
         return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
 
+    source = "craters"
     if method == "appearance":
         assert light is not None
         if prior_g is None:  # no prior: the first stage's lost-in-space fix is the search's prior (as nav-eval)
@@ -289,8 +293,9 @@ def navigate_command(
         if prior_g is None:
             dets, theta, fix = [], light, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}")
         else:
-            dets = _appearance_detections(img, prior_g, landmarks, light, sun_elevation, dparams, fparams)
-            theta, fix = light, fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+            dets, theta, fix, landmarks, source = _appearance_window(
+                img, prior_g, landmarks, light, sun_elevation, dparams, fparams, patches
+            )
     else:
         dets, theta = detect(img, dparams, light_dir=light, what=str(image))
         fix = vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, fparams)
@@ -302,6 +307,8 @@ def navigate_command(
         "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "fix": fix.ok,
     }
+    if patches:
+        result["fix_source"] = source if fix.ok else None
     if fix.ok:
         lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole)
         result.update(
@@ -325,15 +332,25 @@ def navigate_command(
     click.echo(json.dumps(result))
 
 
-def _appearance_detections(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams):
-    """The appearance search (:mod:`.appearance_window`) on a map window: the light's image direction
-    ``light`` (radians) turned into its local azimuth at the prior's frame centre."""
-    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
+def _appearance_window(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams, patches):
+    """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of the appearance search
+    (:mod:`.appearance_window`) on a map window: the light's image direction ``light`` (radians) turned into
+    its local azimuth at the prior's frame centre; with ``patches``, a window its craters do not fix is
+    navigated with its terrain patches (:func:`.appearance_window.window_patch_fix`)."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_detections, window_patch_fix
     from crater_synth.navigation.polar import local_north_image_angle
 
     h, w = img.shape[:2]
     alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
     if sun_elevation is not None:
         dparams = dataclasses.replace(dparams, appearance_sun_el_deg=(float(sun_elevation),))
-    dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, lander_refiner(prior_g.pole))
-    return dets
+    refiner = lander_refiner(prior_g.pole)
+    dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, refiner)
+    fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+    if patches and not fix.ok:
+        from crater_synth.navigation.patches import PatchParams
+
+        found, patch_dets, patch_fix = window_patch_fix(img, prior_g, alpha, dparams, fparams, refiner, PatchParams())
+        if patch_fix.ok:
+            return patch_dets, light, patch_fix, found, "patches"
+    return dets, light, fix, landmarks, "craters"
