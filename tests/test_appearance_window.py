@@ -194,7 +194,7 @@ def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(so
 
     frame, landmarks = south
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
-    p = row["patches"]
+    p = row["patches_alone"]
     assert p["n_patches"] == 16 and p["fix"], p["reason"]
     assert p["error_km"] < 0.8 and p["identified"] >= 5 and p["identified_correct"] >= 0.9 * p["identified"]
     assert row["fix_source"] == "craters"  # the craters fix it first; the patches are scored alone beside them
@@ -202,7 +202,7 @@ def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(so
     assert s["fixed_by_patches"] == 0 and s["patches_alone"]["fix_rate"] == 1.0
     turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
     row = run_frame(turned, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
-    assert not row["patches"]["fix"] and not row["fix"] and row["fix_source"] is None
+    assert not row["patches_alone"]["fix"] and not row["fix"] and row["fix_source"] is None
 
 
 def test_a_window_its_craters_do_not_fix_takes_the_patches_fix(south, monkeypatch):
@@ -212,8 +212,8 @@ def test_a_window_its_craters_do_not_fix_takes_the_patches_fix(south, monkeypatc
 
     frame, landmarks = south
     row = run_frame(frame, [], PRESETS["appearance"], FixParams(), patches=PatchParams())
-    assert row["fix"] and row["fix_source"] == "patches" and row["error_km"] == row["patches"]["error_km"]
-    assert row["identified_correct"] == row["patches"]["identified_correct"]
+    assert row["fix"] and row["fix_source"] == "patches" and row["error_km"] == row["patches_alone"]["error_km"]
+    assert row["identified_correct"] == row["patches_alone"]["identified_correct"]
 
 
 def test_nav_eval_patches_needs_the_appearance_search(tmp_path):
@@ -229,8 +229,8 @@ def test_nav_eval_patches_needs_the_appearance_search(tmp_path):
 
 
 def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
-    """`navigate WINDOW.png --method appearance --patches`: with a map of two craters the craters cannot fix
-    the window; its terrain patches do (drawn as cyan squares), and the JSON says so."""
+    """`navigate WINDOW.png --method appearance`: with a map of two craters the craters cannot fix the window
+    (`--no-patches`); its terrain patches do (drawn as cyan squares), and the JSON says so."""
     import json
 
     from click.testing import CliRunner
@@ -251,10 +251,10 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
     theta = math.degrees(frame_light(frame, PRESETS["appearance"])["light_dir"])
     args = ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}"]
     args += ["--map", str(tmp_path / "two.geojson")]
-    r = CliRunner().invoke(main, args)
+    r = CliRunner().invoke(main, [*args, "--no-patches"])
     assert r.exit_code == 0, r.output
     assert not json.loads(r.output.strip().splitlines()[-1])["fix"]
-    r = CliRunner().invoke(main, [*args, "--patches"])
+    r = CliRunner().invoke(main, args)  # patches by default with the appearance search
     assert r.exit_code == 0, r.output
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["fix_source"] == "patches" and out["error_km"] < 0.8

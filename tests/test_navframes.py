@@ -394,7 +394,9 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
     res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--preset", "appearance", "--write-results"])
     assert res.exit_code == 0, res.output
-    rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]["descent_ridge/position/appearance"]
+    # Terrain patches are the appearance preset's default fallback, and the key says so.
+    rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
+    rec = rec["descent_ridge/position/appearance/patches"]
     assert rec["protocol"]["preset_settings"]["refine"] and rec["all"]["windows"] == 1
     # --sensor puts a camera (noise, PSF, 8 bits) on each frame first; recorded, and keyed apart.
     res = CliRunner().invoke(
@@ -404,7 +406,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "s.json").read_text())["summary"]["sensor"] == "nav_camera"
     assert (
-        "descent_ridge/position/appearance/sensor=nav_camera"
+        "descent_ridge/position/appearance/sensor=nav_camera/patches"
         in json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
     )
     res = CliRunner().invoke(

@@ -93,8 +93,8 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
 
 def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     """Two descent frames (67 and 55 km up: two map craters >= 10 km in view, no fix from craters) at 256 px:
-    --patches fixes both from terrain patches, every patch identification correct; --sequential carries
-    frame 7's fix into frame 8's prior."""
+    terrain patches (the appearance preset's default) fix both, every patch identification correct;
+    --sequential carries frame 7's fix into frame 8's prior."""
     from click.testing import CliRunner
 
     from crater_synth.cli import main
@@ -110,9 +110,12 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
         assert res.exit_code == 0, res.output
         return json.loads((tmp_path / "e.json").read_text())
 
-    plain = run()
-    assert [f["fix"] for f in plain["frames"]] == [False, False]
-    doc = run("--patches", "--sequential")
+    plain = run("--no-patches")
+    assert [f["fix"] for f in plain["frames"]] == [False, False] and plain["summary"]["patches"] is None
+    default = run()
+    assert default["summary"]["patches"] == {"grid": 4, "half_share": 0.1}
+    assert [f["fix_source"] for f in default["frames"]] == ["patches", "patches"]
+    doc = run("--sequential")
     assert doc["summary"]["patches"] == {"grid": 4, "half_share": 0.1} and doc["summary"]["sequence"]["drift_share"]
     for f in doc["frames"]:
         assert f["fix"] and f["fix_source"] == "patches" and f["error_km"] < 1.0, f
@@ -132,15 +135,15 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     from crater_synth.navigation import frames_record
 
     monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
-    run("--patches", "--sequential", "--write-results")
+    run("--sequential", "--write-results")
     rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
     (key,) = rec
     assert key == "descent_ridge/position/appearance/patches/sequential", key
     assert rec[key]["protocol"]["patches"]["grid"] == 4 and rec[key]["protocol"]["sequence"]["min_sigma_km"] == 1.0
     assert [f["fix_source"] for f in rec[key]["frames"]] == ["patches", "patches"]
-    # `navigate FRAME --patches`: the same fix for one frame, the patches drawn.
+    # `navigate FRAME`: the same fix for one frame (patches by default), the patches drawn.
     frame7 = out / "frame_0007.exr"
-    res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--out", str(tmp_path / "n.png")])
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--out", str(tmp_path / "n.png")])
     assert res.exit_code == 0, res.output
     nav = json.loads(res.output.strip().splitlines()[-1])
     assert (
@@ -149,6 +152,8 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
         and nav["error_km"] == pytest.approx(doc["frames"][0]["error_km"], abs=5e-4)
     )
     assert (tmp_path / "n.png").stat().st_size > 1000
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--no-patches", "--out", str(tmp_path / "m.png")])
+    assert res.exit_code == 0 and not json.loads(res.output.strip().splitlines()[-1])["fix"]
     res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--method", "classical"])
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     # A frame all in shadow: the patches find nothing, an answer of "no fix".
@@ -189,8 +194,8 @@ def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
 
     window = tmp_path / "window.png"
     window.write_bytes(b"")
-    res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])
-    assert res.exit_code != 0 and "--patches applies to rendered frames" in res.output
+    res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])  # the default method: template
+    assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
 
 
 def test_patches_at_the_dem_edge_are_those_on_the_dem():

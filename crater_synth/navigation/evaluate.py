@@ -226,7 +226,7 @@ def run_frame(
 
 def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams, patches) -> dict:
     """``row`` with the window's terrain-patch navigation (:func:`.appearance_window.window_patch_fix`, under
-    the same prior and light) in ``row["patches"]``, scored alone; a window its craters do not fix takes the
+    the same prior and light) in ``row["patches_alone"]``, scored alone; a window its craters do not fix takes the
     patches' fix (``fix_source`` says which fixed it), as a lander would use them. A patch identification
     is correct when its detection lies within ``fix.inlier_px`` of where the true georeference places the
     patch's point. The row's detection metrics stay the craters'."""
@@ -245,7 +245,7 @@ def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams
         info["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, frame.georef.pole))
         info["identified"] = len(fix.inliers)
         info["identified_correct"] = patch_truth_correct(dets, found, fix.inliers, frame.georef, fparams.inlier_px)
-    out = {**row, "patches": info, "fix_source": "craters" if row["fix"] else None}
+    out = {**row, "patches_alone": info, "fix_source": "craters" if row["fix"] else None}
     if not row["fix"] and fix.ok:
         keys = ("error_km", "identified", "identified_correct")
         out.update(fix=True, reason="", fix_source="patches", **{k: info[k] for k in keys})
@@ -304,7 +304,7 @@ def summarise(rows: list[dict]) -> dict:
     out["precision_15km"] = round(tp_d / n_d, 4) if n_d else None
     if all("catalogue_d_km" in r for r in rows):
         out["against_catalogue"] = _catalogue_scores(rows)
-    if all("patches" in r for r in rows):
+    if all("patches_alone" in r for r in rows):
         out["fixed_by_patches"] = sum(r["fix_source"] == "patches" for r in rows)
         out["patches_alone"] = _patches_alone(rows)
     return out
@@ -312,7 +312,7 @@ def summarise(rows: list[dict]) -> dict:
 
 def _patches_alone(rows: list[dict]) -> dict:
     """Fix metrics of the windows navigated with their terrain patches alone (:func:`with_window_patches`)."""
-    fixed = [r["patches"] for r in rows if r["patches"]["fix"]]
+    fixed = [r["patches_alone"] for r in rows if r["patches_alone"]["fix"]]
     err = np.array([p["error_km"] for p in fixed])
     ident = sum(p["identified"] for p in fixed)
     return {
@@ -323,7 +323,7 @@ def _patches_alone(rows: list[dict]) -> dict:
         "false_fix_rate": round(float((err > FALSE_FIX_KM).sum()) / len(rows), 4),
         "identification_accuracy": round(sum(p["identified_correct"] for p in fixed) / ident, 4) if ident else None,
         "identified_per_fix": round(ident / len(fixed), 2) if fixed else None,
-        "patches_per_window": round(float(np.mean([r["patches"]["n_patches"] for r in rows])), 2),
+        "patches_per_window": round(float(np.mean([r["patches_alone"]["n_patches"] for r in rows])), 2),
     }
 
 

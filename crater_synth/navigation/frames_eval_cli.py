@@ -75,9 +75,10 @@ from crater_synth.navigation.sequence import SequenceParams
     help="Sensor config (configs/sensor/, e.g. nav_camera) applied to each frame before navigating it.",
 )
 @click.option(
-    "--patches",
-    is_flag=True,
-    help="appearance preset: a frame its craters do not fix is navigated with terrain patches (4 x 4 grid).",
+    "--patches/--no-patches",
+    default=None,
+    help="appearance preset: a frame its craters do not fix is navigated with terrain patches (4 x 4 grid); "
+    "on by default for that preset, --no-patches: craters only.",
 )
 @click.option(
     "--sequential",
@@ -145,6 +146,7 @@ def nav_frames_eval_command(
     args = (pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance, camera, attitude_error_deg, prior_offset_km)
     if patches and pre.appearance is None:
         raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
+    patches = pre.appearance is not None if patches is None else patches  # the appearance preset's default
     pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
     try:
         eparams = DemErrorParams(dem_error_m, dem_error_km) if dem_error_m else None

@@ -144,10 +144,10 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     "count (docs/navigation.md, 'Lost in space with the heading known').",
 )
 @click.option(
-    "--patches",
-    is_flag=True,
-    help="Appearance search: a frame its craters do not fix is navigated with terrain patches (rendered frames: "
-    "docs/navigation.md section 9; map windows: section 6, 'Terrain patches on real windows').",
+    "--patches/--no-patches",
+    default=None,
+    help="Appearance search (on by default): a frame its craters do not fix is navigated with terrain patches "
+    "(rendered frames: docs/navigation.md section 9; map windows: section 6); --no-patches: craters only.",
 )
 @user_errors
 def navigate_command(
@@ -174,8 +174,8 @@ def navigate_command(
     `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
     frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
     and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
-    `classical` or `learned`. With the appearance search, `--patches` lets terrain patches fix a frame or
-    window its craters do not. Prints one JSON line.
+    `classical` or `learned`. The appearance search lets terrain patches fix a frame or window its craters
+    do not (`--no-patches`: craters only). Prints one JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -208,11 +208,13 @@ def navigate_command(
         name = frame_presets[method] if chosen else DEFAULT_FRAMES_PRESET
         if patches and name != "appearance":
             raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
+        patches = name == "appearance" if patches is None else patches
         nav_png = out or image.with_name(image.stem + ".nav.png")
         click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches)))
         return
     if patches and method != "appearance":
         raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
+    patches = method == "appearance" if patches is None else patches
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.landmarks import load_default_map, read_map
     from crater_synth.navigation.polar import stereo_forward, stereo_inverse
