@@ -104,8 +104,8 @@ navigate-frames-demo: setup ## Rendered-frame navigation: 6 frames of the polar 
 	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/frames --preset synthetic --json $(NAV_FRAMES_DEMO_DIR)/frames_eval_classical.json
 	$(CLI) navigate $(NAV_FRAMES_DEMO_DIR)/frames/frame_0002.exr --out $(NAV_FRAMES_DEMO_DIR)/frame_0002.png
 	$(CLI) nav-frames trajectory=descent_ridge render.samples=1 --frames 7,8,9,10,11 --out $(NAV_FRAMES_DEMO_DIR)/descent $(OVERRIDES)
-	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/descent --patches --sequential --json $(NAV_FRAMES_DEMO_DIR)/frames_eval_descent_patches.json
-	$(CLI) navigate $(NAV_FRAMES_DEMO_DIR)/descent/frame_0009.exr --patches --out $(NAV_FRAMES_DEMO_DIR)/descent_frame_0009.png
+	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/descent --sequential --json $(NAV_FRAMES_DEMO_DIR)/frames_eval_descent_patches.json
+	$(CLI) navigate $(NAV_FRAMES_DEMO_DIR)/descent/frame_0009.exr --out $(NAV_FRAMES_DEMO_DIR)/descent_frame_0009.png
 
 DETECTOR_FRAMES ?= data/detector_frames/south
 DETECTOR_MODEL ?= data_manifest/models/crater_detector_south.pt

@@ -180,7 +180,10 @@ def _compute_horizons(specs: list[tuple]) -> None:
 
     from blender_gen.fast import ensure_horizons
 
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the process group: end quietly, the host reports
+    # Ctrl-C reaches the process group, and the host terminates this process once the workers are done: end
+    # quietly (the handlers inherited from the host would raise its Interrupted here).
+    for stop in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(stop, signal.SIG_DFL)
     for spec in specs:
         try:
             ensure_horizons(*spec)
@@ -193,7 +196,7 @@ def _horizons_ahead(jobs, render):
     bpy and builds its scene (single-threaded, seconds), so a host-side process computes the patches'
     horizon maps meanwhile (the workers then read them from the cache, or wait on its lock). Returns the
     process, or None."""
-    if render.mode != "fast" or len(jobs) >= render.workers:
+    if render.mode != "fast" or not jobs or len(jobs) >= render.workers:  # no jobs: every frame was reused
         return None
     import multiprocessing
 
