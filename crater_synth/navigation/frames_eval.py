@@ -7,10 +7,9 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   (:data:`FRAMES_PRESETS`; "synthetic", the classical detector's settings chosen on rendered frames;
   "learned"; "real-window": the real windows' settings unchanged), or no detector: the default
   "appearance" preset searches for the map's landmarks by their predicted appearance (:mod:`.appearance`).
-  The light direction in the image is given (the lander knows its
-  attitude and the ephemeris; the detector's docstring allows it): the Sun's travel direction,
-  projected on the image plane. The "synthetic" preset searches only the radii the landmark map can
-  use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
+  The light direction in the image is given (the lander knows its attitude and the ephemeris): the Sun's
+  travel direction, projected on the image plane. The "synthetic" preset searches only the radii the map
+  can use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
 - **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
   projected rim ellipse; :mod:`.render_frames`), less those whose rim is mostly hidden behind nearer
   relief (:data:`.frame_labels.HIDDEN_RIM_MAX`): they are not counted as misses, nor a detection on
@@ -29,16 +28,19 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   detection and landmark; "no fix" when fewer than ``min_inliers`` distinct landmarks agree, when a
   disjoint rival set nearly as large agrees (the ambiguity test; known attitude) or when their RMS
   exceeds ``max_rms_px``. Presets with ``refine`` then register each fix landmark's predicted
-  appearance on the frame and solve again (:mod:`.refine`). A frame with fewer than ``min_inliers``
+  appearance on the frame and solve again (:mod:`.refine`; a 6-DOF fix with ``refine_pnp``, attitude
+  too). A frame with fewer than ``min_inliers``
   landmarks in view is flagged and summarised apart. The error is the 3-D distance between the fixed
   and the true camera centre (horizontal part too); a fix is false beyond ``FALSE_FIX_KM``.
-
-- **Options**: a frame its craters do not fix can be navigated with terrain patches
-  (:func:`with_patch_fallback`, :mod:`.patches`), and each frame's prior can be its trajectory's last fix
-  carried forward (:mod:`.sequence`).
+- **Options**: terrain patches where the craters give no fix (:func:`with_patch_fallback`), each frame's
+  prior from its trajectory's last fix (:mod:`.sequence`).
 
 Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames). The command
 is :mod:`.frames_eval_cli`.
+
+Length: one stage, a rendered frame's navigation scored against its labels: the frame's camera, the
+identification, both fixes with their refinement, the patch fallback and the loop over a directory share
+one frame geometry and one row format, so they are kept together.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ from crater_synth.navigation.evaluate import (
 )
 from crater_synth.navigation.fix import (
     FixParams,
+    pose_sigma_horizontal_m,
     position_sigma_horizontal_m,
     project_pinhole,
     ransac_pnp,
@@ -168,15 +171,16 @@ def evaluate_frame(
     prior_offset_km: float = PRIOR_OFFSET_KM,
     prior_enu: np.ndarray | None = None,
     candidates: list | None = None,
+    refine_pnp: bool = False,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
-    (:class:`.refine.Refiner`): a known-attitude fix is refined by appearance, and refused when its
-    landmarks do not register; ``appearance``: no detector, the landmarks are searched for by their
-    predicted appearance (:mod:`.appearance`, with the refiner's DEM); ``attitude_error_deg``: the
+    (:class:`.refine.Refiner`): a known-attitude fix (a 6-DOF one too with ``refine_pnp``) is refined by
+    appearance, and refused when its landmarks do not register; ``appearance``: no detector, the landmarks
+    are searched for by their predicted appearance (:mod:`.appearance`, the refiner's DEM); ``attitude_error_deg``: the
     pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
     error; the image and the truth are the frame's); ``prior_offset_km``: how far the prior is from the
     true camera (horizontally, seeded direction), or ``prior_enu`` the prior itself (frame ENU: a sequence's
@@ -287,18 +291,20 @@ def evaluate_frame(
             c_fix, corrected = ellipse_centre_fix(p3[keep], p2[keep], radii, c_fix, r_wc, k, fov, width)
             err = np.hypot(*(project_pinhole(p3[keep], r_fix, c_fix, k) - corrected).T)
         else:
-            err = err[keep]
+            err, corrected = err[keep], p2[keep]
         rms = float(np.sqrt(np.mean(err**2))) if ok else math.nan
         if ok and rms > fparams.max_rms_px:  # the real-window rule: a loose fit is no fix
             ok, reason = False, f"inlier RMS {rms:.1f} px > {fparams.max_rms_px:g} px"
-    if ok and refiner is not None and method == "position":
+    if ok and refiner is not None and (method == "position" or refine_pnp and method == "pnp"):
         d = c_fix - c_true
         out["unrefined"] = dict(fix=True, error_km=np.linalg.norm(d) / 1e3, error_horizontal_km=np.hypot(*d[:2]) / 1e3)
         good = sum(out["matched"].get(pairs_det[q]) == ids[pairs_lm[q]] for q in keep)
         out["unrefined"].update(identified=len(keep), identified_correct=int(good))
         lms, sun = [cand[pairs_lm[q]] for q in keep], row["pose"]["to_sun_mc"]
         args = (image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
-        c_fix, out["refinement"] = refiner.refine(*args, predicted=windows)
+        c_fix, out["refinement"] = refiner.refine(*args, predicted=windows, pose=method == "pnp")
+        if method == "pnp":  # the attitude is refined with the centre
+            r_fix = np.asarray(out["refinement"]["rotation"], dtype=np.float64)
         ok, reason = refiner.verified(out["refinement"])
     out.update(fix=bool(ok), reason=reason)
     if not ok and not out["enough_landmarks"]:
@@ -307,10 +313,12 @@ def evaluate_frame(
         out["position_enu_m"] = [float(v) for v in c_fix]  # the fix (frame ENU): a sequence's next prior
         lat, lon, height = geometry.mc_to_latlon(geometry.enu_to_mc(c_fix, lat0, lon0))
         out["fix_position"] = {"lat": float(lat), "lon": float(lon), "altitude_m": float(height)}  # sphere
-        if method == "position":  # its own uncertainty: how well its landmarks agree (fix.position_sigma_...)
-            final = (out.get("refinement") or {}).get("observed_px", corrected)
-            sigma = position_sigma_horizontal_m(p3[keep], final, k, r_wc, c_fix)
-            out["sigma_horizontal_km"] = sigma / 1000.0
+        # Its own uncertainty: how well its landmarks agree (fix.position_sigma_... / fix.pose_sigma_...).
+        final = (out.get("refinement") or {}).get("observed_px", corrected)
+        if method == "position":
+            out["sigma_horizontal_km"] = position_sigma_horizontal_m(p3[keep], final, k, r_wc, c_fix) / 1000.0
+        elif len(keep) > 3:
+            out["sigma_horizontal_km"] = pose_sigma_horizontal_m(p3[keep], final, k, r_fix, c_fix) / 1000.0
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
@@ -393,6 +401,7 @@ def evaluate_dir(
     patches: PatchParams | None = None,
     sequence: SequenceParams | None = None,
     dem_error: DemErrorParams | None = None,
+    refine_pnp: bool = False,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -408,7 +417,8 @@ def evaluate_dir(
     (:func:`with_patch_fallback`); ``sequence``: each frame's prior is the last fix of its trajectory carried
     forward (:mod:`.sequence`; frames in index order; the first, and any the drift leaves no tighter than
     ``fix.prior_sigma_km``, get the standard prior); ``dem_error``: the lander's DEM carries this height
-    error (:mod:`.dem_error`; the frames stay as rendered, the perfect-detection check is unaffected)."""
+    error (:mod:`.dem_error`; the frames stay as rendered, the perfect-detection check is unaffected);
+    ``refine_pnp``: :func:`evaluate_frame`'s."""
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
 
@@ -444,6 +454,7 @@ def evaluate_dir(
             appearance=appearance,
             attitude_error_deg=attitude_error_deg,
             prior_offset_km=prior_offset_km,
+            refine_pnp=refine_pnp,
             **kw,
         )
         t0 = time.perf_counter()

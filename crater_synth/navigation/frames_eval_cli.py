@@ -81,6 +81,12 @@ from crater_synth.navigation.sequence import SequenceParams
     "on by default for that preset, --no-patches: craters only.",
 )
 @click.option(
+    "--refine-pose/--no-refine-pose",
+    default=None,
+    help="--method pnp with a preset that refines: the 6-DOF fix refined by appearance, attitude and position "
+    "(the default there; --no-refine-pose: as RANSAC gives it).",
+)
+@click.option(
     "--sequential",
     is_flag=True,
     help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 % drift.",
@@ -119,6 +125,7 @@ def nav_frames_eval_command(
     prior_offset_km,
     sensor,
     patches,
+    refine_pose,
     sequential,
     dem_error_m,
     dem_error_km,
@@ -147,6 +154,10 @@ def nav_frames_eval_command(
     if patches and pre.appearance is None:
         raise UserError(f"--patches needs the appearance search (--preset appearance), not --preset {preset}")
     patches = pre.appearance is not None if patches is None else patches  # the appearance preset's default
+    refines_pnp = method == "pnp" and bool(pre.refine or pre.appearance)
+    if refine_pose and not refines_pnp:
+        raise UserError(f"--refine-pose refines a 6-DOF fix (--method pnp) of a preset that refines, not {preset}")
+    refine_pose = refines_pnp if refine_pose is None else refine_pose
     pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
     try:
         eparams = DemErrorParams(dem_error_m, dem_error_km) if dem_error_m else None
@@ -167,8 +178,10 @@ def nav_frames_eval_command(
         sequence=sparams,
         dem_error=eparams,
         terrain_workers=terrain_workers,
+        refine_pnp=refine_pose,
     )
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
+    summary.update(refine_pose=refine_pose)
     summary.update(
         patches=dataclasses.asdict(pparams) if pparams else None,
         sequence=dataclasses.asdict(sparams) if sparams else None,

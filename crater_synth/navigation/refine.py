@@ -386,7 +386,9 @@ class Refiner:
         """:func:`predict_window` with this refiner's DEM, Hapke model and settings (:meth:`terrain`)."""
         return shade_window(self.terrain(landmark, to_sun_mc), to_sun_mc, camera_mc, self.hapke)
 
-    def refine(self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc, predicted=None):
+    def refine(
+        self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc, predicted=None, pose=False
+    ):
         """Camera centre (frame ENU) after registering each identified landmark's predicted window.
 
         ``landmarks``: the fix's landmarks; ``observed_uv`` (n, 2): their observations as the plain fix
@@ -396,8 +398,10 @@ class Refiner:
         or why it was not tried; "observed_px": the observations the centre was solved from}). The
         windows are predicted once, from the plain fix (a pixel or two of camera motion changes the view
         angle by microradians), and registered again after each solve; ``predicted`` (landmark id -> (MC
-        points, I/F)) are predictions already made for this frame (:mod:`.appearance`), used as they are."""
-        from crater_synth.navigation.fix import project_pinhole, solve_position
+        points, I/F)) are predictions already made for this frame (:mod:`.appearance`), used as they are.
+        ``pose``: the 6-DOF fix's refinement: each solve is of the attitude too (:func:`.fix.refine_pose`, from
+        at least three registered landmarks), and the record adds the final world->camera ``rotation``."""
+        from crater_synth.navigation.fix import project_pinhole, refine_pose, solve_position
         from crater_synth.terrain.dem import DemError
 
         t0 = time.perf_counter()
@@ -437,15 +441,21 @@ class Refiner:
                         "shift_px": None if shift is None else np.round(shift, 3).tolist(),
                     }
                 )
-            if sum(r["used"] for r in records) < 2:  # one landmark alone cannot move a position
+            if sum(r["used"] for r in records) < (3 if pose else 2):  # one landmark alone cannot move a position
                 break
-            c = solve_position(points_enu, moved, k, r_wc)
+            if pose:
+                r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
+            else:
+                c = solve_position(points_enu, moved, k, r_wc)
             solved_from = moved
-        return c, {
+        record = {
             "seconds": round(time.perf_counter() - t0, 3),
             "landmarks": records,
             "observed_px": np.round(solved_from, 4).tolist(),  # the last solve's observations: its residuals
         }
+        if pose:
+            record["rotation"] = np.asarray(r_wc, dtype=np.float64).tolist()
+        return c, record
 
     def verified(self, refinement: dict) -> tuple[bool, str]:
         """(fix stands, reason if not) after :meth:`refine`: a fix whose landmarks do not appear where it
