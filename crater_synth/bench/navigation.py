@@ -71,7 +71,9 @@ def bench_navigation(repeats: int = 3) -> dict:
 def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams, repeats: int) -> dict:
     """The appearance search's part of :func:`bench_navigation`: the search (prediction and NCC of every
     landmark the prior places in the frame; its light from the local model of the frame's quadrant, pooled
-    once before timing) in place of detection, then the same identification and fix. Timed twice: "cold",
+    once before timing) in place of detection, then the same identification and fix; and the same window
+    navigated with its terrain patches alone (``patches``, with ``fallback_worst_s``: a window its craters
+    do not fix pays the crater search and then its patches). Timed twice: "cold",
     every landmark's window read from the DEM and its horizon computed in the frame, and "warm", those
     windows kept from an earlier frame (:meth:`.refine.Refiner.terrain`), as on a descent whose
     landmarks were prepared for its Sun before it began. Cold once more with the new windows computed in two
@@ -111,4 +113,33 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
         }
         found[mode] = [(d.u, d.v, d.r, d.score) for d in dets]
     out["cold_2_workers"]["same_detections_as_cold"] = found["cold_2_workers"] == found["cold"]
+    # A window its craters do not fix: the failed crater search, then its patches (the default fallback).
+    for name, search, workers in (("patches", "cold", 1), ("patches_2_workers", "cold_2_workers", 2)):
+        out[name] = _bench_window_patches(frame, prior, alpha, dparams, fparams, repeats, workers)
+        out[name]["fallback_worst_s"] = round(out[search]["search_s"] + out[name]["seconds_per_frame"], 3)
     return out
+
+
+def _bench_window_patches(frame: Frame, prior: Georef, alpha: float, dparams, fparams, repeats: int, workers: int):
+    """The window navigated with its terrain patches alone (:func:`.appearance_window.window_patch_fix`: 16
+    new windows, none kept from an earlier frame, as every frame's patches lie elsewhere), their windows
+    computed in ``workers`` processes."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_patch_fix
+    from crater_synth.navigation.patches import PatchParams
+
+    refiner = lander_refiner(frame.georef.pole, workers=workers)
+    times = []
+    for k in range(repeats + 1):
+        refiner.clear_terrains()
+        t0 = time.perf_counter()
+        patches, dets, fix = window_patch_fix(frame.image, prior, alpha, dparams, fparams, refiner, PatchParams())
+        if k:
+            times.append(time.perf_counter() - t0)
+    seconds = float(np.median(times))
+    return {
+        "seconds_per_frame": round(seconds, 3),
+        "frames_per_s": round(1.0 / seconds, 3),
+        "patches": len(patches),
+        "detections": len(dets),
+        "fix": bool(fix.ok),
+    }
