@@ -94,7 +94,7 @@ ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/of
 	$(CLI) ablate $(OVERRIDES)
 
 NAV_DEMO_DIR ?= outputs/navigate-demo
-navigate-demo: setup ## Crater navigation on a few real mosaic windows: three detectors and the appearance search, annotated PNGs, the table, navigation.json (NAV_DEMO_DIR; the report reads RUN_DIR/navigation)
+navigate-demo: setup ## Crater navigation on a few real mosaic windows: three detectors, the appearance search and its terrain patches, annotated PNGs, the table, navigation.json (NAV_DEMO_DIR; the report reads RUN_DIR/navigation)
 	$(BIN)/python -m crater_synth.navigation.demo --out $(NAV_DEMO_DIR)
 
 NAV_FRAMES_DEMO_DIR ?= outputs/navigate-frames-demo

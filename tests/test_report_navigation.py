@@ -59,6 +59,9 @@ def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_pat
         assert f'<img src="nav_{w["png"]}"' in sec
     assert "155 detections" in sec and "error <b>1.30 km</b>" in sec and "6 correct" in sec
     assert "<b>no fix</b>: only 4 landmarks agree (need 5)" in sec
+    # Terrain patches alone: captioned as patches (cyan squares), not as map landmarks.
+    assert "<b>terrain patches</b> (no crater): 12 of 16 patches found" in sec and "fix from 11 patches" in sec
+    assert "<tr><td>patches</td><td>validation</td>" in sec
     assert "25 map landmarks (D ≥ 10.0 km) in view" in sec
     # The map against the complete catalogue, as written.
     assert "a crater catalogue (test)" in sec and "diameter within 25 %" in sec

@@ -1,7 +1,8 @@
 """``make navigate-demo``: a small end-to-end navigation run on the embedded data.
 
 A few real south-mosaic windows of each split (fixed, spread over the sectors), the three detection methods
-and the appearance search with their frozen settings, the committed landmark map: per window and method an annotated PNG
+and the appearance search with their frozen settings, and the appearance search's terrain patches alone
+(``patches``: no crater), the committed landmark map: per window and method an annotated PNG
 (detections, identified landmarks, error arrow) and one table of the metrics over these windows, written
 to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
 (:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). Nothing heavy is
@@ -58,6 +59,43 @@ def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
     return out
 
 
+def _splits_summary(splits: dict, summarise, headline_min: int) -> dict:
+    """A method's metrics per split: the headline windows and all windows."""
+    return {
+        "splits": {
+            s: {
+                "headline": summarise([r for r in rows if r["n_headline_landmarks"] >= headline_min]),
+                "all_windows": summarise(rows),
+            }
+            for s, rows in splits.items()
+        }
+    }
+
+
+def patch_window(frame, landmarks, dparams, fparams):
+    """A window navigated with its terrain patches alone (:func:`.evaluate.with_window_patches`): (its row,
+    with the patches' fix in place of the craters' and no crater detection to score, the patch detections,
+    the patches, the fix, the prior) for the table and the annotated PNG."""
+    from crater_synth.navigation.appearance_window import lander_refiner, window_patch_fix
+    from crater_synth.navigation.evaluate import prior_georef, run_frame
+    from crater_synth.navigation.frames import check_frame
+    from crater_synth.navigation.light import frame_local_light
+    from crater_synth.navigation.patches import PatchParams
+
+    row = run_frame(frame, landmarks, dparams, fparams, patches=PatchParams())
+    p = row.pop("patches_alone")
+    keys = ("error_km", "identified", "identified_correct")
+    row = {k: v for k, v in row.items() if k not in (*keys, "fix_source", "catalogue_d_km")}
+    row.update(truth=[], truth_d_km=[], det_r_km=[], matched={}, matched_any=[], n_detections=p["n_detections"])
+    row.update(fix=p["fix"], reason=p["reason"], **{k: p[k] for k in keys if k in p})
+    # The same patches and detections again for the drawing (their windows are kept by the refiner: NCC only).
+    prior = prior_georef(frame, 0)
+    image, alpha = check_frame(frame.image, f"frame {frame.id}"), frame_local_light(frame, dparams)
+    refiner = lander_refiner(frame.georef.pole)
+    patches, dets, fix = window_patch_fix(image, prior, alpha, dparams, fparams, refiner, PatchParams())
+    return row, dets, patches, fix, prior
+
+
 @click.command("navigate-demo")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("outputs/navigate-demo"))
 @click.option("--per-sector", type=int, default=DEMO_WINDOWS_PER_SECTOR, show_default=True)
@@ -98,15 +136,18 @@ def main(out: Path, per_sector: int):
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
             click.echo(f"{method:9s} {f.split:10s} {f.id}: {row['n_detections']} detections, {err} -> {png}")
             windows_out.append(window_entry(method, row, png.name))
-        methods[method] = {
-            "splits": {
-                s: {
-                    "headline": summarise([r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]),
-                    "all_windows": summarise(rows),
-                }
-                for s, rows in splits.items()
-            }
-        }
+        methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
+    # The appearance search's terrain patches alone (no crater): the same windows, prior and light.
+    splits = {}
+    for f in frames:
+        row, dets, patches, fix, prior = patch_window(f, landmarks, *_params_with((), "appearance"))
+        splits.setdefault(f.split, []).append(row)
+        png = out / f"{f.id}_patches.png"
+        atomic_write_bytes(png, annotate(f.image, dets, patches, fix, prior, f.georef))
+        err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
+        click.echo(f"{'patches':9s} {f.split:10s} {f.id}: {row['n_detections']} patches found, {err} -> {png}")
+        windows_out.append({**window_entry("patches", row, png.name), "landmarks_in_view": len(patches)})
+    methods["patches"] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
     # The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart).
     from crater_synth.navigation.landmark_check import catalogue_check
     from crater_synth.navigation.landmarks import DATA_DIR, DEM_PRODUCTS

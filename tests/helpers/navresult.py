@@ -62,6 +62,10 @@ def make_demo(nav: Path) -> dict:
         "reason": "only 4 landmarks agree (need 5)",
     }
     windows = [window_entry("classical", r, f"{r['id']}_classical.png") for r in (fixed, lost)]
+    # The appearance search's terrain patches alone on the first window (no crater to match).
+    patched = {**fixed, "n_detections": 12, "truth": [], "matched": {}, "error_km": 0.18, "identified": 11}
+    patched["identified_correct"] = 11
+    windows.append({**window_entry("patches", patched, f"{fixed['id']}_patches.png"), "landmarks_in_view": 16})
     for w in windows:
         _png(nav / w["png"])
     doc = {
@@ -83,7 +87,15 @@ def make_demo(nav: Path) -> dict:
                         "all_windows": _summary(1, 1.0, 1.3026, 1.3026, 0.8571, 0.5217, 0.1944),
                     },
                 }
-            }
+            },
+            "patches": {
+                "splits": {
+                    "validation": {
+                        "headline": _summary(1, 1.0, 0.18, 0.18, 1.0, None, None),
+                        "all_windows": _summary(1, 1.0, 0.18, 0.18, 1.0, None, None),
+                    },
+                }
+            },
         },
         "map_check": {
             "source": "a crater catalogue (test)",
