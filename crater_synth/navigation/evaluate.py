@@ -257,16 +257,7 @@ def summarise(rows: list[dict]) -> dict:
     out: dict = {"windows": len(rows)}
     if not rows:
         return out
-    fixed = [r for r in rows if r["fix"]]
-    err = np.array([r["error_km"] for r in fixed])
-    out["fix_rate"] = round(len(fixed) / len(rows), 4)
-    out["median_error_km"] = round(float(np.median(err)), 3) if err.size else None
-    out["p90_error_km"] = round(float(np.percentile(err, 90)), 3) if err.size else None
-    out["false_fix_rate"] = round(float((err > FALSE_FIX_KM).sum()) / len(rows), 4)
-    out["false_fixes"] = int((err > FALSE_FIX_KM).sum())
-    ident = sum(r["identified"] for r in fixed)
-    out["identification_accuracy"] = round(sum(r["identified_correct"] for r in fixed) / ident, 4) if ident else None
-    out["identified_per_fix"] = round(ident / len(fixed), 2) if fixed else None
+    out.update(_fix_metrics(rows))
     bins = {}
     edges = SIZE_BINS_KM
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -310,21 +301,28 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
-def _patches_alone(rows: list[dict]) -> dict:
-    """Fix metrics of the windows navigated with their terrain patches alone (:func:`with_window_patches`)."""
-    fixed = [r["patches_alone"] for r in rows if r["patches_alone"]["fix"]]
-    err = np.array([p["error_km"] for p in fixed])
-    ident = sum(p["identified"] for p in fixed)
+def _fix_metrics(rows: list[dict]) -> dict:
+    """Fix rate, error median and 90th percentile, false fixes and identification of rows (>= 1) with ``fix``,
+    ``error_km``, ``identified`` and ``identified_correct``."""
+    fixed = [r for r in rows if r["fix"]]
+    err = np.array([r["error_km"] for r in fixed])
+    ident = sum(r["identified"] for r in fixed)
     return {
         "fix_rate": round(len(fixed) / len(rows), 4),
         "median_error_km": round(float(np.median(err)), 3) if err.size else None,
         "p90_error_km": round(float(np.percentile(err, 90)), 3) if err.size else None,
-        "false_fixes": int((err > FALSE_FIX_KM).sum()),
         "false_fix_rate": round(float((err > FALSE_FIX_KM).sum()) / len(rows), 4),
-        "identification_accuracy": round(sum(p["identified_correct"] for p in fixed) / ident, 4) if ident else None,
+        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+        "identification_accuracy": round(sum(r["identified_correct"] for r in fixed) / ident, 4) if ident else None,
         "identified_per_fix": round(ident / len(fixed), 2) if fixed else None,
-        "patches_per_window": round(float(np.mean([r["patches_alone"]["n_patches"] for r in rows])), 2),
     }
+
+
+def _patches_alone(rows: list[dict]) -> dict:
+    """Fix metrics of the windows navigated with their terrain patches alone (:func:`with_window_patches`)."""
+    out = _fix_metrics([r["patches_alone"] for r in rows])
+    out["patches_per_window"] = round(float(np.mean([r["patches_alone"]["n_patches"] for r in rows])), 2)
+    return out
 
 
 def _catalogue_scores(rows: list[dict]) -> dict:
@@ -514,6 +512,7 @@ PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" 
 
 
 SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
+PATCHES_METHOD = "appearance+patches"  # nav-eval --method appearance --patches: its results' method key
 
 
 def merge_results(path: Path, pole: str, results: dict) -> dict:
@@ -606,7 +605,7 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     "--patches",
     is_flag=True,
     help="Appearance method: navigate each window with its terrain patches too (scored alone, and used where "
-    "the craters give no fix; docs/navigation.md, section 6). Results go to --out only.",
+    f"the craters give no fix; docs/navigation.md, section 6); recorded as the method {PATCHES_METHOD!r}.",
 )
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
 @click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
@@ -691,7 +690,7 @@ def nav_eval_command(
             "landmarks": len(landmarks),
         },
         "targets": TARGETS,
-        "primary_method": PRIMARY_METHOD if PRIMARY_METHOD in methods else methods[0],
+        "primary_method": PRIMARY_METHOD if PRIMARY_METHOD in methods else PATCHES_METHOD if patches else methods[0],
         "methods": {},
     }
     t0 = time.time()
@@ -726,13 +725,16 @@ def nav_eval_command(
                 patches=patch_params,
             )
             entry["splits"][split] = summary
+        if patch_params is not None:  # its own entry: the appearance search's record stays craters only
+            entry["detector"]["method"] += "; terrain patches scored alone and used where the craters give no fix"
+            m = PATCHES_METHOD
         results["methods"][m] = entry
     # The primary method also at the top level (the structure of earlier results files).
     primary = results["methods"][results["primary_method"]]
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
     full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not sets and not map_path and not lost_in_space
-    full = full and prior_offset_km == PRIOR_OFFSET_KM and not patches
+    full = full and prior_offset_km == PRIOR_OFFSET_KM
     if out:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)
@@ -743,5 +745,5 @@ def nav_eval_command(
         # A method run on its own (the learned detector, added after the others' test runs) joins the
         # pole's existing entry without running the others' test windows again.
         atomic_write_text(RESULTS_JSON, json.dumps(add_methods(RESULTS_JSON, pole, results), indent=1) + "\n")
-        click.echo(f"wrote {RESULTS_JSON} ({pole}: {', '.join(methods)})", err=True)
+        click.echo(f"wrote {RESULTS_JSON} ({pole}: {', '.join(results['methods'])})", err=True)
     click.echo(results_markdown(results))

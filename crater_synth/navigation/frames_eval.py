@@ -29,9 +29,9 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
   disjoint rival set nearly as large agrees (the ambiguity test; known attitude) or when their RMS
   exceeds ``max_rms_px``. Presets with ``refine`` then register each fix landmark's predicted
   appearance on the frame and solve again (:mod:`.refine`; a 6-DOF fix with ``refine_pnp``, attitude
-  too). A frame with fewer than ``min_inliers``
-  landmarks in view is flagged and summarised apart. The error is the 3-D distance between the fixed
-  and the true camera centre (horizontal part too); a fix is false beyond ``FALSE_FIX_KM``.
+  too). A frame with fewer than ``min_inliers`` landmarks in view is flagged and summarised apart. The
+  error is the 3-D distance between the fixed and the true camera centre (horizontal part too); a fix is
+  false beyond ``FALSE_FIX_KM``.
 - **Options**: terrain patches where the craters give no fix (:func:`with_patch_fallback`), each frame's
   prior from its trajectory's last fix (:mod:`.sequence`).
 
@@ -180,14 +180,14 @@ def evaluate_frame(
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
     (:class:`.refine.Refiner`): a known-attitude fix (a 6-DOF one too with ``refine_pnp``) is refined by
     appearance, and refused when its landmarks do not register; ``appearance``: no detector, the landmarks
-    are searched for by their predicted appearance (:mod:`.appearance`, the refiner's DEM); ``attitude_error_deg``: the
-    pipeline works with the attitude turned by this angle about a seeded axis (the lander's attitude
-    error; the image and the truth are the frame's); ``prior_offset_km``: how far the prior is from the
-    true camera (horizontally, seeded direction), or ``prior_enu`` the prior itself (frame ENU: a sequence's
-    propagated fix, :mod:`.sequence`); ``candidates``: the landmarks searched for instead of the usable map
-    landmarks (terrain patches, :mod:`.patches`; ``landmarks`` still names the labels). A frame with fewer
-    than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged (``enough_landmarks``
-    False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`: no detector could fix it)."""
+    are searched for by their predicted appearance (:mod:`.appearance`, the refiner's DEM);
+    ``attitude_error_deg``: the pipeline works with the attitude turned by this angle about a seeded axis
+    (the lander's attitude error; the image and the truth are the frame's); ``prior_offset_km``: how far the
+    prior is from the true camera (horizontally, seeded direction), or ``prior_enu`` the prior itself (frame
+    ENU: a sequence's propagated fix, :mod:`.sequence`); ``candidates``: the landmarks searched for instead
+    of the usable map landmarks (terrain patches, :mod:`.patches`; ``landmarks`` still names the labels). A
+    frame with fewer than ``min_inliers`` labelled landmarks >= ``min_landmark_km`` in sight is flagged
+    (``enough_landmarks`` False; a "no fix" there gets the reason :data:`NOT_ENOUGH_LANDMARKS`)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = believed_rotation(row, seed, attitude_error_deg)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
