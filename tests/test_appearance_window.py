@@ -262,3 +262,26 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
     assert (tmp_path / "window.nav.png").stat().st_size > 10_000
     r = CliRunner().invoke(main, ["navigate", str(png), "--method", "template", "--patches"])
     assert r.exit_code == 2 and "--patches needs the appearance search" in r.output
+
+
+def test_window_patches_off_the_dem_are_left_out(south):
+    """A window reaching past the DEM keeps the patches on it; one wholly off it has none, and its patch
+    navigation is an answer of "no fix", not an error."""
+    from crater_synth.navigation.appearance_window import window_patch_fix
+    from crater_synth.navigation.frames import Georef
+    from crater_synth.navigation.patches import PatchParams, window_patches
+    from crater_synth.navigation.refine import Refiner, lander_dem
+
+    frame, _ = south
+    dem = lander_dem("south")
+    shape, pixel = frame.image.shape, frame.georef.pixel_m
+    half_extent = 0.5 * dem.width * dem.pixel_size_m  # the polar stereographic DEM is a square about the pole
+    # The window's left half on the DEM, its right half past the edge: the patches of the left half only.
+    across = Georef("south", half_extent - 0.5 * shape[1] * pixel, 0.5 * shape[0] * pixel, pixel)
+    assert 4 <= len(window_patches(dem, across, shape, PatchParams())) < 16
+    far = Georef("south", 5.0e6, 5.0e6, pixel)  # thousands of km from the pole
+    assert window_patches(dem, far, shape, PatchParams()) == []
+    found, dets, fix = window_patch_fix(
+        frame.image, far, 0.0, PRESETS["appearance"], FixParams(), Refiner(dem), PatchParams()
+    )
+    assert found == [] and dets == [] and not fix.ok and fix.reason == "no patch on the DEM"
