@@ -154,6 +154,12 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     assert (tmp_path / "n.png").stat().st_size > 1000
     res = CliRunner().invoke(main, ["navigate", str(frame7), "--no-patches", "--out", str(tmp_path / "m.png")])
     assert res.exit_code == 0 and not json.loads(res.output.strip().splitlines()[-1])["fix"]
+    # --six-dof: the attitude fixed too (from the patches here), and how far it is from the truth.
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--six-dof", "--out", str(tmp_path / "s.png")])
+    assert res.exit_code == 0, res.output
+    six = json.loads(res.output.strip().splitlines()[-1])
+    assert six["fix_method"].startswith("6-DOF")
+    assert six["fix"] and six["error_km"] < 2.0 and 0.0 < six["attitude_error_deg"] < 2.0, six
     res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--method", "classical"])
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     # A frame all in shadow: the patches find nothing, an answer of "no fix".
@@ -200,6 +206,8 @@ def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
     window.write_bytes(b"")
     res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])  # the default method: template
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
+    res = CliRunner().invoke(main, ["navigate", str(window), "--six-dof"])
+    assert res.exit_code != 0 and "--six-dof applies to rendered frames" in res.output
 
 
 def test_patches_at_the_dem_edge_are_those_on_the_dem():

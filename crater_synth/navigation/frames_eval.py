@@ -67,6 +67,7 @@ from crater_synth.navigation.evaluate import (
 )
 from crater_synth.navigation.fix import (
     FixParams,
+    attitude_difference_deg,
     pose_sigma_horizontal_m,
     position_sigma_horizontal_m,
     project_pinhole,
@@ -317,8 +318,11 @@ def evaluate_frame(
         final = (out.get("refinement") or {}).get("observed_px", corrected)
         if method == "position":
             out["sigma_horizontal_km"] = position_sigma_horizontal_m(p3[keep], final, k, r_wc, c_fix) / 1000.0
-        elif len(keep) > 3:
+        else:  # the 6-DOF fix's attitude (world -> camera, frame ENU) and how far it is from the truth
             out["sigma_horizontal_km"] = pose_sigma_horizontal_m(p3[keep], final, k, r_fix, c_fix) / 1000.0
+            out["rotation_fix"] = np.asarray(r_fix).tolist()
+            r_true = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, fov)[0]
+            out["attitude_error_deg"] = attitude_difference_deg(r_fix, r_true)
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
@@ -330,7 +334,8 @@ def evaluate_frame(
 
 # What a frame's row takes from its terrain patches' fix (the rest, detection metrics included, is the craters').
 PATCH_FIX_KEYS = ("fix", "reason", "error_km", "error_horizontal_km", "position_enu_m", "fix_position",
-                  "sigma_horizontal_km", "rms_px", "refinement", "unrefined")  # fmt: skip
+                  "sigma_horizontal_km", "rms_px", "refinement", "unrefined", "rotation_fix",
+                  "attitude_error_deg")  # fmt: skip
 
 
 def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: PatchParams, prior_enu=None, **kw):

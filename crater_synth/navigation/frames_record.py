@@ -28,8 +28,9 @@ FRAME_FIELDS = (
     "fix_source",  # "craters" or "patches" (--patches), None without a fix
     "patches",  # what the terrain patches gave, when they were searched
     "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
-    "sigma_horizontal_km",  # the known-attitude fix's own 1-sigma horizontal uncertainty
+    "sigma_horizontal_km",  # the fix's own 1-sigma horizontal uncertainty
     "fix_position",  # the fixed camera centre: planetocentric lat, lon (deg), altitude above the sphere (m)
+    "attitude_error_deg",  # --method pnp: the angle between the fixed and the true camera attitude
 )
 
 

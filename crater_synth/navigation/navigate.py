@@ -149,6 +149,12 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     help="Appearance search (on by default): a frame its craters do not fix is navigated with terrain patches "
     "(rendered frames: docs/navigation.md section 9; map windows: section 6); --no-patches: craters only.",
 )
+@click.option(
+    "--six-dof",
+    is_flag=True,
+    help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval --method pnp; refined by "
+    "appearance with the appearance search; docs/navigation.md, section 9).",
+)
 @user_errors
 def navigate_command(
     image,
@@ -164,6 +170,7 @@ def navigate_command(
     lost_in_space,
     known_heading,
     patches,
+    six_dof,
 ):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
@@ -174,8 +181,8 @@ def navigate_command(
     `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
     frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
     and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
-    `classical` or `learned`. The appearance search lets terrain patches fix a frame or window its craters
-    do not (`--no-patches`: craters only). Prints one JSON line.
+    `classical` or `learned`; `--six-dof` fixes its attitude too. The appearance search lets terrain patches
+    fix a frame or window its craters do not (`--no-patches`: craters only). Prints one JSON line.
     """
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
         given = {
@@ -210,8 +217,10 @@ def navigate_command(
             raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
         patches = name == "appearance" if patches is None else patches
         nav_png = out or image.with_name(image.stem + ".nav.png")
-        click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches)))
+        click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches, six_dof=six_dof)))
         return
+    if six_dof:
+        raise UserError(f"{image}: --six-dof applies to rendered frames (a map window's fix is a 2-D similarity)")
     if patches and method != "appearance":
         raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
     patches = method == "appearance" if patches is None else patches

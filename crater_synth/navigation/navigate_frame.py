@@ -45,11 +45,14 @@ def frame_row_of(image: Path) -> dict:
     return row
 
 
-def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: bool = False) -> dict:
+def navigate_frame(
+    image: Path, preset: str, out: Path, seed: int = 0, patches: bool = False, six_dof: bool = False
+) -> dict:
     """Detect, identify and fix one rendered frame with the ``nav-frames-eval`` preset ``preset``; writes
     the annotated PNG ``out`` and returns the result (one JSON object). ``patches``: a frame its craters do
     not fix is navigated with terrain patches (:func:`.frames_eval.with_patch_fallback`; the appearance
-    preset only)."""
+    preset only); ``six_dof``: the 6-DOF fix (attitude too, ``nav-frames-eval --method pnp``), refined by
+    appearance where the preset refines."""
     from crater_synth.navigation.frames_eval import evaluate_frame, with_patch_fallback
     from crater_synth.navigation.frames_presets import frames_params
     from crater_synth.navigation.landmarks import load_default_map
@@ -67,7 +70,7 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: 
     dparams, fparams, pre = frames_params(preset)
     refiner = Refiner(lander_dem(pole)) if pre.refine or pre.appearance else None
     kw = dict(seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px, refiner=refiner)
-    kw["appearance"] = pre.appearance
+    kw.update(appearance=pre.appearance, method="pnp" if six_dof else "position", refine_pnp=six_dof)
     r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
     if patches:
         if pre.appearance is None:
@@ -79,6 +82,7 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: 
         "preset": preset,
         "detector": pre.detector,
         "position_prior": "true camera + 5 km, true attitude",
+        "fix_method": "6-DOF (attitude and position)" if six_dof else "known attitude",
         "altitude_km": round(r["altitude_km"], 3),
         "ground_sample_m": round(r["ground_sample_m"], 1),
         "landmarks_in_view": r["landmarks_in_view"],
@@ -97,6 +101,8 @@ def navigate_frame(image: Path, preset: str, out: Path, seed: int = 0, patches: 
         result["fix_position"] = {k: round(v, 6 if k != "altitude_m" else 1) for k, v in r["fix_position"].items()}
         if r.get("sigma_horizontal_km") is not None:  # the fix's own 1-sigma (fix.position_sigma_horizontal_m)
             result["sigma_horizontal_km"] = round(r["sigma_horizontal_km"], 4)
+        if six_dof:  # the attitude it found, against the truth
+            result["attitude_error_deg"] = round(r["attitude_error_deg"], 4)
         if "unrefined" in r:  # the fix before the appearance refinement
             result["error_unrefined_km"] = round(r["unrefined"]["error_km"], 3)
     else:
@@ -175,10 +181,11 @@ def _error_arrow(ax, r: dict, row: dict) -> str:
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     width = int(row["pose"]["width_px"])
     r_wc, k = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, float(row["pose"]["fov_deg"]))
+    r_fix = np.array(r["rotation_fix"], dtype=np.float64) if "rotation_fix" in r else r_wc  # a 6-DOF fix's own
     target = geometry.mc_to_enu(geometry.latlon_to_mc(row["pose"]["target_lat"], row["pose"]["target_lon"]), lat0, lon0)
     seen = {
-        name: project_pinhole(target[None], r_wc, np.asarray(c, dtype=np.float64), k)[0]
-        for name, c in (("truth", row["camera_enu"]["position_m"]), ("fix", r["position_enu_m"]))
+        name: project_pinhole(target[None], rot, np.asarray(c, dtype=np.float64), k)[0]
+        for name, c, rot in (("truth", row["camera_enu"]["position_m"], r_wc), ("fix", r["position_enu_m"], r_fix))
     }
     shift = seen["fix"] - seen["truth"]
     length = float(np.hypot(*shift))
