@@ -4,8 +4,8 @@ A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a nort
 ``navigate`` hands it here: its row in the ``manifest.jsonl`` beside it gives the camera pose and the Sun;
 the detector and fix settings are a ``nav-frames-eval`` preset (:data:`.frames_presets.FRAMES_PRESETS`);
 the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
-known-attitude camera centre (:func:`.frames_eval.evaluate_frame`), refined by appearance where the preset
-says so (:mod:`.refine`). Its truth is exact, so the error is
+known-attitude camera centre (:func:`.frames_eval.evaluate_frame`; with ``six_dof`` the 6-DOF pose), refined
+by appearance where the preset says so (:mod:`.refine`). Its truth is exact, so the error is
 the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG (the labelled
 rims thin green, the detections red dashed, the identified landmarks yellow with their names) and the
 per-detection list (circle, confidence, landmark identified or "unknown", the labelled landmark it
