@@ -285,3 +285,32 @@ def test_window_patches_off_the_dem_are_left_out(south):
         frame.image, far, 0.0, PRESETS["appearance"], FixParams(), Refiner(dem), PatchParams()
     )
     assert found == [] and dets == [] and not fix.ok and fix.reason == "no patch on the DEM"
+
+
+def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_path, monkeypatch):
+    """`nav-eval --pole north --method appearance --patches` over the pole's splits adds the method
+    'appearance+patches' to the pole's entry of the results file; the craters-only 'appearance' entry and
+    every other method stay as they were. (The windows are cut to two to keep the test short.)"""
+    import json
+    import shutil
+
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.navigation import evaluate, frames
+
+    results = tmp_path / "navigation.json"
+    shutil.copyfile(evaluate.RESULTS_JSON, results)
+    monkeypatch.setattr(evaluate, "RESULTS_JSON", results)
+    every_window = frames.windows
+    monkeypatch.setattr(frames, "windows", lambda split=None, pole="south": every_window(split, pole)[100:102])
+    before = json.loads(results.read_text())["regions"]["north"]["methods"]
+    r = CliRunner().invoke(main, ["nav-eval", "--pole", "north", "--method", "appearance", "--patches"])
+    assert r.exit_code == 0, r.output
+    after = json.loads(results.read_text())["regions"]["north"]["methods"]
+    others = [k for k in before if k != evaluate.PATCHES_METHOD]
+    assert others and set(after) == {*others, evaluate.PATCHES_METHOD}
+    assert all(after[k] == before[k] for k in others)
+    test = after[evaluate.PATCHES_METHOD]["splits"]["test"]
+    assert test["all_windows"]["windows"] == 2 and test["all_windows"]["patches_alone"]["patches_per_window"] == 16
+    assert "terrain patches" in after[evaluate.PATCHES_METHOD]["detector"]["method"]
