@@ -226,6 +226,27 @@ def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
     assert not ok and "need 4" in reason  # three points fix a pinhole pose exactly: never fewer than 4
 
 
+def test_rotation_vector_inverts_rodrigues_and_the_attitude_prior_weighs_the_pose():
+    """rotation_vector is rodrigues' inverse; a pose refined with an attitude prior stays at the prior's
+    attitude when the prior is strong and follows the pixels when it is weak."""
+    for w in (np.array([0.3, -0.2, 0.1]), np.array([1e-9, 0.0, 0.0]), np.array([math.pi - 0.1, 0.02, 0.0])):
+        np.testing.assert_allclose(nf.rotation_vector(nf.rodrigues(w)), w, atol=1e-9)
+    rng = np.random.default_rng(4)
+    pts = np.column_stack([rng.uniform(-40e3, 40e3, 12), rng.uniform(-40e3, 40e3, 12), rng.uniform(-2e3, 2e3, 12)])
+    k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
+    r_true = nf.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))
+    c_true = np.array([1500.0, -800.0, 90e3])
+    uv = nf.project_pinhole(pts, r_true, c_true, k)
+    r_prior = nf.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r_true  # the believed attitude, 0.5 degree off
+    c0 = c_true + [300.0, 200.0, 0.0]
+    free = nf.refine_pose(pts, uv, k, r_prior, c0)
+    strong = nf.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e7))
+    weak = nf.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e-3))
+    assert nf.attitude_difference_deg(free[0], r_true) < 1e-4  # exact pixels: the truth
+    assert nf.attitude_difference_deg(strong[0], r_prior) < 1e-3  # held at the prior
+    assert nf.attitude_difference_deg(weak[0], r_true) < 1e-3 and np.linalg.norm(weak[1] - c_true) < 1.0
+
+
 def test_pnp_refuses_a_pose_that_contradicts_its_prior_or_a_rival_set():
     """The 6-DOF fix answers "no fix" when its pose lies further from the prior than the prior's
     uncertainty, turns further from the prior attitude than ``max_heading_deg``, or when a disjoint set of

@@ -286,12 +286,28 @@ def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
     return float(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))) * scale
 
 
-def refine_pose(points, uv, k, r0, c0, iterations: int = 20):
-    """Gauss-Newton on (rotation increment, camera centre) minimising reprojection error from (r0, c0)."""
+def rotation_vector(r: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis times angle, radians) of the rotation matrix ``r`` (:func:`rodrigues`' inverse,
+    for angles below pi)."""
+    r = np.asarray(r, float)
+    vee = 0.5 * np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    s = float(np.linalg.norm(vee))
+    angle = math.atan2(s, 0.5 * (float(np.trace(r)) - 1.0))
+    return vee * (angle / s) if s > 1e-12 else vee
+
+
+def refine_pose(points, uv, k, r0, c0, iterations: int = 20, attitude_prior=None):
+    """Gauss-Newton on (rotation increment, camera centre) minimising reprojection error from (r0, c0).
+    ``attitude_prior`` (r_prior, weight px per radian): the rotation's angle from ``r_prior`` counts in the
+    least squares as that many pixels of residual per radian (a pose with a Gaussian attitude prior)."""
     r, c = np.array(r0, float), np.array(c0, float)
     scale = max(float(np.linalg.norm(np.asarray(points) - c, axis=1).mean()), 1.0)
     for _ in range(iterations):
         res, jac = _pose_jacobian(points, uv, k, r, c, scale)
+        if attitude_prior is not None:  # d rotvec(exp(dw) r r_prior^T) / d dw is ~ the identity for small angles
+            r_prior, weight = attitude_prior
+            res = np.concatenate([res, weight * rotation_vector(r @ np.asarray(r_prior, float).T)])
+            jac = np.vstack([jac, np.hstack([weight * np.eye(3), np.zeros((3, 3))])])
         step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
         r = rodrigues(step[:3]) @ r
         c = c + step[3:] * scale

@@ -173,14 +173,16 @@ def evaluate_frame(
     prior_enu: np.ndarray | None = None,
     candidates: list | None = None,
     refine_pnp: bool = False,
+    attitude_sigma_deg: float = 0.0,
 ):
     """Detection, identification and fix of one rendered frame, scored against its labels; a row in
     :func:`.evaluate.summarise`'s format plus the frame's own fields. ``detections`` replaces the
     detector's output (the perfect-detection check, :func:`perfect_detections`). ``scales_from_map``:
     the detector searches only the radii of the map landmarks the prior predicts in the frame
     (:func:`map_scales`); ``inlier_px``: the fix's reprojection inlier tolerance; ``refiner``
-    (:class:`.refine.Refiner`): a known-attitude fix (a 6-DOF one too with ``refine_pnp``) is refined by
-    appearance, and refused when its landmarks do not register; ``appearance``: no detector, the landmarks
+    (:class:`.refine.Refiner`): a known-attitude fix (a 6-DOF one too with ``refine_pnp``, weighted towards
+    the believed attitude by its 1-sigma ``attitude_sigma_deg`` when > 0) is refined by appearance, and
+    refused when its landmarks do not register; ``appearance``: no detector, the landmarks
     are searched for by their predicted appearance (:mod:`.appearance`, the refiner's DEM);
     ``attitude_error_deg``: the pipeline works with the attitude turned by this angle about a seeded axis
     (the lander's attitude error; the image and the truth are the frame's); ``prior_offset_km``: how far the
@@ -303,7 +305,8 @@ def evaluate_frame(
         out["unrefined"].update(identified=len(keep), identified_correct=int(good))
         lms, sun = [cand[pairs_lm[q]] for q in keep], row["pose"]["to_sun_mc"]
         args = (image, lms, corrected, p3[keep], c_fix, r_wc, k, (lat0, lon0), sun)
-        c_fix, out["refinement"] = refiner.refine(*args, predicted=windows, pose=method == "pnp")
+        prior = (r_wc, math.radians(attitude_sigma_deg)) if method == "pnp" and attitude_sigma_deg > 0 else None
+        c_fix, out["refinement"] = refiner.refine(*args, predicted=windows, pose=method == "pnp", attitude_prior=prior)
         if method == "pnp":  # the attitude is refined with the centre
             r_fix = np.asarray(out["refinement"]["rotation"], dtype=np.float64)
         ok, reason = refiner.verified(out["refinement"])
@@ -407,6 +410,7 @@ def evaluate_dir(
     sequence: SequenceParams | None = None,
     dem_error: DemErrorParams | None = None,
     refine_pnp: bool = False,
+    attitude_sigma_deg: float = 0.0,
 ):
     """(summaries, per-frame rows) of a ``nav-frames`` output: the summaries over all frames, the
     headline frames and the frames with at least ``min_inliers`` landmarks in view (``"enough_landmarks"``),
@@ -423,7 +427,7 @@ def evaluate_dir(
     forward (:mod:`.sequence`; frames in index order; the first, and any the drift leaves no tighter than
     ``fix.prior_sigma_km``, get the standard prior); ``dem_error``: the lander's DEM carries this height
     error (:mod:`.dem_error`; the frames stay as rendered, the perfect-detection check is unaffected);
-    ``refine_pnp``: :func:`evaluate_frame`'s."""
+    ``refine_pnp``, ``attitude_sigma_deg``: :func:`evaluate_frame`'s."""
     from crater_synth.navigation.frame_labels import labelled_rows
     from crater_synth.navigation.landmarks import load_default_map
 
@@ -460,6 +464,7 @@ def evaluate_dir(
             attitude_error_deg=attitude_error_deg,
             prior_offset_km=prior_offset_km,
             refine_pnp=refine_pnp,
+            attitude_sigma_deg=attitude_sigma_deg,
             **kw,
         )
         t0 = time.perf_counter()

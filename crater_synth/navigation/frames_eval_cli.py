@@ -87,6 +87,14 @@ from crater_synth.navigation.sequence import SequenceParams
     "(the default there; --no-refine-pose: as RANSAC gives it).",
 )
 @click.option(
+    "--attitude-sigma-deg",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="With --refine-pose: the believed attitude's 1-sigma (deg); the refined 6-DOF pose is weighted towards "
+    "it (0: no attitude prior).",
+)
+@click.option(
     "--sequential",
     is_flag=True,
     help="Each frame's position prior from its trajectory's last fix, carried by the motion plus a 1 % drift.",
@@ -126,6 +134,7 @@ def nav_frames_eval_command(
     sensor,
     patches,
     refine_pose,
+    attitude_sigma_deg,
     sequential,
     dem_error_m,
     dem_error_km,
@@ -158,6 +167,8 @@ def nav_frames_eval_command(
     if refine_pose and not refines_pnp:
         raise UserError(f"--refine-pose refines a 6-DOF fix (--method pnp) of a preset that refines, not {preset}")
     refine_pose = refines_pnp if refine_pose is None else refine_pose
+    if not 0.0 <= attitude_sigma_deg <= 10.0 or (attitude_sigma_deg and not refine_pose):
+        raise UserError(f"--attitude-sigma-deg {attitude_sigma_deg:g}: 0 to 10 degrees, with a refined 6-DOF fix")
     pparams, sparams = (PatchParams() if patches else None), (SequenceParams() if sequential else None)
     try:
         eparams = DemErrorParams(dem_error_m, dem_error_km) if dem_error_m else None
@@ -179,9 +190,10 @@ def nav_frames_eval_command(
         dem_error=eparams,
         terrain_workers=terrain_workers,
         refine_pnp=refine_pose,
+        attitude_sigma_deg=attitude_sigma_deg,
     )
     summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
-    summary.update(refine_pose=refine_pose)
+    summary.update(refine_pose=refine_pose, attitude_sigma_deg=attitude_sigma_deg)
     summary.update(
         patches=dataclasses.asdict(pparams) if pparams else None,
         sequence=dataclasses.asdict(sparams) if sparams else None,

@@ -387,7 +387,19 @@ class Refiner:
         return shade_window(self.terrain(landmark, to_sun_mc), to_sun_mc, camera_mc, self.hapke)
 
     def refine(
-        self, image, landmarks, observed_uv, points_enu, c_fix, r_wc, k, origin, to_sun_mc, predicted=None, pose=False
+        self,
+        image,
+        landmarks,
+        observed_uv,
+        points_enu,
+        c_fix,
+        r_wc,
+        k,
+        origin,
+        to_sun_mc,
+        predicted=None,
+        pose=False,
+        attitude_prior=None,
     ):
         """Camera centre (frame ENU) after registering each identified landmark's predicted window.
 
@@ -400,7 +412,10 @@ class Refiner:
         angle by microradians), and registered again after each solve; ``predicted`` (landmark id -> (MC
         points, I/F)) are predictions already made for this frame (:mod:`.appearance`), used as they are.
         ``pose``: the 6-DOF fix's refinement: each solve is of the attitude too (:func:`.fix.refine_pose`, from
-        at least three registered landmarks), and the record adds the final world->camera ``rotation``."""
+        at least three registered landmarks), and the record adds the final world->camera ``rotation``;
+        ``attitude_prior`` (the attitude the lander believes, its 1-sigma in radians): each 6-DOF solve is
+        then weighted towards it (:func:`.fix.refine_pose`), against the observations' own scatter (the
+        residuals of the solve without it, no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
         from crater_synth.navigation.fix import project_pinhole, refine_pose, solve_position
         from crater_synth.terrain.dem import DemError
 
@@ -445,6 +460,11 @@ class Refiner:
                 break
             if pose:
                 r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
+                if attitude_prior is not None:
+                    res = (project_pinhole(points_enu, r_wc, c, k) - moved).ravel()
+                    sigma_px = max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), MIN_REGISTRATION_SIGMA_PX)
+                    weight = sigma_px / attitude_prior[1]
+                    r_wc, c = refine_pose(points_enu, moved, k, r_wc, c, attitude_prior=(attitude_prior[0], weight))
             else:
                 c = solve_position(points_enu, moved, k, r_wc)
             solved_from = moved
@@ -467,6 +487,12 @@ class Refiner:
             n = len(refinement["landmarks"])
             return False, f"appearance check: {used} of {n} landmarks appear where the fix predicts them (need 2)"
         return True, ""
+
+
+# The scatter of registered observations is estimated from a 6-DOF solve's residuals; with 4-5 landmarks a
+# near-exact fit would make it ~0 and the attitude prior weightless: a tenth of a pixel is the floor (a stated
+# assumption, not tuned).
+MIN_REGISTRATION_SIGMA_PX = 0.1
 
 
 def lander_dem(pole: str):
