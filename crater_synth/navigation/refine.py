@@ -26,7 +26,11 @@ registered on the frame:
    contradicts the fix and the evaluation gives no fix (:meth:`Refiner.verified`).
 
 The registration measures the image of the landmark's 3-D rim-centre point directly, so the
-ellipse-centre correction of the plain fix is not needed for a refined landmark.
+ellipse-centre correction of the plain fix is not needed for a refined landmark. A 6-DOF fix is refined the
+same way, its attitude solved with its centre (``pose``), optionally weighted towards a believed attitude.
+
+Length: one stage, the appearance refinement: the window terrain, its shading, the registration, the
+:class:`Refiner`'s terrain cache and workers and the solves all work on one window model, kept together.
 """
 
 from __future__ import annotations
