@@ -72,28 +72,15 @@ def _splits_summary(splits: dict, summarise, headline_min: int) -> dict:
     }
 
 
-def patch_window(frame, landmarks, dparams, fparams):
-    """A window navigated with its terrain patches alone (:func:`.evaluate.with_window_patches`): (its row,
-    with the patches' fix in place of the craters' and no crater detection to score, the patch detections,
-    the patches, the fix, the prior) for the table and the annotated PNG."""
-    from crater_synth.navigation.appearance_window import lander_refiner, window_patch_fix
-    from crater_synth.navigation.evaluate import prior_georef, run_frame
-    from crater_synth.navigation.frames import check_frame
-    from crater_synth.navigation.light import frame_local_light
-    from crater_synth.navigation.patches import PatchParams
-
-    row = run_frame(frame, landmarks, dparams, fparams, patches=PatchParams())
-    p = row.pop("patches_alone")
+def patch_row(row: dict, scores: dict) -> dict:
+    """A window's :func:`.evaluate.run_frame` ``row`` turned into the row of its terrain patches alone
+    (``scores``: :func:`.evaluate.window_patches_alone`'s): the patches' fix in place of the craters', no
+    crater detection to score."""
     keys = ("error_km", "identified", "identified_correct")
-    row = {k: v for k, v in row.items() if k not in (*keys, "fix_source", "catalogue_d_km")}
-    row.update(truth=[], truth_d_km=[], det_r_km=[], matched={}, matched_any=[], n_detections=p["n_detections"])
-    row.update(fix=p["fix"], reason=p["reason"], **{k: p[k] for k in keys if k in p})
-    # The same patches and detections again for the drawing (their windows are kept by the refiner: NCC only).
-    prior = prior_georef(frame, 0)
-    image, alpha = check_frame(frame.image, f"frame {frame.id}"), frame_local_light(frame, dparams)
-    refiner = lander_refiner(frame.georef.pole)
-    patches, dets, fix = window_patch_fix(image, prior, alpha, dparams, fparams, refiner, PatchParams())
-    return row, dets, patches, fix, prior
+    out = {k: v for k, v in row.items() if k not in (*keys, "fix_source", "patches_alone", "catalogue_d_km")}
+    out.update(truth=[], truth_d_km=[], det_r_km=[], matched={}, matched_any=[], n_detections=scores["n_detections"])
+    out.update(fix=scores["fix"], reason=scores["reason"], **{k: scores[k] for k in keys if k in scores})
+    return out
 
 
 @click.command("navigate-demo")
@@ -109,12 +96,15 @@ def main(out: Path, per_sector: int):
         PRIOR_OFFSET_KM,
         _params_with,
         navigate_frame,
+        prior_georef,
         results_markdown,
         run_frame,
         summarise,
+        window_patches_alone,
     )
     from crater_synth.navigation.landmarks import load_default_map
     from crater_synth.navigation.navigate import annotate
+    from crater_synth.navigation.patches import PatchParams
 
     if per_sector < 1:
         raise UserError(f"--per-sector={per_sector} must be >= 1")
@@ -124,11 +114,14 @@ def main(out: Path, per_sector: int):
     frames = demo_frames(per_sector)
     methods = {}
     windows_out = []
+    appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
         dparams, fparams = _params_with((), method)
         splits: dict = {}
         for f in frames:
             row = run_frame(f, landmarks, dparams, fparams)
+            if method == "appearance":
+                appearance_rows[f.id] = row
             splits.setdefault(f.split, []).append(row)
             dets, _, fix, prior = navigate_frame(f, landmarks, dparams, fparams)
             png = out / f"{f.id}_{method}.png"
@@ -139,8 +132,11 @@ def main(out: Path, per_sector: int):
         methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
     # The appearance search's terrain patches alone (no crater): the same windows, prior and light.
     splits = {}
+    dparams, fparams = _params_with((), "appearance")
     for f in frames:
-        row, dets, patches, fix, prior = patch_window(f, landmarks, *_params_with((), "appearance"))
+        prior = prior_georef(f, 0)  # run_frame's
+        scores, patches, dets, fix = window_patches_alone(f, prior, dparams, fparams, PatchParams())
+        row = patch_row(appearance_rows[f.id], scores)
         splits.setdefault(f.split, []).append(row)
         png = out / f"{f.id}_patches.png"
         atomic_write_bytes(png, annotate(f.image, dets, patches, fix, prior, f.georef))

@@ -224,12 +224,11 @@ def run_frame(
     return row
 
 
-def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams, patches) -> dict:
-    """``row`` with the window's terrain-patch navigation (:func:`.appearance_window.window_patch_fix`, under
-    the same prior and light) in ``row["patches_alone"]``, scored alone; a window its craters do not fix takes the
-    patches' fix (``fix_source`` says which fixed it), as a lander would use them. A patch identification
-    is correct when its detection lies within ``fix.inlier_px`` of where the true georeference places the
-    patch's point. The row's detection metrics stay the craters'."""
+def window_patches_alone(frame: Frame, prior: Georef, dparams, fparams, patches):
+    """(scores, patches, detections, fix) of the window navigated with its terrain patches alone
+    (:func:`.appearance_window.window_patch_fix`) under ``prior`` and the light of the appearance method
+    ``dparams``. A patch identification is correct when its detection lies within ``fix.inlier_px`` of
+    where the true georeference places the patch's point."""
     from crater_synth.navigation.appearance_window import lander_refiner, patch_truth_correct, window_patch_fix
     from crater_synth.navigation.frames import check_frame
     from crater_synth.navigation.light import frame_local_light
@@ -245,8 +244,17 @@ def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams
         info["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, frame.georef.pole))
         info["identified"] = len(fix.inliers)
         info["identified_correct"] = patch_truth_correct(dets, found, fix.inliers, frame.georef, fparams.inlier_px)
+    return info, found, dets, fix
+
+
+def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams, patches) -> dict:
+    """``row`` with the window's terrain-patch navigation (:func:`window_patches_alone`, under the same
+    prior and light) in ``row["patches_alone"]``, scored alone; a window its craters do not fix takes the
+    patches' fix (``fix_source`` says which fixed it), as a lander would use them. The row's detection
+    metrics stay the craters'."""
+    info = window_patches_alone(frame, prior, dparams, fparams, patches)[0]
     out = {**row, "patches_alone": info, "fix_source": "craters" if row["fix"] else None}
-    if not row["fix"] and fix.ok:
+    if not row["fix"] and info["fix"]:
         keys = ("error_km", "identified", "identified_correct")
         out.update(fix=True, reason="", fix_source="patches", **{k: info[k] for k in keys})
     return out

@@ -264,12 +264,7 @@ def pose_sigma_horizontal_m(points, uv, k, r, c) -> float:
     >= 4 ``points`` at pixels ``uv``: the least-squares covariance sigma^2 (J^T J)^-1, sigma the residuals'
     own scatter with the fit's 6 unknowns taken off (sum of squares / (2n - 6)). Large where a tilt and a
     shift of the camera explain the pixels nearly alike (a few landmarks, seen near nadir)."""
-    points, uv = np.asarray(points, float), np.asarray(uv, float)
-    scale = max(float(np.linalg.norm(points - c, axis=1).mean()), 1.0)
-    res, jac = _pose_jacobian(points, uv, k, r, c, scale)
-    sigma2 = float(res @ res) / max(res.size - 6, 1)
-    cov = np.linalg.pinv(jac.T @ jac) * sigma2
-    return float(math.sqrt(max(cov[3, 3] + cov[4, 4], 0.0))) * scale
+    return _sigma_horizontal_m(points, uv, k, r, c, attitude_held=False)
 
 
 def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
@@ -277,13 +272,22 @@ def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
     to >= 3 ``points`` at pixels ``uv``: :func:`pose_sigma_horizontal_m`'s covariance with the attitude
     held (the centre's 3 unknowns taken off the residuals' degrees of freedom). It measures how well the
     landmarks agree with each other, not an error they share (a DEM or attitude bias moves them alike)."""
+    return _sigma_horizontal_m(points, uv, k, r, c, attitude_held=True)
+
+
+def _sigma_horizontal_m(points, uv, k, r, c, attitude_held: bool) -> float:
+    """The least-squares 1-sigma horizontal uncertainty (m) of the camera centre, sigma^2 (J^T J)^-1 with sigma
+    from the residuals less the unknowns (6, or the centre's 3 with the attitude held)."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     scale = max(float(np.linalg.norm(points - c, axis=1).mean()), 1.0)
     res, jac = _pose_jacobian(points, uv, k, r, c, scale)
-    jac = jac[:, 3:]
-    sigma2 = float(res @ res) / max(res.size - 3, 1)
+    if attitude_held:
+        jac = jac[:, 3:]
+    unknowns = jac.shape[1]
+    sigma2 = float(res @ res) / max(res.size - unknowns, 1)
     cov = np.linalg.pinv(jac.T @ jac) * sigma2
-    return float(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))) * scale
+    x = unknowns - 3  # the centre's first axis among the unknowns
+    return float(math.sqrt(max(cov[x, x] + cov[x + 1, x + 1], 0.0))) * scale
 
 
 def rotation_vector(r: np.ndarray) -> np.ndarray:

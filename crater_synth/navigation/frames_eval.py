@@ -110,6 +110,12 @@ def cv_camera(rotation: np.ndarray, width: int, fov_deg: float) -> tuple[np.ndar
     return np.stack([right, -up, -back]), k
 
 
+def true_camera(row: dict) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cv_camera` of a frame's true camera (its manifest ``row``'s rotation, width and field of view)."""
+    rotation = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    return cv_camera(rotation, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
+
+
 def light_direction(rotation: np.ndarray, to_sun: np.ndarray) -> float:
     """Image azimuth (radians, atan2(dv, du), v down) of the light's travel direction (away from the Sun)."""
     travel = -np.asarray(to_sun, dtype=np.float64)
@@ -324,8 +330,7 @@ def evaluate_frame(
         else:  # the 6-DOF fix's attitude (world -> camera, frame ENU) and how far it is from the truth
             out["sigma_horizontal_km"] = pose_sigma_horizontal_m(p3[keep], final, k, r_fix, c_fix) / 1000.0
             out["rotation_fix"] = np.asarray(r_fix).tolist()
-            r_true = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, fov)[0]
-            out["attitude_error_deg"] = attitude_difference_deg(r_fix, r_true)
+            out["attitude_error_deg"] = attitude_difference_deg(r_fix, true_camera(row)[0])
         out["error_km"] = float(np.linalg.norm(c_fix - c_true)) / 1000.0
         # The horizontal part: a few close landmarks fix the altitude less well than the position.
         out["error_horizontal_km"] = float(np.hypot(*(c_fix - c_true)[:2])) / 1000.0
@@ -367,7 +372,7 @@ def with_patch_fallback(r: dict, row: dict, image, landmarks, refiner, patches: 
         return {**r, "fix_source": None, "patches": info}
     # Identification truth of a patch: where the true camera sees its point (the ellipse centre, as detected);
     # and where each was found (centre, window half-width px): what `navigate` draws.
-    r_true, _ = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, fov)
+    r_true, _ = true_camera(row)
     c_true = np.array(row["camera_enu"]["position_m"], dtype=np.float64)
     correct, drawn = 0, []
     for det, ident in rp["identified_pairs"]:

@@ -192,9 +192,12 @@ def nav_frames_eval_command(
         refine_pnp=refine_pose,
         attitude_sigma_deg=attitude_sigma_deg,
     )
-    summary.update(sensor=sensor, attitude_error_deg=attitude_error_deg, prior_offset_km=prior_offset_km)
-    summary.update(refine_pose=refine_pose, attitude_sigma_deg=attitude_sigma_deg)
     summary.update(
+        sensor=sensor,
+        attitude_error_deg=attitude_error_deg,
+        prior_offset_km=prior_offset_km,
+        refine_pose=refine_pose,
+        attitude_sigma_deg=attitude_sigma_deg,
         patches=dataclasses.asdict(pparams) if pparams else None,
         sequence=dataclasses.asdict(sparams) if sparams else None,
         dem_error=dataclasses.asdict(eparams) if eparams else None,

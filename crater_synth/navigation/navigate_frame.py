@@ -176,11 +176,10 @@ def _error_arrow(ax, r: dict, row: dict) -> str:
     (by a 1-2-5 step, written beside its tip); returns the title's short caption."""
     from crater_core import geometry
     from crater_synth.navigation.fix import project_pinhole
-    from crater_synth.navigation.frames_eval import cv_camera
+    from crater_synth.navigation.frames_eval import true_camera
 
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
-    width = int(row["pose"]["width_px"])
-    r_wc, k = cv_camera(np.array(row["camera_enu"]["rotation"], dtype=np.float64), width, float(row["pose"]["fov_deg"]))
+    r_wc, k = true_camera(row)
     r_fix = np.array(r["rotation_fix"], dtype=np.float64) if "rotation_fix" in r else r_wc  # a 6-DOF fix's own
     target = geometry.mc_to_enu(geometry.latlon_to_mc(row["pose"]["target_lat"], row["pose"]["target_lon"]), lat0, lon0)
     seen = {
