@@ -445,7 +445,7 @@ def _patches_markdown(methods: dict) -> list[str]:
     ]
 
     def cell(s: dict) -> str:
-        if not s.get("fix_rate") and s.get("fix_rate") != 0.0:
+        if s.get("fix_rate") is None:
             return "-"
         med, p90 = s.get("median_error_km"), s.get("p90_error_km")
         errors = "-" if med is None else f"{med:.2f} / {p90:.2f}"
