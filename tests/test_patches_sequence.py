@@ -192,6 +192,8 @@ def test_patch_and_sequence_options_are_refused_where_they_do_not_apply(tmp_path
         (["--patches", "--preset", "synthetic"], "--patches needs the appearance search"),
         (["--refine-pose"], "--refine-pose refines a 6-DOF fix"),  # the default method: known attitude
         (["--refine-pose", "--method", "pnp", "--preset", "real-window"], "--refine-pose refines a 6-DOF fix"),
+        (["--attitude-sigma-deg", "0.2"], "--attitude-sigma-deg 0.2: 0 to 10 degrees, with a refined 6-DOF fix"),
+        (["--method", "pnp", "--attitude-sigma-deg", "20"], "--attitude-sigma-deg 20"),
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()

@@ -268,5 +268,8 @@ def test_pose_refinement_recovers_attitude_and_centre(scene):
     after = np.linalg.norm(c_new - scene.c_true), attitude_difference_deg(r_new, scene.r_wc)
     assert all(r["used"] for r in info["landmarks"]), info["landmarks"]
     assert after[0] < before[0] / 3 and after[1] < before[1] / 3, (before, after)
+    # With a believed attitude of a tight sigma the solve stays at it: the prior weighs against the pixels.
+    held = np.array(refiner.refine(*args, scene.to_sun_mc, pose=True, attitude_prior=(r_fix, 1e-6))[1]["rotation"])
+    assert attitude_difference_deg(held, r_fix) < 0.01 < attitude_difference_deg(r_new, r_fix)
     # Without pose=True the attitude is held and no rotation is recorded.
     assert "rotation" not in refiner.refine(*args, scene.to_sun_mc)[1]
