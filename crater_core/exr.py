@@ -300,31 +300,44 @@ def read_channel(path: str | os.PathLike, channel: str = "IF") -> np.ndarray:
 def read_channel_and_header(path: str | os.PathLike, channel: str = "IF") -> tuple[np.ndarray, dict]:
     """:func:`read_channel` and the file's header attributes (the render parameters), from one open."""
     with _LibraryStderr() as quiet:
-        data, header = _read_channel(path, channel)
+        data, header = _read_channels(path, (channel,))
         quiet.failed = False
-    return data, header
+    return data[channel], header
 
 
-def _read_channel(path: str | os.PathLike, channel: str) -> tuple[np.ndarray, dict]:
+def read_channels(path: str | os.PathLike, channels) -> dict[str, np.ndarray]:
+    """Several channels by name, each as :func:`read_channel` gives it, from one decode of the file (the
+    contiguous range of channels that holds them): cheaper than one :func:`read_channel` per channel."""
+    with _LibraryStderr() as quiet:
+        data, _ = _read_channels(path, tuple(channels))
+        quiet.failed = False
+    return data
+
+
+def _read_channels(path: str | os.PathLike, channels: tuple[str, ...]) -> tuple[dict[str, np.ndarray], dict]:
     inp = _open(path)
     try:
         spec = inp.spec()
         names = list(spec.channelnames)
-        if channel not in names:
-            raise ExrError(f"EXR {path} has no channel {channel!r} (channels: {names})")
-        c = names.index(channel)
-        data = inp.read_image(0, 0, c, c + 1, "float")
+        for channel in channels:
+            if channel not in names:
+                raise ExrError(f"EXR {path} has no channel {channel!r} (channels: {names})")
+        index = [names.index(c) for c in channels]
+        first, last = min(index), max(index)
+        data = inp.read_image(0, 0, first, last + 1, "float")
         if data is None:
             raise ExrError(f"cannot decode EXR {path}: {_first_line(inp.geterror()) or 'corrupt file'}")
         header = _header(spec)
     finally:
         inp.close()
-    data = np.asarray(data, dtype=np.float32)
-    if data.ndim == 3:
-        data = data[..., 0]
-    if not np.all(np.isfinite(data)):
-        raise ExrError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
-    return data, header
+    data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, last + 1 - first)
+    out = {}
+    for channel, c in zip(channels, index):
+        plane = np.ascontiguousarray(data[..., c - first])
+        if not np.all(np.isfinite(plane)):
+            raise ExrError(f"EXR {path}: channel {channel!r} holds NaN/inf values")
+        out[channel] = plane
+    return out, header
 
 
 def exr_info(path: str | os.PathLike, decode: bool = True) -> dict:

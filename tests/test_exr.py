@@ -58,6 +58,26 @@ def test_float_channels_are_bit_exact_and_half_channels_are_as_stored(tmp_path, 
             assert np.abs(back[name] - chans[name]).max() <= 2.0**-12, name
 
 
+def test_read_channels_gives_each_channel_as_read_channel_does(tmp_path, encoder):
+    """One decode for several channels (the labels read lit and depth of every frame) gives each exactly
+    as a read of its own; a channel the file lacks, or a non-finite one, is one error naming the file."""
+    chans = _channels(3)
+    path = tmp_path / "r.exr"
+    exr.write_exr(path, chans)
+    for names in (("lit", "depth"), ("depth", "N.Z", "IF"), ("IF",)):
+        got = exr.read_channels(path, names)
+        assert list(got) == list(names)
+        for name in names:
+            assert got[name].shape == (70, 90) and got[name].flags.c_contiguous
+            np.testing.assert_array_equal(got[name], exr.read_channel(path, name), err_msg=name)
+    with pytest.raises(exr.ExrError, match=r"r\.exr has no channel 'albedo'"):
+        exr.read_channels(path, ("lit", "albedo"))
+    chans["depth"][3, 4] = np.nan
+    exr.write_exr(tmp_path / "nan.exr", chans)
+    with pytest.raises(exr.ExrError, match=r"nan\.exr: channel 'depth' holds NaN"):
+        exr.read_channels(tmp_path / "nan.exr", ("lit", "depth"))
+
+
 def test_the_same_channels_give_the_same_bytes(tmp_path, encoder):
     a = exr.write_exr(tmp_path / "a.exr", _channels(2), {"crater_synth:x": 1})
     b = exr.write_exr(tmp_path / "b.exr", _channels(2), {"crater_synth:x": 1})

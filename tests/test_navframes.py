@@ -615,6 +615,21 @@ def test_shared_patch_frames_match_per_frame_patches(tmp_path):
         assert np.abs(ca["lit"] - cb["lit"]).mean() < 0.03
 
 
+def test_frame_commands_default_to_a_one_sample_gbuffer_unless_told_the_samples():
+    """Navigation frames render fast mode's G-buffer at one (centre) sample by default; a command that sets
+    render.samples or render.gbuffer_samples keeps exactly what it says (the documented frame sets)."""
+    from crater_synth.config import load_settings
+    from crater_synth.navigation.render_frames import frame_overrides
+
+    default = load_settings(frame_overrides(["trajectory=descent_ridge"])).render
+    assert (default.gbuffer_samples, default.samples) == (1, 16)  # direct renders and fallbacks keep 16
+    told = load_settings(frame_overrides(["trajectory=descent_ridge", "render.samples=4"])).render
+    assert (told.gbuffer_samples, told.samples) == (0, 4)  # 0: the G-buffer takes render.samples
+    own = load_settings(frame_overrides(["render.gbuffer_samples=8"])).render
+    assert own.gbuffer_samples == 8
+    assert frame_overrides(("+render.samples=2",)) == ["+render.samples=2"]
+
+
 def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):
     """`crater-synth bench --part navframes` renders the same frames shared and per-frame in one call (no
     timing is asserted: benchmarks are not timed tests)."""

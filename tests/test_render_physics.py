@@ -121,6 +121,43 @@ def test_flat_plane_depth_and_crop_alignment(flat_runs):
             assert np.abs(resid).max() < 1.0 * grad + 1e-3 * it["range_m"]
 
 
+def _flat_centre_depth(it: dict) -> np.ndarray:
+    """The depth of the flat plane z = 0 at each crop pixel's centre ray (distance along the view axis)."""
+    pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
+    w = it["frame_width"]
+    f = pose.focal_px(w)
+    u0, v0, u1, v1 = it["crop"]
+    uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
+    d = np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
+    return -pose.position[2] / d[..., 2] * (d @ pose.forward)
+
+
+def test_one_sample_gbuffer_is_the_pixel_centre_whatever_the_seed(tmp_path):
+    """Fast mode with ``gbuffer_samples=1`` (the navigation frames' default): Cycles' single ray goes
+    through each pixel's centre, not a jittered point, so the G-buffer is sharp and the same for every seed.
+    On an oblique view of a plane, depth equals the centre ray's to a tiny fraction of a pixel's depth step."""
+    npz = cr.write_npz(tmp_path / "flat.npz", cr.grid(60_000.0, 33))
+    items = [
+        cr.item(i, 30.0, 0.0, cam_el, cam_az, range_m=FLAT_RANGE, frame_width=120, name="flat")
+        for i, (cam_el, cam_az) in enumerate([(60.0, 180.0), (54.0, 10.0)])
+    ]
+    images = []
+    for seed in (0, 12345):
+        job = cr.job(npz, items, tmp_path / f"s{seed}", mode="fast", diameter_km=20.0, shadow_map_px=128)
+        job["render"].update(gbuffer_samples=1, seed=seed)
+        for it in job["renders"]:
+            it["seed"] = seed
+        _run(job, tmp_path, f"centre-{seed}")
+        images.append([_load(tmp_path / f"s{seed}", it) for it in items])
+    for it, a, b in zip(items, *images):
+        for c in ("IF", "depth", "N.Z", "lit"):
+            np.testing.assert_array_equal(a[c], b[c])
+        expected = _flat_centre_depth(it)
+        step = np.hypot(*np.gradient(expected)).mean()  # depth change per pixel
+        assert step > 1.0
+        assert np.abs(a["depth"] - expected).max() < 0.01 * step, (it["cam_elevation"], step)
+
+
 # ------------------------------------------------------------------------------------------------
 # Step (mesa) shadow
 # ------------------------------------------------------------------------------------------------

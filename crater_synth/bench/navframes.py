@@ -121,8 +121,9 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
     override names another) twice, with the same settings: frames sharing terrain patches (the default
     path) and every frame on its own patch (the per-frame path); times both and gives their ratio."""
     from crater_synth.config import load_settings
+    from crater_synth.navigation.render_frames import frame_overrides
 
-    overrides = list(overrides)
+    overrides = frame_overrides(overrides)  # the frames' own defaults, as nav-frames renders them
     if not any(o.startswith("trajectory=") for o in overrides):
         overrides.insert(0, "trajectory=descent_ridge")
     runs = {}
@@ -143,6 +144,7 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
         "width_px": settings.trajectory.width_px,
         "mode": settings.render.mode,
         "samples": settings.render.samples,
+        "gbuffer_samples": settings.render.gbuffer_samples or settings.render.samples,
         "workers": settings.render.workers,
         **runs,
         "speedup_end_to_end": round(a["frames_per_s"] / b["frames_per_s"], 2),

@@ -118,7 +118,7 @@ def render_survey(
     import click
 
     from crater_synth.config import load_settings
-    from crater_synth.navigation.render_frames import render_frames
+    from crater_synth.navigation.render_frames import frame_overrides, render_frames
 
     out = Path(out)
     tracks = plan_tracks(n_tracks, seed)
@@ -128,7 +128,7 @@ def render_survey(
         if (d / "manifest.jsonl").exists():
             done += 1
             continue
-        settings = load_settings(track_overrides(track) + list(overrides))
+        settings = load_settings(frame_overrides(track_overrides(track) + list(overrides)))
         render_frames(settings, d, progress=False)
         rendered += 1
         if progress:

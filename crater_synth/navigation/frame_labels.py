@@ -24,6 +24,7 @@ from crater_core import geometry, schema
 from crater_core.trajectory import FramePose
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
+from crater_synth.navigation.landmarks import positions_mc
 
 RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
 MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
@@ -94,7 +95,7 @@ def landmarks_in_view(
         return []
     cam = pose.pose_enu(lat0, lon0)
     w = int(pose.width_px)
-    pts_mc = np.array([lm.position_mc() for lm in landmarks])
+    pts_mc = positions_mc(landmarks)
     pts = geometry.mc_to_enu(pts_mc, lat0, lon0)
     uv, depth = geometry.project_points(pts, cam, w)
     inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < w)
@@ -202,7 +203,8 @@ def relabel(frames_dir) -> dict:
         if pole not in maps:
             maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
         try:
-            lit, depth = exr.read_channel(path, "lit"), exr.read_channel(path, "depth")
+            channels = exr.read_channels(path, ("lit", "depth"))
+            lit, depth = channels["lit"], channels["depth"]
         except exr.ExrError as exc:
             raise UserError(f"{path}: {exc}; nothing relabelled") from None
         labels = landmarks_in_view(pose, maps[pole][0], pose.target_lat, pose.target_lon, lit, depth)

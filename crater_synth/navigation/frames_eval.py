@@ -81,6 +81,7 @@ from crater_synth.navigation.frames_presets import (
     PNP_INLIER_PX,
     map_scales,
 )
+from crater_synth.navigation.landmarks import positions_mc
 from crater_synth.navigation.patches import PatchParams, patch_landmarks
 from crater_synth.navigation.polar import pole_of
 from crater_synth.navigation.refine import RefineParams, Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
@@ -208,7 +209,7 @@ def evaluate_frame(
     r_wc, k = cv_camera(rot, width, fov)
     c_prior = prior_centre(row, seed, prior_offset_km) if prior_enu is None else np.asarray(prior_enu, dtype=float)
     cand = [lm for lm in landmarks if usable(lm, gsd, fparams)] if candidates is None else list(candidates)
-    pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in cand]), lat0, lon0) if cand else np.zeros((0, 3))
+    pts = geometry.mc_to_enu(positions_mc(cand), lat0, lon0) if cand else np.zeros((0, 3))
     depth = (pts - c_prior) @ r_wc[2]
     front = depth > 0
     uv = np.full((len(pts), 2), np.nan)

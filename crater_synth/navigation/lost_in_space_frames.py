@@ -147,7 +147,8 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
             lms = load_default_map(pole)[0]
             maps[pole] = (lms, build_index(lms, lis))
         path = Path(frames_dir) / row["rel_path"]
-        image, depth = exr.read_channel(path, "IF"), exr.read_channel(path, "depth")
+        channels = exr.read_channels(path, ("IF", "depth"))
+        image, depth = channels["IF"], channels["depth"]
         r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis)
         # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
         # given as a detection (its own ellipse): what the detector's result is to be read against.

@@ -23,6 +23,10 @@ Per frame (poses: :mod:`crater_core.trajectory`):
 Output: ``<out>/frame_NNNN.exr`` (the dataset's channels: IF, depth, N.*, lit) and
 ``<out>/manifest.jsonl`` (JSON Lines, one row per frame, ``schema_version``, no timestamps, written
 atomically once every frame is rendered).
+
+Length: one stage, a trajectory from its poses to labelled EXRs (patch grouping, the frames' render
+defaults, worker items, the reuse of finished frames, the labels as frames arrive, the command); the
+labels' geometry is in :mod:`.frame_labels`, the workers' dispatch in the dataset's.
 """
 
 from __future__ import annotations
@@ -56,6 +60,25 @@ SHARE_MAX_VERTEX_FACTOR = 2.0
 # made once per patch), against ~0.33 s per further frame on one thread at 1 sample, ~0.85 s at 4
 # (worker logs of `crater-synth nav-frames trajectory=polar_orbit_arc`, unloaded 2-core machine).
 FRAME_STARTUP_RENDERS = 10
+# Fast mode's G-buffer for navigation frames, unless the command sets render.samples or
+# render.gbuffer_samples: one ray per pixel, which Cycles sends through the pixel's centre whatever the seed
+# (a sharp, noise-free G-buffer). Against direct-mode references at 64 samples it is closer than 4 jittered
+# samples and within the renderer's fast-vs-direct tolerances, at ~1.6 times the frame rate of 4 samples end
+# to end (docs/navigation.md, "Render rate"). Shadow edges are anti-aliased by the
+# fast path's sub-pixel horizon either way; direct renders (render.mode=direct, fast-path fallbacks) keep
+# render.samples.
+FRAME_GBUFFER_SAMPLES = 1
+
+
+def frame_overrides(overrides) -> list[str]:
+    """The overrides a navigation-frame command composes: ``render.gbuffer_samples=1``
+    (:data:`FRAME_GBUFFER_SAMPLES`) ahead of the user's own, unless those set ``render.samples`` or
+    ``render.gbuffer_samples`` (then they alone decide, as in every documented frame command)."""
+    overrides = list(overrides)
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    if keys & {"render.samples", "render.gbuffer_samples"}:
+        return overrides
+    return [f"render.gbuffer_samples={FRAME_GBUFFER_SAMPLES}"] + overrides
 
 
 def frame_rel_path(index: int) -> str:
@@ -225,8 +248,8 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map,
     from crater_core import exr
 
     pose = fr["pose"]
-    lit = exr.read_channel(out_dir / res["rel_path"], "lit")
-    depth = exr.read_channel(out_dir / res["rel_path"], "depth")
+    channels = exr.read_channels(out_dir / res["rel_path"], ("lit", "depth"))
+    lit, depth = channels["lit"], channels["depth"]
     cam = pose.pose_enu(pose.target_lat, pose.target_lon)
     sun_el, sun_az = pose.sun_enu(pose.target_lat, pose.target_lon)
     return {
@@ -463,11 +486,13 @@ def render_frames(
 def nav_frames_command(overrides, out, only, per_frame_patches):
     """Render a trajectory's navigation frames (EXR + labelled manifest).
 
-    Example: `crater-synth nav-frames trajectory=descent_ridge render.mode=direct`
+    Fast mode's G-buffer takes one sample per pixel (its centre) unless render.samples or
+    render.gbuffer_samples is given. Example: `crater-synth nav-frames trajectory=descent_ridge
+    render.mode=direct`
     """
     from crater_synth.config import load_settings
 
-    settings = load_settings(overrides)
+    settings = load_settings(frame_overrides(overrides))
     if settings.trajectory is None:
         raise ConfigError("no trajectory selected: add trajectory=NAME (configs/trajectory/)")
     try:
