@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from blender_gen.border import border_fractions, pixels_from_border
-from crater_core import exr, geometry
+from crater_core import exr
 
 from helpers import render as cr
 
@@ -62,12 +62,7 @@ def test_border_fractions_select_exactly_the_crop(paper_plans):
 
 def _bowl_depth(item: dict) -> np.ndarray:
     """Analytic depth (along the view axis) of the paraboloid at every crop pixel centre."""
-    pose = geometry.look_at_camera(item["cam_elevation"], item["cam_azimuth"], item["range_m"], item["fov_deg"])
-    w = item["frame_width"]
-    f = pose.focal_px(w)
-    u0, v0, u1, v1 = item["crop"]
-    uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
-    d = np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
+    pose, d = cr.centre_rays(item)
     o = pose.position
     a = (d[..., 0] ** 2 + d[..., 1] ** 2) / (2 * BOWL_RADIUS_M)
     b = (o[0] * d[..., 0] + o[1] * d[..., 1]) / BOWL_RADIUS_M - d[..., 2]

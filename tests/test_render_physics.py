@@ -96,6 +96,12 @@ def test_flat_plane_channels(flat_runs):
             assert lit.mean() > (0.97 if it["sun_elevation"] < 1 else 0.995), (mode, it["sun_elevation"], lit.mean())
 
 
+def _flat_centre_depth(it: dict) -> np.ndarray:
+    """The depth of the flat plane z = 0 at each crop pixel's centre ray (distance along the view axis)."""
+    pose, d = cr.centre_rays(it)
+    return -pose.position[2] / d[..., 2] * (d @ pose.forward)
+
+
 def test_flat_plane_depth_and_crop_alignment(flat_runs):
     """Depth is the distance along the view axis, and the crop box is exactly the requested pixels:
     Cycles' depth (one sample per pixel, jittered inside it) agrees with the analytic depth at the
@@ -103,14 +109,8 @@ def test_flat_plane_depth_and_crop_alignment(flat_runs):
     run = flat_runs["direct"]
     for it in run["items"]:
         depth = _load(run["out"], it)["depth"]
-        pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
-        w = it["frame_width"]
-        f = pose.focal_px(w)
+        expected = _flat_centre_depth(it)
         u0, v0, u1, v1 = it["crop"]
-        uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
-        d = np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
-        t = -pose.position[2] / d[..., 2]
-        expected = t * (d @ pose.forward)  # distance along the view axis
         assert depth.shape == expected.shape == (v1 - v0, u1 - u0)
         grad = np.hypot(*np.gradient(expected)).mean()
         resid = depth - expected
@@ -119,17 +119,6 @@ def test_flat_plane_depth_and_crop_alignment(flat_runs):
         else:
             assert abs(resid.mean()) < 0.25 * grad, (it, resid.mean(), grad)
             assert np.abs(resid).max() < 1.0 * grad + 1e-3 * it["range_m"]
-
-
-def _flat_centre_depth(it: dict) -> np.ndarray:
-    """The depth of the flat plane z = 0 at each crop pixel's centre ray (distance along the view axis)."""
-    pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
-    w = it["frame_width"]
-    f = pose.focal_px(w)
-    u0, v0, u1, v1 = it["crop"]
-    uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
-    d = np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
-    return -pose.position[2] / d[..., 2] * (d @ pose.forward)
 
 
 def test_one_sample_gbuffer_is_the_pixel_centre_whatever_the_seed(tmp_path):

@@ -173,3 +173,14 @@ def crater_items(
             crop = [int(math.floor(b[0])), int(math.floor(b[1])), int(math.ceil(b[2])), int(math.ceil(b[3]))]
             out.append(item(len(out), sun_el, sun_az, cam_el, cam_az, 1.5 * diameter_m, width, crop, name))
     return out
+
+
+def centre_rays(it: dict):
+    """The look-at camera of a sweep item and the direction (world, unnormalised, view axis -1) of the
+    ray through the centre of each pixel of its crop: (pose, (rows, cols, 3))."""
+    pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
+    w = it["frame_width"]
+    f = pose.focal_px(w)
+    u0, v0, u1, v1 = it["crop"]
+    uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
+    return pose, np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
