@@ -308,6 +308,8 @@ def read_channel_and_header(path: str | os.PathLike, channel: str = "IF") -> tup
 def read_channels(path: str | os.PathLike, channels) -> dict[str, np.ndarray]:
     """Several channels by name, each as :func:`read_channel` gives it, from one decode of the file (the
     contiguous range of channels that holds them): cheaper than one :func:`read_channel` per channel."""
+    if not channels:
+        return {}
     with _LibraryStderr() as quiet:
         data, _ = _read_channels(path, tuple(channels))
         quiet.failed = False

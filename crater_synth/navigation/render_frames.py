@@ -64,9 +64,8 @@ FRAME_STARTUP_RENDERS = 10
 # render.gbuffer_samples: one ray per pixel, which Cycles sends through the pixel's centre whatever the seed
 # (a sharp, noise-free G-buffer). Against direct-mode references at 64 samples it is closer than 4 jittered
 # samples and within the renderer's fast-vs-direct tolerances, at ~1.6 times the frame rate of 4 samples end
-# to end (docs/navigation.md, "Render rate"). Shadow edges are anti-aliased by the
-# fast path's sub-pixel horizon either way; direct renders (render.mode=direct, fast-path fallbacks) keep
-# render.samples.
+# to end (docs/navigation.md, "Render rate"). Shadow edges are anti-aliased by the fast path's sub-pixel
+# horizon either way; direct renders (render.mode=direct, fast-path fallbacks) keep render.samples.
 FRAME_GBUFFER_SAMPLES = 1
 
 
