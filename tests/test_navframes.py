@@ -398,6 +398,9 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
     rec = rec["descent_ridge/position/appearance/patches"]
     assert rec["protocol"]["preset_settings"]["refine"] and rec["all"]["windows"] == 1
+    # The recorded command renders these frames again: they named their samples, so no G-buffer setting.
+    assert rec["render"]["gbuffer_samples"] is None and "render.samples=1 " in rec["command"]
+    assert "gbuffer" not in rec["command"]
     # --sensor puts a camera (noise, PSF, 8 bits) on each frame first; recorded, and keyed apart.
     res = CliRunner().invoke(
         main,
@@ -628,6 +631,20 @@ def test_frame_commands_default_to_a_one_sample_gbuffer_unless_told_the_samples(
     own = load_settings(frame_overrides(["render.gbuffer_samples=8"])).render
     assert own.gbuffer_samples == 8
     assert frame_overrides(("+render.samples=2",)) == ["+render.samples=2"]
+
+
+def test_recorded_frame_settings_name_the_gbuffer_samples_the_frames_were_rendered_with(tmp_path):
+    """A frame rendered with the one-sample G-buffer default records it, so the command recorded with its
+    results (render.samples and render.gbuffer_samples) renders the same frames again."""
+    from crater_synth.navigation import frames_record
+
+    chans = {c: np.zeros((4, 4), np.float32) for c in schema.EXR_CHANNELS}
+    header = {"crater_synth:mode": "fast", "samples": 16, "crater_synth:render": json.dumps({"gbuffer_samples": 1})}
+    exr.write_exr(tmp_path / "frame_0000.exr", chans, header)
+    row = {"rel_path": "frame_0000.exr", "pose": {"width_px": 4, "fov_deg": 60.0}}
+    (tmp_path / schema.MANIFEST_NAME).write_text(json.dumps(row) + "\n")
+    info = frames_record._render_info(tmp_path)
+    assert info == {"mode": "fast", "samples": 16, "gbuffer_samples": 1, "width_px": 4, "fov_deg": 60.0}
 
 
 def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):

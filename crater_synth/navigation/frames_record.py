@@ -92,7 +92,7 @@ def _render_info(frames_dir: Path) -> dict:
     """Render settings of the first frame, from its EXR header (mode, samples, G-buffer samples in fast
     mode, frame size)."""
     rows = [json.loads(line) for line in (Path(frames_dir) / schema.MANIFEST_NAME).read_text().splitlines() if line]
-    _, header = exr.read_channel_and_header(Path(frames_dir) / rows[0]["rel_path"], "IF")
+    header = exr.read_header(Path(frames_dir) / rows[0]["rel_path"])
     render = json.loads(header.get("crater_synth:render") or "{}")
     return {
         "mode": header.get("crater_synth:mode"),
