@@ -21,6 +21,12 @@ import traceback
 if __package__ in (None, ""):  # run as a script (blender --python blender_gen/worker.py)
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from crater_core.blas_threads import one_blas_thread  # noqa: E402 - after the path above
+
+# Before numpy's import, whatever the environment says: the workers are the parallelism, and the rendered
+# bytes must not depend on the node's core count (crater_core/blas_threads.py).
+one_blas_thread(force=True)
+
 # Python modules the worker needs besides bpy and the standard library. A Blender binary runs its own
 # (or the system's) Python, which may lack them: checked first, so that the host gets one ERROR line.
 REQUIRED_MODULES = {"numpy": "python3-numpy", "OpenImageIO": "python3-openimageio"}

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+import crater_synth  # noqa: F401 - first: it sets the processes' one BLAS thread before numpy loads
+
 from helpers.cli import TINY, run_cli
 
 
