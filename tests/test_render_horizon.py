@@ -185,12 +185,7 @@ def _marched_horizon(near, far, px, py, azimuth_deg):
 def test_lit_mask_matches_brute_force_ray_marching(bowl):
     for it in bowl["items"]:
         img = exr.read_exr(str(bowl["out"] / it["rel_path"]))[0]
-        pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
-        w = it["frame_width"]
-        f = pose.focal_px(w)
-        u0, v0, u1, v1 = it["crop"]
-        uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
-        ray = np.stack([(uu - w / 2) / f, -(vv - w / 2) / f, -np.ones_like(uu)], -1) @ pose.rotation.T
+        pose, ray = cr.centre_rays(it)
         p = pose.position + img["depth"][..., None] * ray  # ray . forward == 1
         theta = math.radians(it["sun_elevation"])
         h = _marched_horizon(bowl["near"], bowl["far"], p[..., 0], p[..., 1], it["sun_azimuth"])

@@ -134,13 +134,7 @@ def run_worker(
 
 def flat_expected_if(it: dict, params: dict = HAPKE, z0: float = 0.0) -> np.ndarray:
     """Per-pixel I/F of the plane z = z0 seen through each crop pixel's centre ray (numpy oracle)."""
-    pose = geometry.look_at_camera(it["cam_elevation"], it["cam_azimuth"], it["range_m"], it["fov_deg"])
-    width = it["frame_width"]
-    f = pose.focal_px(width)
-    u0, v0, u1, v1 = it["crop"]
-    uu, vv = np.meshgrid(np.arange(u0, u1) + 0.5, np.arange(v0, v1) + 0.5)
-    d_cam = np.stack([(uu - width / 2) / f, -(vv - width / 2) / f, -np.ones_like(uu)], axis=-1)
-    d = d_cam @ pose.rotation.T
+    pose, d = centre_rays(it)
     t = (z0 - pose.position[2]) / d[..., 2]
     p = pose.position + t[..., None] * d
     view = pose.position - p
