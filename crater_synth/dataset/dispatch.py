@@ -26,7 +26,6 @@ from pathlib import Path
 
 from blender_gen import compat
 from crater_core import schema
-from crater_core.blas_threads import BLAS_THREAD_VARIABLES
 from crater_core.files import remove_stale_scratch
 from crater_core.settings import HapkeParams, RenderSettings
 from crater_synth.dataset.disk import JOBS_DIR
@@ -259,8 +258,7 @@ def run_workers(
             stdout=subprocess.PIPE,
             stderr=log,
             cwd=REPO_ROOT,
-            # one BLAS thread, also where a Blender binary loads numpy before the worker script runs
-            env=os.environ | {"PYTHONUNBUFFERED": "1"} | {name: "1" for name in BLAS_THREAD_VARIABLES},
+            env=os.environ | {"PYTHONUNBUFFERED": "1"},
         )
         started.add(proc.pid)
         running[proc] = _Worker(proc, job, block, unit_id, log, job_file)
