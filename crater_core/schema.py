@@ -40,7 +40,7 @@ EXR_CHANNELS = ("IF", "depth", "N.X", "N.Y", "N.Z", "lit")
 EXR_CHANNEL_TYPES = {"IF": "float", "depth": "float", "N.X": "half", "N.Y": "half", "N.Z": "half", "lit": "half"}
 
 # One landmark label of a navigation frame's manifest row (``crater-synth nav-frames``), in order, with its
-# value type: written by crater_synth.navigation.frame_labels, exported column by column by
+# value type: written by crater_synth.navigation.rendered.labels, exported column by column by
 # crater_synth.dataset.record_kinds. "ellipse" is the projected rim (cu, cv, a, b, angle_rad; px, rad);
 # the two fractions are null when under half of the rim lies in the frame (and the occluded one in
 # frames labelled before it existed).

@@ -19,7 +19,7 @@ How to add a key (e.g. ``render.shadow_method``)
    ``str``, ``Optional[...]``, ``Tuple[X, ...]`` for a list, ``Dict[str, X]``, or a nested settings
    class). Give it a default only if a yaml file may omit it; otherwise the yaml supplies the value
    (one source of truth) and a yaml lacking it is a "missing mandatory value" error.
-2. Check its range in the class's ``_check`` with ``_need(ok, "shadow_method", value, "must be ...")``.
+2. Check its range in the class's ``_check`` with ``need(ok, "shadow_method", value, "must be ...")``.
 3. Add the value, with a comment, to every ``configs/<group>/*.yaml``.
 Hydra's schema is derived from these classes (``crater_synth.config.register_schemas``), so there is
 no second list to update. A new group: a class here, a field of :class:`Settings`, an entry in
@@ -51,7 +51,7 @@ from crater_core.settings_train import (
     TrainSettings,
 )
 from crater_core.sweep import AXES, MAX_AXIS_COUNT, SweepGrid, grid_from_config
-from crater_core.typed_config import SettingsError, _Group, _need, as_plain, build, replace
+from crater_core.typed_config import Group, SettingsError, as_plain, build, need, replace
 
 # The solar disc's angular radius (deg): the whole Sun is below a flat horizon below -this.
 SUN_ANGULAR_RADIUS_DEG = 0.2665
@@ -61,7 +61,7 @@ SUN_ANGULAR_RADIUS_DEG = 0.2665
 # Crater entries, DEM, terrain
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
-class CraterSettings(_Group):
+class CraterSettings(Group):
     """One crater entry, ``crater.<key>`` (configs/crater/<key>.yaml); ``crater=[a,b,c]`` selects several."""
 
     name: str
@@ -71,10 +71,10 @@ class CraterSettings(_Group):
     source: str = ""
 
     def _check(self):
-        _need(bool(self.name.strip()), "name", self.name, "must not be empty")
-        _need(-90.0 <= self.lat <= 90.0, "lat", self.lat, "must lie in [-90, 90] degrees")
-        _need(-360.0 <= self.lon <= 360.0, "lon", self.lon, "must lie in [-360, 360] degrees")
-        _need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
+        need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        need(-90.0 <= self.lat <= 90.0, "lat", self.lat, "must lie in [-90, 90] degrees")
+        need(-360.0 <= self.lon <= 360.0, "lon", self.lon, "must lie in [-360, 360] degrees")
+        need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
 
 
 # dem.blend_pixels: the stack's transition band in coarse pixels (crater_synth/terrain/stack.py, docs/dem_stack.md).
@@ -82,7 +82,7 @@ BLEND_PIXELS_RANGE = (0.5, 50.0)
 
 
 @dataclass(frozen=True, kw_only=True)
-class DemSettings(_Group):
+class DemSettings(Group):
     """``dem.*``: the base DEM product (or an explicit file), finer stack layers over it, the far-field one."""
 
     product: Optional[str]
@@ -94,15 +94,15 @@ class DemSettings(_Group):
     max_nodata_fraction: float
 
     def _check(self):
-        _need(bool(self.product or self.path), "product", self.product, "dem.product or dem.path must be set")
+        need(bool(self.product or self.path), "product", self.product, "dem.product or dem.path must be set")
         lo, hi = BLEND_PIXELS_RANGE
-        _need(
+        need(
             lo <= self.blend_pixels <= hi,
             "blend_pixels",
             self.blend_pixels,
             f"must lie in [{lo:g}, {hi:g}] (coarse pixels)",
         )
-        _need(
+        need(
             0.0 <= self.max_nodata_fraction <= 1.0,
             "max_nodata_fraction",
             self.max_nodata_fraction,
@@ -120,7 +120,7 @@ MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER = 0.005, 0.15
 
 
 @dataclass(frozen=True, kw_only=True)
-class DetailSettings(_Group):
+class DetailSettings(Group):
     """``terrain.detail``: sub-DEM detail (crater_synth/terrain/detail.py, docs/detail.md); defaults are the
     calibrated values. ``hurst``, ``roughness_rms_slope_deg``, ``crater_density_scale``,
     ``min_crater_diameter_m`` and ``min_depth_diameter`` apply to ``model=calibrated``; ``model=legacy``
@@ -140,23 +140,23 @@ class DetailSettings(_Group):
         return build(cls, mapping or {}, path)
 
     def _check(self):
-        _need(self.model in DETAIL_MODELS, "model", self.model, f"must be one of {list(DETAIL_MODELS)}")
-        _need(0.0 < self.hurst < 1.0, "hurst", self.hurst, "must lie in (0, 1)")
-        _need(
+        need(self.model in DETAIL_MODELS, "model", self.model, f"must be one of {list(DETAIL_MODELS)}")
+        need(0.0 < self.hurst < 1.0, "hurst", self.hurst, "must lie in (0, 1)")
+        need(
             0.0 <= self.roughness_rms_slope_deg < 60.0,
             "roughness_rms_slope_deg",
             self.roughness_rms_slope_deg,
             "must lie in [0, 60) degrees",
         )
-        _need(
+        need(
             0.0 <= self.crater_density_scale <= 100.0,
             "crater_density_scale",
             self.crater_density_scale,
             "must lie in [0, 100]",
         )
-        _need(self.min_crater_diameter_m > 0.0, "min_crater_diameter_m", self.min_crater_diameter_m, "must be > 0")
+        need(self.min_crater_diameter_m > 0.0, "min_crater_diameter_m", self.min_crater_diameter_m, "must be > 0")
         lo, hi = MIN_RECOGNITION_DEPTH_DIAMETER, MAX_RECOGNITION_DEPTH_DIAMETER
-        _need(
+        need(
             lo <= self.min_depth_diameter < hi,
             "min_depth_diameter",
             self.min_depth_diameter,
@@ -169,7 +169,7 @@ NEAR_VERTICES_RANGE = (16, 8193)
 
 
 @dataclass(frozen=True, kw_only=True)
-class TerrainSettings(_Group):
+class TerrainSettings(Group):
     """``terrain.*``: near/far field of the patch around each crater (crater_synth/terrain/patch.py)."""
 
     near_radius_factor: float
@@ -180,15 +180,15 @@ class TerrainSettings(_Group):
 
     def _check(self):
         lo, hi = NEAR_VERTICES_RANGE
-        _need(lo <= self.near_vertices <= hi, "near_vertices", self.near_vertices, f"must lie in [{lo}, {hi}]")
-        _need(
+        need(lo <= self.near_vertices <= hi, "near_vertices", self.near_vertices, f"must lie in [{lo}, {hi}]")
+        need(
             0.6 <= self.near_radius_factor <= 50.0,
             "near_radius_factor",
             self.near_radius_factor,
             "must lie in [0.6, 50] crater diameters (the near field must contain the rim)",
         )
-        _need(self.far_radius_km >= 0.0, "far_radius_km", self.far_radius_km, "must be >= 0 (0 = no far field)")
-        _need(self.far_spacing_km > 0.0, "far_spacing_km", self.far_spacing_km, "must be > 0")
+        need(self.far_radius_km >= 0.0, "far_radius_km", self.far_radius_km, "must be >= 0 (0 = no far field)")
+        need(self.far_spacing_km > 0.0, "far_spacing_km", self.far_spacing_km, "must be > 0")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -201,7 +201,7 @@ RENDER_DEVICES = ("CPU", "CUDA", "OPTIX", "HIP", "ONEAPI", "METAL")
 
 
 @dataclass(frozen=True, kw_only=True)
-class RenderSettings(_Group):
+class RenderSettings(Group):
     """``render.*`` (configs/render/cycles_cpu.yaml, docs/renderer.md)."""
 
     mode: str
@@ -224,21 +224,21 @@ class RenderSettings(_Group):
     blender: Optional[str] = None
 
     def _check(self):
-        _need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
-        _need(self.device in RENDER_DEVICES, "device", self.device, f"must be one of {', '.join(RENDER_DEVICES)}")
-        _need(self.samples >= 1, "samples", self.samples, "must be >= 1")
-        _need(self.max_bounces >= 0, "max_bounces", self.max_bounces, "must be >= 0")
-        _need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0 = all cores)")
-        _need(self.roi_min_px >= 8, "roi_min_px", self.roi_min_px, "must be >= 8")
-        _need(self.shadow_map_px >= 1, "shadow_map_px", self.shadow_map_px, "must be >= 1")
-        _need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
-        _need(
+        need(self.mode in RENDER_MODES, "mode", self.mode, "must be 'fast' or 'direct'")
+        need(self.device in RENDER_DEVICES, "device", self.device, f"must be one of {', '.join(RENDER_DEVICES)}")
+        need(self.samples >= 1, "samples", self.samples, "must be >= 1")
+        need(self.max_bounces >= 0, "max_bounces", self.max_bounces, "must be >= 0")
+        need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0 = all cores)")
+        need(self.roi_min_px >= 8, "roi_min_px", self.roi_min_px, "must be >= 8")
+        need(self.shadow_map_px >= 1, "shadow_map_px", self.shadow_map_px, "must be >= 1")
+        need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
+        need(
             self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor, "must be > 0"
         )
-        _need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
-        _need(self.workers >= 1, "workers", self.workers, "must be >= 1")
-        _need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
-        _need(
+        need(self.gbuffer_samples >= 0, "gbuffer_samples", self.gbuffer_samples, "must be >= 0 (0 = samples)")
+        need(self.workers >= 1, "workers", self.workers, "must be >= 1")
+        need(self.max_retries >= 0, "max_retries", self.max_retries, "must be >= 0")
+        need(
             self.blender is None or bool(self.blender.strip()),
             "blender",
             self.blender,
@@ -247,7 +247,7 @@ class RenderSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class AxisSettings(_Group):
+class AxisSettings(Group):
     """One sweep axis: ``count`` paper positions (crater_core/sweep.py), or explicit ``values``."""
 
     count: int
@@ -256,12 +256,12 @@ class AxisSettings(_Group):
     step_fraction: Optional[float] = None  # physical sun elevations: fraction step (null: 0.1)
 
     def _check(self):
-        _need(1 <= self.count <= MAX_AXIS_COUNT, "count", self.count, f"must lie in [1, {MAX_AXIS_COUNT}]")
-        _need(self.values is None or len(self.values) > 0, "values", self.values, "must not be empty (null = count)")
+        need(1 <= self.count <= MAX_AXIS_COUNT, "count", self.count, f"must lie in [1, {MAX_AXIS_COUNT}]")
+        need(self.values is None or len(self.values) > 0, "values", self.values, "must not be empty (null = count)")
 
 
 @dataclass(frozen=True, kw_only=True)
-class SweepSettings(_Group):
+class SweepSettings(Group):
     """``sweep.*``: Table 2 grid (configs/sweep/*.yaml). The grid is built, and so checked, at once."""
 
     name: str
@@ -277,7 +277,7 @@ class SweepSettings(_Group):
     min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def _check(self):
-        _need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
+        need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
         self.grid  # noqa: B018 - raises SweepError naming the axis for a nonsense grid
 
     @cached_property
@@ -298,7 +298,7 @@ class SweepSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class LauncherSettings(_Group):
+class LauncherSettings(Group):
     """``launcher.*``: one machine (optionally one shard) or a Dask cluster (docs/distributed.md)."""
 
     name: str
@@ -309,11 +309,11 @@ class LauncherSettings(_Group):
     retries: int = 3  # dask: reschedules of a task whose worker died
 
     def _check(self):
-        _need(self.name in ("local", "dask"), "name", self.name, "must be 'local' or 'dask'")
+        need(self.name in ("local", "dask"), "name", self.name, "must be 'local' or 'dask'")
         self.shard_slice  # noqa: B018 - parses (and so checks) "i/n"
-        _need(self.n_workers >= 1, "n_workers", self.n_workers, "must be >= 1")
-        _need(self.shards is None or self.shards >= 1, "shards", self.shards, "must be >= 1 (null = 4 x n_workers)")
-        _need(self.retries >= 0, "retries", self.retries, "must be >= 0")
+        need(self.n_workers >= 1, "n_workers", self.n_workers, "must be >= 1")
+        need(self.shards is None or self.shards >= 1, "shards", self.shards, "must be >= 1 (null = 4 x n_workers)")
+        need(self.retries >= 0, "retries", self.retries, "must be >= 0")
 
     @cached_property
     def shard_slice(self) -> Optional[Tuple[int, int]]:
@@ -324,7 +324,7 @@ class LauncherSettings(_Group):
             i, n = (int(x) for x in str(self.shard).split("/"))
         except ValueError:
             raise SettingsError("shard", "expected 'i/n', e.g. 0/4", self.shard) from None
-        _need(n >= 1 and 0 <= i < n, "shard", self.shard, "need 0 <= i < n")
+        need(n >= 1 and 0 <= i < n, "shard", self.shard, "need 0 <= i < n")
         return i, n
 
 
@@ -332,16 +332,16 @@ class LauncherSettings(_Group):
 # Closed loop, Figure 6 experiments, validation protocol, ablation, data fetching
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
-class LoopSettings(_Group):
+class LoopSettings(Group):
     """``loop.*``: the closed loop of the paper's Fig. 3."""
 
     threshold: float
     sun_elevation_schedule: Tuple[int, ...]
 
     def _check(self):
-        _need(0.0 < self.threshold <= 1.0, "threshold", self.threshold, "must lie in (0, 1]")
+        need(0.0 < self.threshold <= 1.0, "threshold", self.threshold, "must lie in (0, 1]")
         s = list(self.sun_elevation_schedule)
-        _need(
+        need(
             bool(s) and s == sorted(set(s)) and s[0] >= 1,
             "sun_elevation_schedule",
             s,
@@ -350,7 +350,7 @@ class LoopSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class CountsSettings(_Group):
+class CountsSettings(Group):
     """``experiments.counts``: the sample counts of each axis for Figure 6."""
 
     sun_elevation: Optional[Tuple[int, ...]]  # null: this axis is not varied
@@ -361,22 +361,22 @@ class CountsSettings(_Group):
     def _check(self):
         for axis in AXES:
             counts = getattr(self, axis) or ()
-            _need(all(c >= 1 for c in counts), axis, counts, "counts must be >= 1")
+            need(all(c >= 1 for c in counts), axis, counts, "counts must be >= 1")
 
 
 @dataclass(frozen=True, kw_only=True)
-class ExperimentsSettings(_Group):
+class ExperimentsSettings(Group):
     """``experiments.*``: Figure 6 (crater_synth/evaluation/figure6.py)."""
 
     counts: CountsSettings
     sigmas: Optional[Tuple[float, ...]]
 
     def _check(self):
-        _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
+        need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
 
 
 @dataclass(frozen=True, kw_only=True)
-class ValidateSettings(_Group):
+class ValidateSettings(Group):
     """``validate.*``: the real validation protocol (crater_synth/evaluation/validation.py, docs/validation.md). The
     groups' rules (disjoint, in the catalogue, no test crater) are checked there, against configs/crater/."""
 
@@ -391,14 +391,14 @@ class ValidateSettings(_Group):
     north_overrides: Tuple[str, ...] = ()
 
     def _check(self):
-        _need(bool(self.seeds), "seeds", self.seeds, "must list at least one seed")
+        need(bool(self.seeds), "seeds", self.seeds, "must list at least one seed")
         bad = [r for r in self.roles if r not in ("validation", "holdout", "test")]
-        _need(bool(self.roles) and not bad, "roles", self.roles, "must list some of validation, holdout, test")
-        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
+        need(bool(self.roles) and not bad, "roles", self.roles, "must list some of validation, holdout, test")
+        need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
 
 
 @dataclass(frozen=True, kw_only=True)
-class LeverSettings(_Group):
+class LeverSettings(Group):
     """``ablation.levers.<name>``: one fidelity lever; ``when_off`` are the overrides that turn it off."""
 
     why: str = ""
@@ -406,7 +406,7 @@ class LeverSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class AblationSettings(_Group):
+class AblationSettings(Group):
     """``ablation.*``: each fidelity lever on and off under the validation protocol (evaluation/ablation.py)."""
 
     out_dir: str
@@ -415,11 +415,11 @@ class AblationSettings(_Group):
     levers: Dict[str, LeverSettings]
 
     def _check(self):
-        _need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
+        need(bool(self.out_dir.strip()), "out_dir", self.out_dir, "must not be empty")
 
 
 @dataclass(frozen=True, kw_only=True)
-class FetchSettings(_Group):
+class FetchSettings(Group):
     """``fetch.*``: ``crater-synth fetch-data`` (crater_synth/fetch.py, docs/data.md)."""
 
     base_url: Optional[str]
@@ -429,12 +429,12 @@ class FetchSettings(_Group):
     backoff_s: float
 
     def _check(self):
-        _need(self.timeout_s > 0, "timeout_s", self.timeout_s, "must be > 0")
-        _need(self.retries >= 1, "retries", self.retries, "must be >= 1")
-        _need(self.chunk_bytes >= 1024, "chunk_bytes", self.chunk_bytes, "must be >= 1024")
-        _need(self.backoff_s >= 0, "backoff_s", self.backoff_s, "must be >= 0")
+        need(self.timeout_s > 0, "timeout_s", self.timeout_s, "must be > 0")
+        need(self.retries >= 1, "retries", self.retries, "must be >= 1")
+        need(self.chunk_bytes >= 1024, "chunk_bytes", self.chunk_bytes, "must be >= 1024")
+        need(self.backoff_s >= 0, "backoff_s", self.backoff_s, "must be >= 0")
         url = (self.base_url or "").strip()
-        _need(
+        need(
             not url or url.startswith(("http://", "https://", "file://")),
             "base_url",
             self.base_url,
@@ -449,7 +449,7 @@ SUN_MODES = ("physical", "explicit")
 
 
 @dataclass(frozen=True, kw_only=True)
-class TrajectorySettings(_Group):
+class TrajectorySettings(Group):
     """``trajectory.*`` (configs/trajectory/*.yaml): camera poses of a run of navigation frames.
 
     The ground track is the great circle from ``start`` to ``end`` (lat, lon deg); the altitude runs
@@ -475,27 +475,25 @@ class TrajectorySettings(_Group):
     sun_azimuth_deg: float
 
     def _check(self):
-        _need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        need(bool(self.name.strip()), "name", self.name, "must not be empty")
         for key in ("start", "end"):
             v = getattr(self, key)
-            _need(len(v) == 2, key, list(v), "must be [lat, lon] in degrees")
-            _need(-90.0 <= v[0] <= 90.0, key, list(v), "latitude must lie in [-90, 90] degrees")
-        _need(len(self.altitude_km) == 2, "altitude_km", list(self.altitude_km), "must be [first, last] in km")
-        _need(
+            need(len(v) == 2, key, list(v), "must be [lat, lon] in degrees")
+            need(-90.0 <= v[0] <= 90.0, key, list(v), "latitude must lie in [-90, 90] degrees")
+        need(len(self.altitude_km) == 2, "altitude_km", list(self.altitude_km), "must be [first, last] in km")
+        need(
             all(0.5 <= a <= 2000.0 for a in self.altitude_km),
             "altitude_km",
             list(self.altitude_km),
             "must lie in [0.5, 2000] km",
         )
-        _need(self.frames >= 1, "frames", self.frames, "must be >= 1")
-        _need(0.0 <= self.off_nadir_deg < 60.0, "off_nadir_deg", self.off_nadir_deg, "must lie in [0, 60) degrees")
-        _need(1.0 <= self.fov_deg <= 120.0, "fov_deg", self.fov_deg, "must lie in [1, 120] degrees")
-        _need(16 <= self.width_px <= 4096, "width_px", self.width_px, "must lie in [16, 4096] px")
-        _need(self.sun in SUN_MODES, "sun", self.sun, "must be 'physical' or 'explicit'")
-        _need(
-            -90.0 <= self.subsolar_lat_deg <= 90.0, "subsolar_lat_deg", self.subsolar_lat_deg, "must lie in [-90, 90]"
-        )
-        _need(
+        need(self.frames >= 1, "frames", self.frames, "must be >= 1")
+        need(0.0 <= self.off_nadir_deg < 60.0, "off_nadir_deg", self.off_nadir_deg, "must lie in [0, 60) degrees")
+        need(1.0 <= self.fov_deg <= 120.0, "fov_deg", self.fov_deg, "must lie in [1, 120] degrees")
+        need(16 <= self.width_px <= 4096, "width_px", self.width_px, "must lie in [16, 4096] px")
+        need(self.sun in SUN_MODES, "sun", self.sun, "must be 'physical' or 'explicit'")
+        need(-90.0 <= self.subsolar_lat_deg <= 90.0, "subsolar_lat_deg", self.subsolar_lat_deg, "must lie in [-90, 90]")
+        need(
             -90.0 <= self.sun_elevation_deg <= 90.0,
             "sun_elevation_deg",
             self.sun_elevation_deg,
@@ -507,7 +505,7 @@ class TrajectorySettings(_Group):
 # The root
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
-class Settings(_Group):
+class Settings(Group):
     """The whole configuration (configs/config.yaml and its groups), validated."""
 
     crater: Dict[str, CraterSettings]
@@ -539,7 +537,7 @@ class Settings(_Group):
             raise SettingsError("crater", "no crater selected (crater=NAME or crater=[a,b,...])")
         seen: dict[str, str] = {}
         for key, entry in self.crater.items():
-            _need(
+            need(
                 entry.name not in seen,
                 f"crater.{key}.name",
                 entry.name,
@@ -547,7 +545,7 @@ class Settings(_Group):
             )
             seen[entry.name] = key
         for key in ("data_dir", "out_dir", "run_dir"):
-            _need(bool(str(getattr(self, key)).strip()), key, getattr(self, key), "must not be empty")
+            need(bool(str(getattr(self, key)).strip()), key, getattr(self, key), "must not be empty")
 
     @property
     def craters(self) -> Tuple[CraterSettings, ...]:

@@ -8,32 +8,32 @@ from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 from crater_core.sweep import AXES
-from crater_core.typed_config import _Group, _need
+from crater_core.typed_config import Group, need
 
 
 @dataclass(frozen=True, kw_only=True)
-class ConvSettings(_Group):
+class ConvSettings(Group):
     channels: int
     kernel: int
     stride: int
 
     def _check(self):
         for key in ("channels", "kernel", "stride"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
 
 
 @dataclass(frozen=True, kw_only=True)
-class PoolSettings(_Group):
+class PoolSettings(Group):
     kernel: int
     stride: int
 
     def _check(self):
         for key in ("kernel", "stride"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
 
 
 @dataclass(frozen=True, kw_only=True)
-class ModelSettings(_Group):
+class ModelSettings(Group):
     """``model.*``: LunarNet_ex layer sizes (configs/model/lunarnet_ex.yaml, docs/classifiers.md)."""
 
     name: str
@@ -46,13 +46,13 @@ class ModelSettings(_Group):
     dropout: float = 0.0
 
     def _check(self):
-        _need(self.input_size >= 8, "input_size", self.input_size, "must be >= 8")
-        _need(self.num_classes >= 2, "num_classes", self.num_classes, "must be >= 2")
-        _need(self.fc1 >= 1, "fc1", self.fc1, "must be >= 1")
-        _need(0.0 <= self.dropout < 1.0, "dropout", self.dropout, "must lie in [0, 1)")
-        _need(self.conv1.stride == 1, "conv1.stride", self.conv1.stride, "must be 1 (the paper fixes CONV1's stride)")
+        need(self.input_size >= 8, "input_size", self.input_size, "must be >= 8")
+        need(self.num_classes >= 2, "num_classes", self.num_classes, "must be >= 2")
+        need(self.fc1 >= 1, "fc1", self.fc1, "must be >= 1")
+        need(0.0 <= self.dropout < 1.0, "dropout", self.dropout, "must lie in [0, 1)")
+        need(self.conv1.stride == 1, "conv1.stride", self.conv1.stride, "must be 1 (the paper fixes CONV1's stride)")
         c1, p, c2 = self.conv1, self.pool, self.conv2
-        _need(
+        need(
             min(self.feature_sizes()) >= 1,
             "input_size",
             self.input_size,
@@ -70,7 +70,7 @@ class ModelSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class PreprocessSettings(_Group):
+class PreprocessSettings(Group):
     """``train.preprocess``: crop resampling and photometric normalisation (docs/preprocessing.md)."""
 
     antialias: bool
@@ -84,23 +84,23 @@ class PreprocessSettings(_Group):
     support: str = "square"  # square | disc (docs/preprocessing.md)
 
     def _check(self):
-        _need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
-        _need(0.0 <= self.max_outside_frac < 1.0, "max_outside_frac", self.max_outside_frac, "must lie in [0, 1)")
-        _need(
+        need(self.interp_order in (0, 1, 3), "interp_order", self.interp_order, "must be 0, 1 or 3")
+        need(0.0 <= self.max_outside_frac < 1.0, "max_outside_frac", self.max_outside_frac, "must lie in [0, 1)")
+        need(
             0.0 <= self.low_percentile < self.high_percentile,
             "low_percentile",
             self.low_percentile,
             "must lie in [0, high_percentile)",
         )
-        _need(self.high_percentile <= 100.0, "high_percentile", self.high_percentile, "must be <= 100")
-        _need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
-        _need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
-        _need(self.gamma > 0.0, "gamma", self.gamma, "must be > 0")
-        _need(self.support in ("square", "disc"), "support", self.support, "must be square or disc")
+        need(self.high_percentile <= 100.0, "high_percentile", self.high_percentile, "must be <= 100")
+        need(0.0 <= self.lit_threshold < 1.0, "lit_threshold", self.lit_threshold, "must lie in [0, 1)")
+        need(0.0 <= self.shadow_floor < 1.0, "shadow_floor", self.shadow_floor, "must lie in [0, 1)")
+        need(self.gamma > 0.0, "gamma", self.gamma, "must be > 0")
+        need(self.support in ("square", "disc"), "support", self.support, "must be square or disc")
 
 
 @dataclass(frozen=True, kw_only=True)
-class SvmSettings(_Group):
+class SvmSettings(Group):
     """``train.svm``: the SGD linear SVM of LunarSVM_ex."""
 
     alpha: float
@@ -108,9 +108,9 @@ class SvmSettings(_Group):
     tol: float
 
     def _check(self):
-        _need(self.alpha > 0.0, "alpha", self.alpha, "must be > 0")
-        _need(self.max_iter >= 1, "max_iter", self.max_iter, "must be >= 1")
-        _need(self.tol >= 0.0, "tol", self.tol, "must be >= 0")
+        need(self.alpha > 0.0, "alpha", self.alpha, "must be > 0")
+        need(self.max_iter >= 1, "max_iter", self.max_iter, "must be >= 1")
+        need(self.tol >= 0.0, "tol", self.tol, "must be >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -125,8 +125,8 @@ class HogSettings(SvmSettings):
     def _check(self):
         super()._check()
         for key in ("orientations", "pixels_per_cell", "cells_per_block"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-        _need(
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        need(
             self.max_train_images is None or self.max_train_images >= 1,
             "max_train_images",
             self.max_train_images,
@@ -135,7 +135,7 @@ class HogSettings(SvmSettings):
 
 
 @dataclass(frozen=True, kw_only=True)
-class TrainSettings(_Group):
+class TrainSettings(Group):
     """``train.*`` (configs/train/default.yaml, docs/classifiers.md)."""
 
     dataset_dir: str
@@ -168,54 +168,54 @@ class TrainSettings(_Group):
     hog: HogSettings
 
     def _check(self):
-        _need(0.0 < self.val_fraction < 1.0, "val_fraction", self.val_fraction, "must lie in (0, 1)")
-        _need(self.split_by in ("camera", "sun"), "split_by", self.split_by, "must be 'camera' or 'sun'")
-        _need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
+        need(0.0 < self.val_fraction < 1.0, "val_fraction", self.val_fraction, "must lie in (0, 1)")
+        need(self.split_by in ("camera", "sun"), "split_by", self.split_by, "must be 'camera' or 'sun'")
+        need(self.sigmas is None or all(s > 0 for s in self.sigmas), "sigmas", self.sigmas, "must be > 0")
         unknown = sorted(set(self.select or {}) - set(AXES))
-        _need(not unknown, "select", unknown, f"unknown axis: use {', '.join(AXES)}")
+        need(not unknown, "select", unknown, f"unknown axis: use {', '.join(AXES)}")
         for key in ("batch_size", "eval_batch_size", "max_epochs"):
-            _need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
-        _need(self.lr > 0.0, "lr", self.lr, "must be > 0")
-        _need(self.weight_decay >= 0.0, "weight_decay", self.weight_decay, "must be >= 0")
-        _need(
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        need(self.lr > 0.0, "lr", self.lr, "must be > 0")
+        need(self.weight_decay >= 0.0, "weight_decay", self.weight_decay, "must be >= 0")
+        need(
             0.0 <= self.target_val_accuracy <= 1.0,
             "target_val_accuracy",
             self.target_val_accuracy,
             "must lie in [0, 1]",
         )
-        _need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
-        _need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
-        _need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
-        _need(self.cache_workers >= 0, "cache_workers", self.cache_workers, "must be >= 0 (0 = one per core)")
+        need(self.num_threads >= 0, "num_threads", self.num_threads, "must be >= 0 (0 = all cores)")
+        need(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
+        need(self.cache_dtype in ("float16", "float32"), "cache_dtype", self.cache_dtype, "must be float16 or float32")
+        need(self.cache_workers >= 0, "cache_workers", self.cache_workers, "must be >= 0 (0 = one per core)")
         for key in ("max_train_images", "max_val_images"):
             value = getattr(self, key)
-            _need(value is None or value >= 1, key, value, "must be >= 1 (null = all)")
-        _need(
+            need(value is None or value >= 1, key, value, "must be >= 1 (null = all)")
+        need(
             self.augment_rotation in ("right_angles", "any"),
             "augment_rotation",
             self.augment_rotation,
             "must be right_angles or any",
         )
-        _need(
+        need(
             0.0 <= self.augment_offset_frac <= 0.25,
             "augment_offset_frac",
             self.augment_offset_frac,
             "must lie in [0, 0.25]",
         )
-        _need(
+        need(
             self.augment_offset_frac == 0.0 or self.preprocess.support == "disc",
             "augment_offset_frac",
             self.augment_offset_frac,
             "needs train.preprocess.support=disc (a shifted square crop has an empty strip)",
         )
-        _need(self.tta_rotations >= 1, "tta_rotations", self.tta_rotations, "must be >= 1 (1 = no roll averaging)")
-        _need(
+        need(self.tta_rotations >= 1, "tta_rotations", self.tta_rotations, "must be >= 1 (1 = no roll averaging)")
+        need(
             self.tta_rotations == 1 or self.preprocess.support == "disc",
             "tta_rotations",
             self.tta_rotations,
             "needs train.preprocess.support=disc (a square crop turned by any angle has empty corners)",
         )
-        _need(
+        need(
             self.augment_rotation != "any" or self.preprocess.support == "disc",
             "augment_rotation",
             self.augment_rotation,
@@ -224,7 +224,7 @@ class TrainSettings(_Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class SensorSettings(_Group):
+class SensorSettings(Group):
     """``sensor.*``: the seeded sensor model applied to synthetic crops (docs/preprocessing.md)."""
 
     enabled: bool
@@ -246,42 +246,42 @@ class SensorSettings(_Group):
     mosaic_patches: int  # cells for mosaic_blend=patches
 
     def _check(self):
-        _need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
-        _need(0.0 <= self.resolution_prob <= 1.0, "resolution_prob", self.resolution_prob, "must lie in [0, 1]")
-        _need(self.psf_sigma_px >= 0.0, "psf_sigma_px", self.psf_sigma_px, "must be >= 0")
+        need(self.resolution_min_px >= 0, "resolution_min_px", self.resolution_min_px, "must be >= 0 (0 = off)")
+        need(0.0 <= self.resolution_prob <= 1.0, "resolution_prob", self.resolution_prob, "must lie in [0, 1]")
+        need(self.psf_sigma_px >= 0.0, "psf_sigma_px", self.psf_sigma_px, "must be >= 0")
         lo_hi = self.exposure_white_frac
-        _need(
+        need(
             len(lo_hi) == 2 and 0.0 < lo_hi[0] <= lo_hi[1],
             "exposure_white_frac",
             lo_hi,
             "must be [lo, hi] with 0 < lo <= hi",
         )
-        _need(self.full_well_if > 0.0, "full_well_if", self.full_well_if, "must be > 0")
-        _need(self.photons_at_full_well > 0.0, "photons_at_full_well", self.photons_at_full_well, "must be > 0")
-        _need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
-        _need(0.0 <= self.gain_jitter < 1.0, "gain_jitter", self.gain_jitter, "must lie in [0, 1)")
-        _need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
-        _need(self.gsd_m is None or self.gsd_m > 0.0, "gsd_m", self.gsd_m, "must be > 0 metres (or null)")
-        _need(0.0 <= self.gsd_jitter < 1.0, "gsd_jitter", self.gsd_jitter, "must lie in [0, 1)")
-        _need(
+        need(self.full_well_if > 0.0, "full_well_if", self.full_well_if, "must be > 0")
+        need(self.photons_at_full_well > 0.0, "photons_at_full_well", self.photons_at_full_well, "must be > 0")
+        need(self.read_noise_dn >= 0.0, "read_noise_dn", self.read_noise_dn, "must be >= 0")
+        need(0.0 <= self.gain_jitter < 1.0, "gain_jitter", self.gain_jitter, "must lie in [0, 1)")
+        need(1 <= self.quantize_bits <= 16, "quantize_bits", self.quantize_bits, "must lie in [1, 16]")
+        need(self.gsd_m is None or self.gsd_m > 0.0, "gsd_m", self.gsd_m, "must be > 0 metres (or null)")
+        need(0.0 <= self.gsd_jitter < 1.0, "gsd_jitter", self.gsd_jitter, "must lie in [0, 1)")
+        need(
             self.jpeg_quality is None or 1 <= self.jpeg_quality <= 100,
             "jpeg_quality",
             self.jpeg_quality,
             "must lie in [1, 100] (or null)",
         )
-        _need(
+        need(
             self.jpeg_quality is None or self.quantize_bits == 8,
             "jpeg_quality",
             self.jpeg_quality,
             "needs sensor.quantize_bits=8 (baseline JPEG is 8-bit)",
         )
-        _need(1 <= self.mosaic_frames <= 64, "mosaic_frames", self.mosaic_frames, "must lie in [1, 64]")
-        _need(self.mosaic_blend in ("max", "patches"), "mosaic_blend", self.mosaic_blend, "must be max or patches")
-        _need(1 <= self.mosaic_patches <= 256, "mosaic_patches", self.mosaic_patches, "must lie in [1, 256]")
+        need(1 <= self.mosaic_frames <= 64, "mosaic_frames", self.mosaic_frames, "must lie in [1, 64]")
+        need(self.mosaic_blend in ("max", "patches"), "mosaic_blend", self.mosaic_blend, "must be max or patches")
+        need(1 <= self.mosaic_patches <= 256, "mosaic_patches", self.mosaic_patches, "must lie in [1, 256]")
 
 
 @dataclass(frozen=True, kw_only=True)
-class MosaicSettings(_Group):
+class MosaicSettings(Group):
     """``realset.mosaic``: the embedded real image product (data_manifest/products.yaml)."""
 
     package: str
@@ -297,12 +297,12 @@ class MosaicSettings(_Group):
 
     def _check(self):
         for key in ("extent_m", "pixel_m", "radius_m"):
-            _need(getattr(self, key) > 0.0, key, getattr(self, key), "must be > 0")
-        _need(self.pole in (None, "south", "north"), "pole", self.pole, "must be south, north or null")
+            need(getattr(self, key) > 0.0, key, getattr(self, key), "must be > 0")
+        need(self.pole in (None, "south", "north"), "pole", self.pole, "must be south, north or null")
 
 
 @dataclass(frozen=True, kw_only=True)
-class FrameSettings(_Group):
+class FrameSettings(Group):
     """One entry of ``realset.frames``: a georeferenced real frame (docs/realset.md, train/realframes.py)."""
 
     path: str  # a file GDAL reads, or product:<id> (data_manifest/products.yaml)
@@ -312,12 +312,12 @@ class FrameSettings(_Group):
     craters: Optional[Tuple[str, ...]] = None  # default: every selected crater inside the frame
 
     def _check(self):
-        _need(bool(str(self.path).strip()), "path", self.path, "must name a file or product:<id>")
-        _need(self.band >= 1, "band", self.band, "must be >= 1")
+        need(bool(str(self.path).strip()), "path", self.path, "must name a file or product:<id>")
+        need(self.band >= 1, "band", self.band, "must be >= 1")
 
 
 @dataclass(frozen=True, kw_only=True)
-class RealsetSettings(_Group):
+class RealsetSettings(Group):
     """``realset.*``: the real test set (docs/realset.md)."""
 
     source_product: str
@@ -332,16 +332,16 @@ class RealsetSettings(_Group):
     frames: Tuple[FrameSettings, ...] = ()  # georeferenced real frames (train/realframes.py)
 
     def _check(self):
-        _need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")
-        _need(
+        need(self.per_crater >= 1, "per_crater", self.per_crater, "must be >= 1")
+        need(
             len(self.sigmas) > 0 and all(s > 0 for s in self.sigmas),
             "sigmas",
             self.sigmas,
             "must be a non-empty list of ratios > 0",
         )
-        _need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
-        _need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")
-        _need(
+        need(0.0 <= self.max_offset_frac < 0.5, "max_offset_frac", self.max_offset_frac, "must lie in [0, 0.5)")
+        need(0.0 <= self.max_rotation_deg <= 180.0, "max_rotation_deg", self.max_rotation_deg, "must lie in [0, 180]")
+        need(
             self.include_embedded or bool(self.labels_file) or bool(self.frames),
             "include_embedded",
             self.include_embedded,

@@ -47,12 +47,12 @@ def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path and key else (path or key)
 
 
-def _need(ok: bool, key: str, value: Any, why: str) -> None:
+def need(ok: bool, key: str, value: Any, why: str) -> None:
     if not ok:
         raise SettingsError(key, why, value)
 
 
-class _Group:
+class Group:
     """Shared behaviour of the settings classes: conversion from a mapping, back to a plain dict."""
 
     @classmethod

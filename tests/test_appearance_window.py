@@ -1,4 +1,4 @@
-"""The appearance search on real mosaic windows (crater_synth.navigation.appearance_window): the Sun
+"""The appearance search on real mosaic windows (crater_synth.navigation.windows.appearance): the Sun
 direction, a fix on a real south window, the refusal of a frame that does not match, bad settings."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 
 from crater_core import geometry
 from crater_synth.errors import UserError
-from crater_synth.navigation.appearance_window import sun_direction_mc
-from crater_synth.navigation.detect import PRESETS, DetectorParams, DetectorSettingsError, detect
-from crater_synth.navigation.fix import FixParams
+from crater_synth.navigation.detectors.classical import PRESETS, DetectorParams, DetectorSettingsError, detect
+from crater_synth.navigation.fix.solve import FixParams
+from crater_synth.navigation.windows.appearance import sun_direction_mc
 
 # A south window (development data: the south's settings are chosen on every south window) with 26 map
 # landmarks of D >= 15 km in view.
@@ -22,8 +22,8 @@ WINDOW_ID = "S0_1600_0384"
 
 @pytest.fixture(scope="module")
 def south():
-    from crater_synth.navigation.frames import plan_windows, window_frame
-    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.windows.mosaic import plan_windows, window_frame
 
     (w,) = [w for w in plan_windows("south") if w[0] == WINDOW_ID]
     return window_frame("south", *w), load_default_map("south")[0]
@@ -39,7 +39,7 @@ def test_sun_direction_is_at_its_local_azimuth_and_elevation(lat, lon):
 
 
 def test_appearance_finds_the_map_landmarks_and_fixes_a_real_window(south):
-    from crater_synth.navigation.evaluate import run_frame
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams())
@@ -53,8 +53,9 @@ def test_appearance_finds_the_map_landmarks_and_fixes_a_real_window(south):
 def test_a_real_window_is_also_scored_against_the_crater_catalogue(south):
     """With the catalogue, a window's row lists the catalogued craters in view and which detections match
     them; every map landmark the search found near a catalogued crater counts for both."""
-    from crater_synth.navigation.evaluate import run_frame, summarise
-    from crater_synth.navigation.landmark_check import catalogue_craters
+    from crater_synth.navigation.map.check import catalogue_craters
+    from crater_synth.navigation.protocol import summarise
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     listed = catalogue_craters("south")
@@ -69,7 +70,7 @@ def test_a_real_window_is_also_scored_against_the_crater_catalogue(south):
 def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
     """The window turned upside down: every landmark is predicted where the image shows something else.
     The search may still find a few look-alikes, but no consistent set: "no fix", never a wrong one."""
-    from crater_synth.navigation.evaluate import run_frame
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
@@ -79,7 +80,7 @@ def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
 
 
 def test_appearance_settings_and_misuse_are_refused(south):
-    from crater_synth.navigation.evaluate import navigate_frame
+    from crater_synth.navigation.windows.evaluate import navigate_window
 
     with pytest.raises(DetectorSettingsError, match="appearance_sun_el_deg"):
         DetectorParams(method="appearance", appearance_sun_el_deg=(0.0,))
@@ -89,7 +90,7 @@ def test_appearance_settings_and_misuse_are_refused(south):
     with pytest.raises(DetectorSettingsError, match="position prior"):
         detect(frame.image, PRESETS["appearance"], what="window")
     with pytest.raises(UserError, match="light_scope"):
-        navigate_frame(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
+        navigate_window(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
 
 
 def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
@@ -101,7 +102,7 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     from PIL import Image
 
     from crater_synth.cli import main
-    from crater_synth.navigation.light import frame_light
+    from crater_synth.navigation.windows.light import frame_light
 
     frame, _ = south
     png = tmp_path / "window.png"
@@ -145,7 +146,7 @@ def test_nav_eval_takes_the_prior_offset_and_refuses_a_nonsense_one(tmp_path):
 def test_a_prior_beyond_the_search_gives_no_fix(south):
     """The prior offset reaches the search: 60 km off (six times the 10 km the search reaches), no landmark
     is where it is looked for, and the answer is "no fix"."""
-    from crater_synth.navigation.evaluate import run_frame
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), prior_offset_km=60.0)
@@ -157,8 +158,8 @@ def test_lost_in_space_then_the_appearance_search(south):
     is the search's (every fix landmark found by its appearance), as accurate as with a prior."""
     import dataclasses as dc
 
-    from crater_synth.navigation.evaluate import run_frame
-    from crater_synth.navigation.lost_in_space import LIS_PRESETS, build_index
+    from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, build_index
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     lis_params = dc.replace(LIS_PRESETS["south-choice"], known_heading=True)
@@ -169,8 +170,8 @@ def test_lost_in_space_then_the_appearance_search(south):
 
 
 def test_window_patches_lie_on_the_dem_under_the_window_grid(south):
-    from crater_synth.navigation.patches import PATCH_SOURCE, PatchParams, window_patches
-    from crater_synth.navigation.refine import RefineParams, lander_dem
+    from crater_synth.navigation.fix.patches import PATCH_SOURCE, PatchParams, window_patches
+    from crater_synth.navigation.fix.refine import RefineParams, lander_dem
 
     frame, _ = south
     dem = lander_dem("south")
@@ -189,8 +190,9 @@ def test_window_patches_lie_on_the_dem_under_the_window_grid(south):
 def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(south):
     """The window navigated with terrain patches alone (no crater): found by their predicted appearance, the
     identifications where the true georeference places the patches' points; turned upside down, no fix."""
-    from crater_synth.navigation.evaluate import run_frame, summarise
-    from crater_synth.navigation.patches import PatchParams
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.protocol import summarise
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
@@ -207,8 +209,8 @@ def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(so
 
 def test_a_window_its_craters_do_not_fix_takes_the_patches_fix(south, monkeypatch):
     """Where the craters give no fix (here: no crater in the map), the patches' fix is the window's."""
-    from crater_synth.navigation.evaluate import run_frame
-    from crater_synth.navigation.patches import PatchParams
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
     row = run_frame(frame, [], PRESETS["appearance"], FixParams(), patches=PatchParams())
@@ -237,8 +239,8 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
     from PIL import Image
 
     from crater_synth.cli import main
-    from crater_synth.navigation.landmarks import load_default_map, to_geojson
-    from crater_synth.navigation.light import frame_light
+    from crater_synth.navigation.map.landmarks import load_default_map, to_geojson
+    from crater_synth.navigation.windows.light import frame_light
 
     frame, _ = south
     png = tmp_path / "window.png"
@@ -267,10 +269,10 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
 def test_window_patches_off_the_dem_are_left_out(south):
     """A window reaching past the DEM keeps the patches on it; one wholly off it has none, and its patch
     navigation is an answer of "no fix", not an error."""
-    from crater_synth.navigation.appearance_window import window_patch_fix
-    from crater_synth.navigation.frames import Georef
-    from crater_synth.navigation.patches import PatchParams, window_patches
-    from crater_synth.navigation.refine import Refiner, lander_dem
+    from crater_synth.navigation.fix.patches import PatchParams, window_patches
+    from crater_synth.navigation.fix.refine import Refiner, lander_dem
+    from crater_synth.navigation.georef import Georef
+    from crater_synth.navigation.windows.appearance import window_patch_fix
 
     frame, _ = south
     dem = lander_dem("south")
@@ -297,7 +299,8 @@ def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_pat
     from click.testing import CliRunner
 
     from crater_synth.cli import main
-    from crater_synth.navigation import evaluate, frames
+    from crater_synth.navigation.windows import evaluate
+    from crater_synth.navigation.windows import mosaic as frames
 
     results = tmp_path / "navigation.json"
     shutil.copyfile(evaluate.RESULTS_JSON, results)

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from crater_synth.dataset.dispatch import WORKER_STARTUP_RENDERS, _makespan, _split_contiguous, blocks_per_crater
+from crater_synth.dataset.dispatch import WORKER_STARTUP_RENDERS, blocks_per_crater, makespan, split_contiguous
 
 
 def _units(sizes, blocks):
-    return [len(b) for n, k in zip(sizes, blocks) for b in _split_contiguous(list(range(n)), k) if n]
+    return [len(b) for n, k in zip(sizes, blocks) for b in split_contiguous(list(range(n)), k) if n]
 
 
 @pytest.mark.parametrize(
@@ -30,8 +30,8 @@ def test_blocks_per_crater(sizes, workers, expected):
 
 def test_balanced_split_finishes_sooner_than_one_block_per_crater():
     sizes, workers = [22500] * 3, 2
-    one_each = _makespan(_units(sizes, [1, 1, 1]), workers)
-    balanced = _makespan(_units(sizes, blocks_per_crater(sizes, workers)), workers)
+    one_each = makespan(_units(sizes, [1, 1, 1]), workers)
+    balanced = makespan(_units(sizes, blocks_per_crater(sizes, workers)), workers)
     ideal = sum(sizes) / workers
     assert balanced < 0.8 * one_each
     assert balanced <= 1.05 * ideal + 3 * WORKER_STARTUP_RENDERS
@@ -52,7 +52,7 @@ def test_refined_blocks_split_a_shared_patch_only_when_it_pays():
     refined = blocks_per_crater(sizes, 2, startup, refine=True)
     assert sum(refined) == 4
     lpt = sorted(_units(sizes, refined), reverse=True)
-    assert _makespan(lpt, 2, startup) < 0.9 * _makespan(_units(sizes, blocks_per_crater(sizes, 2, startup)), 2, startup)
+    assert makespan(lpt, 2, startup) < 0.9 * makespan(_units(sizes, blocks_per_crater(sizes, 2, startup)), 2, startup)
     assert blocks_per_crater([3, 2, 2, 2, 3], 2, startup, refine=True) == [1] * 5
     assert blocks_per_crater([64], 2, startup, refine=True) == [2]
     assert blocks_per_crater([64], 1, startup, refine=True) == [1]

@@ -304,3 +304,115 @@ def test_long_modules_say_why():
                 "paragraph of its docstring"
             )
     assert not bad, "\n".join(bad)
+
+
+# Inside navigation: the rank of each part (a subpackage or a shared top-level module). The map and the
+# georeference are at the bottom, the detectors and the fix above them, then the modules both evaluations
+# share (the protocol, the settings, the outputs); real mosaic windows and rendered frames sit side by side
+# and never import each other; only the commands that see both (navigate, the demo) sit on top.
+NAV = "crater_synth.navigation"
+NAV_RANK = {
+    f"{NAV}": 0,
+    f"{NAV}.georef": 0,
+    f"{NAV}.map": 1,
+    f"{NAV}.detectors": 2,
+    f"{NAV}.fix": 3,
+    f"{NAV}.protocol": 4,
+    f"{NAV}.settings": 5,
+    f"{NAV}.output": 5,
+    f"{NAV}.windows": 6,
+    f"{NAV}.rendered": 6,
+    f"{NAV}.navigate": 7,
+    f"{NAV}.demo": 7,
+}
+# The longest chain of imports between navigation modules (counted in modules, the first included).
+NAV_MAX_CHAIN = 8
+
+
+def nav_part(module: str) -> str | None:
+    """The :data:`NAV_RANK` part a navigation module belongs to (None: outside navigation)."""
+    parts = module.split(".")
+    if parts[:2] != NAV.split("."):
+        return None
+    return ".".join(parts[:3])
+
+
+def test_every_navigation_module_has_a_rank(graph):
+    missing = sorted({nav_part(m) for m in graph if nav_part(m) not in (None, *NAV_RANK)})
+    assert not missing, f"give these parts of navigation a rank in NAV_RANK ({__file__}): {missing}"
+
+
+def nav_violations(graph) -> list[str]:
+    bad = []
+    for mod, imports in graph.items():
+        src = nav_part(mod)
+        if src is None:
+            continue
+        for name, line in imports:
+            dst = nav_part(name)
+            if dst is None or dst == src:
+                continue
+            if not NAV_RANK[dst] < NAV_RANK[src]:
+                lower = sorted(p.removeprefix(NAV + ".") for p in NAV_RANK if NAV_RANK[p] < NAV_RANK[src])
+                bad.append(f"{mod} (line {line}) imports {name}: {src} may only import {lower}")
+    return bad
+
+
+def test_navigation_parts_import_down_only(graph):
+    bad = nav_violations(graph)
+    assert not bad, "imports against navigation's ranks:\n" + "\n".join(bad)
+
+
+def test_navigation_rank_check_catches_windows_and_rendered_importing_each_other():
+    fake = {f"{NAV}.windows.navigate": [(f"{NAV}.rendered.navigate", 7)], f"{NAV}.rendered.navigate": []}
+    assert len(nav_violations(fake)) == 1
+
+
+def longest_chain(graph, prefix: str) -> list[str]:
+    """The longest import chain between modules under ``prefix`` (the graph has no cycle there)."""
+    edges = {m: [n for n, _ in imports if n.startswith(prefix) and n != m] for m, imports in graph.items()}
+    memo: dict[str, list[str]] = {}
+
+    def chain(m: str) -> list[str]:
+        if m not in memo:
+            memo[m] = [m]
+            memo[m] = max(([m, *chain(n)] for n in edges.get(m, ()) if n in edges), key=len, default=[m])
+        return memo[m]
+
+    return max((chain(m) for m in edges if m.startswith(prefix)), key=len, default=[])
+
+
+def test_longest_navigation_import_chain(graph):
+    chain = longest_chain(graph, NAV + ".")
+    assert len(chain) <= NAV_MAX_CHAIN, f"{len(chain)} modules: " + " -> ".join(chain)
+
+
+def test_chain_finder_counts_modules():
+    fake = {"p.a": [("p.b", 1)], "p.b": [("p.c", 1)], "p.c": [], "q.x": [("p.a", 1)]}
+    assert longest_chain(fake, "p.") == ["p.a", "p.b", "p.c"]
+
+
+def test_no_private_name_is_imported_across_modules(graph):
+    """A name with a leading underscore is its module's own: another module that needs it names it public."""
+    bad = []
+    for path in sorted(p for pkg in RANK for p in (ROOT / pkg).rglob("*.py")) + sorted((ROOT / "tests").rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").split(".")[0] in RANK):
+                bad += [
+                    f"{path.relative_to(ROOT)}:{node.lineno} imports {node.module}.{a.name}"
+                    for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")
+                ]
+    assert not bad, "private names imported across modules:\n" + "\n".join(bad)
+
+
+def test_one_function_per_name_in_navigation():
+    """Two top-level functions or classes of one name in navigation are two meanings for one word."""
+    seen: dict[str, list[str]] = defaultdict(list)
+    for path in sorted((ROOT / "crater_synth" / "navigation").rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+                seen[node.name].append(str(path.relative_to(ROOT)))
+    dup = {k: v for k, v in seen.items() if len(v) > 1}
+    assert not dup, f"names defined more than once: {dup}"

@@ -1,4 +1,4 @@
-"""The learned crater detector (train/crater_detector.py, crater_synth/navigation/learned.py): targets,
+"""The learned crater detector (train/crater_detector.py, crater_synth/navigation/detectors/learned.py): targets,
 augmentation geometry, pyramid bookkeeping, model files, a small learning run on shaded crater fields,
 training from a survey directory, and its use through detect() and the CLI."""
 
@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from crater_synth.navigation import learned, learned_train
-from crater_synth.navigation.detect import DetectorParams, detect, preset
-from crater_synth.navigation.template import crater_heights, shade_heights
+from crater_synth.navigation.detectors import learned
+from crater_synth.navigation.detectors.classical import DetectorParams, detect, preset
+from crater_synth.navigation.detectors.template import crater_heights, shade_heights
+from crater_synth.navigation.rendered import detector_train as learned_train
 from train import crater_detector as cd
 
 
@@ -267,7 +268,7 @@ def test_the_committed_model_finds_craters_in_a_shaded_field():
 
 def test_a_method_run_alone_joins_the_poles_results_and_a_foreign_protocol_is_refused(tmp_path):
     from crater_synth.errors import UserError
-    from crater_synth.navigation.evaluate import add_methods
+    from crater_synth.navigation.windows.evaluate import add_methods
 
     protocol = {"pole": "north", "window_px": 512, "every": 1}
     old = {
@@ -298,8 +299,8 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
     from click.testing import CliRunner
 
     from crater_synth.cli import main
-    from crater_synth.navigation.frames import windows
-    from crater_synth.navigation.navigate import write_window
+    from crater_synth.navigation.windows.mosaic import windows
+    from crater_synth.navigation.windows.navigate import write_window
 
     frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
     img = tmp_path / "w.png"

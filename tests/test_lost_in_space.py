@@ -7,8 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from crater_synth.navigation.detect import Detection
-from crater_synth.navigation.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
+from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
 
 PIXEL_M = 400.0
 SHAPE = (512, 512)
@@ -84,7 +84,7 @@ def test_lis_settings_overrides_and_errors():
     import pytest
 
     from crater_synth.errors import UserError
-    from crater_synth.navigation.lost_in_space import LIS_PRESETS, lis_params_with
+    from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, lis_params_with
 
     p = lis_params_with("south-choice", ("lis.n_detections=40", "lis.gate_km=6"))
     assert p.n_detections == 40 and p.gate_km == 6.0
@@ -103,9 +103,9 @@ def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
     from click.testing import CliRunner
 
     from crater_synth.cli import main
-    from crater_synth.navigation.frames import ground_distance_km, windows
-    from crater_synth.navigation.navigate import write_window
-    from crater_synth.navigation.polar import stereo_forward
+    from crater_synth.navigation.georef import ground_distance_km, stereo_forward
+    from crater_synth.navigation.windows.mosaic import windows
+    from crater_synth.navigation.windows.navigate import write_window
 
     frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
     img = tmp_path / "w.png"

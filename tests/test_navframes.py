@@ -84,7 +84,7 @@ def test_project_circle_vertical_normal_is_the_horizontal_circle():
 
 
 def test_position_fix_with_known_attitude_is_exact_and_robust():
-    from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_position
+    from crater_synth.navigation.fix.solve import FixParams, project_pinhole, ransac_position
 
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-60e3, 60e3, (12, 2)), rng.uniform(-2e3, 2e3, 12)])
@@ -102,7 +102,7 @@ def test_position_fix_with_known_attitude_is_exact_and_robust():
 def test_known_attitude_fix_sigma_follows_its_scatter_under_pixel_noise():
     """position_sigma_horizontal_m: the fit's own covariance; with Gaussian pixel noise it is the
     horizontal error's spread (Monte Carlo of the same least-squares solve)."""
-    from crater_synth.navigation.fix import position_sigma_horizontal_m, project_pinhole, solve_position
+    from crater_synth.navigation.fix.solve import position_sigma_horizontal_m, project_pinhole, solve_position
 
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, (6, 2)), rng.uniform(-2e3, 2e3, 6)])
@@ -125,24 +125,24 @@ def test_position_hypotheses_leave_out_degenerate_pairs_and_centres_behind():
     """All pairs are solved at once: a pair whose two pixels coincide (one detection twice) or whose centre
     has a landmark behind the camera gives no hypothesis; every other pair of true correspondences gives
     the true centre, so all its points are inliers."""
-    from crater_synth.navigation.fix import _position_hypotheses, project_pinhole
+    from crater_synth.navigation.fix.solve import position_hypotheses, project_pinhole
 
     r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
     k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
     c = np.array([1e3, 2e3, 100e3])
     pts = np.array([[-30e3, 20e3, 0.0], [25e3, 15e3, 500.0], [5e3, -30e3, -300.0], [5e3, -30e3, -300.0]])
     uv = project_pinhole(pts, r_wc, c, k)  # the last two: one landmark paired twice
-    masks = _position_hypotheses(pts, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)
+    masks = position_hypotheses(pts, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)
     assert 0 < len(masks) < 60 and masks.all()  # the (2, 3) pairs left out, every other one exact
     behind = 2.0 * c - pts  # on the same lines through the camera, but above it: behind a nadir camera
-    assert len(_position_hypotheses(behind, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)) == 0
+    assert len(position_hypotheses(behind, uv, k, r_wc, np.random.default_rng(0), 60, 1.0)) == 0
 
 
 def test_position_fix_refuses_an_ambiguous_set():
     """Two disjoint landmark sets (a pattern and its shifted copy) explain the same detections from two
     camera positions: with the (detection, landmark) ids the known-attitude fix answers "ambiguous";
     the true set alone fixes exactly."""
-    from crater_synth.navigation.fix import FixParams, project_pinhole, ransac_position
+    from crater_synth.navigation.fix.solve import FixParams, project_pinhole, ransac_position
 
     r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
     k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
@@ -164,9 +164,9 @@ def test_position_fix_refuses_an_ambiguous_set():
 
 
 def test_map_scales_follow_the_ground_sample_and_the_predicted_landmarks():
-    from crater_synth.navigation.detect import DetectorParams
-    from crater_synth.navigation.fix import FixParams
-    from crater_synth.navigation.frames_eval import map_scales
+    from crater_synth.navigation.detectors.classical import DetectorParams
+    from crater_synth.navigation.fix.solve import FixParams
+    from crater_synth.navigation.rendered.evaluate import map_scales
 
     fp = FixParams()  # 10 km landmarks, radius ratio 1.3
     d = map_scales(DetectorParams(), fp, 338.0, [20.0, 60.0])
@@ -182,10 +182,10 @@ def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg
     scale (338 m/px, Sun 7 degrees): the five map-sized craters (D 11-26 km) among ~50 detail craters of
     D 3.4-6 km are found (centre within 0.25 D, radius within 25 %), with fewer detections than the
     real-window settings (which search every scale) and none far below the map's smallest radius."""
-    from crater_synth.navigation import frames_eval as fe
-    from crater_synth.navigation.detect import detect
-    from crater_synth.navigation.frames_presets import frames_params
-    from crater_synth.navigation.template import crater_heights, shade_heights
+    from crater_synth.navigation.detectors.classical import detect
+    from crater_synth.navigation.detectors.template import crater_heights, shade_heights
+    from crater_synth.navigation.rendered import evaluate as fe
+    from crater_synth.navigation.settings import frames_params
 
     gsd, n = 338.0, 384
     big = [(100.0, 110.0, 17.0), (300.0, 90.0, 24.0), (200.0, 250.0, 38.0), (330.0, 320.0, 21.0), (90.0, 330.0, 29.0)]
@@ -243,7 +243,7 @@ def test_frame_outside_the_dem_is_one_error_and_no_output(tmp_path):
 
 
 def _landmark(lat, lon, height, d_km):
-    from crater_synth.navigation.landmarks import Landmark
+    from crater_synth.navigation.map.landmarks import Landmark
 
     return Landmark(
         id="syn-1",
@@ -264,8 +264,8 @@ def _landmark(lat, lon, height, d_km):
 def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     """An explicit-pose frame of a bowl crater placed off-centre: its label sits where the depth and lit
     channels show the crater, and the labelled lit-rim fraction is what the lit channel says."""
-    from crater_synth.navigation.frame_labels import landmarks_in_view
-    from crater_synth.navigation.render_frames import worker_item
+    from crater_synth.navigation.rendered.frames import worker_item
+    from crater_synth.navigation.rendered.labels import landmarks_in_view
 
     (p,) = frame_poses(
         _traj(altitude_km=(30.0, 30.0), off_nadir_deg=10.0, off_nadir_azimuth_deg=45.0, sun_elevation_deg=25.0)
@@ -335,10 +335,10 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     # Identification and fix from the labels' own ellipses (perfect detections): the chain labels ->
     # prior -> identification -> known-attitude fix -> ellipse-centre correction is exact; 6-DOF PnP
     # is close (its tilt/shift ambiguity at nadir makes it looser).
-    from crater_synth.navigation import frames_eval
-    from crater_synth.navigation.detect import Detection
-    from crater_synth.navigation.fix import FixParams
-    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.detectors.classical import Detection
+    from crater_synth.navigation.fix.solve import FixParams
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.rendered import evaluate as frames_eval
 
     lms = load_default_map("south")[0]
     dets = frames_eval.perfect_detections(row)  # what nav-frames-eval's perfect-detection check uses
@@ -362,7 +362,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=far)
     assert not r["fix"] or r["error_km"] < 5.0, r
     # Two rims mostly hidden behind nearer relief: no longer truth (no miss), their detections not false.
-    from crater_synth.navigation.frame_labels import HIDDEN_RIM_MAX
+    from crater_synth.navigation.rendered.labels import HIDDEN_RIM_MAX
 
     hid = json.loads(json.dumps(row))
     big = [lb for lb in hid["landmarks"] if lb["diameter_km"] >= FixParams().min_landmark_km]
@@ -389,7 +389,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert doc["preset"] == "appearance" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
     # --write-results records the summary under "synthetic", keyed by trajectory, method and preset.
-    from crater_synth.navigation import frames_record
+    from crater_synth.navigation.rendered import record as frames_record
 
     monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
     res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--preset", "appearance", "--write-results"])
@@ -430,7 +430,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     # Lost in space (no prior): the labels' own ellipses, rectified onto the ground with the attitude and the
     # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
     # detector on this toy 64 px frame may find nothing, but never a wrong position.
-    from crater_synth.navigation.lost_in_space_frames import evaluate_lis_dir
+    from crater_synth.navigation.rendered.lost_in_space import evaluate_lis_dir
 
     lis = evaluate_lis_dir(out, "synthetic")
     (lr,) = lis["rows"]
@@ -458,7 +458,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "x.png").exists()
     # The labels record the landmark map they name landmarks from; a row labelled with another map (a rebuilt
     # map numbers its landmarks anew) is refused by the readers of truth until it is relabelled.
-    from crater_synth.navigation.landmarks import default_map_identity
+    from crater_synth.navigation.map.landmarks import default_map_identity
 
     manifest = out / "manifest.jsonl"
     assert row["landmark_map"] == default_map_identity("south") and row["label_version"] == 3
@@ -501,7 +501,7 @@ def test_nav_frames_warns_of_a_night_frame(tmp_path):
 
 def test_worker_rejects_a_bad_explicit_camera(tmp_path):
     (p,) = frame_poses(_traj())
-    from crater_synth.navigation.render_frames import worker_item
+    from crater_synth.navigation.rendered.frames import worker_item
 
     item = worker_item(p, p.target_lat, p.target_lon, seed=1, header={})
     item["camera"]["rotation"][0][0] += 0.5  # not a rotation
@@ -518,8 +518,8 @@ def test_every_preset_serves_the_6dof_fix_with_at_least_four_landmarks():
     exactly, so any three pairs would agree)."""
     import dataclasses
 
-    from crater_synth.navigation import fix as nf
-    from crater_synth.navigation.frames_presets import FRAMES_PRESETS, frames_params
+    from crater_synth.navigation.fix import solve as nf
+    from crater_synth.navigation.settings import FRAMES_PRESETS, frames_params
 
     for name in FRAMES_PRESETS:
         _, fparams, pre = frames_params(name)
@@ -539,7 +539,7 @@ def test_frames_are_grouped_onto_patches_no_coarser_than_their_own():
     frame's own patch, with at most SHARE_MAX_VERTEX_FACTOR x the vertices; per-frame: each its own patch."""
     from crater_core.trajectory import frame_corners_mc
     from crater_synth.config import load_settings
-    from crater_synth.navigation.render_frames import (
+    from crater_synth.navigation.rendered.frames import (
         PATCH_MARGIN,
         SHARE_MAX_VERTEX_FACTOR,
         group_frames,
@@ -622,7 +622,7 @@ def test_frame_commands_default_to_a_one_sample_gbuffer_unless_told_the_samples(
     """Navigation frames render fast mode's G-buffer at one (centre) sample by default; a command that sets
     render.samples or render.gbuffer_samples keeps exactly what it says (the documented frame sets)."""
     from crater_synth.config import load_settings
-    from crater_synth.navigation.render_frames import frame_overrides
+    from crater_synth.navigation.rendered.frames import frame_overrides
 
     default = load_settings(frame_overrides(["trajectory=descent_ridge"])).render
     assert (default.gbuffer_samples, default.samples) == (1, 16)  # direct renders and fallbacks keep 16
@@ -636,7 +636,7 @@ def test_frame_commands_default_to_a_one_sample_gbuffer_unless_told_the_samples(
 def test_recorded_frame_settings_name_the_gbuffer_samples_the_frames_were_rendered_with(tmp_path):
     """A frame rendered with the one-sample G-buffer default records it, so the command recorded with its
     results (render.samples and render.gbuffer_samples) renders the same frames again."""
-    from crater_synth.navigation import frames_record
+    from crater_synth.navigation.rendered import record as frames_record
 
     chans = {c: np.zeros((4, 4), np.float32) for c in schema.EXR_CHANNELS}
     header = {"crater_synth:mode": "fast", "samples": 16, "crater_synth:render": json.dumps({"gbuffer_samples": 1})}
@@ -683,7 +683,7 @@ def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
     """A rim 100 km away along the view axis, a depth map showing terrain at the rim's own depth except
     over the left third of the frame, where relief 20 km nearer stands in front: that third of the rim is
     hidden; within the margin (a rim crest higher than the map's mean) nothing is."""
-    from crater_synth.navigation.frame_labels import OCCLUSION_MARGIN_M, occluded_rim_fraction
+    from crater_synth.navigation.rendered.labels import OCCLUSION_MARGIN_M, occluded_rim_fraction
 
     theta = np.arange(360) * np.pi / 180.0
     rim_uv = np.stack([50.0 + 30.0 * np.cos(theta), 50.0 + 30.0 * np.sin(theta)], 1)

@@ -10,11 +10,10 @@ import pytest
 from click.testing import CliRunner
 
 from crater_synth.cli import main
-from crater_synth.navigation import fix as nf
-from crater_synth.navigation.detect import DetectorParams, detect
-from crater_synth.navigation.frames import FrameError, Georef, check_frame
-from crater_synth.navigation.landmarks import Landmark, LandmarkMapError, read_map, to_geojson
-from crater_synth.navigation.polar import scale_factor, stereo_forward, stereo_inverse
+from crater_synth.navigation.detectors.classical import DetectorParams, detect
+from crater_synth.navigation.fix import solve as nf
+from crater_synth.navigation.georef import FrameError, Georef, check_frame, scale_factor, stereo_forward, stereo_inverse
+from crater_synth.navigation.map.landmarks import Landmark, LandmarkMapError, read_map, to_geojson
 
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
 
@@ -61,7 +60,7 @@ def test_polar_round_trip_both_poles():
 # Landmark map
 # --------------------------------------------------------------------------------------------
 def test_landmark_map_recovers_known_craters(tmp_path):
-    from crater_synth.navigation.landmarks import build_map
+    from crater_synth.navigation.map.landmarks import build_map
     from crater_synth.terrain.dem import Dem
 
     n, px = 192, 1600.0
@@ -113,7 +112,7 @@ def test_map_file_round_trip_and_corrupt(tmp_path):
 # Split rule
 # --------------------------------------------------------------------------------------------
 def test_validation_and_test_windows_are_disjoint():
-    from crater_synth.navigation.frames import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
+    from crater_synth.navigation.windows.mosaic import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
 
     img, extent, pixel, _ = load_mosaic_image("south")
     plan = plan_windows()
@@ -193,7 +192,7 @@ def test_ransac_similarity_recovers_pose_with_outliers_and_refuses_inconsistent(
 
 
 def test_fix_frame_end_to_end_with_prior_offset():
-    from crater_synth.navigation.detect import Detection
+    from crater_synth.navigation.detectors.classical import Detection
 
     lms = _landmarks(40)
     truth = Georef("south", 210_000.0, 290_000.0, 400.0)
@@ -341,7 +340,7 @@ def test_navigate_bad_input(tmp_path):
 
 
 def test_iau_match_uses_the_fixed_tolerances():
-    from crater_synth.navigation.landmark_check import match_iau
+    from crater_synth.navigation.map.check import match_iau
 
     lat, lon = -80.0, 30.0
     x, y = stereo_forward(lat, lon)
@@ -359,7 +358,7 @@ def test_a_similarity_from_one_repeated_point_is_refused_not_a_nan_fix():
     division warning), and ransac_similarity answers "no fix"."""
     import warnings
 
-    from crater_synth.navigation.fix import FixParams, fit_similarity, ransac_similarity
+    from crater_synth.navigation.fix.solve import FixParams, fit_similarity, ransac_similarity
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -382,7 +381,7 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
     from click.testing import CliRunner
 
     from crater_synth.cli import main
-    from crater_synth.navigation import landmarks as lmod
+    from crater_synth.navigation.map import landmarks as lmod
 
     committed = lmod.COMMITTED_MAP["south"].read_bytes()
     lms, _ = lmod.load_default_map("south")
@@ -402,7 +401,7 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
 
 
 def test_a_missing_committed_map_is_one_error_naming_how_to_write_it(tmp_path, monkeypatch):
-    from crater_synth.navigation import landmarks as lmod
+    from crater_synth.navigation.map import landmarks as lmod
 
     monkeypatch.setitem(lmod.COMMITTED_MAP, "north", tmp_path / "north.geojson")
     for load in (lmod.load_default_map, lmod.default_map_identity):
@@ -413,7 +412,7 @@ def test_a_missing_committed_map_is_one_error_naming_how_to_write_it(tmp_path, m
 def test_catalogue_check_counts_recall_by_listed_size_and_precision_by_landmark_size():
     """Recall of the listed craters >= 10 km and precision of the landmarks >= 10 km, with the IAU
     tolerances (0.15 D, 25 %); a landmark under 10 km still finds a listed crater but is not scored."""
-    from crater_synth.navigation.landmark_check import catalogue_check
+    from crater_synth.navigation.map.check import catalogue_check
 
     def lm(i, x_km, d_km):
         return Landmark(f"S{i:04d}", "", -85.0, 0.0, x_km * 1e3, 0.0, d_km, 1e3, 0.0, 1e2, 1.0, "dem")
@@ -433,7 +432,7 @@ def test_catalogue_check_counts_recall_by_listed_size_and_precision_by_landmark_
 
 def test_committed_crater_catalogue_is_checked_and_an_edited_copy_refused(tmp_path):
     from crater_synth.errors import UserError
-    from crater_synth.navigation import landmark_check as lc
+    from crater_synth.navigation.map import check as lc
 
     text = lc.LU_CSV.read_text()
     assert text.startswith("id,lon,lat,diameter_km,depth_m,source\n") and text.count("\n") == 5273
@@ -463,7 +462,7 @@ def test_landmarks_check_command_reports_both_lists_for_the_committed_map(tmp_pa
 def test_detections_are_also_scored_against_the_complete_catalogue():
     """A detection of a catalogued crater the map lacks is false for the map's truth but true against the
     catalogue; the catalogue's recall counts its craters >= 15 km in view."""
-    from crater_synth.navigation.evaluate import summarise
+    from crater_synth.navigation.protocol import summarise
 
     row = {
         "fix": False,
@@ -494,7 +493,7 @@ def _lm(i, x_km, d_km, product=""):
 def test_a_finer_layer_adds_only_the_sizes_the_map_does_not_resolve():
     """Layer landmarks below the map's smallest size and at least the layer's own, duplicating none of the
     map's, are appended with ids numbered on and the layer's product; the map's own are kept as they were."""
-    from crater_synth.navigation.landmarks import add_layer
+    from crater_synth.navigation.map.landmarks import add_layer
 
     base = [_lm(1, 0.0, 12.0), _lm(2, 50.0, 8.0)]
     layer = [
@@ -513,8 +512,8 @@ def test_a_finer_layer_adds_only_the_sizes_the_map_does_not_resolve():
 
 
 def test_rendered_frames_use_layer_landmarks_where_they_resolve_them():
-    from crater_synth.navigation.fix import FixParams
-    from crater_synth.navigation.frames_eval import LAYER_LANDMARK_MIN_PX, usable
+    from crater_synth.navigation.fix.solve import FixParams
+    from crater_synth.navigation.rendered.evaluate import LAYER_LANDMARK_MIN_PX, usable
 
     fp = FixParams()
     assert not usable(_lm(1, 0, 9.9), 45.0, fp) and usable(_lm(1, 0, 10.0), 400.0, fp)
@@ -523,7 +522,7 @@ def test_rendered_frames_use_layer_landmarks_where_they_resolve_them():
 
 
 def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
-    from crater_synth.navigation.landmarks import COMMITTED_MAP
+    from crater_synth.navigation.map.landmarks import COMMITTED_MAP
 
     res = CliRunner().invoke(
         main, ["landmarks", "--dem-product", "shackleton_lola_200m", "--add-to", str(COMMITTED_MAP["south"])]
@@ -549,7 +548,7 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
 def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_features():
     """The learned-rule tool (docs/navigation.md, section 1): duplicates are suppressed in order of
     probability, not of depth, and the feature matrix has one column per named feature."""
-    from crater_synth.tools.landmark_acceptance import _build, features
+    from crater_synth.tools.landmark_acceptance import features, rebuild
 
     def row(x_km, d_km, depth_m=500.0):
         return {"name": "", "lat": -85.0, "lon": x_km, "x_m": x_km * 1e3, "y_m": 0.0, "diameter_km": d_km,
@@ -558,7 +557,7 @@ def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_fea
 
     rows = [row(0.0, 20.0), row(1.0, 21.0), row(100.0, 15.0)]
     p = np.array([0.2, 0.9, 0.5])
-    built = _build(rows, p, np.array([True, True, False]), [], "south")
+    built = rebuild(rows, p, np.array([True, True, False]), [], "south")
     assert [lm.diameter_km for lm in built] == [21.0]  # the likelier of the pair; the third not accepted
     meas = [
         {"closed": True, "converged": True, "rim_inlier_share": 1.0, "spill_depth_d": 0.0, "no_crest_share": 0.1,
@@ -572,7 +571,7 @@ def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_fea
 
 def test_acceptance_tool_bounds_the_iau_recall_by_the_measured_candidates(tmp_path):
     """--iau-bound counts the IAU craters some measured candidate matches (any, and closed ones), per pole."""
-    from crater_synth.navigation import landmark_check as lc
+    from crater_synth.navigation.map import check as lc
     from crater_synth.tools import landmark_acceptance as la
 
     def meas(crater: dict, closed: bool, scale: float = 1.0) -> dict:

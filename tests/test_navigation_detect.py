@@ -7,17 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from crater_synth.navigation.detect import (
+from crater_synth.navigation.detectors.classical import (
     DetectorParams,
     DetectorSettingsError,
-    _azimuth_grads,
-    _spectrum,
+    azimuth_grads,
     detect,
     light_axis,
+    spectrum,
     suppress,
 )
-from crater_synth.navigation.frames import FrameError
-from crater_synth.navigation.template import crater_heights, crater_template, ncc, shade_heights
+from crater_synth.navigation.detectors.template import crater_heights, crater_template, ncc, shade_heights
+from crater_synth.navigation.georef import FrameError
 
 CRATERS = [(80.0, 90.0, 14.0), (250.0, 80.0, 22.0), (150.0, 200.0, 30.0), (300.0, 290.0, 18.0), (90.0, 300.0, 25.0)]
 
@@ -42,8 +42,8 @@ def _near(dets, cu, cv, r, within=0.5):
 def test_structure_tensor_recovers_the_light_axis(theta_deg):
     img = crater_field(theta_deg)
     a = (img - img.mean()) / img.std()
-    spec, shape = _spectrum(a)
-    axis = math.degrees(light_axis(_azimuth_grads(spec, shape, DetectorParams())))
+    spec, shape = spectrum(a)
+    axis = math.degrees(light_axis(azimuth_grads(spec, shape, DetectorParams())))
     err = (axis - theta_deg + 90.0) % 180.0 - 90.0  # an axis: modulo 180 degrees
     assert abs(err) < 8.0
 
@@ -121,13 +121,13 @@ def test_bad_detector_input_gives_one_clear_error():
 
 
 def test_setting_overrides_are_checked():
-    from crater_synth.navigation.evaluate import _params_with
+    from crater_synth.navigation.settings import params_with
 
-    d, _ = _params_with(("detect.template_threshold=0.5",), "template")
+    d, _ = params_with(("detect.template_threshold=0.5",), "template")
     assert d.method == "template" and d.template_threshold == 0.5
-    d, _ = _params_with(('detect.method="template"',), "classical")
+    d, _ = params_with(('detect.method="template"',), "classical")
     assert d.method == "template"
     with pytest.raises(DetectorSettingsError, match="detect.light_scope='moon'"):
-        _params_with(("detect.light_scope=moon",), "classical")
+        params_with(("detect.light_scope=moon",), "classical")
     with pytest.raises(DetectorSettingsError, match="detection method 'cnn'"):
-        _params_with((), "cnn")
+        params_with((), "cnn")

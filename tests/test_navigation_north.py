@@ -10,10 +10,10 @@ import pytest
 import yaml
 
 from crater_core.geometry import polar_stereo_forward, polar_stereo_inverse
-from crater_synth.navigation.detect import DetectorParams, _spectrum, light_azimuth, pooled_light_azimuth
-from crater_synth.navigation.frames import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
-from crater_synth.navigation.polar import local_north_image_angle
-from crater_synth.navigation.template import crater_heights, shade_heights
+from crater_synth.navigation.detectors.classical import DetectorParams, light_azimuth, pooled_light_azimuth, spectrum
+from crater_synth.navigation.detectors.template import crater_heights, shade_heights
+from crater_synth.navigation.georef import local_north_image_angle
+from crater_synth.navigation.windows.mosaic import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 
@@ -59,9 +59,9 @@ def test_sector_of_follows_the_core_projection_at_both_poles():
 # North landmark map
 # --------------------------------------------------------------------------------------------
 def test_north_map_loads_and_named_landmarks_project_into_north_windows_at_the_right_place():
-    from crater_synth.navigation.evaluate import truth_in_frame
-    from crater_synth.navigation.frames import window_frame
-    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.protocol import truth_in_frame
+    from crater_synth.navigation.windows.mosaic import window_frame
 
     landmarks, prov = load_default_map("north")
     assert prov["pole"] == "north" and prov["dem_product"] == "lola_ldem256_north"
@@ -147,7 +147,7 @@ def test_pooled_local_azimuth_is_recovered_from_frames_at_different_longitudes()
     # The seeded per-frame estimate stays inside its prior window even when the frame says otherwise.
     img = crater_field(20.0)
     a = (img - img.mean()) / img.std()
-    spec, shape = _spectrum(a)
+    spec, shape = spectrum(a)
     free = math.degrees(light_azimuth(spec, shape, params))
     near = math.degrees(light_azimuth(spec, shape, params, prior=(math.radians(30.0), math.radians(30.0))))
     far = math.degrees(light_azimuth(spec, shape, params, prior=(math.radians(200.0), math.radians(30.0))))
@@ -167,7 +167,7 @@ def test_north_validation_split_and_quadrant_light_are_refused():
 def test_results_merge_keeps_the_other_region(tmp_path):
     import json
 
-    from crater_synth.navigation.evaluate import merge_results
+    from crater_synth.navigation.windows.evaluate import merge_results
 
     path = tmp_path / "navigation.json"
     path.write_text(json.dumps({"methods": {"classical": 1}, "splits": 2, "synthetic": {"a": 1}}))

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from crater_core import exr, geometry
-from crater_synth.navigation import frames_eval
-from crater_synth.navigation.fix import FixParams
-from crater_synth.navigation.patches import PATCH_SOURCE, PatchParams, ground_points, patch_landmarks
-from crater_synth.navigation.sequence import SequenceParams, frame_point_mc, last_fix, propagated_prior
+from crater_synth.navigation.fix.patches import PATCH_SOURCE, PatchParams, ground_points, patch_landmarks
+from crater_synth.navigation.fix.sequence import SequenceParams, frame_point_mc, last_fix, propagated_prior
+from crater_synth.navigation.fix.solve import FixParams
+from crater_synth.navigation.rendered import evaluate as frames_eval
 
 
 def _row(index: int, lat0: float, lon0: float, position_enu) -> dict:
@@ -64,7 +64,7 @@ def test_bad_patch_settings_are_refused(kw):
 
 
 def test_patches_lie_on_the_dem_under_the_frame_grid():
-    from crater_synth.navigation.refine import lander_dem
+    from crater_synth.navigation.fix.refine import lander_dem
 
     dem = lander_dem("south")
     lat0, lon0 = -85.0, 30.0
@@ -82,7 +82,7 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
     lms = patch_landmarks(dem, c, r_wc, k, 512, (lat0, lon0), "south", params)
     assert len(lms) == 9 and len({lm.id for lm in lms}) == 9 and {lm.source for lm in lms} == {PATCH_SOURCE}
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in lms]), lat0, lon0)
-    from crater_synth.navigation.fix import project_pinhole
+    from crater_synth.navigation.fix.solve import project_pinhole
 
     uv = project_pinhole(pts, r_wc, c, k)  # each point is seen at its cell's centre
     centres = (np.arange(3) + 0.5) / 3 * 512
@@ -132,7 +132,7 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     assert noisy["summary"]["dem_error"] == {"rms_m": 10.0, "wavelength_km": 5.0}
     assert all(not f["fix"] or f["error_km"] < 5.0 for f in noisy["frames"])
     # --write-results keys the record by the options and states them in its protocol.
-    from crater_synth.navigation import frames_record
+    from crater_synth.navigation.rendered import record as frames_record
 
     monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
     run("--sequential", "--write-results")
@@ -163,14 +163,14 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--method", "classical"])
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     # A frame all in shadow: the patches find nothing, an answer of "no fix".
-    from crater_synth.navigation.frame_labels import labelled_rows
-    from crater_synth.navigation.landmarks import load_default_map
-    from crater_synth.navigation.refine import Refiner, lander_dem
+    from crater_synth.navigation.fix.refine import Refiner, lander_dem
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.rendered.labels import labelled_rows
 
     row = labelled_rows(out)[0]
     image = exr.read_channel(out / row["rel_path"], "IF")
     lms = load_default_map("south")[0]
-    from crater_synth.navigation.frames_presets import frames_params
+    from crater_synth.navigation.settings import frames_params
 
     dparams, fparams, pre = frames_params("appearance")
     kw = dict(dparams=dparams, fparams=fparams, appearance=pre.appearance, inlier_px=pre.inlier_px)
@@ -214,7 +214,7 @@ def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
 
 def test_patches_at_the_dem_edge_are_those_on_the_dem():
     """A frame reaching past the DEM: patches only where the DEM has data, no error."""
-    from crater_synth.navigation.refine import lander_dem
+    from crater_synth.navigation.fix.refine import lander_dem
 
     r_wc, k = frames_eval.cv_camera(np.eye(3), 512, 60.0)
     lms = patch_landmarks(lander_dem("south"), np.array([0.0, 0.0, 150e3]), r_wc, k, 512, (-71.0, 0.0), "south")
@@ -224,8 +224,8 @@ def test_patches_at_the_dem_edge_are_those_on_the_dem():
 def test_perturbed_dem_adds_a_seeded_field_of_the_asked_rms():
     import pickle
 
-    from crater_synth.navigation.dem_error import DemErrorParams, PerturbedDem
-    from crater_synth.navigation.refine import lander_dem
+    from crater_synth.navigation.fix.refine import lander_dem
+    from crater_synth.navigation.map.dem_error import DemErrorParams, PerturbedDem
 
     dem = lander_dem("south")
     noisy = PerturbedDem(dem, DemErrorParams(30.0, 5.0), "south", seed=0)
@@ -268,7 +268,7 @@ def test_error_arrow_is_magnified_by_a_stated_step():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crater_synth.navigation.navigate_frame import MIN_ARROW_PX, _error_arrow
+    from crater_synth.navigation.rendered.navigate import MIN_ARROW_PX, error_arrow
 
     row = {
         "frame_origin": {"lat": -85.0, "lon": 0.0},
@@ -276,7 +276,7 @@ def test_error_arrow_is_magnified_by_a_stated_step():
         "camera_enu": {"rotation": np.eye(3).tolist(), "position_m": [0.0, 0.0, 100e3]},
     }
     fig, ax = plt.subplots()
-    caption = _error_arrow(ax, {"position_enu_m": [30.0, 0.0, 100e3]}, row)  # 30 m east at 100 km: 0.13 px
+    caption = error_arrow(ax, {"position_enu_m": [30.0, 0.0, 100e3]}, row)  # 30 m east at 100 km: 0.13 px
     tip = np.array(ax.texts[-1].get_position())
     assert np.hypot(*(tip - 256.0)) >= MIN_ARROW_PX and caption.endswith("x500"), caption
     assert "x500" in ax.texts[-1].get_text()

@@ -1,4 +1,4 @@
-"""Appearance refinement of a known-attitude fix (crater_synth/navigation/refine.py)."""
+"""Appearance refinement of a known-attitude fix (crater_synth/navigation/fix/refine.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from crater_core import geometry
-from crater_synth.navigation import appearance, refine
-from crater_synth.navigation.fix import project_pinhole, solve_position
+from crater_synth.navigation.fix import appearance, refine
+from crater_synth.navigation.fix.solve import project_pinhole, solve_position
 
 
 def _smooth_image(seed: int = 0, size: int = 160) -> np.ndarray:
@@ -57,9 +57,9 @@ def scene():
     interpolated onto the pixel grid (pixel centres at i + 0.5); and the map's landmarks well inside it."""
     from scipy.interpolate import griddata
 
-    from crater_synth.navigation.frames_eval import cv_camera
-    from crater_synth.navigation.landmarks import load_default_map
-    from crater_synth.navigation.template import hapke_params
+    from crater_synth.navigation.detectors.template import hapke_params
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.rendered.evaluate import cv_camera
 
     lat0, lon0, altitude, width, fov = -81.5, 68.5, 80e3, 192, 60.0
     dem = refine.lander_dem("south")
@@ -143,7 +143,7 @@ def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene
     """From a prior 5 km off, each landmark is found where its rim ellipse lies in the frame (within a
     pixel), so the fix from these detections alone lands within the image's precision; on a frame of
     noise nothing is found."""
-    from crater_synth.navigation.fix import FixParams
+    from crater_synth.navigation.fix.solve import FixParams
 
     c_prior = scene.c_true + np.array([3000.0, -4000.0, 0.0])
     refiner = refine.Refiner(scene.dem)
@@ -254,7 +254,7 @@ def test_pose_refinement_recovers_attitude_and_centre(scene):
     """A 6-DOF fix off by 0.5 degree and a kilometre, its landmarks seen with a 1.5 px scatter: registering the
     windows and solving attitude and centre together (``pose=True``) brings both back; the record gives the
     rotation."""
-    from crater_synth.navigation.fix import attitude_difference_deg, rodrigues
+    from crater_synth.navigation.fix.solve import attitude_difference_deg, rodrigues
 
     rng = np.random.default_rng(5)
     observed = scene.uv + rng.normal(scale=1.5, size=scene.uv.shape)

@@ -170,8 +170,8 @@ def test_corrupt_navigation_input_is_one_error_naming_the_file(tmp_path, corrupt
 def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
     """nav-frames-eval's JSON writer (frames_record) against the report's loader, on rows in
     evaluate_frame's shape (no rendering: the render settings are stubbed)."""
-    from crater_synth.navigation import frames_record
-    from crater_synth.navigation.fix import FixParams
+    from crater_synth.navigation.fix.solve import FixParams
+    from crater_synth.navigation.rendered import record as frames_record
     from crater_synth.report.inputs import load_nav_frames
 
     def row(i, fix):

@@ -127,10 +127,10 @@ def test_real_rows_and_real_files_are_refused(toy, tmp_path):
     with pytest.raises(RealDataLeakError):
         build_datasets(_cfg(d, tmp_path))
     # And the trainer accepts nothing but synthetic datasets.
-    from train.trainer import _require_synthetic
+    from train.trainer import require_synthetic
 
     with pytest.raises(RealDataLeakError):
-        _require_synthetic(torch.utils.data.TensorDataset(torch.zeros(2, 1, 150, 150), torch.zeros(2)))
+        require_synthetic(torch.utils.data.TensorDataset(torch.zeros(2, 1, 150, 150), torch.zeros(2)))
 
 
 def test_missing_exr_names_the_file(toy, tmp_path):

@@ -57,7 +57,7 @@ def model_metrics(y_true: np.ndarray, y_pred: np.ndarray, test: RealTestSet, val
     }
 
 
-def _craters_for(settings: Settings, class_names: Sequence[str]) -> list[dict]:
+def craters_for(settings: Settings, class_names: Sequence[str]) -> list[dict]:
     """The configured crater entry (name, lat, lon, diameter_km) of each class, in class order."""
     by = {}
     for e in settings.craters:
@@ -157,7 +157,7 @@ def evaluate_run(
         from train.preprocess import PreprocessConfig
 
         pp = PreprocessConfig(**ck["preprocess"]) if ck.get("preprocess") else None
-        test = build_real_test_set(settings, _craters_for(settings, class_names), class_names, pp)
+        test = build_real_test_set(settings, craters_for(settings, class_names), class_names, pp)
     ebs = settings.train.eval_batch_size
     rolls = settings.train.tta_rotations
     if rolls > 1 and (ck.get("preprocess") or {}).get("support", "square") != "disc":

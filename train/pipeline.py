@@ -22,7 +22,7 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
     interrupted or refused run leaves ``run_dir`` as it was (and none where there was none)."""
     from crater_core.files import check_dir_path
     from train.data import build_datasets, cache_dir_of, class_names_of, require_classes, require_manifest
-    from train.evaluate import _craters_for, evaluate_run
+    from train.evaluate import craters_for, evaluate_run
     from train.realset import build_real_test_set
     from train.runs import StagedRun
     from train.trainer import configure_torch, train_all
@@ -33,7 +33,7 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
     with StagedRun(settings.run_dir) as stage:  # creates and checks run_dir before minutes of caching
         configure_torch(settings.train)
         require_manifest(settings.train.dataset_dir)
-        test = build_real_test_set(settings, _craters_for(settings, class_names), class_names)
+        test = build_real_test_set(settings, craters_for(settings, class_names), class_names)
         real_paths = sorted({c.image_path for c in test.crops})
         data = build_datasets(
             settings, forbidden_sha256=test.image_sha256s(), forbidden_paths=real_paths, progress=progress

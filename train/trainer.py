@@ -55,7 +55,7 @@ def configure_torch(train: TrainSettings) -> torch.device:
     return torch.device(dev)
 
 
-def _require_synthetic(ds) -> None:
+def require_synthetic(ds) -> None:
     if not isinstance(ds, SyntheticCropDataset):
         raise RealDataLeakError(f"training accepts only synthetic render datasets, got {type(ds).__name__}")
 
@@ -119,8 +119,8 @@ def train_lunarnet(
     Returns (model, history) where history holds per-epoch loss/accuracy/throughput and timings."""
     from tqdm import tqdm
 
-    _require_synthetic(data.train)
-    _require_synthetic(data.val)
+    require_synthetic(data.train)
+    require_synthetic(data.val)
     ts = settings.train
     arch = model_for(settings.model, data.class_names)
     device = configure_torch(ts)
@@ -283,8 +283,8 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
 def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progress: bool = True) -> dict:
     """Fit LunarSVM_ex (FC1 activations) and the HOG+SVM baseline on the synthetic training images
     (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies."""
-    _require_synthetic(data.train)
-    _require_synthetic(data.val)
+    require_synthetic(data.train)
+    require_synthetic(data.val)
     ts = settings.train
     seed = ts.seed
     device = next(model.parameters()).device

@@ -106,7 +106,7 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
 
             click.echo("navframes " + json.dumps(bench_navframes(overrides, work, navframes_frames)))
         if part in ("all", "detector"):
-            from crater_synth.navigation.learned_train import DEFAULT_FRAMES
+            from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
 
             if (DEFAULT_FRAMES / "track_000").is_dir():
                 from crater_synth.bench.detector import bench_detector_training

@@ -38,7 +38,7 @@ def _worker_stats(out_dir: Path) -> list[dict]:
 
 
 def _run(settings, out: Path, n: int, share: bool) -> dict:
-    from crater_synth.navigation.render_frames import render_frames
+    from crater_synth.navigation.rendered.frames import render_frames
 
     t0 = time.perf_counter()
     summary = render_frames(settings, out, list(range(n)), share_patches=share)
@@ -77,10 +77,10 @@ def _untimed(value):
 
 
 def _navigate(frames_dir: Path) -> dict:
-    from crater_synth.navigation.frames_eval import evaluate_dir
-    from crater_synth.navigation.frames_presets import frames_params
-    from crater_synth.navigation.patches import PatchParams
-    from crater_synth.navigation.sequence import SequenceParams
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.fix.sequence import SequenceParams
+    from crater_synth.navigation.rendered.evaluate import evaluate_dir
+    from crater_synth.navigation.settings import frames_params
 
     out: dict = {}
     results: dict = {}
@@ -121,7 +121,7 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
     override names another) twice, with the same settings: frames sharing terrain patches (the default
     path) and every frame on its own patch (the per-frame path); times both and gives their ratio."""
     from crater_synth.config import load_settings
-    from crater_synth.navigation.render_frames import frame_overrides
+    from crater_synth.navigation.rendered.frames import frame_overrides
 
     overrides = frame_overrides(overrides)  # the frames' own defaults, as nav-frames renders them
     if not any(o.startswith("trajectory=") for o in overrides):

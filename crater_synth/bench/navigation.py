@@ -1,6 +1,6 @@
 """``crater-synth bench --part navigation``: detection, identification and fix per second on a 1024 x 1024
 real mosaic window, every method in the same run (the classical baseline first), timed on the very
-functions ``nav-eval`` runs (:mod:`crater_synth.navigation.evaluate`)."""
+functions ``nav-eval`` runs (:mod:`crater_synth.navigation.windows.evaluate`)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import time
 
 import numpy as np
 
-from crater_synth.navigation.detect import detect
-from crater_synth.navigation.evaluate import prior_georef
-from crater_synth.navigation.fix import FixParams, fix_frame
-from crater_synth.navigation.frames import Frame, Georef
+from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.solve import FixParams, fix_frame
+from crater_synth.navigation.georef import Frame, Georef
+from crater_synth.navigation.windows.evaluate import prior_georef
 
 
 def bench_navigation(repeats: int = 3) -> dict:
@@ -21,10 +21,10 @@ def bench_navigation(repeats: int = 3) -> dict:
     the template detector, the learned detector, and the appearance search: :func:`_bench_appearance`):
     median of ``repeats`` runs after one warm-up. The light direction is estimated on the frame where a
     detector uses it (its cost is part of detection)."""
-    from crater_synth.navigation.detect import preset
-    from crater_synth.navigation.fix import identify, ransac_similarity
-    from crater_synth.navigation.frames import load_mosaic_image
-    from crater_synth.navigation.landmarks import load_default_map
+    from crater_synth.navigation.detectors.classical import preset
+    from crater_synth.navigation.fix.solve import identify, ransac_similarity
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.windows.mosaic import load_mosaic_image
 
     landmarks, _ = load_default_map("south")
     img, extent, pixel, _ = load_mosaic_image("south")
@@ -79,10 +79,10 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
     landmarks were prepared for its Sun before it began. Cold once more with the new windows computed in two
     worker processes while the search correlates (``cold_2_workers``, :meth:`.refine.Refiner.prepare`;
     the same detections)."""
-    from crater_synth.navigation.appearance_window import lander_refiner, window_detections
-    from crater_synth.navigation.detect import preset
-    from crater_synth.navigation.frames import sector_of
-    from crater_synth.navigation.light import frame_local_light
+    from crater_synth.navigation.detectors.classical import preset
+    from crater_synth.navigation.windows.appearance import lander_refiner, window_detections
+    from crater_synth.navigation.windows.light import frame_local_light
+    from crater_synth.navigation.windows.mosaic import sector_of
 
     dparams = preset("appearance")
     frame = dataclasses.replace(frame, sector=int(sector_of(*frame.centre_xy, frame.georef.pole)))
@@ -124,8 +124,8 @@ def _bench_window_patches(frame: Frame, prior: Georef, alpha: float, dparams, fp
     """The window navigated with its terrain patches alone (:func:`.appearance_window.window_patch_fix`: 16
     new windows, none kept from an earlier frame, as every frame's patches lie elsewhere), their windows
     computed in ``workers`` processes."""
-    from crater_synth.navigation.appearance_window import lander_refiner, window_patch_fix
-    from crater_synth.navigation.patches import PatchParams
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.windows.appearance import lander_refiner, window_patch_fix
 
     refiner = lander_refiner(frame.georef.pole, workers=workers)
     times = []

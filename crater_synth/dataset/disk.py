@@ -88,7 +88,7 @@ class DatasetLock:
             self.release()
             raise DatasetBusyError(
                 f"{what} {self.out_dir} is being written by another crater-synth process "
-                f"({_holder(path)}): wait for it to finish, or give another out_dir"
+                f"({holder(path)}): wait for it to finish, or give another out_dir"
             ) from None
         self._files.append(fh)
         if mode == fcntl.LOCK_EX:  # say who holds it, for the message a second writer prints
@@ -135,7 +135,7 @@ class DatasetLock:
         self.release()
 
 
-def _holder(lock_path: Path) -> str:
+def holder(lock_path: Path) -> str:
     """Who holds a lock, from the line its exclusive holder wrote (``pid N on HOST, since ...``)."""
     try:
         text = lock_path.read_text().strip()

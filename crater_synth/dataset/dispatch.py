@@ -93,12 +93,12 @@ WORKER_STARTUP_RENDERS = 75
 MAX_BLOCKS_PER_WORKER = 4
 
 
-def _split_contiguous(items: list, n: int) -> list[list]:
+def split_contiguous(items: list, n: int) -> list[list]:
     n = max(1, min(n, len(items)))
     return [items[i * len(items) // n : (i + 1) * len(items) // n] for i in range(n)]
 
 
-def _makespan(unit_sizes: list[int], n_workers: int, startup: int = WORKER_STARTUP_RENDERS) -> int:
+def makespan(unit_sizes: list[int], n_workers: int, startup: int = WORKER_STARTUP_RENDERS) -> int:
     """Finish time (in renders) of ``unit_sizes`` taken in order by ``n_workers`` slots, each unit
     paying a worker start-up: the host's own schedule, simulated."""
     slots = [0] * max(1, n_workers)
@@ -109,7 +109,7 @@ def _makespan(unit_sizes: list[int], n_workers: int, startup: int = WORKER_START
 
 
 def _units_of(sizes: list[int], blocks: list[int]) -> list[int]:
-    return [len(part) for n, b in zip(sizes, blocks) if n for part in _split_contiguous(range(n), b)]
+    return [len(part) for n, b in zip(sizes, blocks) if n for part in split_contiguous(range(n), b)]
 
 
 def blocks_per_crater(
@@ -133,7 +133,7 @@ def blocks_per_crater(
     best: tuple[int, list[int]] | None = None
     for m in range(1, MAX_BLOCKS_PER_WORKER + 1):
         blocks = [min(n, max(1, round(m * n_workers * n / total))) if n else 0 for n in sizes]
-        span = _makespan(_units_of(sizes, blocks), n_workers, startup)
+        span = makespan(_units_of(sizes, blocks), n_workers, startup)
         if best is None or span < best[0]:
             best = (span, blocks)
     assert best is not None
@@ -146,7 +146,7 @@ def _refined_blocks(sizes: list[int], n_workers: int, startup: int) -> list[int]
     an estimate: a split that gains less may well lose)."""
 
     def span_of(blocks: list[int]) -> int:
-        return _makespan(sorted(_units_of(sizes, blocks), reverse=True), n_workers, startup)
+        return makespan(sorted(_units_of(sizes, blocks), reverse=True), n_workers, startup)
 
     blocks = [1 if n else 0 for n in sizes]
     span = span_of(blocks)
@@ -225,7 +225,7 @@ def run_workers(
     for job, share in zip(jobs, shares):
         if job.plans:
             ordered = sorted(job.plans, key=camera_major)
-            units += [(job, block) for block in _split_contiguous(ordered, share)]
+            units += [(job, block) for block in split_contiguous(ordered, share)]
     if startup_renders is not None:
         units.sort(key=lambda unit: len(unit[1]), reverse=True)  # stable: equal units keep their order
     # the cores split between the workers that can run at once (fewer units than workers: more threads each)

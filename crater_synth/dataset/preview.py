@@ -30,7 +30,7 @@ def tone_map(radiance_factor: np.ndarray) -> np.ndarray:
     return np.clip(radiance_factor / max(white, 1e-6), 0.0, 1.0) ** (1.0 / 2.2)
 
 
-def _ellipse_points(e: dict, n: int = 180) -> np.ndarray:
+def ellipse_points(e: dict, n: int = 180) -> np.ndarray:
     t = np.linspace(0.0, 2.0 * np.pi, n)
     ca, sa = np.cos(e["angle_rad"]), np.sin(e["angle_rad"])
     x, y = e["a"] * np.cos(t), e["b"] * np.sin(t)
@@ -53,7 +53,7 @@ def contact_sheet(rows: list[dict], dataset_dir: Path, out_png: Path, title: str
     for ax, row in zip(axes.ravel(), pick, strict=False):
         img = tone_map(read_channel(schema.row_file(dataset_dir, row)))
         ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-        pts = _ellipse_points(row["rim_ellipse"])
+        pts = ellipse_points(row["rim_ellipse"])
         ax.plot(pts[:, 0], pts[:, 1], "-", color="#ff5050", lw=0.8)
         for u0, v0, u1, v1 in row["sigma_boxes"].values():
             ax.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], "--", color="#50c0ff", lw=0.5)

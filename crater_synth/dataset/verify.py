@@ -18,7 +18,7 @@ from crater_core import schema
 from crater_core.exr import ExrError, exr_info
 from crater_core.render_labels import label_faults
 from crater_synth.cli_common import user_errors
-from crater_synth.dataset.disk import JOBS_DIR, _holder, find_orphans
+from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder
 from crater_synth.dataset.manifest import stale_parts
 from crater_synth.errors import UserError
 
@@ -75,7 +75,7 @@ def live_writer(dataset_dir: Path) -> str | None:
                 fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except OSError as exc:
                 if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    return _holder(lock)
+                    return holder(lock)
                 continue
             fcntl.flock(fh, fcntl.LOCK_UN)
     return None

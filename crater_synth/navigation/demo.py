@@ -25,7 +25,7 @@ from crater_synth.errors import UserError
 from crater_synth.navigation import DEMO_JSON
 
 DEMO_WINDOWS_PER_SECTOR = 1
-# The per-window fields of navigation.json (crater_synth.navigation.evaluate.run_frame's scalars).
+# The per-window fields of navigation.json (crater_synth.navigation.windows.evaluate.run_frame's scalars).
 WINDOW_FIELDS = ("id", "split", "sector", "light_azimuth_deg", "n_detections", "fix", "reason", "error_km")
 
 
@@ -46,7 +46,7 @@ def window_entry(method: str, row: dict, png_name: str) -> dict:
 
 def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
     """``per_sector`` windows of every sector (the middle ones of its list), both splits."""
-    from crater_synth.navigation.frames import windows
+    from crater_synth.navigation.windows.mosaic import windows
 
     out = []
     all_frames = windows(None)
@@ -90,21 +90,18 @@ def patch_row(row: dict, scores: dict) -> dict:
 def main(out: Path, per_sector: int):
     """Annotated real windows and one table, every method (module docstring)."""
     from crater_core.schema import atomic_write_bytes, atomic_write_text
-    from crater_synth.navigation.evaluate import (
-        FALSE_FIX_KM,
-        HEADLINE_MIN_LANDMARKS,
-        PRIOR_OFFSET_KM,
-        _params_with,
-        navigate_frame,
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM, summarise
+    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.windows.evaluate import (
+        navigate_window,
         prior_georef,
         results_markdown,
         run_frame,
-        summarise,
         window_patches_alone,
     )
-    from crater_synth.navigation.landmarks import load_default_map
-    from crater_synth.navigation.navigate import annotate
-    from crater_synth.navigation.patches import PatchParams
+    from crater_synth.navigation.windows.navigate import annotate
 
     if per_sector < 1:
         raise UserError(f"--per-sector={per_sector} must be >= 1")
@@ -116,14 +113,14 @@ def main(out: Path, per_sector: int):
     windows_out = []
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
-        dparams, fparams = _params_with((), method)
+        dparams, fparams = params_with((), method)
         splits: dict = {}
         for f in frames:
             row = run_frame(f, landmarks, dparams, fparams)
             if method == "appearance":
                 appearance_rows[f.id] = row
             splits.setdefault(f.split, []).append(row)
-            dets, _, fix, prior = navigate_frame(f, landmarks, dparams, fparams)
+            dets, _, fix, prior = navigate_window(f, landmarks, dparams, fparams)
             png = out / f"{f.id}_{method}.png"
             atomic_write_bytes(png, annotate(f.image, dets, landmarks, fix, prior, f.georef))
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
@@ -132,7 +129,7 @@ def main(out: Path, per_sector: int):
         methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
     # The appearance search's terrain patches alone (no crater): the same windows, prior and light.
     splits = {}
-    dparams, fparams = _params_with((), "appearance")
+    dparams, fparams = params_with((), "appearance")
     for f in frames:
         prior = prior_georef(f, 0)  # run_frame's
         scores, patches, dets, fix = window_patches_alone(f, prior, dparams, fparams, PatchParams())
@@ -145,8 +142,8 @@ def main(out: Path, per_sector: int):
         windows_out.append({**window_entry("patches", row, png.name), "landmarks_in_view": len(patches)})
     methods["patches"] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
     # The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart).
-    from crater_synth.navigation.landmark_check import catalogue_check
-    from crater_synth.navigation.landmarks import DATA_DIR, DEM_PRODUCTS
+    from crater_synth.navigation.map.check import catalogue_check
+    from crater_synth.navigation.map.landmarks import DATA_DIR, DEM_PRODUCTS
     from crater_synth.terrain.stack import open_dem_entry
 
     own = [lm for lm in landmarks if not lm.dem_product]

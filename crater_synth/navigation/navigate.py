@@ -1,14 +1,10 @@
-"""``crater-synth navigate IMAGE``: detections, identification, fix and an annotated PNG for one frame.
-
-The frame is a north-up polar-stereographic nadir view (e.g. a mosaic window written by
-:func:`write_window`). Its sidecar ``IMAGE.geo.json`` (pole, left_m, top_m, pixel_m) is the truth;
-``--prior LAT,LON`` the coarse position (default: the truth centre moved by 5 km, as in ``nav-eval``).
-"""
+"""``crater-synth navigate IMAGE``: one frame navigated, a real map window (PNG with its georeference) or a
+rendered frame (``nav-frames`` EXR), each through its own part (:mod:`.windows.navigate`,
+:mod:`.rendered.navigate`). The one module that sees both parts."""
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import math
 from pathlib import Path
@@ -18,74 +14,11 @@ import numpy as np
 
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detect import detect, preset
-from crater_synth.navigation.evaluate import prior_georef
-from crater_synth.navigation.fix import FixParams, fix_frame
-from crater_synth.navigation.frames import Frame, FrameError, Georef, ground_distance_km
-
-
-# --------------------------------------------------------------------------------------------
-# navigate IMAGE
-# --------------------------------------------------------------------------------------------
-def read_georef(image_path: Path) -> Georef | None:
-    """The georeference of ``image_path``: its sidecar ``<image>.geo.json`` ({pole, left_m, top_m,
-    pixel_m}), or None when it has none."""
-    side = image_path.with_name(image_path.name + ".geo.json")
-    if not side.is_file():
-        return None
-    try:
-        d = json.loads(side.read_text())
-        g = Georef(str(d["pole"]), float(d["left_m"]), float(d["top_m"]), float(d["pixel_m"]))
-    except (ValueError, KeyError, TypeError) as exc:
-        raise FrameError(f"georeference {side} is corrupt: {exc}") from None
-    if g.pole not in ("south", "north") or not g.pixel_m > 0:
-        raise FrameError(f"georeference {side}: pole must be south or north and pixel_m > 0")
-    return g
-
-
-def write_window(path: Path, frame: Frame) -> None:
-    """A frame as PNG plus its ``.geo.json`` sidecar (what ``navigate`` reads)."""
-    from crater_core.schema import atomic_write_bytes, atomic_write_text
-
-    atomic_write_bytes(path, _png_gray(frame.image))
-    atomic_write_text(path.with_name(path.name + ".geo.json"), json.dumps(frame.georef.as_dict()) + "\n")
-
-
-def _png_gray(img: np.ndarray) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    plt.imsave(buf, img, cmap="gray", vmin=0, vmax=255, format="png")
-    return buf.getvalue()
-
-
-def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | None) -> bytes:
-    """Annotated PNG: detections (red), identified landmarks with names (yellow), error arrow (cyan).
-    ``prior`` (None for a lost-in-space fix) is not drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from crater_synth.navigation.nav_output import draw_detections, png_of
-    from crater_synth.navigation.patches import PATCH_SOURCE
-
-    h, w = image.shape
-    fig, ax = plt.subplots(figsize=(8, 8))
-    ax.imshow(image, cmap="gray")
-    draw_detections(ax, dets, fix.inliers if fix.ok else [], landmarks)
-    patch_fix = fix.ok and landmarks[fix.inliers[0][1]].source == PATCH_SOURCE
-    what = "terrain patches (cyan)" if patch_fix else "landmarks"
-    title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} {what}, RMS {fix.rms_px:.1f} px"
-    if fix.ok and truth is not None:
-        tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
-        ax.annotate("", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2})
-        err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
-        title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
-    return png_of(fig, ax, w, h, title)
+from crater_synth.navigation.detectors.classical import detect, preset
+from crater_synth.navigation.fix.solve import FixParams, fix_frame
+from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
+from crater_synth.navigation.windows.evaluate import prior_georef
+from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
 
 
 @click.command("navigate")
@@ -204,8 +137,8 @@ def navigate_command(
             )
         from click.core import ParameterSource
 
-        from crater_synth.navigation.frames_presets import DEFAULT_FRAMES_PRESET
-        from crater_synth.navigation.navigate_frame import navigate_frame
+        from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
+        from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET
 
         chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
         # --method -> the nav-frames-eval preset it names for rendered frames.
@@ -217,7 +150,7 @@ def navigate_command(
             raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
         patches = name == "appearance" if patches is None else patches
         nav_png = out or image.with_name(image.stem + ".nav.png")
-        click.echo(json.dumps(navigate_frame(image, name, nav_png, patches=patches, six_dof=six_dof)))
+        click.echo(json.dumps(navigate_rendered_frame(image, name, nav_png, patches=patches, six_dof=six_dof)))
         return
     if six_dof:
         raise UserError(f"{image}: --six-dof applies to rendered frames (a map window's fix is a 2-D similarity)")
@@ -225,8 +158,8 @@ def navigate_command(
         raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
     patches = method == "appearance" if patches is None else patches
     from crater_core.schema import atomic_write_bytes
-    from crater_synth.navigation.landmarks import load_default_map, read_map
-    from crater_synth.navigation.polar import stereo_forward, stereo_inverse
+    from crater_synth.navigation.georef import stereo_forward, stereo_inverse
+    from crater_synth.navigation.map.landmarks import load_default_map, read_map
     from train.errors import RealSetError
     from train.realset import read_gray
 
@@ -241,7 +174,7 @@ def navigate_command(
         img = read_gray(image)
     except RealSetError as exc:
         raise FrameError(str(exc)) from None
-    from crater_synth.navigation.frames import check_frame
+    from crater_synth.navigation.georef import check_frame
 
     check_frame(img, str(image))
     truth = read_georef(image)
@@ -287,7 +220,7 @@ def navigate_command(
     light = None if light_azimuth is None else math.radians(light_azimuth)
 
     def vote_fix(dets):
-        from crater_synth.navigation.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
+        from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
 
         lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
         return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
@@ -296,7 +229,7 @@ def navigate_command(
     if method == "appearance":
         assert light is not None
         if prior_g is None:  # no prior: the first stage's lost-in-space fix is the search's prior (as nav-eval)
-            from crater_synth.navigation.evaluate import LOST_IN_SPACE_FIRST_STAGE
+            from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE
 
             coarse = vote_fix(detect(img, preset(LOST_IN_SPACE_FIRST_STAGE), light_dir=light, what=str(image))[0])
             if coarse.ok:
@@ -304,7 +237,7 @@ def navigate_command(
         if prior_g is None:
             dets, theta, fix = [], light, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}")
         else:
-            dets, theta, fix, landmarks, source = _appearance_window(
+            dets, theta, fix, landmarks, source = appearance_window_fix(
                 img, prior_g, landmarks, light, sun_elevation, dparams, fparams, patches
             )
     else:
@@ -335,33 +268,9 @@ def navigate_command(
         result["reason"] = fix.reason
     out = out or image.with_name(image.stem + ".nav.png")
     listing = out.with_suffix(".json")
-    from crater_synth.navigation.nav_output import detection_records, write_detections
+    from crater_synth.navigation.output import detection_records, write_detections
 
     write_detections(listing, image, detection_records(dets, dict(fix.inliers) if fix.ok else {}, landmarks))
     atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))
     result.update(annotated=str(out), detections_file=str(listing))
     click.echo(json.dumps(result))
-
-
-def _appearance_window(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams, patches):
-    """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of the appearance search
-    (:mod:`.appearance_window`) on a map window: the light's image direction ``light`` (radians) turned into
-    its local azimuth at the prior's frame centre; with ``patches``, a window its craters do not fix is
-    navigated with its terrain patches (:func:`.appearance_window.window_patch_fix`)."""
-    from crater_synth.navigation.appearance_window import lander_refiner, window_detections, window_patch_fix
-    from crater_synth.navigation.polar import local_north_image_angle
-
-    h, w = img.shape[:2]
-    alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
-    if sun_elevation is not None:
-        dparams = dataclasses.replace(dparams, appearance_sun_el_deg=(float(sun_elevation),))
-    refiner = lander_refiner(prior_g.pole)
-    dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, refiner)
-    fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
-    if patches and not fix.ok:
-        from crater_synth.navigation.patches import PatchParams
-
-        found, patch_dets, patch_fix = window_patch_fix(img, prior_g, alpha, dparams, fparams, refiner, PatchParams())
-        if patch_fix.ok:
-            return patch_dets, light, patch_fix, found, "patches"
-    return dets, light, fix, landmarks, "craters"

@@ -153,7 +153,7 @@ def _real_plan(ctx: Ctx, canonical: bool):
 
 
 def compare(ctx: Ctx) -> dict:
-    from crater_synth.dataset.preview import _ellipse_points, read_channel, tone_map
+    from crater_synth.dataset.preview import ellipse_points, read_channel, tone_map
     from train.preprocess import preprocess_crop, resample_box
     from train.realcrops import crop_pixels
     from train.realset import canonical_crater
@@ -205,7 +205,7 @@ def compare(ctx: Ctx) -> dict:
             i_f,
             skey,
             sbox,
-            _ellipse_points(row["rim_ellipse"]),
+            ellipse_points(row["rim_ellipse"]),
             preprocess_crop(img, rc.box, pp, rotation_deg=rc.rotation_deg, axes=rc.axes),
             preprocess_crop(i_f, sbox, pp),
             syn_sensor,

@@ -393,7 +393,7 @@ def load_nav_demo(path: Path) -> dict | None:
 
 
 def load_nav_frames(path: Path) -> dict | None:
-    """A trajectory's ``nav-frames-eval --json`` result (crater_synth/navigation/frames_eval.py),
+    """A trajectory's ``nav-frames-eval --json`` result (crater_synth/navigation/rendered/evaluate.py),
     shape-checked: per frame the altitude, landmarks in view, detections, matches and the fixes of the
     detector and of the perfect-detection check."""
     if not path.exists():

@@ -16,7 +16,7 @@ real crater in the DEM the terrain is built from, or the renders of "crater X" s
    down by at least ``MIN_RIM_DROP_D`` x D; where it never turns down (terrain rising beyond the rim),
    the knee where the steep wall gives way to the gentler rise (:func:`_first_crest`).
 3. **Centre.** Starting at the catalogue position, c moves (half steps) to the centre of the
-   least-squares circle through the crest points, outliers rejected (:func:`_robust_circle`), until it
+   least-squares circle through the crest points, outliers rejected (:func:`robust_circle`), until it
    moves by less than ``CENTRE_TOLERANCE_D`` x D. The converged c is the depression's centre: the
    catalogue position only seeds the search; the offset is measured, not chosen.
 4. **Rim diameter** = 2 x the mean crest radius about c over the azimuths on the rim circle.
@@ -195,7 +195,7 @@ def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     return cx, cy, math.sqrt(max(float(sol[2]) + cx * cx + cy * cy, 0.0))
 
 
-def _robust_circle(x: np.ndarray, y: np.ndarray, min_tolerance: float):
+def robust_circle(x: np.ndarray, y: np.ndarray, min_tolerance: float):
     """Circle through the crest points that agree on one: (centre (2,), radius, inlier mask, tolerance).
 
     Points whose distance to the fitted circle exceeds ``OUTLIER_MADS`` robust standard deviations
@@ -270,7 +270,7 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
     limit = half_width - RIM_SEARCH_FRAC[1] * radius_m
     for iterations in range(1, MAX_CENTRE_ITERATIONS + 1):
         r, _, _ = _rim_crest(grid, half_width, spacing, centre, radius_m, sin_az, cos_az, min_drop)
-        new, _, _, _ = _robust_circle(centre[0] + r * sin_az, centre[1] + r * cos_az, spacing)
+        new, _, _, _ = robust_circle(centre[0] + r * sin_az, centre[1] + r * cos_az, spacing)
         if iterations > 1:
             # Half steps: a crest that flips between two neighbouring bumps would otherwise make the
             # centre oscillate between two positions ~0.01 D apart instead of settling between them.
@@ -283,7 +283,7 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
             break
 
     r, h, no_crest = _rim_crest(grid, half_width, spacing, centre, radius_m, sin_az, cos_az, min_drop)
-    _, fit_radius, inliers, tolerance = _robust_circle(centre[0] + r * sin_az, centre[1] + r * cos_az, spacing)
+    _, fit_radius, inliers, tolerance = robust_circle(centre[0] + r * sin_az, centre[1] + r * cos_az, spacing)
     rim_radius = float(r[inliers].mean())
     # Closed depression: water has left the crater once it is beyond every rim-circle crest point.
     coords = np.linspace(-half_width, half_width, grid.shape[0])
@@ -322,10 +322,10 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
 # --------------------------------------------------------------------------------------------
 def open_dem(cfg):
     """The DEM the terrain of ``cfg`` is built from (``dem.path`` or ``dem.product``)."""
-    from crater_synth.terrain.patch import _open_dem, terrain_settings
+    from crater_synth.terrain.patch import open_dem, terrain_settings
 
     s = terrain_settings(cfg)
-    return _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])[0]
+    return open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])[0]
 
 
 def square_inside(dem, lat: float, lon: float, half_width_m: float, points_per_side: int = 41) -> bool:

@@ -84,17 +84,17 @@ def _crater_dict(crater) -> dict:
     return crater.as_dict() if hasattr(crater, "as_dict") else dict(crater)
 
 
-def _open_stack(s: dict):
+def open_stack(s: dict):
     """The near-field DEM: the base (dem.product / dem.path) with the dem.stack layers over it."""
     from crater_synth.terrain.stack import open_stack
 
-    base, base_sha = _open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
+    base, base_sha = open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
     return open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
 
 
 def open_dem_stack(cfg):
     """The near-field DEM stack of the settings ``cfg`` (dem.product or dem.path, with dem.stack over it)."""
-    return _open_stack(terrain_settings(cfg))[0]
+    return open_stack(terrain_settings(cfg))[0]
 
 
 def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key: str) -> tuple[np.ndarray, dict]:
@@ -134,7 +134,7 @@ def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key
     return field_sum, base_stats
 
 
-def _open_dem(product: str | None, path: str | None, data_dir: Path):
+def open_dem(product: str | None, path: str | None, data_dir: Path):
     """(Dem, sha256) for a registry product or an explicit file (``path`` wins)."""
     from crater_synth.terrain.dem import Dem
     from data_manifest.products import cached_sha256, resolve_product
@@ -269,10 +269,10 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     crater = _crater_dict(crater)
     name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
     diameter_m = float(crater["diameter_km"]) * 1000.0
-    dem, dem_sha = _open_stack(s)
+    dem, dem_sha = open_stack(s)
     check_hemisphere(dem, name, lat)
     if s["dem"]["far_product"] or s["dem"]["far_path"]:
-        far_dem, far_sha = _open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
+        far_dem, far_sha = open_dem(s["dem"]["far_product"], s["dem"]["far_path"], s["data_dir"])
         check_hemisphere(far_dem, name, lat)
     else:
         far_dem, far_sha = dem, dem_sha  # the same stack: near and far fields agree in their overlap

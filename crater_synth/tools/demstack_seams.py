@@ -49,10 +49,10 @@ def _region_stats(h: np.ndarray, mask: np.ndarray) -> dict:
 def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
     """(metrics, arrays for figures) for one crater's near field under the configured stack."""
     from crater_synth.terrain.grid import sphere_points
-    from crater_synth.terrain.patch import _open_stack, terrain_settings
+    from crater_synth.terrain.patch import open_stack, terrain_settings
 
     s = terrain_settings(cfg)
-    stack, _ = _open_stack(s)
+    stack, _ = open_stack(s)
     lat, lon = float(crater["lat"]), float(crater["lon"])
     hw = s["near_radius_factor"] * float(crater["diameter_km"]) * 1000.0
     nv = s["near_vertices"]

@@ -33,8 +33,8 @@ import numpy as np
 
 from crater_core.errors import ContractError
 from crater_synth.errors import UserError
-from crater_synth.navigation import landmark_check as lc
-from crater_synth.navigation import landmarks as lmap
+from crater_synth.navigation.map import check as lc
+from crater_synth.navigation.map import landmarks as lmap
 
 LARGE_KM = 30.0  # from here the per-scale 2-D maxima are candidates too (they find the large craters)
 THRESHOLDS = (0.3, 0.4)  # accept below / from LARGE_KM (chosen on the south's held-out sectors)
@@ -163,7 +163,7 @@ def _model():
     return make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=1000))
 
 
-def _build(rows: list[dict], order_key: np.ndarray, keep: np.ndarray, extra: list, pole: str) -> list:
+def rebuild(rows: list[dict], order_key: np.ndarray, keep: np.ndarray, extra: list, pole: str) -> list:
     """Landmarks from the accepted rows, duplicates suppressed in order of ``order_key`` (highest first)."""
     kept = lmap.first_of_each_crater([rows[q] for q in np.nonzero(keep)[0][np.argsort(-order_key[keep])]])
     out = sorted(kept + extra, key=lambda r: (-r["diameter_km"], r["lat"], r["lon"]))
@@ -217,8 +217,8 @@ def evaluate(pole: str, cache: Path, workers: int, model=None) -> dict:
     small, large = THRESHOLDS
     learned = base & (((f["D"] < LARGE_KM) & (f["is3d"] > 0) & (p >= small)) | ((f["D"] >= LARGE_KM) & (p >= large)))
     return {
-        "closed rule, rebuilt": _scores(_build(rows, f["spill_depth_d"], closed, extra, pole), pole, dem, listed, iau),
-        f"learned, {small} / {large}": _scores(_build(rows, p, learned, extra, pole), pole, dem, listed, iau),
+        "closed rule, rebuilt": _scores(rebuild(rows, f["spill_depth_d"], closed, extra, pole), pole, dem, listed, iau),
+        f"learned, {small} / {large}": _scores(rebuild(rows, p, learned, extra, pole), pole, dem, listed, iau),
     }, model
 
 

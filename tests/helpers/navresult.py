@@ -1,5 +1,5 @@
 """A small navigation result in the shapes `make navigate-demo` (crater_synth/navigation/demo.py) and
-`crater-synth nav-frames-eval --json` (crater_synth/navigation/frames_eval.py) write, for the report's
+`crater-synth nav-frames-eval --json` (crater_synth/navigation/rendered/evaluate.py) write, for the report's
 navigation section: the JSON files and tiny PNGs, nothing detected or rendered."""
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def _frame(i, alt, fix_err, perfect_err, reason="2 landmarks identified (need 5)
 
 
 def make_frames(nav: Path, name: str = "frames_eval.json") -> dict:
-    """A nav-frames-eval result in the shape crater_synth/navigation/frames_record.py's frames_record writes."""
+    """A nav-frames-eval result in the shape crater_synth/navigation/rendered/record.py's frames_record writes."""
     nav.mkdir(parents=True, exist_ok=True)
     empty = _summary(3, 0.0, None, None, None, 0.2, 0.05)
     doc = {

@@ -1,0 +1,1 @@
+"""Crater detectors: whole frames in, crater circles out (classical filter, Hapke template, learned network)."""

@@ -1,0 +1,65 @@
+"""Third crater detector: the network of :mod:`train.crater_detector`, trained on rendered frames only.
+
+Training data are the survey frames of :mod:`.detector_frames` (south DEM, rendered by ``nav-frames``,
+labelled with the south landmark map's projected rims); no real pixel takes part. The network finds
+craters of one octave of rim radius and runs on the frame's image pyramid; the first level searched is
+the one whose band starts near ``min_radius_px`` (so a 400 m/px mosaic window is searched from 800 m/px,
+the training frames' own ground sample). Its detections go through the same border rule, optional rim
+fit and suppression as the other two methods (:func:`crater_synth.navigation.detectors.classical.detect`).
+
+The committed model (``DEFAULT_MODEL``) carries its provenance (survey seed and tracks, training
+settings, code commit, synthetic hold-out metrics) inside the file; :mod:`.learned_train`
+(``crater-synth nav-detector-frames``, ``crater-synth nav-detector-train``) makes it again. This module
+is inference only.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from pathlib import Path
+
+import numpy as np
+
+from crater_synth.errors import UserError
+
+ROOT = Path(__file__).resolve().parents[3]
+DEFAULT_MODEL = ROOT / "data_manifest" / "models" / "crater_detector_south.pt"
+
+
+class DetectorModelFileError(UserError):
+    """The learned detector's model file cannot be used."""
+
+
+@functools.lru_cache(maxsize=4)
+def load_model(path: str):
+    from train.crater_detector import DetectorModelError, load_model
+
+    try:
+        return load_model(Path(path))
+    except DetectorModelError as exc:
+        raise DetectorModelFileError(str(exc)) from None
+
+
+def model_path(params) -> Path:
+    """The model file a detector setting names ("" = the committed default)."""
+    return Path(params.learned_model) if params.learned_model else DEFAULT_MODEL
+
+
+def first_level(min_radius_px: float) -> int:
+    """The first pyramid level searched: its band's lower edge (6 x 2**level px) near 4/3 x the
+    smallest radius wanted, so that radius is found at a level where it lies inside the band."""
+    from train.crater_detector import BAND_LO_PX
+
+    return max(0, int(round(math.log2(max(min_radius_px, 1e-6) / (0.75 * BAND_LO_PX)))))
+
+
+def learned_candidates(a: np.ndarray, params):
+    """The network's craters in frame ``a``: (u, v, r, score) in frame pixels, radii within the
+    detector's [min_radius_px, max_radius_px]."""
+    from train.crater_detector import detect_pyramid
+
+    model, _meta = load_model(str(model_path(params)))
+    u, v, r, s, _level = detect_pyramid(model, a, params.learned_threshold, first_level(params.min_radius_px))
+    keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
+    return u[keep], v[keep], r[keep], s[keep]

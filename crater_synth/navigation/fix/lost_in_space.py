@@ -1,0 +1,269 @@
+"""Lost-in-space identification: the position fix of a nadir frame with no position prior.
+
+:func:`.fix.fix_frame` needs a prior position within ~10 km: landmarks predicted in the frame by the
+prior are paired with detections. A lander that has lost its position has no such prior. Here the
+frame's detections are matched against the whole landmark map by **crater pairs with diameters**:
+
+* The frame is an orthographic nadir view of the map plane at a known pixel size (400 m/px for the
+  mosaic windows; :mod:`.frames`), so a pair of craters is described, whatever the unknown heading
+  and position, by its centre distance in km and the two diameters: invariant to rotation and
+  translation, and the absolute scale is known (no scale invariance is needed).
+* **Index**: every ordered pair of map landmarks (>= ``min_landmark_km``) closer than the frame's
+  diagonal, sorted by distance (numpy sorting; :func:`build_index`, once per map).
+* **Query**: every pair of the frame's ``n_detections`` largest detections looks up the map pairs of
+  the same distance (within ``dist_tol_px`` + ``dist_tol_r`` x the radii) whose diameters agree within
+  ``radius_ratio``. Each such match defines one similarity pixel -> map (scale known, heading free),
+  hence a frame-centre map point and a heading: a **vote** in a (x, y, heading) grid of ``bin_km`` x
+  ``bin_km`` x ``bin_deg`` cells. A true solution collects votes from many pairs of correctly detected
+  craters at one cell; a false pairing scatters.
+* **Verification**: the ``n_verify`` best-voted cells each give a candidate transform (the mean of
+  its votes); all detections are paired with the landmarks it predicts in the frame (within
+  ``gate_km``) and the existing RANSAC similarity fix (:func:`.fix.ransac_similarity`, scale and
+  heading gated around the candidate) runs with the usual "no fix" rules (min inliers, disjoint rival
+  inside the candidate, inlier RMS).
+* **Ambiguity across the map** (strict: a false fix is worse than none): the best verified candidate
+  is refused when another candidate whose frame centre lies more than ``rival_km`` away is supported by
+  at least best - ``ambiguity_margin`` inliers (its consensus counted under its own transform, whether
+  or not it reached ``min_inliers``). A repeated crater pattern therefore gives "no fix".
+
+Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
+smallest distance error kept), ``n_verify`` RANSAC runs. Settings (:data:`LIS_PRESETS`) were chosen on
+south windows only (docs/navigation.md, "Lost in space").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from crater_synth.errors import UserError
+from crater_synth.navigation.fix.solve import (
+    Fix,
+    FixParams,
+    apply_similarity,
+    fit_similarity,
+    inliers_of,
+    ransac_similarity,
+)
+
+
+@dataclass(frozen=True)
+class LostInSpaceParams:
+    """Settings of :func:`lost_in_space_fix` (chosen on south windows; docs/navigation.md)."""
+
+    n_detections: int = 30  # the frame's largest detections used for the pair votes
+    min_landmark_km: float = 10.0  # landmarks indexed (and predicted in verification)
+    max_pair_km: float = 290.0  # index pairs up to the 512 px frame's diagonal (205 km x sqrt 2)
+    dist_tol_px: float = 2.0  # pair distance tolerance: px + dist_tol_r x (r_i + r_j)
+    dist_tol_r: float = 0.15
+    radius_ratio: float = 1.3  # detection / landmark radius within [1/x, x] for both craters
+    bin_km: float = 8.0  # vote cell of the frame-centre map point
+    bin_deg: float = 10.0  # vote cell of the heading
+    max_matches: int = 200000
+    n_verify: int = 8  # best-voted cells verified by the RANSAC fix
+    gate_km: float = 4.0  # verification gate (+ r/4) around the landmarks a candidate predicts; chosen on south
+    min_inliers: int = 6  # a lost-in-space fix needs more agreeing landmarks than a prior-gated one
+    ambiguity_margin: int = 2  # a rival elsewhere with >= best - margin inliers: no fix
+    rival_km: float = 5.0  # candidates whose centres are closer than this are the same solution
+    # The attitude gives the frame's heading on the map (a north-up mosaic window: 0; a rendered frame: its
+    # camera's): only votes within one heading cell of it count. Off in the frozen preset.
+    known_heading: bool = False
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def window_heading_deg(params: LostInSpaceParams) -> float | None:
+    """The heading :func:`lost_in_space_fix` is given for a map window: 0 (north-up on the map) when the
+    settings say the attitude gives it, else None (the vote's heading is free)."""
+    return 0.0 if params.known_heading else None
+
+
+# Frozen settings, chosen on south windows (docs/navigation.md, "Lost in space").
+LIS_PRESETS = {"south-choice": LostInSpaceParams(gate_km=4.0)}
+
+
+def lis_params_with(name: str, overrides: tuple[str, ...]):
+    """Lost-in-space settings of preset ``name`` with ``lis.<name>=<value>`` overrides."""
+    if name not in LIS_PRESETS:
+        raise UserError(f"--lis-preset {name}: expected one of {sorted(LIS_PRESETS)}")
+    values = asdict(LIS_PRESETS[name])
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        field_name = key.partition(".")[2]
+        if not sep or field_name not in values:
+            raise UserError(f"--set {o}: expected lis.<name>=<value> with a known name")
+        try:
+            values[field_name] = type(values[field_name])(json.loads(value))
+        except (ValueError, TypeError):
+            raise UserError(f"--set {o}: {value!r} is not a {type(values[field_name]).__name__}") from None
+    return replace(LIS_PRESETS[name], **values)
+
+
+@dataclass(frozen=True)
+class PairIndex:
+    """Ordered landmark pairs of a map, sorted by map distance (m)."""
+
+    lm_xy: np.ndarray  # (n, 2) map metres of every landmark of the map
+    lm_r_m: np.ndarray  # (n,) radii, m
+    i: np.ndarray  # (k,) first landmark of each ordered pair
+    j: np.ndarray
+    dist_m: np.ndarray  # (k,) sorted ascending
+
+
+def build_index(landmarks, params: LostInSpaceParams = LostInSpaceParams()) -> PairIndex:
+    """Every ordered pair of landmarks >= ``min_landmark_km`` closer than ``max_pair_km``, sorted by distance."""
+    xy = np.array([[lm.x_m, lm.y_m] for lm in landmarks], float).reshape(-1, 2)
+    r = np.array([lm.diameter_km for lm in landmarks], float) * 500.0
+    big = np.nonzero(r >= params.min_landmark_km * 500.0)[0]
+    d = np.hypot(*(xy[big][:, None, :] - xy[big][None, :, :]).transpose(2, 0, 1))
+    a, b = np.nonzero((d <= params.max_pair_km * 1000.0) & (d > 0))
+    order = np.argsort(d[a, b], kind="stable")
+    return PairIndex(xy, r, big[a[order]], big[b[order]], d[a, b][order])
+
+
+def _votes(det_z, det_r, index: PairIndex, pixel_m: float, p: LostInSpaceParams):
+    """Pair matches: (frame det i, det j, landmark a, landmark b, complex a) for every frame pair whose
+    distance and diameters agree with a map pair; ``det_z`` pixel points as complex (u - i v)."""
+    n = det_z.size
+    ii, jj = np.triu_indices(n, 1)
+    ii, jj = np.concatenate([ii, jj]), np.concatenate([jj, ii])  # both orders: the map index is ordered too
+    dpx = np.abs(det_z[jj] - det_z[ii])
+    tol = (p.dist_tol_px + p.dist_tol_r * (det_r[ii] + det_r[jj])) * pixel_m
+    lo = np.searchsorted(index.dist_m, dpx * pixel_m - tol, "left")
+    hi = np.searchsorted(index.dist_m, dpx * pixel_m + tol, "right")
+    cnt = hi - lo
+    if cnt.sum() == 0:
+        return None
+    q = np.repeat(np.arange(ii.size), cnt)
+    k = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
+    la, lb = index.i[k], index.j[k]
+    ra = det_r[ii[q]] * pixel_m / index.lm_r_m[la]
+    rb = det_r[jj[q]] * pixel_m / index.lm_r_m[lb]
+    ok = (ra <= p.radius_ratio) & (ra >= 1 / p.radius_ratio) & (rb <= p.radius_ratio) & (rb >= 1 / p.radius_ratio)
+    q, la, lb = q[ok], la[ok], lb[ok]
+    if q.size > p.max_matches:  # bounded work: keep the matches of smallest relative distance error
+        err = np.abs(index.dist_m[k[ok]] - dpx[q] * pixel_m) / tol[q]
+        keep = np.argsort(err, kind="stable")[: p.max_matches]
+        q, la, lb = q[keep], la[keep], lb[keep]
+    wa = index.lm_xy[la, 0] + 1j * index.lm_xy[la, 1]
+    wb = index.lm_xy[lb, 0] + 1j * index.lm_xy[lb, 1]
+    a = (wb - wa) / (det_z[jj[q]] - det_z[ii[q]])
+    return ii[q], jj[q], la, lb, a, wa - a * det_z[ii[q]]
+
+
+def _candidate_pairs(det_z, det_r, index: PairIndex, a: complex, b: complex, pixel_m: float, p, fparams):
+    """(detection, landmark) pairs of the landmarks a candidate transform predicts in the frame."""
+    lm = np.nonzero(index.lm_r_m >= p.min_landmark_km * 500.0)[0]
+    w = index.lm_xy[lm, 0] + 1j * index.lm_xy[lm, 1]
+    z = (w - b) / a  # landmark -> pixel
+    r_lm = index.lm_r_m[lm] / pixel_m
+    gate = p.gate_km * 1000.0 / pixel_m
+    d = np.abs(det_z[:, None] - z[None, :])
+    rr = det_r[:, None] / r_lm[None, :]
+    ok = (d <= gate + 0.25 * r_lm[None, :]) & (rr <= fparams.radius_ratio) & (rr >= 1.0 / fparams.radius_ratio)
+    di, lj = np.nonzero(ok)
+    return np.stack([di, lm[lj]], axis=1)
+
+
+def lost_in_space_fix(
+    detections,
+    landmarks,
+    frame_shape,
+    pixel_m: float,
+    params: LostInSpaceParams = LostInSpaceParams(),
+    fparams: FixParams = FixParams(),
+    index: PairIndex | None = None,
+    heading_deg: float | None = None,
+) -> Fix:
+    """Fix of a nadir frame of known pixel size ``pixel_m`` (map metres) with no position or heading
+    prior: the map point under the frame centre, or "no fix" (module docstring). ``index``: a prebuilt
+    :func:`build_index` of ``landmarks`` (built here when None). ``heading_deg``: the frame's heading on
+    the map when an attitude gives it (the angle of the pixel -> map similarity); only votes within one
+    heading cell (``bin_deg``) of it count."""
+    index = index if index is not None else build_index(landmarks, params)
+    if len(detections) < max(3, params.min_inliers):
+        return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})")
+    det_uv = np.array([[d.u, d.v] for d in detections], float)
+    det_r = np.array([d.r for d in detections], float)
+    det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
+    top = np.argsort(-det_r, kind="stable")[: params.n_detections]
+    votes = _votes(det_z[top], det_r[top], index, pixel_m, params)
+    if votes is None or votes[0].size == 0:
+        return Fix(False, "no crater pair of the frame matches a pair of the map")
+    _, _, _, _, va, vb = votes
+    if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
+        near = np.abs(np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)) <= params.bin_deg
+        va, vb = va[near], vb[near]
+        if va.size == 0:
+            return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading")
+    h, w = frame_shape
+    zc = w / 2.0 - 1j * h / 2.0
+    centre = va * zc + vb
+    head = np.angle(va)
+    # Each vote goes to the 2 x 2 x 2 block of cells around it (a grid offset by half a cell), so a
+    # solution lying on a cell edge is not split; the heading wraps around.
+    n_head = max(1, round(360.0 / params.bin_deg))
+    f = np.stack(
+        [
+            centre.real / (params.bin_km * 1000.0),
+            centre.imag / (params.bin_km * 1000.0),
+            np.degrees(head) % 360.0 / (360.0 / n_head),
+        ],
+        axis=1,
+    )
+    base = np.floor(f - 0.5).astype(np.int64)
+    offs = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
+    cell = (base[:, None, :] + offs[None, :, :]).reshape(-1, 3)
+    cell[:, 2] %= n_head
+    vote_of = np.repeat(np.arange(len(centre)), len(offs))
+    # One int64 key per cell (x, y offsets of 2^20 cells cover any map): np.unique on a 1-D array is fast.
+    key = ((cell[:, 0] + (1 << 20)) << 22 | (cell[:, 1] + (1 << 20))) * (n_head + 1) + cell[:, 2]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    best_cells = np.argsort(-counts, kind="stable")[: params.n_verify]
+    flip = np.array([1.0, -1.0])
+    # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
+    vparams = replace(fparams, min_inliers=params.min_inliers, max_heading_deg=params.bin_deg)
+    cands = []  # (support, fix or None, a, b, centre)
+    for c in best_cells:
+        sel = vote_of[inv == c]
+        # Candidate transform: mean heading (unit phasors) at the known scale, mean centre.
+        ph = np.mean(va[sel] / np.abs(va[sel]))
+        a0 = complex(pixel_m * ph / abs(ph))
+        c0 = complex(np.median(centre[sel].real), np.median(centre[sel].imag))
+        b0 = c0 - a0 * zc
+        pairs = _candidate_pairs(det_z, det_r, index, a0, b0, pixel_m, params, fparams)
+        fix, a, b = ransac_similarity(det_uv * flip, det_r, index.lm_xy, pairs, a0, vparams)
+        if a == 0j:
+            cands.append((0, None, a0, b0, c0))
+            continue
+        support = len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams)) if pairs.size else 0
+        cands.append((support if not fix.ok else len(fix.inliers), fix, a, b, complex(a * zc + b)))
+    oks = [c for c in cands if c[1] is not None and c[1].ok]
+    if not oks:
+        best = max(cands, key=lambda c: c[0])
+        reason = best[1].reason if best[1] is not None else "no candidate pairs with the map's landmarks"
+        return Fix(False, f"no candidate verified (best: {reason})")
+    best = max(oks, key=lambda c: (c[0], -c[1].rms_px))
+    for rival in cands:
+        if rival is best or abs(rival[4] - best[4]) <= params.rival_km * 1000.0:
+            continue
+        if rival[0] >= best[0] - params.ambiguity_margin and rival[0] >= 3:
+            return Fix(
+                False,
+                f"ambiguous: candidates {abs(rival[4] - best[4]) / 1000.0:.0f} km apart agree "
+                f"({best[0]} and {rival[0]} landmarks)",
+            )
+    fix, a, b = best[1], best[2], best[3]
+    idx = np.array(fix.inliers)
+    a, b = fit_similarity((det_uv * flip)[idx[:, 0]], index.lm_xy[idx[:, 1]])
+    c = apply_similarity(a, b, np.array([[w / 2.0, -h / 2.0]]))[0]
+    if not np.all(np.isfinite(c)):
+        return Fix(False, "degenerate inlier set (coincident detections)")
+    fix.x_m, fix.y_m = float(c[0]), float(c[1])
+    fix.scale_m_per_px = float(abs(a))
+    fix.heading_deg = float(math.degrees(np.angle(a)))
+    return fix

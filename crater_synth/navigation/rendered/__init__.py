@@ -1,0 +1,1 @@
+"""Rendered frames: trajectories, labelled nav frames, their evaluation and the learned detector's survey."""

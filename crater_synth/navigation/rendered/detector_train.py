@@ -1,0 +1,206 @@
+"""Training of the learned crater detector (:mod:`.learned`): its frames, labels, training and scores.
+
+``crater-synth nav-detector-frames`` renders the survey of :mod:`.detector_frames` (south DEM only);
+``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` on every track but
+the last ``HOLDOUT_TRACKS``, scores it on those against their exact labels (:func:`score_synthetic`) and
+writes the model with its provenance (docs/navigation.md, section 3).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, ROOT, load_model
+from crater_synth.navigation.rendered.survey import render_survey, track_dirs
+
+DEFAULT_FRAMES = Path("data") / "detector_frames" / "south"
+HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never trained on
+
+
+# ------------------------------------------------------------------------------------------------
+# Training data and synthetic scoring
+# ------------------------------------------------------------------------------------------------
+def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
+    """(I/F image, manifest row) of every frame of the survey tracks ``tracks`` under ``root``."""
+    from crater_core import exr
+    from crater_synth.navigation.rendered.labels import frame_rows
+
+    dirs = track_dirs(root)
+    if not dirs:
+        raise UserError(f"{root}: no rendered survey track (run `crater-synth nav-detector-frames --out {root}`)")
+    out = []
+    for d in dirs[tracks]:
+        for row in frame_rows(d):
+            out.append((exr.read_channel(d / row["rel_path"], "IF"), row))
+    return out
+
+
+MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
+
+
+def labels_in_frame(row: dict, shape) -> list[dict]:
+    """The frame's landmark labels whose rim-ellipse centre lies inside a frame of ``shape``."""
+    h, w = shape
+    return [lm for lm in row["landmarks"] if 0 <= lm["ellipse"]["cu"] < w and 0 <= lm["ellipse"]["cv"] < h]
+
+
+def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
+    """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
+    label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden)."""
+    lms = labels_in_frame(row, shape)
+    u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
+    v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
+    r = np.array([lm["ellipse"]["a"] for lm in lms], float)
+    d = np.array([lm["diameter_km"] for lm in lms], float)
+    lit = np.array([1.0 if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
+    return u, v, r, d, lit < MIN_LIT_RIM
+
+
+def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
+    """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
+    matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for labels and detections of
+    D >= ``min_d_km``."""
+    from crater_synth.navigation.detectors.classical import detect
+    from crater_synth.navigation.rendered.evaluate import match_pixels
+
+    tp_t = n_t = tp_d = n_d = 0
+    for image, row in records:
+        labels = labels_in_frame(row, image.shape)
+        km_per_px = float(row["ground_sample_m"]) / 1000.0
+        dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
+        matched = match_pixels(dets, labels)  # detection index -> label index
+        big_t = [2.0 * lb["ellipse"]["a"] * km_per_px >= min_d_km for lb in labels]
+        big_d = [2.0 * d.r * km_per_px >= min_d_km for d in dets]
+        n_t += sum(big_t)
+        tp_t += sum(1 for j in matched.values() if big_t[j])
+        n_d += sum(big_d)
+        tp_d += sum(1 for i in matched if big_d[i])
+    return {
+        "frames": len(records),
+        "recall": round(tp_t / n_t, 4) if n_t else None,
+        "precision": round(tp_d / n_d, 4) if n_d else None,
+        "n_labels": n_t,
+        "n_detections": n_d,
+        "min_diameter_km": min_d_km,
+    }
+
+
+def _code_commit() -> str:
+    import subprocess
+
+    try:
+        return subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def train_from_survey(
+    frames_dir: Path, out: Path, settings, holdout: int = HOLDOUT_TRACKS, log=None, device: str = "cpu"
+) -> dict:
+    """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
+    to ``out`` with its provenance; returns the summary written into the model."""
+    from crater_synth.navigation.detectors.classical import DetectorParams
+    from train.crater_detector import level_samples, save_model, settings_dict, train_detector
+
+    dirs = track_dirs(frames_dir)
+    if len(dirs) <= holdout:
+        raise UserError(f"{frames_dir}: {len(dirs)} rendered tracks, need more than the {holdout} held out")
+    train_records = frame_records(frames_dir, slice(0, len(dirs) - holdout))
+    samples = []
+    for image, row in train_records:
+        u, v, r, _, hidden = label_circles(row, image.shape)
+        samples.extend(level_samples(image, u, v, r, hidden))
+    result = train_detector(samples, settings, log=log, device=device)
+    holdout_records = frame_records(frames_dir, slice(len(dirs) - holdout, None))
+    meta = {
+        "trained_on": "rendered survey frames only (crater-synth nav-detector-frames); no real pixel",
+        "frames_dir": str(frames_dir),
+        "train_tracks": [d.name for d in dirs[: len(dirs) - holdout]],
+        "holdout_tracks": [d.name for d in dirs[len(dirs) - holdout :]],
+        "train_frames": len(train_records),
+        "level_samples": len(samples),
+        "settings": settings_dict(settings),
+        "seconds": round(result["seconds"], 1),
+        "device": device,
+        "history": result["history"],
+        "code_commit": _code_commit(),
+    }
+    tmp = Path(str(out) + ".scoring.pt")
+    save_model(tmp, result["model"], meta)
+    try:
+        params = DetectorParams(method="learned", learned_model=str(tmp), min_radius_px=4.5, refine=False)
+        meta["synthetic_holdout"] = score_synthetic(holdout_records, params)
+    finally:
+        tmp.unlink(missing_ok=True)
+        load_model.cache_clear()
+    model = result["model"]
+    final = {k: v.clone() for k, v in model.state_dict().items()}
+    for step, state in sorted(result["checkpoints"].items()):
+        model.load_state_dict(state)
+        save_model(Path(out).with_name(f"{Path(out).stem}.step{step}.pt"), model, dict(meta, steps_done=step))
+    model.load_state_dict(final)
+    save_model(Path(out), result["model"], meta)
+    return {k: v for k, v in meta.items() if k != "history"}
+
+
+# ------------------------------------------------------------------------------------------------
+# Commands
+# ------------------------------------------------------------------------------------------------
+@click.command("nav-detector-frames")
+@OVERRIDES
+@click.option(
+    "--tracks", default=70, show_default=True, help="Survey tracks (4 frames each); the last 10 are held out."
+)
+@click.option("--seed", default=0, show_default=True, help="Seed of the track draw.")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Directory (default: {DEFAULT_FRAMES}).")
+@user_errors
+def nav_detector_frames_command(overrides, tracks, seed, out):
+    """Render the learned detector's training frames: nadir survey tracks over the south map.
+
+    Resumable (a finished track is skipped). Example: `crater-synth nav-detector-frames render.samples=4`
+    """
+    summary = render_survey(out or DEFAULT_FRAMES, tracks, seed, tuple(overrides))
+    click.echo(json.dumps(summary))
+
+
+@click.command("nav-detector-train")
+@click.argument("frames_dir", type=click.Path(path_type=Path), required=False)
+@click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
+@click.option("--steps", default=None, type=int, help="Training steps (default: the training settings').")
+@click.option("--checkpoint", "checkpoints", multiple=True, type=int, help="Also save the weights after this step.")
+@click.option("--threads", default=0, show_default=True, help="Torch threads (0: every core).")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
+@user_errors
+def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, device):
+    """Train the learned crater detector on rendered survey frames; score it on the held-out tracks.
+
+    Example: `crater-synth nav-detector-train data/detector_frames/south --out model.pt`
+    """
+    import dataclasses
+
+    import torch
+
+    from train.crater_detector import DetectorTrainSettings
+
+    if device == "cuda" and not torch.cuda.is_available():
+        raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
+    s = DetectorTrainSettings()
+    if steps is not None and steps < 1:
+        raise UserError(f"--steps {steps}: must be >= 1")
+    last = steps or s.steps
+    bad = [c for c in checkpoints if not 1 <= c < last]
+    if bad:
+        raise UserError(f"--checkpoint {bad[0]}: must lie in [1, {last - 1}] (the last step is the model itself)")
+    s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
+    summary = train_from_survey(
+        frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s, log=lambda m: click.echo(m, err=True), device=device
+    )
+    click.echo(json.dumps(summary, indent=1))

@@ -1,0 +1,234 @@
+"""Truth labels of a rendered navigation frame, and the reader of a ``nav-frames`` manifest.
+
+Every landmark of the map whose 3-D rim-centre point projects inside the frame is labelled with its
+projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's curvature
+tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at :data:`RIM_POINTS`
+points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
+points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9. A label's
+fields, in order, are ``crater_core.schema.NAVFRAME_LANDMARK_FIELDS``.
+
+Each row records the landmark map its labels were computed with (:func:`.landmarks.map_identity`); the
+readers of truth (:func:`labelled_rows`) refuse a row whose map is not the pole's committed one, and
+``crater-synth nav-frames-relabel DIR`` computes the labels again from the frames' own EXRs.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_core import geometry, schema
+from crater_core.trajectory import FramePose
+from crater_synth.cli_common import user_errors
+from crater_synth.errors import UserError
+from crater_synth.navigation.map.landmarks import positions_mc
+
+RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
+MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
+# A rim point is hidden when the rendered depth there is nearer than the rim point itself by more than
+# this margin: a fixed part (terrain detail) plus a share of the diameter (a real rim crest rises and falls
+# around the map's mean rim height, by a few per cent of D); relief in front of a rim in an oblique view
+# is nearer by far more.
+OCCLUSION_MARGIN_M = 1000.0
+OCCLUSION_MARGIN_D = 0.05
+FRAME_LABEL_VERSION = 3  # 2: labels carry occluded_rim_fraction; 3: rows record their landmark map
+# A label whose 3-D rim is more than half hidden behind nearer relief is no rim ellipse a detector could
+# see: nav-frames-eval counts it neither as a miss nor towards the landmarks a fix could use, and a
+# detection on it not as false. Half: most of the ellipse must be in sight to fit it (an assumption, not
+# tuned: on the committed trajectories no label is past a quarter hidden).
+HIDDEN_RIM_MAX = 0.5
+
+
+def hidden(label: dict) -> bool:
+    """Whether the label's rim is mostly hidden (:data:`HIDDEN_RIM_MAX`; labels before version 2 carry no
+    fraction and count as seen)."""
+    frac = label.get("occluded_rim_fraction")
+    return frac is not None and frac > HIDDEN_RIM_MAX
+
+
+def _rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):
+    """(mask of the rim points inside a frame of ``shape`` (and ``valid``), their pixel rows, their pixel
+    columns), or None when less than :data:`MIN_RIM_INSIDE` of the rim is inside."""
+    h, w = shape
+    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h)
+    if valid is not None:
+        inside &= valid
+    if inside.mean() < MIN_RIM_INSIDE:
+        return None
+    return inside, np.floor(rim_uv[inside, 1]).astype(int), np.floor(rim_uv[inside, 0]).astype(int)
+
+
+def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None:
+    """Mean of the ``lit`` channel (illuminated fraction of the solar disc) at :data:`RIM_POINTS` points
+    of the projected rim inside the frame; None when less than :data:`MIN_RIM_INSIDE` of it is inside."""
+    px = _rim_pixels(lit.shape, ellipse.points(RIM_POINTS))
+    return None if px is None else float(np.mean(lit[px[1], px[2]]))
+
+
+def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, diameter_m: float):
+    """Share of the rim points inside the frame that relief nearer to the camera hides: the rendered
+    ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
+    ``rim_depth`` by more than the occlusion margin. None when less than :data:`MIN_RIM_INSIDE` of the rim
+    is in the frame."""
+    px = _rim_pixels(depth.shape, rim_uv, rim_depth > 0)
+    if px is None:
+        return None
+    inside, v, u = px
+    margin = OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m
+    return float(np.mean(depth[v, u] < rim_depth[inside] - margin))
+
+
+def landmarks_in_view(
+    pose: FramePose,
+    landmarks,
+    lat0: float,
+    lon0: float,
+    lit: np.ndarray | None = None,
+    depth_image: np.ndarray | None = None,
+) -> list[dict]:
+    """Labels of every landmark whose rim-centre point projects inside the frame (in front of the camera);
+    with the frame's ``lit`` and ``depth`` channels, each rim's lit and occluded fractions."""
+    if not landmarks:
+        return []
+    cam = pose.pose_enu(lat0, lon0)
+    w = int(pose.width_px)
+    pts_mc = positions_mc(landmarks)
+    pts = geometry.mc_to_enu(pts_mc, lat0, lon0)
+    uv, depth = geometry.project_points(pts, cam, w)
+    inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < w)
+    basis = geometry.enu_basis(lat0, lon0)
+    out = []
+    for k in np.nonzero(inside)[0]:
+        lm = landmarks[k]
+        normal = basis @ (pts_mc[k] / np.linalg.norm(pts_mc[k]))  # the landmark's local up, in the frame's ENU
+        ell = geometry.project_circle(pts[k], normal, lm.diameter_km * 500.0, cam, w)
+        row = {
+            "id": lm.id,
+            "name": lm.name,
+            "diameter_km": lm.diameter_km,
+            "lat": lm.lat,
+            "lon": lm.lon,
+            "centre_px": [round(float(uv[k, 0]), 3), round(float(uv[k, 1]), 3)],
+            "depth_m": round(float(depth[k]), 1),
+            "ellipse": {key: round(float(v), 4) for key, v in ell.as_dict().items()},
+            "rim_inside": bool(
+                ell.cu - ell.a >= 0 and ell.cv - ell.a >= 0 and ell.cu + ell.a <= w and ell.cv + ell.a <= w
+            ),
+        }
+        if lit is not None:
+            frac = lit_rim_fraction(lit, ell)
+            row["lit_rim_fraction"] = None if frac is None else round(frac, 4)
+        if depth_image is not None:
+            e1, e2 = geometry.plane_basis(normal)
+            theta = np.arange(RIM_POINTS) * 2.0 * np.pi / RIM_POINTS
+            radius = lm.diameter_km * 500.0
+            rim = pts[k] + radius * (np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2)
+            rim_uv, rim_depth = geometry.project_points(rim, cam, w)
+            hidden = occluded_rim_fraction(depth_image, rim_uv, rim_depth, 2.0 * radius)
+            row["occluded_rim_fraction"] = None if hidden is None else round(hidden, 4)
+        out.append(row)
+    return out
+
+
+def frame_rows(frames_dir) -> list[dict]:
+    """The rows of a ``nav-frames`` directory's manifest; a missing, empty or unreadable one is one error line."""
+    manifest = Path(frames_dir) / schema.MANIFEST_NAME
+    if not manifest.is_file():
+        raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
+    rows = []
+    for n, line in enumerate(manifest.read_text(encoding="utf-8").splitlines(), 1):
+        if line.strip():
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                raise UserError(f"{manifest} line {n}: not a JSON row") from None
+    if not rows:
+        raise UserError(f"{manifest}: no frames")
+    return rows
+
+
+def labelled_rows(frames_dir) -> list[dict]:
+    """:func:`frame_rows` for a reader of the labels as truth: one error line when a row's labels were
+    computed with another landmark map than its pole's committed one (a map rebuilt or edited numbers its
+    landmarks anew: the labels would name the wrong craters) or with a map they did not record."""
+    from crater_synth.navigation.georef import pole_of
+    from crater_synth.navigation.map.landmarks import default_map_identity
+
+    rows = frame_rows(frames_dir)
+    current: dict[str, dict] = {}
+    for row in rows:
+        pole = pole_of(row["frame_origin"]["lat"])
+        if pole not in current:
+            current[pole] = default_map_identity(pole)
+        now, was = current[pole], row.get("landmark_map") or {}
+        if was.get("sha256") != now["sha256"]:
+            made = (
+                f"landmark map sha256 {str(was['sha256'])[:12]} ({was.get('landmarks')} landmarks)"
+                if was.get("sha256")
+                else "a landmark map the row does not record (labels before version 3)"
+            )
+            raise UserError(
+                f"{frames_dir}: frame {row.get('index')} was labelled with {made}, but the committed {pole} map "
+                f"is sha256 {now['sha256'][:12]} ({now['landmarks']} landmarks): relabel the frames with "
+                f"`crater-synth nav-frames-relabel {frames_dir}` (the rendered EXRs are kept)"
+            )
+    return rows
+
+
+def relabel(frames_dir) -> dict:
+    """Compute every frame's labels again with its pole's committed map, from the pose its row records and
+    the lit and depth channels of its EXR (checked against the row's sha256 first); the manifest is
+    rewritten at once (atomically) when every frame is done. Returns a summary: how many frames' labels
+    changed, and how many rows recorded another map (or none)."""
+    from crater_core import exr
+    from crater_synth.navigation.georef import pole_of
+    from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
+
+    frames_dir = Path(frames_dir)
+    rows = frame_rows(frames_dir)
+    maps: dict[str, tuple] = {}
+    changed = remapped = 0
+    for row in rows:
+        path = frames_dir / row["rel_path"]
+        if not path.is_file() or schema.sha256_file(path) != row.get("sha256"):
+            raise UserError(
+                f"{path}: missing, or its sha256 differs from its manifest row: nothing relabelled "
+                "(render the frames again with `crater-synth nav-frames`)"
+            )
+        pose = FramePose.from_dict(row["pose"])
+        pole = pole_of(row["frame_origin"]["lat"])
+        if pole not in maps:
+            maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
+        try:
+            channels = exr.read_channels(path, ("lit", "depth"))
+            lit, depth = channels["lit"], channels["depth"]
+        except exr.ExrError as exc:
+            raise UserError(f"{path}: {exc}; nothing relabelled") from None
+        labels = landmarks_in_view(pose, maps[pole][0], pose.target_lat, pose.target_lon, lit, depth)
+        changed += labels != row["landmarks"]
+        remapped += row.get("landmark_map") != maps[pole][1]
+        row.update(landmarks=labels, label_version=FRAME_LABEL_VERSION, landmark_map=maps[pole][1])
+    manifest = frames_dir / schema.MANIFEST_NAME
+    schema.atomic_write_text(manifest, "".join(schema.dumps_row(r) + "\n" for r in rows))
+    return {
+        "frames_dir": str(frames_dir),
+        "frames": len(rows),
+        "labels_changed": changed,
+        "map_record_changed": remapped,
+    }
+
+
+@click.command("nav-frames-relabel")
+@click.argument("frames_dir", type=click.Path(path_type=Path))
+@user_errors
+def nav_frames_relabel_command(frames_dir):
+    """Label a `nav-frames` directory's frames again with the committed landmark map (after the map changed).
+
+    The labels (every landmark in view, its rim ellipse, lit and occluded rim fractions) are computed from
+    each frame's recorded pose and its EXR; nothing is rendered. Example:
+    `crater-synth nav-frames-relabel data/navframes/descent_ridge`.
+    """
+    click.echo(json.dumps(relabel(frames_dir)))

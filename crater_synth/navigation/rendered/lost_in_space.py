@@ -1,0 +1,206 @@
+"""Lost in space on rendered perspective frames (``crater-synth nav-frames-lis DIR``): the pair vote of
+:mod:`.lost_in_space` on detections rectified onto the ground with the known attitude and an altimeter.
+
+A lander that has lost its position still knows its attitude (star tracker and ephemeris) and measures
+its range to the ground along the boresight (altimeter). With both, a perspective frame's detections are
+projected onto the horizontal plane through the boresight's ground point (each detection's camera ray
+from the known attitude, the plane at the measured range): a nadir map of the frame at a known scale,
+which is what the mosaic windows are. The frozen ``south-choice`` pair vote then runs on it unchanged,
+its tolerances in the windows' 400 m pixels (:data:`LIS_PIXEL_M`), and gives the map point under the
+camera: the horizontal position (the altitude is the altimeter's). Nothing here was chosen on rendered
+frames: the detector settings are the ``nav-frames-eval`` preset's, the vote's the windows'.
+
+Assumptions, as in ``nav-frames-eval``: the attitude relative to the local vertical is the true one; the
+range is the rendered depth at the image centre (what a boresight altimeter measures); the light
+direction in the image is given (attitude and ephemeris need no position). The local horizontal plane
+and the polar stereographic map plane differ by the projection's scale (< 1 % poleward of 80 degrees
+of latitude) and a rotation, which the vote's free heading absorbs. The error is the horizontal
+distance between the fixed and the true map point under the camera; a fix is false beyond 5 km.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from crater_core import exr, geometry
+from crater_synth.cli_common import user_errors
+from crater_synth.navigation.detectors.classical import Detection, detect
+from crater_synth.navigation.georef import pole_of, stereo_forward
+from crater_synth.navigation.protocol import lost_in_space_summary
+from crater_synth.navigation.rendered.evaluate import cv_camera, light_direction, match_pixels, perfect_detections
+from crater_synth.navigation.settings import FRAMES_PRESETS, frames_params, map_scales
+
+LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
+
+
+def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int, int], list[int]]:
+    """``dets`` of the frame ``row`` moved onto the horizontal plane through the boresight's ground point
+    (``range_m`` along the boresight), as detections of a nadir frame of :data:`LIS_PIXEL_M` pixels whose
+    centre lies under the camera; that frame's shape; the index in ``dets`` of each (a detection whose ray
+    misses the plane is dropped)."""
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    width, fov = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"])
+    r_wc, k = cv_camera(rot, width, fov)
+    if not dets:
+        return [], (1, 1), []
+    pix = np.array([[d.u, d.v, 1.0] for d in dets])
+    rays = np.linalg.solve(k, pix.T).T @ r_wc  # world directions, unit depth along the optical axis
+    drop = range_m * r_wc[2, 2]  # height of the boresight's ground point below the camera (negative)
+    t = drop / np.where(rays[:, 2] < 0.0, rays[:, 2], np.nan)  # depth along the optical axis
+    keep = np.isfinite(t) & (t > 0.0)
+    east, north = t * rays[:, 0], t * rays[:, 1]
+    r_ground = np.array([d.r for d in dets]) * t / k[0, 0]
+    half = (
+        float(np.nanmax(np.abs(np.concatenate([east[keep], north[keep]])))) / LIS_PIXEL_M + 2.0 if keep.any() else 1.0
+    )
+    size = int(math.ceil(2.0 * half))
+    c = size / 2.0
+    idx = [int(i) for i in np.nonzero(keep)[0]]
+    out = [
+        Detection(c + east[i] / LIS_PIXEL_M, c - north[i] / LIS_PIXEL_M, r_ground[i] / LIS_PIXEL_M, dets[i].score)
+        for i in idx
+    ]
+    return out, (size, size), idx
+
+
+def map_heading_deg(row: dict, pole: str) -> float:
+    """The rectified frame's heading on the polar stereographic map: the angle of the map direction of
+    the frame's east axis (its +u), which the camera's Moon-fixed attitude gives without its position."""
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    steps = geometry.enu_to_mc(np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]]), lat0, lon0)
+    lat, lon, _ = geometry.mc_to_latlon(steps)
+    x, y = stereo_forward(lat, lon, pole)
+    return math.degrees(math.atan2(float(y[1] - y[0]), float(x[1] - x[0])))
+
+
+def boresight_range_m(depth: np.ndarray) -> float:
+    """The altimeter's range: the rendered depth (along the view axis) at the image centre (2 x 2 pixels)."""
+    h, w = depth.shape
+    return float(np.mean(depth[h // 2 - 1 : h // 2 + 1, w // 2 - 1 : w // 2 + 1]))
+
+
+def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None) -> dict:
+    """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
+    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check). With
+    ``lis.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
+    from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix
+
+    dparams, fparams, _ = frames_params(preset)
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    gsd = float(row["ground_sample_m"])
+    # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
+    biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
+    dparams = map_scales(dparams, fparams, gsd, [biggest / gsd])
+    if detections is None:
+        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    else:
+        dets = list(detections)
+    rng = boresight_range_m(depth)
+    flat, shape, kept = rectify(dets, row, rng)
+    pole = pole_of(row["frame_origin"]["lat"])
+    heading = map_heading_deg(row, pole) if lis.known_heading else None
+    fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index, heading_deg=heading)
+    lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
+    tx, ty = stereo_forward(float(lat), float(lon), pole)
+    out = {
+        "index": row["index"],
+        "altitude_km": row["pose"]["altitude_m"] / 1000.0,
+        "range_km": rng / 1000.0,
+        "detections": len(dets),
+        "rectified": len(flat),
+        "fix": fix.ok,
+        "reason": fix.reason,
+    }
+    if fix.ok:
+        # Which landmark each identified detection is, by the frame's labels.
+        truth_of = match_pixels(dets, row["landmarks"])
+        ids = {lm.id: i for i, lm in enumerate(landmarks)}
+        label_ids = [ids.get(lb["id"]) for lb in row["landmarks"]]
+        out["error_km"] = float(math.hypot(fix.x_m - float(tx), fix.y_m - float(ty))) / 1000.0
+        out["identified"] = len(fix.inliers)
+        out["identified_correct"] = int(
+            sum(1 for fi, li in fix.inliers if kept[fi] in truth_of and label_ids[truth_of[kept[fi]]] == li)
+        )
+    return out
+
+
+def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = ()) -> dict:
+    """Every frame of a ``nav-frames`` directory lost in space (pair vote settings: ``lis_preset`` with
+    ``lis.<name>=<value>`` overrides ``sets``), with the detector and with perfect detections; per-frame
+    rows and both summaries."""
+    from crater_synth.navigation.fix.lost_in_space import build_index, lis_params_with
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.rendered.labels import labelled_rows
+
+    lis = lis_params_with(lis_preset, tuple(sets))
+    maps: dict[str, tuple] = {}
+    out = []
+    for row in labelled_rows(frames_dir):
+        pole = pole_of(row["frame_origin"]["lat"])
+        if pole not in maps:
+            lms = load_default_map(pole)[0]
+            maps[pole] = (lms, build_index(lms, lis))
+        path = Path(frames_dir) / row["rel_path"]
+        channels = exr.read_channels(path, ("IF", "depth"))
+        image, depth = channels["IF"], channels["depth"]
+        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis)
+        # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
+        # given as a detection (its own ellipse): what the detector's result is to be read against.
+        big = [
+            d for d, lb in zip(perfect_detections(row), row["landmarks"]) if lb["diameter_km"] >= lis.min_landmark_km
+        ]
+        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big)
+        out.append(r)
+    return {
+        "frames_dir": str(frames_dir),
+        "preset": preset,
+        "lis_preset": lis_preset,
+        "lis_settings": lis.as_dict(),
+        "summary": lost_in_space_summary(out),
+        "perfect_summary": lost_in_space_summary([r["perfect"] for r in out]),
+        "rows": out,
+    }
+
+
+@click.command("nav-frames-lis")
+@click.argument("frames_dir", type=click.Path(path_type=Path))
+@click.option(
+    "--preset",
+    type=click.Choice(sorted(FRAMES_PRESETS)),
+    default="synthetic",
+    show_default=True,
+    help="nav-frames-eval preset whose detector settings are used.",
+)
+@click.option(
+    "--lis-preset", default="south-choice", show_default=True, help="Pair-vote settings (lost_in_space.LIS_PRESETS)."
+)
+@click.option("--set", "sets", multiple=True, help="lis.<name>=<value> override of the pair-vote settings.")
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the rows."
+)
+@user_errors
+def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, json_path):
+    """Lost in space on rendered frames: no position prior; attitude, altimeter range and pixel scale known.
+
+    Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
+    """
+    from crater_core.schema import atomic_write_json
+
+    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets)
+    for r in result["rows"]:
+        p = r["perfect"]
+        tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]
+        tail += "; perfect detections: " + (f"error {p['error_km']:.2f} km" if p["fix"] else p["reason"])
+        click.echo(
+            f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km det {r['detections']:4d} fix {r['fix']}: {tail}",
+            err=True,
+        )
+    if json_path is not None:
+        atomic_write_json(json_path, result)
+    click.echo(json.dumps({"detector": result["summary"], "perfect_detections": result["perfect_summary"]}))

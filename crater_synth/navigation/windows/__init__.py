@@ -1,0 +1,1 @@
+"""Real mosaic windows: LROC WAC polar mosaic windows as nadir frames, their light and their evaluation."""

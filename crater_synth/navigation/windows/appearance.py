@@ -1,0 +1,144 @@
+"""Landmark search by predicted appearance on map windows (``nav-eval --method appearance``).
+
+The rendered-frame search (:mod:`.appearance`) predicts each map landmark as a lander's camera should
+see it and finds it by normalised cross-correlation (NCC). A mosaic window is an orthographic nadir
+frame of the polar stereographic map (:mod:`.frames`), so here each landmark's window
+(:func:`.refine.window_terrain`: the DEM on the sphere, horizon-map shadows, far field towards the Sun)
+is shaded with the project's Hapke model for a nadir view and placed in the frame through the prior
+georeference (each sample's (lat, lon) -> map (x, y) -> pixel), then searched for as far as the prior's
+uncertainty (``prior_sigma_km`` of :class:`.fix.FixParams`) plus ``margin_px``, coarse to fine
+(:func:`.appearance.register_wide`). A peak of NCC >= ``appearance_min_ncc`` is a detection at the
+landmark's rim circle moved by the shift; identification and fix are the detectors'
+(:func:`.fix.fix_frame`), so a landmark found in the wrong place is an outlier the fix must reject.
+
+The Sun. A mosaic has no image time. Its azimuth is the frozen light model's (:mod:`.light`: one local
+azimuth per mosaic quadrant, pooled from image statistics, here the direction the light travels, so the
+Sun lies opposite), turned into each landmark's own local frame. Its elevation is not known either: the
+mosaic's images were taken over many orbits and the elevation changes with latitude. Each window tries
+the ``appearance_sun_el_deg`` elevations and keeps the one whose predictions correlate best with the
+window (the median peak NCC over the landmarks searched): image statistics under the prior, no truth.
+The terrain of a window is read once per landmark and Sun azimuth (:meth:`.refine.Refiner.terrain`,
+kept between frames); only the shading changes with the elevation.
+
+What it cannot see: craters missing from the map (it looks only where the map and the prior say a
+landmark is), so its detection precision is measured against the map's own landmarks.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from crater_core import geometry
+from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.georef import stereo_forward
+
+# The view of a mosaic window is nadir; a camera this far above the landmark sees every sample along its
+# local vertical to within 1e-5 rad (the WAC's own view angles are not known per mosaic pixel).
+NADIR_CAMERA_M = 1.0e7
+# The terrain of a landmark's window depends on the Sun's azimuth only: it is computed (and kept) for a Sun
+# at this elevation, and shaded at each elevation tried.
+TERRAIN_SUN_EL_DEG = 10.0
+
+
+@functools.lru_cache(maxsize=2)
+def lander_refiner(pole: str, workers: int = 1):
+    """The :class:`.refine.Refiner` (the pole's DEM stack and the Hapke model) the search predicts with;
+    ``workers`` > 1 prepares a frame's new landmark windows in that many processes."""
+    from crater_synth.navigation.fix.refine import Refiner, lander_dem
+
+    return Refiner(lander_dem(pole), workers=workers)
+
+
+def sun_direction_mc(lat: float, lon: float, azimuth_rad: float, elevation_deg: float) -> np.ndarray:
+    """Unit vector (MC) towards a Sun at local ``azimuth_rad`` (clockwise from local north) and
+    ``elevation_deg`` above the local horizontal at (lat, lon)."""
+    el = math.radians(elevation_deg)
+    enu = np.array([math.cos(el) * math.sin(azimuth_rad), math.cos(el) * math.cos(azimuth_rad), math.sin(el)])
+    return geometry.enu_basis(lat, lon).T @ enu
+
+
+def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparams, fparams, refiner):
+    """(detections, chosen Sun elevation deg or None) of the map ``landmarks`` >= ``fparams.min_landmark_km``
+    whose centre the prior ``georef`` places in ``image``, each searched for by its predicted appearance
+    (module docstring). ``light_azimuth_rad``: local azimuth (clockwise from local north) the light
+    travels along; ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke model."""
+    from crater_synth.navigation.fix.appearance import blurred_frames, register_wide
+    from crater_synth.navigation.fix.refine import shade_window
+    from crater_synth.terrain.dem import DemError
+
+    frame = np.asarray(image, dtype=np.float64)
+    height, width = frame.shape
+    blurred = blurred_frames(frame)
+
+    search = math.ceil(fparams.prior_sigma_km * 1000.0 / georef.pixel_m) + dparams.appearance_margin_px
+    sun_az = light_azimuth_rad + math.pi
+    elevations = tuple(dparams.appearance_sun_el_deg)
+    found: list[list] = [[] for _ in elevations]  # per elevation: (landmark, shift, NCC, predicted pixel)
+    in_view = []
+    for lm in landmarks:
+        if lm.diameter_km < fparams.min_landmark_km:
+            continue
+        u0, v0 = georef.xy_to_uv(lm.x_m, lm.y_m)
+        if 0.0 <= u0 < width and 0.0 <= v0 < height:
+            in_view.append((lm, sun_direction_mc(lm.lat, lm.lon, sun_az, TERRAIN_SUN_EL_DEG)))
+    refiner.prepare(in_view)  # new landmark windows computed in the refiner's workers, if it has any
+    for lm, terrain_sun in in_view:
+        u0, v0 = georef.xy_to_uv(lm.x_m, lm.y_m)
+        try:  # kept between frames under the same Sun azimuth (:meth:`.refine.Refiner.terrain`)
+            terrain = refiner.terrain(lm, terrain_sun)
+        except DemError:  # the window or its far field leaves the DEM: not searched
+            continue
+        camera = lm.position_mc() + NADIR_CAMERA_M * geometry.enu_basis(lm.lat, lm.lon)[2]
+        uv = None
+        for k, el in enumerate(elevations):
+            sun = sun_direction_mc(lm.lat, lm.lon, sun_az, el)
+            points, predicted = shade_window(terrain, sun, camera, refiner.hapke)
+            if uv is None:
+                lat, lon, _ = geometry.mc_to_latlon(points)
+                uv = np.stack(georef.xy_to_uv(*stereo_forward(lat, lon, georef.pole)), axis=-1)
+            shift, ncc = register_wide(
+                frame, uv, predicted, search, dparams.appearance_coarse_steps, blurred, dparams.appearance_thin
+            )
+            found[k].append((lm, shift, ncc, (u0, v0)))
+    if not any(found):
+        return [], None
+
+    def score(rows) -> float:
+        return float(np.median([r[2] if r[1] is not None and np.isfinite(r[2]) else 0.0 for r in rows]))
+
+    best = max(range(len(elevations)), key=lambda k: (score(found[k]), -k))
+    dets = [
+        Detection(u0 + shift[0], v0 + shift[1], lm.diameter_km * 500.0 / georef.pixel_m, float(ncc))
+        for lm, shift, ncc, (u0, v0) in found[best]
+        if shift is not None and ncc >= dparams.appearance_min_ncc
+    ]
+    return dets, elevations[best]
+
+
+def window_patch_fix(image, prior, light_azimuth_rad: float, dparams, fparams, refiner, params):
+    """(patches, detections, fix) of a map window navigated with its terrain patches (:mod:`.patches`,
+    :func:`~.patches.window_patches` under the prior georeference ``prior``) instead of its craters: each
+    patch searched for by its predicted appearance (:func:`window_detections`, the same Sun and settings as
+    a crater), then the detectors' identification and fix (:func:`.fix.fix_frame`)."""
+    from crater_synth.navigation.fix.patches import window_patches
+    from crater_synth.navigation.fix.solve import Fix, fix_frame
+
+    patches = window_patches(refiner.dem, prior, np.shape(image), params)
+    if not patches:
+        return [], [], Fix(False, "no patch on the DEM")
+    dets, _ = window_detections(image, prior, patches, light_azimuth_rad, dparams, fparams, refiner)
+    return patches, dets, fix_frame(dets, patches, prior, np.shape(image), fparams)
+
+
+def patch_truth_correct(dets, patches, inliers, truth, inlier_px: float) -> int:
+    """How many of a patch fix's ``inliers`` ((detection, patch) index pairs) are identified correctly: the
+    detection lies within ``inlier_px`` of where the true georeference ``truth`` places the patch's point
+    (a patch is a place, not a crater: there is no rim to match)."""
+    hits = 0
+    for d, p in inliers:
+        u, v = truth.xy_to_uv(patches[p].x_m, patches[p].y_m)
+        hits += int(math.hypot(dets[d].u - float(u), dets[d].v - float(v)) <= inlier_px)
+    return hits

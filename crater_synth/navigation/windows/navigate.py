@@ -1,0 +1,106 @@
+"""``crater-synth navigate IMAGE``: detections, identification, fix and an annotated PNG for one frame.
+
+The frame is a north-up polar-stereographic nadir view (e.g. a mosaic window written by
+:func:`write_window`). Its sidecar ``IMAGE.geo.json`` (pole, left_m, top_m, pixel_m) is the truth;
+``--prior LAT,LON`` the coarse position (default: the truth centre moved by 5 km, as in ``nav-eval``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from crater_synth.navigation.fix.solve import fix_frame
+from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
+
+
+# --------------------------------------------------------------------------------------------
+# navigate IMAGE
+# --------------------------------------------------------------------------------------------
+def read_georef(image_path: Path) -> Georef | None:
+    """The georeference of ``image_path``: its sidecar ``<image>.geo.json`` ({pole, left_m, top_m,
+    pixel_m}), or None when it has none."""
+    side = image_path.with_name(image_path.name + ".geo.json")
+    if not side.is_file():
+        return None
+    try:
+        d = json.loads(side.read_text())
+        g = Georef(str(d["pole"]), float(d["left_m"]), float(d["top_m"]), float(d["pixel_m"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FrameError(f"georeference {side} is corrupt: {exc}") from None
+    if g.pole not in ("south", "north") or not g.pixel_m > 0:
+        raise FrameError(f"georeference {side}: pole must be south or north and pixel_m > 0")
+    return g
+
+
+def write_window(path: Path, frame: Frame) -> None:
+    """A frame as PNG plus its ``.geo.json`` sidecar (what ``navigate`` reads)."""
+    from crater_core.schema import atomic_write_bytes, atomic_write_text
+
+    atomic_write_bytes(path, _png_gray(frame.image))
+    atomic_write_text(path.with_name(path.name + ".geo.json"), json.dumps(frame.georef.as_dict()) + "\n")
+
+
+def _png_gray(img: np.ndarray) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    plt.imsave(buf, img, cmap="gray", vmin=0, vmax=255, format="png")
+    return buf.getvalue()
+
+
+def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | None) -> bytes:
+    """Annotated PNG: detections (red), identified landmarks with names (yellow), error arrow (cyan).
+    ``prior`` (None for a lost-in-space fix) is not drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from crater_synth.navigation.fix.patches import PATCH_SOURCE
+    from crater_synth.navigation.output import draw_detections, png_of
+
+    h, w = image.shape
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.imshow(image, cmap="gray")
+    draw_detections(ax, dets, fix.inliers if fix.ok else [], landmarks)
+    patch_fix = fix.ok and landmarks[fix.inliers[0][1]].source == PATCH_SOURCE
+    what = "terrain patches (cyan)" if patch_fix else "landmarks"
+    title = "no fix: " + fix.reason if not fix.ok else f"fix: {len(fix.inliers)} {what}, RMS {fix.rms_px:.1f} px"
+    if fix.ok and truth is not None:
+        tu, tv = truth.xy_to_uv(fix.x_m, fix.y_m)
+        ax.annotate("", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2})
+        err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
+        title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
+    return png_of(fig, ax, w, h, title)
+
+
+def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams, patches):
+    """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of the appearance search
+    (:mod:`.appearance_window`) on a map window: the light's image direction ``light`` (radians) turned into
+    its local azimuth at the prior's frame centre; with ``patches``, a window its craters do not fix is
+    navigated with its terrain patches (:func:`.appearance_window.window_patch_fix`)."""
+    from crater_synth.navigation.georef import local_north_image_angle
+    from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
+
+    h, w = img.shape[:2]
+    alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
+    if sun_elevation is not None:
+        dparams = dataclasses.replace(dparams, appearance_sun_el_deg=(float(sun_elevation),))
+    refiner = lander_refiner(prior_g.pole)
+    dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, refiner)
+    fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+    if patches and not fix.ok:
+        from crater_synth.navigation.fix.patches import PatchParams
+
+        found, patch_dets, patch_fix = window_patch_fix(img, prior_g, alpha, dparams, fparams, refiner, PatchParams())
+        if patch_fix.ok:
+            return patch_dets, light, patch_fix, found, "patches"
+    return dets, light, fix, landmarks, "craters"
