@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
-from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from omegaconf import DictConfig, OmegaConf
@@ -24,8 +23,8 @@ from omegaconf import DictConfig, OmegaConf
 from crater_core.errors import ContractError
 from crater_core.settings import GROUPS, Settings, SettingsError
 from crater_synth.errors import ConfigError
+from crater_synth.paths import CONFIG_DIR, SOURCE_ROOT
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 # Config files in configs/crater/ that are not catalogue entries (the template for any other crater).
 NOT_CATALOGUE_ENTRIES = frozenset({"custom"})
 
@@ -36,7 +35,7 @@ def catalogue_names() -> list[str]:
     return sorted(p.stem for p in (CONFIG_DIR / "crater").glob("*.yaml") if p.stem not in NOT_CATALOGUE_ENTRIES)
 
 
-REPO_ROOT = CONFIG_DIR.parent
+REPO_ROOT = SOURCE_ROOT
 # Groups of named presets (``# @package _global_``): each file overrides other groups' options and has no
 # schema of its own; every key it sets is validated by the groups it sets.
 PRESET_GROUPS = frozenset({"experiment"})

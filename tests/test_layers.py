@@ -33,7 +33,14 @@ RANK = {"crater_core": 0, "data_manifest": 1, "blender_gen": 2, "train": 2, "cra
 # Inside crater_synth: the rank of each part (a subpackage, or a top-level module). An import from one part
 # into another must go to a strictly lower rank; imports inside a part are free (its cycles are still caught).
 # The top-level modules every command shares form one part, "common".
-COMMON = {"crater_synth", "crater_synth.errors", "crater_synth.config", "crater_synth.cli_common", "crater_synth.fetch"}
+COMMON = {
+    "crater_synth",
+    "crater_synth.errors",
+    "crater_synth.paths",
+    "crater_synth.config",
+    "crater_synth.cli_common",
+    "crater_synth.fetch",
+}
 SUBRANK = {
     "common": 0,
     "crater_synth.terrain": 1,

@@ -32,8 +32,8 @@ from crater_synth.dataset.disk import JOBS_DIR
 from crater_synth.dataset.manifest import writer_tag
 from crater_synth.dataset.plan import CraterJob, camera_major, hapke_dict
 from crater_synth.errors import RenderError
+from crater_synth.paths import BLENDER_WORKER, SOURCE_ROOT
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 # Seconds a worker gets to finish its current render and exit after SIGTERM before SIGKILL.
 STOP_GRACE_S = 10.0
 _DISK_FULL_MARKERS = ("ENOSPC", "EDQUOT", "No space left on device", "Disk quota exceeded", "disk full")
@@ -48,7 +48,7 @@ def worker_command(job_file: Path, blender: str | None = None) -> list[str]:
     ``blender`` running the worker script (``--factory-startup``: no user preferences or add-ons)."""
     if blender is None:
         return [sys.executable, "-m", "blender_gen.worker", str(job_file)]
-    script = REPO_ROOT / "blender_gen" / "worker.py"
+    script = BLENDER_WORKER
     return [blender, "--background", "--factory-startup", "--python", str(script), "--", str(job_file)]
 
 
@@ -257,7 +257,7 @@ def run_workers(
             worker_command(job_file, blender),
             stdout=subprocess.PIPE,
             stderr=log,
-            cwd=REPO_ROOT,
+            cwd=SOURCE_ROOT,
             env=os.environ | {"PYTHONUNBUFFERED": "1"},
         )
         started.add(proc.pid)

@@ -40,6 +40,7 @@ import numpy as np
 from crater_core.geometry import MOON_RADIUS_M, curvature_drop_m
 from crater_core.schema import atomic_write_json
 from crater_synth.errors import UserError
+from crater_synth.paths import EMBEDDED_DIR
 
 # Source crops (AuroraRoboticsLab/GodotRobot demo/terrain_fixed/lunar_south_pole, commit 055ed87a,
 # Unlicense): file name -> (pixel size m, sha256).
@@ -62,7 +63,7 @@ SQUARE_START, SQUARE_SIZE = 103, 50
 # not used, so the set of compared pixels stays fixed while the fit moves the crop by sub-pixels.
 EDGE_INSET_PX = 1.0
 JACKKNIFE_BLOCKS = 4
-PRODUCT_DIR = Path(__file__).resolve().parents[2] / "data_manifest" / "embedded" / "shackleton_lola_200m"
+PRODUCT_DIR = EMBEDDED_DIR / "shackleton_lola_200m"
 HEIGHT_FRAMES = ("sphere", "pole_tangent_plane")
 
 

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from crater_synth.errors import UserError
+from crater_synth.paths import MODELS_DIR
 
-ROOT = Path(__file__).resolve().parents[3]
-DEFAULT_MODEL = ROOT / "data_manifest" / "models" / "crater_detector_south.pt"
+DEFAULT_MODEL = MODELS_DIR / "crater_detector_south.pt"
 
 
 class DetectorModelFileError(UserError):

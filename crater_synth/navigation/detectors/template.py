@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import functools
 import math
-from pathlib import Path
 
 import numpy as np
 
+from crater_synth.paths import CONFIG_DIR
+
 TEMPLATE_MIN_R_PX = 4.5  # template radius on its decimated grid is in [4.5, 9) px
 TEMPLATE_HALF_WIDTH_R = 1.6  # the template covers +-1.6 r: the rim, its outer flank and some flat ground
-HAPKE_YAML = Path(__file__).resolve().parents[3] / "configs" / "hapke" / "lunar.yaml"
+HAPKE_YAML = CONFIG_DIR / "hapke" / "lunar.yaml"
 
 
 @functools.lru_cache(maxsize=1)

