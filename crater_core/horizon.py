@@ -328,11 +328,6 @@ def _bilinear_apply(values: np.ndarray, weights) -> np.ndarray:
     return top * (1 - ti) + bot * ti
 
 
-def _bilinear_grid(values: np.ndarray, fi: np.ndarray, fj: np.ndarray) -> np.ndarray:
-    """Bilinear interpolation of a 2-D array at float indices (clamped to the array)."""
-    return _bilinear_apply(values, _bilinear_weights(values.shape, fi, fj))
-
-
 def texel_centres(half_width: float, px: int):
     """ENU (x, y) of a level's texel centres: row 0 north, column 0 west."""
     d = 2.0 * half_width / px

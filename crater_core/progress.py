@@ -13,9 +13,8 @@ from __future__ import annotations
 import os
 import sys
 import time
-from typing import Iterable, Iterator, TextIO, TypeVar
+from typing import TextIO
 
-T = TypeVar("T")
 DEFAULT_INTERVAL_S = 5.0
 ENV_INTERVAL = "CRATER_SYNTH_PROGRESS_INTERVAL"
 MODES = ("auto", "lines", "off")
@@ -118,14 +117,3 @@ def _isatty(stream) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError):
         return False
-
-
-def progress_iter(items: Iterable[T], total: int, desc: str, unit: str, mode: str = "auto") -> Iterator[T]:
-    """Iterate ``items`` while showing progress (see :class:`Progress`). The last line is printed when
-    the iteration completes; a loop left early (an error) prints nothing more, so that its error line
-    is the last word."""
-    p = Progress(total, desc, unit, mode)
-    for item in items:
-        yield item
-        p.update(1)
-    p.close()

@@ -223,14 +223,6 @@ def normalize(image: np.ndarray, pp: PreprocessConfig = PreprocessConfig()) -> n
     return y.astype(np.float32)
 
 
-def dn_to_float(image: np.ndarray) -> np.ndarray:
-    """Integer DN -> float in [0, 1] by the type's full scale (only a scale: normalize undoes it)."""
-    a = np.asarray(image)
-    if np.issubdtype(a.dtype, np.integer):
-        return a.astype(np.float32) / float(np.iinfo(a.dtype).max)
-    return a.astype(np.float32)
-
-
 def preprocess_crop(
     image: np.ndarray,
     box: Sequence[float],

@@ -35,8 +35,6 @@ from crater_synth.errors import UserError
 
 # IAU/LOLA lunar reference sphere (Archinal et al. 2018); the same value as crater_core.geometry.
 MOON_RADIUS_M = 1_737_400.0
-# Geographic CRS of the lunar sphere (planetocentric lat/lon; the IAU crater coordinates).
-MOON_GEOGRAPHIC_PROJ = "+proj=longlat +R=1737400 +no_defs"
 # A DEM whose CRS body radius differs from the lunar sphere by more than this is not lunar
 # (e.g. an Earth CRS, R = 6371 km); the Moon's polar flattening is ~1 km at most.
 LUNAR_RADIUS_TOLERANCE_M = 10_000.0

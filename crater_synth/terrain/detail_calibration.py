@@ -347,13 +347,6 @@ def neukum_cumulative(d_km, age_ga: float) -> np.ndarray:
     return 10.0**log_n * neukum_n1(age_ga) / 10.0 ** NPF_COEFFS[0]
 
 
-def equilibrium_cumulative(d_km, density_scale: float = 1.0) -> np.ndarray:
-    """Equilibrium N(>=D) per km^2 (Trask 1966; Gault 1970) x ``density_scale``."""
-    from crater_synth.terrain.detail import EQ_COEF, EQ_SLOPE
-
-    return density_scale * EQ_COEF * (np.asarray(d_km, dtype=float) * 1000.0) ** -EQ_SLOPE * 1e6
-
-
 def _interior_shadow(z_over_r: np.ndarray, x: np.ndarray, rim: np.ndarray, sun_deg: float) -> np.ndarray:
     """Shadowed share of each crater's rim-to-rim diameter along the Sun's line on level ground.
 
