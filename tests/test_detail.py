@@ -1,5 +1,5 @@
 """crater_synth.terrain.detail: seeded, switchable sub-DEM roughness and craters, only below DEM resolution,
-calibrated against a real LOLA 200 m crop (crater_synth.terrain.detail_calibration, docs/detail.md)."""
+calibrated against a real LOLA 200 m crop (crater_synth.tools.detail_calibration, docs/detail.md)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_synth.terrain import detail_calibration as dc
 from crater_synth.terrain.detail import (
     EQ_COEF,
     MODELS,
@@ -31,6 +30,7 @@ from crater_synth.terrain.detail import (
     stamp_degraded_craters,
     synthesize_detail,
 )
+from crater_synth.tools import detail_calibration as dc
 
 SHAPE, SPACING, PIXEL = (128, 128), 200.0, 1600.0
 STEREO_SOUTH = "+proj=stere +lat_0=-90 +lat_ts=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"

@@ -4,7 +4,7 @@ The offline DEM (1600 m/px) is 4x coarser than the real test images (400 m/px), 
 grid carries terrain the DEM cannot: this module synthesises it. Two models
 (``terrain.detail.model``; sources, numbers and the calibration in docs/detail.md):
 
-``calibrated`` (default), fitted to a real LOLA 200 m crop (crater_synth/terrain/detail_calibration.py):
+``calibrated`` (default), fitted to a real LOLA 200 m crop (crater_synth/tools/detail_calibration.py):
 
 1. Roughness: fractional Brownian surface by spectral synthesis (Saupe 1988, in *The Science of
    Fractal Images*), power spectral density ``C |k|^-(2H+2)`` with a *physical* amplitude ``C``:

@@ -2,6 +2,7 @@
 measurements for docs/, and are not part of the ``crater-synth`` command.
 
 - ``register_crop``: rebuild or check the embedded real LOLA crop around Shackleton.
-- ``calibrate_detail``: compare and fit the sub-DEM detail against that crop.
+- ``calibrate_detail``: compare and fit the sub-DEM detail against that crop (the measurements and the
+  fit are in ``detail_calibration``).
 - ``demstack_seams``: seam metrics and figures of the DEM stack.
 """

@@ -1,6 +1,6 @@
 """``python -m crater_synth.tools.calibrate_detail``: compare the DEM plus sub-DEM detail with a real LOLA
 200 m crop, optionally fit the detail parameters and write hillshades (docs/detail.md), with
-:mod:`crater_synth.terrain.detail_calibration`.
+:mod:`crater_synth.tools.detail_calibration`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 from crater_core.errors import ContractError
 from crater_synth.errors import UserError
-from crater_synth.terrain.detail_calibration import (
+from crater_synth.tools.detail_calibration import (
     DEFAULT_DATA_DIR,
     OLD_SETTINGS_KW,
     REAL_CROP_PRODUCT,
