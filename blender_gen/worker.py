@@ -176,19 +176,12 @@ def missing_modules() -> str | None:
     )
 
 
-def run(job_path: str) -> int:
-    from blender_gen.job import JobError, load_job, load_terrain
-
-    job = load_job(job_path)
-    terrain = load_terrain(job["terrain_npz"])  # errors before bpy is even imported
-
-    import numpy as np
-
-    from blender_gen import compat, direct, fast, render
+def _checked_settings(job: dict, job_path: str) -> tuple[dict, str]:
+    """The job's render settings and the running Blender's version; a Blender too old or settings (or
+    Hapke parameters) that do not parse are the job's error."""
+    from blender_gen import compat
+    from blender_gen.job import JobError
     from blender_gen.scene import render_settings
-    from blender_gen.session import Session
-    from blender_gen.sun import to_sun_vector
-    from crater_core import exr
     from crater_core.hapke import HapkeParams
 
     problem = compat.check_version()
@@ -200,47 +193,71 @@ def run(job_path: str) -> int:
         HapkeParams.from_mapping(job["hapke"])
     except (ValueError, KeyError, TypeError) as exc:
         raise JobError(f"job {job_path}: {type(exc).__name__}: {exc}") from None
-    t0 = time.perf_counter()
-    session = Session(job, terrain)
-    del terrain
-    log(f"scene ready in {time.perf_counter() - t0:.2f} s ({len(job['renders'])} renders, mode {cfg['mode']})")
-    fast_r = None
-    if cfg["mode"] == "fast":
-        fast_r = fast.FastRenderer(session, lambda: load_terrain(job["terrain_npz"]))
-        cache_dir = fast.horizon_cache_dir(job.get("horizon_cache_dir"), job["terrain_npz"])
-        fast_r.prepare_horizons(
-            [float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"], cache_dir, log=log
-        )
-    out_dir = job["out_dir"]
-    t_job = time.perf_counter()
+    return cfg, blender_version
+
+
+def _fast_renderer(session, job: dict, cfg: dict):
+    """The fast-mode renderer with its horizon maps ready, or None in direct mode."""
+    from blender_gen import fast
+    from blender_gen.job import load_terrain
+
+    if cfg["mode"] != "fast":
+        return None
+    fast_r = fast.FastRenderer(session, lambda: load_terrain(job["terrain_npz"]))
+    cache_dir = fast.horizon_cache_dir(job.get("horizon_cache_dir"), job["terrain_npz"])
+    fast_r.prepare_horizons([float(it["sun_azimuth"]) for it in job["renders"]], job["terrain_npz"], cache_dir, log=log)
+    return fast_r
+
+
+def _render_channels(session, fast_r, cfg: dict, item: dict, to_sun) -> tuple[dict, str]:
+    """One render's channels and the mode that made them: the fast path, or direct mode when the fast
+    path cannot render this view."""
+    from blender_gen import direct, fast
+
+    if fast_r is None:
+        return direct.render(session, item, to_sun), cfg["mode"]
+    try:
+        return fast_r.render(item, to_sun), cfg["mode"]
+    except fast.FallbackNeeded as exc:
+        fast_r.stats["fallbacks"] += 1
+        log(f"render {item['index']}: {exc}; rendering it in direct mode")
+        return direct.render(session, item, to_sun), "direct"
+
+
+def _write_render(job: dict, cfg: dict, item: dict, chans: dict, mode_used: str, blender_version: str):
+    """Write one render's sealed EXR; its SHA-256 and the file's stats."""
+    import numpy as np
+
+    from crater_core import exr
+
+    path = os.path.join(job["out_dir"], item["rel_path"])
+    stats = {  # the file's values (lit is stored as half)
+        "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
+        "mean_if": round(float(np.mean(chans["IF"])), 8),
+    }
+    header = header_for(job, cfg, item, mode_used, blender_version)
+    # The stats, and a seal over every attribute (the host's manifest row among them) and the
+    # pixels: the row can be rebuilt from the file alone (crater_synth.dataset.recover).
+    header["crater_synth:stats"] = json.dumps(stats, sort_keys=True)
+    sha = exr.write_exr(path, chans, exr.sealed_header(chans, header))
+    return sha, stats
+
+
+def _render_all(job: dict, session, fast_r, cfg: dict, blender_version: str) -> float:
+    """Render and write every item, one RESULT line each, stopping between renders when asked; the
+    seconds spent writing EXRs."""
+    from blender_gen import render
+    from blender_gen.sun import to_sun_vector
+
     t_write = 0.0
     try:
         for item in job["renders"]:
             _stop_if_asked()
             t1 = time.perf_counter()
             to_sun = to_sun_vector(float(item["sun_elevation"]), float(item["sun_azimuth"]))
-            mode_used = cfg["mode"]
-            if fast_r is not None:
-                try:
-                    chans = fast_r.render(item, to_sun)
-                except fast.FallbackNeeded as exc:
-                    fast_r.stats["fallbacks"] += 1
-                    log(f"render {item['index']}: {exc}; rendering it in direct mode")
-                    mode_used = "direct"
-                    chans = direct.render(session, item, to_sun)
-            else:
-                chans = direct.render(session, item, to_sun)
-            path = os.path.join(out_dir, item["rel_path"])
+            chans, mode_used = _render_channels(session, fast_r, cfg, item, to_sun)
             t2 = time.perf_counter()
-            stats = {  # the file's values (lit is stored as half)
-                "lit_fraction": round(float(np.mean(exr.as_stored({"lit": chans["lit"]})["lit"])), 6),
-                "mean_if": round(float(np.mean(chans["IF"])), 8),
-            }
-            header = header_for(job, cfg, item, mode_used, blender_version)
-            # The stats, and a seal over every attribute (the host's manifest row among them) and the
-            # pixels: the row can be rebuilt from the file alone (crater_synth.dataset.recover).
-            header["crater_synth:stats"] = json.dumps(stats, sort_keys=True)
-            sha = exr.write_exr(path, chans, exr.sealed_header(chans, header))
+            sha, stats = _write_render(job, cfg, item, chans, mode_used, blender_version)
             t_write += time.perf_counter() - t2
             emit(
                 "RESULT",
@@ -257,7 +274,11 @@ def run(job_path: str) -> int:
             _stop_if_asked()
     finally:
         render.cleanup()
-    n = len(job["renders"])
+    return t_write
+
+
+def _report_timing(n: int, cfg: dict, session, fast_r, t0: float, t_job: float, t_write: float) -> None:
+    """The job's timing: one readable log line and one ``STATS {json}`` line on stderr."""
     dt = time.perf_counter() - t_job
     extra = ""
     if fast_r is not None:
@@ -278,6 +299,25 @@ def run(job_path: str) -> int:
     if fast_r is not None:
         stats["fast"] = {k: round(v, 4) for k, v in fast_r.stats.items()}
     print("STATS " + json.dumps(stats), file=sys.stderr, flush=True)
+
+
+def run(job_path: str) -> int:
+    from blender_gen.job import load_job, load_terrain
+
+    job = load_job(job_path)
+    terrain = load_terrain(job["terrain_npz"])  # errors before bpy is even imported
+
+    from blender_gen.session import Session
+
+    cfg, blender_version = _checked_settings(job, job_path)
+    t0 = time.perf_counter()
+    session = Session(job, terrain)
+    del terrain
+    log(f"scene ready in {time.perf_counter() - t0:.2f} s ({len(job['renders'])} renders, mode {cfg['mode']})")
+    fast_r = _fast_renderer(session, job, cfg)
+    t_job = time.perf_counter()
+    t_write = _render_all(job, session, fast_r, cfg, blender_version)
+    _report_timing(len(job["renders"]), cfg, session, fast_r, t0, t_job, t_write)
     return 0
 
 

@@ -96,7 +96,7 @@ def test_interrupted_export_leaves_no_half_written_shard(dataset, tmp_path, monk
     with pytest.raises(KeyboardInterrupt):
         ex.export_dataset(dataset, out, fmt, shard_rows=2, row_group_rows=1)
     names = sorted(p.name for p in out.iterdir())
-    first = ex._shard_names(fmt, 2)[0]
+    first = ex.EXPORT_WRITERS[fmt].shard_name(0, 2)
     assert names == [first]  # the complete first shard only: no second shard, no temporary, no index
     if fmt == "parquet":
         import pyarrow.parquet as pq
@@ -147,3 +147,13 @@ def test_cli_prints_the_index(dataset, tmp_path):
     assert res.exit_code == 0, res.output
     line = json.loads(res.stdout.strip().splitlines()[-1])
     assert line["rows"] == 4 and line["shards"] == 1 and line["format"] == "webdataset"
+
+
+def test_each_format_names_and_recognises_only_its_own_shards():
+    # _prepare_out clears an interrupted export by these names: a format must not claim another's files.
+    for fmt, writer in ex.EXPORT_WRITERS.items():
+        names = [writer.shard_name(i, 3) for i in range(3)]
+        assert len(set(names)) == 3 and all(writer.is_shard_file(n) for n in names), fmt
+        for other in ex.EXPORT_WRITERS.values():
+            if other is not writer:
+                assert not any(other.is_shard_file(n) for n in names), (fmt, other.name)

@@ -155,7 +155,7 @@ def test_interrupted_export_leaves_no_half_written_shard(frames, tmp_path, monke
     interrupt_at_sample(monkeypatch, "navframe", 2)  # the second shard's only sample
     with pytest.raises(KeyboardInterrupt):
         ex.export_dataset(frames, out, fmt, shard_rows=1)
-    first = ex._shard_names(fmt, 2)[0]
+    first = ex.EXPORT_WRITERS[fmt].shard_name(0, 2)
     assert sorted(p.name for p in out.iterdir()) == [first]  # no second shard, no temporary, no index
     monkeypatch.undo()
     index = ex.export_dataset(frames, out, fmt, shard_rows=1)  # a rerun completes it

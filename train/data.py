@@ -354,6 +354,77 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
     return len(rows)
 
 
+def _reuse_cache(final: Path, samples: list, size: int):
+    """The images of a complete cache at ``final`` holding exactly ``samples``, or None (an unreadable or
+    different cache there is removed, to be rebuilt)."""
+    if not (final / "index.json").is_file():
+        return None
+    try:
+        meta = json.loads((final / "index.json").read_text())
+        images = np.load(final / "images.npy", mmap_mode="r")
+        if [tuple(x) for x in meta["samples"]] == samples and images.shape == (len(samples), size, size):
+            return images
+    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        pass  # unreadable cache: rebuild
+    shutil.rmtree(final, ignore_errors=True)
+    return None
+
+
+def _fill_cache(
+    images_path: Path,
+    rows: list,
+    dataset_dir,
+    sigmas,
+    pp: PreprocessConfig,
+    verify_sha256: bool,
+    workers: int,
+    progress: bool,
+) -> None:
+    """Resample every (row, sigma) into the memmap at ``images_path``. Decoding and resampling are
+    CPU-bound: chunks of rows go to ``workers`` processes, each writing its own slice of the memmap
+    (bars on a terminal, otherwise a line every few seconds)."""
+    from crater_core.progress import Progress
+
+    n_jobs = max(1, min(workers or os.cpu_count() or 1, len(rows) // CACHE_ROWS_PER_CHUNK))
+    chunks = [
+        (str(images_path), str(dataset_dir), rows[lo : lo + CACHE_ROWS_PER_CHUNK], lo * len(sigmas))
+        for lo in range(0, len(rows), CACHE_ROWS_PER_CHUNK)
+    ]
+    fill = functools.partial(_fill_cache_rows, sigmas=tuple(sigmas), pp=pp, verify_sha256=verify_sha256)
+    with Progress(len(rows), "cache crops", "exr", "auto" if progress else "lines") as bar:
+        if n_jobs == 1:
+            for chunk in chunks:
+                fill(chunk, on_row=bar.update)
+        else:
+            # spawn, not fork: this process has torch's thread pools, which a forked child inherits broken
+            pool = ProcessPoolExecutor(n_jobs, mp_context=multiprocessing.get_context("spawn"))
+            try:
+                for done in as_completed([pool.submit(fill, chunk) for chunk in chunks]):
+                    bar.update(done.result())
+            finally:  # on an error, do not wait for the other chunks
+                pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _publish_cache_dir(tmp: Path, final: Path) -> None:
+    """Make ``tmp``'s files shareable and durable (files and their directory entries), then rename it
+    to ``final``; when another process finished the same cache first, drop ``tmp``."""
+    from crater_core.files import umask
+
+    for f in tmp.iterdir():
+        os.chmod(f, 0o666 & ~umask())
+        with open(f, "rb") as fh:
+            os.fsync(fh.fileno())
+    dir_fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    try:
+        os.replace(tmp, final)
+    except OSError:  # another process finished the same cache first
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def build_cache(
     rows: Sequence[dict],
     dataset_dir: str | Path,
@@ -372,22 +443,15 @@ def build_cache(
     import time
 
     from crater_core.files import ensure_writable_dir, umask
-    from crater_core.progress import Progress
 
     t0 = time.perf_counter()
     rows = list(rows)
     key = cache_key(rows, sigmas, pp, dtype)
     final = Path(cache_dir) / key
     samples = [(i, float(s)) for i in range(len(rows)) for s in sigmas]
-    if (final / "index.json").is_file():
-        try:
-            meta = json.loads((final / "index.json").read_text())
-            images = np.load(final / "images.npy", mmap_mode="r")
-            if [tuple(x) for x in meta["samples"]] == samples and images.shape == (len(samples), pp.size, pp.size):
-                return CropCache(final, images, samples, built=False, seconds=time.perf_counter() - t0)
-        except (OSError, ValueError, KeyError, json.JSONDecodeError):
-            pass  # unreadable cache: rebuild below
-        shutil.rmtree(final, ignore_errors=True)
+    images = _reuse_cache(final, samples, pp.size)
+    if images is not None:
+        return CropCache(final, images, samples, built=False, seconds=time.perf_counter() - t0)
     ensure_writable_dir(final.parent, "train.cache_dir")
     tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=final.parent))
     try:
@@ -396,52 +460,18 @@ def build_cache(
             tmp / "images.npy", mode="w+", dtype=np.dtype(dtype), shape=(len(samples), pp.size, pp.size)
         )
         del arr
-        # Decoding and resampling are CPU-bound: chunks of rows go to ``workers`` processes, each
-        # writing its own slice of the memmap (bars on a terminal, otherwise a line every few seconds).
-        n_jobs = max(1, min(workers or os.cpu_count() or 1, len(rows) // CACHE_ROWS_PER_CHUNK))
-        chunks = [
-            (str(tmp / "images.npy"), str(dataset_dir), rows[lo : lo + CACHE_ROWS_PER_CHUNK], lo * len(sigmas))
-            for lo in range(0, len(rows), CACHE_ROWS_PER_CHUNK)
-        ]
-        fill = functools.partial(_fill_cache_rows, sigmas=tuple(sigmas), pp=pp, verify_sha256=verify_sha256)
-        with Progress(len(rows), "cache crops", "exr", "auto" if progress else "lines") as bar:
-            if n_jobs == 1:
-                for chunk in chunks:
-                    fill(chunk, on_row=bar.update)
-            else:
-                # spawn, not fork: this process has torch's thread pools, which a forked child inherits broken
-                pool = ProcessPoolExecutor(n_jobs, mp_context=multiprocessing.get_context("spawn"))
-                try:
-                    for done in as_completed([pool.submit(fill, chunk) for chunk in chunks]):
-                        bar.update(done.result())
-                finally:  # on an error, do not wait for the other chunks
-                    pool.shutdown(wait=True, cancel_futures=True)
-        (tmp / "index.json").write_text(
-            json.dumps(
-                {
-                    "format": CACHE_FORMAT,
-                    "key": key,
-                    "dataset_dir": str(dataset_dir),
-                    "samples": samples,
-                    "sigmas": list(sigmas),
-                    "pp": pp.geometry_key(),
-                    "dtype": dtype,
-                }
-            )
-        )
-        for f in tmp.iterdir():  # durable (files and their directory entries) before the rename publishes it
-            os.chmod(f, 0o666 & ~umask())
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
-        dir_fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-        try:
-            os.replace(tmp, final)
-        except OSError:  # another process finished the same cache first
-            shutil.rmtree(tmp, ignore_errors=True)
+        _fill_cache(tmp / "images.npy", rows, dataset_dir, sigmas, pp, verify_sha256, workers, progress)
+        index = {
+            "format": CACHE_FORMAT,
+            "key": key,
+            "dataset_dir": str(dataset_dir),
+            "samples": samples,
+            "sigmas": list(sigmas),
+            "pp": pp.geometry_key(),
+            "dtype": dtype,
+        }
+        (tmp / "index.json").write_text(json.dumps(index))
+        _publish_cache_dir(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -116,22 +116,11 @@ def roll_averaged_predictions(
     }
 
 
-def evaluate_run(
-    settings: Settings,
-    run_dir: str | Path,
-    progress: bool = True,
-    test: RealTestSet | None = None,
-    out_dir: str | Path | None = None,
-) -> dict:
-    """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics
-    files into ``out_dir`` (default ``run_dir``; the pipeline passes a staging directory, :mod:`train.runs`).
-    The models and the summary must be of one training run (:func:`train.runs.check_one_run`)."""
+def _load_run(run_dir: Path, device):
+    """The three saved models of ``run_dir``, checked to be of one training run and one class list:
+    (net, its checkpoint, svm doc, hog doc, the run's summary (or {}), run id, class names)."""
     from train.runs import check_one_run
 
-    run_dir = Path(run_dir)
-    out_dir = run_dir if out_dir is None else Path(out_dir)
-    device = configure_torch(settings.train)
-    t0 = time.perf_counter()
     net, ck = load_lunarnet(run_dir, device)
     svm = load_sklearn(run_dir / SVM_FILE)
     hog = load_sklearn(run_dir / HOG_FILE)
@@ -153,6 +142,57 @@ def evaluate_run(
             raise ModelError(
                 f"{run_dir / f} was trained on classes {other['class_names']}, LunarNet_ex on {class_names}: retrain"
             )
+    return net, ck, svm, hog, summary, run_id, class_names
+
+
+def _check_roll_averaging(rolls: int, ck: dict, run_dir: Path) -> None:
+    """Roll averaging (``train.tta_rotations`` > 1) needs models trained on disc-support crops."""
+    if rolls > 1 and (ck.get("preprocess") or {}).get("support", "square") != "disc":
+        raise ModelError(
+            f"train.tta_rotations={rolls}: the models in {run_dir} were trained on square crops; roll averaging "
+            "needs disc-support crops (train.preprocess.support=disc), which any turn keeps inside the box"
+        )
+
+
+def _metrics_and_confusions(out_dir: Path, test: RealTestSet, preds: dict, vals: dict, class_names: list) -> dict:
+    """Each model's metrics on the test set, with its confusion matrix plotted into ``out_dir``."""
+    metrics: dict = {}
+    for name in MODELS:
+        metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
+        plot_confusion(
+            out_dir / f"confusion_{name}.png",
+            metrics[name]["confusion"],
+            class_names,
+            f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}",
+        )
+    return metrics
+
+
+def _write_realset(path: Path, test: RealTestSet, preds: dict, class_names: list) -> None:
+    """One JSON line per test crop: its source and every model's prediction."""
+    rows = []
+    for i, c in enumerate(test.crops):
+        r = c.as_row()
+        r.update({f"pred_{m}": class_names[int(preds[m][i])] for m in MODELS})
+        rows.append(json.dumps(r, sort_keys=True))
+    atomic_write_text(path, "\n".join(rows) + "\n")
+
+
+def evaluate_run(
+    settings: Settings,
+    run_dir: str | Path,
+    progress: bool = True,
+    test: RealTestSet | None = None,
+    out_dir: str | Path | None = None,
+) -> dict:
+    """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics
+    files into ``out_dir`` (default ``run_dir``; the pipeline passes a staging directory, :mod:`train.runs`).
+    The models and the summary must be of one training run (:func:`train.runs.check_one_run`)."""
+    run_dir = Path(run_dir)
+    out_dir = run_dir if out_dir is None else Path(out_dir)
+    device = configure_torch(settings.train)
+    t0 = time.perf_counter()
+    net, ck, svm, hog, summary, run_id, class_names = _load_run(run_dir, device)
     if test is None:  # with the preprocessing the network was trained with
         from train.preprocess import PreprocessConfig
 
@@ -160,11 +200,7 @@ def evaluate_run(
         test = build_real_test_set(settings, craters_for(settings, class_names), class_names, pp)
     ebs = settings.train.eval_batch_size
     rolls = settings.train.tta_rotations
-    if rolls > 1 and (ck.get("preprocess") or {}).get("support", "square") != "disc":
-        raise ModelError(
-            f"train.tta_rotations={rolls}: the models in {run_dir} were trained on square crops; roll averaging "
-            "needs disc-support crops (train.preprocess.support=disc), which any turn keeps inside the box"
-        )
+    _check_roll_averaging(rolls, ck, run_dir)
     preds = roll_averaged_predictions(
         net, svm["model"], hog["model"], _saved_hog(hog, run_dir / HOG_FILE, settings), test.images, rolls, ebs, device
     )
@@ -175,15 +211,7 @@ def evaluate_run(
     }
     if set(preds) != set(MODELS) or set(vals) != set(MODELS):
         raise AssertionError(f"evaluate_run predicts {sorted(preds)}, train.registry lists {list(MODELS)}")
-    metrics: dict = {}
-    for name in MODELS:
-        metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
-        plot_confusion(
-            out_dir / f"confusion_{name}.png",
-            metrics[name]["confusion"],
-            class_names,
-            f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}",
-        )
+    metrics = _metrics_and_confusions(out_dir, test, preds, vals, class_names)
     metrics.update(
         {
             "classes": class_names,
@@ -200,12 +228,7 @@ def evaluate_run(
             "run_id": run_id,
         }
     )
-    rows = []
-    for i, c in enumerate(test.crops):
-        r = c.as_row()
-        r.update({f"pred_{m}": class_names[int(preds[m][i])] for m in MODELS})
-        rows.append(json.dumps(r, sort_keys=True))
-    atomic_write_text(out_dir / REALSET_FILE, "\n".join(rows) + "\n")
+    _write_realset(out_dir / REALSET_FILE, test, preds, class_names)
     atomic_write_text(out_dir / METRICS_FILE, json_text(_jsonable(metrics)))
     return metrics
 

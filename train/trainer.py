@@ -104,6 +104,56 @@ def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.de
 # ------------------------------------------------------------------------------------------------
 # LunarNet_ex
 # ------------------------------------------------------------------------------------------------
+def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int, max_epochs: int, device, bar_on: bool):
+    """One pass of Adam over the training set: (summed loss, correct, images seen, seconds)."""
+    from tqdm import tqdm
+
+    train_set.set_epoch(epoch)
+    model.train()
+    tot_loss, tot_ok, tot_n = 0.0, 0, 0
+    t0 = time.perf_counter()
+    # The batch bar on a terminal only: in a log, the epoch summary line is the progress.
+    bar = tqdm(
+        _loader(train_set, bs, True, seed + epoch),
+        desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
+        unit="batch",
+        disable=not bar_on,
+        leave=False,
+    )
+    for xb, yb in bar:
+        xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
+        opt.zero_grad(set_to_none=True)
+        logits = model(xb)
+        loss = loss_fn(logits, yb)
+        loss.backward()
+        opt.step()
+        n = int(yb.numel())
+        tot_loss += float(loss.item()) * n
+        tot_ok += int((logits.argmax(1) == yb).sum().item())
+        tot_n += n
+        rate = tot_n / max(time.perf_counter() - t0, 1e-9)
+        bar.set_postfix(loss=f"{tot_loss / tot_n:.3f}", acc=f"{tot_ok / tot_n:.3f}", img_s=f"{rate:.0f}")
+    bar.close()
+    return tot_loss, tot_ok, tot_n, time.perf_counter() - t0
+
+
+def _training_summary(history, best, target, reached_at, train_time, images_seen, device, model, arch) -> dict:
+    """What a LunarNet_ex training did: its history, best epoch, target reached and throughput."""
+    return {
+        "history": history,
+        "best_epoch": best["epoch"],
+        "val_accuracy": best["val_accuracy"],
+        "target_val_accuracy": target,
+        "reached_target": reached_at is not None,
+        "time_to_target_s": reached_at,
+        "train_seconds": train_time,
+        "train_images_per_s": images_seen / max(train_time, 1e-9),
+        "device": str(device),
+        "parameters": parameter_count(model),
+        "multiply_adds": multiply_adds(arch)["total"],
+    }
+
+
 def train_lunarnet(
     data: SyntheticData,
     settings: Settings,
@@ -139,34 +189,11 @@ def train_lunarnet(
     train_time = 0.0
     images_seen = 0
     reached_at = None
+    bar_on = progress and sys.stderr.isatty()
     for epoch in range(1, max_epochs + 1):
-        data.train.set_epoch(epoch)
-        model.train()
-        tot_loss, tot_ok, tot_n = 0.0, 0, 0
-        t0 = time.perf_counter()
-        # The batch bar on a terminal only: in a log, the epoch summary line below is the progress.
-        bar = tqdm(
-            _loader(data.train, bs, True, seed + epoch),
-            desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
-            unit="batch",
-            disable=not (progress and sys.stderr.isatty()),
-            leave=False,
+        tot_loss, tot_ok, tot_n, dt = _train_epoch(
+            model, opt, loss_fn, data.train, bs, seed, epoch, max_epochs, device, bar_on
         )
-        for xb, yb in bar:
-            xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
-            opt.zero_grad(set_to_none=True)
-            logits = model(xb)
-            loss = loss_fn(logits, yb)
-            loss.backward()
-            opt.step()
-            n = int(yb.numel())
-            tot_loss += float(loss.item()) * n
-            tot_ok += int((logits.argmax(1) == yb).sum().item())
-            tot_n += n
-            rate = tot_n / max(time.perf_counter() - t0, 1e-9)
-            bar.set_postfix(loss=f"{tot_loss / tot_n:.3f}", acc=f"{tot_ok / tot_n:.3f}", img_s=f"{rate:.0f}")
-        bar.close()
-        dt = time.perf_counter() - t0
         train_time += dt
         images_seen += tot_n
         pv = predict_logits(model, data.val, ebs, device).argmax(1)
@@ -201,19 +228,7 @@ def train_lunarnet(
             reached_at = rec["elapsed_s"]
             break
     model.load_state_dict(best["state"])
-    summary = {
-        "history": history,
-        "best_epoch": best["epoch"],
-        "val_accuracy": best["val_accuracy"],
-        "target_val_accuracy": target,
-        "reached_target": reached_at is not None,
-        "time_to_target_s": reached_at,
-        "train_seconds": train_time,
-        "train_images_per_s": images_seen / max(train_time, 1e-9),
-        "device": str(device),
-        "parameters": parameter_count(model),
-        "multiply_adds": multiply_adds(arch)["total"],
-    }
+    summary = _training_summary(history, best, target, reached_at, train_time, images_seen, device, model, arch)
     if run_dir is not None:  # final save carries the complete history
         save_lunarnet(
             run_dir,

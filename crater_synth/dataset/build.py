@@ -82,11 +82,9 @@ def build_dataset(
         dataset_lock.release()
 
 
-def _build_locked(
-    s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool, state: dict
-) -> dict:
-    from crater_synth.terrain.patch import build_terrain
-
+def _existing_rows(out_dir: Path) -> dict:
+    """The dataset's readable manifest rows by key, after merging the part files of a killed run and
+    clearing the leftovers of killed workers."""
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
         schema.merge_parts(out_dir, parts=stale)
@@ -95,18 +93,18 @@ def _build_locked(
     existing = {schema.row_key(r): r for r in schema.dataset_rows(out_dir)}
     prune_jobs(out_dir)
     remove_stale_scratch()  # Cycles scratch files of workers killed with -9 (their host never cleaned up)
-    craters = s.craters
-    # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
-    # at least this many renders are left even if every existing row belongs to this run.
-    check_free_disk(
-        out_dir,
-        max(0, len(indices) * len(craters) - len(existing)),
-        measured_bytes_per_render(list(existing.values()), out_dir),
-    )
+    return existing
+
+
+def _plan_sweep(s: Settings, grid, indices) -> tuple[list[CraterJob], list[tuple[CraterJob, tuple, dict]], dict]:
+    """Every crater's terrain and planned renders: (jobs, (job, key, plan) per render, key by file name).
+    Two renders that would share a file are refused."""
+    from crater_synth.terrain.patch import build_terrain
+
     jobs: list[CraterJob] = []
     planned: list[tuple[CraterJob, tuple, dict]] = []
     names: dict[str, tuple] = {}
-    for crater in craters:
+    for crater in s.craters:
         npz, meta = build_terrain(crater, s)
         job = CraterJob(crater=crater, npz=Path(npz), meta=meta)
         digest = render_identity(s, crater, meta["terrain_id"])
@@ -128,10 +126,12 @@ def _build_locked(
             plan["row"] = planned_row(crater.name, meta["terrain_id"], plan, grid.fov_deg, s.render.mode)
             planned.append((job, key, plan))
         jobs.append(job)
+    return jobs, planned, names
 
-    removed = remove_interrupted_writes(out_dir, set(names), exclusive)
-    if removed and warn is not None:
-        warn(f"removed {len(removed)} temp file(s) of interrupted writes from {out_dir}, e.g. {removed[0]}")
+
+def _sort_proved(s: Settings, grid, out_dir: Path, planned, existing: dict) -> tuple[int, list[dict]]:
+    """Give every planned render whose file is not proved a worker item (it is rendered); count those
+    proved with their manifest row intact, and return the rows rebuilt from the other proved files."""
     skipped, recovered = 0, []
     for job, key, plan in planned:
         row = existing.get(key)
@@ -147,25 +147,27 @@ def _build_locked(
             skipped += 1
         else:
             recovered.append(proved)
+    return skipped, recovered
+
+
+def _prune_manifest(out_dir: Path, existing: dict, planned, names: dict, recovered: list, exclusive: bool) -> None:
+    """With the dataset to itself, keep in the manifest only rows proved now and those of renders outside
+    this sweep (another shard, a larger grid) that name no planned file."""
     planned_keys = {key for _, key, _ in planned}
-    kept = {
-        k for k, r in existing.items() if k not in planned_keys and r["path"] not in names
-    }  # rows of renders outside this sweep (another shard, a larger grid) that name no planned file
+    kept = {k for k, r in existing.items() if k not in planned_keys and r["path"] not in names}
     kept |= {key for _, key, plan in planned if "item" not in plan and existing.get(key) is not None}
     kept -= {schema.row_key(r) for r in recovered}
     if exclusive and (out_dir / schema.MANIFEST_NAME).exists():
-        # The manifest keeps only rows proved now (and those of renders outside this sweep): a wrong,
-        # stale or edited row is gone before rendering starts, even if this run is stopped.
+        # A wrong, stale or edited row is gone before rendering starts, even if this run is stopped.
         schema.merge_parts(out_dir, parts=[], keep=kept)
-    left = unplanned_files(out_dir, list(existing.values()), set(names))
-    if left and warn is not None:
-        warn(
-            f"left {len(left)} file(s) alone that no manifest row and no planned render names, e.g. {left[0]} "
-            "(crater-synth deletes only files it planned)"
-        )
 
-    todo = sum(len(j.plans) for j in jobs)
-    check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
+
+def _render_jobs(
+    s: Settings, jobs, todo: int, out_dir: Path, shard, recovered: list, progress: bool, warn, state: dict
+):
+    """Record the recovered rows, render every job's plans and merge the rows into the manifest (the rows
+    rendered so far as well when stopped): (manifest rows, renders done, paths of all-black renders,
+    seconds)."""
     part = part_file(out_dir, shard)
     bar = Progress(todo, f"rendering ({s.render.mode})", "render", mode="auto" if progress and todo else "off")
     dark = []
@@ -201,7 +203,36 @@ def _build_locked(
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0
-    n_rows = schema.merge_parts(out_dir, parts=[part])
+    return schema.merge_parts(out_dir, parts=[part]), dark, elapsed
+
+
+def _build_locked(
+    s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool, state: dict
+) -> dict:
+    existing = _existing_rows(out_dir)
+    craters = s.craters
+    # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
+    # at least this many renders are left even if every existing row belongs to this run.
+    check_free_disk(
+        out_dir,
+        max(0, len(indices) * len(craters) - len(existing)),
+        measured_bytes_per_render(list(existing.values()), out_dir),
+    )
+    jobs, planned, names = _plan_sweep(s, grid, indices)
+    removed = remove_interrupted_writes(out_dir, set(names), exclusive)
+    if removed and warn is not None:
+        warn(f"removed {len(removed)} temp file(s) of interrupted writes from {out_dir}, e.g. {removed[0]}")
+    skipped, recovered = _sort_proved(s, grid, out_dir, planned, existing)
+    _prune_manifest(out_dir, existing, planned, names, recovered, exclusive)
+    left = unplanned_files(out_dir, list(existing.values()), set(names))
+    if left and warn is not None:
+        warn(
+            f"left {len(left)} file(s) alone that no manifest row and no planned render names, e.g. {left[0]} "
+            "(crater-synth deletes only files it planned)"
+        )
+    todo = sum(len(j.plans) for j in jobs)
+    check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
+    n_rows, dark, elapsed = _render_jobs(s, jobs, todo, out_dir, shard, recovered, progress, warn, state)
     if dark and warn is not None:
         warn(
             f"{len(dark)} of {todo} new renders are entirely in shadow (lit_fraction 0, all black), e.g. "

@@ -194,6 +194,61 @@ class _Worker:
                 self.error = line[6:]
 
 
+def _work_units(jobs: list[CraterJob], n_workers: int, startup_renders: int | None):
+    """Work units: contiguous blocks of one crater's plans, camera-major (all suns of a camera pose
+    together): each worker renders each of its G-buffers once and reads the shared horizon maps of
+    every sun azimuth (docs/renderer.md, "Order of work"); as many blocks per crater as balance the
+    workers (blocks_per_crater)."""
+    units: list[tuple[CraterJob, list[dict]]] = []
+    sizes = [len(j.plans) for j in jobs]
+    if startup_renders is None:
+        shares = blocks_per_crater(sizes, n_workers)
+    else:
+        shares = blocks_per_crater(sizes, n_workers, startup_renders, refine=True)
+    for job, share in zip(jobs, shares):
+        if job.plans:
+            ordered = sorted(job.plans, key=camera_major)
+            units += [(job, block) for block in split_contiguous(ordered, share)]
+    if startup_renders is not None:
+        units.sort(key=lambda unit: len(unit[1]), reverse=True)  # stable: equal units keep their order
+    return units
+
+
+def _launch_worker(
+    job: CraterJob,
+    block: list[dict],
+    unit_id: int,
+    jobs_dir: Path,
+    blender,
+    render_cfg: dict,
+    render: RenderSettings,
+    hapke: HapkeParams,
+    out_dir: Path,
+) -> _Worker:
+    """Write the job file of one work unit and start its worker process (its stderr to the job's log)."""
+    job_file = jobs_dir / f"{job.crater.name}-{writer_tag()}-{unit_id}.json"
+    spec = {
+        "terrain_npz": str(job.npz),
+        "terrain_meta": job.meta,
+        "crater": job.crater.as_dict(),
+        "hapke": hapke_dict(hapke),
+        "render": render_cfg | job.render_overrides,
+        "out_dir": str(out_dir),
+        "horizon_cache_dir": render.horizon_cache_dir,
+        "renders": [p["item"] for p in block],
+    }
+    schema.atomic_write_text(job_file, json.dumps(spec))
+    log = open(job_file.with_suffix(".log"), "ab")
+    proc = subprocess.Popen(
+        worker_command(job_file, blender),
+        stdout=subprocess.PIPE,
+        stderr=log,
+        cwd=SOURCE_ROOT,
+        env=os.environ | {"PYTHONUNBUFFERED": "1"},
+    )
+    return _Worker(proc, job, block, unit_id, log, job_file)
+
+
 def run_workers(
     jobs: list[CraterJob],
     render: RenderSettings,
@@ -212,22 +267,7 @@ def run_workers(
     jobs_dir = out_dir / JOBS_DIR
     jobs_dir.mkdir(parents=True, exist_ok=True)
     render_cfg = render.as_dict()
-    # Work units: contiguous blocks of one crater's plans, camera-major
-    # (all suns of a camera pose together): each worker renders each of its G-buffers once and reads
-    # the shared horizon maps of every sun azimuth (docs/renderer.md, "Order of work"); as many
-    # blocks per crater as balance the workers (blocks_per_crater).
-    units: list[tuple[CraterJob, list[dict]]] = []
-    sizes = [len(j.plans) for j in jobs]
-    if startup_renders is None:
-        shares = blocks_per_crater(sizes, n_workers)
-    else:
-        shares = blocks_per_crater(sizes, n_workers, startup_renders, refine=True)
-    for job, share in zip(jobs, shares):
-        if job.plans:
-            ordered = sorted(job.plans, key=camera_major)
-            units += [(job, block) for block in split_contiguous(ordered, share)]
-    if startup_renders is not None:
-        units.sort(key=lambda unit: len(unit[1]), reverse=True)  # stable: equal units keep their order
+    units = _work_units(jobs, n_workers, startup_renders)
     # the cores split between the workers that can run at once (fewer units than workers: more threads each)
     concurrent = max(1, min(n_workers, len(units)))
     if concurrent > 1 and render.threads == 0:
@@ -240,29 +280,10 @@ def run_workers(
     uid = 0
 
     def start(job: CraterJob, block: list[dict], unit_id: int) -> None:
-        job_file = jobs_dir / f"{job.crater.name}-{writer_tag()}-{unit_id}.json"
-        spec = {
-            "terrain_npz": str(job.npz),
-            "terrain_meta": job.meta,
-            "crater": job.crater.as_dict(),
-            "hapke": hapke_dict(hapke),
-            "render": render_cfg | job.render_overrides,
-            "out_dir": str(out_dir),
-            "horizon_cache_dir": render.horizon_cache_dir,
-            "renders": [p["item"] for p in block],
-        }
-        schema.atomic_write_text(job_file, json.dumps(spec))
-        log = open(job_file.with_suffix(".log"), "ab")
-        proc = subprocess.Popen(
-            worker_command(job_file, blender),
-            stdout=subprocess.PIPE,
-            stderr=log,
-            cwd=SOURCE_ROOT,
-            env=os.environ | {"PYTHONUNBUFFERED": "1"},
-        )
-        started.add(proc.pid)
-        running[proc] = _Worker(proc, job, block, unit_id, log, job_file)
-        sel.register(proc.stdout, selectors.EVENT_READ, proc)
+        w = _launch_worker(job, block, unit_id, jobs_dir, blender, render_cfg, render, hapke, out_dir)
+        started.add(w.proc.pid)
+        running[w.proc] = w
+        sel.register(w.proc.stdout, selectors.EVENT_READ, w.proc)
 
     def finish(w: _Worker) -> int:
         sel.unregister(w.proc.stdout)

@@ -21,24 +21,36 @@ Record kinds: what a sample is comes from a :class:`RecordKind` (``RECORD_KINDS`
 arrays and typed labels: ``render`` (a ``crater-synth dataset`` directory) and ``navframe`` (a
 ``crater-synth nav-frames`` directory: whole frames with their pose, Sun and landmark labels, the
 landmarks a list of structs). The kind is detected from the manifest's row fields (:func:`detect_kind`).
+
+Formats: how a shard is written comes from an ``ExportWriter`` (:mod:`crater_synth.dataset.export_writers`,
+``EXPORT_WRITERS``: its shard names, open / write a sample / close, and what the index records of a
+channel): ``ParquetWriter`` and ``WebDatasetWriter``. The export loop below, the temporary files and the
+index are the same for both.
 """
 
 from __future__ import annotations
 
-import io
+import contextlib
 import json
 import math
 import os
-import tarfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import click
-import numpy as np
 
 from crater_synth.cli_common import user_errors
+from crater_synth.dataset.export_writers import (  # noqa: F401 (re-exported: part of this API)
+    EXPORT_WRITERS,
+    FORMATS,
+    ExportWriter,
+    ParquetWriter,
+    Sample,
+    WebDatasetWriter,
+    column_name,
+    npy_bytes,
+)
 from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part of this API)
     NAVFRAME,
     RECORD_KINDS,
@@ -48,35 +60,9 @@ from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part
     detect_kind,
 )
 
-FORMATS = ("parquet", "webdataset")
 INDEX_FILE = "export.json"
 EXPORT_VERSION = 1
 DEFAULT_CHANNELS = ("IF",)
-
-
-# ------------------------------------------------------------------------------------------------
-# Samples
-# ------------------------------------------------------------------------------------------------
-def column_name(channel: str) -> str:
-    """The column / WebDataset extension stem of a channel: ``IF`` -> ``if``, ``N.X`` -> ``n_x``."""
-    return channel.lower().replace(".", "_")
-
-
-def npy_bytes(a: np.ndarray) -> bytes:
-    """An array as the bytes of a ``.npy`` file (``numpy.load(io.BytesIO(b))`` gives it back exactly)."""
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
-    return buf.getvalue()
-
-
-@dataclass
-class Sample:
-    """One exported sample: its key, typed labels, verbatim manifest row and NPY-encoded channels."""
-
-    key: str
-    labels: dict  # typed label columns
-    row: dict  # the manifest row, verbatim
-    npy: dict[str, bytes]  # column name -> NPY bytes
 
 
 def iter_samples(kind: RecordKind, dataset_dir: Path, channels: Sequence[str]) -> tuple[int, Iterator[Sample]]:
@@ -135,32 +121,59 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
 def _is_ours(name: str) -> bool:
     return (
         name == INDEX_FILE
-        or (name.startswith("data-") and name.endswith(".parquet"))
-        or (name.startswith("shard-") and name.endswith(".tar"))
+        or any(w.is_shard_file(name) for w in EXPORT_WRITERS.values())
         or (name.startswith(".") and name.endswith(".tmp"))
     )
 
 
-def _shard_names(fmt: str, n_shards: int) -> list[str]:
-    if fmt == "parquet":
-        return [f"data-{i:05d}-of-{n_shards:05d}.parquet" for i in range(n_shards)]
-    return [f"shard-{i:06d}.tar" for i in range(n_shards)]
+# ------------------------------------------------------------------------------------------------
+# The export
+# ------------------------------------------------------------------------------------------------
+def _record_kind(dataset_dir, kind: str | None) -> RecordKind:
+    """The record kind asked for (``kind``) or detected from the manifest; a mismatch is an error."""
+    if kind is not None and kind not in RECORD_KINDS:
+        raise ExportError(f"unknown record kind {kind!r}; known: {', '.join(RECORD_KINDS)}")
+    found = detect_kind(dataset_dir)
+    if kind is not None and found is not None and found != kind:
+        raise ExportError(
+            f"dataset {dataset_dir} holds {found} records, not {kind} ones: pass --kind {found} or leave --kind out"
+        )
+    return RECORD_KINDS[kind or found or "render"]
 
 
-def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
-    import pyarrow as pa
+def _check_request(rk: RecordKind, channels: list, shard_rows: int, row_group_rows: int, dataset_dir: Path, out: Path):
+    """Channels the kind has, positive sizes, a dataset directory and an output outside it."""
+    bad = [c for c in channels if c not in rk.channels]
+    if not channels or bad:
+        raise ExportError(f"export channels {bad or channels}: choose among {', '.join(rk.channels)}")
+    if shard_rows < 1 or row_group_rows < 1:
+        raise ExportError(f"shard_rows={shard_rows} and row_group_rows={row_group_rows} must be >= 1")
+    if not dataset_dir.is_dir():
+        raise ExportError(f"dataset {dataset_dir} is not a directory")
+    if out.resolve() == dataset_dir.resolve() or dataset_dir.resolve() in out.resolve().parents:
+        raise ExportError(f"export directory {out} must lie outside the dataset {dataset_dir}")
 
-    fields = [("key", pa.string()), ("record_kind", pa.string())]
-    fields += kind.label_fields()
-    fields += [(f"{column_name(c)}_npy", pa.binary()) for c in channels]
-    fields += [("labels_json", pa.string())]
-    return pa.schema(fields)
 
-
-def _tar_member(tf: tarfile.TarFile, name: str, data: bytes) -> None:
-    info = tarfile.TarInfo(name)
-    info.size, info.mode, info.mtime = len(data), 0o644, 0  # mtime 0: the same dataset gives the same bytes
-    tf.addfile(info, io.BytesIO(data))
+def _write_shard(writer: ExportWriter, final: Path, samples: Iterator[Sample], count: int, tick) -> str:
+    """Write ``count`` samples into one shard (a temporary file renamed to ``final`` when complete);
+    ``tick(k)`` after every ``row_group_rows``-th sample but the last. Returns the shard's sha256."""
+    tmp = _tmp_path(final)
+    try:
+        writer.open(tmp)
+        try:
+            for k in range(1, count + 1):
+                writer.write(next(samples))
+                if k < count and k % writer.row_group_rows == 0:
+                    tick(k)
+        except BaseException:
+            with contextlib.suppress(OSError):  # the error being raised is the one to report
+                writer.abort()
+            raise
+        writer.close()
+        return _finish(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def export_dataset(
@@ -178,61 +191,27 @@ def export_dataset(
     """Export ``dataset_dir`` to ``out_dir`` as ``fmt`` (``parquet`` or ``webdataset``); returns the index
     written to ``out_dir/export.json``. Streams: at most one Parquet row group (``row_group_rows``
     samples) is held in memory for Parquet, one sample for WebDataset; each shard holds ``shard_rows``.
-    ``progress(done, total)`` is called every ``row_group_rows`` samples."""
+    ``progress(done, total)`` is called every ``row_group_rows`` samples and after each shard."""
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
-    if kind is not None and kind not in RECORD_KINDS:
-        raise ExportError(f"unknown record kind {kind!r}; known: {', '.join(RECORD_KINDS)}")
-    found = detect_kind(dataset_dir)
-    if kind is not None and found is not None and found != kind:
-        raise ExportError(
-            f"dataset {dataset_dir} holds {found} records, not {kind} ones: pass --kind {found} or leave --kind out"
-        )
-    rk = RECORD_KINDS[kind or found or "render"]
+    rk = _record_kind(dataset_dir, kind)
     channels = list(dict.fromkeys(channels))
-    bad = [c for c in channels if c not in rk.channels]
-    if not channels or bad:
-        raise ExportError(f"export channels {bad or channels}: choose among {', '.join(rk.channels)}")
-    if shard_rows < 1 or row_group_rows < 1:
-        raise ExportError(f"shard_rows={shard_rows} and row_group_rows={row_group_rows} must be >= 1")
     dataset_dir, out = Path(dataset_dir), Path(out_dir)
-    if not dataset_dir.is_dir():
-        raise ExportError(f"dataset {dataset_dir} is not a directory")
-    if out.resolve() == dataset_dir.resolve() or dataset_dir.resolve() in out.resolve().parents:
-        raise ExportError(f"export directory {out} must lie outside the dataset {dataset_dir}")
+    _check_request(rk, channels, shard_rows, row_group_rows, dataset_dir, out)
     t0 = time.perf_counter()
     n, samples = iter_samples(rk, dataset_dir, channels)  # bad dataset: an error before any file is touched
     _prepare_out(out, overwrite)
+    writer = EXPORT_WRITERS[fmt](rk, channels, row_group_rows)
     n_shards = math.ceil(n / shard_rows)
-    names = _shard_names(fmt, n_shards)
     shards, done = [], 0
-    for i, name in enumerate(names):
-        final, tmp = out / name, _tmp_path(out / name)
+    for i in range(n_shards):
+        name = writer.shard_name(i, n_shards)
         count = min(shard_rows, n - i * shard_rows)
-        try:
-            if fmt == "parquet":
-                # Row groups are written as they fill; the shard's samples are held one row group at a time.
-                _stream_parquet(
-                    tmp, samples, count, rk, channels, row_group_rows, lambda k, d=done: progress and progress(d + k, n)
-                )
-            else:
-                with tarfile.open(tmp, "w", format=tarfile.PAX_FORMAT) as tf:
-                    for k in range(count):
-                        if progress and k and k % row_group_rows == 0:
-                            progress(done + k, n)
-                        s = next(samples)
-                        for col, data in s.npy.items():
-                            _tar_member(tf, f"{s.key}.{col}.npy", data)
-                        meta = {"key": s.key, "record_kind": rk.name, **s.labels, "manifest_row": s.row}
-                        _tar_member(tf, f"{s.key}.json", json.dumps(meta, sort_keys=True).encode())
-            digest = _finish(tmp, final)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        digest = _write_shard(writer, out / name, samples, count, lambda k, d=done: progress and progress(d + k, n))
         done += count
-        if progress and fmt == "webdataset":
+        if progress:
             progress(done, n)
-        shards.append({"file": name, "rows": count, "sha256": digest, "bytes": final.stat().st_size})
+        shards.append({"file": name, "rows": count, "sha256": digest, "bytes": (out / name).stat().st_size})
     if next(samples, None) is not None:
         raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
     index = {
@@ -241,9 +220,7 @@ def export_dataset(
         "record_kind": rk.name,
         "dataset": str(dataset_dir.resolve()),
         "rows": n,
-        "channels": {
-            c: {"column": f"{column_name(c)}_npy" if fmt == "parquet" else f"{column_name(c)}.npy"} for c in channels
-        },
+        "channels": {c: writer.channel_entry(c) for c in channels},
         "images": "lossless: NPY bytes of each channel as stored in the EXR (float32 IF, depth; float16 N.*, lit)",
         "shards": shards,
         "seconds": round(time.perf_counter() - t0, 3),
@@ -252,39 +229,6 @@ def export_dataset(
 
     atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
     return index
-
-
-def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> None:
-    import pyarrow.parquet as pq
-
-    schema = _parquet_schema(rk, channels)
-    labels = [f.name for f in schema if not f.name.endswith("_npy")]
-    left = count
-    # Dictionaries and min/max statistics only for the label columns: the image columns are large
-    # unique binaries, for which a dictionary only costs memory and time before falling back.
-    with pq.ParquetWriter(tmp, schema, compression="zstd", use_dictionary=labels, write_statistics=labels) as writer:
-        while left:
-            batch = [next(samples) for _ in range(min(row_group_rows, left))]
-            left -= len(batch)
-            writer.write_table(_parquet_table(batch, rk, channels, schema))
-            tick(count - left)
-
-
-def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
-    import pyarrow as pa
-
-    cols = {"key": [s.key for s in batch], "record_kind": [rk.name] * len(batch)}
-    for name, _ in rk.label_fields():
-        cols[name] = [s.labels.get(name) for s in batch]
-    for c in channels:
-        cols[f"{column_name(c)}_npy"] = [s.npy[column_name(c)] for s in batch]
-    cols["labels_json"] = [json.dumps(s.row, sort_keys=True) for s in batch]
-    try:
-        return pa.table(cols, schema=schema)
-    except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
-        raise ExportError(
-            f"labels of samples {batch[0].key} .. {batch[-1].key} do not fit the export schema: {exc}"
-        ) from None
 
 
 # ------------------------------------------------------------------------------------------------

@@ -5,8 +5,8 @@
   and the landmarks in view with projected rim ellipses and lit-rim fractions). Its manifest is read as
   data: this layer (dataset/) sits below crater_synth.navigation and never imports it.
 
-:func:`detect_kind` tells the two manifests apart by their rows' fields. The writers are in
-:mod:`crater_synth.dataset.export`.
+:func:`detect_kind` tells the two manifests apart by their rows' fields. The formats' writers are in
+:mod:`crater_synth.dataset.export_writers`, the export loop in :mod:`crater_synth.dataset.export`.
 """
 
 from __future__ import annotations
