@@ -137,6 +137,21 @@ def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int,
     return tot_loss, tot_ok, tot_n, time.perf_counter() - t0
 
 
+def _epoch_record(epoch: int, tot_loss: float, tot_ok: int, tot_n: int, dt: float, yv, pv, t_start: float) -> dict:
+    """One epoch's history entry: training loss and accuracy, validation accuracy (class mean and overall)
+    of the predictions ``pv`` against ``yv``, throughput and elapsed time."""
+    return {
+        "epoch": epoch,
+        "loss": tot_loss / max(tot_n, 1),
+        "train_accuracy": tot_ok / max(tot_n, 1),
+        "val_accuracy": class_mean_accuracy(yv, pv),
+        "val_accuracy_overall": accuracy(yv, pv),
+        "epoch_seconds": dt,
+        "images_per_s": tot_n / max(dt, 1e-9),
+        "elapsed_s": time.perf_counter() - t_start,
+    }
+
+
 def _training_summary(history, best, target, reached_at, train_time, images_seen, device, model, arch) -> dict:
     """What a LunarNet_ex training did: its history, best epoch, target reached and throughput."""
     return {
@@ -197,17 +212,8 @@ def train_lunarnet(
         train_time += dt
         images_seen += tot_n
         pv = predict_logits(model, data.val, ebs, device).argmax(1)
-        val_acc = class_mean_accuracy(yv, pv)
-        rec = {
-            "epoch": epoch,
-            "loss": tot_loss / max(tot_n, 1),
-            "train_accuracy": tot_ok / max(tot_n, 1),
-            "val_accuracy": val_acc,
-            "val_accuracy_overall": accuracy(yv, pv),
-            "epoch_seconds": dt,
-            "images_per_s": tot_n / max(dt, 1e-9),
-            "elapsed_s": time.perf_counter() - t_start,
-        }
+        rec = _epoch_record(epoch, tot_loss, tot_ok, tot_n, dt, yv, pv, t_start)
+        val_acc = rec["val_accuracy"]
         history.append(rec)
         if progress:
             tqdm.write(

@@ -83,34 +83,16 @@ def patch_row(row: dict, scores: dict) -> dict:
     return out
 
 
-@click.command("navigate-demo")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("outputs/navigate-demo"))
-@click.option("--per-sector", type=int, default=DEMO_WINDOWS_PER_SECTOR, show_default=True)
-@user_errors
-def main(out: Path, per_sector: int):
-    """Annotated real windows and one table, every method (module docstring)."""
-    from crater_core.schema import atomic_write_bytes, atomic_write_text
-    from crater_synth.navigation.fix.patches import PatchParams
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM, summarise
+def _demo_crater_methods(frames, landmarks, out: Path, windows_out: list) -> tuple[dict, dict]:
+    """Every crater method on every window, each annotated into ``out`` and listed in ``windows_out``:
+    (summary per method, the appearance search's row of each window)."""
+    from crater_core.schema import atomic_write_bytes
+    from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
     from crater_synth.navigation.settings import params_with
-    from crater_synth.navigation.windows.evaluate import (
-        navigate_window,
-        prior_georef,
-        results_markdown,
-        run_frame,
-        window_patches_alone,
-    )
+    from crater_synth.navigation.windows.evaluate import navigate_window, run_frame
     from crater_synth.navigation.windows.navigate import annotate
 
-    if per_sector < 1:
-        raise UserError(f"--per-sector={per_sector} must be >= 1")
-    t0 = time.time()
-    out.mkdir(parents=True, exist_ok=True)
-    landmarks, _ = load_default_map("south")
-    frames = demo_frames(per_sector)
     methods = {}
-    windows_out = []
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
         dparams, fparams = params_with((), method)
@@ -127,8 +109,20 @@ def main(out: Path, per_sector: int):
             click.echo(f"{method:9s} {f.split:10s} {f.id}: {row['n_detections']} detections, {err} -> {png}")
             windows_out.append(window_entry(method, row, png.name))
         methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
-    # The appearance search's terrain patches alone (no crater): the same windows, prior and light.
-    splits = {}
+    return methods, appearance_rows
+
+
+def _demo_patches_alone(frames, appearance_rows: dict, out: Path, windows_out: list) -> dict:
+    """The appearance search's terrain patches alone (no crater): the same windows, prior and light,
+    annotated into ``out`` and listed in ``windows_out``; their summary."""
+    from crater_core.schema import atomic_write_bytes
+    from crater_synth.navigation.fix.patches import PatchParams
+    from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
+    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.windows.evaluate import prior_georef, window_patches_alone
+    from crater_synth.navigation.windows.navigate import annotate
+
+    splits: dict = {}
     dparams, fparams = params_with((), "appearance")
     for f in frames:
         prior = prior_georef(f, 0)  # run_frame's
@@ -140,14 +134,41 @@ def main(out: Path, per_sector: int):
         err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
         click.echo(f"{'patches':9s} {f.split:10s} {f.id}: {row['n_detections']} patches found, {err} -> {png}")
         windows_out.append({**window_entry("patches", row, png.name), "landmarks_in_view": len(patches)})
-    methods["patches"] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
-    # The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart).
+    return _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
+
+
+def _demo_map_check(landmarks) -> dict:
+    """The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart)."""
     from crater_synth.navigation.map.check import catalogue_check
     from crater_synth.navigation.map.landmarks import DATA_DIR, DEM_PRODUCTS
     from crater_synth.terrain.stack import open_dem_entry
 
     own = [lm for lm in landmarks if not lm.dem_product]
-    map_check = catalogue_check(own, "south", open_dem_entry(DEM_PRODUCTS["south"], DATA_DIR)[0])
+    return catalogue_check(own, "south", open_dem_entry(DEM_PRODUCTS["south"], DATA_DIR)[0])
+
+
+@click.command("navigate-demo")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("outputs/navigate-demo"))
+@click.option("--per-sector", type=int, default=DEMO_WINDOWS_PER_SECTOR, show_default=True)
+@user_errors
+def main(out: Path, per_sector: int):
+    """Annotated real windows and one table, every method (module docstring)."""
+    from crater_core.schema import atomic_write_text
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM
+    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.windows.evaluate import results_markdown
+
+    if per_sector < 1:
+        raise UserError(f"--per-sector={per_sector} must be >= 1")
+    t0 = time.time()
+    out.mkdir(parents=True, exist_ok=True)
+    landmarks, _ = load_default_map("south")
+    frames = demo_frames(per_sector)
+    windows_out = []
+    methods, appearance_rows = _demo_crater_methods(frames, landmarks, out, windows_out)
+    methods["patches"] = _demo_patches_alone(frames, appearance_rows, out, windows_out)
+    map_check = _demo_map_check(landmarks)
     table = results_markdown({"methods": methods})
     head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), {len(methods)} methods.\n\n"
     atomic_write_text(out / "table.md", head + table)
@@ -156,7 +177,7 @@ def main(out: Path, per_sector: int):
         "schema_version": 1,
         "per_sector": per_sector,
         "windows_per_method": len(frames),
-        "min_landmark_km": fparams.min_landmark_km,
+        "min_landmark_km": params_with((), "appearance")[1].min_landmark_km,
         "headline_min_landmarks": HEADLINE_MIN_LANDMARKS,
         "prior_offset_km": PRIOR_OFFSET_KM,
         "false_fix_km": FALSE_FIX_KM,

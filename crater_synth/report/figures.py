@@ -263,6 +263,102 @@ def fidelity_panel(
 NAV_DETECTOR_COLOR, NAV_PERFECT_COLOR = "#d9480f", "#1c7ed6"
 
 
+_NAV_RUNS = (  # (frame record key, colour, marker, legend name, strip label) of each fix shown
+    ("detector", NAV_DETECTOR_COLOR, "o", "detector", "detector"),
+    ("perfect", NAV_PERFECT_COLOR, "s", "perfect detections", "perfect"),
+)
+
+
+def _plot_fix_errors(ax, strip, idx: np.ndarray, frames: Sequence[dict], false_fix_km: float) -> None:
+    """Top panel: each run's fix error per frame (log scale), the detector's before refinement (hollow),
+    the patch fixes (ringed) and the false-fix line; crosses in ``strip`` where a run has no fix."""
+    errs = []
+    for row, (key, color, marker, name, _) in enumerate(_NAV_RUNS):
+        recs = [f if key == "detector" else f["perfect"] for f in frames]
+        fixed = np.array([bool(r["fix"]) for r in recs])
+        e_m = np.array([1000.0 * r["error_km"] if r["fix"] else np.nan for r in recs], dtype=float)
+        e_m = np.maximum(e_m, 1e-4)  # an exact fix still shows on the log axis (0.1 mm)
+        errs += e_m[fixed].tolist()
+        ax.plot(
+            idx[fixed],
+            e_m[fixed],
+            marker,
+            color=color,
+            ms=6,
+            ls="-" if fixed.sum() > 1 else "none",
+            lw=1,
+            label=f"{name}: {int(fixed.sum())} of {len(recs)} frames fixed",
+        )
+        strip.plot(idx[~fixed], np.full(int((~fixed).sum()), row), "x", color=color, ms=7, mew=1.6)
+    plain = [(i, 1000.0 * f["unrefined"]["error_km"]) for i, f in zip(idx, frames) if f.get("unrefined")]
+    if plain:  # the same fixes before the appearance refinement (hollow)
+        ax.plot(
+            *np.array(plain).T, "o", mfc="none", color=NAV_DETECTOR_COLOR, ms=6, label="detector, before refinement"
+        )
+        errs += [e for _, e in plain]
+    patched = [
+        (i, 1000.0 * f["error_km"]) for i, f in zip(idx, frames) if f["fix"] and f.get("fix_source") == "patches"
+    ]
+    if patched:  # the frames the craters did not fix and terrain patches did (nav-frames-eval --patches)
+        ax.plot(*np.array(patched).T, "D", mfc="none", color="#1c9fd6", ms=11, label="fixed by terrain patches")
+    fx = 1000.0 * false_fix_km
+    ax.axhline(fx, color="#868e96", ls="--", lw=1)
+    ax.text(idx.max(), fx, f"false fix > {false_fix_km:g} km ", ha="right", va="bottom", fontsize=7, color="#868e96")
+    lo, hi = (min(errs), max(errs)) if errs else (1e-2, 1e3)
+    ax.set_yscale("log")
+    ax.set_ylim(lo / 10.0, max(hi, fx) * 10.0)
+    ax.set_ylabel("position error of the fix (m, log)")
+    ax.legend(loc="upper left", ncol=2)
+    strip.set_ylim(-0.7, 1.7)
+    strip.set_yticks([0, 1], [short for *_, short in _NAV_RUNS], fontsize=7)
+    strip.set_ylabel("no fix", fontsize=8, rotation=0, ha="right", va="center", labelpad=4)
+    strip.spines["left"].set_visible(False)
+    strip.tick_params(axis="y", length=0)
+
+
+def _plot_landmark_counts(ax2, idx: np.ndarray, frames: Sequence[dict], min_inliers: int | None) -> None:
+    """Bottom panel: landmarks in view (all, usable), matched by the detector, identified by the
+    perfect-detection fix, the inliers a fix needs, and the detection count on the right axis."""
+    view = np.array([f["landmarks_in_view"] for f in frames], dtype=float)
+    usable = [f.get("landmarks_in_view_min_d") for f in frames]
+    ax2.bar(idx, view, color="#e9ecef", width=0.75, label="landmarks in view (all labels)")
+    if all(is_n is not None for is_n in usable):
+        ax2.bar(idx, usable, color="#adb5bd", width=0.45, label="of the map's minimum size (usable)")
+    ax2.plot(
+        idx,
+        [f["matched"] for f in frames],
+        "o-",
+        color=NAV_DETECTOR_COLOR,
+        ms=4,
+        lw=1.2,
+        label="matched by the detector",
+    )
+    pf = np.array([bool(f["perfect"]["fix"]) for f in frames])
+    ax2.plot(
+        idx[pf],
+        [f["perfect"]["identified"] for f, ok in zip(frames, pf) if ok],
+        "s",
+        color=NAV_PERFECT_COLOR,
+        ms=5,
+        label="identified in the perfect-detection fix",
+    )
+    if min_inliers:
+        ax2.axhline(min_inliers, color="#868e96", ls="--", lw=1)
+        ax2.text(
+            idx.max(), min_inliers, f"a fix needs {min_inliers} ", ha="right", va="bottom", fontsize=7, color="#868e96"
+        )
+    ax2.set_ylabel("landmarks")
+    ax2.set_ylim(0, max(1.0, view.max()) * 1.5)
+    ax3 = ax2.twinx()
+    ax3.plot(idx, [f["n_detections"] for f in frames], ":", color="#495057", lw=1.2, label="detections (right axis)")
+    ax3.set_ylabel("detections", color="#495057")
+    ax3.spines["right"].set_visible(True)
+    ax3.set_ylim(0, max(1.0, max(f["n_detections"] for f in frames)) * 1.5)
+    h1, l1 = ax2.get_legend_handles_labels()
+    h2, l2 = ax3.get_legend_handles_labels()
+    ax2.legend(h1 + h2, l1 + l2, loc="upper right", ncol=2)
+
+
 def nav_trajectory(
     path: Path, trajectory: str, frames: Sequence[dict], false_fix_km: float = 5.0, min_inliers: int | None = None
 ) -> str:
@@ -274,106 +370,14 @@ def nav_trajectory(
     identified, and the detection count (right axis). A fix from terrain patches is ringed (a diamond)."""
     idx = np.array([f["index"] for f in frames], dtype=float)
     alt = [f["altitude_km"] for f in frames]
-    runs = (
-        ("detector", NAV_DETECTOR_COLOR, "o", "detector", "detector"),
-        ("perfect", NAV_PERFECT_COLOR, "s", "perfect detections", "perfect"),
-    )
     with _rc():
         fig = _new_figure(9.0, 7.0)
         ax, strip, ax2 = fig.subplots(
             3, 1, sharex=True, gridspec_kw={"height_ratios": [1.5, 0.32, 1.1], "hspace": 0.08}
         )
-        errs = []
-        for row, (key, color, marker, name, _) in enumerate(runs):
-            recs = [f if key == "detector" else f["perfect"] for f in frames]
-            fixed = np.array([bool(r["fix"]) for r in recs])
-            e_m = np.array([1000.0 * r["error_km"] if r["fix"] else np.nan for r in recs], dtype=float)
-            e_m = np.maximum(e_m, 1e-4)  # an exact fix still shows on the log axis (0.1 mm)
-            errs += e_m[fixed].tolist()
-            ax.plot(
-                idx[fixed],
-                e_m[fixed],
-                marker,
-                color=color,
-                ms=6,
-                ls="-" if fixed.sum() > 1 else "none",
-                lw=1,
-                label=f"{name}: {int(fixed.sum())} of {len(recs)} frames fixed",
-            )
-            strip.plot(idx[~fixed], np.full(int((~fixed).sum()), row), "x", color=color, ms=7, mew=1.6)
-        plain = [(i, 1000.0 * f["unrefined"]["error_km"]) for i, f in zip(idx, frames) if f.get("unrefined")]
-        if plain:  # the same fixes before the appearance refinement (hollow)
-            ax.plot(
-                *np.array(plain).T, "o", mfc="none", color=NAV_DETECTOR_COLOR, ms=6, label="detector, before refinement"
-            )
-            errs += [e for _, e in plain]
-        patched = [
-            (i, 1000.0 * f["error_km"]) for i, f in zip(idx, frames) if f["fix"] and f.get("fix_source") == "patches"
-        ]
-        if patched:  # the frames the craters did not fix and terrain patches did (nav-frames-eval --patches)
-            ax.plot(*np.array(patched).T, "D", mfc="none", color="#1c9fd6", ms=11, label="fixed by terrain patches")
-        fx = 1000.0 * false_fix_km
-        ax.axhline(fx, color="#868e96", ls="--", lw=1)
-        ax.text(
-            idx.max(), fx, f"false fix > {false_fix_km:g} km ", ha="right", va="bottom", fontsize=7, color="#868e96"
-        )
-        lo, hi = (min(errs), max(errs)) if errs else (1e-2, 1e3)
-        ax.set_yscale("log")
-        ax.set_ylim(lo / 10.0, max(hi, fx) * 10.0)
-        ax.set_ylabel("position error of the fix (m, log)")
+        _plot_fix_errors(ax, strip, idx, frames, false_fix_km)
         ax.set_title(f"{trajectory}: fix error per frame")
-        ax.legend(loc="upper left", ncol=2)
-        strip.set_ylim(-0.7, 1.7)
-        strip.set_yticks([0, 1], [short for *_, short in runs], fontsize=7)
-        strip.set_ylabel("no fix", fontsize=8, rotation=0, ha="right", va="center", labelpad=4)
-        strip.spines["left"].set_visible(False)
-        strip.tick_params(axis="y", length=0)
-        view = np.array([f["landmarks_in_view"] for f in frames], dtype=float)
-        usable = [f.get("landmarks_in_view_min_d") for f in frames]
-        ax2.bar(idx, view, color="#e9ecef", width=0.75, label="landmarks in view (all labels)")
-        if all(is_n is not None for is_n in usable):
-            ax2.bar(idx, usable, color="#adb5bd", width=0.45, label="of the map's minimum size (usable)")
-        ax2.plot(
-            idx,
-            [f["matched"] for f in frames],
-            "o-",
-            color=NAV_DETECTOR_COLOR,
-            ms=4,
-            lw=1.2,
-            label="matched by the detector",
-        )
-        pf = np.array([bool(f["perfect"]["fix"]) for f in frames])
-        ax2.plot(
-            idx[pf],
-            [f["perfect"]["identified"] for f, ok in zip(frames, pf) if ok],
-            "s",
-            color=NAV_PERFECT_COLOR,
-            ms=5,
-            label="identified in the perfect-detection fix",
-        )
-        if min_inliers:
-            ax2.axhline(min_inliers, color="#868e96", ls="--", lw=1)
-            ax2.text(
-                idx.max(),
-                min_inliers,
-                f"a fix needs {min_inliers} ",
-                ha="right",
-                va="bottom",
-                fontsize=7,
-                color="#868e96",
-            )
-        ax2.set_ylabel("landmarks")
-        ax2.set_ylim(0, max(1.0, view.max()) * 1.5)
-        ax3 = ax2.twinx()
-        ax3.plot(
-            idx, [f["n_detections"] for f in frames], ":", color="#495057", lw=1.2, label="detections (right axis)"
-        )
-        ax3.set_ylabel("detections", color="#495057")
-        ax3.spines["right"].set_visible(True)
-        ax3.set_ylim(0, max(1.0, max(f["n_detections"] for f in frames)) * 1.5)
-        h1, l1 = ax2.get_legend_handles_labels()
-        h2, l2 = ax3.get_legend_handles_labels()
-        ax2.legend(h1 + h2, l1 + l2, loc="upper right", ncol=2)
+        _plot_landmark_counts(ax2, idx, frames, min_inliers)
         step = max(1, len(idx) // 16)
         ax2.set_xticks(idx[::step], [f"{int(i)}\n{a:.0f} km" for i, a in zip(idx[::step], alt[::step])])
         ax2.set_xlabel("frame (altitude)")

@@ -255,20 +255,11 @@ def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
     return meta if meta.get("terrain_id") == tid else None
 
 
-def build_terrain(crater, cfg) -> tuple[Path, dict]:
-    """Build (or reuse) the terrain patch of ``crater`` (a ``CraterSettings`` of ``settings.craters``, or
-    its dict) for the settings ``cfg`` (``Settings``; a raw configuration is converted once).
+def _open_dems(s: dict, name: str, lat: float):
+    """The near-field DEM stack and the far-field DEM (the same stack unless ``dem.far_*`` names one),
+    each checked to cover the crater's hemisphere: (dem, its sha256, far DEM, its sha256)."""
+    from crater_synth.terrain.dem import check_hemisphere
 
-    Returns (npz path, metadata dict as written to the sibling ``.json``).
-    """
-    from crater_core.files import ensure_writable_dir
-    from crater_synth.terrain.dem import DemCoverageError, check_hemisphere
-
-    t0 = time.perf_counter()
-    s = terrain_settings(cfg)
-    crater = _crater_dict(crater)
-    name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
-    diameter_m = float(crater["diameter_km"]) * 1000.0
     dem, dem_sha = open_stack(s)
     check_hemisphere(dem, name, lat)
     if s["dem"]["far_product"] or s["dem"]["far_path"]:
@@ -276,25 +267,25 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
         check_hemisphere(far_dem, name, lat)
     else:
         far_dem, far_sha = dem, dem_sha  # the same stack: near and far fields agree in their overlap
+    return dem, dem_sha, far_dem, far_sha
 
-    tid = terrain_id(dem_sha, far_sha, crater, s, dem.key())
-    out_dir = s["data_dir"] / TERRAIN_SUBDIR
-    ensure_writable_dir(s["data_dir"], "data_dir")
-    npz_path = out_dir / f"{name}-{tid}.npz"
-    meta_path = npz_path.with_suffix(".json")
-    cached = _load_cached(npz_path, meta_path, tid)
-    if cached is not None:
-        return npz_path, {**cached, "patch": str(npz_path), "cached": True}
 
-    # Crater centre inside the DEM at all?
+def _crater_pixel(dem, name: str, lat: float, lon: float) -> tuple:
+    """The crater centre's (col, row) in ``dem``; a centre outside the DEM is a coverage error."""
+    from crater_synth.terrain.dem import DemCoverageError
+
     ccol, crow = dem.latlon_to_pixel(lat, lon)
     if not bool(dem.inside(ccol, crow)):
         raise DemCoverageError(
             f"crater {name} at (lat {lat:g}, lon {lon:g}) lies outside DEM {dem.product} "
             f"(pixel col {float(ccol):.1f}, row {float(crow):.1f} of {dem.width}x{dem.height})"
         )
+    return ccol, crow
 
-    # ---- near field
+
+def _near_field(dem, s: dict, name: str, lat: float, lon: float, diameter_m: float):
+    """The near-field grid: DEM heights plus sub-DEM detail, as ENU vertices. Returns (half width m,
+    spacing m, east grid, north grid, the DEM sample, heights, ENU vertices, detail stats)."""
     nv = s["near_vertices"]
     hw = s["near_radius_factor"] * diameter_m
     spacing = 2.0 * hw / (nv - 1)
@@ -311,51 +302,103 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
     detail, detail_stats = stack_detail((nv, nv), spacing, near, s["detail"], key=name)
     near_h = near.heights + detail
     near_xyz = _to_enu(dirs, near_h, lat, lon)
+    return hw, spacing, ee, nn, near, near_h, near_xyz, detail_stats
 
-    # ---- far field
+
+def _far_field(far_dem, s: dict, name: str, lat: float, lon: float, hw: float):
+    """The far-field grid beyond the near field's half width ``hw`` (empty when
+    ``terrain.far_radius_km`` is 0): (ENU vertices, quads to keep, its metadata)."""
+    from crater_synth.terrain.dem import DemCoverageError
+
     fs = s["far_spacing_km"] * 1000.0
     far_info: dict = {"half_width_m": 0.0, "spacing_m": fs, "shape": [0, 0], "product": far_dem.product}
-    far_xyz = np.zeros((0, 0, 3))
-    keep = np.zeros((0, 0), dtype=bool)
-    if s["far_radius_km"] > 0.0:
-        k_max = int(math.floor(s["far_radius_km"] * 1000.0 / fs + 1e-9))
-        k_min = int(math.ceil(hw / fs + 1e-9)) + 1  # at least one far ring wholly outside the near field
-        if k_max < k_min:
-            raise TerrainConfigError(
-                f"terrain.far_radius_km={s['far_radius_km']:g} does not reach beyond the near field of crater "
-                f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0"
-            )
-        m, _ = _far_half_cells(far_dem, lat, lon, k_max, fs, s["max_nodata_fraction"])
-        if m < k_min:
-            raise DemCoverageError(
-                f"DEM {far_dem.product} does not cover a far field around crater {name} beyond its near field "
-                f"(+-{hw / 1e3:.1f} km + one {fs / 1e3:g} km cell); set dem.far_product to a wider DEM or "
-                "terrain.far_radius_km=0"
-            )
-        fcoords = np.arange(-m, m + 1) * fs
-        fe, fn = np.meshgrid(fcoords, fcoords)
-        fdirs, flat, flon = sphere_points(fe, fn, lat, lon)
-        far = far_dem.sample(
-            flat,
-            flon,
-            spacing_m=fs,
-            max_nodata_fraction=s["max_nodata_fraction"],
-            what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)",
+    if not s["far_radius_km"] > 0.0:
+        return np.zeros((0, 0, 3)), np.zeros((0, 0), dtype=bool), far_info
+    k_max = int(math.floor(s["far_radius_km"] * 1000.0 / fs + 1e-9))
+    k_min = int(math.ceil(hw / fs + 1e-9)) + 1  # at least one far ring wholly outside the near field
+    if k_max < k_min:
+        raise TerrainConfigError(
+            f"terrain.far_radius_km={s['far_radius_km']:g} does not reach beyond the near field of crater "
+            f"{name} (+-{hw / 1e3:.1f} km) by one far cell ({fs / 1e3:g} km); raise it or set it to 0"
         )
-        far_xyz = _to_enu(fdirs, far.heights, lat, lon)
-        keep = far_keep_quads(fcoords, hw, fs)
-        far_info.update(
-            half_width_m=float(m * fs),
-            shape=[2 * m + 1, 2 * m + 1],
-            requested_half_width_m=float(k_max * fs),
-            clipped=bool(m < k_max),
-            nodata_fraction=far.nodata_fraction,
-            filled_pixels=far.filled_pixels,
-            filled_holes=far.filled_holes,
-            decimation=far.decimation,
-            kept_quads=int(keep.sum()),
+    m, _ = _far_half_cells(far_dem, lat, lon, k_max, fs, s["max_nodata_fraction"])
+    if m < k_min:
+        raise DemCoverageError(
+            f"DEM {far_dem.product} does not cover a far field around crater {name} beyond its near field "
+            f"(+-{hw / 1e3:.1f} km + one {fs / 1e3:g} km cell); set dem.far_product to a wider DEM or "
+            "terrain.far_radius_km=0"
         )
+    fcoords = np.arange(-m, m + 1) * fs
+    fe, fn = np.meshgrid(fcoords, fcoords)
+    fdirs, flat, flon = sphere_points(fe, fn, lat, lon)
+    far = far_dem.sample(
+        flat,
+        flon,
+        spacing_m=fs,
+        max_nodata_fraction=s["max_nodata_fraction"],
+        what=f"far field of crater {name} (+-{m * fs / 1e3:.0f} km)",
+    )
+    keep = far_keep_quads(fcoords, hw, fs)
+    far_info.update(
+        half_width_m=float(m * fs),
+        shape=[2 * m + 1, 2 * m + 1],
+        requested_half_width_m=float(k_max * fs),
+        clipped=bool(m < k_max),
+        nodata_fraction=far.nodata_fraction,
+        filled_pixels=far.filled_pixels,
+        filled_holes=far.filled_holes,
+        decimation=far.decimation,
+        kept_quads=int(keep.sum()),
+    )
+    return _to_enu(fdirs, far.heights, lat, lon), keep, far_info
 
+
+def _dem_meta(dem, dem_sha: str, far_dem, far_sha: str, pixel, near, ee, nn, radius_m: float) -> dict:
+    """The patch metadata's ``dem`` entry: the products, their checksums and CRS, the crater's pixel."""
+    dem_info = dem.info()
+    return {
+        "product": dem.product,
+        "path": str(dem.path),
+        "sha256": dem_sha,
+        "pixel_size_m": dem.pixel_size_m,
+        "crs_wkt": dem_info["crs_wkt"],
+        "crs_proj": dem_info["crs_proj"],
+        "crater_center_px": [float(pixel[0]), float(pixel[1])],
+        "decimation": near.decimation,
+        "far_product": far_dem.product,
+        "far_sha256": far_sha,
+        "stack": _stack_meta(dem, near, ee, nn, radius_m),
+        "blend_pixels": dem.blend_pixels,
+    }
+
+
+def build_terrain(crater, cfg) -> tuple[Path, dict]:
+    """Build (or reuse) the terrain patch of ``crater`` (a ``CraterSettings`` of ``settings.craters``, or
+    its dict) for the settings ``cfg`` (``Settings``; a raw configuration is converted once).
+
+    Returns (npz path, metadata dict as written to the sibling ``.json``).
+    """
+    from crater_core.files import ensure_writable_dir
+
+    t0 = time.perf_counter()
+    s = terrain_settings(cfg)
+    crater = _crater_dict(crater)
+    name, lat, lon = str(crater["name"]), float(crater["lat"]), float(crater["lon"])
+    diameter_m = float(crater["diameter_km"]) * 1000.0
+    dem, dem_sha, far_dem, far_sha = _open_dems(s, name, lat)
+
+    tid = terrain_id(dem_sha, far_sha, crater, s, dem.key())
+    out_dir = s["data_dir"] / TERRAIN_SUBDIR
+    ensure_writable_dir(s["data_dir"], "data_dir")
+    npz_path = out_dir / f"{name}-{tid}.npz"
+    meta_path = npz_path.with_suffix(".json")
+    cached = _load_cached(npz_path, meta_path, tid)
+    if cached is not None:
+        return npz_path, {**cached, "patch": str(npz_path), "cached": True}
+
+    pixel = _crater_pixel(dem, name, lat, lon)
+    hw, spacing, ee, nn, near, near_h, near_xyz, detail_stats = _near_field(dem, s, name, lat, lon, diameter_m)
+    far_xyz, keep, far_info = _far_field(far_dem, s, name, lat, lon, hw)
     meas = measure_crater(near_h, near_xyz[..., 2], hw, spacing, 0.5 * diameter_m)
     arrays = {
         "near_xyz": near_xyz.astype(np.float32),
@@ -363,26 +406,13 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
         "far_keep_quads": keep.astype(bool),
         "near_height": near_h.astype(np.float32),
     }
-    dem_info = dem.info()
+    nv = s["near_vertices"]
     meta = {
         "terrain_id": tid,
         "format_version": TERRAIN_FORMAT_VERSION,
         "crater": {k: crater[k] for k in ("name", "lat", "lon", "diameter_km", "source") if k in crater},
         "frame": "ENU at the crater centre on the 1737.4 km sphere; x east, y north, z up, metres",
-        "dem": {
-            "product": dem.product,
-            "path": str(dem.path),
-            "sha256": dem_sha,
-            "pixel_size_m": dem.pixel_size_m,
-            "crs_wkt": dem_info["crs_wkt"],
-            "crs_proj": dem_info["crs_proj"],
-            "crater_center_px": [float(ccol), float(crow)],
-            "decimation": near.decimation,
-            "far_product": far_dem.product,
-            "far_sha256": far_sha,
-            "stack": _stack_meta(dem, near, ee, nn, 0.5 * diameter_m),
-            "blend_pixels": dem.blend_pixels,
-        },
+        "dem": _dem_meta(dem, dem_sha, far_dem, far_sha, pixel, near, ee, nn, 0.5 * diameter_m),
         "near": {
             "half_width_m": hw,
             "spacing_m": spacing,

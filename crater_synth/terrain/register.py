@@ -280,27 +280,11 @@ def _coarse_search(crop: np.ndarray, crop_px: float, ref_h: np.ndarray, ref_vali
     return sorted(out, key=lambda d: -d["ncc"])
 
 
-def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray | None = None) -> Registration:
-    """Fit the placement of ``crop`` (heights m, pixel ``crop_px`` m) on the reference :class:`Dem`.
-
-    ``exclude``: boolean mask in the *unoriented* crop of pixels not to compare (e.g. an artefact);
-    a reference pixel whose footprint touches one is dropped.
-    """
-    from scipy import optimize
-
-    ratio = abs(ref.transform.a) / crop_px
-    if ratio < 2.0 or abs(ref.transform.a) != abs(ref.transform.e):
-        raise RegistrationError(
-            f"reference pixel {ref.pixel_size_m:g} m must be square and >= 2 crop pixels ({crop_px:g} m)"
-        )
-    ref_h, ref_valid = ref.read_heights()
-    coarse = _coarse_search(crop, crop_px, ref_h, ref_valid, ref.transform)
-    best = coarse[0]
-    a = orient(crop, best["rot90"], best["transpose"])
-    excl = None if exclude is None else orient(exclude, best["rot90"], best["transpose"])
-    h, w = a.shape
+def _compared_pixels(ref, ref_valid: np.ndarray, best: dict, shape: tuple, crop_px: float, excl):
+    """(rows, cols) of the valid reference pixels whose footprint lies inside the crop (``shape``, oriented)
+    at the coarse placement ``best``, inset by one pixel, and clear of the excluded crop pixels ``excl``."""
+    h, w = shape
     t = ref.transform
-    # Reference pixels whose footprint lies inside the crop at the coarse placement, inset by one pixel.
     cols = np.arange(ref.width)
     rows = np.arange(ref.height)
     xc = t.c + t.a * (cols + 0.5)
@@ -320,16 +304,74 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
     rows_sel, cols_sel = rg[keep], cg[keep]
     if rows_sel.size < 16:
         raise RegistrationError(f"only {rows_sel.size} reference pixels under the crop: too few to register it")
-    model = _Model(a, crop_px, ref_h, t, rows_sel, cols_sel)
+    return rows_sel, cols_sel
 
-    def solve(frame: str, sel=None, p0=None):
-        p0 = [best["x0_m"], best["y0_m"]] if p0 is None else p0
-        sol = optimize.least_squares(
-            lambda p: model.residual(p[0], p[1], frame, sel)[0], p0, x_scale=[crop_px, crop_px], diff_step=1e-4
+
+def _fit_offset(model: _Model, frame: str, p0, crop_px: float, sel=None):
+    """Least-squares (x0, y0) of the crop in height frame ``frame`` from ``p0``, over the compared pixels
+    ``sel`` (all when None); scipy's result."""
+    from scipy import optimize
+
+    return optimize.least_squares(
+        lambda p: model.residual(p[0], p[1], frame, sel)[0], p0, x_scale=[crop_px, crop_px], diff_step=1e-4
+    )
+
+
+def _jackknife_sigma(model: _Model, frame: str, rows_sel, cols_sel, x0: float, y0: float, crop_px: float) -> dict:
+    """Delete-one-block jackknife 1-sigma of (x, y, dz) over JACKKNIFE_BLOCKS^2 spatial blocks of the
+    compared pixels."""
+    rb = np.minimum((rows_sel - rows_sel.min()) * JACKKNIFE_BLOCKS // (np.ptp(rows_sel) + 1), JACKKNIFE_BLOCKS - 1)
+    cb = np.minimum((cols_sel - cols_sel.min()) * JACKKNIFE_BLOCKS // (np.ptp(cols_sel) + 1), JACKKNIFE_BLOCKS - 1)
+    block = rb * JACKKNIFE_BLOCKS + cb
+    jk = []
+    for b in np.unique(block):
+        sel = block != b
+        s = _fit_offset(model, frame, [x0, y0], crop_px, sel)
+        jk.append([*s.x, model.residual(*s.x, frame, sel)[1]])
+    jk = np.asarray(jk)
+    m = len(jk)
+    jsig = np.sqrt((m - 1) / m * np.sum((jk - jk.mean(axis=0)) ** 2, axis=0))
+    return {"x": float(jsig[0]), "y": float(jsig[1]), "dz": float(jsig[2]), "blocks": int(m)}
+
+
+def _misfit_width(model: _Model, frame: str, x0: float, y0: float, rms0: float, crop_px: float, ref_px: float) -> dict:
+    """Misfit peak width: the shift along x / y at which the RMS residual doubles (mean of both sides)."""
+    shifts = np.arange(crop_px / 20.0, 4.0 * ref_px, crop_px / 20.0)
+    width = {}
+    for axis in ("x", "y"):
+        sides = []
+        for sign in (-1.0, 1.0):
+            for s in shifts:
+                px, py = (x0 + sign * s, y0) if axis == "x" else (x0, y0 + sign * s)
+                if np.sqrt(np.mean(model.residual(px, py, frame)[0] ** 2)) >= 2.0 * rms0:
+                    sides.append(float(s))
+                    break
+            else:
+                sides.append(float("inf"))
+        width[axis] = float(np.mean(sides))
+    return width
+
+
+def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray | None = None) -> Registration:
+    """Fit the placement of ``crop`` (heights m, pixel ``crop_px`` m) on the reference :class:`Dem`.
+
+    ``exclude``: boolean mask in the *unoriented* crop of pixels not to compare (e.g. an artefact);
+    a reference pixel whose footprint touches one is dropped.
+    """
+    ratio = abs(ref.transform.a) / crop_px
+    if ratio < 2.0 or abs(ref.transform.a) != abs(ref.transform.e):
+        raise RegistrationError(
+            f"reference pixel {ref.pixel_size_m:g} m must be square and >= 2 crop pixels ({crop_px:g} m)"
         )
-        return sol
+    ref_h, ref_valid = ref.read_heights()
+    coarse = _coarse_search(crop, crop_px, ref_h, ref_valid, ref.transform)
+    best = coarse[0]
+    a = orient(crop, best["rot90"], best["transpose"])
+    excl = None if exclude is None else orient(exclude, best["rot90"], best["transpose"])
+    rows_sel, cols_sel = _compared_pixels(ref, ref_valid, best, a.shape, crop_px, excl)
+    model = _Model(a, crop_px, ref_h, ref.transform, rows_sel, cols_sel)
 
-    fits = {f: solve(f) for f in HEIGHT_FRAMES}
+    fits = {f: _fit_offset(model, f, [best["x0_m"], best["y0_m"]], crop_px) for f in HEIGHT_FRAMES}
     rms = {f: float(np.sqrt(np.mean(fits[f].fun ** 2))) for f in HEIGHT_FRAMES}
     frame = min(HEIGHT_FRAMES, key=lambda f: rms[f])
     sol = fits[frame]
@@ -343,36 +385,9 @@ def register_crop(crop: np.ndarray, crop_px: float, ref, *, exclude: np.ndarray 
     s2 = float(np.sum(res**2)) / max(1, n - 3)
     cov = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
     sigma_formal = {"x": float(math.sqrt(cov[0, 0])), "y": float(math.sqrt(cov[1, 1])), "dz": float(math.sqrt(s2 / n))}
-
-    # Delete-one-block jackknife over JACKKNIFE_BLOCKS^2 spatial blocks of the compared pixels.
-    rb = np.minimum((rows_sel - rows_sel.min()) * JACKKNIFE_BLOCKS // (np.ptp(rows_sel) + 1), JACKKNIFE_BLOCKS - 1)
-    cb = np.minimum((cols_sel - cols_sel.min()) * JACKKNIFE_BLOCKS // (np.ptp(cols_sel) + 1), JACKKNIFE_BLOCKS - 1)
-    block = rb * JACKKNIFE_BLOCKS + cb
-    jk = []
-    for b in np.unique(block):
-        sel = block != b
-        s = solve(frame, sel, [x0, y0])
-        jk.append([*s.x, model.residual(*s.x, frame, sel)[1]])
-    jk = np.asarray(jk)
-    m = len(jk)
-    jsig = np.sqrt((m - 1) / m * np.sum((jk - jk.mean(axis=0)) ** 2, axis=0))
-    sigma_jk = {"x": float(jsig[0]), "y": float(jsig[1]), "dz": float(jsig[2]), "blocks": int(m)}
-
-    # Misfit peak width: the shift along x / y at which the RMS residual doubles.
+    sigma_jk = _jackknife_sigma(model, frame, rows_sel, cols_sel, x0, y0, crop_px)
     rms0 = float(np.sqrt(np.mean(res**2)))
-    shifts = np.arange(crop_px / 20.0, 4.0 * abs(t.a), crop_px / 20.0)
-    width = {}
-    for axis in ("x", "y"):
-        sides = []
-        for sign in (-1.0, 1.0):
-            for s in shifts:
-                px, py = (x0 + sign * s, y0) if axis == "x" else (x0, y0 + sign * s)
-                if np.sqrt(np.mean(model.residual(px, py, frame)[0] ** 2)) >= 2.0 * rms0:
-                    sides.append(float(s))
-                    break
-            else:
-                sides.append(float("inf"))
-        width[axis] = float(np.mean(sides))
+    width = _misfit_width(model, frame, x0, y0, rms0, crop_px, abs(ref.transform.a))
 
     # Diagnostics: free curvature coefficient, free rotation/scale about the crop centre.
     rho2 = model.x**2 + model.y**2

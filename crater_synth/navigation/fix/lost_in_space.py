@@ -169,6 +169,98 @@ def _candidate_pairs(det_z, det_r, index: PairIndex, a: complex, b: complex, pix
     return np.stack([di, lm[lj]], axis=1)
 
 
+_FLIP_V = np.array([1.0, -1.0])  # (u, v) -> (u, -v): pixel -> map is then a proper similarity
+
+
+def _pair_vote_cells(va: np.ndarray, centre: np.ndarray, params: LostInSpaceParams):
+    """Accumulate the votes (frame-centre position ``centre`` and heading angle(``va``)) in cells of
+    ``bin_km`` x ``bin_km`` x ``bin_deg``: (vote of each cell entry, cell of each entry, the ``n_verify``
+    fullest cells)."""
+    head = np.angle(va)
+    # Each vote goes to the 2 x 2 x 2 block of cells around it (a grid offset by half a cell), so a
+    # solution lying on a cell edge is not split; the heading wraps around.
+    n_head = max(1, round(360.0 / params.bin_deg))
+    f = np.stack(
+        [
+            centre.real / (params.bin_km * 1000.0),
+            centre.imag / (params.bin_km * 1000.0),
+            np.degrees(head) % 360.0 / (360.0 / n_head),
+        ],
+        axis=1,
+    )
+    base = np.floor(f - 0.5).astype(np.int64)
+    offs = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
+    cell = (base[:, None, :] + offs[None, :, :]).reshape(-1, 3)
+    cell[:, 2] %= n_head
+    vote_of = np.repeat(np.arange(len(centre)), len(offs))
+    # One int64 key per cell (x, y offsets of 2^20 cells cover any map): np.unique on a 1-D array is fast.
+    key = ((cell[:, 0] + (1 << 20)) << 22 | (cell[:, 1] + (1 << 20))) * (n_head + 1) + cell[:, 2]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return vote_of, inv, np.argsort(-counts, kind="stable")[: params.n_verify]
+
+
+def _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams) -> list[tuple]:
+    """Verify each vote cell's candidate transform by RANSAC against the map: per cell (support,
+    fix or None, a, b, frame centre on the map)."""
+    vote_of, inv, best_cells = cells
+    flip = _FLIP_V
+    # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
+    vparams = replace(fparams, min_inliers=params.min_inliers, max_heading_deg=params.bin_deg)
+    cands = []  # (support, fix or None, a, b, centre)
+    for c in best_cells:
+        sel = vote_of[inv == c]
+        # Candidate transform: mean heading (unit phasors) at the known scale, mean centre.
+        ph = np.mean(va[sel] / np.abs(va[sel]))
+        a0 = complex(pixel_m * ph / abs(ph))
+        c0 = complex(np.median(centre[sel].real), np.median(centre[sel].imag))
+        b0 = c0 - a0 * zc
+        pairs = _candidate_pairs(det_z, det_r, index, a0, b0, pixel_m, params, fparams)
+        fix, a, b = ransac_similarity(det_uv * flip, det_r, index.lm_xy, pairs, a0, vparams)
+        if a == 0j:
+            cands.append((0, None, a0, b0, c0))
+            continue
+        support = len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams)) if pairs.size else 0
+        cands.append((support if not fix.ok else len(fix.inliers), fix, a, b, complex(a * zc + b)))
+    return cands
+
+
+def _unambiguous_candidate(cands: list[tuple], params: LostInSpaceParams):
+    """(the best verified candidate, None), or (None, the "no fix" saying why: none verified, or a rival
+    candidate far away with about as much support)."""
+    oks = [c for c in cands if c[1] is not None and c[1].ok]
+    if not oks:
+        best = max(cands, key=lambda c: c[0])
+        reason = best[1].reason if best[1] is not None else "no candidate pairs with the map's landmarks"
+        return None, Fix(False, f"no candidate verified (best: {reason})")
+    best = max(oks, key=lambda c: (c[0], -c[1].rms_px))
+    for rival in cands:
+        if rival is best or abs(rival[4] - best[4]) <= params.rival_km * 1000.0:
+            continue
+        if rival[0] >= best[0] - params.ambiguity_margin and rival[0] >= 3:
+            return None, Fix(
+                False,
+                f"ambiguous: candidates {abs(rival[4] - best[4]) / 1000.0:.0f} km apart agree "
+                f"({best[0]} and {rival[0]} landmarks)",
+            )
+    return best, None
+
+
+def _fix_from_inliers(fix: Fix, det_uv: np.ndarray, index: PairIndex, frame_shape) -> Fix:
+    """``fix`` with the similarity refitted on its inliers: the map point under the frame centre, the
+    scale and the heading (or "no fix" for a degenerate inlier set)."""
+    h, w = frame_shape
+    flip = _FLIP_V
+    idx = np.array(fix.inliers)
+    a, b = fit_similarity((det_uv * flip)[idx[:, 0]], index.lm_xy[idx[:, 1]])
+    c = apply_similarity(a, b, np.array([[w / 2.0, -h / 2.0]]))[0]
+    if not np.all(np.isfinite(c)):
+        return Fix(False, "degenerate inlier set (coincident detections)")
+    fix.x_m, fix.y_m = float(c[0]), float(c[1])
+    fix.scale_m_per_px = float(abs(a))
+    fix.heading_deg = float(math.degrees(np.angle(a)))
+    return fix
+
+
 def lost_in_space_fix(
     detections,
     landmarks,
@@ -203,67 +295,9 @@ def lost_in_space_fix(
     h, w = frame_shape
     zc = w / 2.0 - 1j * h / 2.0
     centre = va * zc + vb
-    head = np.angle(va)
-    # Each vote goes to the 2 x 2 x 2 block of cells around it (a grid offset by half a cell), so a
-    # solution lying on a cell edge is not split; the heading wraps around.
-    n_head = max(1, round(360.0 / params.bin_deg))
-    f = np.stack(
-        [
-            centre.real / (params.bin_km * 1000.0),
-            centre.imag / (params.bin_km * 1000.0),
-            np.degrees(head) % 360.0 / (360.0 / n_head),
-        ],
-        axis=1,
-    )
-    base = np.floor(f - 0.5).astype(np.int64)
-    offs = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
-    cell = (base[:, None, :] + offs[None, :, :]).reshape(-1, 3)
-    cell[:, 2] %= n_head
-    vote_of = np.repeat(np.arange(len(centre)), len(offs))
-    # One int64 key per cell (x, y offsets of 2^20 cells cover any map): np.unique on a 1-D array is fast.
-    key = ((cell[:, 0] + (1 << 20)) << 22 | (cell[:, 1] + (1 << 20))) * (n_head + 1) + cell[:, 2]
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-    best_cells = np.argsort(-counts, kind="stable")[: params.n_verify]
-    flip = np.array([1.0, -1.0])
-    # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
-    vparams = replace(fparams, min_inliers=params.min_inliers, max_heading_deg=params.bin_deg)
-    cands = []  # (support, fix or None, a, b, centre)
-    for c in best_cells:
-        sel = vote_of[inv == c]
-        # Candidate transform: mean heading (unit phasors) at the known scale, mean centre.
-        ph = np.mean(va[sel] / np.abs(va[sel]))
-        a0 = complex(pixel_m * ph / abs(ph))
-        c0 = complex(np.median(centre[sel].real), np.median(centre[sel].imag))
-        b0 = c0 - a0 * zc
-        pairs = _candidate_pairs(det_z, det_r, index, a0, b0, pixel_m, params, fparams)
-        fix, a, b = ransac_similarity(det_uv * flip, det_r, index.lm_xy, pairs, a0, vparams)
-        if a == 0j:
-            cands.append((0, None, a0, b0, c0))
-            continue
-        support = len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams)) if pairs.size else 0
-        cands.append((support if not fix.ok else len(fix.inliers), fix, a, b, complex(a * zc + b)))
-    oks = [c for c in cands if c[1] is not None and c[1].ok]
-    if not oks:
-        best = max(cands, key=lambda c: c[0])
-        reason = best[1].reason if best[1] is not None else "no candidate pairs with the map's landmarks"
-        return Fix(False, f"no candidate verified (best: {reason})")
-    best = max(oks, key=lambda c: (c[0], -c[1].rms_px))
-    for rival in cands:
-        if rival is best or abs(rival[4] - best[4]) <= params.rival_km * 1000.0:
-            continue
-        if rival[0] >= best[0] - params.ambiguity_margin and rival[0] >= 3:
-            return Fix(
-                False,
-                f"ambiguous: candidates {abs(rival[4] - best[4]) / 1000.0:.0f} km apart agree "
-                f"({best[0]} and {rival[0]} landmarks)",
-            )
-    fix, a, b = best[1], best[2], best[3]
-    idx = np.array(fix.inliers)
-    a, b = fit_similarity((det_uv * flip)[idx[:, 0]], index.lm_xy[idx[:, 1]])
-    c = apply_similarity(a, b, np.array([[w / 2.0, -h / 2.0]]))[0]
-    if not np.all(np.isfinite(c)):
-        return Fix(False, "degenerate inlier set (coincident detections)")
-    fix.x_m, fix.y_m = float(c[0]), float(c[1])
-    fix.scale_m_per_px = float(abs(a))
-    fix.heading_deg = float(math.degrees(np.angle(a)))
-    return fix
+    cells = _pair_vote_cells(va, centre, params)
+    cands = _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams)
+    best, no_fix = _unambiguous_candidate(cands, params)
+    if best is None:
+        return no_fix
+    return _fix_from_inliers(best[1], det_uv, index, frame_shape)

@@ -420,55 +420,22 @@ class Refiner:
         ``attitude_prior`` (the attitude the lander believes, its 1-sigma in radians): each 6-DOF solve is
         then weighted towards it (:func:`.fix.refine_pose`), against the observations' own scatter (the
         residuals of the solve without it, no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
-        from crater_synth.navigation.fix.solve import project_pinhole, refine_pose, solve_position
-        from crater_synth.terrain.dem import DemError
+        from crater_synth.navigation.fix.solve import solve_position
 
         t0 = time.perf_counter()
         p = self.params
-        lat0, lon0 = origin
         c = np.asarray(c_fix, dtype=np.float64)
-        cam_mc = geometry.enu_to_mc(c, lat0, lon0)
-        windows = []
-        for lm in landmarks:
-            try:
-                pts_mc, pred = (predicted or {}).get(lm.id) or self.predict(lm, to_sun_mc, cam_mc)
-                windows.append((geometry.mc_to_enu(pts_mc.reshape(-1, 3), lat0, lon0), pred.ravel()))
-            except DemError as exc:  # the window or its far field leaves the DEM: keep the detection
-                windows.append(str(exc))
+        windows = self._predicted_windows(landmarks, predicted, to_sun_mc, geometry.enu_to_mc(c, *origin), origin)
         obs = np.asarray(observed_uv, dtype=np.float64)
         solved_from = obs  # the observations the returned centre was solved from
         records: list[dict] = []
         for it in range(p.iterations):
-            moved, records = obs.copy(), []
             search = p.search_px if it == 0 else FOLLOW_UP_SEARCH_PX
-            for q, win in enumerate(windows):
-                if isinstance(win, str):
-                    records.append({"used": False, "reason": win})
-                    continue
-                pts, pred = win
-                uv = np.full((len(pts), 2), np.nan)
-                front = (pts - c) @ r_wc[2] > 0
-                uv[front] = project_pinhole(pts[front], r_wc, c, k)
-                shift, ncc = register(image, uv, pred, search)
-                used = shift is not None and ncc >= p.min_ncc
-                if used:
-                    moved[q] = project_pinhole(points_enu[q : q + 1], r_wc, c, k)[0] + shift
-                records.append(
-                    {
-                        "used": bool(used),
-                        "ncc": round(ncc, 4),
-                        "shift_px": None if shift is None else np.round(shift, 3).tolist(),
-                    }
-                )
+            moved, records = self._registered_observations(image, windows, obs, points_enu, c, r_wc, k, search)
             if sum(r["used"] for r in records) < (3 if pose else 2):  # one landmark alone cannot move a position
                 break
             if pose:
-                r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
-                if attitude_prior is not None:
-                    res = (project_pinhole(points_enu, r_wc, c, k) - moved).ravel()
-                    sigma_px = max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), MIN_REGISTRATION_SIGMA_PX)
-                    weight = sigma_px / attitude_prior[1]
-                    r_wc, c = refine_pose(points_enu, moved, k, r_wc, c, attitude_prior=(attitude_prior[0], weight))
+                r_wc, c = self._solve_pose(points_enu, moved, k, r_wc, c, attitude_prior)
             else:
                 c = solve_position(points_enu, moved, k, r_wc)
             solved_from = moved
@@ -480,6 +447,63 @@ class Refiner:
         if pose:
             record["rotation"] = np.asarray(r_wc, dtype=np.float64).tolist()
         return c, record
+
+    def _predicted_windows(self, landmarks, predicted, to_sun_mc, cam_mc, origin) -> list:
+        """Per landmark, its predicted window (ENU points of ``origin``, I/F), or why there is none (a
+        window or its far field leaving the DEM: the detection is kept as it is)."""
+        from crater_synth.terrain.dem import DemError
+
+        lat0, lon0 = origin
+        windows = []
+        for lm in landmarks:
+            try:
+                pts_mc, pred = (predicted or {}).get(lm.id) or self.predict(lm, to_sun_mc, cam_mc)
+                windows.append((geometry.mc_to_enu(pts_mc.reshape(-1, 3), lat0, lon0), pred.ravel()))
+            except DemError as exc:  # the window or its far field leaves the DEM: keep the detection
+                windows.append(str(exc))
+        return windows
+
+    def _registered_observations(self, image, windows, obs, points_enu, c, r_wc, k, search: int):
+        """Register each predicted window in ``image`` around where the camera (``c``, ``r_wc``, ``k``)
+        projects it: (observations, each moved where its registration is good enough; per-landmark
+        records)."""
+        from crater_synth.navigation.fix.solve import project_pinhole
+
+        moved, records = obs.copy(), []
+        for q, win in enumerate(windows):
+            if isinstance(win, str):
+                records.append({"used": False, "reason": win})
+                continue
+            pts, pred = win
+            uv = np.full((len(pts), 2), np.nan)
+            front = (pts - c) @ r_wc[2] > 0
+            uv[front] = project_pinhole(pts[front], r_wc, c, k)
+            shift, ncc = register(image, uv, pred, search)
+            used = shift is not None and ncc >= self.params.min_ncc
+            if used:
+                moved[q] = project_pinhole(points_enu[q : q + 1], r_wc, c, k)[0] + shift
+            records.append(
+                {
+                    "used": bool(used),
+                    "ncc": round(ncc, 4),
+                    "shift_px": None if shift is None else np.round(shift, 3).tolist(),
+                }
+            )
+        return moved, records
+
+    @staticmethod
+    def _solve_pose(points_enu, moved, k, r_wc, c, attitude_prior):
+        """The 6-DOF solve from the registered observations; with ``attitude_prior`` weighted towards it
+        against the observations' own scatter (no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
+        from crater_synth.navigation.fix.solve import project_pinhole, refine_pose
+
+        r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
+        if attitude_prior is not None:
+            res = (project_pinhole(points_enu, r_wc, c, k) - moved).ravel()
+            sigma_px = max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), MIN_REGISTRATION_SIGMA_PX)
+            weight = sigma_px / attitude_prior[1]
+            r_wc, c = refine_pose(points_enu, moved, k, r_wc, c, attitude_prior=(attitude_prior[0], weight))
+        return r_wc, c
 
     def verified(self, refinement: dict) -> tuple[bool, str]:
         """(fix stands, reason if not) after :meth:`refine`: a fix whose landmarks do not appear where it

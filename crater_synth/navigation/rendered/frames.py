@@ -323,21 +323,8 @@ def reusable_frame(out_dir: Path, index: int, header: dict, recorded_sha256: str
         return None  # missing, unreadable, or not a frame of this project
 
 
-def render_frames(
-    settings, out_dir: Path, only: list[int] | None = None, progress: bool = False, share_patches: bool = True
-) -> dict:
-    """Render the trajectory's frames (all, or the indices ``only``) into ``out_dir`` with labels;
-    returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
-    False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
-    from crater_core.files import ensure_writable_dir
-    from crater_core.schema import content_key
-    from crater_synth.dataset.dispatch import run_workers
-    from crater_synth.dataset.identity import render_identity
-    from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
-    from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
-    from crater_synth.terrain.patch import build_terrain
-
-    traj = settings.trajectory
+def _selected_poses(traj, only: list[int] | None) -> list:
+    """The trajectory's frame poses, all or those of the indices ``only``; bad input is one error."""
     if traj is None:
         raise ConfigError("no trajectory selected: add trajectory=NAME (configs/trajectory/)")
     try:
@@ -349,61 +336,90 @@ def render_frames(
         if bad:
             raise UserError(f"--frames {bad}: trajectory {traj.name} has frames 0..{len(poses) - 1}")
         poses = [poses[i] for i in sorted(set(only))]
-    out_dir = Path(out_dir)
-    ensure_writable_dir(settings.data_dir, "data_dir")
-    render = settings.render
-    maps: dict[str, tuple] = {}
-    t0 = time.perf_counter()
-    jobs, frames, reused = [], {}, {}
-    recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
+    return poses
+
+
+def _group_patch(settings, traj_name: str, group, n_near: int, progress: bool):
+    """Build (or reuse) the terrain patch a group of frames shares: (its catalogue entry, its settings,
+    npz path, metadata). A patch that cannot be built is an error naming the frames."""
+    from crater_synth.terrain.patch import build_terrain
+
+    entry = group.entry(traj_name, settings.terrain.near_radius_factor)
+    hw = group.half_width_m
+    gsettings = frame_settings(settings, hw)
+    if group.near_vertices != n_near:
+        gsettings = replace(gsettings, **{"terrain.near_vertices": group.near_vertices})
+    first = group.poses[0]
+    try:
+        npz, meta = build_terrain(entry, gsettings)
+    except UserError as exc:
+        which = f"frame {first.index}" if len(group.poses) == 1 else f"frames {first.index}-{group.poses[-1].index}"
+        raise UserError(
+            f"trajectory={traj_name} {which} (target lat {first.target_lat:.2f}, lon {first.target_lon:.2f}): {exc}"
+        ) from None
+    if progress:
+        click.echo(
+            f"frames {[p.index for p in group.poses]}: patch +-{hw / 1e3:.1f} km, {group.near_vertices}^2 "
+            f"vertices ({'cached' if meta.get('cached') else 'built'})",
+            err=True,
+        )
+    return entry, gsettings, npz, meta
+
+
+def _patch_render_job(render, group, entry: dict, gsettings, meta: dict, n_near: int):
+    """What the workers are told about a group's patch: (the job's crater, its render overrides, the
+    render digest of every setting that can change a pixel)."""
+    from crater_core.schema import content_key
+    from crater_synth.dataset.identity import render_identity
+
+    # The fast path's horizon map: as many texels as keep its texel no coarser than a frame's own patch's.
+    scale = group.near_vertices / n_near
+    overrides = {}
+    if scale > 1.0:
+        overrides["shadow_map_px"] = int(math.ceil(render.shadow_map_px * scale / 8.0)) * 8
+    # The job's crater diameter sets only the fast path's horizon-map extent (blender_gen/fast.py).
+    map_d_km = group.half_width_m * FAST_MAP_MARGIN / render.shadow_map_extent_factor / 1000.0
+    crater = CraterSettings(name=entry["name"], lat=entry["lat"], lon=entry["lon"], diameter_km=map_d_km)
+    # Every setting that can change a pixel (crater_synth.dataset.identity), the patch and the map overrides.
+    digest = content_key([render_identity(gsettings, crater, meta["terrain_id"]), overrides])
+    return crater, overrides, digest
+
+
+def _frame_header(settings, traj_name: str, pose, meta: dict, group, digest: str, seed: int) -> dict:
+    """The host's EXR header entries of one frame: what it is and everything that made it."""
+    from crater_synth.dataset.plan import code_version, hapke_dict
+
+    return {
+        "trajectory": traj_name,
+        "frame": pose.index,
+        "terrain_id": meta["terrain_id"],
+        "code_version": code_version(),
+        "renderer": settings.render.mode,
+        "samples": int(settings.render.samples),
+        "pose_mc": json.dumps(pose.as_dict(), sort_keys=True),
+        "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
+        "seed": seed,
+        "patch_origin": json.dumps([group.lat, group.lon]),
+        "render_digest": digest,
+    }
+
+
+def _plan_frames(settings, traj_name: str, groups: list, out_dir: Path, progress: bool):
+    """Each group's patch and each frame's worker item: (worker jobs of the frames to render, frame
+    index -> its pose, patch metadata, item and group; frame index -> the RESULT of a frame kept as it is
+    on disk, same settings and seal intact)."""
+    from crater_synth.dataset.plan import CraterJob, render_seed
+
     n_near = int(settings.terrain.near_vertices)
-    groups = group_frames(poses, n_near, share=share_patches)
+    recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
+    jobs, frames, reused = [], {}, {}
     for group in groups:
-        entry = group.entry(traj.name, settings.terrain.near_radius_factor)
-        hw = group.half_width_m
-        gsettings = frame_settings(settings, hw)
-        if group.near_vertices != n_near:
-            gsettings = replace(gsettings, **{"terrain.near_vertices": group.near_vertices})
-        first = group.poses[0]
-        try:
-            npz, meta = build_terrain(entry, gsettings)
-        except UserError as exc:
-            which = f"frame {first.index}" if len(group.poses) == 1 else f"frames {first.index}-{group.poses[-1].index}"
-            raise UserError(
-                f"trajectory={traj.name} {which} (target lat {first.target_lat:.2f}, lon {first.target_lon:.2f}): {exc}"
-            ) from None
-        if progress:
-            click.echo(
-                f"frames {[p.index for p in group.poses]}: patch +-{hw / 1e3:.1f} km, {group.near_vertices}^2 "
-                f"vertices ({'cached' if meta.get('cached') else 'built'})",
-                err=True,
-            )
-        # The fast path's horizon map: as many texels as keep its texel no coarser than a frame's own patch's.
-        scale = group.near_vertices / n_near
-        overrides = {}
-        if scale > 1.0:
-            overrides["shadow_map_px"] = int(math.ceil(render.shadow_map_px * scale / 8.0)) * 8
-        # The job's crater diameter sets only the fast path's horizon-map extent (blender_gen/fast.py).
-        map_d_km = hw * FAST_MAP_MARGIN / render.shadow_map_extent_factor / 1000.0
-        crater = CraterSettings(name=entry["name"], lat=entry["lat"], lon=entry["lon"], diameter_km=map_d_km)
-        # Every setting that can change a pixel (crater_synth.dataset.identity), the patch and the map overrides.
-        digest = content_key([render_identity(gsettings, crater, meta["terrain_id"]), overrides])
+        entry, gsettings, npz, meta = _group_patch(settings, traj_name, group, n_near, progress)
+        crater, overrides, digest = _patch_render_job(settings.render, group, entry, gsettings, meta, n_near)
         plans = []
         for pose in group.poses:
-            seed = render_seed(settings.seed, ("navframe", traj.name, pose.index))
-            header = {
-                "trajectory": traj.name,
-                "frame": pose.index,
-                "terrain_id": meta["terrain_id"],
-                "code_version": code_version(),
-                "renderer": render.mode,
-                "samples": int(render.samples),
-                "pose_mc": json.dumps(pose.as_dict(), sort_keys=True),
-                "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
-                "seed": seed,
-                "patch_origin": json.dumps([group.lat, group.lon]),
-                "render_digest": digest,
-            }
+            seed = render_seed(settings.seed, ("navframe", traj_name, pose.index))
+            header = _frame_header(settings, traj_name, pose, meta, group, digest, seed)
             item = worker_item(pose, group.lat, group.lon, seed, header)
             frames[pose.index] = {"pose": pose, "meta": meta, "item": item, "group": group}
             kept = reusable_frame(out_dir, pose.index, header, recorded.get(frame_rel_path(pose.index)))
@@ -413,6 +429,44 @@ def render_frames(
                 plans.append({"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item})
         if plans:
             jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
+    return jobs, frames, reused
+
+
+def _render_frame_jobs(jobs: list, settings, out_dir: Path, on_result) -> None:
+    """Run the workers over ``jobs`` while the horizon maps are computed ahead. A shared patch's frames
+    stay with one worker (its scene and BVH built once) unless splitting them between two finishes
+    sooner; the horizon map is computed once either way (the on-disk cache)."""
+    from crater_synth.dataset.dispatch import run_workers
+
+    render = settings.render
+    ahead = _horizons_ahead(jobs, render)
+    try:
+        if jobs:
+            run_workers(jobs, render, settings.hapke, out_dir, on_result, startup_renders=FRAME_STARTUP_RENDERS)
+    finally:
+        if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
+            ahead.terminate()
+            ahead.join()
+
+
+def render_frames(
+    settings, out_dir: Path, only: list[int] | None = None, progress: bool = False, share_patches: bool = True
+) -> dict:
+    """Render the trajectory's frames (all, or the indices ``only``) into ``out_dir`` with labels;
+    returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
+    False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
+    from crater_core.files import ensure_writable_dir
+    from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
+
+    traj = settings.trajectory
+    poses = _selected_poses(traj, only)
+    out_dir = Path(out_dir)
+    ensure_writable_dir(settings.data_dir, "data_dir")
+    render = settings.render
+    maps: dict[str, tuple] = {}
+    t0 = time.perf_counter()
+    groups = group_frames(poses, int(settings.terrain.near_vertices), share=share_patches)
+    jobs, frames, reused = _plan_frames(settings, traj.name, groups, out_dir, progress)
     t_patch = time.perf_counter() - t0
     ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     rows: dict[int, dict] = {}
@@ -436,16 +490,7 @@ def render_frames(
         on_result(None, None, result)
 
     t1 = time.perf_counter()
-    # A shared patch's frames stay with one worker (its scene and BVH built once) unless splitting them
-    # between two finishes sooner; the horizon map is computed once either way (the on-disk cache).
-    ahead = _horizons_ahead(jobs, render)
-    try:
-        if jobs:
-            run_workers(jobs, render, settings.hapke, out_dir, on_result, startup_renders=FRAME_STARTUP_RENDERS)
-    finally:
-        if ahead is not None and ahead.is_alive():  # the workers are done: the maps are no longer needed
-            ahead.terminate()
-            ahead.join()
+    _render_frame_jobs(jobs, settings, out_dir, on_result)
     t_render = time.perf_counter() - t1
     missing = sorted(set(frames) - set(rows))
     if missing:
