@@ -93,7 +93,7 @@ def main(out: Path, per_sector: int):
     from crater_synth.navigation.fix.patches import PatchParams
     from crater_synth.navigation.map.landmarks import load_default_map
     from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM, summarise
-    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.evaluate import (
         navigate_window,
         prior_georef,
@@ -113,7 +113,8 @@ def main(out: Path, per_sector: int):
     windows_out = []
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
-        dparams, fparams = params_with((), method)
+        nav = compose_nav([f"nav/detector={method}"])
+        dparams, fparams = nav.detector, nav.fix
         splits: dict = {}
         for f in frames:
             row = run_frame(f, landmarks, dparams, fparams)
@@ -129,7 +130,8 @@ def main(out: Path, per_sector: int):
         methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
     # The appearance search's terrain patches alone (no crater): the same windows, prior and light.
     splits = {}
-    dparams, fparams = params_with((), "appearance")
+    nav = compose_nav(["nav/detector=appearance"])
+    dparams, fparams = nav.detector, nav.fix
     for f in frames:
         prior = prior_georef(f, 0)  # run_frame's
         scores, patches, dets, fix = window_patches_alone(f, prior, dparams, fparams, PatchParams())

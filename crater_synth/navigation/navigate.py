@@ -12,11 +12,12 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import detect, preset
-from crater_synth.navigation.fix.solve import FixParams, fix_frame
+from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
+from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.evaluate import prior_georef
 from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
 
@@ -88,6 +89,7 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
     help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval --method pnp; refined by "
     "appearance with the appearance search; docs/navigation.md, section 9).",
 )
+@OVERRIDES
 @user_errors
 def navigate_command(
     image,
@@ -104,6 +106,7 @@ def navigate_command(
     known_heading,
     patches,
     six_dof,
+    overrides,
 ):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
@@ -150,7 +153,8 @@ def navigate_command(
             raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
         patches = name == "appearance" if patches is None else patches
         nav_png = out or image.with_name(image.stem + ".nav.png")
-        click.echo(json.dumps(navigate_rendered_frame(image, name, nav_png, patches=patches, six_dof=six_dof)))
+        nav = compose_nav(overrides, defaults=[f"nav/preset={name}"])
+        click.echo(json.dumps(navigate_rendered_frame(image, nav, nav_png, patches=patches, six_dof=six_dof)))
         return
     if six_dof:
         raise UserError(f"{image}: --six-dof applies to rendered frames (a map window's fix is a 2-D similarity)")
@@ -216,13 +220,16 @@ def navigate_command(
             )
     if model_path is not None and not method.startswith("learned"):
         raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
-    dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
+    nav = compose_nav(
+        [f"nav/detector={method}", *overrides, *([f"nav.detector.model={model_path}"] if model_path else [])]
+    )
+    dparams, fparams = nav.detector, nav.fix
     light = None if light_azimuth is None else math.radians(light_azimuth)
 
     def vote_fix(dets):
-        from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
+        from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 
-        lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
+        lis = dataclasses.replace(nav.lost_in_space, known_heading=known_heading)
         return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
 
     source = "craters"
@@ -231,7 +238,8 @@ def navigate_command(
         if prior_g is None:  # no prior: the first stage's lost-in-space fix is the search's prior (as nav-eval)
             from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE
 
-            coarse = vote_fix(detect(img, preset(LOST_IN_SPACE_FIRST_STAGE), light_dir=light, what=str(image))[0])
+            first = compose_nav([f"nav/detector={LOST_IN_SPACE_FIRST_STAGE}"]).detector
+            coarse = vote_fix(detect(img, first, light_dir=light, what=str(image))[0])
             if coarse.ok:
                 prior_g = Georef.centred_on(pole, coarse.x_m, coarse.y_m, img.shape, pixel)
         if prior_g is None:

@@ -4,7 +4,7 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
 (:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
 
 - **Detection**: :func:`.detect.detect` on the I/F channel, with the settings of a preset
-  (:data:`FRAMES_PRESETS`; "synthetic", the classical detector's settings chosen on rendered frames;
+  (``nav/preset``, configs/nav/preset/; "synthetic", the classical detector's settings chosen on rendered frames;
   "learned"; "real-window": the real windows' settings unchanged), or no detector: the default
   "appearance" preset searches for the map's landmarks by their predicted appearance (:mod:`.appearance`).
   The light direction in the image is given (the lander knows its attitude and the ephemeris): the Sun's
@@ -54,8 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from crater_core import exr, geometry
-from crater_synth.navigation.detectors.classical import Detection, DetectorParams, detect
-from crater_synth.navigation.fix.appearance import AppearanceParams, appearance_detections
+from crater_core.settings_nav import AppearanceSettings, DetectorSettings, FramesSettings
+from crater_synth.navigation.detectors.classical import ClassicalSettings, Detection, detect
+from crater_synth.navigation.fix.appearance import appearance_detections
 from crater_synth.navigation.fix.patches import PatchParams, patch_landmarks
 from crater_synth.navigation.fix.refine import RefineParams, Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
 from crater_synth.navigation.fix.sequence import SequenceParams, last_fix, propagated_prior
@@ -81,15 +82,13 @@ from crater_synth.navigation.protocol import (
     rendered_summary,
 )
 from crater_synth.navigation.rendered.labels import hidden
-from crater_synth.navigation.settings import (
-    PNP_INLIER_PX,
-    map_scales,
-)
+from crater_synth.navigation.settings import map_scales
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
 # A landmark a finer DEM layer added to the map (below the map's own min_landmark_km) is used where the frame
 # resolves it as the real windows resolve their smallest: D >= 25 px (10 km at their 400 m/px).
 LAYER_LANDMARK_MIN_PX = 25.0
+PNP_INLIER_PX = FramesSettings().inlier_px  # the pinhole fix's inlier tolerance without a preset (nav.frames)
 
 
 def usable(landmark, gsd_m: float, fparams: FixParams) -> bool:
@@ -165,7 +164,7 @@ def evaluate_frame(
     row: dict,
     image: np.ndarray,
     landmarks,
-    dparams: DetectorParams,
+    dparams: DetectorSettings,
     fparams: FixParams,
     seed: int = 0,
     method: str = "position",
@@ -173,7 +172,7 @@ def evaluate_frame(
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
     refiner=None,
-    appearance: AppearanceParams | None = None,
+    appearance: AppearanceSettings | None = None,
     attitude_error_deg: float = 0.0,
     prior_offset_km: float = PRIOR_OFFSET_KM,
     prior_enu: np.ndarray | None = None,
@@ -399,14 +398,14 @@ def perfect_detections(row: dict) -> list[Detection]:
 
 def evaluate_dir(
     frames_dir: Path,
-    dparams: DetectorParams = DetectorParams(),
+    dparams: DetectorSettings = ClassicalSettings(),
     fparams: FixParams = FixParams(),
     seed: int = 0,
     method: str = "position",
     scales_from_map: bool = False,
     inlier_px: float = PNP_INLIER_PX,
     refine: bool = False,
-    appearance: AppearanceParams | None = None,
+    appearance: AppearanceSettings | None = None,
     sensor=None,
     attitude_error_deg: float = 0.0,
     prior_offset_km: float = PRIOR_OFFSET_KM,
