@@ -46,7 +46,7 @@ def test_old_results_name_filter_reads_as_classical():
     assert registry.settings_from({"method": "filter", "threshold": 0.4}).method == "classical"
 
 
-TOY_MODULE = '''
+TOY_MODULE = """
 from dataclasses import dataclass
 from typing import ClassVar
 import numpy as np
@@ -63,7 +63,7 @@ def toy_candidates(frame, params):  # one crater at the frame's centre
     return np.array([w / 2]), np.array([h / 2]), np.array([params.radius_px]), np.array([1.0])
 
 DETECTOR = DetectorEntry("toy", ToySettings, toy_candidates, "a toy: one crater at the centre", spectrum=False)
-'''
+"""
 
 
 @pytest.fixture
