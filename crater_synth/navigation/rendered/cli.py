@@ -13,12 +13,11 @@ import click
 from crater_core import schema
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import ClassicalSettings
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.sequence import SequenceParams
 from crater_synth.navigation.map.dem_error import DemErrorParams
 from crater_synth.navigation.protocol import PRIOR_OFFSET_KM, check_prior_offset_km
-from crater_synth.navigation.rendered.evaluate import evaluate_dir
+from crater_synth.navigation.rendered.evaluate import DirOptions, FrameRun, evaluate_dir, frame_run
 from crater_synth.navigation.rendered.record import FRAMES_EVAL_JSON, frames_record, record_results
 from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav
 
@@ -114,9 +113,9 @@ def nav_frames_eval_command(frames_dir, json_path, results_path, seed, overrides
     Example: `crater-synth nav-frames-eval data/navframes/descent_ridge nav/preset=synthetic`
     """
     nav = compose_nav(overrides, defaults=[f"nav/preset={DEFAULT_FRAMES_PRESET}"])
-    run = frames_eval_options(nav, results_path is not None, overrides, **options)
-    summary, rows = evaluate_dir(frames_dir, *frames_eval_args(nav), seed, **run)
-    summary.update(frames_eval_summary_fields(options, run))
+    run, dir_options = frames_eval_options(nav, results_path is not None, overrides, seed, **options)
+    summary, rows = evaluate_dir(frames_dir, run, dir_options)
+    summary.update(frames_eval_summary_fields(options, run, dir_options))
     for r in rows:
         click.echo(frame_line(r, options["sequential"]), err=True)
     json_path = json_path or Path(frames_dir) / FRAMES_EVAL_JSON
@@ -129,14 +128,8 @@ def nav_frames_eval_command(frames_dir, json_path, results_path, seed, overrides
     click.echo(json.dumps(summary))
 
 
-def frames_eval_args(nav) -> tuple:
-    """``evaluate_dir``'s detector and fix settings of ``nav``: the appearance search runs no crater
-    detector (its detector settings are the classical defaults, unused)."""
-    return (ClassicalSettings() if nav.appearance else nav.detector), nav.fix
-
-
-def frames_eval_options(nav, recording: bool, overrides, **o) -> dict:
-    """The keyword arguments of :func:`.evaluate.evaluate_dir` from ``nav`` and the command's options,
+def frames_eval_options(nav, recording: bool, overrides, seed: int, **o) -> tuple[FrameRun, DirOptions]:
+    """The settings and options of :func:`.evaluate.evaluate_dir` from ``nav`` and the command's options,
     each checked (one error line naming the option)."""
     preset = nav.preset or nav.choices["detector"]
     if recording and any(not ov.startswith("nav/preset=") for ov in overrides):
@@ -173,35 +166,35 @@ def frames_eval_options(nav, recording: bool, overrides, **o) -> dict:
         from train.preprocess import SensorModel
 
         camera = SensorModel.from_settings(load_settings([f"sensor={o['sensor']}"]).sensor)
-    return dict(
-        method=solver,
-        scales_from_map=nav.frames.scales_from_map,
-        inlier_px=nav.frames.inlier_px,
-        refine=nav.frames.refine,
-        appearance=nav.detector if nav.appearance else None,
-        sensor=camera,
+    run = frame_run(
+        nav,
+        seed=seed,
         attitude_error_deg=o["attitude_error_deg"],
         prior_offset_km=o["prior_offset_km"],
-        patches=PatchParams() if patches else None,
-        sequence=SequenceParams() if o["sequential"] else None,
-        dem_error=eparams,
-        terrain_workers=o["terrain_workers"],
         refine_pnp=refine_pose,
         attitude_sigma_deg=sigma,
     )
+    dir_options = DirOptions(
+        sensor=camera,
+        terrain_workers=o["terrain_workers"],
+        patches=PatchParams() if patches else None,
+        sequence=SequenceParams() if o["sequential"] else None,
+        dem_error=eparams,
+    )
+    return run, dir_options
 
 
-def frames_eval_summary_fields(options: dict, run: dict) -> dict:
+def frames_eval_summary_fields(options: dict, run: FrameRun, dir_options: DirOptions) -> dict:
     """What the summary records of the run's options."""
     return dict(
         sensor=options["sensor"],
-        attitude_error_deg=run["attitude_error_deg"],
-        prior_offset_km=run["prior_offset_km"],
-        refine_pose=run["refine_pnp"],
-        attitude_sigma_deg=run["attitude_sigma_deg"],
-        patches=dataclasses.asdict(run["patches"]) if run["patches"] else None,
-        sequence=dataclasses.asdict(run["sequence"]) if run["sequence"] else None,
-        dem_error=dataclasses.asdict(run["dem_error"]) if run["dem_error"] else None,
+        attitude_error_deg=run.attitude_error_deg,
+        prior_offset_km=run.prior_offset_km,
+        refine_pose=run.refine_pnp,
+        attitude_sigma_deg=run.attitude_sigma_deg,
+        patches=dataclasses.asdict(dir_options.patches) if dir_options.patches else None,
+        sequence=dataclasses.asdict(dir_options.sequence) if dir_options.sequence else None,
+        dem_error=dataclasses.asdict(dir_options.dem_error) if dir_options.dem_error else None,
     )
 
 

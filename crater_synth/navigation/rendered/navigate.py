@@ -58,7 +58,7 @@ def navigate_rendered_frame(
     from crater_synth.navigation.fix.refine import Refiner, lander_dem
     from crater_synth.navigation.georef import pole_of
     from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.rendered.evaluate import evaluate_frame, with_patch_fallback
+    from crater_synth.navigation.rendered.evaluate import evaluate_frame, frame_run, with_patch_fallback
 
     row = frame_row_of(image)
     try:
@@ -67,20 +67,14 @@ def navigate_rendered_frame(
         raise FrameError(str(exc)) from None
     pole = pole_of(row["frame_origin"]["lat"])
     landmarks = load_default_map(pole)[0]
-    from crater_synth.navigation.detectors.classical import ClassicalSettings
-
     preset = nav.preset or nav.choices["detector"]
-    appearance = nav.detector if nav.appearance else None
-    dparams, fparams = (ClassicalSettings() if appearance else nav.detector), nav.fix
-    refiner = Refiner(lander_dem(pole)) if nav.frames.refine or appearance else None
-    kw = dict(seed=seed, scales_from_map=nav.frames.scales_from_map, inlier_px=nav.frames.inlier_px, refiner=refiner)
-    kw.update(appearance=appearance, method="pnp" if six_dof else "position", refine_pnp=six_dof)
-    r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
+    run = frame_run(nav, seed=seed, method="pnp" if six_dof else "position", refine_pnp=six_dof)
+    refiner = Refiner(lander_dem(pole)) if run.refine or run.appearance else None
+    r = evaluate_frame(row, img, landmarks, run, refiner=refiner)
     if patches:
-        if appearance is None:
+        if run.appearance is None:
             raise FrameError(f"--patches needs the appearance search, not the {preset} preset")
-        kw.pop("refiner")
-        r = with_patch_fallback(r, row, img, landmarks, refiner, PatchParams(), dparams=dparams, fparams=fparams, **kw)
+        r = with_patch_fallback(r, row, img, landmarks, refiner, PatchParams(), run)
     result = {
         "image": str(image),
         "preset": preset,

@@ -28,7 +28,7 @@ FRAME_FIELDS = (
     "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
     "sigma_horizontal_km",  # the fix's own 1-sigma horizontal uncertainty
     "fix_position",  # the fixed camera centre: planetocentric lat, lon (deg), altitude above the sphere (m)
-    "attitude_error_deg",  # --method pnp: the angle between the fixed and the true camera attitude
+    "attitude_error_deg",  # nav.frames.solver=pnp: the angle between the fixed and the true camera attitude
 )
 
 
