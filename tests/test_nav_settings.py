@@ -33,6 +33,7 @@ def test_every_preset_composes(preset):
         ("nav.fix.min_inliers=x", "nav.fix.min_inliers=x: must be an integer"),
         ("nav.detector.light_scope=moon", "nav.detector.light_scope='moon': must be one of"),
         ("nav/detector=cnn", "unknown nav/detector 'cnn'"),
+        ("nav/preset=template", "unknown nav/preset 'template' (override nav/preset=template): choose one of"),
         ("detect.threshold=0.3", "detect.threshold=0.3: navigation overrides are nav."),
     ],
 )

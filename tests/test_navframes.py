@@ -363,6 +363,7 @@ def test_nav_frames_command_end_to_end(tmp_path):
     r = frames_eval.evaluate_frame(row, ch["IF"], lms, run, detections=far)
     assert not r["fix"] or r["error_km"] < 5.0, r
     # Two rims mostly hidden behind nearer relief: no longer truth (no miss), their detections not false.
+    from crater_synth.navigation.protocol import summarise
     from crater_synth.navigation.rendered.labels import HIDDEN_RIM_MAX
 
     hid = json.loads(json.dumps(row))
@@ -372,7 +373,7 @@ def test_nav_frames_command_end_to_end(tmp_path):
     big[2]["occluded_rim_fraction"] = HIDDEN_RIM_MAX  # at the bound: still in sight
     r = frames_eval.evaluate_frame(hid, ch["IF"], lms, run, detections=dets)
     assert len(r["truth"]) == len(big) - 2 and len(r["matched_any"]) == len(big)
-    assert frames_eval.summarise([r])["recall_15km"] in (1.0, None)  # the hidden ones are no misses
+    assert summarise([r])["recall_15km"] in (1.0, None)  # the hidden ones are no misses
     # nav-frames-eval's JSON (what `crater-synth report` reads): detector and perfect-detection fix per frame.
     from click.testing import CliRunner
 

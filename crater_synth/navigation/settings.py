@@ -105,6 +105,11 @@ def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> 
     bad = [o for o in overrides if not o.lstrip("+~").startswith(("nav.", "nav/"))]
     if bad:
         raise ConfigError(f"{bad[0]}: navigation overrides are nav.<group>.<key>=<value> or nav/<group>=<option>")
+    for o in overrides:  # the preset group is optional in the defaults, so Hydra would skip a missing option
+        key, _, value = o.lstrip("+~").partition("=")
+        if key == "nav/preset" and value not in (*preset_options(), "null"):
+            known = ", ".join(preset_options())
+            raise ConfigError(f"unknown nav/preset {value!r} (override {o}): choose one of {known}")
     register_nav_schemas()
     GlobalHydra.instance().clear()
     try:
