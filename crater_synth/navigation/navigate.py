@@ -115,13 +115,13 @@ def navigate_command(image, out, overrides, **options):
     """
     request = NavigateRequest(image=image, out=out or image.with_name(image.stem + ".nav.png"), **options)
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
-        result = navigate_rendered(request, overrides)
+        result = navigate_rendered_image(request, overrides)
     else:
-        result = navigate_window(request, overrides)
+        result = navigate_map_window(request, overrides)
     click.echo(json.dumps(result))
 
 
-def navigate_rendered(request: NavigateRequest, overrides) -> dict:
+def navigate_rendered_image(request: NavigateRequest, overrides) -> dict:
     """A rendered frame navigated with a ``nav/preset`` (default :data:`.settings.DEFAULT_FRAMES_PRESET`);
     the options that describe a map window are refused."""
     from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
@@ -281,7 +281,7 @@ def window_result(request: NavigateRequest, nav, dets, theta: float, fix, landma
     return result
 
 
-def navigate_window(request: NavigateRequest, overrides) -> dict:
+def navigate_map_window(request: NavigateRequest, overrides) -> dict:
     """A map window navigated with its detector's settings (default :data:`WINDOW_DETECTOR`); writes the
     annotated PNG and the detections listing beside it."""
     from crater_core.schema import atomic_write_bytes
