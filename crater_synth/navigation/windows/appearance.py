@@ -1,4 +1,4 @@
-"""Landmark search by predicted appearance on map windows (``nav-eval --method appearance``).
+"""Landmark search by predicted appearance on map windows (``nav-eval nav/detector=appearance``).
 
 The rendered-frame search (:mod:`.appearance`) predicts each map landmark as a lander's camera should
 see it and finds it by normalised cross-correlation (NCC). A mosaic window is an orthographic nadir

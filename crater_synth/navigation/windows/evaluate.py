@@ -366,7 +366,7 @@ PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" 
 
 
 SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
-PATCHES_METHOD = "appearance+patches"  # nav-eval --method appearance --patches: its results' method key
+PATCHES_METHOD = "appearance+patches"  # nav-eval --patches nav/detector=appearance: its results' method key
 
 
 def merge_results(path: Path, pole: str, results: dict) -> dict:
