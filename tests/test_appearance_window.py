@@ -10,10 +10,16 @@ import numpy as np
 import pytest
 
 from crater_core import geometry
+from crater_core.settings_nav import AppearanceSettings
+from crater_core.typed_config import SettingsError
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import PRESETS, DetectorParams, DetectorSettingsError, detect
+from crater_synth.navigation.detectors.classical import DetectorSettingsError, detect
 from crater_synth.navigation.fix.solve import FixParams
+from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.appearance import sun_direction_mc
+
+# The appearance search's settings on map windows (configs/nav/detector/appearance.yaml).
+APPEARANCE = compose_nav(["nav/detector=appearance"]).detector
 
 # A south window (development data: the south's settings are chosen on every south window) with 26 map
 # landmarks of D >= 15 km in view.
@@ -42,7 +48,7 @@ def test_appearance_finds_the_map_landmarks_and_fixes_a_real_window(south):
     from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
-    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams())
+    row = run_frame(frame, landmarks, APPEARANCE, FixParams())
     assert row["fix"], row["reason"]
     assert row["error_km"] < 0.8  # 2 mosaic pixels
     assert row["identified"] >= 5 and row["identified_correct"] >= 0.9 * row["identified"]
@@ -59,7 +65,7 @@ def test_a_real_window_is_also_scored_against_the_crater_catalogue(south):
 
     frame, landmarks = south
     listed = catalogue_craters("south")
-    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), listed=listed)
+    row = run_frame(frame, landmarks, APPEARANCE, FixParams(), listed=listed)
     assert len(row["catalogue_d_km"]) >= 10 and all(d >= 8.0 for d in row["catalogue_d_km"])
     assert set(row["matched_catalogue"]) <= set(range(row["n_detections"]))
     assert 0 < len(row["catalogue_found"]) <= len(row["catalogue_d_km"])
@@ -74,7 +80,7 @@ def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
 
     frame, landmarks = south
     turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
-    row = run_frame(turned, landmarks, PRESETS["appearance"], FixParams())
+    row = run_frame(turned, landmarks, APPEARANCE, FixParams())
     assert not row["fix"]
     assert row["n_detections"] < 0.5 * len(row["truth"])
 
@@ -82,19 +88,19 @@ def test_a_window_that_does_not_show_the_map_gives_no_fix(south):
 def test_appearance_settings_and_misuse_are_refused(south):
     from crater_synth.navigation.windows.evaluate import navigate_window
 
-    with pytest.raises(DetectorSettingsError, match="appearance_sun_el_deg"):
-        DetectorParams(method="appearance", appearance_sun_el_deg=(0.0,))
-    with pytest.raises(DetectorSettingsError, match="appearance_min_ncc"):
-        DetectorParams(method="appearance", appearance_min_ncc=1.5)
+    with pytest.raises(SettingsError, match="sun_el_deg"):
+        AppearanceSettings(sun_el_deg=(0.0,))
+    with pytest.raises(SettingsError, match="min_ncc"):
+        AppearanceSettings(min_ncc=1.5)
     frame, landmarks = south
     with pytest.raises(DetectorSettingsError, match="position prior"):
-        detect(frame.image, PRESETS["appearance"], what="window")
+        detect(frame.image, APPEARANCE, what="window")
     with pytest.raises(UserError, match="light_scope"):
-        navigate_window(frame, landmarks, dataclasses.replace(PRESETS["appearance"], light_scope="frame"), FixParams())
+        navigate_window(frame, landmarks, dataclasses.replace(APPEARANCE, light_scope="frame"), FixParams())
 
 
 def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
-    """`crater-synth navigate WINDOW.png --method appearance --light-azimuth A`: the window written as a PNG
+    """`crater-synth navigate WINDOW.png nav/detector=appearance --light-azimuth A`: the window written as a PNG
     with its georeference sidecar, the light's image direction from the local light model."""
     import json
 
@@ -108,8 +114,8 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     png = tmp_path / "window.png"
     Image.fromarray(frame.image).save(png)
     (tmp_path / "window.png.geo.json").write_text(json.dumps(frame.georef.as_dict()))
-    theta = math.degrees(frame_light(frame, PRESETS["appearance"])["light_dir"])
-    r = CliRunner().invoke(main, ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}"])
+    theta = math.degrees(frame_light(frame, APPEARANCE)["light_dir"])
+    r = CliRunner().invoke(main, ["navigate", str(png), "nav/detector=appearance", "--light-azimuth", f"{theta:.2f}"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 0.8 and len(out["landmarks"]) >= 5
@@ -117,7 +123,7 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     # No prior: the template's lost-in-space fix (heading known) is the search's prior, as in nav-eval.
     lis = ["--lost-in-space", "--known-heading", "--out", str(tmp_path / "lis.png")]
     r = CliRunner().invoke(
-        main, ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}", *lis]
+        main, ["navigate", str(png), "nav/detector=appearance", "--light-azimuth", f"{theta:.2f}", *lis]
     )
     assert r.exit_code == 0, r.output
     out = json.loads(r.output.strip().splitlines()[-1])
@@ -132,7 +138,7 @@ def test_nav_eval_takes_the_prior_offset_and_refuses_a_nonsense_one(tmp_path):
     from crater_synth.cli import main
 
     out = tmp_path / "nav.json"
-    args = ["nav-eval", "--pole", "south", "--split", "validation", "--every", "60", "--method", "appearance"]
+    args = ["nav-eval", "--pole", "south", "--split", "validation", "--every", "60", "nav/detector=appearance"]
     r = CliRunner().invoke(main, [*args, "--prior-offset-km", "8", "--out", str(out)])
     assert r.exit_code == 0, r.output
     doc = json.loads(out.read_text())
@@ -149,7 +155,7 @@ def test_a_prior_beyond_the_search_gives_no_fix(south):
     from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
-    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), prior_offset_km=60.0)
+    row = run_frame(frame, landmarks, APPEARANCE, FixParams(), prior_offset_km=60.0)
     assert not row["fix"] and len(row["matched"]) <= 2
 
 
@@ -158,13 +164,13 @@ def test_lost_in_space_then_the_appearance_search(south):
     is the search's (every fix landmark found by its appearance), as accurate as with a prior."""
     import dataclasses as dc
 
-    from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, build_index
+    from crater_synth.navigation.fix.lost_in_space import build_index
     from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
-    lis_params = dc.replace(LIS_PRESETS["south-choice"], known_heading=True)
+    lis_params = dc.replace(compose_nav().lost_in_space, known_heading=True)
     lis = (lis_params, build_index(landmarks, lis_params))
-    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), lis=lis)
+    row = run_frame(frame, landmarks, APPEARANCE, FixParams(), lis=lis)
     assert row["fix"], row["reason"]
     assert row["error_km"] < 0.8 and row["identified"] >= 10 and len(row["matched"]) >= 0.9 * row["n_detections"]
 
@@ -195,7 +201,7 @@ def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(so
     from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
-    row = run_frame(frame, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
+    row = run_frame(frame, landmarks, APPEARANCE, FixParams(), patches=PatchParams())
     p = row["patches_alone"]
     assert p["n_patches"] == 16 and p["fix"], p["reason"]
     assert p["error_km"] < 0.8 and p["identified"] >= 5 and p["identified_correct"] >= 0.9 * p["identified"]
@@ -203,7 +209,7 @@ def test_terrain_patches_fix_a_real_window_and_refuse_one_that_does_not_match(so
     s = summarise([row])
     assert s["fixed_by_patches"] == 0 and s["patches_alone"]["fix_rate"] == 1.0
     turned = dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[::-1, ::-1]))
-    row = run_frame(turned, landmarks, PRESETS["appearance"], FixParams(), patches=PatchParams())
+    row = run_frame(turned, landmarks, APPEARANCE, FixParams(), patches=PatchParams())
     assert not row["patches_alone"]["fix"] and not row["fix"] and row["fix_source"] is None
 
 
@@ -213,7 +219,7 @@ def test_a_window_its_craters_do_not_fix_takes_the_patches_fix(south, monkeypatc
     from crater_synth.navigation.windows.evaluate import run_frame
 
     frame, landmarks = south
-    row = run_frame(frame, [], PRESETS["appearance"], FixParams(), patches=PatchParams())
+    row = run_frame(frame, [], APPEARANCE, FixParams(), patches=PatchParams())
     assert row["fix"] and row["fix_source"] == "patches" and row["error_km"] == row["patches_alone"]["error_km"]
     assert row["identified_correct"] == row["patches_alone"]["identified_correct"]
 
@@ -224,14 +230,14 @@ def test_nav_eval_patches_needs_the_appearance_search(tmp_path):
     from crater_synth.cli import main
 
     args = ["nav-eval", "--pole", "south", "--split", "validation", "--every", "60", "--patches"]
-    for extra in (["--method", "template"], ["--method", "appearance", "--lost-in-space"]):
-        r = CliRunner().invoke(main, [*args, *extra, "--out", str(tmp_path / "x.json")])
-        assert r.exit_code == 2 and "--patches needs --method appearance" in r.output
+    for extra in (["nav/detector=template"], ["nav/detector=appearance", "--lost-in-space"]):
+        r = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "x.json"), *extra])
+        assert r.exit_code == 2 and "--patches needs nav/detector=appearance" in r.output
         assert not (tmp_path / "x.json").exists()
 
 
 def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
-    """`navigate WINDOW.png --method appearance`: with a map of two craters the craters cannot fix the window
+    """`navigate WINDOW.png nav/detector=appearance`: with a map of two craters the craters cannot fix the window
     (`--no-patches`); its terrain patches do (drawn as cyan squares), and the JSON says so."""
     import json
 
@@ -250,8 +256,8 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
     u, v = frame.georef.xy_to_uv(np.array([lm.x_m for lm in landmarks]), np.array([lm.y_m for lm in landmarks]))
     inside = [lm for lm, a, b in zip(landmarks, u, v) if 0 <= a < 512 and 0 <= b < 512]
     (tmp_path / "two.geojson").write_text(to_geojson(inside[:2], prov))
-    theta = math.degrees(frame_light(frame, PRESETS["appearance"])["light_dir"])
-    args = ["navigate", str(png), "--method", "appearance", "--light-azimuth", f"{theta:.2f}"]
+    theta = math.degrees(frame_light(frame, APPEARANCE)["light_dir"])
+    args = ["navigate", str(png), "nav/detector=appearance", "--light-azimuth", f"{theta:.2f}"]
     args += ["--map", str(tmp_path / "two.geojson")]
     r = CliRunner().invoke(main, [*args, "--no-patches"])
     assert r.exit_code == 0, r.output
@@ -262,7 +268,7 @@ def test_navigate_a_map_window_with_terrain_patches(south, tmp_path):
     assert out["fix"] and out["fix_source"] == "patches" and out["error_km"] < 0.8
     assert all(name.startswith("patch:") for name in out["landmarks"]) and len(out["landmarks"]) >= 5
     assert (tmp_path / "window.nav.png").stat().st_size > 10_000
-    r = CliRunner().invoke(main, ["navigate", str(png), "--method", "template", "--patches"])
+    r = CliRunner().invoke(main, ["navigate", str(png), "--patches", "nav/detector=template"])
     assert r.exit_code == 2 and "--patches needs the appearance search" in r.output
 
 
@@ -283,14 +289,12 @@ def test_window_patches_off_the_dem_are_left_out(south):
     assert 4 <= len(window_patches(dem, across, shape, PatchParams())) < 16
     far = Georef("south", 5.0e6, 5.0e6, pixel)  # thousands of km from the pole
     assert window_patches(dem, far, shape, PatchParams()) == []
-    found, dets, fix = window_patch_fix(
-        frame.image, far, 0.0, PRESETS["appearance"], FixParams(), Refiner(dem), PatchParams()
-    )
+    found, dets, fix = window_patch_fix(frame.image, far, 0.0, APPEARANCE, FixParams(), Refiner(dem), PatchParams())
     assert found == [] and dets == [] and not fix.ok and fix.reason == "no patch on the DEM"
 
 
 def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_path, monkeypatch):
-    """`nav-eval --pole north --method appearance --patches` over the pole's splits adds the method
+    """`nav-eval --pole north --patches --out FILE nav/detector=appearance` over the pole's splits adds the method
     'appearance+patches' to the pole's entry of the results file; the craters-only 'appearance' entry and
     every other method stay as they were. (The windows are cut to two to keep the test short.)"""
     import json
@@ -299,16 +303,18 @@ def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_pat
     from click.testing import CliRunner
 
     from crater_synth.cli import main
+    from crater_synth.navigation.protocol import RESULTS_JSON
     from crater_synth.navigation.windows import evaluate
     from crater_synth.navigation.windows import mosaic as frames
 
     results = tmp_path / "navigation.json"
-    shutil.copyfile(evaluate.RESULTS_JSON, results)
-    monkeypatch.setattr(evaluate, "RESULTS_JSON", results)
+    shutil.copyfile(RESULTS_JSON, results)  # the committed record
     every_window = frames.windows
     monkeypatch.setattr(frames, "windows", lambda split=None, pole="south": every_window(split, pole)[100:102])
     before = json.loads(results.read_text())["regions"]["north"]["methods"]
-    r = CliRunner().invoke(main, ["nav-eval", "--pole", "north", "--method", "appearance", "--patches"])
+    r = CliRunner().invoke(
+        main, ["nav-eval", "--pole", "north", "--patches", "--out", str(results), "nav/detector=appearance"]
+    )
     assert r.exit_code == 0, r.output
     after = json.loads(results.read_text())["regions"]["north"]["methods"]
     others = [k for k in before if k != evaluate.PATCHES_METHOD]

@@ -13,9 +13,10 @@ import pytest
 import torch
 
 from crater_synth.navigation.detectors import learned
-from crater_synth.navigation.detectors.classical import DetectorParams, detect, preset
+from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
 from crater_synth.navigation.rendered import detector_train as learned_train
+from crater_synth.navigation.settings import compose_nav
 from train import crater_detector as cd
 
 
@@ -231,7 +232,7 @@ def test_train_from_survey_holds_out_the_last_tracks_and_writes_a_usable_model(t
     assert summary["synthetic_holdout"]["frames"] == 2
     assert out.is_file() and (tmp_path / "model.step2.pt").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt", "model.step2.pt", "survey"]
-    params = dataclasses.replace(preset("learned"), learned_model=str(out), learned_threshold=0.0)
+    params = dataclasses.replace(compose_nav(["nav/detector=learned"]).detector, model=str(out), threshold=0.0)
     dets, theta = detect(crater_field(5)[0], params)
     assert math.isnan(theta)  # no light needed without the rim fit
     assert all(params.min_radius_px <= d.r <= params.max_radius_px for d in dets)
@@ -249,7 +250,7 @@ def test_train_from_survey_refuses_too_few_tracks(tmp_path):
 def test_a_corrupt_model_file_is_one_error_line_and_detect_stops(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a model")
-    params = DetectorParams(method="learned", learned_model=str(bad))
+    params = learned.LearnedSettings(model=str(bad))
     with pytest.raises(learned.DetectorModelFileError, match="bad.pt: cannot be read"):
         detect(crater_field(1)[0], params)
 
@@ -257,7 +258,7 @@ def test_a_corrupt_model_file_is_one_error_line_and_detect_stops(tmp_path):
 def test_the_committed_model_finds_craters_in_a_shaded_field():
     """Trained on rendered DEM frames only, the committed model still finds analytic bowls."""
     img, u, v, r = crater_field(7, size=256, n=12)
-    params = dataclasses.replace(preset("learned"), min_radius_px=4.5)
+    params = dataclasses.replace(compose_nav(["nav/detector=learned"]).detector, min_radius_px=4.5)
     dets, _ = detect(img, params)
     hits = sum(
         any(math.hypot(d.u - a, d.v - b) <= 0.5 * c and abs(d.r / c - 1.0) <= 0.25 for d in dets)
@@ -294,8 +295,8 @@ def test_a_method_run_alone_joins_the_poles_results_and_a_foreign_protocol_is_re
 
 
 def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model(tmp_path):
-    """`crater-synth navigate --method learned` on a south mosaic window (development data) fixes it;
-    a corrupt model file is one error line and writes no PNG; --model needs the learned method."""
+    """`crater-synth navigate WINDOW nav/detector=learned` on a south mosaic window (development data) fixes
+    it; a corrupt model file is one error line and writes no PNG; only the learned detector has a model."""
     from click.testing import CliRunner
 
     from crater_synth.cli import main
@@ -308,12 +309,12 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
     runner = CliRunner()
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00" * 64)
-    r = runner.invoke(main, ["navigate", str(img), "--method", "learned", "--model", str(bad)])
+    r = runner.invoke(main, ["navigate", str(img), "nav/detector=learned", f"nav.detector.model={bad}"])
     assert r.exit_code == 2 and "bad.pt: cannot be read" in r.output and len(r.output.strip().splitlines()) == 1
     assert not (tmp_path / "w.nav.png").exists()
-    r = runner.invoke(main, ["navigate", str(img), "--method", "template", "--model", str(bad)])
-    assert r.exit_code == 2 and "--method learned" in r.output
-    r = runner.invoke(main, ["navigate", str(img), "--method", "learned"])
+    r = runner.invoke(main, ["navigate", str(img), "nav/detector=template", f"nav.detector.model={bad}"])
+    assert r.exit_code == 2 and "nav.detector.model: unknown key" in r.output
+    r = runner.invoke(main, ["navigate", str(img), "nav/detector=learned"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.output.strip().splitlines()[-1])
     assert out["fix"] and out["error_km"] < 2.0 and out["light_azimuth_deg"] is None

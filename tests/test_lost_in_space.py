@@ -84,15 +84,16 @@ def test_lis_settings_overrides_and_errors():
     import pytest
 
     from crater_synth.errors import UserError
-    from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, lis_params_with
+    from crater_synth.navigation.settings import compose_nav
 
-    p = lis_params_with("south-choice", ("lis.n_detections=40", "lis.gate_km=6"))
+    p = compose_nav(["nav.lost_in_space.n_detections=40", "nav.lost_in_space.gate_km=6"]).lost_in_space
     assert p.n_detections == 40 and p.gate_km == 6.0
-    assert p.min_inliers == LIS_PRESETS["south-choice"].min_inliers
-    with pytest.raises(UserError, match="lis.nope"):
-        lis_params_with("south-choice", ("lis.nope=1",))
-    with pytest.raises(UserError, match="--lis-preset"):
-        lis_params_with("missing", ())
+    south_choice = compose_nav(["nav/lost_in_space=south-choice"]).lost_in_space
+    assert p.min_inliers == south_choice.min_inliers and south_choice.gate_km == 4.0
+    with pytest.raises(UserError, match="nav.lost_in_space.nope"):
+        compose_nav(["nav.lost_in_space.nope=1"])
+    with pytest.raises(UserError, match="nav/lost_in_space 'missing'"):
+        compose_nav(["nav/lost_in_space=missing"])
 
 
 def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from types import SimpleNamespace
@@ -164,15 +165,15 @@ def test_position_fix_refuses_an_ambiguous_set():
 
 
 def test_map_scales_follow_the_ground_sample_and_the_predicted_landmarks():
-    from crater_synth.navigation.detectors.classical import DetectorParams
+    from crater_synth.navigation.detectors.classical import ClassicalSettings
     from crater_synth.navigation.fix.solve import FixParams
     from crater_synth.navigation.rendered.evaluate import map_scales
 
     fp = FixParams()  # 10 km landmarks, radius ratio 1.3
-    d = map_scales(DetectorParams(), fp, 338.0, [20.0, 60.0])
+    d = map_scales(ClassicalSettings(), fp, 338.0, [20.0, 60.0])
     assert d.min_radius_px == pytest.approx(5000.0 / 338.0 / 1.3) and d.max_radius_px == pytest.approx(60.0 * 1.3)
     # Lower down the same landmarks are bigger in pixels; with none predicted the smallest landmark's radius.
-    d = map_scales(DetectorParams(), fp, 100.0, [])
+    d = map_scales(ClassicalSettings(), fp, 100.0, [])
     assert d.min_radius_px == pytest.approx(50.0 / 1.3) and d.max_radius_px > d.min_radius_px
 
 
@@ -185,7 +186,7 @@ def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg
     from crater_synth.navigation.detectors.classical import detect
     from crater_synth.navigation.detectors.template import crater_heights, shade_heights
     from crater_synth.navigation.rendered import evaluate as fe
-    from crater_synth.navigation.settings import frames_params
+    from crater_synth.navigation.settings import compose_nav
 
     gsd, n = 338.0, 384
     big = [(100.0, 110.0, 17.0), (300.0, 90.0, 24.0), (200.0, 250.0, 38.0), (330.0, 320.0, 21.0), (90.0, 330.0, 29.0)]
@@ -201,13 +202,13 @@ def test_synthetic_preset_finds_map_sized_craters_among_detail_craters(theta_deg
     theta = math.radians(theta_deg)
     img = shade_heights(z, theta, 7.0) * 200.0 + 20.0 + np.random.default_rng(0).normal(0.0, 2.0, (n, n))
     labels = [{"ellipse": {"cu": u, "cv": v, "a": r}} for u, v, r in big]
-    dp, fp, pre = frames_params("synthetic")
-    assert pre.scales_from_map
-    dp = fe.map_scales(dp, fp, gsd, [r for *_, r in big])
+    nav = compose_nav(["nav/preset=synthetic"])
+    assert nav.frames.scales_from_map
+    dp = fe.map_scales(nav.detector, nav.fix, gsd, [r for *_, r in big])
     dets, _ = detect(img, dp, light_dir=theta)
     assert len(fe.match_pixels(dets, labels)) >= 4
     assert min(d.r for d in dets) >= 0.6 * dp.min_radius_px  # the rim fit may shrink a circle to 0.6 r
-    every_scale, _ = detect(img, frames_params("real-window")[0], light_dir=theta)
+    every_scale, _ = detect(img, compose_nav(["nav/preset=real-window"]).detector, light_dir=theta)
     assert len(dets) < len(every_scale)
 
 
@@ -315,7 +316,7 @@ def test_frame_render_labels_a_known_synthetic_crater(tmp_path):
     assert frac == pytest.approx(float(np.mean(ch["lit"][pts[:, 1].astype(int), pts[:, 0].astype(int)])), abs=1e-4)
 
 
-def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
+def test_nav_frames_command_end_to_end(tmp_path):
     """`crater-synth nav-frames` on a real-DEM trajectory frame at tiny settings: EXR + manifest + labels."""
     out = tmp_path / "frames"
     proc = run_nav_frames(tmp_path / "data", out, "0")
@@ -345,23 +346,24 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert [(d.u, d.v, d.r) for d in dets] == [
         (lb["ellipse"]["cu"], lb["ellipse"]["cv"], lb["ellipse"]["a"]) for lb in row["landmarks"]
     ]
-    r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets)
+    run = frames_eval.FrameRun()  # the classical detector's and the fix's defaults, the known attitude
+    r = frames_eval.evaluate_frame(row, ch["IF"], lms, run, detections=dets)
     assert r["fix"] and r["error_km"] < 0.01 and r["identified_correct"] == r["identified"] >= 5, r
     assert len(r["matched"]) == len(r["truth"])  # every label matched by its own ellipse
     assert r["n_detections"] == r["landmarks_in_view"] == len(row["landmarks"])
     # An attitude error of 0.1 deg moves the known-attitude fix by about altitude x angle (150 km: 0.26 km).
-    tilted = frames_eval.evaluate_frame(
-        row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets, attitude_error_deg=0.1
-    )
+    tilted_run = dataclasses.replace(run, attitude_error_deg=0.1)
+    tilted = frames_eval.evaluate_frame(row, ch["IF"], lms, tilted_run, detections=dets)
     assert tilted["fix"] and 0.1 < tilted["error_km"] < 0.5, tilted
     # A frame all in shadow (a descent's last frame over a dark floor) is an answer of "no fix", not an error.
-    r = frames_eval.evaluate_frame(row, np.zeros_like(ch["IF"]), lms, frames_eval.DetectorParams(), FixParams())
+    r = frames_eval.evaluate_frame(row, np.zeros_like(ch["IF"]), lms, run)
     assert not r["fix"] and "empty" in r["reason"] and r["n_detections"] == 0
     # Shift every detection by 20 px: no consistent landmark set near the prior -> no fix, never a wrong one.
     far = [Detection(d.u + 20.0, d.v, d.r, 1.0) for d in dets]
-    r = frames_eval.evaluate_frame(row, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=far)
+    r = frames_eval.evaluate_frame(row, ch["IF"], lms, run, detections=far)
     assert not r["fix"] or r["error_km"] < 5.0, r
     # Two rims mostly hidden behind nearer relief: no longer truth (no miss), their detections not false.
+    from crater_synth.navigation.protocol import summarise
     from crater_synth.navigation.rendered.labels import HIDDEN_RIM_MAX
 
     hid = json.loads(json.dumps(row))
@@ -369,9 +371,9 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     for lb in big[:2]:
         lb["occluded_rim_fraction"] = HIDDEN_RIM_MAX + 0.1
     big[2]["occluded_rim_fraction"] = HIDDEN_RIM_MAX  # at the bound: still in sight
-    r = frames_eval.evaluate_frame(hid, ch["IF"], lms, frames_eval.DetectorParams(), FixParams(), detections=dets)
+    r = frames_eval.evaluate_frame(hid, ch["IF"], lms, run, detections=dets)
     assert len(r["truth"]) == len(big) - 2 and len(r["matched_any"]) == len(big)
-    assert frames_eval.summarise([r])["recall_15km"] in (1.0, None)  # the hidden ones are no misses
+    assert summarise([r])["recall_15km"] in (1.0, None)  # the hidden ones are no misses
     # nav-frames-eval's JSON (what `crater-synth report` reads): detector and perfect-detection fix per frame.
     from click.testing import CliRunner
 
@@ -388,11 +390,9 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     # The default preset is the one chosen on rendered frames; its settings are recorded with the result.
     assert doc["preset"] == "appearance" and doc["min_inliers"] == 3 and doc["inlier_px"] == 5.0
     assert f["enough_landmarks"] and doc["summary"]["not_enough_landmarks"] == 0
-    # --write-results records the summary under "synthetic", keyed by trajectory, method and preset.
-    from crater_synth.navigation.rendered import record as frames_record
-
-    monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
-    res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--preset", "appearance", "--write-results"])
+    # --results records the summary under "synthetic", keyed by trajectory, method and preset.
+    results = ["--results", str(tmp_path / "navigation.json")]
+    res = CliRunner().invoke(main, ["nav-frames-eval", str(out), *results, "nav/preset=appearance"])
     assert res.exit_code == 0, res.output
     # Terrain patches are the appearance preset's default fallback, and the key says so.
     rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
@@ -404,7 +404,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     # --sensor puts a camera (noise, PSF, 8 bits) on each frame first; recorded, and keyed apart.
     res = CliRunner().invoke(
         main,
-        ["nav-frames-eval", str(out), "--sensor", "nav_camera", "--json", str(tmp_path / "s.json"), "--write-results"],
+        ["nav-frames-eval", str(out), "--sensor", "nav_camera", "--json", str(tmp_path / "s.json"), *results],
     )
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "s.json").read_text())["summary"]["sensor"] == "nav_camera"
@@ -419,7 +419,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     for args, message in (
         (["--prior-offset-km", "200"], "expected 0 to 100 km"),
         (["--attitude-error-deg", "20"], "expected 0 to 10 degrees"),
-        (["--attitude-error-deg", "0.1", "--write-results"], "standard prior and attitude only"),
+        (["--attitude-error-deg", "0.1", *results], "standard prior and attitude only"),
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
@@ -431,14 +431,16 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     # centre's depth as the altimeter range, are found by the map-wide pair vote within a kilometre; the
     # detector on this toy 64 px frame may find nothing, but never a wrong position.
     from crater_synth.navigation.rendered.lost_in_space import evaluate_lis_dir
+    from crater_synth.navigation.settings import compose_nav
 
-    lis = evaluate_lis_dir(out, "synthetic")
+    lis = evaluate_lis_dir(out, compose_nav(["nav/preset=synthetic"]))
     (lr,) = lis["rows"]
     assert lr["perfect"]["fix"] and lr["perfect"]["error_km"] < 1.5, lr["perfect"]
     assert lr["perfect"]["identified_correct"] == lr["perfect"]["identified"] >= 6
     assert not lr["fix"] or lr["error_km"] < 5.0
     # The heading the attitude gives is the one the vote finds (only votes near it are kept).
-    (lh,) = evaluate_lis_dir(out, "synthetic", sets=("lis.known_heading=true",))["rows"]
+    known = compose_nav(["nav/preset=synthetic", "nav.lost_in_space.known_heading=true"])
+    (lh,) = evaluate_lis_dir(out, known)["rows"]
     assert lh["perfect"]["fix"] and lh["perfect"]["error_km"] == pytest.approx(lr["perfect"]["error_km"], abs=0.05)
     # `crater-synth navigate` on the rendered frame: nav-frames-eval's pipeline for one frame, and its PNG.
     exr_path, png = out / row["rel_path"], tmp_path / "nav.png"
@@ -452,7 +454,7 @@ def test_nav_frames_command_end_to_end(tmp_path, monkeypatch):
     assert sum(d["truth_landmark"] is not None for d in listed) == f["matched"]  # the JSON counts them
     for args, message in (
         (["--prior", "-89,0"], "--prior apply to map windows only"),
-        (["--method", "template"], "rendered frames have presets for"),
+        (["nav/preset=template"], "unknown nav/preset 'template'"),
     ):
         res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "x.png").exists()
@@ -516,14 +518,13 @@ def test_worker_rejects_a_bad_explicit_camera(tmp_path):
 def test_every_preset_serves_the_6dof_fix_with_at_least_four_landmarks():
     """The presets of 3 agreeing landmarks take 4 for the 6-DOF fix (three points fix a pinhole pose
     exactly, so any three pairs would agree)."""
-    import dataclasses
-
     from crater_synth.navigation.fix import solve as nf
-    from crater_synth.navigation.settings import FRAMES_PRESETS, frames_params
+    from crater_synth.navigation.settings import compose_nav, preset_options
 
-    for name in FRAMES_PRESETS:
-        _, fparams, pre = frames_params(name)
-        assert not hasattr(pre, "methods") and fparams.min_inliers in (3, 5)
+    assert preset_options() == ["appearance", "learned", "real-window", "synthetic"]
+    for name in preset_options():
+        fparams = compose_nav([f"nav/preset={name}"]).fix
+        assert fparams.min_inliers in (3, 5)
     pts = np.column_stack([np.linspace(-9e3, 9e3, 3), np.zeros(3), np.zeros(3)])
     k = np.array([[500.0, 0, 256], [0, 500.0, 256], [0, 0, 1]])
     r0 = nf.rodrigues(np.array([np.pi, 0.0, 0.0]))

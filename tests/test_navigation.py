@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from crater_synth.cli import main
-from crater_synth.navigation.detectors.classical import DetectorParams, detect
+from crater_synth.navigation.detectors.classical import ClassicalSettings, detect
 from crater_synth.navigation.fix import solve as nf
 from crater_synth.navigation.georef import FrameError, Georef, check_frame, scale_factor, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import Landmark, LandmarkMapError, read_map, to_geojson
@@ -144,7 +144,7 @@ def shaded(craters, n=256, sun_az_deg=0.0, sun_el_deg=15.0):
 def test_detector_finds_shaded_craters():
     craters = [(70.0, 80.0, 20.0), (170.0, 160.0, 35.0)]
     img = shaded(craters, sun_az_deg=180.0)  # Sun towards -u: light travels +u
-    dets, _ = detect(img, DetectorParams(), light_dir=0.0)
+    dets, _ = detect(img, ClassicalSettings(), light_dir=0.0)
     for cu, cv, r in craters:
         best = min(dets, key=lambda d: math.hypot(d.u - cu, d.v - cv) / r + abs(d.r / r - 1))
         assert math.hypot(best.u - cu, best.v - cv) < 0.25 * 2 * r
@@ -328,10 +328,10 @@ def test_navigate_bad_input(tmp_path):
     r = runner.invoke(main, ["navigate", str(img), "--map", str(bad)])
     assert r.exit_code == 2 and "corrupt" in r.output
     # The appearance search predicts under the Sun: on a map window it needs the light's direction.
-    r = runner.invoke(main, ["navigate", str(img), "--method", "appearance"])
+    r = runner.invoke(main, ["navigate", str(img), "nav/detector=appearance"])
     assert r.exit_code == 2 and "--light-azimuth" in r.output and len(r.output.strip().splitlines()) == 1
     r = runner.invoke(main, ["navigate", str(img), "--sun-elevation", "5"])
-    assert r.exit_code == 2 and "only with --method appearance" in r.output
+    assert r.exit_code == 2 and "only with nav/detector=appearance" in r.output
     # Corrupt georeference.
     (tmp_path / "frame.png.geo.json").write_text("{}")
     r = runner.invoke(main, ["navigate", str(img)])

@@ -7,16 +7,23 @@ import math
 import numpy as np
 import pytest
 
+from crater_core.typed_config import SettingsError
+from crater_synth.errors import ConfigError
 from crater_synth.navigation.detectors.classical import (
-    DetectorParams,
-    DetectorSettingsError,
+    ClassicalSettings,
     azimuth_grads,
     detect,
     light_axis,
     spectrum,
     suppress,
 )
-from crater_synth.navigation.detectors.template import crater_heights, crater_template, ncc, shade_heights
+from crater_synth.navigation.detectors.template import (
+    TemplateSettings,
+    crater_heights,
+    crater_template,
+    ncc,
+    shade_heights,
+)
 from crater_synth.navigation.georef import FrameError
 
 CRATERS = [(80.0, 90.0, 14.0), (250.0, 80.0, 22.0), (150.0, 200.0, 30.0), (300.0, 290.0, 18.0), (90.0, 300.0, 25.0)]
@@ -43,7 +50,7 @@ def test_structure_tensor_recovers_the_light_axis(theta_deg):
     img = crater_field(theta_deg)
     a = (img - img.mean()) / img.std()
     spec, shape = spectrum(a)
-    axis = math.degrees(light_axis(azimuth_grads(spec, shape, DetectorParams())))
+    axis = math.degrees(light_axis(azimuth_grads(spec, shape, ClassicalSettings())))
     err = (axis - theta_deg + 90.0) % 180.0 - 90.0  # an axis: modulo 180 degrees
     assert abs(err) < 8.0
 
@@ -51,11 +58,11 @@ def test_structure_tensor_recovers_the_light_axis(theta_deg):
 @pytest.mark.parametrize("theta_deg", [20.0, 200.0])
 def test_light_direction_sign_on_synthetic_bowls(theta_deg):
     # On clean synthetic bowls the strongest rise runs with the light (shadow -> lit far wall); the real
-    # mosaic's validation windows need the opposite convention (DetectorParams.tail_points_to_sun, docs).
-    _, theta = detect(crater_field(theta_deg), DetectorParams(light_method="tensor", tail_points_to_sun=False))
+    # mosaic's validation windows need the opposite convention (nav.detector.tail_points_to_sun, docs).
+    _, theta = detect(crater_field(theta_deg), ClassicalSettings(light_method="tensor", tail_points_to_sun=False))
     err = (math.degrees(theta) - theta_deg + 180.0) % 360.0 - 180.0
     assert abs(err) < 8.0
-    _, flipped = detect(crater_field(theta_deg), DetectorParams(light_method="tensor", tail_points_to_sun=True))
+    _, flipped = detect(crater_field(theta_deg), ClassicalSettings(light_method="tensor", tail_points_to_sun=True))
     assert abs((math.degrees(flipped) - theta_deg) % 360.0 - 180.0) < 8.0
 
 
@@ -71,11 +78,12 @@ def test_concentric_suppression_keeps_one_per_crater():
     assert len(suppress(u, v, r, score, 0.6, 1.5)) == 4
 
 
-@pytest.mark.parametrize("method", ["filter", "template"])
+@pytest.mark.parametrize("method", ["classical", "template"])
 def test_detectors_leave_one_detection_per_synthetic_crater(method):
     theta = 30.0
     img = crater_field(theta, noise=2.0)
-    dets, _ = detect(img, DetectorParams(method=method, concentric_r=0.5), light_dir=math.radians(theta))
+    settings = {"classical": ClassicalSettings, "template": TemplateSettings}[method](concentric_r=0.5)
+    dets, _ = detect(img, settings, light_dir=math.radians(theta))
     counts = [len(_near(dets, cu, cv, r)) for cu, cv, r in CRATERS]
     assert max(counts) <= 1, (method, counts)  # never two detections of one crater
     assert sum(counts) >= 4, (method, counts)  # and the craters are found
@@ -84,7 +92,7 @@ def test_detectors_leave_one_detection_per_synthetic_crater(method):
 def test_template_method_finds_synthetic_craters():
     theta = 200.0
     img = crater_field(theta, noise=2.0)
-    dets, _ = detect(img, DetectorParams(method="template"), light_dir=math.radians(theta))
+    dets, _ = detect(img, TemplateSettings(), light_dir=math.radians(theta))
     found = 0
     for cu, cv, r in CRATERS:
         # The evaluation's match rule: centre within 0.25 D, diameter within 25 %.
@@ -92,7 +100,7 @@ def test_template_method_finds_synthetic_craters():
     assert found >= 4
     # A flat frame with noise only yields (almost) nothing.
     noise = np.random.default_rng(1).normal(100.0, 5.0, (384, 384))
-    none, _ = detect(noise, DetectorParams(method="template"), light_dir=math.radians(theta))
+    none, _ = detect(noise, TemplateSettings(), light_dir=math.radians(theta))
     assert len(none) <= 2
 
 
@@ -110,24 +118,26 @@ def test_ncc_is_one_on_the_template_itself_and_contrast_invariant():
 
 
 def test_bad_detector_input_gives_one_clear_error():
-    with pytest.raises(DetectorSettingsError, match="detect.method='cnn'"):
-        DetectorParams(method="cnn")
-    with pytest.raises(DetectorSettingsError, match="light_scope"):
-        DetectorParams(light_scope="sky")
-    with pytest.raises(DetectorSettingsError, match="template_sun_el_deg"):
-        DetectorParams(template_sun_el_deg=0.0)
+    with pytest.raises(SettingsError, match="method='cnn': must be 'classical'"):
+        ClassicalSettings(method="cnn")
+    with pytest.raises(SettingsError, match="light_scope"):
+        ClassicalSettings(light_scope="sky")
+    with pytest.raises(SettingsError, match="sun_el_deg"):
+        TemplateSettings(sun_el_deg=0.0)
     with pytest.raises(FrameError, match="empty"):
-        detect(np.full((128, 128), 50.0), DetectorParams(method="template"), what="frame x")
+        detect(np.full((128, 128), 50.0), TemplateSettings(), what="frame x")
 
 
 def test_setting_overrides_are_checked():
-    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.settings import compose_nav
 
-    d, _ = params_with(("detect.template_threshold=0.5",), "template")
-    assert d.method == "template" and d.template_threshold == 0.5
-    d, _ = params_with(('detect.method="template"',), "classical")
+    d = compose_nav(["nav/detector=template", "nav.detector.threshold=0.5"]).detector
+    assert isinstance(d, TemplateSettings) and d.method == "template" and d.threshold == 0.5
+    d = compose_nav(["nav/detector=template"]).detector
     assert d.method == "template"
-    with pytest.raises(DetectorSettingsError, match="detect.light_scope='moon'"):
-        params_with(("detect.light_scope=moon",), "classical")
-    with pytest.raises(DetectorSettingsError, match="detection method 'cnn'"):
-        params_with((), "cnn")
+    with pytest.raises(ConfigError):  # a detector is chosen as nav/detector=NAME, not by its method key
+        compose_nav(["nav.detector.method=template"])
+    with pytest.raises(ConfigError, match="nav.detector.light_scope='moon'"):
+        compose_nav(["nav.detector.light_scope=moon"])
+    with pytest.raises(ConfigError, match="unknown nav/detector 'cnn'"):
+        compose_nav(["nav/detector=cnn"])

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from crater_core.geometry import polar_stereo_forward, polar_stereo_inverse
-from crater_synth.navigation.detectors.classical import DetectorParams, light_azimuth, pooled_light_azimuth, spectrum
+from crater_synth.navigation.detectors.classical import ClassicalSettings, light_azimuth, pooled_light_azimuth, spectrum
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
 from crater_synth.navigation.georef import local_north_image_angle
 from crater_synth.navigation.windows.mosaic import WINDOW_PX, load_mosaic_image, plan_windows, sector_of
@@ -136,7 +136,7 @@ def crater_field(theta_deg: float, n: int = 384):
 def test_pooled_local_azimuth_is_recovered_from_frames_at_different_longitudes():
     """Frames of windows at different longitudes of one pole, each lit at one local azimuth: pooled in the
     local frame, the common azimuth comes back, and each frame's light is local north + that azimuth."""
-    params = DetectorParams(light_method="tail", tail_points_to_sun=False)  # synthetic-bowl convention
+    params = ClassicalSettings(light_method="tail", tail_points_to_sun=False)  # synthetic-bowl convention
     alpha = 70.0
     for pole, lat in (("south", -80.0), ("north", 80.0)):
         lons = [10.0, 100.0, 215.0]

@@ -91,7 +91,7 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
     assert lms[0].diameter_km == pytest.approx(0.1 * footprint / 0.75 / 1000.0, rel=1e-9)
 
 
-def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
+def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
     """Two descent frames (67 and 55 km up: two map craters >= 10 km in view, no fix from craters) at 256 px:
     terrain patches (the appearance preset's default) fix both, every patch identification correct;
     --sequential carries frame 7's fix into frame 8's prior."""
@@ -131,11 +131,8 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     noisy = run("--patches", "--dem-error-m", "10")
     assert noisy["summary"]["dem_error"] == {"rms_m": 10.0, "wavelength_km": 5.0}
     assert all(not f["fix"] or f["error_km"] < 5.0 for f in noisy["frames"])
-    # --write-results keys the record by the options and states them in its protocol.
-    from crater_synth.navigation.rendered import record as frames_record
-
-    monkeypatch.setattr(frames_record, "RESULTS_JSON", tmp_path / "navigation.json")
-    run("--sequential", "--write-results")
+    # --results keys the record by the options and states them in its protocol.
+    run("--sequential", "--results", str(tmp_path / "navigation.json"))
     rec = json.loads((tmp_path / "navigation.json").read_text())["synthetic"]
     (key,) = rec
     assert key == "descent_ridge/position/appearance/patches/sequential", key
@@ -160,7 +157,7 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     six = json.loads(res.output.strip().splitlines()[-1])
     assert six["fix_method"].startswith("6-DOF")
     assert six["fix"] and six["error_km"] < 2.0 and 0.0 < six["attitude_error_deg"] < 2.0, six
-    res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "--method", "classical"])
+    res = CliRunner().invoke(main, ["navigate", str(frame7), "--patches", "nav/preset=synthetic"])
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     # A frame all in shadow: the patches find nothing, an answer of "no fix".
     from crater_synth.navigation.fix.refine import Refiner, lander_dem
@@ -170,14 +167,13 @@ def test_patches_fix_descent_frames_with_too_few_craters(tmp_path, monkeypatch):
     row = labelled_rows(out)[0]
     image = exr.read_channel(out / row["rel_path"], "IF")
     lms = load_default_map("south")[0]
-    from crater_synth.navigation.settings import frames_params
+    from crater_synth.navigation.settings import compose_nav
 
-    dparams, fparams, pre = frames_params("appearance")
-    kw = dict(dparams=dparams, fparams=fparams, appearance=pre.appearance, inlier_px=pre.inlier_px)
+    run = frames_eval.frame_run(compose_nav(["nav/preset=appearance"]))
     refiner = Refiner(lander_dem("south"))
     dark = np.zeros_like(image)
-    r = frames_eval.evaluate_frame(row, dark, lms, refiner=refiner, **kw)
-    r = frames_eval.with_patch_fallback(r, row, dark, lms, refiner, PatchParams(), **kw)
+    r = frames_eval.evaluate_frame(row, dark, lms, run, refiner=refiner)
+    r = frames_eval.with_patch_fallback(r, row, dark, lms, refiner, PatchParams(), run)
     assert not r["fix"] and r["fix_source"] is None and r["patches"]["searched"] == 16
 
 
@@ -189,11 +185,11 @@ def test_patch_and_sequence_options_are_refused_where_they_do_not_apply(tmp_path
     out = tmp_path / "none"
     out.mkdir()
     for args, message in (
-        (["--patches", "--preset", "synthetic"], "--patches needs the appearance search"),
+        (["--patches", "nav/preset=synthetic"], "--patches needs the appearance search"),
         (["--refine-pose"], "--refine-pose refines a 6-DOF fix"),  # the default method: known attitude
-        (["--refine-pose", "--method", "pnp", "--preset", "real-window"], "--refine-pose refines a 6-DOF fix"),
+        (["--refine-pose", "nav.frames.solver=pnp", "nav/preset=real-window"], "--refine-pose refines a 6-DOF fix"),
         (["--attitude-sigma-deg", "0.2"], "--attitude-sigma-deg 0.2: 0 to 10 degrees, with a refined 6-DOF fix"),
-        (["--method", "pnp", "--attitude-sigma-deg", "20"], "--attitude-sigma-deg 20"),
+        (["nav.frames.solver=pnp", "--attitude-sigma-deg", "20"], "--attitude-sigma-deg 20"),
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists()
@@ -206,7 +202,7 @@ def test_navigate_refuses_patches_where_they_do_not_apply(tmp_path):
 
     window = tmp_path / "window.png"
     window.write_bytes(b"")
-    res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])  # the default method: template
+    res = CliRunner().invoke(main, ["navigate", str(window), "--patches"])  # the default detector: template
     assert res.exit_code != 0 and "--patches needs the appearance search" in res.output
     res = CliRunner().invoke(main, ["navigate", str(window), "--six-dof"])
     assert res.exit_code != 0 and "--six-dof applies to rendered frames" in res.output
@@ -252,9 +248,9 @@ def test_dem_error_option_is_refused_where_it_does_not_apply(tmp_path):
     out = tmp_path / "none"
     out.mkdir()
     for args, message in (
-        (["--dem-error-m", "30", "--write-results"], "drop --dem-error-m"),
+        (["--dem-error-m", "30", "--results", str(tmp_path / "r.json")], "drop --dem-error-m"),
         (["--dem-error-m", "30", "--dem-error-km", "0.1"], "expected 0.5 to 500 km"),
-        (["--dem-error-m", "30", "--preset", "real-window"], "does not use the lander's DEM"),
+        (["--dem-error-m", "30", "nav/preset=real-window"], "does not use the lander's DEM"),
     ):
         res = CliRunner().invoke(main, ["nav-frames-eval", str(out), "--json", str(tmp_path / "t.json"), *args])
         assert res.exit_code != 0 and message in res.output and not (tmp_path / "t.json").exists(), res.output

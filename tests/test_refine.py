@@ -143,6 +143,7 @@ def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene
     """From a prior 5 km off, each landmark is found where its rim ellipse lies in the frame (within a
     pixel), so the fix from these detections alone lands within the image's precision; on a frame of
     noise nothing is found."""
+    from crater_core.settings_nav import AppearanceSettings
     from crater_synth.navigation.fix.solve import FixParams
 
     c_prior = scene.c_true + np.array([3000.0, -4000.0, 0.0])
@@ -167,7 +168,7 @@ def test_appearance_search_finds_the_landmarks_from_a_prior_kilometres_off(scene
     for d, p, lm in zip(dets, scene.points, scene.landmarks):
         normal = (p + [0.0, 0.0, geometry.MOON_RADIUS_M]) / np.linalg.norm(p + [0.0, 0.0, geometry.MOON_RADIUS_M])
         rim = geometry.project_circle(p, normal, lm.diameter_km * 500.0, pose, scene.width)
-        assert math.hypot(d.u - rim.cu, d.v - rim.cv) < 1.0 and d.score >= appearance.AppearanceParams().min_ncc
+        assert math.hypot(d.u - rim.cu, d.v - rim.cv) < 1.0 and d.score >= AppearanceSettings().min_ncc
     noise = np.random.default_rng(0).uniform(size=scene.image.shape) * scene.image.max()
     assert appearance.appearance_detections(noise, *args)[0] == []
 

@@ -172,6 +172,7 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
     evaluate_frame's shape (no rendering: the render settings are stubbed)."""
     from crater_synth.navigation.fix.solve import FixParams
     from crater_synth.navigation.rendered import record as frames_record
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.report.inputs import load_nav_frames
 
     def row(i, fix):
@@ -203,7 +204,8 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
         "headline": {"windows": 2},
         "perfect": {"all": {"windows": 2}, "headline": {"windows": 2}},
     }
-    doc = frames_record.frames_record(tmp_path, summary, rows, 0, "position", FixParams(), ())
+    nav = compose_nav()  # the classical detector and the fix's defaults, the known-attitude fix
+    doc = frames_record.frames_record(tmp_path, summary, rows, 0, nav)
     (tmp_path / "frames_eval.json").write_text(json.dumps(doc))
     got = load_nav_frames(tmp_path / "frames_eval.json")
     f0 = got["frames"][0]
@@ -221,6 +223,7 @@ def test_frames_record_is_what_the_report_reads(tmp_path, monkeypatch):
     figures.nav_trajectory(tmp_path / "errors.png", "descent_ridge", got["frames"])
     assert (tmp_path / "errors.png").stat().st_size > 0
     assert got["min_inliers"] == FixParams().min_inliers and got["trajectory"] == "descent_ridge"
+    assert doc["method"] == "position" and doc["preset"] is None and doc["settings"] == []
 
 
 def test_trajectory_fixed_by_terrain_patches_says_so(tmp_path):

@@ -79,8 +79,8 @@ def _untimed(value):
 def _navigate(frames_dir: Path) -> dict:
     from crater_synth.navigation.fix.patches import PatchParams
     from crater_synth.navigation.fix.sequence import SequenceParams
-    from crater_synth.navigation.rendered.evaluate import evaluate_dir
-    from crater_synth.navigation.settings import frames_params
+    from crater_synth.navigation.rendered.evaluate import DirOptions, evaluate_dir, frame_run
+    from crater_synth.navigation.settings import compose_nav
 
     out: dict = {}
     results: dict = {}
@@ -91,12 +91,13 @@ def _navigate(frames_dir: Path) -> dict:
         "appearance_patches_sequential",
         "appearance_patches_sequential_2_workers",
     ):
-        dparams, fparams, pre = frames_params(name.split("_")[0])
-        args = (0, "position", pre.scales_from_map, pre.inlier_px, pre.refine, pre.appearance)
+        nav = compose_nav([f"nav/preset={name.split('_')[0]}"])
         workers = 2 if name.endswith("_2_workers") else 1  # the new landmark windows in two processes
         # A frame its craters do not fix navigated with terrain patches, priors carried along the trajectory.
         extra = dict(patches=PatchParams(), sequence=SequenceParams()) if "_patches_sequential" in name else {}
-        _, rows = evaluate_dir(frames_dir, dparams, fparams, *args, terrain_workers=workers, **extra)
+        _, rows = evaluate_dir(
+            frames_dir, frame_run(nav, method="position"), DirOptions(terrain_workers=workers, **extra)
+        )
         secs = sorted(r["seconds"] for r in rows)
         out[name] = {
             "fixes": sum(bool(r["fix"]) for r in rows),

@@ -15,15 +15,23 @@ from crater_synth.navigation.georef import Frame, Georef
 from crater_synth.navigation.windows.evaluate import prior_georef
 
 
+def image_detectors() -> list[str]:
+    """The registry's image detectors (:mod:`crater_synth.navigation.detectors.registry`), by name: every
+    one but the appearance search, which needs the map and a prior."""
+    from crater_synth.navigation.detectors.registry import detectors
+
+    return [name for name, entry in detectors().items() if entry.candidates is not None]
+
+
 def bench_navigation(repeats: int = 3) -> dict:
     """Frames/s of detection, identification and fix, each timed apart, on one 1024 x 1024 mosaic window
     (the top-left corner of the south mosaic), for every method in the same run (the classical baseline,
     the template detector, the learned detector, and the appearance search: :func:`_bench_appearance`):
     median of ``repeats`` runs after one warm-up. The light direction is estimated on the frame where a
     detector uses it (its cost is part of detection)."""
-    from crater_synth.navigation.detectors.classical import preset
     from crater_synth.navigation.fix.solve import identify, ransac_similarity
     from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.mosaic import load_mosaic_image
 
     landmarks, _ = load_default_map("south")
@@ -35,8 +43,8 @@ def bench_navigation(repeats: int = 3) -> dict:
     fparams = FixParams()
     lm_xy = np.array([[lm.x_m for lm in landmarks], [lm.y_m for lm in landmarks]]).T
     out: dict = {"frame_px": 1024, "repeats": repeats}
-    for method in ("classical", "template", "learned"):
-        dparams = dataclasses.replace(preset(method), light_scope="frame")
+    for method in image_detectors():
+        dparams = dataclasses.replace(compose_nav([f"nav/detector={method}"]).detector, light_scope="frame")
         t_det, t_id, t_fix = [], [], []
         fix = None
         for k in range(repeats + 1):
@@ -79,12 +87,12 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
     landmarks were prepared for its Sun before it began. Cold once more with the new windows computed in two
     worker processes while the search correlates (``cold_2_workers``, :meth:`.refine.Refiner.prepare`;
     the same detections)."""
-    from crater_synth.navigation.detectors.classical import preset
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.appearance import lander_refiner, window_detections
     from crater_synth.navigation.windows.light import frame_local_light
     from crater_synth.navigation.windows.mosaic import sector_of
 
-    dparams = preset("appearance")
+    dparams = compose_nav(["nav/detector=appearance"]).detector
     frame = dataclasses.replace(frame, sector=int(sector_of(*frame.centre_xy, frame.georef.pole)))
     alpha = frame_local_light(frame, dparams)
     out: dict = {}

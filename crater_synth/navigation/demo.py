@@ -88,14 +88,15 @@ def _demo_crater_methods(frames, landmarks, out: Path, windows_out: list) -> tup
     (summary per method, the appearance search's row of each window)."""
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
-    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.evaluate import navigate_window, run_frame
     from crater_synth.navigation.windows.navigate import annotate
 
     methods = {}
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
-        dparams, fparams = params_with((), method)
+        nav = compose_nav([f"nav/detector={method}"])
+        dparams, fparams = nav.detector, nav.fix
         splits: dict = {}
         for f in frames:
             row = run_frame(f, landmarks, dparams, fparams)
@@ -118,12 +119,13 @@ def _demo_patches_alone(frames, appearance_rows: dict, out: Path, windows_out: l
     from crater_core.schema import atomic_write_bytes
     from crater_synth.navigation.fix.patches import PatchParams
     from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
-    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.evaluate import prior_georef, window_patches_alone
     from crater_synth.navigation.windows.navigate import annotate
 
     splits: dict = {}
-    dparams, fparams = params_with((), "appearance")
+    nav = compose_nav(["nav/detector=appearance"])
+    dparams, fparams = nav.detector, nav.fix
     for f in frames:
         prior = prior_georef(f, 0)  # run_frame's
         scores, patches, dets, fix = window_patches_alone(f, prior, dparams, fparams, PatchParams())
@@ -156,7 +158,7 @@ def main(out: Path, per_sector: int):
     from crater_core.schema import atomic_write_text
     from crater_synth.navigation.map.landmarks import load_default_map
     from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM
-    from crater_synth.navigation.settings import params_with
+    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.evaluate import results_markdown
 
     if per_sector < 1:
@@ -177,7 +179,7 @@ def main(out: Path, per_sector: int):
         "schema_version": 1,
         "per_sector": per_sector,
         "windows_per_method": len(frames),
-        "min_landmark_km": params_with((), "appearance")[1].min_landmark_km,
+        "min_landmark_km": compose_nav(["nav/detector=appearance"]).fix.min_landmark_km,
         "headline_min_landmarks": HEADLINE_MIN_LANDMARKS,
         "prior_offset_km": PRIOR_OFFSET_KM,
         "false_fix_km": FALSE_FIX_KM,

@@ -12,13 +12,35 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import detect, preset
-from crater_synth.navigation.fix.solve import FixParams, fix_frame
+from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
+from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.evaluate import prior_georef
 from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
+
+WINDOW_DETECTOR = "template"  # a map window's detector unless an override names another (nav/detector=)
+
+
+@dataclasses.dataclass(frozen=True)
+class NavigateRequest:
+    """What ``navigate`` is told of one frame besides the settings: the image, where to write, and what the
+    lander knows of a map window (prior, pixel size, pole, map, light, Sun, heading)."""
+
+    image: Path
+    out: Path
+    prior: str | None = None
+    pixel_m: float | None = None
+    pole: str | None = None
+    map_path: Path | None = None
+    light_azimuth: float | None = None
+    sun_elevation: float | None = None
+    lost_in_space: bool = False
+    known_heading: bool = False
+    patches: bool | None = None
+    six_dof: bool = False
 
 
 @click.command("navigate")
@@ -34,21 +56,6 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
     help="Annotated PNG (default IMAGE.nav.png).",
 )
 @click.option(
-    "--method",
-    type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
-    default="template",
-    show_default=True,
-    help="Detection method (docs/navigation.md compares them); appearance: map landmarks searched for by their "
-    "predicted appearance (a map window needs --light-azimuth).",
-)
-@click.option(
-    "--model",
-    "model_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Learned detector's model file (default: the committed south model; --method learned only).",
-)
-@click.option(
     "--light-azimuth",
     type=float,
     default=None,
@@ -59,16 +66,16 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
     "--sun-elevation",
     type=float,
     default=None,
-    help="--method appearance on a map window: the Sun's elevation in degrees (default: the preset's, chosen "
-    "on the WAC mosaic's south windows).",
+    help="nav/detector=appearance on a map window: the Sun's elevation in degrees (default: the settings', "
+    "chosen on the WAC mosaic's south windows).",
 )
 @click.option(
     "--lost-in-space",
     "--no-prior",
     "lost_in_space",
     is_flag=True,
-    help="Identify with no position prior: crater-pair votes over the whole map (the frozen `south-choice` "
-    "settings, docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
+    help="Identify with no position prior: crater-pair votes over the whole map (nav/lost_in_space, "
+    "docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
 )
 @click.option(
     "--known-heading",
@@ -85,192 +92,225 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
 @click.option(
     "--six-dof",
     is_flag=True,
-    help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval --method pnp; refined by "
-    "appearance with the appearance search; docs/navigation.md, section 9).",
+    help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval nav.frames.solver=pnp; "
+    "refined by appearance with the appearance search; docs/navigation.md, section 9).",
 )
+@OVERRIDES
 @user_errors
-def navigate_command(
-    image,
-    prior,
-    pixel_m,
-    pole,
-    map_path,
-    out,
-    method,
-    model_path,
-    light_azimuth,
-    sun_elevation,
-    lost_in_space,
-    known_heading,
-    patches,
-    six_dof,
-):
+def navigate_command(image, out, overrides, **options):
     """Detect craters in a frame, identify them against the landmark map and fix the position.
 
     A map window is a north-up polar-stereographic nadir view (a mosaic window). Its georeference sidecar
     `IMAGE.geo.json` gives the truth (the error is printed and drawn); `--prior LAT,LON` the coarse
-    position (default: the georeference centre moved by 5 km). `--method appearance` searches for the map's
-    landmarks by their appearance predicted from the DEM under the Sun: give `--light-azimuth` (and
-    `--sun-elevation`); with `--lost-in-space` the template's lost-in-space fix is its prior. A rendered
-    frame (`frame_NNNN.exr` of `crater-synth nav-frames`) is navigated as `nav-frames-eval` does it: pose
-    and Sun from its manifest, prior the true camera moved by 5 km, `--method appearance` (default),
-    `classical` or `learned`; `--six-dof` fixes its attitude too. The appearance search lets terrain patches
-    fix a frame or window its craters do not (`--no-patches`: craters only). Prints one JSON line.
+    position (default: the georeference centre moved by 5 km). Its detector is `nav/detector=template`
+    unless an override names another (classical, learned, learned-detect; `nav.detector.model=FILE` for the
+    learned one); `nav/detector=appearance` searches for the map's landmarks by their appearance predicted
+    from the DEM under the Sun: give `--light-azimuth` (and `--sun-elevation`); with `--lost-in-space` the
+    template's lost-in-space fix is its prior. A rendered frame (`frame_NNNN.exr` of `crater-synth
+    nav-frames`) is navigated as `nav-frames-eval` does it: pose and Sun from its manifest, prior the true
+    camera moved by 5 km, `nav/preset=appearance` (default), `synthetic` or `learned`; `--six-dof` fixes its
+    attitude too. The appearance search lets terrain patches fix a frame or window its craters do not
+    (`--no-patches`: craters only). Settings are Hydra overrides (docs/navigation/settings.md). Prints one
+    JSON line.
     """
+    request = NavigateRequest(image=image, out=out or image.with_name(image.stem + ".nav.png"), **options)
     if image.suffix.lower() == ".exr":  # a rendered frame of `crater-synth nav-frames`: its pose is in its manifest
-        given = {
-            "--prior": prior,
-            "--pixel-m": pixel_m,
-            "--pole": pole,
-            "--map": map_path,
-            "--model": model_path,
-            "--light-azimuth": light_azimuth,
-            "--sun-elevation": sun_elevation,
-            "--lost-in-space": lost_in_space or None,
-            "--known-heading": known_heading or None,
-        }
-        extra = [name for name, value in given.items() if value is not None]
-        if extra:
-            raise UserError(
-                f"{image}: a rendered frame is navigated with its manifest's pose, Sun and landmark map; "
-                f"{', '.join(extra)} apply to map windows only"
-            )
-        from click.core import ParameterSource
+        result = navigate_rendered_image(request, overrides)
+    else:
+        result = navigate_map_window(request, overrides)
+    click.echo(json.dumps(result))
 
-        from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
-        from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET
 
-        chosen = click.get_current_context().get_parameter_source("method") != ParameterSource.DEFAULT
-        # --method -> the nav-frames-eval preset it names for rendered frames.
-        frame_presets = {"classical": "synthetic", "learned": "learned", "appearance": "appearance"}
-        if chosen and method not in frame_presets:
-            raise UserError(f"--method {method}: rendered frames have presets for {sorted(frame_presets)} only")
-        name = frame_presets[method] if chosen else DEFAULT_FRAMES_PRESET
-        if patches and name != "appearance":
-            raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
-        patches = name == "appearance" if patches is None else patches
-        nav_png = out or image.with_name(image.stem + ".nav.png")
-        click.echo(json.dumps(navigate_rendered_frame(image, name, nav_png, patches=patches, six_dof=six_dof)))
-        return
-    if six_dof:
-        raise UserError(f"{image}: --six-dof applies to rendered frames (a map window's fix is a 2-D similarity)")
-    if patches and method != "appearance":
-        raise UserError(f"--patches needs the appearance search (--method appearance), not --method {method}")
-    patches = method == "appearance" if patches is None else patches
-    from crater_core.schema import atomic_write_bytes
-    from crater_synth.navigation.georef import stereo_forward, stereo_inverse
-    from crater_synth.navigation.map.landmarks import load_default_map, read_map
+def navigate_rendered_image(request: NavigateRequest, overrides) -> dict:
+    """A rendered frame navigated with a ``nav/preset`` (default :data:`.settings.DEFAULT_FRAMES_PRESET`);
+    the options that describe a map window are refused."""
+    from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
+    from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET
+
+    given = {
+        "--prior": request.prior,
+        "--pixel-m": request.pixel_m,
+        "--pole": request.pole,
+        "--map": request.map_path,
+        "--light-azimuth": request.light_azimuth,
+        "--sun-elevation": request.sun_elevation,
+        "--lost-in-space": request.lost_in_space or None,
+        "--known-heading": request.known_heading or None,
+    }
+    extra = [name for name, value in given.items() if value is not None]
+    if extra:
+        raise UserError(
+            f"{request.image}: a rendered frame is navigated with its manifest's pose, Sun and landmark map; "
+            f"{', '.join(extra)} apply to map windows only"
+        )
+    nav = compose_nav(overrides, defaults=[f"nav/preset={DEFAULT_FRAMES_PRESET}"])
+    if request.patches and not nav.appearance:
+        preset = nav.preset or nav.choices["detector"]
+        raise UserError(f"--patches needs the appearance search (nav/preset=appearance), not {preset}")
+    patches = nav.appearance if request.patches is None else request.patches
+    return navigate_rendered_frame(request.image, nav, request.out, patches=patches, six_dof=request.six_dof)
+
+
+def check_window_request(request: NavigateRequest, nav) -> None:
+    """The options of a map window that contradict each other or the settings: one error line each."""
+    option = nav.choices["detector"]
+    if nav.preset is not None:
+        raise UserError(f"nav/preset={nav.preset}: presets are for rendered frames; a map window takes nav/detector=")
+    if request.six_dof:
+        raise UserError(
+            f"{request.image}: --six-dof applies to rendered frames (a map window's fix is a 2-D similarity)"
+        )
+    if request.patches and not nav.appearance:
+        raise UserError(f"--patches needs the appearance search (nav/detector=appearance), not nav/detector={option}")
+    if nav.appearance and request.light_azimuth is None:
+        raise UserError(
+            f"nav/detector=appearance on the map window {request.image} predicts each landmark under the Sun: give "
+            "--light-azimuth (from the attitude and the ephemeris)"
+        )
+    elevation = request.sun_elevation
+    if elevation is not None and (not nav.appearance or not 0.0 < elevation < 90.0):
+        raise UserError(f"--sun-elevation {elevation}: only with nav/detector=appearance, in (0, 90) degrees")
+    if request.known_heading and not request.lost_in_space:
+        raise UserError("--known-heading applies to --lost-in-space only (a prior gives the heading already)")
+    if request.lost_in_space and request.prior is not None:
+        raise UserError(
+            f"--prior {request.prior} with --lost-in-space: a lost-in-space fix takes no prior; give one of them"
+        )
+
+
+def read_window(image: Path):
+    """(image, its georeference or None) of a map window."""
+    from crater_synth.navigation.georef import check_frame
     from train.errors import RealSetError
     from train.realset import read_gray
 
-    if method == "appearance" and light_azimuth is None:
-        raise UserError(
-            f"--method appearance on the map window {image} predicts each landmark under the Sun: give "
-            "--light-azimuth (from the attitude and the ephemeris)"
-        )
-    if sun_elevation is not None and (method != "appearance" or not 0.0 < sun_elevation < 90.0):
-        raise UserError(f"--sun-elevation {sun_elevation}: only with --method appearance, in (0, 90) degrees")
     try:
         img = read_gray(image)
     except RealSetError as exc:
         raise FrameError(str(exc)) from None
-    from crater_synth.navigation.georef import check_frame
-
     check_frame(img, str(image))
-    truth = read_georef(image)
-    if known_heading and not lost_in_space:
-        raise UserError("--known-heading applies to --lost-in-space only (a prior gives the heading already)")
-    if lost_in_space and prior is not None:
-        raise UserError(f"--prior {prior} with --lost-in-space: a lost-in-space fix takes no prior; give one of them")
-    if truth is None and prior is None and not lost_in_space:
-        raise FrameError(
-            f"{image} has no georeference ({image.name}.geo.json) and neither --prior LAT,LON nor --lost-in-space "
-            "was given"
-        )
-    pole = pole or (truth.pole if truth else "south")
-    pixel = pixel_m or (truth.pixel_m if truth else None)
-    if pixel is None:
-        raise FrameError(f"{image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
-    landmarks, _ = read_map(map_path) if map_path else load_default_map(pole)
+    return img, read_georef(image)
+
+
+def window_prior(request: NavigateRequest, img, truth, landmarks, pole: str, pixel: float) -> Georef | None:
+    """The prior georeference of a map window: ``--prior``, else the truth moved by 5 km, else None (lost in
+    space); a prior whose frame holds no landmark of the map is refused."""
+    from crater_synth.navigation.georef import stereo_forward, stereo_inverse
+
     h, w = img.shape[:2]
     prior_g: Georef | None = None
-    if prior is not None:
+    if request.prior is not None:
         try:
-            lat, lon = (float(p) for p in prior.split(","))
+            lat, lon = (float(p) for p in request.prior.split(","))
         except ValueError:
-            raise UserError(f"--prior {prior!r}: expected LAT,LON in degrees") from None
-        cx, cy = stereo_forward(lat, lon, pole)
-        prior_g = Georef.centred_on(pole, cx, cy, img.shape, pixel)
-    elif not lost_in_space:
+            raise UserError(f"--prior {request.prior!r}: expected LAT,LON in degrees") from None
+        prior_g = Georef.centred_on(pole, *stereo_forward(lat, lon, pole), img.shape, pixel)
+    elif not request.lost_in_space:
         assert truth is not None
-        fr = Frame(image.name, "user", -1, img, truth)
-        prior_g = prior_georef(fr, 0)
+        prior_g = prior_georef(Frame(request.image.name, "user", -1, img, truth), 0)
     if prior_g is not None:
-        xs = np.array([lm.x_m for lm in landmarks])
-        ys = np.array([lm.y_m for lm in landmarks])
-        u, v = prior_g.xy_to_uv(xs, ys)
+        u, v = prior_g.xy_to_uv(np.array([lm.x_m for lm in landmarks]), np.array([lm.y_m for lm in landmarks]))
         if not ((u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)).any():
             lat0, lon0 = stereo_inverse(*prior_g.uv_to_xy(w / 2, h / 2), pole)
             raise FrameError(
-                f"{image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map"
+                f"{request.image}: the frame at ({float(lat0):.2f}, {float(lon0):.2f}) lies outside the landmark map"
             )
-    if model_path is not None and not method.startswith("learned"):
-        raise UserError(f"--model {model_path}: only the learned detector (--method learned) takes a model file")
-    dparams, fparams = preset(method, {"learned_model": str(model_path)} if model_path else None), FixParams()
-    light = None if light_azimuth is None else math.radians(light_azimuth)
+    return prior_g
+
+
+def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landmarks, pixel: float):
+    """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of a map window: its
+    detector's craters fixed under the prior or by the lost-in-space vote; the appearance search under the
+    prior, or under the first stage's lost-in-space fix without one (as nav-eval)."""
+    from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
+
+    light = None if request.light_azimuth is None else math.radians(request.light_azimuth)
+    lis = dataclasses.replace(nav.lost_in_space, known_heading=request.known_heading)
 
     def vote_fix(dets):
-        from crater_synth.navigation.fix.lost_in_space import LIS_PRESETS, lost_in_space_fix, window_heading_deg
+        return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, nav.fix, heading_deg=window_heading_deg(lis))
 
-        lis = dataclasses.replace(LIS_PRESETS["south-choice"], known_heading=known_heading)
-        return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, fparams, heading_deg=window_heading_deg(lis))
+    patches = nav.appearance if request.patches is None else request.patches
+    if not nav.appearance:
+        dets, theta = detect(img, nav.detector, light_dir=light, what=str(request.image))
+        fix = vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, nav.fix)
+        return dets, theta, fix, landmarks, "craters"
+    assert light is not None
+    if prior_g is None:
+        from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE
 
-    source = "craters"
-    if method == "appearance":
-        assert light is not None
-        if prior_g is None:  # no prior: the first stage's lost-in-space fix is the search's prior (as nav-eval)
-            from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE
-
-            coarse = vote_fix(detect(img, preset(LOST_IN_SPACE_FIRST_STAGE), light_dir=light, what=str(image))[0])
-            if coarse.ok:
-                prior_g = Georef.centred_on(pole, coarse.x_m, coarse.y_m, img.shape, pixel)
-        if prior_g is None:
-            dets, theta, fix = [], light, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}")
-        else:
-            dets, theta, fix, landmarks, source = appearance_window_fix(
-                img, prior_g, landmarks, light, sun_elevation, dparams, fparams, patches
+        first = compose_nav([f"nav/detector={LOST_IN_SPACE_FIRST_STAGE}"]).detector
+        coarse = vote_fix(detect(img, first, light_dir=light, what=str(request.image))[0])
+        if not coarse.ok:
+            return (
+                [],
+                light,
+                dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}"),
+                landmarks,
+                "craters",
             )
-    else:
-        dets, theta = detect(img, dparams, light_dir=light, what=str(image))
-        fix = vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, fparams)
+        prior_g = Georef.centred_on(request.pole, coarse.x_m, coarse.y_m, img.shape, pixel)
+    args = (request.sun_elevation, nav.detector, nav.fix, patches)
+    return appearance_window_fix(img, prior_g, landmarks, light, *args)
+
+
+def window_result(request: NavigateRequest, nav, dets, theta: float, fix, landmarks, source: str) -> dict:
+    """The JSON line of a map window's navigation."""
+    from crater_synth.navigation.georef import stereo_inverse
+
+    prior = "--prior" if request.prior else "truth + 5 km"
     result = {
-        "image": str(image),
-        "method": method,
-        "position_prior": "none (lost in space)" if lost_in_space else ("--prior" if prior else "truth + 5 km"),
+        "image": str(request.image),
+        "method": nav.choices["detector"],
+        "position_prior": "none (lost in space)" if request.lost_in_space else prior,
         "detections": len(dets),
         "light_azimuth_deg": None if math.isnan(theta) else round(math.degrees(theta), 1),
         "fix": fix.ok,
     }
-    if patches:
+    if nav.appearance if request.patches is None else request.patches:
         result["fix_source"] = source if fix.ok else None
-    if fix.ok:
-        lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole)
-        result.update(
-            lat=round(float(lat), 5),
-            lon=round(float(lon), 5),
-            landmarks=[landmarks[li].name or landmarks[li].id for _, li in fix.inliers],
-        )
-        if truth is not None:
-            result["error_km"] = round(
-                float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), pole)), 3
-            )
-    else:
+    if not fix.ok:
         result["reason"] = fix.reason
-    out = out or image.with_name(image.stem + ".nav.png")
-    listing = out.with_suffix(".json")
+        return result
+    lat, lon = stereo_inverse(fix.x_m, fix.y_m, request.pole)
+    result.update(
+        lat=round(float(lat), 5),
+        lon=round(float(lon), 5),
+        landmarks=[landmarks[li].name or landmarks[li].id for _, li in fix.inliers],
+    )
+    return result
+
+
+def navigate_map_window(request: NavigateRequest, overrides) -> dict:
+    """A map window navigated with its detector's settings (default :data:`WINDOW_DETECTOR`); writes the
+    annotated PNG and the detections listing beside it."""
+    from crater_core.schema import atomic_write_bytes
+    from crater_synth.navigation.map.landmarks import load_default_map, read_map
     from crater_synth.navigation.output import detection_records, write_detections
 
-    write_detections(listing, image, detection_records(dets, dict(fix.inliers) if fix.ok else {}, landmarks))
-    atomic_write_bytes(out, annotate(img, dets, landmarks, fix, prior_g, truth))
-    result.update(annotated=str(out), detections_file=str(listing))
-    click.echo(json.dumps(result))
+    nav = compose_nav(overrides, defaults=[f"nav/detector={WINDOW_DETECTOR}"])
+    check_window_request(request, nav)
+    img, truth = read_window(request.image)
+    if truth is None and request.prior is None and not request.lost_in_space:
+        raise FrameError(
+            f"{request.image} has no georeference ({request.image.name}.geo.json) and neither --prior LAT,LON nor "
+            "--lost-in-space was given"
+        )
+    pole = request.pole or (truth.pole if truth else "south")
+    pixel = request.pixel_m or (truth.pixel_m if truth else None)
+    if pixel is None:
+        raise FrameError(f"{request.image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
+    request = dataclasses.replace(request, pole=pole)
+    landmarks, _ = read_map(request.map_path) if request.map_path else load_default_map(pole)
+    prior_g = window_prior(request, img, truth, landmarks, pole, pixel)
+    dets, theta, fix, landmarks, source = window_fix(request, nav, img, prior_g, landmarks, pixel)
+    result = window_result(request, nav, dets, theta, fix, landmarks, source)
+    if fix.ok and truth is not None:
+        h, w = img.shape[:2]
+        error = ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), pole)
+        result["error_km"] = round(float(error), 3)
+    listing = request.out.with_suffix(".json")
+    write_detections(listing, request.image, detection_records(dets, dict(fix.inliers) if fix.ok else {}, landmarks))
+    atomic_write_bytes(request.out, annotate(img, dets, landmarks, fix, prior_g, truth))
+    result.update(annotated=str(request.out), detections_file=str(listing))
+    return result

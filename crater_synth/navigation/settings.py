@@ -1,90 +1,150 @@
-"""Settings of ``crater-synth nav-frames-eval`` (:mod:`.frames_eval`): its presets and the detector's
-scale range from the landmark map (docs/navigation.md, section 9, where the "synthetic" preset was
-chosen on rendered frames)."""
+"""Navigation's settings: the ``nav`` config group composed from ``configs/navigation.yaml`` with the
+user's overrides (Hydra, as every other command: ``crater_synth.config``), validated once into
+:class:`NavSettings` (docs/navigation/settings.md), and the detector's scale range from the landmark map.
+
+``configs/navigation.yaml`` is composed apart from ``configs/config.yaml`` so that no other command's
+composed configuration (nor any run fingerprint) changes. Its groups: ``nav/detector`` (one option per
+detector setting, each with its detector's own schema from :mod:`.detectors.registry`), ``nav/fix``,
+``nav/lost_in_space``, ``nav/frames`` (rendered frames) and ``nav/preset`` (named presets of rendered frames:
+``# @package _global_`` files that select a detector and set several groups, like ``experiment=``).
+"""
 
 from __future__ import annotations
 
 import dataclasses
-import json
+from typing import Any, Sequence
 
 import numpy as np
 
-from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import DetectorParams
-from crater_synth.navigation.fix.appearance import AppearanceParams
+from crater_core.settings_nav import DetectorSettings, FramesSettings
+from crater_core.typed_config import SettingsError, build
+from crater_synth.errors import ConfigError
+from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams
 from crater_synth.navigation.fix.solve import FixParams
+from crater_synth.paths import CONFIG_DIR
 
-PNP_INLIER_PX = 3.0  # the first runs' reprojection tolerance of the pinhole fix (px): the "real-window" preset's
+NAV_CONFIG = "navigation"  # configs/navigation.yaml
+# The frame presets' settings recorded without a suffix in the results file (it was the first default).
+RESULTS_UNSUFFIXED_PRESET = "synthetic"
+DEFAULT_FRAMES_PRESET = "appearance"  # nav-frames-eval, navigate FRAME.exr: the rule on the development frames
+# Groups of nav whose schema is one class (nav/detector's is its detector's: the registry's).
+NAV_GROUPS = {"fix": FixParams, "lost_in_space": LostInSpaceParams, "frames": FramesSettings}
 
 
 @dataclasses.dataclass(frozen=True)
-class FramesPreset:
-    """The settings of ``nav-frames-eval``: a detector of :data:`.detect.PRESETS` and ``--set``-style
-    overrides of it and of :class:`.fix.FixParams`, whether the detector searches only the landmark
-    map's radii (:func:`map_scales`), and the fix's reprojection inlier tolerance (px)."""
+class NavSettings:
+    """The composed ``nav`` group: the detector's settings (its own class), the fix's, lost in space's and the
+    rendered frames'; ``choices``: the option of each group the composition took (``detector``: e.g.
+    ``learned-detect``; ``preset``: the ``nav/preset`` or None)."""
 
-    detector: str
-    sets: tuple = ()
-    scales_from_map: bool = False
-    inlier_px: float = PNP_INLIER_PX
-    refine: bool = False  # known-attitude fixes refined by appearance (:mod:`.refine`)
-    appearance: AppearanceParams | None = None  # no detector: the appearance search (:mod:`.appearance`)
+    detector: Any
+    fix: FixParams
+    lost_in_space: LostInSpaceParams
+    frames: FramesSettings
+    choices: dict
 
+    @property
+    def preset(self) -> str | None:
+        return self.choices.get("preset")
 
-# "real-window": the real-window settings unchanged (the classical preset, every scale, 5 agreeing
-# landmarks, 3 px), the first runs on rendered frames. "synthetic": chosen on the rendered frames of
-# descent_ridge and polar_orbit_arc (render.samples=4, fast, 512 px; development data, no real window
-# used) by the rule of the real windows: no false fix, then the most fixes, then the lowest median
-# error (docs/navigation.md, section 9, the grid): the classical detector at threshold 0.3 on the map's
-# radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers (the 6-DOF fix takes at least 4:
-# three points determine a pinhole pose exactly).
-FRAMES_PRESETS = {
-    "real-window": FramesPreset("classical"),
-    "synthetic": FramesPreset(
-        "classical",
-        ("detect.threshold=0.3", "fix.min_inliers=3"),
-        scales_from_map=True,
-        inlier_px=5.0,
-        refine=True,
-    ),
-}
-# "learned": the learned detector with its frozen real-window preset (chosen on the south windows, not on
-# these frames) and the "synthetic" preset's fix settings; nothing was chosen on the rendered trajectories.
-FRAMES_PRESETS["learned"] = FramesPreset(
-    "learned", ("fix.min_inliers=3",), scales_from_map=True, inlier_px=5.0, refine=True
-)
-# "appearance": no crater detector; the map's landmarks searched for by their predicted appearance
-# (:mod:`.appearance`, settings chosen on descent_ridge and polar_orbit_arc), then the synthetic preset's
-# identification, fix and refinement.
-FRAMES_PRESETS["appearance"] = FramesPreset(
-    "appearance",
-    ("fix.min_inliers=3",),
-    inlier_px=5.0,
-    refine=True,
-    appearance=AppearanceParams(),
-)
-# The default: the rule above on the development trajectories (no false fix, most fixes, lowest median)
-# ranks "appearance" first (21 of 28 fixes, median 0.04 km; "synthetic" 7, 0.07 km).
-DEFAULT_FRAMES_PRESET = "appearance"
-# The results file keys the "synthetic" preset without a suffix (it was the first default).
-RESULTS_UNSUFFIXED_PRESET = "synthetic"
+    @property
+    def appearance(self) -> bool:
+        """Whether the landmarks are searched for by appearance (no crater detector runs)."""
+        return registry.detector(self.detector.method).candidates is None
+
+    def as_dict(self) -> dict:
+        return {
+            "detector": self.detector.as_dict(),
+            "fix": dataclasses.asdict(self.fix),
+            "lost_in_space": dataclasses.asdict(self.lost_in_space),
+            "frames": self.frames.as_dict(),
+        }
 
 
-def frames_params(name: str, sets=()) -> tuple[DetectorParams, FixParams, FramesPreset]:
-    """(detector settings, fix settings, preset) of the ``nav-frames-eval`` preset ``name`` with the
-    ``--set`` overrides ``sets`` applied after the preset's own. Every preset serves both fixes: the
-    6-DOF fix never takes fewer than 4 landmarks and refuses an ambiguous pose or one that contradicts its
-    prior (:func:`.fix.ransac_pnp`)."""
-
-    if name not in FRAMES_PRESETS:
-        raise UserError(f"nav-frames-eval preset {name!r}: expected one of {sorted(FRAMES_PRESETS)}")
-    pre = FRAMES_PRESETS[name]
-    # The appearance search runs no crater detector: its detector settings are the defaults, unused.
-    dparams, fparams = params_with(tuple(pre.sets) + tuple(sets), "classical" if pre.appearance else pre.detector)
-    return dparams, fparams, pre
+def detector_options() -> list[str]:
+    """The options of ``nav/detector`` (``configs/nav/detector/*.yaml``): the detector settings one can name."""
+    return sorted(p.stem for p in (CONFIG_DIR / "nav" / "detector").glob("*.yaml"))
 
 
-def map_scales(dparams: DetectorParams, fparams: FixParams, gsd_m: float, predicted_r_px) -> DetectorParams:
+def preset_options() -> list[str]:
+    """The named presets of rendered frames (``configs/nav/preset/*.yaml``)."""
+    return sorted(p.stem for p in (CONFIG_DIR / "nav" / "preset").glob("*.yaml"))
+
+
+def register_nav_schemas() -> None:
+    """Store each nav group's schema in Hydra's ConfigStore: ``<detector>_schema`` under nav/detector for
+    every registered detector, ``<group>_schema`` for the others (again whenever the registry changed)."""
+    from hydra.core.config_store import ConfigStore
+
+    from crater_synth.config import schema_class
+
+    cs = ConfigStore.instance()
+    for name, entry in registry.detectors().items():
+        cs.store(group="nav/detector", name=f"{name}_schema", node=schema_class(entry.settings))
+    for group, cls in NAV_GROUPS.items():
+        cs.store(group=f"nav/{group}", name=f"{group}_schema", node=schema_class(cls))
+
+
+def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> NavSettings:
+    """The ``nav`` settings of ``configs/navigation.yaml`` with Hydra overrides (``nav/detector=template``,
+    ``nav.detector.threshold=0.5``, ``nav/preset=synthetic``), validated once. ``defaults``: overrides a
+    command puts first (its own default preset), for the user's to replace: a group the user selects drops
+    the command's choice of it. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from crater_synth.config import one_line_config_error, resolved
+
+    chosen = {o.partition("=")[0].lstrip("+~") for o in overrides}
+    overrides = [o for o in defaults if o.partition("=")[0].lstrip("+~") not in chosen] + list(overrides)
+    bad = [o for o in overrides if not o.lstrip("+~").startswith(("nav.", "nav/"))]
+    if bad:
+        raise ConfigError(f"{bad[0]}: navigation overrides are nav.<group>.<key>=<value> or nav/<group>=<option>")
+    for o in overrides:  # the preset group is optional in the defaults, so Hydra would skip a missing option
+        key, _, value = o.lstrip("+~").partition("=")
+        if key == "nav/preset" and value not in (*preset_options(), "null"):
+            known = ", ".join(preset_options())
+            raise ConfigError(f"unknown nav/preset {value!r} (override {o}): choose one of {known}")
+    register_nav_schemas()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            cfg = hydra_compose(config_name=NAV_CONFIG, overrides=overrides, return_hydra_config=True)
+            choices = dict(cfg.hydra.runtime.choices)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(one_line_config_error(exc, overrides)) from None
+    finally:
+        GlobalHydra.instance().clear()
+    OmegaConf.set_struct(cfg, False)
+    cfg.pop("hydra")
+    return nav_settings(resolved(cfg)["nav"], choices)
+
+
+def nav_settings(plain: dict, choices: dict | None = None) -> NavSettings:
+    """:class:`NavSettings` from the resolved ``nav`` mapping (one :class:`ConfigError` naming a bad key)."""
+    choices = choices or {}
+    try:
+        return NavSettings(
+            detector=registry.settings_from(plain.get("detector"), "nav.detector"),
+            fix=build(FixParams, plain.get("fix") or {}, "nav.fix"),
+            lost_in_space=build(LostInSpaceParams, plain.get("lost_in_space") or {}, "nav.lost_in_space"),
+            frames=build(FramesSettings, plain.get("frames") or {}, "nav.frames"),
+            choices={
+                "detector": choices.get("nav/detector"),
+                "lost_in_space": choices.get("nav/lost_in_space"),
+                "preset": choices.get("nav/preset"),
+            },
+        )
+    except SettingsError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def map_scales(dparams: DetectorSettings, fparams: FixParams, gsd_m: float, predicted_r_px) -> DetectorSettings:
     """Detector settings searching only the crater radii the landmark map can use in this frame, as a
     lander knowing its altitude (hence its ground sample) and its coarse position would: from the
     smallest landmark's radius (``min_landmark_km`` / 2 at ``gsd_m``) to the largest radius of the
@@ -95,27 +155,3 @@ def map_scales(dparams: DetectorParams, fparams: FixParams, gsd_m: float, predic
     big = float(np.max(predicted_r_px)) if len(predicted_r_px) else fparams.min_landmark_km * 500.0 / gsd_m
     hi = max(big * fparams.radius_ratio, lo * dparams.scale_ratio**2)
     return dataclasses.replace(dparams, min_radius_px=lo, max_radius_px=hi)
-
-
-# --------------------------------------------------------------------------------------------
-# nav-eval
-# --------------------------------------------------------------------------------------------
-def params_with(overrides: tuple[str, ...], method: str = "classical") -> tuple[DetectorParams, FixParams]:
-    """Detector settings of ``method`` (:data:`crater_synth.navigation.detectors.classical.PRESETS`) and fix settings,
-    with ``key=value`` overrides (``detect.threshold=0.8``, ``fix.min_inliers=4``)."""
-    from crater_synth.navigation.detectors.classical import preset
-
-    base = preset(method)
-    groups = {"detect": dataclasses.asdict(base), "fix": dataclasses.asdict(FixParams())}
-    for o in overrides:
-        key, sep, value = o.partition("=")
-        group, _, name = key.partition(".")
-        if not sep or group not in groups or name not in groups[group]:
-            raise UserError(f"--set {o}: expected detect.<name>=<value> or fix.<name>=<value> with a known name")
-        old = groups[group][name]
-        try:
-            parsed = json.loads(value) if not isinstance(old, str) or value.startswith('"') else value
-            groups[group][name] = type(old)(parsed) if not isinstance(old, tuple) else tuple(parsed)
-        except (ValueError, TypeError):
-            raise UserError(f"--set {o}: {value!r} is not a {type(old).__name__}") from None
-    return DetectorParams(**groups["detect"]), FixParams(**groups["fix"])

@@ -17,14 +17,26 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
-import numpy as np
-
+from crater_core.settings_nav import DetectorSettings
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
 from crater_synth.paths import MODELS_DIR
 
 DEFAULT_MODEL = MODELS_DIR / "crater_detector_south.pt"
+
+
+@dataclass(frozen=True)
+class LearnedSettings(DetectorSettings):
+    """The learned detector's own settings (configs/nav/detector/learned.yaml)."""
+
+    NAME: ClassVar[str] = "learned"
+
+    threshold: float = 0.3  # heat-map peak of a candidate
+    model: str = ""  # model file ("": the committed south model)
 
 
 class DetectorModelFileError(UserError):
@@ -43,7 +55,7 @@ def load_model(path: str):
 
 def model_path(params) -> Path:
     """The model file a detector setting names ("" = the committed default)."""
-    return Path(params.learned_model) if params.learned_model else DEFAULT_MODEL
+    return Path(params.model) if params.model else DEFAULT_MODEL
 
 
 def first_level(min_radius_px: float) -> int:
@@ -54,12 +66,23 @@ def first_level(min_radius_px: float) -> int:
     return max(0, int(round(math.log2(max(min_radius_px, 1e-6) / (0.75 * BAND_LO_PX)))))
 
 
-def learned_candidates(a: np.ndarray, params):
-    """The network's craters in frame ``a``: (u, v, r, score) in frame pixels, radii within the
+def learned_candidates(frame: CandidateInput, params: LearnedSettings):
+    """The network's craters in ``frame.image``: (u, v, r, score) in frame pixels, radii within the
     detector's [min_radius_px, max_radius_px]."""
     from train.crater_detector import detect_pyramid
 
     model, _meta = load_model(str(model_path(params)))
-    u, v, r, s, _level = detect_pyramid(model, a, params.learned_threshold, first_level(params.min_radius_px))
+    u, v, r, s, _level = detect_pyramid(model, frame.image, params.threshold, first_level(params.min_radius_px))
     keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
     return u[keep], v[keep], r[keep], s[keep]
+
+
+# The network needs no Fourier spectrum and no light direction (no Sun knowledge).
+DETECTOR = DetectorEntry(
+    "learned",
+    LearnedSettings,
+    learned_candidates,
+    "fully convolutional network on an image pyramid, trained on rendered frames only "
+    "(crater_synth.navigation.detectors.learned, train.crater_detector)",
+    spectrum=False,
+)

@@ -2,12 +2,12 @@
 
 A crater seen at low Sun is a pattern, not an edge: a cast shadow on the Sun-facing inner wall, a lit
 opposite wall, flat terrain around. The template is that pattern rendered from an analytic crater (a
-parabolic bowl of depth ``template_depth_d`` x D with a raised rim decaying outside, the shape the tests'
+parabolic bowl of depth ``depth_d`` x D with a raised rim decaying outside, the shape the tests'
 synthetic craters and fresh lunar craters share) under the frame's light direction, at the Sun
-elevation ``template_sun_el_deg``, with the project's Hapke model (``crater_core.hapke.shade_np``, the
-lunar parameters of configs/hapke/lunar.yaml) and cast shadows. It is matched over scales by normalised
+elevation ``sun_el_deg``, with the project's Hapke model (``crater_core.hapke.shade_np``, the
+lunar parameters of the ``hapke`` settings group) and cast shadows. It is matched over scales by normalised
 cross-correlation (NCC: invariant to the frame's brightness and contrast, so one threshold serves every
-exposure); a local NCC maximum above ``template_threshold`` is a crater centred on the maximum, of the
+exposure); a local NCC maximum above ``threshold`` is a crater centred on the maximum, of the
 template's radius (no centre shift to fit: the template is centred on its crater).
 
 Speed: each scale runs on the frame decimated by a power of two so that the template's radius stays
@@ -22,24 +22,41 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
-from crater_synth.paths import CONFIG_DIR
+from crater_core.settings_nav import DetectorSettings
+from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
 
 TEMPLATE_MIN_R_PX = 4.5  # template radius on its decimated grid is in [4.5, 9) px
 TEMPLATE_HALF_WIDTH_R = 1.6  # the template covers +-1.6 r: the rim, its outer flank and some flat ground
-HAPKE_YAML = CONFIG_DIR / "hapke" / "lunar.yaml"
+
+
+@dataclass(frozen=True)
+class TemplateSettings(DetectorSettings):
+    """The template detector's own settings (configs/nav/detector/template.yaml)."""
+
+    NAME: ClassVar[str] = "template"
+
+    threshold: float = 0.35  # NCC of a template candidate
+    sun_el_deg: float = 10.0  # Sun elevation the template is shaded at
+    depth_d: float = 0.2  # template bowl depth / diameter
+
+    def _check(self) -> None:
+        from crater_core.typed_config import need
+
+        super()._check()
+        need(0.0 < self.sun_el_deg < 90.0, "sun_el_deg", self.sun_el_deg, "must be in (0, 90)")
 
 
 @functools.lru_cache(maxsize=1)
 def hapke_params():
-    """The project's lunar Hapke parameters (configs/hapke/lunar.yaml)."""
-    import yaml
+    """The project's lunar Hapke parameters (the composed configuration's ``hapke`` group)."""
+    from crater_synth.config import load_settings
 
-    from crater_core.hapke import HapkeParams
-
-    return HapkeParams.from_mapping(yaml.safe_load(HAPKE_YAML.read_text()))
+    return load_settings().hapke
 
 
 def crater_heights(rho: np.ndarray, depth_d: float) -> np.ndarray:
@@ -119,25 +136,32 @@ def ncc(image: np.ndarray, template: np.ndarray) -> np.ndarray:
     return out
 
 
-def template_candidates(spec, shape, radii, theta: float, params):
-    """NCC maxima over scales: (u, v, r, score) in frame pixels (``spec``, ``shape``: the padded frame's
+def template_candidates(frame: CandidateInput, params: TemplateSettings):
+    """NCC maxima over scales: (u, v, r, score) in frame pixels (``frame.spectrum``: the padded frame's
     spectrum from :func:`crater_synth.navigation.detectors.scalespace.spectrum`)."""
     from crater_synth.navigation.detectors.scalespace import PAD_PX, filtered, peaks
 
+    spec, shape = frame.spectrum
     frames: dict[int, np.ndarray] = {}
     us, vs, rs, ss = [], [], [], []
-    for r in radii:
+    for r in frame.radii:
         step = template_step(r)
         if step not in frames:
             # Anti-aliasing Gaussian of half a decimated pixel before decimation.
             frames[step] = filtered(spec, shape, 0.5 * step if step > 1 else 0.0, step)
-        t = crater_template(
-            round(float(theta), 4), float(params.template_sun_el_deg), round(r / step, 3), params.template_depth_d
-        )
+        t = crater_template(round(float(frame.light), 4), float(params.sun_el_deg), round(r / step, 3), params.depth_d)
         resp = ncc(frames[step], t)
-        i, j, c = peaks(resp, params.template_threshold)
+        i, j, c = peaks(resp, params.threshold)
         us.append(j * step - PAD_PX + 0.5)
         vs.append(i * step - PAD_PX + 0.5)
         rs.append(np.full(c.size, r))
         ss.append(c)
     return tuple(np.concatenate(x) for x in (us, vs, rs, ss))
+
+
+DETECTOR = DetectorEntry(
+    "template",
+    TemplateSettings,
+    template_candidates,
+    "normalised cross-correlation with a Hapke-shaded crater template (crater_synth.navigation.detectors.template)",
+)

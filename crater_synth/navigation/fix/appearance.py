@@ -26,12 +26,12 @@ known Sun and attitude. It is evaluated on rendered frames only (docs/navigation
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
 from crater_core import geometry
+from crater_core.settings_nav import AppearanceSettings
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.refine import (
     ncc_at_offsets,
@@ -40,15 +40,6 @@ from crater_synth.navigation.fix.refine import (
     samples_in_reach,
     square_offsets,
 )
-
-
-@dataclasses.dataclass(frozen=True)
-class AppearanceParams:
-    """Settings of the appearance search (chosen on development frames: docs/navigation.md, section 9)."""
-
-    min_ncc: float = 0.9  # a weaker peak is no detection
-    coarse_steps: int = 8  # the first grid's steps each way across the search
-    margin_px: int = 3  # added to the prior's uncertainty (px)
 
 
 def blurred_frames(frame: np.ndarray):
@@ -124,12 +115,13 @@ def appearance_detections(
     (lat, lon)) that a camera at ``c_prior`` with world->camera rotation ``r_wc`` and intrinsics ``k`` (the
     convention of :func:`.fix.project_pinhole`) places in the frame ``image``, each searched for by its
     predicted appearance under the Sun ``to_sun_mc`` as far as ``search_km`` (the prior's uncertainty) at
-    its depth (module docstring); ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke
+    its depth (module docstring), with the search settings ``params`` (:class:`AppearanceSettings`);
+    ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke
     model. Returns (detections, the predicted windows by landmark id, for the refinement to reuse)."""
     from crater_synth.navigation.fix.solve import project_pinhole
     from crater_synth.terrain.dem import DemError
 
-    params = params or AppearanceParams()
+    params = params or AppearanceSettings()
     lat0, lon0 = origin
     height, width = image.shape
     if not len(landmarks):

@@ -27,19 +27,17 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   or not it reached ``min_inliers``). A repeated crater pattern therefore gives "no fix".
 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
-smallest distance error kept), ``n_verify`` RANSAC runs. Settings (:data:`LIS_PRESETS`) were chosen on
+smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
 south windows only (docs/navigation.md, "Lost in space").
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from crater_synth.errors import UserError
 from crater_synth.navigation.fix.solve import (
     Fix,
     FixParams,
@@ -80,27 +78,6 @@ def window_heading_deg(params: LostInSpaceParams) -> float | None:
     """The heading :func:`lost_in_space_fix` is given for a map window: 0 (north-up on the map) when the
     settings say the attitude gives it, else None (the vote's heading is free)."""
     return 0.0 if params.known_heading else None
-
-
-# Frozen settings, chosen on south windows (docs/navigation.md, "Lost in space").
-LIS_PRESETS = {"south-choice": LostInSpaceParams(gate_km=4.0)}
-
-
-def lis_params_with(name: str, overrides: tuple[str, ...]):
-    """Lost-in-space settings of preset ``name`` with ``lis.<name>=<value>`` overrides."""
-    if name not in LIS_PRESETS:
-        raise UserError(f"--lis-preset {name}: expected one of {sorted(LIS_PRESETS)}")
-    values = asdict(LIS_PRESETS[name])
-    for o in overrides:
-        key, sep, value = o.partition("=")
-        field_name = key.partition(".")[2]
-        if not sep or field_name not in values:
-            raise UserError(f"--set {o}: expected lis.<name>=<value> with a known name")
-        try:
-            values[field_name] = type(values[field_name])(json.loads(value))
-        except (ValueError, TypeError):
-            raise UserError(f"--set {o}: {value!r} is not a {type(values[field_name]).__name__}") from None
-    return replace(LIS_PRESETS[name], **values)
 
 
 @dataclass(frozen=True)

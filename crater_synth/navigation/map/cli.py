@@ -8,6 +8,7 @@ checks and the figure), which the build and the check each use.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -26,6 +27,87 @@ from crater_synth.navigation.map.check import (
 from crater_synth.terrain.stack import open_dem_entry
 
 
+@dataclass(frozen=True)
+class BaseMap:
+    """The map ``--add-to`` names: its landmarks, provenance, DEM pixel size and smallest landmark size."""
+
+    path: Path
+    landmarks: list
+    provenance: dict
+    pixel_m: float
+    min_diameter_km: float
+
+
+def read_base_map(add_to: Path, pole: str, product: str) -> BaseMap:
+    """The ``--add-to`` map, refused (one line) when of another pole, already holding the layer ``product``
+    or without the provenance a layer needs."""
+    base, prov = lmap.read_map(add_to)
+    if prov["pole"] != pole:
+        raise UserError(f"--add-to {add_to}: a {prov['pole']} map, not {pole}")
+    if any(layer["dem_product"] == product for layer in prov.get("layers", [])):
+        raise UserError(f"--add-to {add_to}: DEM layer {product!r} is already in it")
+    try:
+        return BaseMap(add_to, base, prov, float(prov["dem_pixel_m"]), float(prov["parameters"]["min_diameter_km"]))
+    except (KeyError, TypeError, ValueError):
+        raise UserError(
+            f"--add-to {add_to}: its provenance gives no DEM pixel size or smallest landmark size "
+            "(a map written by crater-synth landmarks has both)"
+        ) from None
+
+
+def figure_path(out: Path, figure: Path | None, product: str, layer: bool) -> Path:
+    """The map figure: ``--figure``, else beside ``out`` (a layer's named after its DEM product); never the
+    committed docs figure unless ``--figure`` names it."""
+    if figure is not None:
+        return figure
+    return out.with_name(f"{out.stem}_{product}.png") if layer else out.with_suffix(".png")
+
+
+def layer_result(base: BaseMap, landmarks, built: dict, dem, product: str, min_d: float):
+    """(landmarks, provenance, figure bytes, summary line) of a finer DEM layer added to ``base``."""
+    combined = lmap.add_layer(base.landmarks, base.min_diameter_km, landmarks, product, min_d)
+    added = len(combined) - len(base.landmarks)
+    provenance = {**base.provenance, "layers": [*base.provenance.get("layers", []), {**built, "added": added}]}
+    fig_bytes = map_figure(combined[len(base.landmarks) :] or landmarks, dem, None, base.provenance["pole"])
+    summary = (
+        f"{added} landmarks of {min_d:g}-{base.min_diameter_km:g} km from {product} added to the "
+        f"{len(base.landmarks)} of {base.path}"
+    )
+    return combined, provenance, fig_bytes, summary
+
+
+def map_provenance(pole: str, built: dict, stats: dict, check) -> dict:
+    """The provenance of a new map: its DEM, method, parameters, build statistics and checks."""
+    return {
+        "pole": pole,
+        **{k: built[k] for k in ("dem_product", "dem_sha256", "dem_pixel_m")},
+        "method": "ring-minus-disk scale-space candidates, rim measured by "
+        "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
+        "named catalogue merged (docs/navigation.md)",
+        **{k: built[k] for k in ("parameters", "build")},
+        "catalogue_merge": stats["catalogue"],
+        "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
+        **{k: built[k] for k in ("catalogue_check", "build_seconds")},
+    }
+
+
+def echo_iau_check(check) -> None:
+    """Print the IAU check; exit status 1 when its recall is below the target."""
+    if check is None:
+        return
+    if check["recall"] is None:
+        click.echo("IAU check: no IAU crater >= 50 km inside this DEM")
+        return
+    click.echo(
+        f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
+        f"(DEM detection alone {check['recall_dem_detection_only']:.3f}); target {check['target']}"
+    )
+    for m in check["missed"]:
+        click.echo(f"  missed: D {m['diameter_km']:.1f} km at ({m['lat']:.2f}, {m['lon']:.2f})")
+    if check["recall"] < check["target"]:
+        raise SystemExit(1)
+
+
 @click.command("landmarks")
 @click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
 @click.option("--dem-product", default=None, help="Registry DEM product (default: the pole's LDEM_256 product).")
@@ -39,7 +121,7 @@ from crater_synth.terrain.stack import open_dem_entry
     "--figure",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Map figure PNG (default: docs/img/landmarks_<pole>.png for the committed map, else next to --out).",
+    help="Map figure PNG (default: next to --out; the committed docs/img/landmarks_<pole>.png only when named).",
 )
 @click.option(
     "--add-to",
@@ -54,10 +136,11 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     """Measure the landmark map of a polar DEM: closed depressions D >= 10 km, catalogue merged, IAU check.
 
     Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
-    a map figure. Exit status 1 when the IAU recall is below 0.95. Example: `crater-synth landmarks`.
-    The committed map (data_manifest/landmarks/<pole>.geojson) is the data of record the navigation and the
-    rendered frames' labels use; a rebuild does not reproduce every landmark (docs/navigation.md, section 1),
-    so it is replaced only when `--out` names it (then `crater-synth nav-frames-relabel` each frames folder).
+    a map figure beside it (`--figure` elsewhere). Exit status 1 when the IAU recall is below 0.95. Example:
+    `crater-synth landmarks`. The committed map (data_manifest/landmarks/<pole>.geojson) is the data of
+    record the navigation and the rendered frames' labels use; a rebuild does not reproduce every landmark
+    (docs/navigation.md, section 1), so it is replaced only when `--out` names it (then `crater-synth
+    nav-frames-relabel` each frames folder), and its docs figure only when `--figure` names it.
     A DEM of another pixel size is measured down to the same number of its pixels (1.25 km at 200 m/px).
     `--add-to MAP --dem-product LAYER`: measures the finer layer and writes MAP with the layer's landmarks
     smaller than MAP's smallest size added (those duplicating none of MAP's), the layer in its provenance.
@@ -65,37 +148,18 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     from crater_core.schema import atomic_write_bytes, atomic_write_text
 
     product = dem_product or lmap.DEM_PRODUCTS[pole]
-    base = None
-    if add_to is not None:
-        base, base_prov = lmap.read_map(add_to)
-        if base_prov["pole"] != pole:
-            raise UserError(f"--add-to {add_to}: a {base_prov['pole']} map, not {pole}")
-        if any(layer["dem_product"] == product for layer in base_prov.get("layers", [])):
-            raise UserError(f"--add-to {add_to}: DEM layer {product!r} is already in it")
-        try:
-            base_pixel_m = float(base_prov["dem_pixel_m"])
-            base_min = float(base_prov["parameters"]["min_diameter_km"])
-        except (KeyError, TypeError, ValueError):
-            raise UserError(
-                f"--add-to {add_to}: its provenance gives no DEM pixel size or smallest landmark size "
-                "(a map written by crater-synth landmarks has both)"
-            ) from None
-    dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
-    if base is not None and dem.pixel_size_m >= base_pixel_m:
-        raise UserError(
-            f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
-            f"{base_prov.get('dem_product')} ({base_pixel_m:g} m/px)"
-        )
-    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
-    committed = out.resolve() == lmap.COMMITTED_MAP[pole].resolve()
-    if base is None:
-        figure = figure or (lmap.COMMITTED_FIGURE[pole] if committed else out.with_suffix(".png"))
-    else:  # the figure shows the layer's landmarks
-        default = lmap.COMMITTED_FIGURE[pole].with_name(f"landmarks_{pole}_{product}.png")
-        figure = figure or (default if committed else out.with_name(f"{out.stem}_{product}.png"))
-    t0 = time.time()
+    base = None if add_to is None else read_base_map(add_to, pole, product)
     if workers < 1:
         raise UserError(f"--workers={workers} must be >= 1")
+    dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
+    if base is not None and dem.pixel_size_m >= base.pixel_m:
+        raise UserError(
+            f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
+            f"{base.provenance.get('dem_product')} ({base.pixel_m:g} m/px)"
+        )
+    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
+    figure = figure_path(out, figure, product, base is not None)
+    t0 = time.time()
     limits = lmap.dem_size_limits(dem)
     landmarks, stats = lmap.build_map(dem, pole, progress=True, workers=workers, merge_named=base is None)
     if not landmarks:
@@ -115,45 +179,19 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     }
     check = None
     if base is not None:
-        combined = lmap.add_layer(base, base_min, landmarks, product, limits["min_diameter_km"])
-        added = len(combined) - len(base)
-        provenance = {**base_prov, "layers": [*base_prov.get("layers", []), {**built, "added": added}]}
-        fig_bytes = map_figure(combined[len(base) :] or landmarks, dem, None, pole)
-        landmarks = combined
-        summary = (
-            f"{added} landmarks of {limits['min_diameter_km']:g}-{base_min:g} km from {product} added to the "
-            f"{len(base)} of {add_to}"
+        landmarks, provenance, fig_bytes, summary = layer_result(
+            base, landmarks, built, dem, product, limits["min_diameter_km"]
         )
     else:
         check = None if no_check else iau_check(landmarks, pole, dem)
-        provenance = {
-            "pole": pole,
-            **{k: built[k] for k in ("dem_product", "dem_sha256", "dem_pixel_m")},
-            "method": "ring-minus-disk scale-space candidates, rim measured by "
-            "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
-            "named catalogue merged (docs/navigation.md)",
-            **{k: built[k] for k in ("parameters", "build")},
-            "catalogue_merge": stats["catalogue"],
-            "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
-            **{k: built[k] for k in ("catalogue_check", "build_seconds")},
-        }
+        provenance = map_provenance(pole, built, stats, check)
         fig_bytes = map_figure(landmarks, dem, check, pole)
         summary = f"{len(landmarks)} landmarks from {stats['candidates']} candidates"
     atomic_write_text(out, lmap.to_geojson(landmarks, provenance))
     atomic_write_bytes(figure, fig_bytes)
     click.echo(f"wrote {out} ({summary}) and {figure}")
     click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
-    if check is not None and check["recall"] is not None:
-        click.echo(
-            f"IAU check: {check['n_inside_dem']} craters >= 50 km inside the DEM, recall {check['recall']:.3f} "
-            f"(DEM detection alone {check['recall_dem_detection_only']:.3f}); target {check['target']}"
-        )
-        for m in check["missed"]:
-            click.echo(f"  missed: D {m['diameter_km']:.1f} km at ({m['lat']:.2f}, {m['lon']:.2f})")
-        if check["recall"] < check["target"]:
-            raise SystemExit(1)
-    elif check is not None:
-        click.echo("IAU check: no IAU crater >= 50 km inside this DEM")
+    echo_iau_check(check)
 
 
 @click.command("landmarks-check")

@@ -47,7 +47,7 @@ import numpy as np
 
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import check_pole, stereo_forward, stereo_inverse
-from crater_synth.paths import LANDMARKS_DIR, SOURCE_ROOT
+from crater_synth.paths import LANDMARKS_DIR
 
 MAP_FORMAT = "crater-synth-landmarks/1"
 # ---- candidate scale space. The sizes are set for the LDEM_256 grid (REFERENCE_PIXEL_M); a DEM of
@@ -74,7 +74,6 @@ DUPLICATE_DIAMETER = 0.25
 DEM_PRODUCTS = {"south": "lola_ldem256_south", "north": "lola_ldem256_north"}
 DATA_DIR = "data"  # the configuration's default data_dir; the maps' DEMs (and layers) are embedded: none needed
 COMMITTED_MAP = {pole: LANDMARKS_DIR / f"{pole}.geojson" for pole in ("south", "north")}
-COMMITTED_FIGURE = {pole: SOURCE_ROOT / "docs" / "img" / f"landmarks_{pole}.png" for pole in ("south", "north")}
 
 
 class LandmarkMapError(UserError):

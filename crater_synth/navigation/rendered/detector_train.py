@@ -16,7 +16,7 @@ import numpy as np
 
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, load_model
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.paths import SOURCE_ROOT
 
@@ -108,7 +108,6 @@ def train_from_survey(
 ) -> dict:
     """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
     to ``out`` with its provenance; returns the summary written into the model."""
-    from crater_synth.navigation.detectors.classical import DetectorParams
     from train.crater_detector import level_samples, save_model, settings_dict, train_detector
 
     dirs = track_dirs(frames_dir)
@@ -137,7 +136,7 @@ def train_from_survey(
     tmp = Path(str(out) + ".scoring.pt")
     save_model(tmp, result["model"], meta)
     try:
-        params = DetectorParams(method="learned", learned_model=str(tmp), min_radius_px=4.5, refine=False)
+        params = LearnedSettings(model=str(tmp), min_radius_px=4.5, refine=False)
         meta["synthetic_holdout"] = score_synthetic(holdout_records, params)
     finally:
         tmp.unlink(missing_ok=True)

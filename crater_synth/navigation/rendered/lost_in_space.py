@@ -28,12 +28,12 @@ import click
 import numpy as np
 
 from crater_core import exr, geometry
-from crater_synth.cli_common import user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.georef import pole_of, stereo_forward
 from crater_synth.navigation.protocol import lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import cv_camera, light_direction, match_pixels, perfect_detections
-from crater_synth.navigation.settings import FRAMES_PRESETS, frames_params, map_scales
+from crater_synth.navigation.settings import compose_nav, map_scales
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
 
@@ -84,13 +84,14 @@ def boresight_range_m(depth: np.ndarray) -> float:
     return float(np.mean(depth[h // 2 - 1 : h // 2 + 1, w // 2 - 1 : w // 2 + 1]))
 
 
-def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index, lis, detections=None) -> dict:
+def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detections=None) -> dict:
     """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
-    its pose and labels. ``detections`` replaces the detector's (the perfect-detection check). With
-    ``lis.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
+    its pose and labels, with the settings ``nav`` (its detector, fix and ``lost_in_space``; ``index``: the
+    map's pair index). ``detections`` replaces the detector's (the perfect-detection check). With
+    ``nav.lost_in_space.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
     from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix
 
-    dparams, fparams, _ = frames_params(preset)
+    dparams, fparams, lis = nav.detector, nav.fix, nav.lost_in_space
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     gsd = float(row["ground_sample_m"])
@@ -130,15 +131,18 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, preset: str, index
     return out
 
 
-def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-choice", sets: tuple = ()) -> dict:
-    """Every frame of a ``nav-frames`` directory lost in space (pair vote settings: ``lis_preset`` with
-    ``lis.<name>=<value>`` overrides ``sets``), with the detector and with perfect detections; per-frame
+def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
+    """Every frame of a ``nav-frames`` directory lost in space with the settings ``nav`` (a crater detector's;
+    the pair vote's are ``nav.lost_in_space``), with the detector and with perfect detections; per-frame
     rows and both summaries."""
-    from crater_synth.navigation.fix.lost_in_space import build_index, lis_params_with
+    from crater_synth.errors import UserError
+    from crater_synth.navigation.fix.lost_in_space import build_index
     from crater_synth.navigation.map.landmarks import load_default_map
     from crater_synth.navigation.rendered.labels import labelled_rows
 
-    lis = lis_params_with(lis_preset, tuple(sets))
+    if nav.appearance:
+        raise UserError("lost in space needs a crater detector (the appearance search needs a prior)")
+    lis = nav.lost_in_space
     maps: dict[str, tuple] = {}
     out = []
     for row in labelled_rows(frames_dir):
@@ -149,18 +153,18 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
         path = Path(frames_dir) / row["rel_path"]
         channels = exr.read_channels(path, ("IF", "depth"))
         image, depth = channels["IF"], channels["depth"]
-        r = lis_frame(row, image, depth, maps[pole][0], preset, maps[pole][1], lis)
+        r = lis_frame(row, image, depth, maps[pole][0], nav, maps[pole][1])
         # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
         # given as a detection (its own ellipse): what the detector's result is to be read against.
         big = [
             d for d, lb in zip(perfect_detections(row), row["landmarks"]) if lb["diameter_km"] >= lis.min_landmark_km
         ]
-        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], preset, maps[pole][1], lis, detections=big)
+        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], nav, maps[pole][1], detections=big)
         out.append(r)
     return {
         "frames_dir": str(frames_dir),
-        "preset": preset,
-        "lis_preset": lis_preset,
+        "preset": nav.preset,
+        "lis_preset": nav.choices["lost_in_space"],
         "lis_settings": lis.as_dict(),
         "summary": lost_in_space_summary(out),
         "perfect_summary": lost_in_space_summary([r["perfect"] for r in out]),
@@ -171,28 +175,20 @@ def evaluate_lis_dir(frames_dir: Path, preset: str, lis_preset: str = "south-cho
 @click.command("nav-frames-lis")
 @click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option(
-    "--preset",
-    type=click.Choice(sorted(FRAMES_PRESETS)),
-    default="synthetic",
-    show_default=True,
-    help="nav-frames-eval preset whose detector settings are used.",
-)
-@click.option(
-    "--lis-preset", default="south-choice", show_default=True, help="Pair-vote settings (lost_in_space.LIS_PRESETS)."
-)
-@click.option("--set", "sets", multiple=True, help="lis.<name>=<value> override of the pair-vote settings.")
-@click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the rows."
 )
+@OVERRIDES
 @user_errors
-def nav_frames_lis_command(frames_dir, preset, lis_preset, sets, json_path):
+def nav_frames_lis_command(frames_dir, json_path, overrides):
     """Lost in space on rendered frames: no position prior; attitude, altimeter range and pixel scale known.
+    Settings are Hydra overrides (docs/navigation/settings.md): the detector of `nav/preset=synthetic` (the
+    default), the pair vote's `nav.lost_in_space.<name>=<value>`.
 
     Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
     """
     from crater_core.schema import atomic_write_json
 
-    result = evaluate_lis_dir(frames_dir, preset, lis_preset, sets)
+    result = evaluate_lis_dir(frames_dir, compose_nav(overrides, defaults=["nav/preset=synthetic"]))
     for r in result["rows"]:
         p = r["perfect"]
         tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]

@@ -2,7 +2,7 @@
 
 A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a north-up map window, so
 ``navigate`` hands it here: its row in the ``manifest.jsonl`` beside it gives the camera pose and the Sun;
-the detector and fix settings are a ``nav-frames-eval`` preset (:data:`.frames_presets.FRAMES_PRESETS`);
+the detector and fix settings are a ``nav/preset`` (configs/nav/preset/);
 the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
 known-attitude camera centre (:func:`.frames_eval.evaluate_frame`; with ``six_dof`` the 6-DOF pose), refined
 by appearance where the preset says so (:mod:`.refine`). Its truth is exact, so the error is
@@ -46,19 +46,19 @@ def frame_row_of(image: Path) -> dict:
 
 
 def navigate_rendered_frame(
-    image: Path, preset: str, out: Path, seed: int = 0, patches: bool = False, six_dof: bool = False
+    image: Path, nav, out: Path, seed: int = 0, patches: bool = False, six_dof: bool = False
 ) -> dict:
-    """Detect, identify and fix one rendered frame with the ``nav-frames-eval`` preset ``preset``; writes
+    """Detect, identify and fix one rendered frame with the navigation settings ``nav`` (a ``nav/preset``,
+    :func:`.settings.compose_nav`); writes
     the annotated PNG ``out`` and returns the result (one JSON object). ``patches``: a frame its craters do
     not fix is navigated with terrain patches (:func:`.frames_eval.with_patch_fallback`; the appearance
-    preset only); ``six_dof``: the 6-DOF fix (attitude too, ``nav-frames-eval --method pnp``), refined by
+    preset only); ``six_dof``: the 6-DOF fix (attitude too, ``nav.frames.solver=pnp``), refined by
     appearance where the preset refines."""
     from crater_synth.navigation.fix.patches import PatchParams
     from crater_synth.navigation.fix.refine import Refiner, lander_dem
     from crater_synth.navigation.georef import pole_of
     from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.rendered.evaluate import evaluate_frame, with_patch_fallback
-    from crater_synth.navigation.settings import frames_params
+    from crater_synth.navigation.rendered.evaluate import evaluate_frame, frame_run, with_patch_fallback
 
     row = frame_row_of(image)
     try:
@@ -67,20 +67,18 @@ def navigate_rendered_frame(
         raise FrameError(str(exc)) from None
     pole = pole_of(row["frame_origin"]["lat"])
     landmarks = load_default_map(pole)[0]
-    dparams, fparams, pre = frames_params(preset)
-    refiner = Refiner(lander_dem(pole)) if pre.refine or pre.appearance else None
-    kw = dict(seed=seed, scales_from_map=pre.scales_from_map, inlier_px=pre.inlier_px, refiner=refiner)
-    kw.update(appearance=pre.appearance, method="pnp" if six_dof else "position", refine_pnp=six_dof)
-    r = evaluate_frame(row, img, landmarks, dparams, fparams, **kw)
+    preset = nav.preset or nav.choices["detector"]
+    run = frame_run(nav, seed=seed, method="pnp" if six_dof else "position", refine_pnp=six_dof)
+    refiner = Refiner(lander_dem(pole)) if run.refine or run.appearance else None
+    r = evaluate_frame(row, img, landmarks, run, refiner=refiner)
     if patches:
-        if pre.appearance is None:
+        if run.appearance is None:
             raise FrameError(f"--patches needs the appearance search, not the {preset} preset")
-        kw.pop("refiner")
-        r = with_patch_fallback(r, row, img, landmarks, refiner, PatchParams(), dparams=dparams, fparams=fparams, **kw)
+        r = with_patch_fallback(r, row, img, landmarks, refiner, PatchParams(), run)
     result = {
         "image": str(image),
         "preset": preset,
-        "detector": pre.detector,
+        "detector": nav.detector.method,
         "position_prior": "true camera + 5 km, true attitude",
         "fix_method": "6-DOF (attitude and position)" if six_dof else "known attitude",
         "altitude_km": round(r["altitude_km"], 3),

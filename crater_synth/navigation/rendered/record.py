@@ -8,10 +8,8 @@ import json
 from pathlib import Path
 
 from crater_core import exr, schema
-from crater_synth.navigation.detectors.classical import DetectorParams
-from crater_synth.navigation.fix.solve import FixParams
-from crater_synth.navigation.protocol import FALSE_FIX_KM, PRIOR_OFFSET_KM, RESULTS_JSON
-from crater_synth.navigation.settings import PNP_INLIER_PX, RESULTS_UNSUFFIXED_PRESET
+from crater_synth.navigation.protocol import FALSE_FIX_KM, PRIOR_OFFSET_KM
+from crater_synth.navigation.settings import RESULTS_UNSUFFIXED_PRESET
 
 FRAMES_EVAL_JSON = "frames_eval.json"
 FRAME_FIELDS = (
@@ -30,22 +28,11 @@ FRAME_FIELDS = (
     "prior_sigma_km",  # the prior's uncertainty (--sequential: carried from the last fix)
     "sigma_horizontal_km",  # the fix's own 1-sigma horizontal uncertainty
     "fix_position",  # the fixed camera centre: planetocentric lat, lon (deg), altitude above the sphere (m)
-    "attitude_error_deg",  # --method pnp: the angle between the fixed and the true camera attitude
+    "attitude_error_deg",  # nav.frames.solver=pnp: the angle between the fixed and the true camera attitude
 )
 
 
-def frames_record(
-    frames_dir: Path,
-    summary: dict,
-    rows: list[dict],
-    seed: int,
-    method: str,
-    fparams: FixParams,
-    sets=(),
-    preset: str | None = None,
-    dparams: DetectorParams | None = None,
-    inlier_px: float = PNP_INLIER_PX,
-) -> dict:
+def frames_record(frames_dir: Path, summary: dict, rows: list[dict], seed: int, nav, overrides=()) -> dict:
     """The machine-readable result of ``nav-frames-eval`` (``--json``; read by ``crater-synth report``):
     per frame the altitude, ground sample, landmarks in view (all labels; and >= the fix's minimum size),
     detections, matched labels and the fix (or the reason for none) of the detector and of the
@@ -72,15 +59,15 @@ def frames_record(
         "schema_version": 1,
         "frames_dir": str(Path(frames_dir).resolve()),
         "trajectory": rows[0]["id"].split("/")[0],
-        "method": method,
+        "method": nav.frames.solver,
         "seed": seed,
-        "settings": list(sets),
-        "preset": preset,
-        "detector": dparams.as_dict() if dparams is not None else None,
-        "fix_settings": fparams.as_dict(),
-        "inlier_px": inlier_px,
-        "min_landmark_km": fparams.min_landmark_km,
-        "min_inliers": fparams.min_inliers,
+        "settings": list(overrides),
+        "preset": nav.preset,
+        "detector": None if nav.appearance else nav.detector.as_dict(),  # the appearance search runs none
+        "fix_settings": nav.fix.as_dict(),
+        "inlier_px": nav.frames.inlier_px,
+        "min_landmark_km": nav.fix.min_landmark_km,
+        "min_inliers": nav.fix.min_inliers,
         "false_fix_km": FALSE_FIX_KM,
         "render": _render_info(frames_dir),
         "summary": summary,
@@ -103,11 +90,12 @@ def _render_info(frames_dir: Path) -> dict:
     }
 
 
-def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: str, method: str, pre) -> None:
-    """Record ``summary`` (a trajectory's, with the preset ``pre`` named ``preset``) under ``synthetic`` in
-    docs/results/navigation.json, keyed by trajectory, fix method and preset (and the sensor, terrain patches
-    and sequential priors where they were used)."""
-    results = json.loads(RESULTS_JSON.read_text(encoding="utf-8")) if RESULTS_JSON.is_file() else {}
+def record_results(path: Path, frames_dir: Path, rows: list[dict], summary: dict, nav) -> None:
+    """Record ``summary`` (a trajectory's, with the settings ``nav`` of a ``nav/preset``) under ``synthetic``
+    in the results file ``path`` (e.g. docs/results/navigation.json; its other entries kept), keyed by
+    trajectory, fix solver and preset (and the sensor, terrain patches and sequential priors where used)."""
+    preset, method = nav.preset, nav.frames.solver
+    results = json.loads(Path(path).read_text(encoding="utf-8")) if Path(path).is_file() else {}
     info = _render_info(frames_dir)
     key = f"{rows[0]['id'].split('/')[0]}/{method}" + ("" if preset == RESULTS_UNSUFFIXED_PRESET else f"/{preset}")
     key += f"/sensor={summary['sensor']}" if summary.get("sensor") else ""
@@ -125,11 +113,10 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
             "light_direction": "given (attitude + ephemeris)",
             "preset": preset,
             "preset_settings": {
-                "detector": pre.detector,
-                "sets": list(pre.sets),
-                "scales_from_map": pre.scales_from_map,
-                "inlier_px": pre.inlier_px,
-                "refine": pre.refine,
+                "detector": nav.detector.method,
+                "scales_from_map": nav.frames.scales_from_map,
+                "inlier_px": nav.frames.inlier_px,
+                "refine": nav.frames.refine,
             },
             "method": method,
             "patches": summary.get("patches"),  # terrain patches where the craters give no fix (None: off)
@@ -146,4 +133,4 @@ def record_results(frames_dir: Path, rows: list[dict], summary: dict, preset: st
         ],
         **summary,
     }
-    schema.atomic_write_text(RESULTS_JSON, json.dumps(results, indent=1) + "\n")
+    schema.atomic_write_text(Path(path), json.dumps(results, indent=1) + "\n")

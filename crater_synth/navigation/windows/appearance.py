@@ -1,4 +1,4 @@
-"""Landmark search by predicted appearance on map windows (``nav-eval --method appearance``).
+"""Landmark search by predicted appearance on map windows (``nav-eval nav/detector=appearance``).
 
 The rendered-frame search (:mod:`.appearance`) predicts each map landmark as a lander's camera should
 see it and finds it by normalised cross-correlation (NCC). A mosaic window is an orthographic nadir
@@ -7,7 +7,7 @@ frame of the polar stereographic map (:mod:`.frames`), so here each landmark's w
 is shaded with the project's Hapke model for a nadir view and placed in the frame through the prior
 georeference (each sample's (lat, lon) -> map (x, y) -> pixel), then searched for as far as the prior's
 uncertainty (``prior_sigma_km`` of :class:`.fix.FixParams`) plus ``margin_px``, coarse to fine
-(:func:`.appearance.register_wide`). A peak of NCC >= ``appearance_min_ncc`` is a detection at the
+(:func:`.appearance.register_wide`). A peak of NCC >= ``min_ncc`` is a detection at the
 landmark's rim circle moved by the shift; identification and fix are the detectors'
 (:func:`.fix.fix_frame`), so a landmark found in the wrong place is an outlier the fix must reject.
 
@@ -15,7 +15,7 @@ The Sun. A mosaic has no image time. Its azimuth is the frozen light model's (:m
 azimuth per mosaic quadrant, pooled from image statistics, here the direction the light travels, so the
 Sun lies opposite), turned into each landmark's own local frame. Its elevation is not known either: the
 mosaic's images were taken over many orbits and the elevation changes with latitude. Each window tries
-the ``appearance_sun_el_deg`` elevations and keeps the one whose predictions correlate best with the
+the ``sun_el_deg`` elevations and keeps the one whose predictions correlate best with the
 window (the median peak NCC over the landmarks searched): image statistics under the prior, no truth.
 The terrain of a window is read once per landmark and Sun azimuth (:meth:`.refine.Refiner.terrain`,
 kept between frames); only the shading changes with the elevation.
@@ -73,9 +73,9 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
     height, width = frame.shape
     blurred = blurred_frames(frame)
 
-    search = math.ceil(fparams.prior_sigma_km * 1000.0 / georef.pixel_m) + dparams.appearance_margin_px
+    search = math.ceil(fparams.prior_sigma_km * 1000.0 / georef.pixel_m) + dparams.margin_px
     sun_az = light_azimuth_rad + math.pi
-    elevations = tuple(dparams.appearance_sun_el_deg)
+    elevations = tuple(dparams.sun_el_deg)
     found: list[list] = [[] for _ in elevations]  # per elevation: (landmark, shift, NCC, predicted pixel)
     in_view = []
     for lm in landmarks:
@@ -99,9 +99,7 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
             if uv is None:
                 lat, lon, _ = geometry.mc_to_latlon(points)
                 uv = np.stack(georef.xy_to_uv(*stereo_forward(lat, lon, georef.pole)), axis=-1)
-            shift, ncc = register_wide(
-                frame, uv, predicted, search, dparams.appearance_coarse_steps, blurred, dparams.appearance_thin
-            )
+            shift, ncc = register_wide(frame, uv, predicted, search, dparams.coarse_steps, blurred, dparams.thin)
             found[k].append((lm, shift, ncc, (u0, v0)))
     if not any(found):
         return [], None
@@ -113,7 +111,7 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
     dets = [
         Detection(u0 + shift[0], v0 + shift[1], lm.diameter_km * 500.0 / georef.pixel_m, float(ncc))
         for lm, shift, ncc, (u0, v0) in found[best]
-        if shift is not None and ncc >= dparams.appearance_min_ncc
+        if shift is not None and ncc >= dparams.min_ncc
     ]
     return dets, elevations[best]
 

@@ -28,9 +28,11 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_synth.cli_common import user_errors
+from crater_core.settings_nav import DetectorSettings
+from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import DetectorParams, detect
+from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM, FixParams, fix_frame
 from crater_synth.navigation.georef import Frame, Georef, ground_distance_km
 from crater_synth.navigation.protocol import (
@@ -39,14 +41,13 @@ from crater_synth.navigation.protocol import (
     MATCH_CENTRE_D,
     MATCH_DIAMETER,
     PRIOR_OFFSET_KM,
-    RESULTS_JSON,
     TARGETS,
     check_prior_offset_km,
     match_detections,
     summarise,
     truth_in_frame,
 )
-from crater_synth.navigation.settings import params_with
+from crater_synth.navigation.settings import compose_nav, detector_options
 from crater_synth.navigation.windows.light import frame_light
 
 
@@ -63,7 +64,7 @@ def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) ->
 def navigate_window(
     frame: Frame,
     landmarks,
-    dparams: DetectorParams,
+    dparams: DetectorSettings,
     fparams: FixParams,
     seed: int = 0,
     lis=None,
@@ -76,7 +77,7 @@ def navigate_window(
     added to the light direction, and the fix with most inliers (then the lowest RMS, then the first
     offset) is kept; with none fixed, the first offset's detections are returned."""
     prior = prior_georef(frame, seed, prior_offset_km)
-    if dparams.method == "appearance":
+    if registry.detector(dparams.method).candidates is None:  # the appearance search
         return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
     best = None
@@ -107,8 +108,8 @@ def navigate_window(
 LOST_IN_SPACE_FIRST_STAGE = "template"
 
 
-def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams: FixParams, prior: Georef, lis):
-    """:func:`navigate_window` for ``detect.method="appearance"`` (:mod:`.appearance_window`): the landmarks
+def _appearance_frame(frame: Frame, landmarks, dparams: DetectorSettings, fparams: FixParams, prior: Georef, lis):
+    """:func:`navigate_window` for ``nav.detector.method="appearance"`` (:mod:`.appearance_window`): the landmarks
     searched for under the prior, the light of the local model, then the same fix. Lost in space
     (``lis``): the prior is the :data:`LOST_IN_SPACE_FIRST_STAGE` detector's lost-in-space fix, and a frame
     it cannot fix is "no fix"."""
@@ -117,14 +118,13 @@ def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams:
     from crater_synth.navigation.windows.light import frame_local_light
 
     if lis is not None:  # no prior: the template's lost-in-space fix becomes the search's prior
-        from crater_synth.navigation.detectors.classical import PRESETS
-
-        _, _, coarse, _ = navigate_window(frame, landmarks, PRESETS[LOST_IN_SPACE_FIRST_STAGE], fparams, lis=lis)
+        first = compose_nav([f"nav/detector={LOST_IN_SPACE_FIRST_STAGE}"]).detector
+        _, _, coarse, _ = navigate_window(frame, landmarks, first, fparams, lis=lis)
         if not coarse.ok:
             return [], math.nan, dataclasses.replace(coarse, reason=f"lost in space: {coarse.reason}"), prior
         prior = Georef.centred_on(frame.georef.pole, coarse.x_m, coarse.y_m, frame.image.shape, frame.georef.pixel_m)
     if dparams.light_scope != "local":
-        raise UserError(f"detect.light_scope={dparams.light_scope!r}: the appearance method needs 'local'")
+        raise UserError(f"nav.detector.light_scope={dparams.light_scope!r}: the appearance method needs 'local'")
     image = check_frame(frame.image, f"frame {frame.id}")
     alpha = frame_local_light(frame, dparams)
     refiner = lander_refiner(frame.georef.pole)
@@ -136,7 +136,7 @@ def _appearance_frame(frame: Frame, landmarks, dparams: DetectorParams, fparams:
 def run_frame(
     frame: Frame,
     landmarks,
-    dparams: DetectorParams,
+    dparams: DetectorSettings,
     fparams: FixParams,
     seed: int = 0,
     lis=None,
@@ -355,21 +355,18 @@ def results_markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-METHOD_DESCRIPTIONS = {
-    "classical": "shadow/lit-limb scale-space matched filter (crater_synth.navigation.detectors.classical)",
-    "template": "normalised cross-correlation with a Hapke-shaded crater template "
-    "(crater_synth.navigation.detectors.template)",
-    "learned": "fully convolutional network on an image pyramid, trained on rendered frames only "
-    "(crater_synth.navigation.detectors.learned, train.crater_detector); navigation operating point",
-    "learned-detect": "the learned detector at its detection operating point (best F1 on the south)",
-    "appearance": "no detector: each map landmark predicted from the DEM (Hapke, horizon shadows) and searched "
-    "for by NCC under the prior (crater_synth.navigation.windows.appearance)",
-}
+def method_description(option: str, method: str) -> str:
+    """The description of a ``nav/detector`` option: its detector's one line from the registry
+    (:mod:`.detectors.registry`), naming the option when it is a second setting of that detector."""
+    text = registry.detector(method).description
+    return text if option == method else f"{text}; settings {option}"
+
+
 PRIMARY_METHOD = "classical"  # the method of the top-level "detector"/"splits" entries of the results JSON
 
 
 SPLITS_OF_POLE = {"south": ("validation", "test"), "north": ("test",)}
-PATCHES_METHOD = "appearance+patches"  # nav-eval --method appearance --patches: its results' method key
+PATCHES_METHOD = "appearance+patches"  # nav-eval --patches nav/detector=appearance: its results' method key
 
 
 def merge_results(path: Path, pole: str, results: dict) -> dict:
@@ -411,6 +408,77 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     return old
 
 
+def nav_eval_settings(overrides) -> dict:
+    """The settings of each ``nav/detector`` option ``nav-eval`` runs, by option: the one the overrides
+    select, else every option (one table); the other overrides apply to each."""
+    chosen = [o.partition("=")[2] for o in overrides if o.partition("=")[0] == "nav/detector"]
+    rest = [o for o in overrides if o.partition("=")[0] != "nav/detector"]
+    options = chosen or detector_options()
+    return {option: compose_nav([f"nav/detector={option}", *rest]) for option in options}
+
+
+def nav_eval_protocol(pole: str, every: int, prior_offset_km: float, lost_in_space: bool, patch_params) -> dict:
+    """The protocol entry of a ``nav-eval`` results file (what every method of the run shares)."""
+    from crater_synth.navigation.map.check import LU_SOURCE
+    from crater_synth.navigation.windows.mosaic import MOSAIC_PRODUCTS
+
+    return {
+        "pole": pole,
+        "mosaic": f"{MOSAIC_PRODUCTS[pole]} (400 m/px, polar stereographic)",
+        "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector"
+        if pole == "south"
+        else "every window test (no setting chosen on this pole); window inside one 45-degree sector",
+        "window_px": 512,
+        "stride_px": 64,
+        "windows_overlap": True,
+        "prior_offset_km": prior_offset_km,
+        "false_fix_km": FALSE_FIX_KM,
+        "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
+        "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
+        "every": every,
+        "position_prior": "none (lost in space)" if lost_in_space else f"truth + {prior_offset_km:g} km",
+        "catalogue_diagnostic": f"{LU_SOURCE}: detections D >= 15 km also scored against it (against_catalogue)",
+        **({"terrain_patches": dataclasses.asdict(patch_params)} if patch_params else {}),
+    }
+
+
+def nav_eval_method(option: str, nav, lis_params, splits, run_split) -> dict:
+    """One method's entry of the results: its settings and, per split, ``run_split(split, nav)``."""
+    dparams, fparams = nav.detector, nav.fix
+    entry = {
+        "detector": {"method": method_description(option, dparams.method), **dparams.as_dict()},
+        "fix": {
+            "method": "prior-gated identification + RANSAC 2-D similarity (orthographic nadir)",
+            **fparams.as_dict(),
+        },
+        "splits": {},
+    }
+    if lis_params is not None:
+        entry["fix"]["method"] = "lost in space: crater-pair votes over the map + RANSAC 2-D similarity"
+        if nav.appearance:
+            entry["fix"]["method"] += f" ({LOST_IN_SPACE_FIRST_STAGE}), then the appearance search around it"
+        entry["lost_in_space"] = {"preset": nav.choices.get("lost_in_space") or "south-choice", **lis_params.as_dict()}
+    for split in splits:
+        entry["splits"][split] = run_split(split, nav)
+    return entry
+
+
+def write_nav_eval_results(out: Path, pole: str, results: dict, full: bool) -> None:
+    """Write ``results`` to ``out``: a full run (the pole's splits, every window, no setting overridden) is
+    merged into the file's entries (:func:`merge_results` when both the classical and the template detector
+    ran, else :func:`add_methods`: a method run on its own joins the pole's entry); any other run replaces
+    the file."""
+    from crater_core.schema import atomic_write_text
+
+    if not full:
+        atomic_write_text(out, json.dumps(results, indent=1) + "\n")
+        click.echo(f"wrote {out}", err=True)
+        return
+    merge = merge_results if {"classical", "template"} <= set(results["methods"]) else add_methods
+    atomic_write_text(out, json.dumps(merge(out, pole, results), indent=1) + "\n")
+    click.echo(f"wrote {out} ({pole}: {', '.join(results['methods'])})", err=True)
+
+
 @click.command("nav-eval")
 @click.option(
     "--pole",
@@ -428,27 +496,14 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     multiple=True,
     help="Default: both splits (south), test (north). 'all': every window of the pole in one row.",
 )
-@click.option(
-    "--method",
-    "methods",
-    type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
-    multiple=True,
-    help="Detection method(s); default all, in one table.",
-)
 @click.option("--every", type=int, default=1, show_default=True, help="Use every N-th window (quick looks).")
 @click.option(
     "--lost-in-space",
     "--no-prior",
     "lost_in_space",
     is_flag=True,
-    help="Identify with no position prior (crater-pair votes over the whole map, crater_synth.navigation."
-    "lost_in_space); settings from --lis-preset and --set lis.<name>=<value>.",
-)
-@click.option(
-    "--lis-preset",
-    default="south-choice",
-    show_default=True,
-    help="Lost-in-space settings (a key of crater_synth.navigation.fix.lost_in_space.LIS_PRESETS).",
+    help="Identify with no position prior (crater-pair votes over the whole map, crater_synth.navigation.fix."
+    "lost_in_space); settings nav.lost_in_space.<name>=<value>.",
 )
 @click.option(
     "--prior-offset-km",
@@ -456,151 +511,105 @@ def add_methods(path: Path, pole: str, results: dict) -> dict:
     default=PRIOR_OFFSET_KM,
     show_default=True,
     help="How far the position prior is from the truth (seeded direction); the identification gate is "
-    "fix.prior_sigma_km. Results with another offset are not written to the results file.",
+    "nav.fix.prior_sigma_km. Results with another offset are not merged into a results file.",
 )
 @click.option(
     "--patches",
     is_flag=True,
-    help="Appearance method: navigate each window with its terrain patches too (scored alone, and used where "
-    f"the craters give no fix; docs/navigation.md, section 6); recorded as the method {PATCHES_METHOD!r}.",
+    help="nav/detector=appearance: navigate each window with its terrain patches too (scored alone, and used "
+    f"where the craters give no fix; docs/navigation.md, section 6); recorded as the method {PATCHES_METHOD!r}.",
 )
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Setting override, e.g. detect.threshold=0.8.")
 @click.option("--map", "map_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Landmark map.")
 @click.option(
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help=f"Results JSON (default {RESULTS_JSON.relative_to(RESULTS_JSON.parents[2])} when the pole's splits and both "
-    "methods run in full).",
+    help="Results JSON. A full run (the pole's splits, every window, no setting overridden) is merged into it "
+    "(e.g. --out docs/results/navigation.json, the committed record); otherwise it is replaced. Default: none "
+    "(the table only).",
 )
+@OVERRIDES
 @user_errors
-def nav_eval_command(
-    pole, splits, methods, every, lost_in_space, lis_preset, prior_offset_km, patches, sets, map_path, out
-):
-    """Real-window navigation metrics per split and detection method: detection, identification, fix
-    (docs/navigation.md).
+def nav_eval_command(pole, splits, every, lost_in_space, prior_offset_km, patches, map_path, out, overrides):
+    """Real-window navigation metrics per split and detector setting: detection, identification, fix
+    (docs/navigation.md). Settings are Hydra overrides (docs/navigation/settings.md):
+    `nav/detector=template` runs one detector setting (default: every option of nav/detector, one table),
+    `nav.detector.threshold=0.8`, `nav.fix.min_inliers=4`, `nav.lost_in_space.gate_km=6`.
 
-    Choose settings on south windows with `--set ...` (the defaults were: the light model on the whole
-    south mosaic, `--split all`, the other settings on `--split validation`); never on the north. Without
-    `--split`, the pole's splits run (south: validation and test; north: test) and the results go to
-    docs/results/navigation.json (the south at the top level, the north under regions.north; the table to
-    stdout). The map is the pole's committed landmark map unless `--map` names one.
+    Choose settings on south windows (the defaults were: the light model on the whole south mosaic,
+    `--split all`, the other settings on `--split validation`); never on the north. Without `--split`, the
+    pole's splits run (south: validation and test; north: test). The map is the pole's committed landmark
+    map unless `--map` names one.
     """
-    from crater_core.schema import atomic_write_text
+    from crater_synth.navigation.map.check import catalogue_craters
     from crater_synth.navigation.map.landmarks import load_default_map, read_map
 
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
     check_prior_offset_km(prior_offset_km)
-    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
-    if prov.get("pole", pole) != pole:
-        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
-    from crater_synth.navigation.map.check import LU_SOURCE, catalogue_craters
-
-    listed = catalogue_craters(pole)
-    methods = methods or tuple(METHOD_DESCRIPTIONS)
-    lis_sets = tuple(o for o in sets if o.startswith("lis."))
-    sets = tuple(o for o in sets if not o.startswith("lis."))
-    if lost_in_space:
-        from crater_synth.navigation.fix.lost_in_space import lis_params_with
-
-        lis_params = lis_params_with(lis_preset, lis_sets)
-    else:
-        lis_params = None
-    if lis_sets and not lost_in_space:
-        raise UserError(f"--set {lis_sets[0]}: lost-in-space settings need --lost-in-space")
+    settings = nav_eval_settings(overrides)
+    options = tuple(settings)
+    if any(o.startswith("nav.lost_in_space.") or o.startswith("nav/lost_in_space") for o in overrides):
+        if not lost_in_space:
+            raise UserError("nav.lost_in_space settings need --lost-in-space")
+    lis_params = next(iter(settings.values())).lost_in_space if lost_in_space else None
     patch_params = None
     if patches:
         from crater_synth.navigation.fix.patches import PatchParams
 
-        if methods != ("appearance",) or lost_in_space:
-            raise UserError("--patches needs --method appearance alone and a position prior (not --lost-in-space)")
+        if options != ("appearance",) or lost_in_space:
+            raise UserError("--patches needs nav/detector=appearance alone and a position prior (not --lost-in-space)")
         patch_params = PatchParams()
-    params = {m: params_with(sets, m) for m in methods}
+    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
+    if prov.get("pole", pole) != pole:
+        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
+    listed = catalogue_craters(pole)
     splits = splits or SPLITS_OF_POLE[pole]
     if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
         raise UserError(f"--split validation: the {pole} windows are test only (docs/navigation.md, section 2)")
-    from crater_synth.navigation.windows.mosaic import MOSAIC_PRODUCTS
-
     results = {
-        "protocol": {
-            "pole": pole,
-            "mosaic": f"{MOSAIC_PRODUCTS[pole]} (400 m/px, polar stereographic)",
-            "split_rule": "45-degree longitude sectors; even validation, odd test; window inside one sector"
-            if pole == "south"
-            else "every window test (no setting chosen on this pole); window inside one 45-degree sector",
-            "window_px": 512,
-            "stride_px": 64,
-            "windows_overlap": True,
-            "prior_offset_km": prior_offset_km,
-            "false_fix_km": FALSE_FIX_KM,
-            "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
-            "headline": f">= {HEADLINE_MIN_LANDMARKS} landmarks of D >= {HEADLINE_MIN_D_KM:g} km in view",
-            "every": every,
-            "position_prior": "none (lost in space)" if lost_in_space else f"truth + {prior_offset_km:g} km",
-            "catalogue_diagnostic": f"{LU_SOURCE}: detections D >= 15 km also scored against it (against_catalogue)",
-            **({"terrain_patches": dataclasses.asdict(patch_params)} if patch_params else {}),
-        },
+        "protocol": nav_eval_protocol(pole, every, prior_offset_km, lost_in_space, patch_params),
         "landmark_map": {
             "dem_product": prov.get("dem_product"),
             "dem_sha256": prov.get("dem_sha256"),
             "landmarks": len(landmarks),
         },
         "targets": TARGETS,
-        "primary_method": PRIMARY_METHOD if PRIMARY_METHOD in methods else PATCHES_METHOD if patches else methods[0],
+        "primary_method": PRIMARY_METHOD if PRIMARY_METHOD in options else PATCHES_METHOD if patches else options[0],
         "methods": {},
     }
+
+    def run_split(split: str, nav) -> dict:
+        click.echo(f"{nav.choices['detector']}: {pole} {split}", err=True)
+        summary, _ = evaluate_split(
+            split,
+            landmarks,
+            nav.detector,
+            nav.fix,
+            every=every,
+            progress=True,
+            pole=pole,
+            lis_params=lis_params,
+            prior_offset_km=prior_offset_km,
+            listed=listed,
+            patches=patch_params,
+        )
+        return summary
+
     t0 = time.time()
-    for m in methods:
-        dparams, fparams = params[m]
-        entry = {
-            "detector": {"method": METHOD_DESCRIPTIONS[m], **dparams.as_dict()},
-            "fix": {
-                "method": "prior-gated identification + RANSAC 2-D similarity (orthographic nadir)",
-                **fparams.as_dict(),
-            },
-            "splits": {},
-        }
-        if lis_params is not None:
-            entry["fix"]["method"] = "lost in space: crater-pair votes over the map + RANSAC 2-D similarity"
-            if dparams.method == "appearance":
-                entry["fix"]["method"] += f" ({LOST_IN_SPACE_FIRST_STAGE}), then the appearance search around it"
-            entry["lost_in_space"] = {"preset": lis_preset, **lis_params.as_dict()}
-        for split in splits:
-            click.echo(f"{m}: {pole} {split}", err=True)
-            summary, _ = evaluate_split(
-                split,
-                landmarks,
-                dparams,
-                fparams,
-                every=every,
-                progress=True,
-                pole=pole,
-                lis_params=lis_params,
-                prior_offset_km=prior_offset_km,
-                listed=listed,
-                patches=patch_params,
-            )
-            entry["splits"][split] = summary
+    for option, nav in settings.items():
+        entry = nav_eval_method(option, nav, lis_params, splits, run_split)
         if patch_params is not None:  # its own entry: the appearance search's record stays craters only
             entry["detector"]["method"] += "; terrain patches scored alone and used where the craters give no fix"
-            m = PATCHES_METHOD
-        results["methods"][m] = entry
+            option = PATCHES_METHOD
+        results["methods"][option] = entry
     # The primary method also at the top level (the structure of earlier results files).
     primary = results["methods"][results["primary_method"]]
     results.update(detector=primary["detector"], fix=primary["fix"], splits=primary["splits"])
     results["seconds"] = round(time.time() - t0, 1)
-    full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not sets and not map_path and not lost_in_space
-    full = full and prior_offset_km == PRIOR_OFFSET_KM
     if out:
-        atomic_write_text(out, json.dumps(results, indent=1) + "\n")
-        click.echo(f"wrote {out}", err=True)
-    elif full and {"classical", "template"} <= set(methods):
-        atomic_write_text(RESULTS_JSON, json.dumps(merge_results(RESULTS_JSON, pole, results), indent=1) + "\n")
-        click.echo(f"wrote {RESULTS_JSON} ({pole})", err=True)
-    elif full:
-        # A method run on its own (the learned detector, added after the others' test runs) joins the
-        # pole's existing entry without running the others' test windows again.
-        atomic_write_text(RESULTS_JSON, json.dumps(add_methods(RESULTS_JSON, pole, results), indent=1) + "\n")
-        click.echo(f"wrote {RESULTS_JSON} ({pole}: {', '.join(results['methods'])})", err=True)
+        settings_overridden = any(o.partition("=")[0] != "nav/detector" for o in overrides)
+        full = set(splits) == set(SPLITS_OF_POLE[pole]) and every == 1 and not map_path and not lost_in_space
+        full = full and prior_offset_km == PRIOR_OFFSET_KM and not settings_overridden
+        write_nav_eval_results(out, pole, results, full)
     click.echo(results_markdown(results))

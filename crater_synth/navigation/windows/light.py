@@ -1,7 +1,7 @@
 """The light direction handed to the detectors on real mosaic windows (docs/navigation.md, section 3).
 
 A mosaic window carries no image time, so the light's direction comes from image statistics:
-``detect.light_scope`` "frame" (estimated on the window alone,
+``nav.detector.light_scope`` "frame" (estimated on the window alone,
 :func:`crater_synth.navigation.detectors.classical.detect`),
 "quadrant" (one image-plane direction per mosaic quadrant, pooled over the south validation windows of
 that quadrant: the second round's model, refuted by the test sectors) or "local" (one *local* azimuth,
@@ -15,32 +15,21 @@ from __future__ import annotations
 import functools
 import math
 
+from crater_core.settings_nav import LightSettings
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import DetectorParams, pooled_light_azimuth
+from crater_synth.navigation.detectors.classical import pooled_light_azimuth
 from crater_synth.navigation.georef import Frame, local_north_image_angle
 from crater_synth.navigation.windows.mosaic import windows
 
 
 @functools.lru_cache(maxsize=8)
-def quadrant_light(pole: str, quadrant: int, dparams: DetectorParams) -> float:
+def quadrant_light(pole: str, quadrant: int, dparams: LightSettings) -> float:
     """Light direction of one mosaic quadrant (one Sun per quadrant, docs/navigation.md), pooled over the
     *validation* windows of that quadrant only (its even sector), so no test pixel sets it."""
     frames = [f for f in windows("validation", pole) if f.sector // 2 == quadrant]
     if not frames:
         raise UserError(f"no validation window in quadrant {quadrant} of the {pole} mosaic")
     return pooled_light_azimuth([f.image for f in frames[::2]], dparams)
-
-
-def _light_settings(dparams: DetectorParams) -> DetectorParams:
-    """The light-estimate settings of ``dparams`` alone (the cache key: both detection methods share one
-    pooled light per quadrant or sector)."""
-    return DetectorParams(
-        light_method=dparams.light_method,
-        tail_points_to_sun=dparams.tail_points_to_sun,
-        n_azimuths=dparams.n_azimuths,
-        azimuth_sigmas_px=tuple(dparams.azimuth_sigmas_px),
-        azimuth_tail=dparams.azimuth_tail,
-    )
 
 
 LOCAL_POOL_EVERY = 2  # every 2nd window of a quadrant or sector is pooled (the windows overlap: stride 64 px)
@@ -54,7 +43,7 @@ def pool_windows(pole: str, pool: str, index: int) -> list[Frame]:
     used (image statistics, no landmark, no truth)."""
     keys = {"quadrant": lambda f: f.sector // 2, "sector": lambda f: f.sector, "pole": lambda f: 0}
     if pool not in keys:
-        raise UserError(f"detect.light_pool={pool!r}: expected one of {sorted(keys)}")
+        raise UserError(f"nav.detector.light_pool={pool!r}: expected one of {sorted(keys)}")
     key = keys[pool]
     frames = [f for f in windows(None, pole) if key(f) == index][::LOCAL_POOL_EVERY]
     if not frames:
@@ -63,7 +52,7 @@ def pool_windows(pole: str, pool: str, index: int) -> list[Frame]:
 
 
 @functools.lru_cache(maxsize=32)
-def local_light(pole: str, pool: str, index: int, light: DetectorParams) -> float:
+def local_light(pole: str, pool: str, index: int, light: LightSettings) -> float:
     """Local azimuth (radians, clockwise from local north) of the light in one mosaic quadrant or sector of
     ``pole``: the tail scores of :func:`pool_windows` pooled in each window's local (east, north) frame
     (:func:`crater_synth.navigation.detectors.classical.pooled_light_azimuth` with each window's local-north image
@@ -74,21 +63,21 @@ def local_light(pole: str, pool: str, index: int, light: DetectorParams) -> floa
     return pooled_light_azimuth([f.image for f in frames], light, rotations=rot, n_azimuths=LOCAL_POOL_AZIMUTHS)
 
 
-def frame_local_light(frame: Frame, dparams: DetectorParams) -> float:
+def frame_local_light(frame: Frame, dparams: LightSettings) -> float:
     """The local azimuth (radians, clockwise from local north) the light travels along in ``frame`` under
     the "local" light model (:func:`local_light` of the frame's quadrant, sector or pole)."""
     index = {"quadrant": frame.sector // 2, "sector": frame.sector, "pole": 0}[dparams.light_pool]
-    return local_light(frame.georef.pole, dparams.light_pool, index, _light_settings(dparams))
+    return local_light(frame.georef.pole, dparams.light_pool, index, dparams.light())
 
 
-def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
+def frame_light(frame: Frame, dparams: LightSettings) -> dict:
     """The light arguments of :func:`detect` for a mosaic window: ``light_dir`` (None: estimate on the
     frame) and ``light_prior`` ((direction, half-width) radians restricting the frame's estimate, or None)."""
     if dparams.light_scope == "frame":
         return {"light_dir": None, "light_prior": None}
     if dparams.light_scope == "quadrant":
         return {
-            "light_dir": quadrant_light(frame.georef.pole, frame.sector // 2, _light_settings(dparams)),
+            "light_dir": quadrant_light(frame.georef.pole, frame.sector // 2, dparams.light()),
             "light_prior": None,
         }
     if dparams.light_scope == "local":
@@ -98,4 +87,4 @@ def frame_light(frame: Frame, dparams: DetectorParams) -> dict:
         if dparams.light_seed_deg > 0:
             return {"light_dir": None, "light_prior": (theta, math.radians(dparams.light_seed_deg))}
         return {"light_dir": theta, "light_prior": None}
-    raise UserError(f"detect.light_scope={dparams.light_scope!r}: expected 'frame', 'quadrant' or 'local'")
+    raise UserError(f"nav.detector.light_scope={dparams.light_scope!r}: expected 'frame', 'quadrant' or 'local'")

@@ -93,7 +93,7 @@ def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_ele
     h, w = img.shape[:2]
     alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
     if sun_elevation is not None:
-        dparams = dataclasses.replace(dparams, appearance_sun_el_deg=(float(sun_elevation),))
+        dparams = dataclasses.replace(dparams, sun_el_deg=(float(sun_elevation),))
     refiner = lander_refiner(prior_g.pole)
     dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, refiner)
     fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)

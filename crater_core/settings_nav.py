@@ -1,0 +1,163 @@
+"""Typed settings of navigation's detectors and of the appearance search (the ``nav.detector`` node).
+
+The values live in ``configs/nav/detector/<name>.yaml``; these classes hold their types and ranges
+(docs/navigation/settings.md). :class:`LightSettings` is the light estimate every method that needs a
+light direction shares; :class:`DetectorSettings` adds what every crater detector shares (the radii
+searched, the rim fit, the suppression); each detector's own class (in its module under
+``crater_synth/navigation/detectors/``) adds its own fields. :class:`AppearanceSettings` is the appearance
+search (the map's landmarks found by their predicted appearance, no crater detector): one set of
+parameters for real windows and rendered frames.
+
+Standard library only, like :mod:`crater_core.settings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Tuple
+
+from crater_core.typed_config import Group, need
+
+LIGHT_METHODS = ("tensor", "tail")
+LIGHT_SCOPES = ("frame", "quadrant", "local")
+LIGHT_POOLS = ("quadrant", "sector", "pole")
+CONCENTRIC_RANKS = ("rim", "score")
+
+
+@dataclass(frozen=True)
+class LightSettings(Group):
+    """How the light's travel direction in a frame is found (:func:`.detectors.classical.light_azimuth`).
+
+    Real mosaic windows (:func:`crater_synth.navigation.windows.light.frame_light`): ``light_scope``
+    "frame" estimates the light per window; "quadrant" uses one estimate pooled over the validation windows
+    of the window's mosaic quadrant; "local" the light at one fixed *local* azimuth pooled over the windows
+    of one quadrant, sector or pole (``light_pool``). ``light_seed_deg`` > 0: the frame's own estimate,
+    searched only within +-this many degrees of the pooled direction. ``light_tries_deg``: the detector and
+    the fix run once per offset added to the light direction, the fix with most inliers kept."""
+
+    # The strongest derivative tail points towards the Sun (True: the rise from a rim's cast shadow to the
+    # lit terrain beyond) or along the light (False: the rise across a crater from shadow to limb).
+    tail_points_to_sun: bool = True
+    light_method: str = "tail"  # "tail" (tail alone; chosen on validation) or "tensor" (tensor axis + tail sign)
+    n_azimuths: int = 24
+    azimuth_sigmas_px: Tuple[float, ...] = (8.0, 12.0, 20.0)
+    azimuth_tail: float = 0.002  # top share of pixels whose mean response scores an azimuth
+    light_scope: str = "frame"
+    light_pool: str = "quadrant"
+    light_seed_deg: float = 0.0
+    light_tries_deg: Tuple[float, ...] = (0.0,)
+
+    def _check(self) -> None:
+        need(self.light_method in LIGHT_METHODS, "light_method", self.light_method, f"must be one of {LIGHT_METHODS}")
+        need(self.light_scope in LIGHT_SCOPES, "light_scope", self.light_scope, f"must be one of {LIGHT_SCOPES}")
+        need(self.light_pool in LIGHT_POOLS, "light_pool", self.light_pool, f"must be one of {LIGHT_POOLS}")
+        need(self.n_azimuths >= 2, "n_azimuths", self.n_azimuths, "must be >= 2")
+        need(0.0 <= self.light_seed_deg <= 180.0, "light_seed_deg", self.light_seed_deg, "must be in [0, 180]")
+        need(bool(self.light_tries_deg), "light_tries_deg", self.light_tries_deg, "must name at least one offset")
+        need(bool(self.azimuth_sigmas_px), "azimuth_sigmas_px", self.azimuth_sigmas_px, "must name a scale")
+        need(0.0 < self.azimuth_tail < 1.0, "azimuth_tail", self.azimuth_tail, "must be in (0, 1)")
+
+    def light(self) -> "LightSettings":
+        """The light-estimate settings alone (a cache key shared by every method's pooled light)."""
+        return LightSettings(
+            tail_points_to_sun=self.tail_points_to_sun,
+            light_method=self.light_method,
+            n_azimuths=self.n_azimuths,
+            azimuth_sigmas_px=tuple(self.azimuth_sigmas_px),
+            azimuth_tail=self.azimuth_tail,
+        )
+
+
+@dataclass(frozen=True)
+class DetectorSettings(LightSettings):
+    """What every crater detector shares: its name, the radii searched, the rim fit and the suppression of
+    overlapping detections (:func:`.detectors.classical.detect`). A detector's own class adds its fields
+    and names itself in ``NAME`` (the registry's key, ``configs/nav/detector/<name>.yaml``)."""
+
+    NAME: ClassVar[str] = ""
+
+    method: str = ""
+    min_radius_px: float = 9.0  # D = 7.2 km at 400 m/px: the 10 km landmarks less the 25 % tolerance
+    max_radius_px: float = 160.0
+    scale_ratio: float = 1.2
+    nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
+    nms_radius_ratio: float = 1.5
+    # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off.
+    concentric_r: float = 0.0
+    concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or score
+    border_r: float = 0.5  # the crater centre lies at least this x r inside the frame
+    refine: bool = True  # fit the rim to the shadow and limb edges (refine_rims)
+    rim_min_inliers: float = 0.5  # share of the edge points on the fitted rim circle, else dropped
+    max_candidates: int = 400  # strongest maxima refined per frame
+
+    def __post_init__(self):
+        if not self.method:  # each detector's class names itself
+            object.__setattr__(self, "method", self.NAME)
+        super().__post_init__()
+
+    def _check(self) -> None:
+        super()._check()
+        need(self.method == self.NAME, "method", self.method, f"must be {self.NAME!r} for {type(self).__name__}")
+        need(0 < self.min_radius_px, "min_radius_px", self.min_radius_px, "must be > 0")
+        need(
+            self.max_radius_px > self.min_radius_px,
+            "max_radius_px",
+            self.max_radius_px,
+            f"must be > min_radius_px ({self.min_radius_px})",
+        )
+        need(self.scale_ratio > 1.0, "scale_ratio", self.scale_ratio, "must be > 1")
+        need(
+            self.concentric_rank in CONCENTRIC_RANKS,
+            "concentric_rank",
+            self.concentric_rank,
+            f"must be one of {CONCENTRIC_RANKS}",
+        )
+        need(0.0 <= self.rim_min_inliers <= 1.0, "rim_min_inliers", self.rim_min_inliers, "must be in [0, 1]")
+        need(self.max_candidates >= 1, "max_candidates", self.max_candidates, "must be >= 1")
+
+
+@dataclass(frozen=True)
+class AppearanceSettings(LightSettings):
+    """The appearance search (:mod:`crater_synth.navigation.fix.appearance`): no crater detector, each map
+    landmark the prior places in the frame searched for by its predicted appearance. The light fields serve
+    real windows (the local light model; a rendered frame knows its Sun)."""
+
+    NAME: ClassVar[str] = "appearance"
+
+    method: str = "appearance"
+    sun_el_deg: Tuple[float, ...] = (8.0,)  # map windows: Sun elevations tried per window (best kept)
+    min_ncc: float = 0.9  # a weaker correlation peak is no detection
+    coarse_steps: int = 8  # the search's first grid, steps each way
+    margin_px: int = 3  # added to the prior's uncertainty (px)
+    thin: bool = False  # coarse search grids correlate fewer samples (fix.appearance.register_wide)
+
+    def _check(self) -> None:
+        super()._check()
+        need(self.method == self.NAME, "method", self.method, f"must be {self.NAME!r}")
+        need(
+            bool(self.sun_el_deg) and all(0.0 < e < 90.0 for e in self.sun_el_deg),
+            "sun_el_deg",
+            self.sun_el_deg,
+            "must be elevations in (0, 90)",
+        )
+        need(-1.0 <= self.min_ncc <= 1.0, "min_ncc", self.min_ncc, "must be in [-1, 1]")
+        need(self.coarse_steps >= 1, "coarse_steps", self.coarse_steps, "must be >= 1")
+        need(self.margin_px >= 0, "margin_px", self.margin_px, "must be >= 0")
+
+
+SOLVERS = ("position", "pnp")
+
+
+@dataclass(frozen=True)
+class FramesSettings(Group):
+    """Rendered frames (``nav.frames``): the fix solver and what the detector and the fix know of a frame
+    (:mod:`crater_synth.navigation.rendered.evaluate`; configs/nav/frames/default.yaml)."""
+
+    solver: str = "position"  # position: camera centre with the known attitude; pnp: the full 6-DOF pose
+    scales_from_map: bool = False  # the detector searches only the radii of the landmarks the prior predicts
+    inlier_px: float = 3.0  # the pinhole fix's reprojection inlier tolerance (px)
+    refine: bool = False  # known-attitude fixes refined by predicted appearance
+
+    def _check(self) -> None:
+        need(self.solver in SOLVERS, "solver", self.solver, f"must be one of {SOLVERS}")
+        need(self.inlier_px > 0.0, "inlier_px", self.inlier_px, "must be > 0")

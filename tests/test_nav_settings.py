@@ -1,0 +1,104 @@
+"""The nav config group: every option composes, a bad override is one line naming its key, and a detector
+is one module plus one YAML file (a toy detector added the way a newcomer would)."""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from crater_synth.errors import ConfigError
+from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.settings import compose_nav, detector_options, preset_options
+
+
+@pytest.mark.parametrize("option", detector_options())
+def test_every_detector_option_composes(option):
+    nav = compose_nav([f"nav/detector={option}"])
+    assert nav.detector.method in registry.detectors() and nav.choices["detector"] == option
+
+
+@pytest.mark.parametrize("preset", preset_options())
+def test_every_preset_composes(preset):
+    nav = compose_nav([f"nav/preset={preset}"])
+    assert nav.preset == preset and nav.fix.min_inliers >= 3
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("nav.detector.thresold=0.3", "nav.detector.thresold: unknown key"),
+        ("nav.detector.threshold=abc", "nav.detector.threshold=abc: must be a number"),
+        ("nav.fix.min_inliers=x", "nav.fix.min_inliers=x: must be an integer"),
+        ("nav.detector.light_scope=moon", "nav.detector.light_scope='moon': must be one of"),
+        ("nav/detector=cnn", "unknown nav/detector 'cnn'"),
+        ("nav/preset=template", "unknown nav/preset 'template' (override nav/preset=template): choose one of"),
+        ("detect.threshold=0.3", "detect.threshold=0.3: navigation overrides are nav."),
+    ],
+)
+def test_bad_override_is_one_line_naming_the_key(override, message):
+    with pytest.raises(ConfigError) as err:
+        compose_nav([override])
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_old_results_name_filter_reads_as_classical():
+    assert registry.settings_from({"method": "filter", "threshold": 0.4}).method == "classical"
+
+
+TOY_MODULE = """
+from dataclasses import dataclass
+from typing import ClassVar
+import numpy as np
+from crater_core.settings_nav import DetectorSettings
+from crater_synth.navigation.detectors.registry import DetectorEntry
+
+@dataclass(frozen=True)
+class ToySettings(DetectorSettings):
+    NAME: ClassVar[str] = "toy"
+    radius_px: float = 12.0
+
+def toy_candidates(frame, params):  # one crater at the frame's centre
+    h, w = frame.image.shape
+    return np.array([w / 2]), np.array([h / 2]), np.array([params.radius_px]), np.array([1.0])
+
+DETECTOR = DetectorEntry("toy", ToySettings, toy_candidates, "a toy: one crater at the centre", spectrum=False)
+"""
+
+
+@pytest.fixture
+def toy_detector(tmp_path, monkeypatch):
+    """A toy detector added as a newcomer would: one module in detectors/ and one YAML in nav/detector/
+    (here a module in a directory added to the package's path and a YAML in a copy of configs/)."""
+    import shutil
+
+    from crater_synth.navigation import detectors as package
+    from crater_synth.navigation import settings as nav_settings
+
+    mods = tmp_path / "mods"
+    mods.mkdir()
+    (mods / "toy.py").write_text(textwrap.dedent(TOY_MODULE))
+    monkeypatch.setattr(package, "__path__", [*package.__path__, str(mods)])
+    configs = tmp_path / "configs"
+    shutil.copytree(nav_settings.CONFIG_DIR, configs)
+    (configs / "nav" / "detector" / "toy.yaml").write_text(
+        "defaults:\n  - toy_schema\n  - _self_\n\nmethod: toy\nradius_px: 20.0\nrefine: false\n"
+    )
+    monkeypatch.setattr(nav_settings, "CONFIG_DIR", configs)
+    registry.detectors.cache_clear()
+    yield
+    registry.detectors.cache_clear()
+
+
+def test_toy_detector_is_one_module_and_one_yaml(toy_detector):
+    from crater_synth.navigation.detectors.classical import detect
+
+    assert "toy" in registry.detectors() and "toy" in detector_options()
+    nav = compose_nav(["nav/detector=toy", "nav.detector.radius_px=16"])
+    assert type(nav.detector).__name__ == "ToySettings" and nav.detector.radius_px == 16.0
+    image = np.random.default_rng(0).normal(size=(128, 128))
+    dets, _ = detect(image, nav.detector)
+    assert [(d.u, d.v, d.r) for d in dets] == [(64.0, 64.0, 16.0)]
+    with pytest.raises(ConfigError, match="nav.detector.radius_pix: unknown key"):
+        compose_nav(["nav/detector=toy", "nav.detector.radius_pix=3"])
