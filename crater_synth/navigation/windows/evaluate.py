@@ -479,6 +479,37 @@ def write_nav_eval_results(out: Path, pole: str, results: dict, full: bool) -> N
     click.echo(f"wrote {out} ({pole}: {', '.join(results['methods'])})", err=True)
 
 
+def nav_eval_request(every: int, prior_offset_km: float, lost_in_space: bool, patches: bool, overrides):
+    """``nav-eval``'s options checked, and its settings composed: (settings per detector option, the
+    lost-in-space settings or None, the terrain patches' settings or None)."""
+    from crater_synth.navigation.fix.patches import PatchParams
+
+    if every < 1:
+        raise UserError(f"--every={every} must be >= 1")
+    check_prior_offset_km(prior_offset_km)
+    settings = nav_eval_settings(overrides)
+    if any(o.startswith("nav.lost_in_space.") or o.startswith("nav/lost_in_space") for o in overrides):
+        if not lost_in_space:
+            raise UserError("nav.lost_in_space settings need --lost-in-space")
+    lis_params = next(iter(settings.values())).lost_in_space if lost_in_space else None
+    patch_params = None
+    if patches:
+        if tuple(settings) != ("appearance",) or lost_in_space:
+            raise UserError("--patches needs nav/detector=appearance alone and a position prior (not --lost-in-space)")
+        patch_params = PatchParams()
+    return settings, lis_params, patch_params
+
+
+def nav_eval_map(pole: str, map_path):
+    """The landmark map ``nav-eval`` navigates against: ``--map`` or the pole's committed map."""
+    from crater_synth.navigation.map.landmarks import load_default_map, read_map
+
+    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
+    if prov.get("pole", pole) != pole:
+        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
+    return landmarks, prov
+
+
 @click.command("nav-eval")
 @click.option(
     "--pole",
@@ -542,31 +573,14 @@ def nav_eval_command(pole, splits, every, lost_in_space, prior_offset_km, patche
     map unless `--map` names one.
     """
     from crater_synth.navigation.map.check import catalogue_craters
-    from crater_synth.navigation.map.landmarks import load_default_map, read_map
 
-    if every < 1:
-        raise UserError(f"--every={every} must be >= 1")
-    check_prior_offset_km(prior_offset_km)
-    settings = nav_eval_settings(overrides)
+    settings, lis_params, patch_params = nav_eval_request(every, prior_offset_km, lost_in_space, patches, overrides)
     options = tuple(settings)
-    if any(o.startswith("nav.lost_in_space.") or o.startswith("nav/lost_in_space") for o in overrides):
-        if not lost_in_space:
-            raise UserError("nav.lost_in_space settings need --lost-in-space")
-    lis_params = next(iter(settings.values())).lost_in_space if lost_in_space else None
-    patch_params = None
-    if patches:
-        from crater_synth.navigation.fix.patches import PatchParams
-
-        if options != ("appearance",) or lost_in_space:
-            raise UserError("--patches needs nav/detector=appearance alone and a position prior (not --lost-in-space)")
-        patch_params = PatchParams()
-    landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
-    if prov.get("pole", pole) != pole:
-        raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
+    landmarks, prov = nav_eval_map(pole, map_path)
     listed = catalogue_craters(pole)
     splits = splits or SPLITS_OF_POLE[pole]
     if "validation" in splits and "validation" not in SPLITS_OF_POLE[pole]:
-        raise UserError(f"--split validation: the {pole} windows are test only (docs/navigation.md, section 2)")
+        raise UserError(f"--split validation: the {pole} windows are test only (docs/navigation/protocol.md)")
     results = {
         "protocol": nav_eval_protocol(pole, every, prior_offset_km, lost_in_space, patch_params),
         "landmark_map": {
