@@ -38,8 +38,8 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
     type=click.Choice(["classical", "template", "learned", "learned-detect", "appearance"]),
     default="template",
     show_default=True,
-    help="Detection method (docs/navigation.md compares them); appearance: map landmarks searched for by their "
-    "predicted appearance (a map window needs --light-azimuth).",
+    help="Detection method (docs/navigation/detectors.md compares them); appearance: map landmarks searched for by "
+    "their predicted appearance (a map window needs --light-azimuth).",
 )
 @click.option(
     "--model",
@@ -68,25 +68,25 @@ from crater_synth.navigation.windows.navigate import annotate, appearance_window
     "lost_in_space",
     is_flag=True,
     help="Identify with no position prior: crater-pair votes over the whole map (the frozen `south-choice` "
-    "settings, docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
+    "settings, docs/navigation/fix.md); needs the pixel size, not the position.",
 )
 @click.option(
     "--known-heading",
     is_flag=True,
     help="With --lost-in-space: the frame is north-up on the map, so only crater-pair votes at that heading "
-    "count (docs/navigation.md, 'Lost in space with the heading known').",
+    "count (docs/navigation/fix.md).",
 )
 @click.option(
     "--patches/--no-patches",
     default=None,
     help="Appearance search (on by default): a frame its craters do not fix is navigated with terrain patches "
-    "(rendered frames: docs/navigation.md section 9; map windows: section 6); --no-patches: craters only.",
+    "(rendered frames: docs/navigation/rendered.md; map windows: docs/navigation/fix.md); --no-patches: craters only.",
 )
 @click.option(
     "--six-dof",
     is_flag=True,
     help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval --method pnp; refined by "
-    "appearance with the appearance search; docs/navigation.md, section 9).",
+    "appearance with the appearance search; docs/navigation/rendered.md).",
 )
 @user_errors
 def navigate_command(

@@ -1,5 +1,5 @@
 """Settings of ``crater-synth nav-frames-eval`` (:mod:`.frames_eval`): its presets and the detector's
-scale range from the landmark map (docs/navigation.md, section 9, where the "synthetic" preset was
+scale range from the landmark map (docs/navigation/rendered.md, where the "synthetic" preset was
 chosen on rendered frames)."""
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class FramesPreset:
 # landmarks, 3 px), the first runs on rendered frames. "synthetic": chosen on the rendered frames of
 # descent_ridge and polar_orbit_arc (render.samples=4, fast, 512 px; development data, no real window
 # used) by the rule of the real windows: no false fix, then the most fixes, then the lowest median
-# error (docs/navigation.md, section 9, the grid): the classical detector at threshold 0.3 on the map's
+# error (docs/navigation/rendered.md, the grid): the classical detector at threshold 0.3 on the map's
 # radii only, 3 agreeing landmarks with the ambiguity test, 5 px inliers (the 6-DOF fix takes at least 4:
 # three points determine a pinhole pose exactly).
 FRAMES_PRESETS = {

@@ -21,7 +21,7 @@ ephemeris) passes it instead.
 
 A second method (:mod:`crater_synth.navigation.detectors.template`: Hapke-shaded template, normalised
 cross-correlation) shares the light estimate, the rim fit and the suppression; ``DetectorParams.method``
-picks it. Every setting (``PRESETS``) was chosen on validation windows only (docs/navigation.md).
+picks it. Every setting (``PRESETS``) was chosen on validation windows only (docs/navigation/detectors.md).
 The filtering is done in the Fourier domain (:mod:`.scalespace`): one forward FFT, one inverse FFT per
 scale.
 """
@@ -44,7 +44,7 @@ __all__ = ["PAD_PX", "decimation", "filtered", "peaks", "spectrum"]  # re-export
 
 @dataclass(frozen=True)
 class DetectorParams:
-    """Settings of :func:`detect` (values chosen on validation windows; docs/navigation.md)."""
+    """Settings of :func:`detect` (values chosen on validation windows; docs/navigation/detectors.md)."""
 
     min_radius_px: float = 9.0  # D = 7.2 km at 400 m/px: the 10 km landmarks less the 25 % tolerance
     max_radius_px: float = 160.0
@@ -60,7 +60,7 @@ class DetectorParams:
     # Real mosaic windows (crater_synth.navigation.windows.light.frame_light): "frame" estimates the light per
     # window; "quadrant" uses one estimate pooled over the validation windows of the window's mosaic
     # quadrant (assumes one light direction per quadrant, which the test sectors refuted:
-    # docs/navigation.md, section 6); "local": the light at one fixed *local* azimuth (clockwise from local
+    # docs/history.md); "local": the light at one fixed *local* azimuth (clockwise from local
     # north), so it turns with the window's longitude in the map image; that azimuth is pooled from the
     # image statistics of the windows of one mosaic quadrant ("quadrant"), 45-degree sector ("sector") or
     # the whole mosaic ("pole") of the same pole, no truth used. light_seed_deg > 0: the frame's own
@@ -77,7 +77,7 @@ class DetectorParams:
     nms_centre_r: float = 0.6  # two detections closer than this x the larger r, of similar size: one crater
     nms_radius_ratio: float = 1.5
     # Concentric detections (centres closer than this x the larger r, any size ratio): one crater. 0 = off
-    # (the evaluated default); a validation-only experiment, docs/navigation.md.
+    # (the evaluated default); a validation-only experiment, docs/navigation/detectors.md.
     concentric_r: float = 0.0
     concentric_rank: str = "rim"  # keep the concentric detection with the best rim fit ("rim") or filter score
     method: str = "filter"  # "filter" (classical), "template" (Hapke template NCC, .template) or "learned" (.learned)
@@ -141,7 +141,7 @@ class DetectorSettingsError(UserError):
 
 
 # The two detection methods compared in ``nav-eval``, each with the settings chosen for it on validation
-# windows only (docs/navigation.md, "Protocol"). Third round: the light model (local azimuth pooled per
+# windows only (docs/navigation/protocol.md). Third round: the light model (local azimuth pooled per
 # mosaic quadrant from image statistics; the classical detector's own estimate within +-30 degrees of it)
 # chosen on the whole south mosaic (its old test sectors are development data since the south test was
 # run), frozen before the north test windows were run.
@@ -162,9 +162,9 @@ PRESETS = {
     # The network of .learned (the committed model), trained on rendered frames only; it needs no light
     # direction (no Sun knowledge, no pooling over a quadrant). Fourth round, chosen on the south windows
     # (development data) and frozen before the north windows were run: the model and the heat threshold
-    # by the navigation rule (no false fix, most fixes, lowest median error; docs/navigation.md, section
-    # 5), no rim fit (it added a false fix); "learned-detect" is the same model at the threshold with the
-    # best detection F1 (D >= 15 km), the detection operating point.
+    # by the navigation rule (no false fix, most fixes, lowest median error; docs/navigation/protocol.md),
+    # no rim fit (it added a false fix); "learned-detect" is the same model at the threshold with the best
+    # detection F1 (D >= 15 km), the detection operating point.
     "learned": DetectorParams(
         method="learned",
         light_scope="frame",
@@ -178,7 +178,7 @@ PRESETS["learned-detect"] = dataclasses.replace(PRESETS["learned"], learned_thre
 # No detector: the map's landmarks searched for by their predicted appearance (.appearance_window) under
 # the frozen light model's azimuth. Fifth round, chosen on the south windows (development data) and
 # frozen before the north windows were run: one Sun elevation, NCC threshold and thinned coarse grids by
-# the declared rule (docs/navigation.md, section 5).
+# the declared rule (docs/navigation/protocol.md).
 PRESETS["appearance"] = DetectorParams(
     method="appearance",
     light_scope="local",

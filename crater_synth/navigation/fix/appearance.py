@@ -21,7 +21,7 @@ gated by the prior, RANSAC with at least three agreeing landmarks, the ambiguity
 found in the wrong place is an outlier the fix must reject, as a false detection is.
 
 This needs what a real frame from a lander's camera has and a mosaic window has not: one exposure, a
-known Sun and attitude. It is evaluated on rendered frames only (docs/navigation.md, section 9).
+known Sun and attitude. It is evaluated on rendered frames only (docs/navigation/rendered.md).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from crater_synth.navigation.fix.refine import (
 
 @dataclasses.dataclass(frozen=True)
 class AppearanceParams:
-    """Settings of the appearance search (chosen on development frames: docs/navigation.md, section 9)."""
+    """Settings of the appearance search (chosen on development frames: docs/navigation/rendered.md)."""
 
     min_ncc: float = 0.9  # a weaker peak is no detection
     coarse_steps: int = 8  # the first grid's steps each way across the search
