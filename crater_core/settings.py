@@ -443,7 +443,7 @@ class FetchSettings(Group):
 
 
 # ------------------------------------------------------------------------------------------------
-# Navigation frames: a camera trajectory (crater_core/trajectory.py, docs/navigation.md)
+# Navigation frames: a camera trajectory (crater_core/trajectory.py, docs/navigation/rendered.md)
 # ------------------------------------------------------------------------------------------------
 SUN_MODES = ("physical", "explicit")
 

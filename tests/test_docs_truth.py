@@ -46,10 +46,10 @@ def test_render_defaults_equal_the_composed_render_config():
 
 
 def _doc_files() -> list[Path]:
-    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 
-@pytest.mark.parametrize("doc", _doc_files(), ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", _doc_files(), ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_file_a_doc_names_exists(doc):
     text = doc.read_text(encoding="utf-8")
     named = set(re.findall(r"\b((?:%s|tests|configs|docs)/[\w/.-]+\.(?:py|yaml|md|j2|css))" % "|".join(PACKAGES), text))

@@ -546,7 +546,7 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
 
 
 def test_acceptance_tool_keeps_the_likelier_of_two_duplicates_and_builds_its_features():
-    """The learned-rule tool (docs/navigation.md, section 1): duplicates are suppressed in order of
+    """The learned-rule tool (docs/navigation/map.md): duplicates are suppressed in order of
     probability, not of depth, and the feature matrix has one column per named feature."""
     from crater_synth.tools.landmark_acceptance import features, rebuild
 

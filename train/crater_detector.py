@@ -50,9 +50,9 @@ class DetectorModelError(ValueError):
 
 @dataclass(frozen=True)
 class DetectorTrainSettings:
-    """Training settings of :func:`train_detector` (defaults: docs/navigation.md, "Learned detector")."""
+    """Training settings of :func:`train_detector` (defaults: docs/navigation/detectors.md)."""
 
-    # The committed model's length (docs/navigation.md, section 5); the one-cycle schedule spans all steps,
+    # The committed model's length (docs/navigation/detectors.md); the one-cycle schedule spans all steps,
     # so a shorter run is not that model's checkpoint.
     steps: int = 2000
     batch: int = 16

@@ -164,7 +164,7 @@ RENDER = RecordKind(
 )
 
 
-# Navigation frames (``crater-synth nav-frames``, docs/navigation.md "Rendered frames"): ``frame_NNNN.exr``
+# Navigation frames (``crater-synth nav-frames``, docs/navigation/rendered.md): ``frame_NNNN.exr``
 # and a manifest row per frame with its pose and landmark labels. Read as data: this layer sits below
 # crater_synth.navigation and never imports it.
 _NAVFRAME_REQUIRED = ("trajectory", "index", "rel_path", "sha256", "landmarks")

@@ -1,5 +1,5 @@
 """Crater navigation: a landmark map measured in the DEM, crater detection in whole frames,
-identification against the map and a robust camera position fix (docs/navigation.md).
+identification against the map and a robust camera position fix (docs/navigation/overview.md).
 
 - :mod:`.polar`: polar stereographic frames of either pole (the pole is a parameter everywhere);
 - :mod:`.landmarks`: the landmark map (``crater-synth landmarks``); :mod:`.landmark_check`: its check

@@ -7,7 +7,7 @@ and the appearance search with their frozen settings, and the appearance search'
 to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
 (:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). Nothing heavy is
 built (no landmark map, no rendering). The numbers are a smoke view of a handful of windows; the
-evaluation is ``crater-synth nav-eval`` (docs/navigation.md).
+evaluation is ``crater-synth nav-eval`` (docs/navigation/commands.md).
 
 Run: ``python -m crater_synth.navigation.demo --out outputs/navigate-demo``.
 """

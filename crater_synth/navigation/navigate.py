@@ -75,25 +75,25 @@ class NavigateRequest:
     "lost_in_space",
     is_flag=True,
     help="Identify with no position prior: crater-pair votes over the whole map (nav/lost_in_space, "
-    "docs/navigation.md 'Lost in space'); needs the pixel size, not the position.",
+    "docs/navigation/fix.md); needs the pixel size, not the position.",
 )
 @click.option(
     "--known-heading",
     is_flag=True,
     help="With --lost-in-space: the frame is north-up on the map, so only crater-pair votes at that heading "
-    "count (docs/navigation.md, 'Lost in space with the heading known').",
+    "count (docs/navigation/fix.md).",
 )
 @click.option(
     "--patches/--no-patches",
     default=None,
     help="Appearance search (on by default): a frame its craters do not fix is navigated with terrain patches "
-    "(rendered frames: docs/navigation.md section 9; map windows: section 6); --no-patches: craters only.",
+    "(rendered frames: docs/navigation/rendered.md; map windows: section 6); --no-patches: craters only.",
 )
 @click.option(
     "--six-dof",
     is_flag=True,
     help="Rendered frames: the 6-DOF fix, attitude as well as position (nav-frames-eval nav.frames.solver=pnp; "
-    "refined by appearance with the appearance search; docs/navigation.md, section 9).",
+    "refined by appearance with the appearance search; docs/navigation/rendered.md).",
 )
 @OVERRIDES
 @user_errors

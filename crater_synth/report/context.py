@@ -19,11 +19,11 @@ PRODUCERS = {
     "experiments": ("the Figure 6 experiments (configs/experiments)", "crater-synth experiments run_dir=RUN_DIR"),
     "ablation": ("the fidelity ablation (configs/ablation, docs/fidelity.md)", "crater-synth ablate"),
     "navigation": (
-        "the navigation demo on real mosaic windows (docs/navigation.md)",
+        "the navigation demo on real mosaic windows (docs/navigation/overview.md)",
         "make navigate-demo NAV_DEMO_DIR=RUN_DIR/navigation",
     ),
     "navframes": (
-        "rendering a trajectory and evaluating it (docs/navigation.md, section 9)",
+        "rendering a trajectory and evaluating it (docs/navigation/rendered.md)",
         "crater-synth nav-frames trajectory=descent_ridge --out FRAMES_DIR && "
         "crater-synth nav-frames-eval FRAMES_DIR --json RUN_DIR/navigation/frames_eval.json",
     ),

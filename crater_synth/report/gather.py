@@ -571,7 +571,7 @@ def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
     return items
 
 
-# ---- 8. navigation (docs/navigation.md) ---------------------------------------------------------
+# ---- 8. navigation (docs/navigation/overview.md) ---------------------------------------------------------
 NAV_SPLIT_ORDER = {"validation": 0, "test": 1}
 
 

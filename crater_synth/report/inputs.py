@@ -306,7 +306,7 @@ def config_craters(cfg: Mapping) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------------------------
-# Navigation (docs/navigation.md): RUN_DIR/navigation/ holds what `make navigate-demo` and
+# Navigation (docs/navigation/overview.md): RUN_DIR/navigation/ holds what `make navigate-demo` and
 # `crater-synth nav-frames-eval --json` write
 # ------------------------------------------------------------------------------------------------
 NAVIGATION_DIR = "navigation"

@@ -1,6 +1,6 @@
 """``python -m crater_synth.tools.landmark_acceptance``: the learned landmark acceptance rule of
-docs/navigation.md (section 1, seventh round), reproduced. Not part of the map builder (the rule was not
-adopted); it recomputes the two tables recorded there.
+docs/history.md ("Landmark maps"), reproduced. Not part of the map builder (the rule was not adopted); it
+recomputes the numbers recorded there.
 
 1. Every candidate of the pole's LDEM_256 is measured once (the builder's 3-D scale-space maxima and each
    scale's own 2-D maxima for D >= 30 km), cached as ``CACHE/measurements_<pole>.json``.

@@ -22,7 +22,7 @@ ephemeris) passes it instead.
 The other detectors (:mod:`.template`: Hapke-shaded template, normalised cross-correlation; :mod:`.learned`:
 a network) share :func:`detect`: the light estimate, the rim fit and the suppression; ``params.method``
 picks one from the registry (:mod:`.registry`). The settings of each (configs/nav/detector/) were chosen
-on validation windows only (docs/navigation.md).
+on validation windows only (docs/navigation/overview.md).
 The filtering is done in the Fourier domain (:mod:`.scalespace`): one forward FFT, one inverse FFT per
 scale.
 """
@@ -47,7 +47,7 @@ __all__ = ["PAD_PX", "decimation", "filtered", "peaks", "spectrum"]  # re-export
 @dataclass(frozen=True)
 class ClassicalSettings(DetectorSettings):
     """The classical detector's own settings (module docstring; values chosen on validation windows,
-    docs/navigation.md; configs/nav/detector/classical.yaml)."""
+    docs/navigation/overview.md; configs/nav/detector/classical.yaml)."""
 
     NAME: ClassVar[str] = "classical"
 

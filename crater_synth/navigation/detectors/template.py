@@ -15,7 +15,7 @@ between 4.5 and 9 px (the anti-aliased decimated frame comes from the spectrum t
 computed), and the correlation is an FFT convolution.
 
 No setting of this module was fitted to real pixels: the template is synthetic; the threshold and the
-Sun elevation were chosen on validation windows only (docs/navigation.md).
+Sun elevation were chosen on validation windows only (docs/navigation/detectors.md).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ gated by the prior, RANSAC with at least three agreeing landmarks, the ambiguity
 found in the wrong place is an outlier the fix must reject, as a false detection is.
 
 This needs what a real frame from a lander's camera has and a mosaic window has not: one exposure, a
-known Sun and attitude. It is evaluated on rendered frames only (docs/navigation.md, section 9).
+known Sun and attitude. It is evaluated on rendered frames only (docs/navigation/rendered.md).
 """
 
 from __future__ import annotations

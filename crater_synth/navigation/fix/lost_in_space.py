@@ -28,7 +28,7 @@ frame's detections are matched against the whole landmark map by **crater pairs 
 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
-south windows only (docs/navigation.md, "Lost in space").
+south windows only (docs/navigation/fix.md).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from crater_synth.navigation.fix.solve import (
 
 @dataclass(frozen=True)
 class LostInSpaceParams:
-    """Settings of :func:`lost_in_space_fix` (chosen on south windows; docs/navigation.md)."""
+    """Settings of :func:`lost_in_space_fix` (chosen on south windows; docs/navigation/overview.md)."""
 
     n_detections: int = 30  # the frame's largest detections used for the pair votes
     min_landmark_km: float = 10.0  # landmarks indexed (and predicted in verification)

@@ -12,9 +12,9 @@ first, and with its patches only when the craters give no fix (:func:`.frames_ev
 
 A patch holds as much as the DEM resolves: at a 6-8 degree Sun the long shadows of the DEM's relief
 make the texture the correlation finds. Frames rendered from the same DEM share its relief, so the
-accuracy measured on them is an upper bound for a real camera's frames (docs/navigation.md, section 9);
+accuracy measured on them is an upper bound for a real camera's frames (docs/navigation/rendered.md);
 on real mosaic windows (:func:`window_patches`, ``nav-eval --patches``) the same patches are placed on the
-window's map grid and tested against the WAC's own images (docs/navigation.md, section 6).
+window's map grid and tested against the WAC's own images (docs/navigation/fix.md).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ GROUND_TOLERANCE_M = 0.01  # stop when no height changes by more
 
 @dataclasses.dataclass(frozen=True)
 class PatchParams:
-    """Where the patches are placed (set before any evaluation, not tuned: docs/navigation.md, section 9)."""
+    """Where the patches are placed (set before any evaluation, not tuned: docs/navigation/rendered.md)."""
 
     grid: int = 4  # grid x grid frame points, at the centres of equal cells
     half_share: float = 0.1  # a patch window's half-width as a share of the frame's footprint

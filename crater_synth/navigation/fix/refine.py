@@ -50,7 +50,7 @@ FOLLOW_UP_SEARCH_PX = 3
 
 @dataclasses.dataclass(frozen=True)
 class RefineParams:
-    """Settings of the appearance refinement (chosen on development frames: docs/navigation.md, section 9)."""
+    """Settings of the appearance refinement (chosen on development frames: docs/navigation/rendered.md)."""
 
     window_diameters: float = 0.75  # half-width of the predicted window, in landmark diameters
     samples: int = 64  # predicted samples per side of the window

@@ -24,7 +24,7 @@ by reprojection inliers, and the winner is refined on all inliers. "No fix" with
 landmarks, for a pose that contradicts its prior (attitude, position), an ambiguous one (the rule above),
 or an ill-conditioned one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
 
-Settings were chosen on validation windows only (docs/navigation.md).
+Settings were chosen on validation windows only (docs/navigation/fix.md).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FixParams:
-    """Settings of identification and fix (chosen on validation windows; docs/navigation.md)."""
+    """Settings of identification and fix (chosen on validation windows; docs/navigation/fix.md)."""
 
     prior_sigma_km: float = 10.0  # prior position uncertainty the gate allows for
     min_landmark_km: float = 10.0  # smallest landmark predicted in the frame

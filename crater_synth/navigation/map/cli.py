@@ -83,7 +83,7 @@ def map_provenance(pole: str, built: dict, stats: dict, check) -> dict:
         **{k: built[k] for k in ("dem_product", "dem_sha256", "dem_pixel_m")},
         "method": "ring-minus-disk scale-space candidates, rim measured by "
         "crater_synth.terrain.catalogue.measure_depression, closed-depression test, duplicate suppression, "
-        "named catalogue merged (docs/navigation.md)",
+        "named catalogue merged (docs/navigation/overview.md)",
         **{k: built[k] for k in ("parameters", "build")},
         "catalogue_merge": stats["catalogue"],
         "iau_check": None if check is None else {k: v for k, v in check.items() if k != "matches"},
@@ -139,7 +139,7 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     a map figure beside it (`--figure` elsewhere). Exit status 1 when the IAU recall is below 0.95. Example:
     `crater-synth landmarks`. The committed map (data_manifest/landmarks/<pole>.geojson) is the data of
     record the navigation and the rendered frames' labels use; a rebuild does not reproduce every landmark
-    (docs/navigation.md, section 1), so it is replaced only when `--out` names it (then `crater-synth
+    (docs/navigation/map.md), so it is replaced only when `--out` names it (then `crater-synth
     nav-frames-relabel` each frames folder), and its docs figure only when `--figure` names it.
     A DEM of another pixel size is measured down to the same number of its pixels (1.25 km at 200 m/px).
     `--add-to MAP --dem-product LAYER`: measures the finer layer and writes MAP with the layer's landmarks

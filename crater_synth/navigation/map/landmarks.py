@@ -1,6 +1,6 @@
 """The landmark map: craters measured in the polar DEM, with the named catalogue merged in.
 
-Method (docs/navigation.md):
+Method (docs/navigation/map.md):
 
 1. **Candidates.** On the whole DEM grid (heights above the sphere, in its polar stereographic
    projection) a ring-minus-disk filter at ``N`` radii r (geometric, from ``MIN_DIAMETER_KM`` / 2 up,

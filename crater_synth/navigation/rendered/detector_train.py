@@ -3,7 +3,7 @@
 ``crater-synth nav-detector-frames`` renders the survey of :mod:`.detector_frames` (south DEM only);
 ``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` on every track but
 the last ``HOLDOUT_TRACKS``, scores it on those against their exact labels (:func:`score_synthetic`) and
-writes the model with its provenance (docs/navigation.md, section 3).
+writes the model with its provenance (docs/navigation/detectors.md).
 """
 
 from __future__ import annotations

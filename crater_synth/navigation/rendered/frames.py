@@ -1,5 +1,5 @@
 """Navigation frames: whole camera frames along a trajectory, rendered by the dataset's renderer, with
-their truth labels (``crater-synth nav-frames trajectory=NAME``; docs/navigation.md, "Rendered frames").
+their truth labels (``crater-synth nav-frames trajectory=NAME``; docs/navigation/rendered.md).
 
 Per frame (poses: :mod:`crater_core.trajectory`):
 
@@ -64,7 +64,7 @@ FRAME_STARTUP_RENDERS = 10
 # render.gbuffer_samples: one ray per pixel, which Cycles sends through the pixel's centre whatever the seed
 # (a sharp, noise-free G-buffer). Against direct-mode references at 64 samples it is closer than 4 jittered
 # samples and within the renderer's fast-vs-direct tolerances, at ~1.6 times the frame rate of 4 samples end
-# to end (docs/navigation.md, "Render rate"). Shadow edges are anti-aliased by the fast path's sub-pixel
+# to end (docs/navigation/rendered.md). Shadow edges are anti-aliased by the fast path's sub-pixel
 # horizon either way; direct renders (render.mode=direct, fast-path fallbacks) keep render.samples.
 FRAME_GBUFFER_SAMPLES = 1
 

@@ -4,7 +4,7 @@ Every landmark of the map whose 3-D rim-centre point projects inside the frame i
 projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's curvature
 tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at :data:`RIM_POINTS`
 points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
-points that nearer relief hides in the rendered ``depth``); docs/navigation.md, section 9. A label's
+points that nearer relief hides in the rendered ``depth``); docs/navigation/rendered.md. A label's
 fields, in order, are ``crater_core.schema.NAVFRAME_LANDMARK_FIELDS``.
 
 Each row records the landmark map its labels were computed with (:func:`.landmarks.map_identity`); the

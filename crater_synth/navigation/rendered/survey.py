@@ -7,7 +7,7 @@ its own physical Sun: a sub-solar latitude in the pole's summer half of the luna
 hour angle drawn so that the Sun stands at least ``MIN_SUN_ELEVATION_DEG`` above both ends of the track.
 Frames are near-orthographic nadir views (a narrow field of view from a high altitude, like a mosaic
 window) at ``GROUND_SAMPLE_M``; the renderer, the terrain builder and the labels are those of
-``crater-synth nav-frames`` (docs/navigation.md, "Rendered frames"), so the detector is trained on
+``crater-synth nav-frames`` (docs/navigation/rendered.md), so the detector is trained on
 synthetic frames only. Every track is its own ``nav-frames`` directory (``DIR/track_NNN``); a track whose
 manifest exists is skipped, so an interrupted survey resumes.
 
@@ -25,7 +25,7 @@ import numpy as np
 from crater_core import geometry, trajectory
 from crater_synth.errors import UserError
 
-GROUND_SAMPLE_M = 800.0  # twice the mosaic's 400 m/px: the detector's finest level (docs/navigation.md)
+GROUND_SAMPLE_M = 800.0  # twice the mosaic's 400 m/px: the detector's finest level (docs/navigation/rendered.md)
 WIDTH_PX = 256
 FOV_DEG = 20.0  # narrow: the ground sample varies by < 3 % across the frame, close to a map window
 FRAMES_PER_TRACK = 4

@@ -1,4 +1,4 @@
-"""The light direction handed to the detectors on real mosaic windows (docs/navigation.md, section 3).
+"""The light direction handed to the detectors on real mosaic windows (docs/navigation/detectors.md).
 
 A mosaic window carries no image time, so the light's direction comes from image statistics:
 ``nav.detector.light_scope`` "frame" (estimated on the window alone,
@@ -24,7 +24,7 @@ from crater_synth.navigation.windows.mosaic import windows
 
 @functools.lru_cache(maxsize=8)
 def quadrant_light(pole: str, quadrant: int, dparams: LightSettings) -> float:
-    """Light direction of one mosaic quadrant (one Sun per quadrant, docs/navigation.md), pooled over the
+    """Light direction of one mosaic quadrant (one Sun per quadrant, docs/navigation/overview.md), pooled over the
     *validation* windows of that quadrant only (its even sector), so no test pixel sets it."""
     frames = [f for f in windows("validation", pole) if f.sector // 2 == quadrant]
     if not frames:

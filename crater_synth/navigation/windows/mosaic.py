@@ -1,6 +1,6 @@
 """Real evaluation frames: windows of the LROC WAC polar mosaic treated as nadir frames.
 
-Split rule (fixed before any evaluation, docs/navigation.md): the mosaic plane is cut into eight
+Split rule (fixed before any evaluation, docs/navigation/protocol.md): the mosaic plane is cut into eight
 45-degree longitude sectors about the pole, sector k = [45 k, 45 (k + 1)) deg east. Even sectors
 (0-45, 90-135, 180-225, 270-315 E) are **validation**, odd sectors **test**. A window belongs to a
 sector only when its whole footprint lies inside it, so validation and test windows never share a
@@ -12,7 +12,7 @@ North: the north mosaic (``lroc_wac_north``) is also four quadrants (0-90, 90-18
 the pole, and its windows are cut by the same geometry (512 px, stride 64, wholly inside one 45-degree
 sector, so off the seams and off the polar cap). **Every north window is test** (split "test" whatever
 its sector): no setting is chosen on the north; it is the held-out pole of the light-model choice made
-on the south mosaic (docs/navigation.md, section 2).
+on the south mosaic (docs/navigation/protocol.md).
 
 The polar seams are excluded by the same rule: a window lying wholly inside one 45-degree sector
 crosses no quadrant boundary (those are sector boundaries), and it is at least ~250 km from the pole,
