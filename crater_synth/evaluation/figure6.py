@@ -149,7 +149,7 @@ def experiments_fingerprint(cfg_resolved: dict) -> str:
     the Figure 6 plan itself: points with equal fingerprints can share one CSV."""
     from crater_synth.evaluation.validation import run_fingerprint
 
-    return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("experiments", "loop")})
+    return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("figure6", "loop")})
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
@@ -158,10 +158,10 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
 
     cfg_r = resolved(cfg)
     grid = grid_from_config(cfg_r["sweep"])
-    counts = cfg_r["experiments"]["counts"]
+    counts = cfg_r["figure6"]["counts"]
     unknown = set(counts) - set(AXES)
     if unknown:
-        raise ConfigError(f"experiments.counts: unknown parameter(s) {sorted(unknown)}")
+        raise ConfigError(f"figure6.counts: unknown parameter(s) {sorted(unknown)}")
     points = plan_points(grid, counts)
     run_dir = Path(cfg_r["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -175,7 +175,7 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
             f"{config}): continue with the same overrides, or use another run_dir"
         )
     done = {(r["parameter"], r["count"], r["sigma"]) for r in results}
-    sigmas = [float(s) for s in cfg_r["experiments"].get("sigmas") or grid.sigmas]
+    sigmas = [float(s) for s in cfg_r["figure6"].get("sigmas") or grid.sigmas]
     for point in points:
         for sigma in sigmas:
             if (point["parameter"], point["count"], sigma) in done:

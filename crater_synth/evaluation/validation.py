@@ -144,13 +144,16 @@ NEUTRAL_LATER_KEYS = {
 # a run that differs from a finished one only in these is re-evaluated, not retrained.
 EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)  # each also in NEUTRAL_LATER_KEYS (see _same_training)
 _ANY = object()  # run_fingerprint: drop the key whatever its value
+# Groups renamed after fingerprints were published: hashed under their old name, so published runs keep
+# their fingerprints (the Figure 6 counts were the ``experiments`` group).
+RENAMED_GROUPS = {"figure6": "experiments"}
 
 
 def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
     """What decides a run's result: everything but paths, progress and the validate group itself.
     ``training_only``: what decides its trained models (the evaluation-only keys left out too)."""
     skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir", "trajectory"}  # trajectory: nav frames only
-    payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
+    payload = {RENAMED_GROUPS.get(k, k): v for k, v in cfg_resolved.items() if k not in skip}
     payload["train"] = {
         k: v
         for k, v in payload.get("train", {}).items()

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
+from crater_synth.config import PRESET_GROUPS, REPO_ROOT, compose, resolved
 from crater_synth.errors import UserError
 from train.registry import MODELS
 
@@ -206,12 +207,23 @@ def dataset_rows(ds: Path | None) -> list[dict] | None:
 # ------------------------------------------------------------------------------------------------
 # Configuration: the run's saved config, with the command line's explicit overrides on top
 # ------------------------------------------------------------------------------------------------
-def _explicit_keys(overrides: Sequence[str]) -> list[str]:
-    keys = []
-    for o in overrides:
-        if "=" not in o or o.startswith("~"):
-            continue
-        keys.append(o.split("=", 1)[0].lstrip("+").split("@", 1)[0])
+def _key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+").split("@", 1)[0]
+
+
+# Where a run lives: the report is given the run directory itself, so a preset's paths are not its choice.
+_PATH_KEYS = frozenset({"run_dir", "out_dir", "data_dir"})
+
+
+def _explicit_keys(overrides: Sequence[str], composed: Mapping) -> list[str]:
+    """The keys the command line sets: each ``key=value`` and ``group=option``, and for a preset
+    (``experiment=NAME``) the top-level keys whose value it changes, paths aside (``experiment=demo``
+    counts as the ``sweep=... train=... loop...`` it stands for)."""
+    keys = [_key(o) for o in overrides if "=" in o and not o.startswith("~") and _key(o) not in PRESET_GROUPS]
+    presets = [o for o in overrides if "=" in o and _key(o) in PRESET_GROUPS]
+    if presets:
+        without = resolved(compose([o for o in overrides if o not in presets]))
+        keys += [k for k, v in composed.items() if k not in _PATH_KEYS and without.get(k) != v and k not in keys]
     return keys
 
 
@@ -259,11 +271,9 @@ class RunConfig:
 def effective_config(run_dir: Path, overrides: Sequence[str] = ()) -> RunConfig:
     """The configuration the run used (RUN_DIR/config.yaml when train saved one, else the composed
     defaults), with every key given explicitly on the command line taken from the overrides."""
-    from crater_synth.config import REPO_ROOT, compose, resolved
-
     composed = resolved(compose(list(overrides)))
     saved = load_run_config(run_dir / RUN_CONFIG_FILE)
-    explicit = _explicit_keys(overrides)
+    explicit = _explicit_keys(overrides, composed)
     if saved is not None:
         cfg = copy.deepcopy(saved)
         _fill_missing(cfg, composed)  # sections and keys an older saved config lacks
