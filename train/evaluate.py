@@ -21,6 +21,7 @@ from train.metrics import accuracy, class_mean_accuracy, confusion
 from train.plots import plot_confusion
 from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
 from train.registry import MODELS
+from train.runs import check_one_run
 from train.trainer import (
     HOG_FILE,
     NET_FILE,
@@ -126,8 +127,6 @@ def evaluate_run(
     """Evaluate the saved models (``train.registry``) of ``run_dir`` on the real test set; write the metrics
     files into ``out_dir`` (default ``run_dir``; the pipeline passes a staging directory, :mod:`train.runs`).
     The models and the summary must be of one training run (:func:`train.runs.check_one_run`)."""
-    from train.runs import check_one_run
-
     run_dir = Path(run_dir)
     out_dir = run_dir if out_dir is None else Path(out_dir)
     device = configure_torch(settings.train)

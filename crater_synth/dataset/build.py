@@ -11,6 +11,7 @@ from crater_core import schema
 from crater_core.files import ensure_writable_dir, is_disk_full, os_error_text, remove_stale_scratch
 from crater_core.progress import Progress
 from crater_core.settings import Settings
+from crater_synth.config import as_settings
 from crater_synth.dataset.disk import (
     DatasetLock,
     check_free_disk,
@@ -26,6 +27,7 @@ from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.dataset.plan import CraterJob, plan_render, render_seed, worker_item
 from crater_synth.dataset.recover import prove
 from crater_synth.errors import DatasetBusyError, RenderError, UserError
+from crater_synth.terrain.patch import build_terrain
 
 
 def _warn(message: str) -> None:
@@ -46,8 +48,6 @@ def build_dataset(
     alone). A directory that is neither empty nor a dataset is refused (crater_synth.dataset.marker);
     a run refused before rendering leaves nothing behind. Returns a summary dict (counts, timings,
     dataset path)."""
-    from crater_synth.config import as_settings
-
     s = as_settings(settings)
     if warn is not None:
         for w in s.warnings():
@@ -85,7 +85,6 @@ def build_dataset(
 def _build_locked(
     s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool, state: dict
 ) -> dict:
-    from crater_synth.terrain.patch import build_terrain
 
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest

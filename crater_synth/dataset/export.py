@@ -37,7 +37,10 @@ from typing import Callable, Iterator, Sequence
 
 import click
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
+from crater_core.schema import atomic_write_text, sha256_file
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part of this API)
     NAVFRAME,
@@ -106,8 +109,6 @@ def _tmp_path(final: Path) -> Path:
 
 def _finish(tmp: Path, final: Path) -> str:
     """fsync ``tmp``, rename it to ``final``; return its sha256."""
-    from crater_core.schema import sha256_file
-
     with open(tmp, "rb") as fh:
         os.fsync(fh.fileno())
     digest = sha256_file(tmp)
@@ -148,7 +149,6 @@ def _shard_names(fmt: str, n_shards: int) -> list[str]:
 
 
 def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
-    import pyarrow as pa
 
     fields = [("key", pa.string()), ("record_kind", pa.string())]
     fields += kind.label_fields()
@@ -248,14 +248,12 @@ def export_dataset(
         "shards": shards,
         "seconds": round(time.perf_counter() - t0, 3),
     }
-    from crater_core.schema import atomic_write_text
 
     atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
     return index
 
 
 def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> None:
-    import pyarrow.parquet as pq
 
     schema = _parquet_schema(rk, channels)
     labels = [f.name for f in schema if not f.name.endswith("_npy")]
@@ -271,7 +269,6 @@ def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> 
 
 
 def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
-    import pyarrow as pa
 
     cols = {"key": [s.key for s in batch], "record_kind": [rk.name] * len(batch)}
     for name, _ in rk.label_fields():

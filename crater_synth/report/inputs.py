@@ -10,8 +10,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import yaml
+from PIL import Image
+
+from crater_core import schema
 from crater_synth.config import PRESET_GROUPS, REPO_ROOT, compose, resolved
 from crater_synth.errors import UserError
+from crater_synth.navigation import DEMO_JSON
 from train.registry import MODELS
 
 METRICS_FILE = "metrics.json"
@@ -166,12 +171,8 @@ def check_png(path: Path) -> Path | None:
     if head != b"\x89PNG\r\n\x1a\n":
         raise ReportError(f"{path}: corrupt PNG (bad signature)")
     try:
-        from PIL import Image
-
         with Image.open(path) as im:
             im.verify()
-    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
-        pass
     except Exception as exc:  # noqa: BLE001 - any decoder complaint means a corrupt file
         raise ReportError(f"{path}: corrupt PNG ({exc})") from None
     return path
@@ -181,7 +182,6 @@ def load_run_config(path: Path) -> dict | None:
     """The resolved configuration saved by ``crater-synth train`` (RUN_DIR/config.yaml)."""
     if not path.exists():
         return None
-    import yaml
 
     try:
         doc = yaml.safe_load(_read_text(path))
@@ -197,8 +197,6 @@ def load_run_config(path: Path) -> dict | None:
 
 def dataset_rows(ds: Path | None) -> list[dict] | None:
     """Every row of the dataset's manifest (strict: a corrupt row is an error naming file:line)."""
-    from crater_core import schema
-
     if ds is None or not (ds / schema.MANIFEST_NAME).is_file():
         return None
     return schema.load_manifest(ds)
@@ -437,7 +435,5 @@ def load_nav_frames(path: Path) -> dict | None:
 
 def nav_paths(run_dir: Path) -> tuple[Path, list[Path]]:
     """(the navigate-demo result, the trajectories' nav-frames-eval results) of ``RUN_DIR/navigation/``."""
-    from crater_synth.navigation import DEMO_JSON
-
     nav = run_dir / NAVIGATION_DIR
     return nav / DEMO_JSON, sorted(nav.glob(NAV_FRAMES_GLOB)) if nav.is_dir() else []
