@@ -215,7 +215,6 @@ class _LibraryStderr:
     redirection is process-wide: readers run in the main thread or in worker processes."""
 
     def __enter__(self) -> "_LibraryStderr":
-
         self.failed = True
         self._sink: "IO[bytes] | None" = None
         try:

@@ -125,7 +125,6 @@ def schema_class(cls: type) -> type:
 
 
 def _plain_default(value):
-
     return as_plain(value)
 
 

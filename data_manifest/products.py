@@ -99,7 +99,6 @@ def _validate(products: dict, archives: dict, where: str) -> None:
 
 @functools.lru_cache(maxsize=None)
 def _load_registry(path: str) -> tuple[dict, dict]:
-
     try:
         with open(path, encoding="utf-8") as fh:
             doc = yaml.safe_load(fh)

@@ -45,7 +45,6 @@ def _worker_stats(out_dir: Path) -> list[dict]:
 
 
 def _run(settings, out: Path, n: int, share: bool) -> dict:
-
     t0 = time.perf_counter()
     summary = render_frames(settings, out, list(range(n)), share_patches=share)
     wall = time.perf_counter() - t0
@@ -83,7 +82,6 @@ def _untimed(value):
 
 
 def _navigate(frames_dir: Path) -> dict:
-
     out: dict = {}
     results: dict = {}
     for name in (

@@ -85,7 +85,6 @@ def build_dataset(
 def _build_locked(
     s: Settings, grid, indices, shard, out_dir: Path, progress: bool, warn, exclusive: bool, state: dict
 ) -> dict:
-
     stale = stale_parts(out_dir)
     if stale:  # rows of a killed run on this host: merge them, or they would never reach the manifest
         schema.merge_parts(out_dir, parts=stale)

@@ -149,7 +149,6 @@ def _shard_names(fmt: str, n_shards: int) -> list[str]:
 
 
 def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
-
     fields = [("key", pa.string()), ("record_kind", pa.string())]
     fields += kind.label_fields()
     fields += [(f"{column_name(c)}_npy", pa.binary()) for c in channels]
@@ -254,7 +253,6 @@ def export_dataset(
 
 
 def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> None:
-
     schema = _parquet_schema(rk, channels)
     labels = [f.name for f in schema if not f.name.endswith("_npy")]
     left = count
@@ -269,7 +267,6 @@ def _stream_parquet(tmp, samples, count, rk, channels, row_group_rows, tick) -> 
 
 
 def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
-
     cols = {"key": [s.key for s in batch], "record_kind": [rk.name] * len(batch)}
     for name, _ in rk.label_fields():
         cols[name] = [s.labels.get(name) for s in batch]

@@ -110,7 +110,6 @@ def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
 
 
 def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
-
     launcher = s.launcher
     out_dir = Path(s.out_dir)
     n_shards = plan["shards"]

@@ -63,7 +63,6 @@ class RecordKind:
 
 
 def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
-
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(f"dataset {dataset_dir}: no {MANIFEST_NAME} (render it with `crater-synth dataset`)")
@@ -116,7 +115,6 @@ def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dic
 
 @functools.lru_cache(maxsize=None)
 def _render_label_fields() -> list:
-
     f64, i64, s = pa.float64(), pa.int64(), pa.string()
     return [
         ("crater", s),
@@ -191,7 +189,6 @@ def _json_rows(manifest: Path) -> Iterator[tuple[int, dict]]:
 
 
 def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
-
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(
@@ -225,7 +222,6 @@ def _navframe_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> d
 
 @functools.lru_cache(maxsize=None)
 def _navframe_label_fields() -> list:
-
     f64, i64, s = pa.float64(), pa.int64(), pa.string()
     ellipse = pa.struct([(name, f64) for name in NAVFRAME_ELLIPSE_FIELDS])
     types = {"string": s, "float": f64, "float list": pa.list_(f64), "ellipse": ellipse, "bool": pa.bool_()}

@@ -12,12 +12,10 @@ from train.registry import MODELS
 
 
 def _settings(overrides):
-
     return load_settings(overrides)
 
 
 def _report(metrics: dict, run_dir) -> None:
-
     for m in MODELS:
         r = metrics[m]
         val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"

@@ -59,7 +59,6 @@ def crater_order(metrics: dict | None, cfg: Mapping, rows: list[dict] | None) ->
 
 # ---- 1. contact sheets ---------------------------------------------------------------------------
 def contact(ctx: Ctx) -> dict:
-
     ds = ctx.rc.dataset_dir
     if ctx.rows is None:
         return {"not_run": not_run(f"no rendered dataset at {ds or 'train.dataset_dir (unset)'}", "dataset")}
@@ -500,7 +499,6 @@ def fidelity(ctx: Ctx) -> dict:
 
 
 def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
-
     from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
     from train.realset import load_mosaic
 

@@ -53,7 +53,6 @@ def thousands(v) -> str:
 
 @functools.lru_cache(maxsize=1)
 def environment():
-
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("crater_synth.report", "templates"),
         autoescape=True,

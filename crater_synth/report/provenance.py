@@ -13,7 +13,6 @@ from data_manifest import products as P
 
 
 def _product_rows(cfg: Mapping) -> list[dict]:
-
     out = []
     data_dir = Path(str(cfg.get("data_dir") or "data"))
     for pid, p in P.load_products().items():
@@ -83,7 +82,6 @@ def limits_text(ctx: Ctx) -> str:
 
 
 def provenance(ctx: Ctx) -> dict:
-
     out: dict = {"products": _product_rows(ctx.rc.cfg)}
     ds = ctx.rc.dataset_dir
     if ctx.all_rows is None:

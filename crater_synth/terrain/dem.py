@@ -172,7 +172,6 @@ class Dem:
     """A DEM file opened for sampling; metadata is read once, pixels on demand (windowed)."""
 
     def __init__(self, path: str | Path, product: str | None = None):
-
         self.path = Path(path)
         self.product = product or self.path.name
         self._open = None  # (pid, open rasterio dataset): see _dataset

@@ -175,7 +175,6 @@ def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAUL
 
 
 def _open_ldem(data_dir: str | Path = DEFAULT_DATA_DIR):
-
     return Dem(resolve_product(BASE_DEM_PRODUCT, data_dir), product=BASE_DEM_PRODUCT)
 
 
@@ -592,7 +591,6 @@ def write_hillshades(
     written = []
 
     def save(img: np.ndarray, path: Path):
-
         buf = io.BytesIO()
         Image.fromarray((np.clip(img, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)).save(buf, format="PNG")
         atomic_write_bytes(path, buf.getvalue())

@@ -150,7 +150,6 @@ def open_dem(product: str | None, path: str | None, data_dir: Path):
 # Geometry helpers
 # --------------------------------------------------------------------------------------------
 def _to_enu(dirs: np.ndarray, heights: np.ndarray, lat: float, lon: float) -> np.ndarray:
-
     return mc_to_enu(dirs * (MOON_RADIUS_M + heights)[..., None], lat, lon)
 
 

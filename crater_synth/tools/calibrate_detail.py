@@ -31,7 +31,6 @@ from crater_synth.terrain.detail_calibration import (
 
 
 def main(argv=None) -> int:
-
     ap = argparse.ArgumentParser(
         prog="python -m crater_synth.tools.calibrate_detail",
         description="Compare LDEM + sub-DEM detail with a real LOLA 200 m crop.",

@@ -151,7 +151,6 @@ def _profile_figure(plt, a: dict, name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("overrides", nargs="*")
     ap.add_argument("--png", default=None, help="write PREFIX_hillshade.png and PREFIX_profile.png")

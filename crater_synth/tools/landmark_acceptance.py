@@ -50,7 +50,6 @@ SECTORS = 6
 
 
 def _dem(pole: str):
-
     return open_dem_entry(lmap.DEM_PRODUCTS[pole], lmap.DATA_DIR)[0]
 
 
@@ -159,7 +158,6 @@ def features(rows: list[dict], meas: list[dict]) -> tuple[np.ndarray, dict]:
 
 
 def _model():
-
     return make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=1000))
 
 

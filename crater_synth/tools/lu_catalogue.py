@@ -74,7 +74,6 @@ def polar_subset(
 
 
 def main(argv: list[str] | None = None) -> int:
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("tile_dir", type=Path)
     ap.add_argument("out", type=Path)
