@@ -52,7 +52,7 @@ test-slow: setup ## Run only the slow tests
 terrain: setup ## Build terrain patches for the selected craters (OVERRIDES="crater=shoemaker")
 	$(CLI) terrain $(OVERRIDES)
 
-dataset: setup ## Render a sweep (resumable): OVERRIDES="sweep=demo crater=shoemaker render.workers=2"
+dataset: setup ## Render a sweep (resumable): OVERRIDES="sweep=demo crater=shoemaker render.workers=2" (the paper's: "experiment=paper_sweep")
 	$(CLI) dataset $(OVERRIDES)
 
 DATASET ?= data/synth/smoke
@@ -68,12 +68,13 @@ config: setup ## Print the composed configuration: make config OVERRIDES="sweep=
 train: setup ## Train the three classifiers on a rendered sweep and evaluate on real crops
 	$(CLI) train $(OVERRIDES)
 
-loop: setup ## Closed loop: add sun elevations until the real accuracy reaches loop.threshold
+loop: setup ## Closed loop: add sun elevations until the real accuracy reaches loop.threshold (paper scale: OVERRIDES="experiment=paper_loop")
 	$(CLI) loop $(OVERRIDES)
 
-experiments: setup ## Figure 6 experiments on one rendered dataset (OVERRIDES="sweep=paper")
+experiments: setup ## Figure 6 experiments on one rendered dataset (paper scale: OVERRIDES="experiment=figure6")
 	$(CLI) experiments $(OVERRIDES)
 
+# The run_dir of experiment=figure6 and of experiment=paper_loop.
 EXPERIMENTS_DIR ?= outputs/paper_fig6
 LOOP_DIR ?= outputs/paper_loop
 results: setup ## The paper's findings checked on a Figure 6 run and a loop run, into docs/results/
@@ -87,7 +88,7 @@ report: setup ## HTML report of a run: make report RUN_DIR=outputs/demo
 bench: setup ## Benchmarks: renderer vs naive baseline (renders/s, ratio), training, distributed sweep
 	$(CLI) bench $(OVERRIDES)
 
-validate: setup ## Real validation protocol (docs/validation.md): choose on the validation craters, report the test
+validate: setup ## Real validation protocol (docs/validation.md): choose on the validation craters, report the test (+ held-out craters: OVERRIDES="experiment=heldout")
 	$(CLI) validate $(OVERRIDES)
 
 ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/off, validation + test)
@@ -114,11 +115,13 @@ nav-detector: setup ## The learned crater detector: render its 70 survey tracks 
 	$(CLI) nav-detector-train $(DETECTOR_FRAMES) --out $(DETECTOR_MODEL)
 
 DEMO_DIR ?= outputs/demo
-DEMO_TRAIN ?= sim2real
-DEMO_SWEEP ?= demo_physical_noon
-demo: setup ## The main job on the embedded data: render sweep=demo_physical_noon (DEMO_SWEEP), closed loop, evaluate, report
-	$(CLI) loop sweep=$(DEMO_SWEEP) train=$(DEMO_TRAIN) run_dir=$(DEMO_DIR) 'loop.sun_elevation_schedule=[2,4]' $(OVERRIDES)
-	$(CLI) report $(DEMO_DIR) sweep=$(DEMO_SWEEP) train=$(DEMO_TRAIN) $(OVERRIDES)
+DEMO_TRAIN ?=
+DEMO_SWEEP ?=
+# experiment=demo (configs/experiment/demo.yaml); DEMO_SWEEP / DEMO_TRAIN, when set, replace its sweep / training.
+DEMO_PRESET = experiment=demo $(if $(DEMO_SWEEP),sweep=$(DEMO_SWEEP)) $(if $(DEMO_TRAIN),train=$(DEMO_TRAIN))
+demo: setup ## The main job on the embedded data (experiment=demo): render sweep=demo_physical_noon, closed loop, evaluate, report
+	$(CLI) loop $(DEMO_PRESET) run_dir=$(DEMO_DIR) $(OVERRIDES)
+	$(CLI) report $(DEMO_DIR) $(DEMO_PRESET) $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \

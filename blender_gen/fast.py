@@ -35,6 +35,7 @@ from collections import OrderedDict
 import numpy as np
 
 from blender_gen import direct
+from blender_gen.job import load_terrain
 from crater_core import hapke, horizon, horizon_cache
 
 
@@ -163,8 +164,6 @@ def ensure_horizons(terrain_npz: str, render_cfg: dict, diameter_m: float, azimu
     job's crater diameter), from the shared cache or computed into it: what a worker's
     :meth:`FastRenderer.prepare_horizons` reads. Needs no bpy, so a host may compute them ahead of its
     workers (the cache's lock files make each map computed once)."""
-    from blender_gen.job import load_terrain
-
     geom = MapGeometry(
         float(render_cfg["shadow_map_extent_factor"]) * diameter_m,
         int(render_cfg["shadow_map_px"]),

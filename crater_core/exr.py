@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import IO
@@ -214,8 +215,6 @@ class _LibraryStderr:
     redirection is process-wide: readers run in the main thread or in worker processes."""
 
     def __enter__(self) -> "_LibraryStderr":
-        import sys
-
         self.failed = True
         self._sink: "IO[bytes] | None" = None
         try:

@@ -14,6 +14,7 @@ rows are in the EXR's (crop) pixel coordinates.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -375,8 +376,6 @@ def merge_parts(
     """Merge part files (default: all of them) into ``manifest.jsonl`` atomically, under an exclusive
     lock so concurrent shards cannot lose each other's rows; merged part files are removed.
     ``keep`` optionally restricts the result to those row keys. Returns the row count."""
-    import fcntl
-
     d = Path(dataset_dir)
     d.mkdir(parents=True, exist_ok=True)
     with open(d / ".manifest.lock", "a") as lock:

@@ -351,7 +351,7 @@ class LoopSettings(Group):
 
 @dataclass(frozen=True, kw_only=True)
 class CountsSettings(Group):
-    """``experiments.counts``: the sample counts of each axis for Figure 6."""
+    """``figure6.counts``: the sample counts of each axis for Figure 6."""
 
     sun_elevation: Optional[Tuple[int, ...]]  # null: this axis is not varied
     sun_azimuth: Optional[Tuple[int, ...]]
@@ -365,8 +365,8 @@ class CountsSettings(Group):
 
 
 @dataclass(frozen=True, kw_only=True)
-class ExperimentsSettings(Group):
-    """``experiments.*``: Figure 6 (crater_synth/evaluation/figure6.py)."""
+class Figure6Settings(Group):
+    """``figure6.*``: Figure 6 (crater_synth/evaluation/figure6.py)."""
 
     counts: CountsSettings
     sigmas: Optional[Tuple[float, ...]]
@@ -520,7 +520,7 @@ class Settings(Group):
     sensor: SensorSettings
     realset: RealsetSettings
     loop: LoopSettings
-    experiments: ExperimentsSettings
+    figure6: Figure6Settings
     fetch: FetchSettings
     validate: ValidateSettings
     ablation: AblationSettings
@@ -571,7 +571,7 @@ GROUPS: Dict[str, type] = {
     "sensor": SensorSettings,
     "realset": RealsetSettings,
     "loop": LoopSettings,
-    "experiments": ExperimentsSettings,
+    "figure6": Figure6Settings,
     "fetch": FetchSettings,
     "validate": ValidateSettings,
     "ablation": AblationSettings,
@@ -587,8 +587,8 @@ __all__ = [
     "CraterSettings",
     "DemSettings",
     "DetailSettings",
-    "ExperimentsSettings",
     "FetchSettings",
+    "Figure6Settings",
     "FrameSettings",
     "HapkeParams",
     "HogSettings",

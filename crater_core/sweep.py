@@ -36,6 +36,8 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from crater_core.errors import ContractError
+from crater_core.geometry import hemisphere, noon_azimuth_deg
+from crater_core.illumination import max_sun_elevation_deg
 from crater_core.schema import render_rel_path
 
 
@@ -206,8 +208,6 @@ class SweepGrid:
         if self.sun_model == "physical":
             if lat_deg is None:
                 raise SweepError("a physical sweep needs the crater latitude to place its suns")
-            from crater_core.geometry import hemisphere, noon_azimuth_deg
-            from crater_core.illumination import max_sun_elevation_deg
 
             # South: the grid value itself (the same number as before the north pole was supported);
             # north: mirrored about the noon direction, so that a value v is on the same (morning, east)

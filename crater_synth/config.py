@@ -14,14 +14,22 @@ experiments, validation fingerprints).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import re
 import typing
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
-from omegaconf import DictConfig, OmegaConf
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from crater_core.errors import ContractError
-from crater_core.settings import GROUPS, Settings, SettingsError
+from crater_core.settings import GROUPS, Settings, SettingsError, as_plain
 from crater_synth.errors import ConfigError
 from crater_synth.paths import CONFIG_DIR, SOURCE_ROOT
 
@@ -91,8 +99,6 @@ def schema_class(cls: type) -> type:
 
     OmegaConf turns a frozen dataclass into a read-only node, into which Hydra cannot merge the yaml
     values: the schema is this twin, generated, so the settings classes stay the one definition."""
-    from omegaconf import MISSING
-
     if cls not in _TWINS:
         hints = typing.get_type_hints(cls)
         specs = []
@@ -119,8 +125,6 @@ def schema_class(cls: type) -> type:
 
 
 def _plain_default(value):
-    from crater_core.settings import as_plain
-
     return as_plain(value)
 
 
@@ -130,8 +134,6 @@ _REGISTERED: list = []
 def register_schemas() -> None:
     """Store ``settings_schema`` (the root) and ``<group>_schema`` for every group of configs/ in Hydra's
     (process-wide) ConfigStore; again only when the settings classes changed (tests extend them)."""
-    from hydra.core.config_store import ConfigStore
-
     key = (Settings, tuple(GROUPS.items()))
     if _REGISTERED == [key]:
         return
@@ -148,12 +150,6 @@ def register_schemas() -> None:
 def compose_settings(overrides: Sequence[str] = (), config_name: str = "config") -> tuple[DictConfig, Settings]:
     """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``) and
     validate it: ``(DictConfig, Settings)``. Any bad value or unknown key is a :class:`ConfigError`."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
     overrides = [f"+{o}" if o.partition("=")[0] in OPTIONAL_GROUPS else o for o in overrides]
     register_schemas()
     GlobalHydra.instance().clear()
@@ -195,8 +191,6 @@ def as_settings(cfg: Settings | DictConfig | Mapping) -> Settings:
 def resolved(cfg: DictConfig) -> dict:
     """Plain-dict copy with all interpolations resolved; ``???`` values are kept (the settings
     conversion names them); an interpolation that cannot be resolved is a :class:`ConfigError`."""
-    from omegaconf.errors import OmegaConfBaseException
-
     try:
         return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)  # type: ignore[return-value]
     except OmegaConfBaseException as exc:
@@ -287,7 +281,6 @@ def _quoting_hint(msg: str, overrides: Sequence[str]) -> str | None:
                 f'with spaces), quote the whole override, e.g. "{joined}"'
             )
         return f"override {m.group(1)!r} is not key=value (e.g. out_dir=/data/x)"
-    from hydra.core.override_parser.overrides_parser import OverridesParser
 
     parser = OverridesParser.create()
     for o in overrides:
@@ -321,8 +314,6 @@ def _override_for(full_key: str, overrides: Sequence[str]) -> str | None:
 
 def _suggest(full_key: str) -> str:
     """`` (did you mean <key>?)`` for a misspelt key, from the settings classes' fields."""
-    import difflib
-
     parts = full_key.split(".")
     cls: Any = Settings
     i = 0

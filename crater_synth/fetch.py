@@ -11,20 +11,40 @@ registry's layout), else ``<archive base_url>/<path>`` from the registry (docs/d
 
 from __future__ import annotations
 
+import gzip
 import http.client
 import json
 import os
+import shutil
 import socket
+import tempfile
 import time
 import urllib.error
 import urllib.request
 from pathlib import Path
 
 import click
+from omegaconf import OmegaConf
 
 from crater_core.errors import ContractError
+from crater_core.schema import sha256_file
 from crater_synth.cli_common import user_errors
+from crater_synth.config import compose
 from crater_synth.errors import UserError
+from data_manifest.products import (
+    ChecksumError,
+    ProductError,
+    expected_sha256,
+    get_product,
+    load_archives,
+    load_pins,
+    load_products,
+    local_name,
+    pins_path,
+    products_dir,
+    record_pin,
+    resolve_product,
+)
 
 # Used when the composed config has no ``fetch`` group (configs/fetch/default.yaml holds the same).
 FETCH_DEFAULTS = {"base_url": None, "timeout_s": 60.0, "retries": 3, "chunk_bytes": 1 << 20, "backoff_s": 1.0}
@@ -45,8 +65,6 @@ class FetchError(UserError):
 # --------------------------------------------------------------------------------------------
 def fetch_settings(cfg) -> dict:
     """``fetch.*`` with defaults, validated."""
-    from omegaconf import OmegaConf
-
     node = cfg.get("fetch") if cfg is not None else None
     if node is not None and not isinstance(node, dict):
         raw = OmegaConf.to_container(node, resolve=True)
@@ -107,9 +125,6 @@ def _fsync_dir(path: Path) -> None:
 
 def _check(path: Path, expected_sha: str | None, expected_size: int | None, what: str) -> tuple[str, int]:
     """(sha256, size) of ``path``; ChecksumError on a size or digest mismatch."""
-    from crater_core.schema import sha256_file
-    from data_manifest.products import ChecksumError
-
     size = path.stat().st_size
     if expected_size is not None and size != int(expected_size):
         raise ChecksumError(f"{what}: size {size} bytes != pinned {int(expected_size)}")
@@ -164,8 +179,6 @@ def fetch_file(
     status: ``present`` (already there and valid) or ``downloaded``. Network errors keep the
     ``.part`` for a later resume; a checksum/size mismatch removes it and raises ChecksumError.
     """
-    from data_manifest.products import ChecksumError
-
     what = what or dest.name
     dest = Path(dest)
     if dest.exists():
@@ -220,8 +233,6 @@ def fetch_file(
 # --------------------------------------------------------------------------------------------
 def product_status(product: dict, data_dir: str | os.PathLike) -> dict:
     """Report a product's local state without downloading (embedded ones are verified)."""
-    from data_manifest.products import products_dir, resolve_product
-
     pid = product["id"]
     if product["source"] == "embedded":
         path = resolve_product(pid, data_dir)
@@ -232,7 +243,6 @@ def product_status(product: dict, data_dir: str | os.PathLike) -> dict:
             "path": str(path),
             "sha256": product["sha256"],
         }
-    from data_manifest.products import expected_sha256, load_pins
 
     pins = load_pins(data_dir)
     files = [
@@ -251,18 +261,6 @@ def fetch_product(
     product: dict, data_dir: str | os.PathLike, settings: dict | None = None, archives: dict | None = None
 ) -> dict:
     """Verify an embedded product, or download every file of a downloadable one. Returns a report."""
-    from data_manifest.products import (
-        ProductError,
-        expected_sha256,
-        load_archives,
-        load_pins,
-        local_name,
-        pins_path,
-        products_dir,
-        record_pin,
-        resolve_product,
-    )
-
     s = {**FETCH_DEFAULTS, **(settings or {})}
     pid = product["id"]
     if product["source"] == "embedded":
@@ -330,10 +328,6 @@ def fetch_product(
 
 def _gunzip(src: Path, dest: Path) -> None:
     """Decompress ``src`` into ``dest`` through a temporary file and a rename (kept if already there)."""
-    import gzip
-    import shutil
-    import tempfile
-
     if dest.is_file():
         return
     fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
@@ -371,9 +365,6 @@ def fetch_data_command(args):
     ``all`` fetches every product. Embedded products are verified, never downloaded.
     Example: ``crater-synth fetch-data lola_ldem_875s_20m fetch.base_url=http://mirror.local/pds``
     """
-    from crater_synth.config import compose
-    from data_manifest.products import get_product, load_products
-
     ids, overrides = _split_args(args)
     cfg = compose(overrides)
     data_dir = Path(str(cfg.data_dir))

@@ -17,12 +17,16 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import os
 import re
+from importlib import metadata
 from pathlib import Path
 
+import yaml
+
 from crater_core.errors import ContractError
-from crater_core.schema import sha256_file
+from crater_core.schema import atomic_write_text, sha256_file
 
 PRODUCTS_FILE = Path(__file__).resolve().with_name("products.yaml")
 # Embedded products whose ``package`` is this project's own distribution live in the source tree:
@@ -95,8 +99,6 @@ def _validate(products: dict, archives: dict, where: str) -> None:
 
 @functools.lru_cache(maxsize=None)
 def _load_registry(path: str) -> tuple[dict, dict]:
-    import yaml
-
     try:
         with open(path, encoding="utf-8") as fh:
             doc = yaml.safe_load(fh)
@@ -176,8 +178,6 @@ def _setup_hint(p: dict) -> str:
 
 def embedded_path(product_id: str) -> Path:
     """Path of an embedded product's file inside its installed distribution (not verified)."""
-    from importlib import metadata
-
     p = get_product(product_id)
     if p["source"] != "embedded":
         raise ProductError(f"data product {product_id!r} is not embedded (source: {p['source']})")
@@ -225,8 +225,6 @@ def pins_path(data_dir: str | os.PathLike) -> Path:
 
 def load_pins(data_dir: str | os.PathLike) -> dict[str, dict]:
     """``{"<product>/<file>": {"sha256", "bytes", "url"}}``; empty when nothing was pinned yet."""
-    import json
-
     p = pins_path(data_dir)
     if not p.is_file():
         return {}
@@ -244,10 +242,6 @@ def load_pins(data_dir: str | os.PathLike) -> dict[str, dict]:
 def record_pin(data_dir: str | os.PathLike, product_id: str, name: str, sha256: str, size: int, url: str) -> None:
     """Pin a file at its first fetch (atomic rewrite of the pin file). A different existing pin is
     an error: a pin is never replaced silently."""
-    import json
-
-    from crater_core.schema import atomic_write_text
-
     pins = load_pins(data_dir)
     key = f"{product_id}/{name}"
     old = pins.get(key)

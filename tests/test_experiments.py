@@ -14,7 +14,7 @@ def paper_grid():
 
 
 def test_each_subset_has_exactly_the_paper_counts_from_the_rendered_grid(paper_grid):
-    counts = resolved(compose(["sweep=paper"]))["experiments"]["counts"]
+    counts = resolved(compose(["sweep=paper"]))["figure6"]["counts"]
     points = plan_points(paper_grid, counts)
     assert len(points) == 20
     for p in points:
@@ -58,8 +58,8 @@ def test_impossible_subset_is_refused():
 
 
 def test_small_config_fits_the_demo_sweep():
-    cfg = resolved(compose(["sweep=demo", "experiments=small"]))
-    points = plan_points(grid_from_config(cfg["sweep"]), cfg["experiments"]["counts"])
+    cfg = resolved(compose(["sweep=demo", "figure6=small"]))
+    points = plan_points(grid_from_config(cfg["sweep"]), cfg["figure6"]["counts"])
     assert {(p["parameter"], p["count"]) for p in points} == {
         ("sun_elevation", 2),
         ("sun_elevation", 4),
@@ -100,11 +100,11 @@ def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
         "sweep.sun_azimuth.values=[0.0,120.0,240.0]",
         "sweep.cam_elevation.values=[90.0]",
         "sweep.cam_azimuth.values=[0.0,90.0,180.0,270.0]",
-        "experiments.counts.sun_elevation=[1,2]",
-        "experiments.counts.sun_azimuth=null",
-        "experiments.counts.cam_elevation=null",
-        "experiments.counts.cam_azimuth=null",
-        "experiments.sigmas=[1.0]",
+        "figure6.counts.sun_elevation=[1,2]",
+        "figure6.counts.sun_azimuth=null",
+        "figure6.counts.cam_elevation=null",
+        "figure6.counts.cam_azimuth=null",
+        "figure6.sigmas=[1.0]",
         f"train.dataset_dir={ds}",
         f"data_dir={tmp_path}",
         f"run_dir={tmp_path}/run",

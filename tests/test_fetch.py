@@ -190,6 +190,7 @@ def test_cli_embedded_and_mirror(server, tmp_path, monkeypatch):
 
     reg = {**products.load_products(), "test_product": {k: v for k, v in product().items() if k != "id"}}
     monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
+    monkeypatch.setattr(fetch, "load_products", lambda *a, **k: reg)  # fetch imports it at its top
     monkeypatch.setattr(products, "load_archives", lambda *a, **k: {"mirror": {"name": "m", "base_url": None}})
     res = runner.invoke(
         main,
@@ -223,6 +224,7 @@ def test_trust_on_first_use_pins_an_unpinned_file(server, tmp_path, monkeypatch)
 
     reg = {"test_product": {k: v for k, v in unpinned.items() if k != "id"}}
     monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
+    monkeypatch.setattr(fetch, "load_products", lambda *a, **k: reg)  # fetch imports it at its top
     assert products.resolve_product("test_product", tmp_path).read_bytes() == PAYLOAD
     # The archive now serves other bytes: a fresh fetch is refused against the pin, nothing kept.
     (tmp_path / "products" / "a.bin").unlink()
@@ -239,6 +241,7 @@ def test_trust_on_first_use_pins_an_unpinned_file(server, tmp_path, monkeypatch)
 def test_present_but_never_pinned_file_is_not_trusted_silently(tmp_path, monkeypatch):
     reg = {"test_product": {k: v for k, v in product(sha=None).items() if k != "id"}}
     monkeypatch.setattr(products, "load_products", lambda *a, **k: reg)
+    monkeypatch.setattr(fetch, "load_products", lambda *a, **k: reg)  # fetch imports it at its top
     (tmp_path / "products").mkdir()
     (tmp_path / "products" / "a.bin").write_bytes(PAYLOAD)
     with pytest.raises(products.ProductMissingError, match="no pinned sha256.*fetch-data test_product"):

@@ -5,6 +5,7 @@ composed configuration."""
 import re
 import shutil
 import subprocess
+import sys
 
 import pytest
 import yaml
@@ -43,23 +44,68 @@ def _help(*args) -> str:
     return res.output
 
 
-def test_top_level_help_one_liners_are_whole():
+def _sections(text: str) -> dict[str, list[str]]:
+    """The command lines of `crater-synth --help` under each heading (the lines after "Options:")."""
+    sections: dict[str, list[str]] = {}
+    heading = None
+    for line in text.split("Options:\n", 1)[1].splitlines():
+        if line and not line.startswith(" "):
+            heading = line.rstrip(":")
+            sections[heading] = []
+        elif line.strip() and heading is not None and heading != "Options":
+            sections[heading].append(line)
+    return sections
+
+
+def test_top_level_help_lists_commands_by_stage_with_whole_one_liners():
+    from crater_synth.cli import main
+
     text = _help()
-    commands = text.split("Commands:\n", 1)[1].splitlines()
-    assert len(commands) >= 12
-    for line in commands:
+    sections = _sections(text)
+    assert list(sections) == ["Data", "Rendering", "Training", "Evaluation", "Navigation", "Tools"]
+    lines = [line for rows in sections.values() for line in rows]
+    for line in lines:
         assert not line.rstrip().endswith("..."), line  # click cuts a too-long first sentence with "..."
         assert line.rstrip().endswith("."), line
     assert "``" not in text and "…" not in text
-    names = [line.split()[0] for line in commands]
-    assert names[:4] == ["terrain", "catalogue", "fetch-data", "dataset"]  # pipeline order, not A-Z
-    assert "config" in names
+    names = {heading: [line.split()[0] for line in rows] for heading, rows in sections.items()}
+    assert names["Data"] == ["fetch-data", "terrain", "catalogue"]  # pipeline order, not A-Z
+    assert names["Rendering"][0] == "dataset" and names["Training"] == ["train", "evaluate"]
+    assert "config" in names["Tools"] and "navigate" in names["Navigation"]
+    assert sorted(n for rows in names.values() for n in rows) == sorted(main.list_commands(None))
+    assert len({line.index(line.split()[1]) for line in lines}) == 1  # one column of summaries
+
+
+def test_help_imports_no_command_module():
+    """`crater-synth --help` reads the table in cli.py: no command module (and none of the heavy
+    libraries they import at their top) is loaded, so start-up stays fast."""
+    code = (
+        "import sys; from click.testing import CliRunner; from crater_synth.cli import main; "
+        "r = CliRunner().invoke(main, ['--help']); assert r.exit_code == 0, r.output; "
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith(('crater_synth.', 'train', 'numpy', "
+        "'omegaconf', 'hydra', 'torch', 'scipy', 'matplotlib')))))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["crater_synth.cli"], proc.stdout
+
+
+def test_every_listed_command_loads_under_its_name():
+    """Each row of the table names a click command of that name (loaded when asked for)."""
+    from crater_synth.cli import COMMANDS, main
+
+    for entries in COMMANDS.values():
+        for name, where, summary in entries:
+            cmd = main.get_command(None, name)
+            assert cmd is not None and cmd.name == name, (name, where)
+            assert cmd.short_help == summary
+    assert main.get_command(None, "no-such-command") is None
 
 
 def test_no_command_help_shows_double_backticks():
     from crater_synth.cli import main
 
-    for name in main.commands:
+    for name in main.list_commands(None):
         text = _help(name)
         assert "``" not in text, (name, text)
 

@@ -166,9 +166,9 @@ def test_refused_train_and_evaluate_leave_no_run_dir(tmp_path):
 
 
 def test_loop_checks_its_whole_schedule_before_round_0(toy, tmp_path, monkeypatch):
-    import crater_synth.dataset
+    from crater_synth.evaluation import closed_loop
 
-    monkeypatch.setattr(crater_synth.dataset, "build_dataset", lambda *a, **k: pytest.fail("round 0 started"))
+    monkeypatch.setattr(closed_loop, "build_dataset", lambda *a, **k: pytest.fail("round 0 started"))
     res = _cli(
         "loop",
         *_overrides(toy, tmp_path),

@@ -51,6 +51,7 @@ SUBRANK = {
     "crater_synth.bench": 4,
     "crater_synth.tools": 5,
     "crater_synth.cli": 5,
+    "crater_synth.config_cli": 5,
 }
 
 # Third-party top-level modules a package may import (the standard library is always allowed).

@@ -37,9 +37,7 @@ def scripted_training(monkeypatch):
         acc = fake_train_and_evaluate.accuracy[n_sun]
         return {"train_images": n_sun, **{m: {"real_accuracy": acc, "val_accuracy": 0.9} for m in loop_mod.MODELS}}
 
-    import train.pipeline
-
-    monkeypatch.setattr(train.pipeline, "train_and_evaluate", fake_train_and_evaluate)
+    monkeypatch.setattr(loop_mod, "train_and_evaluate", fake_train_and_evaluate)
     fake_train_and_evaluate.calls = calls
     return fake_train_and_evaluate
 

@@ -148,12 +148,9 @@ def scripted(monkeypatch, tmp_path):
             },
         }
 
-    import crater_synth.dataset
-    import train.pipeline
-
-    monkeypatch.setattr(crater_synth.dataset, "build_dataset", fake_build)
-    monkeypatch.setattr(train.pipeline, "train_and_evaluate", fake_train)
-    monkeypatch.setattr(train.pipeline, "evaluate_saved", fake_evaluate)
+    monkeypatch.setattr(v, "build_dataset", fake_build)
+    monkeypatch.setattr(v, "train_and_evaluate", fake_train)
+    monkeypatch.setattr(v, "evaluate_saved", fake_evaluate)
     monkeypatch.setattr(v, "catalogue_names", lambda: CATALOGUE)
     # Hydra needs real crater configs: give the protocol plain entries for the scripted names.
     from crater_synth import config as config_mod

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -344,8 +345,6 @@ def train_detector(samples: list[LevelSample], settings: DetectorTrainSettings, 
 # ------------------------------------------------------------------------------------------------
 def save_model(path: Path, model: CraterNet, meta: dict) -> None:
     """Write the weights and ``meta`` (provenance, settings) atomically, with a sha256 of the weights."""
-    import json
-
     meta = json.loads(json.dumps(meta, default=str))  # plain JSON types only: the file loads with weights_only
     buf = io.BytesIO()
     torch.save(model.state_dict(), buf)

@@ -25,6 +25,7 @@ import multiprocessing
 import os
 import shutil
 import tempfile
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,8 +35,22 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from crater_core.schema import ManifestError, manifest_digest, sha256_file, validate_row
+from crater_core.exr import ExrError, read_channel_and_header
+from crater_core.files import ensure_writable_dir, umask
+from crater_core.progress import Progress
+from crater_core.render_labels import label_faults
+from crater_core.schema import (
+    MANIFEST_NAME,
+    ManifestError,
+    duplicate_faults,
+    load_manifest,
+    manifest_digest,
+    row_file,
+    sha256_file,
+    validate_row,
+)
 from crater_core.settings import Settings, TrainSettings, as_plain
+from crater_core.sweep import rows_in_selection
 from train.errors import DatasetError, RealDataLeakError
 from train.preprocess import (
     PreprocessConfig,
@@ -63,7 +78,6 @@ def read_exr_channel(path: str | Path, channel: str = "IF") -> np.ndarray:
 
 def read_exr_channel_and_header(path: str | Path, channel: str = "IF") -> tuple[np.ndarray, dict]:
     """:func:`read_exr_channel` and the EXR's header (the render's labels), from one open."""
-    from crater_core.exr import ExrError, read_channel_and_header
 
     try:
         return read_channel_and_header(path, channel)
@@ -97,7 +111,6 @@ def require_classes(class_names: Sequence[str]) -> list[str]:
 
 def require_manifest(dataset_dir: str | Path) -> Path:
     """``<dataset_dir>/manifest.jsonl``, or a clear error when it is missing."""
-    from crater_core.schema import MANIFEST_NAME
 
     p = Path(dataset_dir) / MANIFEST_NAME
     if not p.is_file():
@@ -113,7 +126,6 @@ def load_rows(dataset_dir: str | Path) -> list[dict]:
     file or file content listed twice (a duplicate row with another crater would train on a wrong
     label). The checks ``verify`` makes without opening a file; the labels in each EXR's header are
     checked where the crop cache decodes it (:func:`build_cache`)."""
-    from crater_core.schema import duplicate_faults, load_manifest
 
     d = Path(dataset_dir)
     manifest = require_manifest(d)
@@ -174,7 +186,6 @@ def check_synthetic_rows(
 def row_path(dataset_dir: str | Path, row: dict) -> Path:
     """The file of a row (``crater_core.schema.row_file``): a :class:`DatasetError` when a link takes
     it outside the dataset."""
-    from crater_core.schema import row_file
 
     try:
         return row_file(dataset_dir, row)
@@ -313,7 +324,6 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
     """Resample one chunk of rows into the cache's memmap (``chunk`` = images path, dataset dir, rows,
     first sample index); returns the number of rows. Runs in a pool process or in the caller (which
     may pass ``on_row``, called after each row)."""
-    from crater_core.render_labels import label_faults
 
     images_path, dataset_dir, rows, j = chunk
     arr = np.load(images_path, mmap_mode="r+")
@@ -383,7 +393,6 @@ def _fill_cache(
     """Resample every (row, sigma) into the memmap at ``images_path``. Decoding and resampling are
     CPU-bound: chunks of rows go to ``workers`` processes, each writing its own slice of the memmap
     (bars on a terminal, otherwise a line every few seconds)."""
-    from crater_core.progress import Progress
 
     n_jobs = max(1, min(workers or os.cpu_count() or 1, len(rows) // CACHE_ROWS_PER_CHUNK))
     chunks = [
@@ -408,7 +417,6 @@ def _fill_cache(
 def _publish_cache_dir(tmp: Path, final: Path) -> None:
     """Make ``tmp``'s files shareable and durable (files and their directory entries), then rename it
     to ``final``; when another process finished the same cache first, drop ``tmp``."""
-    from crater_core.files import umask
 
     for f in tmp.iterdir():
         os.chmod(f, 0o666 & ~umask())
@@ -440,9 +448,6 @@ def build_cache(
     reuse it when present. ``workers`` processes share the work (0: one per core; small caches are
     built in this process). Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
     :class:`DatasetError` naming the file."""
-    import time
-
-    from crater_core.files import ensure_writable_dir, umask
 
     t0 = time.perf_counter()
     rows = list(rows)
@@ -626,7 +631,6 @@ def selected_positions(rows: Sequence[dict], selection: Mapping | None, dataset_
     """Positions in ``rows`` of the rows inside ``train.select`` (a grid subset; None: every row)."""
     if not selection:
         return list(range(len(rows)))
-    from crater_core.sweep import rows_in_selection
 
     inside = {id(r) for r in rows_in_selection(rows, dict(selection))}
     used = [i for i, r in enumerate(rows) if id(r) in inside]

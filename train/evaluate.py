@@ -21,6 +21,7 @@ from train.metrics import accuracy, class_mean_accuracy, confusion
 from train.plots import plot_confusion
 from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
 from train.registry import MODELS
+from train.runs import check_one_run
 from train.trainer import (
     HOG_FILE,
     NET_FILE,
@@ -119,7 +120,6 @@ def roll_averaged_predictions(
 def _load_run(run_dir: Path, device):
     """The three saved models of ``run_dir``, checked to be of one training run and one class list:
     (net, its checkpoint, svm doc, hog doc, the run's summary (or {}), run id, class names)."""
-    from train.runs import check_one_run
 
     net, ck = load_lunarnet(run_dir, device)
     svm = load_sklearn(run_dir / SVM_FILE)

@@ -6,13 +6,12 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from sklearn.metrics import accuracy_score, balanced_accuracy_score, confusion_matrix
 
 
 def class_mean_accuracy(y_true: np.ndarray, y_pred: np.ndarray) -> float:
     """Mean over the classes present in ``y_true`` of the per-class accuracy (recall): the paper's
     "mean accuracy" (``sklearn.metrics.balanced_accuracy_score``). NaN for an empty set."""
-    from sklearn.metrics import balanced_accuracy_score
-
     y_true, y_pred = np.asarray(y_true), np.asarray(y_pred)
     if y_true.size == 0:
         return float("nan")
@@ -23,15 +22,11 @@ def class_mean_accuracy(y_true: np.ndarray, y_pred: np.ndarray) -> float:
 
 def accuracy(y_true: np.ndarray, y_pred: np.ndarray) -> float:
     """Fraction of correct predictions; NaN for an empty set."""
-    from sklearn.metrics import accuracy_score
-
     y_true = np.asarray(y_true)
     return float(accuracy_score(y_true, np.asarray(y_pred))) if y_true.size else float("nan")
 
 
 def confusion(y_true: np.ndarray, y_pred: np.ndarray, n_classes: int) -> list[list[int]]:
     """n x n counts; rows: true class, columns: predicted class (class order of ``class_names``)."""
-    from sklearn.metrics import confusion_matrix
-
     m = confusion_matrix(np.asarray(y_true), np.asarray(y_pred), labels=np.arange(n_classes))
     return m.astype(int).tolist()

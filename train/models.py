@@ -15,6 +15,10 @@ from collections import OrderedDict
 
 import numpy as np
 import torch
+from skimage.feature import hog
+from sklearn.linear_model import SGDClassifier
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import StandardScaler
 from torch import nn
 
 from crater_core.settings import HogSettings, ModelSettings, SvmSettings
@@ -105,10 +109,6 @@ def multiply_adds(model: ModelSettings) -> dict:
 # ------------------------------------------------------------------------------------------------
 def make_linear_svm(svm: SvmSettings, seed: int):
     """Standardise -> multiclass (one-vs-rest) linear SVM trained by SGD on the hinge loss."""
-    from sklearn.linear_model import SGDClassifier
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
     return make_pipeline(
         StandardScaler(),
         SGDClassifier(
@@ -123,8 +123,6 @@ def make_linear_svm(svm: SvmSettings, seed: int):
 
 def hog_features(images: np.ndarray, hog_settings: HogSettings) -> np.ndarray:
     """HOG descriptors (skimage) of normalised (N, H, W) images -> (N, D) float32."""
-    from skimage.feature import hog
-
     ppc = hog_settings.pixels_per_cell
     cpb = hog_settings.cells_per_block
     ori = hog_settings.orientations

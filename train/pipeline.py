@@ -8,7 +8,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from crater_core.files import check_dir_path
 from crater_core.settings import Settings
+from train.runs import StagedRun
 
 
 def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict:
@@ -20,11 +22,9 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
     handed to the training loader, which refuses them. The models and metrics are written into a
     staging directory and published into ``run_dir`` together (:class:`train.runs.StagedRun`): an
     interrupted or refused run leaves ``run_dir`` as it was (and none where there was none)."""
-    from crater_core.files import check_dir_path
     from train.data import build_datasets, cache_dir_of, class_names_of, require_classes, require_manifest
     from train.evaluate import craters_for, evaluate_run
     from train.realset import build_real_test_set
-    from train.runs import StagedRun
     from train.trainer import configure_torch, train_all
 
     progress = settings.train.progress if progress is None else progress
@@ -45,7 +45,6 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
 def evaluate_saved(settings: Settings, progress: bool | None = None) -> dict:
     """Evaluate the models saved in ``run_dir``; the metrics files are published together (staged)."""
     from train.evaluate import evaluate_run
-    from train.runs import StagedRun
 
     progress = settings.train.progress if progress is None else progress
     run_dir = Path(settings.run_dir)

@@ -16,11 +16,13 @@ Pure numpy/scipy: no torch, no bpy.
 from __future__ import annotations
 
 import functools
+import io
 import math
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+from PIL import Image
 from scipy import ndimage
 
 from train.errors import TrainError
@@ -422,10 +424,6 @@ class SensorModel:
 def jpeg_roundtrip(x01: np.ndarray, quality: int) -> np.ndarray:
     """Baseline JPEG encode/decode (libjpeg through Pillow, 4:4:4 grey) of an image in [0, 1] already
     quantised to 8 bits: the real product's compression artefacts (block edges, ringing)."""
-    import io
-
-    from PIL import Image
-
     img = Image.fromarray(np.clip(np.rint(np.asarray(x01) * 255.0), 0, 255).astype(np.uint8), mode="L")
     buf = io.BytesIO()
     img.save(buf, format="JPEG", quality=int(quality))

@@ -12,15 +12,15 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from crater_core.geometry import polar_stereo_forward, polar_stereo_inverse
 from crater_core.settings import RealsetSettings
+from data_manifest.products import get_product, resolve_product
 from train.errors import RealSetError
 
 
 def product_pole(product_id: str) -> str:
     """The pole (``"south"``/``"north"``) of a registered polar-stereographic product, read from its CRS
     in data_manifest/products.yaml (``+lat_0=-90`` or ``+lat_0=90``)."""
-    from data_manifest.products import get_product
-
     try:
         crs = str(get_product(product_id).get("crs") or "")
     except Exception as exc:  # noqa: BLE001 - ProductError: unknown id, named below
@@ -55,8 +55,6 @@ class PolarGrid:
     def latlon_to_uv(self, lat_deg, lon_deg):
         """Pixel coordinates (u, v) of points given in degrees: floats for a scalar point, arrays for
         arrays (the same formula for both)."""
-        from crater_core.geometry import polar_stereo_forward
-
         x, y = polar_stereo_forward(lat_deg, lon_deg, self.pole, self.radius_m)
         u = (np.asarray(x, dtype=np.float64) + self.extent_m) / self.pixel_m
         v = (self.extent_m - np.asarray(y, dtype=np.float64)) / self.pixel_m
@@ -64,8 +62,6 @@ class PolarGrid:
 
     def uv_to_latlon(self, u, v):
         """Inverse of :meth:`latlon_to_uv`: (lat_deg, lon_deg) of pixel coordinates (u, v)."""
-        from crater_core.geometry import polar_stereo_inverse
-
         x, y = self.uv_to_xy(u, v)
         return polar_stereo_inverse(x, y, self.pole, self.radius_m)
 
@@ -184,10 +180,6 @@ def canonical_crater(name: str) -> str:
 def resolve_product_image(spec: str, data_dir: str | Path | None, where: str) -> Path:
     """``product:<id>`` -> the verified local file of a registered data product (data_manifest/products.yaml)."""
     pid = spec.split(":", 1)[1].strip()
-    try:
-        from data_manifest.products import resolve_product
-    except ImportError:
-        raise RealSetError(f"{where}: {spec!r} needs data_manifest.products, which is not available") from None
     try:
         return Path(resolve_product(pid, data_dir or "data"))
     except Exception as exc:  # noqa: BLE001 - ProductError & co: report with the labels-file line

@@ -26,6 +26,11 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.errors import NotGeoreferencedWarning, RasterioError
+from rasterio.transform import from_gcps
+from rasterio.warp import transform as warp_transform
 
 from crater_core.settings import RealsetSettings
 from train.errors import RealSetError
@@ -97,9 +102,6 @@ def check_lunar_crs(crs, where: str) -> None:
 
 def open_frame(path: str | Path, frame_id: str | None = None, source: str | None = None, band: int = 1) -> Frame:
     """Read one georeferenced frame completely (every check of the module docstring but the craters')."""
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning, RasterioError
-
     path = Path(path)
     fid = frame_id or path.stem
     where = f"real frame {fid!r} ({path})"
@@ -118,8 +120,6 @@ def open_frame(path: str | Path, frame_id: str | None = None, source: str | None
             has_affine = crs is not None and not transform.is_identity
             if not has_affine:
                 if gcps and gcp_crs is not None:
-                    from rasterio.transform import from_gcps
-
                     crs, transform = gcp_crs, from_gcps(gcps)
                 else:
                     raise RealSetError(
@@ -137,9 +137,6 @@ def open_frame(path: str | Path, frame_id: str | None = None, source: str | None
 
 def reference_to_frame(grid: PolarGrid, frame: Frame, u, v) -> tuple[np.ndarray, np.ndarray]:
     """Frame pixel coordinates of reference-grid pixel coordinates (through the georeference)."""
-    from rasterio.crs import CRS
-    from rasterio.warp import transform as warp_transform
-
     x, y = grid.uv_to_xy(np.atleast_1d(u), np.atleast_1d(v))
     fx, fy = warp_transform(CRS.from_proj4(grid.proj4), frame.crs, x.tolist(), y.tolist())
     return frame.xy_to_uv(fx, fy)

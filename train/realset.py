@@ -23,9 +23,13 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+import OpenImageIO as oiio
 
+from crater_core.errors import ContractError
+from crater_core.geometry import hemisphere
 from crater_core.schema import sha256_file
 from crater_core.settings import RealsetSettings, Settings
+from data_manifest.products import embedded_path
 from train.errors import RealSetError
 from train.preprocess import PreprocessConfig, outside_fraction, preprocess_crop
 from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is defined there
@@ -37,6 +41,7 @@ from train.realcrops import (  # noqa: F401 - re-exported: the crop protocol is 
     protocol_crops,
     resolve_product_image,
 )
+from train.realframes import plan_frames
 
 LIMITS_NOTE = (
     "The embedded real test set is one real observation per crater (one LROC WAC polar "
@@ -51,9 +56,6 @@ LIMITS_NOTE = (
 # ------------------------------------------------------------------------------------------------
 def embedded_product_path(product_id: str) -> Path:
     """Path of an embedded real product (e.g. the WAC mosaic) inside its installed distribution."""
-    from crater_core.errors import ContractError
-    from data_manifest.products import embedded_path
-
     try:
         return embedded_path(product_id)
     except ContractError as exc:
@@ -87,8 +89,6 @@ class Mosaic:
 
     def check_crater(self, crater: Mapping) -> None:
         """Refuse a crater of the other hemisphere than this mosaic with one line naming both."""
-        from crater_core.geometry import hemisphere
-
         if hemisphere(crater["lat"]) != self.pole:
             raise RealSetError(
                 f"crater {crater['name']} (lat {float(crater['lat']):g}) is in the {hemisphere(crater['lat'])}ern "
@@ -128,8 +128,6 @@ def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
     """Read any image OpenImageIO understands as a 2-D array (mean of the colour channels).
     8-bit files stay uint8 when ``keep_uint8``; everything else becomes float32 (integers scaled to
     [0, 1] by their full range -- a pure scale, which the normalisation undoes)."""
-    import OpenImageIO as oiio
-
     path = Path(path)
     if not path.is_file():
         raise RealSetError(f"real image {path} does not exist")
@@ -319,8 +317,6 @@ def plan_real_crops(
                 )
         crops += lab
     if rs.frames:
-        from train.realframes import plan_frames
-
         known = {canonical_crater(n) for n in class_names}
         sel = [c for c in craters if canonical_crater(c["name"]) in known]
         frame_crops, frame_images = plan_frames(rs, sel, data_dir)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from PIL import Image
 
 from crater_core import schema
 from crater_core.exr import write_exr
@@ -173,8 +174,6 @@ def write_toy_frames(
 
     Same toy craters and terrain seeds as :func:`write_toy_dataset` (same ``seed``), new views: use it as
     ``realset.labels_file`` to test a model trained on the toy dataset (``source`` = ``toyframes``)."""
-    from PIL import Image
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     lines = ["image_path,crater,center_u,center_v,diameter_px,source"]

@@ -15,11 +15,16 @@ import os
 import pickle
 import sys
 import time
+import warnings
 from pathlib import Path
 
+import joblib
 import numpy as np
 import torch
+import yaml
+from sklearn.exceptions import ConvergenceWarning
 from torch import nn
+from tqdm import tqdm
 
 from crater_core.schema import atomic_write_bytes, atomic_write_text, sha256_file
 from crater_core.settings import ModelSettings, Settings, SettingsError, TrainSettings, replace
@@ -28,6 +33,7 @@ from train.errors import ModelError, RealDataLeakError, TrainError
 from train.metrics import accuracy, class_mean_accuracy
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
 from train.registry import SPECS
+from train.runs import new_run_id
 
 NET_FILE, SVM_FILE, HOG_FILE = (SPECS[k].artefact for k in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"))
 SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
@@ -106,7 +112,6 @@ def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.de
 # ------------------------------------------------------------------------------------------------
 def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int, max_epochs: int, device, bar_on: bool):
     """One pass of Adam over the training set: (summed loss, correct, images seen, seconds)."""
-    from tqdm import tqdm
 
     train_set.set_epoch(epoch)
     model.train()
@@ -182,8 +187,6 @@ def train_lunarnet(
     carrying ``run_id``: :mod:`train.runs`).
 
     Returns (model, history) where history holds per-epoch loss/accuracy/throughput and timings."""
-    from tqdm import tqdm
-
     require_synthetic(data.train)
     require_synthetic(data.val)
     ts = settings.train
@@ -343,8 +346,6 @@ def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progr
         "seconds": time.perf_counter() - t0,
     }
     if progress:
-        from tqdm import tqdm
-
         tqdm.write(
             f"lunarsvm_ex val acc (class mean) {out['lunarsvm_ex']['val_accuracy']:.3f}; "
             f"hog_svm val acc {out['hog_svm']['val_accuracy']:.3f}"
@@ -354,10 +355,6 @@ def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progr
 
 def _fit_quiet(model, X, y) -> bool:
     """Fit, turning scikit-learn's ConvergenceWarning into a returned flag (recorded in the summary)."""
-    import warnings
-
-    from sklearn.exceptions import ConvergenceWarning
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
         model.fit(X, y)
@@ -366,8 +363,6 @@ def _fit_quiet(model, X, y) -> bool:
 
 def save_sklearn(path: str | Path, model, class_names, meta: dict) -> None:
     """A fitted scikit-learn model with its class names and metadata, as one joblib file (atomic)."""
-    import joblib
-
     buf = io.BytesIO()
     joblib.dump({"format": SKLEARN_FORMAT, "model": model, "class_names": list(class_names), **meta}, buf)
     atomic_write_bytes(path, buf.getvalue())
@@ -375,8 +370,6 @@ def save_sklearn(path: str | Path, model, class_names, meta: dict) -> None:
 
 def load_sklearn(path: str | Path) -> dict:
     """What :func:`save_sklearn` wrote; ModelError naming the file if it is missing, corrupt or stale."""
-    import joblib
-
     path = Path(path)
     if not path.is_file():
         if path.with_suffix(".pkl").is_file():
@@ -420,10 +413,6 @@ def train_all(
     Every model file and the summary carry ``run_id`` (default: a new one), the summary also each
     model's sha256 (``artefacts``), so that a directory mixing two runs is refused (:mod:`train.runs`;
     ``crater-synth train`` trains into a staging directory and publishes the run whole)."""
-    import yaml
-
-    from train.runs import new_run_id
-
     run_id = run_id or new_run_id()
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,16 @@ from pathlib import Path
 
 import click
 
+from crater_synth.bench.detector import bench_detector_training
+from crater_synth.bench.distributed import bench_distributed
+from crater_synth.bench.export import bench_export, summary_line
+from crater_synth.bench.navframes import bench_navframes
+from crater_synth.bench.navigation import bench_navigation
+from crater_synth.bench.renderer import bench_renderer, summary_lines
+from crater_synth.bench.train import run_train_bench
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import compose, load_settings
+from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
 
 
 @click.command("bench")
@@ -68,23 +77,17 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
     ``renders_per_s=X naive_renders_per_s=Y ratio=Z`` (after the renderer's rates line).
     """
-    from crater_synth.config import compose, load_settings
-
     overrides = list(overrides)
     work = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="crater-synth-bench-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
         if part in ("all", "distributed"):
-            from crater_synth.bench.distributed import bench_distributed
-
             cfg = compose(["sweep=smoke", "crater=shackleton", "launcher=dask", *overrides])
             click.echo("distributed " + json.dumps(bench_distributed(cfg, work / "distributed")))
         if part in ("all", "train"):
             settings = load_settings(["sweep=demo", "train.progress=false", *overrides])
             dataset = Path(settings.train.dataset_dir) / "manifest.jsonl"
             if dataset.is_file():
-                from crater_synth.bench.train import run_train_bench
-
                 click.echo("train " + json.dumps(run_train_bench(settings)))
             else:
                 click.echo(
@@ -92,24 +95,15 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                     f"make dataset OVERRIDES=sweep=demo, renders it)"
                 )
         if part in ("all", "navigation"):
-            from crater_synth.bench.navigation import bench_navigation
-
             click.echo("navigation " + json.dumps(bench_navigation()))
         if part in ("all", "export"):
-            from crater_synth.bench.export import bench_export, summary_line
-
             r = bench_export(work / "export", export_renders)
             click.echo("export " + json.dumps(r))
             click.echo(summary_line(r))
         if part in ("all", "navframes"):
-            from crater_synth.bench.navframes import bench_navframes
-
             click.echo("navframes " + json.dumps(bench_navframes(overrides, work, navframes_frames)))
         if part in ("all", "detector"):
-            from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
-
             if (DEFAULT_FRAMES / "track_000").is_dir():
-                from crater_synth.bench.detector import bench_detector_training
                 from train.crater_detector import DetectorTrainSettings
 
                 r = bench_detector_training(DEFAULT_FRAMES, work / "detector", DetectorTrainSettings().steps)
@@ -120,8 +114,6 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                     "or make nav-detector, renders them)"
                 )
         if part in ("all", "renderer"):
-            from crater_synth.bench.renderer import bench_renderer, summary_lines
-
             r = bench_renderer(overrides, work / "renderer")
             click.echo("renderer " + json.dumps(r))
             for line in summary_lines(r):

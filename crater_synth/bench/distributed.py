@@ -19,8 +19,10 @@ from typing import Mapping
 from crater_core import schema
 from crater_core.settings import Settings, replace
 from crater_synth.config import as_settings
-from crater_synth.dataset import build_dataset
+from crater_synth.dataset import build_dataset, worker_command
 from crater_synth.dataset.launcher import preflight, run_dask
+from crater_synth.dataset.plan import hapke_dict
+from crater_synth.terrain.patch import build_terrain
 
 _WORKER_DONE = re.compile(r"\] (\d+) renders in ([0-9.]+) s .*?; (\d+) Cycles calls \(([0-9.]+) s\)")
 _SCENE_READY = re.compile(r"scene ready in ([0-9.]+) s")
@@ -45,10 +47,6 @@ def _worker_logs(out_dir: Path) -> dict:
 def _worker_start_seconds(s: Settings, work: Path) -> float:
     """Wall time of a Blender worker process with an empty job: interpreter + bpy import + scene build
     (the fixed cost every shard pays once), median of 3."""
-    from crater_synth.dataset import worker_command
-    from crater_synth.dataset.plan import hapke_dict
-    from crater_synth.terrain.patch import build_terrain
-
     crater = s.craters[0]
     npz, meta = build_terrain(crater, s)
     job = work / "empty-job.json"

@@ -21,15 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
+from crater_core.exr import write_exr
+from crater_core.schema import SCHEMA_VERSION, render_rel_path, write_manifest
+
 PAPER_RENDERS = 67_500
 ROI_PX = 212
 
 
 def make_dataset(out: Path, n: int, seed: int = 0) -> Path:
     """``n`` synthetic renders (EXR + manifest row) in ``out``; returns ``out``."""
-    from crater_core.exr import write_exr
-    from crater_core.schema import SCHEMA_VERSION, render_rel_path, write_manifest
-
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
     rows = []

@@ -27,6 +27,13 @@ import json
 import time
 from pathlib import Path
 
+from crater_synth.config import load_settings
+from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.fix.sequence import SequenceParams
+from crater_synth.navigation.rendered.evaluate import DirOptions, evaluate_dir, frame_run
+from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
+from crater_synth.navigation.settings import compose_nav
+
 
 def _worker_stats(out_dir: Path) -> list[dict]:
     stats = []
@@ -38,7 +45,6 @@ def _worker_stats(out_dir: Path) -> list[dict]:
 
 
 def _run(settings, out: Path, n: int, share: bool) -> dict:
-    from crater_synth.navigation.rendered.frames import render_frames
 
     t0 = time.perf_counter()
     summary = render_frames(settings, out, list(range(n)), share_patches=share)
@@ -77,10 +83,6 @@ def _untimed(value):
 
 
 def _navigate(frames_dir: Path) -> dict:
-    from crater_synth.navigation.fix.patches import PatchParams
-    from crater_synth.navigation.fix.sequence import SequenceParams
-    from crater_synth.navigation.rendered.evaluate import DirOptions, evaluate_dir, frame_run
-    from crater_synth.navigation.settings import compose_nav
 
     out: dict = {}
     results: dict = {}
@@ -121,8 +123,6 @@ def bench_navframes(overrides, work: Path, frames: int = 4) -> dict:
     """Render the first ``frames`` frames of the trajectory (``trajectory=descent_ridge`` unless an
     override names another) twice, with the same settings: frames sharing terrain patches (the default
     path) and every frame on its own patch (the per-frame path); times both and gives their ratio."""
-    from crater_synth.config import load_settings
-    from crater_synth.navigation.rendered.frames import frame_overrides
 
     overrides = frame_overrides(overrides)  # the frames' own defaults, as nav-frames renders them
     if not any(o.startswith("trajectory=") for o in overrides):

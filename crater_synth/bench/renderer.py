@@ -26,12 +26,19 @@ Also holds the synthetic bowl crater the renderer tests use as a DEM stand-in (:
 from __future__ import annotations
 
 import json
+import os
 import re
 import resource
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from crater_core import exr, schema
+from crater_synth.config import compose, craters
+from crater_synth.dataset import build_dataset
+from crater_synth.terrain.patch import build_terrain
 
 PAPER_CRATER = ["crater=shackleton", "sweep=paper", "render.mode=fast"]
 DEMO = ["sweep=demo", "render.mode=fast"]
@@ -117,10 +124,6 @@ def stage_summary(stats: list[dict]) -> dict:
 
 def timed_dataset(overrides: list[str], out_dir: Path) -> dict:
     """Render ``overrides`` into ``out_dir`` (terrain built first, untimed) with a cold horizon cache."""
-    from crater_synth.config import compose, craters
-    from crater_synth.dataset import build_dataset
-    from crater_synth.terrain.patch import build_terrain
-
     cfg = compose(overrides + [f"out_dir={out_dir}", f"render.horizon_cache_dir={out_dir / 'horizon-cache'}"])
     for crater in craters(cfg):
         build_terrain(crater, cfg)
@@ -137,8 +140,6 @@ def timed_dataset(overrides: list[str], out_dir: Path) -> dict:
 
 def compare(reference_dir: Path, test_dir: Path) -> dict:
     """Per-pixel agreement of ``test_dir``'s EXRs with ``reference_dir``'s (same manifest paths)."""
-    from crater_core import exr, schema
-
     rows = []
     for ref in schema.dataset_rows(reference_dir):
         path = test_dir / ref["path"]
@@ -184,8 +185,6 @@ EXR_CHOICES = [
 
 def _encode_cost(encode, images: list[dict[str, np.ndarray]], scratch_dir: str, repeats: int) -> tuple[int, float]:
     """(mean bytes, best-of-``repeats`` mean seconds) of ``encode(path, arrays)`` over ``images``."""
-    import os
-
     best, size = float("inf"), 0
     for _ in range(repeats):
         size, t0 = 0, time.perf_counter()
@@ -203,11 +202,6 @@ def exr_codecs(dataset_dir: Path, n: int = 40, repeats: int = 3) -> list[dict]:
     and for the project's own encoder (:func:`crater_core.exr.encoder`), on ``n`` renders of
     ``dataset_dir`` (spread over its manifest); the encoding alone (to /dev/shm or a temp dir), best of
     ``repeats`` passes, so the figures compare codecs, not disks."""
-    import os
-    import tempfile
-
-    from crater_core import exr, schema
-
     rows = schema.load_manifest(dataset_dir)
     rows = rows[:: max(1, len(rows) // n)][:n]
     images = [exr.read_exr(dataset_dir / r["path"])[0] for r in rows]

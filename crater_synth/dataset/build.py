@@ -11,6 +11,7 @@ from crater_core import schema
 from crater_core.files import ensure_writable_dir, is_disk_full, os_error_text, remove_stale_scratch
 from crater_core.progress import Progress
 from crater_core.settings import Settings
+from crater_synth.config import as_settings
 from crater_synth.dataset.disk import (
     DatasetLock,
     check_free_disk,
@@ -26,6 +27,7 @@ from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.dataset.plan import CraterJob, plan_render, render_seed, worker_item
 from crater_synth.dataset.recover import prove
 from crater_synth.errors import DatasetBusyError, RenderError, UserError
+from crater_synth.terrain.patch import build_terrain
 
 
 def _warn(message: str) -> None:
@@ -46,7 +48,6 @@ def build_dataset(
     alone). A directory that is neither empty nor a dataset is refused (crater_synth.dataset.marker);
     a run refused before rendering leaves nothing behind. Returns a summary dict (counts, timings,
     dataset path)."""
-    from crater_synth.config import as_settings
 
     s = as_settings(settings)
     if warn is not None:
@@ -99,7 +100,6 @@ def _existing_rows(out_dir: Path) -> dict:
 def _plan_sweep(s: Settings, grid, indices) -> tuple[list[CraterJob], list[tuple[CraterJob, tuple, dict]], dict]:
     """Every crater's terrain and planned renders: (jobs, (job, key, plan) per render, key by file name).
     Two renders that would share a file are refused."""
-    from crater_synth.terrain.patch import build_terrain
 
     jobs: list[CraterJob] = []
     planned: list[tuple[CraterJob, tuple, dict]] = []

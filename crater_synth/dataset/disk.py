@@ -25,6 +25,7 @@ import numpy as np
 
 from crater_core import schema
 from crater_core.files import PathError, disk_full_message, free_bytes, is_disk_full, size_text
+from crater_synth.dataset.manifest import writer_tag
 from crater_synth.errors import DatasetBusyError, UserError
 
 # Bytes per render used for the free-disk check before any measured value exists
@@ -248,8 +249,6 @@ def _writer_state(stem: str, host: str) -> str:
 def prune_jobs(out_dir: Path, keep_logs: int = KEEP_JOB_LOGS) -> int:
     """Bound ``.jobs/``: remove the job files of writers that have ended, and all but the newest
     ``keep_logs`` of their logs (files of other hosts: after a week). Returns the files removed."""
-    from crater_synth.dataset.manifest import writer_tag
-
     jobs = Path(out_dir) / JOBS_DIR
     if not jobs.is_dir():
         return 0

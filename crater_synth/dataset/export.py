@@ -40,6 +40,7 @@ from typing import Callable, Iterator, Sequence
 
 import click
 
+from crater_core.schema import atomic_write_text, sha256_file
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.export_writers import (  # noqa: F401 (re-exported: part of this API)
     EXPORT_WRITERS,
@@ -92,7 +93,6 @@ def _tmp_path(final: Path) -> Path:
 
 def _finish(tmp: Path, final: Path) -> str:
     """fsync ``tmp``, rename it to ``final``; return its sha256."""
-    from crater_core.schema import sha256_file
 
     with open(tmp, "rb") as fh:
         os.fsync(fh.fileno())
@@ -225,7 +225,6 @@ def export_dataset(
         "shards": shards,
         "seconds": round(time.perf_counter() - t0, 3),
     }
-    from crater_core.schema import atomic_write_text
 
     atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
     return index

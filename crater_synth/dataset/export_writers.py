@@ -21,6 +21,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from crater_synth.dataset.record_kinds import ExportError, RecordKind
 
@@ -123,7 +125,6 @@ class ParquetWriter(ExportWriter):
         return {"column": f"{column_name(channel)}_npy"}
 
     def open(self, path: Path) -> None:
-        import pyarrow.parquet as pq
 
         labels = [f.name for f in self.schema if not f.name.endswith("_npy")]
         # Dictionaries and min/max statistics only for the label columns: the image columns are large
@@ -199,7 +200,6 @@ FORMATS = tuple(EXPORT_WRITERS)
 
 
 def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
-    import pyarrow as pa
 
     fields = [("key", pa.string()), ("record_kind", pa.string())]
     fields += kind.label_fields()
@@ -209,7 +209,6 @@ def _parquet_schema(kind: RecordKind, channels: Sequence[str]):
 
 
 def _parquet_table(batch: list[Sample], rk: RecordKind, channels, schema):
-    import pyarrow as pa
 
     cols = {"key": [s.key for s in batch], "record_kind": [rk.name] * len(batch)}
     for name, _ in rk.label_fields():

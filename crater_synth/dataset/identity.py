@@ -39,7 +39,7 @@ IGNORED: dict[str, str] = {
     "sensor": "training only: the sensor model is applied to crops when training, never to an EXR",
     "realset": "training and evaluation only: the real test images",
     "loop": "the closed loop's schedule: which renders exist, not how one looks",
-    "experiments": "Figure 6: subsets of a rendered dataset",
+    "figure6": "Figure 6: subsets of a rendered dataset",
     "fetch": "downloads of the data products",
     "validate": "the validation protocol (which craters, which seeds)",
     "ablation": "the ablation's variants are runs with other settings, each with its own identity",

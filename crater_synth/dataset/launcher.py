@@ -25,17 +25,21 @@ from pathlib import Path
 from typing import Mapping
 
 import click
+from distributed import Client, LocalCluster, as_completed
+from distributed.scheduler import KilledWorker
 
 from crater_core import schema
 from crater_core.errors import ContractError
+from crater_core.files import ensure_writable_dir
 from crater_core.progress import Progress
 from crater_core.settings import Settings, replace
 from crater_synth.cli_common import OVERRIDES, user_errors, warn
-from crater_synth.config import as_settings
-from crater_synth.dataset import build_dataset
+from crater_synth.config import as_settings, load_settings
+from crater_synth.dataset import build_dataset, plan_render
 from crater_synth.dataset.disk import DatasetLock, check_free_disk, measured_bytes_per_render
 from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.errors import RenderError, UserError
+from crater_synth.terrain.patch import build_terrain
 
 
 def _render_shard(settings: Settings, shard_index: int, shard_count: int) -> dict:
@@ -70,10 +74,6 @@ def preflight(settings: Settings | Mapping, claim: DatasetClaim | None = None) -
     here, so tasks reuse them instead of racing to build them), every camera pose's ROI.
     ``claim`` (:class:`~crater_synth.dataset.marker.DatasetClaim`) remembers what creating the output
     directory created. Returns ``{"renders_total", "craters", "shards"}``."""
-    from crater_core.files import ensure_writable_dir
-    from crater_synth.dataset import plan_render
-    from crater_synth.terrain.patch import build_terrain
-
     s = _absolute(as_settings(settings))
     grid = s.sweep.grid
     ensure_writable_dir(s.data_dir, "data_dir")
@@ -110,9 +110,6 @@ def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
 
 
 def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
-    from distributed import Client, LocalCluster, as_completed
-    from distributed.scheduler import KilledWorker
-
     launcher = s.launcher
     out_dir = Path(s.out_dir)
     n_shards = plan["shards"]
@@ -206,6 +203,4 @@ def dataset_command(overrides):
     `crater-synth dataset sweep=paper render.workers=2 out_dir=/big/disk/paper`,
     `crater-synth dataset sweep=paper launcher=dask launcher.address=tcp://head:8786`.
     """
-    from crater_synth.config import load_settings
-
     click.echo(json.dumps(run_sweep(load_settings(overrides))))

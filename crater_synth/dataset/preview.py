@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from crater_core import schema
+from crater_core.exr import read_channel as read
 from crater_core.files import ensure_writable_dir
 from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import user_errors
@@ -17,8 +18,6 @@ from crater_synth.errors import UserError
 
 def read_channel(path: Path, name: str = "IF") -> np.ndarray:
     """One named channel of an EXR as a 2-D float32 array (``crater_core.exr``)."""
-    from crater_core.exr import read_channel as read
-
     return read(path, name)
 
 

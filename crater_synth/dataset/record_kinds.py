@@ -20,8 +20,17 @@ from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
+import pyarrow as pa
 
-from crater_core.schema import EXR_CHANNELS, NAVFRAME_ELLIPSE_FIELDS, NAVFRAME_LANDMARK_FIELDS
+from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
+from crater_core.schema import (
+    EXR_CHANNELS,
+    MANIFEST_NAME,
+    NAVFRAME_ELLIPSE_FIELDS,
+    NAVFRAME_LANDMARK_FIELDS,
+    PARTS_DIR,
+    iter_rows,
+)
 from crater_synth.errors import UserError
 
 
@@ -54,8 +63,6 @@ class RecordKind:
 
 
 def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
-    from crater_core.schema import MANIFEST_NAME, PARTS_DIR, iter_rows
-
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(f"dataset {dataset_dir}: no {MANIFEST_NAME} (render it with `crater-synth dataset`)")
@@ -78,8 +85,6 @@ def _render_key(row: dict) -> str:
 
 def _exr_arrays(dataset_dir: Path, rel: str, sha256: str, channels: Sequence[str]) -> dict[str, np.ndarray]:
     """The EXR's channels as stored (lossless), after checking the file against the manifest's sha256."""
-    from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
-
     path = dataset_dir / rel
     try:
         data = path.read_bytes()
@@ -110,8 +115,6 @@ def _render_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dic
 
 @functools.lru_cache(maxsize=None)
 def _render_label_fields() -> list:
-    import pyarrow as pa
-
     f64, i64, s = pa.float64(), pa.int64(), pa.string()
     return [
         ("crater", s),
@@ -186,8 +189,6 @@ def _json_rows(manifest: Path) -> Iterator[tuple[int, dict]]:
 
 
 def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
-    from crater_core.schema import MANIFEST_NAME
-
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(
@@ -221,8 +222,6 @@ def _navframe_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> d
 
 @functools.lru_cache(maxsize=None)
 def _navframe_label_fields() -> list:
-    import pyarrow as pa
-
     f64, i64, s = pa.float64(), pa.int64(), pa.string()
     ellipse = pa.struct([(name, f64) for name in NAVFRAME_ELLIPSE_FIELDS])
     types = {"string": s, "float": f64, "float list": pa.list_(f64), "ellipse": ellipse, "bool": pa.bool_()}
@@ -308,8 +307,6 @@ _KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajecto
 
 def detect_kind(dataset_dir: str | os.PathLike) -> str | None:
     """The record kind of ``dataset_dir``'s manifest, from its first row's fields (None: no readable row)."""
-    from crater_core.schema import MANIFEST_NAME
-
     manifest = Path(dataset_dir) / MANIFEST_NAME
     if not manifest.is_file():
         return None

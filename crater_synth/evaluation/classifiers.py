@@ -6,17 +6,16 @@ from __future__ import annotations
 import click
 
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
+from train.pipeline import evaluate_saved, train_and_evaluate
+from train.registry import MODELS
 
 
 def _settings(overrides):
-    from crater_synth.config import load_settings
-
     return load_settings(overrides)
 
 
 def _report(metrics: dict, run_dir) -> None:
-    from train.registry import MODELS
-
     for m in MODELS:
         r = metrics[m]
         val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"
@@ -38,8 +37,6 @@ def train_command(overrides):
 
     e.g. ``crater-synth train sweep=demo train.max_epochs=10 run_dir=outputs/demo``
     """
-    from train.pipeline import train_and_evaluate
-
     settings = _settings(overrides)
     metrics = train_and_evaluate(settings)
     _report(metrics, settings.run_dir)
@@ -50,8 +47,6 @@ def train_command(overrides):
 @user_errors
 def evaluate_command(overrides):
     """Evaluate the models saved in run_dir on the real test set (metrics.json, confusion PNGs)."""
-    from train.pipeline import evaluate_saved
-
     settings = _settings(overrides)
     metrics = evaluate_saved(settings)
     _report(metrics, settings.run_dir)

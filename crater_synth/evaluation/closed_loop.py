@@ -21,7 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import grid_from_config
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved, settings_from
+from crater_synth.config import ConfigError, compose, resolved, settings_from
+from crater_synth.dataset import build_dataset
+from train.pipeline import train_and_evaluate
 from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
 from train.runs import StagedRun
 
@@ -102,9 +104,6 @@ def plot_history(hist: dict, png: Path) -> None:
 
 def run_loop(cfg: DictConfig, progress: bool = True) -> dict:
     """Run (or continue) the closed loop; returns the history dict."""
-    from crater_synth.dataset import build_dataset
-    from train.pipeline import train_and_evaluate
-
     cfg_r = resolved(cfg)
     loop = cfg_r["loop"]
     threshold = float(loop["threshold"])
@@ -180,8 +179,6 @@ def loop_command(overrides):
 
     e.g. ``crater-synth loop sweep=demo run_dir=outputs/demo loop.sun_elevation_schedule=[2,4]``
     """
-    from crater_synth.config import compose
-
     hist = run_loop(compose(overrides))
     for r in hist["rounds"]:
         accs = " ".join(f"{m} {r[m]:.3f}" for m in MODELS)

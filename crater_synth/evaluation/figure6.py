@@ -21,7 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.sweep import AXES, grid_from_config, nearest_subset
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, resolved, settings_from
+from crater_synth.config import ConfigError, compose, resolved, settings_from
+from crater_synth.evaluation.validation import run_fingerprint
+from train.pipeline import train_and_evaluate
 from train.registry import FIGURE6_MODELS, SPECS
 
 CSV_FILE, FIGURE_FILE = "experiments.csv", "figure6.png"
@@ -147,21 +149,17 @@ def plot_figure6(rows: list[dict], png: Path) -> None:
 def experiments_fingerprint(cfg_resolved: dict) -> str:
     """What decides every point's result (renders, training budget, model, sensor, real set), without
     the Figure 6 plan itself: points with equal fingerprints can share one CSV."""
-    from crater_synth.evaluation.validation import run_fingerprint
-
-    return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("experiments", "loop")})
+    return run_fingerprint({k: v for k, v in cfg_resolved.items() if k not in ("figure6", "loop")})
 
 
 def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
     """Train on every Figure 6 subset of the rendered dataset and record real-test accuracy."""
-    from train.pipeline import train_and_evaluate
-
     cfg_r = resolved(cfg)
     grid = grid_from_config(cfg_r["sweep"])
-    counts = cfg_r["experiments"]["counts"]
+    counts = cfg_r["figure6"]["counts"]
     unknown = set(counts) - set(AXES)
     if unknown:
-        raise ConfigError(f"experiments.counts: unknown parameter(s) {sorted(unknown)}")
+        raise ConfigError(f"figure6.counts: unknown parameter(s) {sorted(unknown)}")
     points = plan_points(grid, counts)
     run_dir = Path(cfg_r["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -175,7 +173,7 @@ def run_experiments(cfg: DictConfig, progress: bool = True) -> list[dict]:
             f"{config}): continue with the same overrides, or use another run_dir"
         )
     done = {(r["parameter"], r["count"], r["sigma"]) for r in results}
-    sigmas = [float(s) for s in cfg_r["experiments"].get("sigmas") or grid.sigmas]
+    sigmas = [float(s) for s in cfg_r["figure6"].get("sigmas") or grid.sigmas]
     for point in points:
         for sigma in sigmas:
             if (point["parameter"], point["count"], sigma) in done:
@@ -222,8 +220,6 @@ def experiments_command(overrides):
 
     e.g. ``crater-synth experiments sweep=paper run_dir=outputs/paper`` (render the sweep first).
     """
-    from crater_synth.config import compose
-
     cfg = compose(overrides)
     results = run_experiments(cfg)
     run_dir = Path(str(resolved(cfg)["run_dir"]))

@@ -25,6 +25,8 @@ validation craters' classification accuracy (docs/validation.md); test craters a
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import time
 from collections import defaultdict
@@ -33,11 +35,14 @@ from typing import Mapping, Sequence
 
 import click
 import numpy as np
+from PIL import Image, ImageDraw
 
 from crater_core import geometry
+from crater_core.exr import read_channel
 from crater_core.schema import atomic_write_bytes, atomic_write_text, load_manifest, row_file
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose, craters, load_settings, resolved
+from crater_synth.dataset import build_dataset
 from crater_synth.errors import ConfigError
 
 AZIMUTH_STEPS_DEG = (10, 20, 30, 40, 60, 90)
@@ -112,7 +117,6 @@ def greedy_composite(lit: np.ndarray, target: np.ndarray, first: int, suns: int)
 
 def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) -> dict:
     """Lit-area overlap of every render of one crater with its real crop (see the module docstring)."""
-    from crater_core.exr import read_channel
     from train.preprocess import normalize
 
     rows = sorted(rows, key=lambda r: (r["sun_azimuth"], r["sun_elevation_param"]))
@@ -170,10 +174,6 @@ def match_crater(rows: list[dict], dataset_dir: Path, crater: dict, mosaic, pp) 
 
 def _sheet(results: dict, path: Path) -> None:
     """Real | best render, one row per crater, labelled."""
-    import io
-
-    from PIL import Image, ImageDraw
-
     tiles = []
     for name, res in results.items():
         real, best = res.pop("_images")
@@ -205,11 +205,6 @@ def write_frames(results: dict, out: Path, groups: Mapping[str, Sequence[str]] |
     99.5th percentile of the lit pixels at DN 220), which the affine-invariant normalisation undoes.
     ``groups`` (label -> craters) also writes ``labels_<label>.csv`` with only that group's craters, the
     classes of the models trained on it (``crater-synth validate``)."""
-    import csv
-    import io
-
-    from PIL import Image
-
     out.mkdir(parents=True, exist_ok=True)
     lines = []
     for name, res in results.items():
@@ -275,7 +270,6 @@ def run_sunmatch(
     frames: bool = False,
 ) -> dict:
     """Render the dense nadir sun grid, compare with the real crops, write the results into ``out``."""
-    from crater_synth.dataset import build_dataset
     from train.preprocess import PreprocessConfig
     from train.realset import load_mosaic
 

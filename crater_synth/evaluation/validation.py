@@ -36,9 +36,12 @@ from typing import Sequence
 import click
 import numpy as np
 
+from crater_core.geometry import hemisphere
 from crater_core.schema import atomic_write_json, atomic_write_text, content_key
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import ConfigError, catalogue_names, compose, compose_settings, resolved
+from crater_synth.config import ConfigError, catalogue_names, compose, compose_settings, craters, resolved
+from crater_synth.dataset import build_dataset
+from train.pipeline import evaluate_saved, train_and_evaluate
 from train.registry import MODELS
 
 RESULTS_FILE, CSV_FILE, TABLE_FILE = "validation.json", "validation.csv", "validation.md"
@@ -109,9 +112,6 @@ def group_overrides(overrides: Sequence[str], group: Group, north_overrides: Seq
     """The overrides a group is run with: the user's, and for a group of north-polar craters
     ``validate.north_overrides`` (its DEM and real mosaic) in place of any user override of the same
     keys. A group mixing the hemispheres is refused: one DEM and one mosaic serve a run."""
-    from crater_core.geometry import hemisphere
-    from crater_synth.config import craters
-
     sides = {hemisphere(c["lat"]) for c in craters(compose([group.crater_override()]))}
     if len(sides) > 1:
         raise ConfigError(f"{group.label}: mixes north- and south-polar craters; a group needs one hemisphere")
@@ -144,13 +144,16 @@ NEUTRAL_LATER_KEYS = {
 # a run that differs from a finished one only in these is re-evaluated, not retrained.
 EVALUATION_ONLY_KEYS = (("train", "tta_rotations"),)  # each also in NEUTRAL_LATER_KEYS (see _same_training)
 _ANY = object()  # run_fingerprint: drop the key whatever its value
+# Groups renamed after fingerprints were published: hashed under their old name, so published runs keep
+# their fingerprints (the Figure 6 counts were the ``experiments`` group).
+RENAMED_GROUPS = {"figure6": "experiments"}
 
 
 def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
     """What decides a run's result: everything but paths, progress and the validate group itself.
     ``training_only``: what decides its trained models (the evaluation-only keys left out too)."""
     skip = {"run_dir", "validate", "ablation", "data_dir", "out_dir", "trajectory"}  # trajectory: nav frames only
-    payload = {k: v for k, v in cfg_resolved.items() if k not in skip}
+    payload = {RENAMED_GROUPS.get(k, k): v for k, v in cfg_resolved.items() if k not in skip}
     payload["train"] = {
         k: v
         for k, v in payload.get("train", {}).items()
@@ -188,9 +191,6 @@ def _check_overrides(overrides: Sequence[str]) -> None:
 
 def run_validation(overrides: Sequence[str], progress: bool = True) -> dict:
     """Render, train and evaluate every (group, seed); returns the results dict (also written)."""
-    from crater_synth.dataset import build_dataset
-    from train.pipeline import evaluate_saved, train_and_evaluate
-
     overrides = list(overrides)
     _check_overrides(overrides)
     base = resolved(compose(overrides))

@@ -12,6 +12,7 @@ from typing import Callable, Sequence
 import click
 
 from crater_core.files import umask
+from crater_core.sweep import rows_in_selection
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.report import gather
 from crater_synth.report.inputs import (
@@ -81,8 +82,6 @@ def build_report(
     rows = all_rows
     selection = (rc.cfg.get("train") or {}).get("select")
     if all_rows is not None and selection:
-        from crater_core.sweep import rows_in_selection
-
         rows = rows_in_selection(all_rows, dict(selection))
     tmp = Path(tempfile.mkdtemp(prefix=".report.tmp-", dir=run_dir))
     try:

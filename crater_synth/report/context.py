@@ -16,7 +16,7 @@ PRODUCERS = {
         "crater-synth train run_dir=RUN_DIR",
     ),
     "loop": ("the closed loop (configs/loop)", "crater-synth loop run_dir=RUN_DIR"),
-    "experiments": ("the Figure 6 experiments (configs/experiments)", "crater-synth experiments run_dir=RUN_DIR"),
+    "experiments": ("the Figure 6 experiments (configs/figure6)", "crater-synth experiments run_dir=RUN_DIR"),
     "ablation": ("the fidelity ablation (configs/ablation, docs/fidelity.md)", "crater-synth ablate"),
     "navigation": (
         "the navigation demo on real mosaic windows (docs/navigation/overview.md)",

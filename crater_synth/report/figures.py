@@ -9,6 +9,8 @@ from typing import Sequence
 
 import numpy as np
 
+from crater_synth.dataset.preview import tone_map
+from train.plots import plot_confusion
 from train.registry import MODELS, SPECS, label
 
 REAL_COLOR, SYN_COLOR, SENSOR_COLOR = "#d9480f", "#1c7ed6", "#5c7cfa"
@@ -44,8 +46,6 @@ def _save(fig, path: Path) -> str:
 
 def confusion(path: Path, conf, classes: Sequence[str], title: str) -> str:
     """Re-plot a confusion matrix from metrics.json with the training stage's own plotter."""
-    from train.plots import plot_confusion
-
     plot_confusion(path, conf, classes, title)
     return path.name
 
@@ -72,8 +72,6 @@ def compare_panel(
     size: int,
 ) -> str:
     """2 x 3 panel: display originals (real, synthetic sigma crop, whole render) over the network inputs."""
-    from crater_synth.dataset.preview import tone_map
-
     n_r, n_s = real_orig.shape[0], syn_orig.shape[0]
     with _rc():
         fig = _new_figure(8.8, 6.4)

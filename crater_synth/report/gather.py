@@ -10,11 +10,19 @@ choice they share; a module per section would import those shared helpers back f
 
 from __future__ import annotations
 
+import json
 import shutil
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 
+from crater_core import schema
+from crater_core.exr import read_channel
+from crater_core.schema import load_manifest
+from crater_core.settings import ModelSettings, PreprocessSettings, RealsetSettings, SensorSettings, SettingsError
+from crater_synth.config import compose_settings, resolved
+from crater_synth.dataset.preview import contact_sheet, ellipse_points, tone_map
 from crater_synth.report import figures
 from crater_synth.report.context import PRODUCERS, SYNTHETIC_CHOICE, Ctx, not_run
 from crater_synth.report.inputs import (
@@ -34,6 +42,9 @@ from crater_synth.report.inputs import (
     nav_paths,
 )
 from crater_synth.report.provenance import limits_text, provenance
+from data_manifest.products import ProductError, embedded_path
+from train.errors import RealSetError
+from train.realcrops import crop_pixels
 from train.registry import MODELS, REGISTRY, SPECS
 
 
@@ -48,8 +59,6 @@ def crater_order(metrics: dict | None, cfg: Mapping, rows: list[dict] | None) ->
 
 # ---- 1. contact sheets ---------------------------------------------------------------------------
 def contact(ctx: Ctx) -> dict:
-    from crater_synth.dataset.preview import contact_sheet
-
     ds = ctx.rc.dataset_dir
     if ctx.rows is None:
         return {"not_run": not_run(f"no rendered dataset at {ds or 'train.dataset_dir (unset)'}", "dataset")}
@@ -80,8 +89,6 @@ def contact(ctx: Ctx) -> dict:
 # ---- 2. real vs synthetic ------------------------------------------------------------------------
 def pick_synthetic(rows: Sequence[dict]) -> dict:
     """Closest to nadir, then the highest sun, then the highest lit fraction, then manifest order."""
-    from crater_core import schema
-
     return min(
         rows,
         key=lambda r: (
@@ -101,8 +108,6 @@ def _box_closest(boxes: Mapping[str, Sequence[float]], sigma: float = 1.0) -> tu
 def _typed(cls: type, mapping, key: str):
     """One group of the run's (saved or composed) configuration as its validated settings class; a value
     the settings refuse is a :class:`ReportError` naming the key."""
-    from crater_core.settings import SettingsError
-
     try:
         return cls.from_config(mapping, key)
     except SettingsError as exc:
@@ -111,7 +116,6 @@ def _typed(cls: type, mapping, key: str):
 
 def _preprocess_and_sensor(cfg: Mapping):
     """The run's crop preprocessing (``train.preprocess`` at ``model.input_size``) and sensor model."""
-    from crater_core.settings import ModelSettings, PreprocessSettings, SensorSettings
     from train.preprocess import PreprocessConfig, SensorModel
 
     pre = _typed(PreprocessSettings, (cfg.get("train") or {}).get("preprocess"), "train.preprocess")
@@ -124,8 +128,6 @@ def _real_plan(ctx: Ctx, canonical: bool):
     """Crops (and images) of the real test set of the run's configuration; ``canonical``: one sigma = 1.0
     crop per crater, centred, no offset, no rotation. Returns (crops, images), or None with
     ``ctx.real_error`` set when the real product is not installed."""
-    from crater_core.settings import RealsetSettings
-    from train.errors import RealSetError
     from train.realset import canonical_crater, plan_real_crops
 
     rs = dict(ctx.rc.cfg.get("realset") or {})
@@ -137,8 +139,6 @@ def _real_plan(ctx: Ctx, canonical: bool):
         ctx.real_error = "none of the report's craters is in the configuration's crater group"
         return None
     if rs.get("include_embedded", True) and not (rs.get("mosaic") or {}).get("path"):
-        from data_manifest.products import ProductError, embedded_path
-
         try:
             embedded_path(str(rs.get("source_product") or "lroc_wac_south"))
         except ProductError as exc:  # not installed here: a note, not a failure
@@ -153,9 +153,7 @@ def _real_plan(ctx: Ctx, canonical: bool):
 
 
 def compare(ctx: Ctx) -> dict:
-    from crater_synth.dataset.preview import ellipse_points, read_channel, tone_map
     from train.preprocess import preprocess_crop, resample_box
-    from train.realcrops import crop_pixels
     from train.realset import canonical_crater
 
     if not ctx.rows:
@@ -229,7 +227,6 @@ def compare(ctx: Ctx) -> dict:
 
 # ---- 3. histograms -------------------------------------------------------------------------------
 def histograms(ctx: Ctx) -> dict:
-    from crater_synth.dataset.preview import read_channel
     from train.preprocess import preprocess_crop
     from train.realset import canonical_crater
 
@@ -439,8 +436,6 @@ ABLATION_FILE = "ablation.json"
 
 def ablation_path(run_dir, cfg: Mapping):
     """RUN_DIR/ablation.json when present, else the configured ``ablation.out_dir``'s."""
-    from pathlib import Path
-
     local = run_dir / ABLATION_FILE
     if local.is_file():
         return local
@@ -450,8 +445,6 @@ def ablation_path(run_dir, cfg: Mapping):
 
 def load_ablation(path) -> dict | None:
     """The ablation results, checked: None when absent; ReportError naming the file when malformed."""
-    import json
-
     if not path.is_file():
         return None
     try:
@@ -506,11 +499,6 @@ def fidelity(ctx: Ctx) -> dict:
 
 
 def _fidelity_images(ctx: Ctx, doc: dict) -> list[dict]:
-    from pathlib import Path
-
-    from crater_core.exr import read_channel
-    from crater_core.schema import load_manifest
-    from crater_synth.config import compose_settings, resolved
     from train.preprocess import PreprocessConfig, SensorModel, mosaic_composite, preprocess_crop
     from train.realset import load_mosaic
 

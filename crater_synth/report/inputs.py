@@ -10,7 +10,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import yaml
+from PIL import Image
+
+from crater_core import schema
+from crater_synth.config import PRESET_GROUPS, REPO_ROOT, compose, resolved
 from crater_synth.errors import UserError
+from crater_synth.navigation import DEMO_JSON
 from train.registry import MODELS
 
 METRICS_FILE = "metrics.json"
@@ -165,12 +171,8 @@ def check_png(path: Path) -> Path | None:
     if head != b"\x89PNG\r\n\x1a\n":
         raise ReportError(f"{path}: corrupt PNG (bad signature)")
     try:
-        from PIL import Image
-
         with Image.open(path) as im:
             im.verify()
-    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
-        pass
     except Exception as exc:  # noqa: BLE001 - any decoder complaint means a corrupt file
         raise ReportError(f"{path}: corrupt PNG ({exc})") from None
     return path
@@ -180,7 +182,6 @@ def load_run_config(path: Path) -> dict | None:
     """The resolved configuration saved by ``crater-synth train`` (RUN_DIR/config.yaml)."""
     if not path.exists():
         return None
-    import yaml
 
     try:
         doc = yaml.safe_load(_read_text(path))
@@ -196,8 +197,6 @@ def load_run_config(path: Path) -> dict | None:
 
 def dataset_rows(ds: Path | None) -> list[dict] | None:
     """Every row of the dataset's manifest (strict: a corrupt row is an error naming file:line)."""
-    from crater_core import schema
-
     if ds is None or not (ds / schema.MANIFEST_NAME).is_file():
         return None
     return schema.load_manifest(ds)
@@ -206,12 +205,23 @@ def dataset_rows(ds: Path | None) -> list[dict] | None:
 # ------------------------------------------------------------------------------------------------
 # Configuration: the run's saved config, with the command line's explicit overrides on top
 # ------------------------------------------------------------------------------------------------
-def _explicit_keys(overrides: Sequence[str]) -> list[str]:
-    keys = []
-    for o in overrides:
-        if "=" not in o or o.startswith("~"):
-            continue
-        keys.append(o.split("=", 1)[0].lstrip("+").split("@", 1)[0])
+def _key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+").split("@", 1)[0]
+
+
+# Where a run lives: the report is given the run directory itself, so a preset's paths are not its choice.
+_PATH_KEYS = frozenset({"run_dir", "out_dir", "data_dir"})
+
+
+def _explicit_keys(overrides: Sequence[str], composed: Mapping) -> list[str]:
+    """The keys the command line sets: each ``key=value`` and ``group=option``, and for a preset
+    (``experiment=NAME``) the top-level keys whose value it changes, paths aside (``experiment=demo``
+    counts as the ``sweep=... train=... loop...`` it stands for)."""
+    keys = [_key(o) for o in overrides if "=" in o and not o.startswith("~") and _key(o) not in PRESET_GROUPS]
+    presets = [o for o in overrides if "=" in o and _key(o) in PRESET_GROUPS]
+    if presets:
+        without = resolved(compose([o for o in overrides if o not in presets]))
+        keys += [k for k, v in composed.items() if k not in _PATH_KEYS and without.get(k) != v and k not in keys]
     return keys
 
 
@@ -259,11 +269,9 @@ class RunConfig:
 def effective_config(run_dir: Path, overrides: Sequence[str] = ()) -> RunConfig:
     """The configuration the run used (RUN_DIR/config.yaml when train saved one, else the composed
     defaults), with every key given explicitly on the command line taken from the overrides."""
-    from crater_synth.config import REPO_ROOT, compose, resolved
-
     composed = resolved(compose(list(overrides)))
     saved = load_run_config(run_dir / RUN_CONFIG_FILE)
-    explicit = _explicit_keys(overrides)
+    explicit = _explicit_keys(overrides, composed)
     if saved is not None:
         cfg = copy.deepcopy(saved)
         _fill_missing(cfg, composed)  # sections and keys an older saved config lacks
@@ -427,7 +435,5 @@ def load_nav_frames(path: Path) -> dict | None:
 
 def nav_paths(run_dir: Path) -> tuple[Path, list[Path]]:
     """(the navigate-demo result, the trajectories' nav-frames-eval results) of ``RUN_DIR/navigation/``."""
-    from crater_synth.navigation import DEMO_JSON
-
     nav = run_dir / NAVIGATION_DIR
     return nav / DEMO_JSON, sorted(nav.glob(NAV_FRAMES_GLOB)) if nav.is_dir() else []

@@ -8,6 +8,10 @@ import functools
 import math
 from importlib import resources
 
+import jinja2
+from markupsafe import Markup
+
+from crater_synth import __version__
 from crater_synth.report import gather
 from train.registry import label
 
@@ -20,8 +24,6 @@ def _finite(x) -> bool:
 
 def pct(x, digits: int = 1):
     """Accuracy as a percentage ("–" when missing or NaN)."""
-    from markupsafe import Markup
-
     return Markup(f"{100.0 * float(x):.{digits}f}{_NARROW_NBSP}%") if _finite(x) else "–"
 
 
@@ -51,8 +53,6 @@ def thousands(v) -> str:
 
 @functools.lru_cache(maxsize=1)
 def environment():
-    import jinja2
-
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("crater_synth.report", "templates"),
         autoescape=True,
@@ -75,10 +75,6 @@ def environment():
 
 def render_page(ctx: gather.Ctx) -> str:
     """Gather every section (drawing its figures into ``ctx.out``) and render the whole page."""
-    from markupsafe import Markup
-
-    from crater_synth import __version__
-
     env = environment()
     sections = []
     for sid, title, fn, intro in gather.SECTIONS:

@@ -6,13 +6,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Mapping
 
+from crater_core import schema
 from crater_synth.report.context import Ctx, not_run
 from crater_synth.report.inputs import RUN_CONFIG_FILE, SUMMARY_FILE, config_craters, load_summary
+from data_manifest import products as P
 
 
 def _product_rows(cfg: Mapping) -> list[dict]:
-    from data_manifest import products as P
-
     out = []
     data_dir = Path(str(cfg.get("data_dir") or "data"))
     for pid, p in P.load_products().items():
@@ -82,8 +82,6 @@ def limits_text(ctx: Ctx) -> str:
 
 
 def provenance(ctx: Ctx) -> dict:
-    from crater_core import schema
-
     out: dict = {"products": _product_rows(ctx.rc.cfg)}
     ds = ctx.rc.dataset_dir
     if ctx.all_rows is None:

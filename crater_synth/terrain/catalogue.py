@@ -46,11 +46,17 @@ from pathlib import Path
 
 import click
 import numpy as np
+from skimage.morphology import reconstruction
 
+from crater_core.geometry import hemisphere
+from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import catalogue_names
+from crater_synth.config import catalogue_names, compose_settings, craters
 from crater_synth.errors import UserError
+from crater_synth.terrain import patch
+from crater_synth.terrain.dem import DemError, check_hemisphere
 from crater_synth.terrain.grid import bilinear, sphere_points
+from crater_synth.terrain.patch import terrain_settings
 
 # ---- acceptance thresholds (docs/catalogue.md: fixed, never loosened)
 MAX_CENTRE_OFFSET_D = 0.15  # measured centre within 0.15 D of the catalogue position
@@ -223,8 +229,6 @@ def _spill_level(grid: np.ndarray, outlet: np.ndarray) -> np.ndarray:
     The level at a point is the lowest possible maximum height along any path from it to the outlet
     (the "fill" of a depression-filling algorithm), computed by grey-scale reconstruction by erosion.
     """
-    from skimage.morphology import reconstruction
-
     seed = np.where(outlet, grid, grid.max())
     return reconstruction(seed, grid, method="erosion")
 
@@ -322,10 +326,8 @@ def measure_depression(dem, lat: float, lon: float, diameter_km: float, *, name:
 # --------------------------------------------------------------------------------------------
 def open_dem(cfg):
     """The DEM the terrain of ``cfg`` is built from (``dem.path`` or ``dem.product``)."""
-    from crater_synth.terrain.patch import open_dem, terrain_settings
-
-    s = terrain_settings(cfg)
-    return open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])[0]
+    s = patch.terrain_settings(cfg)
+    return patch.open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])[0]
 
 
 def square_inside(dem, lat: float, lon: float, half_width_m: float, points_per_side: int = 41) -> bool:
@@ -346,8 +348,6 @@ def check(dem, crater: dict, near_radius_factor: float) -> dict:
     """One catalogue row: the entry, its measured depression (None when it could not be measured) and
     the failed criteria (empty: the entry passes). ``near_radius_factor``: the terrain patch's near-field
     half-width in diameters (``terrain.near_radius_factor``), which must fit inside the DEM."""
-    from crater_synth.terrain.dem import DemError, check_hemisphere
-
     try:
         check_hemisphere(dem, crater["name"], crater["lat"])
     except DemError as exc:  # nothing else about the entry can be measured in this DEM
@@ -454,8 +454,6 @@ def write_sheets(rows: list[dict], dem, mosaic, sigma: float, wac_png: Path | No
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from crater_core.schema import atomic_write_bytes
-
     images = {r["name"]: box_images(dem, mosaic, r, sigma) for r in rows}
     cols = min(7, len(rows))
     nrows = -(-len(rows) // cols)
@@ -547,9 +545,6 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     Exit status 1 when an entry fails the catalogue test. Example: ``crater-synth catalogue
     'crater=[haworth,faustini]'``
     """
-    from crater_synth.config import compose_settings, craters
-    from crater_synth.terrain.patch import terrain_settings
-
     selected = any(o.split("=", 1)[0].lstrip("+~") == "crater" for o in overrides)
     if not selected:
         overrides = (f"crater=[{','.join(catalogue_names())}]", *overrides)
@@ -558,8 +553,6 @@ def catalogue_command(as_json, wac_sheet, dem_sheet, sigma, overrides):
     factor = terrain_settings(cfg)["near_radius_factor"]
     entries = craters(cfg)
     if not selected and dem.hemisphere() is not None:
-        from crater_core.geometry import hemisphere
-
         entries = [c for c in entries if hemisphere(c["lat"]) == dem.hemisphere()]
     rows = [check(dem, c, factor) for c in entries]
     if as_json:

@@ -25,12 +25,21 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.enums import Resampling
+from rasterio.errors import RasterioError
+from rasterio.fill import fillnodata
+from rasterio.warp import transform
+from rasterio.windows import Window
 
-from crater_core.geometry import polar_stereo_forward
+from crater_core.geometry import hemisphere, polar_stereo_forward
 from crater_synth.errors import UserError
 
 # IAU/LOLA lunar reference sphere (Archinal et al. 2018); the same value as crater_core.geometry.
@@ -74,8 +83,6 @@ def check_hemisphere(dem, name: str, lat_deg: float) -> None:
 
     ``dem``: a :class:`Dem` or a DEM stack (its base DEM decides). A DEM spanning the equator accepts
     both hemispheres (the coverage checks then decide)."""
-    from crater_core.geometry import hemisphere
-
     base = getattr(dem, "base", dem)
     dem_side = base.hemisphere()
     side = hemisphere(lat_deg)
@@ -136,7 +143,6 @@ def _body_radii(crs) -> tuple[float, float]:
         if "rf" in d and float(d["rf"]) != 0.0:
             return a, a * (1.0 - 1.0 / float(d["rf"]))
         return a, a
-    import re
 
     m = re.search(r'SPHEROID\["[^"]*",\s*([0-9.eE+-]+),\s*([0-9.eE+-]+)', crs.to_wkt())
     if m:
@@ -164,10 +170,6 @@ class Dem:
     """A DEM file opened for sampling; metadata is read once, pixels on demand (windowed)."""
 
     def __init__(self, path: str | Path, product: str | None = None):
-        import rasterio
-        from rasterio.crs import CRS
-        from rasterio.errors import RasterioError
-
         self.path = Path(path)
         self.product = product or self.path.name
         self._open = None  # (pid, open rasterio dataset): see _dataset
@@ -257,8 +259,6 @@ class Dem:
     def latlon_to_xy(self, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
         """Projected (x, y) metres of planetocentric (lat, lon) degrees: PROJ's, or the same projection in
         numpy for a spherical polar stereographic CRS (:func:`_polar_stereo_pole`)."""
-        from rasterio.warp import transform
-
         lat = np.asarray(lat_deg, dtype=np.float64)
         lon = np.asarray(lon_deg, dtype=np.float64)
         shape = np.broadcast_shapes(lat.shape, lon.shape)
@@ -282,8 +282,6 @@ class Dem:
     def outline_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(x, y, lat, lon) of the raster's corners, edge midpoints and centre (projected metres, and their
         planetocentric degrees through PROJ)."""
-        from rasterio.warp import transform
-
         left, bottom, right, top = self.bounds
         xs = [left, (left + right) / 2, right]
         ys = [bottom, (bottom + top) / 2, top]
@@ -316,10 +314,6 @@ class Dem:
     def _dataset(self):
         """The raster, opened once per process and kept open: opening it costs ~2 ms, as much as reading
         a landmark's window. Reopened in a forked or spawned worker (a GDAL handle is not shared)."""
-        import os
-
-        import rasterio
-
         if self._open is None or self._open[0] != os.getpid():
             self._open = (os.getpid(), rasterio.open(self.path))
         return self._open[1]
@@ -336,10 +330,6 @@ class Dem:
         Returns (values float64 with NaN for nodata, valid mask per cell, (col_off, row_off),
         native window shape).
         """
-        from rasterio.enums import Resampling
-        from rasterio.errors import RasterioError
-        from rasterio.windows import Window
-
         margin = SPLINE_MARGIN_PX * factor if margin_px is None else int(margin_px)
         c0 = max(0, int(math.floor(np.min(col))) - margin)
         r0 = max(0, int(math.floor(np.min(row))) - margin)
@@ -397,7 +387,6 @@ class Dem:
         ``spacing_m``: the query grid's spacing, for anti-alias decimation of a finer DEM.
         ``what``: names the patch in error messages.
         """
-        from rasterio.fill import fillnodata
         from scipy import ndimage
 
         col, row = self.latlon_to_pixel(lat_deg, lon_deg)

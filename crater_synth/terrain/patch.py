@@ -20,6 +20,7 @@ Contract with the Blender worker (docs/terrain.md):
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import time
@@ -28,11 +29,18 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_core.schema import atomic_write_json, content_key
+from crater_core.files import ensure_writable_dir
+from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
+from crater_core.schema import atomic_write_bytes, atomic_write_json, content_key
 from crater_core.settings import NEAR_VERTICES_RANGE  # noqa: F401 - the range lives with the settings
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import as_settings, load_settings
 from crater_synth.errors import UserError
+from crater_synth.terrain import stack
+from crater_synth.terrain.dem import Dem, DemCoverageError, check_hemisphere
+from crater_synth.terrain.detail import synthesize_detail
 from crater_synth.terrain.grid import bilinear, sphere_points
+from data_manifest.products import cached_sha256, resolve_product
 
 # Bump when the patch arrays or their meaning change: it is part of every terrain_id.
 TERRAIN_FORMAT_VERSION = 1
@@ -55,7 +63,6 @@ class TerrainConfigError(UserError):
 def terrain_settings(cfg) -> dict:
     """``terrain.*`` (without ``detail``), ``detail``, ``dem.*`` and ``data_dir`` of the typed settings
     (a raw configuration is converted, and so validated, once: crater_core/settings.py)."""
-    from crater_synth.config import as_settings
 
     st = as_settings(cfg)
     t, d = st.terrain, st.dem
@@ -86,10 +93,9 @@ def _crater_dict(crater) -> dict:
 
 def open_stack(s: dict):
     """The near-field DEM: the base (dem.product / dem.path) with the dem.stack layers over it."""
-    from crater_synth.terrain.stack import open_stack
 
     base, base_sha = open_dem(s["dem"]["product"], s["dem"]["path"], s["data_dir"])
-    return open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
+    return stack.open_stack(base, base_sha, s["dem"]["stack"], s["data_dir"], s["dem"]["blend_pixels"]), base_sha
 
 
 def open_dem_stack(cfg):
@@ -106,7 +112,6 @@ def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key
     detail is zero; where only the 1600 m base covers, it is the base's detail unchanged; across a
     blend band it fades with the weight. A plain :class:`SampleResult` (one DEM) gets the base's detail.
     """
-    from crater_synth.terrain.detail import synthesize_detail
 
     weights = getattr(sample, "layer_weights", None) or [np.ones(shape)]
     pixels = getattr(sample, "layer_pixel_m", None) or [None]
@@ -136,8 +141,6 @@ def stack_detail(shape: tuple[int, int], spacing_m: float, sample, settings, key
 
 def open_dem(product: str | None, path: str | None, data_dir: Path):
     """(Dem, sha256) for a registry product or an explicit file (``path`` wins)."""
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import cached_sha256, resolve_product
 
     if path:
         p = Path(str(path)).expanduser()
@@ -151,7 +154,6 @@ def open_dem(product: str | None, path: str | None, data_dir: Path):
 # Geometry helpers
 # --------------------------------------------------------------------------------------------
 def _to_enu(dirs: np.ndarray, heights: np.ndarray, lat: float, lon: float) -> np.ndarray:
-    from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
 
     return mc_to_enu(dirs * (MOON_RADIUS_M + heights)[..., None], lat, lon)
 
@@ -216,9 +218,6 @@ def _far_half_cells(dem, lat: float, lon: float, k_max: int, spacing: float, max
 # --------------------------------------------------------------------------------------------
 def _atomic_save_npz(path: Path, arrays: dict) -> None:
     """``np.savez`` through :func:`crater_core.schema.atomic_write_bytes` (temp file + rename)."""
-    import io
-
-    from crater_core.schema import atomic_write_bytes
 
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -258,7 +257,6 @@ def _load_cached(npz: Path, meta_path: Path, tid: str) -> dict | None:
 def _open_dems(s: dict, name: str, lat: float):
     """The near-field DEM stack and the far-field DEM (the same stack unless ``dem.far_*`` names one),
     each checked to cover the crater's hemisphere: (dem, its sha256, far DEM, its sha256)."""
-    from crater_synth.terrain.dem import check_hemisphere
 
     dem, dem_sha = open_stack(s)
     check_hemisphere(dem, name, lat)
@@ -272,7 +270,6 @@ def _open_dems(s: dict, name: str, lat: float):
 
 def _crater_pixel(dem, name: str, lat: float, lon: float) -> tuple:
     """The crater centre's (col, row) in ``dem``; a centre outside the DEM is a coverage error."""
-    from crater_synth.terrain.dem import DemCoverageError
 
     ccol, crow = dem.latlon_to_pixel(lat, lon)
     if not bool(dem.inside(ccol, crow)):
@@ -308,7 +305,6 @@ def _near_field(dem, s: dict, name: str, lat: float, lon: float, diameter_m: flo
 def _far_field(far_dem, s: dict, name: str, lat: float, lon: float, hw: float):
     """The far-field grid beyond the near field's half width ``hw`` (empty when
     ``terrain.far_radius_km`` is 0): (ENU vertices, quads to keep, its metadata)."""
-    from crater_synth.terrain.dem import DemCoverageError
 
     fs = s["far_spacing_km"] * 1000.0
     far_info: dict = {"half_width_m": 0.0, "spacing_m": fs, "shape": [0, 0], "product": far_dem.product}
@@ -378,7 +374,6 @@ def build_terrain(crater, cfg) -> tuple[Path, dict]:
 
     Returns (npz path, metadata dict as written to the sibling ``.json``).
     """
-    from crater_core.files import ensure_writable_dir
 
     t0 = time.perf_counter()
     s = terrain_settings(cfg)
@@ -487,8 +482,6 @@ def terrain_command(overrides):
 
     Example: `crater-synth terrain crater=shackleton terrain.near_vertices=256`
     """
-    from crater_core.files import ensure_writable_dir
-    from crater_synth.config import load_settings
 
     settings = load_settings(overrides)
     ensure_writable_dir(settings.data_dir, "data_dir")

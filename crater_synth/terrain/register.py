@@ -36,9 +36,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from affine import Affine
+from rasterio.io import MemoryFile
+from skimage.feature import match_template
 
+from crater_core.exr import ExrError, read_exr
 from crater_core.geometry import MOON_RADIUS_M, curvature_drop_m
-from crater_core.schema import atomic_write_json
+from crater_core.schema import atomic_write_bytes, atomic_write_json, sha256_file
 from crater_synth.errors import UserError
 from crater_synth.paths import EMBEDDED_DIR
 
@@ -76,8 +80,6 @@ class RegistrationError(UserError):
 # --------------------------------------------------------------------------------------------
 def read_godot_exr(path: str | Path) -> np.ndarray:
     """Elevations (m, float64) of a GodotRobot heightmap EXR: channel Y = elev / 20 km + 0.5, A = 1."""
-    from crater_core.exr import ExrError, read_exr
-
     try:
         chans, _ = read_exr(path)
     except ExrError as exc:
@@ -256,8 +258,6 @@ class _Model:
 
 def _coarse_search(crop: np.ndarray, crop_px: float, ref_h: np.ndarray, ref_valid: np.ndarray, transform):
     """Best whole-reference-pixel placement per orientation by normalised cross-correlation."""
-    from skimage.feature import match_template
-
     factor = round(abs(transform.a) / crop_px)
     filled = np.where(ref_valid, ref_h, np.nanmean(np.where(ref_valid, ref_h, np.nan)))
     out = []
@@ -464,8 +464,6 @@ def layer_heights(
 ) -> tuple[np.ndarray, tuple]:
     """(heights above the sphere on the oriented grid, GDAL geotransform tuple) for a crop placed by ``reg``
     (or at (x0, y0) with ``pixel_m``, in the same orientation and height frame)."""
-    from affine import Affine
-
     a = orient(crop, reg.rot90, reg.transpose)
     x0 = reg.x0_m if x0 is None else x0
     y0 = reg.y0_m if y0 is None else y0
@@ -478,8 +476,6 @@ def layer_heights(
 
 def geotiff_bytes(heights: np.ndarray, transform, crs, description: str) -> bytes:
     """A float32 GeoTIFF (deflate, floating-point predictor, metres above the sphere) as bytes."""
-    from rasterio.io import MemoryFile
-
     h, w = heights.shape
     with MemoryFile() as mem:
         with mem.open(
@@ -514,8 +510,6 @@ def _round(d):
 def build_shackleton(src_dir: Path, out_dir: Path, ref) -> dict:
     """Verify the source EXRs, repair the 200 m crop, register it on ``ref`` and write
     ``shackleton_lola_200m.tif``, ``shackleton_lola_40m.tif`` and ``registration.json`` into ``out_dir``."""
-    from crater_core.schema import atomic_write_bytes, sha256_file
-
     crops = {}
     for name, (px, sha) in SHACKLETON_SOURCES.items():
         path = Path(src_dir) / name

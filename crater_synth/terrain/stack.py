@@ -39,10 +39,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rasterio.warp import transform
 
 from crater_core.settings import BLEND_PIXELS_RANGE  # the allowed dem.blend_pixels, checked with the settings
 from crater_synth.errors import UserError
 from crater_synth.terrain.dem import Dem, SampleResult
+from data_manifest.products import cached_sha256, load_products, resolve_product
 
 # Distance-field cell: at most band / DISTANCE_CELLS_PER_BAND (resolution of the weight ramp).
 DISTANCE_CELLS_PER_BAND = 8
@@ -103,8 +105,6 @@ class _Layer:
 
     def boundary_latlon(self, n: int = 16):
         """(lat, lon) of points along the hull of the layer's pixel centres."""
-        from rasterio.warp import transform
-
         d = self.dem
         t = np.linspace(0.0, 1.0, n)
         cols = np.concatenate(
@@ -301,8 +301,6 @@ class DemStack:
 # --------------------------------------------------------------------------------------------
 def open_dem_entry(entry: str, data_dir: str | Path, what: str = "dem.stack entry") -> tuple[Dem, str]:
     """(Dem, sha256) for a registered product id or a DEM file path (anything GDAL reads)."""
-    from data_manifest.products import cached_sha256, load_products, resolve_product
-
     entry = str(entry).strip()
     if not entry:
         raise DemStackConfigError(f"{what} is empty")

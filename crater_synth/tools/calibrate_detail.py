@@ -5,12 +5,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
 from crater_core.errors import ContractError
 from crater_synth.errors import UserError
+from crater_synth.terrain.detail import DetailSettings, synthesize_detail
 from crater_synth.tools.detail_calibration import (
     DEFAULT_DATA_DIR,
     OLD_SETTINGS_KW,
@@ -29,9 +31,6 @@ from crater_synth.tools.detail_calibration import (
 
 
 def main(argv=None) -> int:
-    import argparse
-
-    from crater_synth.terrain.detail import DetailSettings, synthesize_detail
 
     ap = argparse.ArgumentParser(
         prog="python -m crater_synth.tools.calibrate_detail",

@@ -9,12 +9,18 @@ Example: ``python -m crater_synth.tools.demstack_seams crater=shackleton --png /
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 
 import numpy as np
 
+from crater_core.errors import ContractError
+from crater_core.schema import atomic_write_bytes
+from crater_synth.config import compose, craters
 from crater_synth.errors import UserError
+from crater_synth.terrain.grid import sphere_points
+from crater_synth.terrain.patch import open_stack, terrain_settings
 
 BAND_LIMITS = (0.01, 0.99)  # fine weight strictly between these: the blend band
 PURE = 1e-3  # fine weight <= PURE: base only; >= 1 - PURE: fine layers only
@@ -48,9 +54,6 @@ def _region_stats(h: np.ndarray, mask: np.ndarray) -> dict:
 
 def seam_metrics(crater: dict, cfg) -> tuple[dict, dict]:
     """(metrics, arrays for figures) for one crater's near field under the configured stack."""
-    from crater_synth.terrain.grid import sphere_points
-    from crater_synth.terrain.patch import open_stack, terrain_settings
-
     s = terrain_settings(cfg)
     stack, _ = open_stack(s)
     lat, lon = float(crater["lat"]), float(crater["lon"])
@@ -101,8 +104,6 @@ def write_figures(prefix: str, name: str, a: dict) -> list[str]:
     import matplotlib.pyplot as plt
     from matplotlib.colors import LightSource
 
-    from crater_core.schema import atomic_write_bytes
-
     c, sp = a["coords"] / 1e3, a["spacing"]
     ext = [c[0], c[-1], c[0], c[-1]]
     ls = LightSource(azdeg=315, altdeg=20)
@@ -120,8 +121,6 @@ def write_figures(prefix: str, name: str, a: dict) -> list[str]:
     fig.tight_layout()
     out = []
     for suffix, figure in (("hillshade", fig), ("profile", _profile_figure(plt, a, name))):
-        import io
-
         buf = io.BytesIO()
         figure.savefig(buf, format="png", dpi=80)
         plt.close(figure)
@@ -152,9 +151,6 @@ def _profile_figure(plt, a: dict, name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from crater_core.errors import ContractError
-    from crater_synth.config import compose, craters
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("overrides", nargs="*")
     ap.add_argument("--png", default=None, help="write PREFIX_hillshade.png and PREFIX_profile.png")

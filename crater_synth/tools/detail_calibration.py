@@ -29,13 +29,33 @@ scatter one documented procedure (docs/detail.md) over several files.
 
 from __future__ import annotations
 
+import io
+import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+from rasterio.warp import transform
 
+from crater_core.schema import atomic_write_bytes
 from crater_synth.errors import UserError
+from crater_synth.terrain.dem import Dem
+from crater_synth.terrain.detail import (
+    LEGACY_PARAMETERS,
+    DetailSettings,
+    crater_population,
+    crater_profile,
+    degradation_table,
+    degraded_population,
+    degraded_profile,
+    highpass_weights,
+    synthesize_detail,
+)
+from crater_synth.terrain.register import block_mean
+from crater_synth.terrain.stack import open_dem_entry
+from data_manifest.products import resolve_product
 
 # The registered real crop (data_manifest/products.yaml); --dem takes another product id or DEM file.
 REAL_CROP_PRODUCT = "shackleton_lola_200m"
@@ -124,7 +144,6 @@ def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAUL
     It must be north-up with square 200 m pixels, at least ``MIN_CROP_PX`` on a side, and have no
     nodata; anything else is one :class:`CalibrationDataError` naming the entry.
     """
-    from crater_synth.terrain.stack import open_dem_entry
 
     dem, _ = open_dem_entry(entry, data_dir, what="real crop (--dem)")
     where = f"real crop {entry!r} ({dem.path})"
@@ -155,8 +174,6 @@ def load_real_crop(entry: str = REAL_CROP_PRODUCT, data_dir: str | Path = DEFAUL
 
 
 def _open_ldem(data_dir: str | Path = DEFAULT_DATA_DIR):
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import resolve_product
 
     return Dem(resolve_product(BASE_DEM_PRODUCT, data_dir), product=BASE_DEM_PRODUCT)
 
@@ -172,7 +189,6 @@ def grid_xy(top_left_xy: tuple[float, float], shape: tuple[int, int], spacing: f
 
 def sample_ldem(dem, top_left_xy, shape, spacing) -> np.ndarray:
     """LDEM heights on a grid through ``Dem.sample`` (bicubic), as terrain.py samples."""
-    from rasterio.warp import transform
 
     x, y = grid_xy(top_left_xy, shape, spacing)
     lon, lat = transform(dem.crs, dem.geographic_crs, x.ravel(), y.ravel())
@@ -289,8 +305,6 @@ def subdem_band(
     the mask eroded by one DEM pixel (where the filter's reach of masked pixels is negligible)."""
     from scipy import ndimage
 
-    from crater_synth.terrain.detail import highpass_weights
-
     res = np.where(mask, real - ldem, 0.0)
     ny, nx = res.shape
     padded = np.pad(res, ((ny // 2, ny - ny // 2), (nx // 2, nx - nx // 2)), mode="symmetric")
@@ -364,14 +378,6 @@ def population_summary(settings, area_m2: float = 1e10, d_range_m=(400.0, 3200.0
     d/D percentiles and shares, and how dark the craters are at a low Sun on level ground: the mean
     shadowed share of the diameter along the Sun's line and the share of craters more than 90 %
     shadowed ("black pits"), at 0.5 and 1.6 deg."""
-    from crater_synth.terrain.detail import (
-        LEGACY_PARAMETERS,
-        crater_population,
-        crater_profile,
-        degradation_table,
-        degraded_population,
-        degraded_profile,
-    )
 
     rng = np.random.default_rng(seed)
     x = np.linspace(-4.0, 4.0, 1601)
@@ -436,9 +442,6 @@ def measure_real(crop: RealCrop | None = None, data_dir: str | Path = DEFAULT_DA
 
 def model_statistics(ldem: np.ndarray, mask: np.ndarray, band_mask: np.ndarray, settings, seeds=range(4)) -> dict:
     """Mean statistics of LDEM + detail (and of the detail alone, on ``band_mask``) over seeds."""
-    from dataclasses import replace
-
-    from crater_synth.terrain.detail import synthesize_detail
 
     runs = []
     for seed in seeds:
@@ -482,10 +485,6 @@ def fit_misfit(model: dict, real: dict, keys=FIT_KEYS) -> float:
 
 def fit_parameters(m: dict, seeds=range(4)) -> list[tuple[float, dict]]:
     """Grid search of FIT_GRID (other settings at their defaults); best first."""
-    import itertools
-    from dataclasses import replace
-
-    from crater_synth.terrain.detail import DetailSettings
 
     out = []
     names = list(FIT_GRID)
@@ -501,7 +500,6 @@ OLD_SETTINGS_KW = {"model": "legacy"}
 
 def comparison_rows(m: dict, seeds=range(4)) -> dict:
     """{name: stats} for real, LDEM only, LDEM + old detail, LDEM + new detail."""
-    from crater_synth.terrain.detail import DetailSettings
 
     args = (m["ldem"], m["mask"], m["band_mask"])
     return {
@@ -519,10 +517,6 @@ def grid_transfer_rows(m: dict, factors=(2, 4), seeds=range(4)) -> dict:
     """Sub-DEM band on coarser grids (400, 800 m: the de Gerlache / Shoemaker near grids are 318 and
     499 m): the real crop block-averaged by ``factor`` (what a grid of that spacing can carry) against
     the detail synthesised at that spacing. Keys keep their 200 m names but are per grid step."""
-    from dataclasses import replace
-
-    from crater_synth.terrain.detail import DetailSettings, synthesize_detail
-    from crater_synth.terrain.register import block_mean
 
     dem = _open_ldem()
     rows = {}
@@ -594,15 +588,11 @@ def write_hillshades(
 ) -> list[Path]:
     """One PNG per sun elevation (panels left to right in ``fields`` order, same grey scale, set by
     the first panel's 99.5th percentile) and one per field; written atomically."""
-    from PIL import Image
-
-    from crater_core.schema import atomic_write_bytes
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
 
     def save(img: np.ndarray, path: Path):
-        import io
 
         buf = io.BytesIO()
         Image.fromarray((np.clip(img, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)).save(buf, format="PNG")

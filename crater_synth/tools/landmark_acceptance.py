@@ -27,14 +27,22 @@ import json
 import math
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from sklearn.linear_model import LogisticRegression
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import StandardScaler
 
 from crater_core.errors import ContractError
+from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.map import check as lc
 from crater_synth.navigation.map import landmarks as lmap
+from crater_synth.terrain.catalogue import measure_depression
+from crater_synth.terrain.dem import DemError
+from crater_synth.terrain.stack import open_dem_entry
 
 LARGE_KM = 30.0  # from here the per-scale 2-D maxima are candidates too (they find the large craters)
 THRESHOLDS = (0.3, 0.4)  # accept below / from LARGE_KM (chosen on the south's held-out sectors)
@@ -42,8 +50,6 @@ SECTORS = 6
 
 
 def _dem(pole: str):
-    from crater_synth.terrain.stack import open_dem_entry
-
     return open_dem_entry(lmap.DEM_PRODUCTS[pole], lmap.DATA_DIR)[0]
 
 
@@ -52,8 +58,6 @@ _WORKER_DEM = None
 
 def _measure(args):
     global _WORKER_DEM
-    from crater_synth.terrain.catalogue import measure_depression
-    from crater_synth.terrain.dem import DemError
 
     pole, items = args
     if _WORKER_DEM is None:
@@ -70,7 +74,6 @@ def _measure(args):
 
 def measurements(pole: str, cache: Path, workers: int) -> list[dict]:
     """Every candidate's measurement (step 1), from the cache when it is there."""
-    from concurrent.futures import ProcessPoolExecutor
 
     from scipy.ndimage import maximum_filter
 
@@ -108,7 +111,6 @@ def measurements(pole: str, cache: Path, workers: int) -> list[dict]:
     with ProcessPoolExecutor(workers) as pool:
         out = [m for res in pool.map(_measure, chunks) for m in res]
     print(f"{pole}: {len(items)} candidates, {len(out)} measured in {time.time() - t0:.0f} s", file=sys.stderr)
-    from crater_core.schema import atomic_write_text
 
     cache.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(out))
@@ -156,10 +158,6 @@ def features(rows: list[dict], meas: list[dict]) -> tuple[np.ndarray, dict]:
 
 
 def _model():
-    from sklearn.linear_model import LogisticRegression
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
     return make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=1000))
 
 
@@ -239,8 +237,6 @@ def seeded_misses(pole: str, cache: Path, workers: int, min_diameter_km: float =
     """The listed (LU1319381) craters >= ``min_diameter_km`` no measured candidate matches, measured again
     from their own listed centre and diameter: how many that seeded measurement matches (the rest drift
     away in the rim measurement's centre iteration, whatever the candidate), with each one's centre offset."""
-    from crater_synth.terrain.catalogue import measure_depression
-
     dem, _, rows = _measured(pole, cache, workers)
     listed = lc.lu_craters(pole, dem)
     mx, my, md = (np.array([r[k] for r in rows]) for k in ("x_m", "y_m", "diameter_km"))

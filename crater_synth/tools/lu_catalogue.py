@@ -20,6 +20,8 @@ import struct
 import sys
 from pathlib import Path
 
+from crater_core.schema import atomic_write_text
+
 MIN_DIAMETER_KM = 8.0
 MIN_ABS_LAT_DEG = 60.0
 COLUMNS = ("id", "lon", "lat", "diameter_km", "depth_m", "source")
@@ -72,8 +74,6 @@ def polar_subset(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from crater_core.schema import atomic_write_text
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("tile_dir", type=Path)
     ap.add_argument("out", type=Path)

@@ -8,19 +8,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 from crater_synth.errors import UserError
+from crater_synth.terrain.dem import Dem
 from crater_synth.terrain.register import PRODUCT_DIR, build_shackleton
+from data_manifest.products import resolve_product
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m crater_synth.tools.register_crop [--out DIR] [--check]``."""
-    import tempfile
-
-    from crater_synth.terrain.dem import Dem
-    from data_manifest.products import resolve_product
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--src", type=Path, default=PRODUCT_DIR, help="folder holding the source EXRs")
     ap.add_argument("--out", type=Path, default=PRODUCT_DIR, help="folder to write the products into")
