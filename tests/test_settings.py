@@ -55,7 +55,23 @@ def test_every_yaml_names_its_schema():
             assert p.read_text().startswith("# @package _global_"), p
             continue
         assert f"- {p.parent.name}_schema" in p.read_text(), p
-    assert set(GROUPS) | PRESET_GROUPS == {p.name for p in CONFIG_DIR.iterdir() if p.is_dir()}
+    # configs/nav/ is navigation's own tree (configs/navigation.yaml composes it): its groups are checked below.
+    assert set(GROUPS) | PRESET_GROUPS | {"nav"} == {p.name for p in CONFIG_DIR.iterdir() if p.is_dir()}
+
+
+def test_every_navigation_yaml_names_its_schema():
+    """Each option of a nav group names its typed schema (a detector option its detector's), and each
+    navigation preset is a global package file, as the experiment presets of configs/config.yaml."""
+    files = sorted((CONFIG_DIR / "nav").glob("*/*.yaml"))
+    assert files
+    for p in files:
+        text = p.read_text()
+        if p.parent.name == "preset":
+            assert text.startswith("# @package _global_"), p
+        elif p.parent.name == "detector":
+            assert re.search(r"^  - [a-z_]+_schema$", text, re.M), p
+        else:
+            assert f"- {p.parent.name}_schema" in text, p
 
 
 def test_experiment_chosen_is_the_chosen_configuration():
