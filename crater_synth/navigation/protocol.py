@@ -179,7 +179,7 @@ def catalogue_scores(rows: list[dict]) -> dict:
 
 
 def rendered_summary(rows: list[dict]) -> dict:
-    """:func:`.evaluate.summarise` plus the median horizontal part of the fixes' errors."""
+    """:func:`summarise` plus the median horizontal part of the fixes' errors."""
     out = summarise(rows)
     h = [r["error_horizontal_km"] for r in rows if r["fix"]]
     if rows:

@@ -1,1 +1,2 @@
-"""Crater detectors: whole frames in, crater circles out (classical filter, Hapke template, learned network)."""
+"""Crater detectors: whole frames in, crater circles out (classical filter, Hapke template, learned network), one
+registry of them (:mod:`.registry`)."""

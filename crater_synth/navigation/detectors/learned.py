@@ -8,7 +8,7 @@ the training frames' own ground sample). Its detections go through the same bord
 fit and suppression as the other two methods (:func:`crater_synth.navigation.detectors.classical.detect`).
 
 The committed model (``DEFAULT_MODEL``) carries its provenance (survey seed and tracks, training
-settings, code commit, synthetic hold-out metrics) inside the file; :mod:`.learned_train`
+settings, code commit, synthetic hold-out metrics) inside the file; :mod:`..rendered.detector_train`
 (``crater-synth nav-detector-frames``, ``crater-synth nav-detector-train``) makes it again. This module
 is inference only.
 """

@@ -1,4 +1,4 @@
-"""Scale-space helpers shared by the crater detectors (:mod:`.detect`, :mod:`.template`): the padded
+"""Scale-space helpers shared by the crater detectors (:mod:`.classical`, :mod:`.template`): the padded
 frame's spectrum, Gaussian filtering and derivatives on decimated grids, and sub-pixel local maxima."""
 
 from __future__ import annotations

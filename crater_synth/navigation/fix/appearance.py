@@ -14,9 +14,9 @@ cross-correlation (NCC):
   the sub-pixel peak. A peak on the border of the first grid is refused (the landmark is not there);
 - a peak of NCC below ``min_ncc`` gives no detection.
 
-Each landmark found becomes a :class:`.detect.Detection` where a detector would report its rim ellipse
+Each landmark found becomes a :class:`..detectors.classical.Detection` where a detector would report its rim ellipse
 (the ellipse predicted from the prior, moved by the search's shift), with the NCC as its score. The
-identification and the fix are then the detectors' own (:func:`.frames_eval.evaluate_frame`: pairs
+identification and the fix are then the detectors' own (:func:`..rendered.evaluate.evaluate_frame`: pairs
 gated by the prior, RANSAC with at least three agreeing landmarks, the ambiguity test), so a landmark
 found in the wrong place is an outlier the fix must reject, as a false detection is.
 

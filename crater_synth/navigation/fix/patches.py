@@ -8,7 +8,7 @@ of frame pixels meet the DEM's surface at points that become landmarks of ``sour
 3-D point the surface point, their "diameter" the window's size), searched for, identified and used by the
 fix exactly as the craters are. This is terrain-relative navigation by image-to-map correlation (the
 patch-matching of map-relative localisation), here a fallback: a frame is navigated with its craters
-first, and with its patches only when the craters give no fix (:func:`.frames_eval.evaluate_frame`).
+first, and with its patches only when the craters give no fix (:func:`..rendered.evaluate.evaluate_frame`).
 
 A patch holds as much as the DEM resolves: at a 6-8 degree Sun the long shadows of the DEM's relief
 make the texture the correlation finds. Frames rendered from the same DEM share its relief, so the

@@ -1,7 +1,7 @@
 """``crater-synth landmarks`` and ``crater-synth landmarks-check``: build a pole's landmark map (or add a
 finer DEM layer to one) and check a map against the independent crater lists.
 
-The commands sit above both :mod:`.landmarks` (measuring, the file format) and :mod:`.landmark_check` (the
+The commands sit above both :mod:`.landmarks` (measuring, the file format) and :mod:`.check` (the
 checks and the figure), which the build and the check each use.
 """
 

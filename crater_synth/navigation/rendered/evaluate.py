@@ -1,18 +1,18 @@
 """Navigation metrics on rendered frames with exact truth (``crater-synth nav-frames-eval DIR``).
 
 The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic windows
-(:mod:`.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
+(:mod:`..windows.evaluate`), for the perspective frames of ``crater-synth nav-frames``:
 
-- **Detection**: :func:`.detect.detect` on the I/F channel, with the settings of a preset
+- **Detection**: :func:`..detectors.classical.detect` on the I/F channel, with the settings of a preset
   (``nav/preset``, configs/nav/preset/; "synthetic", the classical detector's settings chosen on rendered frames;
   "learned"; "real-window": the real windows' settings unchanged), or no detector: the default
-  "appearance" preset searches for the map's landmarks by their predicted appearance (:mod:`.appearance`).
+  "appearance" preset searches for the map's landmarks by their predicted appearance (:mod:`..fix.appearance`).
   The light direction in the image is given (the lander knows its attitude and the ephemeris): the Sun's
   travel direction, projected on the image plane. The "synthetic" preset searches only the radii the map
   can use in the frame (:func:`map_scales`: from the ground sample, as a lander knowing its altitude would).
 - **Truth**: the frame's labels (every landmark whose rim centre projects inside the frame, with its
-  projected rim ellipse; :mod:`.render_frames`), less those whose rim is mostly hidden behind nearer
-  relief (:data:`.frame_labels.HIDDEN_RIM_MAX`): they are not counted as misses, nor a detection on
+  projected rim ellipse; :mod:`.frames`), less those whose rim is mostly hidden behind nearer
+  relief (:data:`.labels.HIDDEN_RIM_MAX`): they are not counted as misses, nor a detection on
   them as false. A detection matches a label when its centre is within 0.25 D of the ellipse centre
   and its radius within 25 % of the ellipse's semi-major axis.
 - **Prior**: the true camera moved ``PRIOR_OFFSET_KM`` horizontally in a seeded random direction;
@@ -20,23 +20,23 @@ The same pipeline and metrics as ``crater-synth nav-eval`` on real mosaic window
 - **Identification**: map landmarks >= ``min_landmark_km`` (those a finer DEM layer added: from
   ``LAYER_LANDMARK_MIN_PX`` px) projected with the prior pose; putative pairs within the prior's
   uncertainty (``prior_sigma_km`` / ground sample + r/4 px) and radius ratio within ``radius_ratio``
-  (:class:`.fix.FixParams`, the values chosen on real validation windows).
-- **Fix** (``method``): ``position`` (default): the camera centre with the prior's (true) attitude,
-  :func:`.fix.ransac_position` (least squares on the rays through the landmarks' 3-D rim-centre
+  (:class:`..fix.solve.FixParams`, the values chosen on real validation windows).
+- **Fix** (``nav.frames.solver``): ``position`` (default): the camera centre with the prior's (true) attitude,
+  :func:`..fix.solve.ransac_position` (least squares on the rays through the landmarks' 3-D rim-centre
   points, minimal sets of 2), corrected for the perspective offset of the rim ellipses' centres
-  (:func:`.refine.ellipse_centre_fix`); ``pnp``: the full pose, :func:`.fix.ransac_pnp`. One pair per
+  (:func:`..fix.refine.ellipse_centre_fix`); ``pnp``: the full pose, :func:`..fix.solve.ransac_pnp`. One pair per
   detection and landmark; "no fix" when fewer than ``min_inliers`` distinct landmarks agree, when a
   disjoint rival set nearly as large agrees (the ambiguity test; known attitude) or when their RMS
   exceeds ``max_rms_px``. Presets with ``refine`` then register each fix landmark's predicted
-  appearance on the frame and solve again (:mod:`.refine`; a 6-DOF fix with ``refine_pnp``, attitude
+  appearance on the frame and solve again (:mod:`..fix.refine`; a 6-DOF fix with ``refine_pnp``, attitude
   too). A frame with fewer than ``min_inliers`` landmarks in view is flagged and summarised apart. The
   error is the 3-D distance between the fixed and the true camera centre (horizontal part too); a fix is
   false beyond ``FALSE_FIX_KM``.
 - **Options**: terrain patches where the craters give no fix (:func:`with_patch_fallback`), each frame's
-  prior from its trajectory's last fix (:mod:`.sequence`).
+  prior from its trajectory's last fix (:mod:`..fix.sequence`).
 
-Metrics are :func:`.evaluate.summarise`'s (one definition for real and rendered frames). The command
-is :mod:`.frames_eval_cli`.
+Metrics are :func:`..protocol.summarise`'s (one definition for real and rendered frames). The command
+is :mod:`.cli`.
 
 Length: one stage, a rendered frame's navigation scored against its labels: the frame's camera, the
 identification, both fixes with their refinement, the patch fallback and the loop over a directory share

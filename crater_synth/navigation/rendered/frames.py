@@ -17,7 +17,7 @@ Per frame (poses: :mod:`crater_core.trajectory`):
    imports bpy, builds the scene and Cycles' BVH once for all its frames. Direct or fast mode as
    ``render.mode`` says. In fast mode the job's "crater" diameter sets the horizon map to cover the
    near field (:data:`FAST_MAP_MARGIN`), its texels scaled with the vertices.
-3. **Labels** (:mod:`.frame_labels`): every landmark of the map whose 3-D rim-centre point projects
+3. **Labels** (:mod:`.labels`): every landmark of the map whose 3-D rim-centre point projects
    inside the frame, with its projected rim ellipse and its lit and occluded rim fractions.
 
 Output: ``<out>/frame_NNNN.exr`` (the dataset's channels: IF, depth, N.*, lit) and
@@ -26,7 +26,7 @@ atomically once every frame is rendered).
 
 Length: one stage, a trajectory from its poses to labelled EXRs (patch grouping, the frames' render
 defaults, worker items, the reuse of finished frames, the labels as frames arrive, the command); the
-labels' geometry is in :mod:`.frame_labels`, the workers' dispatch in the dataset's.
+labels' geometry is in :mod:`.labels`, the workers' dispatch in the dataset's.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ A frame of ``crater-synth nav-frames`` (perspective, any attitude) is not a nort
 ``navigate`` hands it here: its row in the ``manifest.jsonl`` beside it gives the camera pose and the Sun;
 the detector and fix settings are a ``nav/preset`` (configs/nav/preset/);
 the prior is ``nav-frames-eval``'s (the true camera moved 5 km, the true attitude) and the fix the
-known-attitude camera centre (:func:`.frames_eval.evaluate_frame`; with ``six_dof`` the 6-DOF pose), refined
-by appearance where the preset says so (:mod:`.refine`). Its truth is exact, so the error is
+known-attitude camera centre (:func:`.evaluate.evaluate_frame`; with ``six_dof`` the 6-DOF pose), refined
+by appearance where the preset says so (:mod:`..fix.refine`). Its truth is exact, so the error is
 the 3-D distance between the fixed and the true camera centre. Writes an annotated PNG (the labelled
 rims thin green, the detections red dashed, the identified landmarks yellow with their names) and the
 per-detection list (circle, confidence, landmark identified or "unknown", the labelled landmark it
@@ -49,9 +49,9 @@ def navigate_rendered_frame(
     image: Path, nav, out: Path, seed: int = 0, patches: bool = False, six_dof: bool = False
 ) -> dict:
     """Detect, identify and fix one rendered frame with the navigation settings ``nav`` (a ``nav/preset``,
-    :func:`.settings.compose_nav`); writes
+    :func:`..settings.compose_nav`); writes
     the annotated PNG ``out`` and returns the result (one JSON object). ``patches``: a frame its craters do
-    not fix is navigated with terrain patches (:func:`.frames_eval.with_patch_fallback`; the appearance
+    not fix is navigated with terrain patches (:func:`.evaluate.with_patch_fallback`; the appearance
     preset only); ``six_dof``: the 6-DOF fix (attitude too, ``nav.frames.solver=pnp``), refined by
     appearance where the preset refines."""
     from crater_synth.navigation.fix.patches import PatchParams

@@ -1,4 +1,4 @@
-"""What ``crater-synth nav-frames-eval`` writes (:mod:`.frames_eval`): the per-frame JSON the report reads
+"""What ``crater-synth nav-frames-eval`` writes (:mod:`.evaluate`): the per-frame JSON the report reads
 (:func:`frames_record`) and the summary recorded under ``synthetic`` in docs/results/navigation.json
 (:func:`record_results`)."""
 

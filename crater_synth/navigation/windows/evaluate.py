@@ -146,7 +146,7 @@ def run_frame(
 ) -> dict:
     """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
     :func:`navigate_window`; ``prior_offset_km``: how far the prior is from the truth). ``listed``: a
-    complete crater catalogue (``landmark_check.catalogue_craters``) the detections are also scored
+    complete crater catalogue (``map.check.catalogue_craters``) the detections are also scored
     against, a diagnostic beside the map's truth (a detection of a crater the map lacks is no landmark,
     but it is a crater). ``patches`` (:class:`.patches.PatchParams`, appearance method with a prior): the
     frame is also navigated with its terrain patches alone (:func:`with_window_patches`)."""
