@@ -92,7 +92,7 @@ validate: setup ## Real validation protocol (docs/validation.md): choose on the 
 	$(CLI) validate $(OVERRIDES)
 
 ablate: setup ## Fidelity ablation table into docs/fidelity.md (each lever on/off, validation + test)
-	$(CLI) ablate $(OVERRIDES)
+	$(CLI) ablate ablation.docs_file=docs/fidelity.md $(OVERRIDES)
 
 NAV_DEMO_DIR ?= outputs/navigate-demo
 navigate-demo: setup ## Crater navigation on a few real mosaic windows: three detectors, the appearance search and its terrain patches, annotated PNGs, the table, navigation.json (NAV_DEMO_DIR; the report reads RUN_DIR/navigation)

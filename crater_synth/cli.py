@@ -56,7 +56,7 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         (
             "results",
             "crater_synth.evaluation.paper_findings:results_command",
-            "Check the paper's findings; write docs/results/.",
+            "Check the paper's findings in a Figure 6 run.",
         ),
         (
             "validate",

@@ -196,8 +196,8 @@ def _write(out: Path, results: list[dict], acfg: dict, budget: list[str], overri
 def ablate_command(overrides):
     """Fidelity ablation: the validation protocol with each lever turned off in turn.
 
-    Writes ablation.json/.md under ablation.out_dir and the table into docs/fidelity.md
-    (ablation.docs_file). Example: crater-synth ablate sweep=demo
+    Writes ablation.json/.md under ablation.out_dir, and the table into the marked section of the page
+    ablation.docs_file names (`make ablate`: docs/fidelity.md). Example: crater-synth ablate sweep=demo
     """
     res = run_ablation(overrides)
     for r in res["variants"]:

@@ -1,10 +1,11 @@
 """The paper's findings, checked one by one against a Figure 6 run and a closed-loop run.
 
 ``crater-synth results`` reads ``experiments.csv`` (``crater-synth experiments``) and, when given,
-``loop_history.json`` (``crater-synth loop``), and writes into ``--out`` (``docs/results/`` for the
-paper-scale run): the CSV, the Figure 6 image, the loop history and its plot, and ``README.md``, which
-takes each finding of the paper (Section 4, Fig. 3 and Fig. 6) and says with numbers whether it
-reproduces. Every verdict follows from a rule written next to it, never from a hand-written sentence.
+``loop_history.json`` (``crater-synth loop``), and writes into ``--out`` (default ``outputs/results/``;
+``make results`` records the paper-scale run in ``docs/results/``): the CSV, the Figure 6 image, the loop
+history and its plot, and ``README.md``, which takes each finding of the paper (Section 4, Fig. 3 and
+Fig. 6) and says with numbers whether it reproduces. Every verdict follows from a rule written next to
+it, never from a hand-written sentence.
 """
 
 from __future__ import annotations
@@ -272,7 +273,7 @@ def publish(experiments_dir: Path | None, loop_dir: Path | None, out: Path, note
 @click.command("results")
 @click.option("--experiments", "experiments_dir", type=click.Path(path_type=Path), help="run_dir of `experiments`")
 @click.option("--loop", "loop_dir", type=click.Path(path_type=Path), help="run_dir of `loop`")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("docs/results"), show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=Path("outputs/results"), show_default=True)
 @click.option("--notes", type=click.Path(exists=True, path_type=Path), help="markdown put under the summary")
 @user_errors
 def results_command(experiments_dir, loop_dir, out, notes):

@@ -16,7 +16,6 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM
 from crater_synth.navigation.georef import Georef
-from crater_synth.paths import SOURCE_ROOT
 
 __all__ = ["FALSE_FIX_KM"]
 
@@ -40,9 +39,6 @@ SIZE_BINS_KM = (10.0, 15.0, 30.0, 60.0, 1e9)
 
 
 TARGETS = {"fix_rate": 0.9, "median_error_km": 0.8, "false_fix_rate": 0.01, "recall_15km": 0.8, "precision_15km": 0.9}
-
-
-RESULTS_JSON = SOURCE_ROOT / "docs" / "results" / "navigation.json"
 
 
 def truth_in_frame(landmarks, georef: Georef, shape, min_d_km: float = 0.0) -> list[int]:
