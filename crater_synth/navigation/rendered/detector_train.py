@@ -14,7 +14,9 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import compose_group
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
@@ -172,35 +174,25 @@ def nav_detector_frames_command(overrides, tracks, seed, out):
 
 
 @click.command("nav-detector-train")
-@click.argument("frames_dir", type=click.Path(path_type=Path), required=False)
+@click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
-@click.option("--steps", default=None, type=int, help="Training steps (default: the training settings').")
-@click.option("--checkpoint", "checkpoints", multiple=True, type=int, help="Also save the weights after this step.")
-@click.option("--threads", default=0, show_default=True, help="Torch threads (0: every core).")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
+@OVERRIDES
 @user_errors
-def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, device):
+def nav_detector_train_command(frames_dir, out, device, overrides):
     """Train the learned crater detector on rendered survey frames; score it on the held-out tracks.
 
-    Example: `crater-synth nav-detector-train data/detector_frames/south --out model.pt`
+    Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
+    `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
+    these steps), `nav.detector_train.threads=4` (0: every core). Example:
+    `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
     """
-    import dataclasses
-
     import torch
 
-    from train.crater_detector import DetectorTrainSettings
-
+    settings = compose_group("nav/detector_train", DetectorTrainSettings, overrides)
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    s = DetectorTrainSettings()
-    if steps is not None and steps < 1:
-        raise UserError(f"--steps {steps}: must be >= 1")
-    last = steps or s.steps
-    bad = [c for c in checkpoints if not 1 <= c < last]
-    if bad:
-        raise UserError(f"--checkpoint {bad[0]}: must lie in [1, {last - 1}] (the last step is the model itself)")
-    s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
     summary = train_from_survey(
-        frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s, log=lambda m: click.echo(m, err=True), device=device
+        frames_dir, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
     )
     click.echo(json.dumps(summary, indent=1))
