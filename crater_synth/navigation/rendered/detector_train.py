@@ -9,16 +9,21 @@ writes the model with its provenance (docs/navigation/detectors.md).
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import click
 import numpy as np
 
+from crater_core import exr
 from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose_group
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
+from crater_synth.navigation.rendered.evaluate import match_pixels
+from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.paths import SOURCE_ROOT
 
@@ -31,9 +36,6 @@ HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never train
 # ------------------------------------------------------------------------------------------------
 def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
     """(I/F image, manifest row) of every frame of the survey tracks ``tracks`` under ``root``."""
-    from crater_core import exr
-    from crater_synth.navigation.rendered.labels import frame_rows
-
     dirs = track_dirs(root)
     if not dirs:
         raise UserError(f"{root}: no rendered survey track (run `crater-synth nav-detector-frames --out {root}`)")
@@ -69,9 +71,6 @@ def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
     """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
     matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for labels and detections of
     D >= ``min_d_km``."""
-    from crater_synth.navigation.detectors.classical import detect
-    from crater_synth.navigation.rendered.evaluate import match_pixels
-
     tp_t = n_t = tp_d = n_d = 0
     for image, row in records:
         labels = labels_in_frame(row, image.shape)
@@ -95,8 +94,6 @@ def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
 
 
 def _code_commit() -> str:
-    import subprocess
-
     try:
         return subprocess.run(
             ["git", "-C", str(SOURCE_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
