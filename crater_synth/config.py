@@ -30,6 +30,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from crater_core.errors import ContractError
 from crater_core.settings import GROUPS, Settings, SettingsError, as_plain
+from crater_core.typed_config import build
 from crater_synth.errors import ConfigError
 from crater_synth.paths import CONFIG_DIR, SOURCE_ROOT
 
@@ -161,6 +162,50 @@ def compose_settings(overrides: Sequence[str] = (), config_name: str = "config")
     finally:
         GlobalHydra.instance().clear()
     return cfg, settings_from(cfg)
+
+
+def compose_plain(config_name: str | None, overrides: Sequence[str], config_dir=CONFIG_DIR) -> tuple[dict, dict]:
+    """The resolved composition of ``<config_dir>/<config_name>.yaml`` (None: only the groups the overrides
+    add with ``+group=option``) and the option each group took; the schemas must be in the ConfigStore
+    already. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            cfg = hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
+            choices = dict(cfg.hydra.runtime.choices)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(one_line_config_error(exc, overrides)) from None
+    finally:
+        GlobalHydra.instance().clear()
+    OmegaConf.set_struct(cfg, False)
+    cfg.pop("hydra")
+    return resolved(cfg), choices
+
+
+def compose_group(group: str, cls: type, overrides: Sequence[str] = (), option: str = "default"):
+    """The settings ``cls`` of one config group (``configs/<group>/<option>.yaml``, e.g. ``nav/landmarks``)
+    with the overrides a command takes, all of them keys of that group (``nav.landmarks.workers=4``):
+    a command with one group of settings refuses any other key. Errors: one :class:`ConfigError` line."""
+    from hydra.core.config_store import ConfigStore
+
+    prefix = group.replace("/", ".")
+    bad = [o for o in overrides if not o.lstrip("+~").startswith(prefix + ".")]
+    if bad:
+        raise ConfigError(f"{bad[0]}: this command's settings are {prefix}.<key>=<value>")
+    ConfigStore.instance().store(group=group, name=f"{group.rsplit('/', 1)[-1]}{SCHEMA_SUFFIX}", node=schema_class(cls))
+    plain, _ = compose_plain(None, [f"+{group}={option}", *overrides])
+    for part in group.split("/"):
+        plain = plain[part]
+    try:
+        return build(cls, plain, prefix)
+    except SettingsError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def compose(overrides: Sequence[str] = (), config_name: str = "config") -> DictConfig:

@@ -304,13 +304,12 @@ def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_pat
 
     from crater_synth.cli import main
     from crater_synth.navigation.windows import evaluate
-    from crater_synth.navigation.windows import mosaic as frames
     from crater_synth.paths import SOURCE_ROOT
 
     results = tmp_path / "navigation.json"
     shutil.copyfile(SOURCE_ROOT / "docs" / "results" / "navigation.json", results)  # the committed record
-    every_window = frames.windows
-    monkeypatch.setattr(frames, "windows", lambda split=None, pole="south": every_window(split, pole)[100:102])
+    every_window = evaluate.windows  # nav-eval's own binding of mosaic.windows
+    monkeypatch.setattr(evaluate, "windows", lambda split=None, pole="south": every_window(split, pole)[100:102])
     before = json.loads(results.read_text())["regions"]["north"]["methods"]
     r = CliRunner().invoke(
         main, ["nav-eval", "--pole", "north", "--patches", "--out", str(results), "nav/detector=appearance"]

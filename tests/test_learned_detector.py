@@ -328,9 +328,14 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
 
 @pytest.mark.parametrize(
     "args, message",
-    [(["--steps", "0"], "--steps 0: must be >= 1"), (["--steps", "10", "--checkpoint", "10"], "--checkpoint 10")],
+    [
+        (["nav.detector_train.steps=0"], "nav.detector_train.steps=0: must be >= 1"),
+        (["nav.detector_train.steps=10", "nav.detector_train.checkpoints=[10]"], "nav.detector_train.checkpoints=[10]"),
+        (["nav.detector_train.step=10"], "nav.detector_train.step: unknown key"),
+        (["nav.fix.min_inliers=3"], "nav.fix.min_inliers=3: this command's settings are nav.detector_train."),
+    ],
 )
-def test_nav_detector_train_refuses_nonsense_steps_before_reading_anything(tmp_path, args, message):
+def test_nav_detector_train_refuses_nonsense_settings_before_reading_anything(tmp_path, args, message):
     from click.testing import CliRunner
 
     from crater_synth.cli import main

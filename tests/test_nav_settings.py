@@ -8,6 +8,8 @@ import textwrap
 import numpy as np
 import pytest
 
+from crater_core.settings_nav import DetectorTrainSettings, LandmarksSettings
+from crater_synth.config import compose_group
 from crater_synth.errors import ConfigError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.settings import compose_nav, detector_options, preset_options
@@ -102,3 +104,44 @@ def test_toy_detector_is_one_module_and_one_yaml(toy_detector):
     assert [(d.u, d.v, d.r) for d in dets] == [(64.0, 64.0, 16.0)]
     with pytest.raises(ConfigError, match="nav.detector.radius_pix: unknown key"):
         compose_nav(["nav/detector=toy", "nav.detector.radius_pix=3"])
+
+
+@pytest.mark.parametrize(
+    "group, cls, overrides, field, value",
+    [
+        ("nav/landmarks", LandmarksSettings, ["nav.landmarks.workers=4"], "workers", 4),
+        ("nav/landmarks", LandmarksSettings, ["nav.landmarks.dem_product=shackleton_lola_200m"], "dem_product",
+         "shackleton_lola_200m"),
+        ("nav/detector_train", DetectorTrainSettings, ["nav.detector_train.checkpoints=[500,1000]"], "checkpoints",
+         (500, 1000)),
+        ("nav/detector_train", DetectorTrainSettings, ["nav.detector_train.noise=[0,0]"], "noise", (0.0, 0.0)),
+    ],
+)  # fmt: skip
+def test_command_groups_compose_with_overrides_and_default_to_their_schemas(group, cls, overrides, field, value):
+    """The landmark map's and the detector training's settings: the YAML holds the schema's defaults (no
+    result changes with the move to the config), an override changes its one field."""
+    assert compose_group(group, cls) == cls()
+    assert getattr(compose_group(group, cls, overrides), field) == value
+    nav = compose_nav(["nav/preset=synthetic", *overrides])
+    assert getattr(getattr(nav, group.split("/")[1]), field) == value
+
+
+@pytest.mark.parametrize(
+    "group, cls, override, message",
+    [
+        ("nav/landmarks", LandmarksSettings, "nav.landmarks.iau_check=maybe", "nav.landmarks.iau_check=maybe: must be"),
+        ("nav/landmarks", LandmarksSettings, "nav.landmarks.iau_recall_target=2", "iau_recall_target=2.0: must be in"),
+        (
+            "nav/detector_train",
+            DetectorTrainSettings,
+            "nav.detector_train.stesp=5",
+            "nav.detector_train.stesp: unknown",
+        ),
+        ("nav/detector_train", DetectorTrainSettings, "nav.detector_train.gamma=[2,1]", "gamma=[2.0, 1.0]: must be a"),
+        ("nav/detector_train", DetectorTrainSettings, "nav/detector=template", "this command's settings are nav.det"),
+    ],
+)
+def test_command_group_bad_override_is_one_line_naming_the_key(group, cls, override, message):
+    with pytest.raises(ConfigError) as err:
+        compose_group(group, cls, [override])
+    assert message in str(err.value) and "\n" not in str(err.value)

@@ -387,7 +387,7 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
     lms, _ = lmod.load_default_map("south")
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(lmod, "build_map", lambda dem, pole, **kw: (lms[:3], {"candidates": 3, "catalogue": []}))
-    res = CliRunner().invoke(main, ["landmarks", "--no-check"])
+    res = CliRunner().invoke(main, ["landmarks", "nav.landmarks.iau_check=false"])
     assert res.exit_code == 0, res.output
     written, prov = lmod.read_map(tmp_path / "outputs" / "landmarks" / "south.geojson")
     assert [lm.id for lm in written] == [lm.id for lm in lms[:3]] and prov["pole"] == "south"
@@ -395,7 +395,9 @@ def test_landmarks_command_writes_outputs_not_the_committed_map_and_refuses_an_e
     assert (tmp_path / "outputs" / "landmarks" / "south.png").is_file()
     assert lmod.COMMITTED_MAP["south"].read_bytes() == committed
     monkeypatch.setattr(lmod, "build_map", lambda dem, pole, **kw: ([], {"candidates": 7, "catalogue": []}))
-    res = CliRunner().invoke(main, ["landmarks", "--no-check", "--out", str(tmp_path / "empty.geojson")])
+    res = CliRunner().invoke(
+        main, ["landmarks", "--out", str(tmp_path / "empty.geojson"), "nav.landmarks.iau_check=false"]
+    )
     assert res.exit_code != 0 and "no crater of D >= 10 km" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "empty.geojson").exists()
 
@@ -457,6 +459,23 @@ def test_landmarks_check_command_reports_both_lists_for_the_committed_map(tmp_pa
     assert "precision" in res.output
     res = CliRunner().invoke(main, ["landmarks-check", "--pole", "north", "--map", str(tmp_path / "none.geojson")])
     assert res.exit_code == 2 and "does not exist" in res.output
+
+
+@pytest.mark.parametrize("command", ["landmarks", "landmarks-check"])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("nav.landmarks.wrokers=4", "nav.landmarks.wrokers: unknown key"),
+        ("nav.landmarks.workers=0", "nav.landmarks.workers=0: must be >= 1"),
+        ("nav.fix.min_inliers=4", "nav.fix.min_inliers=4: this command's settings are nav.landmarks.<key>=<value>"),
+    ],
+)
+def test_landmarks_commands_refuse_a_bad_setting_in_one_line(tmp_path, command, override, message):
+    out = tmp_path / "m.geojson"
+    res = CliRunner().invoke(main, [command, "--pole", "north", "--map" if command == "landmarks-check" else "--out",
+                                    str(out), override])  # fmt: skip
+    assert res.exit_code == 2 and message in res.output and len(res.output.strip().splitlines()) == 1
+    assert not out.exists()
 
 
 def test_detections_are_also_scored_against_the_complete_catalogue():
@@ -525,22 +544,24 @@ def test_adding_a_layer_twice_or_one_not_finer_is_refused(tmp_path):
     from crater_synth.navigation.map.landmarks import COMMITTED_MAP
 
     res = CliRunner().invoke(
-        main, ["landmarks", "--dem-product", "shackleton_lola_200m", "--add-to", str(COMMITTED_MAP["south"])]
+        main, ["landmarks", "--add-to", str(COMMITTED_MAP["south"]), "nav.landmarks.dem_product=shackleton_lola_200m"]
     )
     assert res.exit_code == 2 and "already in it" in res.output
     res = CliRunner().invoke(
-        main, ["landmarks", "--dem-product", "lola_ldem256_south", "--add-to", str(COMMITTED_MAP["south"]),
-               "--out", str(tmp_path / "m.geojson")],
+        main, ["landmarks", "--add-to", str(COMMITTED_MAP["south"]), "--out", str(tmp_path / "m.geojson"),
+               "nav.landmarks.dem_product=lola_ldem256_south"],
     )  # fmt: skip
     assert res.exit_code == 2 and "is not finer" in res.output and not (tmp_path / "m.geojson").exists()
     bare = tmp_path / "bare.geojson"  # a map whose provenance lacks the sizes
     lms, prov = read_map(COMMITTED_MAP["north"])
     bare.write_text(to_geojson(lms[:2], {"pole": "north"}))
     res = CliRunner().invoke(
-        main, ["landmarks", "--pole", "north", "--dem-product", "shackleton_lola_200m", "--add-to", str(bare)]
+        main, ["landmarks", "--pole", "north", "--add-to", str(bare), "nav.landmarks.dem_product=shackleton_lola_200m"]
     )
     assert res.exit_code == 2 and "no DEM pixel size" in res.output and "Traceback" not in res.output
-    res = CliRunner().invoke(main, ["landmarks", "--dem-product", "no_such_dem", "--out", str(tmp_path / "n.geojson")])
+    res = CliRunner().invoke(
+        main, ["landmarks", "--out", str(tmp_path / "n.geojson"), "nav.landmarks.dem_product=no_such_dem"]
+    )
     assert res.exit_code == 2 and "'no_such_dem' is neither a registered DEM product" in res.output
     assert not (tmp_path / "n.geojson").exists()
 

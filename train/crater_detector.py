@@ -26,7 +26,7 @@ import io
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from crater_core.schema import atomic_write_bytes
+from crater_core.settings_nav import DetectorTrainSettings
 
 BAND_LO_PX = 6.0  # rim radius band of one pyramid level, px
 BAND_HI_PX = 12.0
@@ -47,29 +48,6 @@ MODEL_FORMAT = "crater-synth-detector/1"
 
 class DetectorModelError(ValueError):
     """A detector model file that cannot be used (missing, corrupt, wrong format)."""
-
-
-@dataclass(frozen=True)
-class DetectorTrainSettings:
-    """Training settings of :func:`train_detector` (defaults: docs/navigation/detectors.md)."""
-
-    # The committed model's length (docs/navigation/detectors.md); the one-cycle schedule spans all steps,
-    # so a shorter run is not that model's checkpoint.
-    steps: int = 2000
-    batch: int = 16
-    crop_px: int = 96
-    lr: float = 3e-3
-    weight_decay: float = 1e-4
-    width: int = 16  # channels of the first stage (x2, x4 deeper)
-    seed: int = 0
-    threads: int = 0  # 0: every core
-    # Photometric augmentation: the real mosaic is a stretched 8-bit product with lifted shadows and
-    # finer texture than the rendered DEM; the network must not rely on render-specific intensities.
-    gamma: tuple = (0.5, 1.5)
-    shadow_lift: tuple = (0.0, 0.2)  # x the frame mean, added before standardisation
-    blur_sigma_px: tuple = (0.0, 1.0)
-    noise: tuple = (0.0, 0.08)  # x the standard deviation, after standardisation
-    checkpoints: tuple = field(default_factory=tuple)  # also keep the weights after these steps
 
 
 def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:

@@ -32,8 +32,7 @@ def _train(frames_dir: Path, out: Path, steps: int) -> dict:
         str(frames_dir),
         "--out",
         str(out),
-        "--steps",
-        str(steps),
+        f"nav.detector_train.steps={steps}",
     ]
     log = out.with_suffix(".log")
     t0 = time.perf_counter()
@@ -44,7 +43,8 @@ def _train(frames_dir: Path, out: Path, steps: int) -> dict:
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         text = log.read_text(encoding="utf-8", errors="replace").strip()
-        raise RuntimeError(f"nav-detector-train --steps {steps}: {text.splitlines()[-1] if text else proc.returncode}")
+        last = text.splitlines()[-1] if text else proc.returncode
+        raise RuntimeError(f"nav-detector-train nav.detector_train.steps={steps}: {last}")
     return {"steps": steps, "wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024.0, 1)}
 
 

@@ -20,9 +20,25 @@ from pathlib import Path
 
 import click
 
+from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation import DEMO_JSON
+from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.map.check import catalogue_check
+from crater_synth.navigation.map.landmarks import DATA_DIR, DEM_PRODUCTS, load_default_map
+from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM, summarise
+from crater_synth.navigation.settings import compose_nav
+from crater_synth.navigation.windows.evaluate import (
+    navigate_window,
+    prior_georef,
+    results_markdown,
+    run_frame,
+    window_patches_alone,
+)
+from crater_synth.navigation.windows.mosaic import windows
+from crater_synth.navigation.windows.navigate import annotate
+from crater_synth.terrain.stack import open_dem_entry
 
 DEMO_WINDOWS_PER_SECTOR = 1
 # The per-window fields of navigation.json (crater_synth.navigation.windows.evaluate.run_frame's scalars).
@@ -46,8 +62,6 @@ def window_entry(method: str, row: dict, png_name: str) -> dict:
 
 def demo_frames(per_sector: int = DEMO_WINDOWS_PER_SECTOR):
     """``per_sector`` windows of every sector (the middle ones of its list), both splits."""
-    from crater_synth.navigation.windows.mosaic import windows
-
     out = []
     all_frames = windows(None)
     for sector in range(8):
@@ -86,12 +100,6 @@ def patch_row(row: dict, scores: dict) -> dict:
 def _demo_crater_methods(frames, landmarks, out: Path, windows_out: list) -> tuple[dict, dict]:
     """Every crater method on every window, each annotated into ``out`` and listed in ``windows_out``:
     (summary per method, the appearance search's row of each window)."""
-    from crater_core.schema import atomic_write_bytes
-    from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
-    from crater_synth.navigation.settings import compose_nav
-    from crater_synth.navigation.windows.evaluate import navigate_window, run_frame
-    from crater_synth.navigation.windows.navigate import annotate
-
     methods = {}
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
     for method in ("classical", "template", "learned", "appearance"):
@@ -116,13 +124,6 @@ def _demo_crater_methods(frames, landmarks, out: Path, windows_out: list) -> tup
 def _demo_patches_alone(frames, appearance_rows: dict, out: Path, windows_out: list) -> dict:
     """The appearance search's terrain patches alone (no crater): the same windows, prior and light,
     annotated into ``out`` and listed in ``windows_out``; their summary."""
-    from crater_core.schema import atomic_write_bytes
-    from crater_synth.navigation.fix.patches import PatchParams
-    from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
-    from crater_synth.navigation.settings import compose_nav
-    from crater_synth.navigation.windows.evaluate import prior_georef, window_patches_alone
-    from crater_synth.navigation.windows.navigate import annotate
-
     splits: dict = {}
     nav = compose_nav(["nav/detector=appearance"])
     dparams, fparams = nav.detector, nav.fix
@@ -141,10 +142,6 @@ def _demo_patches_alone(frames, appearance_rows: dict, out: Path, windows_out: l
 
 def _demo_map_check(landmarks) -> dict:
     """The map itself, against the complete crater catalogue (its own landmarks; a finer layer's apart)."""
-    from crater_synth.navigation.map.check import catalogue_check
-    from crater_synth.navigation.map.landmarks import DATA_DIR, DEM_PRODUCTS
-    from crater_synth.terrain.stack import open_dem_entry
-
     own = [lm for lm in landmarks if not lm.dem_product]
     return catalogue_check(own, "south", open_dem_entry(DEM_PRODUCTS["south"], DATA_DIR)[0])
 
@@ -155,12 +152,6 @@ def _demo_map_check(landmarks) -> dict:
 @user_errors
 def main(out: Path, per_sector: int):
     """Annotated real windows and one table, every method (module docstring)."""
-    from crater_core.schema import atomic_write_text
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM
-    from crater_synth.navigation.settings import compose_nav
-    from crater_synth.navigation.windows.evaluate import results_markdown
-
     if per_sector < 1:
         raise UserError(f"--per-sector={per_sector} must be >= 1")
     t0 = time.time()

@@ -12,14 +12,28 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
-from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
-from crater_synth.navigation.settings import compose_nav
-from crater_synth.navigation.windows.evaluate import prior_georef
+from crater_synth.navigation.georef import (
+    Frame,
+    FrameError,
+    Georef,
+    check_frame,
+    ground_distance_km,
+    stereo_forward,
+    stereo_inverse,
+)
+from crater_synth.navigation.map.landmarks import load_default_map, read_map
+from crater_synth.navigation.output import detection_records, write_detections
+from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
+from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav
+from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, prior_georef
 from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
+from train.errors import RealSetError
 
 WINDOW_DETECTOR = "template"  # a map window's detector unless an override names another (nav/detector=)
 
@@ -124,9 +138,6 @@ def navigate_command(image, out, overrides, **options):
 def navigate_rendered_image(request: NavigateRequest, overrides) -> dict:
     """A rendered frame navigated with a ``nav/preset`` (default :data:`.settings.DEFAULT_FRAMES_PRESET`);
     the options that describe a map window are refused."""
-    from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
-    from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET
-
     given = {
         "--prior": request.prior,
         "--pixel-m": request.pixel_m,
@@ -180,9 +191,7 @@ def check_window_request(request: NavigateRequest, nav) -> None:
 
 def read_window(image: Path):
     """(image, its georeference or None) of a map window."""
-    from crater_synth.navigation.georef import check_frame
-    from train.errors import RealSetError
-    from train.realset import read_gray
+    from train.realset import read_gray  # pulls scipy
 
     try:
         img = read_gray(image)
@@ -195,8 +204,6 @@ def read_window(image: Path):
 def window_prior(request: NavigateRequest, img, truth, landmarks, pole: str, pixel: float) -> Georef | None:
     """The prior georeference of a map window: ``--prior``, else the truth moved by 5 km, else None (lost in
     space); a prior whose frame holds no landmark of the map is refused."""
-    from crater_synth.navigation.georef import stereo_forward, stereo_inverse
-
     h, w = img.shape[:2]
     prior_g: Georef | None = None
     if request.prior is not None:
@@ -222,8 +229,6 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
     """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of a map window: its
     detector's craters fixed under the prior or by the lost-in-space vote; the appearance search under the
     prior, or under the first stage's lost-in-space fix without one (as nav-eval)."""
-    from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
-
     light = None if request.light_azimuth is None else math.radians(request.light_azimuth)
     lis = dataclasses.replace(nav.lost_in_space, known_heading=request.known_heading)
 
@@ -237,8 +242,6 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
         return dets, theta, fix, landmarks, "craters"
     assert light is not None
     if prior_g is None:
-        from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE
-
         first = compose_nav([f"nav/detector={LOST_IN_SPACE_FIRST_STAGE}"]).detector
         coarse = vote_fix(detect(img, first, light_dir=light, what=str(request.image))[0])
         if not coarse.ok:
@@ -256,8 +259,6 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
 
 def window_result(request: NavigateRequest, nav, dets, theta: float, fix, landmarks, source: str) -> dict:
     """The JSON line of a map window's navigation."""
-    from crater_synth.navigation.georef import stereo_inverse
-
     prior = "--prior" if request.prior else "truth + 5 km"
     result = {
         "image": str(request.image),
@@ -284,10 +285,6 @@ def window_result(request: NavigateRequest, nav, dets, theta: float, fix, landma
 def navigate_map_window(request: NavigateRequest, overrides) -> dict:
     """A map window navigated with its detector's settings (default :data:`WINDOW_DETECTOR`); writes the
     annotated PNG and the detections listing beside it."""
-    from crater_core.schema import atomic_write_bytes
-    from crater_synth.navigation.map.landmarks import load_default_map, read_map
-    from crater_synth.navigation.output import detection_records, write_detections
-
     nav = compose_nav(overrides, defaults=[f"nav/detector={WINDOW_DETECTOR}"])
     check_window_request(request, nav)
     img, truth = read_window(request.image)

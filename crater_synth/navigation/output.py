@@ -8,6 +8,10 @@ import io
 import json
 from pathlib import Path
 
+from crater_core.schema import atomic_write_text
+from crater_synth.navigation.fix.patches import PATCH_SOURCE
+from crater_synth.navigation.fix.refine import RefineParams
+
 
 def detection_records(dets, identified: dict[int, int], landmarks, truth: dict[int, int] | None = None) -> list[dict]:
     """Per detection: its circle (px), confidence and the landmark it was identified as (``identified``:
@@ -28,8 +32,6 @@ def detection_records(dets, identified: dict[int, int], landmarks, truth: dict[i
 
 def write_detections(path: Path, image: Path, records: list[dict]) -> None:
     """The per-detection list of ``navigate`` as JSON (atomic)."""
-    from crater_core.schema import atomic_write_text
-
     atomic_write_text(path, json.dumps({"image": str(image), "detections": records}, indent=1) + "\n")
 
 
@@ -38,9 +40,6 @@ def draw_detections(ax, dets, identified, landmarks) -> None:
     index, landmark index) pairs) yellow, with the landmark's name (or id); an identified terrain patch
     (:mod:`.patches`) as a cyan square, its window."""
     from matplotlib.patches import Circle, Rectangle
-
-    from crater_synth.navigation.fix.patches import PATCH_SOURCE
-    from crater_synth.navigation.fix.refine import RefineParams
 
     for d in dets:
         ax.add_patch(Circle((d.u, d.v), d.r, fill=False, ec="#ff4040", lw=0.6, ls="--"))

@@ -5,7 +5,8 @@ user's overrides (Hydra, as every other command: ``crater_synth.config``), valid
 ``configs/navigation.yaml`` is composed apart from ``configs/config.yaml`` so that no other command's
 composed configuration (nor any run fingerprint) changes. Its groups: ``nav/detector`` (one option per
 detector setting, each with its detector's own schema from :mod:`.detectors.registry`), ``nav/fix``,
-``nav/lost_in_space``, ``nav/frames`` (rendered frames) and ``nav/preset`` (named presets of rendered frames:
+``nav/lost_in_space``, ``nav/frames`` (rendered frames), ``nav/landmarks`` (the landmark map's commands),
+``nav/detector_train`` (the learned detector's training) and ``nav/preset`` (named presets of rendered frames:
 ``# @package _global_`` files that select a detector and set several groups, like ``experiment=``).
 """
 
@@ -15,9 +16,11 @@ import dataclasses
 from typing import Any, Sequence
 
 import numpy as np
+from hydra.core.config_store import ConfigStore
 
-from crater_core.settings_nav import DetectorSettings, FramesSettings
+from crater_core.settings_nav import DetectorSettings, DetectorTrainSettings, FramesSettings, LandmarksSettings
 from crater_core.typed_config import SettingsError, build
+from crater_synth.config import compose_plain, schema_class
 from crater_synth.errors import ConfigError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams
@@ -29,19 +32,28 @@ NAV_CONFIG = "navigation"  # configs/navigation.yaml
 RESULTS_UNSUFFIXED_PRESET = "synthetic"
 DEFAULT_FRAMES_PRESET = "appearance"  # nav-frames-eval, navigate FRAME.exr: the rule on the development frames
 # Groups of nav whose schema is one class (nav/detector's is its detector's: the registry's).
-NAV_GROUPS = {"fix": FixParams, "lost_in_space": LostInSpaceParams, "frames": FramesSettings}
+NAV_GROUPS = {
+    "fix": FixParams,
+    "lost_in_space": LostInSpaceParams,
+    "frames": FramesSettings,
+    "landmarks": LandmarksSettings,
+    "detector_train": DetectorTrainSettings,
+}
 
 
 @dataclasses.dataclass(frozen=True)
 class NavSettings:
-    """The composed ``nav`` group: the detector's settings (its own class), the fix's, lost in space's and the
-    rendered frames'; ``choices``: the option of each group the composition took (``detector``: e.g.
-    ``learned-detect``; ``preset``: the ``nav/preset`` or None)."""
+    """The composed ``nav`` group: the detector's settings (its own class), the fix's, lost in space's, the
+    rendered frames', the landmark map commands' and the detector training's; ``choices``: the option of
+    each group the composition took (``detector``: e.g. ``learned-detect``; ``preset``: the ``nav/preset``
+    or None)."""
 
     detector: Any
     fix: FixParams
     lost_in_space: LostInSpaceParams
     frames: FramesSettings
+    landmarks: LandmarksSettings
+    detector_train: DetectorTrainSettings
     choices: dict
 
     @property
@@ -59,6 +71,8 @@ class NavSettings:
             "fix": dataclasses.asdict(self.fix),
             "lost_in_space": dataclasses.asdict(self.lost_in_space),
             "frames": self.frames.as_dict(),
+            "landmarks": self.landmarks.as_dict(),
+            "detector_train": self.detector_train.as_dict(),
         }
 
 
@@ -75,10 +89,6 @@ def preset_options() -> list[str]:
 def register_nav_schemas() -> None:
     """Store each nav group's schema in Hydra's ConfigStore: ``<detector>_schema`` under nav/detector for
     every registered detector, ``<group>_schema`` for the others (again whenever the registry changed)."""
-    from hydra.core.config_store import ConfigStore
-
-    from crater_synth.config import schema_class
-
     cs = ConfigStore.instance()
     for name, entry in registry.detectors().items():
         cs.store(group="nav/detector", name=f"{name}_schema", node=schema_class(entry.settings))
@@ -91,15 +101,6 @@ def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> 
     ``nav.detector.threshold=0.5``, ``nav/preset=synthetic``), validated once. ``defaults``: overrides a
     command puts first (its own default preset), for the user's to replace: a group the user selects drops
     the command's choice of it. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    from crater_synth.config import one_line_config_error, resolved
-
     chosen = {o.partition("=")[0].lstrip("+~") for o in overrides}
     overrides = [o for o in defaults if o.partition("=")[0].lstrip("+~") not in chosen] + list(overrides)
     bad = [o for o in overrides if not o.lstrip("+~").startswith(("nav.", "nav/"))]
@@ -111,18 +112,8 @@ def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> 
             known = ", ".join(preset_options())
             raise ConfigError(f"unknown nav/preset {value!r} (override {o}): choose one of {known}")
     register_nav_schemas()
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            cfg = hydra_compose(config_name=NAV_CONFIG, overrides=overrides, return_hydra_config=True)
-            choices = dict(cfg.hydra.runtime.choices)
-    except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(one_line_config_error(exc, overrides)) from None
-    finally:
-        GlobalHydra.instance().clear()
-    OmegaConf.set_struct(cfg, False)
-    cfg.pop("hydra")
-    return nav_settings(resolved(cfg)["nav"], choices)
+    plain, choices = compose_plain(NAV_CONFIG, overrides, CONFIG_DIR)
+    return nav_settings(plain["nav"], choices)
 
 
 def nav_settings(plain: dict, choices: dict | None = None) -> NavSettings:
@@ -134,6 +125,8 @@ def nav_settings(plain: dict, choices: dict | None = None) -> NavSettings:
             fix=build(FixParams, plain.get("fix") or {}, "nav.fix"),
             lost_in_space=build(LostInSpaceParams, plain.get("lost_in_space") or {}, "nav.lost_in_space"),
             frames=build(FramesSettings, plain.get("frames") or {}, "nav.frames"),
+            landmarks=build(LandmarksSettings, plain.get("landmarks") or {}, "nav.landmarks"),
+            detector_train=build(DetectorTrainSettings, plain.get("detector_train") or {}, "nav.detector_train"),
             choices={
                 "detector": choices.get("nav/detector"),
                 "lost_in_space": choices.get("nav/lost_in_space"),

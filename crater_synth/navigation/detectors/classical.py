@@ -40,6 +40,7 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry, detector
 from crater_synth.navigation.detectors.scalespace import PAD_PX, decimation, filtered, peaks, spectrum
 from crater_synth.navigation.georef import check_frame
+from crater_synth.terrain.catalogue import robust_circle
 
 __all__ = ["PAD_PX", "decimation", "filtered", "peaks", "spectrum"]  # re-exported for callers and tests
 
@@ -308,8 +309,6 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     ``quality`` the share of edge points on the circle.
     """
     from scipy.ndimage import gaussian_filter, map_coordinates
-
-    from crater_synth.terrain.catalogue import robust_circle
 
     n = len(u)
     if n == 0:

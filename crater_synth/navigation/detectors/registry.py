@@ -19,7 +19,9 @@ import pkgutil
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from crater_core.typed_config import SettingsError
 from crater_synth.errors import UserError
+from crater_synth.navigation import detectors as package
 
 ENTRY_NAME = "DETECTOR"  # the module-level name a detector module declares its entry under
 # Earlier results files name the classical detector "filter": read as "classical".
@@ -57,8 +59,6 @@ class DetectorEntry:
 def detectors() -> dict[str, DetectorEntry]:
     """Every detector declared by a module of this package, by name (discovered once; tests clear the cache
     with ``detectors.cache_clear()`` after adding a module)."""
-    from crater_synth.navigation import detectors as package
-
     found: dict[str, DetectorEntry] = {}
     for info in sorted(pkgutil.iter_modules(package.__path__), key=lambda i: i.name):
         module = importlib.import_module(f"{package.__name__}.{info.name}")
@@ -80,8 +80,6 @@ def detector(name: str) -> DetectorEntry:
 
 def settings_from(mapping, path: str = "nav.detector"):
     """The settings of the detector a (resolved) mapping names in its ``method``, validated by its class."""
-    from crater_core.typed_config import SettingsError
-
     mapping = dict(mapping or {})
     method = mapping["method"] = LEGACY_NAMES.get(mapping.get("method"), mapping.get("method"))
     if method not in detectors():

@@ -27,8 +27,12 @@ from typing import ClassVar
 
 import numpy as np
 
+from crater_core.hapke import shade_np
 from crater_core.settings_nav import DetectorSettings
+from crater_core.typed_config import need
+from crater_synth.config import load_settings
 from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
+from crater_synth.navigation.detectors.scalespace import PAD_PX, filtered, peaks
 
 TEMPLATE_MIN_R_PX = 4.5  # template radius on its decimated grid is in [4.5, 9) px
 TEMPLATE_HALF_WIDTH_R = 1.6  # the template covers +-1.6 r: the rim, its outer flank and some flat ground
@@ -45,8 +49,6 @@ class TemplateSettings(DetectorSettings):
     depth_d: float = 0.2  # template bowl depth / diameter
 
     def _check(self) -> None:
-        from crater_core.typed_config import need
-
         super()._check()
         need(0.0 < self.sun_el_deg < 90.0, "sun_el_deg", self.sun_el_deg, "must be in (0, 90)")
 
@@ -54,8 +56,6 @@ class TemplateSettings(DetectorSettings):
 @functools.lru_cache(maxsize=1)
 def hapke_params():
     """The project's lunar Hapke parameters (the composed configuration's ``hapke`` group)."""
-    from crater_synth.config import load_settings
-
     return load_settings().hapke
 
 
@@ -83,8 +83,6 @@ def crater_template(theta: float, sun_el_deg: float, r_px: float, depth_d: float
 def shade_heights(z: np.ndarray, theta: float, sun_el_deg: float) -> np.ndarray:
     """Nadir image (Hapke I/F, zero in cast shadow) of a height field ``z`` (in pixels) lit by light
     travelling along azimuth ``theta`` (radians, from +u towards +v) at Sun elevation ``sun_el_deg``."""
-    from crater_core.hapke import shade_np
-
     gv, gu = np.gradient(z)
     normals = np.stack([-gu, -gv, np.ones_like(z)], axis=-1)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
@@ -139,8 +137,6 @@ def ncc(image: np.ndarray, template: np.ndarray) -> np.ndarray:
 def template_candidates(frame: CandidateInput, params: TemplateSettings):
     """NCC maxima over scales: (u, v, r, score) in frame pixels (``frame.spectrum``: the padded frame's
     spectrum from :func:`crater_synth.navigation.detectors.scalespace.spectrum`)."""
-    from crater_synth.navigation.detectors.scalespace import PAD_PX, filtered, peaks
-
     spec, shape = frame.spectrum
     frames: dict[int, np.ndarray] = {}
     us, vs, rs, ss = [], [], [], []

@@ -40,6 +40,8 @@ from crater_synth.navigation.fix.refine import (
     samples_in_reach,
     square_offsets,
 )
+from crater_synth.navigation.fix.solve import project_pinhole
+from crater_synth.terrain.dem import DemError
 
 
 def blurred_frames(frame: np.ndarray):
@@ -118,9 +120,6 @@ def appearance_detections(
     its depth (module docstring), with the search settings ``params`` (:class:`AppearanceSettings`);
     ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke
     model. Returns (detections, the predicted windows by landmark id, for the refinement to reuse)."""
-    from crater_synth.navigation.fix.solve import project_pinhole
-    from crater_synth.terrain.dem import DemError
-
     params = params or AppearanceSettings()
     lat0, lon0 = origin
     height, width = image.shape

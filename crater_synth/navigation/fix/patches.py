@@ -25,7 +25,9 @@ import numpy as np
 
 from crater_core import geometry
 from crater_synth.navigation.fix.refine import RefineParams
+from crater_synth.navigation.georef import stereo_inverse
 from crater_synth.navigation.map.landmarks import Landmark, stereo_forward
+from crater_synth.terrain.dem import DemError
 
 PATCH_SOURCE = "patch"
 GROUND_ITERATIONS = 12  # at most, ray / DEM-height iterations (they contract by ~slope x tan(off-nadir angle))
@@ -90,8 +92,6 @@ def patch_landmarks(
     cell of a ``params.grid`` square grid, at the ground point under the cell's centre, its window
     ``params.half_share`` of the footprint wide each way (the footprint at the points' median depth).
     Points off the Moon or off the DEM are left out."""
-    from crater_synth.terrain.dem import DemError
-
     centres = (np.arange(params.grid) + 0.5) / params.grid * width
     uu, vv = np.meshgrid(centres, centres)
     rays = np.column_stack([(uu.ravel() - k[0, 2]) / k[0, 0], (vv.ravel() - k[1, 2]) / k[1, 1], np.ones(uu.size)])
@@ -112,8 +112,6 @@ def window_patches(dem, georef, shape, params: PatchParams = PatchParams()) -> l
     ``georef``, :class:`.frames.Georef`, e.g. the prior's): one per cell of a ``params.grid`` square grid, at
     the map point under the cell's centre and the DEM's height there, its window ``params.half_share`` of
     the window's width wide each way. Points off the DEM are left out."""
-    from crater_synth.navigation.georef import stereo_inverse
-
     rows, cols = shape[:2]
     cells = (np.arange(params.grid) + 0.5) / params.grid
     uu, vv = np.meshgrid(cells * cols, cells * rows)
@@ -143,8 +141,6 @@ def _patches(lat, lon, height, half_m: float, pole: str) -> list[Landmark]:
 
 def _heights(dem, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     """DEM heights at (lat, lon), NaN where a point lies off the DEM."""
-    from crater_synth.terrain.dem import DemError
-
     try:
         return np.asarray(dem.sample(lat, lon, what="terrain patch points").heights, dtype=np.float64)
     except DemError:  # some point is off the DEM: each one alone
@@ -160,8 +156,6 @@ def _heights(dem, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
 
 def _ground_points_each(dem, c_enu, dirs_enu, origin):
     """:func:`ground_points` one ray at a time, NaN for those that leave the DEM."""
-    from crater_synth.terrain.dem import DemError
-
     out = np.full((3, len(dirs_enu)), np.nan)
     for q in range(len(dirs_enu)):
         try:

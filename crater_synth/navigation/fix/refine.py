@@ -37,12 +37,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing
 import time
+from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
 from crater_core import geometry
+from crater_core.hapke import shade_np
 from crater_core.horizon import Terrain, disc_fraction_above, horizon_maps, texel_centres
+from crater_synth.config import load_settings
+from crater_synth.navigation.detectors.template import hapke_params
+from crater_synth.navigation.fix.solve import project_pinhole, refine_pose, solve_position
+from crater_synth.terrain.dem import DemError
+from crater_synth.terrain.grid import sphere_points
+from crater_synth.terrain.patch import open_dem_stack
 
 # After the first solve the predictions sit within a pixel of their images: later passes search +-3 px.
 FOLLOW_UP_SEARCH_PX = 3
@@ -77,8 +87,6 @@ def _surface(dem, lat: float, lon: float, frame: np.ndarray, x: np.ndarray, y: n
     """Local-frame (``frame``'s rows, origin on the sphere at (lat, lon)) points of the DEM surface below the
     tangent-plane offsets (x, y) m, projected radially (curvature included: the terrain grids' own
     :func:`crater_synth.terrain.grid.sphere_points`)."""
-    from crater_synth.terrain.grid import sphere_points
-
     # The frame's x and y axes in (east, north) components: the same tangent-plane points as ENU offsets.
     x_en, y_en = frame[:2] @ geometry.enu_basis(lat, lon)[:2].T
     dirs, plat, plon = sphere_points(x * x_en[0] + y * y_en[0], x * x_en[1] + y * y_en[1], lat, lon)
@@ -130,8 +138,6 @@ def shade_window(terrain: WindowTerrain, to_sun_mc, camera_mc, hapke):
     """(MC points (n, n, 3), predicted I/F (n, n)) of a :func:`window_terrain` seen from ``camera_mc``
     under the Sun ``to_sun_mc`` (at the azimuth the terrain was computed for): Hapke shading times the
     visible fraction of the solar disc."""
-    from crater_core.hapke import shade_np
-
     frame, near = terrain.frame, terrain.near
     to_sun = frame @ np.asarray(to_sun_mc, dtype=np.float64)
     elevation = math.asin(max(-1.0, min(1.0, float(to_sun[2]))))
@@ -268,8 +274,6 @@ def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, widt
     centre ``points`` (n, 3, frame ENU; rims of ``radii_m`` on the sphere's tangent plane) is corrected by
     that offset at the current fix ``c_fix`` and the known-attitude position solved again, ``iterations``
     times."""
-    from crater_synth.navigation.fix.solve import project_pinhole, solve_position
-
     points, uv = np.asarray(points, dtype=np.float64), np.asarray(uv, dtype=np.float64)
     c, corrected = np.asarray(c_fix, dtype=np.float64), uv
     for _ in range(iterations):
@@ -290,8 +294,6 @@ def _pool_init(dem, params) -> None:
 def _pool_terrain(landmark, to_sun_mc):
     """A terrain worker's :func:`window_terrain`, or the :class:`DemError` it raised (returned, so the
     caller keeps it like its own)."""
-    from crater_synth.terrain.dem import DemError
-
     try:
         return window_terrain(_POOL_REFINER.dem, landmark, to_sun_mc, _POOL_REFINER.params)
     except DemError as exc:
@@ -310,10 +312,6 @@ class Refiner:
     TERRAIN_CACHE_SIZE = 1024
 
     def __init__(self, dem, params: RefineParams = RefineParams(), workers: int = 1):
-        from collections import OrderedDict
-
-        from crater_synth.navigation.detectors.template import hapke_params
-
         if int(workers) < 1:
             raise ValueError(f"workers={workers} must be >= 1")
         self.dem, self.params, self.hapke = dem, params, hapke_params()
@@ -337,9 +335,6 @@ class Refiner:
         if len(missing) < 2:
             return
         if self._pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
             # fork: the workers inherit the opened DEM stack (each reopens its raster handles).
             ctx = multiprocessing.get_context("fork")
             self._pool = ProcessPoolExecutor(
@@ -358,8 +353,6 @@ class Refiner:
         """:func:`window_terrain` of ``landmark`` with this refiner's DEM and settings, kept per landmark
         and Sun vector (least recently used dropped first); a window that leaves the DEM raises its
         :class:`~crater_synth.terrain.dem.DemError` again without reading it again."""
-        from crater_synth.terrain.dem import DemError
-
         key = self._key(landmark, to_sun_mc)
         if key in self._terrains:
             self._terrains.move_to_end(key)
@@ -420,8 +413,6 @@ class Refiner:
         ``attitude_prior`` (the attitude the lander believes, its 1-sigma in radians): each 6-DOF solve is
         then weighted towards it (:func:`.fix.refine_pose`), against the observations' own scatter (the
         residuals of the solve without it, no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
-        from crater_synth.navigation.fix.solve import solve_position
-
         t0 = time.perf_counter()
         p = self.params
         c = np.asarray(c_fix, dtype=np.float64)
@@ -451,8 +442,6 @@ class Refiner:
     def _predicted_windows(self, landmarks, predicted, to_sun_mc, cam_mc, origin) -> list:
         """Per landmark, its predicted window (ENU points of ``origin``, I/F), or why there is none (a
         window or its far field leaving the DEM: the detection is kept as it is)."""
-        from crater_synth.terrain.dem import DemError
-
         lat0, lon0 = origin
         windows = []
         for lm in landmarks:
@@ -467,8 +456,6 @@ class Refiner:
         """Register each predicted window in ``image`` around where the camera (``c``, ``r_wc``, ``k``)
         projects it: (observations, each moved where its registration is good enough; per-landmark
         records)."""
-        from crater_synth.navigation.fix.solve import project_pinhole
-
         moved, records = obs.copy(), []
         for q, win in enumerate(windows):
             if isinstance(win, str):
@@ -495,8 +482,6 @@ class Refiner:
     def _solve_pose(points_enu, moved, k, r_wc, c, attitude_prior):
         """The 6-DOF solve from the registered observations; with ``attitude_prior`` weighted towards it
         against the observations' own scatter (no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
-        from crater_synth.navigation.fix.solve import project_pinhole, refine_pose
-
         r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
         if attitude_prior is not None:
             res = (project_pinhole(points_enu, r_wc, c, k) - moved).ravel()
@@ -526,7 +511,4 @@ MIN_REGISTRATION_SIGMA_PX = 0.1
 def lander_dem(pole: str):
     """The DEM a lander carries for ``pole``: the landmark map's DEM (``dem=lola_ldem256_<pole>``) with the
     finer layers its configuration stacks on it."""
-    from crater_synth.config import load_settings
-    from crater_synth.terrain.patch import open_dem_stack
-
     return open_dem_stack(load_settings([f"dem=lola_ldem256_{pole}"]))

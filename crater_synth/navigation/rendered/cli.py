@@ -12,6 +12,7 @@ import click
 
 from crater_core import schema
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
 from crater_synth.errors import UserError
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.sequence import SequenceParams
@@ -162,7 +163,6 @@ def frames_eval_options(nav, recording: bool, overrides, seed: int, **o) -> tupl
         raise UserError(f"--dem-error-m: the {preset} preset does not use the lander's DEM")
     camera = None
     if o["sensor"] is not None:
-        from crater_synth.config import load_settings
         from train.preprocess import SensorModel
 
         camera = SensorModel.from_settings(load_settings([f"sensor={o['sensor']}"]).sensor)

@@ -9,14 +9,21 @@ writes the model with its provenance (docs/navigation/detectors.md).
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import click
 import numpy as np
 
+from crater_core import exr
+from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import compose_group
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
+from crater_synth.navigation.rendered.evaluate import match_pixels
+from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.paths import SOURCE_ROOT
 
@@ -29,9 +36,6 @@ HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never train
 # ------------------------------------------------------------------------------------------------
 def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
     """(I/F image, manifest row) of every frame of the survey tracks ``tracks`` under ``root``."""
-    from crater_core import exr
-    from crater_synth.navigation.rendered.labels import frame_rows
-
     dirs = track_dirs(root)
     if not dirs:
         raise UserError(f"{root}: no rendered survey track (run `crater-synth nav-detector-frames --out {root}`)")
@@ -67,9 +71,6 @@ def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
     """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
     matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for labels and detections of
     D >= ``min_d_km``."""
-    from crater_synth.navigation.detectors.classical import detect
-    from crater_synth.navigation.rendered.evaluate import match_pixels
-
     tp_t = n_t = tp_d = n_d = 0
     for image, row in records:
         labels = labels_in_frame(row, image.shape)
@@ -93,8 +94,6 @@ def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
 
 
 def _code_commit() -> str:
-    import subprocess
-
     try:
         return subprocess.run(
             ["git", "-C", str(SOURCE_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
@@ -172,35 +171,25 @@ def nav_detector_frames_command(overrides, tracks, seed, out):
 
 
 @click.command("nav-detector-train")
-@click.argument("frames_dir", type=click.Path(path_type=Path), required=False)
+@click.argument("frames_dir", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
-@click.option("--steps", default=None, type=int, help="Training steps (default: the training settings').")
-@click.option("--checkpoint", "checkpoints", multiple=True, type=int, help="Also save the weights after this step.")
-@click.option("--threads", default=0, show_default=True, help="Torch threads (0: every core).")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
+@OVERRIDES
 @user_errors
-def nav_detector_train_command(frames_dir, out, steps, checkpoints, threads, device):
+def nav_detector_train_command(frames_dir, out, device, overrides):
     """Train the learned crater detector on rendered survey frames; score it on the held-out tracks.
 
-    Example: `crater-synth nav-detector-train data/detector_frames/south --out model.pt`
+    Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
+    `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
+    these steps), `nav.detector_train.threads=4` (0: every core). Example:
+    `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
     """
-    import dataclasses
-
     import torch
 
-    from train.crater_detector import DetectorTrainSettings
-
+    settings = compose_group("nav/detector_train", DetectorTrainSettings, overrides)
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    s = DetectorTrainSettings()
-    if steps is not None and steps < 1:
-        raise UserError(f"--steps {steps}: must be >= 1")
-    last = steps or s.steps
-    bad = [c for c in checkpoints if not 1 <= c < last]
-    if bad:
-        raise UserError(f"--checkpoint {bad[0]}: must lie in [1, {last - 1}] (the last step is the model itself)")
-    s = dataclasses.replace(s, threads=threads, checkpoints=tuple(checkpoints), **({"steps": steps} if steps else {}))
     summary = train_from_survey(
-        frames_dir or DEFAULT_FRAMES, out or DEFAULT_MODEL, s, log=lambda m: click.echo(m, err=True), device=device
+        frames_dir, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
     )
     click.echo(json.dumps(summary, indent=1))

@@ -73,7 +73,7 @@ from crater_synth.navigation.fix.solve import (
 )
 from crater_synth.navigation.georef import FrameError, pole_of
 from crater_synth.navigation.map.dem_error import DemErrorParams, PerturbedDem
-from crater_synth.navigation.map.landmarks import positions_mc
+from crater_synth.navigation.map.landmarks import load_default_map, positions_mc
 from crater_synth.navigation.protocol import (
     HEADLINE_MIN_D_KM,
     HEADLINE_MIN_LANDMARKS,
@@ -82,7 +82,7 @@ from crater_synth.navigation.protocol import (
     PRIOR_OFFSET_KM,
     rendered_summary,
 )
-from crater_synth.navigation.rendered.labels import hidden
+from crater_synth.navigation.rendered.labels import hidden, labelled_rows
 from crater_synth.navigation.settings import map_scales
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -619,9 +619,6 @@ def evaluate_dir(frames_dir: Path, run: FrameRun = FrameRun(), options: DirOptio
     ``min_inliers`` landmarks in view (``"enough_landmarks"``), with the detector and with perfect detections
     (``"perfect"``: the true attitude and the default prior); each row is the detector's, with the
     perfect-detection row of the same frame under ``"perfect"``."""
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.rendered.labels import labelled_rows
-
     maps: dict[str, list] = {}
     last: dict[str, dict] = {}  # trajectory -> its last fix (sequence)
     refiners: dict[str, Refiner | None] = {}

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,13 +43,23 @@ from types import SimpleNamespace
 import click
 import numpy as np
 
-from crater_core import geometry, schema
+from blender_gen.fast import ensure_horizons, horizon_cache_dir
+from crater_core import exr, geometry, schema
+from crater_core.files import ensure_writable_dir
+from crater_core.schema import content_key
 from crater_core.settings import CraterSettings, replace
 from crater_core.trajectory import FramePose, TrajectoryError, footprint_half_width_m, frame_corners_mc, frame_poses
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
+from crater_synth.dataset.dispatch import run_workers
+from crater_synth.dataset.identity import render_identity
+from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
+from crater_synth.dataset.recover import STATS_HEADER
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.navigation.georef import pole_of
+from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
 from crater_synth.navigation.rendered.labels import FRAME_LABEL_VERSION, landmarks_in_view
+from crater_synth.terrain.patch import build_terrain
 
 PATCH_MARGIN = 1.1  # near-field half-width / footprint half-width: terrain relief and rounding stay inside
 FAST_MAP_MARGIN = 1.02  # fast path: horizon map half-width / near-field half-width
@@ -198,10 +210,6 @@ def worker_item(pose: FramePose, lat0: float, lon0: float, seed: int, header: di
 def _compute_horizons(specs: list[tuple]) -> None:
     """(Child process) the horizon maps of ``specs`` (:func:`blender_gen.fast.ensure_horizons` arguments)
     into the shared cache. A failure is left to the workers, which compute what is missing themselves."""
-    import signal
-
-    from blender_gen.fast import ensure_horizons
-
     # Ctrl-C reaches the process group, and the host terminates this process once the workers are done: end
     # quietly (the handlers inherited from the host would raise its Interrupted here).
     for stop in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -220,9 +228,6 @@ def _horizons_ahead(jobs, render):
     process, or None."""
     if render.mode != "fast" or not jobs or len(jobs) >= render.workers:  # no jobs: every frame was reused
         return None
-    import multiprocessing
-
-    from blender_gen.fast import horizon_cache_dir
 
     base = render.as_dict()
     specs = [
@@ -244,8 +249,6 @@ def frame_row(trajectory: str, fr: dict, res: dict, out_dir: Path, landmark_map,
     """The manifest row of one rendered frame: the worker's ``res``, the pose and patch of ``fr``, and the
     labels of the landmarks in view (their lit and occluded rim fractions read from the frame's EXR), with
     the identity of the map ``landmark_map`` they come from (:func:`.landmarks.map_identity`)."""
-    from crater_core import exr
-
     pose = fr["pose"]
     channels = exr.read_channels(out_dir / res["rel_path"], ("lit", "depth"))
     lit, depth = channels["lit"], channels["depth"]
@@ -294,9 +297,6 @@ def reusable_frame(out_dir: Path, index: int, header: dict, recorded_sha256: str
     (:mod:`crater_synth.dataset.recover`): by ``recorded_sha256``, the sha256 the previous manifest
     recorded for it, or else by its seal (pixels and attributes as written, decoded and encoded again).
     Else None: it is rendered again, the file replaced atomically. What a re-run keeps."""
-    from crater_core import exr
-    from crater_synth.dataset.recover import STATS_HEADER
-
     path = out_dir / frame_rel_path(index)
     planned = exr.as_read(header)
     try:
@@ -342,8 +342,6 @@ def _selected_poses(traj, only: list[int] | None) -> list:
 def _group_patch(settings, traj_name: str, group, n_near: int, progress: bool):
     """Build (or reuse) the terrain patch a group of frames shares: (its catalogue entry, its settings,
     npz path, metadata). A patch that cannot be built is an error naming the frames."""
-    from crater_synth.terrain.patch import build_terrain
-
     entry = group.entry(traj_name, settings.terrain.near_radius_factor)
     hw = group.half_width_m
     gsettings = frame_settings(settings, hw)
@@ -369,9 +367,6 @@ def _group_patch(settings, traj_name: str, group, n_near: int, progress: bool):
 def _patch_render_job(render, group, entry: dict, gsettings, meta: dict, n_near: int):
     """What the workers are told about a group's patch: (the job's crater, its render overrides, the
     render digest of every setting that can change a pixel)."""
-    from crater_core.schema import content_key
-    from crater_synth.dataset.identity import render_identity
-
     # The fast path's horizon map: as many texels as keep its texel no coarser than a frame's own patch's.
     scale = group.near_vertices / n_near
     overrides = {}
@@ -387,8 +382,6 @@ def _patch_render_job(render, group, entry: dict, gsettings, meta: dict, n_near:
 
 def _frame_header(settings, traj_name: str, pose, meta: dict, group, digest: str, seed: int) -> dict:
     """The host's EXR header entries of one frame: what it is and everything that made it."""
-    from crater_synth.dataset.plan import code_version, hapke_dict
-
     return {
         "trajectory": traj_name,
         "frame": pose.index,
@@ -408,8 +401,6 @@ def _plan_frames(settings, traj_name: str, groups: list, out_dir: Path, progress
     """Each group's patch and each frame's worker item: (worker jobs of the frames to render, frame
     index -> its pose, patch metadata, item and group; frame index -> the RESULT of a frame kept as it is
     on disk, same settings and seal intact)."""
-    from crater_synth.dataset.plan import CraterJob, render_seed
-
     n_near = int(settings.terrain.near_vertices)
     recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
     jobs, frames, reused = [], {}, {}
@@ -436,8 +427,6 @@ def _render_frame_jobs(jobs: list, settings, out_dir: Path, on_result) -> None:
     """Run the workers over ``jobs`` while the horizon maps are computed ahead. A shared patch's frames
     stay with one worker (its scene and BVH built once) unless splitting them between two finishes
     sooner; the horizon map is computed once either way (the on-disk cache)."""
-    from crater_synth.dataset.dispatch import run_workers
-
     render = settings.render
     ahead = _horizons_ahead(jobs, render)
     try:
@@ -455,9 +444,6 @@ def render_frames(
     """Render the trajectory's frames (all, or the indices ``only``) into ``out_dir`` with labels;
     returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
     False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
-    from crater_core.files import ensure_writable_dir
-    from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
-
     traj = settings.trajectory
     poses = _selected_poses(traj, only)
     out_dir = Path(out_dir)
@@ -534,8 +520,6 @@ def nav_frames_command(overrides, out, only, per_frame_patches):
     render.gbuffer_samples is given. Example: `crater-synth nav-frames trajectory=descent_ridge
     render.mode=direct`
     """
-    from crater_synth.config import load_settings
-
     settings = load_settings(frame_overrides(overrides))
     if settings.trajectory is None:
         raise ConfigError("no trajectory selected: add trajectory=NAME (configs/trajectory/)")

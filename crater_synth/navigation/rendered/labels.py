@@ -20,11 +20,12 @@ from pathlib import Path
 import click
 import numpy as np
 
-from crater_core import geometry, schema
+from crater_core import exr, geometry, schema
 from crater_core.trajectory import FramePose
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.map.landmarks import positions_mc
+from crater_synth.navigation.georef import pole_of
+from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map, positions_mc
 
 RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
 MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
@@ -154,9 +155,6 @@ def labelled_rows(frames_dir) -> list[dict]:
     """:func:`frame_rows` for a reader of the labels as truth: one error line when a row's labels were
     computed with another landmark map than its pole's committed one (a map rebuilt or edited numbers its
     landmarks anew: the labels would name the wrong craters) or with a map they did not record."""
-    from crater_synth.navigation.georef import pole_of
-    from crater_synth.navigation.map.landmarks import default_map_identity
-
     rows = frame_rows(frames_dir)
     current: dict[str, dict] = {}
     for row in rows:
@@ -183,10 +181,6 @@ def relabel(frames_dir) -> dict:
     the lit and depth channels of its EXR (checked against the row's sha256 first); the manifest is
     rewritten at once (atomically) when every frame is done. Returns a summary: how many frames' labels
     changed, and how many rows recorded another map (or none)."""
-    from crater_core import exr
-    from crater_synth.navigation.georef import pole_of
-    from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
-
     frames_dir = Path(frames_dir)
     rows = frame_rows(frames_dir)
     maps: dict[str, tuple] = {}

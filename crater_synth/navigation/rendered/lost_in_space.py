@@ -28,11 +28,16 @@ import click
 import numpy as np
 
 from crater_core import exr, geometry
+from crater_core.schema import atomic_write_json
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect
+from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
 from crater_synth.navigation.georef import pole_of, stereo_forward
+from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.protocol import lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import cv_camera, light_direction, match_pixels, perfect_detections
+from crater_synth.navigation.rendered.labels import labelled_rows
 from crater_synth.navigation.settings import compose_nav, map_scales
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
@@ -89,8 +94,6 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     its pose and labels, with the settings ``nav`` (its detector, fix and ``lost_in_space``; ``index``: the
     map's pair index). ``detections`` replaces the detector's (the perfect-detection check). With
     ``nav.lost_in_space.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
-    from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix
-
     dparams, fparams, lis = nav.detector, nav.fix, nav.lost_in_space
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
@@ -135,11 +138,6 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
     """Every frame of a ``nav-frames`` directory lost in space with the settings ``nav`` (a crater detector's;
     the pair vote's are ``nav.lost_in_space``), with the detector and with perfect detections; per-frame
     rows and both summaries."""
-    from crater_synth.errors import UserError
-    from crater_synth.navigation.fix.lost_in_space import build_index
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.rendered.labels import labelled_rows
-
     if nav.appearance:
         raise UserError("lost in space needs a crater detector (the appearance search needs a prior)")
     lis = nav.lost_in_space
@@ -186,8 +184,6 @@ def nav_frames_lis_command(frames_dir, json_path, overrides):
 
     Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
     """
-    from crater_core.schema import atomic_write_json
-
     result = evaluate_lis_dir(frames_dir, compose_nav(overrides, defaults=["nav/preset=synthetic"]))
     for r in result["rows"]:
         p = r["perfect"]

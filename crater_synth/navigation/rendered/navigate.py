@@ -19,8 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_core import exr, schema
-from crater_synth.navigation.georef import FrameError
+from crater_core import exr, geometry, schema
+from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.fix.refine import Refiner, lander_dem
+from crater_synth.navigation.fix.solve import project_pinhole
+from crater_synth.navigation.georef import FrameError, pole_of
+from crater_synth.navigation.map.landmarks import load_default_map
+from crater_synth.navigation.output import detection_records, draw_detections, png_of, write_detections
+from crater_synth.navigation.rendered.evaluate import evaluate_frame, frame_run, true_camera, with_patch_fallback
+from crater_synth.navigation.rendered.labels import labelled_rows
 
 
 def frame_row_of(image: Path) -> dict:
@@ -34,7 +42,6 @@ def frame_row_of(image: Path) -> dict:
             f"{image}: no {schema.MANIFEST_NAME} beside it; a rendered frame is navigated with the pose its "
             "manifest row holds (render frames with `crater-synth nav-frames`)"
         )
-    from crater_synth.navigation.rendered.labels import labelled_rows
 
     rows = [r for r in labelled_rows(image.parent) if r.get("rel_path") == image.name]
     if not rows:
@@ -54,12 +61,6 @@ def navigate_rendered_frame(
     not fix is navigated with terrain patches (:func:`.evaluate.with_patch_fallback`; the appearance
     preset only); ``six_dof``: the 6-DOF fix (attitude too, ``nav.frames.solver=pnp``), refined by
     appearance where the preset refines."""
-    from crater_synth.navigation.fix.patches import PatchParams
-    from crater_synth.navigation.fix.refine import Refiner, lander_dem
-    from crater_synth.navigation.georef import pole_of
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.rendered.evaluate import evaluate_frame, frame_run, with_patch_fallback
-
     row = frame_row_of(image)
     try:
         img = exr.read_channel(image, "IF")
@@ -108,8 +109,6 @@ def navigate_rendered_frame(
     if patches:
         result["fix_source"] = r["fix_source"]
         result["patches"] = {k: v for k, v in r.get("patches", {}).items() if k != "identified_px"}
-    from crater_synth.navigation.detectors.classical import Detection
-    from crater_synth.navigation.output import detection_records, write_detections
 
     dets = [Detection(*d) for d in r["detections_px"]]
     identified = dict(r["identified_pairs"]) if r["fix"] else {}
@@ -128,8 +127,6 @@ def annotate_frame(image: np.ndarray, r: dict, row: dict, landmarks, dets) -> by
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse, Rectangle
-
-    from crater_synth.navigation.output import draw_detections, png_of
 
     h, w = image.shape
     top = float(np.percentile(image, 99.5)) or 1.0
@@ -172,10 +169,6 @@ def error_arrow(ax, r: dict, row: dict) -> str:
     """Draw the fix's error on the frame: from the frame centre (where the true camera sees its boresight's
     ground point) to where the fixed camera would see that point, magnified to at least ``MIN_ARROW_PX``
     (by a 1-2-5 step, written beside its tip); returns the title's short caption."""
-    from crater_core import geometry
-    from crater_synth.navigation.fix.solve import project_pinhole
-    from crater_synth.navigation.rendered.evaluate import true_camera
-
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     r_wc, k = true_camera(row)
     r_fix = np.array(r["rotation_fix"], dtype=np.float64) if "rotation_fix" in r else r_wc  # a 6-DOF fix's own

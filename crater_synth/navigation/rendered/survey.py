@@ -20,10 +20,13 @@ import json
 import math
 from pathlib import Path
 
+import click
 import numpy as np
 
 from crater_core import geometry, trajectory
+from crater_synth.config import load_settings
 from crater_synth.errors import UserError
+from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
 
 GROUND_SAMPLE_M = 800.0  # twice the mosaic's 400 m/px: the detector's finest level (docs/navigation/rendered.md)
 WIDTH_PX = 256
@@ -115,11 +118,6 @@ def render_survey(
     out: Path, n_tracks: int, seed: int = 0, overrides: tuple[str, ...] = (), progress: bool = True
 ) -> dict:
     """Render the survey's tracks into ``out/track_NNN`` (skipping finished ones); returns a summary."""
-    import click
-
-    from crater_synth.config import load_settings
-    from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
-
     out = Path(out)
     tracks = plan_tracks(n_tracks, seed)
     done = rendered = 0

@@ -33,7 +33,12 @@ import numpy as np
 
 from crater_core import geometry
 from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.fix.appearance import blurred_frames, register_wide
+from crater_synth.navigation.fix.patches import window_patches
+from crater_synth.navigation.fix.refine import Refiner, lander_dem, shade_window
+from crater_synth.navigation.fix.solve import Fix, fix_frame
 from crater_synth.navigation.georef import stereo_forward
+from crater_synth.terrain.dem import DemError
 
 # The view of a mosaic window is nadir; a camera this far above the landmark sees every sample along its
 # local vertical to within 1e-5 rad (the WAC's own view angles are not known per mosaic pixel).
@@ -47,8 +52,6 @@ TERRAIN_SUN_EL_DEG = 10.0
 def lander_refiner(pole: str, workers: int = 1):
     """The :class:`.refine.Refiner` (the pole's DEM stack and the Hapke model) the search predicts with;
     ``workers`` > 1 prepares a frame's new landmark windows in that many processes."""
-    from crater_synth.navigation.fix.refine import Refiner, lander_dem
-
     return Refiner(lander_dem(pole), workers=workers)
 
 
@@ -65,10 +68,6 @@ def window_detections(image, georef, landmarks, light_azimuth_rad: float, dparam
     whose centre the prior ``georef`` places in ``image``, each searched for by its predicted appearance
     (module docstring). ``light_azimuth_rad``: local azimuth (clockwise from local north) the light
     travels along; ``refiner``: the :class:`.refine.Refiner` holding the DEM and the Hapke model."""
-    from crater_synth.navigation.fix.appearance import blurred_frames, register_wide
-    from crater_synth.navigation.fix.refine import shade_window
-    from crater_synth.terrain.dem import DemError
-
     frame = np.asarray(image, dtype=np.float64)
     height, width = frame.shape
     blurred = blurred_frames(frame)
@@ -121,9 +120,6 @@ def window_patch_fix(image, prior, light_azimuth_rad: float, dparams, fparams, r
     :func:`~.patches.window_patches` under the prior georeference ``prior``) instead of its craters: each
     patch searched for by its predicted appearance (:func:`window_detections`, the same Sun and settings as
     a crater), then the detectors' identification and fix (:func:`.fix.fix_frame`)."""
-    from crater_synth.navigation.fix.patches import window_patches
-    from crater_synth.navigation.fix.solve import Fix, fix_frame
-
     patches = window_patches(refiner.dem, prior, np.shape(image), params)
     if not patches:
         return [], [], Fix(False, "no patch on the DEM")

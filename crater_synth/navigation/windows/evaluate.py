@@ -28,13 +28,18 @@ from pathlib import Path
 import click
 import numpy as np
 
+from crater_core.schema import atomic_write_text
 from crater_core.settings_nav import DetectorSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix, window_heading_deg
+from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM, FixParams, fix_frame
-from crater_synth.navigation.georef import Frame, Georef, ground_distance_km
+from crater_synth.navigation.georef import Frame, Georef, check_frame, ground_distance_km
+from crater_synth.navigation.map.check import LU_SOURCE, catalogue_craters
+from crater_synth.navigation.map.landmarks import load_default_map, read_map
 from crater_synth.navigation.protocol import (
     HEADLINE_MIN_D_KM,
     HEADLINE_MIN_LANDMARKS,
@@ -48,7 +53,14 @@ from crater_synth.navigation.protocol import (
     truth_in_frame,
 )
 from crater_synth.navigation.settings import compose_nav, detector_options
-from crater_synth.navigation.windows.light import frame_light
+from crater_synth.navigation.windows.appearance import (
+    lander_refiner,
+    patch_truth_correct,
+    window_detections,
+    window_patch_fix,
+)
+from crater_synth.navigation.windows.light import frame_light, frame_local_light
+from crater_synth.navigation.windows.mosaic import MOSAIC_PRODUCTS, windows
 
 
 def prior_georef(frame: Frame, seed: int, offset_km: float = PRIOR_OFFSET_KM) -> Georef:
@@ -90,8 +102,6 @@ def navigate_window(
         if lis is None:
             fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
         else:
-            from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
-
             heading = window_heading_deg(lis[0])
             fix = lost_in_space_fix(
                 dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1], heading_deg=heading
@@ -113,10 +123,6 @@ def _appearance_frame(frame: Frame, landmarks, dparams: DetectorSettings, fparam
     searched for under the prior, the light of the local model, then the same fix. Lost in space
     (``lis``): the prior is the :data:`LOST_IN_SPACE_FIRST_STAGE` detector's lost-in-space fix, and a frame
     it cannot fix is "no fix"."""
-    from crater_synth.navigation.georef import check_frame
-    from crater_synth.navigation.windows.appearance import lander_refiner, window_detections
-    from crater_synth.navigation.windows.light import frame_local_light
-
     if lis is not None:  # no prior: the template's lost-in-space fix becomes the search's prior
         first = compose_nav([f"nav/detector={LOST_IN_SPACE_FIRST_STAGE}"]).detector
         _, _, coarse, _ = navigate_window(frame, landmarks, first, fparams, lis=lis)
@@ -194,10 +200,6 @@ def window_patches_alone(frame: Frame, prior: Georef, dparams, fparams, patches)
     (:func:`.appearance_window.window_patch_fix`) under ``prior`` and the light of the appearance method
     ``dparams``. A patch identification is correct when its detection lies within ``fix.inlier_px`` of
     where the true georeference places the patch's point."""
-    from crater_synth.navigation.georef import check_frame
-    from crater_synth.navigation.windows.appearance import lander_refiner, patch_truth_correct, window_patch_fix
-    from crater_synth.navigation.windows.light import frame_local_light
-
     if dparams.method != "appearance" or prior is None:
         raise UserError("terrain patches need the appearance method and a position prior (not lost in space)")
     image = check_frame(frame.image, f"frame {frame.id}")
@@ -242,15 +244,11 @@ def evaluate_split(
     headline windows, and the per-window rows. ``lis_params``: the lost-in-space fix with these
     :class:`.lost_in_space.LostInSpaceParams` (no position prior) instead of the prior-gated one;
     ``patches``: each window also navigated with its terrain patches (:func:`with_window_patches`)."""
-    from crater_synth.navigation.windows.mosaic import windows
-
     frames = windows(None if split == "all" else split, pole)[::every]
     if not frames:
         raise UserError(f"no {split} window in the {pole} mosaic (north windows are all test)")
     lis = None
     if lis_params is not None:
-        from crater_synth.navigation.fix.lost_in_space import build_index
-
         lis = (lis_params, build_index(landmarks, lis_params))
     rows = []
     for k, f in enumerate(frames):
@@ -419,9 +417,6 @@ def nav_eval_settings(overrides) -> dict:
 
 def nav_eval_protocol(pole: str, every: int, prior_offset_km: float, lost_in_space: bool, patch_params) -> dict:
     """The protocol entry of a ``nav-eval`` results file (what every method of the run shares)."""
-    from crater_synth.navigation.map.check import LU_SOURCE
-    from crater_synth.navigation.windows.mosaic import MOSAIC_PRODUCTS
-
     return {
         "pole": pole,
         "mosaic": f"{MOSAIC_PRODUCTS[pole]} (400 m/px, polar stereographic)",
@@ -468,8 +463,6 @@ def write_nav_eval_results(out: Path, pole: str, results: dict, full: bool) -> N
     merged into the file's entries (:func:`merge_results` when both the classical and the template detector
     ran, else :func:`add_methods`: a method run on its own joins the pole's entry); any other run replaces
     the file."""
-    from crater_core.schema import atomic_write_text
-
     if not full:
         atomic_write_text(out, json.dumps(results, indent=1) + "\n")
         click.echo(f"wrote {out}", err=True)
@@ -482,8 +475,6 @@ def write_nav_eval_results(out: Path, pole: str, results: dict, full: bool) -> N
 def nav_eval_request(every: int, prior_offset_km: float, lost_in_space: bool, patches: bool, overrides):
     """``nav-eval``'s options checked, and its settings composed: (settings per detector option, the
     lost-in-space settings or None, the terrain patches' settings or None)."""
-    from crater_synth.navigation.fix.patches import PatchParams
-
     if every < 1:
         raise UserError(f"--every={every} must be >= 1")
     check_prior_offset_km(prior_offset_km)
@@ -502,8 +493,6 @@ def nav_eval_request(every: int, prior_offset_km: float, lost_in_space: bool, pa
 
 def nav_eval_map(pole: str, map_path):
     """The landmark map ``nav-eval`` navigates against: ``--map`` or the pole's committed map."""
-    from crater_synth.navigation.map.landmarks import load_default_map, read_map
-
     landmarks, prov = read_map(map_path) if map_path else load_default_map(pole)
     if prov.get("pole", pole) != pole:
         raise UserError(f"--map {map_path}: a {prov.get('pole')} map, but --pole {pole}")
@@ -572,8 +561,6 @@ def nav_eval_command(pole, splits, every, lost_in_space, prior_offset_km, patche
     pole's splits run (south: validation and test; north: test). The map is the pole's committed landmark
     map unless `--map` names one.
     """
-    from crater_synth.navigation.map.check import catalogue_craters
-
     settings, lis_params, patch_params = nav_eval_request(every, prior_offset_km, lost_in_space, patches, overrides)
     options = tuple(settings)
     landmarks, prov = nav_eval_map(pole, map_path)

@@ -32,6 +32,7 @@ from functools import lru_cache
 import numpy as np
 
 from crater_synth.navigation.georef import Frame, FrameError, Georef, stereo_inverse
+from data_manifest.products import get_product
 
 SECTOR_DEG = 45.0
 SPLIT_OF_SECTOR = {k: ("validation" if k % 2 == 0 else "test") for k in range(8)}  # south mosaic
@@ -53,7 +54,6 @@ def sector_of(x, y, pole: str = "south") -> np.ndarray:
 def load_mosaic_image(pole: str = "south"):
     """(image uint8 (H, W), half-extent m, pixel m, product id) of the pole's embedded WAC mosaic, read
     and checksummed through the registry (as the real test set reads it)."""
-    from data_manifest.products import get_product
     from train.realset import embedded_product_path, read_gray
 
     product = MOSAIC_PRODUCTS[pole]

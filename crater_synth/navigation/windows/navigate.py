@@ -14,8 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_synth.navigation.fix.patches import PATCH_SOURCE, PatchParams
 from crater_synth.navigation.fix.solve import fix_frame
-from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km
+from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km, local_north_image_angle
+from crater_synth.navigation.output import draw_detections, png_of
+from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
 
 
 # --------------------------------------------------------------------------------------------
@@ -39,8 +43,6 @@ def read_georef(image_path: Path) -> Georef | None:
 
 def write_window(path: Path, frame: Frame) -> None:
     """A frame as PNG plus its ``.geo.json`` sidecar (what ``navigate`` reads)."""
-    from crater_core.schema import atomic_write_bytes, atomic_write_text
-
     atomic_write_bytes(path, _png_gray(frame.image))
     atomic_write_text(path.with_name(path.name + ".geo.json"), json.dumps(frame.georef.as_dict()) + "\n")
 
@@ -64,9 +66,6 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crater_synth.navigation.fix.patches import PATCH_SOURCE
-    from crater_synth.navigation.output import draw_detections, png_of
-
     h, w = image.shape
     fig, ax = plt.subplots(figsize=(8, 8))
     ax.imshow(image, cmap="gray")
@@ -87,9 +86,6 @@ def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_ele
     (:mod:`.appearance_window`) on a map window: the light's image direction ``light`` (radians) turned into
     its local azimuth at the prior's frame centre; with ``patches``, a window its craters do not fix is
     navigated with its terrain patches (:func:`.appearance_window.window_patch_fix`)."""
-    from crater_synth.navigation.georef import local_north_image_angle
-    from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
-
     h, w = img.shape[:2]
     alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
     if sun_elevation is not None:
@@ -98,8 +94,6 @@ def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_ele
     dets, _ = window_detections(img, prior_g, landmarks, alpha, dparams, fparams, refiner)
     fix = fix_frame(dets, landmarks, prior_g, img.shape, fparams)
     if patches and not fix.ok:
-        from crater_synth.navigation.fix.patches import PatchParams
-
         found, patch_dets, patch_fix = window_patch_fix(img, prior_g, alpha, dparams, fparams, refiner, PatchParams())
         if patch_fix.ok:
             return patch_dets, light, patch_fix, found, "patches"
