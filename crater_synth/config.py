@@ -168,11 +168,6 @@ def compose_plain(config_name: str | None, overrides: Sequence[str], config_dir=
     """The resolved composition of ``<config_dir>/<config_name>.yaml`` (None: only the groups the overrides
     add with ``+group=option``) and the option each group took; the schemas must be in the ConfigStore
     already. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
 
     GlobalHydra.instance().clear()
     try:
@@ -192,7 +187,6 @@ def compose_group(group: str, cls: type, overrides: Sequence[str] = (), option: 
     """The settings ``cls`` of one config group (``configs/<group>/<option>.yaml``, e.g. ``nav/landmarks``)
     with the overrides a command takes, all of them keys of that group (``nav.landmarks.workers=4``):
     a command with one group of settings refuses any other key. Errors: one :class:`ConfigError` line."""
-    from hydra.core.config_store import ConfigStore
 
     prefix = group.replace("/", ".")
     bad = [o for o in overrides if not o.lstrip("+~").startswith(prefix + ".")]

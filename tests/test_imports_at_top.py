@@ -44,8 +44,6 @@ DEFERRING_MODULES = {
 }
 # Files whose function-level imports are not checked, and why.
 EXEMPT_FILES = {
-    "crater_synth/navigation/": "being restructured; its imports move to the top after that",
-    "crater_synth/bench/navigation.py": "the navigation benchmark moves with crater_synth/navigation/",
     "blender_gen/worker.py": (
         "runs in Blender's own Python: it checks that numpy and OpenImageIO exist (one ERROR line when not) "
         "and pins the BLAS to one thread before numpy loads (its module docstring)"

@@ -10,16 +10,21 @@ import time
 import numpy as np
 
 from crater_synth.navigation.detectors.classical import detect
-from crater_synth.navigation.fix.solve import FixParams, fix_frame
+from crater_synth.navigation.detectors.registry import detectors
+from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.fix.solve import FixParams, fix_frame, identify, ransac_similarity
 from crater_synth.navigation.georef import Frame, Georef
+from crater_synth.navigation.map.landmarks import load_default_map
+from crater_synth.navigation.settings import compose_nav
+from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
 from crater_synth.navigation.windows.evaluate import prior_georef
+from crater_synth.navigation.windows.light import frame_local_light
+from crater_synth.navigation.windows.mosaic import load_mosaic_image, sector_of
 
 
 def image_detectors() -> list[str]:
     """The registry's image detectors (:mod:`crater_synth.navigation.detectors.registry`), by name: every
     one but the appearance search, which needs the map and a prior."""
-    from crater_synth.navigation.detectors.registry import detectors
-
     return [name for name, entry in detectors().items() if entry.candidates is not None]
 
 
@@ -29,10 +34,6 @@ def bench_navigation(repeats: int = 3) -> dict:
     the template detector, the learned detector, and the appearance search: :func:`_bench_appearance`):
     median of ``repeats`` runs after one warm-up. The light direction is estimated on the frame where a
     detector uses it (its cost is part of detection)."""
-    from crater_synth.navigation.fix.solve import identify, ransac_similarity
-    from crater_synth.navigation.map.landmarks import load_default_map
-    from crater_synth.navigation.settings import compose_nav
-    from crater_synth.navigation.windows.mosaic import load_mosaic_image
 
     landmarks, _ = load_default_map("south")
     img, extent, pixel, _ = load_mosaic_image("south")
@@ -87,10 +88,6 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
     landmarks were prepared for its Sun before it began. Cold once more with the new windows computed in two
     worker processes while the search correlates (``cold_2_workers``, :meth:`.refine.Refiner.prepare`;
     the same detections)."""
-    from crater_synth.navigation.settings import compose_nav
-    from crater_synth.navigation.windows.appearance import lander_refiner, window_detections
-    from crater_synth.navigation.windows.light import frame_local_light
-    from crater_synth.navigation.windows.mosaic import sector_of
 
     dparams = compose_nav(["nav/detector=appearance"]).detector
     frame = dataclasses.replace(frame, sector=int(sector_of(*frame.centre_xy, frame.georef.pole)))
@@ -132,8 +129,6 @@ def _bench_window_patches(frame: Frame, prior: Georef, alpha: float, dparams, fp
     """The window navigated with its terrain patches alone (:func:`.appearance_window.window_patch_fix`: 16
     new windows, none kept from an earlier frame, as every frame's patches lie elsewhere), their windows
     computed in ``workers`` processes."""
-    from crater_synth.navigation.fix.patches import PatchParams
-    from crater_synth.navigation.windows.appearance import lander_refiner, window_patch_fix
 
     refiner = lander_refiner(frame.georef.pole, workers=workers)
     times = []
