@@ -145,3 +145,16 @@ def test_command_group_bad_override_is_one_line_naming_the_key(group, cls, overr
     with pytest.raises(ConfigError) as err:
         compose_group(group, cls, [override])
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_detector_under_a_preset_is_one_line_and_null_drops_the_preset():
+    """A preset sets its detector's own keys: another detector under it is refused in one line naming both
+    (not Hydra's key error); a detector picked alone replaces a command's default preset."""
+    with pytest.raises(ConfigError, match=r"^nav/detector=template: nav/preset=appearance chooses the detector"):
+        compose_nav(["nav/preset=appearance", "nav/detector=template"])
+    alone = compose_nav(["nav/detector=template"], defaults=["nav/preset=appearance"])
+    assert (alone.detector.method, alone.preset) == ("template", None)
+    dropped = compose_nav(["nav/preset=null", "nav/detector=template"], defaults=["nav/preset=appearance"])
+    assert (dropped.detector.method, dropped.preset) == ("template", None)
+    kept = compose_nav([], defaults=["nav/preset=appearance"])
+    assert (kept.detector.method, kept.preset) == ("appearance", "appearance")

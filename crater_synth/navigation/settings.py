@@ -101,19 +101,37 @@ def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> 
     ``nav.detector.threshold=0.5``, ``nav/preset=synthetic``), validated once. ``defaults``: overrides a
     command puts first (its own default preset), for the user's to replace: a group the user selects drops
     the command's choice of it. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
+    # nav/preset=null: no preset (Hydra takes null for a group option only as a deletion of the default).
+    overrides = ["~nav/preset" if o.lstrip("+") == "nav/preset=null" else o for o in overrides]
     chosen = {o.partition("=")[0].lstrip("+~") for o in overrides}
+    if "nav/detector" in chosen:  # a detector the user picks replaces the command's default preset too
+        chosen.add("nav/preset")
     overrides = [o for o in defaults if o.partition("=")[0].lstrip("+~") not in chosen] + list(overrides)
     bad = [o for o in overrides if not o.lstrip("+~").startswith(("nav.", "nav/"))]
     if bad:
         raise ConfigError(f"{bad[0]}: navigation overrides are nav.<group>.<key>=<value> or nav/<group>=<option>")
     for o in overrides:  # the preset group is optional in the defaults, so Hydra would skip a missing option
         key, _, value = o.lstrip("+~").partition("=")
-        if key == "nav/preset" and value not in (*preset_options(), "null"):
+        if key == "nav/preset" and not o.startswith("~") and value not in preset_options():
             known = ", ".join(preset_options())
             raise ConfigError(f"unknown nav/preset {value!r} (override {o}): choose one of {known}")
+    check_preset_detector(overrides)
     register_nav_schemas()
     plain, choices = compose_plain(NAV_CONFIG, overrides, CONFIG_DIR)
     return nav_settings(plain["nav"], choices)
+
+
+def check_preset_detector(overrides: Sequence[str]) -> None:
+    """A preset sets its detector's own keys, so another detector under it cannot compose: say so in one
+    line instead of Hydra's key error (``nav/preset=null`` drops the preset)."""
+    picked = {o.lstrip("+").partition("=")[0]: o.partition("=")[2] for o in overrides}
+    preset = "null" if "~nav/preset" in picked else picked.get("nav/preset", "null")
+    detector = picked.get("nav/detector")
+    if detector is not None and preset != "null":
+        raise ConfigError(
+            f"nav/detector={detector}: nav/preset={preset} chooses the detector and its settings; choose a preset "
+            f"({', '.join(preset_options())}) or drop it with nav/preset=null"
+        )
 
 
 def nav_settings(plain: dict, choices: dict | None = None) -> NavSettings:
