@@ -126,7 +126,7 @@ def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams
 
 
 def _bench_window_patches(frame: Frame, prior: Georef, alpha: float, dparams, fparams, repeats: int, workers: int):
-    """The window navigated with its terrain patches alone (:func:`.appearance_window.window_patch_fix`: 16
+    """The window navigated with its terrain patches alone (:func:`.windows.appearance.window_patch_fix`: 16
     new windows, none kept from an earlier frame, as every frame's patches lie elsewhere), their windows
     computed in ``workers`` processes."""
 

@@ -119,7 +119,7 @@ LOST_IN_SPACE_FIRST_STAGE = "template"
 
 
 def _appearance_frame(frame: Frame, landmarks, dparams: DetectorSettings, fparams: FixParams, prior: Georef, lis):
-    """:func:`navigate_window` for ``nav.detector.method="appearance"`` (:mod:`.appearance_window`): the landmarks
+    """:func:`navigate_window` for ``nav.detector.method="appearance"`` (:mod:`.appearance`): the landmarks
     searched for under the prior, the light of the local model, then the same fix. Lost in space
     (``lis``): the prior is the :data:`LOST_IN_SPACE_FIRST_STAGE` detector's lost-in-space fix, and a frame
     it cannot fix is "no fix"."""
@@ -197,7 +197,7 @@ def run_frame(
 
 def window_patches_alone(frame: Frame, prior: Georef, dparams, fparams, patches):
     """(scores, patches, detections, fix) of the window navigated with its terrain patches alone
-    (:func:`.appearance_window.window_patch_fix`) under ``prior`` and the light of the appearance method
+    (:func:`.appearance.window_patch_fix`) under ``prior`` and the light of the appearance method
     ``dparams``. A patch identification is correct when its detection lies within ``fix.inlier_px`` of
     where the true georeference places the patch's point."""
     if dparams.method != "appearance" or prior is None:

@@ -83,9 +83,9 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
 
 def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams, patches):
     """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of the appearance search
-    (:mod:`.appearance_window`) on a map window: the light's image direction ``light`` (radians) turned into
+    (:mod:`.appearance`) on a map window: the light's image direction ``light`` (radians) turned into
     its local azimuth at the prior's frame centre; with ``patches``, a window its craters do not fix is
-    navigated with its terrain patches (:func:`.appearance_window.window_patch_fix`)."""
+    navigated with its terrain patches (:func:`.appearance.window_patch_fix`)."""
     h, w = img.shape[:2]
     alpha = light - float(local_north_image_angle(*prior_g.uv_to_xy(w / 2, h / 2), prior_g.pole))
     if sun_elevation is not None:
