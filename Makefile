@@ -38,6 +38,7 @@ test-deps: ## Install Debian chromium and blender (+ python3-numpy, python3-open
 
 # The test tiers (pyproject.toml [tool.pytest.ini_options] markers): `test` is the fast tier, `test-integration`
 # the end-to-end tests marked `integration`; CI (.ci/run) runs both. `slow` tests run in neither.
+PYTEST_ARGS ?=  # more pytest arguments for the test targets, e.g. PYTEST_ARGS=--durations=30
 FAST_TESTS := not slow and not integration
 INTEGRATION_TESTS := integration and not slow
 test: setup test-deps ## Run the fast test tier (end-to-end tests: make test-integration; slow ones: make test-slow)
