@@ -36,8 +36,16 @@ test-deps: ## Install Debian chromium and blender (+ python3-numpy, python3-open
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
 	else echo "warning: not root, missing Debian packages:$$missing: the report browser test and the blender-binary tests will be skipped"; fi
 
-test: setup test-deps ## Run the fast test suite (slow tests: make test-slow)
-	$(BIN)/python -m pytest -q
+# The test tiers (pyproject.toml [tool.pytest.ini_options] markers): `test` is the fast tier, `test-integration`
+# the end-to-end tests marked `integration`; CI (.ci/run) runs both. `slow` tests run in neither.
+PYTEST_ARGS ?=  # more pytest arguments for the test targets, e.g. PYTEST_ARGS=--durations=30
+FAST_TESTS := not slow and not integration
+INTEGRATION_TESTS := integration and not slow
+test: setup test-deps ## Run the fast test tier (end-to-end tests: make test-integration; slow ones: make test-slow)
+	$(BIN)/python -m pytest -q -m "$(FAST_TESTS)" $(PYTEST_ARGS)
+
+test-integration: setup test-deps ## Run the integration test tier (Blender renders, CLI runs, training; CI runs it after make test)
+	$(BIN)/python -m pytest -q -m "$(INTEGRATION_TESTS)" $(PYTEST_ARGS)
 
 lint: setup ## ruff check (pyflakes, pycodestyle, isort, bugbear) on the tree and mypy on crater_core/
 	$(BIN)/ruff check .
@@ -124,5 +132,5 @@ demo: setup ## The main job on the embedded data (experiment=demo): render sweep
 	$(CLI) report $(DEMO_DIR) $(DEMO_PRESET) $(OVERRIDES)
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
-.PHONY: help setup test-deps test lint format-check test-slow terrain dataset verify preview config train loop \
+.PHONY: help setup test-deps test test-integration lint format-check test-slow terrain dataset verify preview config train loop \
 	experiments report bench validate ablate demo navigate-demo navigate-frames-demo nav-detector

@@ -11,7 +11,7 @@ import pytest
 
 import crater_synth  # noqa: F401 - first: it sets the processes' one BLAS thread before numpy loads
 
-from helpers.cli import TINY, run_cli
+from helpers.cli import EIGHT, TINY, run_cli
 
 
 @pytest.fixture(scope="session")
@@ -31,6 +31,45 @@ def tiny_dataset(tiny_data_dir):
         return proc
 
     return run
+
+
+def _files(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root`` with its size and modification time."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()}
+
+
+def _shared_dataset(tmp_path_factory, tiny_dataset, n: int, *overrides):
+    """A :data:`TINY` dataset of ``n`` renders, rendered once and shared read-only; fails the session's
+    teardown if a test changed it (a test that damages a dataset works on a ``shutil.copytree`` copy)."""
+    from helpers.cli import exr_files
+
+    # Named "smoke": the export's default output beside it is "<name>-<format>" (tests/test_export.py).
+    out = tmp_path_factory.mktemp("shared_dataset") / "smoke"
+    tiny_dataset(out, *overrides)
+    assert len(exr_files(out)) == n
+    before = _files(out)
+    yield out
+    assert _files(out) == before, f"a test changed the shared dataset {out}: work on a copy"
+
+
+@pytest.fixture(scope="session")
+def tiny_smoke(tmp_path_factory, tiny_dataset):
+    """The tiny smoke sweep (one crater, 4 renders), rendered once per session; read-only."""
+    yield from _shared_dataset(tmp_path_factory, tiny_dataset, 4)
+
+
+@pytest.fixture(scope="session")
+def tiny_eight(tmp_path_factory, tiny_dataset):
+    """The :data:`EIGHT` sweep in one process (render.workers=1, render.threads=0), rendered once per
+    session; read-only."""
+    yield from _shared_dataset(tmp_path_factory, tiny_dataset, 8, *EIGHT)
+
+
+@pytest.fixture(scope="session")
+def nav_data_dir(tmp_path_factory) -> Path:
+    """A data_dir shared by the nav-frames runs: their terrain patches and horizon maps are cached there by
+    content key, so each distinct terrain is built once per session."""
+    return tmp_path_factory.mktemp("nav_data")
 
 
 # Set (to 1) where a Blender binary must be present, as in CI (.ci/run): its tests then fail instead of skipping.

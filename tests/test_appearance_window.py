@@ -99,6 +99,7 @@ def test_appearance_settings_and_misuse_are_refused(south):
         navigate_window(frame, landmarks, dataclasses.replace(APPEARANCE, light_scope="frame"), FixParams())
 
 
+@pytest.mark.integration
 def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     """`crater-synth navigate WINDOW.png nav/detector=appearance --light-azimuth A`: the window written as a PNG
     with its georeference sidecar, the light's image direction from the local light model."""
@@ -130,6 +131,7 @@ def test_navigate_a_map_window_with_the_appearance_search(south, tmp_path):
     assert out["position_prior"] == "none (lost in space)" and out["fix"] and out["error_km"] < 0.8
 
 
+@pytest.mark.integration
 def test_nav_eval_takes_the_prior_offset_and_refuses_a_nonsense_one(tmp_path):
     import json
 
@@ -293,6 +295,7 @@ def test_window_patches_off_the_dem_are_left_out(south):
     assert found == [] and dets == [] and not fix.ok and fix.reason == "no patch on the DEM"
 
 
+@pytest.mark.integration
 def test_nav_eval_patches_in_full_joins_the_pole_entry_as_its_own_method(tmp_path, monkeypatch):
     """`nav-eval --pole north --patches --out FILE nav/detector=appearance` over the pole's splits adds the method
     'appearance+patches' to the pole's entry of the results file; the craters-only 'appearance' entry and

@@ -31,6 +31,8 @@ from crater_core import exr, schema
 from helpers import render as cr
 from helpers.cli import TINY, run_cli
 
+pytestmark = pytest.mark.integration  # end-to-end: make test-integration
+
 MODES = ("fast", "direct")
 # Manifest keys measured from the pixels (they differ as the pixels do), and the render identity, which
 # holds render.blender on purpose: a dataset resumed with the other backend renders again rather than mix

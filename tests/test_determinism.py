@@ -5,18 +5,13 @@ import json
 import numpy as np
 import pytest
 
-from helpers.cli import assert_same_dataset, exr_files, summary
-
-EIGHT = ("sweep.cam_elevation.count=2",)  # 1 x 2 x 2 x 2 = 8 renders
+from helpers.cli import EIGHT, assert_same_dataset, exr_files, summary
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory, tiny_dataset):
+def reference(tiny_eight):
     """One single-process run of the 8-render sweep (render.workers=1, render.threads=0)."""
-    out = tmp_path_factory.mktemp("det") / "ref"
-    tiny_dataset(out, *EIGHT)
-    assert len(exr_files(out)) == 8
-    return out
+    return tiny_eight
 
 
 def test_two_runs_are_byte_identical(tmp_path, tiny_dataset, reference):
@@ -24,6 +19,7 @@ def test_two_runs_are_byte_identical(tmp_path, tiny_dataset, reference):
     assert_same_dataset(reference, tmp_path / "again")
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("n", [2, 3])
 def test_shards_merge_to_the_single_run(tmp_path, tiny_dataset, reference, n):
     rendered = 0
@@ -42,6 +38,7 @@ def _pixels_and_header(path):
     return chans, header, render
 
 
+@pytest.mark.integration
 def test_thread_count_changes_no_pixel(tmp_path, tiny_dataset, reference):
     """Cycles with a fixed seed gives the same pixels with 1 thread as with all cores, and the
     execution-only ``render.threads`` stays out of the EXR header, so the files are byte-identical."""
@@ -57,6 +54,7 @@ def test_thread_count_changes_no_pixel(tmp_path, tiny_dataset, reference):
         assert a.read_bytes() == b.read_bytes()
 
 
+@pytest.mark.integration
 def test_worker_count_gives_byte_identical_files(tmp_path, tiny_dataset, reference):
     tiny_dataset(tmp_path / "w2", *EIGHT, "render.workers=2")
     assert_same_dataset(reference, tmp_path / "w2")

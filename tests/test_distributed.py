@@ -14,16 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from helpers.cli import REPO, TINY, assert_same_dataset, exr_files, run_cli, summary
+from helpers.cli import EIGHT, REPO, TINY, assert_same_dataset, exr_files, run_cli, summary
 
-EIGHT = ("sweep.cam_elevation.count=2",)  # 8 renders
+pytestmark = pytest.mark.integration  # end-to-end: make test-integration
 
 
 @pytest.fixture(scope="module")
-def single(tmp_path_factory, tiny_dataset):
-    out = tmp_path_factory.mktemp("dist") / "single"
-    tiny_dataset(out, *EIGHT)
-    return out
+def single(tiny_eight):
+    return tiny_eight
 
 
 def _worker_pids(dataset_dir: Path) -> set[str]:

@@ -72,6 +72,7 @@ def test_small_config_fits_the_demo_sweep():
     }
 
 
+@pytest.mark.integration
 def test_experiments_end_to_end_on_a_toy_dataset(tmp_path):
     """Two Figure 6 points trained for real on a procedural dataset and tested on held-out toy frames:
     CSV rows equal to each point's evaluated metrics, the full-grid point clears a stated accuracy

@@ -26,10 +26,8 @@ ALL = ["IF", "depth", "N.X", "N.Y", "N.Z", "lit"]
 
 
 @pytest.fixture(scope="module")
-def dataset(tiny_dataset, tmp_path_factory):
-    out = tmp_path_factory.mktemp("export") / "smoke"
-    tiny_dataset(out)  # sweep=smoke, one crater: 4 renders
-    return out
+def dataset(tiny_smoke):
+    return tiny_smoke  # sweep=smoke, one crater: 4 renders; the directory is named "smoke"
 
 
 def _expected(dataset, row):

@@ -2,6 +2,7 @@
 ends complete, verifies, and is byte-identical to an undisturbed run of the same config."""
 
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -32,11 +33,8 @@ def reference32(tmp_path_factory, tiny_dataset):
 
 
 @pytest.fixture(scope="module")
-def reference4(tmp_path_factory, tiny_dataset):
-    out = tmp_path_factory.mktemp("faults") / "ref4"
-    tiny_dataset(out)
-    assert len(exr_files(out)) == 4
-    return out
+def reference4(tiny_smoke):
+    return tiny_smoke
 
 
 # -- helpers ------------------------------------------------------------------------------------
@@ -81,6 +79,7 @@ def _assert_complete(out: Path, reference: Path) -> None:
 
 
 # -- (a) a Blender worker killed mid-shard --------------------------------------------------------
+@pytest.mark.integration
 def test_killed_blender_worker_is_retried(tmp_path, tiny_data_dir, reference32):
     out = tmp_path / "ds"
     proc = start_dataset(out, tiny_data_dir, *SLOW32)
@@ -104,6 +103,7 @@ def test_killed_blender_worker_is_retried(tmp_path, tiny_data_dir, reference32):
 
 
 # -- (b) the whole sweep killed -------------------------------------------------------------------
+@pytest.mark.integration
 def test_killed_sweep_resumes(tmp_path, tiny_data_dir, tiny_dataset, reference32):
     out = tmp_path / "ds"
     proc = start_dataset(out, tiny_data_dir, *SLOW32)
@@ -137,8 +137,7 @@ def _flip_bit(f: Path):
 
 @pytest.mark.parametrize("damage", [_truncate, _flip_bit], ids=["truncated", "bit-flipped"])
 def test_corrupt_exr_is_detected_and_rerendered(tmp_path, tiny_dataset, reference4, damage):
-    out = tmp_path / "ds"
-    tiny_dataset(out)
+    out = shutil.copytree(reference4, tmp_path / "ds")
     victim = exr_files(out)[1]
     damage(victim)
     v = run_cli("verify", out)
@@ -153,8 +152,7 @@ def test_corrupt_exr_is_detected_and_rerendered(tmp_path, tiny_dataset, referenc
 
 # -- (d) a manifest row whose file is gone ---------------------------------------------------------
 def test_missing_file_is_rerendered(tmp_path, tiny_dataset, reference4):
-    out = tmp_path / "ds"
-    tiny_dataset(out)
+    out = shutil.copytree(reference4, tmp_path / "ds")
     victim = exr_files(out)[2]
     victim.unlink()
     v = run_cli("verify", out)
@@ -166,6 +164,7 @@ def test_missing_file_is_rerendered(tmp_path, tiny_dataset, reference4):
 
 
 # -- (e) a Dask worker process killed mid-task ------------------------------------------------------
+@pytest.mark.integration
 def test_killed_dask_worker_task_is_retried(tmp_path, tiny_data_dir, reference32):
     out = tmp_path / "ds"
     proc = start_dataset(out, tiny_data_dir, *SLOW32, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2")
@@ -191,12 +190,11 @@ def test_killed_dask_worker_task_is_retried(tmp_path, tiny_data_dir, reference32
     _assert_complete(out, reference32)
 
 
-def test_parallel_verify_reports_what_serial_verify_reports(tmp_path, tiny_dataset, monkeypatch):
+def test_parallel_verify_reports_what_serial_verify_reports(tmp_path, reference4, monkeypatch):
     """`verify` checks files in a process pool on big datasets: same faults, same order."""
     from crater_synth.dataset import verify
 
-    out = tmp_path / "ds"
-    tiny_dataset(out)
+    out = shutil.copytree(reference4, tmp_path / "ds")
     files = exr_files(out)
     _truncate(files[1])
     files[2].unlink()

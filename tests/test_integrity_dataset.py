@@ -33,12 +33,9 @@ MARKER = ".crater-synth-dataset"
 
 
 @pytest.fixture(scope="module")
-def clean4(tmp_path_factory, tiny_dataset) -> Path:
-    """The tiny smoke dataset (4 renders), rendered once; tests work on copies."""
-    out = tmp_path_factory.mktemp("integrity") / "clean"
-    tiny_dataset(out)
-    assert len(exr_files(out)) == 4
-    return out
+def clean4(tiny_smoke) -> Path:
+    """The tiny smoke dataset (4 renders), rendered once per session; tests work on copies."""
+    return tiny_smoke
 
 
 def _copy(src: Path, dst: Path) -> Path:
@@ -116,7 +113,10 @@ STALE = {
 }
 
 
-@pytest.mark.parametrize("override", sorted(STALE))
+# One changed input in the fast tier; the rest are make test-integration's (each renders the sweep again).
+@pytest.mark.parametrize(
+    "override", [pytest.param(o, marks=() if o == "seed=7" else pytest.mark.integration) for o in sorted(STALE)]
+)
 def test_changed_render_input_renders_again(tmp_path, tiny_dataset, clean4, override):
     out = _copy(clean4, tmp_path / "ds")
     s = summary(tiny_dataset(out, override))
@@ -338,6 +338,7 @@ SLOW16 = (
 )
 
 
+@pytest.mark.integration
 def test_sighup_is_a_clean_resumable_stop(tmp_path, tiny_data_dir, tiny_dataset):
     out = tmp_path / "ds"
     proc = start_dataset(out, tiny_data_dir, *SLOW16)

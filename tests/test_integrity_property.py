@@ -27,6 +27,8 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
+pytestmark = pytest.mark.integration  # end-to-end: make test-integration
+
 # Files of the user's: names a render could have, temp-file look-alikes, other directories.
 USER_FILES = (
     "notes.txt",
@@ -73,11 +75,8 @@ actions = st.one_of(
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory, tiny_dataset) -> Path:
-    out = tmp_path_factory.mktemp("property") / "clean"
-    tiny_dataset(out)
-    assert len(exr_files(out)) == 4
-    return out
+def clean(tiny_smoke) -> Path:
+    return tiny_smoke
 
 
 def _apply(action: tuple, out: Path, data_dir: Path, user: dict[Path, bytes]) -> None:

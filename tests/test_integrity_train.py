@@ -194,6 +194,7 @@ def _files(run: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(run.iterdir()) if p.is_file()}
 
 
+@pytest.mark.integration
 def test_an_interrupted_retrain_leaves_the_previous_run_whole(toy, two_runs, tmp_path, monkeypatch):
     """Ctrl-C after LunarNet_ex has trained (and checkpointed): the run directory still holds the old
     run, file for file, and evaluates to the old metrics."""
@@ -224,6 +225,7 @@ def test_an_interrupted_retrain_leaves_the_previous_run_whole(toy, two_runs, tmp
     }
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("artefact", ARTEFACTS)
 def test_evaluate_refuses_models_of_two_runs(toy, two_runs, tmp_path, artefact):
     run = tmp_path / "mixed"
@@ -235,6 +237,7 @@ def test_evaluate_refuses_models_of_two_runs(toy, two_runs, tmp_path, artefact):
     assert _files(run) == before  # nothing rewritten
 
 
+@pytest.mark.integration
 def test_evaluate_refuses_models_from_before_run_ids_next_to_new_ones(toy, two_runs, tmp_path):
     """An old run (its files carry no run id) with one model of a new run copied in: refused too."""
     import joblib
@@ -253,6 +256,7 @@ def test_evaluate_refuses_models_from_before_run_ids_next_to_new_ones(toy, two_r
     _one_error(res, "mixes the files of two training runs")
 
 
+@pytest.mark.integration
 def test_a_published_run_records_one_run_id_everywhere(two_runs):
     import joblib
 

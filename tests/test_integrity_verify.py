@@ -21,11 +21,8 @@ SLOW16 = ("render.mode=direct", "render.samples=16", "sweep.sun_azimuth.count=4"
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory, tiny_dataset):
-    out = tmp_path_factory.mktemp("integrity") / "ref"
-    tiny_dataset(out)
-    assert len(exr_files(out)) == 4
-    return out
+def reference(tiny_smoke):
+    return tiny_smoke
 
 
 @pytest.fixture

@@ -169,6 +169,7 @@ def crater_field(seed: int, size: int = 128, n: int = 7):
     return image.astype(np.float32), np.array(us), np.array(vs), np.array(rs)
 
 
+@pytest.mark.integration
 def test_a_short_training_run_learns_to_find_shaded_craters():
     samples = []
     for seed in range(12):

@@ -75,6 +75,7 @@ def test_second_writer_of_the_same_dataset_refuses(tmp_path, tiny_data_dir, tiny
     assert run_cli("verify", out).returncode == 0
 
 
+@pytest.mark.integration
 def test_shards_run_side_by_side_but_not_twice(tmp_path, tiny_data_dir):
     out = tmp_path / "ds"
     slow = (*SLOW16, "render.samples=48", "sweep.cam_elevation.count=2", "render.workers=1")  # 16 renders a shard

@@ -47,6 +47,7 @@ def run(tmp_path, *extra):
     return loop_mod.run_loop(cfg, progress=False)
 
 
+@pytest.mark.integration
 def test_loop_renders_only_new_samples_and_stops_at_threshold(tmp_path, scripted_training):
     scripted_training.accuracy = {1: 0.5, 2: 0.7, 3: 0.9, 4: 0.95}
     hist = run(tmp_path, "loop.sun_elevation_schedule=[1,2,3,4]", "loop.threshold=0.85")

@@ -572,6 +572,7 @@ def _nav_frames(tmp_path, out, *extra):
     )
 
 
+@pytest.mark.integration
 def test_shared_patch_frames_match_per_frame_patches(tmp_path):
     """Three frames on one shared patch against the same frames each on its own patch (same poses, same Sun,
     no sub-DEM detail, so both grids sample the same DEM surface): identical labels, a complete manifest and
@@ -648,6 +649,7 @@ def test_recorded_frame_settings_name_the_gbuffer_samples_the_frames_were_render
     assert info == {"mode": "fast", "samples": 16, "gbuffer_samples": 1, "width_px": 4, "fov_deg": 60.0}
 
 
+@pytest.mark.integration
 def test_bench_navframes_runs_both_paths_on_the_same_frames(tmp_path):
     """`crater-synth bench --part navframes` renders the same frames shared and per-frame in one call (no
     timing is asserted: benchmarks are not timed tests)."""
@@ -699,6 +701,7 @@ def test_occluded_rim_fraction_counts_the_rim_points_behind_nearer_relief():
     assert occluded_rim_fraction(depth, rim_uv + 80.0, rim_depth, 10e3) is None  # most of the rim outside
 
 
+@pytest.mark.integration
 def test_nav_frames_rerun_keeps_intact_frames_and_renders_changed_ones(tmp_path):
     """A re-run keeps a frame whose EXR is intact and was rendered with the same settings (an interrupted
     trajectory resumes); a changed setting that alters pixels, or a damaged file, renders it again."""

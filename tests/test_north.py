@@ -278,6 +278,7 @@ def test_north_craters_are_cut_from_the_north_mosaic():
 
 
 # ------------------------------------------------------------------------------ end to end
+@pytest.mark.integration
 def test_a_north_crater_renders_trains_and_evaluates(tmp_path):
     """Two north craters through `dataset`, `train` and `evaluate` with tiny settings: the terrain
     from lola_ldem256_north, the real crops from wac_north."""

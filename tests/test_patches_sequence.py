@@ -91,6 +91,7 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
     assert lms[0].diameter_km == pytest.approx(0.1 * footprint / 0.75 / 1000.0, rel=1e-9)
 
 
+@pytest.mark.integration
 def test_patches_fix_descent_frames_with_too_few_craters(tmp_path):
     """Two descent frames (67 and 55 km up: two map craters >= 10 km in view, no fix from craters) at 256 px:
     terrain patches (the appearance preset's default) fix both, every patch identification correct;

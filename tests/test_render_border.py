@@ -71,6 +71,7 @@ def _bowl_depth(item: dict) -> np.ndarray:
     return t * (d @ pose.forward)
 
 
+@pytest.mark.integration
 def test_exr_size_and_content_position_at_every_paper_camera_elevation(paper_plans, tmp_path):
     near = cr.grid(TERRAIN_HALF_M, 641, lambda x, y: (x * x + y * y) / (2 * BOWL_RADIUS_M))
     npz = cr.write_npz(tmp_path / "bowl.npz", near)

@@ -182,6 +182,7 @@ def _marched_horizon(near, far, px, py, azimuth_deg):
     return np.arctan(best)
 
 
+@pytest.mark.integration
 def test_lit_mask_matches_brute_force_ray_marching(bowl):
     for it in bowl["items"]:
         img = exr.read_exr(str(bowl["out"] / it["rel_path"]))[0]

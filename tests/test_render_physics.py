@@ -180,6 +180,7 @@ def mesa_runs(tmp_path_factory):
     return runs
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("mode", ["direct", "fast"])
 def test_step_shadow_length(mesa_runs, mode):
     """The shadow of the plateau's edge ends h / tan(sun elevation) from it (within 2 px; measured
@@ -296,6 +297,7 @@ def crater_runs(tmp_path_factory):
     return runs
 
 
+@pytest.mark.integration
 def test_fast_matches_direct(crater_runs):
     assert 'fallbacks": 0' in crater_runs["fast"]["stderr"]
     for it in crater_runs["direct"]["items"]:
@@ -316,6 +318,7 @@ def test_fast_matches_direct(crater_runs):
         assert np.mean(np.abs(a["N.Z"] - b["N.Z"])) < 2e-3
 
 
+@pytest.mark.integration
 def test_crater_renders_have_shadows_and_light(crater_runs):
     for it in crater_runs["direct"]["items"]:
         lit = _load(crater_runs["direct"]["out"], it)["lit"]

@@ -294,6 +294,7 @@ window.addEventListener('load', function () {
 </script>"""
 
 
+@pytest.mark.integration
 def test_report_page_loads_in_chromium(tmp_path):
     import time
 

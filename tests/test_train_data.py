@@ -177,6 +177,7 @@ def test_cache_index_records_its_key(toy, tmp_path):
     assert meta["key"].startswith("crops-" + schema.manifest_digest(load_rows(toy)))
 
 
+@pytest.mark.integration
 def test_cache_built_by_worker_processes_equals_the_serial_build(toy, tmp_path, monkeypatch):
     """Large caches are built by a process pool (chunks of rows, each writing its slice of the
     memmap): the same array, and a bad file still ends the build with an error naming it."""

@@ -23,6 +23,8 @@ from crater_synth.config import load_settings
 from train.registry import MODELS
 from train.toydata import TOY_FRAME_SOURCE, write_toy_dataset, write_toy_frames
 
+pytestmark = pytest.mark.integration  # end-to-end: make test-integration
+
 torch.set_num_threads(1)
 CRATERS = ["shackleton", "de_gerlache", "shoemaker"]
 # Class-mean accuracy each model must reach (chance: 1/3). Measured with these settings: LunarNet_ex

@@ -193,6 +193,7 @@ def scripted(monkeypatch, tmp_path):
     return scripted
 
 
+@pytest.mark.integration
 def test_protocol_trains_every_group_and_seed_and_reports_test_apart(scripted, tmp_path):
     res = v.run_validation(scripted.overrides, progress=False)
     assert len(scripted.calls) == 6  # 3 groups x 2 seeds
@@ -216,6 +217,7 @@ def test_protocol_trains_every_group_and_seed_and_reports_test_apart(scripted, t
     assert len(scripted.calls) == 12
 
 
+@pytest.mark.integration
 def test_holdout_groups_are_reported_apart_and_never_averaged_into_the_validation_mean(scripted, tmp_path):
     plain = v.run_validation(scripted.overrides, progress=False)
     assert plain["summary"]["holdout_mean"]["lunarnet_ex"] is None
@@ -231,6 +233,7 @@ def test_holdout_groups_are_reported_apart_and_never_averaged_into_the_validatio
     assert "holdout" in (tmp_path / "val" / v.CSV_FILE).read_text()
 
 
+@pytest.mark.integration
 def test_an_evaluation_only_change_evaluates_the_saved_models_again(scripted, tmp_path):
     """Changing only how the models are evaluated (train.tta_rotations) re-evaluates every finished run
     without training it again; the numbers are the new evaluation's."""

@@ -24,6 +24,9 @@ TINY = (
     "render.workers=1",
 )
 
+# The smoke sweep with two camera elevations: 1 x 2 x 2 x 2 = 8 renders.
+EIGHT = ("sweep.cam_elevation.count=2",)
+
 
 # A nav-frames trajectory frame at tiny settings (64 px, fast mode, one sample, no sub-DEM detail): seconds.
 TINY_NAV = (
