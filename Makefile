@@ -108,7 +108,7 @@ navigate-demo: setup ## Crater navigation on a few real mosaic windows: three de
 
 NAV_FRAMES_DEMO_DIR ?= outputs/navigate-frames-demo
 navigate-frames-demo: setup ## Rendered-frame navigation: 6 frames of the polar orbit arc (1 sample), appearance search and classical detector; the descent's last 5 frames with terrain patches; frames_eval*.json for the report, two annotated frames (~1 min)
-	$(CLI) nav-frames trajectory=polar_orbit_arc trajectory.frames=6 render.samples=1 --out $(NAV_FRAMES_DEMO_DIR)/frames $(OVERRIDES)
+	$(CLI) nav-frames experiment=navigation_demo --out $(NAV_FRAMES_DEMO_DIR)/frames $(OVERRIDES)
 	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/frames --json $(NAV_FRAMES_DEMO_DIR)/frames_eval.json
 	$(CLI) nav-frames-eval $(NAV_FRAMES_DEMO_DIR)/frames --json $(NAV_FRAMES_DEMO_DIR)/frames_eval_classical.json nav/preset=synthetic
 	$(CLI) navigate $(NAV_FRAMES_DEMO_DIR)/frames/frame_0002.exr --out $(NAV_FRAMES_DEMO_DIR)/frame_0002.png

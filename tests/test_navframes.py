@@ -633,6 +633,12 @@ def test_frame_commands_default_to_a_one_sample_gbuffer_unless_told_the_samples(
     own = load_settings(frame_overrides(["render.gbuffer_samples=8"])).render
     assert own.gbuffer_samples == 8
     assert frame_overrides(("+render.samples=2",)) == ["+render.samples=2"]
+    # A preset that sets render.samples decides as those overrides would: the navigation demo's preset
+    # renders what its spelled-out overrides render.
+    preset = load_settings(frame_overrides(["experiment=navigation_demo"])).as_dict()
+    spelled = ["trajectory=polar_orbit_arc", "trajectory.frames=6", "render.samples=1"]
+    assert preset == load_settings(frame_overrides(spelled)).as_dict()
+    assert frame_overrides(["experiment=demo"])[0] == "render.gbuffer_samples=1"  # sets no render samples
 
 
 def test_recorded_frame_settings_name_the_gbuffer_samples_the_frames_were_rendered_with(tmp_path):

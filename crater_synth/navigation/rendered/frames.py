@@ -42,6 +42,7 @@ from types import SimpleNamespace
 
 import click
 import numpy as np
+import yaml
 
 from blender_gen.fast import ensure_horizons, horizon_cache_dir
 from crater_core import exr, geometry, schema
@@ -59,6 +60,7 @@ from crater_synth.errors import ConfigError, UserError
 from crater_synth.navigation.georef import pole_of
 from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
 from crater_synth.navigation.rendered.labels import FRAME_LABEL_VERSION, landmarks_in_view
+from crater_synth.paths import CONFIG_DIR
 from crater_synth.terrain.patch import build_terrain
 
 PATCH_MARGIN = 1.1  # near-field half-width / footprint half-width: terrain relief and rounding stay inside
@@ -84,12 +86,26 @@ FRAME_GBUFFER_SAMPLES = 1
 def frame_overrides(overrides) -> list[str]:
     """The overrides a navigation-frame command composes: ``render.gbuffer_samples=1``
     (:data:`FRAME_GBUFFER_SAMPLES`) ahead of the user's own, unless those set ``render.samples`` or
-    ``render.gbuffer_samples`` (then they alone decide, as in every documented frame command)."""
+    ``render.gbuffer_samples``, themselves or through the ``experiment=`` preset they name (then they alone
+    decide, as in every documented frame command)."""
     overrides = list(overrides)
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    for o in overrides:
+        key, _, name = o.lstrip("+").partition("=")
+        if key == "experiment":
+            keys |= experiment_render_keys(name)
     if keys & {"render.samples", "render.gbuffer_samples"}:
         return overrides
     return [f"render.gbuffer_samples={FRAME_GBUFFER_SAMPLES}"] + overrides
+
+
+def experiment_render_keys(name: str) -> set[str]:
+    """The ``render.<key>`` settings an experiment preset (``configs/experiment/<name>.yaml``) sets; none for
+    an unknown name (the composition then refuses it in one line)."""
+    path = CONFIG_DIR / "experiment" / f"{name}.yaml"
+    data = yaml.safe_load(path.read_text(encoding="utf-8")) if path.is_file() else None
+    render = (data or {}).get("render") or {}
+    return {f"render.{k}" for k in render}
 
 
 def frame_rel_path(index: int) -> str:
