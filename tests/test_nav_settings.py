@@ -3,6 +3,7 @@ is one module plus one YAML file (a toy detector added the way a newcomer would)
 
 from __future__ import annotations
 
+import re
 import textwrap
 
 import numpy as np
@@ -158,3 +159,14 @@ def test_a_detector_under_a_preset_is_one_line_and_null_drops_the_preset():
     assert (dropped.detector.method, dropped.preset) == ("template", None)
     kept = compose_nav([], defaults=["nav/preset=appearance"])
     assert (kept.detector.method, kept.preset) == ("appearance", "appearance")
+
+
+def test_the_detectors_page_lists_every_registered_detector_and_option():
+    """docs/navigation/detectors.md's table has one row per option of nav/detector, and names every detector
+    of the registry: a detector added as one module and one YAML shows up as a missing row here."""
+    from crater_synth.paths import SOURCE_ROOT
+
+    page = (SOURCE_ROOT / "docs" / "navigation" / "detectors.md").read_text(encoding="utf-8")
+    rows = set(re.findall(r"^\| `([a-z-]+)` \|", page, re.M))
+    assert rows == set(detector_options())
+    assert set(registry.detectors()) <= rows
