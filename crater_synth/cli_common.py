@@ -25,8 +25,25 @@ from crater_core.errors import ContractError
 from crater_core.files import os_error_text
 from crater_synth.errors import Interrupted, UserError
 
-OVERRIDES = click.argument("overrides", nargs=-1, metavar="[OVERRIDES]...")
 _EXIT_BAD_INPUT = 2
+
+
+def _one_run(ctx: click.Context, _param, overrides: tuple[str, ...]) -> tuple[str, ...]:
+    """Refuse Hydra's multirun (``key=a,b``, ``range(...)``, ...) while parsing, naming this command in
+    the shell loop that runs one value after another (composition refuses it too, for callers from Python)."""
+    from crater_synth.config import sweep_error  # Hydra's parser: imported when a command runs, not at --help
+
+    names, c = [], ctx
+    while c.parent is not None:  # the root's name is however the program was started; the project's is fixed
+        names.append(c.info_name)
+        c = c.parent
+    error = sweep_error(overrides, " ".join(["crater-synth", *reversed(names)]))
+    if error:
+        _fail(error)
+    return overrides
+
+
+OVERRIDES = click.argument("overrides", nargs=-1, metavar="[OVERRIDES]...", callback=_one_run)
 
 
 def warn(message: str) -> None:

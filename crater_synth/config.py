@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import re
+import shlex
 import typing
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
@@ -66,6 +67,7 @@ __all__ = [
     "one_line_config_error",
     "resolved",
     "settings_from",
+    "sweep_error",
 ]
 
 
@@ -151,6 +153,7 @@ def register_schemas() -> None:
 def compose_settings(overrides: Sequence[str] = (), config_name: str = "config") -> tuple[DictConfig, Settings]:
     """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``) and
     validate it: ``(DictConfig, Settings)``. Any bad value or unknown key is a :class:`ConfigError`."""
+    refuse_sweeps(overrides)
     overrides = [f"+{o}" if o.partition("=")[0] in OPTIONAL_GROUPS else o for o in overrides]
     register_schemas()
     GlobalHydra.instance().clear()
@@ -169,6 +172,7 @@ def compose_plain(config_name: str | None, overrides: Sequence[str], config_dir=
     add with ``+group=option``) and the option each group took; the schemas must be in the ConfigStore
     already. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
 
+    refuse_sweeps(overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
@@ -188,6 +192,7 @@ def compose_group(group: str, cls: type, overrides: Sequence[str] = (), option: 
     with the overrides a command takes, all of them keys of that group (``nav.landmarks.workers=4``):
     a command with one group of settings refuses any other key. Errors: one :class:`ConfigError` line."""
 
+    refuse_sweeps(overrides)
     prefix = group.replace("/", ".")
     bad = [o for o in overrides if not o.lstrip("+~").startswith(prefix + ".")]
     if bad:
@@ -333,6 +338,40 @@ def _quoting_hint(msg: str, overrides: Sequence[str]) -> str | None:
                 f"for Hydra, e.g. \"{key}='{value}'\""
             )
     return None
+
+
+def sweep_error(overrides: Sequence[str], command: str = "crater-synth <command>") -> str | None:
+    """One line for the first override that asks for several values (``key=a,b``, ``range(...)``,
+    ``choice(...)``, ``glob(...)``, ...), i.e. Hydra's multirun, or None. A command runs one configuration,
+    so several values are several runs: the line spells out the shell loop over ``command`` with the
+    other overrides as typed. A list (``key=[a,b]``) or a quoted value holding a comma is one value."""
+    parser = OverridesParser.create()
+    overrides = list(overrides)
+    for i, o in enumerate(overrides):
+        try:
+            parsed = parser.parse_override(o)
+        except Exception:  # noqa: BLE001 - a grammar error is composition's to report, with its quoting hint
+            continue
+        if not parsed.is_sweep_override():
+            continue
+        try:  # choice and range sweeps can be listed; glob needs the group's options, interval is continuous
+            values = " ".join(shlex.quote(v) for v in parsed.sweep_string_iterator())
+        except HydraException:
+            values = "VALUE1 VALUE2"
+        run = [*map(shlex.quote, overrides[:i]), f"{o.partition('=')[0]}=$v", *map(shlex.quote, overrides[i + 1 :])]
+        return (
+            f"{o}: several values mean several runs, and a command runs one configuration: "
+            f"run one per value, e.g. for v in {values}; do {command} {' '.join(run)}; done "
+            f"(a list is key=[a,b]; a value holding a comma is quoted: \"key='a,b'\")"
+        )
+    return None
+
+
+def refuse_sweeps(overrides: Sequence[str], command: str = "crater-synth <command>") -> None:
+    """Raise :class:`ConfigError` with :func:`sweep_error`'s line when an override asks for several runs."""
+    error = sweep_error(overrides, command)
+    if error:
+        raise ConfigError(error)
 
 
 def _user_options(group: str, listed: list[str] | None) -> list[str]:

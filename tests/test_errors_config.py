@@ -90,3 +90,53 @@ def test_schema_names_are_not_offered_as_options(tmp_path):
     assert result.stderr.splitlines() == [
         "error: unknown render 'fancy' (override render=fancy): choose one of cycles_cpu"
     ]
+
+
+SWEEPS = {
+    "comma-list": (["sweep=smoke,demo"], "smoke demo", "sweep=$v"),
+    "range": (["render.samples=range(1,3)"], "1 2", "render.samples=$v"),
+    "choice": (["sweep=choice(smoke,demo)"], "smoke demo", "sweep=$v"),
+    "glob": (["crater=glob(s*)"], "VALUE1 VALUE2", "crater=$v"),
+}
+
+
+@pytest.mark.parametrize("overrides, values, swept", SWEEPS.values(), ids=SWEEPS.keys())
+def test_several_values_name_the_loop_that_runs_them(tmp_path, overrides, values, swept):
+    """Hydra's multirun is not this CLI's: one line with the shell loop (this command, the other
+    overrides as typed), exit 2, nothing written -- not Hydra's hint to add a --multirun we have no option for."""
+    result, out = _dataset(tmp_path, *overrides)
+    assert result.exit_code == 2, (result.stdout, result.stderr)
+    [line] = result.stderr.splitlines()
+    rest = " ".join([*TINY, f"data_dir={tmp_path}/data", f"out_dir={out}"])
+    assert line.startswith(f"error: {overrides[0]}: several values mean several runs"), line
+    assert f"for v in {values}; do crater-synth dataset {rest} {swept}; done" in line, line
+    assert "--multirun" not in line
+    assert not out.exists() and not (tmp_path / "data").exists()
+
+
+def test_several_values_refused_from_python_too():
+    from crater_synth.config import ConfigError, load_settings
+
+    with pytest.raises(ConfigError, match=r"^sweep=smoke,demo: several values .* for v in smoke demo; do"):
+        load_settings(["sweep=smoke,demo"])
+
+
+@pytest.mark.parametrize(
+    "override, key, expected",
+    [
+        ("crater=[shackleton,faustini]", "craters", ["shackleton", "faustini"]),
+        ("sweep.sun_elevation.values=[5,10]", "sun", [5.0, 10.0]),
+        ("out_dir='/tmp/a,b'", "out_dir", "/tmp/a,b"),
+        ('out_dir="/tmp/c,d"', "out_dir", "/tmp/c,d"),
+    ],
+)
+def test_a_comma_inside_one_value_still_composes(override, key, expected):
+    from crater_synth.config import compose
+
+    cfg = compose([override])
+    got = {
+        "craters": lambda: list(cfg.crater),
+        "sun": lambda: list(cfg.sweep.sun_elevation["values"]),
+        "out_dir": lambda: cfg.out_dir,
+    }[key]()
+    assert got == expected

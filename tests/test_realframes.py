@@ -5,6 +5,7 @@ bad frames give one clear error."""
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -228,3 +229,32 @@ def test_reference_grid_is_the_mosaic_grid(cfg):
     f = Frame("m", "m", mosaic.path, mosaic.image, CRS.from_proj4(grid.proj4), from_origin(-609600, 609600, 400, 400))
     u, v = reference_to_frame(grid, f, [1542.7, 10.0], [1539.5, 3000.0])
     assert np.allclose(u, [1542.7, 10.0], atol=1e-6) and np.allclose(v, [1539.5, 3000.0], atol=1e-6)
+
+
+def test_crops_leaving_the_frame_are_skipped_and_named(cfg, craters, tmp_path):
+    """A frame that holds Shackleton with little margin: the crops whose sigma box (with its offset and
+    roll) crosses the frame's edge are left out, one line each naming the frame, crop and crater; the
+    others are planned and the evaluation's test set is built from them."""
+    mosaic = load_mosaic(cfg.realset)
+    p = _reprojected(mosaic, tmp_path / "tight.tif", half_m=(14_000.0, 14_000.0), center=(9_400.0, -32_900.0))
+    entry = {"path": str(p), "frame_id": "tight", "craters": ("shackleton",)}
+    skipped: list[str] = []
+    crops, _ = plan_frames(_with_frames(cfg.realset, entry), craters, skipped=skipped)
+    assert crops and skipped, (len(crops), len(skipped))
+    assert len(crops) + len(skipped) == PER
+    for line in skipped:
+        assert re.fullmatch(
+            r"real frame 'tight' \(tight\.tif, \d+x\d+\): crop \d+ of shackleton \(sigma=[\d.]+, roll=-?[\d.]+\) "
+            r"spans pixels \[.*\], outside the frame: skipped",
+            line,
+        ), line
+    kept = {c.index for c in crops}
+    assert not kept & {int(re.search(r"crop (\d+) of", line).group(1)) for line in skipped}
+    # Without a list to collect them, each is a warning rather than lost.
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("always")
+        plan_frames(_with_frames(cfg.realset, entry), craters)
+    assert [str(w.message) for w in held] == skipped
+    # The evaluation's test set carries the lines (metrics.json: test_skipped_crops, test_skipped).
+    test = build_real_test_set(_frame_cfg(cfg, **entry), craters, CLASSES)
+    assert len(test.labels) == len(crops) and test.skipped == skipped

@@ -218,6 +218,8 @@ def evaluate_run(
             "train_images": int(summary.get("train_images", 0)),
             "val_images": int(summary.get("val_images", 0)),
             "test_images": int(len(test.labels)),
+            "test_skipped_crops": len(test.skipped),
+            "test_skipped": list(test.skipped),
             "test_sources": test.sources,
             "test_per_crater": {n: int(np.sum(test.labels == i)) for i, n in enumerate(class_names)},
             "limits": LIMITS_NOTE

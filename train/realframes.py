@@ -13,7 +13,9 @@ Checks, each one :class:`RealSetError` naming the frame, raised before anything 
 exists and decodes completely (a truncated file fails), it has a georeference (a CRS with an affine
 transform or ground control points; a raw camera frame has none), its CRS is the Moon's (semi-major
 axis within 1 % of 1737.4 km: an Earth or Mars CRS is refused), every crater asked for lies in the
-frame, and every crop lies inside the frame and on valid (not no-data) pixels.
+frame. A crop that leaves the frame or covers no-data pixels (a crater near the frame's edge: the
+protocol's largest sigma, offset and roll reach furthest) is skipped, not fatal: it is one line naming
+the frame, the crop and the crater, handed to the caller (the evaluation reports each and counts them).
 """
 
 from __future__ import annotations
@@ -157,8 +159,11 @@ def _local_map(grid: PolarGrid, frame: Frame, center: tuple[float, float], h: fl
     return np.array([fu[0], fv[0]]), jac
 
 
-def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], realset: RealsetSettings) -> list[RealCrop]:
-    """The protocol's crops of ``craters`` in ``frame``; every crater must lie in the frame."""
+def frame_crops(
+    frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], realset: RealsetSettings, skipped: list[str]
+) -> list[RealCrop]:
+    """The protocol's crops of ``craters`` in ``frame``; every crater must lie in the frame. A crop that
+    leaves the frame or covers no-data pixels is left out, with one line naming it appended to ``skipped``."""
     from train.preprocess import axes_extent, box_axes
 
     H, W = frame.shape
@@ -176,16 +181,14 @@ def frame_crops(frame: Frame, grid: PolarGrid, craters: Sequence[Mapping], reals
         centre, jac = _local_map(grid, frame, p.center, p.side / 2)
         axes = jac @ box_axes(p.side, p.side, p.rotation_deg)
         u0, v0, u1, v1 = axes_extent(centre, axes)
+        crop = f"{where}: crop {p.index} of {p.crater} (sigma={p.sigma}, roll={p.rotation_deg:.1f})"
         if u0 < 0 or v0 < 0 or u1 > W or v1 > H:
-            raise RealSetError(
-                f"{where}: crop {p.index} of {p.crater} (sigma={p.sigma}, roll={p.rotation_deg:.1f}) spans pixels "
-                f"[{u0:.1f}, {v0:.1f}, {u1:.1f}, {v1:.1f}], outside the frame"
-            )
+            skipped.append(f"{crop} spans pixels [{u0:.1f}, {v0:.1f}, {u1:.1f}, {v1:.1f}], outside the frame: skipped")
+            continue
         win = frame.image[int(math.floor(v0)) : int(math.ceil(v1)), int(math.floor(u0)) : int(math.ceil(u1))]
         if not np.all(np.isfinite(win)):
-            raise RealSetError(
-                f"{where}: crop {p.index} of {p.crater} (sigma={p.sigma}) covers no-data pixels of the frame"
-            )
+            skipped.append(f"{crop} covers no-data pixels of the frame: skipped")
+            continue
         out.append(
             RealCrop(
                 crater=p.crater,
@@ -213,9 +216,13 @@ def _frame_path(spec: str, data_dir: str | Path | None, where: str) -> Path:
 
 
 def plan_frames(
-    realset: RealsetSettings, craters: Sequence[Mapping], data_dir: str | Path | None = None
+    realset: RealsetSettings,
+    craters: Sequence[Mapping],
+    data_dir: str | Path | None = None,
+    skipped: list[str] | None = None,
 ) -> tuple[list[RealCrop], dict[str, np.ndarray]]:
-    """Crops and decoded images of every frame of ``realset.frames``.
+    """Crops and decoded images of every frame of ``realset.frames``; one line per crop left out (it
+    leaves its frame) is appended to ``skipped``, or warned (:mod:`warnings`) when no list is given.
 
     Each entry: ``path`` (a file, or ``product:<id>``), optional ``frame_id`` (default: the product
     id or the file stem), ``source`` (default: the frame id), ``band`` (default 1) and ``craters``
@@ -224,6 +231,7 @@ def plan_frames(
     by_name = {canonical_crater(c["name"]): c for c in craters}
     crops: list[RealCrop] = []
     images: dict[str, np.ndarray] = {}
+    left_out: list[str] = []
     for i, entry in enumerate(realset.frames):
         spec = entry.path.strip()
         where = f"realset.frames[{i}]"
@@ -243,8 +251,13 @@ def plan_frames(
                 raise RealSetError(
                     f"{where}: no selected crater ({', '.join(sorted(by_name))}) lies in frame {frame.frame_id!r}"
                 )
-        crops += frame_crops(frame, grid, sel, realset)
+        crops += frame_crops(frame, grid, sel, realset, left_out)
         images[str(frame.path)] = frame.image
+    if skipped is None:
+        for line in left_out:
+            warnings.warn(line, stacklevel=2)
+    else:
+        skipped += left_out
     return crops, images
 
 

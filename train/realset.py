@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -277,6 +277,7 @@ class RealTestSet:
     labels: np.ndarray  # (N,) int64 class indices
     crops: list[RealCrop]
     class_names: list[str]
+    skipped: list[str] = field(default_factory=list)  # one line per frame crop left out (it leaves its frame)
 
     @property
     def sources(self) -> list[str]:
@@ -291,10 +292,15 @@ class RealTestSet:
 
 
 def plan_real_crops(
-    rs: RealsetSettings, craters: Sequence[Mapping], class_names: Sequence[str], data_dir: str | Path | None = None
+    rs: RealsetSettings,
+    craters: Sequence[Mapping],
+    class_names: Sequence[str],
+    data_dir: str | Path | None = None,
+    skipped: list[str] | None = None,
 ) -> tuple[list[RealCrop], dict]:
     """All crops of the real test set of ``realset`` (embedded mosaic, labels file and/or frames) plus the
-    loaded images by path; ``data_dir`` holds the data products that ``product:<id>`` paths name."""
+    loaded images by path; ``data_dir`` holds the data products that ``product:<id>`` paths name; the
+    frame crops left out (see :func:`train.realframes.plan_frames`) are appended to ``skipped``."""
     sigmas = list(rs.sigmas)
     crops: list[RealCrop] = []
     images: dict[str, np.ndarray] = {}
@@ -319,7 +325,7 @@ def plan_real_crops(
     if rs.frames:
         known = {canonical_crater(n) for n in class_names}
         sel = [c for c in craters if canonical_crater(c["name"]) in known]
-        frame_crops, frame_images = plan_frames(rs, sel, data_dir)
+        frame_crops, frame_images = plan_frames(rs, sel, data_dir, skipped)
         crops += frame_crops
         images.update(frame_images)
     if not crops:  # the settings refuse a realset with no source; this is none of the classes' crops
@@ -333,10 +339,11 @@ def build_real_test_set(
     """Cut, resample and normalise every real crop (same path as the synthetic images, no sensor model);
     ``pp``: the preprocessing (default: the configured one, :meth:`PreprocessConfig.from_settings`)."""
     pp = pp or PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
-    crops, images = plan_real_crops(settings.realset, craters, class_names, settings.data_dir)
+    skipped: list[str] = []
+    crops, images = plan_real_crops(settings.realset, craters, class_names, settings.data_dir, skipped)
     cls = {n: i for i, n in enumerate(class_names)}
     X = np.empty((len(crops), pp.size, pp.size), dtype=np.float32)
     for i, c in enumerate(crops):
         X[i] = preprocess_crop(images[c.image_path], c.box, pp, rotation_deg=c.rotation_deg, axes=c.axes)
     y = np.array([cls[c.crater] for c in crops], dtype=np.int64)
-    return RealTestSet(X, y, crops, list(class_names))
+    return RealTestSet(X, y, crops, list(class_names), skipped)

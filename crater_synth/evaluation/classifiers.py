@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors, warn
 from crater_synth.config import load_settings
 from train.pipeline import evaluate_saved, train_and_evaluate
 from train.registry import MODELS
@@ -16,13 +16,16 @@ def _settings(overrides):
 
 
 def _report(metrics: dict, run_dir) -> None:
+    for line in metrics.get("test_skipped", []):
+        warn(line)
     for m in MODELS:
         r = metrics[m]
         val = "n/a" if r.get("val_accuracy") is None else f"{r['val_accuracy']:.3f}"
         click.echo(f"{m:12s} real accuracy {r['real_accuracy']:.3f}  (validation {val})")
+    skipped = metrics.get("test_skipped_crops", 0)
     click.echo(
         f"train images {metrics['train_images']}, real test images {metrics['test_images']} "
-        f"from {metrics['test_sources']}"
+        f"from {metrics['test_sources']}" + (f", {skipped} crops skipped (they leave their frame)" if skipped else "")
     )
     click.echo(f"note: {metrics['limits']}")
     click.echo(f"wrote {run_dir}/metrics.json")
