@@ -7,6 +7,7 @@ Both take the configuration as the typed, already validated :class:`crater_core.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 from crater_core.files import check_dir_path
 from crater_core.settings import Settings
@@ -42,11 +43,19 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
         return evaluate_run(settings, stage, progress, test=test)
 
 
-def evaluate_saved(settings: Settings, progress: bool | None = None) -> dict:
-    """Evaluate the models saved in ``run_dir``; the metrics files are published together (staged)."""
+def evaluate_saved(
+    settings: Settings, progress: bool | None = None, kept: Callable[[Path], None] | None = None
+) -> dict:
+    """Evaluate the models saved in ``run_dir``; the metrics files are published together (staged).
+    With ``kept`` the metrics files this replaces are kept in ``run_dir/previous/<UTC time>/``
+    (:func:`train.runs.keep_previous`) and ``kept`` is called with that folder (not when none existed)."""
     from train.evaluate import evaluate_run
 
     progress = settings.train.progress if progress is None else progress
     run_dir = Path(settings.run_dir)
-    with StagedRun(run_dir) as stage:
-        return evaluate_run(settings, run_dir, progress, out_dir=stage)
+    staged = StagedRun(run_dir, keep_previous=kept is not None)
+    with staged as stage:
+        metrics = evaluate_run(settings, run_dir, progress, out_dir=stage)
+    if kept is not None and staged.kept is not None:
+        kept(staged.kept)
+    return metrics

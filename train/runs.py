@@ -12,6 +12,11 @@ Each model file and the summary carry the run's id (``run_id``), the summary als
 model, and ``metrics.json`` the id of the run it evaluated. :func:`check_one_run` refuses a
 ``run_dir`` whose files are not all of one run (a crash between two renames, a model copied in by
 hand), so ``evaluate`` never combines the LunarNet_ex of one run with the SVMs of another.
+
+``evaluate`` keeps what it replaces (``StagedRun(..., keep_previous=True)``): the ``metrics.json``,
+``realset.jsonl`` and confusion PNGs already in ``run_dir`` move to ``run_dir/previous/<UTC time>/``
+(the time the old files were written; hard links where the file system allows, so the
+files appear there whole, under one folder rename, before the new ones replace them).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import shutil
 import socket
 import tempfile
 import uuid
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Mapping
 
@@ -31,6 +37,7 @@ from train.errors import ModelError
 
 STAGE_PREFIX, STAGE_SUFFIX = ".train-", ".tmp"
 SUMMARY_FILE = "train_summary.json"  # the run's record: published last
+PREVIOUS_DIR = "previous"  # where keep_previous puts the files a re-evaluation replaces
 
 
 def new_run_id() -> str:
@@ -82,13 +89,52 @@ def publish(stage: Path, run_dir: Path) -> list[str]:
     return names
 
 
+def keep_previous(stage: Path, run_dir: Path) -> Path | None:
+    """Put the files of ``run_dir`` that ``stage`` is about to replace into ``run_dir/previous/<stamp>/``
+    and return that folder (None when nothing would be replaced). ``<stamp>`` is the UTC time the
+    newest of them was written (``20250131T120000Z``; ``-2``, ``-3``... when taken). The folder is
+    filled under a hidden name and renamed once, so it is either whole or absent; the originals stay
+    in place (hard links, else copies) until :func:`publish` replaces them."""
+    old = [run_dir / f.name for f in sorted(stage.iterdir()) if f.is_file() and (run_dir / f.name).is_file()]
+    if not old:
+        return None
+    previous = run_dir / PREVIOUS_DIR
+    previous.mkdir(exist_ok=True)
+    written = max(p.stat().st_mtime for p in old)
+    stamp = datetime.fromtimestamp(written, timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    tmp = Path(tempfile.mkdtemp(prefix=".keep-", suffix=STAGE_SUFFIX, dir=previous))
+    try:
+        for p in old:
+            try:
+                os.link(p, tmp / p.name)
+            except OSError:  # a file system without hard links
+                shutil.copy2(p, tmp / p.name)
+        n = 1
+        while True:
+            target = previous / (stamp if n == 1 else f"{stamp}-{n}")
+            try:
+                os.rename(tmp, target)  # fails on an existing non-empty folder: never merges two
+                return target
+            except OSError:
+                if not target.exists():
+                    raise
+                n += 1
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 class StagedRun:
     """``with StagedRun(run_dir) as stage:`` write a run's files into ``stage``; they are published into
     ``run_dir`` when the block ends normally, dropped when it raises (``run_dir`` and the parents this
-    created are removed again if they are still empty). ``key`` names ``run_dir`` in errors."""
+    created are removed again if they are still empty). ``key`` names ``run_dir`` in errors. With
+    ``keep_previous`` the files publishing replaces are first kept (:func:`keep_previous`); ``kept``
+    is then their folder (None when there were none)."""
 
-    def __init__(self, run_dir: str | os.PathLike, key: str = "run_dir"):
+    def __init__(self, run_dir: str | os.PathLike, key: str = "run_dir", keep_previous: bool = False):
         self.run_dir, self.key = Path(run_dir), key
+        self.keep_previous = keep_previous
+        self.kept: Path | None = None
         self.created: list[Path] = []
         self.stage: Path | None = None
 
@@ -112,6 +158,8 @@ class StagedRun:
         ok = False
         try:
             if exc_type is None:
+                if self.keep_previous:
+                    self.kept = keep_previous(self.stage, self.run_dir)
                 publish(self.stage, self.run_dir)
                 ok = True
         finally:

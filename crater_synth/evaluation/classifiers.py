@@ -49,7 +49,13 @@ def train_command(overrides):
 @OVERRIDES
 @user_errors
 def evaluate_command(overrides):
-    """Evaluate the models saved in run_dir on the real test set (metrics.json, confusion PNGs)."""
+    """Evaluate the models saved in run_dir on the real test set (metrics.json, confusion PNGs).
+
+    The metrics files it replaces are kept in run_dir/previous/<UTC time they were written>/.
+    """
     settings = _settings(overrides)
-    metrics = evaluate_saved(settings)
+    kept: list = []
+    metrics = evaluate_saved(settings, kept=kept.append)
     _report(metrics, settings.run_dir)
+    for folder in kept:
+        click.echo(f"kept the previous metrics files in {folder}/")
