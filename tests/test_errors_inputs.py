@@ -162,12 +162,14 @@ def test_evaluate_refuses_a_damaged_checkpoint_in_one_line_and_runs_no_code_from
 def test_a_saved_checkpoint_loads_with_weights_only(tmp_path):
     """The checkpoint `crater-synth train` writes holds plain data only: weights_only loading accepts it."""
     from crater_synth.config import load_settings
-    from train.trainer import LunarNetEx, _epoch_record, load_lunarnet, save_lunarnet
+    from train.metrics import accuracy, class_mean_accuracy
+    from train.trainer import LunarNetEx, load_lunarnet, save_lunarnet
 
     settings = load_settings([])
     model = LunarNetEx(settings.model)
-    yv = np.array([0, 1, 1])
-    history = [_epoch_record(1, 2.5, 2, 3, 0.1, yv, np.array([0, 1, 0]), 0.0)]
+    yv, pv = np.array([0, 1, 1]), np.array([0, 1, 0])
+    # The history values as training records them (the metrics' own return types).
+    history = [{"epoch": 1, "val_accuracy": class_mean_accuracy(yv, pv), "val_accuracy_overall": accuracy(yv, pv)}]
     save_lunarnet(tmp_path, model.state_dict(), settings.model, ["a", "b"], settings, history, 1, 0.75, run_id="r")
     loaded, ck = load_lunarnet(tmp_path)
     assert ck["run_id"] == "r" and ck["history"] == history
