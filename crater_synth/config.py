@@ -153,6 +153,7 @@ def register_schemas() -> None:
 def compose_settings(overrides: Sequence[str] = (), config_name: str = "config") -> tuple[DictConfig, Settings]:
     """Compose ``configs/<config_name>.yaml`` with Hydra overrides (``key=value``, ``group=option``) and
     validate it: ``(DictConfig, Settings)``. Any bad value or unknown key is a :class:`ConfigError`."""
+    check_keys(overrides)
     refuse_sweeps(overrides)
     overrides = [f"+{o}" if o.partition("=")[0] in OPTIONAL_GROUPS else o for o in overrides]
     register_schemas()
@@ -167,11 +168,20 @@ def compose_settings(overrides: Sequence[str] = (), config_name: str = "config")
     return cfg, settings_from(cfg)
 
 
+def check_keys(overrides: Sequence[str]) -> None:
+    """One :class:`ConfigError` line for an override with nothing before its ``=`` (``=5``), which Hydra
+    itself fails on with a bare ValueError."""
+    for o in overrides:
+        key, eq, _ = o.lstrip("+~").partition("=")
+        if eq and not key.strip():
+            raise ConfigError(f"override {o!r} names no key: write key=value (e.g. render.samples=4)")
+
+
 def compose_plain(config_name: str | None, overrides: Sequence[str], config_dir=CONFIG_DIR) -> tuple[dict, dict]:
     """The resolved composition of ``<config_dir>/<config_name>.yaml`` (None: only the groups the overrides
     add with ``+group=option``) and the option each group took; the schemas must be in the ConfigStore
     already. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
-
+    check_keys(overrides)
     refuse_sweeps(overrides)
     GlobalHydra.instance().clear()
     try:

@@ -292,11 +292,13 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
     if not path.is_file():
         raise ModelError(f"no trained LunarNet_ex at {path}: run `crater-synth train` first (or set run_dir)")
     try:
-        ck = torch.load(path, map_location=device, weights_only=False)
+        ck = torch.load(path, map_location=device, weights_only=True)  # a user-supplied file: no pickled code
         model = LunarNetEx(ModelSettings.from_config(ck["model"], "model")).to(device)
         model.load_state_dict(ck["state_dict"])
     except (RuntimeError, KeyError, TypeError, SettingsError, pickle.UnpicklingError, EOFError) as exc:
-        raise ModelError(f"cannot load {path}: {exc}") from None
+        # torch's messages on a damaged file run to paragraphs: its first sentence names the fault.
+        why = str(exc).strip().split("\n")[0].split(". ")[0].rstrip(".")
+        raise ModelError(f"cannot load {path}: not a LunarNet_ex checkpoint ({type(exc).__name__}: {why})") from None
     model.eval()
     return model, ck
 

@@ -72,8 +72,9 @@ def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
             f"dataset {dataset_dir} has {len(parts)} unmerged manifest part(s) in {PARTS_DIR}/ (a run is going on or "
             "was killed): finish it with `crater-synth dataset` first"
         )
-    with open(manifest, encoding="utf-8") as fh:
-        n = sum(1 for line in fh if line.strip())
+    # Every row is read once before the export starts: a bad line (not UTF-8, not JSON, not a row) is one
+    # error naming it, and no shard is written from the rows above it.
+    n = sum(1 for _ in iter_rows(manifest, strict=True))
     if n == 0:
         raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
     return n, iter_rows(manifest, strict=True)
@@ -194,10 +195,6 @@ def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
         raise ExportError(
             f"dataset {dataset_dir}: no {MANIFEST_NAME} (render the frames with `crater-synth nav-frames`)"
         )
-    with open(manifest, encoding="utf-8", errors="replace") as fh:
-        n = sum(1 for line in fh if line.strip())
-    if n == 0:
-        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
 
     def gen() -> Iterator[dict]:
         # nav-frames writes its manifest once, atomically, sorted by frame index: file order is the stable order.
@@ -209,6 +206,10 @@ def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
                 raise ExportError(f"{manifest}:{lineno}: not a nav-frames row ({why})")
             yield row
 
+    # Every row is checked once before the export starts, so a bad line writes no shard (as for renders).
+    n = sum(1 for _ in gen())
+    if n == 0:
+        raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
     return n, gen()
 
 

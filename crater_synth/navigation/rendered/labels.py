@@ -41,6 +41,8 @@ FRAME_LABEL_VERSION = 3  # 2: labels carry occluded_rim_fraction; 3: rows record
 # detection on it not as false. Half: most of the ellipse must be in sight to fit it (an assumption, not
 # tuned: on the committed trajectories no label is past a quarter hidden).
 HIDDEN_RIM_MAX = 0.5
+# The fields every reader of a nav-frames row (evaluation, navigate, relabel, lost-in-space) looks up.
+FRAME_ROW_FIELDS = ("trajectory", "index", "rel_path", "sha256", "frame_origin", "pose", "landmarks")
 
 
 def hidden(label: dict) -> bool:
@@ -140,12 +142,26 @@ def frame_rows(frames_dir) -> list[dict]:
     if not manifest.is_file():
         raise UserError(f"{frames_dir}: no {schema.MANIFEST_NAME} (render with `crater-synth nav-frames` first)")
     rows = []
-    for n, line in enumerate(manifest.read_text(encoding="utf-8").splitlines(), 1):
-        if line.strip():
-            try:
-                rows.append(json.loads(line))
-            except ValueError:
-                raise UserError(f"{manifest} line {n}: not a JSON row") from None
+    for n, raw in enumerate(manifest.read_bytes().splitlines(), 1):
+        if not raw.strip():
+            continue
+        try:
+            row = json.loads(raw.decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise UserError(f"{manifest} line {n}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
+        except (ValueError, RecursionError):
+            raise UserError(f"{manifest} line {n}: not a JSON row") from None
+        if not isinstance(row, dict):
+            raise UserError(f"{manifest} line {n}: JSON but not a row (a JSON object)")
+        missing = [f for f in FRAME_ROW_FIELDS if f not in row]
+        if missing:
+            # A `crater-synth dataset` manifest is the likely mix-up: its rows name a crater and a path.
+            what = "a render dataset's row (`crater-synth dataset`)" if "crater" in row and "path" in row else "a row"
+            raise UserError(
+                f"{manifest} line {n}: {what} without the nav-frames field(s) {missing}: "
+                "not a `crater-synth nav-frames` manifest"
+            )
+        rows.append(row)
     if not rows:
         raise UserError(f"{manifest}: no frames")
     return rows
