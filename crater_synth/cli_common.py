@@ -23,6 +23,7 @@ import click
 
 from crater_core.errors import ContractError
 from crater_core.files import os_error_text
+from crater_synth.config import sweep_error
 from crater_synth.errors import Interrupted, UserError
 
 _EXIT_BAD_INPUT = 2
@@ -31,8 +32,6 @@ _EXIT_BAD_INPUT = 2
 def _one_run(ctx: click.Context, _param, overrides: tuple[str, ...]) -> tuple[str, ...]:
     """Refuse Hydra's multirun (``key=a,b``, ``range(...)``, ...) while parsing, naming this command in
     the shell loop that runs one value after another (composition refuses it too, for callers from Python)."""
-    from crater_synth.config import sweep_error  # Hydra's parser: imported when a command runs, not at --help
-
     names, c = [], ctx
     while c.parent is not None:  # the root's name is however the program was started; the project's is fixed
         names.append(c.info_name)
