@@ -196,7 +196,7 @@ def test_a_short_training_run_learns_to_find_shaded_craters():
 # ------------------------------------------------------------------------------------------------
 def fake_survey(root, tracks: int = 3, frames: int = 2):
     """Survey track directories as ``nav-frames`` writes them (I/F EXR + labelled manifest rows)."""
-    from crater_core import exr
+    from crater_core import exr, schema
 
     for t in range(tracks):
         d = root / f"track_{t:03d}"
@@ -207,6 +207,12 @@ def fake_survey(root, tracks: int = 3, frames: int = 2):
             exr.write_exr(d / rel, {"IF": img}, channel_names=("IF",))
             rows.append(
                 {
+                    # the fields every nav-frames row carries (rendered.labels.FRAME_ROW_FIELDS); training
+                    # reads the frame and its labels only
+                    "trajectory": f"survey_{t:03d}",
+                    "sha256": schema.sha256_file(d / rel),
+                    "frame_origin": {"lat": -85.0, "lon": 0.0, "h_m": 0.0},
+                    "pose": {},
                     "rel_path": rel,
                     "index": k,
                     "ground_sample_m": 800.0,
