@@ -157,15 +157,24 @@ def compose_settings(overrides: Sequence[str] = (), config_name: str = "config")
     refuse_sweeps(overrides)
     overrides = [f"+{o}" if o.partition("=")[0] in OPTIONAL_GROUPS else o for o in overrides]
     register_schemas()
+    cfg = hydra_config(config_name, overrides)
+    return cfg, settings_from(cfg)
+
+
+def hydra_config(
+    config_name: str | None, overrides: Sequence[str], config_dir=CONFIG_DIR, with_hydra: bool = False
+) -> DictConfig:
+    """Hydra's composition of ``<config_dir>/<config_name>.yaml`` with ``overrides`` (``with_hydra``: its
+    ``hydra`` node too), the one place Hydra is initialised: a bad value or an unknown key is one
+    :class:`ConfigError` line (its callers refuse an override with no key or several values first)."""
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            cfg = hydra_compose(config_name=config_name, overrides=overrides)
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            return hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=with_hydra)
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(one_line_config_error(exc, overrides)) from None
     finally:
         GlobalHydra.instance().clear()
-    return cfg, settings_from(cfg)
 
 
 def check_keys(overrides: Sequence[str]) -> None:
@@ -183,15 +192,8 @@ def compose_plain(config_name: str | None, overrides: Sequence[str], config_dir=
     already. Any bad value or unknown key is one :class:`ConfigError` line naming it."""
     check_keys(overrides)
     refuse_sweeps(overrides)
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
-            cfg = hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
-            choices = dict(cfg.hydra.runtime.choices)
-    except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(one_line_config_error(exc, overrides)) from None
-    finally:
-        GlobalHydra.instance().clear()
+    cfg = hydra_config(config_name, overrides, config_dir, with_hydra=True)
+    choices = dict(cfg.hydra.runtime.choices)
     OmegaConf.set_struct(cfg, False)
     cfg.pop("hydra")
     return resolved(cfg), choices

@@ -140,11 +140,7 @@ def nav_settings(plain: dict, choices: dict | None = None) -> NavSettings:
     try:
         return NavSettings(
             detector=registry.settings_from(plain.get("detector"), "nav.detector"),
-            fix=build(FixParams, plain.get("fix") or {}, "nav.fix"),
-            lost_in_space=build(LostInSpaceParams, plain.get("lost_in_space") or {}, "nav.lost_in_space"),
-            frames=build(FramesSettings, plain.get("frames") or {}, "nav.frames"),
-            landmarks=build(LandmarksSettings, plain.get("landmarks") or {}, "nav.landmarks"),
-            detector_train=build(DetectorTrainSettings, plain.get("detector_train") or {}, "nav.detector_train"),
+            **{group: build(cls, plain.get(group) or {}, f"nav.{group}") for group, cls in NAV_GROUPS.items()},
             choices={
                 "detector": choices.get("nav/detector"),
                 "lost_in_space": choices.get("nav/lost_in_space"),
