@@ -264,8 +264,9 @@ def robust_circle(x: np.ndarray, y: np.ndarray, min_tolerance: float, ransac: bo
     the RANSAC one is kept only when its circle has more than ``RANSAC_MARGIN`` times as many points
     within ``min_tolerance`` as the other. From all points alone the fit is pulled off the rim once about
     30 % of the points are outliers; the RANSAC start holds it to about half
-    (tests/test_robust_circle.py). Off by default: it moves some catalogue measurements (Idelson's
-    centre by kilometres), which the catalogue check has not yet been re-judged on.
+    (tests/test_robust_circle.py). Off by default: on real crests it locks onto a sub-arc where the plain
+    fit does not (the catalogue's Idel'son centre offset 0.029 -> 0.092 D, Scott's rim 1.023 -> 0.936 D;
+    the classical detector's rims: ``rim_ransac``, docs/history.md).
     """
     everything = np.ones(x.size, dtype=bool)
     cx, cy, r, inliers, tolerance = _refine_circle(x, y, everything, min_tolerance, False)

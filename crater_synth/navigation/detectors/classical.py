@@ -280,7 +280,7 @@ def detect(
     if params.refine:
         top = np.argsort(-score)[: params.max_candidates]
         u, v, r, score = u[top], v[top], r[top], score[top]
-        u, v, r, ok, quality = refine_rims(a, u, v, r, theta, params.rim_min_inliers)
+        u, v, r, ok, quality = refine_rims(a, u, v, r, theta, params.rim_min_inliers, params.rim_ransac)
         u, v, r, score, quality = u[ok], v[ok], r[ok], score[ok], quality[ok]
     keep = suppress(u, v, r, score, params.nms_centre_r, params.nms_radius_ratio)
     if params.concentric_r > 0:
@@ -297,16 +297,16 @@ RIM_RADII = np.linspace(0.5, 1.6, 45)  # radial search window, fractions of the 
 RIM_MIN_SUNWARD = 0.4  # |cos(azimuth - light)| below this: the rim runs along the light, no edge to see
 
 
-def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
+def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float, ransac: bool = False):
     """Rim circles fitted to the shadow and lit-limb edges around each filter maximum.
 
     Along a ray from the centre towards the Sun, the rim is where the shadow ends and the lit outer
     flank begins (the strongest outward *rise* of intensity); along a ray away from the Sun it is where
     the bright limb ends (the strongest outward *fall*). Rays across the light carry no such edge and are
     skipped. A robust circle through these edge points (``crater_synth.terrain.catalogue.robust_circle``, the
-    same fit the DEM rims use) gives the centre and radius. Returns (u, v, r, ok, quality): ``ok`` False
-    where fewer than ``min_inliers`` of the edge points lie on one circle or the circle is implausible;
-    ``quality`` the share of edge points on the circle.
+    same fit the DEM rims use; with ``ransac`` from a RANSAC start too) gives the centre and radius.
+    Returns (u, v, r, ok, quality): ``ok`` False where fewer than ``min_inliers`` of the edge points lie
+    on one circle or the circle is implausible; ``quality`` the share of edge points on the circle.
     """
     from scipy.ndimage import gaussian_filter, map_coordinates
 
@@ -331,7 +331,7 @@ def refine_rims(a: np.ndarray, u, v, r, theta: float, min_inliers: float):
     ok = np.zeros(n, bool)
     quality = np.zeros(n)
     for i in range(n):
-        centre, rad, inl, _ = robust_circle(ex[i], ey[i], 0.05 * r[i])
+        centre, rad, inl, _ = robust_circle(ex[i], ey[i], 0.05 * r[i], ransac=ransac)
         quality[i] = inl.mean()
         if inl.mean() >= min_inliers and 0.6 * r[i] <= rad <= 1.5 * r[i] and np.hypot(*centre) <= 0.5 * r[i]:
             out_u[i], out_v[i], out_r[i] = u[i] + centre[0], v[i] + centre[1], rad
