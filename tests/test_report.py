@@ -289,6 +289,11 @@ window.addEventListener('load', function () {
   d.textContent = 'IMGCHECK total=' + imgs.length + ' loaded=' + ok + ' broken=' + (imgs.length - ok) +
                   ' text=' + document.body.innerText.trim().length +
                   ' sections=' + document.querySelectorAll('section').length;
+  // Tables wider than their box at this window size: a reader must scroll sideways to see them whole.
+  var wide = Array.prototype.slice.call(document.querySelectorAll('.tablewrap')).filter(function (w) {
+    return w.scrollWidth > w.clientWidth + 1; }).map(function (w) {
+    var t = w.querySelector('table'); return (t && t.className) || 'table'; });
+  d.textContent += ' wide=' + wide.length + ' [' + wide.join(',') + ']';
   document.body.appendChild(d);
 });
 </script>"""
@@ -341,16 +346,25 @@ def test_report_page_loads_in_chromium(tmp_path):
     check.write_text(text.replace("</body>", CHECK_SCRIPT + "</body>"))
     try:
         out = subprocess.run(
-            [*_chromium_args(exe, tmp_path / "profile"), "--virtual-time-budget=10000", "--dump-dom", check.as_uri()],
+            [
+                *_chromium_args(exe, tmp_path / "profile"),
+                "--window-size=1400,1000",
+                "--virtual-time-budget=10000",
+                "--dump-dom",
+                check.as_uri(),
+            ],
             capture_output=True,
             text=True,
             timeout=60,
         )
     finally:
         check.unlink()
-    m = re.search(r"IMGCHECK total=(\d+) loaded=(\d+) broken=(\d+) text=(\d+) sections=(\d+)", out.stdout)
+    m = re.search(
+        r"IMGCHECK total=(\d+) loaded=(\d+) broken=(\d+) text=(\d+) sections=(\d+) wide=(\d+) \[(.*?)\]", out.stdout
+    )
     assert m, f"chromium printed no check line; stderr: {out.stderr[-2000:]}"
-    total, loaded, broken, chars, sections = map(int, m.groups())
+    total, loaded, broken, chars, sections, wide = map(int, m.groups()[:6])
+    assert wide == 0, f"tables clipped at a 1400 px window: {m.group(7)}"
     assert total == len(srcs) and loaded == total and broken == 0, m.group(0)
     assert chars > 2000 and sections == 9
     # Not blank: a screenshot of the top of the page has real contrast.
