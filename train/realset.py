@@ -124,10 +124,11 @@ def load_mosaic(realset: RealsetSettings) -> Mosaic:
     return Mosaic(product_id, path, img, extent, pixel, radius, pole)
 
 
-def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
+def read_gray(path: str | Path, keep_uint8: bool = False, max_pixels: int | None = None) -> np.ndarray:
     """Read any image OpenImageIO understands as a 2-D array (mean of the colour channels).
     8-bit files stay uint8 when ``keep_uint8``; everything else becomes float32 (integers scaled to
-    [0, 1] by their full range -- a pure scale, which the normalisation undoes)."""
+    [0, 1] by their full range -- a pure scale, which the normalisation undoes). An image of more than
+    ``max_pixels`` is refused from its header, before anything is decoded."""
     path = Path(path)
     if not path.is_file():
         raise RealSetError(f"real image {path} does not exist")
@@ -136,6 +137,10 @@ def read_gray(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
         raise RealSetError(f"cannot read real image {path}: {oiio.geterror()}")
     try:
         spec = inp.spec()
+        if max_pixels is not None and spec.width * spec.height > max_pixels:
+            raise RealSetError(
+                f"real image {path} is {spec.width} x {spec.height} px, more than the {max_pixels} px read at once"
+            )
         native8 = spec.format == oiio.TypeDesc(oiio.UINT8)
         fmt = oiio.UINT8 if (keep_uint8 and native8) else oiio.FLOAT
         data = inp.read_image(0, 0, 0, min(spec.nchannels, 3), fmt)

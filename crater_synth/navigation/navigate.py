@@ -189,12 +189,48 @@ def check_window_request(request: NavigateRequest, nav) -> None:
         )
 
 
+# Map metres per pixel a frame may claim: from a descent camera's decimetres to a whole-pole overview.
+PIXEL_M_RANGE = (0.1, 20_000.0)
+# The largest frame navigate reads: a 16384^2 PNG took 6 GB, so 8192^2 (about 1.5 GB) is the bound; cut a
+# larger image into windows.
+MAX_FRAME_PIXELS = 8192 * 8192
+
+
+def parse_prior(text: str, pole: str) -> tuple[float, float]:
+    """(lat, lon) of ``--prior LAT,LON``: finite degrees, latitude within +-90 and on ``pole``'s side."""
+    try:
+        lat, lon = (float(p) for p in text.split(","))
+    except ValueError:
+        raise UserError(f"--prior {text!r}: expected LAT,LON in degrees") from None
+    if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90.0):
+        raise UserError(f"--prior {text!r}: latitude must be within +-90 degrees and both finite")
+    if (lat < 0.0) != (pole == "south"):
+        raise UserError(f"--prior {text!r}: latitude {lat:g} is not on the {pole} pole's side (the frame's pole)")
+    return lat, lon
+
+
+def check_window_values(request: NavigateRequest) -> None:
+    """The numbers and paths of a map window's options: one error line each, before any work."""
+    lo, hi = PIXEL_M_RANGE
+    if request.pixel_m is not None and not (math.isfinite(request.pixel_m) and lo <= request.pixel_m <= hi):
+        raise UserError(f"--pixel-m {request.pixel_m}: map metres per pixel, finite, in [{lo:g}, {hi:g}]")
+    if request.light_azimuth is not None and not math.isfinite(request.light_azimuth):
+        raise UserError(f"--light-azimuth {request.light_azimuth}: degrees, finite")
+    inputs = {request.image, request.image.with_name(request.image.name + ".geo.json")}
+    if request.map_path is not None:
+        inputs.add(request.map_path)
+    inputs = {p.resolve() for p in inputs}
+    for out in (request.out, request.out.with_suffix(".json")):
+        if out.resolve() in inputs:
+            raise UserError(f"--out {request.out}: it would overwrite the input {out} (give another file)")
+
+
 def read_window(image: Path):
     """(image, its georeference or None) of a map window."""
     from train.realset import read_gray  # pulls scipy
 
     try:
-        img = read_gray(image)
+        img = read_gray(image, max_pixels=MAX_FRAME_PIXELS)
     except RealSetError as exc:
         raise FrameError(str(exc)) from None
     check_frame(img, str(image))
@@ -207,10 +243,7 @@ def window_prior(request: NavigateRequest, img, truth, landmarks, pole: str, pix
     h, w = img.shape[:2]
     prior_g: Georef | None = None
     if request.prior is not None:
-        try:
-            lat, lon = (float(p) for p in request.prior.split(","))
-        except ValueError:
-            raise UserError(f"--prior {request.prior!r}: expected LAT,LON in degrees") from None
+        lat, lon = parse_prior(request.prior, pole)
         prior_g = Georef.centred_on(pole, *stereo_forward(lat, lon, pole), img.shape, pixel)
     elif not request.lost_in_space:
         assert truth is not None
@@ -237,8 +270,11 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
 
     patches = nav.appearance if request.patches is None else request.patches
     if not nav.appearance:
-        dets, theta = detect(img, nav.detector, light_dir=light, what=str(request.image))
-        fix = vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, nav.fix)
+
+        def fit(dets):
+            return vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, nav.fix)
+
+        dets, theta, fix = either_light_fix(img, nav.detector, light, fit, str(request.image))
         return dets, theta, fix, landmarks, "craters"
     assert light is not None
     if prior_g is None:
@@ -255,6 +291,43 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
         prior_g = Georef.centred_on(request.pole, coarse.x_m, coarse.y_m, img.shape, pixel)
     args = (request.sun_elevation, nav.detector, nav.fix, patches)
     return appearance_window_fix(img, prior_g, landmarks, light, *args)
+
+
+# A frame's light estimate can read 180 degrees wrong (a crater's lit wall and its shadow swap); the detector
+# then shifts every centre against the light and the fix can still find 6-7 landmarks at ~2 px, 3-4 km off.
+# Run with the opposite light too, and of two fixes further apart than LIGHT_AGREEMENT_KM keep the one with at
+# least LIGHT_SUPPORT_RATIO times the other's landmarks; closer support is no fix. On 240 off-grid south
+# validation windows the right fix had 1.5-3 x the wrong one's landmarks in all 75 frames both lights fixed
+# (docs/history.md). A fix found only with the opposite light is not taken: 1 of those 15 was false.
+LIGHT_AGREEMENT_KM = 1.0  # two fixes of one place agree to their own error (median 0.4-0.5 km there)
+LIGHT_SUPPORT_RATIO = 1.4
+
+
+def either_light_fix(img, dparams, light: float | None, fit, what: str):
+    """(detections, light azimuth, fix) of a frame's craters. With the light given, its fix. With the light
+    estimated on the frame, the detector and the fix run with the opposite light too; of two disagreeing
+    fixes the one with clearly more landmarks is kept, and neither when their support is close (the reason
+    says to give ``--light-azimuth``)."""
+    dets, theta = detect(img, dparams, light_dir=light, what=what)
+    fix = fit(dets)
+    if light is not None or math.isnan(theta) or not fix.ok:
+        return dets, theta, fix
+    flipped = (theta + math.pi) % (2.0 * math.pi)
+    dets_f, _ = detect(img, dparams, light_dir=flipped, what=what)
+    fix_f = fit(dets_f)
+    if not fix_f.ok or math.hypot(fix.x_m - fix_f.x_m, fix.y_m - fix_f.y_m) <= LIGHT_AGREEMENT_KM * 1000.0:
+        return dets, theta, fix
+    n, n_f = len(fix.inliers), len(fix_f.inliers)
+    if n >= LIGHT_SUPPORT_RATIO * n_f:
+        return dets, theta, fix
+    if n_f >= LIGHT_SUPPORT_RATIO * n:
+        return dets_f, flipped, fix_f
+    apart_km = math.hypot(fix.x_m - fix_f.x_m, fix.y_m - fix_f.y_m) / 1000.0
+    reason = (
+        f"the light estimated on the frame ({math.degrees(theta):.0f} deg, {n} landmarks) and its opposite "
+        f"({n_f} landmarks) fix it {apart_km:.1f} km apart: give --light-azimuth"
+    )
+    return dets, theta, dataclasses.replace(fix, ok=False, reason=reason)
 
 
 def window_result(request: NavigateRequest, nav, dets, theta: float, fix, landmarks, source: str) -> dict:
@@ -287,6 +360,7 @@ def navigate_map_window(request: NavigateRequest, overrides) -> dict:
     annotated PNG and the detections listing beside it."""
     nav = compose_nav(overrides, defaults=[f"nav/detector={WINDOW_DETECTOR}"])
     check_window_request(request, nav)
+    check_window_values(request)
     img, truth = read_window(request.image)
     if truth is None and request.prior is None and not request.lost_in_space:
         raise FrameError(
@@ -298,7 +372,9 @@ def navigate_map_window(request: NavigateRequest, overrides) -> dict:
     if pixel is None:
         raise FrameError(f"{request.image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
     request = dataclasses.replace(request, pole=pole)
-    landmarks, _ = read_map(request.map_path) if request.map_path else load_default_map(pole)
+    landmarks, provenance = read_map(request.map_path) if request.map_path else load_default_map(pole)
+    if provenance.get("pole", pole) != pole:
+        raise UserError(f"--map {request.map_path}: a map of the {provenance['pole']} pole for a {pole}-pole frame")
     prior_g = window_prior(request, img, truth, landmarks, pole, pixel)
     dets, theta, fix, landmarks, source = window_fix(request, nav, img, prior_g, landmarks, pixel)
     result = window_result(request, nav, dets, theta, fix, landmarks, source)
