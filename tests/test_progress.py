@@ -1,6 +1,7 @@
 """Logs: redirected to a file, progress is one newline-terminated line every few seconds with
 the rate and the ETA -- never a carriage return -- while a terminal keeps its tqdm bar; the training
-cache build reports progress even with `train.progress=false`."""
+cache build reports progress even with `train.progress=false`; verify, export, nav-eval and train's SVM
+and HOG stages report through the same class (a fake clock drives their lines, no sleeping)."""
 
 import io
 import os
