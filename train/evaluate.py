@@ -14,6 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
+from crater_core.progress import Progress
 from crater_core.schema import atomic_write_text
 from crater_core.settings import HogSettings, Settings, SettingsError
 from train.errors import ModelError
@@ -83,7 +84,15 @@ def _svm_scores(model, X: np.ndarray) -> np.ndarray:
 
 
 def roll_averaged_predictions(
-    net, svm_model, hog_model, hog_settings: HogSettings, images: np.ndarray, rolls: int, batch_size: int, device
+    net,
+    svm_model,
+    hog_model,
+    hog_settings: HogSettings,
+    images: np.ndarray,
+    rolls: int,
+    batch_size: int,
+    device,
+    progress: bool = False,
 ) -> dict[str, np.ndarray]:
     """Each model's predicted class (index into the class names) for every real crop.
 
@@ -91,7 +100,7 @@ def roll_averaged_predictions(
     model's scores (LunarNet_ex: softmax probabilities; the SVMs: decision values) are averaged over
     the crop turned by ``360 / rolls`` degree steps before the arg-max (test-time averaging over roll;
     disc-support crops only, which any turn keeps inside the box). ``rolls == 1`` is the plain
-    prediction of each model."""
+    prediction of each model. ``progress``: the turns done, with rate and ETA, on stderr."""
     from train.models import hog_features
     from train.preprocess import rotate_crop
 
@@ -102,6 +111,9 @@ def roll_averaged_predictions(
             "hog_svm": hog_model.predict(hog_features(images, hog_settings)),
         }
     scores: dict[str, np.ndarray | float] = dict.fromkeys(MODELS, 0.0)
+    bar = Progress(
+        int(rolls), f"evaluate: {len(images)} real crops, roll averaging", "turn", "auto" if progress else "off"
+    )
     for k in range(int(rolls)):
         x = images if k == 0 else rotate_crop(images, 360.0 * k / rolls)
         logits = predict_logits(net, x, batch_size, device).astype(np.float64)
@@ -110,6 +122,8 @@ def roll_averaged_predictions(
         scores["lunarnet_ex"] = scores["lunarnet_ex"] + p / p.sum(axis=1, keepdims=True)
         scores["lunarsvm_ex"] = scores["lunarsvm_ex"] + _svm_scores(svm_model, fc1)
         scores["hog_svm"] = scores["hog_svm"] + _svm_scores(hog_model, hog_features(x, hog_settings))
+        bar.update()
+    bar.close()
     return {
         "lunarnet_ex": np.asarray(scores["lunarnet_ex"]).argmax(axis=1),
         "lunarsvm_ex": np.asarray(svm_model.classes_)[np.asarray(scores["lunarsvm_ex"]).argmax(axis=1)],
@@ -202,7 +216,15 @@ def evaluate_run(
     rolls = settings.train.tta_rotations
     _check_roll_averaging(rolls, ck, run_dir)
     preds = roll_averaged_predictions(
-        net, svm["model"], hog["model"], _saved_hog(hog, run_dir / HOG_FILE, settings), test.images, rolls, ebs, device
+        net,
+        svm["model"],
+        hog["model"],
+        _saved_hog(hog, run_dir / HOG_FILE, settings),
+        test.images,
+        rolls,
+        ebs,
+        device,
+        progress,
     )
     vals = {
         "lunarnet_ex": ck.get("val_accuracy"),

@@ -13,7 +13,6 @@ import io
 import json
 import os
 import pickle
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -22,10 +21,12 @@ import joblib
 import numpy as np
 import torch
 import yaml
+from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
 from torch import nn
-from tqdm import tqdm
 
+from crater_core.progress import Progress
+from crater_core.progress import write as progress_write
 from crater_core.schema import atomic_write_bytes, atomic_write_text, sha256_file
 from crater_core.settings import ModelSettings, Settings, SettingsError, TrainSettings, replace
 from train.data import SyntheticCropDataset, SyntheticData, seeded_subsample
@@ -84,13 +85,16 @@ def _batches(X, batch_size: int):
 
 
 @torch.no_grad()
-def _apply(fn, X, batch_size: int, device, width: int) -> tuple[np.ndarray, np.ndarray | None]:
+def _apply(fn, X, batch_size: int, device, width: int, bar: Progress | None = None):
+    """(outputs, labels or None) of ``fn`` over the batches of ``X``, counted on ``bar`` (images)."""
     out, labels = [], []
     for xb, yb in _batches(X, batch_size):
         t = torch.from_numpy(np.ascontiguousarray(xb, dtype=np.float32))[:, None].to(device)
         out.append(fn(t).float().cpu().numpy())
         if yb is not None:
             labels.append(yb)
+        if bar is not None:
+            bar.update(len(xb))
     res = np.concatenate(out) if out else np.zeros((0, width), np.float32)
     return res, (np.concatenate(labels) if labels else None)
 
@@ -101,31 +105,28 @@ def predict_logits(model: LunarNetEx, X, batch_size: int = 256, device=torch.dev
     return _apply(model, X, batch_size, device, model.geometry["nc"])[0]
 
 
-def fc1_activations(model: LunarNetEx, X, batch_size: int = 256, device=torch.device("cpu")) -> np.ndarray:
-    """FC1 (after ReLU3) activations for an array or a dataset (streamed)."""
+def fc1_activations(
+    model: LunarNetEx, X, batch_size: int = 256, device=torch.device("cpu"), bar: Progress | None = None
+) -> np.ndarray:
+    """FC1 (after ReLU3) activations for an array or a dataset (streamed), counted on ``bar``."""
     model.eval()
-    return _apply(model.fc1_features, X, batch_size, device, model.geometry["f1"])[0]
+    return _apply(model.fc1_features, X, batch_size, device, model.geometry["f1"], bar)[0]
 
 
 # ------------------------------------------------------------------------------------------------
 # LunarNet_ex
 # ------------------------------------------------------------------------------------------------
-def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int, max_epochs: int, device, bar_on: bool):
-    """One pass of Adam over the training set: (summed loss, correct, images seen, seconds)."""
+def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int, max_epochs: int, device, mode: str):
+    """One pass of Adam over the training set: (summed loss, correct, images seen, seconds). Its batches
+    are counted on a :class:`Progress` of ``mode`` (a bar erased at the epoch's end on a terminal)."""
 
     train_set.set_epoch(epoch)
     model.train()
     tot_loss, tot_ok, tot_n = 0.0, 0, 0
     t0 = time.perf_counter()
-    # The batch bar on a terminal only: in a log, the epoch summary line is the progress.
-    bar = tqdm(
-        _loader(train_set, bs, True, seed + epoch),
-        desc=f"lunarnet_ex epoch {epoch}/{max_epochs}",
-        unit="batch",
-        disable=not bar_on,
-        leave=False,
-    )
-    for xb, yb in bar:
+    loader = _loader(train_set, bs, True, seed + epoch)
+    bar = Progress(len(loader), f"lunarnet_ex epoch {epoch}/{max_epochs}", "batch", mode, leave=False)
+    for xb, yb in loader:
         xb, yb = xb.to(device, non_blocking=True), yb.to(device, non_blocking=True)
         opt.zero_grad(set_to_none=True)
         logits = model(xb)
@@ -137,7 +138,7 @@ def _train_epoch(model, opt, loss_fn, train_set, bs: int, seed: int, epoch: int,
         tot_ok += int((logits.argmax(1) == yb).sum().item())
         tot_n += n
         rate = tot_n / max(time.perf_counter() - t0, 1e-9)
-        bar.set_postfix(loss=f"{tot_loss / tot_n:.3f}", acc=f"{tot_ok / tot_n:.3f}", img_s=f"{rate:.0f}")
+        bar.update(loss=f"{tot_loss / tot_n:.3f}", acc=f"{tot_ok / tot_n:.3f}", img_s=f"{rate:.0f}")
     bar.close()
     return tot_loss, tot_ok, tot_n, time.perf_counter() - t0
 
@@ -207,10 +208,10 @@ def train_lunarnet(
     train_time = 0.0
     images_seen = 0
     reached_at = None
-    bar_on = progress and sys.stderr.isatty()
+    mode = "auto" if progress else "off"
     for epoch in range(1, max_epochs + 1):
         tot_loss, tot_ok, tot_n, dt = _train_epoch(
-            model, opt, loss_fn, data.train, bs, seed, epoch, max_epochs, device, bar_on
+            model, opt, loss_fn, data.train, bs, seed, epoch, max_epochs, device, mode
         )
         train_time += dt
         images_seen += tot_n
@@ -219,7 +220,7 @@ def train_lunarnet(
         val_acc = rec["val_accuracy"]
         history.append(rec)
         if progress:
-            tqdm.write(
+            progress_write(
                 f"lunarnet_ex epoch {epoch}: loss {rec['loss']:.4f} train acc {rec['train_accuracy']:.3f} "
                 f"val acc (class mean) {val_acc:.3f} [{rec['images_per_s']:.0f} img/s]"
             )
@@ -308,7 +309,10 @@ def load_lunarnet(run_dir: str | Path, device=torch.device("cpu")) -> tuple[Luna
 # ------------------------------------------------------------------------------------------------
 def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progress: bool = True) -> dict:
     """Fit LunarSVM_ex (FC1 activations) and the HOG+SVM baseline on the synthetic training images
-    (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies."""
+    (deterministic: no augmentation, epoch-0 sensor noise); report class-balanced validation accuracies.
+
+    ``progress``: the features are counted per crop (rate, ETA) and each fit, which scikit-learn cannot
+    report from inside, is a stage with an estimated duration (:func:`fit_svm`)."""
     require_synthetic(data.train)
     require_synthetic(data.val)
     ts = settings.train
@@ -316,11 +320,16 @@ def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progr
     device = next(model.parameters()).device
     ebs = ts.eval_batch_size
     yt, yv = data.train.labels, data.val.labels
+    mode = "auto" if progress else "off"
     out = {}
     t0 = time.perf_counter()
     svm = make_linear_svm(ts.svm, seed)
-    conv = _fit_quiet(svm, fc1_activations(model, data.train, ebs, device), yt)
-    pv = svm.predict(fc1_activations(model, data.val, ebs, device))
+    with Progress(len(data.train), "lunarsvm_ex: FC1 features of the training crops", "crop", mode) as bar:
+        Ft = fc1_activations(model, data.train, ebs, device, bar)
+    conv = fit_svm(svm, Ft, yt, "lunarsvm_ex", mode)
+    del Ft
+    with Progress(len(data.val), "lunarsvm_ex: validation", "crop", mode) as bar:
+        pv = svm.predict(fc1_activations(model, data.val, ebs, device, bar))
     out["lunarsvm_ex"] = {
         "model": svm,
         "val_accuracy": class_mean_accuracy(yv, pv),
@@ -331,15 +340,13 @@ def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progr
     t0 = time.perf_counter()
     hog_s = ts.hog
     sel = seeded_subsample(len(data.train), hog_s.max_train_images, seed, 0x406)
-    Ht = np.concatenate([hog_features(xb, hog_s) for xb, _ in data.train.iter_arrays(ebs, sel)])
+    Ht = hog_batches(data.train.iter_arrays(ebs, sel), len(sel), hog_s, "hog_svm: HOG of the training crops", mode)
     hog_svm = make_linear_svm(hog_s, seed)
-    conv = _fit_quiet(hog_svm, Ht, yt[sel])
+    conv = fit_svm(hog_svm, Ht, yt[sel], "hog_svm", mode)
     del Ht
     # Validation HOG is predicted batch by batch: at paper scale (40,500 validation crops, 7,056
     # features each) the whole matrix would be 2.3 GB of RAM.
-    pv = np.concatenate(
-        [hog_svm.predict(hog_features(xb, hog_s)) for xb, _ in data.val.iter_arrays(ebs)] or [np.zeros(0, np.int64)]
-    )
+    pv = hog_batches(data.val.iter_arrays(ebs), len(data.val), hog_s, "hog_svm: validation", mode, hog_svm.predict)
     out["hog_svm"] = {
         "model": hog_svm,
         "val_accuracy": class_mean_accuracy(yv, pv),
@@ -348,11 +355,50 @@ def train_svms(model: LunarNetEx, data: SyntheticData, settings: Settings, progr
         "seconds": time.perf_counter() - t0,
     }
     if progress:
-        tqdm.write(
+        progress_write(
             f"lunarsvm_ex val acc (class mean) {out['lunarsvm_ex']['val_accuracy']:.3f}; "
             f"hog_svm val acc {out['hog_svm']['val_accuracy']:.3f}"
         )
     return out
+
+
+def hog_batches(batches, n: int, hog_s, desc: str, mode: str, then=None) -> np.ndarray:
+    """HOG features of ``n`` crops arriving as ``(X, y)`` batches, counted per crop on a :class:`Progress`;
+    with ``then`` (e.g. a fitted model's ``predict``) its result per batch instead of the features."""
+    out = []
+    with Progress(n, desc, "crop", mode) as bar:
+        for xb, _ in batches:
+            h = hog_features(xb, hog_s)
+            out.append(h if then is None else then(h))
+            bar.update(len(xb))
+    if out:
+        return np.concatenate(out)
+    return np.zeros((0, 0), np.float32) if then is None else np.zeros(0, np.int64)
+
+
+# The estimate of an SVM fit: a fit of the same pipeline on a seeded subset this large (at most a tenth
+# of the rows), scaled by the row count. None below PROBE_MIN_ROWS: there the fit takes no time to speak of.
+PROBE_MAX_ROWS, PROBE_MIN_ROWS = 2000, 20
+
+
+def fit_svm(svm, X: np.ndarray, y: np.ndarray, name: str, mode: str) -> bool:
+    """:func:`_fit_quiet` as a :meth:`Progress.stage`: a start line with an ETA and an end line with the time
+    taken. The ETA is the time of a fit on a seeded subset of the rows, scaled linearly by the row count; SGD's
+    epoch count to converge differs between the subset and the whole set, so it is a guide to the order of
+    magnitude, not a promise (and costs at most a tenth of the fit it estimates; none with ``mode="off"``)."""
+    eta, basis = None, ""
+    m = min(PROBE_MAX_ROWS, len(X) // 10)
+    if mode != "off" and m >= PROBE_MIN_ROWS:
+        rows = np.sort(np.random.default_rng(0x5F17).choice(len(X), size=m, replace=False))
+        if len(np.unique(y[rows])) > 1:  # a one-class subset cannot be fitted
+            t = time.perf_counter()
+            _fit_quiet(clone(svm), X[rows], y[rows])
+            probe_s = time.perf_counter() - t
+            eta = probe_s * len(X) / m
+            basis = f"a fit on {m} of them took {probe_s:.2f} s"
+    desc = f"{name}: SVM fit on {len(X)} crops x {X.shape[1] if X.ndim == 2 else 0} features"
+    with Progress.stage(desc, eta, basis, mode):
+        return _fit_quiet(svm, X, y)
 
 
 def _fit_quiet(model, X, y) -> bool:

@@ -40,6 +40,7 @@ from typing import Callable, Iterator, Sequence
 
 import click
 
+from crater_core.progress import Progress
 from crater_core.schema import atomic_write_text, sha256_file
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.export_writers import (  # noqa: F401 (re-exported: part of this API)
@@ -274,12 +275,12 @@ def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, kind
     )
     out_dir = Path(out) if out else ds.with_name(f"{ds.name}-{fmt}")
 
-    last = [0.0]
+    bars: list[Progress] = []  # made at the first call: export_dataset knows the total
 
     def progress(done: int, total: int) -> None:
-        if done == total or time.monotonic() - last[0] >= 5.0:  # a line every 5 s at most
-            last[0] = time.monotonic()
-            click.echo(f"export: {done}/{total} samples", err=True)
+        if not bars:
+            bars.append(Progress(total, "export", "sample"))
+        bars[0].update_to(done)
 
     index = export_dataset(
         ds,
@@ -292,6 +293,8 @@ def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, kind
         overwrite=overwrite,
         progress=progress,
     )
+    for bar in bars:
+        bar.close()
     click.echo(
         json.dumps(
             {k: v for k, v in index.items() if k != "shards"} | {"out": str(out_dir), "shards": len(index["shards"])}

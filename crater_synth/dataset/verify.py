@@ -16,6 +16,7 @@ import click
 
 from crater_core import schema
 from crater_core.exr import ExrError, exr_info
+from crater_core.progress import Progress
 from crater_core.render_labels import label_faults
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder
@@ -118,12 +119,14 @@ def _exr_files(d: Path) -> list[Path]:
     ]
 
 
-def verify_dataset(dataset_dir: str | Path, decode: bool = True, jobs: int | None = None) -> dict:
+def verify_dataset(
+    dataset_dir: str | Path, decode: bool = True, jobs: int | None = None, progress: bool = False
+) -> dict:
     """Check every row: readable line, path inside the dataset, file exists, hashes to its sha256,
     opens as a tiled EXR with the contract's channels and the row's size, and carries in its header
     the labels the row states; no duplicate renders, paths or files; no empty manifest beside renders;
     no rows of an interrupted run left unmerged. The files are checked by ``jobs`` processes (default:
-    one per core; one for small datasets).
+    one per core; one for small datasets); ``progress``: the files checked, with rate and ETA, on stderr.
 
     Returns a report dict with ``faults`` (list of one-line strings), counts, ``in_progress`` (the live
     writer, or None: then the dataset is not verified, ``ok`` is False) and ``orphans``: files no row
@@ -160,13 +163,7 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True, jobs: int | Non
         if n_files:
             faults.append(f"{manifest} lists no rows, but {n_files} EXR files lie beside it")
     checks = [(str(d), r, decode) for r in rows]
-    n_jobs = max(1, min(jobs or os.cpu_count() or 1, len(checks) // PARALLEL_MIN_FILES_PER_JOB))
-    if n_jobs > 1:  # hashing and decoding are CPU-bound: one process per core
-        with ProcessPoolExecutor(n_jobs) as pool:
-            results = list(pool.map(check_file, checks, chunksize=64))
-    else:
-        results = [check_file(c) for c in checks]
-    faults += [fault for result in results for fault in result]
+    faults += _check_files(checks, jobs, progress)
     faults += [
         f"{part}: {len(part_rows)} rows of an interrupted run ({who}) were never merged: {RESUME_HINT}"
         for part, part_rows, who in unmerged
@@ -188,6 +185,23 @@ def verify_dataset(dataset_dir: str | Path, decode: bool = True, jobs: int | Non
     }
 
 
+def _check_files(checks: list[tuple], jobs: int | None, progress: bool) -> list[str]:
+    """:func:`check_file` of every check, in ``jobs`` processes where there are enough files."""
+    n_jobs = max(1, min(jobs or os.cpu_count() or 1, len(checks) // PARALLEL_MIN_FILES_PER_JOB))
+    faults: list[str] = []
+    with Progress(len(checks), "verify", "file", "auto" if progress and checks else "off") as bar:
+        if n_jobs > 1:  # hashing and decoding are CPU-bound: one process per core
+            with ProcessPoolExecutor(n_jobs) as pool:
+                for result in pool.map(check_file, checks, chunksize=64):
+                    faults += result
+                    bar.update()
+        else:
+            for check in checks:
+                faults += check_file(check)
+                bar.update()
+    return faults
+
+
 @click.command("verify")
 @click.argument("dataset_dir", type=click.Path(file_okay=False))
 @click.option("--no-decode", is_flag=True, help="Hash the files and check their headers; do not decode the pixels.")
@@ -199,12 +213,12 @@ def verify_command(dataset_dir, no_decode, jobs):
     """Verify a dataset: every row's file exists, opens, hashes right and carries the row's labels in
     its header; no duplicates.
 
-    Prints one summary line; exits non-zero on any fault (each fault on stderr) and while a `crater-synth
-    dataset` run is still writing the directory. Files no row names are listed as `orphan:` lines (the
-    next `crater-synth dataset` run removes them). docs/manifest.md says what a pass proves and what it
-    does not.
+    Prints one summary line (and, on stderr, the files checked with rate and ETA); exits non-zero on any
+    fault (each fault on stderr) and while a `crater-synth dataset` run is still writing the directory.
+    Files no row names are listed as `orphan:` lines (the next `crater-synth dataset` run removes them).
+    docs/manifest.md says what a pass proves and what it does not.
     """
-    report = verify_dataset(dataset_dir, decode=not no_decode, jobs=jobs)
+    report = verify_dataset(dataset_dir, decode=not no_decode, jobs=jobs, progress=True)
     for fault in report["faults"]:
         click.echo(f"fault: {fault}", err=True)
     for orphan in report["orphans"]:

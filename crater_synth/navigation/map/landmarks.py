@@ -38,16 +38,15 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 import yaml
 
 from crater_core.geometry import latlon_to_mc
+from crater_core.progress import Progress
 from crater_core.schema import sha256_file
 from crater_synth.config import CONFIG_DIR, catalogue_names
 from crater_synth.errors import UserError
@@ -260,11 +259,6 @@ def _measure_chunk(args):
     return out
 
 
-def _progress(chunk: int, n: int, accepted: int, t0: float) -> None:
-    done = min((chunk + 1) * CHUNK, n)
-    click.echo(f"  {done}/{n} candidates, {accepted} accepted ({time.time() - t0:.0f} s)", err=True)
-
-
 def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1) -> tuple[list[dict], int]:
     """Landmarks measured at every candidate of ``dem`` (before duplicates are removed), and the
     number of candidates. ``workers`` > 1 measures in that many processes (same result, same order)."""
@@ -275,22 +269,20 @@ def measure_candidates(dem, pole: str, progress: bool = False, workers: int = 1)
     items = [(q, float(lat[q]), float(lon[q]), float(d_m[q])) for q in range(i.size)]
     chunks = [(str(dem.path), dem.product, pole, items[k : k + CHUNK]) for k in range(0, len(items), CHUNK)]
     out: list[dict] = []
-    t0 = time.time()
-    if workers > 1:
-        pool = ProcessPoolExecutor(workers)
-        try:
-            for k, res in enumerate(pool.map(_measure_chunk, chunks)):
-                out += res
-                if progress and k % 5 == 4:
-                    _progress(k, i.size, len(out), t0)
-        finally:
-            # On an error or a signal, drop the chunks not started (workers end their current chunk).
-            pool.shutdown(wait=True, cancel_futures=True)
-    else:
-        for k, ch in enumerate(chunks):
-            out += _measure_chunk(ch)
-            if progress and k % 5 == 4:
-                _progress(k, i.size, len(out), t0)
+    with Progress(i.size, f"landmarks {pole}", "candidate", "auto" if progress else "off") as bar:
+        if workers > 1:
+            pool = ProcessPoolExecutor(workers)
+            try:
+                for ch, res in zip(chunks, pool.map(_measure_chunk, chunks)):
+                    out += res
+                    bar.update(len(ch[3]), accepted=len(out))
+            finally:
+                # On an error or a signal, drop the chunks not started (workers end their current chunk).
+                pool.shutdown(wait=True, cancel_futures=True)
+        else:
+            for ch in chunks:
+                out += _measure_chunk(ch)
+                bar.update(len(ch[3]), accepted=len(out))
     return out, int(i.size)
 
 

@@ -115,7 +115,7 @@ def nav_frames_eval_command(frames_dir, json_path, results_path, seed, overrides
     """
     nav = compose_nav(overrides, defaults=[f"nav/preset={DEFAULT_FRAMES_PRESET}"])
     run, dir_options = frames_eval_options(nav, results_path is not None, overrides, seed, **options)
-    summary, rows = evaluate_dir(frames_dir, run, dir_options)
+    summary, rows = evaluate_dir(frames_dir, run, dir_options, progress=True)
     summary.update(frames_eval_summary_fields(options, run, dir_options))
     for r in rows:
         click.echo(frame_line(r, options["sequential"]), err=True)

@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from crater_core import exr, geometry
+from crater_core.progress import Progress
 from crater_core.settings_nav import AppearanceSettings, DetectorSettings, FramesSettings
 from crater_synth.navigation.detectors.classical import ClassicalSettings, Detection, detect
 from crater_synth.navigation.fix.appearance import appearance_detections
@@ -611,14 +612,17 @@ def dir_summary(out: list[dict], refine: bool) -> dict:
     return summary
 
 
-def evaluate_dir(frames_dir: Path, run: FrameRun = FrameRun(), options: DirOptions = DirOptions()):
+def evaluate_dir(
+    frames_dir: Path, run: FrameRun = FrameRun(), options: DirOptions = DirOptions(), progress: bool = False
+):
     """(summaries, per-frame rows) of a ``nav-frames`` output navigated with the settings ``run``
     (:func:`evaluate_frame`; ``run.refine``: the fixes are refined by appearance with the pole's
     :func:`.refine.lander_dem`, summarised without it under ``"unrefined"``) and the ``options``
     (:class:`DirOptions`): the summaries over all frames, the headline frames and the frames with at least
     ``min_inliers`` landmarks in view (``"enough_landmarks"``), with the detector and with perfect detections
     (``"perfect"``: the true attitude and the default prior); each row is the detector's, with the
-    perfect-detection row of the same frame under ``"perfect"``."""
+    perfect-detection row of the same frame under ``"perfect"``. ``progress``: the frames done, with rate and
+    ETA, on stderr."""
     maps: dict[str, list] = {}
     last: dict[str, dict] = {}  # trajectory -> its last fix (sequence)
     refiners: dict[str, Refiner | None] = {}
@@ -626,6 +630,7 @@ def evaluate_dir(frames_dir: Path, run: FrameRun = FrameRun(), options: DirOptio
     rows = labelled_rows(frames_dir)
     if options.sequence is not None:  # each trajectory's frames in flight order
         rows = sorted(rows, key=lambda r: (r["trajectory"], r["index"]))
+    bar = Progress(len(rows), "nav-frames-eval", "frame", "auto" if progress else "off")
     for row in rows:
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
@@ -635,6 +640,8 @@ def evaluate_dir(frames_dir: Path, run: FrameRun = FrameRun(), options: DirOptio
         if options.sensor is not None:  # a camera on the I/F frame (train.preprocess.SensorModel), seeded per frame
             image = options.sensor.apply(image, np.random.default_rng([run.seed, zlib.crc32(row["rel_path"].encode())]))
         out.append(evaluate_dir_frame(row, image, maps[pole], refiners[pole], run, options, last))
+        bar.update()
+    bar.close()
     for refiner in refiners.values():
         if refiner is not None:
             refiner.close()

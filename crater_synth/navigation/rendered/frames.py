@@ -47,6 +47,7 @@ import yaml
 from blender_gen.fast import ensure_horizons, horizon_cache_dir
 from crater_core import exr, geometry, schema
 from crater_core.files import ensure_writable_dir
+from crater_core.progress import Progress
 from crater_core.schema import content_key
 from crater_core.settings import CraterSettings, replace
 from crater_core.trajectory import FramePose, TrajectoryError, footprint_half_width_m, frame_corners_mc, frame_poses
@@ -355,9 +356,9 @@ def _selected_poses(traj, only: list[int] | None) -> list:
     return poses
 
 
-def _group_patch(settings, traj_name: str, group, n_near: int, progress: bool):
+def _group_patch(settings, traj_name: str, group, n_near: int, bar: Progress):
     """Build (or reuse) the terrain patch a group of frames shares: (its catalogue entry, its settings,
-    npz path, metadata). A patch that cannot be built is an error naming the frames."""
+    npz path, metadata), said on ``bar``. A patch that cannot be built is an error naming the frames."""
     entry = group.entry(traj_name, settings.terrain.near_radius_factor)
     hw = group.half_width_m
     gsettings = frame_settings(settings, hw)
@@ -371,12 +372,10 @@ def _group_patch(settings, traj_name: str, group, n_near: int, progress: bool):
         raise UserError(
             f"trajectory={traj_name} {which} (target lat {first.target_lat:.2f}, lon {first.target_lon:.2f}): {exc}"
         ) from None
-    if progress:
-        click.echo(
-            f"frames {[p.index for p in group.poses]}: patch +-{hw / 1e3:.1f} km, {group.near_vertices}^2 "
-            f"vertices ({'cached' if meta.get('cached') else 'built'})",
-            err=True,
-        )
+    bar.write(
+        f"frames {[p.index for p in group.poses]}: patch +-{hw / 1e3:.1f} km, {group.near_vertices}^2 "
+        f"vertices ({'cached' if meta.get('cached') else 'built'})"
+    )
     return entry, gsettings, npz, meta
 
 
@@ -420,8 +419,10 @@ def _plan_frames(settings, traj_name: str, groups: list, out_dir: Path, progress
     n_near = int(settings.terrain.near_vertices)
     recorded = {r.get("rel_path"): r.get("sha256") for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)}
     jobs, frames, reused = [], {}, {}
+    bar = Progress(len(groups), "nav-frames terrain", "patch", "auto" if progress else "off")
     for group in groups:
-        entry, gsettings, npz, meta = _group_patch(settings, traj_name, group, n_near, progress)
+        entry, gsettings, npz, meta = _group_patch(settings, traj_name, group, n_near, bar)
+        bar.update()
         crater, overrides, digest = _patch_render_job(settings.render, group, entry, gsettings, meta, n_near)
         plans = []
         for pose in group.poses:
@@ -436,6 +437,7 @@ def _plan_frames(settings, traj_name: str, groups: list, out_dir: Path, progress
                 plans.append({"params": SimpleNamespace(index=pose.index, indices=(0, 0, 0, pose.index)), "item": item})
         if plans:
             jobs.append(CraterJob(crater=crater, npz=npz, meta=meta, plans=plans, render_overrides=overrides))
+    bar.close()
     return jobs, frames, reused
 
 
@@ -472,6 +474,7 @@ def render_frames(
     t_patch = time.perf_counter() - t0
     ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     rows: dict[int, dict] = {}
+    bar = Progress(len(frames), "nav-frames", "frame", "auto" if progress else "off")
 
     def on_result(_job, plan, result):
         # labelled as each frame arrives: the host's work overlaps the workers'
@@ -480,19 +483,14 @@ def render_frames(
         if pole not in maps:
             maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
         rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, *maps[pole])
-        if progress:
-            done = (
-                "kept (same settings, seal intact)"
-                if result.get("reused")
-                else f"rendered in {result['seconds']:.2f} s"
-            )
-            click.echo(f"frame {result['index']}: {done} ({result['mode']})", err=True)
+        bar.update(kept=len(reused), mode=result["mode"])
 
     for result in reused.values():
         on_result(None, None, result)
 
     t1 = time.perf_counter()
     _render_frame_jobs(jobs, settings, out_dir, on_result)
+    bar.close()
     t_render = time.perf_counter() - t1
     missing = sorted(set(frames) - set(rows))
     if missing:

@@ -24,10 +24,12 @@ import math
 import time
 import zlib
 from pathlib import Path
+from typing import Callable
 
 import click
 import numpy as np
 
+from crater_core.progress import Progress
 from crater_core.schema import atomic_write_text
 from crater_core.settings_nav import DetectorSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
@@ -227,6 +229,16 @@ def with_window_patches(row: dict, frame: Frame, prior: Georef, dparams, fparams
     return out
 
 
+def navigate_windows(frames: list, per_window: Callable[[Frame], dict], desc: str, progress: bool) -> list[dict]:
+    """``per_window`` of every frame, in order; ``progress``: the windows done, with rate and ETA, on stderr."""
+    rows = []
+    with Progress(len(frames), desc, "window", "auto" if progress else "off") as bar:
+        for f in frames:
+            rows.append(per_window(f))
+            bar.update()
+    return rows
+
+
 def evaluate_split(
     split: str,
     landmarks,
@@ -250,15 +262,14 @@ def evaluate_split(
     lis = None
     if lis_params is not None:
         lis = (lis_params, build_index(landmarks, lis_params))
-    rows = []
-    for k, f in enumerate(frames):
-        rows.append(
-            run_frame(
-                f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km, listed=listed, patches=patches
-            )
-        )
-        if progress and k % 20 == 19:
-            click.echo(f"  {split}: {k + 1}/{len(frames)} windows", err=True)
+    rows = navigate_windows(
+        frames,
+        lambda f: run_frame(
+            f, landmarks, dparams, fparams, lis=lis, prior_offset_km=prior_offset_km, listed=listed, patches=patches
+        ),
+        f"nav-eval {pole} {split}",
+        progress,
+    )
     head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
     out = {"all_windows": summarise(rows), "headline": summarise(head)}
     if patches is not None:  # where the craters cannot serve: fewer than the headline's landmarks in view
