@@ -56,10 +56,9 @@ from train.preprocess import (
     PreprocessConfig,
     SensorModel,
     apply_support,
+    cached_crop,
     mosaic_composite,
     normalize,
-    outside_fraction,
-    resample_box,
     rotate_crop,
 )
 
@@ -350,13 +349,7 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
                 f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
             )
         for s in sigmas:
-            box = _sigma_box(row, s, where)
-            if outside_fraction(box, img.shape) > pp.max_outside_frac:
-                raise DatasetError(
-                    f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
-                    f"image by more than {pp.max_outside_frac:.0%} of its side"
-                )
-            arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
+            arr[j] = cached_crop(img, _sigma_box(row, s, where), pp, where, s)
             j += 1
         if on_row is not None:
             on_row()
