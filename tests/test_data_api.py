@@ -219,6 +219,10 @@ def test_cli_crop_defaults_come_from_the_composed_settings(mixed, tmp_path):
     assert index["shape"]["size"] == 32 and index["shape"]["sigmas"] == [1.0, 1.2] and index["rows"] == 144
     res = runner.invoke(main, args + ["--overwrite", "--sigma", "1.1"])
     assert res.exit_code == 2 and "no sigma box for sigma=1.1" in res.stderr
+    res = runner.invoke(
+        main, ["export", str(mixed), "--format", "parquet", "--out", str(tmp_path / "b"), "--size", "9"]
+    )
+    assert res.exit_code == 2 and "go with --shape crop" in res.stderr and not (tmp_path / "b").exists()
 
 
 def _train_cfg(tmp_path, *extra):

@@ -250,9 +250,6 @@ class WebDatasetExport(_ExportBase, IterableDataset):
 
     format = "webdataset"
 
-    def __init__(self, export_dir: str | Path, channels: Sequence[str] | None = None, as_dict: bool = False):
-        _ExportBase.__init__(self, export_dir, channels, as_dict)
-
     def worker_shards(self) -> list[Path]:
         """The shards of this DataLoader worker (all of them outside a worker)."""
         info = get_worker_info()

@@ -9,6 +9,12 @@ float32 I/F and depth, float16 normals and lit) and every label of its manifest 
 camera angles, range and field of view, the rim ellipse, the sigma boxes, the EXR's sha256 (checked
 against the file during the export), provenance; the whole row also travels verbatim as JSON.
 
+Fixed-shape tensors (``--shape``, :class:`Shaping`): ``crop`` gives one sample per (row, sigma), the
+sigma box resampled to the classifier's input by the crop cache's own function
+(``train.preprocess.cached_crop``); ``pad`` pads every image to the export's largest, with a ``valid``
+mask. Their images are float32 Hugging Face ``Array2D`` columns; ``native`` is the lossless default.
+The Dataset classes that read exports are :mod:`crater_synth.data` (``train/exported.py``).
+
 Streaming: the manifest is read row by row and each sample is written as soon as it is decoded, so
 peak memory is one Parquet row group (``row_group_rows`` samples) or one sample, whatever the
 dataset's size. Atomicity: each shard is written to a hidden temporary file and renamed when
@@ -453,6 +459,8 @@ def export_command(
         list(RENDER.channels) if channels.strip() == "all" else [c.strip() for c in channels.split(",") if c.strip()]
     )
     out_dir = Path(out) if out else ds.with_name(f"{ds.name}-{fmt}")
+    if shape != "crop" and (sigma_text or size or overrides):
+        raise ExportError("--sigma, --size and OVERRIDES set the crop: they go with --shape crop")
     sigmas, pp = crop_defaults(overrides) if shape == "crop" else (None, None)
     if sigma_text:
         try:
