@@ -261,3 +261,41 @@ def test_training_reads_a_crop_export_into_the_crop_cache_arrays(mixed, tmp_path
     ex.export_dataset(mixed, tmp_path / "native", fmt)
     with pytest.raises(DatasetError, match="training reads a `crater-synth export --shape crop`"):
         build_datasets(_train_cfg(tmp_path, f"train.export_dir={tmp_path / 'native'}"))
+
+
+@pytest.mark.integration  # two trainings end to end (~20 s)
+def test_crater_synth_train_from_an_export_gives_the_same_metrics(tmp_path):
+    from crater_synth.cli import main
+    from train.toydata import write_toy_frames
+
+    toy, frames = tmp_path / "toy", write_toy_frames(tmp_path / "frames")
+    write_toy_dataset(toy, sun_azimuths=(0.0, 120.0, 240.0), cam_azimuths=(0.0, 90.0, 180.0, 270.0), rim_px=40.0)
+    runner = CliRunner()
+    res = runner.invoke(
+        main,
+        [
+            "export",
+            str(toy),
+            "--format",
+            "webdataset",
+            "--shape",
+            "crop",
+            "--out",
+            str(tmp_path / "crops"),
+            "model.input_size=64",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    common = [f"data_dir={tmp_path}", "train.num_threads=1", "train.progress=false", "realset.per_crater=15"]
+    common += [f"realset.labels_file={frames}", "model.input_size=64", "train.batch_size=16", "train.lr=3e-3"]
+    common += ["train.max_epochs=4", "train.hog.max_train_images=200"]
+    metrics = {}
+    for name, source in (("exrs", f"train.dataset_dir={toy}"), ("export", f"train.export_dir={tmp_path / 'crops'}")):
+        args = ["train", *common, source, f"run_dir={tmp_path}/run-{name}", f"train.cache_dir={tmp_path}/cache-{name}"]
+        res = runner.invoke(main, args, catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        m = json.loads((tmp_path / f"run-{name}" / "metrics.json").read_text())
+        metrics[name] = {
+            k: (m[k]["val_accuracy"], m[k]["per_source"]) for k in ("lunarnet_ex", "lunarsvm_ex", "hog_svm")
+        }
+    assert metrics["export"] == metrics["exrs"]  # the same crops, so the same seeded training and scores

@@ -493,6 +493,7 @@ def export_command(
     )
     click.echo(
         json.dumps(
-            {k: v for k, v in index.items() if k != "shards"} | {"out": str(out_dir), "shards": len(index["shards"])}
+            {k: v for k, v in index.items() if k not in ("shards", "labels")}
+            | {"out": str(out_dir), "shards": len(index["shards"])}
         )
     )
