@@ -92,6 +92,8 @@ def test_crop_export_batches_through_a_plain_dataloader(mixed, tmp_path, fmt):
     assert index["shape"]["size"] == 150 and index["shape"]["shape"] == [150, 150]
     ds = open_export(out)
     assert isinstance(ds, ParquetExport if fmt == "parquet" else WebDatasetExport) and len(ds) == 216
+    if fmt == "webdataset":  # the choice travels with every sample (Parquet: the schema metadata, below)
+        assert next(ds.records()).labels["export"] == index["shape"]
     keys, sigmas = [], []
     for images, labels in _epoch(ds):
         assert images.dtype == torch.float32 and images.shape[1:] == (1, 150, 150) and len(images) <= 32
