@@ -155,6 +155,7 @@ class TrainSettings(Group):
     cache_dir: str
     cache_dtype: str
     cache_workers: int
+    export_dir: Optional[str] = None  # a `crater-synth export --shape crop` of dataset_dir: crops read from it
     max_train_images: Optional[int] = None  # seeded subsample of the training samples (a budget cut)
     max_val_images: Optional[int] = None  # the same for the validation samples
     verify_sha256: bool

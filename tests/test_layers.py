@@ -45,6 +45,7 @@ SUBRANK = {
     "common": 0,
     "crater_synth.terrain": 1,
     "crater_synth.dataset": 2,
+    "crater_synth.data": 2,  # the public Dataset API over exports (re-exports train.exported)
     "crater_synth.evaluation": 3,
     "crater_synth.navigation": 3,
     "crater_synth.report": 4,

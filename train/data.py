@@ -21,6 +21,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import multiprocessing
 import os
 import shutil
@@ -52,14 +53,14 @@ from crater_core.schema import (
 from crater_core.settings import Settings, TrainSettings, as_plain
 from crater_core.sweep import rows_in_selection
 from train.errors import DatasetError, RealDataLeakError
+from train.exported import iter_records, read_index
 from train.preprocess import (
     PreprocessConfig,
     SensorModel,
     apply_support,
+    cached_crop,
     mosaic_composite,
     normalize,
-    outside_fraction,
-    resample_box,
     rotate_crop,
 )
 
@@ -350,13 +351,7 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
                 f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
             )
         for s in sigmas:
-            box = _sigma_box(row, s, where)
-            if outside_fraction(box, img.shape) > pp.max_outside_frac:
-                raise DatasetError(
-                    f"{where}: sigma={s} box {box} leaves the {img.shape[1]}x{img.shape[0]} "
-                    f"image by more than {pp.max_outside_frac:.0%} of its side"
-                )
-            arr[j] = resample_box(img, box, pp.size, 0.0, pp.antialias, pp.interp_order)
+            arr[j] = cached_crop(img, _sigma_box(row, s, where), pp, where, s)
             j += 1
         if on_row is not None:
             on_row()
@@ -414,6 +409,62 @@ def _fill_cache(
                 pool.shutdown(wait=True, cancel_futures=True)
 
 
+def crop_export_index(export_dir: str | Path) -> dict:
+    """The index of a ``train.export_dir``: an ``export --shape crop`` holding the IF channel."""
+    index = read_index(export_dir)
+    mode = (index.get("shape") or {}).get("mode", "native")
+    if mode != "crop" or "IF" not in index["channels"] or index.get("record_kind") != "render":
+        raise DatasetError(
+            f"train.export_dir={export_dir}: training reads a `crater-synth export --shape crop` of a rendered "
+            f"dataset with the IF channel; this one is {mode} {index.get('record_kind')} {list(index['channels'])}"
+        )
+    return index
+
+
+def _fill_from_export(images_path: Path, rows: list, export_dir, sigmas, pp: PreprocessConfig) -> None:
+    """The cache's arrays from a ``crater-synth export --shape crop`` of the same rows (read through
+    :mod:`train.exported`): the export wrote each crop with the cache's own function
+    (:func:`train.preprocess.cached_crop`), so at the same geometry they are the same arrays and no EXR
+    is decoded. A different geometry, or a (row, sigma) the export lacks, is a :class:`DatasetError`."""
+    shape = crop_export_index(export_dir)["shape"]
+    want = pp.geometry_key() | {"max_outside_frac": pp.max_outside_frac}
+    got = {k: shape.get(k) for k in want}
+    if got != want:
+        raise DatasetError(
+            f"train.export_dir={export_dir} was cropped with {got}; training needs {want}: export it again "
+            "(`crater-synth export DATASET --shape crop` with the same train.preprocess and model.input_size)"
+        )
+    slot = {(r["sha256"], round(float(s), 6)): (i, float(s)) for i, r in enumerate(rows) for s in sigmas}
+    arr = np.load(images_path, mmap_mode="r+")
+    filled = np.zeros(len(arr), dtype=bool)
+    for rec in iter_records(export_dir, ["IF"]):
+        hit = slot.get((rec.row.get("sha256"), round(float(rec.labels.get("sigma", math.nan)), 6)))
+        if hit is not None:
+            j = hit[0] * len(sigmas) + list(sigmas).index(hit[1])
+            arr[j], filled[j] = rec.arrays["IF"], True
+    arr.flush()
+    if not filled.all():
+        j = int(np.argmin(filled))
+        raise DatasetError(
+            f"train.export_dir={export_dir} has no crop of {rows[j // len(sigmas)]['path']} at "
+            f"sigma={sigmas[j % len(sigmas)]}: export the dataset again with --shape crop"
+        )
+
+
+def load_export_rows(export_dir: str | Path) -> list[dict]:
+    """The manifest rows a ``train.export_dir`` export carries (each once, in its order), with the
+    duplicate checks of :func:`load_rows`."""
+    rows, seen = [], set()
+    for rec in iter_records(export_dir, []):
+        if rec.row.get("sha256") not in seen:
+            seen.add(rec.row.get("sha256"))
+            rows.append(rec.row)
+    conflicts = duplicate_faults(rows)
+    if conflicts:
+        raise DatasetError(f"train.export_dir={export_dir}: {conflicts[0]}: refused for training")
+    return rows
+
+
 def _publish_cache_dir(tmp: Path, final: Path) -> None:
     """Make ``tmp``'s files shareable and durable (files and their directory entries), then rename it
     to ``final``; when another process finished the same cache first, drop ``tmp``."""
@@ -443,15 +494,19 @@ def build_cache(
     verify_sha256: bool = True,
     progress: bool = False,
     workers: int = 1,
+    export_dir: str | Path | None = None,
 ) -> CropCache:
     """Resample every (row, sigma) once into ``cache_dir`` (atomic: built in a temp dir, then renamed);
     reuse it when present. ``workers`` processes share the work (0: one per core; small caches are
     built in this process). Missing/corrupt EXR, checksum mismatch or a box outside its EXR raise
-    :class:`DatasetError` naming the file."""
+    :class:`DatasetError` naming the file. With ``export_dir`` (``train.export_dir``) the arrays are
+    read from that ``crater-synth export --shape crop`` instead (:func:`_fill_from_export`)."""
 
     t0 = time.perf_counter()
     rows = list(rows)
     key = cache_key(rows, sigmas, pp, dtype)
+    if export_dir is not None:  # its own entry: the arrays come from the export's files
+        key += "-export-" + hashlib.sha256(json.dumps(read_index(export_dir)["shards"]).encode()).hexdigest()[:10]
     final = Path(cache_dir) / key
     samples = [(i, float(s)) for i in range(len(rows)) for s in sigmas]
     images = _reuse_cache(final, samples, pp.size)
@@ -465,11 +520,15 @@ def build_cache(
             tmp / "images.npy", mode="w+", dtype=np.dtype(dtype), shape=(len(samples), pp.size, pp.size)
         )
         del arr
-        _fill_cache(tmp / "images.npy", rows, dataset_dir, sigmas, pp, verify_sha256, workers, progress)
+        if export_dir is None:
+            _fill_cache(tmp / "images.npy", rows, dataset_dir, sigmas, pp, verify_sha256, workers, progress)
+        else:
+            _fill_from_export(tmp / "images.npy", rows, export_dir, sigmas, pp)
         index = {
             "format": CACHE_FORMAT,
             "key": key,
             "dataset_dir": str(dataset_dir),
+            "export_dir": None if export_dir is None else str(export_dir),
             "samples": samples,
             "sigmas": list(sigmas),
             "pp": pp.geometry_key(),
@@ -639,6 +698,20 @@ def selected_positions(rows: Sequence[dict], selection: Mapping | None, dataset_
     return used
 
 
+def _train_sigmas(ts: TrainSettings, rows: Sequence[dict], used_rows: Sequence[dict]) -> tuple[list, list]:
+    """(the sigmas trained on, the sigmas the crop cache holds): every sigma of the manifest, so that the
+    subsets of one dataset share one cache; with ``train.export_dir``, the export's sigmas."""
+    if not ts.export_dir:
+        sigmas = row_sigmas(used_rows, ts.sigmas)
+        return sigmas, sorted({round(s, 6) for s in sigmas} | set(row_sigmas(rows, None)))
+    exported = sorted(round(float(s), 6) for s in crop_export_index(ts.export_dir)["shape"]["sigmas"])
+    sigmas = row_sigmas(used_rows, ts.sigmas or exported)
+    missing = [s for s in sigmas if round(s, 6) not in exported]
+    if missing:
+        raise DatasetError(f"train.sigmas {missing} are not in train.export_dir={ts.export_dir} (sigmas {exported})")
+    return sigmas, exported
+
+
 @dataclass
 class SyntheticData:
     train: SyntheticCropDataset
@@ -655,13 +728,15 @@ def build_datasets(
 ) -> SyntheticData:
     """From the validated settings: manifest -> leak guard -> classes -> split -> cache -> datasets."""
     ts = settings.train
-    dataset_dir = Path(ts.dataset_dir)
+    # train.export_dir: the rows and crops come from an export of the dataset (its files named relative to it).
+    dataset_dir = Path(crop_export_index(ts.export_dir)["dataset"] if ts.export_dir else ts.dataset_dir)
     class_names = class_names_of(settings)
     # The crop cache covers every row of the configured craters at every sigma of the manifest, so the
     # subsets of one dataset (Figure 6 points, closed-loop rounds, a sigma) share one cache: a subset
     # is a choice of cached samples, never a second decode of the EXRs.
+    source = load_export_rows(ts.export_dir) if ts.export_dir else load_rows(dataset_dir)
     rows = check_synthetic_rows(
-        load_rows(dataset_dir), dataset_dir, set(forbidden_sha256) | forbidden_sha256_of(settings), forbidden_paths
+        source, dataset_dir, set(forbidden_sha256) | forbidden_sha256_of(settings), forbidden_paths
     )
     rows, others = select_rows(rows, class_names)
     used = selected_positions(rows, ts.select, dataset_dir)
@@ -670,8 +745,7 @@ def build_datasets(
     seed = ts.seed
     tr_used, va_used, split_info = split_rows(used_rows, ts.val_fraction, ts.split_by, seed, class_names)
     tr_rows, va_rows = [used[i] for i in tr_used], [used[i] for i in va_used]
-    sigmas = row_sigmas(used_rows, ts.sigmas)
-    cache_sigmas = sorted({round(s, 6) for s in sigmas} | set(row_sigmas(rows, None)))
+    sigmas, cache_sigmas = _train_sigmas(ts, rows, used_rows)
     pp = PreprocessConfig.from_settings(settings.train.preprocess, settings.model.input_size)
     cache = build_cache(
         rows,
@@ -683,6 +757,7 @@ def build_datasets(
         ts.verify_sha256,
         progress,
         ts.cache_workers,
+        ts.export_dir,
     )
     sensor = SensorModel.from_settings(settings.sensor)
     diameters = {c.name: c.diameter_km * 1000.0 for c in settings.craters}

@@ -23,7 +23,14 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
     handed to the training loader, which refuses them. The models and metrics are written into a
     staging directory and published into ``run_dir`` together (:class:`train.runs.StagedRun`): an
     interrupted or refused run leaves ``run_dir`` as it was (and none where there was none)."""
-    from train.data import build_datasets, cache_dir_of, class_names_of, require_classes, require_manifest
+    from train.data import (
+        build_datasets,
+        cache_dir_of,
+        class_names_of,
+        crop_export_index,
+        require_classes,
+        require_manifest,
+    )
     from train.evaluate import craters_for, evaluate_run
     from train.realset import build_real_test_set
     from train.trainer import configure_torch, train_all
@@ -33,7 +40,10 @@ def train_and_evaluate(settings: Settings, progress: bool | None = None) -> dict
     check_dir_path(cache_dir_of(settings.train), "train.cache_dir")
     with StagedRun(settings.run_dir) as stage:  # creates and checks run_dir before minutes of caching
         configure_torch(settings.train)
-        require_manifest(settings.train.dataset_dir)
+        if settings.train.export_dir:  # the rows and crops come from an export (docs/export.md)
+            crop_export_index(settings.train.export_dir)
+        else:
+            require_manifest(settings.train.dataset_dir)
         test = build_real_test_set(settings, craters_for(settings, class_names), class_names)
         real_paths = sorted({c.image_path for c in test.crops})
         data = build_datasets(

@@ -25,7 +25,7 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage
 
-from train.errors import TrainError
+from train.errors import DatasetError, TrainError
 
 if TYPE_CHECKING:
     from crater_core.settings import PreprocessSettings, SensorSettings
@@ -112,6 +112,21 @@ def resample_box(
     """
     cu, cv, w, h = box_center_side(box)
     return resample_affine(image, (cu, cv), box_axes(w, h, rotation_deg), size, antialias, order)
+
+
+def cached_crop(
+    image: np.ndarray, box: Sequence[float], pp: PreprocessConfig, where: str = "image", sigma: float | None = None
+) -> np.ndarray:
+    """The geometric step alone, unrotated, as the crop cache stores it (train/data.py) and
+    ``crater-synth export --shape crop`` writes it: the sigma ``box`` of a 2-D ``image`` resampled by
+    :func:`resample_box` to ``pp.size`` x ``pp.size`` float32. A box that leaves the image by more than
+    ``pp.max_outside_frac`` of its side is a :class:`DatasetError` naming ``where`` and ``sigma``."""
+    if outside_fraction(box, image.shape) > pp.max_outside_frac:
+        raise DatasetError(
+            f"{where}: sigma={sigma} box {list(box)} leaves the {image.shape[1]}x{image.shape[0]} "
+            f"image by more than {pp.max_outside_frac:.0%} of its side"
+        )
+    return resample_box(image, box, pp.size, 0.0, pp.antialias, pp.interp_order)
 
 
 def box_axes(w: float, h: float, rotation_deg: float = 0.0) -> np.ndarray:

@@ -9,6 +9,12 @@ float32 I/F and depth, float16 normals and lit) and every label of its manifest 
 camera angles, range and field of view, the rim ellipse, the sigma boxes, the EXR's sha256 (checked
 against the file during the export), provenance; the whole row also travels verbatim as JSON.
 
+Fixed-shape tensors (``--shape``, :class:`Shaping`): ``crop`` gives one sample per (row, sigma), the
+sigma box resampled to the classifier's input by the crop cache's own function
+(``train.preprocess.cached_crop``); ``pad`` pads every image to the export's largest, with a ``valid``
+mask. Their images are float32 Hugging Face ``Array2D`` columns; ``native`` is the lossless default.
+The Dataset classes that read exports are :mod:`crater_synth.data` (``train/exported.py``).
+
 Streaming: the manifest is read row by row and each sample is written as soon as it is decoded, so
 peak memory is one Parquet row group (``row_group_rows`` samples) or one sample, whatever the
 dataset's size. Atomicity: each shard is written to a hidden temporary file and renamed when
@@ -31,6 +37,7 @@ index are the same for both.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -39,18 +46,24 @@ from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import click
+import numpy as np
+import pyarrow as pa
 
 from crater_core.progress import Progress
 from crater_core.schema import atomic_write_text, sha256_file
-from crater_synth.cli_common import user_errors
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
 from crater_synth.dataset.export_writers import (  # noqa: F401 (re-exported: part of this API)
     EXPORT_WRITERS,
     FORMATS,
+    VALID_COLUMN,
     ExportWriter,
+    Layout,
     ParquetWriter,
     Sample,
     WebDatasetWriter,
     column_name,
+    label_kind,
     npy_bytes,
 )
 from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part of this API)
@@ -61,15 +74,22 @@ from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part
     RecordKind,
     detect_kind,
 )
+from train.errors import TrainError
+from train.preprocess import PreprocessConfig, cached_crop
 
 INDEX_FILE = "export.json"
 EXPORT_VERSION = 1
 DEFAULT_CHANNELS = ("IF",)
+SHAPES = ("native", "crop", "pad")
 
 
-def iter_samples(kind: RecordKind, dataset_dir: Path, channels: Sequence[str]) -> tuple[int, Iterator[Sample]]:
-    """(row count, lazy iterator of samples): each row's files are read only when its sample is drawn.
-    A bad dataset (no manifest, unmerged parts) fails here, before anything is written."""
+def iter_samples(
+    kind: RecordKind, dataset_dir: Path, channels: Sequence[str], shaping: "Shaping | None" = None
+) -> tuple[int, Iterator[Sample]]:
+    """(sample count, lazy iterator of samples): each row's files are read only when its samples are
+    drawn; a ``crop`` shaping gives one sample per (row, sigma). A bad dataset (no manifest, unmerged
+    parts) fails here, before anything is written."""
+    shaping = shaping or Shaping()
     n, rows = kind.rows(dataset_dir)
 
     def gen() -> Iterator[Sample]:
@@ -80,9 +100,112 @@ def iter_samples(kind: RecordKind, dataset_dir: Path, channels: Sequence[str]) -
                 raise ExportError(f"dataset {dataset_dir}: sample key {key!r} is repeated or not a plain name")
             seen.add(key)
             arrays = kind.arrays(dataset_dir, row, channels)
-            yield Sample(key, kind.labels(row), row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
+            if shaping.layout.mode == "native":
+                yield Sample(key, kind.labels(row), row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
+            else:
+                yield from shaping.samples(key, kind.labels(row), row, arrays, f"dataset {dataset_dir}: {key}")
 
-    return n, gen()
+    return n * max(1, len(shaping.sigmas)), gen()
+
+
+# ------------------------------------------------------------------------------------------------
+# Fixed-shape tensors (--shape crop | pad)
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Shaping:
+    """How ``--shape`` turns a row's images into samples: ``native`` (one sample, NPY bytes as stored),
+    ``crop`` (one sample per sigma: the sigma box resampled to ``pp.size`` by the crop cache's own
+    function, :func:`train.preprocess.cached_crop`) or ``pad`` (one sample, every channel zero-padded
+    (``pad_value``) at its bottom and right to ``layout.shape``, with a ``valid`` mask)."""
+
+    layout: Layout = Layout()
+    sigmas: tuple[float, ...] = ()
+    pp: PreprocessConfig | None = None
+    pad_value: float = 0.0
+
+    def samples(self, key: str, labels: dict, row: dict, arrays: dict, where: str) -> Iterator[Sample]:
+        if self.layout.mode == "pad":
+            h, w = self.layout.shape
+            out = {}
+            for c, a in arrays.items():
+                if a.shape[0] > h or a.shape[1] > w:
+                    raise ExportError(f"{where}: {c} is {a.shape}, larger than the export's {h}x{w} (files changed?)")
+                out[column_name(c)] = np.full((h, w), self.pad_value, np.float32)
+                out[column_name(c)][: a.shape[0], : a.shape[1]] = a
+            a = next(iter(arrays.values()))
+            valid = np.zeros((h, w), np.uint8)
+            valid[: a.shape[0], : a.shape[1]] = 1
+            extra = {"orig_height": int(a.shape[0]), "orig_width": int(a.shape[1])}
+            yield Sample(key, labels | extra, row, {}, out | {VALID_COLUMN: valid})
+            return
+        for sigma in self.sigmas:
+            box = sigma_box(row, sigma, where)
+            try:
+                crops = {column_name(c): cached_crop(a, box, self.pp, where, sigma) for c, a in arrays.items()}
+            except TrainError as exc:
+                raise ExportError(str(exc)) from None
+            extra = {"sigma": float(sigma), "crop_box": [float(b) for b in box]}
+            yield Sample(f"{key}_s{sigma_tag(sigma)}", labels | extra, row, {}, crops)
+
+
+def sigma_tag(sigma: float) -> str:
+    """A sigma in a sample key: ``1.2`` -> ``1p2`` (keys have no dots)."""
+    return f"{float(sigma):g}".replace(".", "p")
+
+
+def sigma_box(row: dict, sigma: float, where: str) -> list[float]:
+    """The row's box (u0, v0, u1, v1) for ``sigma`` (keys compared as numbers)."""
+    for k, box in (row.get("sigma_boxes") or {}).items():
+        with contextlib.suppress(TypeError, ValueError):
+            if abs(float(k) - float(sigma)) < 1e-6:
+                return [float(b) for b in box]
+    raise ExportError(f"{where}: no sigma box for sigma={sigma} (has {sorted(row.get('sigma_boxes') or {})})")
+
+
+def crop_defaults(overrides: Sequence[str] = ()) -> tuple[tuple[float, ...] | None, PreprocessConfig]:
+    """The classifier's crop from the composed settings: ``train.sigmas`` (None: every sigma of the rows,
+    as training takes them) and the preprocessing geometry at ``model.input_size``."""
+    settings = load_settings(list(overrides))
+    sigmas = settings.train.sigmas
+    return (tuple(sigmas) if sigmas else None), PreprocessConfig.from_settings(
+        settings.train.preprocess, settings.model.input_size
+    )
+
+
+def plan_shaping(
+    rk: RecordKind,
+    dataset_dir: Path,
+    shape: str,
+    sigmas: Sequence[float] | None,
+    pp: PreprocessConfig | None,
+    pad_value: float,
+) -> Shaping:
+    """The shaping of ``--shape``; ``crop`` and ``pad`` read every row once more (sigmas, largest shape)."""
+    if shape not in SHAPES:
+        raise ExportError(f"unknown export shape {shape!r}; choose one of {', '.join(SHAPES)}")
+    if shape == "native":
+        return Shaping()
+    f64, i64 = pa.float64(), pa.int64()
+    if shape == "pad":
+        shapes = {rk.shape(dataset_dir, row) for row in rk.rows(dataset_dir)[1]}
+        hw = (max(h for h, _ in shapes), max(w for _, w in shapes))
+        record = {"mode": "pad", "shape": list(hw), "dtype": "float32", "pad_value": pad_value}
+        record |= {"anchor": "top-left", "mask": VALID_COLUMN, "original_shape": ["orig_height", "orig_width"]}
+        layout = Layout("pad", hw, (("orig_height", i64), ("orig_width", i64)), record)
+        return Shaping(layout, pad_value=float(pad_value))
+    if rk.name != "render":
+        raise ExportError(f"--shape crop needs sigma boxes, which {rk.name} records have not: use --shape pad")
+    if not sigmas:
+        found = {round(float(k), 6) for row in rk.rows(dataset_dir)[1] for k in row.get("sigma_boxes") or {}}
+        sigmas = sorted(found)
+    if not sigmas:
+        raise ExportError(f"dataset {dataset_dir}: its rows carry no sigma_boxes to crop")
+    sigmas = tuple(sorted(float(s) for s in dict.fromkeys(sigmas)))
+    record = {"mode": "crop", "shape": [pp.size, pp.size], "dtype": "float32", "sigmas": list(sigmas)}
+    record |= {"size": pp.size, **pp.geometry_key(), "max_outside_frac": pp.max_outside_frac}
+    record["resample"] = "train.preprocess.cached_crop (the crop cache's geometric step; no photometry)"
+    layout = Layout("crop", (pp.size, pp.size), (("sigma", f64), ("crop_box", pa.list_(f64))), record)
+    return Shaping(layout, sigmas, pp)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -188,11 +311,20 @@ def export_dataset(
     kind: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    shape: str = "native",
+    sigmas: Sequence[float] | None = None,
+    size: int | None = None,
+    preprocess: PreprocessConfig | None = None,
+    pad_value: float = 0.0,
 ) -> dict:
     """Export ``dataset_dir`` to ``out_dir`` as ``fmt`` (``parquet`` or ``webdataset``); returns the index
     written to ``out_dir/export.json``. Streams: at most one Parquet row group (``row_group_rows``
     samples) is held in memory for Parquet, one sample for WebDataset; each shard holds ``shard_rows``.
-    ``progress(done, total)`` is called every ``row_group_rows`` samples and after each shard."""
+    ``progress(done, total)`` is called every ``row_group_rows`` samples and after each shard.
+
+    ``shape``: ``native`` (NPY bytes as stored), ``crop`` (per sigma in ``sigmas``, the box resampled to
+    ``size`` x ``size`` with ``preprocess``'s geometry; defaults: :func:`crop_defaults`, the composed
+    settings) or ``pad`` (zero-padded, ``pad_value``, to the largest image, with a ``valid`` mask)."""
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
     rk = _record_kind(dataset_dir, kind)
@@ -200,9 +332,16 @@ def export_dataset(
     dataset_dir, out = Path(dataset_dir), Path(out_dir)
     _check_request(rk, channels, shard_rows, row_group_rows, dataset_dir, out)
     t0 = time.perf_counter()
-    n, samples = iter_samples(rk, dataset_dir, channels)  # bad dataset: an error before any file is touched
+    if shape == "crop" and (preprocess is None or not sigmas):
+        default_sigmas, default_pp = crop_defaults()
+        sigmas, preprocess = sigmas or default_sigmas, preprocess or default_pp
+    if shape == "crop" and size is not None:
+        preprocess = dataclasses.replace(preprocess, size=int(size))
+    # A bad dataset or shape: an error before any file is touched.
+    shaping = plan_shaping(rk, dataset_dir, shape, sigmas, preprocess, pad_value)
+    n, samples = iter_samples(rk, dataset_dir, channels, shaping)
     _prepare_out(out, overwrite)
-    writer = EXPORT_WRITERS[fmt](rk, channels, row_group_rows)
+    writer = EXPORT_WRITERS[fmt](rk, channels, row_group_rows, shaping.layout)
     n_shards = math.ceil(n / shard_rows)
     shards, done = [], 0
     for i in range(n_shards):
@@ -222,13 +361,22 @@ def export_dataset(
         "dataset": str(dataset_dir.resolve()),
         "rows": n,
         "channels": {c: writer.channel_entry(c) for c in channels},
-        "images": "lossless: NPY bytes of each channel as stored in the EXR (float32 IF, depth; float16 N.*, lit)",
+        "images": _IMAGES[shaping.layout.mode],
+        "shape": shaping.layout.record,
+        "labels": {name: label_kind(t) for name, t in rk.label_fields() + list(shaping.layout.extra_fields)},
         "shards": shards,
         "seconds": round(time.perf_counter() - t0, 3),
     }
 
     atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
     return index
+
+
+_IMAGES = {
+    "native": "lossless: NPY bytes of each channel as stored in the EXR (float32 IF, depth; float16 N.*, lit)",
+    "crop": "float32 sigma-box crops resampled to the classifier's input size (the crop cache's arrays)",
+    "pad": "float32 channels padded at the bottom and right to the largest image; mask column 'valid'",
+}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -261,19 +409,65 @@ def export_dataset(
     "[default: detected from the manifest's rows].",
 )
 @click.option("--overwrite", is_flag=True, help="Replace a complete export in the output directory.")
+@click.option(
+    "--shape",
+    type=click.Choice(SHAPES),
+    default="native",
+    show_default=True,
+    help="native: NPY bytes as stored; crop: each sigma box resampled to the classifier's input (one sample per "
+    "sigma); pad: zero-padded to the largest image, with a 'valid' mask.",
+)
+@click.option(
+    "--sigma",
+    "sigma_text",
+    default=None,
+    help="--shape crop: sigmas, comma-separated [default: train.sigmas, else every sigma of the rows].",
+)
+@click.option(
+    "--size",
+    type=click.IntRange(min=8),
+    default=None,
+    help="--shape crop: crop side in px [default: model.input_size].",
+)
+@click.option("--pad-value", type=float, default=0.0, show_default=True, help="--shape pad: value of padded pixels.")
+@OVERRIDES
 @user_errors
-def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, kind, overwrite):
+def export_command(
+    dataset,
+    fmt,
+    out,
+    channels,
+    shard_rows,
+    row_group_rows,
+    kind,
+    overwrite,
+    shape,
+    sigma_text,
+    size,
+    pad_value,
+    overrides,
+):
     """Export a rendered dataset or navigation frames to Parquet (Hugging Face) or WebDataset tar shards.
 
-    Images go losslessly as NPY bytes; every manifest label goes along (for navigation frames, the landmarks
-    in view with their projected rim ellipses). Prints the index (export.json) as one JSON line. Example:
-    ``crater-synth export data/synth/demo --format parquet``.
+    Images go losslessly as NPY bytes (``--shape native``) or as fixed-shape float32 tensors (``--shape crop``:
+    the classifier's crops; ``--shape pad``); every manifest label goes along (for navigation frames, the
+    landmarks in view with their projected rim ellipses). OVERRIDES (e.g. ``train.sigmas=[1.2]``) set the
+    crop's defaults. Prints the index (export.json) as one JSON line. Example:
+    ``crater-synth export data/synth/demo --format parquet --shape crop``.
     """
     ds = Path(dataset)
     chans = (
         list(RENDER.channels) if channels.strip() == "all" else [c.strip() for c in channels.split(",") if c.strip()]
     )
     out_dir = Path(out) if out else ds.with_name(f"{ds.name}-{fmt}")
+    if shape != "crop" and (sigma_text or size or overrides):
+        raise ExportError("--sigma, --size and OVERRIDES set the crop: they go with --shape crop")
+    sigmas, pp = crop_defaults(overrides) if shape == "crop" else (None, None)
+    if sigma_text:
+        try:
+            sigmas = [float(v) for v in sigma_text.split(",") if v.strip()]
+        except ValueError:
+            raise ExportError(f"--sigma {sigma_text!r}: give numbers, comma-separated (e.g. 1.0,1.2)") from None
 
     bars: list[Progress] = []  # made at the first call: export_dataset knows the total
 
@@ -292,11 +486,17 @@ def export_command(dataset, fmt, out, channels, shard_rows, row_group_rows, kind
         kind=kind,
         overwrite=overwrite,
         progress=progress,
+        shape=shape,
+        sigmas=sigmas,
+        size=size,
+        preprocess=pp,
+        pad_value=pad_value,
     )
     for bar in bars:
         bar.close()
     click.echo(
         json.dumps(
-            {k: v for k, v in index.items() if k != "shards"} | {"out": str(out_dir), "shards": len(index["shards"])}
+            {k: v for k, v in index.items() if k not in ("shards", "labels")}
+            | {"out": str(out_dir), "shards": len(index["shards"])}
         )
     )

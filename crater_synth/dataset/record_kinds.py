@@ -22,7 +22,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import pyarrow as pa
 
-from crater_core.exr import ExrError, read_channel, read_exr, stored_dtype
+from crater_core.exr import ExrError, exr_info, read_channel, read_exr, stored_dtype
 from crater_core.schema import (
     EXR_CHANNELS,
     MANIFEST_NAME,
@@ -50,7 +50,8 @@ class RecordKind:
     - ``arrays(dataset_dir, row, channels)``: ``{channel: ndarray}``, the lossless images;
     - ``label_fields()``: ``[(name, pyarrow type)]`` of the typed label columns;
     - ``labels(row)``: the typed label values (JSON-able) for those columns;
-    - ``channels``: the channel names a user may ask for.
+    - ``channels``: the channel names a user may ask for;
+    - ``shape(dataset_dir, row)``: the (height, width) of its images (``export --shape pad``).
     """
 
     name: str
@@ -60,6 +61,7 @@ class RecordKind:
     label_fields: Callable[[], list]
     labels: Callable[[dict], dict]
     channels: tuple[str, ...]
+    shape: Callable[[Path, dict], tuple[int, int]]
 
 
 def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
@@ -165,6 +167,7 @@ RENDER = RecordKind(
     label_fields=_render_label_fields,
     labels=_render_labels,
     channels=EXR_CHANNELS,
+    shape=lambda _dataset_dir, row: (int(row["height"]), int(row["width"])),
 )
 
 
@@ -219,6 +222,15 @@ def _navframe_key(row: dict) -> str:
 
 def _navframe_arrays(dataset_dir: Path, row: dict, channels: Sequence[str]) -> dict[str, np.ndarray]:
     return _exr_arrays(dataset_dir, row["rel_path"], row["sha256"], channels)
+
+
+def _navframe_shape(dataset_dir: Path, row: dict) -> tuple[int, int]:
+    """A frame's (height, width) from its EXR header (the manifest records the width only)."""
+    try:
+        info = exr_info(dataset_dir / row["rel_path"], decode=False)
+    except ExrError as exc:
+        raise ExportError(str(exc)) from None
+    return int(info["height"]), int(info["width"])
 
 
 @functools.lru_cache(maxsize=None)
@@ -299,6 +311,7 @@ NAVFRAME = RecordKind(
     label_fields=_navframe_label_fields,
     labels=_navframe_labels,
     channels=RENDER.channels,
+    shape=_navframe_shape,
 )
 RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER, NAVFRAME.name: NAVFRAME}
 

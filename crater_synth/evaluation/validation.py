@@ -157,7 +157,7 @@ def run_fingerprint(cfg_resolved: dict, training_only: bool = False) -> str:
     payload["train"] = {
         k: v
         for k, v in payload.get("train", {}).items()
-        if k not in ("progress", "dataset_dir", "cache_dir", "cache_workers", "num_threads", "device")
+        if k not in ("progress", "dataset_dir", "export_dir", "cache_dir", "cache_workers", "num_threads", "device")
     }
     payload = json.loads(json.dumps(payload, default=str))  # a deep copy to prune
     drop = dict(NEUTRAL_LATER_KEYS)
