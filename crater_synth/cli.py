@@ -121,11 +121,23 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
 # The top-level modules each pip extra (pyproject.toml [project.optional-dependencies]) brings that the
 # project imports, and the extra each command needs; tests/test_declared_deps.py checks both tables against
 # pyproject.toml and the commands' imports.
-_RENDER = ("bpy", "OpenImageIO", "OpenEXR", "rasterio", "affine", "scipy", "skimage", "matplotlib", "PIL", "tqdm")
+_RENDER = (
+    "bpy",
+    "OpenImageIO",
+    "OpenEXR",
+    "rasterio",
+    "affine",
+    "scipy",
+    "skimage",
+    "matplotlib",
+    "PIL",
+    "tqdm",
+    "cv2",
+)
 EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     "render": _RENDER,
-    "train": (*_RENDER, "torch", "sklearn", "joblib", "cv2", "jinja2", "markupsafe"),
-    "nav": (*_RENDER, "torch", "cv2"),
+    "train": (*_RENDER, "torch", "sklearn", "joblib", "jinja2", "markupsafe"),
+    "nav": (*_RENDER, "torch"),
     "export": (*_RENDER, "pyarrow"),
     "dask": (*_RENDER, "distributed"),
 }

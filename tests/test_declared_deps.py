@@ -212,7 +212,7 @@ def test_every_extra_has_a_cli_entry_and_test_is_the_only_other():
 
 
 def test_a_distribution_is_pinned_the_same_in_every_extra():
-    """torch and OpenCV appear in two extras: one pin each (the Makefile installs torch's first)."""
+    """torch appears in two extras: one pin (the Makefile installs torch's first)."""
     pins: dict[str, set[str]] = {}
     groups = [pyproject()["dependencies"], *pyproject()["optional-dependencies"].values()]
     for req in (r for group in groups for r in group):

@@ -1,6 +1,6 @@
 """A command whose pip extra is not installed ends with one line naming the extra and the pip command
 (crater_synth/cli.py), and the render commands run with the render extra alone: no torch, Dask, pyarrow,
-scikit-learn, OpenCV or Jinja2 (docs/install.md). The missing libraries are simulated in a fresh
+scikit-learn or Jinja2 (docs/install.md). The missing libraries are simulated in a fresh
 interpreter (helpers/blocked.py); the real render-only install is checked by hand in docs/install.md."""
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def test_render_commands_import_nothing_beyond_the_render_extra(command):
 @pytest.mark.integration
 def test_a_smoke_render_without_the_other_extras(tmp_path):
     """`crater-synth dataset` renders the four renders of sweep=smoke at the tiny settings with torch,
-    Dask, pyarrow, scikit-learn, OpenCV and Jinja2 missing."""
+    Dask, pyarrow, scikit-learn and Jinja2 missing."""
     out = tmp_path / "ds"
     proc = cli_blocked(NOT_RENDER, "dataset", *TINY, f"data_dir={tmp_path / 'data'}", f"out_dir={out}", timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
