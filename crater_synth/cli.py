@@ -158,13 +158,12 @@ _SUMMARY = {name: summary for entries in COMMANDS.values() for name, _, summary 
 
 
 def _install_command(extra: str) -> str:
-    """The pip command that adds ``extra``: to the checkout this code runs from (editable, as ``make setup``
-    installs it), or by name for an installed copy (metadata would say where it came from, but reading it
-    costs every start-up ~20 ms)."""
+    """The pip command that adds ``extra`` to the checkout this code runs from (installed editable, as
+    ``make setup`` does: the commands read its configs/, docs/install.md)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    if os.path.isfile(os.path.join(root, "pyproject.toml")):
-        return f"pip install -e '{root}[{extra}]'"
-    return f"pip install 'crater-synth[{extra}]' (from its source tree: pip install 'PATH[{extra}]')"
+    if not os.path.isfile(os.path.join(root, "pyproject.toml")):
+        root = "<the crater-synth checkout>"
+    return f"pip install -e '{root}[{extra}]'"
 
 
 def missing_extra(command: str, module: str | None) -> str | None:
