@@ -56,7 +56,7 @@ def pyproject() -> dict:
 
 def declared(extra: str | None) -> set[str]:
     """The distributions (canonical names) of the base install (``None``) or of one extra, its own
-    ``crater-synth[...]`` references followed; pins as written."""
+    ``crater-synth[...]`` references followed."""
     reqs = pyproject()["dependencies"] if extra is None else pyproject()["optional-dependencies"][extra]
     out = set()
     for req in reqs:
