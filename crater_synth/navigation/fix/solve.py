@@ -19,8 +19,9 @@ exceeds ``max_rms_px``: the system says it does not know rather than fix silentl
 
 **Pinhole pose from 3-D landmarks** (:func:`ransac_pnp`): the general case for perspective frames.
 Landmarks are 3-D points (centre on the rim plane, Moon-centred, heights from the DEM); minimal sets
-of 3 correspondences are solved by Gauss-Newton from the prior pose (6 unknowns, 6 equations), scored
-by reprojection inliers, and the winner is refined on all inliers. "No fix" with fewer than 4 agreeing
+of 3 correspondences are solved in closed form (OpenCV's AP3P; of its up to four poses, the one turned least
+from the prior attitude), scored by reprojection inliers, and the winner is refined on all inliers (Gauss-Newton
+from the prior pose). "No fix" with fewer than 4 agreeing
 landmarks, for a pose that contradicts its prior (attitude, position), an ambiguous one (the rule above),
 or an ill-conditioned one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
 
@@ -32,6 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
+import cv2
 import numpy as np
 
 
@@ -333,7 +335,41 @@ def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
-def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
+def p3p_pose(points, uv, k, r_prior, c_prior):
+    """(r_wc, centre) of the camera that sees the 3 ``points`` (3, 3) at pixels ``uv`` (3, 2) with intrinsics
+    ``k`` (the convention of :func:`project_pinhole`): of OpenCV's AP3P poses (up to four, each exact), the
+    one whose attitude is nearest ``r_prior``, the pose Gauss-Newton from the prior converges to. The points
+    are taken relative to ``c_prior`` (metres from the camera, not from the Moon's centre). None when
+    the three admit no pose (collinear, or a point repeated)."""
+    origin = np.asarray(c_prior, dtype=np.float64)
+    obj = np.ascontiguousarray(np.asarray(points, dtype=np.float64) - origin)
+    img = np.ascontiguousarray(uv, dtype=np.float64)
+    try:
+        n, rvecs, tvecs = cv2.solveP3P(obj, img, np.asarray(k, dtype=np.float64), None, flags=cv2.SOLVEPNP_AP3P)
+    except cv2.error:  # a degenerate triple (e.g. one point twice)
+        return None
+    best = None
+    for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
+        r = cv2.Rodrigues(rvec)[0]
+        if not np.all(np.isfinite(r)) or not np.all(np.isfinite(tvec)):
+            continue
+        turned = attitude_difference_deg(r, r_prior)
+        if best is None or turned < best[0]:
+            best = (turned, r, origin - r.T @ tvec.ravel())
+    return None if best is None else best[1:]
+
+
+def ransac_pnp(
+    points,
+    uv,
+    k,
+    r_prior,
+    c_prior,
+    params: FixParams = FixParams(),
+    inlier_px: float = 2.0,
+    pairs=None,
+    minimal=p3p_pose,
+):
     """Robust pinhole pose from 3-D ``points`` (n, 3) and their pixels ``uv`` (n, 2) with known
     correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask).
 
@@ -344,7 +380,8 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     (n, 2, the (detection, landmark) ids of the correspondences), when a disjoint hypothesis is nearly as
     well supported (the ambiguity rule of :func:`ransac_position`); and when the pose is ill-conditioned:
     its horizontal uncertainty (:func:`pose_sigma_horizontal_m`) times :data:`PNP_SIGMAS` exceeds
-    :data:`FALSE_FIX_KM`."""
+    :data:`FALSE_FIX_KM`. ``minimal``: the minimal solver of each hypothesis (:func:`p3p_pose`'s signature;
+    None for a triple with no pose)."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     n = len(points)
     need = max(params.min_inliers, PNP_MIN_INLIERS)
@@ -355,8 +392,10 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
     for _ in range(min(params.iterations, 200)):
         idx = rng.choice(n, 3, replace=False)
-        r, c = refine_pose(points[idx], uv[idx], k, r_prior, c_prior, iterations=15)
-        err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
+        pose = minimal(points[idx], uv[idx], k, r_prior, c_prior)
+        if pose is None:
+            continue
+        err = np.hypot(*(project_pinhole(points, *pose, k) - uv).T)
         inl = err <= inlier_px
         if pairs is not None and inl.sum() >= need:
             hyps.setdefault(np.packbits(inl).tobytes(), inl)
