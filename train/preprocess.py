@@ -193,12 +193,25 @@ def crop_window(image: np.ndarray, center: Sequence[float], axes, size: int, ant
     if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
         win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
     if aa_u > 0 or aa_v > 0:
-        win = ndimage.gaussian_filter(win, sigma=(aa_v, aa_u), mode="nearest", truncate=4.0)
+        # scipy's gaussian_filter(sigma=(aa_v, aa_u), mode="nearest", truncate=4.0), by OpenCV's separable filter.
+        kx, ky = gaussian_kernel(aa_u), gaussian_kernel(aa_v)
+        win = cv2.sepFilter2D(win, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REPLICATE)
     # Output pixel (col x, row y) -> its centre in crop-normalised coordinates (s, t) = ((x, y) + 0.5) / size
     # - 0.5 -> the image's continuous (u, v) through the axes -> window array index (pixel centres at i + 0.5).
     lin = a / size
     shift = np.array([cu - 0.5 - c0, cv - 0.5 - r0]) + lin @ np.full(2, 0.5 - 0.5 * size)
     return win, np.column_stack([lin, shift])
+
+
+def gaussian_kernel(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """The normalised 1-D Gaussian of ``sigma`` px cut at ``truncate`` sigma, scipy's ``gaussian_filter``
+    kernel (radius int(truncate sigma + 0.5)); [1] for sigma 0."""
+    radius = int(truncate * sigma + 0.5)
+    if radius == 0:
+        return np.ones(1)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    phi = np.exp(-0.5 * (x / sigma) ** 2)
+    return phi / phi.sum()
 
 
 def spline_sample(win: np.ndarray, to_window: np.ndarray, size: int, order: int) -> np.ndarray:

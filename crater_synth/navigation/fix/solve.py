@@ -33,8 +33,9 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
-import cv2
 import numpy as np
+
+from crater_synth.navigation.fix.p3p import p3p_pose, pnp_hypotheses
 
 
 @dataclass(frozen=True)
@@ -335,30 +336,6 @@ def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
-def p3p_pose(points, uv, k, r_prior, c_prior):
-    """(r_wc, centre) of the camera that sees the 3 ``points`` (3, 3) at pixels ``uv`` (3, 2) with intrinsics
-    ``k`` (the convention of :func:`project_pinhole`): of OpenCV's AP3P poses (up to four, each exact), the
-    one whose attitude is nearest ``r_prior``, the pose Gauss-Newton from the prior converges to. The points
-    are taken relative to ``c_prior`` (metres from the camera, not from the Moon's centre). None when
-    the three admit no pose (collinear, or a point repeated)."""
-    origin = np.asarray(c_prior, dtype=np.float64)
-    obj = np.ascontiguousarray(np.asarray(points, dtype=np.float64) - origin)
-    img = np.ascontiguousarray(uv, dtype=np.float64)
-    try:
-        n, rvecs, tvecs = cv2.solveP3P(obj, img, np.asarray(k, dtype=np.float64), None, flags=cv2.SOLVEPNP_AP3P)
-    except cv2.error:  # a degenerate triple (e.g. one point twice)
-        return None
-    best = None
-    for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
-        r = cv2.Rodrigues(rvec)[0]
-        if not np.all(np.isfinite(r)) or not np.all(np.isfinite(tvec)):
-            continue
-        turned = attitude_difference_deg(r, r_prior)
-        if best is None or turned < best[0]:
-            best = (turned, r, origin - r.T @ tvec.ravel())
-    return None if best is None else best[1:]
-
-
 def ransac_pnp(
     points,
     uv,
@@ -390,13 +367,7 @@ def ransac_pnp(
     rng = np.random.default_rng(params.seed)
     best = np.zeros(n, bool)
     hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
-    for _ in range(min(params.iterations, 200)):
-        idx = rng.choice(n, 3, replace=False)
-        pose = minimal(points[idx], uv[idx], k, r_prior, c_prior)
-        if pose is None:
-            continue
-        err = np.hypot(*(project_pinhole(points, *pose, k) - uv).T)
-        inl = err <= inlier_px
+    for inl in pnp_hypotheses(points, uv, k, (r_prior, c_prior), rng, min(params.iterations, 200), inlier_px, minimal):
         if pairs is not None and inl.sum() >= need:
             hyps.setdefault(np.packbits(inl).tobytes(), inl)
         if inl.sum() > best.sum():
