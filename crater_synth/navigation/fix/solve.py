@@ -19,11 +19,11 @@ exceeds ``max_rms_px``: the system says it does not know rather than fix silentl
 
 **Pinhole pose from 3-D landmarks** (:func:`ransac_pnp`): the general case for perspective frames.
 Landmarks are 3-D points (centre on the rim plane, Moon-centred, heights from the DEM); minimal sets
-of 3 correspondences are solved in closed form (OpenCV's AP3P; of its up to four poses, the one turned least
-from the prior attitude), scored by reprojection inliers, and the winner is refined on all inliers (Gauss-Newton
-from the prior pose). "No fix" with fewer than 4 agreeing
-landmarks, for a pose that contradicts its prior (attitude, position), an ambiguous one (the rule above),
-or an ill-conditioned one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
+of 3 correspondences are solved in closed form (OpenCV's AP3P, :mod:`.p3p`; of its up to four poses, the
+one turned least from the prior attitude), scored by reprojection inliers, and the winner is refined on
+all inliers (Gauss-Newton from the prior pose). "No fix" with fewer than 4 agreeing landmarks, for a pose
+that contradicts its prior (attitude, position), an ambiguous one (the rule above), or an ill-conditioned
+one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
 
 Settings were chosen on validation windows only (docs/navigation/fix.md).
 """
