@@ -10,7 +10,7 @@
 ``normalize`` is invariant to any positive affine map ``a * x + b`` of the input, so I/F values and the
 8-bit DN of the same scene under a (linear) camera give the same network input up to quantisation.
 
-Pure numpy/scipy: no torch, no bpy.
+numpy, scipy and OpenCV: no torch, no bpy.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Sequence
 
+import cv2
 import numpy as np
 from PIL import Image
 from scipy import ndimage
@@ -58,8 +59,10 @@ class PreprocessConfig:
         return cls(size=size, **asdict(preprocess))
 
     def geometry_key(self) -> dict:
-        """The settings that determine the cached (pre-photometry) arrays."""
-        return {k: v for k, v in asdict(self).items() if k in ("size", "antialias", "interp_order")}
+        """The settings that determine the cached (pre-photometry) arrays, and the resampler that made them
+        (OpenCV's bilinear warp differs from scipy's by up to 1/64 px of the image's slope: a new key)."""
+        key = {k: v for k, v in asdict(self).items() if k in ("size", "antialias", "interp_order")}
+        return key | {"resampler": "cv2.warpAffine" if self.interp_order == 1 else "scipy.ndimage"}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -162,9 +165,23 @@ def resample_affine(
     ``axes`` (2x2, image pixels): column 0 is the vector the crop's width spans, column 1 its height;
     a rotated square box is :func:`box_axes`, a real frame's crop is the local linear map of the
     georeference times that (train/realframes.py). Anti-aliasing as in :func:`resample_box`, with the
-    footprint of one output pixel along each image axis. Samples outside the image take the nearest
-    edge value. Returns float32 (size, size).
+    footprint of one output pixel along each image axis (:func:`crop_window`). Bilinear (``order`` 1) is
+    OpenCV's warp; nearest (0) and cubic spline (3) are scipy's (:func:`spline_sample`: OpenCV has no warp
+    of those kernels). Samples outside the image take the nearest edge value. Returns float32 (size, size).
     """
+    win, to_window = crop_window(image, center, axes, size, antialias)
+    if order != 1:
+        return spline_sample(win, to_window, size, order)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    return cv2.warpAffine(win, to_window, (size, size), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+
+
+def crop_window(image: np.ndarray, center: Sequence[float], axes, size: int, antialias: bool = True):
+    """(window, to_window) of :func:`resample_affine`: the float32 window of ``image`` holding the
+    parallelogram plus the filter and interpolation support (beyond the image: its edge values),
+    Gaussian-filtered when one output pixel spans more than one image pixel (sigma = (scale - 1) / 2
+    along each image axis), and the (2, 3) affine map from an output pixel (x, y, 1) to window (col, row)
+    array coordinates."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise TrainError(f"resample_box needs a 2-D image, got shape {img.shape}")
@@ -191,15 +208,33 @@ def resample_affine(
     if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
         win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
     if aa_u > 0 or aa_v > 0:
-        win = ndimage.gaussian_filter(win, sigma=(aa_v, aa_u), mode="nearest", truncate=4.0)
-    # Output pixel centres in crop-normalised coordinates, then through the axes.
-    k = (np.arange(size, dtype=np.float64) + 0.5) / size - 0.5
-    s, t = np.meshgrid(k, k, indexing="xy")
-    su = cu + a[0, 0] * s + a[0, 1] * t
-    sv = cv + a[1, 0] * s + a[1, 1] * t
-    # Continuous coordinate -> array index (pixel centres at i + 0.5) -> window index.
-    rows = sv - 0.5 - r0
-    cols = su - 0.5 - c0
+        # scipy's gaussian_filter(sigma=(aa_v, aa_u), mode="nearest", truncate=4.0), by OpenCV's separable filter.
+        kx, ky = gaussian_kernel(aa_u), gaussian_kernel(aa_v)
+        win = cv2.sepFilter2D(win, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REPLICATE)
+    # Output pixel (col x, row y) -> its centre in crop-normalised coordinates (s, t) = ((x, y) + 0.5) / size
+    # - 0.5 -> the image's continuous (u, v) through the axes -> window array index (pixel centres at i + 0.5).
+    lin = a / size
+    shift = np.array([cu - 0.5 - c0, cv - 0.5 - r0]) + lin @ np.full(2, 0.5 - 0.5 * size)
+    return win, np.column_stack([lin, shift])
+
+
+def gaussian_kernel(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """The normalised 1-D Gaussian of ``sigma`` px cut at ``truncate`` sigma, scipy's ``gaussian_filter``
+    kernel (radius int(truncate sigma + 0.5)); [1] for sigma 0."""
+    radius = int(truncate * sigma + 0.5)
+    if radius == 0:
+        return np.ones(1)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    phi = np.exp(-0.5 * (x / sigma) ** 2)
+    return phi / phi.sum()
+
+
+def spline_sample(win: np.ndarray, to_window: np.ndarray, size: int, order: int) -> np.ndarray:
+    """scipy's spline interpolation of order ``order`` of ``win`` at the ``size`` x ``size`` output grid
+    mapped by ``to_window`` (:func:`crop_window`); outside the window, its nearest edge value. float32."""
+    x, y = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64), indexing="xy")
+    cols = to_window[0, 0] * x + to_window[0, 1] * y + to_window[0, 2]
+    rows = to_window[1, 0] * x + to_window[1, 1] * y + to_window[1, 2]
     out = ndimage.map_coordinates(win, [rows, cols], order=order, mode="nearest", prefilter=order > 1)
     return out.astype(np.float32)
 
@@ -292,18 +327,25 @@ def rotate_crop(y: np.ndarray, angle_deg: float, shift_px: tuple[float, float] =
     the same way in one call."""
     y = np.asarray(y, dtype=np.float32)
     a = math.radians(float(angle_deg))
-    # Output (row, col) -> input: rotate about the centre (as ndimage.rotate does) after undoing the shift.
-    m = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
-    c = (np.array(y.shape[-2:], dtype=np.float64) - 1.0) / 2.0
-    d = np.array([shift_px[1], shift_px[0]], dtype=np.float64)
-    offset = c - m @ (c + d)
+    h, w = y.shape[-2:]
+    # Output (x, y) -> input (x, y): rotate about the centre (as ndimage.rotate does) after undoing the shift.
+    m = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    c = (np.array([w, h], dtype=np.float64) - 1.0) / 2.0
+    to_input = np.column_stack([m, c - m @ (c + np.asarray(shift_px, dtype=np.float64))])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    # A sample from beyond the input's outermost pixel centres is 0 (not a blend of the edge and 0).
+    xi, yi = np.tensordot(to_input, np.stack([*np.meshgrid(np.arange(w), np.arange(h)), np.ones((h, w))]), 1)
+    outside = (xi < 0.0) | (xi > w - 1.0) | (yi < 0.0) | (yi > h - 1.0)
+
+    def turn(img: np.ndarray) -> np.ndarray:
+        out = cv2.warpAffine(img, to_input, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        out[outside] = 0.0
+        return out
+
     if y.ndim == 2:
-        return ndimage.affine_transform(y, m, offset=offset, order=1, mode="constant", cval=0.0).astype(np.float32)
-    stack = y.reshape((-1,) + y.shape[-2:])
-    m3 = np.eye(3)
-    m3[1:, 1:] = m  # the stack axis maps onto itself
-    out = ndimage.affine_transform(stack, m3, offset=np.r_[0.0, offset], order=1, mode="constant", cval=0.0)
-    return out.astype(np.float32).reshape(y.shape)
+        return turn(y)
+    stack = y.reshape((-1, h, w))
+    return np.stack([turn(img) for img in stack]).reshape(y.shape)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -15,7 +15,9 @@ Parts (``--part``, default all, in this order):
 - ``navframes``: navigation-frame renders/s along a trajectory, then their navigation time per frame,
   appearance search against the classical detector (crater_synth.bench.navframes);
 - ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
-  (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet).
+  (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet);
+- ``opencv``: the solvers OpenCV does for the project (PnP minimal solve and RANSAC fix, NCC, crop warps)
+  against the hand-written code they replaced, before/after ms, ratio and agreement (crater_synth.bench.opencv).
 
 The last two lines are exactly ``paper_crater_renders_per_s=A demo_renders_per_s=B grid_renders_per_s=C
 direct_roi_renders_per_s=D`` and ``renders_per_s=X naive_renders_per_s=Y ratio=Z``.
@@ -35,6 +37,7 @@ from crater_synth.bench.distributed import bench_distributed
 from crater_synth.bench.export import bench_export, summary_line
 from crater_synth.bench.navframes import bench_navframes
 from crater_synth.bench.navigation import bench_navigation
+from crater_synth.bench.opencv import bench_opencv
 from crater_synth.bench.renderer import bench_renderer, summary_lines
 from crater_synth.bench.train import run_train_bench
 from crater_synth.cli_common import OVERRIDES, user_errors
@@ -45,7 +48,9 @@ from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(["all", "renderer", "train", "distributed", "navigation", "export", "navframes", "detector"]),
+    type=click.Choice(
+        ["all", "renderer", "train", "distributed", "navigation", "export", "navframes", "detector", "opencv"]
+    ),
     default="all",
     show_default=True,
 )
@@ -113,6 +118,8 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                     f"detector skipped: no survey frames at {DEFAULT_FRAMES} (crater-synth nav-detector-frames, "
                     "or make nav-detector, renders them)"
                 )
+        if part in ("all", "opencv"):
+            click.echo("opencv " + json.dumps(bench_opencv()))
         if part in ("all", "renderer"):
             r = bench_renderer(overrides, work / "renderer")
             click.echo("renderer " + json.dumps(r))

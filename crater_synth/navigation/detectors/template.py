@@ -12,7 +12,7 @@ template's radius (no centre shift to fit: the template is centred on its crater
 
 Speed: each scale runs on the frame decimated by a power of two so that the template's radius stays
 between 4.5 and 9 px (the anti-aliased decimated frame comes from the spectrum the light estimate already
-computed), and the correlation is an FFT convolution.
+computed), and the correlation is OpenCV's (:func:`ncc`).
 
 No setting of this module was fitted to real pixels: the template is synthetic; the threshold and the
 Sun elevation were chosen on validation windows only (docs/navigation/detectors.md).
@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import cv2
 import numpy as np
 
 from crater_core.hapke import shade_np
@@ -120,14 +121,14 @@ def template_step(r: float) -> int:
 
 def ncc(image: np.ndarray, template: np.ndarray) -> np.ndarray:
     """Normalised cross-correlation of a zero-mean unit-norm odd-square ``template`` at every pixel of
-    ``image`` (same shape as ``image``; 0 where the image is flat under the template)."""
-    from scipy.ndimage import uniform_filter
-    from scipy.signal import oaconvolve
-
+    ``image`` (same shape as ``image``; 0 where the image is flat under the template). The correlation
+    reads zeros beyond the image, its mean and energy under the template the image reflected: OpenCV's
+    ``filter2D`` (an FFT correlation for a template this size) and box filters, in float64."""
     m = template.shape[0]
-    corr = oaconvolve(image, template[::-1, ::-1], mode="same")
-    mean = uniform_filter(image, m, mode="reflect")
-    sq = uniform_filter(image * image, m, mode="reflect")
+    img = np.asarray(image, dtype=np.float64)
+    corr = cv2.filter2D(img, -1, np.asarray(template, dtype=np.float64), borderType=cv2.BORDER_CONSTANT)
+    mean = cv2.boxFilter(img, -1, (m, m), borderType=cv2.BORDER_REFLECT)
+    sq = cv2.boxFilter(img * img, -1, (m, m), borderType=cv2.BORDER_REFLECT)
     energy = np.maximum(m * m * (sq - mean * mean), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.where(energy > 1e-9 * m * m, corr / np.sqrt(energy), 0.0)

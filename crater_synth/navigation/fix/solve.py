@@ -19,10 +19,11 @@ exceeds ``max_rms_px``: the system says it does not know rather than fix silentl
 
 **Pinhole pose from 3-D landmarks** (:func:`ransac_pnp`): the general case for perspective frames.
 Landmarks are 3-D points (centre on the rim plane, Moon-centred, heights from the DEM); minimal sets
-of 3 correspondences are solved by Gauss-Newton from the prior pose (6 unknowns, 6 equations), scored
-by reprojection inliers, and the winner is refined on all inliers. "No fix" with fewer than 4 agreeing
-landmarks, for a pose that contradicts its prior (attitude, position), an ambiguous one (the rule above),
-or an ill-conditioned one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
+of 3 correspondences are solved in closed form (OpenCV's AP3P, :mod:`.p3p`; of its up to four poses, the
+one turned least from the prior attitude), scored by reprojection inliers, and the winner is refined on
+all inliers (Gauss-Newton from the prior pose). "No fix" with fewer than 4 agreeing landmarks, for a pose
+that contradicts its prior (attitude, position), an ambiguous one (the rule above), or an ill-conditioned
+one (its 3-sigma horizontal uncertainty reaches the false-fix distance).
 
 Settings were chosen on validation windows only (docs/navigation/fix.md).
 """
@@ -33,6 +34,8 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+
+from crater_synth.navigation.fix.p3p import p3p_pose, pnp_hypotheses
 
 
 @dataclass(frozen=True)
@@ -333,7 +336,17 @@ def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
-def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(), inlier_px: float = 2.0, pairs=None):
+def ransac_pnp(
+    points,
+    uv,
+    k,
+    r_prior,
+    c_prior,
+    params: FixParams = FixParams(),
+    inlier_px: float = 2.0,
+    pairs=None,
+    minimal=p3p_pose,
+):
     """Robust pinhole pose from 3-D ``points`` (n, 3) and their pixels ``uv`` (n, 2) with known
     correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask).
 
@@ -344,7 +357,8 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     (n, 2, the (detection, landmark) ids of the correspondences), when a disjoint hypothesis is nearly as
     well supported (the ambiguity rule of :func:`ransac_position`); and when the pose is ill-conditioned:
     its horizontal uncertainty (:func:`pose_sigma_horizontal_m`) times :data:`PNP_SIGMAS` exceeds
-    :data:`FALSE_FIX_KM`."""
+    :data:`FALSE_FIX_KM`. ``minimal``: the minimal solver of each hypothesis (:func:`p3p_pose`'s signature;
+    None for a triple with no pose)."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     n = len(points)
     need = max(params.min_inliers, PNP_MIN_INLIERS)
@@ -353,11 +367,7 @@ def ransac_pnp(points, uv, k, r_prior, c_prior, params: FixParams = FixParams(),
     rng = np.random.default_rng(params.seed)
     best = np.zeros(n, bool)
     hyps: dict[bytes, np.ndarray] = {}  # distinct inlier sets, for the ambiguity rule
-    for _ in range(min(params.iterations, 200)):
-        idx = rng.choice(n, 3, replace=False)
-        r, c = refine_pose(points[idx], uv[idx], k, r_prior, c_prior, iterations=15)
-        err = np.hypot(*(project_pinhole(points, r, c, k) - uv).T)
-        inl = err <= inlier_px
+    for inl in pnp_hypotheses(points, uv, k, (r_prior, c_prior), rng, min(params.iterations, 200), inlier_px, minimal):
         if pairs is not None and inl.sum() >= need:
             hyps.setdefault(np.packbits(inl).tobytes(), inl)
         if inl.sum() > best.sum():
