@@ -17,22 +17,20 @@ def p3p_pose(points, uv, k, r_prior, c_prior):
     are taken relative to ``c_prior`` (tens of km, not the Moon's radius: the solver's numbers stay small). None when
     the three admit no pose (collinear, or a point repeated)."""
     origin = np.asarray(c_prior, dtype=np.float64)
-    obj = np.ascontiguousarray(np.asarray(points, dtype=np.float64) - origin)
+    obj = np.ascontiguousarray(points - origin, dtype=np.float64)
     img = np.ascontiguousarray(uv, dtype=np.float64)
     try:
         n, rvecs, tvecs = cv2.solveP3P(obj, img, np.asarray(k, dtype=np.float64), None, flags=cv2.SOLVEPNP_AP3P)
     except cv2.error:  # a degenerate triple (e.g. one point twice)
         return None
-    if not n:
-        return None
     prior = np.asarray(r_prior, dtype=np.float64).ravel()
-    best, closest = None, -math.inf
-    for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
-        r = cv2.Rodrigues(rvec)[0]
-        closeness = float(r.ravel() @ prior)  # trace(r r_prior^T): the largest is the least turn from the prior
+    best, closest, pick = None, -math.inf, 0
+    for i in range(n):  # at most four poses: a loop is cheaper than stacking them
+        r = cv2.Rodrigues(rvecs[i])[0]
+        closeness = r.ravel() @ prior  # trace(r r_prior^T): the largest is the least turn from the prior
         if closeness > closest:  # False for NaN: a non-finite pose never wins
-            best, closest = (r, origin - r.T @ tvec.ravel()), closeness
-    return best
+            best, closest, pick = r, closeness, i
+    return None if best is None else (best, origin - best.T @ tvecs[pick].ravel())
 
 
 def pnp_hypotheses(points, uv, k, prior, rng, iterations: int, inlier_px: float, minimal=p3p_pose) -> np.ndarray:
