@@ -136,7 +136,7 @@ _RENDER = (
 )
 EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     "render": _RENDER,
-    "train": (*_RENDER, "torch", "sklearn", "joblib", "jinja2", "markupsafe"),
+    "train": (*_RENDER, "torch", "sklearn", "joblib", "jinja2", "markupsafe", "pyarrow"),
     "nav": (*_RENDER, "torch"),
     "export": (*_RENDER, "pyarrow"),
     "dask": (*_RENDER, "distributed"),

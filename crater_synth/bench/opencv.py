@@ -12,7 +12,10 @@ run, and states how far their results agree:
 - ``crop``: a rotated 400 px box resampled to 150^2 (:func:`train.preprocess.resample_box`, OpenCV's bilinear
   warp after the same anti-aliasing Gaussian) against scipy's ``map_coordinates`` (:func:`resample_box_scipy`);
   ``roll``: a 150^2 crop turned and shifted (:func:`train.preprocess.rotate_crop`) against scipy's
-  ``affine_transform`` (:func:`rotate_crop_scipy`).
+  ``affine_transform`` (:func:`rotate_crop_scipy`);
+- ``nav_eval_window``: ``nav-eval``'s per-window time with the template detector on every 10th south
+  validation window, with the former NCC and with OpenCV's, alternating window by window: the fixes must be
+  the same.
 
 The former implementations live here only, as the references of this bench and of
 tests/test_opencv_swaps.py.
@@ -27,9 +30,14 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from crater_synth.navigation.detectors import template
 from crater_synth.navigation.detectors.template import crater_template, ncc
 from crater_synth.navigation.fix import solve as nf
 from crater_synth.navigation.fix.p3p import p3p_pose
+from crater_synth.navigation.map.landmarks import load_default_map
+from crater_synth.navigation.settings import compose_nav
+from crater_synth.navigation.windows.evaluate import run_frame
+from crater_synth.navigation.windows.mosaic import windows
 from train.preprocess import axes_extent, box_axes, box_center_side, resample_box, rotate_crop
 
 TRIPLES = 200  # minimal solves timed per solver
@@ -234,6 +242,37 @@ def bench_crops() -> dict:
     }
 
 
+def bench_nav_windows(every: int = 10) -> dict:
+    """``nav-eval``'s template method on every ``every``-th south validation window, once with the former NCC
+    and once with OpenCV's per window (alternating, so the machine's load falls on both alike)."""
+    nav = compose_nav([], defaults=["nav/detector=template"])
+    landmarks, _ = load_default_map("south")
+    seconds, rows = {"before": 0.0, "after": 0.0}, {"before": [], "after": []}
+    frames = windows("validation", "south")[::every]
+    for frame in frames:
+        for key, fn in (("before", ncc_scipy), ("after", ncc)):
+            template.ncc = fn  # the detector looks its NCC up in its module at each call
+            try:
+                t0 = time.perf_counter()
+                rows[key].append(run_frame(frame, landmarks, nav.detector, nav.fix))
+                seconds[key] += time.perf_counter() - t0
+            finally:
+                template.ncc = ncc
+
+    def outcome(row):  # the error to 1 mm: the two NCCs differ by float rounding (1e-12), not by a pixel
+        return (row["fix"], row["reason"], row["n_detections"], round(row.get("error_km") or 0.0, 6))
+
+    same = [outcome(a) == outcome(b) for a, b in zip(rows["before"], rows["after"])]
+    return {
+        "nav_eval_window": {
+            **_row(seconds["before"] / len(frames), seconds["after"] / len(frames)),
+            "windows": len(frames),
+            "same_fixes": f"{sum(same)}/{len(frames)}",
+            "fixes": sum(r["fix"] for r in rows["after"]),
+        }
+    }
+
+
 def bench_opencv() -> dict:
     """Every row, with OpenCV's thread count (its filters may run on several)."""
     return {
@@ -242,4 +281,5 @@ def bench_opencv() -> dict:
         **bench_pnp(),
         **bench_ncc(),
         **bench_crops(),
+        **bench_nav_windows(),
     }
