@@ -51,7 +51,7 @@ from crater_core.settings_train import (
     TrainSettings,
 )
 from crater_core.sweep import AXES, MAX_AXIS_COUNT, SweepGrid, grid_from_config
-from crater_core.typed_config import Group, SettingsError, as_plain, build, need, replace
+from crater_core.typed_config import Group, SettingsError, as_plain, build, need, need_plain_name, replace
 
 # The solar disc's angular radius (deg): the whole Sun is below a flat horizon below -this.
 SUN_ANGULAR_RADIUS_DEG = 0.2665
@@ -71,7 +71,7 @@ class CraterSettings(Group):
     source: str = ""
 
     def _check(self):
-        need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        need_plain_name("name", self.name)
         need(-90.0 <= self.lat <= 90.0, "lat", self.lat, "must lie in [-90, 90] degrees")
         need(-360.0 <= self.lon <= 360.0, "lon", self.lon, "must lie in [-360, 360] degrees")
         need(0.0 < self.diameter_km < 2000.0, "diameter_km", self.diameter_km, "must lie in (0, 2000) km")
@@ -277,7 +277,7 @@ class SweepSettings(Group):
     min_sun_elevation_deg: float = 0.0  # physical sweeps: suns below this are not rendered
 
     def _check(self):
-        need(bool(self.name.strip()), "name", self.name, "must not be empty (it names out_dir and run_dir)")
+        need_plain_name("name", self.name)  # it names out_dir and run_dir
         self.grid  # noqa: B018 - raises SweepError naming the axis for a nonsense grid
 
     @cached_property
@@ -475,7 +475,7 @@ class TrajectorySettings(Group):
     sun_azimuth_deg: float
 
     def _check(self):
-        need(bool(self.name.strip()), "name", self.name, "must not be empty")
+        need_plain_name("name", self.name)  # it names the frames' folder
         for key in ("start", "end"):
             v = getattr(self, key)
             need(len(v) == 2, key, list(v), "must be [lat, lon] in degrees")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import typing
 from typing import Any, Mapping
 
@@ -50,6 +51,21 @@ def _join(path: str, key: str) -> str:
 def need(ok: bool, key: str, value: Any, why: str) -> None:
     if not ok:
         raise SettingsError(key, why, value)
+
+
+# A name that becomes a file or folder name (a crater's terrain and renders, a sweep's out_dir, a trajectory's
+# frames): letters, digits, "_" and "-", starting with a letter or digit. No "/", no "..", no dot-file, so
+# nothing it names can land outside the folder it is meant for.
+PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+
+
+def need_plain_name(key: str, value: str) -> None:
+    need(
+        isinstance(value, str) and PLAIN_NAME.fullmatch(value) is not None,
+        key,
+        value,
+        "must be a plain name (letters, digits, '_' and '-', at most 64, it names files and folders)",
+    )
 
 
 class Group:

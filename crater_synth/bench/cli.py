@@ -83,6 +83,7 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
     ``renders_per_s=X naive_renders_per_s=Y ratio=Z`` (after the renderer's rates line).
     """
     overrides = list(overrides)
+    load_settings(overrides)  # a typo stops here in one line, not after the parts that ignore it have run
     work = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="crater-synth-bench-"))
     work.mkdir(parents=True, exist_ok=True)
     try:

@@ -520,7 +520,7 @@ def render_frames(
 @click.option(
     "--out", type=click.Path(path_type=Path), default=None, help="Output directory [data_dir/navframes/NAME]."
 )
-@click.option("--frames", "only", default="", help="Comma-separated frame indices to render (default: all).")
+@click.option("--frames", "only", default=None, help="Comma-separated frame indices to render (default: all).")
 @click.option(
     "--per-frame-patches",
     is_flag=True,
@@ -538,9 +538,11 @@ def nav_frames_command(overrides, out, only, per_frame_patches):
     if settings.trajectory is None:
         raise ConfigError("no trajectory selected: add trajectory=NAME (configs/trajectory/)")
     try:
-        idx = [int(s) for s in only.split(",") if s.strip()] if only else None
+        idx = None if only is None else [int(s) for s in only.split(",") if s.strip()]
     except ValueError:
         raise UserError(f"--frames {only!r}: must be comma-separated integers") from None
+    if idx is not None and not idx:  # an empty list from a script's variable: not "all frames"
+        raise UserError(f"--frames {only!r}: names no frame (leave the option out for every frame)")
     out = out or Path(str(settings.data_dir)) / "navframes" / settings.trajectory.name
     summary = render_frames(settings, out, idx, progress=True, share_patches=not per_frame_patches)
     if summary["sun_below_horizon"]:  # rendered as asked, but a night frame shows nothing to navigate by
