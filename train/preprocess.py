@@ -176,12 +176,13 @@ def resample_affine(
     return cv2.warpAffine(win, to_window, (size, size), flags=flags, borderMode=cv2.BORDER_REPLICATE)
 
 
-def crop_window(image: np.ndarray, center: Sequence[float], axes, size: int, antialias: bool = True):
+def crop_window(image: np.ndarray, center: Sequence[float], axes, size: int, antialias: bool = True, blur=None):
     """(window, to_window) of :func:`resample_affine`: the float32 window of ``image`` holding the
     parallelogram plus the filter and interpolation support (beyond the image: its edge values),
     Gaussian-filtered when one output pixel spans more than one image pixel (sigma = (scale - 1) / 2
     along each image axis), and the (2, 3) affine map from an output pixel (x, y, 1) to window (col, row)
-    array coordinates."""
+    array coordinates. ``blur(window, sigma_u, sigma_v)`` replaces OpenCV's Gaussian (the benchmark's
+    reference passes scipy's)."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise TrainError(f"resample_box needs a 2-D image, got shape {img.shape}")
@@ -207,7 +208,9 @@ def crop_window(image: np.ndarray, center: Sequence[float], axes, size: int, ant
     win = img[rr0:rr1, cc0:cc1].astype(np.float32, copy=True)
     if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
         win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
-    if aa_u > 0 or aa_v > 0:
+    if (aa_u > 0 or aa_v > 0) and blur is not None:
+        win = blur(win, aa_u, aa_v)
+    elif aa_u > 0 or aa_v > 0:
         # scipy's gaussian_filter(sigma=(aa_v, aa_u), mode="nearest", truncate=4.0), by OpenCV's separable filter.
         kx, ky = gaussian_kernel(aa_u), gaussian_kernel(aa_v)
         win = cv2.sepFilter2D(win, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REPLICATE)

@@ -38,7 +38,7 @@ from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.evaluate import run_frame
 from crater_synth.navigation.windows.mosaic import windows
-from train.preprocess import axes_extent, box_axes, box_center_side, resample_box, rotate_crop
+from train.preprocess import box_axes, box_center_side, crop_window, resample_box, rotate_crop, spline_sample
 
 TRIPLES = 200  # minimal solves timed per solver
 
@@ -73,44 +73,14 @@ def resample_box_scipy(image, box, size: int, rotation_deg: float = 0.0, antiali
 
 
 def resample_affine_scipy(image, center, axes, size: int, antialias: bool = True, order: int = 1) -> np.ndarray:
-    """The former :func:`train.preprocess.resample_affine`, as it was."""
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise ValueError(f"resample_box needs a 2-D image, got shape {img.shape}")
-    a = np.asarray(axes, dtype=np.float64).reshape(2, 2)
-    if not (np.all(np.isfinite(a)) and abs(np.linalg.det(a)) > 0):
-        raise ValueError(f"degenerate sampling axes {a.tolist()}")
-    cu, cv = float(center[0]), float(center[1])
-    # Footprint of one output pixel along the image's u and v axes.
-    scale_u, scale_v = math.hypot(a[0, 0], a[0, 1]) / size, math.hypot(a[1, 0], a[1, 1]) / size
-    aa_u = max(0.0, (scale_u - 1.0) / 2.0) if antialias else 0.0
-    aa_v = max(0.0, (scale_v - 1.0) / 2.0) if antialias else 0.0
-    # Window holding the grid plus the filter and interpolation support.
-    e0u, e0v, e1u, e1v = axes_extent((cu, cv), a)
-    pad = int(math.ceil(4.0 * max(aa_u, aa_v))) + 3
-    H, W = img.shape
-    r0, r1 = int(math.floor(e0v)) - pad, int(math.ceil(e1v)) + pad
-    c0, c1 = int(math.floor(e0u)) - pad, int(math.ceil(e1u)) + pad
-    rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
-    if rr1 <= rr0 or cc1 <= cc0:
-        raise ValueError(
-            f"sampling box {[round(e, 2) for e in (e0u, e0v, e1u, e1v)]} lies entirely outside the {W}x{H} image"
-        )
-    win = img[rr0:rr1, cc0:cc1].astype(np.float32, copy=True)
-    if (rr0, rr1, cc0, cc1) != (r0, r1, c0, c1):
-        win = np.pad(win, ((rr0 - r0, r1 - rr1), (cc0 - c0, c1 - cc1)), mode="edge")
-    if aa_u > 0 or aa_v > 0:
-        win = ndimage.gaussian_filter(win, sigma=(aa_v, aa_u), mode="nearest", truncate=4.0)
-    # Output pixel centres in crop-normalised coordinates, then through the axes.
-    k = (np.arange(size, dtype=np.float64) + 0.5) / size - 0.5
-    s, t = np.meshgrid(k, k, indexing="xy")
-    su = cu + a[0, 0] * s + a[0, 1] * t
-    sv = cv + a[1, 0] * s + a[1, 1] * t
-    # Continuous coordinate -> array index (pixel centres at i + 0.5) -> window index.
-    rows = sv - 0.5 - r0
-    cols = su - 0.5 - c0
-    out = ndimage.map_coordinates(win, [rows, cols], order=order, mode="nearest", prefilter=order > 1)
-    return out.astype(np.float32)
+    """The former :func:`train.preprocess.resample_affine`: the same window, blurred by scipy's Gaussian and
+    sampled by scipy's ``map_coordinates`` (order 1 as every order)."""
+
+    def scipy_blur(win, sigma_u, sigma_v):
+        return ndimage.gaussian_filter(win, sigma=(sigma_v, sigma_u), mode="nearest", truncate=4.0)
+
+    win, to_window = crop_window(image, center, axes, size, antialias, blur=scipy_blur)
+    return spline_sample(win, to_window, size, order)
 
 
 def rotate_crop_scipy(y: np.ndarray, angle_deg: float, shift_px=(0.0, 0.0)) -> np.ndarray:
