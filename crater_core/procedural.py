@@ -19,6 +19,10 @@ height grid (metres, row i <-> y = i * spacing, column j <-> x = j * spacing) an
 
 The labels are the geometry used to build the grid: a fresh isolated crater's rim crest lies at D/2
 and its rim-to-floor depth is the Pike depth (tests/test_procedural.py). numpy and stdlib only.
+
+Length: one generator, kept whole: the constants with their sources, the production function, the
+morphometry, the degradation, the population and the emplacement are read together to check that
+every label is the geometry built; the spectral fBm is the one copy the sub-DEM detail imports too.
 """
 
 from __future__ import annotations
@@ -112,6 +116,9 @@ GHOST_DEPTH_RATIO = 0.014 / PIKE_DEPTH_COEF
 # centre, all of it at the rim); its interior (r <= R) marks the pixels it overprints.
 INHERIT_EXP = 2.0
 RIM_SAMPLES = 64  # rim points per crater for visible_rim_fraction
+# Diffusion moves a rim crest out as it flattens it; a degraded crest is searched for within this many R
+# (a near-ghost's flat crest may sit at the bound).
+RIM_SEARCH_RADII = 1.5
 MAX_CRATERS = 2_000_000  # a population above this is a settings mistake, not a terrain
 
 CLASSES = ("simple", "transitional", "complex")
@@ -379,7 +386,7 @@ def profile_labels(profiles: np.ndarray, fresh_depth: np.ndarray) -> dict[str, n
     """From each radial profile: rim crest radius (units of R), rim height above the pre-impact
     surface, rim-to-floor depth, and the degradation state (0 fresh .. 1 ghost)."""
     s = _diffusion().s
-    inner = s <= 1.5  # the crest of a diffused rim moves out, never this far (tabulated tau <= 2)
+    inner = s <= RIM_SEARCH_RADII
     crest = np.argmax(np.where(inner, profiles, -np.inf), axis=1)
     rim_h = profiles[np.arange(len(profiles)), crest]
     floor = np.min(np.where(s[None, :] <= s[crest][:, None], profiles, np.inf), axis=1)
@@ -564,7 +571,7 @@ class Crater:
     x_m: float
     y_m: float
     diameter_m: float  # fresh rim-crest diameter, the label's D
-    rim_diameter_m: float  # rim crest after degradation (diffusion moves it out slightly)
+    rim_diameter_m: float  # rim crest after degradation (diffusion moves it out: docs/procedural.md)
     rim_height_m: float  # rim crest above the pre-impact surface, after degradation
     depth_m: float  # rim crest to floor, after degradation
     fresh_depth_m: float

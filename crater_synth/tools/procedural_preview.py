@@ -3,12 +3,15 @@ procedural crater field (crater_core/procedural.py, docs/procedural.md) as a loo
 
 Writes into DIR: ``hillshade.png`` (the height grid lit from the west, 30 deg up), ``overlay.png``
 (the same with each crater's rim: green the detectable labels, red the ghosts and overprinted ones)
-and ``craters.json`` (the settings, a summary and every crater placed).
+and ``craters.json`` (the settings, a summary and every crater placed). ``--patch-at LAT LON`` also
+writes ``terrain.npz``: the grid as the Blender worker's terrain patch (docs/terrain.md's contract,
+near field only), centred on (LAT, LON) and curved with the Moon as the DEM patches are.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import sys
@@ -18,10 +21,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
 from crater_core.procedural import ProceduralTerrain, generate
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.settings_procedural import ProceduralSettings
 from crater_synth.config import ConfigError, compose_group
+from crater_synth.terrain.grid import sphere_points
 
 SUN_AZIMUTH_DEG = 270.0  # light from the west (image left), clockwise from north (image up = -y)
 SUN_ELEVATION_DEG = 30.0
@@ -79,16 +84,44 @@ def write_preview(terrain: ProceduralTerrain, settings: ProceduralSettings, out:
     return doc["summary"]
 
 
+def patch_arrays(terrain: ProceduralTerrain, lat: float, lon: float) -> dict[str, np.ndarray]:
+    """The worker's terrain arrays (blender_gen/job.py ``load_terrain``) of the grid centred on (lat, lon):
+    vertex (i, j) at e = x_j - centre, n = y_i - centre on the tangent plane, projected radially onto the
+    sphere and raised by its height, in the ENU frame of (lat, lon) (rows ascending north, columns east,
+    as crater_synth/terrain/patch.py builds them). No far field."""
+    n = terrain.height.shape[0]
+    coords = (np.arange(n) - 0.5 * (n - 1)) * terrain.spacing_m
+    ee, nn = np.meshgrid(coords, coords)
+    dirs, _, _ = sphere_points(ee, nn, lat, lon)
+    xyz = mc_to_enu(dirs * (MOON_RADIUS_M + terrain.height)[..., None], lat, lon)
+    return {
+        "near_xyz": xyz.astype(np.float32),
+        "far_xyz": np.zeros((0, 0, 3), np.float32),
+        "far_keep_quads": np.zeros((0, 0), bool),
+        "near_height": terrain.height.astype(np.float32),
+    }
+
+
+def write_patch(terrain: ProceduralTerrain, lat: float, lon: float, path: Path) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, **patch_arrays(terrain, lat, lon))
+    atomic_write_bytes(path, buf.getvalue())
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m crater_synth.tools.procedural_preview --out DIR [procedural.<key>=<value> ...]``."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="folder to write the preview into")
     ap.add_argument("--option", default="default", help="configs/procedural/<option>.yaml")
+    ap.add_argument("--patch-at", nargs=2, type=float, metavar=("LAT", "LON"), help="also write terrain.npz there")
     ap.add_argument("overrides", nargs="*", help="procedural.<key>=<value>")
     args = ap.parse_args(argv)
     try:
         settings = compose_group("procedural", ProceduralSettings, args.overrides, option=args.option)
-        print(json.dumps(write_preview(generate(settings), settings, args.out)))
+        terrain = generate(settings)
+        print(json.dumps(write_preview(terrain, settings, args.out)))
+        if args.patch_at:
+            write_patch(terrain, args.patch_at[0], args.patch_at[1], args.out / "terrain.npz")
         return 0
     except (ConfigError, ValueError, OSError) as exc:
         print(f"error: {str(exc).splitlines()[0]}", file=sys.stderr)
