@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from crater_core.settings import FRESH_DEPTH_DIAMETER
+from crater_core.settings import FRESH_DEPTH_DIAMETER, DetailSettings
 from crater_core.settings_procedural import ProceduralSettings
 
 # --------------------------------------------------------------------------------------------
@@ -102,16 +102,19 @@ ROUGHNESS_BASELINE_M = 100.0
 
 # Degradation. Profiles live on s = r / R in [0, PROFILE_EXTENT_RADII] every PROFILE_STEP; diffusion
 # runs on cells out to DIFFUSION_EXTENT_RADII (no-flux edges far from the crater). Diffused profiles
-# are tapered to 0 between TAPER_START and PROFILE_EXTENT radii (< 0.2 % of the depth is cut there).
+# are tapered to 0 between TAPER_START and PROFILE_EXTENT radii: < 0.2 % of the fresh depth is cut
+# there until d/D falls to 0.005 (docs/detail.md), long after the crater became a ghost. Simple
+# craters' kappa t / D^2 beyond the table's last rung (2.0) take that rung: ghosts either way.
 PROFILE_STEP = 0.01
 PROFILE_EXTENT_RADII = 4.0
 TAPER_START_RADII = 3.5
 DIFFUSION_EXTENT_RADII = 8.0
 DIFFUSION_TAU_RANGE = (1e-5, 2.0)  # tabulated kappa t / D^2 (simple craters), geometric ladder
 DIFFUSION_TAU_COUNT = 160
-# A "ghost": depth down to 0.014 D for a simple crater (docs/detail.md: the calibrated recognition
-# limit), i.e. 0.014 / 0.196 of its fresh depth. degradation = 1 - depth ratio, scaled to 1 there.
-GHOST_DEPTH_RATIO = 0.014 / PIKE_DEPTH_COEF
+# A "ghost": depth down to 0.014 D for a simple crater (the sub-DEM detail's calibrated recognition
+# limit, docs/detail.md), i.e. 0.014 / 0.196 of its fresh depth. degradation = 1 - depth ratio, scaled
+# to reach 1 there.
+GHOST_DEPTH_RATIO = DetailSettings.min_depth_diameter / PIKE_DEPTH_COEF
 # Overprinting: inside a new crater the old relief is kept with weight (r/R)^INHERIT_EXP (none at the
 # centre, all of it at the rim); its interior (r <= R) marks the pixels it overprints.
 INHERIT_EXP = 2.0
@@ -207,67 +210,57 @@ def _draw_ages_myr(n: int, age_gyr: float, rng) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Morphometry
 # --------------------------------------------------------------------------------------------
-def _pow_km(coef: float, exp: float, d_km: np.ndarray) -> np.ndarray:
-    return coef * d_km**exp
+def _laws(d_km: np.ndarray) -> dict[str, np.ndarray]:
+    """The fresh-crater laws (km) at ``d_km``, each taken as if the crater were of its kind."""
+    return {
+        "simple_depth": PIKE_DEPTH_COEF * d_km**PIKE_DEPTH_EXP,
+        "simple_rim": PIKE_RIM_COEF * d_km**PIKE_RIM_EXP,
+        "depth": PIKE_COMPLEX_DEPTH_COEF * d_km**PIKE_COMPLEX_DEPTH_EXP,
+        "rim": PIKE_COMPLEX_RIM_COEF * d_km**PIKE_COMPLEX_RIM_EXP,
+        "floor": np.minimum(PIKE_FLOOR_COEF * d_km**PIKE_FLOOR_EXP, FLOOR_MAX_FRACTION * d_km),
+        "peak": PEAK_COEF * np.minimum(d_km, PEAK_MAX_D_KM) ** PEAK_EXP,
+    }
 
 
 def morphometry(diameter_m, is_secondary=None) -> dict[str, np.ndarray]:
     """Fresh shape of each crater (m): depth (rim crest to floor), rim height, floor diameter, central
-    peak height above the floor, terrace count and class index into :data:`CLASSES`."""
+    peak height above the floor, terrace count and class index into :data:`CLASSES`.
+
+    Transitional craters (TRANSITION_KM): depth and rim log-linear in log D from the simple law at the
+    start to the complex law at the end; floor diameter and peak grow linearly in that weight from 0."""
     d_m = np.atleast_1d(np.asarray(diameter_m, dtype=float))
     sec = np.zeros(d_m.shape, bool) if is_secondary is None else np.atleast_1d(np.asarray(is_secondary, bool))
     d_km = d_m / 1000.0
     lo, hi = TRANSITION_KM
-    simple_d, simple_h = _pow_km(PIKE_DEPTH_COEF, PIKE_DEPTH_EXP, d_km), _pow_km(PIKE_RIM_COEF, PIKE_RIM_EXP, d_km)
-    cplx_d = _pow_km(PIKE_COMPLEX_DEPTH_COEF, PIKE_COMPLEX_DEPTH_EXP, d_km)
-    cplx_h = _pow_km(PIKE_COMPLEX_RIM_COEF, PIKE_COMPLEX_RIM_EXP, d_km)
-    floor = np.minimum(_pow_km(PIKE_FLOOR_COEF, PIKE_FLOOR_EXP, d_km), FLOOR_MAX_FRACTION * d_km)
-    peak = _pow_km(PEAK_COEF, PEAK_EXP, np.minimum(d_km, PEAK_MAX_D_KM))
-    # Transitional: log-linear in log D from the simple law at lo to the complex law at hi.
+    law = _laws(d_km)
+    lo_law, hi_law = _laws(np.array([lo])), _laws(np.array([hi]))
     w = np.clip(np.log(d_km / lo) / math.log(hi / lo), 0.0, 1.0)
+    kind = np.where(d_km < lo, 0, np.where(d_km < hi, 1, 2))
 
-    def at_lo_hi(simple_lo, complex_hi):
-        return np.exp((1 - w) * np.log(simple_lo) + w * np.log(complex_hi))
+    def pick(simple, transitional, complex_):
+        return np.select([kind == 0, kind == 1], [simple, transitional], complex_)
 
-    depth = np.where(d_km < lo, simple_d, np.where(d_km < hi, at_lo_hi(*_ends("depth")), cplx_d))
-    rim = np.where(d_km < lo, simple_h, np.where(d_km < hi, at_lo_hi(*_ends("rim")), cplx_h))
-    floor_hi, peak_hi = _ends("floor")[1], _ends("peak")[1]
-    floor = np.where(d_km < lo, 0.0, np.where(d_km < hi, w * floor_hi * d_km / hi, floor))
-    peak = np.where(d_km < lo, 0.0, np.where(d_km < hi, w * peak_hi, peak))
-    peak = np.minimum(peak, PEAK_MAX_DEPTH_FRACTION * depth)
-    terraces = np.where(
-        d_km >= hi, np.minimum(1 + np.floor((d_km - TERRACE_START_KM) / TERRACE_STEP_KM), TERRACE_MAX), 0
-    ).astype(int)
-    cls = np.where(d_km < lo, 0, np.where(d_km < hi, 1, 2))
+    def blend(key_lo: str, key_hi: str):
+        return np.exp((1 - w) * np.log(lo_law[key_lo]) + w * np.log(hi_law[key_hi]))
+
+    depth = pick(law["simple_depth"], blend("simple_depth", "depth"), law["depth"])
+    rim = pick(law["simple_rim"], blend("simple_rim", "rim"), law["rim"])
+    floor = pick(0.0, w * hi_law["floor"] * d_km / hi, law["floor"])
+    peak = np.minimum(pick(0.0, w * hi_law["peak"], law["peak"]), PEAK_MAX_DEPTH_FRACTION * depth)
+    terraces = np.minimum(1 + np.floor((d_km - TERRACE_START_KM) / TERRACE_STEP_KM), TERRACE_MAX)
+    terraces = np.where(kind == 2, terraces, 0).astype(int)
     # Secondaries: shallow simple bowls, rim in Pike's simple rim/depth proportion.
     depth = np.where(sec, SECONDARY_DEPTH_DIAMETER * d_km, depth)
     rim = np.where(sec, SECONDARY_DEPTH_DIAMETER * d_km * PIKE_RIM_COEF / PIKE_DEPTH_COEF, rim)
-    zero = np.zeros_like(d_km)
     return {
         "diameter": d_m,
         "depth": depth * 1000.0,
         "rim": rim * 1000.0,
-        "floor_diameter": np.where(sec, zero, floor) * 1000.0,
-        "peak": np.where(sec, zero, peak) * 1000.0,
+        "floor_diameter": np.where(sec, 0.0, floor) * 1000.0,
+        "peak": np.where(sec, 0.0, peak) * 1000.0,
         "terraces": np.where(sec, 0, terraces),
-        "cls": np.where(sec, 0, cls),
+        "cls": np.where(sec, 0, kind),
     }
-
-
-@functools.lru_cache(maxsize=1)
-def _ends_table() -> dict[str, tuple[float, float]]:
-    lo, hi = TRANSITION_KM
-    return {
-        "depth": (PIKE_DEPTH_COEF * lo**PIKE_DEPTH_EXP, PIKE_COMPLEX_DEPTH_COEF * hi**PIKE_COMPLEX_DEPTH_EXP),
-        "rim": (PIKE_RIM_COEF * lo**PIKE_RIM_EXP, PIKE_COMPLEX_RIM_COEF * hi**PIKE_COMPLEX_RIM_EXP),
-        "floor": (0.0, min(PIKE_FLOOR_COEF * hi**PIKE_FLOOR_EXP, FLOOR_MAX_FRACTION * hi)),
-        "peak": (0.0, PEAK_COEF * min(hi, PEAK_MAX_D_KM) ** PEAK_EXP),
-    }
-
-
-def _ends(key: str) -> tuple[float, float]:
-    """The quantity's value (km) at the two ends of the transition: simple at its start, complex at its end."""
-    return _ends_table()[key]
 
 
 def fresh_profile(s: np.ndarray, depth, rim, floor_frac=0.0, peak=0.0, terraces=0) -> np.ndarray:

@@ -1,7 +1,8 @@
 """``python -m crater_synth.tools.procedural_preview --out DIR [procedural.<key>=<value> ...]``: one
 procedural crater field (crater_core/procedural.py, docs/procedural.md) as a look.
 
-Writes into DIR: ``hillshade.png`` (the height grid lit from the west, 30 deg up), ``overlay.png``
+Writes into DIR: ``hillshade.png`` (the height grid lit from -x, 30 deg up; image rows are grid rows, y
+down), ``overlay.png``
 (the same with each crater's rim: green the detectable labels, red the ghosts and overprinted ones)
 and ``craters.json`` (the settings, a summary and every crater placed). ``--patch-at LAT LON`` also
 writes ``terrain.npz``: the grid as the Blender worker's terrain patch (docs/terrain.md's contract,
@@ -28,16 +29,17 @@ from crater_core.settings_procedural import ProceduralSettings
 from crater_synth.config import ConfigError, compose_group
 from crater_synth.terrain.grid import sphere_points
 
-SUN_AZIMUTH_DEG = 270.0  # light from the west (image left), clockwise from north (image up = -y)
+# The PNGs keep the grid's rows: row i (y = i * spacing) is image row i, so +y (north in the renderer
+# patch) points down the image. The light comes from -x (the image's left), 30 deg up.
+SUN_AZIMUTH_DEG = 270.0  # clockwise from +y (north)
 SUN_ELEVATION_DEG = 30.0
 
 
 def hillshade(height: np.ndarray, spacing_m: float) -> np.ndarray:
-    """Lambertian shading in [0, 1] of ``height`` (rows = +y) under the preview's sun."""
+    """Lambertian shading in [0, 1] of ``height`` (rows along +y, columns along +x) under the preview's sun."""
     gy, gx = np.gradient(height, spacing_m)
     az, el = math.radians(SUN_AZIMUTH_DEG), math.radians(SUN_ELEVATION_DEG)
-    # Sun direction in (x, y, z): north is -y (row 0 at the top of the image).
-    sun = np.array([math.cos(el) * math.sin(az), -math.cos(el) * math.cos(az), math.sin(el)])
+    sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])  # (x, y, z)
     shade = (-gx * sun[0] - gy * sun[1] + sun[2]) / np.sqrt(1.0 + gx * gx + gy * gy)
     return np.clip(shade, 0.0, 1.0)
 
