@@ -37,6 +37,7 @@ from functools import cached_property
 from typing import Any, Dict, Mapping, Optional, Tuple
 
 from crater_core.hapke import HapkeParams
+from crater_core.settings_procedural import ProceduralSettings
 from crater_core.settings_train import (
     ConvSettings,
     FrameSettings,
@@ -531,6 +532,8 @@ class Settings(Group):
     # Not in configs/config.yaml's defaults (no other command reads it): ``crater-synth nav-frames
     # trajectory=NAME`` selects one.
     trajectory: Optional[TrajectorySettings] = None
+    # Not in the defaults either: the procedural crater field (crater_core/procedural.py), ``procedural=NAME``.
+    procedural: Optional[ProceduralSettings] = None
 
     def _check(self):
         if not self.crater:
@@ -576,6 +579,7 @@ GROUPS: Dict[str, type] = {
     "validate": ValidateSettings,
     "ablation": AblationSettings,
     "trajectory": TrajectorySettings,
+    "procedural": ProceduralSettings,
 }
 
 __all__ = [
@@ -599,6 +603,7 @@ __all__ = [
     "MosaicSettings",
     "PoolSettings",
     "PreprocessSettings",
+    "ProceduralSettings",
     "RealsetSettings",
     "RenderSettings",
     "SensorSettings",

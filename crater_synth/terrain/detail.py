@@ -45,16 +45,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# Pike (1977) fresh simple craters, McGetchin et al. (1973) ejecta and the spectral fBm: one copy, in the core.
+from crater_core.procedural import (
+    EJECTA_DECAY_EXP,
+    EJECTA_EXTENT_RADII,
+    PIKE_DEPTH_COEF,
+    PIKE_DEPTH_EXP,
+    PIKE_RIM_COEF,
+    PIKE_RIM_EXP,
+    fbm_surface,
+)
+from crater_core.procedural import wavenumbers as _wavenumbers
 from crater_core.settings import DETAIL_MODELS as MODELS  # noqa: F401 - terrain.detail.model choices, re-exported
-from crater_core.settings import FRESH_DEPTH_DIAMETER, DetailSettings, SettingsError
+from crater_core.settings import DetailSettings, SettingsError
 
-# Pike (1977), "Size-dependence in the shape of fresh impact craters on the Moon", in Impact and
-# Explosion Cratering, 489-509: fresh simple craters, D/d/h in km.
-PIKE_DEPTH_COEF, PIKE_DEPTH_EXP = FRESH_DEPTH_DIAMETER, 1.010
-PIKE_RIM_COEF, PIKE_RIM_EXP = 0.036, 1.014
-# McGetchin, Settle & Head (1973), EPSL 20:226: ejecta thickness ~ (r/R)^-3 outside the rim.
-EJECTA_DECAY_EXP = 3.0
-EJECTA_EXTENT_RADII = 3.0  # blanket truncated (smoothly) at 3 crater radii
 # Equilibrium cumulative SFD, N(>=D) = EQ_COEF * D^-EQ_SLOPE per m^2 with D in m
 # (Trask 1966, JPL TR 32-800; Gault 1970, Radio Sci. 5:273); ~5 % of geometric saturation
 # (1.54 D^-2, Gault 1970), "a few percent" in Minton et al. 2019, Icarus 326:63.
@@ -106,13 +110,6 @@ def _rng(seed: int, key: str) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFFFFFFFFFF, key_int]))
 
 
-def _wavenumbers(shape: tuple[int, int], spacing_m: float) -> np.ndarray:
-    """|k| (cycles per metre) on the rfft2 grid of ``shape``."""
-    ky = np.fft.fftfreq(shape[0], d=spacing_m)[:, None]
-    kx = np.fft.rfftfreq(shape[1], d=spacing_m)[None, :]
-    return np.hypot(ky, kx)
-
-
 def highpass_weights(shape: tuple[int, int], spacing_m: float, dem_pixel_m: float) -> np.ndarray:
     """rfft2 weights: 0 for wavelengths >= 2 p, raised-cosine to 1 at wavelength p, 1 beyond."""
     k = _wavenumbers(shape, spacing_m)
@@ -134,15 +131,6 @@ def _rms_slope(field: np.ndarray, spacing_m: float) -> float:
     gx = (np.roll(field, -1, axis=1) - field) / spacing_m
     gy = (np.roll(field, -1, axis=0) - field) / spacing_m
     return float(np.sqrt(np.mean(gx**2 + gy**2)))
-
-
-def fbm_surface(shape: tuple[int, int], spacing_m: float, hurst: float, rng: np.random.Generator) -> np.ndarray:
-    """Zero-mean periodic fractional Brownian surface (arbitrary amplitude), spectral synthesis."""
-    k = _wavenumbers(shape, spacing_m)
-    amp = np.zeros_like(k)
-    amp[k > 0] = k[k > 0] ** -(hurst + 1.0)
-    noise = rng.standard_normal(shape)
-    return np.fft.irfft2(np.fft.rfft2(noise) * amp, s=shape)
 
 
 def _unit_psd_amplitude(shape: tuple[int, int], spacing_m: float, hurst: float) -> np.ndarray:
