@@ -8,7 +8,7 @@ Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the s
    seed, as the worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the
    Moon) centred on (:data:`PATCH_LAT`, :data:`PATCH_LON`).
 2. **Conditions** (:func:`draw_conditions`): the Sun at any azimuth, :data:`SUN_ELEVATION_RANGE_DEG` high;
-   a nadir view (:data:`NADIR_SHARE` of the frames) or one up to :data:`MAX_OFF_NADIR_DEG` off nadir at
+   a nadir view (:data:`NADIR_SHARE` of the frames) or one :data:`OFF_NADIR_RANGE_DEG` off nadir at
    any azimuth; a ground sample between the grid spacing and :data:`GSD_MAX_FACTOR` times it (the image is
    never finer than the terrain), lowered if need be so that the frame's footprint stays inside the field.
 3. **Render**: one worker job per frame through :func:`crater_synth.dataset.dispatch.run_workers`, an
@@ -54,7 +54,7 @@ WIDTH_PX = 256
 FOV_DEG = 30.0  # the ground sample varies by ~7 % across a nadir frame: close to a mapping camera
 SUN_ELEVATION_RANGE_DEG = (0.5, 60.0)
 NADIR_SHARE = 0.25  # frames looking straight down (mapping passes); the others are oblique
-MAX_OFF_NADIR_DEG = 45.0
+OFF_NADIR_RANGE_DEG = (0.0, 45.0)  # oblique frames: off-nadir angle drawn uniform in this range
 GSD_MAX_FACTOR = 2.0  # ground sample drawn log-uniform in [1, GSD_MAX_FACTOR] x the grid spacing
 FOOTPRINT_MARGIN = 1.1  # field half-width / footprint half-extent at least this (relief, curvature)
 PATCH_LAT, PATCH_LON = 0.0, 0.0  # where the field lies on the Moon (the Sun is set in its ENU frame)
@@ -102,7 +102,7 @@ def draw_conditions(rng: np.random.Generator, terrain: ProceduralTerrain, width_
     s = terrain.spacing_m
     sun_el = float(rng.uniform(*SUN_ELEVATION_RANGE_DEG))
     sun_az = float(rng.uniform(0.0, 360.0))
-    off = 0.0 if rng.random() < NADIR_SHARE else float(rng.uniform(0.0, MAX_OFF_NADIR_DEG))
+    off = 0.0 if rng.random() < NADIR_SHARE else float(rng.uniform(*OFF_NADIR_RANGE_DEG))
     view_az = float(rng.uniform(0.0, 360.0))
     gsd = s * float(np.exp(rng.uniform(0.0, math.log(GSD_MAX_FACTOR))))
     focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
@@ -305,6 +305,25 @@ def detection_overrides(overrides) -> list[str]:
     return first + overrides
 
 
+def manifest_rows(out_dir: Path) -> dict[int, dict]:
+    """Frame index -> row of the detection manifest in ``out_dir`` (none yet: empty); a line that is no
+    detection row is one error naming it."""
+    path = Path(out_dir) / schema.MANIFEST_NAME
+    if not path.is_file():
+        return {}
+    rows = {}
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            rows[int(row["index"])] = row
+            row["labels"]
+        except (ValueError, TypeError, KeyError):
+            raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
+    return rows
+
+
 def _render_chunk(settings, frames: dict, out_dir: Path, rows: dict) -> None:
     """Render the planned ``frames`` (index -> :func:`plan_frame`), adding each one's manifest row to ``rows``
     as it arrives (the host labels while the workers render)."""
@@ -329,11 +348,7 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, width_px: in
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
     chunk = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
     # rows of frames outside this run's range stay (a large set rendered in pieces with --start)
-    rows = {
-        int(r["index"]): r
-        for r in schema.iter_rows(out_dir / schema.MANIFEST_NAME)
-        if not start <= int(r.get("index", -1)) < start + n_frames
-    }
+    rows = {i: r for i, r in manifest_rows(out_dir).items() if not start <= i < start + n_frames}
     done = len(rows)
     t0 = time.perf_counter()
     for first in range(start, start + n_frames, chunk):
