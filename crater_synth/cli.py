@@ -46,7 +46,7 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         (
             "detection-frames",
             "crater_synth.dataset.detection:detection_frames_command",
-            "Render labelled detection frames of procedural crater fields.",
+            "Render labelled frames of procedural crater fields.",
         ),
     ),
     "training": (
