@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import crater_core.procedural as P
-from crater_core import exr, geometry
+from crater_core import exr, geometry, schema
 from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
@@ -161,20 +161,21 @@ def test_patch_vertices_and_labels_share_one_mapping():
 # --------------------------------------------------------------------------------------------
 # Rendered (Blender)
 # --------------------------------------------------------------------------------------------
-def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0, 45.0)):
+def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0, 45.0), frames=1, views=1):
     monkeypatch.setattr(D, "NADIR_SHARE", nadir_share)
     monkeypatch.setattr(D, "OFF_NADIR_RANGE_DEG", off_range)
     overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
     settings = load_settings(D.detection_overrides(overrides))
     out = tmp_path / name
-    summary = D.render_detection_frames(settings, out, 1, width_px=96)
+    summary = D.render_detection_frames(settings, out, frames, width_px=96, views_per_field=views)
     rows = list(D.manifest_rows(out).values())
-    assert summary["frames"] == len(rows) == 1 and sorted(p.name for p in out.iterdir() if p.name[0] != ".") == [
-        "frame_000000.exr",
-        "manifest.jsonl",
-    ]
+    assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
+    names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
+    assert names == [D.frame_rel_path(i) for i in range(frames)] + ["manifest.jsonl"]
+    for r in rows:
+        assert schema.sha256_file(out / r["rel_path"]) == r["sha256"]
     assert not (out / D.PATCH_DIR).exists()
-    return out, rows[0]
+    return out, rows[0] if frames == 1 else rows
 
 
 def _rim_back_projection_error(out, row) -> float:
@@ -231,9 +232,12 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
     assert central
     for lb in central:
         assert lb["ellipse"]["b"] / lb["ellipse"]["a"] == pytest.approx(math.cos(math.radians(view)), abs=0.03)
-    out3, row3 = _render(tmp_path, "again", monkeypatch, 0.0, (30.0, 40.0))
+    # Again, with a second view of the same field: frame 0 is the same bytes and labels (frame i's draws
+    # depend on the seed and i only); frame 1 views the same field under its own Sun and view.
+    out3, (row3, row31) = _render(tmp_path, "again", monkeypatch, 0.0, (30.0, 40.0), frames=2, views=2)
     assert (out3 / "frame_000000.exr").read_bytes() == (out2 / "frame_000000.exr").read_bytes()
     assert {k: v for k, v in row3.items() if k != "render_seconds"} == {
         k: v for k, v in row2.items() if k != "render_seconds"
     }
+    assert row31["terrain"] == row3["terrain"] and row31["sun_enu"] != row3["sun_enu"] and row31["labels"]
     assert json.loads(json.dumps(row2["labels"][0]))["source"] == "procedural"

@@ -4,14 +4,15 @@ docs/procedural.md, "Detection frames").
 
 Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the same whatever N is):
 
-1. **Terrain**: a crater field of ``procedural.*`` (:func:`crater_core.procedural.generate`) with its own
-   seed, as the worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the
+1. **Terrain**: field f = i // ``views_per_field`` (default 1: a field per frame), a crater field of
+   ``procedural.*`` (:func:`crater_core.procedural.generate`) seeded from the run's seed and f, as the
+   worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the
    Moon) centred on (:data:`PATCH_LAT`, :data:`PATCH_LON`).
 2. **Conditions** (:func:`draw_conditions`): the Sun at any azimuth, :data:`SUN_ELEVATION_RANGE_DEG` high;
    a nadir view (:data:`NADIR_SHARE` of the frames) or one :data:`OFF_NADIR_RANGE_DEG` off nadir at
    any azimuth; a ground sample between the grid spacing and :data:`GSD_MAX_FACTOR` times it (the image is
    never finer than the terrain), lowered if need be so that the frame's footprint stays inside the field.
-3. **Render**: one worker job per frame through :func:`crater_synth.dataset.dispatch.run_workers`, an
+3. **Render**: one worker job per field through :func:`crater_synth.dataset.dispatch.run_workers`, an
    explicit camera in the patch's ENU frame, as ``nav-frames`` renders (docs/renderer.md, "Worker
    contract"); fast mode's G-buffer at one (centre) sample unless the command sets the samples.
 4. **Labels** (:func:`frame_labels`): every crater of ``detectable()`` whose rim-centre point projects into
@@ -21,8 +22,9 @@ Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the s
    frame's ``lit`` and ``depth`` channels (:mod:`crater_core.rim_fractions`).
 
 Output: ``<out>/frame_NNNNNN.exr`` (the dataset's channels) and ``<out>/manifest.jsonl`` (one row per frame,
-rewritten atomically after every chunk of frames). Frames are rendered in chunks of
-:data:`CHUNK_PER_WORKER` x ``render.workers``; a chunk's patches are deleted once it is rendered.
+rewritten atomically after every chunk of fields). Fields are rendered in chunks of
+:data:`CHUNK_PER_WORKER` x ``render.workers``, one worker job per field (its scene and BVH built once for
+its frames); a chunk's patches are deleted once it is rendered.
 """
 
 from __future__ import annotations
@@ -224,36 +226,47 @@ def worker_item(index: int, cond: dict, seed: int, header: dict) -> dict:
     }
 
 
-def plan_frame(settings, index: int, patch_dir: Path, width_px: int) -> dict:
-    """Frame ``index``'s terrain (generated, its patch written under ``patch_dir``), conditions and worker
-    job: {terrain, cond, job, terrain_seed}."""
-    terrain_seed, rng, seed = frame_seeds(settings.seed, index)
+def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int) -> dict:
+    """Field ``field``'s terrain (generated from the terrain stream of ``frame_seeds(seed, field)``, its patch
+    written under ``patch_dir``) and the conditions of its frames ``indices`` (each from its own stream):
+    {"job": one worker job for them all, "frames": index -> {terrain, cond, field, terrain_seed, terrain_id}}."""
+    terrain_seed = frame_seeds(settings.seed, field)[0]
     psettings = replace(settings.procedural, seed=terrain_seed)
     try:
         terrain = generate(psettings)
     except ValueError as exc:
         raise ConfigError(f"procedural: {str(exc).splitlines()[0]}") from None
-    cond = draw_conditions(rng, terrain, width_px, FOV_DEG)
-    npz = patch_dir / f"field_{index:06d}.npz"
+    npz = patch_dir / f"field_{field:06d}.npz"
     write_patch(terrain, PATCH_LAT, PATCH_LON, npz)
     terrain_id = schema.content_key([psettings.as_dict(), PATCH_LAT, PATCH_LON])
-    header = {
-        "detection_frame": index,
-        "terrain_id": terrain_id,
-        "procedural": json.dumps(psettings.as_dict(), sort_keys=True),
-        "code_version": code_version(),
-        "renderer": settings.render.mode,
-        "samples": int(settings.render.samples),
-        "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
-        "seed": seed,
-    }
     half = grid_centre_m(terrain)
     map_d_km = half * FAST_MAP_MARGIN / settings.render.shadow_map_extent_factor / 1000.0
-    crater = CraterSettings(name=f"detection-{index:06d}", lat=PATCH_LAT, lon=PATCH_LON, diameter_km=map_d_km)
-    item = worker_item(index, cond, seed, header)
-    plan = {"params": SimpleNamespace(index=index, indices=(0, 0, 0, index)), "item": item}
-    job = CraterJob(crater=crater, npz=npz, meta={"terrain_id": terrain_id}, plans=[plan])
-    return {"terrain": terrain, "cond": cond, "job": job, "terrain_seed": terrain_seed, "terrain_id": terrain_id}
+    crater = CraterSettings(name=f"detection-{field:06d}", lat=PATCH_LAT, lon=PATCH_LON, diameter_km=map_d_km)
+    job = CraterJob(crater=crater, npz=npz, meta={"terrain_id": terrain_id})
+    frames = {}
+    for index in indices:
+        _, rng, seed = frame_seeds(settings.seed, index)
+        cond = draw_conditions(rng, terrain, width_px, FOV_DEG)
+        header = {
+            "detection_frame": index,
+            "terrain_id": terrain_id,
+            "procedural": json.dumps(psettings.as_dict(), sort_keys=True),
+            "code_version": code_version(),
+            "renderer": settings.render.mode,
+            "samples": int(settings.render.samples),
+            "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
+            "seed": seed,
+        }
+        item = worker_item(index, cond, seed, header)
+        job.plans.append({"params": SimpleNamespace(index=index, indices=(0, 0, 0, index)), "item": item})
+        frames[index] = {
+            "terrain": terrain,
+            "cond": cond,
+            "field": field,
+            "terrain_seed": terrain_seed,
+            "terrain_id": terrain_id,
+        }
+    return {"job": job, "frames": frames}
 
 
 def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
@@ -271,6 +284,7 @@ def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
         "mode": res["mode"],
         "render_seconds": res["seconds"],
         "terrain": {
+            "field": frame["field"],
             "seed": frame["terrain_seed"],
             "terrain_id": frame["terrain_id"],
             "size_px": int(terrain.height.shape[0]),
@@ -324,52 +338,59 @@ def manifest_rows(out_dir: Path) -> dict[int, dict]:
     return rows
 
 
-def _render_chunk(settings, frames: dict, out_dir: Path, rows: dict) -> None:
-    """Render the planned ``frames`` (index -> :func:`plan_frame`), adding each one's manifest row to ``rows``
-    as it arrives (the host labels while the workers render)."""
+def _render_chunk(settings, fields: list[dict], out_dir: Path, rows: dict) -> None:
+    """Render the planned ``fields`` (:func:`plan_field`), adding each frame's manifest row to ``rows`` as it
+    arrives (the host labels while the workers render)."""
+    frames = {i: f for field in fields for i, f in field["frames"].items()}
 
     def on_result(_job, _plan, result):
         idx = int(result["index"])
         rows[idx] = frame_row(frames[idx], result, out_dir)
 
-    run_workers([f["job"] for f in frames.values()], settings.render, settings.hapke, out_dir, on_result)
+    run_workers([f["job"] for f in fields], settings.render, settings.hapke, out_dir, on_result)
+    missing = sorted(set(frames) - set(rows))
+    if missing:
+        raise UserError(f"detection frames {missing} were not rendered (see {out_dir}/.jobs/*.log)")
 
 
-def render_detection_frames(settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0) -> dict:
-    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; returns a
-    summary. The manifest holds every frame rendered so far, rewritten atomically after each chunk."""
+def render_detection_frames(
+    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, views_per_field: int = 1
+) -> dict:
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; frame i views
+    field i // ``views_per_field`` (one scene, BVH and patch for that many frames). Returns a summary. The
+    manifest holds every frame rendered so far, rewritten atomically after each chunk of fields."""
     if settings.procedural is None:
         raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
-    if n_frames < 1:
-        raise UserError(f"--frames {n_frames}: must be >= 1")
+    if n_frames < 1 or views_per_field < 1:
+        raise UserError(f"--frames {n_frames}, --views-per-field {views_per_field}: each must be >= 1")
     out_dir = Path(out_dir)
     ensure_writable_dir(out_dir, "--out")
     patch_dir = out_dir / PATCH_DIR
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
+    wanted = range(start, start + n_frames)
+    by_field: dict[int, list[int]] = {}
+    for i in wanted:
+        by_field.setdefault(i // views_per_field, []).append(i)
+    field_ids = sorted(by_field)
     chunk = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
     # rows of frames outside this run's range stay (a large set rendered in pieces with --start)
-    rows = {i: r for i, r in manifest_rows(out_dir).items() if not start <= i < start + n_frames}
+    rows = {i: r for i, r in manifest_rows(out_dir).items() if i not in wanted}
     done = len(rows)
     t0 = time.perf_counter()
-    for first in range(start, start + n_frames, chunk):
+    for k in range(0, len(field_ids), chunk):
         patch_dir.mkdir(parents=True, exist_ok=True)
-        frames = {
-            i: plan_frame(settings, i, patch_dir, width_px) for i in range(first, min(first + chunk, start + n_frames))
-        }
-
         try:
-            _render_chunk(settings, frames, out_dir, rows)
+            fields = [plan_field(settings, f, by_field[f], patch_dir, width_px) for f in field_ids[k : k + chunk]]
+            _render_chunk(settings, fields, out_dir, rows)
         finally:
             shutil.rmtree(patch_dir, ignore_errors=True)
-        missing = sorted(set(frames) - set(rows))
-        if missing:
-            raise UserError(f"detection frames {missing} were not rendered (see {out_dir}/.jobs/*.log)")
         text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
         schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
     seconds = time.perf_counter() - t0
-    ordered = [rows[i] for i in range(start, start + n_frames)]
+    ordered = [rows[i] for i in wanted]
     return {
         "frames": len(ordered),
+        "fields": len(field_ids),
         "frames_in_manifest": done + len(ordered),
         "out_dir": str(out_dir),
         "width_px": width_px,
@@ -386,8 +407,15 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, width_px: in
 @click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
 @click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
 @click.option("--width", "width_px", type=int, default=WIDTH_PX, show_default=True, help="Frame side (px).")
+@click.option(
+    "--views-per-field",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Frames per crater field, each with its own Sun and view (one scene and patch for them all).",
+)
 @user_errors
-def detection_frames_command(overrides, out, n_frames, start, width_px):
+def detection_frames_command(overrides, out, n_frames, start, width_px, views_per_field):
     """Render labelled detection frames of procedural crater fields (EXR + manifest).
 
     Each frame draws its own field (procedural.*, default procedural=detection), Sun and view from the run
@@ -398,4 +426,4 @@ def detection_frames_command(overrides, out, n_frames, start, width_px):
     if start < 0:
         raise UserError(f"--start {start}: must be >= 0")
     settings = load_settings(detection_overrides(overrides))
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start)))
+    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, views_per_field)))
