@@ -130,6 +130,9 @@ def test_conditions_stay_in_their_ranges_and_the_footprint_in_the_field():
     small = P.generate(P.ProceduralSettings(size_px=128, spacing_m=50.0, seed=1))
     with pytest.raises(D.UserError, match="raise procedural.size_px"):
         D.draw_conditions(np.random.default_rng(0), small, 256, D.FOV_DEG)
+    D.check_field_fits(P.ProceduralSettings(size_px=768), 256)  # the command's default field
+    with pytest.raises(D.UserError, match=r"procedural.size_px=600: .* at least 66\d px"):
+        D.check_field_fits(P.ProceduralSettings(size_px=600), 256)
 
 
 def test_frame_seeds_depend_on_the_run_seed_and_the_index_only():

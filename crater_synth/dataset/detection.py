@@ -98,6 +98,19 @@ def footprint_extent(off_nadir_deg: float, azimuth_deg: float, fov_deg: float) -
     return np.abs(ground[:, :2]).max(axis=0)
 
 
+def check_field_fits(procedural, width_px: int, fov_deg: float = FOV_DEG) -> None:
+    """One error, before anything is written, when the fields of ``procedural`` cannot hold a frame's
+    footprint at the grid's own ground sample in the most oblique view at its worst azimuth."""
+    worst = max(float(footprint_extent(OFF_NADIR_RANGE_DEG[1], az, fov_deg).max()) for az in range(0, 360, 5))
+    focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
+    need_px = 2.0 * worst * FOOTPRINT_MARGIN * focal + 1.0
+    if procedural.size_px < need_px:
+        raise UserError(
+            f"procedural.size_px={procedural.size_px}: a {width_px} px frame {OFF_NADIR_RANGE_DEG[1]:g} deg off "
+            f"nadir at the grid's ground sample needs a field of at least {math.ceil(need_px)} px: raise it"
+        )
+
+
 def draw_conditions(rng: np.random.Generator, terrain: ProceduralTerrain, width_px: int, fov_deg: float) -> dict:
     """Sun, view and ground sample of one frame over ``terrain`` (module docstring, step 2): the camera in
     the patch frame, looking at a target whose footprint stays inside the field."""
@@ -363,6 +376,7 @@ def render_detection_frames(
         raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
     if n_frames < 1 or views_per_field < 1:
         raise UserError(f"--frames {n_frames}, --views-per-field {views_per_field}: each must be >= 1")
+    check_field_fits(settings.procedural, width_px)
     out_dir = Path(out_dir)
     ensure_writable_dir(out_dir, "--out")
     patch_dir = out_dir / PATCH_DIR
