@@ -52,6 +52,28 @@ from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
 
 DETECTION_LABEL_VERSION = 1
+# A label's fields, in order, with their kinds (the typed columns of `crater-synth export --kind detection`).
+DETECTION_LABEL_FIELDS = (
+    ("id", "int"),
+    ("source", "string"),
+    ("ellipse", "ellipse"),
+    ("centre_px", "float list"),
+    ("x_m", "float"),
+    ("y_m", "float"),
+    ("diameter_m", "float"),
+    ("rim_diameter_m", "float"),
+    ("depth_m", "float"),
+    ("rim_height_m", "float"),
+    ("degradation", "float"),
+    ("class", "string"),
+    ("is_secondary", "bool"),
+    ("visible_rim_fraction", "float"),
+    ("emission_deg", "float"),
+    ("rim_inside", "bool"),
+    ("lit_rim_fraction", "float"),
+    ("occluded_rim_fraction", "float"),
+    ("occluded", "bool"),
+)
 WIDTH_PX = 256
 FOV_DEG = 30.0  # the ground sample varies by ~7 % across a nadir frame: close to a mapping camera
 SUN_ELEVATION_RANGE_DEG = (0.5, 60.0)
