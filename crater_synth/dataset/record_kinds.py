@@ -428,7 +428,7 @@ def detect_kind(dataset_dir: str | os.PathLike) -> str | None:
     found = [k for k, fields in _KIND_FIELDS.items() if all(f in first for f in fields)]
     if len(found) != 1:
         raise ExportError(
-            f"dataset {dataset_dir}: {MANIFEST_NAME} is not a render manifest (rows with path, crater), a "
+            f"dataset {dataset_dir}: {MANIFEST_NAME} is neither a render manifest (rows with path, crater), a "
             "nav-frames manifest (rows with rel_path, trajectory, landmarks) nor a detection-frames manifest "
             "(rows with rel_path, terrain, labels)"
         )
