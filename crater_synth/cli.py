@@ -43,6 +43,11 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("verify", "crater_synth.dataset.verify:verify_command", "Check a dataset's files against its manifest."),
         ("preview", "crater_synth.dataset.preview:preview_command", "Write a contact sheet PNG per crater."),
         ("export", "crater_synth.dataset.export:export_command", "Export a dataset to Parquet or WebDataset shards."),
+        (
+            "detection-frames",
+            "crater_synth.dataset.detection:detection_frames_command",
+            "Render labelled frames of procedural crater fields.",
+        ),
     ),
     "training": (
         (
@@ -144,7 +149,7 @@ EXTRA_MODULES: dict[str, tuple[str, ...]] = {
 EXTRA_MODULES["all"] = tuple(sorted({m for modules in EXTRA_MODULES.values() for m in modules}))
 _TRAIN = ("train", "evaluate", "loop", "experiments", "results", "validate", "ablate", "sunmatch", "report")
 COMMAND_EXTRA: dict[str, str] = {
-    **dict.fromkeys(("terrain", "catalogue", "dataset", "verify", "preview"), "render"),
+    **dict.fromkeys(("terrain", "catalogue", "dataset", "verify", "preview", "detection-frames"), "render"),
     "export": "export",
     **dict.fromkeys(_TRAIN, "train"),
     **{name: "nav" for name, _, _ in COMMANDS["navigation"]},

@@ -3,9 +3,11 @@
 - ``render``: a ``crater-synth dataset`` directory (crater-centred crops, crater_core.schema's manifest);
 - ``navframe``: a ``crater-synth nav-frames`` directory (whole frames along a trajectory, their pose, Sun
   and the landmarks in view with projected rim ellipses and lit-rim fractions). Its manifest is read as
-  data: this layer (dataset/) sits below crater_synth.navigation and never imports it.
+  data: this layer (dataset/) sits below crater_synth.navigation and never imports it;
+- ``detection``: a ``crater-synth detection-frames`` directory (whole frames of procedural crater fields,
+  their camera, Sun and the labels of every crater in view: :mod:`crater_synth.dataset.detection`).
 
-:func:`detect_kind` tells the two manifests apart by their rows' fields. The formats' writers are in
+:func:`detect_kind` tells the manifests apart by their rows' fields. The formats' writers are in
 :mod:`crater_synth.dataset.export_writers`, the export loop in :mod:`crater_synth.dataset.export`.
 """
 
@@ -31,6 +33,7 @@ from crater_core.schema import (
     PARTS_DIR,
     iter_rows,
 )
+from crater_synth.dataset.detection import DETECTION_LABEL_FIELDS
 from crater_synth.errors import UserError
 
 
@@ -193,20 +196,25 @@ def _json_rows(manifest: Path) -> Iterator[tuple[int, dict]]:
 
 
 def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
+    return _frame_rows(dataset_dir, _NAVFRAME_REQUIRED, "nav-frames")
+
+
+def _frame_rows(dataset_dir: Path, required: tuple[str, ...], command: str) -> tuple[int, Iterator[dict]]:
+    """The rows of a whole-frame manifest written by ``crater-synth <command>``, each with ``required``."""
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(
-            f"dataset {dataset_dir}: no {MANIFEST_NAME} (render the frames with `crater-synth nav-frames`)"
+            f"dataset {dataset_dir}: no {MANIFEST_NAME} (render the frames with `crater-synth {command}`)"
         )
 
     def gen() -> Iterator[dict]:
-        # nav-frames writes its manifest once, atomically, sorted by frame index: file order is the stable order.
+        # the frame commands write their manifest atomically, sorted by frame index: file order is the stable order.
         for lineno, row in _json_rows(manifest):
-            missing = [f for f in _NAVFRAME_REQUIRED if f not in row]
+            missing = [f for f in required if f not in row]
             rel = str(row.get("rel_path", ""))
             if missing or rel.startswith("/") or ".." in Path(rel).parts:
                 why = f"missing field(s) {missing}" if missing else f"rel_path {rel!r} leaves the directory"
-                raise ExportError(f"{manifest}:{lineno}: not a nav-frames row ({why})")
+                raise ExportError(f"{manifest}:{lineno}: not a {command} row ({why})")
             yield row
 
     # Every row is checked once before the export starts, so a bad line writes no shard (as for renders).
@@ -313,10 +321,100 @@ NAVFRAME = RecordKind(
     channels=RENDER.channels,
     shape=_navframe_shape,
 )
-RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER, NAVFRAME.name: NAVFRAME}
 
-# The fields that tell one manifest from the other (each kind's rows carry all of its own, none of the other's).
-_KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajectory", "landmarks")}
+
+# Detection frames (``crater-synth detection-frames``, docs/procedural.md): ``frame_NNNNNN.exr`` and a row per
+# frame with its camera, Sun, terrain and the labels of the procedural craters in view.
+_DETECTION_REQUIRED = ("index", "rel_path", "sha256", "terrain", "labels")
+
+
+@functools.lru_cache(maxsize=None)
+def _detection_label_fields() -> list:
+    f64, i64, s = pa.float64(), pa.int64(), pa.string()
+    ellipse = pa.struct([(name, f64) for name in NAVFRAME_ELLIPSE_FIELDS])
+    types = {"int": i64, "string": s, "float": f64, "float list": pa.list_(f64), "ellipse": ellipse, "bool": pa.bool_()}
+    label = pa.struct([(name, types[kind]) for name, kind in DETECTION_LABEL_FIELDS])
+    return [
+        ("frame_index", i64),
+        ("rel_path", s),
+        ("sha256", s),
+        ("width_px", i64),
+        ("fov_deg", f64),
+        ("camera_position_m", pa.list_(f64)),  # in the patch's ENU frame (origin: patch_lat/lon)
+        ("camera_rotation", pa.list_(pa.list_(f64))),  # 3 x 3, rows as in the manifest
+        ("sun_elevation_deg", f64),
+        ("sun_azimuth_deg", f64),
+        ("off_nadir_deg", f64),
+        ("view_azimuth_deg", f64),
+        ("range_m", f64),
+        ("ground_sample_m", f64),
+        ("lit_fraction", f64),
+        ("mean_if", f64),
+        ("terrain_field", i64),
+        ("terrain_seed", i64),
+        ("terrain_id", s),
+        ("terrain_size_px", i64),
+        ("terrain_spacing_m", f64),
+        ("patch_lat", f64),
+        ("patch_lon", f64),
+        ("labels", pa.list_(label)),
+        ("mode", s),
+        ("label_version", i64),
+        ("schema_version", i64),
+    ]
+
+
+def _detection_labels(row: dict) -> dict:
+    cam, sun = row.get("camera_enu") or {}, row.get("sun_enu") or {}
+    view, terrain = row.get("view") or {}, row.get("terrain") or {}
+    return {
+        "frame_index": row.get("index"),
+        "rel_path": row.get("rel_path"),
+        "sha256": row.get("sha256"),
+        "width_px": cam.get("width_px"),
+        "fov_deg": cam.get("fov_deg"),
+        "camera_position_m": cam.get("position_m"),
+        "camera_rotation": cam.get("rotation"),
+        "sun_elevation_deg": sun.get("elevation_deg"),
+        "sun_azimuth_deg": sun.get("azimuth_deg"),
+        "off_nadir_deg": view.get("off_nadir_deg"),
+        "view_azimuth_deg": view.get("view_azimuth_deg"),
+        "range_m": view.get("range_m"),
+        "ground_sample_m": row.get("ground_sample_m"),
+        "lit_fraction": row.get("lit_fraction"),
+        "mean_if": row.get("mean_if"),
+        "terrain_field": terrain.get("field"),
+        "terrain_seed": terrain.get("seed"),
+        "terrain_id": terrain.get("terrain_id"),
+        "terrain_size_px": terrain.get("size_px"),
+        "terrain_spacing_m": terrain.get("spacing_m"),
+        "patch_lat": terrain.get("patch_lat"),
+        "patch_lon": terrain.get("patch_lon"),
+        "labels": [{name: lb.get(name) for name, _ in DETECTION_LABEL_FIELDS} for lb in row.get("labels") or []],
+        "mode": row.get("mode"),
+        "label_version": row.get("label_version"),
+        "schema_version": row.get("schema_version"),
+    }
+
+
+DETECTION = RecordKind(
+    name="detection",
+    rows=lambda d: _frame_rows(d, _DETECTION_REQUIRED, "detection-frames"),
+    key=lambda row: Path(row["rel_path"]).stem.replace(".", "p"),
+    arrays=_navframe_arrays,
+    label_fields=_detection_label_fields,
+    labels=_detection_labels,
+    channels=RENDER.channels,
+    shape=_navframe_shape,
+)
+RECORD_KINDS: dict[str, RecordKind] = {k.name: k for k in (RENDER, NAVFRAME, DETECTION)}
+
+# The fields that tell the manifests apart (each kind's rows carry all of its own, none of the others').
+_KIND_FIELDS = {
+    "render": ("path", "crater"),
+    "navframe": ("rel_path", "trajectory", "landmarks"),
+    "detection": ("rel_path", "terrain", "labels"),
+}
 
 
 def detect_kind(dataset_dir: str | os.PathLike) -> str | None:
@@ -330,7 +428,8 @@ def detect_kind(dataset_dir: str | os.PathLike) -> str | None:
     found = [k for k, fields in _KIND_FIELDS.items() if all(f in first for f in fields)]
     if len(found) != 1:
         raise ExportError(
-            f"dataset {dataset_dir}: {MANIFEST_NAME} is neither a render manifest (rows with path, crater) nor a "
-            "nav-frames manifest (rows with rel_path, trajectory, landmarks)"
+            f"dataset {dataset_dir}: {MANIFEST_NAME} is neither a render manifest (rows with path, crater), a "
+            "nav-frames manifest (rows with rel_path, trajectory, landmarks) nor a detection-frames manifest "
+            "(rows with rel_path, terrain, labels)"
         )
     return found[0]

@@ -12,7 +12,6 @@ near field only), centred on (LAT, LON) and curved with the Moon as the DEM patc
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import math
 import sys
@@ -22,12 +21,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crater_core.geometry import MOON_RADIUS_M, mc_to_enu
 from crater_core.procedural import ProceduralTerrain, generate
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_core.settings_procedural import ProceduralSettings
 from crater_synth.config import ConfigError, compose_group
-from crater_synth.terrain.grid import sphere_points
+from crater_synth.terrain.procedural_patch import write_patch
 
 # The PNGs keep the grid's rows: row i (y = i * spacing) is image row i, so +y (north in the renderer
 # patch) points down the image. The light comes from -x (the image's left), 30 deg up.
@@ -84,30 +82,6 @@ def write_preview(terrain: ProceduralTerrain, settings: ProceduralSettings, out:
     }
     atomic_write_text(out / "craters.json", json.dumps(doc, separators=(",", ":")) + "\n")
     return doc["summary"]
-
-
-def patch_arrays(terrain: ProceduralTerrain, lat: float, lon: float) -> dict[str, np.ndarray]:
-    """The worker's terrain arrays (blender_gen/job.py ``load_terrain``) of the grid centred on (lat, lon):
-    vertex (i, j) at e = x_j - centre, n = y_i - centre on the tangent plane, projected radially onto the
-    sphere and raised by its height, in the ENU frame of (lat, lon) (rows ascending north, columns east,
-    as crater_synth/terrain/patch.py builds them). No far field."""
-    n = terrain.height.shape[0]
-    coords = (np.arange(n) - 0.5 * (n - 1)) * terrain.spacing_m
-    ee, nn = np.meshgrid(coords, coords)
-    dirs, _, _ = sphere_points(ee, nn, lat, lon)
-    xyz = mc_to_enu(dirs * (MOON_RADIUS_M + terrain.height)[..., None], lat, lon)
-    return {
-        "near_xyz": xyz.astype(np.float32),
-        "far_xyz": np.zeros((0, 0, 3), np.float32),
-        "far_keep_quads": np.zeros((0, 0), bool),
-        "near_height": terrain.height.astype(np.float32),
-    }
-
-
-def write_patch(terrain: ProceduralTerrain, lat: float, lon: float, path: Path) -> None:
-    buf = io.BytesIO()
-    np.savez(buf, **patch_arrays(terrain, lat, lon))
-    atomic_write_bytes(path, buf.getvalue())
 
 
 def main(argv: list[str] | None = None) -> int:

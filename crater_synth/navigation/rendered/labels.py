@@ -2,7 +2,7 @@
 
 Every landmark of the map whose 3-D rim-centre point projects inside the frame is labelled with its
 projected rim ellipse (the rim circle in the landmark's own local horizontal plane: the Moon's curvature
-tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at :data:`RIM_POINTS`
+tilts it against the frame's), its **lit-rim fraction** (mean of the ``lit`` channel at ``rim_fractions.RIM_POINTS``
 points of the ellipse inside the frame) and its **occluded-rim fraction** (the share of the 3-D rim
 points that nearer relief hides in the rendered ``depth``); docs/navigation/rendered.md. A label's
 fields, in order, are ``crater_core.schema.NAVFRAME_LANDMARK_FIELDS``.
@@ -21,14 +21,13 @@ import click
 import numpy as np
 
 from crater_core import exr, geometry, schema
+from crater_core.rim_fractions import hidden_rim_fraction, lit_rim_fraction, rim_circle
 from crater_core.trajectory import FramePose
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import pole_of
 from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map, positions_mc
 
-RIM_POINTS = 90  # points on a projected rim where the lit channel is sampled
-MIN_RIM_INSIDE = 0.5  # lit-rim fraction only when at least this share of the rim lies in the frame
 # A rim point is hidden when the rendered depth there is nearer than the rim point itself by more than
 # this margin: a fixed part (terrain detail) plus a share of the diameter (a real rim crest rises and falls
 # around the map's mean rim height, by a few per cent of D); relief in front of a rim in an oblique view
@@ -52,36 +51,10 @@ def hidden(label: dict) -> bool:
     return frac is not None and frac > HIDDEN_RIM_MAX
 
 
-def _rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):
-    """(mask of the rim points inside a frame of ``shape`` (and ``valid``), their pixel rows, their pixel
-    columns), or None when less than :data:`MIN_RIM_INSIDE` of the rim is inside."""
-    h, w = shape
-    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h)
-    if valid is not None:
-        inside &= valid
-    if inside.mean() < MIN_RIM_INSIDE:
-        return None
-    return inside, np.floor(rim_uv[inside, 1]).astype(int), np.floor(rim_uv[inside, 0]).astype(int)
-
-
-def lit_rim_fraction(lit: np.ndarray, ellipse: geometry.Ellipse) -> float | None:
-    """Mean of the ``lit`` channel (illuminated fraction of the solar disc) at :data:`RIM_POINTS` points
-    of the projected rim inside the frame; None when less than :data:`MIN_RIM_INSIDE` of it is inside."""
-    px = _rim_pixels(lit.shape, ellipse.points(RIM_POINTS))
-    return None if px is None else float(np.mean(lit[px[1], px[2]]))
-
-
 def occluded_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, diameter_m: float):
-    """Share of the rim points inside the frame that relief nearer to the camera hides: the rendered
-    ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
-    ``rim_depth`` by more than the occlusion margin. None when less than :data:`MIN_RIM_INSIDE` of the rim
-    is in the frame."""
-    px = _rim_pixels(depth.shape, rim_uv, rim_depth > 0)
-    if px is None:
-        return None
-    inside, v, u = px
-    margin = OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m
-    return float(np.mean(depth[v, u] < rim_depth[inside] - margin))
+    """:func:`crater_core.rim_fractions.hidden_rim_fraction` with the landmark's occlusion margin
+    (:data:`OCCLUSION_MARGIN_M` + :data:`OCCLUSION_MARGIN_D` x ``diameter_m``)."""
+    return hidden_rim_fraction(depth, rim_uv, rim_depth, OCCLUSION_MARGIN_M + OCCLUSION_MARGIN_D * diameter_m)
 
 
 def landmarks_in_view(
@@ -125,10 +98,8 @@ def landmarks_in_view(
             frac = lit_rim_fraction(lit, ell)
             row["lit_rim_fraction"] = None if frac is None else round(frac, 4)
         if depth_image is not None:
-            e1, e2 = geometry.plane_basis(normal)
-            theta = np.arange(RIM_POINTS) * 2.0 * np.pi / RIM_POINTS
             radius = lm.diameter_km * 500.0
-            rim = pts[k] + radius * (np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2)
+            rim = rim_circle(pts[k], normal, radius)
             rim_uv, rim_depth = geometry.project_points(rim, cam, w)
             hidden = occluded_rim_fraction(depth_image, rim_uv, rim_depth, 2.0 * radius)
             row["occluded_rim_fraction"] = None if hidden is None else round(hidden, 4)

@@ -1,0 +1,465 @@
+"""Detection frames: whole camera frames of procedural crater fields, rendered by the dataset's renderer,
+labelled with every crater the field holds (``crater-synth detection-frames --out DIR --frames N``;
+docs/procedural.md, "Detection frames").
+
+Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the same whatever N is):
+
+1. **Terrain**: field f = i // ``views_per_field`` (default 1: a field per frame), a crater field of
+   ``procedural.*`` (:func:`crater_core.procedural.generate`) seeded from the run's seed and f, as the
+   worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the
+   Moon) centred on (:data:`PATCH_LAT`, :data:`PATCH_LON`).
+2. **Conditions** (:func:`draw_conditions`): the Sun at any azimuth, :data:`SUN_ELEVATION_RANGE_DEG` high;
+   a nadir view (:data:`NADIR_SHARE` of the frames) or one :data:`OFF_NADIR_RANGE_DEG` off nadir at
+   any azimuth; a ground sample between the grid spacing and :data:`GSD_MAX_FACTOR` times it (the image is
+   never finer than the terrain), lowered if need be so that the frame's footprint stays inside the field.
+3. **Render**: one worker job per field through :func:`crater_synth.dataset.dispatch.run_workers`, an
+   explicit camera in the patch's ENU frame, as ``nav-frames`` renders (docs/renderer.md, "Worker
+   contract"); fast mode's G-buffer at one (centre) sample unless the command sets the samples.
+4. **Labels** (:func:`frame_labels`): every crater of ``detectable()`` whose rim-centre point projects into
+   the frame and whose projected rim spans at least :data:`MIN_RIM_SPAN_PX` pixels: the rim circle (D/2 at
+   the rim's mean grid height, level with the crater's own local horizontal) projected exactly through the
+   camera (:func:`crater_core.geometry.project_circle`), its lit and hidden rim fractions read from the
+   frame's ``lit`` and ``depth`` channels (:mod:`crater_core.rim_fractions`).
+
+Output: ``<out>/frame_NNNNNN.exr`` (the dataset's channels) and ``<out>/manifest.jsonl`` (one row per frame,
+rewritten atomically after every chunk of fields). Fields are rendered in chunks of
+:data:`CHUNK_PER_WORKER` x ``render.workers``, one worker job per field (its scene and BVH built once for
+its frames); a chunk's patches are deleted once it is rendered.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import click
+import numpy as np
+
+from crater_core import exr, geometry, schema
+from crater_core.files import ensure_writable_dir
+from crater_core.procedural import ProceduralTerrain, generate
+from crater_core.rim_fractions import hidden_rim_fraction, lit_rim_fraction, rim_circle
+from crater_core.settings import CraterSettings, replace
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
+from crater_synth.dataset.dispatch import run_workers
+from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict
+from crater_synth.errors import ConfigError, UserError
+from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
+
+DETECTION_LABEL_VERSION = 1
+# A label's fields, in order, with their kinds (the typed columns of `crater-synth export --kind detection`).
+DETECTION_LABEL_FIELDS = (
+    ("id", "int"),
+    ("source", "string"),
+    ("ellipse", "ellipse"),
+    ("centre_px", "float list"),
+    ("x_m", "float"),
+    ("y_m", "float"),
+    ("diameter_m", "float"),
+    ("rim_diameter_m", "float"),
+    ("depth_m", "float"),
+    ("rim_height_m", "float"),
+    ("degradation", "float"),
+    ("class", "string"),
+    ("is_secondary", "bool"),
+    ("visible_rim_fraction", "float"),
+    ("emission_deg", "float"),
+    ("rim_inside", "bool"),
+    ("lit_rim_fraction", "float"),
+    ("occluded_rim_fraction", "float"),
+    ("occluded", "bool"),
+)
+WIDTH_PX = 256
+FOV_DEG = 30.0  # the ground sample varies by ~7 % across a nadir frame: close to a mapping camera
+SUN_ELEVATION_RANGE_DEG = (0.5, 60.0)
+NADIR_SHARE = 0.25  # frames looking straight down (mapping passes); the others are oblique
+OFF_NADIR_RANGE_DEG = (0.0, 45.0)  # oblique frames: off-nadir angle drawn uniform in this range
+GSD_MAX_FACTOR = 2.0  # ground sample drawn log-uniform in [1, GSD_MAX_FACTOR] x the grid spacing
+FOOTPRINT_MARGIN = 1.1  # field half-width / footprint half-extent at least this (relief, curvature)
+PATCH_LAT, PATCH_LON = 0.0, 0.0  # where the field lies on the Moon (the Sun is set in its ENU frame)
+MIN_RIM_SPAN_PX = 3.0  # a label's projected rim spans at least this many pixels (2a)
+RIM_HEIGHT_POINTS = 64  # grid samples on the rim circle averaged for its height
+# A rim point is hidden when the rendered depth there is nearer than the point by more than this: a share
+# of D (the crest rises and falls about its mean height) plus two ground samples (a pixel's depth is its
+# centre's, up to a ground sample away from the rim point in an oblique view).
+HIDDEN_MARGIN_D = 0.05
+HIDDEN_MARGIN_GSD = 2.0
+HIDDEN_RIM_MAX = 0.5  # a label with more of its rim hidden is flagged ``occluded``
+CHUNK_PER_WORKER = 4
+# The horizon map of fast mode covers the whole patch (the job's "crater" diameter sets its extent).
+FAST_MAP_MARGIN = 1.02
+PATCH_DIR = ".patches"  # under --out: the chunk's terrain patches and their horizon maps
+
+
+def frame_rel_path(index: int) -> str:
+    return f"frame_{index:06d}.exr"
+
+
+def frame_seeds(run_seed: int, index: int) -> tuple[int, np.random.Generator, int]:
+    """(terrain seed, conditions generator, render seed) of frame ``index``: independent streams of
+    ``SeedSequence([run_seed, index])``."""
+    terrain_ss, cond_ss, render_ss = np.random.SeedSequence([int(run_seed), int(index)]).spawn(3)
+    return (
+        int(terrain_ss.generate_state(1)[0]),
+        np.random.default_rng(cond_ss),
+        int(render_ss.generate_state(1)[0] & 0x7FFFFFFF),
+    )
+
+
+def footprint_extent(off_nadir_deg: float, azimuth_deg: float, fov_deg: float) -> np.ndarray:
+    """(|e|, |n|) half-extents of the ground footprint (corner rays on a flat ground) per metre of range."""
+    cam = geometry.look_at_camera(90.0 - off_nadir_deg, azimuth_deg, 1.0, fov_deg)
+    t = math.tan(math.radians(fov_deg) / 2.0)
+    corners = np.array([[sx * t, sy * t, -1.0] for sx in (-1, 1) for sy in (-1, 1)]) @ cam.rotation.T
+    ground = cam.position + corners * (-cam.position[2] / corners[:, 2])[:, None]
+    return np.abs(ground[:, :2]).max(axis=0)
+
+
+def check_field_fits(procedural, width_px: int, fov_deg: float = FOV_DEG) -> None:
+    """One error, before anything is written, when the fields of ``procedural`` cannot hold a frame's
+    footprint at the grid's own ground sample in the most oblique view at its worst azimuth."""
+    worst = max(float(footprint_extent(OFF_NADIR_RANGE_DEG[1], az, fov_deg).max()) for az in range(0, 360, 5))
+    focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
+    need_px = 2.0 * worst * FOOTPRINT_MARGIN * focal + 1.0
+    if procedural.size_px < need_px:
+        raise UserError(
+            f"procedural.size_px={procedural.size_px}: a {width_px} px frame {OFF_NADIR_RANGE_DEG[1]:g} deg off "
+            f"nadir at the grid's ground sample needs a field of at least {math.ceil(need_px)} px: raise it"
+        )
+
+
+def draw_conditions(rng: np.random.Generator, terrain: ProceduralTerrain, width_px: int, fov_deg: float) -> dict:
+    """Sun, view and ground sample of one frame over ``terrain`` (module docstring, step 2): the camera in
+    the patch frame, looking at a target whose footprint stays inside the field."""
+    s = terrain.spacing_m
+    sun_el = float(rng.uniform(*SUN_ELEVATION_RANGE_DEG))
+    sun_az = float(rng.uniform(0.0, 360.0))
+    off = 0.0 if rng.random() < NADIR_SHARE else float(rng.uniform(*OFF_NADIR_RANGE_DEG))
+    view_az = float(rng.uniform(0.0, 360.0))
+    gsd = s * float(np.exp(rng.uniform(0.0, math.log(GSD_MAX_FACTOR))))
+    focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
+    extent = footprint_extent(off, view_az, fov_deg) * FOOTPRINT_MARGIN
+    half = grid_centre_m(terrain)
+    fit = half / float(extent.max()) / focal  # the largest ground sample whose footprint fits the field
+    if fit < s:
+        raise UserError(
+            f"procedural field of {terrain.height.shape[0]} px at {s:g} m/px is too small for a {width_px} px "
+            f"frame at its spacing {off:.1f} deg off nadir: raise procedural.size_px"
+        )
+    gsd = min(gsd, fit)
+    range_m = gsd * focal
+    slack = np.maximum(half - extent * range_m, 0.0)
+    te, tn = rng.uniform(-slack, slack)
+    tx, ty = te + half, tn + half
+    target, _ = grid_to_enu(terrain, tx, ty, height_at(terrain, tx, ty), PATCH_LAT, PATCH_LON)
+    cam = geometry.look_at_camera(90.0 - off, view_az, range_m, fov_deg, target=target)
+    return {
+        "camera": cam,
+        "width_px": int(width_px),
+        "sun_elevation_deg": sun_el,
+        "sun_azimuth_deg": sun_az,
+        "off_nadir_deg": off,
+        "view_azimuth_deg": view_az,
+        "ground_sample_m": gsd,
+        "range_m": range_m,
+        "target_grid_m": [float(tx), float(ty)],
+        "target_enu_m": [float(v) for v in target],
+    }
+
+
+def _round(v, nd: int = 4):
+    return None if v is None else round(float(v), nd)
+
+
+def frame_labels(terrain: ProceduralTerrain, cam: geometry.CameraPose, width_px: int, lit=None, depth=None) -> list:
+    """Labels of the detectable craters in view (module docstring, step 4); with the frame's ``lit`` and
+    ``depth`` channels, each rim's lit fraction and hidden fraction (None where less than half the rim is
+    in the frame). Every label carries ``source: "procedural"``."""
+    craters = terrain.detectable()
+    if not craters:
+        return []
+    x = np.array([c.x_m for c in craters])
+    y = np.array([c.y_m for c in craters])
+    radius = 0.5 * np.array([c.diameter_m for c in craters])
+    theta = np.arange(RIM_HEIGHT_POINTS) * 2.0 * np.pi / RIM_HEIGHT_POINTS
+    rim_x = x[:, None] + radius[:, None] * np.cos(theta)
+    rim_y = y[:, None] + radius[:, None] * np.sin(theta)
+    rim_z = height_at(terrain, rim_x, rim_y).mean(axis=1)
+    centres, normals = grid_to_enu(terrain, x, y, rim_z, PATCH_LAT, PATCH_LON)
+    uv, dist = geometry.project_points(centres, cam, width_px)
+    w = width_px
+    inside = (dist > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < w)
+    to_cam = cam.position - centres
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    emission = np.degrees(np.arccos(np.clip(np.sum(to_cam * normals, axis=1), -1.0, 1.0)))
+    gsd = dist / cam.focal_px(w)
+    out = []
+    for k in np.nonzero(inside)[0]:
+        ell = geometry.project_circle(centres[k], normals[k], radius[k], cam, w)
+        if 2.0 * ell.a < MIN_RIM_SPAN_PX:
+            continue
+        c = craters[k]
+        label = {
+            "id": c.order,
+            "source": "procedural",
+            "ellipse": {key: round(float(v), 4) for key, v in ell.as_dict().items()},
+            "centre_px": [round(float(uv[k, 0]), 3), round(float(uv[k, 1]), 3)],
+            "x_m": round(c.x_m, 3),
+            "y_m": round(c.y_m, 3),
+            "diameter_m": round(c.diameter_m, 3),
+            "rim_diameter_m": round(c.rim_diameter_m, 3),
+            "depth_m": round(c.depth_m, 3),
+            "rim_height_m": round(c.rim_height_m, 3),
+            "degradation": round(c.degradation, 4),
+            "class": c.morph_class,
+            "is_secondary": c.is_secondary,
+            "visible_rim_fraction": round(c.visible_rim_fraction, 4),
+            "emission_deg": round(float(emission[k]), 3),
+            "rim_inside": bool(
+                ell.cu - ell.a >= 0 and ell.cv - ell.a >= 0 and ell.cu + ell.a <= w and ell.cv + ell.a <= w
+            ),
+        }
+        if lit is not None:
+            label["lit_rim_fraction"] = _round(lit_rim_fraction(lit, ell))
+        if depth is not None:
+            rim_uv, rim_depth = geometry.project_points(rim_circle(centres[k], normals[k], radius[k]), cam, w)
+            margin = HIDDEN_MARGIN_D * 2.0 * radius[k] + HIDDEN_MARGIN_GSD * gsd[k]
+            hidden = hidden_rim_fraction(depth, rim_uv, rim_depth, margin)
+            label["occluded_rim_fraction"] = _round(hidden)
+            label["occluded"] = hidden is not None and hidden > HIDDEN_RIM_MAX
+        out.append(label)
+    return out
+
+
+def worker_item(index: int, cond: dict, seed: int, header: dict) -> dict:
+    """One worker ``renders`` entry with an explicit camera (docs/renderer.md, "Worker contract")."""
+    cam, w = cond["camera"], cond["width_px"]
+    return {
+        "index": index,
+        "indices": [index],
+        "sun_elevation": cond["sun_elevation_deg"],
+        "sun_azimuth": cond["sun_azimuth_deg"],
+        # informative only (the explicit camera wins)
+        "cam_elevation": 90.0 - cond["off_nadir_deg"],
+        "cam_azimuth": cond["view_azimuth_deg"],
+        "range_m": cond["range_m"],
+        "fov_deg": cam.fov_deg,
+        "frame_width": w,
+        "crop": [0, 0, w, w],
+        "camera": {
+            "position": [float(v) for v in cam.position],
+            "rotation": [[float(v) for v in r] for r in cam.rotation],
+        },
+        "rel_path": frame_rel_path(index),
+        "seed": seed,
+        "header": header,
+    }
+
+
+def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int) -> dict:
+    """Field ``field``'s terrain (generated from the terrain stream of ``frame_seeds(seed, field)``, its patch
+    written under ``patch_dir``) and the conditions of its frames ``indices`` (each from its own stream):
+    {"job": one worker job for them all, "frames": index -> {terrain, cond, field, terrain_seed, terrain_id}}."""
+    terrain_seed = frame_seeds(settings.seed, field)[0]
+    psettings = replace(settings.procedural, seed=terrain_seed)
+    try:
+        terrain = generate(psettings)
+    except ValueError as exc:
+        raise ConfigError(f"procedural: {str(exc).splitlines()[0]}") from None
+    npz = patch_dir / f"field_{field:06d}.npz"
+    write_patch(terrain, PATCH_LAT, PATCH_LON, npz)
+    terrain_id = schema.content_key([psettings.as_dict(), PATCH_LAT, PATCH_LON])
+    half = grid_centre_m(terrain)
+    map_d_km = half * FAST_MAP_MARGIN / settings.render.shadow_map_extent_factor / 1000.0
+    crater = CraterSettings(name=f"detection-{field:06d}", lat=PATCH_LAT, lon=PATCH_LON, diameter_km=map_d_km)
+    job = CraterJob(crater=crater, npz=npz, meta={"terrain_id": terrain_id})
+    frames = {}
+    for index in indices:
+        _, rng, seed = frame_seeds(settings.seed, index)
+        cond = draw_conditions(rng, terrain, width_px, FOV_DEG)
+        header = {
+            "detection_frame": index,
+            "terrain_id": terrain_id,
+            "procedural": json.dumps(psettings.as_dict(), sort_keys=True),
+            "code_version": code_version(),
+            "renderer": settings.render.mode,
+            "samples": int(settings.render.samples),
+            "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
+            "seed": seed,
+        }
+        item = worker_item(index, cond, seed, header)
+        job.plans.append({"params": SimpleNamespace(index=index, indices=(0, 0, 0, index)), "item": item})
+        frames[index] = {
+            "terrain": terrain,
+            "cond": cond,
+            "field": field,
+            "terrain_seed": terrain_seed,
+            "terrain_id": terrain_id,
+        }
+    return {"job": job, "frames": frames}
+
+
+def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
+    """The manifest row of one rendered frame: the worker's ``res``, the frame's terrain, Sun and camera,
+    and its labels (lit and hidden rim fractions read from the frame's EXR)."""
+    cond, terrain = frame["cond"], frame["terrain"]
+    channels = exr.read_channels(out_dir / res["rel_path"], ("lit", "depth"))
+    cam = cond["camera"]
+    return {
+        "schema_version": schema.SCHEMA_VERSION,
+        "label_version": DETECTION_LABEL_VERSION,
+        "index": int(res["index"]),
+        "rel_path": res["rel_path"],
+        "sha256": res["sha256"],
+        "mode": res["mode"],
+        "render_seconds": res["seconds"],
+        "terrain": {
+            "field": frame["field"],
+            "seed": frame["terrain_seed"],
+            "terrain_id": frame["terrain_id"],
+            "size_px": int(terrain.height.shape[0]),
+            "spacing_m": terrain.spacing_m,
+            "patch_lat": PATCH_LAT,
+            "patch_lon": PATCH_LON,
+            "frame": "ENU on the 1737.4 km sphere at the patch centre; grid (x, y) = (column, row) x spacing",
+        },
+        "camera_enu": {
+            "position_m": [float(v) for v in cam.position],
+            "rotation": cam.rotation.tolist(),
+            "fov_deg": cam.fov_deg,
+            "width_px": cond["width_px"],
+        },
+        "view": {k: cond[k] for k in ("off_nadir_deg", "view_azimuth_deg", "range_m", "target_grid_m")},
+        "sun_enu": {"elevation_deg": cond["sun_elevation_deg"], "azimuth_deg": cond["sun_azimuth_deg"]},
+        "ground_sample_m": cond["ground_sample_m"],
+        "lit_fraction": res["lit_fraction"],
+        "mean_if": res["mean_if"],
+        "labels": frame_labels(terrain, cam, cond["width_px"], channels["lit"], channels["depth"]),
+    }
+
+
+def detection_overrides(overrides) -> list[str]:
+    """The command's defaults ahead of the user's overrides: ``procedural=detection`` unless a
+    ``procedural=`` option is named, and fast mode's one-sample G-buffer unless the samples are set."""
+    overrides = list(overrides)
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    first = [] if "procedural" in keys else ["procedural=detection"]
+    if not keys & {"render.samples", "render.gbuffer_samples"}:
+        first.append("render.gbuffer_samples=1")
+    return first + overrides
+
+
+def manifest_rows(out_dir: Path) -> dict[int, dict]:
+    """Frame index -> row of the detection manifest in ``out_dir`` (none yet: empty); a line that is no
+    detection row is one error naming it."""
+    path = Path(out_dir) / schema.MANIFEST_NAME
+    if not path.is_file():
+        return {}
+    rows = {}
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            rows[int(row["index"])] = row
+            row["labels"]
+        except (ValueError, TypeError, KeyError):
+            raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
+    return rows
+
+
+def _render_chunk(settings, fields: list[dict], out_dir: Path, rows: dict) -> None:
+    """Render the planned ``fields`` (:func:`plan_field`), adding each frame's manifest row to ``rows`` as it
+    arrives (the host labels while the workers render)."""
+    frames = {i: f for field in fields for i, f in field["frames"].items()}
+
+    def on_result(_job, _plan, result):
+        idx = int(result["index"])
+        rows[idx] = frame_row(frames[idx], result, out_dir)
+
+    run_workers([f["job"] for f in fields], settings.render, settings.hapke, out_dir, on_result)
+    missing = sorted(set(frames) - set(rows))
+    if missing:
+        raise UserError(f"detection frames {missing} were not rendered (see {out_dir}/.jobs/*.log)")
+
+
+def render_detection_frames(
+    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, views_per_field: int = 1
+) -> dict:
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; frame i views
+    field i // ``views_per_field`` (one scene, BVH and patch for that many frames). Returns a summary. The
+    manifest holds every frame rendered so far, rewritten atomically after each chunk of fields."""
+    if settings.procedural is None:
+        raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
+    if n_frames < 1 or views_per_field < 1:
+        raise UserError(f"--frames {n_frames}, --views-per-field {views_per_field}: each must be >= 1")
+    check_field_fits(settings.procedural, width_px)
+    out_dir = Path(out_dir)
+    ensure_writable_dir(out_dir, "--out")
+    patch_dir = out_dir / PATCH_DIR
+    settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
+    wanted = range(start, start + n_frames)
+    by_field: dict[int, list[int]] = {}
+    for i in wanted:
+        by_field.setdefault(i // views_per_field, []).append(i)
+    field_ids = sorted(by_field)
+    chunk = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
+    # rows of frames outside this run's range stay (a large set rendered in pieces with --start)
+    rows = {i: r for i, r in manifest_rows(out_dir).items() if i not in wanted}
+    done = len(rows)
+    t0 = time.perf_counter()
+    for k in range(0, len(field_ids), chunk):
+        patch_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            fields = [plan_field(settings, f, by_field[f], patch_dir, width_px) for f in field_ids[k : k + chunk]]
+            _render_chunk(settings, fields, out_dir, rows)
+        finally:
+            shutil.rmtree(patch_dir, ignore_errors=True)
+        text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
+        schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
+    seconds = time.perf_counter() - t0
+    ordered = [rows[i] for i in wanted]
+    return {
+        "frames": len(ordered),
+        "fields": len(field_ids),
+        "frames_in_manifest": done + len(ordered),
+        "out_dir": str(out_dir),
+        "width_px": width_px,
+        "modes_used": sorted({r["mode"] for r in ordered}),
+        "labels": sum(len(r["labels"]) for r in ordered),
+        "seconds": round(seconds, 2),
+        "frames_per_s": round(len(ordered) / seconds, 3),
+    }
+
+
+@click.command("detection-frames")
+@OVERRIDES
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
+@click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
+@click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
+@click.option("--width", "width_px", type=int, default=WIDTH_PX, show_default=True, help="Frame side (px).")
+@click.option(
+    "--views-per-field",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Frames per crater field, each with its own Sun and view (one scene and patch for them all).",
+)
+@user_errors
+def detection_frames_command(overrides, out, n_frames, start, width_px, views_per_field):
+    """Render labelled detection frames of procedural crater fields (EXR + manifest).
+
+    Each frame draws its own field (procedural.*, default procedural=detection), Sun and view from the run
+    seed and its index. Example: `crater-synth detection-frames --out data/detection --frames 8 seed=1`
+    """
+    if width_px < 16:
+        raise UserError(f"--width {width_px}: must be >= 16 px")
+    if start < 0:
+        raise UserError(f"--start {start}: must be >= 0")
+    settings = load_settings(detection_overrides(overrides))
+    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, views_per_field)))

@@ -1,0 +1,305 @@
+"""Detection frames of procedural crater fields (crater_synth/dataset/detection.py, docs/procedural.md).
+
+Fast tier: the labels' projection with a synthetic camera (no Blender), the conditions' ranges, the seeds.
+Integration: tiny frames rendered through the workers, their labels checked against the rendered depth.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+import crater_core.procedural as P
+from crater_core import exr, geometry, schema
+from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
+from crater_synth.config import load_settings
+from crater_synth.dataset import detection as D
+from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, patch_arrays
+
+SPACING = 20.0
+SIZE = 257  # odd: the grid's centre is a vertex
+
+
+def _one_crater(diameter_m: float = 1000.0, size: int = SIZE, spacing_m: float = SPACING) -> P.ProceduralTerrain:
+    """A fresh crater at the centre of flat ground."""
+    c = 0.5 * (size - 1) * spacing_m
+    return P.build(np.zeros((size, size)), spacing_m, P.crater_table([diameter_m], [c], [c], [0.0], 0.0))
+
+
+def _looking_at_crater(terrain, off_nadir_deg: float, azimuth_deg: float, gsd: float, width: int, fov: float = 30.0):
+    crater = terrain.craters[0]
+    target, _ = grid_to_enu(terrain, crater.x_m, crater.y_m, 0.0, D.PATCH_LAT, D.PATCH_LON)
+    focal = 0.5 * width / math.tan(math.radians(fov) / 2.0)
+    return geometry.look_at_camera(90.0 - off_nadir_deg, azimuth_deg, gsd * focal, fov, target=target)
+
+
+def test_nadir_label_is_the_rim_circle_at_the_ground_sample():
+    """Straight down on a fresh crater: the label is centred on the image centre and a = b = D/2 / gsd
+    (the rim sits a rim height above the target: the ground sample there is range - h over f)."""
+    terrain = _one_crater()
+    crater = terrain.craters[0]
+    w, gsd = 128, 25.0
+    cam = _looking_at_crater(terrain, 0.0, 0.0, gsd, w)
+    (label,) = D.frame_labels(terrain, cam, w)
+    ell = label["ellipse"]
+    assert ell["cu"] == pytest.approx(w / 2, abs=0.01) and ell["cv"] == pytest.approx(w / 2, abs=0.01)
+    rim_h = float(height_at(terrain, crater.x_m + crater.diameter_m / 2, crater.y_m))
+    assert rim_h == pytest.approx(crater.rim_height_m, rel=0.05) and rim_h > 10.0
+    expected = 0.5 * crater.diameter_m / ((gsd * cam.focal_px(w) - rim_h) / cam.focal_px(w))
+    assert ell["a"] == pytest.approx(expected, rel=2e-3) and ell["b"] == pytest.approx(expected, rel=2e-3)
+    assert label["emission_deg"] < 0.05 and label["source"] == "procedural" and label["class"] == "simple"
+    assert label["diameter_m"] == pytest.approx(1000.0) and label["rim_inside"]
+    assert "lit_rim_fraction" not in label and "occluded" not in label  # no channels given
+
+
+@pytest.mark.parametrize("off_nadir", [20.0, 35.0, 45.0])
+def test_oblique_label_shrinks_across_the_view_by_the_cosine(off_nadir):
+    """Seen off nadir, a rim near the image centre is an ellipse with b/a = cos(emission angle), its minor
+    axis along the view's azimuth (image up is the ground track away from the camera)."""
+    terrain = _one_crater()
+    w = 128
+    cam = _looking_at_crater(terrain, off_nadir, 30.0, 25.0, w)
+    (label,) = D.frame_labels(terrain, cam, w)
+    ell = label["ellipse"]
+    assert label["emission_deg"] == pytest.approx(off_nadir, abs=0.3)  # the patch centre's normal is vertical
+    assert ell["b"] / ell["a"] == pytest.approx(math.cos(math.radians(off_nadir)), rel=0.01)
+    assert abs(math.sin(ell["angle_rad"])) < 0.02  # the major axis along image u: across the view
+
+
+def test_labels_keep_only_craters_in_view_spanning_three_pixels():
+    """A crater whose rim spans fewer than 3 px is not labelled; one whose centre is out of the frame neither."""
+    terrain = _one_crater(diameter_m=300.0)
+    w = 64
+    focal = 0.5 * w / math.tan(math.radians(15.0))
+    # 300 m spans 2.9 px at 103 m/px, 3.06 px at 98 m/px
+    for gsd, n in ((103.0, 0), (98.0, 1)):
+        assert len(D.frame_labels(terrain, _looking_at_crater(terrain, 0.0, 0.0, gsd, w), w)) == n
+    far = geometry.look_at_camera(90.0, 0.0, 20.0 * focal, 30.0, target=(2000.0, 0.0, 0.0))
+    assert D.frame_labels(terrain, far, w) == []
+
+
+def test_lit_and_hidden_rim_fractions_from_the_channels():
+    """The rim's lit fraction is read from the lit channel; relief nearer than the rim by more than the
+    margin over more than half the rim flags the label occluded."""
+    terrain = _one_crater()
+    w = 96
+    cam = _looking_at_crater(terrain, 0.0, 0.0, 25.0, w)
+    lit = np.zeros((w, w), np.float32)
+    lit[:, : w // 2] = 1.0  # the left half lit: half the rim
+    far = np.full((w, w), 1e9, np.float32)
+    (label,) = D.frame_labels(terrain, cam, w, lit, far)
+    assert label["lit_rim_fraction"] == pytest.approx(0.5, abs=0.03)
+    assert label["occluded_rim_fraction"] == 0.0 and label["occluded"] is False
+    (label,) = D.frame_labels(terrain, cam, w, lit, np.full((w, w), 10.0, np.float32))
+    assert label["occluded_rim_fraction"] == 1.0 and label["occluded"] is True
+
+
+def test_hidden_rim_fraction_uses_the_margin_given():
+    theta = np.arange(90) * 2 * np.pi / 90
+    rim_uv = np.stack([20 + 10 * np.cos(theta), 20 + 10 * np.sin(theta)], 1)
+    depth = np.full((40, 40), 1000.0)
+    assert hidden_rim_fraction(depth, rim_uv, np.full(90, 1050.0), 100.0) == 0.0
+    assert hidden_rim_fraction(depth, rim_uv, np.full(90, 1050.0), 10.0) == 1.0
+    pts = rim_circle([0.0, 0.0, 5.0], [0.0, 0.0, 1.0], 3.0)
+    assert np.allclose(np.hypot(pts[:, 0], pts[:, 1]), 3.0) and np.allclose(pts[:, 2], 5.0)
+
+
+def test_conditions_stay_in_their_ranges_and_the_footprint_in_the_field():
+    """Sun 0.5-60 deg at any azimuth, nadir or up to 45 deg off, ground sample never finer than the grid nor
+    coarser than twice it; every corner ray of the frame meets the ground inside the field."""
+    terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=1, density_scale=0.1))
+    half = grid_centre_m(terrain)
+    w = 256
+    nadir = 0
+    for i in range(60):
+        _, rng, _ = D.frame_seeds(7, i)
+        c = D.draw_conditions(rng, terrain, w, D.FOV_DEG)
+        assert 0.5 <= c["sun_elevation_deg"] <= 60.0 and 0.0 <= c["sun_azimuth_deg"] < 360.0
+        assert 0.0 <= c["off_nadir_deg"] <= 45.0
+        nadir += c["off_nadir_deg"] == 0.0
+        assert 50.0 <= c["ground_sample_m"] <= 100.0
+        cam = c["camera"]
+        corners = np.array([[0, 0], [w, 0], [0, w], [w, w]], float)
+        rays = geometry.back_project_pixels(corners, np.ones(4), cam, w) - cam.position
+        ground = cam.position + rays * (-(cam.position[2] - c["target_enu_m"][2]) / rays[:, 2])[:, None]
+        assert np.abs(ground[:, :2]).max() < half
+    assert 5 <= nadir <= 30  # a quarter of the frames look straight down
+    small = P.generate(P.ProceduralSettings(size_px=128, spacing_m=50.0, seed=1))
+    with pytest.raises(D.UserError, match="raise procedural.size_px"):
+        D.draw_conditions(np.random.default_rng(0), small, 256, D.FOV_DEG)
+    D.check_field_fits(P.ProceduralSettings(size_px=768), 256)  # the command's default field
+    with pytest.raises(D.UserError, match=r"procedural.size_px=600: .* at least 66\d px"):
+        D.check_field_fits(P.ProceduralSettings(size_px=600), 256)
+
+
+def test_frame_seeds_depend_on_the_run_seed_and_the_index_only():
+    a, ra, sa = D.frame_seeds(3, 5)
+    b, rb, sb = D.frame_seeds(3, 5)
+    assert (a, sa) == (b, sb) and ra.random() == rb.random()
+    assert len({D.frame_seeds(3, i)[0] for i in range(50)} | {D.frame_seeds(4, 0)[0]}) == 51
+
+
+def test_command_defaults_yield_to_the_users_settings():
+    assert D.detection_overrides([]) == ["procedural=detection", "render.gbuffer_samples=1"]
+    assert D.detection_overrides(["procedural=default", "render.samples=2"]) == [
+        "procedural=default",
+        "render.samples=2",
+    ]
+    settings = load_settings(D.detection_overrides(["procedural.size_px=400"]))
+    assert settings.procedural.size_px == 400 and settings.render.gbuffer_samples == 1
+
+
+def test_patch_vertices_and_labels_share_one_mapping():
+    """The patch's vertex (i, j) is grid point (x_j, y_i) at its height, through the labels' own mapping."""
+    terrain = _one_crater(size=65)
+    arrays = patch_arrays(terrain, D.PATCH_LAT, D.PATCH_LON)
+    xyz, _ = grid_to_enu(terrain, 40 * SPACING, 12 * SPACING, terrain.height[12, 40], D.PATCH_LAT, D.PATCH_LON)
+    assert np.allclose(arrays["near_xyz"][12, 40], xyz, atol=0.01)
+    assert np.allclose(arrays["near_xyz"][32, 32, :2], 0.0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Rendered (Blender)
+# --------------------------------------------------------------------------------------------
+def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0, 45.0), frames=1, views=1):
+    monkeypatch.setattr(D, "NADIR_SHARE", nadir_share)
+    monkeypatch.setattr(D, "OFF_NADIR_RANGE_DEG", off_range)
+    overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
+    settings = load_settings(D.detection_overrides(overrides))
+    out = tmp_path / name
+    summary = D.render_detection_frames(settings, out, frames, width_px=96, views_per_field=views)
+    rows = list(D.manifest_rows(out).values())
+    assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
+    names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
+    assert names == [D.frame_rel_path(i) for i in range(frames)] + ["manifest.jsonl"]
+    for r in rows:
+        assert schema.sha256_file(out / r["rel_path"]) == r["sha256"]
+    assert not (out / D.PATCH_DIR).exists()
+    return out, rows[0] if frames == 1 else rows
+
+
+def _rim_back_projection_error(out, row) -> float:
+    """Median over the unoccluded labels of |horizontal distance from the crater's axis - D/2| (in ground
+    samples) of the rendered surface points under the label's ellipse: where the rendered frame has the rim."""
+    ch, _ = exr.read_exr(out / row["rel_path"])
+    cam = geometry.CameraPose(
+        np.array(row["camera_enu"]["position_m"]), np.array(row["camera_enu"]["rotation"]), row["camera_enu"]["fov_deg"]
+    )
+    w = row["camera_enu"]["width_px"]
+    errs = []
+    for lb in row["labels"]:
+        ell = lb["ellipse"]
+        if lb["occluded"] or not lb["rim_inside"] or ell["a"] < 3.0:
+            continue
+        uv = geometry.Ellipse(ell["cu"], ell["cv"], ell["a"], ell["b"], ell["angle_rad"]).points(64)
+        px = np.clip(np.floor(uv).astype(int), 0, w - 1)
+        pts = geometry.back_project_pixels(uv, ch["depth"][px[:, 1], px[:, 0]], cam, w)
+        centre, up = grid_to_enu(_Grid(row), lb["x_m"], lb["y_m"], 0.0, D.PATCH_LAT, D.PATCH_LON)
+        rel = pts - centre
+        horiz = np.linalg.norm(rel - (rel @ up)[:, None] * up, axis=1)
+        errs.append(np.median(np.abs(horiz - lb["diameter_m"] / 2)) / row["ground_sample_m"])
+    assert len(errs) >= 3, "too few checkable labels"
+    return float(np.median(errs))
+
+
+class _Grid:
+    """The grid geometry a row records (what grid_to_enu reads of a terrain)."""
+
+    def __init__(self, row):
+        n = row["terrain"]["size_px"]
+        self.height = np.zeros((n, n))
+        self.spacing_m = row["terrain"]["spacing_m"]
+
+
+@pytest.mark.integration
+def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_deterministic(tmp_path, monkeypatch):
+    """A nadir and an oblique frame (96 px): the rendered depth puts the surface under each unoccluded
+    label's ellipse at D/2 from the crater's axis (to half a ground sample, median); near the image centre
+    b/a = cos(view angle); the same seed renders the same bytes and labels."""
+    out, row = _render(tmp_path, "nadir", monkeypatch, 1.0)
+    assert row["view"]["off_nadir_deg"] == 0.0 and row["mode"] == "fast" and row["labels"]
+    assert _rim_back_projection_error(out, row) < 0.5
+    for lb in row["labels"]:
+        assert lb["ellipse"]["b"] / lb["ellipse"]["a"] > 0.97
+        gsd_here = row["ground_sample_m"]  # nadir over nearly flat ground: the ground sample everywhere
+        assert lb["ellipse"]["a"] == pytest.approx(lb["diameter_m"] / 2 / gsd_here, rel=0.08)
+    out2, row2 = _render(tmp_path, "oblique", monkeypatch, 0.0, (30.0, 40.0))
+    view = row2["view"]["off_nadir_deg"]
+    assert 30.0 <= view <= 40.0
+    assert _rim_back_projection_error(out2, row2) < 0.5
+    # within 12 px (3.7 deg) of the boresight: the view angle is the crater's emission angle to ~4 deg
+    central = [lb for lb in row2["labels"] if np.hypot(lb["centre_px"][0] - 48, lb["centre_px"][1] - 48) < 12]
+    assert central
+    for lb in central:
+        assert lb["ellipse"]["b"] / lb["ellipse"]["a"] == pytest.approx(math.cos(math.radians(view)), abs=0.03)
+    # Again, with a second view of the same field: frame 0 is the same bytes and labels (frame i's draws
+    # depend on the seed and i only); frame 1 views the same field under its own Sun and view.
+    out3, (row3, row31) = _render(tmp_path, "again", monkeypatch, 0.0, (30.0, 40.0), frames=2, views=2)
+    assert (out3 / "frame_000000.exr").read_bytes() == (out2 / "frame_000000.exr").read_bytes()
+    assert {k: v for k, v in row3.items() if k != "render_seconds"} == {
+        k: v for k, v in row2.items() if k != "render_seconds"
+    }
+    assert row31["terrain"] == row3["terrain"] and row31["sun_enu"] != row3["sun_enu"] and row31["labels"]
+    assert json.loads(json.dumps(row2["labels"][0]))["source"] == "procedural"
+
+
+def _fake_frames(tmp_path, n: int = 2):
+    """``n`` detection frames as the command writes them, the EXRs made up (no Blender): rows by
+    :func:`detection.frame_row` over a generated field and drawn conditions."""
+    terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=2))
+    out = tmp_path / "frames"
+    out.mkdir()
+    rows = []
+    for i in range(n):
+        terrain_seed, rng, _ = D.frame_seeds(0, i)
+        cond = D.draw_conditions(rng, terrain, 64, D.FOV_DEG)
+        rel = D.frame_rel_path(i)
+        chans = {c: np.full((64, 64), 0.5 + i, np.float32) for c in schema.EXR_CHANNELS}
+        chans["depth"] = np.full((64, 64), 1e9, np.float32)
+        exr.write_exr(out / rel, chans, {"crater_synth:mode": "fast"})
+        res = {
+            "index": i,
+            "rel_path": rel,
+            "sha256": schema.sha256_file(out / rel),
+            "mode": "fast",
+            "seconds": 0.1,
+            "lit_fraction": 0.5,
+            "mean_if": 0.5,
+        }
+        frame = {"terrain": terrain, "cond": cond, "field": i, "terrain_seed": terrain_seed, "terrain_id": "t"}
+        rows.append(D.frame_row(frame, res, out))
+    (out / schema.MANIFEST_NAME).write_text("".join(schema.dumps_row(r) + "\n" for r in rows))
+    return out, rows
+
+
+def test_labels_carry_the_fields_the_export_types(tmp_path):
+    _, rows = _fake_frames(tmp_path, 1)
+    assert rows[0]["labels"]
+    for lb in rows[0]["labels"]:
+        assert list(lb) == [name for name, _ in D.DETECTION_LABEL_FIELDS]
+
+
+def test_detection_frames_export_to_parquet_with_typed_labels(tmp_path):
+    """`crater-synth export` detects the kind and writes every label as a typed struct, images bit for bit."""
+    import pyarrow.parquet as pq
+
+    from crater_synth.dataset import export as ex
+
+    frames, rows = _fake_frames(tmp_path)
+    assert ex.detect_kind(frames) == "detection"
+    index = ex.export_dataset(frames, tmp_path / "pq", "parquet", channels=["IF", "lit"], shard_rows=1)
+    assert index["record_kind"] == "detection" and index["rows"] == 2
+    table = pq.read_table(sorted((tmp_path / "pq").glob("*.parquet"))[1])
+    rec = table.to_pylist()[0]
+    assert rec["key"] == "frame_000001" and rec["frame_index"] == 1 and rec["terrain_field"] == 1
+    assert table.schema.field("labels").type.value_type.field("ellipse").type.field("a").type.bit_width == 64
+    assert len(rec["labels"]) == len(rows[1]["labels"]) > 0
+    for got, want in zip(rec["labels"], rows[1]["labels"]):
+        assert got == want
+    assert json.loads(rec["labels_json"]) == rows[1]
+    img = np.load(io.BytesIO(rec[f"{ex.column_name('IF')}_npy"]))
+    assert np.array_equal(img, exr.read_channel(frames / rows[1]["rel_path"], "IF"))
