@@ -3,15 +3,17 @@
 - A folder holds one kind of output, named by its marker file (:data:`MARKERS`: ``.crater-synth-<kind>``).
   A writer refuses a folder marked for another kind, or (``subject``) for another subject of its kind
   (another trajectory's frames).
-- The marker lists every file the writer wrote (``files``), recorded *before* the file is written, so an
-  interrupted write is still provably the writer's. A writer never deletes or overwrites a file that is
-  neither listed nor proved by the writer itself (a nav frame's header and pixel seal); a folder holding
-  any such file is refused, in one line naming it, and nothing is written.
+- The marker lists every file the writer wrote (``files``: name -> its size and mtime once written, null
+  while being written), recorded *before* the file is written, so an interrupted write is still provably
+  the writer's. A listed file whose size or mtime changed since is the writer's only if the writer's own
+  ``prove`` accepts it (a nav frame: its header names this trajectory and index). A writer never deletes
+  or overwrites a file it cannot prove it wrote; a folder holding any such file is refused, in one line
+  naming it, and nothing is written.
 - One writer at a time: an exclusive ``flock`` on :data:`LOCK_NAME`, taken without waiting; the kernel
   drops the lock of a killed writer, so a stale lock never blocks. The second writer is refused naming the
   holder (``pid N on HOST, since ...``).
-- Files are published atomically (a hidden temp file renamed; the temp files of a listed file are the
-  writer's too, and only those are removed).
+- Files are published atomically (a hidden temp file renamed). A leftover temp file of a listed file is
+  tolerated (no loader's glob matches it); it is deleted only when the marker lists it.
 - A refused run removes what it created (its marker and lock file, the folders it made while they are
   empty) and nothing else.
 
@@ -29,7 +31,7 @@ import os
 import socket
 import time
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
@@ -111,10 +113,17 @@ class OutFolder:
     locks and marks it; :meth:`record` lists files before they are written; :meth:`remove` deletes only
     listed files; :meth:`discard` undoes a refused run; :meth:`release` unlocks."""
 
-    def __init__(self, path: Path, kind: str, subject: str | None = None, flag: str = "--out"):
-        self.path, self.kind, self.subject, self.flag = Path(path), kind, subject, flag
+    def __init__(
+        self,
+        path: Path,
+        kind: str,
+        subject: str | None = None,
+        flag: str = "--out",
+        prove: Callable[[Path], bool] | None = None,
+    ):
+        self.path, self.kind, self.subject, self.flag, self.prove = Path(path), kind, subject, flag, prove
         self.marker = self.path / MARKERS[kind]
-        self.files: set[str] = set()
+        self.files: dict[str, list[int] | None] = {}  # relative path -> [size, mtime_ns] once written
         self._new_dirs: list[Path] = []  # the folders this run created, deepest first
         self._new_files: list[Path] = []  # the files this run created (lock, marker)
         self._lock = None
@@ -126,7 +135,9 @@ class OutFolder:
         try:
             doc = json.loads(self.marker.read_text(encoding="utf-8"))
             files = doc["files"]
-            if doc.get("kind") != self.kind or not all(isinstance(f, str) for f in files):
+            if doc.get("kind") != self.kind or not isinstance(files, dict):
+                raise ValueError
+            if not all(v is None or (isinstance(v, list) and len(v) == 2) for v in files.values()):
                 raise ValueError
         except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
             raise FolderError(f"{self.flag}={self.path}: its marker {self.marker.name} is unreadable") from None
@@ -145,7 +156,21 @@ class OutFolder:
                 f"{self.flag}={self.path} holds {WHAT[self.kind]} of {doc.get('subject')!r}, not of "
                 f"{self.subject!r}: give another folder"
             )
-        self.files = {f for f in doc["files"] if (self.path / f).exists()}  # listed, never written: forgotten
+        self.files = {f: v for f, v in doc["files"].items() if (self.path / f).exists()}  # never written: forgotten
+
+    def proved(self, rel: str) -> bool:
+        """``rel`` is this writer's: listed, and unchanged since written (or being written when the writer
+        stopped), or accepted by ``prove``."""
+        if rel not in self.files:
+            return False
+        stamp = self.files[rel]
+        try:
+            st = (self.path / rel).stat()
+        except OSError:
+            return True  # gone: nothing to lose
+        if stamp is None or stamp == [st.st_size, st.st_mtime_ns]:
+            return True
+        return self.prove is not None and self.prove(self.path / rel)
 
     def _is_bookkeeping(self, rel: str) -> bool:
         name = rel.rsplit("/", 1)[-1]
@@ -165,7 +190,7 @@ class OutFolder:
             rel_root = Path(root).relative_to(self.path).as_posix()
             for name in sorted(files):
                 rel = name if rel_root == "." else f"{rel_root}/{name}"
-                if rel not in self.files and not self._is_bookkeeping(rel):
+                if not self._is_bookkeeping(rel) and not self.proved(rel):
                     found.append(rel)
         return found
 
@@ -223,43 +248,39 @@ class OutFolder:
 
     def _write_marker(self) -> None:
         doc = {"written_by": "crater-synth", "kind": self.kind, "what": WHAT[self.kind], "subject": self.subject}
-        doc["files"] = sorted(self.files)
+        doc["files"] = dict(sorted(self.files.items()))
         schema.atomic_write_text(self.marker, json.dumps(doc, indent=1, sort_keys=True) + "\n")
 
     def record(self, names: Iterable[str]) -> None:
         """List ``names`` (relative paths) as this writer's, in the marker, before they are written."""
-        new = set(names) - self.files
+        new = [n for n in names if n not in self.files]
         if new:
-            self.files |= new
+            self.files.update(dict.fromkeys(new))
             self._write_marker()
+
+    def seal(self, names: Iterable[str]) -> None:
+        """Record the size and mtime of ``names`` (written now, by this writer); a missing one is forgotten."""
+        for n in names:
+            try:
+                st = (self.path / n).stat()
+                self.files[n] = [st.st_size, st.st_mtime_ns]
+            except FileNotFoundError:
+                self.files.pop(n, None)
+        self._write_marker()
 
     def owns(self, name: str) -> bool:
         return name in self.files
 
     def remove(self, names: Iterable[str]) -> None:
-        """Delete the listed files among ``names`` (and their temp files); an unlisted name is an error."""
+        """Delete ``names``, every one of which must be this writer's (:meth:`proved`), else the refusal."""
         names = list(names)
-        foreign = [n for n in names if n not in self.files]
+        foreign = [n for n in names if not self.proved(n)]
         if foreign:
             self.refuse(foreign)
         for n in names:
             (self.path / n).unlink(missing_ok=True)
-        for rel in self.unlisted_temps():
-            (self.path / rel).unlink(missing_ok=True)
-        self.files -= set(names)
+            self.files.pop(n, None)
         self._write_marker()
-
-    def unlisted_temps(self) -> list[str]:
-        """Temp files of listed files (interrupted atomic writes): the writer's to remove."""
-        out = []
-        for root, _dirs, files in os.walk(self.path):
-            rel_root = Path(root).relative_to(self.path).as_posix()
-            for name in files:
-                target = temp_target(name)
-                rel = name if rel_root == "." else f"{rel_root}/{name}"
-                if target is not None and (rel[: -len(name)] + target) in self.files:
-                    out.append(rel)
-        return sorted(out)
 
     # -- ending ----------------------------------------------------------------------------------
     def discard(self) -> None:

@@ -284,22 +284,24 @@ def export_dataset(
     folder = _prepare_out(out, overwrite)
     try:
         index = _write_export(folder, rk, fmt, channels, shaping, n, samples, shard_rows, row_group_rows, progress)
+        if next(samples, None) is not None:
+            raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
+        index |= {"dataset": str(dataset_dir.resolve()), "seconds": round(time.perf_counter() - t0, 3)}
+        folder.record([INDEX_FILE])
+        atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
+        folder.seal([INDEX_FILE])
     except BaseException:
         if not any((out / f).exists() for f in folder.files):  # nothing published: no litter
             folder.discard()
         raise
     finally:
         folder.release()
-    index |= {"dataset": str(dataset_dir.resolve()), "seconds": round(time.perf_counter() - t0, 3)}
-    if next(samples, None) is not None:
-        raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
-    atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
     return index
 
 
 def _write_export(folder: OutFolder, rk, fmt, channels, shaping, n, samples, shard_rows, row_group_rows, progress):
-    """Write every shard into the claimed ``folder`` (each listed in its marker before it is written, the
-    index's name too); return the index less the dataset and the time."""
+    """Write every shard into the claimed ``folder`` (each listed in its marker before it is written);
+    return the index less the dataset and the time."""
     out = folder.path
     writer = EXPORT_WRITERS[fmt](rk, channels, row_group_rows, shaping.layout)
     n_shards = math.ceil(n / shard_rows)
@@ -307,13 +309,13 @@ def _write_export(folder: OutFolder, rk, fmt, channels, shaping, n, samples, sha
     for i in range(n_shards):
         name = writer.shard_name(i, n_shards)
         count = min(shard_rows, n - i * shard_rows)
-        folder.record([name])
+        folder.record([name, _tmp_path(out / name).name])  # before the bytes: an interrupted shard is ours
         digest = _write_shard(writer, out / name, samples, count, lambda k, d=done: progress and progress(d + k, n))
+        folder.seal([name, _tmp_path(out / name).name])
         done += count
         if progress:
             progress(done, n)
         shards.append({"file": name, "rows": count, "sha256": digest, "bytes": (out / name).stat().st_size})
-    folder.record([INDEX_FILE])
     return {
         "export_version": EXPORT_VERSION,
         "format": fmt,

@@ -56,18 +56,19 @@ def claim_frames_folder(out_dir: Path, trajectory: str) -> OutFolder:
     """Check, create, lock and mark ``out_dir`` for ``trajectory``'s frames. Refused at once (nothing
     written): another kind's or trajectory's folder, and unlisted files that cannot be this trajectory's
     frames or manifest; the frames that may be are proved by :func:`adopt_unlisted` after planning."""
-    folder = OutFolder(out_dir, KIND, subject=trajectory)
+    folder = OutFolder(out_dir, KIND, subject=trajectory, prove=lambda p: _may_be_ours(p.parent, p.name, trajectory))
     folder.check()
-    bad = [n for n in folder.unlisted() if not _may_be_ours(folder, n, trajectory)]
+    bad = [n for n in folder.unlisted() if not _may_be_ours(folder.path, n, trajectory)]
     if bad:
         folder.refuse(bad)
     return folder.claim()
 
 
-def _may_be_ours(folder: OutFolder, name: str, trajectory: str) -> bool:
+def _may_be_ours(folder: Path, name: str, trajectory: str) -> bool:
+    """A manifest of ``trajectory``'s frames, or an EXR whose header says it is one of them."""
     if name == schema.MANIFEST_NAME:
-        return _is_trajectory_manifest(folder.path, trajectory)
-    return bool(FRAME_FILE.fullmatch(name)) and _looks_like_frame(folder.path / name, trajectory)
+        return _is_trajectory_manifest(folder, trajectory)
+    return bool(FRAME_FILE.fullmatch(name)) and _looks_like_frame(folder / name, trajectory)
 
 
 def adopt_unlisted(folder: OutFolder, proved: set[str], recorded: dict[str, str]) -> None:
@@ -85,6 +86,7 @@ def adopt_unlisted(folder: OutFolder, proved: set[str], recorded: dict[str, str]
     if bad:
         folder.refuse(bad)
     folder.record(adopt)
+    folder.seal(adopt)
 
 
 def merged_rows(out_dir: Path, new_rows: dict[int, dict], reused: set[int]) -> list[dict]:

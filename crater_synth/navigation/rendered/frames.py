@@ -489,7 +489,10 @@ def render_frames(
         rows, t_render = _render_and_label(settings, traj.name, jobs, frames, reused, out_dir, progress)
         ordered = merged_rows(out_dir, rows, set(reused))
         text = "".join(schema.dumps_row(r) + "\n" for r in ordered)
-        schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
+        manifest = out_dir / schema.MANIFEST_NAME
+        if not manifest.is_file() or manifest.read_text(encoding="utf-8", errors="replace") != text:
+            schema.atomic_write_text(manifest, text)
+        folder.seal([frame_rel_path(i) for i in frames] + [schema.MANIFEST_NAME])
     except BaseException:
         if not dispatched:  # refused (or stopped) before rendering: no litter
             folder.discard()
