@@ -14,9 +14,12 @@ import random
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from crater_synth.config import load_settings
 from crater_synth.dataset import export as ex
@@ -24,6 +27,7 @@ from crater_synth.errors import DatasetBusyError, UserError
 from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
 
 from helpers.cli import REPO, TINY, TINY_NAV
+from helpers.export import interrupt_at_sample
 
 LOCK = ".crater-synth.lock"
 NAV_MARKER = ".crater-synth-navframes"
@@ -284,13 +288,14 @@ def test_every_writer_refuses_another_kinds_folder(tmp_path, tiny_smoke, nav_dat
 
 
 # ------------------------------------------------------------------------------------------------
-# Random sequences: interrupts, edits, deletions, foreign files, concurrent writers
+# Property tests: random sequences of interrupts, edits, deletions, foreign files, concurrent writers
 # ------------------------------------------------------------------------------------------------
 FOREIGN = ("frame_0001.exr", "frame_0003.exr", "manifest.jsonl", "notes.txt", "sub/frame_0000.exr")
 
 
-def _nav_step(op: str, rng: random.Random, out: Path, data_dir, user: dict, monkeypatch) -> None:
-    """One step on a nav-frames folder; the user's files are recorded in ``user`` (path -> bytes)."""
+def _nav_step(op: str, rng: random.Random, out: Path, data_dir, user: dict, edited: set, monkeypatch) -> None:
+    """One step on a nav-frames folder; the user's files are recorded in ``user`` (path -> bytes), the
+    names of the writer's files the user damaged in ``edited``."""
     frames = sorted(rng.sample(range(4), rng.randint(1, 3)))
     if op == "add_foreign":
         name = rng.choice(FOREIGN)
@@ -313,6 +318,7 @@ def _nav_step(op: str, rng: random.Random, out: Path, data_dir, user: dict, monk
                 raw = bytearray(p.read_bytes())
                 raw[rng.randrange(len(raw))] ^= 0xFF
                 p.write_bytes(bytes(raw))
+                edited.add(p.name)
     elif op == "busy":
         with Held(out / LOCK):
             with pytest.raises(DatasetBusyError):
@@ -337,6 +343,20 @@ def _nav_step(op: str, rng: random.Random, out: Path, data_dir, user: dict, monk
             assert "\n" not in str(exc) and (user or "did not write" in str(exc)), exc
 
 
+def _until_clean(run, out: Path, edited: set) -> None:
+    """``run()``; a refusal may only name a file of the writer's that the user damaged (it can no longer
+    prove it wrote it): the user removes it and runs again."""
+    for _ in range(len(edited) + 1):
+        try:
+            return run()
+        except UserError as exc:
+            named = [n for n in edited if str(out / n) in str(exc)]
+            assert named, exc
+            (out / named[0]).unlink()
+            edited.discard(named[0])
+    run()
+
+
 def _check_user_files(out: Path, user: dict) -> None:
     for name, data in user.items():
         assert (out / name).read_bytes() == data, name  # never lost, never changed
@@ -348,84 +368,100 @@ def _frames_result(out: Path) -> tuple[list[dict], dict[str, bytes]]:
     return manifest, {p.name: p.read_bytes() for p in sorted(out.glob("frame_*.exr"))}
 
 
+STEP = st.integers(0, 2**32 - 1)  # each step's own random choices (which frames, which file, which byte)
+PROPERTY = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+NAV_OPS = ("run", "interrupt", "edit", "delete", "add_foreign", "remove_foreign", "busy")
+
+
 @pytest.mark.integration
-def test_random_nav_frames_sequences_end_refused_or_clean(tmp_path, nav_data_dir, nav_frames, monkeypatch):
-    """Seeded random sequences of runs, interrupted runs, edits, deletions, foreign files and a concurrent
-    writer on one folder: no user file is ever lost or changed; once the user's files are moved away a
-    full run gives the clean result, byte for byte (a bounded, seeded version of a property test: each
-    step renders, so hypothesis's shrinking would cost minutes)."""
+@settings(max_examples=8, **PROPERTY)
+@given(sequence=st.lists(st.tuples(st.sampled_from(NAV_OPS), STEP), min_size=1, max_size=6))
+def test_any_nav_frames_sequence_ends_refused_or_clean(sequence, tmp_path, nav_data_dir, nav_frames, monkeypatch):
+    """Runs, interrupted runs, edits, deletions, foreign files and a concurrent writer on one folder: no
+    user file is ever lost or changed; once the user has moved their files away (and the damaged files
+    the refusals name), a full run gives the clean result, byte for byte."""
     clean = _frames_result(nav_frames)
-    ops = ("run", "run", "interrupt", "edit", "delete", "add_foreign", "remove_foreign", "busy")
-    for seed in range(6):
-        rng = random.Random(seed)
-        out, user = tmp_path / f"s{seed}", {}
-        for _ in range(6):
-            _nav_step(rng.choice(ops), rng, out, nav_data_dir, user, monkeypatch)
-            if out.exists():
-                _check_user_files(out, user)
-        for name in list(user):
-            (out / name).unlink()
-        render_frames(nav_settings(nav_data_dir), out, [0, 1, 2])
-        manifest, files = _frames_result(out)
-        assert [r for r in manifest if r["index"] < 3] == clean[0], seed
-        assert {k: v for k, v in files.items() if k in clean[1]} == clean[1], seed
+    out, user, edited = Path(tempfile.mkdtemp(dir=tmp_path)) / "frames", {}, set()
+    for op, step in sequence:
+        _nav_step(op, random.Random(step), out, nav_data_dir, user, edited, monkeypatch)
+        if out.exists():
+            _check_user_files(out, user)
+    for name in list(user):
+        (out / name).unlink()
+    _until_clean(lambda: render_frames(nav_settings(nav_data_dir), out, [0, 1, 2]), out, edited)
+    manifest, files = _frames_result(out)
+    assert [r for r in manifest if r["index"] < 3] == clean[0]
+    assert {k: v for k, v in files.items() if k in clean[1]} == clean[1]
 
 
 def _export_result(out: Path) -> tuple[dict, dict[str, bytes]]:
     index = json.loads((out / "export.json").read_text())
     index.pop("seconds")
-    return index, {p.name: p.read_bytes() for p in sorted(out.iterdir()) if not p.name.startswith(".")}
+    return index, {
+        p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.name[0] != "." and p.name != "export.json"
+    }
 
 
-@pytest.mark.integration
-def test_random_export_sequences_end_refused_or_clean(tmp_path, tiny_smoke, monkeypatch):
+EXPORT_OPS = ("run", "interrupt", "edit", "delete", "add_foreign", "remove_foreign", "busy")
+EXPORT_FOREIGN = ("data-00000-of-00002.parquet", "shard-000001.tar", ".data-00001-of-00002.parquet.1.tmp", "x.txt")
+
+
+@pytest.fixture(scope="module")
+def clean_export(tiny_smoke, tmp_path_factory):
+    return _export_result_of(tiny_smoke, tmp_path_factory.mktemp("clean") / "out")
+
+
+@settings(max_examples=30, **PROPERTY)
+@given(sequence=st.lists(st.tuples(st.sampled_from(EXPORT_OPS), STEP), min_size=1, max_size=8))
+def test_any_export_sequence_ends_refused_or_clean(sequence, tmp_path, tiny_smoke, clean_export, monkeypatch):
     """The same for exports: runs of either format, interrupted runs, edits, deletions, shard-looking
     foreign files and a concurrent writer; the user's files survive every step, and a final overwrite
     gives the clean export byte for byte."""
-    from helpers.export import interrupt_at_sample
+    out, user, edited = Path(tempfile.mkdtemp(dir=tmp_path)) / "out", {}, set()
+    for op, step in sequence:
+        _export_step(op, random.Random(step), out, tiny_smoke, user, edited, monkeypatch)
+        if out.exists():
+            _check_user_files(out, user)
+    for name in list(user):
+        (out / name).unlink()
+    _until_clean(lambda: ex.export_dataset(tiny_smoke, out, "parquet", shard_rows=2, overwrite=True), out, edited)
+    assert _export_result(out) == clean_export
 
-    clean = _export_result_of(tiny_smoke, tmp_path / "clean")
-    foreign = ("data-00000-of-00002.parquet", "shard-000001.tar", ".data-00001-of-00002.parquet.1.tmp", "x.txt")
-    for seed in range(8):
-        rng = random.Random(seed)
-        out, user = tmp_path / f"e{seed}", {}
-        for _ in range(6):
-            op = rng.choice(("run", "interrupt", "edit", "delete", "add_foreign", "remove_foreign", "busy"))
-            fmt = rng.choice(ex.FORMATS)
-            if op in ("run", "interrupt", "busy"):
-                try:
-                    if op == "interrupt":
-                        interrupt_at_sample(monkeypatch, "render", 3)
-                    if op == "busy":
-                        with Held(out / LOCK), pytest.raises(DatasetBusyError):
-                            ex.export_dataset(tiny_smoke, out, fmt, shard_rows=2, overwrite=True)
-                    else:
-                        ex.export_dataset(tiny_smoke, out, fmt, shard_rows=2, overwrite=rng.random() < 0.7)
-                except (KeyboardInterrupt, UserError) as exc:
-                    assert "\n" not in str(exc)
-                finally:
-                    monkeypatch.undo()
-            elif op == "add_foreign":
-                name = rng.choice(foreign)
-                if not (out / name).exists():
-                    out.mkdir(exist_ok=True)
-                    (out / name).write_bytes(f"user {name}".encode())
-                    user[name] = (out / name).read_bytes()
-            elif op == "remove_foreign" and user:
-                name = rng.choice(sorted(user))
-                (out / name).unlink()
-                del user[name]
-            elif op in ("edit", "delete") and out.is_dir():
-                ours = [p for p in sorted(out.iterdir()) if p.is_file() and p.name not in user and p.name[0] != "."]
-                if ours:
-                    p = rng.choice(ours)
-                    p.unlink() if op == "delete" else p.write_bytes(p.read_bytes()[:-1] + b"!")
-            if out.exists():
-                _check_user_files(out, user)
-        for name in list(user):
-            (out / name).unlink()
-        ex.export_dataset(tiny_smoke, out, "parquet", shard_rows=2, overwrite=True)
-        assert _export_result(out) == clean, seed
+
+def _export_step(op: str, rng: random.Random, out: Path, dataset, user: dict, edited: set, monkeypatch) -> None:
+    fmt = rng.choice(ex.FORMATS)
+    if op in ("run", "interrupt", "busy"):
+        try:
+            if op == "interrupt":
+                interrupt_at_sample(monkeypatch, "render", 3)
+            if op == "busy":
+                with Held(out / LOCK), pytest.raises(DatasetBusyError):
+                    ex.export_dataset(dataset, out, fmt, shard_rows=2, overwrite=True)
+            else:
+                ex.export_dataset(dataset, out, fmt, shard_rows=2, overwrite=rng.random() < 0.7)
+        except (KeyboardInterrupt, UserError) as exc:
+            assert "\n" not in str(exc)
+        finally:
+            monkeypatch.undo()
+    elif op == "add_foreign":
+        name = rng.choice(EXPORT_FOREIGN)
+        if not (out / name).exists():
+            out.mkdir(parents=True, exist_ok=True)
+            (out / name).write_bytes(f"user {name}".encode())
+            user[name] = (out / name).read_bytes()
+    elif op == "remove_foreign" and user:
+        name = rng.choice(sorted(user))
+        (out / name).unlink()
+        del user[name]
+    elif op in ("edit", "delete") and out.is_dir():
+        ours = [p for p in sorted(out.iterdir()) if p.is_file() and p.name not in user and p.name[0] != "."]
+        if ours:
+            p = rng.choice(ours)
+            if op == "delete":
+                p.unlink()
+            else:
+                p.write_bytes(p.read_bytes()[:-1] + b"!")
+                edited.add(p.name)
 
 
 def _export_result_of(dataset, out):
