@@ -140,9 +140,9 @@ def test_nav_frames_merges_the_manifest(tmp_path, nav_data_dir, nav_frames):
     out = copy_frames(nav_frames, tmp_path / "frames")
     old = (out / "manifest.jsonl").read_text().splitlines()
     summary = render_frames(nav_settings(nav_data_dir), out, [3])
-    assert summary["frames"] == 1 and summary["manifest_frames"] == 4
     new = (out / "manifest.jsonl").read_text().splitlines()
     assert [json.loads(r)["index"] for r in new] == [0, 1, 2, 3] and new[:3] == old
+    assert summary["frames"] == 1 and summary["manifest_frames"] == 4
     files = snapshot(out)
     again = render_frames(nav_settings(nav_data_dir), out, [3])
     assert again["reused"] == 1 and {k: v for k, v in snapshot(out).items() if k != LOCK} == {
@@ -244,12 +244,28 @@ def test_export_written_before_markers_is_replaced_only_where_its_index_proves_i
     assert index["format"] == "webdataset"
 
 
-def test_two_exports_into_one_folder_at_once(tmp_path, tiny_smoke):
-    out = tmp_path / "out"
-    with Held(out / LOCK):
-        with pytest.raises(DatasetBusyError):
-            ex.export_dataset(tiny_smoke, out, "parquet")
-    assert sorted(p.name for p in out.iterdir()) == [LOCK]
+def test_two_exports_into_one_folder_at_once(tmp_path, tiny_smoke, monkeypatch):
+    """A second export (WebDataset) starts while the first (Parquet) writes its shards: it is refused,
+    and the first ends as a clean Parquet export, no tar shard among its files."""
+    real = ex.RECORD_KINDS["render"]
+    out, second = tmp_path / "out", []
+
+    def arrays_then_second_export(d, row, channels):
+        if not second:
+            second.append(None)  # once: the second export reads through this function too
+            try:
+                second[0] = ex.export_dataset(tiny_smoke, out, "webdataset", overwrite=True)
+            except DatasetBusyError as exc:
+                second[0] = exc
+        return real.arrays(d, row, channels)
+
+    monkeypatch.setitem(
+        ex.RECORD_KINDS, "render", ex.RecordKind(**{**real.__dict__, "arrays": arrays_then_second_export})
+    )
+    index = ex.export_dataset(tiny_smoke, out, "parquet")
+    assert isinstance(second[0], DatasetBusyError) and "being written" in str(second[0])
+    assert index["format"] == "parquet"
+    assert sorted(p.name for p in out.iterdir() if p.name[0] != ".") == ["data-00000-of-00001.parquet", "export.json"]
 
 
 def test_export_refuses_a_dataset_being_written(tmp_path, tiny_smoke):
