@@ -194,6 +194,26 @@ def test_two_nav_frames_runs_at_once_lose_no_frame(tmp_path, nav_data_dir):
     assert done and {r["index"] for r in rows(out)} == done
 
 
+def test_detector_survey_refuses_foreign_files_and_another_seeds_survey(tmp_path):
+    """nav-detector-frames' folder: a stray file, or another seed's survey, is refused before any track is
+    rendered; a finished track (its manifest) is kept and the folder marked as this seed's survey."""
+    from crater_synth.navigation.rendered.survey import render_survey
+
+    out = tmp_path / "survey"
+    (out / "track_000").mkdir(parents=True)
+    (out / "track_000" / "manifest.jsonl").write_text("{}\n")
+    (out / "notes.txt").write_text("mine")
+    before = snapshot(out)
+    with pytest.raises(UserError) as exc:
+        render_survey(out, 1, seed=3, progress=False)
+    assert "notes.txt" in one_line(exc) and snapshot(out) == before
+    (out / "notes.txt").unlink()
+    assert render_survey(out, 1, seed=3, progress=False)["already_there"] == 1
+    assert json.loads((out / ".crater-synth-navdetector-survey").read_text())["subject"] == "seed=3"
+    with pytest.raises(UserError, match="seed=3"):
+        render_survey(out, 1, seed=4, progress=False)
+
+
 # ------------------------------------------------------------------------------------------------
 # dataset
 # ------------------------------------------------------------------------------------------------

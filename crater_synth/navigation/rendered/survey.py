@@ -127,7 +127,7 @@ def render_survey(
     rendered; each track's folder is a ``nav-frames`` folder of its own trajectory."""
     out = Path(out)
     tracks = plan_tracks(n_tracks, seed)
-    folder = OutFolder(out, "navdetector-survey", subject=f"seed={seed}", flag="DIR")
+    folder = OutFolder(out, "navdetector-survey", subject=f"seed={seed}", flag="--out")
     folder.check()
     stray = [n for n in folder.unlisted() if not TRACK_DIR.fullmatch(n.split("/", 1)[0]) or "/" not in n]
     if stray:
