@@ -21,7 +21,10 @@ dataset's size. Atomicity: each shard is written to a hidden temporary file and 
 complete; ``export.json`` (the index: shards, rows, channels, their SHA-256) is written last, and its
 presence is what marks an export complete. An interrupted export leaves complete shards and no
 half-written one (a killed process can leave a hidden ``.*.tmp``, which no loader's glob matches and
-the next run removes); rerunning into the same directory starts it again cleanly.
+the next run removes); rerunning into the same directory starts it again cleanly. The output folder keeps
+the output-folder contract (:mod:`crater_synth.outfolder`): its marker lists each shard before it is
+written, only listed files are ever deleted, one export writes it at a time, and a source whose writer
+is running is refused.
 
 Record kinds: what a sample is comes from a :class:`RecordKind` (``RECORD_KINDS``): its rows, key,
 arrays and typed labels: ``render`` (a ``crater-synth dataset`` directory) and ``navframe`` (a
