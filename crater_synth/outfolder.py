@@ -43,12 +43,14 @@ MARKERS = {
     "navframes": ".crater-synth-navframes",
     "navdetector-survey": ".crater-synth-navdetector-survey",
     "export": ".crater-synth-export",
+    "report": ".crater-synth-report",
 }
 WHAT = {
     "dataset": "rendered dataset (docs/manifest.md)",
     "navframes": "navigation frames (docs/navigation/rendered.md)",
     "navdetector-survey": "detector survey tracks, one navframes folder each (docs/navigation/rendered.md)",
     "export": "crater-synth export shards and their export.json (docs/export.md)",
+    "report": "a crater-synth run report (docs/report.md)",
 }
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)
@@ -106,6 +108,28 @@ def refuse_if_busy(folder: Path, what: str) -> None:
     who = probe_lock(Path(folder) / LOCK_NAME)
     if who:
         raise DatasetBusyError(f"{what} {folder} is being written by another crater-synth process ({who}): wait for it")
+
+
+def mark_filled(folder: Path, kind: str) -> None:
+    """Mark a folder a writer has just filled, every file in it listed (a temp folder published whole)."""
+    f = OutFolder(folder, kind)
+    names = f.unlisted()
+    f.record(names)
+    f.seal(names)
+
+
+def check_replaceable(folder: Path, kind: str, flag: str, legacy: Callable[[Path], bool] | None = None) -> None:
+    """Refuse to replace ``folder`` (a writer that publishes a whole folder in its place) unless every file
+    in it is the writer's: listed by its marker, or (no marker) ``legacy`` recognises the folder."""
+    f = OutFolder(folder, kind, flag=flag)
+    if not folder.exists():
+        return
+    f.check()
+    if not f.marker.exists() and legacy is not None and legacy(folder):
+        return
+    bad = f.unlisted()
+    if bad:
+        f.refuse(bad)
 
 
 class OutFolder:

@@ -214,6 +214,28 @@ def test_detector_survey_refuses_foreign_files_and_another_seeds_survey(tmp_path
         render_survey(out, 1, seed=4, progress=False)
 
 
+def test_report_replaces_only_a_report_it_wrote(tmp_path):
+    """`report` publishes RUN_DIR/report whole (the old one removed): a report folder holding a file the
+    report did not write is refused, the file kept; its own report (marked, or written before markers)
+    is replaced."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("seed: 0\n")
+    args = ["report", str(run), f"train.dataset_dir={tmp_path}/none", "--hist-samples", "2", "-q"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    assert (run / "report" / ".crater-synth-report").is_file()
+    (run / "report" / ".crater-synth-report").unlink()  # a report written before markers
+    assert CliRunner().invoke(main, args).exit_code == 0
+    (run / "report" / "my_notes.txt").write_text("mine")
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2 and "my_notes.txt" in res.output
+    assert (run / "report" / "my_notes.txt").read_text() == "mine"
+
+
 # ------------------------------------------------------------------------------------------------
 # dataset
 # ------------------------------------------------------------------------------------------------
