@@ -40,6 +40,7 @@ COMMON = {
     "crater_synth.config",
     "crater_synth.cli_common",
     "crater_synth.fetch",
+    "crater_synth.outfolder",
 }
 SUBRANK = {
     "common": 0,

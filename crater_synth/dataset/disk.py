@@ -27,6 +27,7 @@ from crater_core import schema
 from crater_core.files import PathError, disk_full_message, free_bytes, is_disk_full, size_text
 from crater_synth.dataset.manifest import writer_tag
 from crater_synth.errors import DatasetBusyError, UserError
+from crater_synth.outfolder import MARKERS
 
 # Bytes per render used for the free-disk check before any measured value exists
 # (210x210 px, 2 float32 + 4 half channels, RLE: measured ~0.47 MB on paper renders; rounded up).
@@ -34,8 +35,8 @@ DEFAULT_BYTES_PER_RENDER = 600_000
 JOBS_DIR = ".jobs"
 LOCK_FILE = ".dataset.lock"
 # Written when `crater-synth dataset` claims a directory: this directory is a dataset
-# (crater_synth.dataset.marker).
-MARKER_NAME = ".crater-synth-dataset"
+# (crater_synth.dataset.marker; every kind's marker: crater_synth.outfolder).
+MARKER_NAME = MARKERS["dataset"]
 # Logs of finished writers kept in .jobs/ (the newest; job files of finished writers are removed).
 KEEP_JOB_LOGS = 32
 # Files of writers on other hosts (whose liveness this host cannot check) are pruned after this.

@@ -21,7 +21,10 @@ dataset's size. Atomicity: each shard is written to a hidden temporary file and 
 complete; ``export.json`` (the index: shards, rows, channels, their SHA-256) is written last, and its
 presence is what marks an export complete. An interrupted export leaves complete shards and no
 half-written one (a killed process can leave a hidden ``.*.tmp``, which no loader's glob matches and
-the next run removes); rerunning into the same directory starts it again cleanly.
+the next run removes); rerunning into the same directory starts it again cleanly. The output folder keeps
+the output-folder contract (:mod:`crater_synth.outfolder`): its marker lists each shard before it is
+written, only listed files are ever deleted, one export writes it at a time, and a source whose writer
+is running is refused.
 
 Record kinds: what a sample is comes from a :class:`RecordKind` (``RECORD_KINDS``): its rows, key,
 arrays and typed labels: ``render`` (a ``crater-synth dataset`` directory) and ``navframe`` (a
@@ -79,6 +82,9 @@ from crater_synth.dataset.record_kinds import (  # noqa: F401 (re-exported: part
     RecordKind,
     detect_kind,
 )
+from crater_synth.dataset.verify import live_writer
+from crater_synth.errors import DatasetBusyError
+from crater_synth.outfolder import OutFolder, refuse_if_busy
 from train.preprocess import PreprocessConfig
 
 INDEX_FILE = "export.json"
@@ -128,29 +134,63 @@ def _finish(tmp: Path, final: Path) -> str:
     return digest
 
 
-def _prepare_out(out: Path, overwrite: bool) -> None:
-    """An empty directory, an interrupted export of ours (cleaned), or a complete one with ``overwrite``."""
-    out.mkdir(parents=True, exist_ok=True)
-    index = out / INDEX_FILE
-    if index.exists() and not overwrite:
+def _prepare_out(out: Path, overwrite: bool) -> OutFolder:
+    """Claim ``out`` (crater_synth.outfolder, kind ``export``): a new or empty folder, an interrupted export
+    of ours, or a complete one with ``overwrite``; then delete the files an earlier export listed there
+    (the index first). A folder holding any file no export listed is refused, naming it: a shard-looking
+    file is only deleted when the marker lists it, or (an export written before markers) when its
+    ``export.json`` records it with the file's sha256."""
+    folder = OutFolder(out, "export", flag="--out")
+    folder.check()
+    legacy = _legacy_files(out) if not folder.marker.exists() else []
+    foreign = [n for n in folder.unlisted() if n not in legacy]
+    if foreign:
+        folder.refuse(foreign)
+    if (out / INDEX_FILE).exists() and not overwrite:
         raise ExportError(f"{out} already holds a complete export ({INDEX_FILE}); pass --overwrite to replace it")
-    ours = [p for p in out.iterdir() if _is_ours(p.name)]
-    others = [p.name for p in out.iterdir() if not _is_ours(p.name)]
-    if others:
-        raise ExportError(
-            f"output directory {out} holds other files ({', '.join(sorted(others)[:5])}); use an empty one"
-        )
-    index.unlink(missing_ok=True)  # first: the directory is no longer a complete export
-    for p in ours:
-        p.unlink(missing_ok=True)
+    folder.claim()
+    try:
+        folder.record(legacy)
+        if folder.owns(INDEX_FILE):
+            folder.remove([INDEX_FILE])  # first: the folder is no longer a complete export
+        folder.remove(sorted(folder.files))
+    except BaseException:
+        folder.discard()
+        raise
+    return folder
+
+
+def _legacy_files(out: Path) -> list[str]:
+    """An export written before markers: its ``export.json`` and the shards it records whose bytes still
+    have the recorded sha256 (nothing when there is no readable index)."""
+    try:
+        index = json.loads((out / INDEX_FILE).read_text(encoding="utf-8"))
+        shards = [(str(s["file"]), str(s["sha256"])) for s in index["shards"]]
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        return []
+    proved = [f for f, sha in shards if "/" not in f and (out / f).is_file() and sha256_file(out / f) == sha]
+    return [INDEX_FILE, *proved]
 
 
 def _is_ours(name: str) -> bool:
+    """A name an export writes (the index, a shard of a format, a shard's temp file): a name, no proof;
+    what may be deleted is what the folder's marker lists (:func:`_prepare_out`)."""
     return (
         name == INDEX_FILE
         or any(w.is_shard_file(name) for w in EXPORT_WRITERS.values())
         or (name.startswith(".") and name.endswith(".tmp"))
     )
+
+
+def _refuse_busy_source(dataset_dir: Path) -> None:
+    """Refuse to export a dataset or frames folder while its writer runs: the rows would be half there."""
+    who = live_writer(dataset_dir)
+    if who:
+        raise DatasetBusyError(
+            f"dataset {dataset_dir} is being written by another crater-synth process ({who}): export it when "
+            "the run has finished"
+        )
+    refuse_if_busy(dataset_dir, "dataset")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -234,6 +274,7 @@ def export_dataset(
     channels = list(dict.fromkeys(channels))
     dataset_dir, out = Path(dataset_dir), Path(out_dir)
     _check_request(rk, channels, shard_rows, row_group_rows, dataset_dir, out)
+    _refuse_busy_source(dataset_dir)
     t0 = time.perf_counter()
     if shape == "crop" and (preprocess is None or not sigmas):
         default_sigmas, default_pp = crop_defaults()
@@ -243,36 +284,52 @@ def export_dataset(
     # A bad dataset or shape: an error before any file is touched.
     shaping = plan_shaping(rk, dataset_dir, shape, sigmas, preprocess, pad_value)
     n, samples = iter_samples(rk, dataset_dir, channels, shaping)
-    _prepare_out(out, overwrite)
+    folder = _prepare_out(out, overwrite)
+    try:
+        index = _write_export(folder, rk, fmt, channels, shaping, n, samples, shard_rows, row_group_rows, progress)
+        if next(samples, None) is not None:
+            raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
+        index |= {"dataset": str(dataset_dir.resolve()), "seconds": round(time.perf_counter() - t0, 3)}
+        folder.record([INDEX_FILE])
+        atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
+        folder.seal([INDEX_FILE])
+    except BaseException:
+        if not any((out / f).exists() for f in folder.files):  # nothing published: no litter
+            folder.discard()
+        raise
+    finally:
+        folder.release()
+    return index
+
+
+def _write_export(folder: OutFolder, rk, fmt, channels, shaping, n, samples, shard_rows, row_group_rows, progress):
+    """Write every shard into the claimed ``folder`` (each listed in its marker before it is written);
+    return the index less the dataset and the time."""
+    out = folder.path
     writer = EXPORT_WRITERS[fmt](rk, channels, row_group_rows, shaping.layout)
     n_shards = math.ceil(n / shard_rows)
     shards, done = [], 0
     for i in range(n_shards):
         name = writer.shard_name(i, n_shards)
         count = min(shard_rows, n - i * shard_rows)
+        folder.record([name, _tmp_path(out / name).name])  # before the bytes: an interrupted shard is ours
         digest = _write_shard(writer, out / name, samples, count, lambda k, d=done: progress and progress(d + k, n))
+        folder.seal([name, _tmp_path(out / name).name])
         done += count
         if progress:
             progress(done, n)
         shards.append({"file": name, "rows": count, "sha256": digest, "bytes": (out / name).stat().st_size})
-    if next(samples, None) is not None:
-        raise ExportError(f"dataset {dataset_dir}: the manifest grew during the export; export it again")
-    index = {
+    return {
         "export_version": EXPORT_VERSION,
         "format": fmt,
         "record_kind": rk.name,
-        "dataset": str(dataset_dir.resolve()),
         "rows": n,
         "channels": {c: writer.channel_entry(c) for c in channels},
         "images": _IMAGES[shaping.layout.mode],
         "shape": shaping.layout.record,
         "labels": {name: label_kind(t) for name, t in rk.label_fields() + list(shaping.layout.extra_fields)},
         "shards": shards,
-        "seconds": round(time.perf_counter() - t0, 3),
     }
-
-    atomic_write_text(out / INDEX_FILE, json.dumps(index, indent=1, sort_keys=True) + "\n")
-    return index
 
 
 _IMAGES = {

@@ -3,7 +3,9 @@
 A dataset directory holds a marker file, :data:`MARKER_NAME`, written when ``crater-synth dataset``
 first claims the directory (a directory written before markers existed is recognised by its
 ``manifest.jsonl`` or ``manifest.parts/`` and gets its marker then). ``dataset`` refuses a directory
-that is neither empty nor a dataset, naming a file in it, and writes nothing there.
+that is neither empty nor a dataset, naming a file in it, and writes nothing there; a directory marked for
+another kind of output (crater_synth.outfolder: navigation frames, an export), or an unmarked one whose
+``manifest.jsonl`` holds navigation frames, is no dataset.
 
 In a dataset the only files ``dataset`` ever removes are its own bookkeeping (merged manifest parts,
 ``.jobs/`` entries, the lock and marker of a refused run in a directory it had just created) and the
@@ -22,6 +24,7 @@ from crater_core import schema
 from crater_core.files import ensure_writable_dir
 from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE, MARKER_NAME, temp_target
 from crater_synth.errors import UserError
+from crater_synth.outfolder import marker_kind, refuse_kind
 
 MANIFEST_LOCK = ".manifest.lock"
 # Names in a dataset's top level that crater-synth writes besides the renders' directories.
@@ -36,9 +39,26 @@ def _is_bookkeeping(name: str) -> bool:
 
 
 def is_dataset(out_dir: Path) -> bool:
-    """A dataset directory: it has the marker, or (written before markers) a manifest or manifest parts."""
+    """A dataset directory: it has the marker, or (written before markers) no other kind's marker and a
+    render manifest or manifest parts."""
     d = Path(out_dir)
-    return (d / MARKER_NAME).is_file() or (d / schema.MANIFEST_NAME).is_file() or (d / schema.PARTS_DIR).is_dir()
+    if (d / MARKER_NAME).is_file():
+        return True
+    if marker_kind(d) is not None or _holds_navframes(d):
+        return False
+    return (d / schema.MANIFEST_NAME).is_file() or (d / schema.PARTS_DIR).is_dir()
+
+
+def _holds_navframes(d: Path) -> bool:
+    """An unmarked directory whose manifest's first row is a navigation frame's (``crater-synth nav-frames``
+    wrote it before markers existed)."""
+    try:
+        with open(d / schema.MANIFEST_NAME, encoding="utf-8") as fh:
+            first = next((line for line in fh if line.strip()), "")
+        row = json.loads(first)
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(row, dict) and "trajectory" in row and "rel_path" in row
 
 
 def _foreign(out_dir: Path) -> list[Path]:
@@ -71,7 +91,15 @@ class DatasetClaim:
     def check(self) -> None:
         """Refuse (one line naming a file in it) a directory that is neither empty nor a dataset."""
         d = self.out_dir
-        if not d.is_dir() or is_dataset(d):
+        if not d.is_dir():
+            return
+        refuse_kind(d, "dataset", "out_dir")
+        if not (d / MARKER_NAME).is_file() and _holds_navframes(d):
+            raise UserError(
+                f"out_dir={d} holds navigation frames ({d / schema.MANIFEST_NAME} of `crater-synth nav-frames`), "
+                "not a dataset: give another directory"
+            )
+        if is_dataset(d):
             return
         foreign = _foreign(d)
         if foreign:

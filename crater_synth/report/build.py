@@ -14,6 +14,7 @@ import click
 from crater_core.files import umask
 from crater_core.sweep import rows_in_selection
 from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.outfolder import check_replaceable, mark_filled
 from crater_synth.report import gather
 from crater_synth.report.inputs import (
     EXPERIMENTS_FILE,
@@ -56,6 +57,8 @@ def build_report(
         raise ReportError(f"run directory {run_dir} does not exist (`{gather.PRODUCERS['metrics'][1]}` writes it)")
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
+    # The old report is replaced whole: refused if it holds a file the report did not write.
+    check_replaceable(run_dir / REPORT_DIR, "report", "RUN_DIR/report", _report_before_markers)
     run_outputs = (METRICS_FILE, LOOP_FILE, EXPERIMENTS_FILE, SUMMARY_FILE, RUN_CONFIG_FILE, gather.ABLATION_FILE)
     has_run = any((run_dir / name).exists() for name in (*run_outputs, FIGURE6_FILE))
     if not has_run and not any(run_dir.glob("confusion_*.png")) and not (run_dir / NAVIGATION_DIR).is_dir():
@@ -107,11 +110,24 @@ def build_report(
             fh.flush()
             os.fsync(fh.fileno())
         final = run_dir / REPORT_DIR
+        mark_filled(tmp, "report")
         publish(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return final / INDEX_FILE
+
+
+def _report_before_markers(folder: Path) -> bool:
+    """A report written before markers: its page and PNGs only, the page this command's."""
+    try:
+        page = (folder / INDEX_FILE).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False
+    files = [p for p in folder.rglob("*") if not p.is_dir()]
+    return "crater-synth run report" in page and all(
+        p.parent == folder and p.suffix in (".png", ".html") for p in files
+    )
 
 
 @click.command("report")

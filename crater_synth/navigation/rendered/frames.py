@@ -22,7 +22,8 @@ Per frame (poses: :mod:`crater_core.trajectory`):
 
 Output: ``<out>/frame_NNNN.exr`` (the dataset's channels: IF, depth, N.*, lit) and
 ``<out>/manifest.jsonl`` (JSON Lines, one row per frame, ``schema_version``, no timestamps, written
-atomically once every frame is rendered).
+atomically once every frame is rendered; rows of frames rendered by earlier runs are merged in). The
+folder is the trajectory's alone (:mod:`.frame_folder`).
 
 Length: one stage, a trajectory from its poses to labelled EXRs (patch grouping, the frames' render
 defaults, worker items, the reuse of finished frames, the labels as frames arrive, the command); the
@@ -60,6 +61,12 @@ from crater_synth.dataset.recover import STATS_HEADER
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.navigation.georef import pole_of
 from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map
+from crater_synth.navigation.rendered.frame_folder import (
+    adopt_unlisted,
+    claim_frames_folder,
+    manifest_rows,
+    merged_rows,
+)
 from crater_synth.navigation.rendered.labels import FRAME_LABEL_VERSION, landmarks_in_view
 from crater_synth.paths import CONFIG_DIR
 from crater_synth.terrain.patch import build_terrain
@@ -461,18 +468,60 @@ def render_frames(
 ) -> dict:
     """Render the trajectory's frames (all, or the indices ``only``) into ``out_dir`` with labels;
     returns a summary. ``share_patches``: consecutive frames share a terrain patch (:func:`group_frames`);
-    False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is rendered."""
+    False renders each frame on its own patch. Raises :class:`UserError` on bad input before anything is
+    rendered, and on a folder the run may not write into (:mod:`.frame_folder`); a run refused before
+    rendering leaves nothing behind."""
     traj = settings.trajectory
     poses = _selected_poses(traj, only)
     out_dir = Path(out_dir)
     ensure_writable_dir(settings.data_dir, "data_dir")
-    render = settings.render
+    folder = claim_frames_folder(out_dir, traj.name)
+    dispatched = False
+    try:
+        t0 = time.perf_counter()
+        groups = group_frames(poses, int(settings.terrain.near_vertices), share=share_patches)
+        jobs, frames, reused = _plan_frames(settings, traj.name, groups, out_dir, progress)
+        recorded = {r.get("rel_path"): r.get("sha256") for r in manifest_rows(out_dir) or []}
+        adopt_unlisted(folder, {frame_rel_path(i) for i in reused}, recorded)
+        folder.record([frame_rel_path(i) for i in frames] + [schema.MANIFEST_NAME])
+        t_patch = time.perf_counter() - t0
+        dispatched = True
+        rows, t_render = _render_and_label(settings, traj.name, jobs, frames, reused, out_dir, progress)
+        ordered = merged_rows(out_dir, rows, set(reused))
+        text = "".join(schema.dumps_row(r) + "\n" for r in ordered)
+        manifest = out_dir / schema.MANIFEST_NAME
+        if not manifest.is_file() or manifest.read_text(encoding="utf-8", errors="replace") != text:
+            schema.atomic_write_text(manifest, text)
+        folder.seal([frame_rel_path(i) for i in frames] + [schema.MANIFEST_NAME])
+    except BaseException:
+        if not dispatched:  # refused (or stopped) before rendering: no litter
+            folder.discard()
+        raise
+    finally:
+        folder.release()
+    mine = [rows[i] for i in sorted(rows)]
+    return {
+        "trajectory": traj.name,
+        "frames": len(mine),
+        "out_dir": str(out_dir),
+        "mode": settings.render.mode,
+        "modes_used": sorted({r["mode"] for r in mine}),
+        "width_px": int(traj.width_px),
+        "patch_seconds": round(t_patch, 2),
+        "render_seconds": round(t_render, 2),
+        "worker_render_seconds": round(sum(rows[i]["render_seconds"] for i in rows if i not in reused), 2),
+        "landmarks_in_view": [len(r["landmarks"]) for r in mine],
+        "sun_below_horizon": [r["index"] for r in mine if r["sun_enu"]["elevation_deg"] < 0.0],
+        "patches": len(groups),
+        "reused": len(reused),
+        "manifest_frames": len(ordered),
+    }
+
+
+def _render_and_label(settings, traj_name: str, jobs, frames: dict, reused: dict, out_dir: Path, progress: bool):
+    """Render ``jobs`` and label every frame (kept or rendered) as it arrives: (frame index -> manifest row,
+    seconds)."""
     maps: dict[str, tuple] = {}
-    t0 = time.perf_counter()
-    groups = group_frames(poses, int(settings.terrain.near_vertices), share=share_patches)
-    jobs, frames, reused = _plan_frames(settings, traj.name, groups, out_dir, progress)
-    t_patch = time.perf_counter() - t0
-    ensure_writable_dir(out_dir, "--out")  # only once every frame has its terrain: no empty output on bad input
     rows: dict[int, dict] = {}
     bar = Progress(len(frames), "nav-frames", "frame", "auto" if progress else "off")
 
@@ -482,37 +531,18 @@ def render_frames(
         pole = pole_of(frames[idx]["pose"].target_lat)
         if pole not in maps:
             maps[pole] = (load_default_map(pole)[0], default_map_identity(pole))
-        rows[idx] = frame_row(traj.name, frames[idx], result, out_dir, *maps[pole])
+        rows[idx] = frame_row(traj_name, frames[idx], result, out_dir, *maps[pole])
         bar.update(kept=len(reused), mode=result["mode"])
 
     for result in reused.values():
         on_result(None, None, result)
-
     t1 = time.perf_counter()
     _render_frame_jobs(jobs, settings, out_dir, on_result)
     bar.close()
-    t_render = time.perf_counter() - t1
     missing = sorted(set(frames) - set(rows))
     if missing:
-        raise UserError(f"frames {missing} of trajectory {traj.name} were not rendered (see {out_dir}/.jobs/*.log)")
-    ordered = [rows[i] for i in sorted(rows)]
-    text = "".join(schema.dumps_row(r) + "\n" for r in ordered)
-    schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
-    return {
-        "trajectory": traj.name,
-        "frames": len(ordered),
-        "out_dir": str(out_dir),
-        "mode": render.mode,
-        "modes_used": sorted({r["mode"] for r in ordered}),
-        "width_px": int(traj.width_px),
-        "patch_seconds": round(t_patch, 2),
-        "render_seconds": round(t_render, 2),
-        "worker_render_seconds": round(sum(r["render_seconds"] for r in ordered), 2),
-        "landmarks_in_view": [len(r["landmarks"]) for r in ordered],
-        "sun_below_horizon": [r["index"] for r in ordered if r["sun_enu"]["elevation_deg"] < 0.0],
-        "patches": len(groups),
-        "reused": len(reused),
-    }
+        raise UserError(f"frames {missing} of trajectory {traj_name} were not rendered (see {out_dir}/.jobs/*.log)")
+    return rows, time.perf_counter() - t1
 
 
 @click.command("nav-frames")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import click
@@ -27,6 +28,7 @@ from crater_core import geometry, trajectory
 from crater_synth.config import load_settings
 from crater_synth.errors import UserError
 from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
+from crater_synth.outfolder import OutFolder
 
 GROUND_SAMPLE_M = 800.0  # twice the mosaic's 400 m/px: the detector's finest level (docs/navigation/rendered.md)
 WIDTH_PX = 256
@@ -37,6 +39,7 @@ MIN_RADIUS_KM = 60.0  # polar cap left out: the mosaic's mixed-Sun cap is no eva
 MAX_RADIUS_KM = 370.0  # a shared patch (+-230 km about two frames) stays inside the 1219 km DEM square
 MIN_SUN_ELEVATION_DEG = 1.0
 MAX_HOUR_ANGLE_DEG = 100.0
+TRACK_DIR = re.compile(r"track_\d{3,}")
 OBLIQUITY_DEG = 1.54  # lunar spin-axis obliquity to the ecliptic (crater_core/illumination.py)
 
 
@@ -117,18 +120,29 @@ def track_dirs(root: Path) -> list[Path]:
 def render_survey(
     out: Path, n_tracks: int, seed: int = 0, overrides: tuple[str, ...] = (), progress: bool = True
 ) -> dict:
-    """Render the survey's tracks into ``out/track_NNN`` (skipping finished ones); returns a summary."""
+    """Render the survey's tracks into ``out/track_NNN`` (skipping finished ones); returns a summary.
+
+    ``out`` is a ``navdetector-survey`` folder (crater_synth.outfolder) of this ``seed``: another kind's
+    folder, another seed's survey, or a file outside the tracks' folders is refused before anything is
+    rendered; each track's folder is a ``nav-frames`` folder of its own trajectory."""
     out = Path(out)
     tracks = plan_tracks(n_tracks, seed)
+    folder = OutFolder(out, "navdetector-survey", subject=f"seed={seed}", flag="--out")
+    folder.check()
+    stray = [n for n in folder.unlisted() if not TRACK_DIR.fullmatch(n.split("/", 1)[0]) or "/" not in n]
+    if stray:
+        folder.refuse(stray)
     done = rendered = 0
-    for t, track in enumerate(tracks):
-        d = out / f"track_{t:03d}"
-        if (d / "manifest.jsonl").exists():
-            done += 1
-            continue
-        settings = load_settings(frame_overrides(track_overrides(track) + list(overrides)))
-        render_frames(settings, d, progress=False)
-        rendered += 1
-        if progress:
-            click.echo(f"track {t + 1}/{n_tracks} rendered ({track['name']})", err=True)
+    with folder:
+        for t, track in enumerate(tracks):
+            d = out / f"track_{t:03d}"
+            if (d / "manifest.jsonl").exists():
+                done += 1
+                continue
+            settings = load_settings(frame_overrides(track_overrides(track) + list(overrides)))
+            render_frames(settings, d, progress=False)
+            folder.published()
+            rendered += 1
+            if progress:
+                click.echo(f"track {t + 1}/{n_tracks} rendered ({track['name']})", err=True)
     return {"out_dir": str(out), "tracks": n_tracks, "rendered": rendered, "already_there": done, "seed": seed}
