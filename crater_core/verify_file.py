@@ -183,11 +183,22 @@ def _navframe_header_faults(f: Path, row: dict, header: dict) -> list[str]:
             got = float(np.float32(header[f"crater_synth:sun_{k}"]))
             row_v = sun.get(f"{k}_deg")
             checks.append((f"patch sun_enu {k}_deg", None if row_v is None else float(np.float32(row_v)), got))
-    return [
-        f"{f}: row {name} {_show(want)} but the EXR header says {_show(got)}"
-        for name, want, got in checks
-        if not _close(want, got)
-    ]
+    return [_differs(f, name, want, got) for name, want, got in checks if not _close(want, got)]
+
+
+def _differs(f: Path, name: str, want, got) -> str:
+    """One line naming the row's field (and, for a record such as the pose, its entries) that the header contradicts."""
+    if isinstance(want, dict) and isinstance(got, dict):
+        keys = sorted(k for k in set(want) | set(got) if not _close(want.get(k), got.get(k)))
+        parts = []
+        for k in keys:
+            a, b = want.get(k), got.get(k)
+            try:  # a position: by how far
+                parts.append(f"{name}.{k} (off by {float(np.linalg.norm(np.subtract(a, b))):.6g})")
+            except (TypeError, ValueError):
+                parts.append(f"{name}.{k}")
+        return f"{f}: row {', '.join(parts)} differs from what the EXR header records"
+    return f"{f}: row {name} {_show(want)} but the EXR header says {_show(got)}"
 
 
 def _show(v) -> str:

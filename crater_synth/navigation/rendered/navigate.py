@@ -43,7 +43,7 @@ def frame_row_of(image: Path) -> dict:
             "manifest row holds (render frames with `crater-synth nav-frames`)"
         )
 
-    rows = [r for r in labelled_rows(image.parent) if r.get("rel_path") == image.name]
+    rows = [r for r in labelled_rows(image.parent, only=image.name) if r.get("rel_path") == image.name]
     if not rows:
         raise FrameError(f"{image}: not a frame of {manifest}")
     row = rows[0]
