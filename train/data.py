@@ -2,8 +2,9 @@
 
 - One sample per (manifest row, sigma).
 - The geometric part of the preprocessing (sigma box -> 150x150, anti-aliased) is done once and kept in
-  an on-disk cache, ``<train.cache_dir>/crops-<manifest digest>-<preprocessing hash>/images.npy``
-  (a numpy memmap), so epochs after the first never decode an EXR. The sensor model and the
+  an on-disk cache, ``<train.cache_dir>/crops-<manifest digest>-<preprocessing and file identity
+  hash>/images.npy`` (a numpy memmap), so epochs after the first never decode an EXR; a file changed
+  or deleted since makes another key. The sensor model and the
   photometric normalisation run per sample at load time (fresh, seeded noise every epoch).
 - Train/validation split by render parameters: whole camera poses (or sun directions) are held out,
   seeded, so a validation image never has a near-duplicate (same pose, other sun / other sigma) in

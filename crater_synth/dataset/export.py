@@ -115,9 +115,9 @@ def iter_samples(
 
 
 def check_row(kind: str, dataset_dir: Path, row: dict, trusted: set[str]) -> None:
-    """verify's check of a row's file (:func:`crater_core.verify_file.file_faults` without decoding: the
-    labels its header carries; the sha256 is checked where the file is read), unless a recorded verify
-    covers the file unchanged (``trusted``). A path or link leading out of the dataset is refused either
+    """verify's check of a row's file (:func:`crater_core.verify_file.file_faults` without decoding: its
+    sha256 and the labels its header carries), unless a recorded verify covers the file unchanged
+    (``trusted``). A path or link leading out of the dataset is refused either
     way. The first fault is an :class:`ExportError`."""
     rel = rel_path_of(kind, row)
     try:
@@ -126,7 +126,7 @@ def check_row(kind: str, dataset_dir: Path, row: dict, trusted: set[str]) -> Non
         raise ExportError(f"dataset {dataset_dir}: {exc}: refused for export") from None
     if rel in trusted:
         return
-    faults = file_faults(kind, dataset_dir, row, decode=False, sha=False)
+    faults = file_faults(kind, dataset_dir, row, decode=False)
     if faults:
         more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
         raise ExportError(
