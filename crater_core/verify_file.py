@@ -196,7 +196,8 @@ def _differs(f: Path, name: str, want, got) -> str:
         for k in keys:
             a, b = want.get(k), got.get(k)
             try:  # a position: by how far
-                parts.append(f"{name}.{k} (off by {float(np.linalg.norm(np.subtract(a, b))):.6g})")
+                off = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+                parts.append(f"{name}.{k} (off by {float(np.linalg.norm(off)):.6g})")
             except (TypeError, ValueError):
                 parts.append(f"{name}.{k}")
         return f"{f}: row {', '.join(parts)} differs from what the EXR header records"
