@@ -160,6 +160,20 @@ def _close(a, b, tol: float = DERIVED_TOLERANCE) -> bool:
     return a == b
 
 
+def navframe_header_for_row(row: dict) -> dict:
+    """The header entries :func:`navframe_faults` reads, from a nav-frames row (for writers other than
+    ``crater-synth nav-frames``, e.g. test fixtures, so that their frames carry their labels the same way;
+    the patch's Sun and origin are checked only where a header has them)."""
+    return {
+        "trajectory": str(row["trajectory"]),
+        "frame": int(row["index"]),
+        "pose_mc": json.dumps(row["pose"], sort_keys=True),
+        "terrain_id": str(row["terrain_id"]),
+        "crater_synth:mode": str(row["mode"]),
+        STATS_ATTR: json.dumps({"lit_fraction": row.get("lit_fraction"), "mean_if": row.get("mean_if")}),
+    }
+
+
 def _navframe_header_faults(f: Path, row: dict, header: dict) -> list[str]:
     """The row's frame labels against what ``crater-synth nav-frames`` wrote into the frame's header."""
     if "pose_mc" not in header or "trajectory" not in header:
