@@ -121,13 +121,13 @@ def verify_dataset(
         kind = "render"
     report, rows = (_verify_navframes if kind == "navframe" else _verify_renders)(d, decode, jobs, progress)
     report["kind"], report["recorded"] = kind, None
-    if not report["ok"] and d.is_dir():  # a recorded pass no longer holds
-        (d / RECORD_NAME).unlink(missing_ok=True)
-    if report["ok"]:
-        try:
+    try:
+        if report["ok"]:
             report["recorded"] = str(write_record(d, kind, rows, decode))
-        except OSError:  # a read-only dataset: verified, only not recorded
-            pass
+        elif d.is_dir():  # a recorded pass no longer holds
+            (d / RECORD_NAME).unlink(missing_ok=True)
+    except OSError:  # a read-only dataset: verified (or not), only not recorded
+        pass
     return report
 
 
