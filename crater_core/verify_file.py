@@ -52,6 +52,25 @@ DERIVED_TOLERANCE = 1e-9
 STATS_TOLERANCE = 1e-12
 
 
+# The fields that tell one manifest from the other (each kind's rows carry all of its own, none of the other's).
+KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajectory", "landmarks")}
+
+
+def manifest_kind(dataset_dir: str | os.PathLike) -> str | None:
+    """The record kind whose fields the first row of the dataset's manifest carries; None where there is
+    no manifest, no row, an unreadable first line, or a row of neither kind (the kind's reader says why)."""
+    try:
+        with open(Path(dataset_dir) / schema.MANIFEST_NAME, "rb") as fh:
+            first = next((line for line in fh if line.strip()), b"")
+        row = json.loads(first.decode("utf-8")) if first else None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    if not isinstance(row, dict):
+        return None
+    found = [k for k, fields in KIND_FIELDS.items() if all(f in row for f in fields)]
+    return found[0] if len(found) == 1 else None
+
+
 def rel_path_of(kind: str, row: dict) -> str:
     """The file a row names, relative to its dataset."""
     return str(row["path"] if kind == "render" else row["rel_path"])

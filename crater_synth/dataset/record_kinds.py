@@ -31,6 +31,7 @@ from crater_core.schema import (
     PARTS_DIR,
     iter_rows,
 )
+from crater_core.verify_file import KIND_FIELDS
 from crater_synth.errors import UserError
 
 
@@ -315,8 +316,7 @@ NAVFRAME = RecordKind(
 )
 RECORD_KINDS: dict[str, RecordKind] = {RENDER.name: RENDER, NAVFRAME.name: NAVFRAME}
 
-# The fields that tell one manifest from the other (each kind's rows carry all of its own, none of the other's).
-_KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajectory", "landmarks")}
+_KIND_FIELDS = KIND_FIELDS  # the fields that tell one manifest from the other (shared with verify)
 
 
 def detect_kind(dataset_dir: str | os.PathLike) -> str | None:

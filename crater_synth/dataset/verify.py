@@ -17,11 +17,10 @@ import click
 
 from crater_core import schema
 from crater_core.progress import Progress
-from crater_core.verify_file import RECORD_NAME, file_faults, write_record
+from crater_core.verify_file import RECORD_NAME, file_faults, manifest_kind, write_record
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder
 from crater_synth.dataset.manifest import stale_parts
-from crater_synth.dataset.record_kinds import detect_kind
 from crater_synth.errors import UserError
 
 # Below this many files per process, a pool costs more than it saves (process start-up).
@@ -101,7 +100,7 @@ def verify_dataset(
     dataset_dir: str | Path, decode: bool = True, jobs: int | None = None, progress: bool = False
 ) -> dict:
     """Check a render dataset (``crater-synth dataset``) or a nav-frames folder (``crater-synth
-    nav-frames``), its kind told by its manifest's rows (:func:`.record_kinds.detect_kind`): every row
+    nav-frames``), its kind told by its manifest's rows (:func:`crater_core.verify_file.manifest_kind`): every row
     against its file (:func:`crater_core.verify_file.file_faults`: inside the dataset, exists, hashes to
     its sha256, a tiled EXR of the contract's channels and the row's size whose header carries the
     row's labels; with ``decode`` finite pixels under an intact seal) and the manifest as a whole. The
@@ -115,10 +114,8 @@ def verify_dataset(
     for the files it lists unchanged. Raises :class:`UserError` where there is no manifest to check.
     """
     d = Path(dataset_dir)
-    try:
-        kind = detect_kind(d) or "render"
-    except UserError:  # an unreadable first line: the render reader reports every bad line
-        kind = "render"
+    # No readable first row, or one of neither kind: the render reader reports every bad line.
+    kind = manifest_kind(d) or "render"
     report, rows = (_verify_navframes if kind == "navframe" else _verify_renders)(d, decode, jobs, progress)
     report["kind"], report["recorded"] = kind, None
     try:
