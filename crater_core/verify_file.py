@@ -39,7 +39,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from crater_core import schema
-from crater_core.exr import ExrError, exr_info, read_exr, sealed_attrs
+from crater_core.exr import SEAL_ATTR, ExrError, exr_info, read_exr, sealed_attrs
 from crater_core.render_labels import label_faults
 from crater_core.trajectory import FramePose
 
@@ -128,7 +128,7 @@ def _open_faults(f: Path, sha256: str, decode: bool, sha: bool) -> tuple[list[st
     # A header without any crater-synth attribute is one fault of the kind's label check, not two.
     ours = any(str(k).startswith("crater_synth:") for k in info["header"])
     if decode and ours and not faults and sealed_attrs(channels, info["header"]) is None:
-        why = "carries no pixel seal" if "crater_synth:seal" not in info["header"] else "pixel seal broken"
+        why = "carries no pixel seal" if SEAL_ATTR not in info["header"] else "pixel seal broken"
         faults.append(f"{f}: {why} (its pixels or header are not those its renderer wrote)")
     return faults, info
 
