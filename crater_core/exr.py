@@ -455,14 +455,24 @@ def check_seal(path: str | os.PathLike) -> dict | None:
     decoded pixels and the attributes give the seal, and encoding them again gives the file's bytes
     (so no byte outside them changed either) -- else None. Raises :class:`ExrError` for an unreadable file."""
     channels, header = read_exr(path)
+    sealed = sealed_attrs(channels, header)
+    if sealed is None:
+        return None
+    if encode_exr(channels, {**sealed, SEAL_ATTR: header[SEAL_ATTR]}, what=str(path)) != Path(path).read_bytes():
+        return None
+    return sealed
+
+
+def sealed_attrs(channels: dict[str, np.ndarray], header: dict) -> dict | None:
+    """The sealed attributes of a decoded EXR (``channels``, ``header`` as :func:`read_exr` gives them)
+    when its pixels and those attributes give the seal its header carries, else None (no seal, or any
+    sealed pixel or attribute changed). Unlike :func:`check_seal` nothing is encoded again, so the
+    answer does not depend on the encoder installed here."""
     try:
         keys = json.loads(header[SEALED_ATTR])
         sealed = {k: header[k] for k in keys}
         seal = header[SEAL_ATTR]
+        ok = _seal(channels, sealed) == seal
     except (KeyError, TypeError, ValueError):
         return None
-    if _seal(channels, sealed) != seal:
-        return None
-    if encode_exr(channels, {**sealed, SEAL_ATTR: seal}, what=str(path)) != Path(path).read_bytes():
-        return None
-    return sealed
+    return sealed if ok else None

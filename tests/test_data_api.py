@@ -20,7 +20,9 @@ from click.testing import CliRunner
 from torch.utils.data import DataLoader
 
 from crater_core import schema
-from crater_core.exr import read_channel, write_exr
+from crater_core.exr import read_channel, sealed_header, write_exr
+from crater_core.schema import EXR_CHANNELS
+from crater_core.verify_file import navframe_header_for_row
 from crater_synth.config import load_settings
 from crater_synth.data import ParquetExport, WebDatasetExport, open_export
 from crater_synth.dataset import export as ex
@@ -59,16 +61,18 @@ def navframes(tmp_path_factory):
     rows = []
     for i in range(5):
         rel = f"frame_{i:04d}.exr"
-        chans = {"IF": rng.random((64, 64), dtype=np.float32) * 0.1, "lit": np.ones((64, 64), np.float32)}
-        sha = write_exr(d / rel, chans, {}, channel_names=("IF", "lit"))
+        chans = {c: np.full((64, 64), 0.5, np.float32) for c in EXR_CHANNELS}
+        chans["IF"] = rng.random((64, 64), dtype=np.float32) * 0.1
         lm = {"id": 7, "name": "x", "diameter_km": 5.0, "ellipse": {"cu": 30.0, "cv": 31.0, "a": 9, "b": 8}}
-        rows.append(
-            {"trajectory": "t", "index": i, "rel_path": rel, "sha256": sha, "landmarks": [lm]}
-            | {
-                "pose": {"width_px": 64, "fov_deg": 30.0, "altitude_m": 9000.0 + i},
-                "mean_if": float(chans["IF"].mean()),
-            }
-        )
+        pose = {"index": i, "position_mc_m": [0.0, 0.0, 1746400.0 + i], "rotation_mc": np.eye(3).tolist()}
+        pose |= {"fov_deg": 30.0, "width_px": 64, "altitude_m": 9000.0 + i, "heading_deg": 0.0}
+        pose |= {"subcam_lat": 90.0, "subcam_lon": 0.0, "target_lat": 90.0, "target_lon": 0.0, "to_sun_mc": [1, 0, 0]}
+        row = {"trajectory": "t", "index": i, "rel_path": rel, "landmarks": [lm], "pose": pose}
+        row |= {"frame_origin": {"lat": 90.0, "lon": 0.0}, "mode": "fast", "terrain_id": "fake"}
+        row |= {"lit_fraction": 0.5, "mean_if": float(chans["IF"].mean())}
+        # The labels in the header and a seal, as `crater-synth nav-frames` writes them: export checks both.
+        row["sha256"] = write_exr(d / rel, chans, sealed_header(chans, navframe_header_for_row(row)))
+        rows.append(row)
     (d / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     return d
 

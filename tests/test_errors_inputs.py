@@ -15,6 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from crater_core import exr, schema
+from crater_core.render_labels import header_for_row
 
 
 def _invoke(args):
@@ -71,8 +72,12 @@ def _render_row(path: str = "shackleton/x.exr", sha256: str = "0" * 64) -> dict:
 def test_export_refuses_a_manifest_line_that_is_not_utf8_before_writing_any_shard(tmp_path, fmt):
     ds = tmp_path / "ds"
     (ds / "shackleton").mkdir(parents=True)
-    exr.write_exr(ds / "shackleton/x.exr", {c: np.zeros((8, 8), np.float32) for c in schema.EXR_CHANNELS}, {})
-    good = json.dumps(_render_row(sha256=schema.sha256_file(ds / "shackleton/x.exr"))).encode()
+    row = _render_row()
+    # The row's labels in the header, as the renderer writes them: export checks them.
+    row["sha256"] = exr.write_exr(
+        ds / "shackleton/x.exr", {c: np.zeros((8, 8), np.float32) for c in schema.EXR_CHANNELS}, header_for_row(row)
+    )
+    good = json.dumps(row).encode()
     (ds / "manifest.jsonl").write_bytes(good + b"\n" + b"\xff\xfe not text\n")
     before = _tree(ds)
     out = tmp_path / "out"

@@ -486,7 +486,7 @@ def test_nav_frames_command_end_to_end(tmp_path):
     assert res.exit_code != 0 and "not a frame of" in res.output and not (tmp_path / "x.png").exists()
     exr_path.write_bytes(exr_path.read_bytes()[:-100])  # truncated: its sha256 no longer matches the manifest
     res = CliRunner().invoke(main, ["navigate", str(exr_path), "--out", str(tmp_path / "x.png")])
-    assert res.exit_code != 0 and "sha256 differs" in res.output and not (tmp_path / "x.png").exists()
+    assert res.exit_code != 0 and "sha256 mismatch" in res.output and not (tmp_path / "x.png").exists()
     before = manifest.read_bytes()
     res = CliRunner().invoke(main, ["nav-frames-relabel", str(out)])
     assert res.exit_code != 0 and "nothing relabelled" in res.output and manifest.read_bytes() == before

@@ -214,11 +214,11 @@ def test_verify_reports_files_with_eta(tmp_path, fake_clock):
     from crater_synth.bench.export import make_dataset
     from crater_synth.dataset.verify import verify_command
 
-    d = make_dataset(tmp_path / "ds", 3)  # benchmark files: their headers carry no render labels (faults)
+    d = make_dataset(tmp_path / "ds", 3)  # benchmark files: labelled and sealed like renders
     res = CliRunner().invoke(verify_command, [str(d), "--jobs", "1"])
     assert "\r" not in res.stderr
     _assert_counted(res.stderr, "verify", 3, "files")
-    assert res.stdout.startswith("verify FAILED (3 faults): 3 rows"), res.output
+    assert res.stdout.startswith("verify OK: 3 rows"), res.output
 
 
 def test_export_reports_samples_with_eta(tmp_path, fake_clock):

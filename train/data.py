@@ -2,8 +2,9 @@
 
 - One sample per (manifest row, sigma).
 - The geometric part of the preprocessing (sigma box -> 150x150, anti-aliased) is done once and kept in
-  an on-disk cache, ``<train.cache_dir>/crops-<manifest digest>-<preprocessing hash>/images.npy``
-  (a numpy memmap), so epochs after the first never decode an EXR. The sensor model and the
+  an on-disk cache, ``<train.cache_dir>/crops-<manifest digest>-<preprocessing and file identity
+  hash>/images.npy`` (a numpy memmap), so epochs after the first never decode an EXR; a file changed
+  or deleted since makes another key. The sensor model and the
   photometric normalisation run per sample at load time (fresh, seeded noise every epoch).
 - Train/validation split by render parameters: whole camera poses (or sun directions) are held out,
   seeded, so a validation image never has a near-duplicate (same pose, other sun / other sigma) in
@@ -39,19 +40,19 @@ from torch.utils.data import Dataset
 from crater_core.exr import ExrError, read_channel_and_header
 from crater_core.files import ensure_writable_dir, umask
 from crater_core.progress import Progress
-from crater_core.render_labels import label_faults
 from crater_core.schema import (
     MANIFEST_NAME,
+    PARTS_DIR,
     ManifestError,
     duplicate_faults,
     load_manifest,
     manifest_digest,
     row_file,
-    sha256_file,
     validate_row,
 )
 from crater_core.settings import Settings, TrainSettings, as_plain
 from crater_core.sweep import rows_in_selection
+from crater_core.verify_file import file_faults, identity_digest, trusted_paths
 from train.errors import DatasetError, RealDataLeakError
 from train.exported import iter_records, read_index
 from train.preprocess import (
@@ -125,11 +126,18 @@ def require_manifest(dataset_dir: str | Path) -> Path:
 def load_rows(dataset_dir: str | Path) -> list[dict]:
     """Strictly read ``<dataset_dir>/manifest.jsonl``: every line a valid row inside the dataset, no render,
     file or file content listed twice (a duplicate row with another crater would train on a wrong
-    label). The checks ``verify`` makes without opening a file; the labels in each EXR's header are
-    checked where the crop cache decodes it (:func:`build_cache`)."""
+    label), no unmerged ``manifest.parts/``. The checks ``verify`` makes without opening a file; each
+    file is checked (:func:`crater_core.verify_file.file_faults`) where the crop cache decodes it
+    (:func:`build_cache`), and the cache is keyed by the files' identity."""
 
     d = Path(dataset_dir)
     manifest = require_manifest(d)
+    parts = [p for p in (d / PARTS_DIR).glob("*.jsonl") if p.stat().st_size] if (d / PARTS_DIR).is_dir() else []
+    if parts:  # rows a killed (or running) `crater-synth dataset` never merged: the manifest is not the dataset
+        raise DatasetError(
+            f"{d} has {len(parts)} unmerged manifest part(s) in {PARTS_DIR}/ (a run is going on or was killed): "
+            "finish it with `crater-synth dataset` (same settings) before training"
+        )
     try:
         rows = load_manifest(d)
     except ManifestError as exc:
@@ -302,7 +310,10 @@ class CropCache:
     seconds: float = 0.0
 
 
-def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfig, dtype: str) -> str:
+def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfig, dtype: str, files: str = "") -> str:
+    """The crop cache's name: the rows, the preprocessing and ``files``, the identity of the files the
+    crops come from (:func:`crater_core.verify_file.identity_digest`): a file rewritten, replaced or
+    deleted since the cache was built makes another key, so its crops are never reused unchecked."""
     h = hashlib.sha256(
         json.dumps(
             {
@@ -311,11 +322,29 @@ def cache_key(rows: Sequence[dict], sigmas: Sequence[float], pp: PreprocessConfi
                 "sigmas": list(sigmas),
                 "dtype": dtype,
                 "max_outside": pp.max_outside_frac,
+                "files": files,
             },
             sort_keys=True,
         ).encode()
     )
     return f"crops-{manifest_digest(rows)}-{h.hexdigest()[:10]}"
+
+
+def files_identity(rows: Sequence[dict], dataset_dir: str | Path) -> str:
+    """:func:`crater_core.verify_file.identity_digest` of the rows' files; a missing one is a
+    :class:`DatasetError` naming it."""
+    try:
+        return identity_digest(dataset_dir, "render", rows)
+    except FileNotFoundError as exc:
+        raise DatasetError(
+            f"EXR {exc.filename} does not exist (listed in the manifest): refused for training"
+        ) from None
+    except OSError as exc:
+        raise DatasetError(
+            f"EXR {exc.filename}: {exc.strerror} (listed in the manifest): refused for training"
+        ) from None
+    except ManifestError as exc:
+        raise DatasetError(f"{exc}: refused for training") from None
 
 
 CACHE_ROWS_PER_CHUNK = 256  # rows per task of the cache build (a few seconds of work each)
@@ -326,26 +355,21 @@ def _fill_cache_rows(chunk: tuple, sigmas: tuple, pp: PreprocessConfig, verify_s
     first sample index); returns the number of rows. Runs in a pool process or in the caller (which
     may pass ``on_row``, called after each row)."""
 
-    images_path, dataset_dir, rows, j = chunk
+    images_path, dataset_dir, rows, j, trusted = chunk
     arr = np.load(images_path, mmap_mode="r+")
-    for row in rows:
+    for row, known in zip(rows, trusted):
         path = row_path(dataset_dir, row)
         where = f"EXR {path}"
         if not path.is_file():
             raise DatasetError(f"{where} does not exist (manifest row {row['crater']} index {row['index']})")
-        if verify_sha256:
-            got = sha256_file(path)
-            if got != row["sha256"]:
-                raise DatasetError(
-                    f"{where}: sha256 {got} does not match the manifest's {row['sha256']} (file changed or corrupt)"
-                )
-        img, header = read_exr_channel_and_header(path, "IF")
-        wrong = label_faults(row, header, str(path))
+        # verify's check of the file (sha256, header labels), unless a recorded verify covers it unchanged
+        wrong = [] if known else file_faults("render", dataset_dir, row, decode=False, sha=verify_sha256)
         if wrong:  # e.g. an edited crater or Sun angle: the file's own labels contradict the row
             more = f" (and {len(wrong) - 1} more)" if len(wrong) > 1 else ""
             raise DatasetError(
                 f"{wrong[0]}{more}: refused for training; `crater-synth verify {dataset_dir}` lists every fault"
             )
+        img = read_exr_channel(path, "IF")
         if img.shape != (int(row["height"]), int(row["width"])):
             raise DatasetError(
                 f"{where} is {img.shape[1]}x{img.shape[0]}, the manifest says {row['width']}x{row['height']}"
@@ -390,8 +414,16 @@ def _fill_cache(
     (bars on a terminal, otherwise a line every few seconds)."""
 
     n_jobs = max(1, min(workers or os.cpu_count() or 1, len(rows) // CACHE_ROWS_PER_CHUNK))
+    trusted = trusted_paths(dataset_dir, "render")
+    known = [r["path"] in trusted for r in rows]
     chunks = [
-        (str(images_path), str(dataset_dir), rows[lo : lo + CACHE_ROWS_PER_CHUNK], lo * len(sigmas))
+        (
+            str(images_path),
+            str(dataset_dir),
+            rows[lo : lo + CACHE_ROWS_PER_CHUNK],
+            lo * len(sigmas),
+            known[lo : lo + CACHE_ROWS_PER_CHUNK],
+        )
         for lo in range(0, len(rows), CACHE_ROWS_PER_CHUNK)
     ]
     fill = functools.partial(_fill_cache_rows, sigmas=tuple(sigmas), pp=pp, verify_sha256=verify_sha256)
@@ -504,7 +536,7 @@ def build_cache(
 
     t0 = time.perf_counter()
     rows = list(rows)
-    key = cache_key(rows, sigmas, pp, dtype)
+    key = cache_key(rows, sigmas, pp, dtype, "" if export_dir is not None else files_identity(rows, dataset_dir))
     if export_dir is not None:  # its own entry: the arrays come from the export's files
         key += "-export-" + hashlib.sha256(json.dumps(read_index(export_dir)["shards"]).encode()).hexdigest()[:10]
     final = Path(cache_dir) / key

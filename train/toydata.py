@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image
 
 from crater_core import schema
-from crater_core.exr import write_exr
+from crater_core.exr import sealed_header, write_exr
 from crater_core.render_labels import header_for_row
 
 DEFAULT_CRATERS = ("shackleton", "de_gerlache", "shoemaker")
@@ -155,8 +155,9 @@ def write_toy_dataset(
                 "terrain_id": f"toy-{crater}",
                 "render_digest": "toydata",
             }
-            # The labels go into the header as the renderer writes them, so verify and training can check them.
-            row["sha256"] = write_exr(out_dir / rel, ch, header_for_row(row))
+            # The labels go into the header as the renderer writes them, sealed with the pixels, so verify and
+            # training can check them.
+            row["sha256"] = write_exr(out_dir / rel, ch, sealed_header(ch, header_for_row(row)))
             rows.append(schema.validate_row(row))
     schema.write_manifest(out_dir / schema.MANIFEST_NAME, rows)
     return rows

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_core.exr import write_exr
+from crater_core.exr import sealed_header, write_exr
+from crater_core.render_labels import header_for_row
 from crater_core.schema import SCHEMA_VERSION, render_rel_path, write_manifest
 
 PAPER_RENDERS = 67_500
@@ -47,41 +48,41 @@ def make_dataset(out: Path, n: int, seed: int = 0) -> Path:
             "N.Z": n_[2],
             "lit": rng.random((s, s), dtype=np.float32),
         }
-        sha = write_exr(out / rel, chans, {"crater": "bench"})
         half = s / 2 / 1.4
-        rows.append(
-            {
-                "schema_version": SCHEMA_VERSION,
-                "crater": "bench",
-                "index": i,
-                "indices": [i % 15, i // 15 % 150, i // 2250 % 30, i % 7],
-                "sun_elevation": se,
-                "sun_azimuth": sa,
-                "cam_elevation": ce,
-                "cam_azimuth": ca,
-                "range_m": 31500.0,
-                "fov_deg": 90.0,
-                "frame_width": 2 * s,
-                "width": s,
-                "height": s,
-                "crop_origin": [s // 2, s // 2],
-                "center_px": [s / 2, s / 2],
-                "rim_ellipse": {"cu": s / 2, "cv": s / 2, "a": half, "b": half * 0.9, "angle_rad": 0.3},
-                "sigma_boxes": {
-                    str(k): [s / 2 - k * half, s / 2 - k * half, s / 2 + k * half, s / 2 + k * half]
-                    for k in (1.0, 1.2, 1.4)
-                },
-                "lit_fraction": float(chans["lit"].mean()),
-                "mean_if": float(chans["IF"].mean()),
-                "path": rel,
-                "sha256": sha,
-                "seed": i,
-                "code_version": "bench",
-                "renderer": "fast",
-                "terrain_id": "bench",
-                "render_digest": "bench",
-            }
-        )
+        row = {
+            "schema_version": SCHEMA_VERSION,
+            "crater": "bench",
+            "index": i,
+            "indices": [i % 15, i // 15 % 150, i // 2250 % 30, i % 7],
+            "sun_elevation": se,
+            "sun_azimuth": sa,
+            "cam_elevation": ce,
+            "cam_azimuth": ca,
+            "range_m": 31500.0,
+            "fov_deg": 90.0,
+            "frame_width": 2 * s,
+            "width": s,
+            "height": s,
+            "crop_origin": [s // 2, s // 2],
+            "center_px": [s / 2, s / 2],
+            "rim_ellipse": {"cu": s / 2, "cv": s / 2, "a": half, "b": half * 0.9, "angle_rad": 0.3},
+            "sigma_boxes": {
+                str(k): [s / 2 - k * half, s / 2 - k * half, s / 2 + k * half, s / 2 + k * half]
+                for k in (1.0, 1.2, 1.4)
+            },
+            "lit_fraction": float(chans["lit"].mean()),
+            "mean_if": float(chans["IF"].mean()),
+            "path": rel,
+            "sha256": "",
+            "seed": i,
+            "code_version": "bench",
+            "renderer": "fast",
+            "terrain_id": "bench",
+            "render_digest": "bench",
+        }
+        # Labels in the header and a seal, as the renderer writes them: export checks both.
+        row["sha256"] = write_exr(out / rel, chans, sealed_header(chans, header_for_row(row)))
+        rows.append(row)
     write_manifest(out / "manifest.jsonl", rows)
     return out
 

@@ -51,7 +51,8 @@ from typing import Callable, Iterator, Sequence
 import click
 
 from crater_core.progress import Progress
-from crater_core.schema import atomic_write_text, sha256_file
+from crater_core.schema import ManifestError, atomic_write_text, sha256_file
+from crater_core.verify_file import dataset_file, file_faults, rel_path_of, trusted_paths
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.dataset.export_shapes import (  # noqa: F401 (re-exported: part of this API)
     SHAPES,
@@ -100,6 +101,7 @@ def iter_samples(
     parts) fails here, before anything is written."""
     shaping = shaping or Shaping()
     n, rows = kind.rows(dataset_dir)
+    trusted = trusted_paths(dataset_dir, kind.name)
 
     def gen() -> Iterator[Sample]:
         seen: set[str] = set()
@@ -108,6 +110,7 @@ def iter_samples(
             if key in seen or "." in key or "/" in key:
                 raise ExportError(f"dataset {dataset_dir}: sample key {key!r} is repeated or not a plain name")
             seen.add(key)
+            check_row(kind.name, dataset_dir, row, trusted)
             arrays = kind.arrays(dataset_dir, row, channels)
             if shaping.layout.mode == "native":
                 yield Sample(key, kind.labels(row), row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
@@ -115,6 +118,26 @@ def iter_samples(
                 yield from shaping.samples(key, kind.labels(row), row, arrays, f"dataset {dataset_dir}: {key}")
 
     return n * max(1, len(shaping.sigmas)), gen()
+
+
+def check_row(kind: str, dataset_dir: Path, row: dict, trusted: set[str]) -> None:
+    """verify's check of a row's file (:func:`crater_core.verify_file.file_faults` without decoding: its
+    sha256 and the labels its header carries), unless a recorded verify covers the file unchanged
+    (``trusted``). A path or link leading out of the dataset is refused either
+    way. The first fault is an :class:`ExportError`."""
+    rel = rel_path_of(kind, row)
+    try:
+        dataset_file(dataset_dir, rel)
+    except ManifestError as exc:
+        raise ExportError(f"dataset {dataset_dir}: {exc}: refused for export") from None
+    if rel in trusted:
+        return
+    faults = file_faults(kind, dataset_dir, row, decode=False)
+    if faults:
+        more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+        raise ExportError(
+            f"{faults[0]}{more}: refused for export; `crater-synth verify {dataset_dir}` lists every fault"
+        )
 
 
 # ------------------------------------------------------------------------------------------------

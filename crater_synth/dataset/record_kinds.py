@@ -33,6 +33,7 @@ from crater_core.schema import (
     PARTS_DIR,
     iter_rows,
 )
+from crater_core.verify_file import KIND_FIELDS
 from crater_synth.dataset.detection import DETECTION_LABEL_FIELDS
 from crater_synth.errors import UserError
 
@@ -409,12 +410,9 @@ DETECTION = RecordKind(
 )
 RECORD_KINDS: dict[str, RecordKind] = {k.name: k for k in (RENDER, NAVFRAME, DETECTION)}
 
-# The fields that tell the manifests apart (each kind's rows carry all of its own, none of the others').
-_KIND_FIELDS = {
-    "render": ("path", "crater"),
-    "navframe": ("rel_path", "trajectory", "landmarks"),
-    "detection": ("rel_path", "terrain", "labels"),
-}
+# The fields that tell the manifests apart (each kind's rows carry all of its own, none of the others'): verify's,
+# and the detection frames', which verify does not read yet.
+_KIND_FIELDS = {**KIND_FIELDS, "detection": ("rel_path", "terrain", "labels")}
 
 
 def detect_kind(dataset_dir: str | os.PathLike) -> str | None:

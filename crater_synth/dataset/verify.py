@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import json
 import os
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -15,9 +16,8 @@ from pathlib import Path
 import click
 
 from crater_core import schema
-from crater_core.exr import ExrError, exr_info
 from crater_core.progress import Progress
-from crater_core.render_labels import label_faults
+from crater_core.verify_file import RECORD_NAME, file_faults, manifest_kind, write_record
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder
 from crater_synth.dataset.manifest import stale_parts
@@ -29,33 +29,10 @@ RESUME_HINT = "re-run `crater-synth dataset` with the same settings to resume"
 
 
 def check_file(check: tuple) -> list[str]:
-    """Faults of one row's file: ``check`` = (dataset dir, row, decode). The file must stay inside the
-    dataset, exist, hash to the row's sha256, open as a tiled EXR with the contract's channels and the
-    row's size, carry in its header the labels the row states and (``decode``) hold finite pixels."""
-    d, row, decode = check
-    try:
-        f = schema.row_file(d, row)
-    except schema.ManifestError as exc:
-        return [str(exc)]
-    if not f.is_file():
-        return [f"{f}: missing"]
-    if schema.sha256_file(f) != row["sha256"]:
-        return [f"{f}: sha256 mismatch (corrupt or changed)"]
-    try:
-        info = exr_info(f, decode)
-    except ExrError as exc:
-        return [str(exc)]
-    faults = []
-    expected = set(schema.EXR_CHANNELS)
-    if set(info["channels"]) != expected:
-        faults.append(f"{f}: channels {info['channels']} != {sorted(expected)}")
-    if (info["width"], info["height"]) != (row["width"], row["height"]):
-        faults.append(f"{f}: size {info['width']}x{info['height']} != row {row['width']}x{row['height']}")
-    if not info["tiled"]:
-        faults.append(f"{f}: not tiled")
-    if info["finite"] is False:
-        faults.append(f"{f}: non-finite pixels")
-    return faults + label_faults(row, info["header"], str(f))
+    """Faults of one row's file: ``check`` = (dataset dir, row, decode[, record kind, default render]);
+    :func:`crater_core.verify_file.file_faults`, the one check of every reader."""
+    d, row, decode, *kind = check
+    return file_faults(kind[0] if kind else "render", d, row, decode)
 
 
 def live_writer(dataset_dir: Path) -> str | None:
@@ -122,18 +99,39 @@ def _exr_files(d: Path) -> list[Path]:
 def verify_dataset(
     dataset_dir: str | Path, decode: bool = True, jobs: int | None = None, progress: bool = False
 ) -> dict:
-    """Check every row: readable line, path inside the dataset, file exists, hashes to its sha256,
-    opens as a tiled EXR with the contract's channels and the row's size, and carries in its header
-    the labels the row states; no duplicate renders, paths or files; no empty manifest beside renders;
-    no rows of an interrupted run left unmerged. The files are checked by ``jobs`` processes (default:
-    one per core; one for small datasets); ``progress``: the files checked, with rate and ETA, on stderr.
+    """Check a render dataset (``crater-synth dataset``) or a nav-frames folder (``crater-synth
+    nav-frames``), its kind told by its manifest's rows (:func:`crater_core.verify_file.manifest_kind`): every row
+    against its file (:func:`crater_core.verify_file.file_faults`: inside the dataset, exists, hashes to
+    its sha256, a tiled EXR of the contract's channels and the row's size whose header carries the
+    row's labels; with ``decode`` finite pixels under an intact seal) and the manifest as a whole. The
+    files are checked by ``jobs`` processes (default: one per core; one for small datasets);
+    ``progress``: the files checked, with rate and ETA, on stderr.
 
-    Returns a report dict with ``faults`` (list of one-line strings), counts, ``in_progress`` (the live
-    writer, or None: then the dataset is not verified, ``ok`` is False) and ``orphans``: files no row
-    names (EXRs, temp files of interrupted writes), which are not faults -- the next ``crater-synth
-    dataset`` run removes them. Raises :class:`UserError` where there is no manifest to check.
+    Returns a report dict with ``kind``, ``faults`` (list of one-line strings), counts, ``in_progress``
+    (the live writer, or None: then the dataset is not verified, ``ok`` is False), ``orphans``: files no
+    row names, which are not faults, and ``recorded``: the ``.verified.json`` a pass writes (None when
+    it failed or the directory is read-only), which train, export, nav-frames-eval and navigate trust
+    for the files it lists unchanged. Raises :class:`UserError` where there is no manifest to check.
     """
     d = Path(dataset_dir)
+    # No readable first row, or one of neither kind: the render reader reports every bad line.
+    kind = manifest_kind(d) or "render"
+    report, rows = (_verify_navframes if kind == "navframe" else _verify_renders)(d, decode, jobs, progress)
+    report["kind"], report["recorded"] = kind, None
+    try:
+        if report["ok"]:
+            report["recorded"] = str(write_record(d, kind, rows, decode))
+        elif d.is_dir():  # a recorded pass no longer holds
+            (d / RECORD_NAME).unlink(missing_ok=True)
+    except OSError:  # a read-only dataset: verified (or not), only not recorded
+        pass
+    return report
+
+
+def _verify_renders(d: Path, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
+    """A render dataset: every row (readable line, its file), no duplicate renders, paths or files; no
+    empty manifest beside renders; no rows of an interrupted run left unmerged. Orphans are files no row
+    names (EXRs, temp files of interrupted writes): the next ``crater-synth dataset`` run removes them."""
     manifest = d / schema.MANIFEST_NAME
     writer = live_writer(d) if d.is_dir() else None
     unmerged = unmerged_parts(d, writer)
@@ -172,7 +170,7 @@ def verify_dataset(
     found = [str(p) for p in find_orphans(d, known)]
     # While a writer runs, files without a merged row are its renders in progress, not orphans.
     orphans, in_flight = (found, []) if writer is None else ([], found)
-    return {
+    report = {
         "dataset": str(d),
         "rows": len(rows),
         "craters": dict(Counter(r["crater"] for r in rows)),
@@ -183,6 +181,49 @@ def verify_dataset(
         "in_flight_files": len(in_flight),
         "ok": not faults and writer is None,
     }
+    return report, rows
+
+
+def _navframe_lines(manifest: Path) -> tuple[list[dict], list[str]]:
+    """(rows, faults) of a nav-frames manifest: a line that is not a JSON object is one fault naming it."""
+    rows, faults = [], []
+    with open(manifest, "rb") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            if not raw.strip():
+                continue
+            try:
+                row = json.loads(raw.decode("utf-8"))
+            except (UnicodeDecodeError, ValueError, RecursionError):
+                row = None
+            if isinstance(row, dict):
+                rows.append(row)
+            else:
+                faults.append(f"{manifest}:{lineno}: unreadable row (not a JSON object)")
+    return rows, faults
+
+
+def _verify_navframes(d: Path, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
+    """A nav-frames folder: every row against its frame, no frame index, file or content twice. Orphans
+    are frame EXRs no row names."""
+    rows, faults = _navframe_lines(d / schema.MANIFEST_NAME)
+    for field in ("index", "rel_path", "sha256"):
+        seen = Counter(str(r.get(field)) for r in rows)
+        faults += [f"{d / schema.MANIFEST_NAME}: {field} {v} in {n} rows" for v, n in seen.items() if n > 1]
+    faults += _check_files([(str(d), r, decode, "navframe") for r in rows], jobs, progress)
+    named = {str(r.get("rel_path")) for r in rows}
+    orphans = [str(f) for f in sorted(d.glob("frame_*.exr")) if f.name not in named]
+    report = {
+        "dataset": str(d),
+        "rows": len(rows),
+        "craters": dict(Counter(str(r.get("trajectory")) for r in rows)),
+        "faults": faults,
+        "orphan_files": len(orphans),
+        "orphans": orphans,
+        "in_progress": None,
+        "in_flight_files": 0,
+        "ok": not faults,
+    }
+    return report, rows
 
 
 def _check_files(checks: list[tuple], jobs: int | None, progress: bool) -> list[str]:
@@ -204,19 +245,24 @@ def _check_files(checks: list[tuple], jobs: int | None, progress: bool) -> list[
 
 @click.command("verify")
 @click.argument("dataset_dir", type=click.Path(file_okay=False))
-@click.option("--no-decode", is_flag=True, help="Hash the files and check their headers; do not decode the pixels.")
+@click.option(
+    "--no-decode",
+    is_flag=True,
+    help="Hash the files and check their headers; do not decode the pixels or check their seal.",
+)
 @click.option(
     "--jobs", type=click.IntRange(min=1), default=None, help="Processes checking files [default: one per core]."
 )
 @user_errors
 def verify_command(dataset_dir, no_decode, jobs):
-    """Verify a dataset: every row's file exists, opens, hashes right and carries the row's labels in
-    its header; no duplicates.
+    """Verify a dataset or a nav-frames folder: every row's file exists, opens, hashes right, carries
+    the row's labels in its header and (unless --no-decode) its pixels under an intact seal; no duplicates.
 
     Prints one summary line (and, on stderr, the files checked with rate and ETA); exits non-zero on any
     fault (each fault on stderr) and while a `crater-synth dataset` run is still writing the directory.
     Files no row names are listed as `orphan:` lines (the next `crater-synth dataset` run removes them).
-    docs/manifest.md says what a pass proves and what it does not.
+    A pass is recorded in DATASET_DIR/.verified.json, which train, export, nav-frames-eval and navigate
+    trust for the files it lists unchanged. docs/manifest.md says what a pass proves and what it does not.
     """
     report = verify_dataset(dataset_dir, decode=not no_decode, jobs=jobs, progress=True)
     for fault in report["faults"]:
@@ -229,6 +275,7 @@ def verify_command(dataset_dir, no_decode, jobs):
     else:
         status = "OK" if report["ok"] else f"FAILED ({len(report['faults'])} faults)"
         files = f"{report['orphan_files']} orphan files"
-    click.echo(f"verify {status}: {report['rows']} rows {report['craters']}, {files}, in {report['dataset']}")
+    what = "frames" if report["kind"] == "navframe" else "rows"
+    click.echo(f"verify {status}: {report['rows']} {what} {report['craters']}, {files}, in {report['dataset']}")
     if not report["ok"]:
         raise SystemExit(1)

@@ -23,6 +23,7 @@ import numpy as np
 from crater_core import exr, geometry, schema
 from crater_core.rim_fractions import hidden_rim_fraction, lit_rim_fraction, rim_circle
 from crater_core.trajectory import FramePose
+from crater_core.verify_file import rows_faults
 from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import pole_of
@@ -138,11 +139,14 @@ def frame_rows(frames_dir) -> list[dict]:
     return rows
 
 
-def labelled_rows(frames_dir) -> list[dict]:
+def labelled_rows(frames_dir, only: str | None = None) -> list[dict]:
     """:func:`frame_rows` for a reader of the labels as truth: one error line when a row's labels were
     computed with another landmark map than its pole's committed one (a map rebuilt or edited numbers its
-    landmarks anew: the labels would name the wrong craters) or with a map they did not record."""
+    landmarks anew: the labels would name the wrong craters) or with a map they did not record, and when
+    a frame fails verify's check (:func:`checked_frames`). ``only``: the frame of that ``rel_path`` alone
+    is checked (``navigate FRAME.exr``)."""
     rows = frame_rows(frames_dir)
+    checked_frames(frames_dir, [r for r in rows if only is None or r.get("rel_path") == only])
     current: dict[str, dict] = {}
     for row in rows:
         pole = pole_of(row["frame_origin"]["lat"])
@@ -161,6 +165,16 @@ def labelled_rows(frames_dir) -> list[dict]:
                 f"`crater-synth nav-frames-relabel {frames_dir}` (the rendered EXRs are kept)"
             )
     return rows
+
+
+def checked_frames(frames_dir, rows: list[dict]) -> None:
+    """verify's check of each row's frame (:func:`crater_core.verify_file.file_faults` without decoding:
+    inside the folder, its sha256, and the pose, Sun and frame its header records), unless a recorded
+    ``crater-synth verify`` covers the file unchanged; the first fault is one error line."""
+    faults = rows_faults("navframe", frames_dir, rows)
+    if faults:
+        more = f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""
+        raise UserError(f"{faults[0]}{more}: `crater-synth verify {frames_dir}` lists every fault")
 
 
 def relabel(frames_dir) -> dict:
