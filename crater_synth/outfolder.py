@@ -35,6 +35,7 @@ from typing import Callable, Iterable
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
+from crater_core.verify_file import RECORD_NAME as VERIFIED_RECORD
 from crater_synth.errors import DatasetBusyError, UserError
 
 # The marker of each kind of output folder (the dataset's name predates the others and stays).
@@ -201,11 +202,12 @@ class OutFolder:
         target = temp_target(name)
         if target is not None:
             return (rel[: -len(name)] + target) in self.files
-        return rel in (MARKERS[self.kind], LOCK_NAME) or rel.startswith(JOBS_DIR + "/")
+        # verify's record of a pass (crater_core.verify_file) describes the folder; it is never a user's file
+        return rel in (MARKERS[self.kind], LOCK_NAME, VERIFIED_RECORD) or rel.startswith(JOBS_DIR + "/")
 
     def unlisted(self) -> list[str]:
         """Files (relative paths, sorted) that the marker does not list and that are not this writer's
-        bookkeeping: the marker and lock, ``.jobs/``, the temp files of listed files."""
+        bookkeeping: the marker and lock, verify's record, ``.jobs/``, the temp files of listed files."""
         found: list[str] = []
         if not self.path.is_dir():
             return found

@@ -215,3 +215,25 @@ def test_a_recorded_pass_is_not_trusted_for_a_changed_frame(frames, tmp_path):
     assert verify_dataset(frames, jobs=1)["faults"] == [
         f"{f}: pixel seal broken (its pixels or header are not those its renderer wrote)"
     ]
+
+
+def test_a_verified_nav_frames_folder_can_still_be_resumed(frames, rendered_frames):
+    """verify's record is bookkeeping of the folder, not a user's file: nav-frames resumes past it."""
+    assert _invoke(verify_command, frames).exit_code == 0 and (frames / RECORD_NAME).is_file()
+    proc = run_nav_frames(rendered_frames.parent / "data", frames, "1")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert [r["index"] for r in _rows(frames)] == [0, 1]
+
+
+def test_orphan_lines_say_what_the_writer_does(smoke):
+    """An EXR no row names is left alone by `dataset` (docs/manifest.md); an interrupted write's temp file is
+    removed by the next run. verify's lines say so."""
+    exr = next(p for p in sorted(smoke.rglob("*.exr")) if not p.name.startswith("."))
+    crater_dir = exr.parent
+    shutil.copy2(exr, crater_dir / "extra.exr")
+    (crater_dir / ".x.exr.123.tmp.exr").write_bytes(b"partial")
+    v = _invoke(verify_command, smoke)
+    lines = [line for line in v.output.splitlines() if line.startswith("orphan: ")]
+    assert any("extra.exr" in line and "leaves it alone" in line for line in lines), lines
+    assert any(".tmp.exr" in line and "the next run that writes this folder removes it" in line for line in lines)
+    assert not any("removes it)" in line and "extra.exr" in line for line in lines)

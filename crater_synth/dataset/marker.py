@@ -22,13 +22,16 @@ from pathlib import Path
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
+from crater_core.verify_file import RECORD_NAME as VERIFIED_RECORD
 from crater_synth.dataset.disk import JOBS_DIR, LOCK_FILE, MARKER_NAME, temp_target
 from crater_synth.errors import UserError
 from crater_synth.outfolder import marker_kind, refuse_kind
 
 MANIFEST_LOCK = ".manifest.lock"
 # Names in a dataset's top level that crater-synth writes besides the renders' directories.
-BOOKKEEPING = frozenset({MARKER_NAME, LOCK_FILE, MANIFEST_LOCK, JOBS_DIR, schema.PARTS_DIR, schema.MANIFEST_NAME})
+BOOKKEEPING = frozenset(
+    {MARKER_NAME, LOCK_FILE, MANIFEST_LOCK, JOBS_DIR, schema.PARTS_DIR, schema.MANIFEST_NAME, VERIFIED_RECORD}
+)
 
 
 def _is_bookkeeping(name: str) -> bool:

@@ -19,7 +19,7 @@ from crater_core import schema
 from crater_core.progress import Progress
 from crater_core.verify_file import RECORD_NAME, file_faults, manifest_kind, write_record
 from crater_synth.cli_common import user_errors
-from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder
+from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder, temp_target
 from crater_synth.dataset.manifest import stale_parts
 from crater_synth.errors import UserError
 
@@ -202,6 +202,20 @@ def _navframe_lines(manifest: Path) -> tuple[list[dict], list[str]]:
     return rows, faults
 
 
+def orphan_note(path: Path, kind: str) -> str:
+    """What the folder's writer does with a file no row names (docs/manifest.md): an interrupted write's temp
+    file is removed by the next run; any other file is left alone (``dataset`` names those in its renders'
+    folders in a warning; a file a planned render would write is proved or rendered again in place)."""
+    if temp_target(path) is not None:
+        return "an interrupted write's temp file; the next run that writes this folder removes it"
+    if kind == "render":
+        return "no manifest row; not a fault; `crater-synth dataset` leaves it alone unless a planned render writes it"
+    return (
+        "no manifest row; not a fault; `crater-synth nav-frames` adopts it where its header proves it one of the "
+        "trajectory's frames, and otherwise refuses the folder while it is there"
+    )
+
+
 def _verify_navframes(d: Path, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
     """A nav-frames folder: every row against its frame, no frame index, file or content twice. Orphans
     are frame EXRs no row names."""
@@ -260,7 +274,7 @@ def verify_command(dataset_dir, no_decode, jobs):
 
     Prints one summary line (and, on stderr, the files checked with rate and ETA); exits non-zero on any
     fault (each fault on stderr) and while a `crater-synth dataset` run is still writing the directory.
-    Files no row names are listed as `orphan:` lines (the next `crater-synth dataset` run removes them).
+    Files no row names are listed as `orphan:` lines, with what the folder's writer does with them.
     A pass is recorded in DATASET_DIR/.verified.json, which train, export, nav-frames-eval and navigate
     trust for the files it lists unchanged. docs/manifest.md says what a pass proves and what it does not.
     """
@@ -268,7 +282,7 @@ def verify_command(dataset_dir, no_decode, jobs):
     for fault in report["faults"]:
         click.echo(f"fault: {fault}", err=True)
     for orphan in report["orphans"]:
-        click.echo(f"orphan: {orphan} (no manifest row; the next `crater-synth dataset` run removes it)", err=True)
+        click.echo(f"orphan: {orphan} ({orphan_note(Path(orphan), report.get('kind', 'render'))})", err=True)
     if report["in_progress"]:
         status = f"INCOMPLETE, dataset in progress ({report['in_progress']})"
         files = f"{report['in_flight_files']} files not merged yet"
