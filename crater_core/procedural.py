@@ -300,12 +300,11 @@ class _Diffusion:
 
 
 @functools.lru_cache(maxsize=1)
-def _diffusion() -> _Diffusion:
-    """dh/dt = kappa (1/r) d/dr (r dh/dr) on finite volumes (no flux at the centre and the far edge):
-    M dh/dt = K h with M = diag(cell areas), K the symmetric face-flux matrix; the symmetric
-    M^-1/2 K M^-1/2 = U diag(lam) U^T gives h(t) = M^-1/2 U exp(lam t) U^T M^1/2 h0 for any t."""
-    ds = PROFILE_STEP
-    n = round(DIFFUSION_EXTENT_RADII / ds)
+def radial_diffusion_operator(n: int, ds: float):
+    """(cell centres s, sqrt of the cell areas, diagonal, off-diagonal) of the symmetric tridiagonal
+    M^-1/2 K M^-1/2 of dh/dt = (1/r) d/dr (r dh/dr) on ``n`` finite volumes of width ``ds`` (no flux at the
+    centre and the far edge; M = diag(cell areas), K the face-flux matrix). Its eigen-decomposition
+    U diag(lam) U^T gives h(t) = M^-1/2 U exp(lam t) U^T M^1/2 h0 for any t (here and terrain/detail.py)."""
     s = (np.arange(n) + 0.5) * ds
     faces = np.arange(1, n) * ds
     area = s * ds
@@ -313,9 +312,14 @@ def _diffusion() -> _Diffusion:
     main[:-1] -= faces / ds
     main[1:] -= faces / ds
     root = np.sqrt(area)
-    a = np.diag(main / area) + np.diag((faces / ds) / (root[:-1] * root[1:]), 1)
-    a = a + np.triu(a, 1).T
-    lam, u = np.linalg.eigh(a)
+    return s, root, main / area, (faces / ds) / (root[:-1] * root[1:])
+
+
+def _diffusion() -> _Diffusion:
+    """The radial diffusion of :func:`radial_diffusion_operator` on the profile cells, decomposed once."""
+    ds = PROFILE_STEP
+    s, root, diag, off = radial_diffusion_operator(round(DIFFUSION_EXTENT_RADII / ds), ds)
+    lam, u = np.linalg.eigh(np.diag(diag) + np.diag(off, 1) + np.diag(off, -1))
     s_out = np.arange(0.0, PROFILE_EXTENT_RADII + 1e-9, ds)
     ramp = np.clip((PROFILE_EXTENT_RADII - s_out) / (PROFILE_EXTENT_RADII - TAPER_START_RADII), 0.0, 1.0)
     return _Diffusion(s, root, lam, u, s_out, 0.5 - 0.5 * np.cos(np.pi * ramp))

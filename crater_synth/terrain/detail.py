@@ -54,6 +54,7 @@ from crater_core.procedural import (
     PIKE_RIM_COEF,
     PIKE_RIM_EXP,
     fbm_surface,
+    radial_diffusion_operator,
 )
 from crater_core.procedural import wavenumbers as _wavenumbers
 from crater_core.settings import DETAIL_MODELS as MODELS  # noqa: F401 - terrain.detail.model choices, re-exported
@@ -233,16 +234,8 @@ def degradation_table() -> DegradationTable:
     from scipy.linalg import eigh_tridiagonal
 
     ds = DIFFUSION_GRID_STEP_R
-    n = round(DIFFUSION_GRID_EXTENT_R / ds)
-    s = (np.arange(n) + 0.5) * ds
-    faces = np.arange(1, n) * ds
-    area = s * ds
-    main = np.zeros(n)
-    main[:-1] -= faces / ds
-    main[1:] -= faces / ds
-    off = faces / ds
-    root = np.sqrt(area)
-    lam, u = eigh_tridiagonal(main / area, off / (root[:-1] * root[1:]))
+    s, root, diag, off = radial_diffusion_operator(round(DIFFUSION_GRID_EXTENT_R / ds), ds)
+    lam, u = eigh_tridiagonal(diag, off)
     rim_ratio = PIKE_RIM_COEF / PIKE_DEPTH_COEF
     h0 = crater_profile(s, 1.0, rim_ratio)
     coef = u.T @ (root * h0)

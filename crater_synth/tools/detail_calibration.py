@@ -39,6 +39,7 @@ import numpy as np
 from PIL import Image
 from rasterio.warp import transform
 
+from crater_core.procedural import chronology_n1, production_cumulative
 from crater_core.schema import atomic_write_bytes
 from crater_synth.errors import UserError
 from crater_synth.terrain.dem import Dem
@@ -331,34 +332,15 @@ def band_statistics(field: np.ndarray, mask: np.ndarray, spacing: float = REAL_C
 # --------------------------------------------------------------------------------------------
 # Published size-frequency distributions (comparison only)
 # --------------------------------------------------------------------------------------------
-# Neukum, Ivanov & Hartmann (2001), Space Sci. Rev. 96:55, Table 1 ("new" lunar production function):
-# log10 N(>=D) = sum_j a_j (log10 D)^j, D in km, N per km^2, for a 1 Ga surface; valid 0.01-300 km.
-NPF_COEFFS = (
-    -3.0876,
-    -3.557528,
-    0.781027,
-    1.021521,
-    -0.156012,
-    -0.444058,
-    0.019977,
-    0.086850,
-    -0.005874,
-    -0.006809,
-    8.25e-4,
-    5.54e-5,
-)
-
-
+# Neukum, Ivanov & Hartmann (2001): the production function and chronology of crater_core.procedural.
 def neukum_n1(age_ga: float) -> float:
     """N(>=1 km) per km^2 of a surface of age T (Neukum et al. 2001 chronology, Eq. 5)."""
-    return 5.44e-14 * (math.exp(6.93 * age_ga) - 1.0) + 8.38e-4 * age_ga
+    return float(chronology_n1(age_ga))
 
 
 def neukum_cumulative(d_km, age_ga: float) -> np.ndarray:
     """Neukum production function N(>=D) per km^2 at age ``age_ga``."""
-    logd = np.log10(np.asarray(d_km, dtype=float))
-    log_n = sum(a * logd**j for j, a in enumerate(NPF_COEFFS))
-    return 10.0**log_n * neukum_n1(age_ga) / 10.0 ** NPF_COEFFS[0]
+    return production_cumulative(np.asarray(d_km, dtype=float) * 1000.0, age_ga) * 1e6
 
 
 def _interior_shadow(z_over_r: np.ndarray, x: np.ndarray, rim: np.ndarray, sun_deg: float) -> np.ndarray:
