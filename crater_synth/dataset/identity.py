@@ -16,6 +16,8 @@ are the render's key (crater, sun and camera angles), and each render is planned
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from crater_core.horizon import HORIZON_VERSION
 from crater_core.schema import content_key
 from crater_core.settings import CraterSettings, Settings, as_plain
@@ -50,16 +52,22 @@ IGNORED: dict[str, str] = {
 }
 
 
-def identity_payload(settings: Settings, crater: CraterSettings, terrain_id: str) -> dict:
-    """The plain data hashed into :func:`render_identity` (also handy to see why two identities differ)."""
+def settings_payload(settings: Settings, ignored: Iterable[str]) -> dict:
+    """Every setting of ``settings`` as plain data, less the dotted keys of ``ignored``."""
     plain = as_plain(settings)
-    for key in IGNORED:
+    for key in ignored:
         head, _, rest = key.partition(".")
         node = plain
         while rest:
             node = node[head]
             head, _, rest = rest.partition(".")
         node.pop(head)
+    return plain
+
+
+def identity_payload(settings: Settings, crater: CraterSettings, terrain_id: str) -> dict:
+    """The plain data hashed into :func:`render_identity` (also handy to see why two identities differ)."""
+    plain = settings_payload(settings, IGNORED)
     plain["render_crater"] = crater.as_dict()
     plain["terrain_id"] = terrain_id
     if settings.render.mode == "fast":  # fast-mode shadows come from horizon maps (crater_core.horizon)
