@@ -199,6 +199,17 @@ RENDER_MODES = ("fast", "direct")
 # Cycles' compute backends: the CPU, or the GPU API Cycles renders with (CUDA or OPTIX on NVIDIA, HIP on
 # AMD, ONEAPI on Intel, METAL on Apple). The shader-node Hapke material runs on all of them (no OSL).
 RENDER_DEVICES = ("CPU", "CUDA", "OPTIX", "HIP", "ONEAPI", "METAL")
+# Upper bounds of the render sizes that drive each render's memory and disk:
+# - roi_min_px: the crop's side is about roi_min_px x sigma_max / sigma_min (1.4 x in the paper sweep) and
+#   the frame is wider still; at 4096 a paper crop is ~5,700 px a side (33 Mpx): ~530 MB of EXR channels
+#   (16 B/px) and several GB of fast-mode G-buffer and shading arrays per worker. The classifier reads 150 px.
+MAX_ROI_MIN_PX = 4096
+# - shadow_map_px: every level of a horizon map holds 3 float32 planes of shadow_map_px^2 texels, one map per
+#   sun azimuth, in memory and in the on-disk cache: 4096 is 200 MB per level and azimuth (512: 3 MB).
+MAX_SHADOW_MAP_PX = 4096
+# - shadow_map_levels: level k has half-width extent / 2^k, so 8 levels reach 1/128 of the outer map
+#   (~1 % of a crater diameter), finer than the DEM they resample; each level costs a whole map.
+MAX_SHADOW_MAP_LEVELS = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -230,9 +241,21 @@ class RenderSettings(Group):
         need(self.samples >= 1, "samples", self.samples, "must be >= 1")
         need(self.max_bounces >= 0, "max_bounces", self.max_bounces, "must be >= 0")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0 = all cores)")
-        need(self.roi_min_px >= 8, "roi_min_px", self.roi_min_px, "must be >= 8")
-        need(self.shadow_map_px >= 1, "shadow_map_px", self.shadow_map_px, "must be >= 1")
-        need(self.shadow_map_levels >= 1, "shadow_map_levels", self.shadow_map_levels, "must be >= 1")
+        need(
+            8 <= self.roi_min_px <= MAX_ROI_MIN_PX, "roi_min_px", self.roi_min_px, f"must lie in [8, {MAX_ROI_MIN_PX}]"
+        )
+        need(
+            1 <= self.shadow_map_px <= MAX_SHADOW_MAP_PX,
+            "shadow_map_px",
+            self.shadow_map_px,
+            f"must lie in [1, {MAX_SHADOW_MAP_PX}]",
+        )
+        need(
+            1 <= self.shadow_map_levels <= MAX_SHADOW_MAP_LEVELS,
+            "shadow_map_levels",
+            self.shadow_map_levels,
+            f"must lie in [1, {MAX_SHADOW_MAP_LEVELS}]",
+        )
         need(
             self.shadow_map_extent_factor > 0, "shadow_map_extent_factor", self.shadow_map_extent_factor, "must be > 0"
         )

@@ -47,6 +47,10 @@ _AXIS_RE = re.compile(r'(?:ELLIPSOID|SPHEROID)\[\s*"([^"]*)"\s*,\s*([0-9.eE+-]+)
 # Bodies named when a frame's CRS is refused (semi-major axes in m: IAU/IERS values).
 _BODIES = {"Earth": 6378137.0, "Mars": 3396190.0, "Mercury": 2440530.0, "Venus": 6051800.0}
 
+# The largest frame read at once (real test frames here, `crater-synth navigate`'s image): a 16384^2 PNG
+# took 6 GB to read, so 8192^2 (about 1.5 GB) is the bound; cut a larger image into windows.
+MAX_FRAME_PIXELS = 8192 * 8192
+
 RAW_FRAME_HINT = (
     "a raw camera frame (e.g. an LROC CDR or SELENE TC level-2B0 image) has no map georeference: "
     "map-project it first (ISIS: lrowac2isis or kaguyatc2isis, spiceinit, cam2map) and give the "
@@ -128,6 +132,11 @@ def open_frame(path: str | Path, frame_id: str | None = None, source: str | None
                         f"{where} has no georeference (no CRS and no ground control points); {RAW_FRAME_HINT}"
                     )
             check_lunar_crs(crs, where)
+            if ds.width * ds.height > MAX_FRAME_PIXELS:  # from the header, before anything is decoded
+                raise RealSetError(
+                    f"{where} is {ds.width} x {ds.height} px, more than the {MAX_FRAME_PIXELS} px read at once: "
+                    "cut it into smaller frames"
+                )
             data = ds.read(band, masked=True)
     except RasterioError as exc:
         raise RealSetError(f"{where} cannot be read completely (truncated or corrupt?): {exc}") from None

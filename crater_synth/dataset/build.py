@@ -14,8 +14,8 @@ from crater_core.settings import Settings
 from crater_synth.config import as_settings
 from crater_synth.dataset.disk import (
     DatasetLock,
-    check_free_disk,
-    measured_bytes_per_render,
+    check_planned_disk,
+    check_sweep_disk,
     prune_jobs,
     remove_interrupted_writes,
     unplanned_files,
@@ -213,11 +213,8 @@ def _build_locked(
     craters = s.craters
     # Early, cheap disk check (before terrain and per-render planning, which a huge sweep makes slow):
     # at least this many renders are left even if every existing row belongs to this run.
-    check_free_disk(
-        out_dir,
-        max(0, len(indices) * len(craters) - len(existing)),
-        measured_bytes_per_render(list(existing.values()), out_dir),
-    )
+    n_left = max(0, len(indices) * len(craters) - len(existing))
+    check_sweep_disk(out_dir, n_left, s.render, grid, list(existing.values()))
     jobs, planned, names = _plan_sweep(s, grid, indices)
     removed = remove_interrupted_writes(out_dir, set(names), exclusive)
     if removed and warn is not None:
@@ -231,7 +228,7 @@ def _build_locked(
             "(crater-synth deletes only files it planned)"
         )
     todo = sum(len(j.plans) for j in jobs)
-    check_free_disk(out_dir, todo, measured_bytes_per_render(list(existing.values()), out_dir))
+    check_planned_disk(out_dir, [p["crop"] for j in jobs for p in j.plans], list(existing.values()))
     n_rows, dark, elapsed = _render_jobs(s, jobs, todo, out_dir, shard, recovered, progress, warn, state)
     if dark and warn is not None:
         warn(

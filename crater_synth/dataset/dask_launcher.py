@@ -31,7 +31,7 @@ from crater_core.progress import Progress
 from crater_core.settings import Settings, replace
 from crater_synth.config import as_settings
 from crater_synth.dataset import build_dataset, plan_render
-from crater_synth.dataset.disk import DatasetLock, check_free_disk, measured_bytes_per_render
+from crater_synth.dataset.disk import DatasetLock, check_sweep_disk
 from crater_synth.dataset.marker import DatasetClaim
 from crater_synth.errors import RenderError, UserError
 from crater_synth.terrain.patch import build_terrain
@@ -75,9 +75,7 @@ def preflight(settings: Settings | Mapping, claim: DatasetClaim | None = None) -
     out_dir = Path(s.out_dir)
     (claim or DatasetClaim(out_dir)).create()  # refuses a directory that is neither empty nor a dataset
     existing = schema.dataset_rows(out_dir)
-    check_free_disk(
-        out_dir, max(0, len(grid) * len(s.craters) - len(existing)), measured_bytes_per_render(existing, out_dir)
-    )
+    check_sweep_disk(out_dir, max(0, len(grid) * len(s.craters) - len(existing)), s.render, grid, existing)
     n_sun = grid.shape[0] * grid.shape[1]
     for crater in s.craters:
         _, meta = build_terrain(crater, s)

@@ -1,7 +1,7 @@
 """The dataset directory on disk: writable, room for the renders, one writer at a time, no leftovers.
 
-- :func:`check_free_disk`: before anything is rendered (the directory itself:
-  crater_synth.dataset.marker).
+- :func:`check_sweep_disk`, :func:`check_planned_disk`: before anything is rendered, room for the EXRs of
+  the crops the sweep will produce (the directory itself: crater_synth.dataset.marker).
 - :class:`DatasetLock`: a second ``crater-synth dataset`` on the same ``out_dir`` (or the same shard
   of it) refuses to start, naming the process that holds it; shards of one sweep
   (``launcher.shard=i/n``) still run side by side. ``flock`` locks: released by the kernel when the
@@ -16,22 +16,35 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import math
 import os
 import socket
 import time
 from pathlib import Path
+from typing import Iterable, Sequence
 
 import numpy as np
 
 from crater_core import schema
 from crater_core.files import PathError, disk_full_message, free_bytes, is_disk_full, size_text
+from crater_core.settings import RenderSettings
+from crater_core.sweep import SweepGrid
 from crater_synth.dataset.manifest import writer_tag
 from crater_synth.errors import DatasetBusyError, UserError
 from crater_synth.outfolder import MARKERS
 
-# Bytes per render used for the free-disk check before any measured value exists
-# (210x210 px, 2 float32 + 4 half channels, RLE: measured ~0.47 MB on paper renders; rounded up).
-DEFAULT_BYTES_PER_RENDER = 600_000
+# The free-disk estimate of one render (before any of the dataset's own files can be measured):
+# EXR_HEADER_BYTES + width x height x RAW_BYTES_PER_PX x EXR_COMPRESSION. The raw pixel is the contract's
+# channels in their stored types (crater_core.schema.EXR_CHANNEL_TYPES: 2 float32 + 4 half = 16 B).
+# Measured (2026-11-29) on fast-mode Shackleton renders, RLE: the tiny smoke sweep (46x46 crops) 0.713 of
+# raw (max 0.723) after a 4,311 B header (the render parameters and the sealed manifest row), the smoke
+# sweep (212x212) 0.652 (max 0.663), the paper sweep 457,368 B per ~212x212 EXR (0.636,
+# docs/renderer.md "EXR size"); float32 render noise does not compress, so 0.75 is the round upper figure.
+RAW_BYTES_PER_PX = sum({"float": 4, "half": 2}[schema.EXR_CHANNEL_TYPES[c]] for c in schema.EXR_CHANNELS)
+EXR_COMPRESSION = 0.75
+EXR_HEADER_BYTES = 4_500
+# Rows measured for a resumed dataset's compression (their files' sizes are stat'ed).
+MEASURED_ROWS = 50
 JOBS_DIR = ".jobs"
 LOCK_FILE = ".dataset.lock"
 # Written when `crater-synth dataset` claims a directory: this directory is a dataset
@@ -45,19 +58,61 @@ OTHER_HOST_MAX_AGE_S = 7 * 24 * 3600.0
 STALE_TEMP_AGE_S = 3600.0
 
 
-def measured_bytes_per_render(rows: list[dict], out_dir: Path) -> int:
-    sizes = [(out_dir / r["path"]).stat().st_size for r in rows[:50] if (out_dir / r["path"]).exists()]
-    return int(np.mean(sizes)) if sizes else DEFAULT_BYTES_PER_RENDER
+def exr_bytes(width: int, height: int, compression: float = EXR_COMPRESSION) -> int:
+    """Estimated bytes of one dataset EXR of ``width`` x ``height`` px (see :data:`EXR_COMPRESSION`)."""
+    return int(EXR_HEADER_BYTES + width * height * RAW_BYTES_PER_PX * compression)
 
 
-def check_free_disk(out_dir: Path, n_renders: int, bytes_per_render: int) -> None:
-    need = int(n_renders * bytes_per_render * 1.1)
+def measured_compression(rows: list[dict], out_dir: Path) -> float:
+    """The compression of the dataset's own files (bytes past the header over the raw pixels, the mean of
+    up to :data:`MEASURED_ROWS` rows whose file exists), or :data:`EXR_COMPRESSION` when it has none."""
+    ratios = []
+    for r in rows[:MEASURED_ROWS]:
+        try:
+            size = (out_dir / r["path"]).stat().st_size
+            raw = int(r["width"]) * int(r["height"]) * RAW_BYTES_PER_PX
+        except (OSError, KeyError, TypeError, ValueError):
+            continue
+        if raw > 0:
+            ratios.append(max(size - EXR_HEADER_BYTES, 0) / raw)
+    return float(np.mean(ratios)) if ratios else EXR_COMPRESSION
+
+
+def least_crop_side(render: RenderSettings, grid: SweepGrid) -> int:
+    """The smallest crop side (px) any render of the sweep can have, from the settings alone: the frame is
+    sized so that the smallest sigma box is at least ``roi_min_px`` wide (crater_core.geometry
+    .frame_width_for_roi) and the crop is the largest sigma box (crater_synth.dataset.plan)."""
+    return int(math.ceil(render.roi_min_px * max(grid.sigmas) / min(grid.sigmas)))
+
+
+def crops_bytes(crops: Iterable[Sequence[int]], compression: float) -> int:
+    """Estimated bytes of the EXRs of these crops (``[u0, v0, u1, v1]``, as plans carry them)."""
+    return sum(exr_bytes(c[2] - c[0], c[3] - c[1], compression) for c in crops)
+
+
+def check_free_disk(out_dir: Path, n_renders: int, need_bytes: int) -> None:
+    """Refuse, in one line before anything is rendered, ``n_renders`` renders whose EXRs are estimated at
+    ``need_bytes`` (+10 %) when the file system of ``out_dir`` has less free space."""
+    need = int(need_bytes * 1.1)
     free = free_bytes(out_dir)
     if need > free:
+        each = size_text(need_bytes // max(n_renders, 1))
         raise UserError(
             f"not enough free disk in {out_dir}: {n_renders} renders need ~{size_text(need)} "
-            f"({size_text(bytes_per_render)} each, +10 %), {size_text(free)} free"
+            f"(~{each} each, +10 %), {size_text(free)} free"
         )
+
+
+def check_sweep_disk(out_dir: Path, n_renders: int, render: RenderSettings, grid: SweepGrid, rows: list[dict]) -> None:
+    """The early check, from the settings alone (before terrain and planning): ``n_renders`` EXRs of at
+    least the least crop side, at the compression of the dataset's ``rows`` (or the measured default)."""
+    side = least_crop_side(render, grid)
+    check_free_disk(out_dir, n_renders, n_renders * exr_bytes(side, side, measured_compression(rows, out_dir)))
+
+
+def check_planned_disk(out_dir: Path, crops: Sequence[Sequence[int]], rows: list[dict]) -> None:
+    """The check of the planned renders still to do: their crops' EXRs, at the compression of ``rows``."""
+    check_free_disk(out_dir, len(crops), crops_bytes(crops, measured_compression(rows, out_dir)))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav
 from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, prior_georef
 from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
 from train.errors import RealSetError
+from train.realframes import MAX_FRAME_PIXELS  # the largest frame read at once
 
 WINDOW_DETECTOR = "template"  # a map window's detector unless an override names another (nav/detector=)
 
@@ -191,9 +192,6 @@ def check_window_request(request: NavigateRequest, nav) -> None:
 
 # Map metres per pixel a frame may claim: from a descent camera's decimetres to a whole-pole overview.
 PIXEL_M_RANGE = (0.1, 20_000.0)
-# The largest frame navigate reads: a 16384^2 PNG took 6 GB, so 8192^2 (about 1.5 GB) is the bound; cut a
-# larger image into windows.
-MAX_FRAME_PIXELS = 8192 * 8192
 
 
 def parse_prior(text: str, pole: str) -> tuple[float, float]:
