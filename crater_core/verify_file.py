@@ -53,7 +53,11 @@ STATS_TOLERANCE = 1e-12
 
 
 # The fields that tell one manifest from the other (each kind's rows carry all of its own, none of the other's).
-KIND_FIELDS = {"render": ("path", "crater"), "navframe": ("rel_path", "trajectory", "landmarks")}
+KIND_FIELDS = {
+    "render": ("path", "crater"),
+    "navframe": ("rel_path", "trajectory", "landmarks"),
+    "detection": ("rel_path", "terrain", "labels"),
+}
 
 
 def manifest_kind(dataset_dir: str | os.PathLike) -> str | None:
@@ -285,7 +289,27 @@ def navframe_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = Tr
     )
 
 
-FILE_CHECKS: dict[str, Callable[..., list[str]]] = {"render": render_faults, "navframe": navframe_faults}
+def detection_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = True, sha: bool = True) -> list[str]:
+    """A detection frame's row (``crater-synth detection-frames``): its file inside the folder, its sha256,
+    the contract's channels at the row's size and, with ``decode``, finite pixels under an intact seal. Its
+    labels come from the procedural crater table, not from the header, so there is no header label to
+    compare."""
+    try:
+        f = dataset_file(dataset_dir, str(row["rel_path"]))
+    except schema.ManifestError as exc:
+        return [str(exc)]
+    faults, info = _open_faults(f, row["sha256"], decode, sha)
+    if info is None:
+        return faults
+    width = (row.get("camera_enu") or {}).get("width_px")
+    return faults + _size_fault(f, info, width, width)
+
+
+FILE_CHECKS: dict[str, Callable[..., list[str]]] = {
+    "render": render_faults,
+    "navframe": navframe_faults,
+    "detection": detection_faults,
+}
 
 
 def file_faults(

@@ -18,6 +18,7 @@ from crater_core import exr, geometry, schema
 from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
+from crater_synth.dataset.verify import verify_dataset
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, patch_arrays
 
 SPACING = 20.0
@@ -222,6 +223,8 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
     b/a = cos(view angle); the same seed renders the same bytes and labels."""
     out, row = _render(tmp_path, "nadir", monkeypatch, 1.0)
     assert row["view"]["off_nadir_deg"] == 0.0 and row["mode"] == "fast" and row["labels"]
+    report = verify_dataset(out, jobs=1)  # the one verification reads detection folders too
+    assert report["ok"] and report["kind"] == "detection", report["faults"]
     assert _rim_back_projection_error(out, row) < 0.5
     for lb in row["labels"]:
         assert lb["ellipse"]["b"] / lb["ellipse"]["a"] > 0.97

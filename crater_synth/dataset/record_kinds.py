@@ -410,9 +410,7 @@ DETECTION = RecordKind(
 )
 RECORD_KINDS: dict[str, RecordKind] = {k.name: k for k in (RENDER, NAVFRAME, DETECTION)}
 
-# The fields that tell the manifests apart (each kind's rows carry all of its own, none of the others'): verify's,
-# and the detection frames', which verify does not read yet.
-_KIND_FIELDS = {**KIND_FIELDS, "detection": ("rel_path", "terrain", "labels")}
+_KIND_FIELDS = KIND_FIELDS  # the fields that tell the manifests apart (shared with verify)
 
 
 def detect_kind(dataset_dir: str | os.PathLike) -> str | None:

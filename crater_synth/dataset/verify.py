@@ -99,10 +99,11 @@ def _exr_files(d: Path) -> list[Path]:
 def verify_dataset(
     dataset_dir: str | Path, decode: bool = True, jobs: int | None = None, progress: bool = False
 ) -> dict:
-    """Check a render dataset (``crater-synth dataset``) or a nav-frames folder (``crater-synth
-    nav-frames``), its kind told by its manifest's rows (:func:`crater_core.verify_file.manifest_kind`): every row
-    against its file (:func:`crater_core.verify_file.file_faults`: inside the dataset, exists, hashes to
-    its sha256, a tiled EXR of the contract's channels and the row's size whose header carries the
+    """Check a render dataset (``crater-synth dataset``), a nav-frames folder (``crater-synth nav-frames``)
+    or a detection-frames folder (``crater-synth detection-frames``), its kind told by its manifest's rows
+    (:func:`crater_core.verify_file.manifest_kind`): every row against its file
+    (:func:`crater_core.verify_file.file_faults`: inside the dataset, exists, hashes to its sha256, a tiled
+    EXR of the contract's channels and the row's size whose header carries the
     row's labels; with ``decode`` finite pixels under an intact seal) and the manifest as a whole. The
     files are checked by ``jobs`` processes (default: one per core; one for small datasets);
     ``progress``: the files checked, with rate and ETA, on stderr.
@@ -116,7 +117,10 @@ def verify_dataset(
     d = Path(dataset_dir)
     # No readable first row, or one of neither kind: the render reader reports every bad line.
     kind = manifest_kind(d) or "render"
-    report, rows = (_verify_navframes if kind == "navframe" else _verify_renders)(d, decode, jobs, progress)
+    if kind == "render":
+        report, rows = _verify_renders(d, decode, jobs, progress)
+    else:
+        report, rows = _verify_frames(d, kind, decode, jobs, progress)
     report["kind"], report["recorded"] = kind, None
     try:
         if report["ok"]:
@@ -216,20 +220,20 @@ def orphan_note(path: Path, kind: str) -> str:
     )
 
 
-def _verify_navframes(d: Path, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
-    """A nav-frames folder: every row against its frame, no frame index, file or content twice. Orphans
-    are frame EXRs no row names."""
+def _verify_frames(d: Path, kind: str, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
+    """A nav-frames or detection-frames folder (``kind``): every row against its frame, no frame index, file
+    or content twice. Orphans are frame EXRs no row names."""
     rows, faults = _navframe_lines(d / schema.MANIFEST_NAME)
     for field in ("index", "rel_path", "sha256"):
         seen = Counter(str(r.get(field)) for r in rows)
         faults += [f"{d / schema.MANIFEST_NAME}: {field} {v} in {n} rows" for v, n in seen.items() if n > 1]
-    faults += _check_files([(str(d), r, decode, "navframe") for r in rows], jobs, progress)
+    faults += _check_files([(str(d), r, decode, kind) for r in rows], jobs, progress)
     named = {str(r.get("rel_path")) for r in rows}
     orphans = [str(f) for f in sorted(d.glob("frame_*.exr")) if f.name not in named]
     report = {
         "dataset": str(d),
         "rows": len(rows),
-        "craters": dict(Counter(str(r.get("trajectory")) for r in rows)),
+        "craters": dict(Counter(str(r.get("trajectory", kind)) for r in rows)),
         "faults": faults,
         "orphan_files": len(orphans),
         "orphans": orphans,
@@ -289,7 +293,7 @@ def verify_command(dataset_dir, no_decode, jobs):
     else:
         status = "OK" if report["ok"] else f"FAILED ({len(report['faults'])} faults)"
         files = f"{report['orphan_files']} orphan files"
-    what = "frames" if report["kind"] == "navframe" else "rows"
+    what = "rows" if report["kind"] == "render" else "frames"
     click.echo(f"verify {status}: {report['rows']} {what} {report['craters']}, {files}, in {report['dataset']}")
     if not report["ok"]:
         raise SystemExit(1)

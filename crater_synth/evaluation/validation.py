@@ -137,6 +137,7 @@ NEUTRAL_LATER_KEYS = {
     ("realset", "frames"): [],  # georeferenced real frames: none unless asked for
     ("render", "blender"): None,  # null: the bpy module, as every run before the setting existed
     ("realset", "mosaic", "pole"): None,  # read from the product's CRS unless set
+    ("procedural",): None,  # the procedural terrain group: unset for every DEM-rendered run
 }
 
 
