@@ -21,7 +21,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Iterable, Iterator, TextIO
+from typing import Any, Callable, Iterable, Iterator, TextIO
 
 from crater_core.errors import ContractError
 
@@ -119,11 +119,17 @@ def render_rel_path(
     return f"{crater}/se{sun_elevation:06.3f}_sa{sun_azimuth:07.3f}_ce{cam_elevation:06.3f}_ca{cam_azimuth:07.3f}.exr"
 
 
+def json_object(row, where: str = "manifest row") -> dict:
+    """``row`` when it is a JSON object (the least any manifest's row is); a :class:`ManifestError` otherwise."""
+    if not isinstance(row, dict):
+        raise ManifestError(f"{where}: a JSON {_json_kind(row)} where a row (a JSON object) should be")
+    return row
+
+
 def validate_row(row: dict, where: str = "manifest row") -> dict:
     """Check that ``row`` is a JSON object with every required field of the right type and a ``path``
     that stays inside the dataset directory (:func:`check_rel_path`); returns it."""
-    if not isinstance(row, dict):
-        raise ManifestError(f"{where}: a JSON {_json_kind(row)} where a row (a JSON object) should be")
+    json_object(row, where)
     missing = [k for k in REQUIRED_FIELDS if k not in row]
     if missing:
         raise ManifestError(f"{where}: missing field(s) {missing}")
@@ -274,11 +280,14 @@ class RowAppender:
         self.close()
 
 
-def manifest_lines(path: str | os.PathLike) -> Iterator[tuple[int, dict | None, str | None]]:
+def manifest_lines(
+    path: str | os.PathLike, validate: Callable[[Any, str], dict] = validate_row
+) -> Iterator[tuple[int, dict | None, str | None]]:
     """``(line number, row, None)`` for every valid row of a JSONL manifest and ``(line number, None,
     "<path>:<line>: unreadable row (<why>)")`` for every line that is not one: a truncated or corrupt
     line, JSON that is not an object (``null``, ``42``), bytes that are not UTF-8, a row failing
-    :func:`validate_row` (a missing field, a path leaving the dataset). Blank lines are skipped."""
+    ``validate`` (:func:`validate_row`, a render manifest's: a missing field, a path leaving the dataset;
+    :func:`json_object` for the frame manifests). Blank lines are skipped."""
     path = Path(path)
     with open(path, "rb") as fh:  # bytes: one bad line must not make the whole file unreadable
         for lineno, raw in enumerate(fh, 1):
@@ -286,7 +295,7 @@ def manifest_lines(path: str | os.PathLike) -> Iterator[tuple[int, dict | None, 
                 continue
             where = f"{path}:{lineno}"
             try:
-                yield lineno, validate_row(json.loads(raw.decode("utf-8")), where), None
+                yield lineno, validate(json.loads(raw.decode("utf-8")), where), None
             except UnicodeDecodeError as exc:
                 bad = f"byte 0x{raw[exc.start]:02x} at column {exc.start + 1}"
                 yield lineno, None, f"{where}: unreadable row (not UTF-8 text: {bad})"

@@ -160,16 +160,25 @@ def _stats_faults(f: Path, row: dict, header: dict) -> list[str]:
 
 def render_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = True, sha: bool = True) -> list[str]:
     """Faults of a (validated) render row's file; ``sha=False`` leaves the hash to the caller."""
-    try:
-        f = dataset_file(dataset_dir, row["path"])
-    except schema.ManifestError as exc:
-        return [str(exc)]
-    faults, info = _open_faults(f, row["sha256"], decode, sha)
+    faults, f, info = _file_faults(dataset_dir, row["path"], row["sha256"], (row["width"], row["height"]), decode, sha)
     if info is None:
         return faults
-    faults += _size_fault(f, info, row["width"], row["height"])
     header = info["header"]
     return faults + label_faults(row, header, str(f)) + _stats_faults(f, row, header)
+
+
+def _file_faults(dataset_dir, rel: str, sha256: str, size, decode: bool, sha: bool):
+    """(faults, file, facts) every kind's check starts with: the file inside the dataset, exists, hashes
+    right, opens with the contract's channels (:func:`_open_faults`) at the row's ``size`` (width, height).
+    Facts None: nothing more can be read of the file."""
+    try:
+        f = dataset_file(dataset_dir, rel)
+    except schema.ManifestError as exc:
+        return [str(exc)], None, None
+    faults, info = _open_faults(f, sha256, decode, sha)
+    if info is not None:
+        faults += _size_fault(f, info, *size)
+    return faults, f, info
 
 
 def _close(a, b, tol: float = DERIVED_TOLERANCE) -> bool:
@@ -271,15 +280,10 @@ def navframe_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = Tr
     missing = [k for k in NAVFRAME_REQUIRED if k not in row]
     if missing:
         return [f"{dataset_dir}: frame row {row.get('index')!r} lacks {missing} (not a nav-frames row)"]
-    try:
-        f = dataset_file(dataset_dir, str(row["rel_path"]))
-    except schema.ManifestError as exc:
-        return [str(exc)]
-    faults, info = _open_faults(f, row["sha256"], decode, sha)
+    width = (row.get("pose") or {}).get("width_px")
+    faults, f, info = _file_faults(dataset_dir, str(row["rel_path"]), row["sha256"], (width, width), decode, sha)
     if info is None:
         return faults
-    width = (row.get("pose") or {}).get("width_px")
-    faults += _size_fault(f, info, width, width)
     header = info["header"]
     return (
         faults
@@ -294,15 +298,8 @@ def detection_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = T
     the contract's channels at the row's size and, with ``decode``, finite pixels under an intact seal. Its
     labels come from the procedural crater table, not from the header, so there is no header label to
     compare."""
-    try:
-        f = dataset_file(dataset_dir, str(row["rel_path"]))
-    except schema.ManifestError as exc:
-        return [str(exc)]
-    faults, info = _open_faults(f, row["sha256"], decode, sha)
-    if info is None:
-        return faults
     width = (row.get("camera_enu") or {}).get("width_px")
-    return faults + _size_fault(f, info, width, width)
+    return _file_faults(dataset_dir, str(row["rel_path"]), row["sha256"], (width, width), decode, sha)[0]
 
 
 FILE_CHECKS: dict[str, Callable[..., list[str]]] = {

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,8 @@ from crater_core.schema import (
     NAVFRAME_LANDMARK_FIELDS,
     PARTS_DIR,
     iter_rows,
+    json_object,
+    manifest_lines,
 )
 from crater_core.verify_file import KIND_FIELDS
 from crater_synth.dataset.detection import DETECTION_LABEL_FIELDS
@@ -183,17 +184,10 @@ _NAVFRAME_REQUIRED = ("trajectory", "index", "rel_path", "sha256", "landmarks")
 
 def _json_rows(manifest: Path) -> Iterator[tuple[int, dict]]:
     """``(line number, row)`` of a JSON Lines file; a line that is not a JSON object is one error naming it."""
-    with open(manifest, "rb") as fh:
-        for lineno, raw in enumerate(fh, 1):
-            if not raw.strip():
-                continue
-            try:
-                row = json.loads(raw.decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ExportError(f"{manifest}:{lineno}: unreadable row ({exc})") from None
-            if not isinstance(row, dict):
-                raise ExportError(f"{manifest}:{lineno}: unreadable row (not a JSON object)")
-            yield lineno, row
+    for lineno, row, error in manifest_lines(manifest, json_object):
+        if row is None:
+            raise ExportError(str(error))
+        yield lineno, row
 
 
 def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:

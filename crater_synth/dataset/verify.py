@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -188,22 +187,10 @@ def _verify_renders(d: Path, decode: bool, jobs: int | None, progress: bool) -> 
     return report, rows
 
 
-def _navframe_lines(manifest: Path) -> tuple[list[dict], list[str]]:
-    """(rows, faults) of a nav-frames manifest: a line that is not a JSON object is one fault naming it."""
-    rows, faults = [], []
-    with open(manifest, "rb") as fh:
-        for lineno, raw in enumerate(fh, 1):
-            if not raw.strip():
-                continue
-            try:
-                row = json.loads(raw.decode("utf-8"))
-            except (UnicodeDecodeError, ValueError, RecursionError):
-                row = None
-            if isinstance(row, dict):
-                rows.append(row)
-            else:
-                faults.append(f"{manifest}:{lineno}: unreadable row (not a JSON object)")
-    return rows, faults
+def _frame_lines(manifest: Path) -> tuple[list[dict], list[str]]:
+    """(rows, faults) of a frame folder's manifest: a line that is not a JSON object is one fault naming it."""
+    lines = list(schema.manifest_lines(manifest, schema.json_object))
+    return [row for _, row, _ in lines if row is not None], [error for _, _, error in lines if error is not None]
 
 
 def orphan_note(path: Path, kind: str) -> str:
@@ -223,7 +210,7 @@ def orphan_note(path: Path, kind: str) -> str:
 def _verify_frames(d: Path, kind: str, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
     """A nav-frames or detection-frames folder (``kind``): every row against its frame, no frame index, file
     or content twice. Orphans are frame EXRs no row names."""
-    rows, faults = _navframe_lines(d / schema.MANIFEST_NAME)
+    rows, faults = _frame_lines(d / schema.MANIFEST_NAME)
     for field in ("index", "rel_path", "sha256"):
         seen = Counter(str(r.get(field)) for r in rows)
         faults += [f"{d / schema.MANIFEST_NAME}: {field} {v} in {n} rows" for v, n in seen.items() if n > 1]
