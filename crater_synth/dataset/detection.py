@@ -47,7 +47,7 @@ from crater_core.settings import CraterSettings, replace
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import load_settings
 from crater_synth.dataset.dispatch import run_workers
-from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict
+from crater_synth.dataset.plan import CraterJob, camera_worker_item, code_version, hapke_dict
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
 
@@ -238,27 +238,18 @@ def frame_labels(terrain: ProceduralTerrain, cam: geometry.CameraPose, width_px:
 
 def worker_item(index: int, cond: dict, seed: int, header: dict) -> dict:
     """One worker ``renders`` entry with an explicit camera (docs/renderer.md, "Worker contract")."""
-    cam, w = cond["camera"], cond["width_px"]
-    return {
-        "index": index,
-        "indices": [index],
-        "sun_elevation": cond["sun_elevation_deg"],
-        "sun_azimuth": cond["sun_azimuth_deg"],
-        # informative only (the explicit camera wins)
-        "cam_elevation": 90.0 - cond["off_nadir_deg"],
-        "cam_azimuth": cond["view_azimuth_deg"],
-        "range_m": cond["range_m"],
-        "fov_deg": cam.fov_deg,
-        "frame_width": w,
-        "crop": [0, 0, w, w],
-        "camera": {
-            "position": [float(v) for v in cam.position],
-            "rotation": [[float(v) for v in r] for r in cam.rotation],
-        },
-        "rel_path": frame_rel_path(index),
-        "seed": seed,
-        "header": header,
-    }
+    return camera_worker_item(
+        index=index,
+        camera=cond["camera"],
+        sun=(cond["sun_elevation_deg"], cond["sun_azimuth_deg"]),
+        view=(90.0 - cond["off_nadir_deg"], cond["view_azimuth_deg"]),
+        range_m=cond["range_m"],
+        fov_deg=cond["camera"].fov_deg,
+        width_px=cond["width_px"],
+        rel_path=frame_rel_path(index),
+        seed=seed,
+        header=header,
+    )
 
 
 def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int) -> dict:

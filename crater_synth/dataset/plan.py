@@ -139,3 +139,41 @@ def worker_item(
         "seed": plan["seed"],
         "header": header,
     }
+
+
+def camera_worker_item(
+    *,
+    index: int,
+    camera,
+    sun: tuple,
+    view: tuple,
+    range_m: float,
+    fov_deg: float,
+    width_px: int,
+    rel_path: str,
+    seed: int,
+    header: dict,
+) -> dict:
+    """A worker ``renders`` entry with an explicit camera (nav-frames, detection frames; docs/renderer.md,
+    "Worker contract"): the whole square frame, ``camera`` (position, rotation) in the patch's ENU frame,
+    ``sun`` (elevation, azimuth) deg. ``view`` (elevation, azimuth) deg is informative only: the explicit
+    camera wins."""
+    return {
+        "index": index,
+        "indices": [index],
+        "sun_elevation": sun[0],
+        "sun_azimuth": sun[1],
+        "cam_elevation": view[0],
+        "cam_azimuth": view[1],
+        "range_m": range_m,
+        "fov_deg": fov_deg,
+        "frame_width": width_px,
+        "crop": [0, 0, width_px, width_px],
+        "camera": {
+            "position": [float(v) for v in camera.position],
+            "rotation": [[float(v) for v in r] for r in camera.rotation],
+        },
+        "rel_path": rel_path,
+        "seed": seed,
+        "header": header,
+    }

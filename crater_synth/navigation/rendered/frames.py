@@ -56,7 +56,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import load_settings
 from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.identity import render_identity
-from crater_synth.dataset.plan import CraterJob, code_version, hapke_dict, render_seed
+from crater_synth.dataset.plan import CraterJob, camera_worker_item, code_version, hapke_dict, render_seed
 from crater_synth.dataset.recover import STATS_HEADER
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.navigation.georef import pole_of
@@ -206,29 +206,22 @@ def frame_settings(settings, half_width_m: float):
 def worker_item(pose: FramePose, lat0: float, lon0: float, seed: int, header: dict) -> dict:
     """One worker ``renders`` entry with an explicit camera (docs/renderer.md, "Worker contract")."""
     cam = pose.pose_enu(lat0, lon0)
-    sun_el, sun_az = pose.sun_enu(lat0, lon0)
     rng = float(np.linalg.norm(cam.position))
-    w = int(pose.width_px)
-    return {
-        "index": pose.index,
-        "indices": [pose.index],
-        "sun_elevation": sun_el,
-        "sun_azimuth": sun_az,
-        # informative only (the explicit camera wins): the camera seen from the patch origin
-        "cam_elevation": math.degrees(math.asin(max(-1.0, min(1.0, cam.position[2] / rng)))),
-        "cam_azimuth": math.degrees(math.atan2(cam.position[0], cam.position[1])) % 360.0,
-        "range_m": rng,
-        "fov_deg": pose.fov_deg,
-        "frame_width": w,
-        "crop": [0, 0, w, w],
-        "camera": {
-            "position": [float(v) for v in cam.position],
-            "rotation": [[float(v) for v in r] for r in cam.rotation],
-        },
-        "rel_path": frame_rel_path(pose.index),
-        "seed": seed,
-        "header": header,
-    }
+    # The camera seen from the patch origin (informative only: the explicit camera wins).
+    view_el = math.degrees(math.asin(max(-1.0, min(1.0, cam.position[2] / rng))))
+    view_az = math.degrees(math.atan2(cam.position[0], cam.position[1])) % 360.0
+    return camera_worker_item(
+        index=pose.index,
+        camera=cam,
+        sun=pose.sun_enu(lat0, lon0),
+        view=(view_el, view_az),
+        range_m=rng,
+        fov_deg=pose.fov_deg,
+        width_px=int(pose.width_px),
+        rel_path=frame_rel_path(pose.index),
+        seed=seed,
+        header=header,
+    )
 
 
 def _compute_horizons(specs: list[tuple]) -> None:
