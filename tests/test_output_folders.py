@@ -90,6 +90,15 @@ def copy_frames(nav_frames: Path, to: Path) -> Path:
     return to
 
 
+def marked_and_unmarked(nav_frames: Path, tmp_path: Path):
+    """Two copies of the frames: with their marker, and as written before markers (the marker gone)."""
+    for keep_marker in (True, False):
+        out = copy_frames(nav_frames, tmp_path / f"frames{keep_marker}")
+        if not keep_marker:
+            (out / NAV_MARKER).unlink(missing_ok=True)
+        yield out
+
+
 # ------------------------------------------------------------------------------------------------
 # nav-frames
 # ------------------------------------------------------------------------------------------------
@@ -123,10 +132,7 @@ def test_nav_frames_refuses_a_render_dataset(tmp_path, nav_data_dir, tiny_smoke)
 
 def test_nav_frames_refuses_another_trajectorys_frames(tmp_path, nav_data_dir, nav_frames):
     """Marked for descent_ridge; and the same frames without their marker (written before markers)."""
-    for keep_marker in (True, False):
-        out = copy_frames(nav_frames, tmp_path / f"frames{keep_marker}")
-        if not keep_marker:
-            (out / NAV_MARKER).unlink(missing_ok=True)
+    for out in marked_and_unmarked(nav_frames, tmp_path):
         before = snapshot(out)
         with pytest.raises(UserError) as exc:
             render_frames(nav_settings(nav_data_dir, "trajectory.name=other_track"), out, [0])
@@ -243,10 +249,7 @@ def test_dataset_refuses_a_nav_frames_folder(tmp_path, tiny_data_dir, nav_frames
     """Marked, and written before markers (a manifest of nav-frame rows): refused, the manifest intact."""
     from crater_synth.dataset.build import build_dataset
 
-    for keep_marker in (True, False):
-        out = copy_frames(nav_frames, tmp_path / f"frames{keep_marker}")
-        if not keep_marker:
-            (out / NAV_MARKER).unlink(missing_ok=True)
+    for out in marked_and_unmarked(nav_frames, tmp_path):
         before = snapshot(out)
         settings = load_settings([*TINY, f"data_dir={tiny_data_dir}", f"out_dir={out}"])
         with pytest.raises(UserError) as exc:
