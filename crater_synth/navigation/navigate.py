@@ -313,14 +313,16 @@ def either_light_fix(img, dparams, light: float | None, fit, what: str):
     flipped = (theta + math.pi) % (2.0 * math.pi)
     dets_f, _ = detect(img, dparams, light_dir=flipped, what=what)
     fix_f = fit(dets_f)
-    if not fix_f.ok or math.hypot(fix.x_m - fix_f.x_m, fix.y_m - fix_f.y_m) <= LIGHT_AGREEMENT_KM * 1000.0:
+    if not fix_f.ok:
+        return dets, theta, fix
+    apart_km = math.hypot(fix.x_m - fix_f.x_m, fix.y_m - fix_f.y_m) / 1000.0
+    if apart_km <= LIGHT_AGREEMENT_KM:
         return dets, theta, fix
     n, n_f = len(fix.inliers), len(fix_f.inliers)
     if n >= LIGHT_SUPPORT_RATIO * n_f:
         return dets, theta, fix
     if n_f >= LIGHT_SUPPORT_RATIO * n:
         return dets_f, flipped, fix_f
-    apart_km = math.hypot(fix.x_m - fix_f.x_m, fix.y_m - fix_f.y_m) / 1000.0
     reason = (
         f"the light estimated on the frame ({math.degrees(theta):.0f} deg, {n} landmarks) and its opposite "
         f"({n_f} landmarks) fix it {apart_km:.1f} km apart: give --light-azimuth"

@@ -60,10 +60,11 @@ def offgrid_windows(pole: str, split: str, n: int, seed: int, size: int = WINDOW
 def navigate_offgrid(frames: list[Frame], overrides=(), seed: int = 0) -> dict:
     """Each frame navigated as ``navigate IMAGE --prior LAT,LON`` does it; the summary and the rows."""
     nav = compose_nav(list(overrides), defaults=[f"nav/detector={WINDOW_DETECTOR}"])
+    maps = {pole: load_default_map(pole)[0] for pole in {f.georef.pole for f in frames}}  # read once per pole
     rows = []
     for frame in frames:
         pole, h, w = frame.georef.pole, *frame.image.shape[:2]
-        landmarks, _ = load_default_map(pole)
+        landmarks = maps[pole]
         lat, lon = stereo_inverse(*prior_georef(frame, seed).uv_to_xy(w / 2, h / 2), pole)
         request = NavigateRequest(image=Path(frame.id), out=Path("-"), prior=f"{float(lat)},{float(lon)}", pole=pole)
         t0 = time.perf_counter()
