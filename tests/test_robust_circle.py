@@ -38,3 +38,23 @@ def test_ransac_changes_nothing_on_clean_points():
     x, y = _rim(0.0, 1)
     a, b = robust_circle(x, y, 0.2), robust_circle(x, y, 0.2, ransac=True)
     assert np.allclose(a[0], b[0], atol=1e-9) and abs(a[1] - b[1]) < 1e-9 and np.array_equal(a[2], b[2])
+
+
+@pytest.mark.parametrize("override, expect", [([], False), (["nav.detector.rim_ransac=true"], True)])
+def test_the_classical_detectors_rim_fit_takes_its_rim_ransac_setting(monkeypatch, override, expect):
+    """nav.detector.rim_ransac reaches every rim-circle fit of the detector (off by default)."""
+    from crater_synth.navigation.detectors import classical
+    from crater_synth.navigation.settings import compose_nav
+
+    seen = []
+
+    def spy(x, y, min_tolerance, ransac=False):
+        seen.append(ransac)
+        return robust_circle(x, y, min_tolerance, ransac=ransac)
+
+    monkeypatch.setattr(classical, "robust_circle", spy)
+    yy, xx = np.mgrid[0:128, 0:128] + 0.5
+    img = 100.0 + 60.0 * np.tanh((xx - 64.0) / 3.0) * (np.hypot(xx - 64.0, yy - 64.0) < 20)  # one lit-wall bowl
+    nav = compose_nav(["nav/detector=classical", *override])
+    classical.detect(img, nav.detector, light_dir=0.0)
+    assert seen and set(seen) == {expect}
