@@ -163,8 +163,8 @@ _SUMMARY = {name: summary for entries in COMMANDS.values() for name, _, summary 
 
 
 def _install_command(extra: str) -> str:
-    """The pip command that adds ``extra`` to the checkout this code runs from (installed editable, as
-    ``make setup`` does: the commands read its configs/, docs/install.md)."""
+    """The pip command that adds ``extra``: editable from the checkout this code runs from, as ``make setup``
+    installs it (an install from a wheel names no checkout: docs/install.md)."""
     root = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
     if not os.path.isfile(os.path.join(root, "pyproject.toml")):
         root = "<the crater-synth checkout>"
