@@ -24,7 +24,7 @@ import click
 from crater_core.errors import ContractError
 from crater_core.files import os_error_text
 from crater_synth.config import sweep_error
-from crater_synth.errors import Interrupted, UserError
+from crater_synth.errors import STOP_SIGNALS, Interrupted, UserError
 
 _EXIT_BAD_INPUT = 2
 
@@ -53,10 +53,6 @@ def warn(message: str) -> None:
 def _raise_interrupted(signum, _frame):
     name = signal.Signals(signum).name
     raise Interrupted(signum, f"interrupted by {name}: stopped; rerun the same command to resume")
-
-
-# The signals that stop a command cleanly (a resumable stop): kill, Ctrl-C, the terminal closing.
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 
 class _Signals:

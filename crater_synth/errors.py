@@ -1,5 +1,10 @@
 """User-facing errors: each ends a command with one clear line naming the bad input."""
 
+import signal
+
+# The signals that stop a command cleanly (a resumable stop): kill, Ctrl-C, the terminal closing.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
 
 class UserError(ValueError):
     """Bad input or configuration; the CLI prints ``error: <message>`` and exits with status 2."""

@@ -7,6 +7,7 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -123,3 +124,43 @@ def test_verify_names_orphans_and_dataset_removes_only_its_own(tmp_path, tiny_da
     assert orphan.exists() and not temp.exists() and not part_temp.exists() and first.exists()
     v = run_cli("verify", out)
     assert v.returncode == 0 and "1 orphan files" in v.stdout, v.stdout + v.stderr
+
+
+# A stand-in worker: one RESULT line per render of its job file, then exit.
+_FAKE_WORKER = """
+import json, sys
+for item in json.load(open(sys.argv[1]))["renders"]:
+    print("RESULT " + json.dumps({"index": item["index"]}), flush=True)
+"""
+
+
+def test_a_signal_while_a_result_is_recorded_waits_for_its_row(tmp_path, monkeypatch):
+    """The CLI turns SIGTERM into an exception raised wherever the host is: one landing between a
+    worker's RESULT line and its manifest row would leave an EXR no row names. It is held until the
+    row is written, then stops the run."""
+    from types import SimpleNamespace
+
+    from crater_synth.cli_common import _Signals
+    from crater_synth.config import load_settings
+    from crater_synth.dataset import dispatch
+    from crater_synth.dataset.plan import CraterJob
+    from crater_synth.errors import Interrupted
+
+    monkeypatch.setattr(
+        dispatch, "worker_command", lambda job_file, blender=None: [sys.executable, "-c", _FAKE_WORKER, str(job_file)]
+    )
+    crater = SimpleNamespace(name="fake", as_dict=dict)
+    plans = [{"params": SimpleNamespace(index=i, indices=(i, 0, 0, 0)), "item": {"index": i}} for i in range(3)]
+    job = CraterJob(crater=crater, npz=tmp_path / "none.npz", meta={}, plans=plans)
+    s = load_settings(["render.workers=1"])
+    begun, rows = [], []
+
+    def on_result(_job, plan, _result):
+        begun.append(plan["params"].index)
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives while the row is being written
+        time.sleep(0.05)
+        rows.append(plan["params"].index)
+
+    with pytest.raises(Interrupted), _Signals():
+        dispatch.run_workers([job], s.render, s.hapke, tmp_path, on_result)
+    assert rows and rows == begun  # every row begun was written before the run stopped

@@ -31,7 +31,7 @@ from crater_core.settings import HapkeParams, RenderSettings
 from crater_synth.dataset.disk import JOBS_DIR
 from crater_synth.dataset.manifest import writer_tag
 from crater_synth.dataset.plan import CraterJob, camera_major, hapke_dict
-from crater_synth.errors import RenderError
+from crater_synth.errors import STOP_SIGNALS, RenderError
 from crater_synth.paths import BLENDER_WORKER, SOURCE_ROOT
 
 # Seconds a worker gets to finish its current render and exit after SIGTERM before SIGKILL.
@@ -303,9 +303,11 @@ def run_workers(
                 start(job, block, uid)
             for key, _ in sel.select(timeout=1.0):
                 w = running[key.data]
-                chunk = os.read(w.proc.stdout.fileno(), 65536)
+                with _HeldSignals():  # a RESULT line read is a row written, or the EXR is an orphan
+                    chunk = os.read(w.proc.stdout.fileno(), 65536)
+                    if chunk:
+                        w.feed(chunk, on_result)
                 if chunk:
-                    w.feed(chunk, on_result)
                     continue
                 rc = finish(w)
                 if w.error:
@@ -366,12 +368,38 @@ def _signal(proc: subprocess.Popen, signum: int) -> None:
         pass
 
 
+class _HeldSignals:
+    """Hold SIGINT/SIGTERM/SIGHUP for a moment (main thread only) and deliver the one that came on exit.
+
+    The CLI turns those signals into an exception raised wherever the main thread is. Raised between
+    reading a worker's RESULT line and appending its manifest row, it would leave an EXR on disk that no
+    row names; held, it is raised after the row. The Python handler is swapped rather than the signal
+    masked: a signal masked in the main thread can land in another thread, whose C handler still has
+    the main thread run the Python handler at its next bytecode, inside the section."""
+
+    def __enter__(self):
+        self.got: list[int] = []
+        self.old = {}
+        if threading.current_thread() is threading.main_thread():
+            self.old = {s: signal.signal(s, self._record) for s in STOP_SIGNALS}
+        return self
+
+    def _record(self, signum, _frame) -> None:
+        self.got.append(signum)
+
+    def __exit__(self, *exc):
+        for s, h in self.old.items():
+            signal.signal(s, h)
+        for signum in dict.fromkeys(self.got):
+            signal.raise_signal(signum)  # now under the restored handler
+
+
 def _defer_signals():
     """Ignore SIGINT/SIGTERM/SIGHUP while the workers are being stopped (main thread only); returns the
     function restoring the previous handlers."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in STOP_SIGNALS}
 
     def restore():
         for s, h in old.items():
