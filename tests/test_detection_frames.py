@@ -19,6 +19,7 @@ from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
 from crater_synth.dataset.verify import verify_dataset
+from crater_synth.errors import UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, patch_arrays
 
 SPACING = 20.0
@@ -137,6 +138,48 @@ def test_conditions_stay_in_their_ranges_and_the_footprint_in_the_field():
         D.check_field_fits(P.ProceduralSettings(size_px=600), 256)
 
 
+def _grouped_conditions(grouping, terrain, n: int, seed: int = 7) -> list[dict]:
+    az = grouping.azimuths(seed, 0)
+    return [
+        D.draw_conditions(D.frame_seeds(seed, i)[1], terrain, 64, D.FOV_DEG, az, grouping.view_rng(seed, i))
+        for i in range(n)
+    ]
+
+
+def test_frames_of_a_view_share_its_camera_and_a_field_its_azimuths():
+    """--suns-per-view: consecutive frames share the first one's camera exactly (one G-buffer), each under
+    its own Sun; --azimuths-per-field: every Sun azimuth is one of the field's evenly spaced set. A view's
+    first frame is the frame it would be without grouping."""
+    terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=2))
+    plain = _grouped_conditions(D.Grouping(), terrain, 8)
+    views = _grouped_conditions(D.Grouping(8, 4, 0), terrain, 8)
+    both = _grouped_conditions(D.Grouping(8, 4, 3), terrain, 8)
+    for i, c in enumerate(views):
+        first = views[i - i % 4]
+        assert np.array_equal(c["camera"].position, first["camera"].position)
+        assert np.array_equal(c["camera"].rotation, first["camera"].rotation)
+        assert c["sun_elevation_deg"] == plain[i]["sun_elevation_deg"]
+        assert c["sun_azimuth_deg"] == plain[i]["sun_azimuth_deg"]
+
+    def same(a, b):
+        return np.array_equal(a["camera"].position, b["camera"].position) and {
+            k: v for k, v in a.items() if k != "camera"
+        } == {k: v for k, v in b.items() if k != "camera"}
+
+    assert same(views[0], plain[0]) and same(views[4], plain[4]) and not same(views[0], views[4])
+    assert len({c["sun_elevation_deg"] for c in views}) == 8
+    az = D.field_azimuths(7, 0, 3)
+    assert np.allclose(np.diff(np.sort(az)), 120.0) and set(c["sun_azimuth_deg"] for c in both) <= set(az)
+    assert all(np.array_equal(a["camera"].position, b["camera"].position) for a, b in zip(both, views))
+    assert not np.allclose(D.field_azimuths(7, 0, 3), D.field_azimuths(7, 1, 3))
+
+
+@pytest.mark.parametrize("grouping", [(0, 1, 0), (4, 0, 0), (4, 1, -1), (6, 4, 0)])
+def test_a_grouping_that_cannot_be_is_one_error(grouping):
+    with pytest.raises(UserError, match="--views-per-field"):
+        D.Grouping(*grouping).check()
+
+
 def test_frame_seeds_depend_on_the_run_seed_and_the_index_only():
     a, ra, sa = D.frame_seeds(3, 5)
     b, rb, sb = D.frame_seeds(3, 5)
@@ -172,7 +215,7 @@ def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0
     overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
     settings = load_settings(D.detection_overrides(overrides))
     out = tmp_path / name
-    summary = D.render_detection_frames(settings, out, frames, width_px=96, views_per_field=views)
+    summary = D.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views))
     rows = list(D.manifest_rows(out).values())
     assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
     names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
@@ -274,6 +317,7 @@ def _fake_frames(tmp_path, n: int = 2):
             "mean_if": 0.5,
         }
         frame = {"terrain": terrain, "cond": cond, "field": i, "terrain_seed": terrain_seed, "terrain_id": "t"}
+        frame |= {"view_first": i, "grouping": D.Grouping().as_dict()}
         rows.append(D.frame_row(frame, res, out))
     (out / schema.MANIFEST_NAME).write_text("".join(schema.dumps_row(r) + "\n" for r in rows))
     return out, rows

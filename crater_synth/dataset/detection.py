@@ -33,6 +33,7 @@ import json
 import math
 import shutil
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -111,6 +112,61 @@ def frame_seeds(run_seed: int, index: int) -> tuple[int, np.random.Generator, in
     )
 
 
+# A field's set of Sun azimuths is its own stream, apart from every frame's (SeedSequence([seed, field, this])).
+AZIMUTH_STREAM = 0x53554E  # "SUN"
+
+
+def field_azimuths(run_seed: int, field: int, count: int) -> np.ndarray:
+    """The ``count`` Sun azimuths (deg) of field ``field``'s frames: evenly spaced from one random offset,
+    so that a few horizon maps still cover every direction of light."""
+    offset = np.random.default_rng(np.random.SeedSequence([int(run_seed), int(field), AZIMUTH_STREAM])).uniform(0, 360)
+    return (offset + 360.0 * np.arange(count) / count) % 360.0
+
+
+@dataclass(frozen=True)
+class Grouping:
+    """How frames share a worker's work (docs/procedural.md, "Rate"): frame i views field
+    i // ``views_per_field`` (one patch, scene and BVH), shares its camera with the frames of its view, the
+    ``suns_per_view`` consecutive frames from i - i % ``suns_per_view`` (one G-buffer), and takes its Sun
+    azimuth from the field's ``azimuths_per_field`` azimuths (one horizon map each; 0: every frame draws
+    its own). The Sun's elevation is always the frame's own."""
+
+    views_per_field: int = 1
+    suns_per_view: int = 1
+    azimuths_per_field: int = 0
+
+    def check(self) -> None:
+        if self.views_per_field < 1 or self.suns_per_view < 1 or self.azimuths_per_field < 0:
+            raise UserError(
+                f"--views-per-field {self.views_per_field}, --suns-per-view {self.suns_per_view}, "
+                f"--azimuths-per-field {self.azimuths_per_field}: the first two must be >= 1, the last >= 0"
+            )
+        if self.views_per_field % self.suns_per_view:
+            raise UserError(
+                f"--views-per-field {self.views_per_field} is not a multiple of --suns-per-view "
+                f"{self.suns_per_view}: a view's frames must lie in one field"
+            )
+
+    def field(self, index: int) -> int:
+        return index // self.views_per_field
+
+    def view_rng(self, run_seed: int, index: int) -> np.random.Generator | None:
+        """The stream the view of frame ``index`` is drawn from: None for the view's first frame (its own
+        stream, after its Sun), else that first frame's stream past its two Sun draws."""
+        first = index - index % self.suns_per_view
+        if first == index:
+            return None
+        rng = frame_seeds(run_seed, first)[1]
+        rng.random(2)  # the first frame's Sun elevation and azimuth (draw_conditions)
+        return rng
+
+    def azimuths(self, run_seed: int, field: int) -> np.ndarray | None:
+        return field_azimuths(run_seed, field, self.azimuths_per_field) if self.azimuths_per_field else None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
 def footprint_extent(off_nadir_deg: float, azimuth_deg: float, fov_deg: float) -> np.ndarray:
     """(|e|, |n|) half-extents of the ground footprint (corner rays on a flat ground) per metre of range."""
     cam = geometry.look_at_camera(90.0 - off_nadir_deg, azimuth_deg, 1.0, fov_deg)
@@ -133,12 +189,25 @@ def check_field_fits(procedural, width_px: int, fov_deg: float = FOV_DEG) -> Non
         )
 
 
-def draw_conditions(rng: np.random.Generator, terrain: ProceduralTerrain, width_px: int, fov_deg: float) -> dict:
+def draw_conditions(
+    rng: np.random.Generator,
+    terrain: ProceduralTerrain,
+    width_px: int,
+    fov_deg: float,
+    azimuths: np.ndarray | None = None,
+    view_rng: np.random.Generator | None = None,
+) -> dict:
     """Sun, view and ground sample of one frame over ``terrain`` (module docstring, step 2): the camera in
-    the patch frame, looking at a target whose footprint stays inside the field."""
+    the patch frame, looking at a target whose footprint stays inside the field. The Sun comes from
+    ``rng``; its azimuth is the one of ``azimuths`` (a field's set, :func:`field_azimuths`) that the same
+    uniform draw falls on, when given. The view comes from ``view_rng`` (the view's first frame's stream,
+    :meth:`Grouping.view_rng`) when given, else from ``rng``."""
     s = terrain.spacing_m
     sun_el = float(rng.uniform(*SUN_ELEVATION_RANGE_DEG))
     sun_az = float(rng.uniform(0.0, 360.0))
+    if azimuths is not None and len(azimuths):
+        sun_az = float(azimuths[min(int(sun_az / 360.0 * len(azimuths)), len(azimuths) - 1)])
+    rng = rng if view_rng is None else view_rng
     off = 0.0 if rng.random() < NADIR_SHARE else float(rng.uniform(*OFF_NADIR_RANGE_DEG))
     view_az = float(rng.uniform(0.0, 360.0))
     gsd = s * float(np.exp(rng.uniform(0.0, math.log(GSD_MAX_FACTOR))))
@@ -252,9 +321,10 @@ def worker_item(index: int, cond: dict, seed: int, header: dict) -> dict:
     )
 
 
-def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int) -> dict:
+def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int, grouping: Grouping) -> dict:
     """Field ``field``'s terrain (generated from the terrain stream of ``frame_seeds(seed, field)``, its patch
-    written under ``patch_dir``) and the conditions of its frames ``indices`` (each from its own stream):
+    written under ``patch_dir``) and the conditions of its frames ``indices`` (each from its own stream, the
+    view and Sun azimuth shared as ``grouping`` says):
     {"job": one worker job for them all, "frames": index -> {terrain, cond, field, terrain_seed, terrain_id}}."""
     terrain_seed = frame_seeds(settings.seed, field)[0]
     psettings = replace(settings.procedural, seed=terrain_seed)
@@ -270,9 +340,10 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
     crater = CraterSettings(name=f"detection-{field:06d}", lat=PATCH_LAT, lon=PATCH_LON, diameter_km=map_d_km)
     job = CraterJob(crater=crater, npz=npz, meta={"terrain_id": terrain_id})
     frames = {}
+    azimuths = grouping.azimuths(settings.seed, field)
     for index in indices:
         _, rng, seed = frame_seeds(settings.seed, index)
-        cond = draw_conditions(rng, terrain, width_px, FOV_DEG)
+        cond = draw_conditions(rng, terrain, width_px, FOV_DEG, azimuths, grouping.view_rng(settings.seed, index))
         header = {
             "detection_frame": index,
             "terrain_id": terrain_id,
@@ -282,6 +353,7 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
             "samples": int(settings.render.samples),
             "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
             "seed": seed,
+            "grouping": json.dumps(grouping.as_dict(), sort_keys=True),
         }
         item = worker_item(index, cond, seed, header)
         job.plans.append({"params": SimpleNamespace(index=index, indices=(0, 0, 0, index)), "item": item})
@@ -291,6 +363,8 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
             "field": field,
             "terrain_seed": terrain_seed,
             "terrain_id": terrain_id,
+            "view_first": index - index % grouping.suns_per_view,
+            "grouping": grouping.as_dict(),
         }
     return {"job": job, "frames": frames}
 
@@ -325,9 +399,11 @@ def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
             "fov_deg": cam.fov_deg,
             "width_px": cond["width_px"],
         },
-        "view": {k: cond[k] for k in ("off_nadir_deg", "view_azimuth_deg", "range_m", "target_grid_m")},
+        "view": {k: cond[k] for k in ("off_nadir_deg", "view_azimuth_deg", "range_m", "target_grid_m")}
+        | {"first_frame": frame["view_first"]},
         "sun_enu": {"elevation_deg": cond["sun_elevation_deg"], "azimuth_deg": cond["sun_azimuth_deg"]},
         "ground_sample_m": cond["ground_sample_m"],
+        "grouping": frame["grouping"],
         "lit_fraction": res["lit_fraction"],
         "mean_if": res["mean_if"],
         "labels": frame_labels(terrain, cam, cond["width_px"], channels["lit"], channels["depth"]),
@@ -380,15 +456,16 @@ def _render_chunk(settings, fields: list[dict], out_dir: Path, rows: dict) -> No
 
 
 def render_detection_frames(
-    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, views_per_field: int = 1
+    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, grouping: Grouping = Grouping()
 ) -> dict:
-    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; frame i views
-    field i // ``views_per_field`` (one scene, BVH and patch for that many frames). Returns a summary. The
-    manifest holds every frame rendered so far, rewritten atomically after each chunk of fields."""
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; frames share
+    fields, views and Sun azimuths as ``grouping`` says. Returns a summary. The manifest holds every frame
+    rendered so far, rewritten atomically after each chunk of fields."""
     if settings.procedural is None:
         raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
-    if n_frames < 1 or views_per_field < 1:
-        raise UserError(f"--frames {n_frames}, --views-per-field {views_per_field}: each must be >= 1")
+    if n_frames < 1:
+        raise UserError(f"--frames {n_frames}: must be >= 1")
+    grouping.check()
     check_field_fits(settings.procedural, width_px)
     out_dir = Path(out_dir)
     ensure_writable_dir(out_dir, "--out")
@@ -397,7 +474,7 @@ def render_detection_frames(
     wanted = range(start, start + n_frames)
     by_field: dict[int, list[int]] = {}
     for i in wanted:
-        by_field.setdefault(i // views_per_field, []).append(i)
+        by_field.setdefault(grouping.field(i), []).append(i)
     field_ids = sorted(by_field)
     chunk = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
     # rows of frames outside this run's range stay (a large set rendered in pieces with --start)
@@ -407,7 +484,9 @@ def render_detection_frames(
     for k in range(0, len(field_ids), chunk):
         patch_dir.mkdir(parents=True, exist_ok=True)
         try:
-            fields = [plan_field(settings, f, by_field[f], patch_dir, width_px) for f in field_ids[k : k + chunk]]
+            fields = [
+                plan_field(settings, f, by_field[f], patch_dir, width_px, grouping) for f in field_ids[k : k + chunk]
+            ]
             _render_chunk(settings, fields, out_dir, rows)
         finally:
             shutil.rmtree(patch_dir, ignore_errors=True)
@@ -421,6 +500,7 @@ def render_detection_frames(
         "frames_in_manifest": done + len(ordered),
         "out_dir": str(out_dir),
         "width_px": width_px,
+        "grouping": grouping.as_dict(),
         "modes_used": sorted({r["mode"] for r in ordered}),
         "labels": sum(len(r["labels"]) for r in ordered),
         "seconds": round(seconds, 2),
@@ -439,10 +519,26 @@ def render_detection_frames(
     type=int,
     default=1,
     show_default=True,
-    help="Frames per crater field, each with its own Sun and view (one scene and patch for them all).",
+    help="Frames per crater field (one scene and patch for them all).",
+)
+@click.option(
+    "--suns-per-view",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Consecutive frames sharing one camera, each under its own Sun (one G-buffer for them all).",
+)
+@click.option(
+    "--azimuths-per-field",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Sun azimuths a field's frames share, evenly spaced (one horizon map each); 0: each frame its own.",
 )
 @user_errors
-def detection_frames_command(overrides, out, n_frames, start, width_px, views_per_field):
+def detection_frames_command(
+    overrides, out, n_frames, start, width_px, views_per_field, suns_per_view, azimuths_per_field
+):
     """Render labelled detection frames of procedural crater fields (EXR + manifest).
 
     Each frame draws its own field (procedural.*, default procedural=detection), Sun and view from the run
@@ -453,4 +549,5 @@ def detection_frames_command(overrides, out, n_frames, start, width_px, views_pe
     if start < 0:
         raise UserError(f"--start {start}: must be >= 0")
     settings = load_settings(detection_overrides(overrides))
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, views_per_field)))
+    grouping = Grouping(views_per_field, suns_per_view, azimuths_per_field)
+    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, grouping)))
