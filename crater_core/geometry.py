@@ -228,35 +228,42 @@ class Ellipse:
         return {"cu": self.cu, "cv": self.cv, "a": self.a, "b": self.b, "angle_rad": self.angle}
 
     def points(self, n: int = 256) -> np.ndarray:
-        t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-        ca, sa = math.cos(self.angle), math.sin(self.angle)
-        x, y = self.a * np.cos(t), self.b * np.sin(t)
-        return np.stack([self.cu + ca * x - sa * y, self.cv + sa * x + ca * y], axis=-1)
+        return ellipse_points(np.array([[self.cu, self.cv, self.a, self.b, self.angle]]), n)[0]
+
+
+def ellipse_points(ellipses: np.ndarray, n: int = 256) -> np.ndarray:
+    """(k, n, 2) points evenly spaced in parameter on k ellipses, rows (cu, cv, a, b, angle) as
+    :class:`Ellipse`."""
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    cu, cv, a, b, angle = (np.asarray(ellipses, dtype=np.float64)[:, k, None] for k in range(5))
+    ca, sa = np.cos(angle), np.sin(angle)
+    x, y = a * np.cos(t), b * np.sin(t)
+    return np.stack([cu + ca * x - sa * y, cv + sa * x + ca * y], axis=-1)
 
 
 def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:
     """Two orthonormal in-plane axes (e1, e2) of the plane with unit ``normal``, right-handed with it;
-    for the vertical normal (0, 0, 1) they are exactly east and north."""
+    for the vertical normal (0, 0, 1) they are exactly east and north. ``normal`` (3,) or (n, 3)."""
     n = np.asarray(normal, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = ref - np.dot(ref, n) * n
-    e1 = e1 / np.linalg.norm(e1)
+    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    ref = np.where((np.abs(n[..., :1]) < 0.9), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    e1 = ref - np.sum(ref * n, axis=-1, keepdims=True) * n
+    e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
     return e1, np.cross(n, e1)
 
 
 def _plane_to_image_homography(center_enu, pose: CameraPose, width_px: int, normal=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Homography mapping (x, y, 1) in the plane through ``center_enu`` with ``normal`` (in-plane axes
-    :func:`plane_basis`) to pixels."""
+    :func:`plane_basis`) to pixels: (3, 3), or (n, 3, 3) for (n, 3) centres and normals."""
     f = pose.focal_px(width_px)
     # Projective intrinsics in (u, v) with v down: [u v 1]^T ~ K [Xc, Yc, -Zc]^T
     K = np.array([[f, 0.0, width_px / 2.0], [0.0, -f, width_px / 2.0], [0.0, 0.0, 1.0]])
     flip = np.diag([1.0, 1.0, -1.0])
     R_wc = pose.rotation.T  # world -> camera
-    t = R_wc @ (np.asarray(center_enu, dtype=np.float64) - pose.position)
-    e1, e2 = plane_basis(normal)
+    t = (np.asarray(center_enu, dtype=np.float64) - pose.position) @ R_wc.T
+    e1, e2 = plane_basis(np.broadcast_to(normal, t.shape))
     # Plane points: world = center + x*e1 + y*e2  ->  camera = R_wc e1 x + R_wc e2 y + t
-    M = np.stack([R_wc @ e1, R_wc @ e2, t], axis=1)
+    M = np.stack([e1 @ R_wc.T, e2 @ R_wc.T, t], axis=-1)
     return K @ flip @ M
 
 
@@ -269,23 +276,31 @@ def project_circle(center_enu, normal_enu, radius_m: float, pose: CameraPose, wi
     """Exact image of the circle of ``radius_m`` about ``center_enu`` in the plane with ``normal_enu``
     (e.g. a crater rim far from the frame origin, level with its own local horizontal on the curved
     Moon) as an :class:`Ellipse` (full-frame pixels). The circle must lie wholly in front of the camera."""
-    H = _plane_to_image_homography(center_enu, pose, width_px, normal_enu)
-    C = np.diag([1.0, 1.0, -(radius_m**2)])  # x^2 + y^2 - r^2 = 0
-    Hinv = np.linalg.inv(H)
-    Q = Hinv.T @ C @ Hinv
-    Q = 0.5 * (Q + Q.T)
-    A, B2, Cc = Q[0, 0], Q[0, 1], Q[1, 1]
-    D2, E2, F = Q[0, 2], Q[1, 2], Q[2, 2]
-    M = np.array([[A, B2], [B2, Cc]])
-    centre = np.linalg.solve(M, -np.array([D2, E2]))
-    F0 = F + D2 * centre[0] + E2 * centre[1]
-    evals, evecs = np.linalg.eigh(M)
-    semi = np.sqrt(-F0 / evals)  # ascending eigenvalues -> descending semi-axes
-    major = int(np.argmax(semi))
-    vec = evecs[:, major]
-    return Ellipse(
-        float(centre[0]), float(centre[1]), float(semi.max()), float(semi.min()), float(math.atan2(vec[1], vec[0]))
+    e = project_circles(
+        np.asarray(center_enu)[None], np.asarray(normal_enu)[None], np.array([radius_m]), pose, width_px
     )
+    return Ellipse(*(float(v[0]) for v in e))
+
+
+def project_circles(centres, normals, radii, pose: CameraPose, width_px: int) -> tuple[np.ndarray, ...]:
+    """:func:`project_circle` of n circles at once ((n, 3) centres and normals, (n,) radii): the arrays
+    (cu, cv, a, b, angle), each (n,). Every circle must lie wholly in front of the camera."""
+    H = _plane_to_image_homography(centres, pose, width_px, normals)
+    r2 = np.asarray(radii, dtype=np.float64) ** 2
+    C = np.zeros((len(r2), 3, 3))
+    C[:, 0, 0] = C[:, 1, 1] = 1.0
+    C[:, 2, 2] = -r2  # x^2 + y^2 - r^2 = 0
+    Hinv = np.linalg.inv(H)
+    Q = np.swapaxes(Hinv, 1, 2) @ C @ Hinv
+    Q = 0.5 * (Q + np.swapaxes(Q, 1, 2))
+    M = Q[:, :2, :2]
+    centre = np.linalg.solve(M, -Q[:, :2, 2:3])[..., 0]
+    F0 = Q[:, 2, 2] + np.sum(Q[:, :2, 2] * centre, axis=1)
+    evals, evecs = np.linalg.eigh(M)
+    semi = np.sqrt(-F0[:, None] / evals)  # ascending eigenvalues -> descending semi-axes
+    major = np.argmax(semi, axis=1)
+    vec = evecs[np.arange(len(r2)), :, major]
+    return centre[:, 0], centre[:, 1], semi.max(axis=1), semi.min(axis=1), np.arctan2(vec[:, 1], vec[:, 0])
 
 
 def roi_box(center_uv, major_axis_px: float, sigma: float) -> tuple[float, float, float, float]:

@@ -18,28 +18,56 @@ MIN_RIM_INSIDE = 0.5  # fractions only when at least this share of the rim lies 
 def rim_circle(centre, normal, radius_m: float, n: int = RIM_POINTS) -> np.ndarray:
     """(n, 3) points of the 3-D circle of ``radius_m`` about ``centre`` in the plane with ``normal``
     (in-plane axes :func:`crater_core.geometry.plane_basis`, the same circle ``project_circle`` images)."""
-    e1, e2 = plane_basis(normal)
+    return rim_circles(np.asarray(centre)[None], np.asarray(normal)[None], np.array([radius_m]), n)[0]
+
+
+def rim_circles(centres, normals, radii, n: int = RIM_POINTS) -> np.ndarray:
+    """:func:`rim_circle` of k circles at once ((k, 3) centres and normals, (k,) radii): (k, n, 3)."""
+    e1, e2 = plane_basis(normals)
     theta = np.arange(n) * 2.0 * np.pi / n
-    return np.asarray(centre, dtype=float) + radius_m * (np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2)
+    r = np.asarray(radii, dtype=float)[:, None, None]
+    ring = np.cos(theta)[None, :, None] * e1[:, None, :] + np.sin(theta)[None, :, None] * e2[:, None, :]
+    return np.asarray(centres, dtype=float)[:, None, :] + r * ring
+
+
+def _inside(shape, rim_uv: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    h, w = shape
+    inside = (rim_uv[..., 0] >= 0) & (rim_uv[..., 0] < w) & (rim_uv[..., 1] >= 0) & (rim_uv[..., 1] < h)
+    return inside if valid is None else inside & valid
 
 
 def rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):
     """(mask of the rim points inside a frame of ``shape`` (and ``valid``), their pixel rows, their pixel
     columns), or None when less than :data:`MIN_RIM_INSIDE` of the rim is inside."""
-    h, w = shape
-    inside = (rim_uv[:, 0] >= 0) & (rim_uv[:, 0] < w) & (rim_uv[:, 1] >= 0) & (rim_uv[:, 1] < h)
-    if valid is not None:
-        inside &= valid
+    inside = _inside(shape, rim_uv, valid)
     if inside.mean() < MIN_RIM_INSIDE:
         return None
     return inside, np.floor(rim_uv[inside, 1]).astype(int), np.floor(rim_uv[inside, 0]).astype(int)
 
 
+def _masked_means(channel: np.ndarray, rim_uv: np.ndarray, inside: np.ndarray, test=None) -> np.ndarray:
+    """Per rim (rows of ``rim_uv`` (k, n, 2)), the mean of ``channel`` (or of ``test(values)``) at its points
+    ``inside``; NaN for a rim with less than :data:`MIN_RIM_INSIDE` of its points inside."""
+    h, w = channel.shape
+    v = np.clip(np.floor(rim_uv[..., 1]), 0, h - 1).astype(int)
+    u = np.clip(np.floor(rim_uv[..., 0]), 0, w - 1).astype(int)
+    values = channel[v, u]
+    values = values if test is None else test(values)
+    count = inside.sum(axis=1)
+    means = np.where(inside, values, 0.0).sum(axis=1) / np.maximum(count, 1)
+    return np.where(inside.mean(axis=1) < MIN_RIM_INSIDE, np.nan, means)
+
+
 def lit_rim_fraction(lit: np.ndarray, ellipse: Ellipse) -> float | None:
     """Mean of the ``lit`` channel (illuminated fraction of the solar disc) at :data:`RIM_POINTS` points
     of the projected rim inside the frame; None when less than :data:`MIN_RIM_INSIDE` of it is inside."""
-    px = rim_pixels(lit.shape, ellipse.points(RIM_POINTS))
-    return None if px is None else float(np.mean(lit[px[1], px[2]]))
+    f = float(lit_rim_fractions(lit, ellipse.points(RIM_POINTS)[None])[0])
+    return None if np.isnan(f) else f
+
+
+def lit_rim_fractions(lit: np.ndarray, rim_uv: np.ndarray) -> np.ndarray:
+    """:func:`lit_rim_fraction` of k projected rims at once, given as their (k, n, 2) rim points; NaN for None."""
+    return _masked_means(lit, rim_uv, _inside(lit.shape, rim_uv, None))
 
 
 def hidden_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, margin_m: float):
@@ -47,8 +75,12 @@ def hidden_rim_fraction(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.nda
     ``depth`` (distance along the view axis) at the point's pixel is nearer than the point's own
     ``rim_depth`` by more than ``margin_m``. None when less than :data:`MIN_RIM_INSIDE` of the rim is in
     the frame."""
-    px = rim_pixels(depth.shape, rim_uv, rim_depth > 0)
-    if px is None:
-        return None
-    inside, v, u = px
-    return float(np.mean(depth[v, u] < rim_depth[inside] - margin_m))
+    f = float(hidden_rim_fractions(depth, rim_uv[None], rim_depth[None], np.array([margin_m]))[0])
+    return None if np.isnan(f) else f
+
+
+def hidden_rim_fractions(depth: np.ndarray, rim_uv: np.ndarray, rim_depth: np.ndarray, margins: np.ndarray):
+    """:func:`hidden_rim_fraction` of k rims at once: (k, n, 2) points, (k, n) depths, (k,) margins; NaN for None."""
+    inside = _inside(depth.shape, rim_uv, rim_depth > 0)
+    limit = rim_depth - np.asarray(margins, dtype=float)[:, None]
+    return _masked_means(depth, rim_uv, inside, lambda d: d < limit)

@@ -40,10 +40,9 @@ from types import SimpleNamespace
 import click
 import numpy as np
 
-from crater_core import exr, geometry, schema
+from crater_core import exr, geometry, rim_fractions, schema
 from crater_core.files import ensure_writable_dir
 from crater_core.procedural import ProceduralTerrain, generate
-from crater_core.rim_fractions import hidden_rim_fraction, lit_rim_fraction, rim_circle
 from crater_core.settings import CraterSettings, replace
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import load_settings
@@ -241,8 +240,9 @@ def draw_conditions(
     }
 
 
-def _round(v, nd: int = 4):
-    return None if v is None else round(float(v), nd)
+def _fraction(v: float):
+    """A rim fraction as the row keeps it: 4 decimals, None for NaN (less than half the rim in the frame)."""
+    return None if np.isnan(v) else round(float(v), 4)
 
 
 def frame_labels(terrain: ProceduralTerrain, cam: geometry.CameraPose, width_px: int, lit=None, depth=None) -> list:
@@ -267,16 +267,27 @@ def frame_labels(terrain: ProceduralTerrain, cam: geometry.CameraPose, width_px:
     to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
     emission = np.degrees(np.arccos(np.clip(np.sum(to_cam * normals, axis=1), -1.0, 1.0)))
     gsd = dist / cam.focal_px(w)
+    ks = np.nonzero(inside)[0]
+    ellipses = np.stack(geometry.project_circles(centres[ks], normals[ks], radius[ks], cam, w), axis=1)
+    keep = 2.0 * ellipses[:, 2] >= MIN_RIM_SPAN_PX
+    ks, ellipses = ks[keep], ellipses[keep]
+    lit_f = hidden = None
+    if lit is not None:
+        lit_f = rim_fractions.lit_rim_fractions(lit, geometry.ellipse_points(ellipses, rim_fractions.RIM_POINTS))
+    if depth is not None:
+        rim_uv, rim_depth = geometry.project_points(
+            rim_fractions.rim_circles(centres[ks], normals[ks], radius[ks]), cam, w
+        )
+        margins = HIDDEN_MARGIN_D * 2.0 * radius[ks] + HIDDEN_MARGIN_GSD * gsd[ks]
+        hidden = rim_fractions.hidden_rim_fractions(depth, rim_uv, rim_depth, margins)
     out = []
-    for k in np.nonzero(inside)[0]:
-        ell = geometry.project_circle(centres[k], normals[k], radius[k], cam, w)
-        if 2.0 * ell.a < MIN_RIM_SPAN_PX:
-            continue
+    for j, (k, e) in enumerate(zip(ks, ellipses)):
         c = craters[k]
+        cu, cv, a = e[0], e[1], e[2]
         label = {
             "id": c.order,
             "source": "procedural",
-            "ellipse": {key: round(float(v), 4) for key, v in ell.as_dict().items()},
+            "ellipse": {key: round(float(v), 4) for key, v in zip(("cu", "cv", "a", "b", "angle_rad"), e)},
             "centre_px": [round(float(uv[k, 0]), 3), round(float(uv[k, 1]), 3)],
             "x_m": round(c.x_m, 3),
             "y_m": round(c.y_m, 3),
@@ -289,18 +300,13 @@ def frame_labels(terrain: ProceduralTerrain, cam: geometry.CameraPose, width_px:
             "is_secondary": c.is_secondary,
             "visible_rim_fraction": round(c.visible_rim_fraction, 4),
             "emission_deg": round(float(emission[k]), 3),
-            "rim_inside": bool(
-                ell.cu - ell.a >= 0 and ell.cv - ell.a >= 0 and ell.cu + ell.a <= w and ell.cv + ell.a <= w
-            ),
+            "rim_inside": bool(cu - a >= 0 and cv - a >= 0 and cu + a <= w and cv + a <= w),
         }
-        if lit is not None:
-            label["lit_rim_fraction"] = _round(lit_rim_fraction(lit, ell))
-        if depth is not None:
-            rim_uv, rim_depth = geometry.project_points(rim_circle(centres[k], normals[k], radius[k]), cam, w)
-            margin = HIDDEN_MARGIN_D * 2.0 * radius[k] + HIDDEN_MARGIN_GSD * gsd[k]
-            hidden = hidden_rim_fraction(depth, rim_uv, rim_depth, margin)
-            label["occluded_rim_fraction"] = _round(hidden)
-            label["occluded"] = hidden is not None and hidden > HIDDEN_RIM_MAX
+        if lit_f is not None:
+            label["lit_rim_fraction"] = _fraction(lit_f[j])
+        if hidden is not None:
+            label["occluded_rim_fraction"] = _fraction(hidden[j])
+            label["occluded"] = bool(hidden[j] > HIDDEN_RIM_MAX)  # NaN (rim mostly outside): False
         out.append(label)
     return out
 
