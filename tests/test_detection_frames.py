@@ -18,6 +18,7 @@ from crater_core import exr, geometry, schema
 from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
+from crater_synth.dataset import detection_run as R
 from crater_synth.dataset.verify import verify_dataset
 from crater_synth.errors import UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, patch_arrays
@@ -215,7 +216,7 @@ def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0
     overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
     settings = load_settings(D.detection_overrides(overrides))
     out = tmp_path / name
-    summary = D.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views))
+    summary = R.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views))
     rows = list(D.manifest_rows(out).values())
     assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
     names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
@@ -282,13 +283,17 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
     assert central
     for lb in central:
         assert lb["ellipse"]["b"] / lb["ellipse"]["a"] == pytest.approx(math.cos(math.radians(view)), abs=0.03)
-    # Again, with a second view of the same field: frame 0 is the same bytes and labels (frame i's draws
-    # depend on the seed and i only); frame 1 views the same field under its own Sun and view.
+    # Again, with a second view of the same field: frame 0 is the same pixels and labels (frame i's draws
+    # depend on the seed and i only; its header and row record the other grouping); frame 1 views the same
+    # field under its own Sun and view.
     out3, (row3, row31) = _render(tmp_path, "again", monkeypatch, 0.0, (30.0, 40.0), frames=2, views=2)
-    assert (out3 / "frame_000000.exr").read_bytes() == (out2 / "frame_000000.exr").read_bytes()
-    assert {k: v for k, v in row3.items() if k != "render_seconds"} == {
-        k: v for k, v in row2.items() if k != "render_seconds"
-    }
+    ch3, ch2 = exr.read_exr(out3 / "frame_000000.exr")[0], exr.read_exr(out2 / "frame_000000.exr")[0]
+    assert all(np.array_equal(ch3[c], ch2[c]) for c in schema.EXR_CHANNELS)
+    assert row3["grouping"]["views_per_field"] == 2 and row2["grouping"]["views_per_field"] == 1
+    skip = {"render_seconds", "sha256", "grouping"}
+    assert {k: v for k, v in row3.items() if k not in skip} == {k: v for k, v in row2.items() if k not in skip}
+    again = _render(tmp_path, "oblique", monkeypatch, 0.0, (30.0, 40.0))[1]  # resumed: kept, not rendered
+    assert again == row2
     assert row31["terrain"] == row3["terrain"] and row31["sun_enu"] != row3["sun_enu"] and row31["labels"]
     assert json.loads(json.dumps(row2["labels"][0]))["source"] == "procedural"
 
@@ -350,3 +355,41 @@ def test_detection_frames_export_to_parquet_with_typed_labels(tmp_path):
     assert json.loads(rec["labels_json"]) == rows[1]
     img = np.load(io.BytesIO(rec[f"{ex.column_name('IF')}_npy"]))
     assert np.array_equal(img, exr.read_channel(frames / rows[1]["rel_path"], "IF"))
+
+
+def _refusal(out, *overrides) -> str:
+    settings = load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40", *overrides]))
+    with pytest.raises(UserError) as exc:
+        R.render_detection_frames(settings, out, 1, width_px=96)
+    return str(exc.value)
+
+
+def test_detection_folder_refuses_a_file_it_did_not_write_and_another_kind(tmp_path):
+    """The output-folder contract: a user's file (even one named like a frame) is refused and left alone;
+    a folder of another kind is refused; nothing is written either way."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "frame_000000.exr").write_bytes(b"my own file")
+    assert "frame_000000.exr" in _refusal(out) and (out / "frame_000000.exr").read_bytes() == b"my own file"
+    assert sorted(p.name for p in out.iterdir()) == ["frame_000000.exr"]
+    nav = tmp_path / "nav"
+    nav.mkdir()
+    (nav / ".crater-synth-navframes").write_text("{}")
+    assert "navigation frames" in _refusal(nav) and sorted(p.name for p in nav.iterdir()) == [".crater-synth-navframes"]
+
+
+def test_detection_folder_of_another_recipe_is_refused(tmp_path):
+    """Frames of two recipes never mix: a folder marked for one recipe refuses a run of another seed."""
+    from crater_synth.outfolder import OutFolder
+
+    out = tmp_path / "set"
+    settings = load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40"]))
+    key = R.recipe_key(settings, 96, D.Grouping())
+    assert key == R.recipe_key(
+        load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1"])),
+        96,
+        D.Grouping(),
+    )
+    OutFolder(out, R.KIND, subject=f"recipe {key}").claim().release()
+    assert f"recipe {key}" in _refusal(out, "seed=9")
+    assert key != R.recipe_key(settings, 96, D.Grouping(2, 2, 0)) != R.recipe_key(settings, 128, D.Grouping())

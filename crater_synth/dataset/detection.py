@@ -31,22 +31,15 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
-import click
 import numpy as np
 
 from crater_core import exr, geometry, rim_fractions, schema
-from crater_core.files import ensure_writable_dir
 from crater_core.procedural import ProceduralTerrain, generate
 from crater_core.settings import CraterSettings, replace
-from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import load_settings
-from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.plan import CraterJob, camera_worker_item, code_version, hapke_dict
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
@@ -90,10 +83,10 @@ RIM_HEIGHT_POINTS = 64  # grid samples on the rim circle averaged for its height
 HIDDEN_MARGIN_D = 0.05
 HIDDEN_MARGIN_GSD = 2.0
 HIDDEN_RIM_MAX = 0.5  # a label with more of its rim hidden is flagged ``occluded``
-CHUNK_PER_WORKER = 4
+CHUNK_PER_WORKER = 2  # fields per worker in a chunk: few, since the next chunk is planned while one renders
 # The horizon map of fast mode covers the whole patch (the job's "crater" diameter sets its extent).
 FAST_MAP_MARGIN = 1.02
-PATCH_DIR = ".patches"  # under --out: the chunk's terrain patches and their horizon maps
+PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' terrain patches and horizon maps
 
 
 def frame_rel_path(index: int) -> str:
@@ -444,116 +437,3 @@ def manifest_rows(out_dir: Path) -> dict[int, dict]:
         except (ValueError, TypeError, KeyError):
             raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
     return rows
-
-
-def _render_chunk(settings, fields: list[dict], out_dir: Path, rows: dict) -> None:
-    """Render the planned ``fields`` (:func:`plan_field`), adding each frame's manifest row to ``rows`` as it
-    arrives (the host labels while the workers render)."""
-    frames = {i: f for field in fields for i, f in field["frames"].items()}
-
-    def on_result(_job, _plan, result):
-        idx = int(result["index"])
-        rows[idx] = frame_row(frames[idx], result, out_dir)
-
-    run_workers([f["job"] for f in fields], settings.render, settings.hapke, out_dir, on_result)
-    missing = sorted(set(frames) - set(rows))
-    if missing:
-        raise UserError(f"detection frames {missing} were not rendered (see {out_dir}/.jobs/*.log)")
-
-
-def render_detection_frames(
-    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, grouping: Grouping = Grouping()
-) -> dict:
-    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels; frames share
-    fields, views and Sun azimuths as ``grouping`` says. Returns a summary. The manifest holds every frame
-    rendered so far, rewritten atomically after each chunk of fields."""
-    if settings.procedural is None:
-        raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
-    if n_frames < 1:
-        raise UserError(f"--frames {n_frames}: must be >= 1")
-    grouping.check()
-    check_field_fits(settings.procedural, width_px)
-    out_dir = Path(out_dir)
-    ensure_writable_dir(out_dir, "--out")
-    patch_dir = out_dir / PATCH_DIR
-    settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
-    wanted = range(start, start + n_frames)
-    by_field: dict[int, list[int]] = {}
-    for i in wanted:
-        by_field.setdefault(grouping.field(i), []).append(i)
-    field_ids = sorted(by_field)
-    chunk = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
-    # rows of frames outside this run's range stay (a large set rendered in pieces with --start)
-    rows = {i: r for i, r in manifest_rows(out_dir).items() if i not in wanted}
-    done = len(rows)
-    t0 = time.perf_counter()
-    for k in range(0, len(field_ids), chunk):
-        patch_dir.mkdir(parents=True, exist_ok=True)
-        try:
-            fields = [
-                plan_field(settings, f, by_field[f], patch_dir, width_px, grouping) for f in field_ids[k : k + chunk]
-            ]
-            _render_chunk(settings, fields, out_dir, rows)
-        finally:
-            shutil.rmtree(patch_dir, ignore_errors=True)
-        text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
-        schema.atomic_write_text(out_dir / schema.MANIFEST_NAME, text)
-    seconds = time.perf_counter() - t0
-    ordered = [rows[i] for i in wanted]
-    return {
-        "frames": len(ordered),
-        "fields": len(field_ids),
-        "frames_in_manifest": done + len(ordered),
-        "out_dir": str(out_dir),
-        "width_px": width_px,
-        "grouping": grouping.as_dict(),
-        "modes_used": sorted({r["mode"] for r in ordered}),
-        "labels": sum(len(r["labels"]) for r in ordered),
-        "seconds": round(seconds, 2),
-        "frames_per_s": round(len(ordered) / seconds, 3),
-    }
-
-
-@click.command("detection-frames")
-@OVERRIDES
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
-@click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
-@click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
-@click.option("--width", "width_px", type=int, default=WIDTH_PX, show_default=True, help="Frame side (px).")
-@click.option(
-    "--views-per-field",
-    type=int,
-    default=1,
-    show_default=True,
-    help="Frames per crater field (one scene and patch for them all).",
-)
-@click.option(
-    "--suns-per-view",
-    type=int,
-    default=1,
-    show_default=True,
-    help="Consecutive frames sharing one camera, each under its own Sun (one G-buffer for them all).",
-)
-@click.option(
-    "--azimuths-per-field",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Sun azimuths a field's frames share, evenly spaced (one horizon map each); 0: each frame its own.",
-)
-@user_errors
-def detection_frames_command(
-    overrides, out, n_frames, start, width_px, views_per_field, suns_per_view, azimuths_per_field
-):
-    """Render labelled detection frames of procedural crater fields (EXR + manifest).
-
-    Each frame draws its own field (procedural.*, default procedural=detection), Sun and view from the run
-    seed and its index. Example: `crater-synth detection-frames --out data/detection --frames 8 seed=1`
-    """
-    if width_px < 16:
-        raise UserError(f"--width {width_px}: must be >= 16 px")
-    if start < 0:
-        raise UserError(f"--start {start}: must be >= 0")
-    settings = load_settings(detection_overrides(overrides))
-    grouping = Grouping(views_per_field, suns_per_view, azimuths_per_field)
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, grouping)))

@@ -1,0 +1,231 @@
+"""``crater-synth detection-frames``: render a detection set into its folder, resumably (docs/procedural.md,
+"Detection frames"; what one frame is: :mod:`crater_synth.dataset.detection`).
+
+- **The folder** keeps the output-folder contract (:mod:`crater_synth.outfolder`, kind ``detection``): its
+  marker names the set's recipe (:func:`recipe_key`: every setting that can change a pixel or a label, the
+  frame width and the grouping), so frames of two recipes never mix; a folder holding a file the command
+  did not write is refused; one writer at a time.
+- **Resumption**: a frame whose row is in the manifest and whose file is unchanged since it was written is
+  kept; the others of the requested range are rendered. The manifest is merged (rows outside the range
+  stay) and rewritten atomically after every chunk of fields, and when the run stops early.
+- **Pipelining**: while the workers render one chunk of fields, a second process generates the next
+  chunk's fields and writes their patches (``generate`` and the patch take ~1 s per field, which would
+  otherwise leave the workers idle between chunks).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import click
+
+from crater_core import schema
+from crater_core.horizon import HORIZON_VERSION
+from crater_core.settings import replace
+from crater_synth.cli_common import OVERRIDES, user_errors
+from crater_synth.config import load_settings
+from crater_synth.dataset.detection import (
+    CHUNK_PER_WORKER,
+    PATCH_DIR,
+    WIDTH_PX,
+    Grouping,
+    check_field_fits,
+    detection_overrides,
+    frame_rel_path,
+    frame_row,
+    manifest_rows,
+    plan_field,
+)
+from crater_synth.dataset.dispatch import run_workers
+from crater_synth.dataset.identity import IGNORED, settings_payload
+from crater_synth.errors import ConfigError, UserError
+from crater_synth.outfolder import OutFolder
+
+KIND = "detection"
+
+
+def recipe_key(settings, width_px: int, grouping: Grouping) -> str:
+    """The set's recipe: every setting that can change a frame's pixels or labels (the dataset's identity
+    rule, crater_synth.dataset.identity), the frame width, the grouping and the horizon maps' version."""
+    payload = settings_payload(settings, IGNORED) | {"width_px": width_px, "grouping": grouping.as_dict()}
+    return schema.content_key(payload | {"horizon_version": HORIZON_VERSION})
+
+
+def _kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[int]]:
+    """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
+    frames whose file is unchanged since this writer wrote it (listed, same size and mtime)."""
+    rows: dict[int, dict] = {}
+    done: set[int] = set()
+    for i, r in manifest_rows(folder.path).items():
+        if i not in wanted:
+            rows[i] = r
+        elif folder.files.get(r["rel_path"]) is not None and folder.proved(r["rel_path"]):
+            rows[i] = r
+            done.add(i)
+    return rows, done
+
+
+def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path, width_px: int, grouping: Grouping):
+    chunk_dir.mkdir(parents=True, exist_ok=True)
+    return [plan_field(settings, f, idx, chunk_dir, width_px, grouping) for f, idx in by_field.items()]
+
+
+def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -> None:
+    """Render the planned ``fields``, adding each frame's manifest row to ``rows`` as it arrives (the host
+    labels while the workers render); the frames' files are listed before and sealed after."""
+    frames = {i: f for field in fields for i, f in field["frames"].items()}
+    names = [frame_rel_path(i) for i in frames]
+    folder.record(names)
+    for i in frames:
+        rows.pop(i, None)
+
+    def on_result(_job, _plan, result):
+        idx = int(result["index"])
+        rows[idx] = frame_row(frames[idx], result, folder.path)
+
+    try:
+        run_workers([f["job"] for f in fields], settings.render, settings.hapke, folder.path, on_result)
+    finally:
+        folder.seal([frame_rel_path(i) for i in frames if i in rows])
+    missing = sorted(set(frames) - set(rows))
+    if missing:
+        raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
+
+
+def _write_manifest(folder: OutFolder, rows: dict) -> None:
+    text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
+    schema.atomic_write_text(folder.path / schema.MANIFEST_NAME, text)
+    folder.seal([schema.MANIFEST_NAME])
+
+
+def _render_chunks(settings, folder: OutFolder, chunks: list[dict], width_px: int, grouping: Grouping, rows) -> None:
+    """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
+    while chunk k renders; the manifest is written after each chunk and when the run stops early."""
+    patches = folder.path / PATCH_DIR
+    shutil.rmtree(patches, ignore_errors=True)  # a stopped run's patches (bookkeeping under .jobs/)
+    # spawned, not forked: the planner must not inherit the folder's lock or the CLI's signal handlers
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as planner:
+        try:
+            # the first chunk here: the workers have nothing to do yet
+            fields = _plan_chunk(settings, chunks[0], patches / "chunk_0", width_px, grouping)
+            for k in range(len(chunks)):
+                nxt = None
+                if k + 1 < len(chunks):
+                    nxt = planner.submit(
+                        _plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}", width_px, grouping
+                    )
+                _render_chunk(settings, fields, folder, rows)
+                shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
+                _write_manifest(folder, rows)
+                if nxt is not None:
+                    fields = nxt.result()
+        finally:
+            planner.shutdown(cancel_futures=True)
+            _write_manifest(folder, rows)
+            shutil.rmtree(patches, ignore_errors=True)
+
+
+def render_detection_frames(
+    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, grouping: Grouping = Grouping()
+) -> dict:
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
+    frames of the range already there (module docstring); frames share fields, views and Sun azimuths as
+    ``grouping`` says. Returns a summary."""
+    if settings.procedural is None:
+        raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
+    if n_frames < 1:
+        raise UserError(f"--frames {n_frames}: must be >= 1")
+    grouping.check()
+    check_field_fits(settings.procedural, width_px)
+    settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
+    folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings, width_px, grouping)}")
+    folder.check()
+    bad = folder.unlisted()
+    if bad:
+        folder.refuse(bad)
+    folder.claim()
+    try:
+        folder.record([schema.MANIFEST_NAME])
+        wanted = range(start, start + n_frames)
+        rows, done = _kept_rows(folder, wanted)
+        by_field: dict[int, list[int]] = {}
+        for i in wanted:
+            if i not in done:
+                by_field.setdefault(grouping.field(i), []).append(i)
+        size = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
+        ids = sorted(by_field)
+        chunks = [{f: by_field[f] for f in ids[k : k + size]} for k in range(0, len(ids), size)]
+        t0 = time.perf_counter()
+        if chunks:
+            _render_chunks(settings, folder, chunks, width_px, grouping, rows)
+        else:
+            _write_manifest(folder, rows)
+        seconds = time.perf_counter() - t0
+    finally:
+        folder.release()
+    ordered = [rows[i] for i in wanted]
+    rendered = n_frames - len(done)
+    return {
+        "frames": len(ordered),
+        "rendered": rendered,
+        "kept": len(done),
+        "fields": len({grouping.field(i) for i in wanted}),
+        "frames_in_manifest": len(rows),
+        "out_dir": str(folder.path),
+        "width_px": width_px,
+        "grouping": grouping.as_dict(),
+        "modes_used": sorted({r["mode"] for r in ordered}),
+        "labels": sum(len(r["labels"]) for r in ordered),
+        "seconds": round(seconds, 2),
+        "frames_per_s": round(rendered / seconds, 3) if rendered and seconds > 0 else None,
+    }
+
+
+@click.command("detection-frames")
+@OVERRIDES
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
+@click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
+@click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
+@click.option("--width", "width_px", type=int, default=WIDTH_PX, show_default=True, help="Frame side (px).")
+@click.option(
+    "--views-per-field",
+    type=int,
+    default=Grouping.views_per_field,
+    show_default=True,
+    help="Frames per crater field (one scene and patch for them all).",
+)
+@click.option(
+    "--suns-per-view",
+    type=int,
+    default=Grouping.suns_per_view,
+    show_default=True,
+    help="Consecutive frames sharing one camera, each under its own Sun (one G-buffer for them all).",
+)
+@click.option(
+    "--azimuths-per-field",
+    type=int,
+    default=Grouping.azimuths_per_field,
+    show_default=True,
+    help="Sun azimuths a field's frames share, evenly spaced (one horizon map each); 0: each frame its own.",
+)
+@user_errors
+def detection_frames_command(
+    overrides, out, n_frames, start, width_px, views_per_field, suns_per_view, azimuths_per_field
+):
+    """Render labelled detection frames of procedural crater fields (EXR + manifest), resumably.
+
+    Each frame draws its field (procedural.*, default procedural=detection), Sun and view from the run seed
+    and its index. Example: `crater-synth detection-frames --out data/detection --frames 8 seed=1`
+    """
+    if width_px < 16:
+        raise UserError(f"--width {width_px}: must be >= 16 px")
+    if start < 0:
+        raise UserError(f"--start {start}: must be >= 0")
+    settings = load_settings(detection_overrides(overrides))
+    grouping = Grouping(views_per_field, suns_per_view, azimuths_per_field)
+    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, grouping)))
