@@ -55,7 +55,7 @@ def _raise_interrupted(signum, _frame):
     raise Interrupted(signum, f"interrupted by {name}: stopped; rerun the same command to resume")
 
 
-class _Signals:
+class StopSignals:
     """SIGTERM/SIGINT/SIGHUP raise :class:`Interrupted` in the main thread while a command runs."""
 
     def __enter__(self):
@@ -82,7 +82,7 @@ def user_errors(fn):
     def wrapper(*args, **kwargs):
         with warnings.catch_warnings(record=True) as held:  # the filters in force decide what is recorded
             try:
-                with _Signals():
+                with StopSignals():
                     result = fn(*args, **kwargs)
             except Interrupted as exc:
                 _fail(str(exc), 128 + exc.signum)

@@ -152,7 +152,7 @@ def test_frames_of_a_view_share_its_camera_and_a_field_its_azimuths():
     its own Sun; --azimuths-per-field: every Sun azimuth is one of the field's evenly spaced set. A view's
     first frame is the frame it would be without grouping."""
     terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=2))
-    plain = _grouped_conditions(D.Grouping(), terrain, 8)
+    plain = _grouped_conditions(D.PER_FRAME, terrain, 8)
     views = _grouped_conditions(D.Grouping(8, 4, 0), terrain, 8)
     both = _grouped_conditions(D.Grouping(8, 4, 3), terrain, 8)
     for i, c in enumerate(views):
@@ -216,7 +216,7 @@ def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0
     overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
     settings = load_settings(D.detection_overrides(overrides))
     out = tmp_path / name
-    summary = R.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views))
+    summary = R.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views, 1, 0))
     rows = list(D.manifest_rows(out).values())
     assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
     names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")

@@ -140,7 +140,7 @@ def test_a_signal_while_a_result_is_recorded_waits_for_its_row(tmp_path, monkeyp
     row is written, then stops the run."""
     from types import SimpleNamespace
 
-    from crater_synth.cli_common import _Signals
+    from crater_synth.cli_common import StopSignals
     from crater_synth.config import load_settings
     from crater_synth.dataset import dispatch
     from crater_synth.dataset.plan import CraterJob
@@ -161,6 +161,6 @@ def test_a_signal_while_a_result_is_recorded_waits_for_its_row(tmp_path, monkeyp
         time.sleep(0.05)
         rows.append(plan["params"].index)
 
-    with pytest.raises(Interrupted), _Signals():
+    with pytest.raises(Interrupted), StopSignals():
         dispatch.run_workers([job], s.render, s.hapke, tmp_path, on_result)
     assert rows and rows == begun  # every row begun was written before the run stopped

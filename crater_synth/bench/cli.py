@@ -16,6 +16,8 @@ Parts (``--part``, default all, in this order):
   appearance search against the classical detector (crater_synth.bench.navframes);
 - ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
   (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet);
+- ``detection``: detection frames/s at 256² and 512², the default grouping against one frame per field
+  (crater_synth.bench.detection);
 - ``opencv``: the solvers OpenCV does for the project (PnP minimal solve and RANSAC fix, NCC, crop warps)
   against the hand-written code they replaced, before/after ms, ratio and agreement (crater_synth.bench.opencv).
 
@@ -32,6 +34,8 @@ from pathlib import Path
 
 import click
 
+from crater_synth.bench.detection import bench_detection
+from crater_synth.bench.detection import summary_line as detection_summary_line
 from crater_synth.bench.detector import bench_detector_training
 from crater_synth.bench.distributed import bench_distributed
 from crater_synth.bench.export import bench_export, summary_line
@@ -49,7 +53,18 @@ from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
 @click.option(
     "--part",
     type=click.Choice(
-        ["all", "renderer", "train", "distributed", "navigation", "export", "navframes", "detector", "opencv"]
+        [
+            "all",
+            "renderer",
+            "train",
+            "distributed",
+            "navigation",
+            "export",
+            "navframes",
+            "detector",
+            "opencv",
+            "detection",
+        ]
     ),
     default="all",
     show_default=True,
@@ -121,6 +136,10 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                 )
         if part in ("all", "opencv"):
             click.echo("opencv " + json.dumps(bench_opencv()))
+        if part in ("all", "detection"):
+            r = bench_detection(overrides, work / "detection")
+            click.echo("detection " + json.dumps(r))
+            click.echo(detection_summary_line(r))
         if part in ("all", "renderer"):
             r = bench_renderer(overrides, work / "renderer")
             click.echo("renderer " + json.dumps(r))

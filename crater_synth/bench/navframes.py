@@ -35,7 +35,7 @@ from crater_synth.navigation.rendered.frames import frame_overrides, render_fram
 from crater_synth.navigation.settings import compose_nav
 
 
-def _worker_stats(out_dir: Path) -> list[dict]:
+def worker_stats(out_dir: Path) -> list[dict]:
     stats = []
     for log in sorted((out_dir / ".jobs").glob("*.log")):
         for line in log.read_text(encoding="utf-8", errors="replace").splitlines():
@@ -49,7 +49,7 @@ def _run(settings, out: Path, n: int, share: bool) -> dict:
     t0 = time.perf_counter()
     summary = render_frames(settings, out, list(range(n)), share_patches=share)
     wall = time.perf_counter() - t0
-    stats = _worker_stats(out)
+    stats = worker_stats(out)
     fast = {}
     for s in stats:
         for k, v in (s.get("fast") or {}).items():
