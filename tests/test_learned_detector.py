@@ -383,3 +383,53 @@ def test_bench_detector_skips_without_a_survey(monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)  # the survey's default path is relative: none here
     res = CliRunner().invoke(main, ["bench", "--part", "detector", "--keep", str(tmp_path / "b")])
     assert res.exit_code == 0 and "detector skipped: no survey frames" in res.output
+
+
+def fake_detection_set(root, fields: int = 3, frames: int = 2):
+    """A detection set as ``detection-frames`` writes it (marked folder, I/F EXRs, rows with procedural
+    labels and their field); the images are the synthetic crater fields of these tests."""
+    from crater_core import exr
+    from crater_synth.dataset.detection_run import KIND
+    from crater_synth.outfolder import OutFolder
+
+    folder = OutFolder(root, KIND, subject="recipe test").claim()
+    rows = []
+    for f in range(fields):
+        for k in range(frames):
+            i = f * frames + k
+            img, u, v, r = crater_field(2000 + i)
+            rel = f"frame_{i:06d}.exr"
+            exr.write_exr(root / rel, {"IF": img}, channel_names=("IF",))
+            labels = [
+                {
+                    "source": "procedural",
+                    "diameter_m": 2 * c * 60.0,
+                    "ellipse": {"cu": a, "cv": b, "a": c, "b": c, "angle_rad": 0.0},
+                    "lit_rim_fraction": 0.5,
+                    "occluded": bool(n == 0),
+                }
+                for n, (a, b, c) in enumerate(zip(u, v, r))
+            ]
+            rows.append(
+                {"index": i, "rel_path": rel, "ground_sample_m": 60.0, "terrain": {"field": f}, "labels": labels}
+            )
+    (root / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    folder.release()
+    return root
+
+
+def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
+    """nav-detector-train on a detection set: the last fields are the synthetic hold-out, scored over the
+    network's band of rim radii; an occluded label is neither positive nor negative."""
+    frames = fake_detection_set(tmp_path / "det", fields=4)
+    u, v, r, d, hidden = learned_train.label_circles(learned_train.detection_rows(frames)[0], (256, 256))
+    assert hidden[0] and not hidden[1:].any() and d[1] == pytest.approx(2 * r[1] * 0.06)
+    out = tmp_path / "model.pt"
+    s = cd.DetectorTrainSettings(steps=3, batch=2, crop_px=32, width=4, threads=1)
+    summary = learned_train.train_from_detection(frames, out, s, holdout_share=0.25)
+    assert summary["holdout_fields"] == [3] and summary["train_fields"] == 3 and summary["train_frames"] == 6
+    assert (
+        summary["synthetic_holdout"]["frames"] == 2 and summary["synthetic_holdout"]["min_radius_px"] == cd.BAND_LO_PX
+    )
+    assert "procedural" in summary["trained_on"] and summary["recipe"] == "recipe test"
+    assert learned.load_model(str(out))[1]["frames_dir"] == str(frames)

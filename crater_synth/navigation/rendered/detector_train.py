@@ -19,16 +19,20 @@ from crater_core import exr
 from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose_group
+from crater_synth.dataset.detection import manifest_rows as detection_rows
+from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
+from crater_synth.outfolder import MARKERS, marker_kind
 from crater_synth.paths import SOURCE_ROOT
 
 DEFAULT_FRAMES = Path("data") / "detector_frames" / "south"
 HOLDOUT_TRACKS = 10  # the survey's last tracks: synthetic hold-out, never trained on
+HOLDOUT_FIELD_SHARE = 0.1  # a detection set's last fields: synthetic hold-out, never trained on
 
 
 # ------------------------------------------------------------------------------------------------
@@ -50,35 +54,62 @@ MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible
 
 
 def labels_in_frame(row: dict, shape) -> list[dict]:
-    """The frame's landmark labels whose rim-ellipse centre lies inside a frame of ``shape``."""
+    """The frame's labels whose rim-ellipse centre lies inside a frame of ``shape``: a survey frame's
+    landmarks, or a detection frame's procedural craters (``crater-synth detection-frames``)."""
     h, w = shape
-    return [lm for lm in row["landmarks"] if 0 <= lm["ellipse"]["cu"] < w and 0 <= lm["ellipse"]["cv"] < h]
+    labels = row["landmarks"] if "landmarks" in row else row["labels"]
+    return [lm for lm in labels if 0 <= lm["ellipse"]["cu"] < w and 0 <= lm["ellipse"]["cv"] < h]
 
 
 def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
-    label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden)."""
+    label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden) or, for a
+    detection frame's label, where nearer relief hides most of its rim (``occluded``)."""
     lms = labels_in_frame(row, shape)
     u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
     v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
     r = np.array([lm["ellipse"]["a"] for lm in lms], float)
-    d = np.array([lm["diameter_km"] for lm in lms], float)
+    d = np.array([lm["diameter_km"] if "diameter_km" in lm else lm["diameter_m"] / 1000.0 for lm in lms], float)
     lit = np.array([1.0 if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
-    return u, v, r, d, lit < MIN_LIT_RIM
+    occluded = np.array([bool(lm.get("occluded", False)) for lm in lms], bool)
+    return u, v, r, d, (lit < MIN_LIT_RIM) | occluded
 
 
-def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
+def detection_records(folder: Path, holdout_share: float) -> tuple[list, list, dict]:
+    """(training records, held-out records, what they are) of a detection set: (I/F image, row) of every
+    frame, the frames of the last ``holdout_share`` of its fields held out (a field's frames share craters)."""
+    rows = sorted(detection_rows(folder).values(), key=lambda r: r["index"])
+    if not rows:
+        raise UserError(f"{folder}: no detection frame (run `crater-synth detection-frames --out {folder}`)")
+    fields = sorted({r["terrain"]["field"] for r in rows})
+    n_hold = max(1, int(round(holdout_share * len(fields)))) if len(fields) > 1 else 0
+    held = set(fields[len(fields) - n_hold :])
+    records = [(exr.read_channel(folder / r["rel_path"], "IF"), r) for r in rows]
+    train = [rec for rec in records if rec[1]["terrain"]["field"] not in held]
+    hold = [rec for rec in records if rec[1]["terrain"]["field"] in held]
+    what = {"train_fields": len(fields) - n_hold, "holdout_fields": sorted(held), "recipe": _recipe(folder)}
+    return train, hold, what
+
+
+def _recipe(folder: Path) -> str | None:
+    try:
+        return json.loads((folder / MARKERS[DETECTION_KIND]).read_text(encoding="utf-8")).get("subject")
+    except (OSError, ValueError):
+        return None
+
+
+def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0.0) -> dict:
     """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
     matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for labels and detections of
-    D >= ``min_d_km``."""
+    D >= ``min_d_km`` and a rim radius >= ``min_r_px``."""
     tp_t = n_t = tp_d = n_d = 0
     for image, row in records:
         labels = labels_in_frame(row, image.shape)
         km_per_px = float(row["ground_sample_m"]) / 1000.0
         dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
         matched = match_pixels(dets, labels)  # detection index -> label index
-        big_t = [2.0 * lb["ellipse"]["a"] * km_per_px >= min_d_km for lb in labels]
-        big_d = [2.0 * d.r * km_per_px >= min_d_km for d in dets]
+        big_t = [lb["ellipse"]["a"] >= max(min_r_px, 0.5 * min_d_km / km_per_px) for lb in labels]
+        big_d = [d.r >= max(min_r_px, 0.5 * min_d_km / km_per_px) for d in dets]
         n_t += sum(big_t)
         tp_t += sum(1 for j in matched.values() if big_t[j])
         n_d += sum(big_d)
@@ -90,6 +121,7 @@ def score_synthetic(records, params, min_d_km: float = 15.0) -> dict:
         "n_labels": n_t,
         "n_detections": n_d,
         "min_diameter_km": min_d_km,
+        "min_radius_px": min_r_px,
     }
 
 
@@ -107,23 +139,50 @@ def train_from_survey(
 ) -> dict:
     """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
     to ``out`` with its provenance; returns the summary written into the model."""
-    from train.crater_detector import level_samples, save_model, settings_dict, train_detector
-
     dirs = track_dirs(frames_dir)
     if len(dirs) <= holdout:
         raise UserError(f"{frames_dir}: {len(dirs)} rendered tracks, need more than the {holdout} held out")
+    what = {
+        "trained_on": "rendered survey frames only (crater-synth nav-detector-frames); no real pixel",
+        "frames_dir": str(frames_dir),
+        "train_tracks": [d.name for d in dirs[: len(dirs) - holdout]],
+        "holdout_tracks": [d.name for d in dirs[len(dirs) - holdout :]],
+    }
     train_records = frame_records(frames_dir, slice(0, len(dirs) - holdout))
+    holdout_records = frame_records(frames_dir, slice(len(dirs) - holdout, None))
+    return _train_and_save(train_records, holdout_records, what, out, settings, log, device)
+
+
+def train_from_detection(
+    folder: Path, out: Path, settings, holdout_share: float = HOLDOUT_FIELD_SHARE, log=None, device: str = "cpu"
+) -> dict:
+    """Train the detector on a detection set's frames (procedural crater fields only), holding out the last
+    ``holdout_share`` of its fields, score it on those, and save it to ``out`` with its provenance."""
+    train_records, holdout_records, what = detection_records(folder, holdout_share)
+    what = {
+        "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
+        "frames_dir": str(folder),
+    } | what
+    from train.crater_detector import BAND_LO_PX
+
+    # a 38 km field holds few craters of D >= 15 km: scored over every rim of the network's band and up
+    score = {"min_d_km": 0.0, "min_r_px": BAND_LO_PX}
+    return _train_and_save(train_records, holdout_records, what, out, settings, log, device, score)
+
+
+def _train_and_save(
+    train_records, holdout_records, what: dict, out: Path, settings, log, device: str, score: dict | None = None
+) -> dict:
+    """Train on ``train_records``, score on ``holdout_records`` (:func:`score_synthetic` with ``score``), save
+    the model (and its checkpoints) with ``what`` and the run in its provenance."""
+    from train.crater_detector import level_samples, save_model, settings_dict, train_detector
+
     samples = []
     for image, row in train_records:
         u, v, r, _, hidden = label_circles(row, image.shape)
         samples.extend(level_samples(image, u, v, r, hidden))
     result = train_detector(samples, settings, log=log, device=device)
-    holdout_records = frame_records(frames_dir, slice(len(dirs) - holdout, None))
-    meta = {
-        "trained_on": "rendered survey frames only (crater-synth nav-detector-frames); no real pixel",
-        "frames_dir": str(frames_dir),
-        "train_tracks": [d.name for d in dirs[: len(dirs) - holdout]],
-        "holdout_tracks": [d.name for d in dirs[len(dirs) - holdout :]],
+    meta = what | {
         "train_frames": len(train_records),
         "level_samples": len(samples),
         "settings": settings_dict(settings),
@@ -136,7 +195,7 @@ def train_from_survey(
     save_model(tmp, result["model"], meta)
     try:
         params = LearnedSettings(model=str(tmp), min_radius_px=4.5, refine=False)
-        meta["synthetic_holdout"] = score_synthetic(holdout_records, params)
+        meta["synthetic_holdout"] = score_synthetic(holdout_records, params, **(score or {}))
     finally:
         tmp.unlink(missing_ok=True)
         load_model.cache_clear()
@@ -177,7 +236,10 @@ def nav_detector_frames_command(overrides, tracks, seed, out):
 @OVERRIDES
 @user_errors
 def nav_detector_train_command(frames_dir, out, device, overrides):
-    """Train the learned crater detector on rendered survey frames; score it on the held-out tracks.
+    """Train the learned crater detector on rendered frames; score it on the held-out frames.
+
+    FRAMES_DIR is a survey (crater-synth nav-detector-frames: the last 10 tracks held out) or a detection set
+    (crater-synth detection-frames: the last 10 % of its fields held out).
 
     Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
     `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
@@ -189,7 +251,6 @@ def nav_detector_train_command(frames_dir, out, device, overrides):
     settings = compose_group("nav/detector_train", DetectorTrainSettings, overrides)
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    summary = train_from_survey(
-        frames_dir, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
-    )
+    train = train_from_detection if marker_kind(frames_dir) == DETECTION_KIND else train_from_survey
+    summary = train(frames_dir, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device)
     click.echo(json.dumps(summary, indent=1))
