@@ -37,6 +37,7 @@ from functools import cached_property
 from typing import Any, Dict, Mapping, Optional, Tuple
 
 from crater_core.hapke import HapkeParams
+from crater_core.settings_detection import DetectionSettings
 from crater_core.settings_procedural import ProceduralSettings
 from crater_core.settings_train import (
     ConvSettings,
@@ -557,6 +558,8 @@ class Settings(Group):
     trajectory: Optional[TrajectorySettings] = None
     # Not in the defaults either: the procedural crater field (crater_core/procedural.py), ``procedural=NAME``.
     procedural: Optional[ProceduralSettings] = None
+    # Not in the defaults either: detection frames' conditions and grouping, ``detection=NAME``.
+    detection: Optional[DetectionSettings] = None
 
     def _check(self):
         if not self.crater:
@@ -603,6 +606,7 @@ GROUPS: Dict[str, type] = {
     "ablation": AblationSettings,
     "trajectory": TrajectorySettings,
     "procedural": ProceduralSettings,
+    "detection": DetectionSettings,
 }
 
 __all__ = [

@@ -51,7 +51,7 @@ REPO_ROOT = SOURCE_ROOT
 PRESET_GROUPS = frozenset({"experiment"})
 # Groups that configs/config.yaml does not select by default (only the commands that need them read
 # them; ``Settings.<group>`` is None otherwise): ``group=option`` selects one (Hydra's ``+group=option``).
-OPTIONAL_GROUPS = frozenset({"trajectory", "procedural"})
+OPTIONAL_GROUPS = frozenset({"trajectory", "procedural", "detection"})
 ROOT_SCHEMA = "settings_schema"
 SCHEMA_SUFFIX = "_schema"
 

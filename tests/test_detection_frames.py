@@ -16,12 +16,15 @@ import pytest
 import crater_core.procedural as P
 from crater_core import exr, geometry, schema
 from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
+from crater_core.settings import replace
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
 from crater_synth.dataset import detection_run as R
 from crater_synth.dataset.verify import verify_dataset
-from crater_synth.errors import UserError
+from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, patch_arrays
+
+DET = load_settings(D.detection_overrides([])).detection  # configs/detection/default.yaml
 
 SPACING = 20.0
 SIZE = 257  # odd: the grid's centre is a vertex
@@ -120,7 +123,7 @@ def test_conditions_stay_in_their_ranges_and_the_footprint_in_the_field():
     nadir = 0
     for i in range(60):
         _, rng, _ = D.frame_seeds(7, i)
-        c = D.draw_conditions(rng, terrain, w, D.FOV_DEG)
+        c = D.draw_conditions(rng, terrain, DET)
         assert 0.5 <= c["sun_elevation_deg"] <= 60.0 and 0.0 <= c["sun_azimuth_deg"] < 360.0
         assert 0.0 <= c["off_nadir_deg"] <= 45.0
         nadir += c["off_nadir_deg"] == 0.0
@@ -133,18 +136,19 @@ def test_conditions_stay_in_their_ranges_and_the_footprint_in_the_field():
     assert 5 <= nadir <= 30  # a quarter of the frames look straight down
     small = P.generate(P.ProceduralSettings(size_px=128, spacing_m=50.0, seed=1))
     with pytest.raises(D.UserError, match="raise procedural.size_px"):
-        D.draw_conditions(np.random.default_rng(0), small, 256, D.FOV_DEG)
-    D.check_field_fits(P.ProceduralSettings(size_px=768), 256)  # the command's default field
+        D.draw_conditions(np.random.default_rng(0), small, DET)
+    D.check_field_fits(P.ProceduralSettings(size_px=768), DET)  # the command's default field
     with pytest.raises(D.UserError, match=r"procedural.size_px=600: .* at least 66\d px"):
-        D.check_field_fits(P.ProceduralSettings(size_px=600), 256)
+        D.check_field_fits(P.ProceduralSettings(size_px=600), DET)
+    D.check_field_fits(P.ProceduralSettings(size_px=600), replace(DET, nadir_share=1.0))  # nadir only: smaller
 
 
 def _grouped_conditions(grouping, terrain, n: int, seed: int = 7) -> list[dict]:
-    az = grouping.azimuths(seed, 0)
-    return [
-        D.draw_conditions(D.frame_seeds(seed, i)[1], terrain, 64, D.FOV_DEG, az, grouping.view_rng(seed, i))
-        for i in range(n)
-    ]
+    det = replace(
+        DET, width_px=64, views_per_field=grouping[0], suns_per_view=grouping[1], azimuths_per_field=grouping[2]
+    )
+    az = D.sun_azimuths(det, seed, 0)
+    return [D.draw_conditions(D.frame_seeds(seed, i)[1], terrain, det, az, D.view_rng(det, seed, i)) for i in range(n)]
 
 
 def test_frames_of_a_view_share_its_camera_and_a_field_its_azimuths():
@@ -152,9 +156,9 @@ def test_frames_of_a_view_share_its_camera_and_a_field_its_azimuths():
     its own Sun; --azimuths-per-field: every Sun azimuth is one of the field's evenly spaced set. A view's
     first frame is the frame it would be without grouping."""
     terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=2))
-    plain = _grouped_conditions(D.PER_FRAME, terrain, 8)
-    views = _grouped_conditions(D.Grouping(8, 4, 0), terrain, 8)
-    both = _grouped_conditions(D.Grouping(8, 4, 3), terrain, 8)
+    plain = _grouped_conditions((1, 1, 0), terrain, 8)
+    views = _grouped_conditions((8, 4, 0), terrain, 8)
+    both = _grouped_conditions((8, 4, 3), terrain, 8)
     for i, c in enumerate(views):
         first = views[i - i % 4]
         assert np.array_equal(c["camera"].position, first["camera"].position)
@@ -175,10 +179,31 @@ def test_frames_of_a_view_share_its_camera_and_a_field_its_azimuths():
     assert not np.allclose(D.field_azimuths(7, 0, 3), D.field_azimuths(7, 1, 3))
 
 
-@pytest.mark.parametrize("grouping", [(0, 1, 0), (4, 0, 0), (4, 1, -1), (6, 4, 0)])
-def test_a_grouping_that_cannot_be_is_one_error(grouping):
-    with pytest.raises(UserError, match="--views-per-field"):
-        D.Grouping(*grouping).check()
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("detection.views_per_field=0", "views_per_field"),
+        ("detection.suns_per_view=0", "suns_per_view"),
+        ("detection.azimuths_per_field=-1", "azimuths_per_field"),
+        ("detection.views_per_field=6", "views_per_field"),  # not a multiple of suns_per_view=4
+        ("detection.off_nadir_deg=[50,40]", "off_nadir_deg"),
+        ("detection.spacing_m=[0,10]", "spacing_m"),
+        ("detection.width_px=8", "width_px"),
+    ],
+)
+def test_a_detection_recipe_that_cannot_be_is_one_error(override, key):
+    with pytest.raises(ConfigError, match=f"detection.{key}"):
+        load_settings(D.detection_overrides([override]))
+
+
+def test_field_spacing_is_drawn_per_field_in_its_range():
+    """detection.spacing_m=[lo, hi]: each field its own grid spacing, log-uniform, from the field's stream."""
+    det = replace(DET, spacing_m=(20.0, 1000.0))
+    proc = P.ProceduralSettings()
+    got = [D.field_spacing(det, proc, 3, f) for f in range(200)]
+    assert all(20.0 <= g <= 1000.0 for g in got) and got == [D.field_spacing(det, proc, 3, f) for f in range(200)]
+    assert 0.4 < np.mean(np.log(got) < np.log(np.sqrt(20.0 * 1000.0))) < 0.6  # log-uniform: half below the middle
+    assert D.field_spacing(DET, proc, 3, 0) == proc.spacing_m
 
 
 def test_frame_seeds_depend_on_the_run_seed_and_the_index_only():
@@ -189,9 +214,10 @@ def test_frame_seeds_depend_on_the_run_seed_and_the_index_only():
 
 
 def test_command_defaults_yield_to_the_users_settings():
-    assert D.detection_overrides([]) == ["procedural=detection", "render.gbuffer_samples=1"]
-    assert D.detection_overrides(["procedural=default", "render.samples=2"]) == [
+    assert D.detection_overrides([]) == ["procedural=detection", "detection=default", "render.gbuffer_samples=1"]
+    assert D.detection_overrides(["procedural=default", "detection=default", "render.samples=2"]) == [
         "procedural=default",
+        "detection=default",
         "render.samples=2",
     ]
     settings = load_settings(D.detection_overrides(["procedural.size_px=400"]))
@@ -210,13 +236,13 @@ def test_patch_vertices_and_labels_share_one_mapping():
 # --------------------------------------------------------------------------------------------
 # Rendered (Blender)
 # --------------------------------------------------------------------------------------------
-def _render(tmp_path, name: str, monkeypatch, nadir_share: float, off_range=(0.0, 45.0), frames=1, views=1):
-    monkeypatch.setattr(D, "NADIR_SHARE", nadir_share)
-    monkeypatch.setattr(D, "OFF_NADIR_RANGE_DEG", off_range)
+def _render(tmp_path, name: str, nadir_share: float, off_range=(0.0, 45.0), frames=1, views=1):
     overrides = ["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1", "seed=3"]
-    settings = load_settings(D.detection_overrides(overrides))
+    overrides += [f"detection.nadir_share={nadir_share}", f"detection.off_nadir_deg=[{off_range[0]},{off_range[1]}]"]
+    overrides += ["detection.width_px=96", f"detection.views_per_field={views}", "detection.suns_per_view=1"]
+    settings = load_settings(D.detection_overrides([*overrides, "detection.azimuths_per_field=0"]))
     out = tmp_path / name
-    summary = R.render_detection_frames(settings, out, frames, width_px=96, grouping=D.Grouping(views, 1, 0))
+    summary = R.render_detection_frames(settings, out, frames)
     rows = list(D.manifest_rows(out).values())
     assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
     names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
@@ -261,11 +287,11 @@ class _Grid:
 
 
 @pytest.mark.integration
-def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_deterministic(tmp_path, monkeypatch):
+def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_deterministic(tmp_path):
     """A nadir and an oblique frame (96 px): the rendered depth puts the surface under each unoccluded
     label's ellipse at D/2 from the crater's axis (to half a ground sample, median); near the image centre
     b/a = cos(view angle); the same seed renders the same bytes and labels."""
-    out, row = _render(tmp_path, "nadir", monkeypatch, 1.0)
+    out, row = _render(tmp_path, "nadir", 1.0)
     assert row["view"]["off_nadir_deg"] == 0.0 and row["mode"] == "fast" and row["labels"]
     report = verify_dataset(out, jobs=1)  # the one verification reads detection folders too
     assert report["ok"] and report["kind"] == "detection", report["faults"]
@@ -274,7 +300,7 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
         assert lb["ellipse"]["b"] / lb["ellipse"]["a"] > 0.97
         gsd_here = row["ground_sample_m"]  # nadir over nearly flat ground: the ground sample everywhere
         assert lb["ellipse"]["a"] == pytest.approx(lb["diameter_m"] / 2 / gsd_here, rel=0.08)
-    out2, row2 = _render(tmp_path, "oblique", monkeypatch, 0.0, (30.0, 40.0))
+    out2, row2 = _render(tmp_path, "oblique", 0.0, (30.0, 40.0))
     view = row2["view"]["off_nadir_deg"]
     assert 30.0 <= view <= 40.0
     assert _rim_back_projection_error(out2, row2) < 0.5
@@ -286,13 +312,13 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
     # Again, with a second view of the same field: frame 0 is the same pixels and labels (frame i's draws
     # depend on the seed and i only; its header and row record the other grouping); frame 1 views the same
     # field under its own Sun and view.
-    out3, (row3, row31) = _render(tmp_path, "again", monkeypatch, 0.0, (30.0, 40.0), frames=2, views=2)
+    out3, (row3, row31) = _render(tmp_path, "again", 0.0, (30.0, 40.0), frames=2, views=2)
     ch3, ch2 = exr.read_exr(out3 / "frame_000000.exr")[0], exr.read_exr(out2 / "frame_000000.exr")[0]
     assert all(np.array_equal(ch3[c], ch2[c]) for c in schema.EXR_CHANNELS)
     assert row3["grouping"]["views_per_field"] == 2 and row2["grouping"]["views_per_field"] == 1
     skip = {"render_seconds", "sha256", "grouping"}
     assert {k: v for k, v in row3.items() if k not in skip} == {k: v for k, v in row2.items() if k not in skip}
-    again = _render(tmp_path, "oblique", monkeypatch, 0.0, (30.0, 40.0))[1]  # resumed: kept, not rendered
+    again = _render(tmp_path, "oblique", 0.0, (30.0, 40.0))[1]  # resumed: kept, not rendered
     assert again == row2
     assert row31["terrain"] == row3["terrain"] and row31["sun_enu"] != row3["sun_enu"] and row31["labels"]
     assert json.loads(json.dumps(row2["labels"][0]))["source"] == "procedural"
@@ -307,7 +333,7 @@ def _fake_frames(tmp_path, n: int = 2):
     rows = []
     for i in range(n):
         terrain_seed, rng, _ = D.frame_seeds(0, i)
-        cond = D.draw_conditions(rng, terrain, 64, D.FOV_DEG)
+        cond = D.draw_conditions(rng, terrain, replace(DET, width_px=64))
         rel = D.frame_rel_path(i)
         chans = {c: np.full((64, 64), 0.5 + i, np.float32) for c in schema.EXR_CHANNELS}
         chans["depth"] = np.full((64, 64), 1e9, np.float32)
@@ -322,7 +348,7 @@ def _fake_frames(tmp_path, n: int = 2):
             "mean_if": 0.5,
         }
         frame = {"terrain": terrain, "cond": cond, "field": i, "terrain_seed": terrain_seed, "terrain_id": "t"}
-        frame |= {"view_first": i, "grouping": D.Grouping().as_dict()}
+        frame |= {"view_first": i, "grouping": D.grouping(DET)}
         rows.append(D.frame_row(frame, res, out))
     (out / schema.MANIFEST_NAME).write_text("".join(schema.dumps_row(r) + "\n" for r in rows))
     return out, rows
@@ -357,10 +383,13 @@ def test_detection_frames_export_to_parquet_with_typed_labels(tmp_path):
     assert np.array_equal(img, exr.read_channel(frames / rows[1]["rel_path"], "IF"))
 
 
+SMALL = ("procedural.size_px=384", "procedural.spacing_m=40")
+
+
 def _refusal(out, *overrides) -> str:
-    settings = load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40", *overrides]))
+    settings = load_settings(D.detection_overrides([*SMALL, "detection.width_px=96", *overrides]))
     with pytest.raises(UserError) as exc:
-        R.render_detection_frames(settings, out, 1, width_px=96)
+        R.render_detection_frames(settings, out, 1)
     return str(exc.value)
 
 
@@ -379,17 +408,18 @@ def test_detection_folder_refuses_a_file_it_did_not_write_and_another_kind(tmp_p
 
 
 def test_detection_folder_of_another_recipe_is_refused(tmp_path):
-    """Frames of two recipes never mix: a folder marked for one recipe refuses a run of another seed."""
+    """Frames of two recipes never mix: a folder marked for one recipe refuses a run of another seed. The
+    recipe is every setting that can change a frame (detection.* included), not where or how it runs."""
     from crater_synth.outfolder import OutFolder
 
     out = tmp_path / "set"
-    settings = load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40"]))
-    key = R.recipe_key(settings, 96, D.Grouping())
-    assert key == R.recipe_key(
-        load_settings(D.detection_overrides(["procedural.size_px=384", "procedural.spacing_m=40", "render.workers=1"])),
-        96,
-        D.Grouping(),
-    )
-    OutFolder(out, R.KIND, subject=f"recipe {key}").claim().release()
-    assert f"recipe {key}" in _refusal(out, "seed=9")
-    assert key != R.recipe_key(settings, 96, D.Grouping(2, 2, 0)) != R.recipe_key(settings, 128, D.Grouping())
+    base = [*SMALL, "detection.width_px=96"]
+
+    def key(*more):
+        return R.recipe_key(load_settings(D.detection_overrides([*base, *more])))
+
+    OutFolder(out, R.KIND, subject=f"recipe {key()}").claim().release()
+    assert f"recipe {key()}" in _refusal(out, "seed=9")
+    assert key() == key("render.workers=1") == key("render.threads=3")
+    others = ["seed=9", "detection.suns_per_view=2", "detection.nadir_share=0.5", "procedural.hurst=0.7"]
+    assert len({key(), *(key(o) for o in others)}) == 1 + len(others)

@@ -3,10 +3,10 @@
 
 At 256² and at 512², in one call and with the same settings (every override applies), it renders:
 
-- ``grouped``: the default recipe (:class:`crater_synth.dataset.detection.Grouping`: 64 frames a field,
-  4 Suns a camera, 4 Sun azimuths a field), ``frames`` frames;
-- ``per_frame``: the ungrouped path (:data:`crater_synth.dataset.detection.PER_FRAME`: each frame its own
-  field, worker start-up, scene, horizon map and G-buffer), ``per_frame_frames`` frames;
+- ``grouped``: the default recipe (configs/detection/default.yaml: 64 frames a field, 4 Suns a camera, 4
+  Sun azimuths a field), ``frames`` frames;
+- ``per_frame``: the ungrouped path (:data:`PER_FRAME`: each frame its own field, worker start-up, scene,
+  horizon map and G-buffer), ``per_frame_frames`` frames;
 
 and reports end-to-end frames/s of each (field generation and patches, worker start-up, rendering,
 labels: the command's own ``seconds``), their ratio, and the workers' breakdown from their STATS lines
@@ -21,10 +21,11 @@ from pathlib import Path
 
 from crater_synth.bench.navframes import worker_stats
 from crater_synth.config import load_settings
-from crater_synth.dataset.detection import PER_FRAME, Grouping, detection_overrides
+from crater_synth.dataset.detection import detection_overrides
 from crater_synth.dataset.detection_run import render_detection_frames
 
 FIELD_PX_512 = 1400  # check_field_fits: a 512 px frame at the grid's spacing, 45 deg off nadir
+PER_FRAME = ("detection.views_per_field=1", "detection.suns_per_view=1", "detection.azimuths_per_field=0")
 
 
 def _breakdown(out: Path) -> dict:
@@ -37,10 +38,10 @@ def _breakdown(out: Path) -> dict:
     return {k: round(v, 3) for k, v in sorted(total.items())}
 
 
-def _run(overrides: list[str], out: Path, frames: int, width: int, grouping: Grouping) -> dict:
+def _run(overrides: list[str], out: Path, frames: int) -> dict:
     settings = load_settings(detection_overrides(overrides))
     t0 = time.perf_counter()
-    summary = render_detection_frames(settings, out, frames, width, 0, grouping)
+    summary = render_detection_frames(settings, out, frames)
     wall = time.perf_counter() - t0
     return {
         "frames": summary["rendered"],
@@ -56,9 +57,9 @@ def bench_detection(overrides, work: Path, frames: int = 256, per_frame_frames: 
     """Grouped and per-frame detection frames/s at 256² and 512² (module docstring)."""
     out: dict = {}
     for width, extra in ((256, []), (512, [f"procedural.size_px={FIELD_PX_512}"])):
-        ov = [*extra, *overrides]
-        grouped = _run(ov, work / f"grouped_{width}", frames, width, Grouping())
-        single = _run(ov, work / f"per_frame_{width}", per_frame_frames, width, PER_FRAME)
+        ov = [f"detection.width_px={width}", *extra, *overrides]
+        grouped = _run(ov, work / f"grouped_{width}", frames)
+        single = _run([*ov, *PER_FRAME], work / f"per_frame_{width}", per_frame_frames)
         out[f"{width}px"] = {
             "grouped": grouped,
             "per_frame": single,

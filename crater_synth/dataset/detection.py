@@ -1,37 +1,33 @@
 """Detection frames: whole camera frames of procedural crater fields, rendered by the dataset's renderer,
 labelled with every crater the field holds (``crater-synth detection-frames --out DIR --frames N``;
-docs/procedural.md, "Detection frames").
+docs/procedural.md, "Detection frames"; the run and its folder: :mod:`.detection_run`).
 
-Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the same whatever N is):
+Per frame i (everything drawn from the run's ``seed`` and i, so a frame is the same whatever N is; the
+ranges and shares are ``detection.*``, crater_core/settings_detection.py):
 
-1. **Terrain**: field f = i // ``views_per_field`` (default 1: a field per frame), a crater field of
-   ``procedural.*`` (:func:`crater_core.procedural.generate`) seeded from the run's seed and f, as the
-   worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the
-   Moon) centred on (:data:`PATCH_LAT`, :data:`PATCH_LON`).
-2. **Conditions** (:func:`draw_conditions`): the Sun at any azimuth, :data:`SUN_ELEVATION_RANGE_DEG` high;
-   a nadir view (:data:`NADIR_SHARE` of the frames) or one :data:`OFF_NADIR_RANGE_DEG` off nadir at
-   any azimuth; a ground sample between the grid spacing and :data:`GSD_MAX_FACTOR` times it (the image is
-   never finer than the terrain), lowered if need be so that the frame's footprint stays inside the field.
+1. **Terrain**: field f = i // ``views_per_field``, a crater field of ``procedural.*``
+   (:func:`crater_core.procedural.generate`) seeded from the run's seed and f, at :func:`field_spacing`, as
+   the worker's terrain patch (:mod:`crater_synth.terrain.procedural_patch`, curved with the Moon) centred
+   on (:data:`PATCH_LAT`, :data:`PATCH_LON`).
+2. **Conditions** (:func:`draw_conditions`): the Sun ``sun_elevation_deg`` high at an azimuth of the
+   field's set (:func:`sun_azimuths`) or any; a nadir view (``nadir_share`` of the views) or one
+   ``off_nadir_deg`` off nadir at any azimuth, shared by the frames of a view (:func:`view_rng`); a ground
+   sample between the grid spacing and ``gsd_max_factor`` times it (the image is never finer than the
+   terrain), lowered if need be so that the frame's footprint stays inside the field.
 3. **Render**: one worker job per field through :func:`crater_synth.dataset.dispatch.run_workers`, an
    explicit camera in the patch's ENU frame, as ``nav-frames`` renders (docs/renderer.md, "Worker
    contract"); fast mode's G-buffer at one (centre) sample unless the command sets the samples.
 4. **Labels** (:func:`frame_labels`): every crater of ``detectable()`` whose rim-centre point projects into
    the frame and whose projected rim spans at least :data:`MIN_RIM_SPAN_PX` pixels: the rim circle (D/2 at
    the rim's mean grid height, level with the crater's own local horizontal) projected exactly through the
-   camera (:func:`crater_core.geometry.project_circle`), its lit and hidden rim fractions read from the
+   camera (:func:`crater_core.geometry.project_circles`), its lit and hidden rim fractions read from the
    frame's ``lit`` and ``depth`` channels (:mod:`crater_core.rim_fractions`).
-
-Output: ``<out>/frame_NNNNNN.exr`` (the dataset's channels) and ``<out>/manifest.jsonl`` (one row per frame,
-rewritten atomically after every chunk of fields). Fields are rendered in chunks of
-:data:`CHUNK_PER_WORKER` x ``render.workers``, one worker job per field (its scene and BVH built once for
-its frames); a chunk's patches are deleted once it is rendered.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -40,6 +36,7 @@ import numpy as np
 from crater_core import exr, geometry, rim_fractions, schema
 from crater_core.procedural import ProceduralTerrain, generate
 from crater_core.settings import CraterSettings, replace
+from crater_core.settings_detection import DetectionSettings
 from crater_synth.dataset.plan import CraterJob, camera_worker_item, code_version, hapke_dict
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
@@ -67,12 +64,6 @@ DETECTION_LABEL_FIELDS = (
     ("occluded_rim_fraction", "float"),
     ("occluded", "bool"),
 )
-WIDTH_PX = 256
-FOV_DEG = 30.0  # the ground sample varies by ~7 % across a nadir frame: close to a mapping camera
-SUN_ELEVATION_RANGE_DEG = (0.5, 60.0)
-NADIR_SHARE = 0.25  # frames looking straight down (mapping passes); the others are oblique
-OFF_NADIR_RANGE_DEG = (0.0, 45.0)  # oblique frames: off-nadir angle drawn uniform in this range
-GSD_MAX_FACTOR = 2.0  # ground sample drawn log-uniform in [1, GSD_MAX_FACTOR] x the grid spacing
 FOOTPRINT_MARGIN = 1.1  # field half-width / footprint half-extent at least this (relief, curvature)
 PATCH_LAT, PATCH_LON = 0.0, 0.0  # where the field lies on the Moon (the Sun is set in its ENU frame)
 MIN_RIM_SPAN_PX = 3.0  # a label's projected rim spans at least this many pixels (2a)
@@ -115,53 +106,51 @@ def field_azimuths(run_seed: int, field: int, count: int) -> np.ndarray:
     return (offset + 360.0 * np.arange(count) / count) % 360.0
 
 
-@dataclass(frozen=True)
-class Grouping:
-    """How frames share a worker's work (docs/procedural.md, "Rate"): frame i views field
-    i // ``views_per_field`` (one patch, scene and BVH), shares its camera with the frames of its view, the
-    ``suns_per_view`` consecutive frames from i - i % ``suns_per_view`` (one G-buffer), and takes its Sun
-    azimuth from the field's ``azimuths_per_field`` azimuths (one horizon map each; 0: every frame draws
-    its own). The Sun's elevation is always the frame's own."""
-
-    # The default recipe (docs/procedural.md, "Rate"): 16 cameras per field, each under 4 Suns, from 4
-    # azimuths a field; per frame ~40 % of the worker time of ungrouped frames' setup alone.
-    views_per_field: int = 64
-    suns_per_view: int = 4
-    azimuths_per_field: int = 4
-
-    def check(self) -> None:
-        if self.views_per_field < 1 or self.suns_per_view < 1 or self.azimuths_per_field < 0:
-            raise UserError(
-                f"--views-per-field {self.views_per_field}, --suns-per-view {self.suns_per_view}, "
-                f"--azimuths-per-field {self.azimuths_per_field}: the first two must be >= 1, the last >= 0"
-            )
-        if self.views_per_field % self.suns_per_view:
-            raise UserError(
-                f"--views-per-field {self.views_per_field} is not a multiple of --suns-per-view "
-                f"{self.suns_per_view}: a view's frames must lie in one field"
-            )
-
-    def field(self, index: int) -> int:
-        return index // self.views_per_field
-
-    def view_rng(self, run_seed: int, index: int) -> np.random.Generator | None:
-        """The stream the view of frame ``index`` is drawn from: None for the view's first frame (its own
-        stream, after its Sun), else that first frame's stream past its two Sun draws."""
-        first = index - index % self.suns_per_view
-        if first == index:
-            return None
-        rng = frame_seeds(run_seed, first)[1]
-        rng.random(2)  # the first frame's Sun elevation and azimuth (draw_conditions)
-        return rng
-
-    def azimuths(self, run_seed: int, field: int) -> np.ndarray | None:
-        return field_azimuths(run_seed, field, self.azimuths_per_field) if self.azimuths_per_field else None
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+# A field's grid spacing (detection.spacing_m a range) is drawn from its own stream too.
+SPACING_STREAM = 0x535043  # "SPC"
 
 
-PER_FRAME = Grouping(1, 1, 0)  # every frame its own field, camera and Sun azimuth: the baseline of the bench
+def grouping(det: DetectionSettings) -> dict:
+    """How frames share a worker's work (docs/procedural.md, "Detection frames"): frame i views field
+    i // ``views_per_field`` (one patch, scene and BVH), shares its camera with the ``suns_per_view``
+    consecutive frames from i - i % ``suns_per_view`` (one G-buffer), and takes its Sun azimuth from the
+    field's ``azimuths_per_field`` azimuths (one horizon map each; 0: every frame draws its own). The Sun's
+    elevation is always the frame's own."""
+    return {k: getattr(det, k) for k in ("views_per_field", "suns_per_view", "azimuths_per_field")}
+
+
+def field_of(det: DetectionSettings, index: int) -> int:
+    return index // det.views_per_field
+
+
+def view_first(det: DetectionSettings, index: int) -> int:
+    """The first frame of frame ``index``'s view (the frame whose camera it takes)."""
+    return index - index % det.suns_per_view
+
+
+def view_rng(det: DetectionSettings, run_seed: int, index: int) -> np.random.Generator | None:
+    """The stream the view of frame ``index`` is drawn from: None for the view's first frame (its own
+    stream, after its Sun), else that first frame's stream past its two Sun draws."""
+    first = view_first(det, index)
+    if first == index:
+        return None
+    rng = frame_seeds(run_seed, first)[1]
+    rng.random(2)  # the first frame's Sun elevation and azimuth (draw_conditions)
+    return rng
+
+
+def sun_azimuths(det: DetectionSettings, run_seed: int, field: int) -> np.ndarray | None:
+    return field_azimuths(run_seed, field, det.azimuths_per_field) if det.azimuths_per_field else None
+
+
+def field_spacing(det: DetectionSettings, procedural, run_seed: int, field: int) -> float:
+    """Field ``field``'s grid spacing (m/px): ``procedural.spacing_m``, or drawn log-uniform in
+    ``detection.spacing_m`` from the field's own stream."""
+    if det.spacing_m is None:
+        return float(procedural.spacing_m)
+    lo, hi = det.spacing_m
+    u = np.random.default_rng(np.random.SeedSequence([int(run_seed), int(field), SPACING_STREAM])).random()
+    return float(lo * (hi / lo) ** u)
 
 
 def footprint_extent(off_nadir_deg: float, azimuth_deg: float, fov_deg: float) -> np.ndarray:
@@ -173,15 +162,16 @@ def footprint_extent(off_nadir_deg: float, azimuth_deg: float, fov_deg: float) -
     return np.abs(ground[:, :2]).max(axis=0)
 
 
-def check_field_fits(procedural, width_px: int, fov_deg: float = FOV_DEG) -> None:
+def check_field_fits(procedural, det: DetectionSettings) -> None:
     """One error, before anything is written, when the fields of ``procedural`` cannot hold a frame's
     footprint at the grid's own ground sample in the most oblique view at its worst azimuth."""
-    worst = max(float(footprint_extent(OFF_NADIR_RANGE_DEG[1], az, fov_deg).max()) for az in range(0, 360, 5))
-    focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
+    off = det.off_nadir_deg[1] if det.nadir_share < 1.0 else 0.0
+    worst = max(float(footprint_extent(off, az, det.fov_deg).max()) for az in range(0, 360, 5))
+    focal = 0.5 * det.width_px / math.tan(math.radians(det.fov_deg) / 2.0)
     need_px = 2.0 * worst * FOOTPRINT_MARGIN * focal + 1.0
     if procedural.size_px < need_px:
         raise UserError(
-            f"procedural.size_px={procedural.size_px}: a {width_px} px frame {OFF_NADIR_RANGE_DEG[1]:g} deg off "
+            f"procedural.size_px={procedural.size_px}: a {det.width_px} px frame {off:g} deg off "
             f"nadir at the grid's ground sample needs a field of at least {math.ceil(need_px)} px: raise it"
         )
 
@@ -189,8 +179,7 @@ def check_field_fits(procedural, width_px: int, fov_deg: float = FOV_DEG) -> Non
 def draw_conditions(
     rng: np.random.Generator,
     terrain: ProceduralTerrain,
-    width_px: int,
-    fov_deg: float,
+    det: DetectionSettings,
     azimuths: np.ndarray | None = None,
     view_rng: np.random.Generator | None = None,
 ) -> dict:
@@ -198,16 +187,16 @@ def draw_conditions(
     the patch frame, looking at a target whose footprint stays inside the field. The Sun comes from
     ``rng``; its azimuth is the one of ``azimuths`` (a field's set, :func:`field_azimuths`) that the same
     uniform draw falls on, when given. The view comes from ``view_rng`` (the view's first frame's stream,
-    :meth:`Grouping.view_rng`) when given, else from ``rng``."""
-    s = terrain.spacing_m
-    sun_el = float(rng.uniform(*SUN_ELEVATION_RANGE_DEG))
+    :func:`view_rng`) when given, else from ``rng``. Ranges and shares: ``det``."""
+    s, width_px, fov_deg = terrain.spacing_m, det.width_px, det.fov_deg
+    sun_el = float(rng.uniform(*det.sun_elevation_deg))
     sun_az = float(rng.uniform(0.0, 360.0))
     if azimuths is not None and len(azimuths):
         sun_az = float(azimuths[min(int(sun_az / 360.0 * len(azimuths)), len(azimuths) - 1)])
     rng = rng if view_rng is None else view_rng
-    off = 0.0 if rng.random() < NADIR_SHARE else float(rng.uniform(*OFF_NADIR_RANGE_DEG))
+    off = 0.0 if rng.random() < det.nadir_share else float(rng.uniform(*det.off_nadir_deg))
     view_az = float(rng.uniform(0.0, 360.0))
-    gsd = s * float(np.exp(rng.uniform(0.0, math.log(GSD_MAX_FACTOR))))
+    gsd = s * float(np.exp(rng.uniform(0.0, math.log(det.gsd_max_factor))))
     focal = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
     extent = footprint_extent(off, view_az, fov_deg) * FOOTPRINT_MARGIN
     half = grid_centre_m(terrain)
@@ -325,13 +314,15 @@ def worker_item(index: int, cond: dict, seed: int, header: dict) -> dict:
     )
 
 
-def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_px: int, grouping: Grouping) -> dict:
-    """Field ``field``'s terrain (generated from the terrain stream of ``frame_seeds(seed, field)``, its patch
-    written under ``patch_dir``) and the conditions of its frames ``indices`` (each from its own stream, the
-    view and Sun azimuth shared as ``grouping`` says):
-    {"job": one worker job for them all, "frames": index -> {terrain, cond, field, terrain_seed, terrain_id}}."""
+def plan_field(settings, field: int, indices: list[int], patch_dir: Path) -> dict:
+    """Field ``field``'s terrain (generated from the terrain stream of ``frame_seeds(seed, field)``, at
+    :func:`field_spacing`, its patch written under ``patch_dir``) and the conditions of its frames
+    ``indices`` (each from its own stream, the view and Sun azimuth shared as :func:`grouping` says):
+    {"job": one worker job for them all, "frames": index -> {terrain, cond, field, terrain_seed, ...}}."""
+    det = settings.detection
     terrain_seed = frame_seeds(settings.seed, field)[0]
-    psettings = replace(settings.procedural, seed=terrain_seed)
+    spacing = field_spacing(det, settings.procedural, settings.seed, field)
+    psettings = replace(settings.procedural, seed=terrain_seed, spacing_m=spacing)
     try:
         terrain = generate(psettings)
     except ValueError as exc:
@@ -344,10 +335,10 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
     crater = CraterSettings(name=f"detection-{field:06d}", lat=PATCH_LAT, lon=PATCH_LON, diameter_km=map_d_km)
     job = CraterJob(crater=crater, npz=npz, meta={"terrain_id": terrain_id})
     frames = {}
-    azimuths = grouping.azimuths(settings.seed, field)
+    azimuths = sun_azimuths(det, settings.seed, field)
     for index in indices:
         _, rng, seed = frame_seeds(settings.seed, index)
-        cond = draw_conditions(rng, terrain, width_px, FOV_DEG, azimuths, grouping.view_rng(settings.seed, index))
+        cond = draw_conditions(rng, terrain, det, azimuths, view_rng(det, settings.seed, index))
         header = {
             "detection_frame": index,
             "terrain_id": terrain_id,
@@ -357,7 +348,7 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
             "samples": int(settings.render.samples),
             "hapke": json.dumps(hapke_dict(settings.hapke), sort_keys=True),
             "seed": seed,
-            "grouping": json.dumps(grouping.as_dict(), sort_keys=True),
+            "detection": json.dumps(det.as_dict(), sort_keys=True),
         }
         item = worker_item(index, cond, seed, header)
         job.plans.append({"params": SimpleNamespace(index=index, indices=(0, 0, 0, index)), "item": item})
@@ -367,8 +358,8 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path, width_
             "field": field,
             "terrain_seed": terrain_seed,
             "terrain_id": terrain_id,
-            "view_first": index - index % grouping.suns_per_view,
-            "grouping": grouping.as_dict(),
+            "view_first": view_first(det, index),
+            "grouping": grouping(det),
         }
     return {"job": job, "frames": frames}
 
@@ -415,11 +406,13 @@ def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
 
 
 def detection_overrides(overrides) -> list[str]:
-    """The command's defaults ahead of the user's overrides: ``procedural=detection`` unless a
-    ``procedural=`` option is named, and fast mode's one-sample G-buffer unless the samples are set."""
+    """The command's defaults ahead of the user's overrides: ``procedural=detection`` and
+    ``detection=default`` unless an option of the group is named, and fast mode's one-sample G-buffer unless
+    the samples are set."""
     overrides = list(overrides)
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     first = [] if "procedural" in keys else ["procedural=detection"]
+    first += [] if "detection" in keys else ["detection=default"]
     if not keys & {"render.samples", "render.gbuffer_samples"}:
         first.append("render.gbuffer_samples=1")
     return first + overrides

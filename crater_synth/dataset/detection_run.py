@@ -20,6 +20,7 @@ import multiprocessing
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import click
@@ -32,12 +33,12 @@ from crater_synth.config import load_settings
 from crater_synth.dataset.detection import (
     CHUNK_PER_WORKER,
     PATCH_DIR,
-    WIDTH_PX,
-    Grouping,
     check_field_fits,
     detection_overrides,
+    field_of,
     frame_rel_path,
     frame_row,
+    grouping,
     manifest_rows,
     plan_field,
 )
@@ -49,10 +50,11 @@ from crater_synth.outfolder import OutFolder
 KIND = "detection"
 
 
-def recipe_key(settings, width_px: int, grouping: Grouping) -> str:
+def recipe_key(settings) -> str:
     """The set's recipe: every setting that can change a frame's pixels or labels (the dataset's identity
-    rule, crater_synth.dataset.identity), the frame width, the grouping and the horizon maps' version."""
-    payload = settings_payload(settings, IGNORED) | {"width_px": width_px, "grouping": grouping.as_dict()}
+    rule, crater_synth.dataset.identity), ``detection.*`` (which a sweep's identity leaves out) and the
+    horizon maps' version."""
+    payload = settings_payload(settings, IGNORED) | {"detection": settings.detection.as_dict()}
     return schema.content_key(payload | {"horizon_version": HORIZON_VERSION})
 
 
@@ -70,9 +72,9 @@ def _kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[i
     return rows, done
 
 
-def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path, width_px: int, grouping: Grouping):
+def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
     chunk_dir.mkdir(parents=True, exist_ok=True)
-    return [plan_field(settings, f, idx, chunk_dir, width_px, grouping) for f, idx in by_field.items()]
+    return [plan_field(settings, f, idx, chunk_dir) for f, idx in by_field.items()]
 
 
 def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -> None:
@@ -103,7 +105,7 @@ def _write_manifest(folder: OutFolder, rows: dict) -> None:
     folder.seal([schema.MANIFEST_NAME])
 
 
-def _render_chunks(settings, folder: OutFolder, chunks: list[dict], width_px: int, grouping: Grouping, rows) -> None:
+def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) -> None:
     """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
     while chunk k renders; the manifest is written after each chunk and when the run stops early."""
     patches = folder.path / PATCH_DIR
@@ -112,38 +114,41 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], width_px: in
     with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as planner:
         try:
             # the first chunk here: the workers have nothing to do yet
-            fields = _plan_chunk(settings, chunks[0], patches / "chunk_0", width_px, grouping)
+            fields = _plan_chunk(settings, chunks[0], patches / "chunk_0")
             for k in range(len(chunks)):
                 nxt = None
                 if k + 1 < len(chunks):
-                    nxt = planner.submit(
-                        _plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}", width_px, grouping
-                    )
+                    nxt = planner.submit(_plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}")
                 _render_chunk(settings, fields, folder, rows)
                 shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
                 _write_manifest(folder, rows)
                 if nxt is not None:
-                    fields = nxt.result()
+                    try:
+                        fields = nxt.result()
+                    except BrokenProcessPool:
+                        raise UserError(
+                            "the process generating the next crater fields died (out of memory?); rerun to resume"
+                        ) from None
         finally:
             planner.shutdown(cancel_futures=True)
             _write_manifest(folder, rows)
             shutil.rmtree(patches, ignore_errors=True)
 
 
-def render_detection_frames(
-    settings, out_dir: Path, n_frames: int, width_px: int = WIDTH_PX, start: int = 0, grouping: Grouping = Grouping()
-) -> dict:
+def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0) -> dict:
     """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
-    frames of the range already there (module docstring); frames share fields, views and Sun azimuths as
-    ``grouping`` says. Returns a summary."""
-    if settings.procedural is None:
-        raise ConfigError("no procedural field selected: add procedural=detection (configs/procedural/)")
+    frames of the range already there (module docstring); ``settings.detection`` sets the conditions and
+    how frames share fields, views and Sun azimuths. Returns a summary."""
+    if settings.procedural is None or settings.detection is None:
+        raise ConfigError(
+            "no procedural field or detection recipe selected: add procedural=detection detection=default"
+        )
     if n_frames < 1:
         raise UserError(f"--frames {n_frames}: must be >= 1")
-    grouping.check()
-    check_field_fits(settings.procedural, width_px)
+    det = settings.detection
+    check_field_fits(settings.procedural, det)
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
-    folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings, width_px, grouping)}")
+    folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings)}")
     folder.check()
     bad = folder.unlisted()
     if bad:
@@ -156,13 +161,13 @@ def render_detection_frames(
         by_field: dict[int, list[int]] = {}
         for i in wanted:
             if i not in done:
-                by_field.setdefault(grouping.field(i), []).append(i)
+                by_field.setdefault(field_of(det, i), []).append(i)
         size = max(1, CHUNK_PER_WORKER * int(settings.render.workers))
         ids = sorted(by_field)
         chunks = [{f: by_field[f] for f in ids[k : k + size]} for k in range(0, len(ids), size)]
         t0 = time.perf_counter()
         if chunks:
-            _render_chunks(settings, folder, chunks, width_px, grouping, rows)
+            _render_chunks(settings, folder, chunks, rows)
         else:
             _write_manifest(folder, rows)
         seconds = time.perf_counter() - t0
@@ -174,11 +179,11 @@ def render_detection_frames(
         "frames": len(ordered),
         "rendered": rendered,
         "kept": len(done),
-        "fields": len({grouping.field(i) for i in wanted}),
+        "fields": len({field_of(det, i) for i in wanted}),
         "frames_in_manifest": len(rows),
         "out_dir": str(folder.path),
-        "width_px": width_px,
-        "grouping": grouping.as_dict(),
+        "width_px": det.width_px,
+        "grouping": grouping(det),
         "modes_used": sorted({r["mode"] for r in ordered}),
         "labels": sum(len(r["labels"]) for r in ordered),
         "seconds": round(seconds, 2),
@@ -191,41 +196,15 @@ def render_detection_frames(
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
 @click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
 @click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
-@click.option("--width", "width_px", type=int, default=WIDTH_PX, show_default=True, help="Frame side (px).")
-@click.option(
-    "--views-per-field",
-    type=int,
-    default=Grouping.views_per_field,
-    show_default=True,
-    help="Frames per crater field (one scene and patch for them all).",
-)
-@click.option(
-    "--suns-per-view",
-    type=int,
-    default=Grouping.suns_per_view,
-    show_default=True,
-    help="Consecutive frames sharing one camera, each under its own Sun (one G-buffer for them all).",
-)
-@click.option(
-    "--azimuths-per-field",
-    type=int,
-    default=Grouping.azimuths_per_field,
-    show_default=True,
-    help="Sun azimuths a field's frames share, evenly spaced (one horizon map each); 0: each frame its own.",
-)
 @user_errors
-def detection_frames_command(
-    overrides, out, n_frames, start, width_px, views_per_field, suns_per_view, azimuths_per_field
-):
+def detection_frames_command(overrides, out, n_frames, start):
     """Render labelled detection frames of procedural crater fields (EXR + manifest), resumably.
 
-    Each frame draws its field (procedural.*, default procedural=detection), Sun and view from the run seed
-    and its index. Example: `crater-synth detection-frames --out data/detection --frames 8 seed=1`
+    Each frame draws its field (procedural.*, default procedural=detection), Sun and view (detection.*, default
+    detection=default: conditions and grouping) from the run seed and its index. Example:
+    `crater-synth detection-frames --out data/detection --frames 8 seed=1 detection.width_px=512`
     """
-    if width_px < 16:
-        raise UserError(f"--width {width_px}: must be >= 16 px")
     if start < 0:
         raise UserError(f"--start {start}: must be >= 0")
     settings = load_settings(detection_overrides(overrides))
-    grouping = Grouping(views_per_field, suns_per_view, azimuths_per_field)
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, width_px, start, grouping)))
+    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, start)))

@@ -49,6 +49,7 @@ IGNORED: dict[str, str] = {
     "out_dir": "where the dataset is written",
     "run_dir": "where training writes",
     "trajectory": "navigation frames only (their poses and Sun); a sweep render never reads it",
+    "detection": "detection frames only (their conditions and grouping); a sweep render never reads it",
 }
 
 

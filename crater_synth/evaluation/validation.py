@@ -138,6 +138,7 @@ NEUTRAL_LATER_KEYS = {
     ("render", "blender"): None,  # null: the bpy module, as every run before the setting existed
     ("realset", "mosaic", "pole"): None,  # read from the product's CRS unless set
     ("procedural",): None,  # the procedural terrain group: unset for every DEM-rendered run
+    ("detection",): None,  # detection frames' group: unset for every sweep run
 }
 
 

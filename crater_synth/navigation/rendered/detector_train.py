@@ -75,7 +75,7 @@ def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     return u, v, r, d, (lit < MIN_LIT_RIM) | occluded
 
 
-def detection_records(folder: Path, holdout_share: float) -> tuple[list, list, dict]:
+def detection_set_records(folder: Path, holdout_share: float) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set: (I/F image, row) of every
     frame, the frames of the last ``holdout_share`` of its fields held out (a field's frames share craters)."""
     rows = sorted(detection_rows(folder).values(), key=lambda r: r["index"])
@@ -158,7 +158,7 @@ def train_from_detection(
 ) -> dict:
     """Train the detector on a detection set's frames (procedural crater fields only), holding out the last
     ``holdout_share`` of its fields, score it on those, and save it to ``out`` with its provenance."""
-    train_records, holdout_records, what = detection_records(folder, holdout_share)
+    train_records, holdout_records, what = detection_set_records(folder, holdout_share)
     what = {
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
         "frames_dir": str(folder),
