@@ -1,0 +1,97 @@
+"""``python -m crater_synth.tools.detector_choice``: choose a learned detector model and its detection threshold
+on the south validation windows, by detection F1 against the LU1319381 catalogue for D >= 15 km (the issue's
+whole-frame measure), and write the runs and the choice as JSON.
+
+Every (model, threshold) pair runs the ``learned-detect`` option of ``nav-eval`` (the detection operating
+point: no light, no rim fit) on the same south validation windows (``--every N`` of them), the committed
+model among the candidates so the table holds the baseline measured in the same run. The chosen pair is the
+highest F1; ties go to the higher precision. The north windows are a test: this tool never reads them; run
+``nav-eval --pole north`` once with the choice, after it is committed.
+
+    python -m crater_synth.tools.detector_choice --model A.pt --model B.pt --thresholds 0.2,0.3,0.4 \\
+        --every 2 --out docs/results/detector_choice_south.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from crater_core.schema import atomic_write_text
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
+from crater_synth.navigation.windows.evaluate import PRIOR_OFFSET_KM, evaluate_split, nav_eval_map, nav_eval_request
+
+POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
+
+
+def f1(precision: float | None, recall: float | None) -> float | None:
+    if not precision or not recall:
+        return None if precision is None or recall is None else 0.0
+    return round(2.0 * precision * recall / (precision + recall), 4)
+
+
+def run_pair(model: str, threshold: float, landmarks, every: int) -> dict:
+    """``learned-detect`` with ``model`` at ``threshold`` on the south validation windows: its detection
+    scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
+    overrides = ["nav/detector=learned-detect", f"nav.detector.threshold={threshold}"]
+    if model != "committed":
+        overrides.append(f"nav.detector.model={model}")
+    settings, _, _ = nav_eval_request(every, PRIOR_OFFSET_KM, False, False, overrides)
+    nav = settings["learned-detect"]
+    t0 = time.perf_counter()
+    summary, _ = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=every, pole=POLE)
+    cat = summary["all_windows"].get("against_catalogue", {})
+    return {
+        "model": model,
+        "threshold": threshold,
+        "catalogue_15km": cat | {"f1": f1(cat.get("precision_15km"), cat.get("recall_15km"))},
+        "map_by_size_km": summary["all_windows"].get("by_size_km"),
+        "fix_rate": summary["all_windows"].get("fix_rate"),
+        "false_fixes": summary["all_windows"].get("false_fixes"),
+        "windows": summary["all_windows"]["windows"],
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def choose(runs: list[dict]) -> dict:
+    scored = [r for r in runs if r["catalogue_15km"]["f1"] is not None]
+    best = max(scored, key=lambda r: (r["catalogue_15km"]["f1"], r["catalogue_15km"]["precision_15km"] or 0.0))
+    return {"model": best["model"], "threshold": best["threshold"], "catalogue_15km": best["catalogue_15km"]}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", action="append", default=[], help="a candidate model file (repeatable)")
+    p.add_argument("--thresholds", default="0.2,0.3,0.4", help="heat thresholds, comma-separated")
+    p.add_argument("--every", type=int, default=2, help="every Nth south validation window")
+    p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
+    args = p.parse_args(argv)
+    thresholds = [float(t) for t in args.thresholds.split(",")]
+    landmarks, _ = nav_eval_map(POLE, None)
+    runs = []
+    for model in ["committed", *args.model]:
+        for t in thresholds:
+            r = run_pair(model, t, landmarks, args.every)
+            c = r["catalogue_15km"]
+            print(
+                f"{model} t={t}: F1 {c['f1']} P {c['precision_15km']} R {c['recall_15km']} ({r['seconds']} s)",
+                flush=True,
+            )
+            runs.append(r)
+    doc = {
+        "command": "python -m crater_synth.tools.detector_choice " + " ".join(argv or []),
+        "split": f"{POLE} {SPLIT}, every {args.every}th window",
+        "committed_model": str(DEFAULT_MODEL),
+        "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",
+        "runs": runs,
+        "chosen": choose(runs),
+    }
+    print(json.dumps(doc["chosen"]))
+    if args.out:
+        atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
