@@ -1,0 +1,17 @@
+"""tools.detector_choice: the rule that picks a learned model and threshold on the south validation windows."""
+
+from crater_synth.tools.detector_choice import POLE, SPLIT, choose, f1
+
+
+def _run(model, t, p, r):
+    return {"model": model, "threshold": t, "catalogue_15km": {"precision_15km": p, "recall_15km": r, "f1": f1(p, r)}}
+
+
+def test_f1_and_the_choice_rule():
+    assert f1(0.9, 0.5) == round(2 * 0.45 / 1.4, 4) and f1(0.0, 0.5) == 0.0 and f1(None, 0.5) is None
+    runs = [_run("committed", 0.3, 0.91, 0.38), _run("a.pt", 0.3, 0.7, 0.7), _run("a.pt", 0.4, 0.8, 0.6)]
+    runs.append(_run("b.pt", 0.2, None, None))  # no detection of D >= 15 km: never chosen
+    assert choose(runs)["model"] == "a.pt" and choose(runs)["threshold"] == 0.3
+    tie = [_run("x", 0.2, 0.6, 0.8), _run("y", 0.3, 0.8, 0.6)]  # same F1: the more precise
+    assert choose(tie)["model"] == "y"
+    assert (POLE, SPLIT) == ("south", "validation")  # never the north test, nor the spent south test
