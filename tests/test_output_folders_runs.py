@@ -187,11 +187,12 @@ def test_a_refused_run_leaves_no_folder_where_there_was_none(tmp_path, monkeypat
     assert not (tmp_path / "a").exists()
 
 
-def test_train_into_a_dataset_folder_is_refused_and_nothing_is_written(tmp_path, monkeypatch):
+def test_train_into_its_own_dataset_folder_is_refused_and_nothing_is_written(tmp_path, monkeypatch):
     ds = tmp_path / "ds"
     ds.mkdir()
     (ds / MARKERS["dataset"]).write_text("crater-synth dataset\n")
-    result = _train(ds, monkeypatch, _no_training)
+    monkeypatch.setattr(classifiers, "train_and_evaluate", _no_training)
+    result = CliRunner().invoke(classifiers.train_command, [f"run_dir={ds}", f"train.dataset_dir={ds}", *ARGS])
     assert result.exit_code != 0 and "rendered dataset" in result.output
     assert sorted(p.name for p in ds.iterdir()) == [MARKERS["dataset"]]
 
