@@ -23,7 +23,7 @@ from crater_synth.navigation.rendered.labels import nav_frames_relabel_command
 from crater_synth.outfolder import LOCK_NAME, MARKERS, SHARED, OutFolder, file_lock
 from crater_synth.report.build import report_command
 from train.registry import ARTEFACTS, MODELS
-from train.runs import SUMMARY_FILE, TRAIN_FILES
+from train.runs import EVALUATE_FILES, SUMMARY_FILE, TRAIN_FILES
 
 ARGS = ["train.progress=false"]
 RUN_MARKER = SHARED["run"][0]
@@ -347,3 +347,62 @@ def test_landmarks_replaces_its_own_map_atomically_and_refuses_a_concurrent_buil
     assert result.exit_code != 0 and f"--out {out} {BUSY}" in result.output and calls == ["build", "build"]
     result = _landmarks(tmp_path / "new" / "map.geojson", tmp_path / "new" / "map.png", "nav.landmarks.workers=0")
     assert result.exit_code != 0 and not (tmp_path / "new").exists()  # a refused build leaves no folder
+
+
+# -- the proofs match what the real commands write ------------------------------------------------------
+
+
+@pytest.mark.integration
+def test_a_real_run_from_before_markers_is_adopted_by_train_and_evaluate(tmp_path):
+    """`train` on the toy set (train/toydata.py, one epoch at 64 px), its marker removed as the previous
+    version left it: every file proves itself a run's, so `evaluate` and a retrain replace them."""
+    from crater_synth.cli import main
+    from train.toydata import write_toy_dataset
+
+    toy = tmp_path / "toy"
+    write_toy_dataset(toy, sun_elevations=(15.0, 30.0), sun_azimuths=(0.0, 180.0), cam_azimuths=(0.0, 120.0, 240.0))
+    run_dir = tmp_path / "run"
+    args = [
+        f"train.dataset_dir={toy}",
+        f"data_dir={tmp_path}",
+        f"run_dir={run_dir}",
+        f"train.cache_dir={tmp_path / 'cache'}",
+        "model.input_size=64",
+        "train.batch_size=16",
+        "train.max_epochs=1",
+        "train.hog.max_train_images=50",
+        "realset.per_crater=3",
+        "train.num_threads=1",
+        "train.progress=false",
+    ]
+    assert CliRunner().invoke(main, ["train", *args]).exit_code == 0
+    assert sorted(_listed(run_dir)) == sorted(TRAIN_FILES)
+    (run_dir / RUN_MARKER).unlink()
+    result = CliRunner().invoke(main, ["evaluate", *args])
+    assert result.exit_code == 0, result.output
+    assert sorted(_listed(run_dir)) == sorted(EVALUATE_FILES)  # evaluate keeps its own names only
+    (run_dir / RUN_MARKER).unlink()
+    before = json.loads((run_dir / SUMMARY_FILE).read_text())["run_id"]
+    result = CliRunner().invoke(main, ["train", *args, "train.seed=1"])
+    assert result.exit_code == 0, result.output
+    assert sorted(_listed(run_dir)) == sorted(TRAIN_FILES)  # the models, config and summary proved too
+    assert json.loads((run_dir / SUMMARY_FILE).read_text())["run_id"] != before
+
+
+def test_the_figures_the_run_writers_draw_prove_themselves(tmp_path):
+    import numpy as np
+
+    from crater_synth.evaluation.run_folder import proved
+    from train.plots import plot_confusion
+
+    hist = {"threshold": 0.8, "rounds": [{"sun_elevation_count": 1, **{m: 0.5 for m in MODELS}}]}
+    closed_loop.plot_history(hist, tmp_path / "loop_history.png")
+    plot_confusion(tmp_path / "confusion_hog_svm.png", np.eye(2, dtype=int), ["a", "b"], "title")
+    (tmp_path / "confusion_lunarnet_ex.png").write_bytes(b"\x89PNG\r\n\x1a\n a user's own PNG")
+    assert [
+        proved(tmp_path / n) for n in ("loop_history.png", "confusion_hog_svm.png", "confusion_lunarnet_ex.png")
+    ] == [
+        True,
+        True,
+        False,
+    ]
