@@ -56,12 +56,12 @@ WHAT = {
     "export": "crater-synth export shards and their export.json (docs/export.md)",
     "report": "a crater-synth run report (docs/report.md)",
 }
-# Folders several writers share (a run_dir: train, evaluate, loop; the navigation demo and report write their own
-# subfolders of it): the marker lists the files of the writers that keep it, and claims no kind for the folder.
-SHARED = {"run": (".crater-synth-run", "a train, evaluate or loop run (docs/classifiers.md)")}
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)
 MAX_NAMED = 10
+# Folders several writers share (a run_dir: train, evaluate, loop; the navigation demo and report write their own
+# subfolders of it): the marker lists the files of the writers that keep it, and claims no kind for the folder.
+SHARED = {"run": (".crater-synth-run", "a train, evaluate or loop run (docs/classifiers.md)")}
 
 
 class FolderError(UserError):
