@@ -16,6 +16,8 @@
   tolerated (no loader's glob matches it); it is deleted only when the marker lists it.
 - A refused run removes what it created (its marker and lock file, the folders it made while they are
   empty) and nothing else.
+- A folder several writers share (:data:`SHARED`: a ``run_dir``) is claimed by none: each writer's marker
+  entries and checks cover only its own file names (``names``); every other file is another writer's.
 
 ``crater-synth dataset`` keeps its own marker text, lock (crater_synth.dataset.disk.DatasetLock: shards of a
 sweep share a dataset) and recovery of renders (crater_synth.dataset.marker); the other writers use
@@ -30,8 +32,9 @@ import json
 import os
 import socket
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 from crater_core import schema
 from crater_core.files import ensure_writable_dir
@@ -58,6 +61,9 @@ WHAT = {
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)
 MAX_NAMED = 10
+# Folders several writers share (a run_dir: train, evaluate, loop; the navigation demo and report write their own
+# subfolders of it): the marker lists the files of the writers that keep it, and claims no kind for the folder.
+SHARED = {"run": (".crater-synth-run", "a train, evaluate or loop run (docs/classifiers.md)")}
 
 
 class FolderError(UserError):
@@ -72,6 +78,22 @@ def temp_target(name: str) -> str | None:
     return stem.rsplit(".", 1)[0] if "." in stem else None
 
 
+def what(kind: str) -> str:
+    """What a folder of ``kind`` (exclusive, :data:`MARKERS`, or shared, :data:`SHARED`) holds, in words."""
+    return WHAT[kind] if kind in WHAT else SHARED[kind][1]
+
+
+def matplotlib_png(path: Path) -> bool:
+    """``path`` is a PNG matplotlib wrote (its ``Software`` text chunk comes before the pixels): how a
+    writer of figures proves an existing file of a figure's name is a figure, before replacing it."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"\x89PNG\r\n\x1a\n") and b"Matplotlib" in head
+
+
 def marker_kind(folder: Path) -> str | None:
     """The kind whose marker ``folder`` holds (None: no marker)."""
     found = [k for k, m in MARKERS.items() if (Path(folder) / m).is_file()]
@@ -83,7 +105,7 @@ def refuse_kind(folder: Path, kind: str, flag: str) -> None:
     other = [k for k, m in MARKERS.items() if k != kind and (Path(folder) / m).is_file()]
     if other:
         raise FolderError(
-            f"{flag}={folder} holds {WHAT[other[0]]} ({MARKERS[other[0]]}), not {WHAT[kind]}: give another folder"
+            f"{flag}={folder} holds {WHAT[other[0]]} ({MARKERS[other[0]]}), not {what(kind)}: give another folder"
         )
 
 
@@ -135,6 +157,55 @@ def check_replaceable(folder: Path, kind: str, flag: str, legacy: Callable[[Path
         f.refuse(bad)
 
 
+def take_lock(lock: Path, what_: str, other: str):
+    """The exclusive ``flock`` on ``lock`` (an open file holding this process's holder line), taken without
+    waiting; held by another: refused naming the holder (``what_`` names the output, ``other`` what to give
+    instead)."""
+    fh = open(lock, "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        fh.close()
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise
+        who = lock.read_text(errors="replace").strip() or "another process"
+        raise DatasetBusyError(
+            f"{what_} is being written by another crater-synth process ({who}): wait for it to finish, or give "
+            f"another {other}"
+        ) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+    fh.flush()
+    return fh
+
+
+@contextmanager
+def file_lock(target: Path, flag: str) -> Iterator[None]:
+    """One writer of a single output file at a time (``landmarks --out``): the lock is ``.<name>.lock``
+    beside it, removed when the writer is done. A missing folder is created, and removed again (while
+    empty) when the writer fails."""
+    target = Path(target)
+    missing = [p for p in [target.parent, *target.parent.parents] if not p.exists()]
+    ensure_writable_dir(target.parent, flag.lstrip("-"))
+    lock = target.with_name(f".{target.name}.lock")
+    ok = False
+    try:
+        fh = take_lock(lock, f"{flag} {target}", "file")
+        try:
+            yield
+            ok = True
+        finally:
+            lock.unlink(missing_ok=True)  # while held: a second writer either saw it held or sees none
+            fh.close()
+    finally:
+        for d in [] if ok else missing:
+            try:
+                d.rmdir()
+            except OSError:
+                break
+
+
 class OutFolder:
     """A writer's hold on an output folder of one ``kind`` (and ``subject``): :meth:`claim` checks, creates,
     locks and marks it; :meth:`record` lists files before they are written; :meth:`remove` deletes only
@@ -147,9 +218,13 @@ class OutFolder:
         subject: str | None = None,
         flag: str = "--out",
         prove: Callable[[Path], bool] | None = None,
+        names: Callable[[str], bool] | None = None,
     ):
         self.path, self.kind, self.subject, self.flag, self.prove = Path(path), kind, subject, flag, prove
-        self.marker = self.path / MARKERS[kind]
+        # In a shared folder (SHARED), the relative paths this writer writes: only these are its to check;
+        # every other file is another writer's, left alone.
+        self.names = names
+        self.marker = self.path / (MARKERS[kind] if kind in MARKERS else SHARED[kind][0])
         self.files: dict[str, list[int] | None] = {}  # relative path -> [size, mtime_ns] once written
         self._new_dirs: list[Path] = []  # the folders this run created, deepest first
         self._new_files: list[Path] = []  # the files this run created (lock, marker)
@@ -180,7 +255,7 @@ class OutFolder:
             return
         if doc.get("subject") != self.subject:
             raise FolderError(
-                f"{self.flag}={self.path} holds {WHAT[self.kind]} of {doc.get('subject')!r}, not of "
+                f"{self.flag}={self.path} holds {what(self.kind)} of {doc.get('subject')!r}, not of "
                 f"{self.subject!r}: give another folder"
             )
         self.files = {f: v for f, v in doc["files"].items() if (self.path / f).exists()}  # never written: forgotten
@@ -205,11 +280,12 @@ class OutFolder:
         if target is not None:
             return (rel[: -len(name)] + target) in self.files
         # verify's record of a pass (crater_core.verify_file) describes the folder; it is never a user's file
-        return rel in (MARKERS[self.kind], LOCK_NAME, VERIFIED_RECORD) or rel.startswith(JOBS_DIR + "/")
+        return rel in (self.marker.name, LOCK_NAME, VERIFIED_RECORD) or rel.startswith(JOBS_DIR + "/")
 
     def unlisted(self) -> list[str]:
         """Files (relative paths, sorted) that the marker does not list and that are not this writer's
-        bookkeeping: the marker and lock, verify's record, ``.jobs/``, the temp files of listed files."""
+        bookkeeping: the marker and lock, verify's record, ``.jobs/``, the temp files of listed files. In a
+        shared folder, only files of the writer's ``names``."""
         found: list[str] = []
         if not self.path.is_dir():
             return found
@@ -218,6 +294,8 @@ class OutFolder:
             rel_root = Path(root).relative_to(self.path).as_posix()
             for name in sorted(files):
                 rel = name if rel_root == "." else f"{rel_root}/{name}"
+                if self.names is not None and not self.names(rel):
+                    continue
                 if not self._is_bookkeeping(rel) and not self.proved(rel):
                     found.append(rel)
         return found
@@ -227,7 +305,7 @@ class OutFolder:
         more = f" and {len(names) - 1} more" if len(names) > 1 else ""
         raise FolderError(
             f"{self.flag}={self.path} holds {self.path / names[0]}{more}, which crater-synth did not write "
-            f"there as {WHAT[self.kind]}: give a new or empty folder, or move the file away"
+            f"there as {what(self.kind)}: give a new or empty folder, or move the file away"
         )
 
     # -- claiming --------------------------------------------------------------------------------
@@ -254,28 +332,25 @@ class OutFolder:
             raise
         return self
 
-    def _take_lock(self) -> None:
-        lock = self.path / LOCK_NAME
-        fh = open(lock, "a+")
+    def lock(self) -> "OutFolder":
+        """Take only the lock of an existing folder (no check, no marker): a command that changes a file of
+        a folder another writer keeps (``nav-frames-relabel``) or reads one while writing beside it
+        (``report``). Busy: refused naming the holder. :meth:`release` unlocks, the lock file staying;
+        :meth:`discard` (a refused run) also removes it if this created it."""
+        if not (self.path / LOCK_NAME).exists():
+            self._new_files.append(self.path / LOCK_NAME)
         try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            fh.close()
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
-            who = lock.read_text(errors="replace").strip() or "another process"
-            raise DatasetBusyError(
-                f"{self.flag}={self.path} is being written by another crater-synth process ({who}): wait for it "
-                "to finish, or give another folder"
-            ) from None
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-        fh.flush()
-        self._lock = fh
+            self._take_lock()
+        except DatasetBusyError:
+            self._new_files = []
+            raise
+        return self
+
+    def _take_lock(self) -> None:
+        self._lock = take_lock(self.path / LOCK_NAME, f"{self.flag}={self.path}", "folder")
 
     def _write_marker(self) -> None:
-        doc = {"written_by": "crater-synth", "kind": self.kind, "what": WHAT[self.kind], "subject": self.subject}
+        doc = {"written_by": "crater-synth", "kind": self.kind, "what": what(self.kind), "subject": self.subject}
         doc["files"] = dict(sorted(self.files.items()))
         schema.atomic_write_text(self.marker, json.dumps(doc, indent=1, sort_keys=True) + "\n")
 

@@ -11,11 +11,13 @@ from click.testing import CliRunner
 from train.runs import PREVIOUS_DIR, StagedRun
 
 OLD_TIME = 1_700_000_000  # 2023-11-14T22:13:20Z
+# An earlier evaluation's files, as `evaluate` writes them (evaluate replaces only files it can prove are a run's).
+OLD_METRICS, OLD_REALSET = '{"lunarnet_ex": {"real_accuracy": 0.4}}', '{"pred_lunarnet_ex": "old"}\n'
 
 
 def _old_run(run_dir):
     run_dir.mkdir(parents=True)
-    for name, text in (("metrics.json", '{"old": 1}'), ("realset.jsonl", "old\n"), ("model.pt", "weights")):
+    for name, text in (("metrics.json", OLD_METRICS), ("realset.jsonl", OLD_REALSET), ("model.pt", "weights")):
         (run_dir / name).write_text(text)
         os.utime(run_dir / name, (OLD_TIME, OLD_TIME))
 
@@ -35,8 +37,8 @@ def test_keep_previous_moves_only_the_replaced_files_into_a_stamped_folder(tmp_p
     kept = run_dir / PREVIOUS_DIR / "20231114T221320Z"
     assert staged.kept == kept
     assert sorted(p.name for p in kept.iterdir()) == ["metrics.json", "realset.jsonl"]
-    assert (kept / "metrics.json").read_text() == '{"old": 1}'
-    assert (kept / "realset.jsonl").read_text() == "old\n"
+    assert (kept / "metrics.json").read_text() == OLD_METRICS
+    assert (kept / "realset.jsonl").read_text() == OLD_REALSET
     assert (run_dir / "metrics.json").read_text() == '{"new": 2}'
     assert (run_dir / "model.pt").read_text() == "weights"
     assert sorted(p.name for p in (run_dir / PREVIOUS_DIR).iterdir()) == ["20231114T221320Z"]  # no temp left
@@ -49,7 +51,7 @@ def test_keep_previous_moves_only_the_replaced_files_into_a_stamped_folder(tmp_p
         _stage_new(stage)
     assert staged.kept == run_dir / PREVIOUS_DIR / "20231114T221320Z-2"
     assert (staged.kept / "metrics.json").read_text() == '{"new": 2}'
-    assert (kept / "metrics.json").read_text() == '{"old": 1}'
+    assert (kept / "metrics.json").read_text() == OLD_METRICS
 
 
 def test_nothing_is_kept_without_old_files_or_when_not_asked(tmp_path):
@@ -75,7 +77,7 @@ def test_a_failed_evaluation_keeps_nothing_and_leaves_the_old_files(tmp_path):
     except RuntimeError:
         pass
     assert not (run_dir / PREVIOUS_DIR).exists()
-    assert (run_dir / "metrics.json").read_text() == '{"old": 1}'
+    assert (run_dir / "metrics.json").read_text() == OLD_METRICS
 
 
 def test_evaluate_command_keeps_the_old_metrics_and_says_where(tmp_path, monkeypatch):
@@ -97,5 +99,5 @@ def test_evaluate_command_keeps_the_old_metrics_and_says_where(tmp_path, monkeyp
     assert result.exit_code == 0, result.output
     kept = run_dir / PREVIOUS_DIR / "20231114T221320Z"
     assert f"kept the previous metrics files in {kept}/" in result.output
-    assert (kept / "metrics.json").read_text() == '{"old": 1}'
+    assert (kept / "metrics.json").read_text() == OLD_METRICS
     assert (run_dir / "metrics.json").read_text() == '{"new": 2}'

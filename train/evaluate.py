@@ -22,11 +22,10 @@ from train.metrics import accuracy, class_mean_accuracy, confusion
 from train.plots import plot_confusion
 from train.realset import LIMITS_NOTE, RealTestSet, build_real_test_set, canonical_crater
 from train.registry import MODELS
-from train.runs import check_one_run
+from train.runs import METRICS_FILE, REALSET_FILE, SUMMARY_FILE, check_one_run, confusion_file
 from train.trainer import (
     HOG_FILE,
     NET_FILE,
-    SUMMARY_FILE,
     SVM_FILE,
     configure_torch,
     fc1_activations,
@@ -35,8 +34,6 @@ from train.trainer import (
     load_sklearn,
     predict_logits,
 )
-
-METRICS_FILE, REALSET_FILE = "metrics.json", "realset.jsonl"
 
 
 def model_metrics(y_true: np.ndarray, y_pred: np.ndarray, test: RealTestSet, val_accuracy: float | None) -> dict:
@@ -174,7 +171,7 @@ def _metrics_and_confusions(out_dir: Path, test: RealTestSet, preds: dict, vals:
     for name in MODELS:
         metrics[name] = model_metrics(test.labels, np.asarray(preds[name], dtype=np.int64), test, vals[name])
         plot_confusion(
-            out_dir / f"confusion_{name}.png",
+            out_dir / confusion_file(name),
             metrics[name]["confusion"],
             class_names,
             f"{name}: real accuracy {metrics[name]['real_accuracy']:.1%}",

@@ -34,9 +34,22 @@ from typing import Mapping
 from crater_core.files import check_dir_path, ensure_writable_dir
 from crater_core.schema import sha256_file
 from train.errors import ModelError
+from train.registry import ARTEFACTS, MODELS
 
 STAGE_PREFIX, STAGE_SUFFIX = ".train-", ".tmp"
 SUMMARY_FILE = "train_summary.json"  # the run's record: published last
+CONFIG_FILE = "config.yaml"  # the settings the run trained with
+METRICS_FILE, REALSET_FILE = "metrics.json", "realset.jsonl"  # written by the evaluation
+
+
+def confusion_file(model: str) -> str:
+    """The confusion-matrix PNG of ``model`` (a :data:`train.registry.MODELS` key)."""
+    return f"confusion_{model}.png"
+
+
+# The files an evaluation writes into run_dir, and those a training run writes (its evaluation's too).
+EVALUATE_FILES = (METRICS_FILE, REALSET_FILE, *(confusion_file(m) for m in MODELS))
+TRAIN_FILES = (CONFIG_FILE, *ARTEFACTS, SUMMARY_FILE, *EVALUATE_FILES)
 PREVIOUS_DIR = "previous"  # where keep_previous puts the files a re-evaluation replaces
 
 

@@ -34,10 +34,9 @@ from train.errors import ModelError, RealDataLeakError, TrainError
 from train.metrics import accuracy, class_mean_accuracy
 from train.models import LunarNetEx, hog_features, make_linear_svm, multiply_adds, parameter_count
 from train.registry import SPECS
-from train.runs import new_run_id
+from train.runs import CONFIG_FILE, SUMMARY_FILE, new_run_id
 
 NET_FILE, SVM_FILE, HOG_FILE = (SPECS[k].artefact for k in ("lunarnet_ex", "lunarsvm_ex", "hog_svm"))
-SUMMARY_FILE, CONFIG_FILE = "train_summary.json", "config.yaml"
 SKLEARN_FORMAT = 2  # 1: pickle (.pkl, before joblib); 2: joblib
 
 

@@ -7,8 +7,10 @@ import click
 
 from crater_synth.cli_common import OVERRIDES, user_errors, warn
 from crater_synth.config import load_settings
+from crater_synth.evaluation.run_folder import run_writer
 from train.pipeline import evaluate_saved, train_and_evaluate
 from train.registry import MODELS
+from train.runs import EVALUATE_FILES, TRAIN_FILES
 
 
 def _settings(overrides):
@@ -41,7 +43,8 @@ def train_command(overrides):
     e.g. ``crater-synth train sweep=demo train.max_epochs=10 run_dir=outputs/demo``
     """
     settings = _settings(overrides)
-    metrics = train_and_evaluate(settings)
+    with run_writer(settings.run_dir, TRAIN_FILES):  # locked; a user's file of a run's name refused
+        metrics = train_and_evaluate(settings)
     _report(metrics, settings.run_dir)
 
 
@@ -55,7 +58,8 @@ def evaluate_command(overrides):
     """
     settings = _settings(overrides)
     kept: list = []
-    metrics = evaluate_saved(settings, kept=kept.append)
+    with run_writer(settings.run_dir, EVALUATE_FILES):
+        metrics = evaluate_saved(settings, kept=kept.append)
     _report(metrics, settings.run_dir)
     for folder in kept:
         click.echo(f"kept the previous metrics files in {folder}/")

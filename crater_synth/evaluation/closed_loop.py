@@ -33,14 +33,20 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import ConfigError, compose, resolved, settings_from
 from crater_synth.dataset import build_dataset
 from crater_synth.dataset.identity import IGNORED, settings_payload
+from crater_synth.evaluation.run_folder import (
+    HISTORY_FILE,
+    HISTORY_PLOT,
+    IDENTITY_FILE,
+    LOOP_FILES,
+    ROUNDS_DIR,
+    round_dir,
+    run_writer,
+)
 from train.pipeline import train_and_evaluate
-from train.registry import ARTEFACTS, LOOP_MODEL, MODELS, SPECS
-from train.runs import StagedRun
+from train.registry import LOOP_MODEL, MODELS, SPECS
+from train.runs import TRAIN_FILES, StagedRun
 
-HISTORY_FILE = "loop_history.json"
-# Files of the last round that represent the run as a whole.
-FINAL_FILES = ("metrics.json", "realset.jsonl", "train_summary.json", "config.yaml", *ARTEFACTS)
-IDENTITY_FILE = "round_identity.json"  # in a round's directory: its identity and the settings hashed into it
+FINAL_FILES = TRAIN_FILES  # the last round's run, copied to run_dir: it represents the run as a whole
 RESTART_FLAG = "--restart"
 ADOPT_FLAG = "--adopt-rounds"
 
@@ -135,20 +141,20 @@ def check_rounds(cfg: DictConfig, hist: dict, hist_path: Path, adopt: bool) -> N
     adopted = False
     for k, rec in enumerate(hist["rounds"]):
         count = hist["schedule"][k]
-        round_dir = hist_path.parent / "rounds" / f"round{k}-sun{count}"
-        payload = round_identity_payload(settings_from(round_config(cfg, count, round_dir)))
+        rdir = round_dir(hist_path.parent, k, count)
+        payload = round_identity_payload(settings_from(round_config(cfg, count, rdir)))
         identity, where = content_key(payload), f"{hist_path}: round {k} ({count} sun elevations)"
         if rec.get("identity") is None and adopt:
             rec["identity"], adopted = identity, True
-            if round_dir.is_dir():
-                atomic_write_json(round_dir / IDENTITY_FILE, {"identity": identity, "settings": payload})
+            if rdir.is_dir():
+                atomic_write_json(rdir / IDENTITY_FILE, {"identity": identity, "settings": payload})
         elif rec.get("identity") is None:
             raise ConfigError(
                 f"{where} was written before rounds recorded their settings; rerun with {ADOPT_FLAG} "
                 f"if it was trained with these settings, or {redo}"
             )
         elif rec["identity"] != identity:
-            recorded = _recorded_payload(round_dir)
+            recorded = _recorded_payload(rdir)
             what = first_difference(recorded, payload) if recorded else f"{IDENTITY_FILE} unreadable"
             raise ConfigError(f"{where} was trained with other settings ({what}); {redo}")
     if adopted:
@@ -158,7 +164,7 @@ def check_rounds(cfg: DictConfig, hist: dict, hist_path: Path, adopt: bool) -> N
 def restart(run_dir: Path) -> Path | None:
     """Move the loop's history, plot and rounds into ``run_dir/previous/loop-<UTC time>/`` (never deleted);
     returns that folder, or None when there was nothing to move."""
-    names = [n for n in (HISTORY_FILE, "loop_history.png", "rounds") if (run_dir / n).exists()]
+    names = [n for n in (HISTORY_FILE, HISTORY_PLOT, ROUNDS_DIR) if (run_dir / n).exists()]
     if not names:
         return None
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
@@ -228,7 +234,7 @@ def run_loop(cfg: DictConfig, progress: bool = True, adopt: bool = False, fresh:
         raise ConfigError(f"loop.sun_elevation_schedule={schedule}: must be increasing positive counts")
     run_dir = Path(cfg_r["run_dir"])
     for k, count in enumerate(schedule):  # every round's configuration, before round 0 renders anything
-        round_config(cfg, count, run_dir / "rounds" / f"round{k}-sun{count}")
+        round_config(cfg, count, round_dir(run_dir, k, count))
     run_dir.mkdir(parents=True, exist_ok=True)
     moved = restart(run_dir) if fresh else None
     if moved is not None:
@@ -245,8 +251,8 @@ def run_loop(cfg: DictConfig, progress: bool = True, adopt: bool = False, fresh:
             if reached(hist["rounds"][k]):
                 break
             continue
-        round_dir = run_dir / "rounds" / f"round{k}-sun{count}"
-        cfg_k = round_config(cfg, count, round_dir)
+        rdir = round_dir(run_dir, k, count)
+        cfg_k = round_config(cfg, count, rdir)
         if progress:
             click.echo(f"loop round {k}: {count} sun elevations", err=True)
         t0 = time.perf_counter()
@@ -256,7 +262,7 @@ def run_loop(cfg: DictConfig, progress: bool = True, adopt: bool = False, fresh:
         t1 = time.perf_counter()
         metrics = train_and_evaluate(settings_k, progress=progress)
         t2 = time.perf_counter()
-        atomic_write_json(round_dir / IDENTITY_FILE, {"identity": content_key(payload), "settings": payload})
+        atomic_write_json(rdir / IDENTITY_FILE, {"identity": content_key(payload), "settings": payload})
         hist["rounds"].append(
             {
                 "round": k,
@@ -269,21 +275,21 @@ def run_loop(cfg: DictConfig, progress: bool = True, adopt: bool = False, fresh:
                 "val_accuracy": {m: metrics[m].get("val_accuracy") for m in MODELS},
                 "render_s": round(t1 - t0, 2),
                 "train_s": round(t2 - t1, 2),
-                "run_dir": str(round_dir),
+                "run_dir": str(rdir),
             }
         )
         atomic_write_text(hist_path, json.dumps(hist, indent=2))
-        plot_history(hist, run_dir / "loop_history.png")
+        plot_history(hist, run_dir / HISTORY_PLOT)
         if reached(hist["rounds"][-1]):
             break
 
     last = hist["rounds"][-1]
     hist["stopped_because"] = "threshold reached" if reached(last) else "sun-elevation schedule exhausted"
     atomic_write_text(hist_path, json.dumps(hist, indent=2))
-    plot_history(hist, run_dir / "loop_history.png")
+    plot_history(hist, run_dir / HISTORY_PLOT)
     final = Path(last["run_dir"])
     with StagedRun(run_dir) as stage:  # the last round's run is published whole, never half of it
-        for name in FINAL_FILES + tuple(p.name for p in final.glob("confusion_*.png")):
+        for name in FINAL_FILES:
             if (final / name).is_file():
                 shutil.copyfile(final / name, stage / name)
     return hist
@@ -305,7 +311,10 @@ def loop_command(overrides, restart_, adopt):
 
     e.g. ``crater-synth loop sweep=demo run_dir=outputs/demo loop.sun_elevation_schedule=[2,4]``
     """
-    hist = run_loop(compose(overrides), adopt=adopt, fresh=restart_)
+    cfg = compose(overrides)
+    # One loop at a time in a run_dir; its rounds train in-process under this one hold.
+    with run_writer(str(resolved(cfg)["run_dir"]), LOOP_FILES, rounds=True):
+        hist = run_loop(cfg, adopt=adopt, fresh=restart_)
     for r in hist["rounds"]:
         accs = " ".join(f"{m} {r[m]:.3f}" for m in MODELS)
         click.echo(

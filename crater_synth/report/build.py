@@ -14,7 +14,7 @@ import click
 from crater_core.files import umask
 from crater_core.sweep import rows_in_selection
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.outfolder import check_replaceable, mark_filled
+from crater_synth.outfolder import OutFolder, check_replaceable, mark_filled
 from crater_synth.report import gather
 from crater_synth.report.inputs import (
     EXPERIMENTS_FILE,
@@ -51,10 +51,24 @@ def build_report(
     hist_samples: int = 48,
     log: Callable[[str], None] | None = None,
 ) -> Path:
-    """Write ``RUN_DIR/report/index.html`` (+ PNGs) and return its path."""
+    """Write ``RUN_DIR/report/index.html`` (+ PNGs) and return its path. Holds RUN_DIR's lock: refused while
+    `train`, `evaluate`, `loop` (crater_synth.evaluation.run_folder) or another report writes there."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ReportError(f"run directory {run_dir} does not exist (`{gather.PRODUCERS['metrics'][1]}` writes it)")
+    lock = OutFolder(run_dir, "run", flag="RUN_DIR").lock()  # the lock a run_dir's writers take
+    try:
+        page = _build_report(run_dir, overrides, max_tiles, hist_samples, log)
+    except BaseException:
+        lock.discard()  # the lock file too, if this run created it
+        raise
+    lock.release()
+    return page
+
+
+def _build_report(
+    run_dir: Path, overrides: Sequence[str], max_tiles: int, hist_samples: int, log: Callable[[str], None] | None
+) -> Path:
     if max_tiles < 1 or hist_samples < 1:
         raise ReportError("--max-tiles and --hist-samples must be >= 1")
     # The old report is replaced whole: refused if it holds a file the report did not write.

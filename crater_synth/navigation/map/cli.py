@@ -28,6 +28,7 @@ from crater_synth.navigation.map.check import (
     iau_check,
     map_figure,
 )
+from crater_synth.outfolder import file_lock, matplotlib_png
 from crater_synth.terrain.stack import open_dem_entry
 
 
@@ -65,6 +66,32 @@ def figure_path(out: Path, figure: Path | None, product: str, layer: bool) -> Pa
     if figure is not None:
         return figure
     return out.with_name(f"{out.stem}_{product}.png") if layer else out.with_suffix(".png")
+
+
+def refuse_outputs(out: Path, figure: Path, add_to: Path | None) -> None:
+    """Before minutes of measuring, refuse (one line) to replace a file ``landmarks`` cannot prove it wrote:
+    an existing ``--out`` must be a landmark map with its DEM provenance, an existing figure a matplotlib
+    PNG; and no output may be an input (``--add-to``) or the other output."""
+    named = {"--out": out, "--figure": figure, **({"--add-to": add_to} if add_to is not None else {})}
+    seen: dict[Path, str] = {}
+    for flag, path in named.items():
+        key = path.resolve()
+        if key in seen:
+            raise UserError(f"{flag} {path} is also {seen[key]}: give {flag} another file")
+        seen[key] = f"{flag} {path}"
+    if out.exists():
+        try:
+            if not out.is_file():
+                raise lmap.LandmarkMapError(f"{out} is not a file")
+            if "dem_product" not in lmap.read_map(out)[1]:
+                raise lmap.LandmarkMapError("its provenance names no DEM product")
+        except lmap.LandmarkMapError as exc:
+            raise UserError(
+                f"--out {out} exists and is not a landmark map crater-synth landmarks wrote ({exc}): "
+                "give another file, or move it away"
+            ) from None
+    if figure.exists() and not matplotlib_png(figure):
+        raise UserError(f"--figure {figure} exists and is not a map figure crater-synth wrote: give another file")
 
 
 def layer_result(base: BaseMap, landmarks, built: dict, dem, product: str, min_d: float):
@@ -153,6 +180,9 @@ def landmarks_command(pole, out, figure, add_to, overrides):
     """
     settings = compose_group("nav/landmarks", LandmarksSettings, overrides)
     product = settings.dem_product or lmap.DEM_PRODUCTS[pole]
+    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
+    figure = figure_path(out, figure, product, add_to is not None)
+    refuse_outputs(out, figure, add_to)
     base = None if add_to is None else read_base_map(add_to, pole, product)
     dem, dem_sha256 = open_dem_entry(product, lmap.DATA_DIR, what=f"DEM product for the {pole} pole")
     if base is not None and dem.pixel_size_m >= base.pixel_m:
@@ -160,8 +190,14 @@ def landmarks_command(pole, out, figure, add_to, overrides):
             f"--add-to {add_to}: DEM product {product!r} ({dem.pixel_size_m:g} m/px) is not finer than the map's "
             f"{base.provenance.get('dem_product')} ({base.pixel_m:g} m/px)"
         )
-    out = out or Path("outputs") / "landmarks" / f"{pole}.geojson"
-    figure = figure_path(out, figure, product, base is not None)
+    with file_lock(out, "--out"), file_lock(figure, "--figure"):  # one build per output at a time
+        check, complete = build_and_write(pole, out, figure, base, settings, product, dem, dem_sha256)
+    click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
+    echo_iau_check(check)
+
+
+def build_and_write(pole, out: Path, figure: Path, base, settings, product: str, dem, dem_sha256: str):
+    """Measure the map (or layer), write it and its figure atomically; returns (IAU check, catalogue check)."""
     t0 = time.time()
     limits = lmap.dem_size_limits(dem)
     landmarks, stats = lmap.build_map(dem, pole, progress=True, workers=settings.workers, merge_named=base is None)
@@ -193,8 +229,7 @@ def landmarks_command(pole, out, figure, add_to, overrides):
     atomic_write_text(out, lmap.to_geojson(landmarks, provenance))
     atomic_write_bytes(figure, fig_bytes)
     click.echo(f"wrote {out} ({summary}) and {figure}")
-    click.echo(f"against {complete['source']}:\n{catalogue_table(complete)}")
-    echo_iau_check(check)
+    return check, complete
 
 
 @click.command("landmarks-check")

@@ -28,6 +28,8 @@ from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import pole_of
 from crater_synth.navigation.map.landmarks import default_map_identity, load_default_map, positions_mc
+from crater_synth.navigation.rendered.frame_folder import KIND as FRAMES_KIND
+from crater_synth.outfolder import OutFolder
 
 # A rim point is hidden when the rendered depth there is nearer than the rim point itself by more than
 # this margin: a fixed part (terrain detail) plus a share of the diameter (a real rim crest rises and falls
@@ -181,9 +183,28 @@ def relabel(frames_dir) -> dict:
     """Compute every frame's labels again with its pole's committed map, from the pose its row records and
     the lit and depth channels of its EXR (checked against the row's sha256 first); the manifest is
     rewritten at once (atomically) when every frame is done. Returns a summary: how many frames' labels
-    changed, and how many rows recorded another map (or none)."""
+    changed, and how many rows recorded another map (or none).
+
+    Holds the folder's lock (the one ``nav-frames`` takes: crater_synth.outfolder), so neither runs while
+    the other writes; the folder's marker, when it lists the manifest, records the rewritten one."""
     frames_dir = Path(frames_dir)
+    folder = OutFolder(frames_dir, FRAMES_KIND, flag="FRAMES_DIR")
+    if frames_dir.is_dir():
+        folder.lock()
+    try:
+        done = _relabel(frames_dir, folder)
+    except BaseException:
+        folder.discard()  # the lock file too, if this run created it
+        raise
+    folder.release()
+    return done
+
+
+def _relabel(frames_dir: Path, folder: OutFolder) -> dict:
     rows = frame_rows(frames_dir)
+    if rows:
+        folder.subject = rows[0].get("trajectory")
+        folder.check()  # a folder of another kind or trajectory is refused; reads the files its marker lists
     maps: dict[str, tuple] = {}
     changed = remapped = 0
     for row in rows:
@@ -208,6 +229,8 @@ def relabel(frames_dir) -> dict:
         row.update(landmarks=labels, label_version=FRAME_LABEL_VERSION, landmark_map=maps[pole][1])
     manifest = frames_dir / schema.MANIFEST_NAME
     schema.atomic_write_text(manifest, "".join(schema.dumps_row(r) + "\n" for r in rows))
+    if folder.owns(schema.MANIFEST_NAME):
+        folder.seal([schema.MANIFEST_NAME])
     return {
         "frames_dir": str(frames_dir),
         "frames": len(rows),
