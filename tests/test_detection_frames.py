@@ -423,3 +423,27 @@ def test_detection_folder_of_another_recipe_is_refused(tmp_path):
     assert key() == key("render.workers=1") == key("render.threads=3")
     others = ["seed=9", "detection.suns_per_view=2", "detection.nadir_share=0.5", "procedural.hurst=0.7"]
     assert len({key(), *(key(o) for o in others)}) == 1 + len(others)
+
+
+def test_a_rerun_keeps_only_the_unchanged_frames_of_its_range(tmp_path):
+    """Resumption: a frame whose row is in the manifest and whose file is unchanged since written is kept; a
+    deleted or rewritten one is rendered again; rows outside the range stay."""
+    from crater_synth.outfolder import OutFolder
+
+    out = tmp_path / "set"
+    settings = load_settings(D.detection_overrides([*SMALL, "detection.width_px=96"]))
+    folder = OutFolder(out, R.KIND, subject=f"recipe {R.recipe_key(settings)}").claim()
+    rows = {}
+    for i in range(4):
+        rel = D.frame_rel_path(i)
+        (out / rel).write_bytes(b"frame %d" % i)
+        rows[i] = {"index": i, "rel_path": rel, "labels": []}
+    folder.record([*(r["rel_path"] for r in rows.values()), "manifest.jsonl"])
+    folder.seal([r["rel_path"] for r in rows.values()])
+    (out / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows.values()))
+    folder.seal(["manifest.jsonl"])
+    (out / D.frame_rel_path(1)).unlink()
+    (out / D.frame_rel_path(2)).write_bytes(b"edited, longer than before")
+    kept, done = R.kept_rows(folder, range(0, 3))
+    folder.release()
+    assert done == {0} and sorted(kept) == [0, 3]

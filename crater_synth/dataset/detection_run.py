@@ -58,7 +58,7 @@ def recipe_key(settings) -> str:
     return schema.content_key(payload | {"horizon_version": HORIZON_VERSION})
 
 
-def _kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[int]]:
+def kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
     frames whose file is unchanged since this writer wrote it (listed, same size and mtime)."""
     rows: dict[int, dict] = {}
@@ -66,7 +66,9 @@ def _kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[i
     for i, r in manifest_rows(folder.path).items():
         if i not in wanted:
             rows[i] = r
-        elif folder.files.get(r["rel_path"]) is not None and folder.proved(r["rel_path"]):
+        elif (
+            (folder.path / r["rel_path"]).is_file() and folder.files.get(r["rel_path"]) and folder.proved(r["rel_path"])
+        ):
             rows[i] = r
             done.add(i)
     return rows, done
@@ -157,7 +159,7 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
     try:
         folder.record([schema.MANIFEST_NAME])
         wanted = range(start, start + n_frames)
-        rows, done = _kept_rows(folder, wanted)
+        rows, done = kept_rows(folder, wanted)
         by_field: dict[int, list[int]] = {}
         for i in wanted:
             if i not in done:
