@@ -45,6 +45,7 @@ MARKERS = {
     "navdetector-survey": ".crater-synth-navdetector-survey",
     "export": ".crater-synth-export",
     "report": ".crater-synth-report",
+    "detections": ".crater-synth-detections",
 }
 WHAT = {
     "dataset": "rendered dataset (docs/manifest.md)",
@@ -52,6 +53,7 @@ WHAT = {
     "navdetector-survey": "detector survey tracks, one navframes folder each (docs/navigation/rendered.md)",
     "export": "crater-synth export shards and their export.json (docs/export.md)",
     "report": "a crater-synth run report (docs/report.md)",
+    "detections": "crater-synth detect's crater lists (docs/navigation/commands.md)",
 }
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)
