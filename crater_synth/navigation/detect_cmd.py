@@ -349,13 +349,15 @@ def write_image_outputs(found: Found, detector: Detector, out: Path, png: Path |
 # A folder
 # ------------------------------------------------------------------------------------------------
 def folder_images(folder: Path) -> tuple[list[Path], list[str]]:
-    """(the folder's images by suffix, sorted; the names of its other entries, which are not read)."""
+    """(the folder's images by suffix, sorted; the names of its other entries but the images' georeferences,
+    which are not read)."""
     try:
         entries = sorted(folder.iterdir())
     except OSError as exc:
         raise UserError(f"{folder}: cannot list the folder ({exc.strerror})") from None
     images = [p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES]
-    others = [p.name for p in entries if p.suffix.lower() not in IMAGE_SUFFIXES]
+    sidecars = {sidecar(p).name for p in images}
+    others = [p.name for p in entries if p.suffix.lower() not in IMAGE_SUFFIXES and p.name not in sidecars]
     if not images:
         raise UserError(f"{folder} holds no image ({', '.join(IMAGE_SUFFIXES)})")
     return images, others
@@ -367,6 +369,18 @@ def error_text(path: Path, exc: BaseException) -> str:
     return text if str(path) in text or path.name in text else f"{path}: {text}"
 
 
+def checked_out(folder: Path, out: Path) -> OutFolder:
+    """``out`` as this input folder's ``detections`` folder, to claim (``with``): new, empty, or written by an
+    earlier run on the same folder; a folder of another kind or input, or holding any file no run of ours
+    wrote (a user's, or one of ours edited since), is refused naming it, and nothing is written."""
+    f = OutFolder(out, "detections", subject=str(folder.resolve()))
+    f.check()
+    foreign = f.unlisted()
+    if foreign:
+        f.refuse(foreign)
+    return f
+
+
 def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | None, png: bool) -> list[dict]:
     """Every image of ``folder`` detected into the output folder ``out``; returns the failures (each also an
     ``error:`` line). Files of an earlier run into ``out`` that this run does not write again are removed."""
@@ -375,7 +389,7 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
     failed: list[dict] = []
     written: list[str] = []
     t0 = time.perf_counter()
-    with OutFolder(out, "detections", subject=str(folder.resolve())) as f:
+    with checked_out(folder, out) as f:
         for path in images:
             try:
                 found = detect_image(path, detector, pixel_m)
@@ -397,11 +411,8 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
         stale = [n for n in f.files if n not in written]
         if stale:
             f.remove(stale)
-    click.echo(
-        json.dumps(
-            {k: summary[k] for k in ("source", "out", "detector", "images", "craters")} | {"failed": len(failed)}
-        )
-    )
+    brief = {k: summary[k] for k in ("source", "out", "detector", "images", "craters")}
+    click.echo(json.dumps(brief | {"failed": len(failed)}))
     return failed
 
 

@@ -1,0 +1,299 @@
+"""``crater-synth detect IMAGE|DIR`` (crater_synth.navigation.detect_cmd): craters found where they were drawn,
+georeferenced output consistent with the georeference, a folder in one run that survives its bad files, one
+error line and no output for each bad input, no input overwritten, the detections output folder's contract."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from crater_synth.cli import main
+from crater_synth.navigation.detect_cmd import LIST_SUFFIX, PNG_SUFFIX, SUMMARY_NAME, TABLE_NAME
+from crater_synth.navigation.detectors.template import crater_heights, shade_heights
+from crater_synth.navigation.georef import Georef, scale_factor, stereo_inverse
+from crater_synth.outfolder import LOCK_NAME, MARKERS
+
+# (u, v, r) px of the drawn craters: radii the default detector searches (>= 9 px), apart from each other
+CRATERS = [(70.0, 80.0, 16.0), (220.0, 70.0, 22.0), (150.0, 190.0, 28.0), (60.0, 250.0, 18.0), (250.0, 250.0, 20.0)]
+GEOREF = {"pole": "south", "left_m": 150_000.0, "top_m": 250_000.0, "pixel_m": 400.0}
+
+
+def crater_image(n: int = 320, light_deg: float = 35.0) -> np.ndarray:
+    """8-bit nadir image of :data:`CRATERS` (Hapke-shaded bowls with cast shadows at 12 deg Sun, mild noise)."""
+    vv, uu = np.mgrid[0:n, 0:n] + 0.5
+    z = np.zeros((n, n))
+    for cu, cv, r in CRATERS:
+        z += crater_heights(np.hypot(uu - cu, vv - cv) / r, 0.2) * r
+    img = shade_heights(z, math.radians(light_deg), 12.0)
+    img = img / img.max() * 230.0 + 15.0 + np.random.default_rng(0).normal(0.0, 2.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def write_image(path, img=None, georef: dict | None = None):
+    assert cv2.imwrite(str(path), crater_image() if img is None else img)
+    if georef is not None:
+        path.with_name(path.name + ".geo.json").write_text(json.dumps(georef))
+    return path
+
+
+def run(*args):
+    return CliRunner().invoke(main, ["detect", *map(str, args)])
+
+
+def one_error(r, *words, code: int = 2):
+    assert r.exit_code == code, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
+    for w in words:
+        assert str(w) in lines[0], lines[0]
+
+
+def matched(records) -> list[dict]:
+    """For each drawn crater the record that finds it (centre within 0.3 r, radius within 25 %), or None."""
+    out = []
+    for cu, cv, r in CRATERS:
+        hits = [d for d in records if math.hypot(d["u"] - cu, d["v"] - cv) < 0.3 * r and abs(d["a"] / r - 1) < 0.25]
+        out.append(hits[0] if hits else None)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Detections
+# ------------------------------------------------------------------------------------------------
+def test_the_default_detector_finds_the_drawn_craters_and_prints_one_line_each(tmp_path):
+    img = write_image(tmp_path / "field.png")
+    r = run(img)
+    assert r.exit_code == 0, r.output
+    records = [json.loads(line) for line in r.stdout.splitlines()]
+    assert all(m is not None for m in matched(records)), records
+    assert len(records) <= len(CRATERS) + 1  # the precise operating point: hardly a false crater
+    assert all(d["a"] == d["b"] and d["angle_deg"] == 0.0 and 0 < d["score"] <= 1 for d in records)
+    assert "lat" not in records[0] and "d_km" not in records[0]  # no georeference, no --pixel-m
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["field.png"]  # nothing written beside the input
+
+
+def test_a_filter_detector_takes_the_light_given(tmp_path):
+    img = write_image(tmp_path / "field.png")
+    r = run(img, "--detector", "template", "--light-azimuth", "35")
+    assert r.exit_code == 0, r.output
+    records = [json.loads(line) for line in r.stdout.splitlines()]
+    assert sum(m is not None for m in matched(records)) >= 4, records
+
+
+def test_georeferenced_output_gives_latitude_longitude_and_diameter_from_the_georeference(tmp_path):
+    img = write_image(tmp_path / "field.png", georef=GEOREF)
+    out = tmp_path / "out" / "craters.geojson"
+    r = run(img, "--out", out, "--png")
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert summary["craters"] >= len(CRATERS) and summary["georeferenced"] and summary["out"] == str(out)
+    doc = json.loads(out.read_text())
+    assert doc["type"] == "FeatureCollection" and doc["crater_synth"]["georef"] == GEOREF
+    g = Georef(**GEOREF)
+    props = [f["properties"] for f in doc["features"]]
+    for f in doc["features"]:
+        p = f["properties"]
+        assert f["geometry"] == {"type": "Point", "coordinates": [p["lon"], p["lat"]]}
+    for (cu, cv, rad), p in zip(CRATERS, matched(props), strict=True):
+        assert p is not None
+        # Where the crater was drawn, through the georeference; D as drawn, over the scale factor.
+        lat, lon = stereo_inverse(*g.uv_to_xy(cu, cv), "south")
+        k = float(scale_factor(lat, "south"))
+        assert abs(p["lat"] - lat) < 0.3 * rad * 400 / 30_300  # 0.3 r in degrees of latitude (~30.3 km/deg)
+        assert abs(math.remainder(p["lon"] - lon, 360.0)) < 1.0
+        assert p["d_km"] == pytest.approx(2 * p["a"] * 0.4 / k, rel=1e-3)
+        assert p["d_km"] == pytest.approx(2 * rad * 0.4 / k, rel=0.25)
+    drawn = cv2.imread(str(out.with_suffix(".png")))
+    assert drawn.shape == (320, 320, 3) and (drawn[..., 1] > drawn[..., 2] + 100).any()  # green ellipses
+    # The same craters as CSV, the same numbers.
+    r = run(img, "--out", tmp_path / "craters.csv")
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader((tmp_path / "craters.csv").open()))
+    assert [float(row["lat"]) for row in rows] == [p["lat"] for p in props]
+    assert {row["image"] for row in rows} == {"field.png"}
+
+
+def test_pixel_size_alone_gives_the_diameter_and_a_conflicting_one_is_refused(tmp_path):
+    img = write_image(tmp_path / "field.png")
+    r = run(img, "--pixel-m", "100")
+    records = [json.loads(line) for line in r.stdout.splitlines()]
+    assert records and all(d["d_km"] == pytest.approx(2 * d["a"] * 0.1, abs=1e-3) and "lat" not in d for d in records)
+    geo = write_image(tmp_path / "geo.png", georef=GEOREF)
+    one_error(run(geo, "--pixel-m", "100"), geo, "disagrees with its georeference")
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input: one line naming it, nothing written
+# ------------------------------------------------------------------------------------------------
+def bad_image(tmp_path, kind: str):
+    path = tmp_path / f"{kind}.png"
+    if kind == "constant":
+        write_image(path, np.full((64, 64), 90, np.uint8))
+    elif kind == "tiny":
+        write_image(path, np.zeros((1, 1), np.uint8))
+    elif kind == "corrupt":
+        path.write_bytes(write_image(tmp_path / "good.png").read_bytes()[:300])
+    elif kind == "nan":
+        path = tmp_path / "nan.tiff"
+        a = crater_image().astype(np.float32)
+        a[10:20, 10:20] = np.nan
+        assert cv2.imwrite(str(path), a)
+    elif kind == "grey+alpha":
+        import OpenImageIO as oiio
+
+        out = oiio.ImageOutput.create(str(path))
+        out.open(str(path), oiio.ImageSpec(64, 64, 2, oiio.UINT8))
+        out.write_image(np.zeros((64, 64, 2), np.uint8))
+        out.close()
+    elif kind == "directory":
+        path.mkdir()
+    return path
+
+
+@pytest.mark.parametrize(
+    "kind, words",
+    [
+        ("constant", ["the frame is empty"]),
+        ("tiny", ["at least 32x32 px"]),
+        ("corrupt", ["corrupt.png"]),
+        ("nan", ["non-finite pixels"]),
+        ("grey+alpha", ["2 channels"]),
+        ("directory", []),
+    ],
+)
+def test_a_bad_image_is_one_error_line_naming_it_and_writes_nothing(tmp_path, kind, words):
+    path = bad_image(tmp_path, kind)
+    out = tmp_path / "out.geojson"
+    one_error(run(path, "--out", out, "--png"), path.name, *words)
+    assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+def test_sixteen_bit_and_rgb_images_are_read_as_grey_and_give_the_same_craters(tmp_path):
+    grey = crater_image()
+    base = run(write_image(tmp_path / "grey.png", grey))
+    r16 = run(write_image(tmp_path / "w16.png", grey.astype(np.uint16) * 257))
+    rgb_path = write_image(tmp_path / "rgb.png", cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
+    rgb = run(rgb_path)
+    assert base.exit_code == r16.exit_code == rgb.exit_code == 0, (r16.output, rgb.output)
+    assert r16.stdout == base.stdout and rgb.stdout == base.stdout and base.stdout
+    assert r16.stderr == ""
+    assert rgb.stderr.strip() == f"note: {rgb_path}: colour image read as grey (the mean of R, G, B)"
+
+
+def test_a_corrupt_model_file_is_one_line_before_any_output(tmp_path):
+    img = write_image(tmp_path / "field.png")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00" * 64)
+    one_error(run(img, "--out", tmp_path / "x.geojson", "--detector", "learned", f"nav.detector.model={bad}"), bad)
+    assert not (tmp_path / "x.geojson").exists()
+    one_error(run(tmp_path, "--out", tmp_path / "o", f"nav.detector.model={bad}"), bad)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--png"], ["--png", "--out"]),
+        (["--light-azimuth", "30"], ["--light-azimuth", "learned-detect uses no light"]),
+        (["--light-azimuth", "nan", "--detector", "template"], ["--light-azimuth", "finite"]),
+        (["--pixel-m", "-3"], ["--pixel-m"]),
+        (["--detector", "template", "nav/detector=classical"], ["give one of them"]),
+        (["nav/detector=appearance"], ["landmark map"]),
+        (["nav/preset=synthetic"], ["nav/preset"]),
+        (["--out", "x.txt"], ["--out", ".geojson or .csv"]),
+    ],
+)
+def test_contradictory_options_are_refused_in_one_line(tmp_path, args, words):
+    img = write_image(tmp_path / "field.png")
+    one_error(run(img, *args), *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["field.png"]
+
+
+def test_an_output_that_would_overwrite_an_input_is_refused(tmp_path):
+    img = write_image(tmp_path / "field.png", georef=GEOREF)
+    before = img.read_bytes()
+    one_error(run(img, "--out", img), "--out")
+    # field.geojson's PNG would be field.png, the image itself
+    one_error(run(img, "--out", tmp_path / "field.geojson", "--png"), "would overwrite the input", img)
+    assert img.read_bytes() == before and not (tmp_path / "field.geojson").exists()
+    one_error(run(tmp_path, "--out", tmp_path), "is the input folder")
+
+
+# ------------------------------------------------------------------------------------------------
+# A folder in one run
+# ------------------------------------------------------------------------------------------------
+def test_a_folder_in_one_run_survives_its_bad_files(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    write_image(src / "a.png", georef=GEOREF)
+    write_image(src / "b.png")
+    bad_image(src, "corrupt")
+    (src / "good.png").unlink()  # corrupt.png's source
+    bad_image(src, "constant")
+    (src / "notes.txt").write_text("not an image")
+    out = tmp_path / "out"
+    r = run(src, "--out", out, "--png")
+    assert r.exit_code == 1, r.output  # some failed
+    errors = r.stderr.strip().splitlines()
+    assert len(errors) == 2 and "constant.png" in errors[0] and "corrupt.png" in errors[1], errors
+    assert all(e.startswith("error: ") for e in errors)
+    line = json.loads(r.stdout)
+    assert (line["images"], line["failed"]) == (4, 2)
+    summary = json.loads((out / SUMMARY_NAME).read_text())
+    assert [f["image"] for f in summary["failed"]] == ["constant.png", "corrupt.png"]
+    assert [d["image"] for d in summary["results"]] == ["a.png", "b.png"] and summary["not_images"] == ["notes.txt"]
+    written = sorted(p.name for p in out.iterdir())
+    want = [f"{n}{s}" for n in ("a.png", "b.png") for s in (LIST_SUFFIX, PNG_SUFFIX)] + [TABLE_NAME, SUMMARY_NAME]
+    assert written == sorted([*want, MARKERS["detections"], LOCK_NAME])
+    a = json.loads((out / f"a.png{LIST_SUFFIX}").read_text())
+    assert all(m is not None for m in matched([f["properties"] for f in a["features"]]))
+    assert all("lat" in f["properties"] for f in a["features"])
+    b = json.loads((out / f"b.png{LIST_SUFFIX}").read_text())
+    assert all(f["geometry"] is None for f in b["features"])  # no georeference: pixels only
+    rows = list(csv.DictReader((out / TABLE_NAME).open()))
+    assert len(rows) == len(a["features"]) + len(b["features"])
+    # Run again without b.png: its outputs (the run's own) go; a corrupt image fixed now succeeds.
+    (src / "b.png").unlink()
+    (src / "corrupt.png").unlink()
+    (src / "constant.png").unlink()
+    r = run(src, "--out", out)
+    assert r.exit_code == 0, r.output
+    written = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+    assert written == sorted([f"a.png{LIST_SUFFIX}", TABLE_NAME, SUMMARY_NAME])
+
+
+def test_the_output_folder_refuses_foreign_files_another_kind_and_another_input(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    write_image(src / "a.png")
+    users = tmp_path / "users"
+    users.mkdir()
+    (users / "thesis.tex").write_text("mine")
+    one_error(run(src, "--out", users), users / "thesis.tex", "did not write")
+    assert sorted(p.name for p in users.iterdir()) == ["thesis.tex"]  # no marker, no lock left
+    export = tmp_path / "export"
+    export.mkdir()
+    (export / MARKERS["export"]).write_text("{}")
+    one_error(run(src, "--out", export), "export")
+    out = tmp_path / "out"
+    assert run(src, "--out", out).exit_code == 0
+    other = tmp_path / "other"
+    other.mkdir()
+    write_image(other / "c.png")
+    one_error(run(other, "--out", out), "give another folder")
+    assert not (out / f"c.png{LIST_SUFFIX}").exists()
+
+
+def test_a_folder_needs_an_output_folder(tmp_path):
+    write_image(tmp_path / "a.png")
+    one_error(run(tmp_path), "give --out FOLDER")
+    one_error(run(tmp_path, "--out", tmp_path / "x.geojson"), "output folder")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    one_error(run(empty, "--out", tmp_path / "o"), "holds no image")
