@@ -297,3 +297,37 @@ def test_a_folder_needs_an_output_folder(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     one_error(run(empty, "--out", tmp_path / "o"), "holds no image")
+
+
+# ------------------------------------------------------------------------------------------------
+# bench --part detect
+# ------------------------------------------------------------------------------------------------
+def test_detect_bench_sets_one_folder_process_against_one_process_per_image(monkeypatch, tmp_path):
+    """Seconds per frame from the command's own summary, wall and RSS from the child; the folder's one
+    process against the sum of one process per image (crater_synth.bench.detect)."""
+    from crater_synth.bench import detect as bd
+
+    monkeypatch.setattr(bd, "FRAMES", {"64x96": (64, 96)})
+    monkeypatch.setattr(bd, "FOLDER_FRAMES", 3)
+    monkeypatch.setattr(bd, "CELL_PX", 32)
+    calls = []
+
+    def fake_run(log, source, flag, out):
+        calls.append(source)
+        if source.is_dir():  # the folder run writes its summary
+            out.mkdir()
+            (out / SUMMARY_NAME).write_text(json.dumps({"seconds": 1.5}))
+            return {"wall_s": 6.0, "peak_rss_mb": 700.0, "last": "{}"}
+        assert cv2.imread(str(source), cv2.IMREAD_UNCHANGED).dtype == np.uint8
+        return {"wall_s": 4.0, "peak_rss_mb": 500.0, "last": json.dumps({"seconds": 0.5, "craters": 6})}
+
+    monkeypatch.setattr(bd, "run_detect", fake_run)
+    r = bd.bench_detect(tmp_path)
+    assert r["frames"]["64x96"] == {"seconds_per_frame": 0.5, "wall_s": 4.0, "peak_rss_mb": 500.0, "craters": 6}
+    f = r["folder"]
+    assert (f["one_process_s"], f["process_per_image_s"], f["speedup"]) == (6.0, 12.0, 2.0)
+    assert f["inside_per_image_s"] == 0.5 and f["one_process_per_image_s"] == 2.0
+    assert len(calls) == 1 + 1 + 3
+    # The synthetic frames are seeded: one crater per cell, the same every run.
+    a, b = bd.crater_frame(64, 96, 1), bd.crater_frame(64, 96, 1)
+    assert np.array_equal(a, b) and a.shape == (64, 96) and (a < 20).sum() > 6  # six shadows
