@@ -33,8 +33,9 @@ LIGHT_DEG = 35.0
 
 
 def crater_frame(height: int, width: int, seed: int) -> np.ndarray:
-    """An 8-bit nadir frame: one bowl crater (radius 0.08-0.35 of the cell: 10-45 px, jittered) per :data:`CELL_PX` cell, each
-    shaded on its own patch (cast shadows included) and pasted on flat ground, plus mild noise."""
+    """An 8-bit nadir frame: one bowl crater (radius 0.08-0.35 of the cell: 10-45 px, jittered) per
+    :data:`CELL_PX` cell, each shaded on its own patch (cast shadows included) and pasted on flat ground,
+    plus mild noise."""
     rng = np.random.default_rng(seed)
     flat = float(shade_heights(np.zeros((3, 3)), math.radians(LIGHT_DEG), SUN_EL_DEG)[1, 1])
     frame = np.full((height, width), flat)
