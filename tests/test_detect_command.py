@@ -174,6 +174,16 @@ def test_a_bad_image_is_one_error_line_naming_it_and_writes_nothing(tmp_path, ki
     assert not out.exists() and not out.with_suffix(".png").exists()
 
 
+def test_a_missing_image_and_one_too_large_are_one_line_read_from_the_header(tmp_path, monkeypatch):
+    from crater_synth.navigation import frame_file
+
+    one_error(run(tmp_path / "nothing.png"), "nothing.png", "no such image file")
+    img = write_image(tmp_path / "field.png")
+    monkeypatch.setattr(frame_file, "MAX_FRAME_PIXELS", 100 * 100)
+    one_error(run(img, "--out", tmp_path / "x.csv"), "field.png", "320 x 320 px", "more than the 10000 px")
+    assert not (tmp_path / "x.csv").exists()
+
+
 def test_sixteen_bit_and_rgb_images_are_read_as_grey_and_give_the_same_craters(tmp_path):
     grey = crater_image()
     base = run(write_image(tmp_path / "grey.png", grey))
@@ -184,6 +194,12 @@ def test_sixteen_bit_and_rgb_images_are_read_as_grey_and_give_the_same_craters(t
     assert r16.stdout == base.stdout and rgb.stdout == base.stdout and base.stdout
     assert r16.stderr == ""
     assert rgb.stderr.strip() == f"note: {rgb_path}: colour image read as grey (the mean of R, G, B)"
+    r = run(tmp_path, "--out", tmp_path / "out")  # in a folder run the note is in the summary too
+    assert r.exit_code == 0, r.output
+    notes = {d["image"]: d.get("note") for d in json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())["results"]}
+    assert notes == {"grey.png": None, "rgb.png": f"{rgb_path}: colour image read as grey (the mean of R, G, B)"} | {
+        "w16.png": None
+    }
 
 
 def test_a_corrupt_model_file_is_one_line_before_any_output(tmp_path):
@@ -237,16 +253,18 @@ def test_a_folder_in_one_run_survives_its_bad_files(tmp_path):
     (src / "good.png").unlink()  # corrupt.png's source
     bad_image(src, "constant")
     (src / "notes.txt").write_text("not an image")
+    (src / "sub.png").mkdir()  # an entry with an image's name that is no file
     out = tmp_path / "out"
     r = run(src, "--out", out, "--png")
     assert r.exit_code == 1, r.output  # some failed
     errors = r.stderr.strip().splitlines()
-    assert len(errors) == 2 and "constant.png" in errors[0] and "corrupt.png" in errors[1], errors
+    assert len(errors) == 3 and "constant.png" in errors[0] and "corrupt.png" in errors[1], errors
+    assert errors[2] == f"error: {src / 'sub.png'}: not a file"
     assert all(e.startswith("error: ") for e in errors)
     line = json.loads(r.stdout)
-    assert (line["images"], line["failed"]) == (4, 2)
+    assert (line["images"], line["failed"]) == (5, 3)
     summary = json.loads((out / SUMMARY_NAME).read_text())
-    assert [f["image"] for f in summary["failed"]] == ["constant.png", "corrupt.png"]
+    assert [f["image"] for f in summary["failed"]] == ["constant.png", "corrupt.png", "sub.png"]
     assert [d["image"] for d in summary["results"]] == ["a.png", "b.png"] and summary["not_images"] == ["notes.txt"]
     written = sorted(p.name for p in out.iterdir())
     want = [f"{n}{s}" for n in ("a.png", "b.png") for s in (LIST_SUFFIX, PNG_SUFFIX)] + [TABLE_NAME, SUMMARY_NAME]
@@ -262,6 +280,7 @@ def test_a_folder_in_one_run_survives_its_bad_files(tmp_path):
     (src / "b.png").unlink()
     (src / "corrupt.png").unlink()
     (src / "constant.png").unlink()
+    (src / "sub.png").rmdir()
     r = run(src, "--out", out)
     assert r.exit_code == 0, r.output
     written = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))

@@ -71,7 +71,9 @@ def bench_detect(work: Path) -> dict:
     """Seconds per frame and peak RSS at each size of :data:`FRAMES`; folder mode against one process per
     image on :data:`FOLDER_FRAMES` frames of 1024 x 1024."""
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {"detector": DEFAULT_DETECTOR, "threads": os.cpu_count(), "frames": {}}
+    # The load the machine carried before the run: the timings are this run's, on a machine maybe shared.
+    load = [round(x, 2) for x in os.getloadavg()]
+    result: dict = {"detector": DEFAULT_DETECTOR, "threads": os.cpu_count(), "load_average": load, "frames": {}}
     for i, (name, (h, w)) in enumerate(FRAMES.items()):
         image = work / f"frame_{name}.png"
         cv2.imwrite(str(image), crater_frame(h, w, i))

@@ -89,6 +89,7 @@ class Found:
     georef: Georef | None
     light: float
     seconds: float
+    note: str | None = None
 
 
 def image_detectors() -> list[str]:
@@ -249,7 +250,7 @@ def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found
     if note:
         click.echo(f"note: {note}", err=True)
     records = crater_records(dets, georef, pixel_m)
-    return Found(path, records, dets, img, georef, theta, time.perf_counter() - t0)
+    return Found(path, records, dets, img, georef, theta, time.perf_counter() - t0, note)
 
 
 def crater_records(dets: list[Detection], georef: Georef | None, pixel_m: float | None) -> list[dict]:
@@ -435,7 +436,10 @@ def folder_summary(folder, out, detector: Detector, done: list[Found], failed, o
         "craters": sum(len(d.records) for d in done),
         "seconds": round(seconds, 3),
         "results": [
-            image_summary(d, detector) | {"image": d.image.name, "list": d.image.name + LIST_SUFFIX} for d in done
+            image_summary(d, detector)
+            | {"image": d.image.name, "list": d.image.name + LIST_SUFFIX}
+            | ({"note": d.note} if d.note else {})
+            for d in done
         ],
         "failed": failed,
         "not_images": others,
