@@ -87,7 +87,7 @@ class Found:
     image: Path
     records: list[dict]
     dets: list[Detection]
-    pixels: np.ndarray
+    pixels: np.ndarray | None  # dropped once drawn: a folder run keeps only the records
     georef: Georef | None
     light: float
     seconds: float
@@ -321,6 +321,7 @@ def csv_text(found_all: list[Found]) -> str:
 def annotated_png(found: Found) -> bytes:
     """The image stretched to 8 bits (0.5-99.5 percentiles) with every crater's ellipse drawn in green."""
     a = found.pixels
+    assert a is not None
     lo, hi = np.percentile(a, [0.5, 99.5])
     if hi <= lo:
         lo, hi = float(a.min()), float(a.max())
@@ -406,6 +407,7 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
                 names[path.name + PNG_SUFFIX] = annotated_png(found)
             publish(f, names)
             written += names
+            found.pixels = None
             done.append(found)
         summary = folder_summary(folder, out, detector, done, failed, others, time.perf_counter() - t0)
         final = {TABLE_NAME: csv_text(done).encode("utf-8"), SUMMARY_NAME: json.dumps(summary, indent=1).encode()}
