@@ -331,8 +331,8 @@ def test_detect_bench_sets_one_folder_process_against_one_process_per_image(monk
     monkeypatch.setattr(bd, "CELL_PX", 32)
     calls = []
 
-    def fake_run(log, source, flag, out):
-        calls.append(source)
+    def fake_run(log, source, flag, out, *detector):
+        calls.append((source.name, *detector))
         if source.is_dir():  # the folder run writes its summary
             out.mkdir()
             (out / SUMMARY_NAME).write_text(json.dumps({"seconds": 1.5}))
@@ -346,7 +346,9 @@ def test_detect_bench_sets_one_folder_process_against_one_process_per_image(monk
     f = r["folder"]
     assert (f["one_process_s"], f["process_per_image_s"], f["speedup"]) == (6.0, 12.0, 2.0)
     assert f["inside_per_image_s"] == 0.5 and f["one_process_per_image_s"] == 2.0
-    assert len(calls) == 1 + 1 + 3
+    assert r["other_detectors"] == dict.fromkeys(bd.OTHER_DETECTORS, 0.5)
+    others = [("frame_64x96.png", "--detector", name) for name in bd.OTHER_DETECTORS]
+    assert calls == [("frame_64x96.png",), *others, ("folder",), *[(f"frame_{k}.png",) for k in range(3)]]
     # The synthetic frames are seeded: one crater per cell, the same every run.
     a, b = bd.crater_frame(64, 96, 1), bd.crater_frame(64, 96, 1)
     assert np.array_equal(a, b) and a.shape == (64, 96) and (a < 20).sum() > 6  # six shadows

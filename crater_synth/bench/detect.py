@@ -26,6 +26,7 @@ from crater_synth.navigation.detect_cmd import DEFAULT_DETECTOR, SUMMARY_NAME
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
 
 FRAMES = {"1024x1024": (1024, 1024), "2592x1944": (1944, 2592)}  # name -> (height, width)
+OTHER_DETECTORS = ("classical", "template", "learned")
 FOLDER_FRAMES = 4  # 1024 x 1024 frames of the folder-mode comparison
 CELL_PX = 128  # one crater per cell of the frame's grid
 SUN_EL_DEG = 12.0
@@ -85,6 +86,14 @@ def bench_detect(work: Path) -> dict:
             "peak_rss_mb": run["peak_rss_mb"],
             "craters": summary["craters"],
         }
+    # The other detectors on the first frame, for reference (the command's time inside, per frame).
+    first = work / f"frame_{next(iter(FRAMES))}.png"
+    result["other_detectors"] = {
+        name: json.loads(
+            run_detect(work / f"log_{name}", first, "--out", work / f"{name}.csv", "--detector", name)["last"]
+        )["seconds"]
+        for name in OTHER_DETECTORS
+    }
     folder = work / "folder"
     folder.mkdir(exist_ok=True)
     images = []
