@@ -202,6 +202,23 @@ def test_sixteen_bit_and_rgb_images_are_read_as_grey_and_give_the_same_craters(t
     }
 
 
+def test_a_rendered_frame_is_read_by_its_radiance_channel(tmp_path):
+    """An EXR of the renderer (I/F and other channels) gives the craters of its I/F channel."""
+    import OpenImageIO as oiio
+
+    path = tmp_path / "frame_0000.exr"
+    i_f = crater_image().astype(np.float32) / 255.0 * 0.05  # I/F of a few per cent
+    depth = np.full(i_f.shape, 5e4, np.float32)  # a depth channel would mix in as "colour"
+    out = oiio.ImageOutput.create(str(path))
+    spec = oiio.ImageSpec(i_f.shape[1], i_f.shape[0], 2, oiio.FLOAT)
+    spec.channelnames = ("depth", "IF")
+    assert out.open(str(path), spec) and out.write_image(np.stack([depth, i_f], -1))
+    out.close()
+    r = run(path)
+    assert r.exit_code == 0, r.output
+    assert all(m is not None for m in matched([json.loads(line) for line in r.stdout.splitlines()]))
+
+
 def test_a_corrupt_model_file_is_one_line_before_any_output(tmp_path):
     img = write_image(tmp_path / "field.png")
     bad = tmp_path / "bad.pt"

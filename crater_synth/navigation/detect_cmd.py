@@ -13,7 +13,8 @@ estimate the light on each image unless ``--light-azimuth`` gives it, as ``navig
 An image is read as ``navigate`` reads a map window (:mod:`.frame_file`): any file OpenImageIO reads, at most
 8192 x 8192 px; 8- and 16-bit and float pixels alike (integers scaled by their full range); a colour image is
 read as grey (the mean of R, G, B; an alpha channel is ignored) with a ``note:`` line naming it; a two-channel
-or deeper image is refused. Its georeference is the ``IMAGE.geo.json`` sidecar (polar stereographic, as
+or deeper image is refused, but for a rendered frame (an EXR of ``dataset`` or ``nav-frames``), whose I/F
+channel is read. Its georeference is the ``IMAGE.geo.json`` sidecar (polar stereographic, as
 ``navigate``'s); with it each crater gets latitude, longitude and D in km (the map distance divided by the
 projection's scale factor at the crater); without it ``--pixel-m`` gives D in km.
 
@@ -43,7 +44,8 @@ import numpy as np
 import OpenImageIO as oiio
 
 from crater_core.errors import ContractError
-from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_core.exr import read_channel
+from crater_core.schema import EXR_CHANNELS, atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import learned, registry
@@ -51,11 +53,13 @@ from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.frame_file import (
     check_light_azimuth,
     check_pixel_m,
+    check_pixels,
+    read_georef,
     read_window,
     refuse_overwrite,
     sidecar,
 )
-from crater_synth.navigation.georef import FrameError, Georef, scale_factor, stereo_inverse
+from crater_synth.navigation.georef import FrameError, Georef, check_frame, scale_factor, stereo_inverse
 from crater_synth.navigation.settings import compose_nav, detector_options
 from crater_synth.outfolder import OutFolder
 
@@ -63,6 +67,7 @@ from crater_synth.outfolder import OutFolder
 DEFAULT_DETECTOR = "learned-detect"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".pnm", ".ppm", ".exr")
 FORMATS = (".geojson", ".csv")
+RENDER_CHANNEL = EXR_CHANNELS[0]  # a rendered frame's I/F
 LIST_SUFFIX = ".craters.geojson"  # a folder run's list of one image: <image name> + this
 PNG_SUFFIX = ".craters.png"
 TABLE_NAME = "craters.csv"
@@ -221,20 +226,24 @@ def check_folder_out(folder: Path, out: Path | None) -> None:
 # ------------------------------------------------------------------------------------------------
 # One image
 # ------------------------------------------------------------------------------------------------
-def channel_note(path: Path) -> str | None:
-    """One ``note:`` for a colour image (read as grey), None for a grey one; a two-channel or deeper image
-    is refused (its second channel is no colour). The header only; a file it cannot open is left to the
-    reader's own error."""
+def read_image(path: Path) -> tuple[np.ndarray, Georef | None, str | None]:
+    """(pixels, georeference or None, a ``note:`` or None) of one image. A rendered frame (an EXR with an
+    :data:`RENDER_CHANNEL` channel: ``dataset``, ``nav-frames``) is its I/F; a colour image is read as grey
+    with a note; a two-channel or deeper image is refused (its second channel is no colour). The header
+    is probed first; a file it cannot open is left to the reader's own error."""
     inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        return None
-    try:
-        n = inp.spec().nchannels
-    finally:
+    spec = inp.spec() if inp is not None else None
+    if inp is not None:
         inp.close()
+    if spec is not None and RENDER_CHANNEL in spec.channelnames:
+        check_pixels(path, spec.width, spec.height)
+        return check_frame(read_channel(path, RENDER_CHANNEL), str(path)), read_georef(path), None
+    n = spec.nchannels if spec is not None else 1
     if n == 2 or n > 4:
         raise FrameError(f"{path}: {n} channels; detect reads grey (1), RGB (3) or RGBA (4) images")
-    return f"{path}: colour image read as grey (the mean of R, G, B)" if n >= 3 else None
+    note = f"{path}: colour image read as grey (the mean of R, G, B)" if n >= 3 else None
+    img, georef = read_window(path)
+    return img, georef, note
 
 
 def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found:
@@ -242,8 +251,7 @@ def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found
     t0 = time.perf_counter()
     if not path.is_file():
         raise FrameError(f"{path}: no such image file" if not path.exists() else f"{path}: not a file")
-    note = channel_note(path)
-    img, georef = read_window(path)
+    img, georef, note = read_image(path)
     if georef is not None and pixel_m is not None and abs(pixel_m / georef.pixel_m - 1.0) > 1e-6:
         raise FrameError(
             f"{path}: --pixel-m {pixel_m:g} disagrees with its georeference {sidecar(path)} ({georef.pixel_m:g} m)"

@@ -57,6 +57,15 @@ def read_window(image: Path) -> tuple[np.ndarray, Georef | None]:
     return img, read_georef(image)
 
 
+def check_pixels(path: Path, width: int, height: int) -> None:
+    """Refuse, from its header, an image of more than :data:`MAX_FRAME_PIXELS` (one line naming it)."""
+    if width * height > MAX_FRAME_PIXELS:
+        raise FrameError(
+            f"{path} is {width} x {height} px, more than the {MAX_FRAME_PIXELS} px read at once: cut it into "
+            "smaller frames"
+        )
+
+
 def check_pixel_m(pixel_m: float | None) -> None:
     """``--pixel-m``: None, or finite metres per pixel within :data:`PIXEL_M_RANGE` (one error line)."""
     lo, hi = PIXEL_M_RANGE
