@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 
 import cv2
 import numpy as np
@@ -369,3 +370,16 @@ def test_detect_bench_sets_one_folder_process_against_one_process_per_image(monk
     # The synthetic frames are seeded: one crater per cell, the same every run.
     a, b = bd.crater_frame(64, 96, 1), bd.crater_frame(64, 96, 1)
     assert np.array_equal(a, b) and a.shape == (64, 96) and (a < 20).sum() > 6  # six shadows
+
+
+def test_a_second_writer_of_the_output_folder_is_refused_naming_the_first(tmp_path):
+    from crater_synth.outfolder import OutFolder
+
+    src = tmp_path / "in"
+    src.mkdir()
+    write_image(src / "a.png")
+    out = tmp_path / "out"
+    with OutFolder(out, "detections", subject=str(src.resolve())):  # another detect run, still writing
+        one_error(run(src, "--out", out), "being written by another crater-synth process", f"pid {os.getpid()}")
+        assert not (out / f"a.png{LIST_SUFFIX}").exists()
+    assert run(src, "--out", out).exit_code == 0  # once it is done
