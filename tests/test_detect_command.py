@@ -194,13 +194,12 @@ def test_sixteen_bit_and_rgb_images_are_read_as_grey_and_give_the_same_craters(t
     assert base.exit_code == r16.exit_code == rgb.exit_code == 0, (r16.output, rgb.output)
     assert r16.stdout == base.stdout and rgb.stdout == base.stdout and base.stdout
     assert r16.stderr == ""
-    assert rgb.stderr.strip() == f"note: {rgb_path}: colour image read as grey (the mean of R, G, B)"
+    assert rgb.stderr.strip() == f"note: {rgb_path}: 3 channels (RGB), read as grey: the mean of R, G, B"
     r = run(tmp_path, "--out", tmp_path / "out")  # in a folder run the note is in the summary too
     assert r.exit_code == 0, r.output
     notes = {d["image"]: d.get("note") for d in json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())["results"]}
-    assert notes == {"grey.png": None, "rgb.png": f"{rgb_path}: colour image read as grey (the mean of R, G, B)"} | {
-        "w16.png": None
-    }
+    note = f"{rgb_path}: 3 channels (RGB), read as grey: the mean of R, G, B"
+    assert notes == {"grey.png": None, "rgb.png": note, "w16.png": None}
 
 
 def test_a_rendered_frame_is_read_by_its_radiance_channel(tmp_path):

@@ -241,7 +241,7 @@ def read_image(path: Path) -> tuple[np.ndarray, Georef | None, str | None]:
     n = spec.nchannels if spec is not None else 1
     if n == 2 or n > 4:
         raise FrameError(f"{path}: {n} channels; detect reads grey (1), RGB (3) or RGBA (4) images")
-    note = f"{path}: colour image read as grey (the mean of R, G, B)" if n >= 3 else None
+    note = f"{path}: {n} channels (RGB{'A' if n == 4 else ''}), read as grey: the mean of R, G, B" if n >= 3 else None
     img, georef = read_window(path)
     return img, georef, note
 
