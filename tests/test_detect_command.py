@@ -120,6 +120,46 @@ def test_georeferenced_output_gives_latitude_longitude_and_diameter_from_the_geo
     assert {row["image"] for row in rows} == {"field.png"}
 
 
+def write_geotiff(path, crs: str, img=None):
+    """The crater image as a GeoTIFF with its own map georeference: :data:`GEOREF`'s corner and pixel in ``crs``."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    img = crater_image() if img is None else img
+    g = GEOREF
+    transform = Affine(g["pixel_m"], 0.0, g["left_m"], 0.0, -g["pixel_m"], g["top_m"])
+    profile = dict(driver="GTiff", width=img.shape[1], height=img.shape[0], count=1, dtype="uint8")
+    with rasterio.open(path, "w", crs=crs, transform=transform, **profile) as ds:
+        ds.write(img, 1)
+    return path
+
+
+SOUTH_STEREO = "+proj=stere +lat_0=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs"
+
+
+def test_a_geotiff_carries_its_own_georeference_and_gives_the_sidecar_s_values(tmp_path):
+    """The same polar stereographic georeference as a GeoTIFF's CRS and as a PNG's sidecar: the same
+    latitudes and longitudes, and D (great circles in the CRS, the scale factor with the sidecar) to 0.1 %."""
+    png = write_image(tmp_path / "field.png", georef=GEOREF)
+    tif = write_geotiff(tmp_path / "field.tif", SOUTH_STEREO)
+    by_sidecar = [json.loads(line) for line in run(png).stdout.splitlines()]
+    r = run(tif)
+    assert r.exit_code == 0, r.output
+    by_crs = [json.loads(line) for line in r.stdout.splitlines()]
+    assert len(by_crs) == len(by_sidecar) >= len(CRATERS)
+    for a, b in zip(by_crs, by_sidecar, strict=True):
+        assert (a["u"], a["v"], a["a"]) == (b["u"], b["v"], b["a"])
+        assert a["lat"] == pytest.approx(b["lat"], abs=1e-5) and a["lon"] == pytest.approx(b["lon"], abs=1e-5)
+        assert a["d_km"] == pytest.approx(b["d_km"], rel=1e-3)
+    one_error(run(tif, "--pixel-m", "400"), "field.tif", "own georeference")
+
+
+def test_a_geotiff_of_another_body_is_refused(tmp_path):
+    tif = write_geotiff(tmp_path / "earth.tif", "EPSG:3857")
+    one_error(run(tif, "--out", tmp_path / "x.geojson"), "earth.tif", "not the Moon")
+    assert not (tmp_path / "x.geojson").exists()
+
+
 def test_pixel_size_alone_gives_the_diameter_and_a_conflicting_one_is_refused(tmp_path):
     img = write_image(tmp_path / "field.png")
     r = run(img, "--pixel-m", "100")

@@ -15,8 +15,10 @@ An image is read as ``navigate`` reads a map window (:mod:`.frame_file`): any fi
 read as grey (the mean of R, G, B; an alpha channel is ignored) with a ``note:`` line naming it; a two-channel
 or deeper image is refused, but for a rendered frame (an EXR of ``dataset`` or ``nav-frames``), whose I/F
 channel is read. Its georeference is the ``IMAGE.geo.json`` sidecar (polar stereographic, as
-``navigate``'s); with it each crater gets latitude, longitude and D in km (the map distance divided by the
-projection's scale factor at the crater); without it ``--pixel-m`` gives D in km.
+``navigate``'s; D is the map diameter over the projection's scale factor at the crater), or else the map
+georeference a GeoTIFF or ISIS cube carries (any lunar CRS, :class:`.frame_file.CrsGeoref`; D is the mean
+great-circle length of the rim's two pixel-axis diameters); with it each crater gets latitude, longitude and
+D in km. Without one, ``--pixel-m`` gives D in km.
 
 Outputs (nothing is ever written beside the inputs): a single image prints one JSON line per crater, or with
 ``--out FILE.geojson|FILE.csv`` writes that file atomically (never an input) and prints a summary line; a
@@ -51,9 +53,11 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import learned, registry
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.frame_file import (
+    CrsGeoref,
     check_light_azimuth,
     check_pixel_m,
     check_pixels,
+    file_georef,
     read_georef,
     read_window,
     refuse_overwrite,
@@ -93,7 +97,7 @@ class Found:
     records: list[dict]
     dets: list[Detection]
     pixels: np.ndarray | None  # dropped once drawn: a folder run keeps only the records
-    georef: Georef | None
+    georef: Georef | CrsGeoref | None
     light: float
     seconds: float
     note: str | None = None
@@ -226,7 +230,7 @@ def check_folder_out(folder: Path, out: Path | None) -> None:
 # ------------------------------------------------------------------------------------------------
 # One image
 # ------------------------------------------------------------------------------------------------
-def read_image(path: Path) -> tuple[np.ndarray, Georef | None, str | None]:
+def read_image(path: Path) -> tuple[np.ndarray, Georef | CrsGeoref | None, str | None]:
     """(pixels, georeference or None, a ``note:`` or None) of one image. A rendered frame (an EXR with an
     :data:`RENDER_CHANNEL` channel: ``dataset``, ``nav-frames``) is its I/F; a colour image is read as grey
     with a note; a two-channel or deeper image is refused (its second channel is no colour). The header
@@ -243,7 +247,7 @@ def read_image(path: Path) -> tuple[np.ndarray, Georef | None, str | None]:
         raise FrameError(f"{path}: {n} channels; detect reads grey (1), RGB (3) or RGBA (4) images")
     note = f"{path}: {n} channels (RGB{'A' if n == 4 else ''}), read as grey: the mean of R, G, B" if n >= 3 else None
     img, georef = read_window(path)
-    return img, georef, note
+    return img, georef or file_georef(path), note
 
 
 def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found:
@@ -252,7 +256,9 @@ def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found
     if not path.is_file():
         raise FrameError(f"{path}: no such image file" if not path.exists() else f"{path}: not a file")
     img, georef, note = read_image(path)
-    if georef is not None and pixel_m is not None and abs(pixel_m / georef.pixel_m - 1.0) > 1e-6:
+    if isinstance(georef, CrsGeoref) and pixel_m is not None:
+        raise FrameError(f"{path}: --pixel-m {pixel_m:g} given for an image whose own georeference gives its scale")
+    if isinstance(georef, Georef) and pixel_m is not None and abs(pixel_m / georef.pixel_m - 1.0) > 1e-6:
         raise FrameError(
             f"{path}: --pixel-m {pixel_m:g} disagrees with its georeference {sidecar(path)} ({georef.pixel_m:g} m)"
         )
@@ -263,10 +269,11 @@ def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found
     return Found(path, records, dets, img, georef, theta, time.perf_counter() - t0, note)
 
 
-def crater_records(dets: list[Detection], georef: Georef | None, pixel_m: float | None) -> list[dict]:
+def crater_records(dets: list[Detection], georef: Georef | CrsGeoref | None, pixel_m: float | None) -> list[dict]:
     """Per crater: ellipse (px: centre ``u``, ``v`` from the top-left corner, semi-axes ``a`` >= ``b``,
     ``angle_deg`` of ``a`` from +u towards +v) and ``score``; with ``georef`` ``lat``, ``lon`` (degrees) and
-    ``d_km`` (the ground diameter: map distance over the polar stereographic scale factor); with only
+    ``d_km`` (the ground diameter: a sidecar's map distance over the polar stereographic scale factor; in a
+    file's own CRS, the mean great-circle length of the rim's two pixel-axis diameters); with only
     ``pixel_m``, ``d_km``."""
     if not dets:
         return []
@@ -276,9 +283,13 @@ def crater_records(dets: list[Detection], georef: Georef | None, pixel_m: float 
         | {"score": round(d.score, 4)}
         for d in dets
     ]
-    if georef is not None:
+    if isinstance(georef, CrsGeoref):
+        lat, lon = georef.latlon(u, v)
+        d_km = 0.5 * (georef.ground_km(u - r, v, u + r, v) + georef.ground_km(u, v - r, u, v + r))
+    elif georef is not None:
         lat, lon = stereo_inverse(*georef.uv_to_xy(u, v), georef.pole)
         d_km = 2.0 * r * georef.pixel_m / scale_factor(lat, georef.pole) / 1000.0
+    if georef is not None:
         for rec, la, lo, dk in zip(out, np.atleast_1d(lat), np.atleast_1d(lon), d_km, strict=True):
             rec.update(lat=round(float(la), 6), lon=round(float(lo), 6), d_km=round(float(dk), 4))
     elif pixel_m is not None:

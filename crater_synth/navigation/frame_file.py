@@ -1,22 +1,38 @@
 """A user's frame on disk, as ``navigate`` and ``detect`` read it: the image (any file OpenImageIO reads, at
 most :data:`train.realframes.MAX_FRAME_PIXELS`, read from its header before decoding), its georeference
-sidecar ``IMAGE.geo.json`` (:class:`.georef.Georef`), and the checks of the options that describe a frame
-(``--pixel-m``, ``--light-azimuth``) and of an output that would overwrite an input. Each failure is one
-:class:`.georef.FrameError` (or :class:`UserError`) line naming the input."""
+sidecar ``IMAGE.geo.json`` (:class:`.georef.Georef`) or (``detect``) the map georeference a GeoTIFF or ISIS
+cube carries itself (:class:`CrsGeoref`, any lunar CRS, read through rasterio), and the checks of the
+options that describe a frame (``--pixel-m``, ``--light-azimuth``) and of an output that would overwrite an
+input. Each failure is one :class:`.georef.FrameError` (or :class:`UserError`) line naming the input."""
 
 from __future__ import annotations
 
 import json
 import math
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.errors import NotGeoreferencedWarning, RasterioError
+from rasterio.warp import transform as warp_transform
 
+from crater_core.geometry import MOON_RADIUS_M
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import FrameError, Georef, check_frame
 from train.errors import RealSetError
-from train.realframes import MAX_FRAME_PIXELS  # the largest frame read at once
+from train.realframes import (
+    MAX_FRAME_PIXELS,  # the largest frame read at once
+    check_lunar_crs,
+    dataset_georeference,
+)
+
+# Files whose own header may carry a map georeference (GeoTIFF, ISIS cube, PDS image, JPEG 2000).
+GEOREFERENCED_SUFFIXES = (".tif", ".tiff", ".cub", ".img", ".jp2")
+LUNAR_LONLAT = CRS.from_proj4(f"+proj=longlat +R={MOON_RADIUS_M:.0f} +no_defs")
 
 # Map metres per pixel a frame may claim: from a descent camera's decimetres to a whole-pole overview.
 PIXEL_M_RANGE = (0.1, 20_000.0)
@@ -41,6 +57,52 @@ def read_georef(image_path: Path) -> Georef | None:
     if g.pole not in ("south", "north") or not g.pixel_m > 0:
         raise FrameError(f"georeference {side}: pole must be south or north and pixel_m > 0")
     return g
+
+
+@dataclass(frozen=True)
+class CrsGeoref:
+    """A georeference the image file carries: a lunar CRS and the affine map of pixel (u, v) (from the
+    top-left corner) to projected (x, y) (:func:`train.realframes.dataset_georeference`)."""
+
+    crs: object  # rasterio.crs.CRS
+    transform: object  # affine.Affine
+
+    def latlon(self, u, v) -> tuple[np.ndarray, np.ndarray]:
+        """(latitude, longitude) degrees of pixel points."""
+        x, y = self.transform * (np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+        lon, lat = warp_transform(self.crs, LUNAR_LONLAT, np.atleast_1d(x).tolist(), np.atleast_1d(y).tolist())
+        return np.asarray(lat), np.asarray(lon)
+
+    def ground_km(self, u1, v1, u2, v2) -> np.ndarray:
+        """Great-circle distance (km, on the Moon's mean sphere) between pixel points."""
+        lat1, lon1 = np.radians(self.latlon(u1, v1))
+        lat2, lon2 = np.radians(self.latlon(u2, v2))
+        h = np.sin((lat2 - lat1) / 2) ** 2 + np.cos(lat1) * np.cos(lat2) * np.sin((lon2 - lon1) / 2) ** 2
+        return 2.0 * MOON_RADIUS_M / 1000.0 * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))
+
+    def as_dict(self) -> dict:
+        return {"crs": self.crs.to_string(), "transform": list(self.transform)[:6]}
+
+
+def file_georef(path: Path) -> CrsGeoref | None:
+    """The map georeference ``path``'s own header carries (a file of :data:`GEOREFERENCED_SUFFIXES` with a
+    CRS or ground control points), or None; a CRS that is not the Moon's is refused in one line."""
+    if path.suffix.lower() not in GEOREFERENCED_SUFFIXES:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                found = dataset_georeference(ds)
+    except RasterioError:
+        return None  # the pixel reader names what is wrong with the file
+    if found is None:
+        return None
+    try:
+        check_lunar_crs(found[0], str(path))
+    except RealSetError as exc:
+        raise FrameError(str(exc)) from None
+    return CrsGeoref(*found)
 
 
 def read_window(image: Path) -> tuple[np.ndarray, Georef | None]:
