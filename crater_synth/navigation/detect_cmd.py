@@ -95,7 +95,6 @@ class Found:
 
     image: Path
     records: list[dict]
-    dets: list[Detection]
     pixels: np.ndarray | None  # dropped once drawn: a folder run keeps only the records
     georef: Georef | CrsGeoref | None
     light: float
@@ -138,11 +137,12 @@ def detect_command(source, out, pixel_m, png, detector_name, light_azimuth, over
     """Find craters in an image, or in every image of a folder, with one of navigation's detectors.
 
     Writes each crater's ellipse in pixels (centre `u`, `v`, semi-axes `a`, `b`, `angle_deg`; the detectors
-    give circles today, so a = b) and its score; where the image has a georeference (`IMAGE.geo.json`),
-    latitude, longitude and D in km; with only `--pixel-m`, D. IMAGE: one JSON line per crater on stdout,
-    or `--out FILE.geojson|FILE.csv`. DIR: `--out FOLDER` gets one GeoJSON per image, `craters.csv` and
-    `summary.json`; a bad image is one error line, the others go on (exit status 1). Settings are
-    `nav.detector.*` overrides (docs/navigation/settings.md), e.g. `nav.detector.model=FILE`.
+    give circles today, so a = b) and its score; where the image has a georeference (`IMAGE.geo.json`, or
+    a GeoTIFF's or ISIS cube's own), latitude, longitude and D in km; with only `--pixel-m`, D. IMAGE: one
+    JSON line per crater on stdout, or `--out FILE.geojson|FILE.csv`. DIR: `--out FOLDER` gets one GeoJSON
+    per image, `craters.csv` and `summary.json`; a bad image is one error line, the others go on (exit
+    status 1). Settings are `nav.detector.*` overrides (docs/navigation/settings.md), e.g.
+    `nav.detector.model=FILE`.
     """
     check_pixel_m(pixel_m)
     check_light_azimuth(light_azimuth)
@@ -266,7 +266,7 @@ def detect_image(path: Path, detector: Detector, pixel_m: float | None) -> Found
     if note:
         click.echo(f"note: {note}", err=True)
     records = crater_records(dets, georef, pixel_m)
-    return Found(path, records, dets, img, georef, theta, time.perf_counter() - t0, note)
+    return Found(path, records, img, georef, theta, time.perf_counter() - t0, note)
 
 
 def crater_records(dets: list[Detection], georef: Georef | CrsGeoref | None, pixel_m: float | None) -> list[dict]:
