@@ -99,6 +99,7 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         ),
         ("nav-eval", f"{_NAV}.windows.evaluate:nav_eval_command", "Navigation metrics on real mosaic windows."),
         ("navigate", f"{_NAV}.navigate:navigate_command", "Detect, identify and fix one nadir frame."),
+        ("detect", f"{_NAV}.detect_cmd:detect_command", "Find craters in an image or a folder of images."),
         ("nav-frames", f"{_NAV}.rendered.frames:nav_frames_command", "Render a trajectory's labelled nav frames."),
         ("nav-frames-relabel", f"{_NAV}.rendered.labels:nav_frames_relabel_command", "Relabel nav frames (new map)."),
         ("nav-frames-eval", f"{_NAV}.rendered.cli:nav_frames_eval_command", "Navigation metrics on rendered frames."),

@@ -48,7 +48,8 @@ MARKERS = {
     "navdetector-survey": ".crater-synth-navdetector-survey",
     "export": ".crater-synth-export",
     "report": ".crater-synth-report",
-    "detection": ".crater-synth-detection",
+    "detection-frames": ".crater-synth-detection-frames",
+    "detections": ".crater-synth-detections",
 }
 WHAT = {
     "dataset": "rendered dataset (docs/manifest.md)",
@@ -56,7 +57,8 @@ WHAT = {
     "navdetector-survey": "detector survey tracks, one navframes folder each (docs/navigation/rendered.md)",
     "export": "crater-synth export shards and their export.json (docs/export.md)",
     "report": "a crater-synth run report (docs/report.md)",
-    "detection": "detection frames of procedural crater fields (docs/procedural.md)",
+    "detection-frames": "detection frames of procedural crater fields (docs/procedural.md)",
+    "detections": "crater-synth detect's crater lists (docs/navigation/commands.md)",
 }
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)

@@ -324,6 +324,7 @@ NAV = "crater_synth.navigation"
 NAV_RANK = {
     f"{NAV}": 0,
     f"{NAV}.georef": 0,
+    f"{NAV}.frame_file": 1,
     f"{NAV}.map": 1,
     f"{NAV}.detectors": 2,
     f"{NAV}.fix": 3,
@@ -334,6 +335,7 @@ NAV_RANK = {
     f"{NAV}.rendered": 6,
     f"{NAV}.navigate": 7,
     f"{NAV}.demo": 7,
+    f"{NAV}.detect_cmd": 7,
 }
 # The longest chain of imports between navigation modules (counted in modules, the first included).
 NAV_MAX_CHAIN = 8

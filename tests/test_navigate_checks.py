@@ -13,6 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from crater_synth.cli import main
+from crater_synth.navigation import frame_file
 from crater_synth.navigation import navigate as nv
 from crater_synth.navigation.fix.solve import Fix
 from crater_synth.paths import LANDMARKS_DIR
@@ -80,7 +81,7 @@ def test_navigate_never_overwrites_its_inputs(tmp_path):
 
 def test_navigate_refuses_an_image_too_large_from_its_header(tmp_path, monkeypatch):
     img, _ = _window(tmp_path, n=128)
-    monkeypatch.setattr(nv, "MAX_FRAME_PIXELS", 100 * 100)
+    monkeypatch.setattr(frame_file, "MAX_FRAME_PIXELS", 100 * 100)
     r = CliRunner().invoke(main, ["navigate", str(img)])
     _one_line_error(r, "128 x 128 px", "more than the 10000 px")
 

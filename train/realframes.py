@@ -106,6 +106,17 @@ def check_lunar_crs(crs, where: str) -> None:
         )
 
 
+def dataset_georeference(ds) -> tuple[object, object] | None:
+    """(CRS, affine pixel-corner -> projected transform) of an open rasterio dataset: its own, else one fitted
+    to its ground control points; None when it has neither (the CRS is not checked here)."""
+    if ds.crs is not None and not ds.transform.is_identity:
+        return ds.crs, ds.transform
+    gcps, gcp_crs = ds.gcps
+    if gcps and gcp_crs is not None:
+        return gcp_crs, from_gcps(gcps)
+    return None
+
+
 def open_frame(path: str | Path, frame_id: str | None = None, source: str | None = None, band: int = 1) -> Frame:
     """Read one georeferenced frame completely (every check of the module docstring but the craters')."""
     path = Path(path)
@@ -121,16 +132,12 @@ def open_frame(path: str | Path, frame_id: str | None = None, source: str | None
         with ds:
             if not 1 <= band <= ds.count:
                 raise RealSetError(f"{where}: band {band} asked for, the file has {ds.count}")
-            crs, transform = ds.crs, ds.transform
-            gcps, gcp_crs = ds.gcps
-            has_affine = crs is not None and not transform.is_identity
-            if not has_affine:
-                if gcps and gcp_crs is not None:
-                    crs, transform = gcp_crs, from_gcps(gcps)
-                else:
-                    raise RealSetError(
-                        f"{where} has no georeference (no CRS and no ground control points); {RAW_FRAME_HINT}"
-                    )
+            found = dataset_georeference(ds)
+            if found is None:
+                raise RealSetError(
+                    f"{where} has no georeference (no CRS and no ground control points); {RAW_FRAME_HINT}"
+                )
+            crs, transform = found
             check_lunar_crs(crs, where)
             if ds.width * ds.height > MAX_FRAME_PIXELS:  # from the header, before anything is decoded
                 raise RealSetError(

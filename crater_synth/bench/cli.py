@@ -16,8 +16,10 @@ Parts (``--part``, default all, in this order):
   appearance search against the classical detector (crater_synth.bench.navframes);
 - ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
   (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet);
-- ``detection``: detection frames/s at 256² and 512², the default grouping against one frame per field
+- ``detection-frames``: detection-frame renders/s at 256² and 512², the default grouping against one frame per field
   (crater_synth.bench.detection);
+- ``detect``: ``crater-synth detect`` on synthetic frames: seconds per 1024 x 1024 and 2592 x 1944 frame, peak
+  RSS, and a folder in one process against one process per image (crater_synth.bench.detect);
 - ``opencv``: the solvers OpenCV does for the project (PnP minimal solve and RANSAC fix, NCC, crop warps)
   against the hand-written code they replaced, before/after ms, ratio and agreement (crater_synth.bench.opencv).
 
@@ -34,6 +36,7 @@ from pathlib import Path
 
 import click
 
+from crater_synth.bench.detect import bench_detect
 from crater_synth.bench.detection import bench_detection
 from crater_synth.bench.detection import summary_line as detection_summary_line
 from crater_synth.bench.detector import bench_detector_training
@@ -48,24 +51,24 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose, load_settings
 from crater_synth.navigation.rendered.detector_train import DEFAULT_FRAMES
 
+PARTS = (
+    "renderer",
+    "train",
+    "distributed",
+    "navigation",
+    "export",
+    "navframes",
+    "detector",
+    "detect",
+    "opencv",
+    "detection-frames",
+)
+
 
 @click.command("bench")
 @click.option(
     "--part",
-    type=click.Choice(
-        [
-            "all",
-            "renderer",
-            "train",
-            "distributed",
-            "navigation",
-            "export",
-            "navframes",
-            "detector",
-            "opencv",
-            "detection",
-        ]
-    ),
+    type=click.Choice(["all", *PARTS]),
     default="all",
     show_default=True,
 )
@@ -134,11 +137,13 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
                     f"detector skipped: no survey frames at {DEFAULT_FRAMES} (crater-synth nav-detector-frames, "
                     "or make nav-detector, renders them)"
                 )
+        if part in ("all", "detect"):
+            click.echo("detect " + json.dumps(bench_detect(work / "detect")))
         if part in ("all", "opencv"):
             click.echo("opencv " + json.dumps(bench_opencv()))
-        if part in ("all", "detection"):
-            r = bench_detection(overrides, work / "detection")
-            click.echo("detection " + json.dumps(r))
+        if part in ("all", "detection-frames"):
+            r = bench_detection(overrides, work / "detection_frames")
+            click.echo("detection-frames " + json.dumps(r))
             click.echo(detection_summary_line(r))
         if part in ("all", "renderer"):
             r = bench_renderer(overrides, work / "renderer")

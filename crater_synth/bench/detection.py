@@ -1,4 +1,4 @@
-"""``crater-synth bench --part detection``: detection frames per second (issue target: >= 10 frames/s at
+"""``crater-synth bench --part detection-frames``: detection frames rendered per second (issue target: >= 10 frames/s at
 256² on 2 cores).
 
 At 256² and at 512², in one call and with the same settings (every override applies), it renders:

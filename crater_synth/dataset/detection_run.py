@@ -47,7 +47,7 @@ from crater_synth.dataset.identity import IGNORED, settings_payload
 from crater_synth.errors import ConfigError, UserError
 from crater_synth.outfolder import OutFolder
 
-KIND = "detection"
+KIND = "detection-frames"
 
 
 def recipe_key(settings) -> str:

@@ -18,11 +18,17 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
+from crater_synth.navigation.frame_file import (
+    check_light_azimuth,
+    check_pixel_m,
+    read_window,
+    refuse_overwrite,
+    sidecar,
+)
 from crater_synth.navigation.georef import (
     Frame,
     FrameError,
     Georef,
-    check_frame,
     ground_distance_km,
     stereo_forward,
     stereo_inverse,
@@ -32,9 +38,7 @@ from crater_synth.navigation.output import detection_records, write_detections
 from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
 from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav
 from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, prior_georef
-from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix, read_georef
-from train.errors import RealSetError
-from train.realframes import MAX_FRAME_PIXELS  # the largest frame read at once
+from crater_synth.navigation.windows.navigate import annotate, appearance_window_fix
 
 WINDOW_DETECTOR = "template"  # a map window's detector unless an override names another (nav/detector=)
 
@@ -190,10 +194,6 @@ def check_window_request(request: NavigateRequest, nav) -> None:
         )
 
 
-# Map metres per pixel a frame may claim: from a descent camera's decimetres to a whole-pole overview.
-PIXEL_M_RANGE = (0.1, 20_000.0)
-
-
 def parse_prior(text: str, pole: str) -> tuple[float, float]:
     """(lat, lon) of ``--prior LAT,LON``: finite degrees, latitude within +-90 and on ``pole``'s side."""
     try:
@@ -209,30 +209,10 @@ def parse_prior(text: str, pole: str) -> tuple[float, float]:
 
 def check_window_values(request: NavigateRequest) -> None:
     """The numbers and paths of a map window's options: one error line each, before any work."""
-    lo, hi = PIXEL_M_RANGE
-    if request.pixel_m is not None and not (math.isfinite(request.pixel_m) and lo <= request.pixel_m <= hi):
-        raise UserError(f"--pixel-m {request.pixel_m}: map metres per pixel, finite, in [{lo:g}, {hi:g}]")
-    if request.light_azimuth is not None and not math.isfinite(request.light_azimuth):
-        raise UserError(f"--light-azimuth {request.light_azimuth}: degrees, finite")
-    inputs = {request.image, request.image.with_name(request.image.name + ".geo.json")}
-    if request.map_path is not None:
-        inputs.add(request.map_path)
-    inputs = {p.resolve() for p in inputs}
-    for out in (request.out, request.out.with_suffix(".json")):
-        if out.resolve() in inputs:
-            raise UserError(f"--out {request.out}: it would overwrite the input {out} (give another file)")
-
-
-def read_window(image: Path):
-    """(image, its georeference or None) of a map window."""
-    from train.realset import read_gray  # pulls scipy
-
-    try:
-        img = read_gray(image, max_pixels=MAX_FRAME_PIXELS)
-    except RealSetError as exc:
-        raise FrameError(str(exc)) from None
-    check_frame(img, str(image))
-    return img, read_georef(image)
+    check_pixel_m(request.pixel_m)
+    check_light_azimuth(request.light_azimuth)
+    inputs = [request.image, sidecar(request.image), *([request.map_path] if request.map_path else [])]
+    refuse_overwrite((request.out, request.out.with_suffix(".json")), inputs)
 
 
 def window_prior(request: NavigateRequest, img, truth, landmarks, pole: str, pixel: float) -> Georef | None:

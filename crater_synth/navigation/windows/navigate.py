@@ -17,7 +17,8 @@ import numpy as np
 from crater_core.schema import atomic_write_bytes, atomic_write_text
 from crater_synth.navigation.fix.patches import PATCH_SOURCE, PatchParams
 from crater_synth.navigation.fix.solve import fix_frame
-from crater_synth.navigation.georef import Frame, FrameError, Georef, ground_distance_km, local_north_image_angle
+from crater_synth.navigation.frame_file import sidecar
+from crater_synth.navigation.georef import Frame, Georef, ground_distance_km, local_north_image_angle
 from crater_synth.navigation.output import draw_detections, png_of
 from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
 
@@ -25,26 +26,10 @@ from crater_synth.navigation.windows.appearance import lander_refiner, window_de
 # --------------------------------------------------------------------------------------------
 # navigate IMAGE
 # --------------------------------------------------------------------------------------------
-def read_georef(image_path: Path) -> Georef | None:
-    """The georeference of ``image_path``: its sidecar ``<image>.geo.json`` ({pole, left_m, top_m,
-    pixel_m}), or None when it has none."""
-    side = image_path.with_name(image_path.name + ".geo.json")
-    if not side.is_file():
-        return None
-    try:
-        d = json.loads(side.read_text())
-        g = Georef(str(d["pole"]), float(d["left_m"]), float(d["top_m"]), float(d["pixel_m"]))
-    except (ValueError, KeyError, TypeError) as exc:
-        raise FrameError(f"georeference {side} is corrupt: {exc}") from None
-    if g.pole not in ("south", "north") or not g.pixel_m > 0:
-        raise FrameError(f"georeference {side}: pole must be south or north and pixel_m > 0")
-    return g
-
-
 def write_window(path: Path, frame: Frame) -> None:
     """A frame as PNG plus its ``.geo.json`` sidecar (what ``navigate`` reads)."""
     atomic_write_bytes(path, _png_gray(frame.image))
-    atomic_write_text(path.with_name(path.name + ".geo.json"), json.dumps(frame.georef.as_dict()) + "\n")
+    atomic_write_text(sidecar(path), json.dumps(frame.georef.as_dict()) + "\n")
 
 
 def _png_gray(img: np.ndarray) -> bytes:
