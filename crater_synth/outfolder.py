@@ -280,7 +280,10 @@ class OutFolder:
         name = rel.rsplit("/", 1)[-1]
         target = temp_target(name)
         if target is not None:
-            return (rel[: -len(name)] + target) in self.files
+            # a listed file's interrupted write, or the marker's or verify's record's own (another writer's,
+            # caught between its temp file and the rename)
+            target_rel = rel[: -len(name)] + target
+            return target_rel in self.files or target_rel in (self.marker.name, VERIFIED_RECORD)
         # verify's record of a pass (crater_core.verify_file) describes the folder; it is never a user's file
         return rel in (self.marker.name, LOCK_NAME, VERIFIED_RECORD) or rel.startswith(JOBS_DIR + "/")
 

@@ -528,3 +528,19 @@ def _export_step(op: str, rng: random.Random, out: Path, dataset, user: dict, ed
 def _export_result_of(dataset, out):
     ex.export_dataset(dataset, out, "parquet", shard_rows=2)
     return _export_result(out)
+
+
+def test_the_markers_own_temp_file_is_bookkeeping_not_a_foreign_file(tmp_path):
+    """A second writer caught between the first one's marker temp file and its rename is refused as busy,
+    never for a 'file crater-synth did not write' (the marker's and verify's record's temp files)."""
+    from crater_synth.outfolder import OutFolder
+
+    first = OutFolder(tmp_path / "f", "navframes", subject="t").claim()
+    for name in ("..crater-synth-navframes.abc123.tmp", "..verified.json.x1y2.tmp"):
+        (tmp_path / "f" / name).write_text("{}")
+    second = OutFolder(tmp_path / "f", "navframes", subject="t")
+    second.check()
+    assert second.unlisted() == []
+    (tmp_path / "f" / ".notes.abc.tmp").write_text("mine")  # a temp file of nothing listed: not bookkeeping
+    assert second.unlisted() == [".notes.abc.tmp"]
+    first.release()
