@@ -50,6 +50,7 @@ MARKERS = {
     "report": ".crater-synth-report",
     "detection-frames": ".crater-synth-detection-frames",
     "detections": ".crater-synth-detections",
+    "navigation": ".crater-synth-navigation",
 }
 WHAT = {
     "dataset": "rendered dataset (docs/manifest.md)",
@@ -59,6 +60,7 @@ WHAT = {
     "report": "a crater-synth run report (docs/report.md)",
     "detection-frames": "detection frames of procedural crater fields (docs/procedural.md)",
     "detections": "crater-synth detect's crater lists (docs/navigation/commands.md)",
+    "navigation": "crater-synth navigate's fixes and detection lists (docs/navigation/commands.md)",
 }
 LOCK_NAME = ".crater-synth.lock"
 JOBS_DIR = ".jobs"  # worker job files and logs (crater_synth.dataset.dispatch)

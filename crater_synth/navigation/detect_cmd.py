@@ -53,11 +53,16 @@ from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import learned, registry
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.frame_file import (
+    EXIT_SOME_FAILED,
     CrsGeoref,
     check_light_azimuth,
     check_pixel_m,
     check_pixels,
+    checked_out,
+    error_text,
     file_georef,
+    folder_images,
+    publish,
     read_georef,
     read_window,
     refuse_overwrite,
@@ -65,18 +70,15 @@ from crater_synth.navigation.frame_file import (
 )
 from crater_synth.navigation.georef import FrameError, Georef, check_frame, scale_factor, stereo_inverse
 from crater_synth.navigation.settings import compose_nav, detector_options
-from crater_synth.outfolder import OutFolder
 
 # The most precise detector on the real north test windows (module docstring).
 DEFAULT_DETECTOR = "learned-detect"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".pnm", ".ppm", ".exr")
 FORMATS = (".geojson", ".csv")
 RENDER_CHANNEL = EXR_CHANNELS[0]  # a rendered frame's I/F
 LIST_SUFFIX = ".craters.geojson"  # a folder run's list of one image: <image name> + this
 PNG_SUFFIX = ".craters.png"
 TABLE_NAME = "craters.csv"
 SUMMARY_NAME = "summary.json"
-EXIT_SOME_FAILED = 1
 COLUMNS = ("image", "u", "v", "a", "b", "angle_deg", "score", "lat", "lon", "d_km")
 
 
@@ -371,39 +373,6 @@ def write_image_outputs(found: Found, detector: Detector, out: Path, png: Path |
 # ------------------------------------------------------------------------------------------------
 # A folder
 # ------------------------------------------------------------------------------------------------
-def folder_images(folder: Path) -> tuple[list[Path], list[str]]:
-    """(the folder's images by suffix, sorted; the names of its other entries but the images' georeferences,
-    which are not read)."""
-    try:
-        entries = sorted(folder.iterdir())
-    except OSError as exc:
-        raise UserError(f"{folder}: cannot list the folder ({exc.strerror})") from None
-    images = [p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES]
-    sidecars = {sidecar(p).name for p in images}
-    others = [p.name for p in entries if p.suffix.lower() not in IMAGE_SUFFIXES and p.name not in sidecars]
-    if not images:
-        raise UserError(f"{folder} holds no image ({', '.join(IMAGE_SUFFIXES)})")
-    return images, others
-
-
-def error_text(path: Path, exc: BaseException) -> str:
-    """One line naming ``path`` for an image's failure."""
-    text = " ".join(str(exc).split())
-    return text if str(path) in text or path.name in text else f"{path}: {text}"
-
-
-def checked_out(folder: Path, out: Path) -> OutFolder:
-    """``out`` as this input folder's ``detections`` folder, to claim (``with``): new, empty, or written by an
-    earlier run on the same folder; a folder of another kind or input, or holding any file no run of ours
-    wrote (a user's, or one of ours edited since), is refused naming it, and nothing is written."""
-    f = OutFolder(out, "detections", subject=str(folder.resolve()))
-    f.check()
-    foreign = f.unlisted()
-    if foreign:
-        f.refuse(foreign)
-    return f
-
-
 def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | None, png: bool) -> list[dict]:
     """Every image of ``folder`` detected into the output folder ``out``; returns the failures (each also an
     ``error:`` line). Files of an earlier run into ``out`` that this run does not write again are removed."""
@@ -412,7 +381,7 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
     failed: list[dict] = []
     written: list[str] = []
     t0 = time.perf_counter()
-    with checked_out(folder, out) as f:
+    with checked_out(folder, out, "detections") as f:
         for path in images:
             try:
                 found = detect_image(path, detector, pixel_m)
@@ -438,15 +407,6 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
     brief = {k: summary[k] for k in ("source", "out", "detector", "images", "craters")}
     click.echo(json.dumps(brief | {"failed": len(failed)}))
     return failed
-
-
-def publish(f: OutFolder, files: dict[str, bytes]) -> None:
-    """``files`` (name -> bytes) listed in the folder's marker, written atomically, then sealed."""
-    f.record(files)
-    for name, data in files.items():
-        atomic_write_bytes(f.path / name, data)
-    f.published()  # the marker now lists written files: a later failure must not remove it
-    f.seal(files)
 
 
 def folder_summary(folder, out, detector: Detector, done: list[Found], failed, others, seconds: float) -> dict:

@@ -3,7 +3,9 @@ most :data:`train.realframes.MAX_FRAME_PIXELS`, read from its header before deco
 sidecar ``IMAGE.geo.json`` (:class:`.georef.Georef`) or (``detect``) the map georeference a GeoTIFF or ISIS
 cube carries itself (:class:`CrsGeoref`, any lunar CRS, read through rasterio), and the checks of the
 options that describe a frame (``--pixel-m``, ``--light-azimuth``) and of an output that would overwrite an
-input. Each failure is one :class:`.georef.FrameError` (or :class:`UserError`) line naming the input."""
+input. Each failure is one :class:`.georef.FrameError` (or :class:`UserError`) line naming the input. A
+folder run's images, error lines and output folder (:class:`crater_synth.outfolder.OutFolder`) are here too,
+the same for ``detect DIR`` and ``navigate DIR``."""
 
 from __future__ import annotations
 
@@ -21,8 +23,10 @@ from rasterio.errors import NotGeoreferencedWarning, RasterioError
 from rasterio.warp import transform as warp_transform
 
 from crater_core.geometry import MOON_RADIUS_M
+from crater_core.schema import atomic_write_bytes
 from crater_synth.errors import UserError
 from crater_synth.navigation.georef import FrameError, Georef, check_frame
+from crater_synth.outfolder import OutFolder
 from train.errors import RealSetError
 from train.realframes import (
     MAX_FRAME_PIXELS,  # the largest frame read at once
@@ -33,6 +37,10 @@ from train.realframes import (
 # Files whose own header may carry a map georeference (GeoTIFF, ISIS cube, PDS image, JPEG 2000).
 GEOREFERENCED_SUFFIXES = (".tif", ".tiff", ".cub", ".img", ".jp2")
 LUNAR_LONLAT = CRS.from_proj4(f"+proj=longlat +R={MOON_RADIUS_M:.0f} +no_defs")
+
+# The images a folder run (detect DIR, navigate DIR) reads, by suffix; its exit status when one failed.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".pnm", ".ppm", ".exr")
+EXIT_SOME_FAILED = 1
 
 # Map metres per pixel a frame may claim: from a descent camera's decimetres to a whole-pole overview.
 PIXEL_M_RANGE = (0.1, 20_000.0)
@@ -148,3 +156,49 @@ def refuse_overwrite(outs: Iterable[Path], inputs: Iterable[Path], flag: str = "
     for out in outs:
         if Path(out).resolve() in resolved:
             raise UserError(f"{flag} {outs[0]}: it would overwrite the input {out} (give another file)")
+
+
+# ------------------------------------------------------------------------------------------------
+# A folder of frames (detect DIR, navigate DIR): one process, one output folder
+# ------------------------------------------------------------------------------------------------
+def folder_images(folder: Path) -> tuple[list[Path], list[str]]:
+    """(the folder's images by suffix, sorted; the names of its other entries but the images' georeferences,
+    which are not read)."""
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError as exc:
+        raise UserError(f"{folder}: cannot list the folder ({exc.strerror})") from None
+    images = [p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES]
+    sidecars = {sidecar(p).name for p in images}
+    others = [p.name for p in entries if p.suffix.lower() not in IMAGE_SUFFIXES and p.name not in sidecars]
+    if not images:
+        raise UserError(f"{folder} holds no image ({', '.join(IMAGE_SUFFIXES)})")
+    return images, others
+
+
+def error_text(path: Path, exc: BaseException) -> str:
+    """One line naming ``path`` for an image's failure."""
+    text = " ".join(str(exc).split())
+    return text if str(path) in text or path.name in text else f"{path}: {text}"
+
+
+def checked_out(folder: Path, out: Path, kind: str) -> OutFolder:
+    """``out`` as this input folder's output folder of ``kind`` (``detections``; ``navigate``'s
+    ``navigation``), to claim (``with``): new, empty, or written by an earlier run on the same folder; a
+    folder of another kind or input, or holding any file no run of ours wrote (a user's, or one of ours
+    edited since), is refused naming it, and nothing is written."""
+    f = OutFolder(out, kind, subject=str(folder.resolve()))
+    f.check()
+    foreign = f.unlisted()
+    if foreign:
+        f.refuse(foreign)
+    return f
+
+
+def publish(f: OutFolder, files: dict[str, bytes]) -> None:
+    """``files`` (name -> bytes) listed in the folder's marker, written atomically, then sealed."""
+    f.record(files)
+    for name, data in files.items():
+        atomic_write_bytes(f.path / name, data)
+    f.published()  # the marker now lists written files: a later failure must not remove it
+    f.seal(files)

@@ -30,9 +30,14 @@ def detection_records(dets, identified: dict[int, int], landmarks, truth: dict[i
     return out
 
 
+def detections_text(image: Path, records: list[dict]) -> str:
+    """The per-detection list of ``navigate`` as JSON text."""
+    return json.dumps({"image": str(image), "detections": records}, indent=1) + "\n"
+
+
 def write_detections(path: Path, image: Path, records: list[dict]) -> None:
     """The per-detection list of ``navigate`` as JSON (atomic)."""
-    atomic_write_text(path, json.dumps({"image": str(image), "detections": records}, indent=1) + "\n")
+    atomic_write_text(path, detections_text(image, records))
 
 
 def draw_detections(ax, dets, identified, landmarks) -> None:

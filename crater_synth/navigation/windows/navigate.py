@@ -10,11 +10,14 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from crater_core.schema import atomic_write_bytes, atomic_write_text
+from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.patches import PATCH_SOURCE, PatchParams
 from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.frame_file import sidecar
@@ -64,6 +67,49 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
         err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
         title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
     return png_of(fig, ax, w, h, title)
+
+
+# --------------------------------------------------------------------------------------------
+# A frame that is not north-up (navigate --heading)
+# --------------------------------------------------------------------------------------------
+def turned_north_up(img: np.ndarray, truth: Georef | None, heading_deg: float):
+    """(the frame turned north-up, its georeference, the 2 x 3 map of image to turned pixels) of a frame whose
+    up points ``heading_deg`` clockwise from the map's up. The frame is turned about its centre onto a canvas
+    that holds all of it (:func:`cv2.warpAffine`, bilinear), the corners filled with its median, which the
+    detectors' normalisation reads as flat ground. ``truth`` (the ``.geo.json`` of the frame turned north-up:
+    the same centre and pixel size) becomes the canvas's, about the same centre."""
+    h, w = img.shape[:2]
+    c, s = abs(math.cos(math.radians(heading_deg))), abs(math.sin(math.radians(heading_deg)))
+    width, height = math.ceil(w * c + h * s - 1e-6), math.ceil(w * s + h * c - 1e-6)
+    # cv2 turns counter-clockwise on the screen for a positive angle; the frame's content is the map turned
+    # counter-clockwise by the heading, so it is turned back clockwise. cv2's pixel centres are at integers.
+    turn = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), -heading_deg, 1.0)
+    turn[:, 2] += ((width - w) / 2.0, (height - h) / 2.0)
+    fill = float(np.median(img))
+    flags = {"flags": cv2.INTER_LINEAR, "borderMode": cv2.BORDER_CONSTANT, "borderValue": fill}
+    canvas = cv2.warpAffine(np.asarray(img, dtype=np.float32), turn, (width, height), **flags)
+    if truth is not None:
+        truth = Georef.centred_on(truth.pole, *truth.uv_to_xy(w / 2.0, h / 2.0), canvas.shape, truth.pixel_m)
+    return canvas, truth, turn
+
+
+def turned_back(dets: list[Detection], turn: np.ndarray) -> list[Detection]:
+    """Detections on the canvas of :func:`turned_north_up` in the given frame's pixels (from the top-left
+    corner, as every detection; cv2's from the pixel centre)."""
+    if not dets:
+        return []
+    back = cv2.invertAffineTransform(turn)
+    uv = np.array([(d.u - 0.5, d.v - 0.5) for d in dets]) @ back[:, :2].T + back[:, 2] + 0.5
+    return [dataclasses.replace(d, u=float(u), v=float(v)) for d, (u, v) in zip(dets, uv, strict=True)]
+
+
+def inside_frame(dets: list[Detection], border_r: float, turn: np.ndarray, shape) -> list[Detection]:
+    """The detections on the canvas of :func:`turned_north_up` whose centre lies inside the given frame of
+    ``shape`` by at least ``border_r`` x r: the detectors' border rule (:func:`.detectors.classical.detect`)
+    held to the frame's edges, not the canvas's, so that nothing is found in the filled corners."""
+    h, w = shape[:2]
+    back = turned_back(dets, turn)
+    return [d for d, b in zip(dets, back, strict=True) if min(b.u, w - b.u, b.v, h - b.v) >= border_r * d.r]
 
 
 def appearance_window_fix(img, prior_g: Georef, landmarks, light: float, sun_elevation, dparams, fparams, patches):
