@@ -52,9 +52,14 @@ def crater_frame(height: int, width: int, seed: int) -> np.ndarray:
 
 
 def run_detect(log: Path, *args) -> dict:
-    """``crater-synth detect ARGS`` in a child process: wall seconds, peak RSS (MB) and its stdout's last line
+    """``crater-synth detect ARGS`` in a child process (:func:`run_command`)."""
+    return run_command(log, "detect", *args)
+
+
+def run_command(log: Path, command: str, *args) -> dict:
+    """``crater-synth COMMAND ARGS`` in a child process: wall seconds, peak RSS (MB) and its stdout's last line
     (stdout and stderr go to files ``log``.out/.err, so nothing blocks while the parent waits in wait4)."""
-    cmd = [sys.executable, "-c", "import sys; from crater_synth.cli import main; sys.exit(main())", "detect"]
+    cmd = [sys.executable, "-c", "import sys; from crater_synth.cli import main; sys.exit(main())", command]
     out, err = log.with_suffix(".out"), log.with_suffix(".err")
     t0 = time.perf_counter()
     with open(out, "wb") as fo, open(err, "wb") as fe:
@@ -63,7 +68,7 @@ def run_detect(log: Path, *args) -> dict:
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         text = err.read_text(encoding="utf-8", errors="replace").strip()
-        raise RuntimeError(f"detect {' '.join(map(str, args))}: {text.splitlines()[-1] if text else status}")
+        raise RuntimeError(f"{command} {' '.join(map(str, args))}: {text.splitlines()[-1] if text else status}")
     lines = out.read_text(encoding="utf-8").strip().splitlines()
     return {"wall_s": wall, "peak_rss_mb": round(usage.ru_maxrss / 1024.0, 1), "last": lines[-1] if lines else ""}
 

@@ -1,14 +1,21 @@
 """``crater-synth bench --part navigation``: detection, identification and fix per second on a 1024 x 1024
 real mosaic window, every method in the same run (the classical baseline first), timed on the very
-functions ``nav-eval`` runs (:mod:`crater_synth.navigation.windows.evaluate`)."""
+functions ``nav-eval`` runs (:mod:`crater_synth.navigation.windows.evaluate`); and what ``crater-synth
+navigate`` costs a user per window, a folder in one process against one process per window
+(:func:`bench_navigate_folder`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
+from crater_synth.bench.detect import run_command
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.registry import detectors
 from crater_synth.navigation.fix.patches import PatchParams
@@ -19,7 +26,11 @@ from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
 from crater_synth.navigation.windows.evaluate import prior_georef
 from crater_synth.navigation.windows.light import frame_local_light
-from crater_synth.navigation.windows.mosaic import load_mosaic_image, sector_of
+from crater_synth.navigation.windows.mosaic import load_mosaic_image, sector_of, windows
+from crater_synth.navigation.windows.navigate import write_window
+
+NAVIGATE_WINDOWS = 4  # south validation windows (development data) of the navigate comparison
+NAVIGATE_EVERY = 30  # every this-th of them: spread over the sectors
 
 
 def image_detectors() -> list[str]:
@@ -74,7 +85,40 @@ def bench_navigation(repeats: int = 3) -> dict:
             "fix": bool(fix.ok) if fix else False,
         }
     out["appearance"] = _bench_appearance(frame, landmarks, prior, fparams, repeats)
+    with tempfile.TemporaryDirectory(prefix="bench_navigate_") as work:
+        out["navigate_folder"] = bench_navigate_folder(Path(work))
     return out
+
+
+def bench_navigate_folder(work: Path) -> dict:
+    """``crater-synth navigate`` on :data:`NAVIGATE_WINDOWS` south validation windows (default detector),
+    each command a child process timed from outside (start-up included): the folder in one process (no
+    PNG, and with ``--png``) against the command once per window (which always draws its PNG), in the
+    same run; seconds per window each way, and inside the folder run (its summary: reading, detection, fix,
+    writing)."""
+    src = work / "windows"
+    src.mkdir(parents=True)
+    for f in windows("validation", "south")[::NAVIGATE_EVERY][:NAVIGATE_WINDOWS]:
+        write_window(src / f"{f.id}.png", f)
+    images = sorted(src.glob("*.png"))
+    n = len(images)
+    load = [round(x, 2) for x in os.getloadavg()]  # the machine may be shared: the timings are this run's
+    folder = run_command(work / "log_folder", "navigate", src, "--out", work / "out")
+    drawn = run_command(work / "log_folder_png", "navigate", src, "--out", work / "out_png", "--png")
+    single = [run_command(work / f"log_{p.stem}", "navigate", p, "--out", work / f"{p.stem}.nav.png") for p in images]
+    summary = json.loads((work / "out" / "summary.json").read_text())
+    per_image_s = sum(r["wall_s"] for r in single) / n
+    return {
+        "windows": n,
+        "load_average": load,
+        "fixes": summary["fixes"],
+        "folder_s_per_window": round(folder["wall_s"] / n, 3),
+        "folder_png_s_per_window": round(drawn["wall_s"] / n, 3),
+        "inside_s_per_window": round(summary["seconds"] / n, 3),
+        "process_per_window_s": round(per_image_s, 3),
+        "speedup": round(per_image_s * n / folder["wall_s"], 2),
+        "peak_rss_mb": folder["peak_rss_mb"],
+    }
 
 
 def _bench_appearance(frame: Frame, landmarks, prior: Georef, fparams: FixParams, repeats: int) -> dict:
