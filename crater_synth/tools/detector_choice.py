@@ -21,7 +21,13 @@ from pathlib import Path
 
 from crater_core.schema import atomic_write_text
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
-from crater_synth.navigation.windows.evaluate import PRIOR_OFFSET_KM, evaluate_split, nav_eval_map, nav_eval_request
+from crater_synth.navigation.windows.evaluate import (
+    PRIOR_OFFSET_KM,
+    catalogue_craters,
+    evaluate_split,
+    nav_eval_map,
+    nav_eval_request,
+)
 
 POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
 
@@ -32,7 +38,7 @@ def f1(precision: float | None, recall: float | None) -> float | None:
     return round(2.0 * precision * recall / (precision + recall), 4)
 
 
-def run_pair(model: str, threshold: float, landmarks, every: int) -> dict:
+def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dict:
     """``learned-detect`` with ``model`` at ``threshold`` on the south validation windows: its detection
     scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
     overrides = ["nav/detector=learned-detect", f"nav.detector.threshold={threshold}"]
@@ -41,7 +47,7 @@ def run_pair(model: str, threshold: float, landmarks, every: int) -> dict:
     settings, _, _ = nav_eval_request(every, PRIOR_OFFSET_KM, False, False, overrides)
     nav = settings["learned-detect"]
     t0 = time.perf_counter()
-    summary, _ = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=every, pole=POLE)
+    summary, _ = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=every, pole=POLE, listed=listed)
     cat = summary["all_windows"].get("against_catalogue", {})
     return {
         "model": model,
@@ -70,10 +76,11 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     landmarks, _ = nav_eval_map(POLE, None)
+    listed = catalogue_craters(POLE)  # LU1319381, as nav-eval scores against it
     runs = []
     for model in ["committed", *args.model]:
         for t in thresholds:
-            r = run_pair(model, t, landmarks, args.every)
+            r = run_pair(model, t, landmarks, listed, args.every)
             c = r["catalogue_15km"]
             print(
                 f"{model} t={t}: F1 {c['f1']} P {c['precision_15km']} R {c['recall_15km']} ({r['seconds']} s)",
