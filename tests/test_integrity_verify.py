@@ -290,8 +290,13 @@ def test_verify_during_a_running_dataset_says_in_progress(tmp_path, tiny_data_di
     proc = start_dataset(out, tiny_data_dir, *SLOW16, "render.workers=1")
     try:
         _wait_for(lambda: _part_rows(out) >= 1 and len(exr_files(out)) >= 1, "the first row", proc)
-        v = run_cli("verify", out)
-        assert proc.poll() is None, "the run ended before verify looked at it"
+        # held still (it keeps its lock) so that it cannot finish before verify looks, however slow verify starts
+        os.kill(proc.pid, signal.SIGSTOP)
+        try:
+            v = run_cli("verify", out)
+            assert proc.poll() is None, "the run ended before verify looked at it"
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
     finally:
         _kill(proc, out)
     assert "Traceback" not in v.stderr and "orphan" not in v.stderr, v.stderr
