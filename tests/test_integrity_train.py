@@ -17,6 +17,8 @@ from crater_synth.outfolder import LOCK_NAME, SHARED
 from train.registry import ARTEFACTS
 from train.toydata import write_toy_dataset
 
+from helpers.cli import QUICK_TRAIN
+
 torch.set_num_threads(1)
 TOY = dict(
     sun_elevations=(15.0, 30.0),
@@ -25,15 +27,7 @@ TOY = dict(
     cam_azimuths=(0.0, 120.0, 240.0),
     rim_px=24.0,
 )
-QUICK = [
-    "model.input_size=64",
-    "train.batch_size=16",
-    "train.max_epochs=1",
-    "train.hog.max_train_images=50",
-    "realset.per_crater=3",
-    "train.num_threads=1",
-    "train.progress=false",
-]
+QUICK = list(QUICK_TRAIN)
 
 
 @pytest.fixture(scope="module")

@@ -25,6 +25,8 @@ from crater_synth.report.build import report_command
 from train.registry import ARTEFACTS, MODELS
 from train.runs import EVALUATE_FILES, SUMMARY_FILE, TRAIN_FILES
 
+from helpers.cli import QUICK_TRAIN
+
 ARGS = ["train.progress=false"]
 RUN_MARKER = SHARED["run"][0]
 BUSY = "is being written by another crater-synth process (pid "
@@ -367,13 +369,7 @@ def test_a_real_run_from_before_markers_is_adopted_by_train_and_evaluate(tmp_pat
         f"data_dir={tmp_path}",
         f"run_dir={run_dir}",
         f"train.cache_dir={tmp_path / 'cache'}",
-        "model.input_size=64",
-        "train.batch_size=16",
-        "train.max_epochs=1",
-        "train.hog.max_train_images=50",
-        "realset.per_crater=3",
-        "train.num_threads=1",
-        "train.progress=false",
+        *QUICK_TRAIN,
     ]
     assert CliRunner().invoke(main, ["train", *args]).exit_code == 0
     assert sorted(_listed(run_dir)) == sorted(TRAIN_FILES)

@@ -59,6 +59,7 @@ from crater_synth.navigation.frame_file import (
     check_pixel_m,
     check_pixels,
     checked_out,
+    close_folder_run,
     error_text,
     file_georef,
     folder_images,
@@ -399,13 +400,8 @@ def detect_folder(folder: Path, out: Path, detector: Detector, pixel_m: float | 
             done.append(found)
         summary = folder_summary(folder, out, detector, done, failed, others, time.perf_counter() - t0)
         final = {TABLE_NAME: csv_text(done).encode("utf-8"), SUMMARY_NAME: json.dumps(summary, indent=1).encode()}
-        publish(f, final)
-        written += final
-        stale = [n for n in f.files if n not in written]
-        if stale:
-            f.remove(stale)
-    brief = {k: summary[k] for k in ("source", "out", "detector", "images", "craters")}
-    click.echo(json.dumps(brief | {"failed": len(failed)}))
+        brief = {k: summary[k] for k in ("source", "out", "detector", "images", "craters")}
+        close_folder_run(f, final, written, brief | {"failed": len(failed)})
     return failed
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
+import click
 import numpy as np
 import rasterio
 from rasterio.crs import CRS
@@ -202,3 +203,14 @@ def publish(f: OutFolder, files: dict[str, bytes]) -> None:
         atomic_write_bytes(f.path / name, data)
     f.published()  # the marker now lists written files: a later failure must not remove it
     f.seal(files)
+
+
+def close_folder_run(f: OutFolder, final: dict[str, bytes], written: Iterable[str], brief: dict) -> None:
+    """End a folder run (``detect DIR``, ``navigate DIR``): publish its ``final`` files (table, summary), remove
+    this writer's files the run no longer produced (``written`` and ``final`` are kept), print ``brief``."""
+    publish(f, final)
+    keep = set(written) | set(final)
+    stale = [n for n in f.files if n not in keep]
+    if stale:
+        f.remove(stale)
+    click.echo(json.dumps(brief))

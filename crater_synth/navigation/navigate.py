@@ -39,6 +39,7 @@ from crater_synth.navigation.frame_file import (
     check_light_azimuth,
     check_pixel_m,
     checked_out,
+    close_folder_run,
     error_text,
     folder_images,
     publish,
@@ -551,13 +552,10 @@ def navigate_folder(request: NavigateRequest, overrides, png: bool) -> list[dict
             results.append(result | {"seconds": round(time.perf_counter() - t, 3)})
             click.echo(json.dumps(result))
         summary = navigation_summary(request, nav, results, failed, others, time.perf_counter() - t0)
-        publish(f, {SUMMARY_NAME: (json.dumps(summary, indent=1) + "\n").encode("utf-8")})
-        written = {SUMMARY_NAME, *(r["list"] for r in results), *(r["png"] for r in results if r["png"])}
-        stale = [n for n in f.files if n not in written]
-        if stale:
-            f.remove(stale)
-    brief = {k: summary[k] for k in ("source", "out", "method", "images", "fixes")}
-    click.echo(json.dumps(brief | {"failed": len(failed)}))
+        written = [*(r["list"] for r in results), *(r["png"] for r in results if r["png"])]
+        brief = {k: summary[k] for k in ("source", "out", "method", "images", "fixes")}
+        final = {SUMMARY_NAME: (json.dumps(summary, indent=1) + "\n").encode("utf-8")}
+        close_folder_run(f, final, written, brief | {"failed": len(failed)})
     return failed
 
 

@@ -24,6 +24,17 @@ TINY = (
     "render.workers=1",
 )
 
+# Training on the toy set (train/toydata.py) in seconds: 64 px inputs, one epoch, few HOG images, one thread.
+QUICK_TRAIN = (
+    "model.input_size=64",
+    "train.batch_size=16",
+    "train.max_epochs=1",
+    "train.hog.max_train_images=50",
+    "realset.per_crater=3",
+    "train.num_threads=1",
+    "train.progress=false",
+)
+
 # The smoke sweep with two camera elevations: 1 x 2 x 2 x 2 = 8 renders.
 EIGHT = ("sweep.cam_elevation.count=2",)
 
