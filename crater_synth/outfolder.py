@@ -264,6 +264,15 @@ class OutFolder:
             )
         self.files = {f: v for f, v in doc["files"].items() if (self.path / f).exists()}  # never written: forgotten
 
+    def check_clean(self, tolerate: Callable[[str], bool] | None = None) -> "OutFolder":
+        """:meth:`check`, then refuse the folder, naming the first, when it holds an unlisted file (not
+        this writer's bookkeeping) that ``tolerate`` does not accept. Nothing is written either way."""
+        self.check()
+        bad = [n for n in self.unlisted() if tolerate is None or not tolerate(n)]
+        if bad:
+            self.refuse(bad)
+        return self
+
     def proved(self, rel: str) -> bool:
         """``rel`` is this writer's: listed, and unchanged since written (or being written when the writer
         stopped), or accepted by ``prove``."""

@@ -150,11 +150,7 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
     det = settings.detection
     check_field_fits(settings.procedural, det)
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
-    folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings)}")
-    folder.check()
-    bad = folder.unlisted()
-    if bad:
-        folder.refuse(bad)
+    folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings)}").check_clean()
     folder.claim()
     try:
         folder.record([schema.MANIFEST_NAME])

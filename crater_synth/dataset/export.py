@@ -164,11 +164,8 @@ def _prepare_out(out: Path, overwrite: bool) -> OutFolder:
     file is only deleted when the marker lists it, or (an export written before markers) when its
     ``export.json`` records it with the file's sha256."""
     folder = OutFolder(out, "export", flag="--out")
-    folder.check()
     legacy = _legacy_files(out) if not folder.marker.exists() else []
-    foreign = [n for n in folder.unlisted() if n not in legacy]
-    if foreign:
-        folder.refuse(foreign)
+    folder.check_clean(lambda n: n in legacy)
     if (out / INDEX_FILE).exists() and not overwrite:
         raise ExportError(f"{out} already holds a complete export ({INDEX_FILE}); pass --overwrite to replace it")
     folder.claim()

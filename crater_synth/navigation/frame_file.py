@@ -188,12 +188,7 @@ def checked_out(folder: Path, out: Path, kind: str) -> OutFolder:
     ``navigation``), to claim (``with``): new, empty, or written by an earlier run on the same folder; a
     folder of another kind or input, or holding any file no run of ours wrote (a user's, or one of ours
     edited since), is refused naming it, and nothing is written."""
-    f = OutFolder(out, kind, subject=str(folder.resolve()))
-    f.check()
-    foreign = f.unlisted()
-    if foreign:
-        f.refuse(foreign)
-    return f
+    return OutFolder(out, kind, subject=str(folder.resolve())).check_clean()
 
 
 def publish(f: OutFolder, files: dict[str, bytes]) -> None:

@@ -57,10 +57,7 @@ def claim_frames_folder(out_dir: Path, trajectory: str) -> OutFolder:
     written): another kind's or trajectory's folder, and unlisted files that cannot be this trajectory's
     frames or manifest; the frames that may be are proved by :func:`adopt_unlisted` after planning."""
     folder = OutFolder(out_dir, KIND, subject=trajectory, prove=lambda p: _may_be_ours(p.parent, p.name, trajectory))
-    folder.check()
-    bad = [n for n in folder.unlisted() if not _may_be_ours(folder.path, n, trajectory)]
-    if bad:
-        folder.refuse(bad)
+    folder.check_clean(lambda n: _may_be_ours(folder.path, n, trajectory))
     return folder.claim()
 
 

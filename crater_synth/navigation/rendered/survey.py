@@ -128,10 +128,7 @@ def render_survey(
     out = Path(out)
     tracks = plan_tracks(n_tracks, seed)
     folder = OutFolder(out, "navdetector-survey", subject=f"seed={seed}", flag="--out")
-    folder.check()
-    stray = [n for n in folder.unlisted() if not TRACK_DIR.fullmatch(n.split("/", 1)[0]) or "/" not in n]
-    if stray:
-        folder.refuse(stray)
+    folder.check_clean(lambda n: "/" in n and TRACK_DIR.fullmatch(n.split("/", 1)[0]) is not None)
     done = rendered = 0
     with folder:
         for t, track in enumerate(tracks):
