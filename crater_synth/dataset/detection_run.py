@@ -131,9 +131,11 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) 
                         raise UserError(
                             "the process generating the next crater fields died (out of memory?); rerun to resume"
                         ) from None
+        except BaseException:
+            _write_manifest(folder, rows)  # the rows of the frames this stopped run did render
+            raise
         finally:
             planner.shutdown(cancel_futures=True)
-            _write_manifest(folder, rows)
             shutil.rmtree(patches, ignore_errors=True)
 
 
