@@ -19,23 +19,13 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from crater_synth.bench.navframes import worker_stats
+from crater_synth.bench.renderer import stage_summary, worker_stats
 from crater_synth.config import load_settings
 from crater_synth.dataset.detection import detection_overrides
 from crater_synth.dataset.detection_run import render_detection_frames
 
 FIELD_PX_512 = 1400  # check_field_fits: a 512 px frame at the grid's spacing, 45 deg off nadir
 PER_FRAME = ("detection.views_per_field=1", "detection.suns_per_view=1", "detection.azimuths_per_field=0")
-
-
-def _breakdown(out: Path) -> dict:
-    total: dict[str, float] = {}
-    for s in worker_stats(out):
-        for key in ("setup_s", "seconds", "exr_write_s"):
-            total[key] = total.get(key, 0.0) + float(s.get(key, 0.0))
-        for key, v in (s.get("fast") or {}).items():
-            total[key] = total.get(key, 0.0) + float(v)
-    return {k: round(v, 3) for k, v in sorted(total.items())}
 
 
 def _run(overrides: list[str], out: Path, frames: int) -> dict:
@@ -49,7 +39,7 @@ def _run(overrides: list[str], out: Path, frames: int) -> dict:
         "wall_s": round(wall, 2),
         "frames_per_s": round(summary["rendered"] / wall, 3),
         "labels_per_frame": round(summary["labels"] / max(1, summary["frames"]), 1),
-        "workers": _breakdown(out),
+        "workers": stage_summary(worker_stats(out)),
     }
 
 

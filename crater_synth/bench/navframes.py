@@ -23,25 +23,16 @@ workers: how many frames the patches fixed and what the fallback costs on them).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
+from crater_synth.bench.renderer import worker_stats
 from crater_synth.config import load_settings
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.sequence import SequenceParams
 from crater_synth.navigation.rendered.evaluate import DirOptions, evaluate_dir, frame_run
 from crater_synth.navigation.rendered.frames import frame_overrides, render_frames
 from crater_synth.navigation.settings import compose_nav
-
-
-def worker_stats(out_dir: Path) -> list[dict]:
-    stats = []
-    for log in sorted((out_dir / ".jobs").glob("*.log")):
-        for line in log.read_text(encoding="utf-8", errors="replace").splitlines():
-            if line.startswith("STATS "):
-                stats.append(json.loads(line[6:]))
-    return stats
 
 
 def _run(settings, out: Path, n: int, share: bool) -> dict:
