@@ -36,15 +36,6 @@ def _inside(shape, rim_uv: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
     return inside if valid is None else inside & valid
 
 
-def rim_pixels(shape, rim_uv: np.ndarray, valid: np.ndarray | None = None):
-    """(mask of the rim points inside a frame of ``shape`` (and ``valid``), their pixel rows, their pixel
-    columns), or None when less than :data:`MIN_RIM_INSIDE` of the rim is inside."""
-    inside = _inside(shape, rim_uv, valid)
-    if inside.mean() < MIN_RIM_INSIDE:
-        return None
-    return inside, np.floor(rim_uv[inside, 1]).astype(int), np.floor(rim_uv[inside, 0]).astype(int)
-
-
 def _masked_means(channel: np.ndarray, rim_uv: np.ndarray, inside: np.ndarray, test=None) -> np.ndarray:
     """Per rim (rows of ``rim_uv`` (k, n, 2)), the mean of ``channel`` (or of ``test(values)``) at its points
     ``inside``; NaN for a rim with less than :data:`MIN_RIM_INSIDE` of its points inside."""

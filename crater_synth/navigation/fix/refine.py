@@ -265,7 +265,10 @@ def rim_ellipses(points, radii_m, c, r_wc, fov_deg: float, width: int) -> list:
     normals = points + np.array([0.0, 0.0, geometry.MOON_RADIUS_M])  # local up: from the Moon's centre
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
     pose = geometry.CameraPose(position=c, rotation=np.stack([r_wc[0], -r_wc[1], -r_wc[2]], 1), fov_deg=fov_deg)
-    return [geometry.project_circle(p, nrm, rad, pose, width) for p, nrm, rad in zip(points, normals, radii_m)]
+    if not len(points):
+        return []
+    arrays = geometry.project_circles(points, normals, np.asarray(radii_m, dtype=np.float64), pose, width)
+    return [geometry.Ellipse(*(float(v) for v in e)) for e in zip(*arrays)]
 
 
 def ellipse_centre_fix(points, uv, radii_m, c_fix, r_wc, k, fov_deg: float, width: int, iterations: int = 2):
