@@ -206,6 +206,9 @@ class DetectorTrainSettings(Group):
     blur_sigma_px: Tuple[float, ...] = (0.0, 1.0)
     noise: Tuple[float, ...] = (0.0, 0.08)  # x the standard deviation, after standardisation
     checkpoints: Tuple[int, ...] = ()  # also keep the weights after these steps
+    # With several training folders: each one's share of the drawn crops, in the order given (empty:
+    # every level sample equally likely, so a folder weighs by its frame count).
+    source_shares: Tuple[float, ...] = ()
 
     def _check(self) -> None:
         for key in ("steps", "batch", "crop_px", "width"):
@@ -215,6 +218,12 @@ class DetectorTrainSettings(Group):
         for key in ("gamma", "shadow_lift", "blur_sigma_px", "noise"):
             lo_hi = getattr(self, key)
             need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
+        need(
+            all(x >= 0 for x in self.source_shares) and (not self.source_shares or sum(self.source_shares) > 0),
+            "source_shares",
+            self.source_shares,
+            "must be >= 0 with a positive sum",
+        )
         bad = [c for c in self.checkpoints if not 1 <= c < self.steps]
         last = self.steps - 1
         need(not bad, "checkpoints", self.checkpoints, f"must lie in [1, {last}] (the last step is the model)")

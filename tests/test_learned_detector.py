@@ -433,3 +433,54 @@ def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
     )
     assert "procedural" in summary["trained_on"] and summary["recipe"] == "recipe test"
     assert learned.load_model(str(out))[1]["frames_dir"] == str(frames)
+
+
+def test_source_shares_set_each_folders_share_of_the_draws():
+    """Two sources of 1 and 3 samples at shares 0.5/0.5: the single sample is drawn half the time."""
+    p = cd.source_probabilities([0, 1, 1, 1], (0.5, 0.5))
+    assert p == pytest.approx([0.5, 1 / 6, 1 / 6, 1 / 6])
+    assert cd.source_probabilities([0, 1, 1], ()) is None
+    with pytest.raises(cd.DetectorModelError, match="3 entries for 2"):
+        cd.source_probabilities([0, 1], (1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="source_shares"):
+        cd.DetectorTrainSettings(source_shares=(0.0, 0.0))
+
+
+def test_train_on_a_survey_and_a_detection_set_together_scores_each_hold_out(tmp_path):
+    """nav-detector-train with two folders: one model from both, each folder scored on its own hold-out,
+    both described in the model's provenance."""
+    survey = fake_survey(tmp_path / "survey")
+    det = fake_detection_set(tmp_path / "det", fields=4)
+    out = tmp_path / "model.pt"
+    s = cd.DetectorTrainSettings(steps=3, batch=2, crop_px=32, width=4, threads=1, source_shares=(0.3, 0.7))
+    sources = [learned_train.survey_source(survey, holdout=1), learned_train.detection_source(det, 0.25)]
+    summary = learned_train.train_from_sources(sources, out, s)
+    first, second = summary["sources"]
+    assert first["holdout_tracks"] == ["track_002"] and first["train_frames"] == 4
+    assert second["holdout_fields"] == [3] and second["train_frames"] == 6
+    assert (
+        first["synthetic_holdout"]["frames"] == 2
+        and first["synthetic_holdout"]["min_diameter_km"] == 15.0
+        and second["synthetic_holdout"]["min_radius_px"] == cd.BAND_LO_PX
+    )
+    assert summary["train_frames"] == first["train_frames"] + second["train_frames"]
+    assert "survey" in summary["trained_on"] and "procedural" in summary["trained_on"]
+    assert learned.load_model(str(out))[1]["settings"]["source_shares"] == [0.3, 0.7]
+
+
+def test_nav_detector_train_refuses_a_folder_twice_and_shares_that_do_not_fit(tmp_path):
+    """One line naming the input, and no model written."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    det = fake_detection_set(tmp_path / "det", fields=2)
+    out = tmp_path / "m.pt"
+    runner = CliRunner()
+    r = runner.invoke(main, ["nav-detector-train", str(det), "--also", str(det), "--out", str(out)])
+    assert r.exit_code == 2 and "given twice" in r.output and len(r.output.strip().splitlines()) == 1
+    r = runner.invoke(
+        main, ["nav-detector-train", str(det), "--out", str(out), "nav.detector_train.source_shares=[0.5,0.5]"]
+    )
+    assert r.exit_code == 2 and "one share per frames folder (1 given)" in r.output
+    assert not out.exists()

@@ -265,11 +265,15 @@ def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> 
     return x * valid
 
 
-def _batch(stacks: list[torch.Tensor], s: DetectorTrainSettings, rng: np.random.Generator) -> torch.Tensor:
-    """A batch of random ``crop_px`` crops of random stacked samples, each rotated and mirrored at random."""
+def _batch(
+    stacks: list[torch.Tensor], s: DetectorTrainSettings, rng: np.random.Generator, p: np.ndarray | None = None
+) -> torch.Tensor:
+    """A batch of random ``crop_px`` crops of random stacked samples (drawn with probabilities ``p``; None:
+    uniformly), each rotated and mirrored at random."""
     c = s.crop_px
     crops = []
-    for i in rng.integers(0, len(stacks), s.batch):
+    picks = rng.integers(0, len(stacks), s.batch) if p is None else rng.choice(len(stacks), s.batch, p=p)
+    for i in picks:
         t = stacks[int(i)]
         h, w = t.shape[-2:]
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
@@ -277,16 +281,36 @@ def _batch(stacks: list[torch.Tensor], s: DetectorTrainSettings, rng: np.random.
     return torch.stack(crops)
 
 
-def train_detector(samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu") -> dict:
+def source_probabilities(source, shares) -> np.ndarray | None:
+    """Draw probability of each sample so that source k (``source``: the source index of each sample) makes
+    ``shares[k]`` of the draws, evenly among its samples; None (uniform over samples) when ``shares`` is
+    empty. Without it a small source (240 survey frames beside 2,000 procedural ones) would barely be seen."""
+    if not shares:
+        return None
+    source = np.asarray(source, int)
+    n_sources = int(source.max()) + 1
+    if len(shares) != n_sources:
+        raise DetectorModelError(f"source_shares has {len(shares)} entries for {n_sources} training sources")
+    counts = np.bincount(source, minlength=n_sources)
+    w = np.asarray(shares, float) / max(float(np.sum(shares)), 1e-300)
+    p = w[source] / counts[source]
+    return p / p.sum()
+
+
+def train_detector(
+    samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
+) -> dict:
     """Train :class:`CraterNet` on level samples; returns {"model" (on the CPU), "history", "seconds",
     "checkpoints"} (``checkpoints``: step -> state dict copies at ``settings.checkpoints``). The targets
-    are computed once per level; crops, rotations and augmentation are tensor operations on ``device``."""
+    are computed once per level; crops, rotations and augmentation are tensor operations on ``device``.
+    ``source`` (an index per sample) with ``settings.source_shares`` sets each source's share of the draws."""
     if not samples:
         raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
     torch.manual_seed(settings.seed)
     if settings.threads:
         torch.set_num_threads(settings.threads)
     rng = np.random.default_rng(settings.seed)
+    p = source_probabilities(np.zeros(len(samples), int) if source is None else source, settings.source_shares)
     gen = torch.Generator(device=device)
     gen.manual_seed(settings.seed)
     stacks = [torch.from_numpy(stack_sample(x, settings.crop_px)).to(device) for x in samples]
@@ -298,7 +322,7 @@ def train_detector(samples: list[LevelSample], settings: DetectorTrainSettings, 
     t0 = time.perf_counter()
     model.train()
     for step in range(1, settings.steps + 1):
-        t = _batch(stacks, settings, rng)
+        t = _batch(stacks, settings, rng, p)
         out = model(augment(t, settings, gen))
         w = t[:, _WEIGHT] * t[:, _VALID]
         loss, parts = detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)

@@ -134,11 +134,9 @@ def _code_commit() -> str:
         return "unknown"
 
 
-def train_from_survey(
-    frames_dir: Path, out: Path, settings, holdout: int = HOLDOUT_TRACKS, log=None, device: str = "cpu"
-) -> dict:
-    """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
-    to ``out`` with its provenance; returns the summary written into the model."""
+def survey_source(frames_dir: Path, holdout: int = HOLDOUT_TRACKS) -> tuple[list, list, dict, dict]:
+    """(training records, held-out records, what they are, scoring) of a survey: every track but the last
+    ``holdout`` trained on, those scored at D >= 15 km."""
     dirs = track_dirs(frames_dir)
     if len(dirs) <= holdout:
         raise UserError(f"{frames_dir}: {len(dirs)} rendered tracks, need more than the {holdout} held out")
@@ -150,7 +148,34 @@ def train_from_survey(
     }
     train_records = frame_records(frames_dir, slice(0, len(dirs) - holdout))
     holdout_records = frame_records(frames_dir, slice(len(dirs) - holdout, None))
-    return _train_and_save(train_records, holdout_records, what, out, settings, log, device)
+    return train_records, holdout_records, what, {}
+
+
+def detection_source(folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE) -> tuple[list, list, dict, dict]:
+    """(training records, held-out records, what they are, scoring) of a detection set (procedural crater
+    fields only): the last ``holdout_share`` of its fields held out and scored over every rim of the
+    network's band and up (a 38 km field holds few craters of D >= 15 km)."""
+    from train.crater_detector import BAND_LO_PX
+
+    train_records, holdout_records, what = detection_set_records(folder, holdout_share)
+    what = {
+        "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
+        "frames_dir": str(folder),
+    } | what
+    return train_records, holdout_records, what, {"min_d_km": 0.0, "min_r_px": BAND_LO_PX}
+
+
+def frames_source(frames_dir: Path) -> tuple[list, list, dict, dict]:
+    """:func:`detection_source` or :func:`survey_source`, by the folder's marker."""
+    return detection_source(frames_dir) if marker_kind(frames_dir) == DETECTION_KIND else survey_source(frames_dir)
+
+
+def train_from_survey(
+    frames_dir: Path, out: Path, settings, holdout: int = HOLDOUT_TRACKS, log=None, device: str = "cpu"
+) -> dict:
+    """Train the detector on the survey's tracks but the last ``holdout``, score it on those, and save it
+    to ``out`` with its provenance; returns the summary written into the model."""
+    return train_from_sources([survey_source(frames_dir, holdout)], out, settings, log, device)
 
 
 def train_from_detection(
@@ -158,32 +183,26 @@ def train_from_detection(
 ) -> dict:
     """Train the detector on a detection set's frames (procedural crater fields only), holding out the last
     ``holdout_share`` of its fields, score it on those, and save it to ``out`` with its provenance."""
-    train_records, holdout_records, what = detection_set_records(folder, holdout_share)
-    what = {
-        "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
-        "frames_dir": str(folder),
-    } | what
-    from train.crater_detector import BAND_LO_PX
-
-    # a 38 km field holds few craters of D >= 15 km: scored over every rim of the network's band and up
-    score = {"min_d_km": 0.0, "min_r_px": BAND_LO_PX}
-    return _train_and_save(train_records, holdout_records, what, out, settings, log, device, score)
+    return train_from_sources([detection_source(folder, holdout_share)], out, settings, log, device)
 
 
-def _train_and_save(
-    train_records, holdout_records, what: dict, out: Path, settings, log, device: str, score: dict | None = None
-) -> dict:
-    """Train on ``train_records``, score on ``holdout_records`` (:func:`score_synthetic` with ``score``), save
-    the model (and its checkpoints) with ``what`` and the run in its provenance."""
+def train_from_sources(sources: list, out: Path, settings, log=None, device: str = "cpu") -> dict:
+    """Train on the training records of every source (``*_source``'s tuples; their draw shares are
+    ``settings.source_shares``), score the model on each source's held-out records, and save it to ``out``
+    with its provenance; returns the summary written into the model. One source: its description and
+    score at the top level; several: a list of them under ``sources``."""
     from train.crater_detector import level_samples, save_model, settings_dict, train_detector
 
-    samples = []
-    for image, row in train_records:
-        u, v, r, _, hidden = label_circles(row, image.shape)
-        samples.extend(level_samples(image, u, v, r, hidden))
-    result = train_detector(samples, settings, log=log, device=device)
-    meta = what | {
-        "train_frames": len(train_records),
+    samples, source = [], []
+    for k, (train_records, _, _, _) in enumerate(sources):
+        for image, row in train_records:
+            u, v, r, _, hidden = label_circles(row, image.shape)
+            levels = level_samples(image, u, v, r, hidden)
+            samples.extend(levels)
+            source.extend([k] * len(levels))
+    result = train_detector(samples, settings, log=log, device=device, source=np.asarray(source, int))
+    run = {
+        "train_frames": sum(len(s[0]) for s in sources),
         "level_samples": len(samples),
         "settings": settings_dict(settings),
         "seconds": round(result["seconds"], 1),
@@ -191,14 +210,27 @@ def _train_and_save(
         "history": result["history"],
         "code_commit": _code_commit(),
     }
+    if len(sources) == 1:
+        meta = sources[0][2] | run
+    else:
+        kinds = sorted({s[2]["trained_on"].split(" only")[0] for s in sources})
+        meta = {
+            "trained_on": " + ".join(kinds) + "; no real pixel",
+            "sources": [s[2] | {"train_frames": len(s[0])} for s in sources],
+        } | run
     tmp = Path(str(out) + ".scoring.pt")
     save_model(tmp, result["model"], meta)
     try:
         params = LearnedSettings(model=str(tmp), min_radius_px=4.5, refine=False)
-        meta["synthetic_holdout"] = score_synthetic(holdout_records, params, **(score or {}))
+        scores = [score_synthetic(s[1], params, **s[3]) for s in sources]
     finally:
         tmp.unlink(missing_ok=True)
         load_model.cache_clear()
+    if len(sources) == 1:
+        meta["synthetic_holdout"] = scores[0]
+    else:
+        for entry, score in zip(meta["sources"], scores):
+            entry["synthetic_holdout"] = score
     model = result["model"]
     final = {k: v.clone() for k, v in model.state_dict().items()}
     for step, state in sorted(result["checkpoints"].items()):
@@ -231,15 +263,24 @@ def nav_detector_frames_command(overrides, tracks, seed, out):
 
 @click.command("nav-detector-train")
 @click.argument("frames_dir", type=click.Path(path_type=Path))
+@click.option(
+    "--also",
+    "more_dirs",
+    multiple=True,
+    type=click.Path(path_type=Path),
+    help="Another frames folder, trained on together with FRAMES_DIR (repeatable).",
+)
 @click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
 @OVERRIDES
 @user_errors
-def nav_detector_train_command(frames_dir, out, device, overrides):
+def nav_detector_train_command(frames_dir, more_dirs, out, device, overrides):
     """Train the learned crater detector on rendered frames; score it on the held-out frames.
 
-    FRAMES_DIR is a survey (crater-synth nav-detector-frames: the last 10 tracks held out) or a detection set
-    (crater-synth detection-frames: the last 10 % of its fields held out).
+    FRAMES_DIR (and each --also folder) is a survey (crater-synth nav-detector-frames: the last 10 tracks held
+    out) or a detection set (crater-synth detection-frames: the last 10 % of its fields held out). Several
+    folders are trained on together (`nav.detector_train.source_shares=[0.5,0.5]`: each one's share of the
+    drawn crops, FRAMES_DIR first) and each is scored on its own hold-out.
 
     Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
     `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
@@ -251,6 +292,16 @@ def nav_detector_train_command(frames_dir, out, device, overrides):
     settings = compose_group("nav/detector_train", DetectorTrainSettings, overrides)
     if device == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    train = train_from_detection if marker_kind(frames_dir) == DETECTION_KIND else train_from_survey
-    summary = train(frames_dir, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device)
+    frames_dirs = (frames_dir, *more_dirs)
+    if len(set(frames_dirs)) < len(frames_dirs):
+        raise UserError(f"nav-detector-train: a frames folder is given twice ({', '.join(map(str, frames_dirs))})")
+    if settings.source_shares and len(settings.source_shares) != len(frames_dirs):
+        raise UserError(
+            f"nav.detector_train.source_shares={list(settings.source_shares)}: one share per frames folder "
+            f"({len(frames_dirs)} given)"
+        )
+    sources = [frames_source(d) for d in frames_dirs]
+    summary = train_from_sources(
+        sources, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
+    )
     click.echo(json.dumps(summary, indent=1))
