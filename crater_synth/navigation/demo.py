@@ -5,9 +5,13 @@ and the appearance search with their frozen settings, and the appearance search'
 (``patches``: no crater), the committed landmark map: per window and method an annotated PNG
 (detections, identified landmarks, error arrow) and one table of the metrics over these windows, written
 to ``OUT/table.md`` and printed, and the same per window and per method/split in ``OUT/navigation.json``
-(:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). Nothing heavy is
-built (no landmark map, no rendering). The numbers are a smoke view of a handful of windows; the
-evaluation is ``crater-synth nav-eval`` (docs/navigation/commands.md).
+(:data:`DEMO_JSON`, read by ``crater-synth report`` from ``RUN_DIR/navigation/``). On the validation
+windows alone, :data:`CATALOGUE_METHODS` are also scored against the crater catalogue LU1319381 at
+D >= 15 km (the evaluation's ``against_catalogue`` rule, :func:`.protocol.catalogue_split`): a PNG per
+window and method (catalogued craters found green, missed red, false detections orange) and the counts
+under ``catalogue_detection``. Nothing heavy is built (no landmark map, no rendering). The numbers are a
+smoke view of a handful of windows; the evaluation is ``crater-synth nav-eval``
+(docs/navigation/commands.md).
 
 Run: ``python -m crater_synth.navigation.demo --out outputs/navigate-demo``.
 """
@@ -25,24 +29,39 @@ from crater_synth.cli_common import user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation import DEMO_JSON
 from crater_synth.navigation.fix.patches import PatchParams
-from crater_synth.navigation.map.check import catalogue_check
+from crater_synth.navigation.map.check import LU_SOURCE, catalogue_check, catalogue_craters
 from crater_synth.navigation.map.landmarks import DATA_DIR, DEM_PRODUCTS, load_default_map
-from crater_synth.navigation.protocol import FALSE_FIX_KM, HEADLINE_MIN_LANDMARKS, PRIOR_OFFSET_KM, summarise
+from crater_synth.navigation.protocol import (
+    FALSE_FIX_KM,
+    HEADLINE_MIN_D_KM,
+    HEADLINE_MIN_LANDMARKS,
+    MATCH_CENTRE_D,
+    MATCH_DIAMETER,
+    PRIOR_OFFSET_KM,
+    catalogue_scores,
+    catalogue_split,
+    summarise,
+)
 from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.evaluate import (
     navigate_window,
     prior_georef,
     results_markdown,
-    run_frame,
+    score_window,
     window_patches_alone,
 )
 from crater_synth.navigation.windows.mosaic import windows
-from crater_synth.navigation.windows.navigate import annotate
+from crater_synth.navigation.windows.navigate import annotate, annotate_catalogue, catalogue_circles
 from crater_synth.terrain.stack import open_dem_entry
 
 DEMO_WINDOWS_PER_SECTOR = 1
 # The per-window fields of navigation.json (crater_synth.navigation.windows.evaluate.run_frame's scalars).
 WINDOW_FIELDS = ("id", "split", "sector", "light_azimuth_deg", "n_detections", "fix", "reason", "error_km")
+# The detector settings scored against the crater catalogue: the learned network at its detection operating
+# point and the template detector (docs/navigation/detectors.md).
+CATALOGUE_METHODS = ("learned-detect", "template")
+# Development data only: the south validation windows (the test windows are not looked at crater by crater).
+CATALOGUE_POLE, CATALOGUE_SPLIT = "south", "validation"
 
 
 def window_entry(method: str, row: dict, png_name: str) -> dict:
@@ -56,6 +75,22 @@ def window_entry(method: str, row: dict, png_name: str) -> dict:
         "matched": len(row["matched"]),
         "identified": row.get("identified", 0),
         "identified_correct": row.get("identified_correct", 0),
+        "png": png_name,
+    }
+
+
+def catalogue_entry(method: str, row: dict, png_name: str) -> dict:
+    """One window of ``navigation.json``'s ``catalogue_detection``: the counts of the window's
+    :func:`.protocol.catalogue_split` (a :func:`.evaluate.score_window` row with the catalogue), its recall
+    and precision (:func:`.protocol.catalogue_scores` of the window alone) and the PNG's name."""
+    split, scores = catalogue_split(row), catalogue_scores([row])
+    return {
+        "method": method,
+        **{k: row[k] for k in ("id", "split", "sector")},
+        **{k: len(split[k]) for k in ("found", "missed", "false")},
+        "detections_15km": scores["n_detections_15km"],
+        "recall": scores["recall_15km"],
+        "precision": scores["precision_15km"],
         "png": png_name,
     }
 
@@ -97,28 +132,96 @@ def patch_row(row: dict, scores: dict) -> dict:
     return out
 
 
-def _demo_crater_methods(frames, landmarks, out: Path, windows_out: list) -> tuple[dict, dict]:
+def _demo_crater_methods(frames, landmarks, listed, out: Path, windows_out: list) -> tuple[dict, dict, dict]:
     """Every crater method on every window, each annotated into ``out`` and listed in ``windows_out``:
-    (summary per method, the appearance search's row of each window)."""
+    (summary per method, the appearance search's row of each window, (row, detections) by (method, window
+    id) of the validation windows)."""
     methods = {}
     appearance_rows = {}  # the appearance search's row of each window: the patches' rows start from it
+    kept = {}
     for method in ("classical", "template", "learned", "appearance"):
         nav = compose_nav([f"nav/detector={method}"])
         dparams, fparams = nav.detector, nav.fix
         splits: dict = {}
         for f in frames:
-            row = run_frame(f, landmarks, dparams, fparams)
+            dets, theta, fix, prior = navigate_window(f, landmarks, dparams, fparams)
+            row = score_window(f, landmarks, fparams, dets, theta, fix, listed)
             if method == "appearance":
                 appearance_rows[f.id] = row
+            if f.split == CATALOGUE_SPLIT:
+                kept[method, f.id] = (row, dets)
             splits.setdefault(f.split, []).append(row)
-            dets, _, fix, prior = navigate_window(f, landmarks, dparams, fparams)
             png = out / f"{f.id}_{method}.png"
             atomic_write_bytes(png, annotate(f.image, dets, landmarks, fix, prior, f.georef))
             err = f"{row['error_km']:.2f} km" if row["fix"] else f"no fix ({row['reason']})"
             click.echo(f"{method:9s} {f.split:10s} {f.id}: {row['n_detections']} detections, {err} -> {png}")
             windows_out.append(window_entry(method, row, png.name))
         methods[method] = _splits_summary(splits, summarise, HEADLINE_MIN_LANDMARKS)
-    return methods, appearance_rows
+    return methods, appearance_rows, kept
+
+
+def _catalogue_window(f, method: str, landmarks, listed, kept: dict) -> tuple[dict, list]:
+    """(row, detections) of ``method`` on window ``f`` with the catalogue: from ``kept`` when the crater
+    methods ran it, else detected here."""
+    if (method, f.id) in kept:
+        return kept[method, f.id]
+    nav = compose_nav([f"nav/detector={method}"])
+    dets, theta, fix, _ = navigate_window(f, landmarks, nav.detector, nav.fix)
+    return score_window(f, landmarks, nav.fix, dets, theta, fix, listed), dets
+
+
+def demo_catalogue(frames, landmarks, listed, out: Path, kept: dict | None = None) -> dict:
+    """:data:`CATALOGUE_METHODS` on the :data:`CATALOGUE_SPLIT` windows of ``frames`` against the crater
+    catalogue ``listed`` (``map.check.catalogue_craters``) at D >= 15 km: a PNG per window and method in
+    ``out`` and ``navigation.json``'s ``catalogue_detection`` (per window :func:`catalogue_entry`, per method
+    :func:`.protocol.catalogue_scores` pooled). ``kept``: rows already scored (:func:`_demo_crater_methods`)."""
+    entries, pooled = [], {}
+    chosen = [f for f in frames if f.split == CATALOGUE_SPLIT and f.georef.pole == CATALOGUE_POLE]
+    for method in CATALOGUE_METHODS:
+        rows = []
+        for f in chosen:
+            row, dets = _catalogue_window(f, method, landmarks, listed, kept or {})
+            entry = catalogue_entry(method, row, f"{f.id}_{method}_catalogue.png")
+            title = f"{f.id} {method} against LU1319381, D >= {HEADLINE_MIN_D_KM:g} km: " + ", ".join(
+                f"{k} {'-' if entry[k] is None else format(entry[k], '.2f')}" for k in ("recall", "precision")
+            )
+            atomic_write_bytes(
+                out / entry["png"], annotate_catalogue(f.image, catalogue_circles(row, dets, listed, f.georef), title)
+            )
+            counts = ", ".join(f"{k} {entry[k]}" for k in ("found", "missed", "false"))
+            click.echo(f"{method:14s} {f.id}: catalogue D >= {HEADLINE_MIN_D_KM:g} km {counts} -> {out / entry['png']}")
+            rows.append(row)
+            entries.append(entry)
+        pooled[method] = catalogue_scores(rows)
+    return {
+        "source": LU_SOURCE,
+        "pole": CATALOGUE_POLE,
+        "split": CATALOGUE_SPLIT,
+        "min_d_km": HEADLINE_MIN_D_KM,
+        "match": {"centre_within_d": MATCH_CENTRE_D, "diameter_within": MATCH_DIAMETER},
+        "methods": pooled,
+        "windows": entries,
+    }
+
+
+def catalogue_markdown(cat: dict) -> str:
+    """The catalogue counts of :func:`demo_catalogue` as a Markdown table (per window, then pooled)."""
+
+    def f(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    lines = [
+        f"Detections against {cat['source']}, D >= {cat['min_d_km']:g} km ({cat['pole']} {cat['split']} windows):",
+        "",
+        "| method | window | found | missed | false | recall | precision |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for w in cat["windows"]:
+        counts = " | ".join(str(w[k]) for k in ("found", "missed", "false"))
+        lines.append(f"| {w['method']} | {w['id']} | {counts} | {f(w['recall'])} | {f(w['precision'])} |")
+    for m, s in cat["methods"].items():
+        lines.append(f"| {m} | all | | | | {f(s['recall_15km'])} | {f(s['precision_15km'])} |")
+    return "\n".join(lines) + "\n"
 
 
 def _demo_patches_alone(frames, appearance_rows: dict, out: Path, windows_out: list) -> dict:
@@ -157,12 +260,14 @@ def main(out: Path, per_sector: int):
     t0 = time.time()
     out.mkdir(parents=True, exist_ok=True)
     landmarks, _ = load_default_map("south")
+    listed = catalogue_craters("south")
     frames = demo_frames(per_sector)
     windows_out = []
-    methods, appearance_rows = _demo_crater_methods(frames, landmarks, out, windows_out)
+    methods, appearance_rows, kept = _demo_crater_methods(frames, landmarks, listed, out, windows_out)
     methods["patches"] = _demo_patches_alone(frames, appearance_rows, out, windows_out)
+    catalogue = demo_catalogue(frames, landmarks, listed, out, kept)
     map_check = _demo_map_check(landmarks)
-    table = results_markdown({"methods": methods})
+    table = results_markdown({"methods": methods}) + "\n" + catalogue_markdown(catalogue)
     head = f"Demo: {len(frames)} real south-mosaic windows ({per_sector} per sector), {len(methods)} methods.\n\n"
     atomic_write_text(out / "table.md", head + table)
     record = {
@@ -177,12 +282,13 @@ def main(out: Path, per_sector: int):
         "methods": methods,
         "map_check": map_check,
         "windows": windows_out,
+        "catalogue_detection": catalogue,
         "seconds": round(time.time() - t0, 1),
     }
     atomic_write_text(out / DEMO_JSON, json.dumps(record, indent=1) + "\n")
     click.echo(table)
     click.echo(
-        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {len(methods) * len(frames)} annotated PNGs "
+        f"wrote {out}/table.md, {out}/{DEMO_JSON} and {len(windows_out) + len(catalogue['windows'])} annotated PNGs "
         f"in {time.time() - t0:.0f} s"
     )
 

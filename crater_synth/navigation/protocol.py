@@ -154,18 +154,33 @@ def patches_alone(rows: list[dict]) -> dict:
     return out
 
 
+def catalogue_split(row: dict) -> dict[str, list[int]]:
+    """One row's D >= 15 km split against the crater catalogue (:func:`.windows.evaluate.catalogue_fields`):
+    ``found`` and ``missed``, positions in the row's catalogue craters in view (``catalogue_d_km``) of
+    D >= 15 km that a detection matches or none does; ``true`` and ``false``, indices of the detections of
+    D >= 15 km that match a map landmark (any size) or a catalogued crater (any size), or neither (the map's
+    truth misses most catalogued craters, and a detection of a crater the catalogue lacks is no false one)."""
+    dt = np.array(row["catalogue_d_km"], dtype=float)
+    found = {int(k) for k in row["catalogue_found"]}
+    big = np.nonzero(dt >= HEADLINE_MIN_D_KM)[0]
+    sel = np.nonzero(2.0 * np.array(row["det_r_km"], dtype=float) >= HEADLINE_MIN_D_KM)[0]
+    true = {int(k) for k in row["matched"]} | set(row["matched_any"]) | set(row["matched_catalogue"])
+    return {
+        "found": [int(k) for k in big if int(k) in found],
+        "missed": [int(k) for k in big if int(k) not in found],
+        "true": [int(k) for k in sel if int(k) in true],
+        "false": [int(k) for k in sel if int(k) not in true],
+    }
+
+
 def catalogue_scores(rows: list[dict]) -> dict:
-    """D >= 15 km: the catalogue's craters in view that a detection matches, and the detections that match a
-    map landmark (any size) or a catalogued crater (the map's truth misses most catalogued craters)."""
-    n_t = tp_t = n_d = tp_d = 0
-    for r in rows:
-        dt = np.array(r["catalogue_d_km"], dtype=float)
-        n_t += int((dt >= HEADLINE_MIN_D_KM).sum())
-        tp_t += int(sum(1 for k in r["catalogue_found"] if dt[k] >= HEADLINE_MIN_D_KM))
-        sel = np.nonzero(2.0 * np.array(r["det_r_km"], dtype=float) >= HEADLINE_MIN_D_KM)[0]
-        true = set(r["matched"]) | set(r["matched_any"]) | set(r["matched_catalogue"])
-        n_d += int(sel.size)
-        tp_d += int(sum(1 for k in sel if int(k) in true))
+    """D >= 15 km, pooled over ``rows``: recall of the catalogue's craters in view and precision of the
+    detections, by :func:`catalogue_split`."""
+    splits = [catalogue_split(r) for r in rows]
+    tp_t = sum(len(s["found"]) for s in splits)
+    n_t = tp_t + sum(len(s["missed"]) for s in splits)
+    tp_d = sum(len(s["true"]) for s in splits)
+    n_d = tp_d + sum(len(s["false"]) for s in splits)
     return {
         "recall_15km": round(tp_t / n_t, 4) if n_t else None,
         "precision_15km": round(tp_d / n_d, 4) if n_d else None,

@@ -152,13 +152,24 @@ def run_frame(
     listed=None,
     patches=None,
 ) -> dict:
-    """Detection, identification and fix of one frame, scored against its truth (``lis``: no prior,
-    :func:`navigate_window`; ``prior_offset_km``: how far the prior is from the truth). ``listed``: a
-    complete crater catalogue (``map.check.catalogue_craters``) the detections are also scored
-    against, a diagnostic beside the map's truth (a detection of a crater the map lacks is no landmark,
-    but it is a crater). ``patches`` (:class:`.patches.PatchParams`, appearance method with a prior): the
-    frame is also navigated with its terrain patches alone (:func:`with_window_patches`)."""
+    """Detection, identification and fix of one frame (:func:`navigate_window`; ``lis``: no prior;
+    ``prior_offset_km``: how far the prior is from the truth), scored against its truth
+    (:func:`score_window`, with the catalogue ``listed``). ``patches`` (:class:`.patches.PatchParams`,
+    appearance method with a prior): the frame is also navigated with its terrain patches alone
+    (:func:`with_window_patches`)."""
     dets, theta, fix, prior = navigate_window(frame, landmarks, dparams, fparams, seed, lis, prior_offset_km)
+    row = score_window(frame, landmarks, fparams, dets, theta, fix, listed)
+    if patches is not None:
+        row = with_window_patches(row, frame, prior, dparams, fparams, patches)
+    return row
+
+
+def score_window(frame: Frame, landmarks, fparams: FixParams, dets, theta: float, fix, listed=None) -> dict:
+    """A frame's row: its detections ``dets`` (light direction ``theta``) and ``fix`` (:func:`navigate_window`)
+    scored against the map's landmarks in view. ``listed``: a complete crater catalogue
+    (``map.check.catalogue_craters``) the detections are also scored against (:func:`catalogue_fields`), a
+    diagnostic beside the map's truth (a detection of a crater the map lacks is no landmark, but it is a
+    crater)."""
     truth_idx = truth_in_frame(landmarks, frame.georef, frame.image.shape, min_d_km=fparams.min_landmark_km)
     matched = match_detections(dets, landmarks, truth_idx, frame.georef)
     # A detection that matches no landmark of the map >= min size but does match a smaller one is not a
@@ -181,20 +192,29 @@ def run_frame(
         "reason": fix.reason,
     }
     if listed is not None:
-        listed_idx = truth_in_frame(listed, frame.georef, frame.image.shape)
-        listed_hits = match_detections(dets, listed, listed_idx, frame.georef)
-        row["catalogue_d_km"] = [listed[i].diameter_km for i in listed_idx]
-        row["catalogue_found"] = sorted(listed_idx.index(i) for i in listed_hits.values())
-        row["matched_catalogue"] = sorted(int(k) for k in listed_hits)
+        row.update(catalogue_fields(frame, dets, listed))
     if fix.ok:
         tx, ty = frame.centre_xy
         row["error_km"] = float(ground_distance_km(fix.x_m, fix.y_m, tx, ty, frame.georef.pole))
         row["identified"] = len(fix.inliers)
         # Identification is correct when the fix's landmark is the detection's truth match.
         row["identified_correct"] = int(sum(matched.get(d) == lm for d, lm in fix.inliers))
-    if patches is not None:
-        row = with_window_patches(row, frame, prior, dparams, fparams, patches)
     return row
+
+
+def catalogue_fields(frame: Frame, dets, listed) -> dict:
+    """The catalogue part of a frame's row: ``catalogue``, the indices into ``listed`` of the catalogued
+    craters whose centre lies in the frame, ``catalogue_d_km`` their diameters, ``catalogue_found`` the
+    positions among them that a detection matches and ``matched_catalogue`` those detections' indices (the
+    map's matching rule, :func:`.protocol.match_detections`; scored by :func:`.protocol.catalogue_split`)."""
+    listed_idx = truth_in_frame(listed, frame.georef, frame.image.shape)
+    hits = match_detections(dets, listed, listed_idx, frame.georef)
+    return {
+        "catalogue": [int(i) for i in listed_idx],
+        "catalogue_d_km": [listed[i].diameter_km for i in listed_idx],
+        "catalogue_found": sorted(listed_idx.index(i) for i in hits.values()),
+        "matched_catalogue": sorted(int(k) for k in hits),
+    }
 
 
 def window_patches_alone(frame: Frame, prior: Georef, dparams, fparams, patches):

@@ -23,6 +23,7 @@ from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.frame_file import sidecar
 from crater_synth.navigation.georef import Frame, Georef, ground_distance_km, local_north_image_angle
 from crater_synth.navigation.output import draw_detections, png_of
+from crater_synth.navigation.protocol import HEADLINE_MIN_D_KM, catalogue_split
 from crater_synth.navigation.windows.appearance import lander_refiner, window_detections, window_patch_fix
 
 
@@ -66,6 +67,54 @@ def annotate(image, dets, landmarks, fix, prior: Georef | None, truth: Georef | 
         ax.annotate("", xy=(tu, tv), xytext=(w / 2, h / 2), arrowprops={"arrowstyle": "->", "color": "cyan", "lw": 2})
         err = float(ground_distance_km(fix.x_m, fix.y_m, *truth.uv_to_xy(w / 2, h / 2), truth.pole))
         title += f"; error {err:.2f} km (arrow: truth centre -> fix, x1)"
+    return png_of(fig, ax, w, h, title)
+
+
+# The circles of :func:`annotate_catalogue`, by the parts of :func:`.protocol.catalogue_split`.
+CATALOGUE_COLOURS = {"found": "#30e030", "missed": "#ff3030", "false": "#ff9a00"}
+CATALOGUE_LABELS = {
+    "found": "catalogue craters found",
+    "missed": "catalogue craters missed",
+    "false": "false detections",
+}
+
+
+def catalogue_circles(row: dict, dets, listed, georef: Georef) -> dict[str, list[tuple[float, float, float]]]:
+    """(u, v, r) px of each part of a window's :func:`.protocol.catalogue_split`: the catalogued craters found
+    and missed at their catalogue circles, the false detections at theirs. ``row``: the window's
+    :func:`.evaluate.score_window` row with the catalogue ``listed``; ``dets`` its detections."""
+    split = catalogue_split(row)
+    out = {}
+    for key in ("found", "missed"):
+        craters = [listed[row["catalogue"][k]] for k in split[key]]
+        u, v = georef.xy_to_uv(np.array([c.x_m for c in craters]), np.array([c.y_m for c in craters]))
+        r = np.array([c.diameter_km for c in craters]) * 500.0 / georef.pixel_m
+        out[key] = [(float(a), float(b), float(c)) for a, b, c in zip(u, v, r, strict=True)]
+    out["false"] = [(dets[k].u, dets[k].v, dets[k].r) for k in split["false"]]
+    return out
+
+
+def annotate_catalogue(image, circles: dict, title: str) -> bytes:
+    """Annotated PNG of a window against the crater catalogue (``circles``: :func:`catalogue_circles`):
+    catalogued craters of D >= 15 km found (green) and missed (red), false detections of D >= 15 km
+    (orange); the legend gives the three counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+
+    h, w = image.shape
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.imshow(image, cmap="gray")
+    handles = []
+    for key, colour in CATALOGUE_COLOURS.items():
+        for u, v, r in circles[key]:
+            ax.add_patch(Circle((u, v), r, fill=False, ec=colour, lw=1.4))
+        label = f"{CATALOGUE_LABELS[key]} (D >= {HEADLINE_MIN_D_KM:g} km): {len(circles[key])}"
+        handles.append(Line2D([], [], ls="", marker="o", mfc="none", mec=colour, mew=1.5, ms=10, label=label))
+    ax.legend(handles=handles, loc="lower right", fontsize=8, framealpha=0.85)
     return png_of(fig, ax, w, h, title)
 
 
