@@ -505,6 +505,56 @@ def test_detections_are_also_scored_against_the_complete_catalogue():
     assert "against_catalogue" not in summarise([{k: v for k, v in row.items() if not k.startswith("catalogue")}])
 
 
+def test_catalogue_split_found_missed_false_on_a_hand_made_window():
+    """Two catalogued craters, three detections: one matches (found), one crater is missed, one detection of
+    D 18 km matches nothing (false) and one of D 10 km is below 15 km (ignored). The demo's counts and PNG
+    circles, and nav-eval's pooled scores, come from this one split."""
+    from crater_synth.navigation.demo import catalogue_entry
+    from crater_synth.navigation.detectors.classical import Detection
+    from crater_synth.navigation.fix.solve import Fix
+    from crater_synth.navigation.georef import Frame
+    from crater_synth.navigation.map.check import ListedCrater
+    from crater_synth.navigation.protocol import catalogue_scores, catalogue_split
+    from crater_synth.navigation.windows.evaluate import score_window
+    from crater_synth.navigation.windows.navigate import annotate_catalogue, catalogue_circles
+
+    g = Georef("south", 0.0, 0.0, 400.0)  # pixel (u, v) is map point (400 u, -400 v) m
+    frame = Frame("S0_hand", "validation", 0, np.zeros((512, 512), np.uint8), g)
+    listed = [
+        ListedCrater(1e6, 1e6, 50.0),  # outside the window
+        ListedCrater(*g.uv_to_xy(100.0, 100.0), 20.0),  # found
+        ListedCrater(*g.uv_to_xy(300.0, 300.0), 30.0),  # missed
+    ]
+    dets = [
+        Detection(101.0, 99.0, 25.5, 1.0),  # D 20.4 km at the 20 km crater: a match
+        Detection(400.0, 100.0, 22.5, 1.0),  # D 18 km, nothing there: false
+        Detection(200.0, 400.0, 12.5, 1.0),  # D 10 km, nothing there: below 15 km, ignored
+    ]
+    row = score_window(frame, [], nf.FixParams(), dets, 0.0, Fix(False, "test"), listed)
+    assert row["catalogue"] == [1, 2] and row["catalogue_found"] == [0] and row["matched_catalogue"] == [0]
+    assert catalogue_split(row) == {"found": [0], "missed": [1], "true": [0], "false": [1]}
+    assert catalogue_scores([row]) == {
+        "recall_15km": 0.5,
+        "precision_15km": 0.5,
+        "n_catalogue_15km": 2,
+        "n_detections_15km": 2,
+    }
+    entry = catalogue_entry("template", row, "S0_hand_template_catalogue.png")
+    assert {k: entry[k] for k in ("found", "missed", "false", "detections_15km", "recall", "precision")} == {
+        "found": 1,
+        "missed": 1,
+        "false": 1,
+        "detections_15km": 2,
+        "recall": 0.5,
+        "precision": 0.5,
+    }
+    circles = catalogue_circles(row, dets, listed, g)
+    assert circles["found"] == [pytest.approx((100.0, 100.0, 25.0))]  # the catalogue's circle, not the detection's
+    assert circles["missed"] == [pytest.approx((300.0, 300.0, 37.5))]
+    assert circles["false"] == [(400.0, 100.0, 22.5)]
+    assert annotate_catalogue(frame.image, circles, "hand-made")[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def _lm(i, x_km, d_km, product=""):
     return Landmark(f"S{i:04d}", "", -89.0, 0.0, x_km * 1e3, 0.0, d_km, 1e2, 0.0, 1e1, 1.0, "dem", product)
 

@@ -67,6 +67,19 @@ def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_pat
     assert "a crater catalogue (test)" in sec and "diameter within 25 %" in sec
     assert '<td>10-15</td><td class="num">2</td><td class="num">0.500</td><td class="num">4</td>' in sec
     assert '<td>&gt;= 50</td><td class="num">0</td><td class="num">–</td><td class="num">1</td>' in sec
+    # Crater detection against the catalogue on the south validation windows: PNGs copied in, counts as written.
+    assert "<h3>Crater detection on real windows</h3>" in sec
+    assert "These are the demo's 1 south validation windows (development data)" in sec
+    assert "scored against a crater catalogue (test) at D ≥ 15.0 km" in sec
+    for w in demo["catalogue_detection"]["windows"]:
+        assert (out / f"nav_{w['png']}").read_bytes() == (nav / w["png"]).read_bytes()
+        assert f'<img src="nav_{w["png"]}"' in sec
+    counts = r'<td class="num">([^<]*)</td>'
+    row = re.search(r"<tr><td>learned-detect</td><td>S0_1728_0128</td>(.*?)</tr>", sec).group(1)
+    assert re.findall(counts, row) == ["3", "1", "2", "5", "0.750", "0.600"]
+    row = re.search(r"<tr><td>template</td><td>all windows</td>(.*?)</tr>", sec).group(1)
+    assert re.findall(counts, row) == ["–", "–", "–", "1", "0.000", "0.000"]
+    assert "<b>learned-detect</b>: 3 catalogued craters found (green), 1 missed (red), 2 false detections" in sec
     # The descent's error plot and its per-frame table (detector and perfect-detection check).
     assert '<img src="nav_trajectory_0.png"' in sec
     assert (out / "nav_trajectory_0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -79,6 +92,18 @@ def test_navigation_section_has_the_table_the_windows_and_the_error_plot(tmp_pat
     for link in re.findall(r'(?:src|href)="([^"#][^"]*)"', sec):
         assert "/" not in link and ":" not in link and (out / link).is_file(), link
     assert "<script" not in html.lower()
+
+
+def test_a_demo_from_before_the_catalogue_scoring_is_shown_without_it(tmp_path):
+    run = tmp_path / "run"
+    nav = run / "navigation"
+    doc = make_demo(nav)
+    del doc["catalogue_detection"]
+    (nav / "navigation.json").write_text(json.dumps(doc))
+    res = _report(run)
+    assert res.exit_code == 0, res.output
+    sec = _section((run / "report" / "index.html").read_text())
+    assert "nav_S0_1728_0128_classical.png" in sec and "Crater detection on real windows" not in sec
 
 
 def test_missing_navigation_is_a_not_run_note(tmp_path):
@@ -129,6 +154,25 @@ def _demo_map_check_bad(nav: Path) -> Path:
     return nav / "navigation.json"
 
 
+def _demo_catalogue_test_window(nav: Path) -> Path:
+    doc = json.loads((nav / "navigation.json").read_text())
+    doc["catalogue_detection"]["windows"][1]["split"] = "test"
+    (nav / "navigation.json").write_text(json.dumps(doc))
+    return nav / "navigation.json"
+
+
+def _demo_catalogue_without_png(nav: Path) -> Path:
+    (nav / "S0_1728_0128_template_catalogue.png").unlink()
+    return nav / "navigation.json"
+
+
+def _demo_catalogue_count_bad(nav: Path) -> Path:
+    doc = json.loads((nav / "navigation.json").read_text())
+    doc["catalogue_detection"]["windows"][0]["false"] = None
+    (nav / "navigation.json").write_text(json.dumps(doc))
+    return nav / "navigation.json"
+
+
 def _frames_without_perfect(nav: Path) -> Path:
     doc = json.loads((nav / "frames_eval.json").read_text())
     del doc["frames"][1]["perfect"]
@@ -151,6 +195,9 @@ def _frames_fix_without_error(nav: Path) -> Path:
         (_demo_without_png, "which does not exist"),
         (_demo_png_not_png, "corrupt PNG"),
         (_demo_map_check_bad, "map_check should hold 'bins'"),
+        (_demo_catalogue_test_window, "catalogue_detection.windows[1].split is 'test', not the catalogue windows'"),
+        (_demo_catalogue_without_png, "catalogue_detection.windows[1].png names"),
+        (_demo_catalogue_count_bad, "catalogue_detection.windows[0] should hold the numbers found, missed, false"),
         (_frames_without_perfect, "frames[1] should be an object with a 'perfect' object"),
         (_frames_fix_without_error, "frames[0] has a fix but no error_km"),
     ],

@@ -599,6 +599,7 @@ def navigation(ctx: Ctx) -> dict:
             false_fix_km=demo.get("false_fix_km"),
             n_windows=len(windows),
             map_check=demo.get("map_check"),
+            catalogue=_nav_catalogue(ctx, demo_path, demo.get("catalogue_detection")),
         )
     trajectories = []
     for k, path in enumerate(frame_paths):
@@ -632,6 +633,22 @@ def navigation(ctx: Ctx) -> dict:
     if not trajectories:
         out["frames_missing"] = not_run(f"no {demo_path.parent}/{NAV_FRAMES_GLOB}", "navframes")
     return out
+
+
+def _nav_catalogue(ctx: Ctx, demo_path: Path, cat: dict | None) -> dict | None:
+    """The demo's detections against the crater catalogue (``catalogue_detection``, None for a demo from
+    before it): the PNGs copied in, grouped by window (method order as written), the per-window counts
+    and the pooled scores per method."""
+    if cat is None:
+        return None
+    by_window: dict[str, dict] = {}
+    for w in cat["windows"]:
+        src = f"nav_{w['png']}"
+        shutil.copyfile(demo_path.parent / w["png"], ctx.out / src)
+        by_window.setdefault(w["id"], {"id": w["id"], "sector": w.get("sector"), "by": []})["by"].append(
+            {**w, "src": src}
+        )
+    return {**cat, "gallery": list(by_window.values())}
 
 
 # ---- header --------------------------------------------------------------------------------------

@@ -392,12 +392,53 @@ def load_nav_demo(path: Path) -> dict | None:
             if not is_num(w.get(key)):
                 raise ReportError(f"{bad}: {where}.{key} missing or not a number")
         _check_fix(w, where, bad)
-        png = path.parent / w["png"]
-        if Path(w["png"]).name != w["png"]:
-            raise ReportError(f"{bad}: {where}.png should be a file name next to it, not {w['png']!r}")
-        if check_png(png) is None:
-            raise ReportError(f"{bad}: {where}.png names {png}, which does not exist")
+        _check_png_next_to(path, w["png"], where, bad)
+    if "catalogue_detection" in doc:  # optional: demos written before the catalogue scoring have none
+        _check_catalogue(path, doc["catalogue_detection"], bad)
     return doc
+
+
+def _check_png_next_to(path: Path, name: str, where: str, bad: str) -> None:
+    """``name`` (``where``.png of the JSON file ``path``) is a file name of a PNG next to ``path``."""
+    if Path(name).name != name:
+        raise ReportError(f"{bad}: {where}.png should be a file name next to it, not {name!r}")
+    if check_png(path.parent / name) is None:
+        raise ReportError(f"{bad}: {where}.png names {path.parent / name}, which does not exist")
+
+
+CATALOGUE_COUNTS = ("found", "missed", "false", "detections_15km")
+
+
+def _check_catalogue(path: Path, cat, bad: str) -> None:
+    """navigation.json's ``catalogue_detection`` (crater_synth/navigation/demo.py, ``demo_catalogue``): the
+    catalogue, its windows' split, the pooled scores per method and per window the counts and PNG."""
+    where = "catalogue_detection"
+    if (
+        not isinstance(cat, dict)
+        or not isinstance(cat.get("windows"), list)
+        or not isinstance(cat.get("methods"), dict)
+    ):
+        raise ReportError(f"{bad}: {where} should be an object with a 'windows' list and a 'methods' object")
+    if not all(isinstance(cat.get(k), str) and cat[k] for k in ("source", "pole", "split")) or not is_num(
+        cat.get("min_d_km")
+    ):
+        raise ReportError(f"{bad}: {where} should name its source, pole and split (text) and min_d_km (a number)")
+    for m, s in cat["methods"].items():
+        if not isinstance(s, dict) or not all(is_num(s.get(k)) for k in ("n_catalogue_15km", "n_detections_15km")):
+            raise ReportError(f"{bad}: {where}.methods.{m} should hold n_catalogue_15km and n_detections_15km")
+        if not all(_num_or_none(s.get(k)) for k in ("recall_15km", "precision_15km")):
+            raise ReportError(f"{bad}: {where}.methods.{m} recall_15km or precision_15km is not a number")
+    for i, w in enumerate(cat["windows"]):
+        at = f"{where}.windows[{i}]"
+        if not isinstance(w, dict) or not all(isinstance(w.get(k), str) and w[k] for k in ("id", "method", "png")):
+            raise ReportError(f"{bad}: {at} should be an object with an id, a method and a png (text)")
+        if w.get("split") != cat["split"]:
+            raise ReportError(f"{bad}: {at}.split is {w.get('split')!r}, not the catalogue windows' {cat['split']!r}")
+        if not all(is_num(w.get(k)) for k in CATALOGUE_COUNTS) or not all(
+            _num_or_none(w.get(k)) for k in ("recall", "precision")
+        ):
+            raise ReportError(f"{bad}: {at} should hold the numbers {', '.join(CATALOGUE_COUNTS)}, recall, precision")
+        _check_png_next_to(path, w["png"], at, bad)
 
 
 def load_nav_frames(path: Path) -> dict | None:

@@ -66,7 +66,8 @@ def make_demo(nav: Path) -> dict:
     patched = {**fixed, "n_detections": 12, "truth": [], "matched": {}, "error_km": 0.18, "identified": 11}
     patched["identified_correct"] = 11
     windows.append({**window_entry("patches", patched, f"{fixed['id']}_patches.png"), "landmarks_in_view": 16})
-    for w in windows:
+    catalogue = _catalogue(fixed)
+    for w in windows + catalogue["windows"]:
         _png(nav / w["png"])
     doc = {
         "kind": "crater-synth navigate-demo",
@@ -107,9 +108,46 @@ def make_demo(nav: Path) -> dict:
             ],
         },
         "windows": windows,
+        "catalogue_detection": catalogue,
     }
     (nav / DEMO_JSON).write_text(json.dumps(doc))
     return doc
+
+
+def _catalogue(window: dict) -> dict:
+    """navigation.json's catalogue_detection (crater_synth/navigation/demo.py, demo_catalogue) on one validation
+    window: rows in score_window's shape, their counts by catalogue_entry."""
+    from crater_synth.navigation.demo import catalogue_entry
+    from crater_synth.navigation.protocol import catalogue_scores
+
+    base = {k: window[k] for k in ("id", "split", "sector")} | {"matched": {}, "matched_any": []}
+    rows = {
+        # 4 catalogued craters of D >= 15 km (and one of 12 km), 3 found; 5 detections of D >= 15 km, 2 false.
+        "learned-detect": {
+            **base,
+            "catalogue_d_km": [20.0, 18.0, 12.0, 30.0, 16.0],
+            "catalogue_found": [0, 1, 3],
+            "det_r_km": [10.0, 9.0, 15.0, 8.0, 8.5, 4.0],
+            "matched_catalogue": [0, 1, 2],
+        },
+        # nothing found: 1 missed, 1 false.
+        "template": {
+            **base,
+            "catalogue_d_km": [40.0],
+            "catalogue_found": [],
+            "det_r_km": [9.0],
+            "matched_catalogue": [],
+        },
+    }
+    return {
+        "source": "a crater catalogue (test)",
+        "pole": "south",
+        "split": "validation",
+        "min_d_km": 15.0,
+        "match": {"centre_within_d": 0.25, "diameter_within": 0.25},
+        "methods": {m: catalogue_scores([r]) for m, r in rows.items()},
+        "windows": [catalogue_entry(m, r, f"{r['id']}_{m}_catalogue.png") for m, r in rows.items()],
+    }
 
 
 def _frame(i, alt, fix_err, perfect_err, reason="2 landmarks identified (need 5)") -> dict:
