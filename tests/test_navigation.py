@@ -555,6 +555,47 @@ def test_catalogue_split_found_missed_false_on_a_hand_made_window():
     assert annotate_catalogue(frame.image, circles, "hand-made")[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_demo_scores_a_real_validation_window_against_the_catalogue_as_nav_eval_does(tmp_path):
+    """navigate-demo's catalogue part on one real south validation window: a PNG per method, counts equal to
+    nav-eval's path (run_frame with the catalogue, summarise's against_catalogue), a record the report
+    loads; a window of another split is not scored."""
+    import dataclasses
+
+    from crater_synth.navigation.demo import CATALOGUE_METHODS, demo_catalogue, demo_frames
+    from crater_synth.navigation.map.check import catalogue_craters
+    from crater_synth.navigation.map.landmarks import load_default_map
+    from crater_synth.navigation.protocol import summarise
+    from crater_synth.navigation.settings import compose_nav
+    from crater_synth.navigation.windows.evaluate import run_frame
+    from crater_synth.report.inputs import load_nav_demo
+
+    from helpers.navresult import make_demo
+
+    (frame,) = [f for f in demo_frames() if f.id == "S0_1728_0128"]
+    assert (frame.split, frame.georef.pole) == ("validation", "south")
+    landmarks, listed = load_default_map("south")[0], catalogue_craters("south")
+    other = dataclasses.replace(frame, id="S0_other", split="test")
+    nav = tmp_path / "navigation"
+    nav.mkdir()
+    cat = demo_catalogue([frame, other], landmarks, listed, nav)
+    assert [(w["id"], w["method"]) for w in cat["windows"]] == [(frame.id, m) for m in CATALOGUE_METHODS]
+    for w in cat["windows"]:
+        assert (nav / w["png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        settings = compose_nav([f"nav/detector={w['method']}"])
+        row = run_frame(frame, landmarks, settings.detector, settings.fix, listed=listed)
+        scores = summarise([row])["against_catalogue"]
+        assert cat["methods"][w["method"]] == scores
+        assert (w["found"] + w["missed"], w["detections_15km"]) == (
+            scores["n_catalogue_15km"],
+            scores["n_detections_15km"],
+        )
+        assert (w["recall"], w["precision"]) == (scores["recall_15km"], scores["precision_15km"])
+        assert w["found"] > 0  # the window is full of catalogued craters both detectors find
+    doc = make_demo(nav)
+    (nav / "navigation.json").write_text(json.dumps({**doc, "catalogue_detection": cat}))
+    assert load_nav_demo(nav / "navigation.json")["catalogue_detection"]["windows"] == cat["windows"]
+
+
 def _lm(i, x_km, d_km, product=""):
     return Landmark(f"S{i:04d}", "", -89.0, 0.0, x_km * 1e3, 0.0, d_km, 1e2, 0.0, 1e1, 1.0, "dem", product)
 
