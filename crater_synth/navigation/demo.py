@@ -126,7 +126,8 @@ def patch_row(row: dict, scores: dict) -> dict:
     (``scores``: :func:`.evaluate.window_patches_alone`'s): the patches' fix in place of the craters', no
     crater detection to score."""
     keys = ("error_km", "identified", "identified_correct")
-    out = {k: v for k, v in row.items() if k not in (*keys, "fix_source", "patches_alone", "catalogue_d_km")}
+    catalogue = ("catalogue", "catalogue_d_km", "catalogue_found", "matched_catalogue")  # no crater to score
+    out = {k: v for k, v in row.items() if k not in (*keys, *catalogue, "fix_source", "patches_alone")}
     out.update(truth=[], truth_d_km=[], det_r_km=[], matched={}, matched_any=[], n_detections=scores["n_detections"])
     out.update(fix=scores["fix"], reason=scores["reason"], **{k: scores[k] for k in keys if k in scores})
     return out
@@ -145,7 +146,8 @@ def _demo_crater_methods(frames, landmarks, listed, out: Path, windows_out: list
         splits: dict = {}
         for f in frames:
             dets, theta, fix, prior = navigate_window(f, landmarks, dparams, fparams)
-            row = score_window(f, landmarks, fparams, dets, theta, fix, listed)
+            # The catalogue scores the validation windows alone (CATALOGUE_SPLIT).
+            row = score_window(f, landmarks, fparams, dets, theta, fix, listed if f.split == CATALOGUE_SPLIT else None)
             if method == "appearance":
                 appearance_rows[f.id] = row
             if f.split == CATALOGUE_SPLIT:
