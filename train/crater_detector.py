@@ -43,6 +43,7 @@ IGNORE_LO_PX = 4.5  # craters between these and the band carry no loss at that l
 IGNORE_HI_PX = 16.0
 HEAT_SIGMA_R = 0.25  # heat-map Gaussian sigma, fraction of the rim radius
 MIN_LEVEL_PX = 24  # a pyramid level smaller than this is not searched
+GAUSS_REACH_SIGMA = 7.0  # exp(-49 / 2) = 2e-11: past it a heat target is 0 (1 - heat == 1 in float32)
 MODEL_FORMAT = "crater-synth-detector/1"
 
 
@@ -115,39 +116,59 @@ def standardise(a: np.ndarray) -> np.ndarray:
     return (a - float(a.mean())) / (s if s > 0 else 1.0)
 
 
-def level_targets(shape, u, v, r, hidden=None) -> dict[str, np.ndarray]:
+def level_targets(shape, u, v, r, hidden=None, window=None) -> dict[str, np.ndarray]:
     """Training targets of one level image of ``shape`` for craters at level pixels (u, v) of rim radius
     r (arrays; continuous coordinates, origin at the top-left pixel corner): heat (H, W), loss weight
     (H, W; 0 on the discs of craters just outside the band, and on the whole disc of ``hidden`` craters,
     a boolean per crater: rims the image does not show, neither positive nor negative), and at the centre
-    pixels the offset and log-radius targets with their mask."""
+    pixels the offset and log-radius targets with their mask.
+
+    ``window`` = (i0, j0, hw, ww): the targets of that window of the level only (rows i0 .. i0 + hw - 1,
+    columns j0 .. j0 + ww - 1; it may reach past the image), the same values as the whole level's there.
+    Each crater touches only the pixels near it (its disc; its Gaussian out to ``GAUSS_REACH_SIGMA``
+    sigmas, beyond which the heat is below float32's resolution of 1 - heat, so the loss is unchanged)."""
     h, w = shape
-    heat = np.zeros(shape, np.float32)
-    weight = np.ones(shape, np.float32)
-    offset = np.zeros((2, h, w), np.float32)
-    logr = np.zeros(shape, np.float32)
-    centre = np.zeros(shape, bool)
+    i0, j0, hw, ww = (0, 0, h, w) if window is None else window
+    heat = np.zeros((hw, ww), np.float32)
+    weight = np.ones((hw, ww), np.float32)
+    offset = np.zeros((2, hw, ww), np.float32)
+    logr = np.zeros((hw, ww), np.float32)
+    centre = np.zeros((hw, ww), bool)
     u, v, r = (np.asarray(x, dtype=np.float64).ravel() for x in (u, v, r))
     hidden = np.zeros(u.size, bool) if hidden is None else np.asarray(hidden, bool).ravel()
     band = (r >= BAND_LO_PX) & (r < BAND_HI_PX) & ~hidden
     near = ((r >= IGNORE_LO_PX) & (r < BAND_LO_PX)) | ((r >= BAND_HI_PX) & (r < IGNORE_HI_PX))
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+
+    def box(k: int, reach: float):
+        """Window slices and pixel-centre coordinates within ``reach`` of crater k (None: none there)."""
+        a0, a1 = max(0, int(math.floor(v[k] - reach)) - i0), min(hw, int(math.ceil(v[k] + reach)) + 1 - i0)
+        b0, b1 = max(0, int(math.floor(u[k] - reach)) - j0), min(ww, int(math.ceil(u[k] + reach)) + 1 - j0)
+        if a0 >= a1 or b0 >= b1:
+            return None
+        jj, ii = np.meshgrid(np.arange(b0, b1) + j0 + 0.5, np.arange(a0, a1) + i0 + 0.5)
+        return (slice(a0, a1), slice(b0, b1)), (jj - u[k]) ** 2 + (ii - v[k]) ** 2
+
     for k in np.nonzero(near & ~hidden)[0]:
-        weight[(jj - u[k]) ** 2 + (ii - v[k]) ** 2 <= (0.5 * r[k]) ** 2] = 0.0
+        if (b := box(k, 0.5 * r[k])) is not None:
+            weight[b[0]][b[1] <= (0.5 * r[k]) ** 2] = 0.0
     for k in np.nonzero(hidden & (r >= IGNORE_LO_PX) & (r < IGNORE_HI_PX))[0]:
-        weight[(jj - u[k]) ** 2 + (ii - v[k]) ** 2 <= r[k] ** 2] = 0.0
+        if (b := box(k, r[k])) is not None:
+            weight[b[0]][b[1] <= r[k] ** 2] = 0.0
     for k in np.nonzero(band)[0]:
         ci, cj = int(math.floor(v[k])), int(math.floor(u[k]))
         if not (0 <= ci < h and 0 <= cj < w):
             continue
         s = HEAT_SIGMA_R * r[k]
-        g = np.exp(-((jj - u[k]) ** 2 + (ii - v[k]) ** 2) / (2.0 * s * s)).astype(np.float32)
-        np.maximum(heat, g, out=heat)
-        heat[ci, cj] = 1.0
-        weight[ci, cj] = 1.0
-        centre[ci, cj] = True
-        offset[:, ci, cj] = (u[k] - (cj + 0.5), v[k] - (ci + 0.5))
-        logr[ci, cj] = math.log(r[k] / BAND_LO_PX)
+        if (b := box(k, GAUSS_REACH_SIGMA * s)) is not None:
+            g = np.exp(-b[1] / (2.0 * s * s)).astype(np.float32)
+            np.maximum(heat[b[0]], g, out=heat[b[0]])
+        ci, cj = ci - i0, cj - j0
+        if 0 <= ci < hw and 0 <= cj < ww:
+            heat[ci, cj] = 1.0
+            weight[ci, cj] = 1.0
+            centre[ci, cj] = True
+            offset[:, ci, cj] = (u[k] - (cj + j0 + 0.5), v[k] - (ci + i0 + 0.5))
+            logr[ci, cj] = math.log(r[k] / BAND_LO_PX)
     # A weight of 0 never hides a band crater's Gaussian.
     weight[heat > 0.05] = 1.0
     return {"heat": heat, "weight": weight, "offset": offset, "logr": logr, "centre": centre}
@@ -203,7 +224,7 @@ def stack_sample(sample: LevelSample, crop_px: int) -> np.ndarray:
     """(8, H, W) float32 of one level: brightness scaled to its 99.5th percentile, the targets computed
     once, and the valid-pixel mask; padded with zeros (no loss) to at least ``crop_px`` a side."""
     a = np.clip(np.asarray(sample.image, np.float32), 0.0, None)
-    top = float(np.percentile(a, 99.5)) or 1.0
+    top = brightness_top(a)
     t = level_targets(a.shape, sample.u, sample.v, sample.r, sample.hidden)
     h, w = a.shape
     out = np.zeros((8, max(h, crop_px), max(w, crop_px)), np.float32)
@@ -215,6 +236,42 @@ def stack_sample(sample: LevelSample, crop_px: int) -> np.ndarray:
     out[_CENTRE, :h, :w] = t["centre"]
     out[_VALID, :h, :w] = 1.0
     return out
+
+
+CROP_REACH_PX = 24.0  # farthest a crater outside a crop can set its targets: a 16 px disc, a 21 px Gaussian
+
+
+def crop_stack(sample: LevelSample, top: float, i0: int, j0: int, crop_px: int) -> np.ndarray:
+    """The ``crop_px`` x ``crop_px`` window at (i0, j0) of :func:`stack_sample` (brightness over ``top``, the
+    level's 99.5th percentile), computed for that window only: the same values, without holding every
+    level's full stack in memory (~3 MB a 256 px frame), which would cap a training set at a few thousand
+    frames."""
+    a = np.clip(np.asarray(sample.image, np.float32), 0.0, None)
+    h, w = a.shape
+    c = crop_px
+    u, v, r = sample.u, sample.v, sample.r
+    near = (
+        (u > j0 - CROP_REACH_PX)
+        & (u < j0 + c + CROP_REACH_PX)
+        & (v > i0 - CROP_REACH_PX)
+        & (v < i0 + c + CROP_REACH_PX)
+    )
+    t = level_targets(a.shape, u[near], v[near], r[near], sample.hidden[near], window=(i0, j0, c, c))
+    out = np.zeros((8, c, c), np.float32)
+    hh, ww = max(0, min(c, h - i0)), max(0, min(c, w - j0))
+    out[_IMG, :hh, :ww] = a[i0 : i0 + hh, j0 : j0 + ww] / top
+    out[_HEAT, :hh, :ww] = t["heat"][:hh, :ww]
+    out[_WEIGHT, :hh, :ww] = t["weight"][:hh, :ww]
+    out[_DU : _DV + 1, :hh, :ww] = t["offset"][:, :hh, :ww]
+    out[_LOGR, :hh, :ww] = t["logr"][:hh, :ww]
+    out[_CENTRE, :hh, :ww] = t["centre"][:hh, :ww]
+    out[_VALID, :hh, :ww] = 1.0
+    return out
+
+
+def brightness_top(image: np.ndarray) -> float:
+    """The level's brightness scale: its 99.5th percentile (1 for a black level)."""
+    return float(np.percentile(np.clip(np.asarray(image, np.float32), 0.0, None), 99.5)) or 1.0
 
 
 def dihedral(t: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
@@ -266,18 +323,23 @@ def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> 
 
 
 def _batch(
-    stacks: list[torch.Tensor], s: DetectorTrainSettings, rng: np.random.Generator, p: np.ndarray | None = None
+    samples: list[LevelSample],
+    tops: list[float],
+    s: DetectorTrainSettings,
+    rng: np.random.Generator,
+    p: np.ndarray | None = None,
 ) -> torch.Tensor:
-    """A batch of random ``crop_px`` crops of random stacked samples (drawn with probabilities ``p``; None:
-    uniformly), each rotated and mirrored at random."""
+    """A batch of random ``crop_px`` crops of random level samples (drawn with probabilities ``p``; None:
+    uniformly), each rotated and mirrored at random; a level smaller than the crop is padded (no loss)."""
     c = s.crop_px
     crops = []
-    picks = rng.integers(0, len(stacks), s.batch) if p is None else rng.choice(len(stacks), s.batch, p=p)
+    picks = rng.integers(0, len(samples), s.batch) if p is None else rng.choice(len(samples), s.batch, p=p)
     for i in picks:
-        t = stacks[int(i)]
-        h, w = t.shape[-2:]
+        x = samples[int(i)]
+        h, w = (max(n, c) for n in x.image.shape)
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        crops.append(dihedral(t[:, i0 : i0 + c, j0 : j0 + c].clone(), int(rng.integers(4)), bool(rng.integers(2))))
+        t = torch.from_numpy(crop_stack(x, tops[int(i)], i0, j0, c))
+        crops.append(dihedral(t, int(rng.integers(4)), bool(rng.integers(2))))
     return torch.stack(crops)
 
 
@@ -301,8 +363,9 @@ def train_detector(
     samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
 ) -> dict:
     """Train :class:`CraterNet` on level samples; returns {"model" (on the CPU), "history", "seconds",
-    "checkpoints"} (``checkpoints``: step -> state dict copies at ``settings.checkpoints``). The targets
-    are computed once per level; crops, rotations and augmentation are tensor operations on ``device``.
+    "checkpoints"} (``checkpoints``: step -> state dict copies at ``settings.checkpoints``). Each drawn
+    crop's targets are computed for the crop alone (:func:`crop_stack`), so memory holds the level images
+    and their craters, not full target stacks; augmentation is a tensor operation on ``device``.
     ``source`` (an index per sample) with ``settings.source_shares`` sets each source's share of the draws."""
     if not samples:
         raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
@@ -313,7 +376,7 @@ def train_detector(
     p = source_probabilities(np.zeros(len(samples), int) if source is None else source, settings.source_shares)
     gen = torch.Generator(device=device)
     gen.manual_seed(settings.seed)
-    stacks = [torch.from_numpy(stack_sample(x, settings.crop_px)).to(device) for x in samples]
+    tops = [brightness_top(x.image) for x in samples]
     model = CraterNet(settings.width).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
@@ -322,7 +385,7 @@ def train_detector(
     t0 = time.perf_counter()
     model.train()
     for step in range(1, settings.steps + 1):
-        t = _batch(stacks, settings, rng, p)
+        t = _batch(samples, tops, settings, rng, p).to(device)
         out = model(augment(t, settings, gen))
         w = t[:, _WEIGHT] * t[:, _VALID]
         loss, parts = detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)
