@@ -447,3 +447,138 @@ def test_a_rerun_keeps_only_the_unchanged_frames_of_its_range(tmp_path):
     kept, done = R.kept_rows(folder, range(0, 3))
     folder.release()
     assert done == {0} and sorted(kept) == [0, 3]
+
+
+# --------------------------------------------------------------------------------------------
+# The manifest at scale: appended per chunk, compacted once (the workers faked: no Blender)
+# --------------------------------------------------------------------------------------------
+# 2 frames a field, 2 fields a chunk (one worker): 4 frames a chunk
+TINY = (*SMALL, "detection.width_px=64", "detection.views_per_field=2", "detection.suns_per_view=1", "render.workers=1")
+
+
+class _Killed(BaseException):
+    """A hard kill: nothing after it runs but the finally clauses, which the tests neutralise."""
+
+
+def _fake_workers(monkeypatch, fail_on_call: int | None = None) -> list:
+    """``run_workers`` replaced by one that writes each planned frame as a made-up EXR (its values from the
+    frame index, so two runs write the same bytes) and reports it as a worker does; the ``fail_on_call``-th
+    call (a chunk) fails before rendering anything. Returns the frames of each call."""
+    calls: list = []
+
+    def run(jobs, _render, _hapke, out_dir, on_result):
+        calls.append(sorted(p["item"]["index"] for j in jobs for p in j.plans))
+        if len(calls) == fail_on_call:
+            raise UserError("this chunk's workers failed")
+        for job in jobs:
+            for plan in job.plans:
+                i, rel, w = plan["item"]["index"], plan["item"]["rel_path"], plan["item"]["frame_width"]
+                chans = {c: np.full((w, w), 0.25 + i, np.float32) for c in schema.EXR_CHANNELS}
+                chans["depth"] = np.full((w, w), 1e9, np.float32)
+                exr.write_exr(out_dir / rel, chans, {"crater_synth:mode": "fast"})
+                res = {"index": i, "rel_path": rel, "sha256": schema.sha256_file(out_dir / rel), "mode": "fast"}
+                on_result(job, plan, res | {"seconds": 0.5, "lit_fraction": 0.5, "mean_if": 0.25})
+
+    monkeypatch.setattr(R, "run_workers", run)
+    return calls
+
+
+def _tiny(tmp_path, name: str, frames: int = 8, start: int = 0) -> dict:
+    return R.render_detection_frames(load_settings(D.detection_overrides(list(TINY))), tmp_path / name, frames, start)
+
+
+def _same_set(a, b) -> None:
+    names = sorted(p.name for p in a.iterdir() if p.name[0] != ".")
+    assert names == sorted(p.name for p in b.iterdir() if p.name[0] != ".")
+    for n in names:
+        assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
+def test_a_stopped_run_resumes_to_the_manifest_of_an_uninterrupted_one(tmp_path, monkeypatch):
+    """Stopped by an error in its second chunk, a run leaves the first chunk's frames and a compact
+    manifest; the rerun keeps them, renders the rest and ends with the uninterrupted run's bytes."""
+    assert _fake_workers(monkeypatch) == [] and _tiny(tmp_path, "whole")["rendered"] == 8
+    calls = _fake_workers(monkeypatch, fail_on_call=2)
+    with pytest.raises(UserError, match="workers failed"):
+        _tiny(tmp_path, "stopped")
+    assert calls == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    rows, compact = D.read_manifest(tmp_path / "stopped")
+    assert sorted(rows) == [0, 1, 2, 3] and compact
+    calls = _fake_workers(monkeypatch)
+    summary = _tiny(tmp_path, "stopped")
+    assert calls == [[4, 5, 6, 7]] and summary["kept"] == 4 and summary["rendered"] == 4
+    _same_set(tmp_path / "whole", tmp_path / "stopped")
+
+
+def test_a_hard_killed_run_leaves_a_readable_manifest_and_resumes(tmp_path, monkeypatch):
+    """Killed halfway through appending its second chunk's rows (no compaction, no seal): the torn line is
+    dropped, the folder is still the writer's, the export refuses the uncompacted manifest in one line,
+    and the rerun renders the second chunk and compacts to the uninterrupted run's bytes."""
+    from crater_synth.dataset import export as ex
+
+    _fake_workers(monkeypatch)
+    _tiny(tmp_path, "whole")
+    real_append = R.append_rows
+
+    def torn_append(out_dir, rows):
+        if rows and rows[0]["index"] >= 4:
+            with open(out_dir / schema.MANIFEST_NAME, "a") as fh:
+                fh.write(schema.dumps_row(rows[0])[:999])  # torn in its first row
+            raise _Killed
+        real_append(out_dir, rows)
+
+    monkeypatch.setattr(R, "append_rows", torn_append)
+    monkeypatch.setattr(R, "_write_manifest", lambda *_: None)  # a killed run compacts nothing
+    with pytest.raises(_Killed):
+        _tiny(tmp_path, "killed")
+    out = tmp_path / "killed"
+    rows, compact = D.read_manifest(out)
+    assert sorted(rows) == [0, 1, 2, 3] and not compact
+    with pytest.raises(ex.ExportError, match="rerun that command"):
+        ex.export_dataset(out, tmp_path / "pq", "parquet", channels=["IF"])
+    monkeypatch.undo()
+    calls = _fake_workers(monkeypatch)
+    assert _tiny(tmp_path, "killed")["rendered"] == 4 and calls == [[4, 5, 6, 7]]
+    _same_set(tmp_path / "whole", out)
+
+
+def test_a_manifest_with_a_torn_last_line_and_a_repeated_index_reads_each_frame_once(tmp_path):
+    """The last row of an index wins; a torn last line is dropped; a bad line elsewhere is one error."""
+    out = tmp_path / "set"
+    out.mkdir()
+    rows = [{"index": i, "rel_path": D.frame_rel_path(i), "labels": [i]} for i in (0, 1, 2)]
+    again = rows[1] | {"labels": ["again"]}
+    lines = [schema.dumps_row(r) + "\n" for r in (*rows, again)]
+    (out / schema.MANIFEST_NAME).write_text("".join(lines) + lines[0][:9])
+    got, compact = D.read_manifest(out)
+    assert got == {0: rows[0], 1: again, 2: rows[2]} and not compact
+    assert D.manifest_rows(out) == got
+    (out / schema.MANIFEST_NAME).write_text("".join(lines[:3]))
+    assert D.read_manifest(out) == ({r["index"]: r for r in rows}, True)
+    (out / schema.MANIFEST_NAME).write_text(lines[0] + "{not json\n" + lines[1])
+    with pytest.raises(UserError, match="line 2: not a detection-frames row"):
+        D.read_manifest(out)
+
+
+def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, monkeypatch):
+    """Each chunk appends only its own rows; the whole file is written once, when the run ends: the run
+    writes the manifest's bytes twice in all, whatever the number of chunks (a rewrite per chunk: O(chunks x
+    rows))."""
+    appended, compactions = [], []
+    real_append, real_write = R.append_rows, R._write_manifest
+
+    def count_append(out_dir, rows):
+        appended.append(sum(len(schema.dumps_row(r)) + 1 for r in rows))
+        real_append(out_dir, rows)
+
+    def count_write(folder, rows):
+        compactions.append(len(rows))
+        real_write(folder, rows)
+
+    monkeypatch.setattr(R, "append_rows", count_append)
+    monkeypatch.setattr(R, "_write_manifest", count_write)
+    calls = _fake_workers(monkeypatch)
+    _tiny(tmp_path, "set", frames=16)
+    size = (tmp_path / "set" / schema.MANIFEST_NAME).stat().st_size
+    assert len(calls) == len(appended) == 4 and compactions == [16]
+    assert sum(appended) == size and max(appended) < size / 3

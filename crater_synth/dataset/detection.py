@@ -418,20 +418,35 @@ def detection_overrides(overrides) -> list[str]:
     return first + overrides
 
 
-def manifest_rows(out_dir: Path) -> dict[int, dict]:
-    """Frame index -> row of the detection manifest in ``out_dir`` (none yet: empty); a line that is no
-    detection row is one error naming it."""
+def read_manifest(out_dir: Path) -> tuple[dict[int, dict], bool]:
+    """(frame index -> row, compact) of the detection manifest in ``out_dir`` (none yet: ``({}, True)``),
+    streamed line by line. A run appends each chunk's rows and compacts the file when it ends
+    (:mod:`.detection_run`), so a hard-killed run's file is read as what it means: a torn last line (no
+    newline after it: the chunk being appended) is dropped, and an index repeated keeps its last row.
+    ``compact``: the file is as a finished run leaves it (indices strictly increasing, every line whole).
+    Any other line that is no detection row is one error naming it."""
     path = Path(out_dir) / schema.MANIFEST_NAME
     if not path.is_file():
-        return {}
-    rows = {}
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-            rows[int(row["index"])] = row
-            row["labels"]
-        except (ValueError, TypeError, KeyError):
-            raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
-    return rows
+        return {}, True
+    rows: dict[int, dict] = {}
+    compact, last = True, -1
+    with open(path, "rb") as fh:
+        for n, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                row = json.loads(line)
+                index = int(row["index"])
+                row["labels"]
+            except (ValueError, TypeError, KeyError):
+                if not line.endswith(b"\n"):  # the torn tail of a killed append
+                    return rows, False
+                raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
+            compact = compact and index > last and line.endswith(b"\n")
+            rows[index], last = row, index
+    return rows, compact
+
+
+def manifest_rows(out_dir: Path) -> dict[int, dict]:
+    """Frame index -> row of the detection manifest in ``out_dir`` (:func:`read_manifest`)."""
+    return read_manifest(out_dir)[0]

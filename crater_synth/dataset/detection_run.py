@@ -6,8 +6,11 @@
   frame width and the grouping), so frames of two recipes never mix; a folder holding a file the command
   did not write is refused; one writer at a time.
 - **Resumption**: a frame whose row is in the manifest and whose file is unchanged since it was written is
-  kept; the others of the requested range are rendered. The manifest is merged (rows outside the range
-  stay) and rewritten atomically after every chunk of fields, and when the run stops early.
+  kept; the others of the requested range are rendered. Each chunk of fields appends its rows to the
+  manifest (one write and fsync: O(chunk) bytes, where a rewrite would be O(rows so far)); the run
+  compacts it (sorted, one row per frame, rows outside the range kept, rewritten atomically) once when
+  it ends, normally or stopped by an exception or signal. A hard-killed run leaves an appended file,
+  which the next run reads (:func:`crater_synth.dataset.detection.read_manifest`) and compacts.
 - **Pipelining**: while the workers render one chunk of fields, a second process generates the next
   chunk's fields and writes their patches (``generate`` and the patch take ~1 s per field, which would
   otherwise leave the workers idle between chunks).
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -39,8 +43,8 @@ from crater_synth.dataset.detection import (
     frame_rel_path,
     frame_row,
     grouping,
-    manifest_rows,
     plan_field,
+    read_manifest,
 )
 from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.identity import IGNORED, settings_payload
@@ -58,12 +62,15 @@ def recipe_key(settings) -> str:
     return schema.content_key(payload | {"horizon_version": HORIZON_VERSION})
 
 
-def kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[int]]:
+def kept_rows(
+    folder: OutFolder, wanted: range, on_disk: dict[int, dict] | None = None
+) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
-    frames whose file is unchanged since this writer wrote it (listed, same size and mtime)."""
+    frames whose file is unchanged since this writer wrote it (listed, same size and mtime). ``on_disk``:
+    the manifest's rows, read here when not given."""
     rows: dict[int, dict] = {}
     done: set[int] = set()
-    for i, r in manifest_rows(folder.path).items():
+    for i, r in (read_manifest(folder.path)[0] if on_disk is None else on_disk).items():
         if i not in wanted:
             rows[i] = r
         elif (
@@ -81,10 +88,14 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
 
 def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -> None:
     """Render the planned ``fields``, adding each frame's manifest row to ``rows`` as it arrives (the host
-    labels while the workers render); the frames' files are listed before and sealed after."""
+    labels while the workers render); the frames' files are listed before, their rows appended to the
+    manifest and both sealed after."""
     frames = {i: f for field in fields for i, f in field["frames"].items()}
     names = [frame_rel_path(i) for i in frames]
-    folder.record(names)
+    # The manifest is listed as being written while the chunk renders: a run killed while appending leaves
+    # a file whose size the marker cannot know, still this writer's (OutFolder.proved).
+    folder.files.pop(schema.MANIFEST_NAME, None)
+    folder.record([schema.MANIFEST_NAME, *names])
     for i in frames:
         rows.pop(i, None)
 
@@ -95,13 +106,31 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -
     try:
         run_workers([f["job"] for f in fields], settings.render, settings.hapke, folder.path, on_result)
     finally:
-        folder.seal([frame_rel_path(i) for i in frames if i in rows])
+        done = sorted(i for i in frames if i in rows)
+        append_rows(folder.path, [rows[i] for i in done])
+        folder.seal([*(frame_rel_path(i) for i in done), schema.MANIFEST_NAME])
     missing = sorted(set(frames) - set(rows))
     if missing:
         raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
 
 
+def append_rows(out_dir: Path, rows: list[dict]) -> None:
+    """Append ``rows`` to the manifest in one write, flushed and fsynced (a chunk's rows are durable
+    before the next chunk starts)."""
+    if not rows:
+        return
+    data = "".join(schema.dumps_row(r) + "\n" for r in rows).encode("utf-8")
+    with open(Path(out_dir) / schema.MANIFEST_NAME, "ab") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
 def _write_manifest(folder: OutFolder, rows: dict) -> None:
+    """The compact manifest: ``rows`` sorted by frame index, rewritten atomically (listed as being written
+    meanwhile, as in :func:`_render_chunk`)."""
+    folder.files.pop(schema.MANIFEST_NAME, None)
+    folder.record([schema.MANIFEST_NAME])
     text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
     schema.atomic_write_text(folder.path / schema.MANIFEST_NAME, text)
     folder.seal([schema.MANIFEST_NAME])
@@ -109,7 +138,8 @@ def _write_manifest(folder: OutFolder, rows: dict) -> None:
 
 def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) -> None:
     """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
-    while chunk k renders; the manifest is written after each chunk and when the run stops early."""
+    while chunk k renders; each chunk's rows are appended to the manifest, which is compacted when the run
+    ends, or stops early."""
     patches = folder.path / PATCH_DIR
     shutil.rmtree(patches, ignore_errors=True)  # a stopped run's patches (bookkeeping under .jobs/)
     # spawned, not forked: the planner must not inherit the folder's lock or the CLI's signal handlers
@@ -123,7 +153,6 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) 
                     nxt = planner.submit(_plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}")
                 _render_chunk(settings, fields, folder, rows)
                 shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
-                _write_manifest(folder, rows)
                 if nxt is not None:
                     try:
                         fields = nxt.result()
@@ -131,12 +160,10 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) 
                         raise UserError(
                             "the process generating the next crater fields died (out of memory?); rerun to resume"
                         ) from None
-        except BaseException:
-            _write_manifest(folder, rows)  # the rows of the frames this stopped run did render
-            raise
         finally:
             planner.shutdown(cancel_futures=True)
             shutil.rmtree(patches, ignore_errors=True)
+            _write_manifest(folder, rows)  # compacted once: the frames rendered and kept, however the run ends
 
 
 def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0) -> dict:
@@ -157,7 +184,10 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
     try:
         folder.record([schema.MANIFEST_NAME])
         wanted = range(start, start + n_frames)
-        rows, done = kept_rows(folder, wanted)
+        on_disk, compact = read_manifest(folder.path)
+        rows, done = kept_rows(folder, wanted, on_disk)
+        if not compact:  # a hard-killed run's appended file: compacted before anything is appended to it
+            _write_manifest(folder, rows)
         by_field: dict[int, list[int]] = {}
         for i in wanted:
             if i not in done:
@@ -168,8 +198,6 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         t0 = time.perf_counter()
         if chunks:
             _render_chunks(settings, folder, chunks, rows)
-        else:
-            _write_manifest(folder, rows)
         seconds = time.perf_counter() - t0
     finally:
         folder.release()
