@@ -582,3 +582,68 @@ def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, mon
     size = (tmp_path / "set" / schema.MANIFEST_NAME).stat().st_size
     assert len(calls) == len(appended) == 4 and compactions == [16]
     assert sum(appended) == size and max(appended) < size / 3
+
+
+# --------------------------------------------------------------------------------------------
+# Sharded sets (launcher=dask): the layout and the shard tasks, in-process; the cluster: integration
+# --------------------------------------------------------------------------------------------
+def _items(monkeypatch) -> dict:
+    """The worker item of each frame the faked workers are given (what Blender would render), by index."""
+    items: dict = {}
+    real = R.run_workers
+
+    def run(jobs, *args):
+        items.update({p["item"]["index"]: p["item"] for j in jobs for p in j.plans})
+        real(jobs, *args)
+
+    monkeypatch.setattr(R, "run_workers", run)
+    return items
+
+
+def test_a_sharded_set_holds_the_unsharded_runs_frames_and_skips_its_complete_shards(tmp_path, monkeypatch):
+    """Two shards of 4 frames (2 fields each): shard k is an ordinary folder holding frames 4k .. 4k + 3,
+    the same worker items, files and rows as one unsharded run's; a complete shard is skipped, a damaged
+    one is rendered again; a rerun of another shard size is refused, one without launcher.shards takes the
+    set's own."""
+    from crater_synth.dataset import detection_dask as DD
+
+    _fake_workers(monkeypatch)
+    whole_items = _items(monkeypatch)
+    _tiny(tmp_path, "whole")
+    dask = load_settings(D.detection_overrides([*TINY, "launcher=dask", "launcher.shards=2"]))
+    out = tmp_path / "sharded"
+    parent, plan = DD.preflight(dask, out, 8, 0)
+    parent.release()
+    assert plan["per_shard"] == 4 and plan["todo"] == plan["shards"] == [(0, 0, 4), (1, 4, 4)]
+    _fake_workers(monkeypatch)
+    shard_items = _items(monkeypatch)
+    for k, first, n in plan["todo"]:
+        summary = DD._render_shard(replace(dask, **{"render.workers": 1}), str(out / D.shard_name(k)), n, first)
+        assert summary["rendered"] == 4, summary
+    assert D.shard_folders(out) == [out / "shard_00000", out / "shard_00001"]
+    assert shard_items == whole_items and sorted(shard_items) == list(range(8))
+    whole = D.manifest_rows(tmp_path / "whole")
+    for k, shard in enumerate(D.shard_folders(out)):
+        assert D.manifest_rows(shard) == {i: whole[i] for i in range(4 * k, 4 * k + 4)}
+        for i in range(4 * k, 4 * k + 4):
+            rel = D.frame_rel_path(i)
+            assert (shard / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes()
+    parent, plan = DD.preflight(dask, out, 8, 0)
+    parent.release()
+    assert plan["todo"] == []
+    (out / "shard_00001" / D.frame_rel_path(5)).unlink()
+    parent, plan = DD.preflight(replace(dask, **{"launcher.shards": None}), out, 8, 0)
+    parent.release()
+    assert plan["per_shard"] == 4 and plan["todo"] == [(1, 4, 4)]
+    with pytest.raises(UserError, match="4 frames a shard"):
+        DD.preflight(replace(dask, **{"launcher.shards": 4}), out, 8, 0)
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="notes.txt"):
+        DD.preflight(dask, out, 8, 0)
+
+
+def test_shards_hold_whole_fields_and_at_most_the_cap_by_default():
+    det = replace(DET, views_per_field=64)
+    assert D.shard_frames(det, 256, 2) == 128 and D.shard_frames(det, 100, 2) == 64
+    assert D.shard_frames(det, 1_000_000, 8) == D.MAX_SHARD_FRAMES // 64 * 64 == 9984
+    assert D.shard_frames(det, 1_000_000, 8, cap=False) == 125_056

@@ -80,6 +80,34 @@ FAST_MAP_MARGIN = 1.02
 PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' terrain patches and horizon maps
 
 
+# A sharded set (``detection-frames launcher=dask``): DIR/shard_NNNNN/, each an ordinary detection-frames folder
+# of a contiguous range of whole fields. By default a shard holds at most this many frames: a folder's
+# manifest (~33 KB a frame on the default surface, ~480 KB on a 4.3 Gyr one) and a training's read of it
+# stay bounded however large the set.
+MAX_SHARD_FRAMES = 10_000
+SHARD_GLOB = "shard_[0-9][0-9][0-9][0-9][0-9]"
+
+
+def shard_name(k: int) -> str:
+    return f"shard_{k:05d}"
+
+
+def shard_folders(out_dir: Path) -> list[Path]:
+    """The shard folders of a sharded detection set, in frame order (none: not a sharded set). Each is an
+    ordinary detection-frames folder: resume, verify, export and train it as one (``nav-detector-train
+    DIR/shard_00000 --also DIR/shard_00001 ...``)."""
+    return sorted(p for p in Path(out_dir).glob(SHARD_GLOB) if p.is_dir())
+
+
+def shard_frames(det: DetectionSettings, n_frames: int, shards: int, cap: bool = True) -> int:
+    """Frames a shard holds when ``n_frames`` are split in ``shards``: whole fields, at most
+    :data:`MAX_SHARD_FRAMES` (whole fields too, at least one) when ``cap``."""
+    v = det.views_per_field
+    per = -(-n_frames // shards)  # ceil
+    per = -(-per // v) * v  # up to whole fields
+    return min(per, max(v, MAX_SHARD_FRAMES // v * v)) if cap else per
+
+
 def frame_rel_path(index: int) -> str:
     return f"frame_{index:06d}.exr"
 

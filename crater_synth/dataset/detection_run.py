@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
 import shutil
@@ -27,18 +26,13 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-import click
-
 from crater_core import schema
 from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import replace
-from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import load_settings
 from crater_synth.dataset.detection import (
     CHUNK_PER_WORKER,
     PATCH_DIR,
     check_field_fits,
-    detection_overrides,
     field_of,
     frame_rel_path,
     frame_row,
@@ -136,48 +130,60 @@ def _write_manifest(folder: OutFolder, rows: dict) -> None:
     folder.seal([schema.MANIFEST_NAME])
 
 
-def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) -> None:
+def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict, pipelined: bool = True) -> None:
     """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
-    while chunk k renders; each chunk's rows are appended to the manifest, which is compacted when the run
-    ends, or stops early."""
+    while chunk k renders (``pipelined``; else each chunk is planned here before it renders: a Dask task,
+    whose daemonic worker process may start no process pool); each chunk's rows are appended to the
+    manifest, which is compacted when the run ends, or stops early."""
     patches = folder.path / PATCH_DIR
     shutil.rmtree(patches, ignore_errors=True)  # a stopped run's patches (bookkeeping under .jobs/)
     # spawned, not forked: the planner must not inherit the folder's lock or the CLI's signal handlers
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as planner:
-        try:
-            # the first chunk here: the workers have nothing to do yet
-            fields = _plan_chunk(settings, chunks[0], patches / "chunk_0")
-            for k in range(len(chunks)):
-                nxt = None
-                if k + 1 < len(chunks):
-                    nxt = planner.submit(_plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}")
-                _render_chunk(settings, fields, folder, rows)
-                shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
-                if nxt is not None:
-                    try:
-                        fields = nxt.result()
-                    except BrokenProcessPool:
-                        raise UserError(
-                            "the process generating the next crater fields died (out of memory?); rerun to resume"
-                        ) from None
-        finally:
+    spawn = multiprocessing.get_context("spawn")
+    planner = ProcessPoolExecutor(max_workers=1, mp_context=spawn) if pipelined else None
+    try:
+        # the first chunk here: the workers have nothing to do yet
+        fields = _plan_chunk(settings, chunks[0], patches / "chunk_0")
+        for k in range(len(chunks)):
+            nxt = None
+            if k + 1 < len(chunks):
+                args = (settings, chunks[k + 1], patches / f"chunk_{k + 1}")
+                nxt = planner.submit(_plan_chunk, *args) if planner is not None else args
+            _render_chunk(settings, fields, folder, rows)
+            shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
+            if isinstance(nxt, tuple):
+                fields = _plan_chunk(*nxt)
+            elif nxt is not None:
+                try:
+                    fields = nxt.result()
+                except BrokenProcessPool:
+                    raise UserError(
+                        "the process generating the next crater fields died (out of memory?); rerun to resume"
+                    ) from None
+    finally:
+        if planner is not None:
             planner.shutdown(cancel_futures=True)
-            shutil.rmtree(patches, ignore_errors=True)
-            _write_manifest(folder, rows)  # compacted once: the frames rendered and kept, however the run ends
+        shutil.rmtree(patches, ignore_errors=True)
+        _write_manifest(folder, rows)  # compacted once: the frames rendered and kept, however the run ends
 
 
-def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0) -> dict:
-    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
-    frames of the range already there (module docstring); ``settings.detection`` sets the conditions and
-    how frames share fields, views and Sun azimuths. Returns a summary."""
+def check_request(settings, n_frames: int) -> None:
+    """One error for a request no frame can be rendered for (before anything is written)."""
     if settings.procedural is None or settings.detection is None:
         raise ConfigError(
             "no procedural field or detection recipe selected: add procedural=detection detection=default"
         )
     if n_frames < 1:
         raise UserError(f"--frames {n_frames}: must be >= 1")
+    check_field_fits(settings.procedural, settings.detection)
+
+
+def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0, pipelined: bool = True) -> dict:
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
+    frames of the range already there (module docstring); ``settings.detection`` sets the conditions and
+    how frames share fields, views and Sun azimuths. ``pipelined``: plan the next chunk in a second process
+    (:func:`_render_chunks`). Returns a summary."""
+    check_request(settings, n_frames)
     det = settings.detection
-    check_field_fits(settings.procedural, det)
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
     folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings)}").check_clean()
     folder.claim()
@@ -197,7 +203,7 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         chunks = [{f: by_field[f] for f in ids[k : k + size]} for k in range(0, len(ids), size)]
         t0 = time.perf_counter()
         if chunks:
-            _render_chunks(settings, folder, chunks, rows)
+            _render_chunks(settings, folder, chunks, rows, pipelined)
         seconds = time.perf_counter() - t0
     finally:
         folder.release()
@@ -217,22 +223,3 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         "seconds": round(seconds, 2),
         "frames_per_s": round(rendered / seconds, 3) if rendered and seconds > 0 else None,
     }
-
-
-@click.command("detection-frames")
-@OVERRIDES
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
-@click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
-@click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
-@user_errors
-def detection_frames_command(overrides, out, n_frames, start):
-    """Render labelled detection frames of procedural crater fields (EXR + manifest), resumably.
-
-    Each frame draws its field (procedural.*, default procedural=detection), Sun and view (detection.*, default
-    detection=default: conditions and grouping) from the run seed and its index. Example:
-    `crater-synth detection-frames --out data/detection --frames 8 seed=1 detection.width_px=512`
-    """
-    if start < 0:
-        raise UserError(f"--start {start}: must be >= 0")
-    settings = load_settings(detection_overrides(overrides))
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, start)))
