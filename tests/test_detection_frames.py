@@ -645,5 +645,32 @@ def test_a_sharded_set_holds_the_unsharded_runs_frames_and_skips_its_complete_sh
 def test_shards_hold_whole_fields_and_at_most_the_cap_by_default():
     det = replace(DET, views_per_field=64)
     assert D.shard_frames(det, 256, 2) == 128 and D.shard_frames(det, 100, 2) == 64
-    assert D.shard_frames(det, 1_000_000, 8) == D.MAX_SHARD_FRAMES // 64 * 64 == 9984
+    assert D.shard_frames(det, 1_000_000, 8) == D.MAX_SHARD_FRAMES == 2048
+    assert D.shard_frames(replace(det, views_per_field=48), 1_000_000, 8) == 2016  # whole fields
     assert D.shard_frames(det, 1_000_000, 8, cap=False) == 125_056
+
+
+@pytest.mark.integration
+def test_a_sharded_set_on_a_local_dask_cluster_renders_the_unsharded_runs_frames(tmp_path):
+    """launcher=dask on 2 local workers, 2 shards of one field: each frame is byte for byte the frame one
+    unsharded run renders (its row the same but for the render time); a rerun skips both shards."""
+    from crater_synth.dataset.detection_dask import run_detection_dask
+
+    base = [*TINY[:-1], "seed=3"]
+    one = load_settings(D.detection_overrides([*base, "render.workers=1"]))
+    R.render_detection_frames(one, tmp_path / "one", 4)
+    dask = load_settings(D.detection_overrides([*base, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2"]))
+    summary = run_detection_dask(dask, tmp_path / "set", 4, progress=False)
+    assert (summary["workers"], summary["shards_rendered"], summary["rendered"]) == (2, 2, 4), summary
+    whole = D.manifest_rows(tmp_path / "one")
+    shards = D.shard_folders(tmp_path / "set")
+    assert [s.name for s in shards] == summary["shards"] == ["shard_00000", "shard_00001"]
+    for k, shard in enumerate(shards):
+        rows = D.manifest_rows(shard)
+        assert sorted(rows) == [2 * k, 2 * k + 1]
+        for i, row in rows.items():
+            rel = D.frame_rel_path(i)
+            assert (shard / rel).read_bytes() == (tmp_path / "one" / rel).read_bytes()
+            assert {**row, "render_seconds": 0} == {**whole[i], "render_seconds": 0}
+    again = run_detection_dask(dask, tmp_path / "set", 4, progress=False)
+    assert (again["shards_skipped"], again["rendered"]) == (2, 0)

@@ -81,10 +81,11 @@ PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' te
 
 
 # A sharded set (``detection-frames launcher=dask``): DIR/shard_NNNNN/, each an ordinary detection-frames folder
-# of a contiguous range of whole fields. By default a shard holds at most this many frames: a folder's
-# manifest (~33 KB a frame on the default surface, ~480 KB on a 4.3 Gyr one) and a training's read of it
-# stay bounded however large the set.
-MAX_SHARD_FRAMES = 10_000
+# of a contiguous range of whole fields. By default a shard holds at most this many frames, so a folder's
+# manifest (~33 KB a frame on the default surface, ~480 KB on a 4.3 Gyr one: 67 MB and 980 MB here), the
+# rows its run holds and a training's read of it stay bounded however large the set; a task renders it in
+# minutes (~6 frames/s a worker at 256 px), so a retried task loses little.
+MAX_SHARD_FRAMES = 2048
 SHARD_GLOB = "shard_[0-9][0-9][0-9][0-9][0-9]"
 
 
