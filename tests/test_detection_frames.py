@@ -600,11 +600,12 @@ def _items(monkeypatch) -> dict:
     return items
 
 
-def test_a_sharded_set_holds_the_unsharded_runs_frames_and_skips_its_complete_shards(tmp_path, monkeypatch):
+def test_a_sharded_set_holds_the_unsharded_runs_frames_and_resumes_per_shard(tmp_path, monkeypatch):
     """Two shards of 4 frames (2 fields each): shard k is an ordinary folder holding frames 4k .. 4k + 3,
-    the same worker items, files and rows as one unsharded run's; a complete shard is skipped, a damaged
-    one is rendered again; a rerun of another shard size is refused, one without launcher.shards takes the
-    set's own."""
+    the same worker items, files and rows as one unsharded run's; a complete shard's task renders nothing,
+    a damaged one's renders its missing frame; a rerun of another shard size, a shard of another recipe and
+    a file the command did not write are refused before any cluster; a rerun without launcher.shards takes
+    the set's own size."""
     from crater_synth.dataset import detection_dask as DD
 
     _fake_workers(monkeypatch)
@@ -612,14 +613,17 @@ def test_a_sharded_set_holds_the_unsharded_runs_frames_and_skips_its_complete_sh
     _tiny(tmp_path, "whole")
     dask = load_settings(D.detection_overrides([*TINY, "launcher=dask", "launcher.shards=2"]))
     out = tmp_path / "sharded"
-    parent, plan = DD.preflight(dask, out, 8, 0)
-    parent.release()
-    assert plan["per_shard"] == 4 and plan["todo"] == plan["shards"] == [(0, 0, 4), (1, 4, 4)]
+
+    def tasks(settings, frames=8):
+        parent, plan = DD.preflight(settings, out, frames, 0)
+        parent.release()
+        one = replace(settings, **{"render.workers": 1})
+        return plan, [DD._render_shard(one, str(out / D.shard_name(k)), n, first) for k, first, n in plan["shards"]]
+
     _fake_workers(monkeypatch)
     shard_items = _items(monkeypatch)
-    for k, first, n in plan["todo"]:
-        summary = DD._render_shard(replace(dask, **{"render.workers": 1}), str(out / D.shard_name(k)), n, first)
-        assert summary["rendered"] == 4, summary
+    plan, done = tasks(dask)
+    assert plan == {"per_shard": 4, "shards": [(0, 0, 4), (1, 4, 4)]} and [s["rendered"] for s in done] == [4, 4]
     assert D.shard_folders(out) == [out / "shard_00000", out / "shard_00001"]
     assert shard_items == whole_items and sorted(shard_items) == list(range(8))
     whole = D.manifest_rows(tmp_path / "whole")
@@ -628,15 +632,19 @@ def test_a_sharded_set_holds_the_unsharded_runs_frames_and_skips_its_complete_sh
         for i in range(4 * k, 4 * k + 4):
             rel = D.frame_rel_path(i)
             assert (shard / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes()
-    parent, plan = DD.preflight(dask, out, 8, 0)
-    parent.release()
-    assert plan["todo"] == []
     (out / "shard_00001" / D.frame_rel_path(5)).unlink()
-    parent, plan = DD.preflight(replace(dask, **{"launcher.shards": None}), out, 8, 0)
-    parent.release()
-    assert plan["per_shard"] == 4 and plan["todo"] == [(1, 4, 4)]
+    plan, done = tasks(replace(dask, **{"launcher.shards": None}))
+    assert plan["per_shard"] == 4 and [s["rendered"] for s in done] == [0, 1]
     with pytest.raises(UserError, match="4 frames a shard"):
         DD.preflight(replace(dask, **{"launcher.shards": 4}), out, 8, 0)
+    with pytest.raises(UserError, match="frames a shard"):
+        DD.preflight(replace(dask, **{"seed": 9, "launcher.shards": None}), out, 8, 0)  # another recipe
+    from crater_synth.outfolder import OutFolder
+
+    other = load_settings(D.detection_overrides([*TINY, "seed=9"]))
+    OutFolder(out / "shard_00002", R.KIND, subject=f"recipe {R.recipe_key(other)}").claim().release()
+    with pytest.raises(UserError, match="shard_00002"):
+        DD.preflight(replace(dask, **{"launcher.shards": None}), out, 12, 0)
     (out / "notes.txt").write_text("mine")
     with pytest.raises(UserError, match="notes.txt"):
         DD.preflight(dask, out, 8, 0)

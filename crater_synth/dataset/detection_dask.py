@@ -11,12 +11,15 @@ the ``dask`` extra).
 - **Frames**: shard N renders its range with :func:`crater_synth.dataset.detection_run.render_detection_frames`
   (``--start`` at its first frame); a frame is drawn from the seed and its index only, so frame k of a
   sharded set is frame k of one unsharded run.
-- **Tasks**: one Dask task a shard still to render, one Blender worker each (``render.workers=1``). A shard
-  whose frames are all kept, with a compact manifest, is skipped; a task whose worker died is rescheduled
-  (``launcher.retries``) and resumes its shard.
+- **Tasks**: one Dask task a shard, one Blender worker each (``render.workers=1``), resuming its folder as
+  the command does: a shard whose frames are all kept renders nothing (skipped; its manifest compacted if
+  a killed run left it appended); a task whose worker died is rescheduled (``launcher.retries``) and
+  resumes its shard. The shards' resume checks (a manifest and a stat a frame) run in the tasks, in
+  parallel, not on the host.
 - **Pre-flight** on the host before any cluster starts (as :mod:`crater_synth.dataset.dask_launcher`): the
-  recipe, the fields' fit, ``DIR`` and every shard folder (refused in one line as the command would refuse
-  it). A bad-input error inside a task is returned, not raised, so Dask does not retry it.
+  recipe, the fields' fit, ``DIR``, and each shard folder's marker (another kind or recipe is refused in
+  one line). A bad-input error inside a task (a file the command did not write in a shard) is returned,
+  not raised, so Dask does not retry it.
 """
 
 from __future__ import annotations
@@ -33,8 +36,8 @@ from crater_core.errors import ContractError
 from crater_core.progress import Progress
 from crater_core.settings import replace
 from crater_synth.dataset.dask_launcher import open_client
-from crater_synth.dataset.detection import read_manifest, shard_frames, shard_name
-from crater_synth.dataset.detection_run import KIND, check_request, kept_rows, recipe_key, render_detection_frames
+from crater_synth.dataset.detection import shard_frames, shard_name
+from crater_synth.dataset.detection_run import KIND, check_request, recipe_key, render_detection_frames
 from crater_synth.errors import RenderError, UserError
 from crater_synth.outfolder import MARKERS, OutFolder
 
@@ -73,30 +76,23 @@ def layout(settings, out: Path, n_frames: int, start: int) -> tuple[int, list[tu
     return per, ranges
 
 
-def _shard_done(settings, folder: Path, first: int, n: int) -> bool:
-    """Shard ``folder``'s frames ``first`` .. are all kept by a rerun and its manifest is compact; refuses a
-    folder the command would refuse (another recipe, a file it did not write)."""
-    f = OutFolder(folder, KIND, subject=f"recipe {recipe_key(settings)}").check_clean()
-    if not folder.is_dir():
-        return False
-    on_disk, compact = read_manifest(folder)
-    return compact and len(kept_rows(f, range(first, first + n), on_disk)[1]) == n
-
-
 def preflight(settings, out: Path, n_frames: int, start: int) -> tuple[OutFolder, dict]:
-    """Every check before a cluster starts (module docstring); ``out`` claimed (marked, locked: one writer
-    of the set) and returned with the plan ``{"per_shard", "shards": [(k, first, n)], "todo": [...]}``."""
+    """Every check before a cluster starts (module docstring): the request, ``out`` (claimed: marked and
+    locked, one writer of the set) and each existing shard folder's marker (its kind and recipe: O(1) a
+    shard; the files are checked by the shard's own task, in parallel). Returns ``out``'s hold and the plan
+    ``{"per_shard": S, "shards": [(k, first frame, frames)]}``."""
     check_request(settings, n_frames)
     per, ranges = layout(settings, out, n_frames, start)
     parent = OutFolder(out, SHARDS_KIND, subject=_subject(settings, per), names=lambda rel: not _SHARD_FILE.match(rel))
     parent.check_clean()
     parent.claim()
     try:
-        todo = [r for r in ranges if not _shard_done(settings, out / shard_name(r[0]), r[1], r[2])]
+        for k, _, _ in ranges:
+            OutFolder(out / shard_name(k), KIND, subject=f"recipe {recipe_key(settings)}").check()
     except BaseException:
         parent.discard()
         raise
-    return parent, {"per_shard": per, "shards": ranges, "todo": todo}
+    return parent, {"per_shard": per, "shards": ranges}
 
 
 def _render_shard(settings, folder: str, n_frames: int, start: int) -> dict:
@@ -155,7 +151,7 @@ def run_detection_dask(settings, out_dir: Path, n_frames: int, start: int = 0, p
                     retries=settings.launcher.retries,
                     pure=False,
                 )
-                for k, first, n in plan["todo"]
+                for k, first, n in plan["shards"]
             ]
             summaries = _gather(client, futures, progress, workers)
         finally:
@@ -173,8 +169,8 @@ def run_detection_dask(settings, out_dir: Path, n_frames: int, start: int = 0, p
         "frames": n_frames,
         "frames_per_shard": plan["per_shard"],
         "shards": [shard_name(k) for k, _, _ in plan["shards"]],
-        "shards_rendered": len(plan["todo"]),
-        "shards_skipped": len(plan["shards"]) - len(plan["todo"]),
+        "shards_rendered": sum(1 for s in summaries if s["rendered"]),
+        "shards_skipped": sum(1 for s in summaries if not s["rendered"]),
         "rendered": rendered,
         "kept": n_frames - rendered,
         "seconds": round(seconds, 2),
