@@ -525,7 +525,7 @@ def test_a_hard_killed_run_leaves_a_readable_manifest_and_resumes(tmp_path, monk
             with open(out_dir / schema.MANIFEST_NAME, "a") as fh:
                 fh.write(schema.dumps_row(rows[0])[:999])  # torn in its first row
             raise _Killed
-        real_append(out_dir, rows)
+        return real_append(out_dir, rows)
 
     monkeypatch.setattr(R, "append_rows", torn_append)
     monkeypatch.setattr(R, "_write_manifest", lambda *_: None)  # a killed run compacts nothing
@@ -569,7 +569,7 @@ def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, mon
 
     def count_append(out_dir, rows):
         appended.append(sum(len(schema.dumps_row(r)) + 1 for r in rows))
-        real_append(out_dir, rows)
+        return real_append(out_dir, rows)
 
     def count_write(folder, rows):
         compactions.append(len(rows))

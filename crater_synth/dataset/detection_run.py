@@ -9,8 +9,9 @@
   kept; the others of the requested range are rendered. Each chunk of fields appends its rows to the
   manifest (one write and fsync: O(chunk) bytes, where a rewrite would be O(rows so far)); the run
   compacts it (sorted, one row per frame, rows outside the range kept, rewritten atomically) once when
-  it ends, normally or stopped by an exception or signal. A hard-killed run leaves an appended file,
-  which the next run reads (:func:`crater_synth.dataset.detection.read_manifest`) and compacts.
+  it ends, normally or stopped by an exception or signal, copying each row's line from where it lies
+  (a run holds a few numbers a frame, not its labels). A hard-killed run leaves an appended file, which
+  the next run reads (:func:`crater_synth.dataset.detection.scan_manifest`) and compacts.
 - **Pipelining**: while the workers render one chunk of fields, a second process generates the next
   chunk's fields and writes their patches (``generate`` and the patch take ~1 s per field, which would
   otherwise leave the workers idle between chunks).
@@ -39,6 +40,7 @@ from crater_synth.dataset.detection import (
     grouping,
     plan_field,
     read_manifest,
+    scan_manifest,
 )
 from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.identity import IGNORED, settings_payload
@@ -61,7 +63,7 @@ def kept_rows(
 ) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
     frames whose file is unchanged since this writer wrote it (listed, same size and mtime). ``on_disk``:
-    the manifest's rows, read here when not given."""
+    the manifest's rows or their :func:`_ref` (anything with ``rel_path``), its rows read here when not given."""
     rows: dict[int, dict] = {}
     done: set[int] = set()
     for i, r in (read_manifest(folder.path)[0] if on_disk is None else on_disk).items():
@@ -80,10 +82,22 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
     return [plan_field(settings, f, idx, chunk_dir) for f, idx in by_field.items()]
 
 
-def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -> None:
-    """Render the planned ``fields``, adding each frame's manifest row to ``rows`` as it arrives (the host
-    labels while the workers render); the frames' files are listed before, their rows appended to the
-    manifest and both sealed after."""
+def _ref(row: dict, at: tuple[int, int]) -> dict:
+    """What a run keeps of a manifest row (not the row: a frame's labels run to ~0.5 MB in memory): its file,
+    what the summary counts, and where its line lies in the manifest (byte offset, length)."""
+    return {"rel_path": row["rel_path"], "mode": row.get("mode"), "labels": len(row["labels"]), "at": at}
+
+
+def manifest_refs(out_dir: Path) -> tuple[dict[int, dict], bool]:
+    """(frame index -> :func:`_ref` of its row, compact) of the manifest in ``out_dir`` (:func:`scan_manifest`)."""
+    found, compact = scan_manifest(out_dir)
+    return {i: _ref(row, (start, length)) for i, (start, length, row) in found.items()}, compact
+
+
+def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -> None:
+    """Render the planned ``fields``, labelling each frame as it arrives (the host labels while the workers
+    render); the frames' files are listed before, their rows appended to the manifest and both sealed
+    after, and their :func:`_ref` put in ``refs``."""
     frames = {i: f for field in fields for i, f in field["frames"].items()}
     names = [frame_rel_path(i) for i in frames]
     # The manifest is listed as being written while the chunk renders: a run killed while appending leaves
@@ -91,7 +105,8 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -
     folder.files.pop(schema.MANIFEST_NAME, None)
     folder.record([schema.MANIFEST_NAME, *names])
     for i in frames:
-        rows.pop(i, None)
+        refs.pop(i, None)
+    rows: dict[int, dict] = {}
 
     def on_result(_job, _plan, result):
         idx = int(result["index"])
@@ -100,37 +115,63 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -
     try:
         run_workers([f["job"] for f in fields], settings.render, settings.hapke, folder.path, on_result)
     finally:
-        done = sorted(i for i in frames if i in rows)
-        append_rows(folder.path, [rows[i] for i in done])
+        done = sorted(rows)
+        for i, at in zip(done, append_rows(folder.path, [rows[i] for i in done])):
+            refs[i] = _ref(rows[i], at)
         folder.seal([*(frame_rel_path(i) for i in done), schema.MANIFEST_NAME])
     missing = sorted(set(frames) - set(rows))
     if missing:
         raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
 
 
-def append_rows(out_dir: Path, rows: list[dict]) -> None:
+def append_rows(out_dir: Path, rows: list[dict]) -> list[tuple[int, int]]:
     """Append ``rows`` to the manifest in one write, flushed and fsynced (a chunk's rows are durable
-    before the next chunk starts)."""
+    before the next chunk starts); returns where each line lies (byte offset, length)."""
     if not rows:
-        return
-    data = "".join(schema.dumps_row(r) + "\n" for r in rows).encode("utf-8")
+        return []
+    lines = [(schema.dumps_row(r) + "\n").encode("utf-8") for r in rows]
     with open(Path(out_dir) / schema.MANIFEST_NAME, "ab") as fh:
-        fh.write(data)
+        offset = os.fstat(fh.fileno()).st_size
+        fh.write(b"".join(lines))
         fh.flush()
         os.fsync(fh.fileno())
+    at = []
+    for line in lines:
+        at.append((offset, len(line)))
+        offset += len(line)
+    return at
 
 
-def _write_manifest(folder: OutFolder, rows: dict) -> None:
-    """The compact manifest: ``rows`` sorted by frame index, rewritten atomically (listed as being written
-    meanwhile, as in :func:`_render_chunk`)."""
+def _write_manifest(folder: OutFolder, refs: dict) -> None:
+    """The compact manifest: the lines of ``refs`` (read where they lie in the current file), sorted by
+    frame index, streamed into a new file renamed over it (listed as being written meanwhile, as in
+    :func:`_render_chunk`); ``refs`` then point into the new file."""
+    path = folder.path / schema.MANIFEST_NAME
     folder.files.pop(schema.MANIFEST_NAME, None)
     folder.record([schema.MANIFEST_NAME])
-    text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
-    schema.atomic_write_text(folder.path / schema.MANIFEST_NAME, text)
+    moved: dict[int, tuple[int, int]] = {}
+
+    def lines():
+        if not refs:
+            return
+        offset = 0
+        with open(path, "rb") as src:
+            for i in sorted(refs):
+                start, length = refs[i]["at"]
+                src.seek(start)
+                line = src.read(length)
+                line = line if line.endswith(b"\n") else line + b"\n"  # a last line whose newline was lost
+                moved[i] = (offset, len(line))
+                offset += len(line)
+                yield line
+
+    schema.atomic_write_chunks(path, lines())
+    for i, at in moved.items():
+        refs[i]["at"] = at
     folder.seal([schema.MANIFEST_NAME])
 
 
-def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict, pipelined: bool = True) -> None:
+def _render_chunks(settings, folder: OutFolder, chunks: list[dict], refs: dict, pipelined: bool = True) -> None:
     """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
     while chunk k renders (``pipelined``; else each chunk is planned here before it renders: a Dask task,
     whose daemonic worker process may start no process pool); each chunk's rows are appended to the
@@ -148,7 +189,7 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict, 
             if k + 1 < len(chunks):
                 args = (settings, chunks[k + 1], patches / f"chunk_{k + 1}")
                 nxt = planner.submit(_plan_chunk, *args) if planner is not None else args
-            _render_chunk(settings, fields, folder, rows)
+            _render_chunk(settings, fields, folder, refs)
             shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
             if isinstance(nxt, tuple):
                 fields = _plan_chunk(*nxt)
@@ -163,7 +204,7 @@ def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict, 
         if planner is not None:
             planner.shutdown(cancel_futures=True)
         shutil.rmtree(patches, ignore_errors=True)
-        _write_manifest(folder, rows)  # compacted once: the frames rendered and kept, however the run ends
+        _write_manifest(folder, refs)  # compacted once: the frames rendered and kept, however the run ends
 
 
 def check_request(settings, n_frames: int) -> None:
@@ -190,10 +231,10 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
     try:
         folder.record([schema.MANIFEST_NAME])
         wanted = range(start, start + n_frames)
-        on_disk, compact = read_manifest(folder.path)
-        rows, done = kept_rows(folder, wanted, on_disk)
+        on_disk, compact = manifest_refs(folder.path)
+        refs, done = kept_rows(folder, wanted, on_disk)
         if not compact:  # a hard-killed run's appended file: compacted before anything is appended to it
-            _write_manifest(folder, rows)
+            _write_manifest(folder, refs)
         by_field: dict[int, list[int]] = {}
         for i in wanted:
             if i not in done:
@@ -203,23 +244,23 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         chunks = [{f: by_field[f] for f in ids[k : k + size]} for k in range(0, len(ids), size)]
         t0 = time.perf_counter()
         if chunks:
-            _render_chunks(settings, folder, chunks, rows, pipelined)
+            _render_chunks(settings, folder, chunks, refs, pipelined)
         seconds = time.perf_counter() - t0
     finally:
         folder.release()
-    ordered = [rows[i] for i in wanted]
+    ordered = [refs[i] for i in wanted]
     rendered = n_frames - len(done)
     return {
         "frames": len(ordered),
         "rendered": rendered,
         "kept": len(done),
         "fields": len({field_of(det, i) for i in wanted}),
-        "frames_in_manifest": len(rows),
+        "frames_in_manifest": len(refs),
         "out_dir": str(folder.path),
         "width_px": det.width_px,
         "grouping": grouping(det),
         "modes_used": sorted({r["mode"] for r in ordered}),
-        "labels": sum(len(r["labels"]) for r in ordered),
+        "labels": sum(r["labels"] for r in ordered),
         "seconds": round(seconds, 2),
         "frames_per_s": round(rendered / seconds, 3) if rendered and seconds > 0 else None,
     }
