@@ -560,6 +560,46 @@ def test_a_manifest_with_a_torn_last_line_and_a_repeated_index_reads_each_frame_
         D.read_manifest(out)
 
 
+def test_compaction_copies_each_frames_last_whole_line_in_order(tmp_path):
+    """Compaction streams each kept row's line from where it lies: sorted, the last of a repeated index,
+    a last line that lost its newline given one, the torn tail and rows not kept gone."""
+    from crater_synth.outfolder import OutFolder
+
+    out = tmp_path / "set"
+    folder = OutFolder(out, R.KIND, subject="recipe test").claim()
+    folder.record([schema.MANIFEST_NAME])
+    rows = {i: {"index": i, "rel_path": D.frame_rel_path(i), "labels": [i], "mode": "fast"} for i in range(4)}
+    line = {i: schema.dumps_row(r) + "\n" for i, r in rows.items()}
+    again = rows[2] | {"labels": ["again"]}
+    (out / schema.MANIFEST_NAME).write_text(line[3] + line[2] + line[1] + schema.dumps_row(again) + "\n" + line[0][:-1])
+    refs, compact = R.manifest_refs(out)
+    assert not compact and sorted(refs) == [0, 1, 2, 3] and refs[2]["labels"] == 1
+    del refs[1]  # a row the run does not keep
+    R._write_manifest(folder, refs)
+    folder.release()
+    assert (out / schema.MANIFEST_NAME).read_text() == line[0] + schema.dumps_row(again) + "\n" + line[3]
+    assert R.manifest_refs(out) == (refs, True)
+    assert OutFolder(out, R.KIND, subject="recipe test").check_clean().proved(schema.MANIFEST_NAME)
+
+
+def test_the_command_renders_a_sharded_set_with_launcher_dask(tmp_path, monkeypatch):
+    """`detection-frames ... launcher=dask` goes to the Dask path with the command's settings."""
+    pytest.importorskip("distributed")
+    from click.testing import CliRunner
+
+    from crater_synth.dataset import detection_dask as DD
+    from crater_synth.dataset.detection_cli import detection_frames_command
+
+    seen = []
+    monkeypatch.setattr(
+        DD, "run_detection_dask", lambda s, out, n, start: seen.append((s.launcher.name, n, start)) or {}
+    )
+    args = ["--out", str(tmp_path / "set"), "--frames", "256", "--start", "64", "launcher=dask"]
+    result = CliRunner().invoke(detection_frames_command, args)
+    assert result.exit_code == 0, result.output
+    assert seen == [("dask", 256, 64)]
+
+
 def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, monkeypatch):
     """Each chunk appends only its own rows; the whole file is written once, when the run ends: the run
     writes the manifest's bytes twice in all, whatever the number of chunks (a rewrite per chunk: O(chunks x
@@ -606,6 +646,7 @@ def test_a_sharded_set_holds_the_unsharded_runs_frames_and_resumes_per_shard(tmp
     a damaged one's renders its missing frame; a rerun of another shard size, a shard of another recipe and
     a file the command did not write are refused before any cluster; a rerun without launcher.shards takes
     the set's own size."""
+    pytest.importorskip("distributed")
     from crater_synth.dataset import detection_dask as DD
 
     _fake_workers(monkeypatch)
