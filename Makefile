@@ -136,6 +136,11 @@ DETECTION_FRAMES ?= 20000
 detection-set: setup ## The detection training set: DETECTION_FRAMES procedural frames of 256 px into DETECTION_DIR (resumable; ~50 min at 7 frames/s on 2 cores)
 	$(CLI) detection-frames --out $(DETECTION_DIR) --frames $(DETECTION_FRAMES) seed=1 $(OVERRIDES)
 
+DETECTION_DASK_DIR ?= data/detection_dask
+DETECTION_DASK_WORKERS ?= 2
+detection-set-dask: setup ## The detection set as shard folders on a local Dask cluster of DETECTION_DASK_WORKERS workers (docs/distributed.md, "Detection sets")
+	$(CLI) detection-frames --out $(DETECTION_DASK_DIR) --frames $(DETECTION_FRAMES) seed=1 launcher=dask launcher.n_workers=$(DETECTION_DASK_WORKERS) $(OVERRIDES)
+
 DEMO_DIR ?= outputs/demo
 DEMO_TRAIN ?=
 DEMO_SWEEP ?=
@@ -147,4 +152,4 @@ demo: setup ## The main job on the embedded data (experiment=demo): render sweep
 	@echo "report: $(abspath $(DEMO_DIR))/report/index.html"
 
 .PHONY: help setup test-deps test test-integration lint format-check test-slow terrain dataset verify preview config train loop \
-	experiments report bench validate ablate demo navigate-demo navigate-frames-demo nav-detector detection-set
+	experiments report bench validate ablate demo navigate-demo navigate-frames-demo nav-detector detection-set detection-set-dask

@@ -45,7 +45,7 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("export", "crater_synth.dataset.export:export_command", "Export a dataset to Parquet or WebDataset shards."),
         (
             "detection-frames",
-            "crater_synth.dataset.detection_run:detection_frames_command",
+            "crater_synth.dataset.detection_cli:detection_frames_command",
             "Render labelled frames of procedural crater fields.",
         ),
     ),

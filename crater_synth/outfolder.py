@@ -49,6 +49,7 @@ MARKERS = {
     "export": ".crater-synth-export",
     "report": ".crater-synth-report",
     "detection-frames": ".crater-synth-detection-frames",
+    "detection-shards": ".crater-synth-detection-shards",
     "detections": ".crater-synth-detections",
     "navigation": ".crater-synth-navigation",
 }
@@ -59,6 +60,7 @@ WHAT = {
     "export": "crater-synth export shards and their export.json (docs/export.md)",
     "report": "a crater-synth run report (docs/report.md)",
     "detection-frames": "detection frames of procedural crater fields (docs/procedural.md)",
+    "detection-shards": "a sharded detection set, one detection-frames folder a shard (docs/procedural.md)",
     "detections": "crater-synth detect's crater lists (docs/navigation/commands.md)",
     "navigation": "crater-synth navigate's fixes and detection lists (docs/navigation/commands.md)",
 }

@@ -447,3 +447,279 @@ def test_a_rerun_keeps_only_the_unchanged_frames_of_its_range(tmp_path):
     kept, done = R.kept_rows(folder, range(0, 3))
     folder.release()
     assert done == {0} and sorted(kept) == [0, 3]
+
+
+# --------------------------------------------------------------------------------------------
+# The manifest at scale: appended per chunk, compacted once (the workers faked: no Blender)
+# --------------------------------------------------------------------------------------------
+# 2 frames a field, 2 fields a chunk (one worker): 4 frames a chunk
+TINY = (*SMALL, "detection.width_px=64", "detection.views_per_field=2", "detection.suns_per_view=1", "render.workers=1")
+
+
+class _Killed(BaseException):
+    """A hard kill: nothing after it runs but the finally clauses, which the tests neutralise."""
+
+
+def _fake_workers(monkeypatch, fail_on_call: int | None = None) -> list:
+    """``run_workers`` replaced by one that writes each planned frame as a made-up EXR (its values from the
+    frame index, so two runs write the same bytes) and reports it as a worker does; the ``fail_on_call``-th
+    call (a chunk) fails before rendering anything. Returns the frames of each call."""
+    calls: list = []
+
+    def run(jobs, _render, _hapke, out_dir, on_result):
+        calls.append(sorted(p["item"]["index"] for j in jobs for p in j.plans))
+        if len(calls) == fail_on_call:
+            raise UserError("this chunk's workers failed")
+        for job in jobs:
+            for plan in job.plans:
+                i, rel, w = plan["item"]["index"], plan["item"]["rel_path"], plan["item"]["frame_width"]
+                chans = {c: np.full((w, w), 0.25 + i, np.float32) for c in schema.EXR_CHANNELS}
+                chans["depth"] = np.full((w, w), 1e9, np.float32)
+                exr.write_exr(out_dir / rel, chans, {"crater_synth:mode": "fast"})
+                res = {"index": i, "rel_path": rel, "sha256": schema.sha256_file(out_dir / rel), "mode": "fast"}
+                on_result(job, plan, res | {"seconds": 0.5, "lit_fraction": 0.5, "mean_if": 0.25})
+
+    monkeypatch.setattr(R, "run_workers", run)
+    return calls
+
+
+def _tiny(tmp_path, name: str, frames: int = 8, start: int = 0) -> dict:
+    return R.render_detection_frames(load_settings(D.detection_overrides(list(TINY))), tmp_path / name, frames, start)
+
+
+def _same_set(a, b) -> None:
+    names = sorted(p.name for p in a.iterdir() if p.name[0] != ".")
+    assert names == sorted(p.name for p in b.iterdir() if p.name[0] != ".")
+    for n in names:
+        assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
+def test_a_stopped_run_resumes_to_the_manifest_of_an_uninterrupted_one(tmp_path, monkeypatch):
+    """Stopped by an error in its second chunk, a run leaves the first chunk's frames and a compact
+    manifest; the rerun keeps them, renders the rest and ends with the uninterrupted run's bytes."""
+    assert _fake_workers(monkeypatch) == [] and _tiny(tmp_path, "whole")["rendered"] == 8
+    calls = _fake_workers(monkeypatch, fail_on_call=2)
+    with pytest.raises(UserError, match="workers failed"):
+        _tiny(tmp_path, "stopped")
+    assert calls == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    rows, compact = D.read_manifest(tmp_path / "stopped")
+    assert sorted(rows) == [0, 1, 2, 3] and compact
+    calls = _fake_workers(monkeypatch)
+    summary = _tiny(tmp_path, "stopped")
+    assert calls == [[4, 5, 6, 7]] and summary["kept"] == 4 and summary["rendered"] == 4
+    _same_set(tmp_path / "whole", tmp_path / "stopped")
+
+
+def test_a_hard_killed_run_leaves_a_readable_manifest_and_resumes(tmp_path, monkeypatch):
+    """Killed halfway through appending its second chunk's rows (no compaction, no seal): the torn line is
+    dropped, the folder is still the writer's, the export refuses the uncompacted manifest in one line,
+    and the rerun renders the second chunk and compacts to the uninterrupted run's bytes."""
+    from crater_synth.dataset import export as ex
+
+    _fake_workers(monkeypatch)
+    _tiny(tmp_path, "whole")
+    real_append = R.append_rows
+
+    def torn_append(out_dir, rows):
+        if rows and rows[0]["index"] >= 4:
+            with open(out_dir / schema.MANIFEST_NAME, "a") as fh:
+                fh.write(schema.dumps_row(rows[0])[:999])  # torn in its first row
+            raise _Killed
+        return real_append(out_dir, rows)
+
+    monkeypatch.setattr(R, "append_rows", torn_append)
+    monkeypatch.setattr(R, "_write_manifest", lambda *_: None)  # a killed run compacts nothing
+    with pytest.raises(_Killed):
+        _tiny(tmp_path, "killed")
+    out = tmp_path / "killed"
+    rows, compact = D.read_manifest(out)
+    assert sorted(rows) == [0, 1, 2, 3] and not compact
+    with pytest.raises(ex.ExportError, match="rerun that command"):
+        ex.export_dataset(out, tmp_path / "pq", "parquet", channels=["IF"])
+    monkeypatch.undo()
+    calls = _fake_workers(monkeypatch)
+    assert _tiny(tmp_path, "killed")["rendered"] == 4 and calls == [[4, 5, 6, 7]]
+    _same_set(tmp_path / "whole", out)
+
+
+def test_a_manifest_with_a_torn_last_line_and_a_repeated_index_reads_each_frame_once(tmp_path):
+    """The last row of an index wins; a torn last line is dropped; a bad line elsewhere is one error."""
+    out = tmp_path / "set"
+    out.mkdir()
+    rows = [{"index": i, "rel_path": D.frame_rel_path(i), "labels": [i]} for i in (0, 1, 2)]
+    again = rows[1] | {"labels": ["again"]}
+    lines = [schema.dumps_row(r) + "\n" for r in (*rows, again)]
+    (out / schema.MANIFEST_NAME).write_text("".join(lines) + lines[0][:9])
+    got, compact = D.read_manifest(out)
+    assert got == {0: rows[0], 1: again, 2: rows[2]} and not compact
+    assert D.manifest_rows(out) == got
+    (out / schema.MANIFEST_NAME).write_text("".join(lines[:3]))
+    assert D.read_manifest(out) == ({r["index"]: r for r in rows}, True)
+    (out / schema.MANIFEST_NAME).write_text(lines[0] + "{not json\n" + lines[1])
+    with pytest.raises(UserError, match="line 2: not a detection-frames row"):
+        D.read_manifest(out)
+
+
+def test_compaction_copies_each_frames_last_whole_line_in_order(tmp_path):
+    """Compaction streams each kept row's line from where it lies: sorted, the last of a repeated index,
+    a last line that lost its newline given one, the torn tail and rows not kept gone."""
+    from crater_synth.outfolder import OutFolder
+
+    out = tmp_path / "set"
+    folder = OutFolder(out, R.KIND, subject="recipe test").claim()
+    folder.record([schema.MANIFEST_NAME])
+    rows = {i: {"index": i, "rel_path": D.frame_rel_path(i), "labels": [i], "mode": "fast"} for i in range(4)}
+    line = {i: schema.dumps_row(r) + "\n" for i, r in rows.items()}
+    again = rows[2] | {"labels": ["again"]}
+    (out / schema.MANIFEST_NAME).write_text(line[3] + line[2] + line[1] + schema.dumps_row(again) + "\n" + line[0][:-1])
+    refs, compact = R.manifest_refs(out)
+    assert not compact and sorted(refs) == [0, 1, 2, 3] and refs[2]["labels"] == 1
+    del refs[1]  # a row the run does not keep
+    R._write_manifest(folder, refs)
+    folder.release()
+    assert (out / schema.MANIFEST_NAME).read_text() == line[0] + schema.dumps_row(again) + "\n" + line[3]
+    assert R.manifest_refs(out) == (refs, True)
+    assert OutFolder(out, R.KIND, subject="recipe test").check_clean().proved(schema.MANIFEST_NAME)
+
+
+def test_the_command_renders_a_sharded_set_with_launcher_dask(tmp_path, monkeypatch):
+    """`detection-frames ... launcher=dask` goes to the Dask path with the command's settings."""
+    pytest.importorskip("distributed")
+    from click.testing import CliRunner
+
+    from crater_synth.dataset import detection_dask as DD
+    from crater_synth.dataset.detection_cli import detection_frames_command
+
+    seen = []
+    monkeypatch.setattr(
+        DD, "run_detection_dask", lambda s, out, n, start: seen.append((s.launcher.name, n, start)) or {}
+    )
+    args = ["--out", str(tmp_path / "set"), "--frames", "256", "--start", "64", "launcher=dask"]
+    result = CliRunner().invoke(detection_frames_command, args)
+    assert result.exit_code == 0, result.output
+    assert seen == [("dask", 256, 64)]
+
+
+def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, monkeypatch):
+    """Each chunk appends only its own rows; the whole file is written once, when the run ends: the run
+    writes the manifest's bytes twice in all, whatever the number of chunks (a rewrite per chunk: O(chunks x
+    rows))."""
+    appended, compactions = [], []
+    real_append, real_write = R.append_rows, R._write_manifest
+
+    def count_append(out_dir, rows):
+        appended.append(sum(len(schema.dumps_row(r)) + 1 for r in rows))
+        return real_append(out_dir, rows)
+
+    def count_write(folder, rows):
+        compactions.append(len(rows))
+        real_write(folder, rows)
+
+    monkeypatch.setattr(R, "append_rows", count_append)
+    monkeypatch.setattr(R, "_write_manifest", count_write)
+    calls = _fake_workers(monkeypatch)
+    _tiny(tmp_path, "set", frames=16)
+    size = (tmp_path / "set" / schema.MANIFEST_NAME).stat().st_size
+    assert len(calls) == len(appended) == 4 and compactions == [16]
+    assert sum(appended) == size and max(appended) < size / 3
+
+
+# --------------------------------------------------------------------------------------------
+# Sharded sets (launcher=dask): the layout and the shard tasks, in-process; the cluster: integration
+# --------------------------------------------------------------------------------------------
+def _items(monkeypatch) -> dict:
+    """The worker item of each frame the faked workers are given (what Blender would render), by index."""
+    items: dict = {}
+    real = R.run_workers
+
+    def run(jobs, *args):
+        items.update({p["item"]["index"]: p["item"] for j in jobs for p in j.plans})
+        real(jobs, *args)
+
+    monkeypatch.setattr(R, "run_workers", run)
+    return items
+
+
+def test_a_sharded_set_holds_the_unsharded_runs_frames_and_resumes_per_shard(tmp_path, monkeypatch):
+    """Two shards of 4 frames (2 fields each): shard k is an ordinary folder holding frames 4k .. 4k + 3,
+    the same worker items, files and rows as one unsharded run's; a complete shard's task renders nothing,
+    a damaged one's renders its missing frame; a rerun of another shard size, a shard of another recipe and
+    a file the command did not write are refused before any cluster; a rerun without launcher.shards takes
+    the set's own size."""
+    pytest.importorskip("distributed")
+    from crater_synth.dataset import detection_dask as DD
+
+    _fake_workers(monkeypatch)
+    whole_items = _items(monkeypatch)
+    _tiny(tmp_path, "whole")
+    dask = load_settings(D.detection_overrides([*TINY, "launcher=dask", "launcher.shards=2"]))
+    out = tmp_path / "sharded"
+
+    def tasks(settings, frames=8):
+        parent, plan = DD.preflight(settings, out, frames, 0)
+        parent.release()
+        one = replace(settings, **{"render.workers": 1})
+        return plan, [DD._render_shard(one, str(out / D.shard_name(k)), n, first) for k, first, n in plan["shards"]]
+
+    _fake_workers(monkeypatch)
+    shard_items = _items(monkeypatch)
+    plan, done = tasks(dask)
+    assert plan == {"per_shard": 4, "shards": [(0, 0, 4), (1, 4, 4)]} and [s["rendered"] for s in done] == [4, 4]
+    assert D.shard_folders(out) == [out / "shard_00000", out / "shard_00001"]
+    assert shard_items == whole_items and sorted(shard_items) == list(range(8))
+    whole = D.manifest_rows(tmp_path / "whole")
+    for k, shard in enumerate(D.shard_folders(out)):
+        assert D.manifest_rows(shard) == {i: whole[i] for i in range(4 * k, 4 * k + 4)}
+        for i in range(4 * k, 4 * k + 4):
+            rel = D.frame_rel_path(i)
+            assert (shard / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes()
+    (out / "shard_00001" / D.frame_rel_path(5)).unlink()
+    plan, done = tasks(replace(dask, **{"launcher.shards": None}))
+    assert plan["per_shard"] == 4 and [s["rendered"] for s in done] == [0, 1]
+    with pytest.raises(UserError, match="4 frames a shard"):
+        DD.preflight(replace(dask, **{"launcher.shards": 4}), out, 8, 0)
+    with pytest.raises(UserError, match="frames a shard"):
+        DD.preflight(replace(dask, **{"seed": 9, "launcher.shards": None}), out, 8, 0)  # another recipe
+    from crater_synth.outfolder import OutFolder
+
+    other = load_settings(D.detection_overrides([*TINY, "seed=9"]))
+    OutFolder(out / "shard_00002", R.KIND, subject=f"recipe {R.recipe_key(other)}").claim().release()
+    with pytest.raises(UserError, match="shard_00002"):
+        DD.preflight(replace(dask, **{"launcher.shards": None}), out, 12, 0)
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="notes.txt"):
+        DD.preflight(dask, out, 8, 0)
+
+
+def test_shards_hold_whole_fields_and_at_most_the_cap_by_default():
+    det = replace(DET, views_per_field=64)
+    assert D.shard_frames(det, 256, 2) == 128 and D.shard_frames(det, 100, 2) == 64
+    assert D.shard_frames(det, 1_000_000, 8) == D.MAX_SHARD_FRAMES == 2048
+    assert D.shard_frames(replace(det, views_per_field=48), 1_000_000, 8) == 2016  # whole fields
+    assert D.shard_frames(det, 1_000_000, 8, cap=False) == 125_056
+
+
+@pytest.mark.integration
+def test_a_sharded_set_on_a_local_dask_cluster_renders_the_unsharded_runs_frames(tmp_path):
+    """launcher=dask on 2 local workers, 2 shards of one field: each frame is byte for byte the frame one
+    unsharded run renders (its row the same but for the render time); a rerun skips both shards."""
+    from crater_synth.dataset.detection_dask import run_detection_dask
+
+    base = [*TINY[:-1], "seed=3"]
+    one = load_settings(D.detection_overrides([*base, "render.workers=1"]))
+    R.render_detection_frames(one, tmp_path / "one", 4)
+    dask = load_settings(D.detection_overrides([*base, "launcher=dask", "launcher.n_workers=2", "launcher.shards=2"]))
+    summary = run_detection_dask(dask, tmp_path / "set", 4, progress=False)
+    assert (summary["workers"], summary["shards_rendered"], summary["rendered"]) == (2, 2, 4), summary
+    whole = D.manifest_rows(tmp_path / "one")
+    shards = D.shard_folders(tmp_path / "set")
+    assert [s.name for s in shards] == summary["shards"] == ["shard_00000", "shard_00001"]
+    for k, shard in enumerate(shards):
+        rows = D.manifest_rows(shard)
+        assert sorted(rows) == [2 * k, 2 * k + 1]
+        for i, row in rows.items():
+            rel = D.frame_rel_path(i)
+            assert (shard / rel).read_bytes() == (tmp_path / "one" / rel).read_bytes()
+            assert {**row, "render_seconds": 0} == {**whole[i], "render_seconds": 0}
+    again = run_detection_dask(dask, tmp_path / "set", 4, progress=False)
+    assert (again["shards_skipped"], again["rendered"]) == (2, 0)

@@ -102,28 +102,34 @@ def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
         return _run_dask_locked(s, plan, progress)
 
 
+def open_client(launcher) -> tuple[Client, LocalCluster | None]:
+    """(client, its local cluster or None): a client of ``launcher.address``'s scheduler, or of a local
+    cluster of ``launcher.n_workers`` single-threaded worker processes on 127.0.0.1. The caller closes both."""
+    cluster = None
+    try:
+        if launcher.address:
+            return Client(launcher.address, timeout="30s"), None
+        cluster = LocalCluster(
+            n_workers=launcher.n_workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            silence_logs=40,
+        )
+        return Client(cluster), cluster
+    except OSError as exc:
+        if cluster is not None:
+            cluster.close()
+        raise UserError(f"cannot reach Dask scheduler launcher.address={launcher.address}: {exc}") from None
+
+
 def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
     launcher = s.launcher
     out_dir = Path(s.out_dir)
     n_shards = plan["shards"]
-    cluster = None
     t0 = time.perf_counter()
-    try:
-        if launcher.address:
-            client = Client(launcher.address, timeout="30s")
-        else:
-            cluster = LocalCluster(
-                n_workers=launcher.n_workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                silence_logs=40,
-            )
-            client = Client(cluster)
-    except OSError as exc:
-        raise UserError(f"cannot reach Dask scheduler launcher.address={launcher.address}: {exc}") from None
-
+    client, cluster = open_client(launcher)
     t_cluster = time.perf_counter() - t0
     try:
         workers = len(client.scheduler_info().get("workers", {}))

@@ -30,6 +30,7 @@ import json
 import math
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any, Callable
 
 import numpy as np
 
@@ -78,6 +79,35 @@ CHUNK_PER_WORKER = 2  # fields per worker in a chunk: few, since the next chunk 
 # The horizon map of fast mode covers the whole patch (the job's "crater" diameter sets its extent).
 FAST_MAP_MARGIN = 1.02
 PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' terrain patches and horizon maps
+
+
+# A sharded set (``detection-frames launcher=dask``): DIR/shard_NNNNN/, each an ordinary detection-frames folder
+# of a contiguous range of whole fields. By default a shard holds at most this many frames, so a folder's
+# manifest (~50 KB a frame on the default surface, ~480 KB on a 4.3 Gyr one: 100 MB and 980 MB here) and a
+# training's read of it stay bounded however large the set; a task renders it in minutes (~6 frames/s a
+# worker at 256 px), so a retried task loses little.
+MAX_SHARD_FRAMES = 2048
+SHARD_GLOB = "shard_[0-9][0-9][0-9][0-9][0-9]"
+
+
+def shard_name(k: int) -> str:
+    return f"shard_{k:05d}"
+
+
+def shard_folders(out_dir: Path) -> list[Path]:
+    """The shard folders of a sharded detection set, in frame order (none: not a sharded set). Each is an
+    ordinary detection-frames folder: resume, verify, export and train it as one (``nav-detector-train
+    DIR/shard_00000 --also DIR/shard_00001 ...``)."""
+    return sorted(p for p in Path(out_dir).glob(SHARD_GLOB) if p.is_dir())
+
+
+def shard_frames(det: DetectionSettings, n_frames: int, shards: int, cap: bool = True) -> int:
+    """Frames a shard holds when ``n_frames`` are split in ``shards``: whole fields, at most
+    :data:`MAX_SHARD_FRAMES` (whole fields too, at least one) when ``cap``."""
+    v = det.views_per_field
+    per = -(-n_frames // shards)  # ceil
+    per = -(-per // v) * v  # up to whole fields
+    return min(per, max(v, MAX_SHARD_FRAMES // v * v)) if cap else per
 
 
 def frame_rel_path(index: int) -> str:
@@ -418,20 +448,44 @@ def detection_overrides(overrides) -> list[str]:
     return first + overrides
 
 
-def manifest_rows(out_dir: Path) -> dict[int, dict]:
-    """Frame index -> row of the detection manifest in ``out_dir`` (none yet: empty); a line that is no
-    detection row is one error naming it."""
+def scan_manifest(out_dir: Path, keep: Callable[[dict], Any] = lambda row: row) -> tuple[dict[int, tuple], bool]:
+    """(frame index -> (byte offset, byte length, ``keep(row)``) of its line, compact) of the detection
+    manifest in ``out_dir`` (none yet: ``({}, True)``), streamed line by line. A run appends each chunk's
+    rows and compacts the file when it ends (:mod:`.detection_run`), so a hard-killed run's file is read as
+    what it means: a torn last line (no newline after it: the chunk being appended) is dropped, and an
+    index repeated keeps its last row. ``compact``: the file is as a finished run leaves it (indices
+    strictly increasing, every line whole, none blank). Any other line that is no detection row is one
+    error naming it."""
     path = Path(out_dir) / schema.MANIFEST_NAME
     if not path.is_file():
-        return {}
-    rows = {}
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-            rows[int(row["index"])] = row
-            row["labels"]
-        except (ValueError, TypeError, KeyError):
-            raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
-    return rows
+        return {}, True
+    found: dict[int, tuple] = {}
+    compact, last, offset = True, -1, 0
+    with open(path, "rb") as fh:
+        for n, line in enumerate(fh, 1):
+            start, offset = offset, offset + len(line)
+            if not line.strip():
+                compact = False
+                continue
+            try:
+                row = json.loads(line)
+                index = int(row["index"])
+                row["labels"]
+            except (ValueError, TypeError, KeyError):
+                if not line.endswith(b"\n"):  # the torn tail of a killed append
+                    return found, False
+                raise UserError(f"{path} line {n}: not a detection-frames row (another command's --out?)") from None
+            compact = compact and index > last and line.endswith(b"\n")
+            found[index], last = (start, len(line), keep(row)), index
+    return found, compact
+
+
+def read_manifest(out_dir: Path) -> tuple[dict[int, dict], bool]:
+    """(frame index -> row, compact) of the detection manifest in ``out_dir`` (:func:`scan_manifest`)."""
+    found, compact = scan_manifest(out_dir)
+    return {i: v[2] for i, v in found.items()}, compact
+
+
+def manifest_rows(out_dir: Path) -> dict[int, dict]:
+    """Frame index -> row of the detection manifest in ``out_dir`` (:func:`read_manifest`)."""
+    return read_manifest(out_dir)[0]

@@ -6,8 +6,12 @@
   frame width and the grouping), so frames of two recipes never mix; a folder holding a file the command
   did not write is refused; one writer at a time.
 - **Resumption**: a frame whose row is in the manifest and whose file is unchanged since it was written is
-  kept; the others of the requested range are rendered. The manifest is merged (rows outside the range
-  stay) and rewritten atomically after every chunk of fields, and when the run stops early.
+  kept; the others of the requested range are rendered. Each chunk of fields appends its rows to the
+  manifest (one write and fsync: O(chunk) bytes, where a rewrite would be O(rows so far)); the run
+  compacts it (sorted, one row per frame, rows outside the range kept, rewritten atomically) once when
+  it ends, normally or stopped by an exception or signal, copying each row's line from where it lies
+  (a run holds a few numbers a frame, not its labels). A hard-killed run leaves an appended file, which
+  the next run reads (:func:`crater_synth.dataset.detection.scan_manifest`) and compacts.
 - **Pipelining**: while the workers render one chunk of fields, a second process generates the next
   chunk's fields and writes their patches (``generate`` and the patch take ~1 s per field, which would
   otherwise leave the workers idle between chunks).
@@ -15,32 +19,28 @@
 
 from __future__ import annotations
 
-import json
 import multiprocessing
+import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-import click
-
 from crater_core import schema
 from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import replace
-from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import load_settings
 from crater_synth.dataset.detection import (
     CHUNK_PER_WORKER,
     PATCH_DIR,
     check_field_fits,
-    detection_overrides,
     field_of,
     frame_rel_path,
     frame_row,
     grouping,
-    manifest_rows,
     plan_field,
+    read_manifest,
+    scan_manifest,
 )
 from crater_synth.dataset.dispatch import run_workers
 from crater_synth.dataset.identity import IGNORED, settings_payload
@@ -58,12 +58,15 @@ def recipe_key(settings) -> str:
     return schema.content_key(payload | {"horizon_version": HORIZON_VERSION})
 
 
-def kept_rows(folder: OutFolder, wanted: range) -> tuple[dict[int, dict], set[int]]:
+def kept_rows(
+    folder: OutFolder, wanted: range, on_disk: dict[int, dict] | None = None
+) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
-    frames whose file is unchanged since this writer wrote it (listed, same size and mtime)."""
+    frames whose file is unchanged since this writer wrote it (listed, same size and mtime). ``on_disk``:
+    the manifest's rows or their :func:`_ref` (anything with ``rel_path``), its rows read here when not given."""
     rows: dict[int, dict] = {}
     done: set[int] = set()
-    for i, r in manifest_rows(folder.path).items():
+    for i, r in (read_manifest(folder.path)[0] if on_disk is None else on_disk).items():
         if i not in wanted:
             rows[i] = r
         elif (
@@ -79,14 +82,31 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
     return [plan_field(settings, f, idx, chunk_dir) for f, idx in by_field.items()]
 
 
-def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -> None:
-    """Render the planned ``fields``, adding each frame's manifest row to ``rows`` as it arrives (the host
-    labels while the workers render); the frames' files are listed before and sealed after."""
+def _ref(row: dict, at: tuple[int, int]) -> dict:
+    """What a run keeps of a manifest row (not the row: a frame's labels run to ~0.5 MB in memory): its file,
+    what the summary counts, and where its line lies in the manifest (byte offset, length)."""
+    return {"rel_path": row["rel_path"], "mode": row.get("mode"), "labels": len(row["labels"]), "at": at}
+
+
+def manifest_refs(out_dir: Path) -> tuple[dict[int, dict], bool]:
+    """(frame index -> :func:`_ref` of its row, compact) of the manifest in ``out_dir`` (:func:`scan_manifest`)."""
+    found, compact = scan_manifest(out_dir)
+    return {i: _ref(row, (start, length)) for i, (start, length, row) in found.items()}, compact
+
+
+def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -> None:
+    """Render the planned ``fields``, labelling each frame as it arrives (the host labels while the workers
+    render); the frames' files are listed before, their rows appended to the manifest and both sealed
+    after, and their :func:`_ref` put in ``refs``."""
     frames = {i: f for field in fields for i, f in field["frames"].items()}
     names = [frame_rel_path(i) for i in frames]
-    folder.record(names)
+    # The manifest is listed as being written while the chunk renders: a run killed while appending leaves
+    # a file whose size the marker cannot know, still this writer's (OutFolder.proved).
+    folder.files.pop(schema.MANIFEST_NAME, None)
+    folder.record([schema.MANIFEST_NAME, *names])
     for i in frames:
-        rows.pop(i, None)
+        refs.pop(i, None)
+    rows: dict[int, dict] = {}
 
     def on_result(_job, _plan, result):
         idx = int(result["index"])
@@ -95,69 +115,126 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, rows: dict) -
     try:
         run_workers([f["job"] for f in fields], settings.render, settings.hapke, folder.path, on_result)
     finally:
-        folder.seal([frame_rel_path(i) for i in frames if i in rows])
+        done = sorted(rows)
+        for i, at in zip(done, append_rows(folder.path, [rows[i] for i in done])):
+            refs[i] = _ref(rows[i], at)
+        folder.seal([*(frame_rel_path(i) for i in done), schema.MANIFEST_NAME])
     missing = sorted(set(frames) - set(rows))
     if missing:
         raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
 
 
-def _write_manifest(folder: OutFolder, rows: dict) -> None:
-    text = "".join(schema.dumps_row(rows[i]) + "\n" for i in sorted(rows))
-    schema.atomic_write_text(folder.path / schema.MANIFEST_NAME, text)
+def append_rows(out_dir: Path, rows: list[dict]) -> list[tuple[int, int]]:
+    """Append ``rows`` to the manifest in one write, flushed and fsynced (a chunk's rows are durable
+    before the next chunk starts); returns where each line lies (byte offset, length)."""
+    if not rows:
+        return []
+    lines = [(schema.dumps_row(r) + "\n").encode("utf-8") for r in rows]
+    with open(Path(out_dir) / schema.MANIFEST_NAME, "ab") as fh:
+        offset = os.fstat(fh.fileno()).st_size
+        fh.write(b"".join(lines))
+        fh.flush()
+        os.fsync(fh.fileno())
+    at = []
+    for line in lines:
+        at.append((offset, len(line)))
+        offset += len(line)
+    return at
+
+
+def _write_manifest(folder: OutFolder, refs: dict) -> None:
+    """The compact manifest: the lines of ``refs`` (read where they lie in the current file), sorted by
+    frame index, streamed into a new file renamed over it (listed as being written meanwhile, as in
+    :func:`_render_chunk`); ``refs`` then point into the new file."""
+    path = folder.path / schema.MANIFEST_NAME
+    folder.files.pop(schema.MANIFEST_NAME, None)
+    folder.record([schema.MANIFEST_NAME])
+    moved: dict[int, tuple[int, int]] = {}
+
+    def lines():
+        if not refs:
+            return
+        offset = 0
+        with open(path, "rb") as src:
+            for i in sorted(refs):
+                start, length = refs[i]["at"]
+                src.seek(start)
+                line = src.read(length)
+                line = line if line.endswith(b"\n") else line + b"\n"  # a last line whose newline was lost
+                moved[i] = (offset, len(line))
+                offset += len(line)
+                yield line
+
+    schema.atomic_write_chunks(path, lines())
+    for i, at in moved.items():
+        refs[i]["at"] = at
     folder.seal([schema.MANIFEST_NAME])
 
 
-def _render_chunks(settings, folder: OutFolder, chunks: list[dict], rows: dict) -> None:
+def _render_chunks(settings, folder: OutFolder, chunks: list[dict], refs: dict, pipelined: bool = True) -> None:
     """Render ``chunks`` (field -> its frames to render) in order, planning chunk k + 1 in a second process
-    while chunk k renders; the manifest is written after each chunk and when the run stops early."""
+    while chunk k renders (``pipelined``; else each chunk is planned here before it renders: a Dask task,
+    whose daemonic worker process may start no process pool); each chunk's rows are appended to the
+    manifest, which is compacted when the run ends, or stops early."""
     patches = folder.path / PATCH_DIR
     shutil.rmtree(patches, ignore_errors=True)  # a stopped run's patches (bookkeeping under .jobs/)
     # spawned, not forked: the planner must not inherit the folder's lock or the CLI's signal handlers
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as planner:
-        try:
-            # the first chunk here: the workers have nothing to do yet
-            fields = _plan_chunk(settings, chunks[0], patches / "chunk_0")
-            for k in range(len(chunks)):
-                nxt = None
-                if k + 1 < len(chunks):
-                    nxt = planner.submit(_plan_chunk, settings, chunks[k + 1], patches / f"chunk_{k + 1}")
-                _render_chunk(settings, fields, folder, rows)
-                shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
-                _write_manifest(folder, rows)
-                if nxt is not None:
-                    try:
-                        fields = nxt.result()
-                    except BrokenProcessPool:
-                        raise UserError(
-                            "the process generating the next crater fields died (out of memory?); rerun to resume"
-                        ) from None
-        except BaseException:
-            _write_manifest(folder, rows)  # the rows of the frames this stopped run did render
-            raise
-        finally:
+    spawn = multiprocessing.get_context("spawn")
+    planner = ProcessPoolExecutor(max_workers=1, mp_context=spawn) if pipelined else None
+    try:
+        # the first chunk here: the workers have nothing to do yet
+        fields = _plan_chunk(settings, chunks[0], patches / "chunk_0")
+        for k in range(len(chunks)):
+            nxt = None
+            if k + 1 < len(chunks):
+                args = (settings, chunks[k + 1], patches / f"chunk_{k + 1}")
+                nxt = planner.submit(_plan_chunk, *args) if planner is not None else args
+            _render_chunk(settings, fields, folder, refs)
+            shutil.rmtree(patches / f"chunk_{k}", ignore_errors=True)
+            if isinstance(nxt, tuple):
+                fields = _plan_chunk(*nxt)
+            elif nxt is not None:
+                try:
+                    fields = nxt.result()
+                except BrokenProcessPool:
+                    raise UserError(
+                        "the process generating the next crater fields died (out of memory?); rerun to resume"
+                    ) from None
+    finally:
+        if planner is not None:
             planner.shutdown(cancel_futures=True)
-            shutil.rmtree(patches, ignore_errors=True)
+        shutil.rmtree(patches, ignore_errors=True)
+        _write_manifest(folder, refs)  # compacted once: the frames rendered and kept, however the run ends
 
 
-def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0) -> dict:
-    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
-    frames of the range already there (module docstring); ``settings.detection`` sets the conditions and
-    how frames share fields, views and Sun azimuths. Returns a summary."""
+def check_request(settings, n_frames: int) -> None:
+    """One error for a request no frame can be rendered for (before anything is written)."""
     if settings.procedural is None or settings.detection is None:
         raise ConfigError(
             "no procedural field or detection recipe selected: add procedural=detection detection=default"
         )
     if n_frames < 1:
         raise UserError(f"--frames {n_frames}: must be >= 1")
+    check_field_fits(settings.procedural, settings.detection)
+
+
+def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int = 0, pipelined: bool = True) -> dict:
+    """Render frames ``start`` .. ``start + n_frames - 1`` into ``out_dir`` with their labels, keeping the
+    frames of the range already there (module docstring); ``settings.detection`` sets the conditions and
+    how frames share fields, views and Sun azimuths. ``pipelined``: plan the next chunk in a second process
+    (:func:`_render_chunks`). Returns a summary."""
+    check_request(settings, n_frames)
     det = settings.detection
-    check_field_fits(settings.procedural, det)
     settings = replace(settings, **{"render.horizon_cache_dir": None})  # maps beside the patches, removed with them
     folder = OutFolder(Path(out_dir), KIND, subject=f"recipe {recipe_key(settings)}").check_clean()
     folder.claim()
     try:
         folder.record([schema.MANIFEST_NAME])
         wanted = range(start, start + n_frames)
-        rows, done = kept_rows(folder, wanted)
+        on_disk, compact = manifest_refs(folder.path)
+        refs, done = kept_rows(folder, wanted, on_disk)
+        if not compact:  # a hard-killed run's appended file: compacted before anything is appended to it
+            _write_manifest(folder, refs)
         by_field: dict[int, list[int]] = {}
         for i in wanted:
             if i not in done:
@@ -167,44 +244,23 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         chunks = [{f: by_field[f] for f in ids[k : k + size]} for k in range(0, len(ids), size)]
         t0 = time.perf_counter()
         if chunks:
-            _render_chunks(settings, folder, chunks, rows)
-        else:
-            _write_manifest(folder, rows)
+            _render_chunks(settings, folder, chunks, refs, pipelined)
         seconds = time.perf_counter() - t0
     finally:
         folder.release()
-    ordered = [rows[i] for i in wanted]
+    ordered = [refs[i] for i in wanted]
     rendered = n_frames - len(done)
     return {
         "frames": len(ordered),
         "rendered": rendered,
         "kept": len(done),
         "fields": len({field_of(det, i) for i in wanted}),
-        "frames_in_manifest": len(rows),
+        "frames_in_manifest": len(refs),
         "out_dir": str(folder.path),
         "width_px": det.width_px,
         "grouping": grouping(det),
         "modes_used": sorted({r["mode"] for r in ordered}),
-        "labels": sum(len(r["labels"]) for r in ordered),
+        "labels": sum(r["labels"] for r in ordered),
         "seconds": round(seconds, 2),
         "frames_per_s": round(rendered / seconds, 3) if rendered and seconds > 0 else None,
     }
-
-
-@click.command("detection-frames")
-@OVERRIDES
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output directory.")
-@click.option("--frames", "n_frames", type=int, default=4, show_default=True, help="Frames to render.")
-@click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
-@user_errors
-def detection_frames_command(overrides, out, n_frames, start):
-    """Render labelled detection frames of procedural crater fields (EXR + manifest), resumably.
-
-    Each frame draws its field (procedural.*, default procedural=detection), Sun and view (detection.*, default
-    detection=default: conditions and grouping) from the run seed and its index. Example:
-    `crater-synth detection-frames --out data/detection --frames 8 seed=1 detection.width_px=512`
-    """
-    if start < 0:
-        raise UserError(f"--start {start}: must be >= 0")
-    settings = load_settings(detection_overrides(overrides))
-    click.echo(json.dumps(render_detection_frames(settings, out, n_frames, start)))

@@ -194,22 +194,38 @@ def _navframe_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
     return _frame_rows(dataset_dir, _NAVFRAME_REQUIRED, "nav-frames")
 
 
-def _frame_rows(dataset_dir: Path, required: tuple[str, ...], command: str) -> tuple[int, Iterator[dict]]:
-    """The rows of a whole-frame manifest written by ``crater-synth <command>``, each with ``required``."""
+def _frame_rows(
+    dataset_dir: Path, required: tuple[str, ...], command: str, compact: bool = False
+) -> tuple[int, Iterator[dict]]:
+    """The rows of a whole-frame manifest written by ``crater-synth <command>``, each with ``required``.
+    ``compact``: the manifest must be as a finished run leaves it (frame indices strictly increasing, the
+    last line whole); a detection-frames run appends its rows chunk by chunk and compacts them when it ends,
+    so a hard-killed run's manifest is refused, naming the command that compacts it."""
     manifest = dataset_dir / MANIFEST_NAME
     if not manifest.is_file():
         raise ExportError(
             f"dataset {dataset_dir}: no {MANIFEST_NAME} (render the frames with `crater-synth {command}`)"
         )
+    uncompacted = (
+        f"dataset {dataset_dir}: {MANIFEST_NAME} is the appended manifest of an interrupted `crater-synth {command}` "
+        f"run: rerun that command on {dataset_dir} (same overrides) to finish and compact it, then export"
+    )
+    if compact and not _ends_whole(manifest):
+        raise ExportError(uncompacted)
 
     def gen() -> Iterator[dict]:
-        # the frame commands write their manifest atomically, sorted by frame index: file order is the stable order.
+        # the frame commands leave their manifest sorted by frame index: file order is the stable order.
+        last = -1
         for lineno, row in _json_rows(manifest):
             missing = [f for f in required if f not in row]
             rel = str(row.get("rel_path", ""))
             if missing or rel.startswith("/") or ".." in Path(rel).parts:
                 why = f"missing field(s) {missing}" if missing else f"rel_path {rel!r} leaves the directory"
                 raise ExportError(f"{manifest}:{lineno}: not a {command} row ({why})")
+            if compact:
+                if not isinstance(row["index"], int) or row["index"] <= last:
+                    raise ExportError(uncompacted)
+                last = row["index"]
             yield row
 
     # Every row is checked once before the export starts, so a bad line writes no shard (as for renders).
@@ -217,6 +233,16 @@ def _frame_rows(dataset_dir: Path, required: tuple[str, ...], command: str) -> t
     if n == 0:
         raise ExportError(f"dataset {dataset_dir}: {MANIFEST_NAME} has no rows")
     return n, gen()
+
+
+def _ends_whole(path: Path) -> bool:
+    """The file is empty or its last byte is a newline (a killed append leaves a torn last line)."""
+    with open(path, "rb") as fh:
+        end = fh.seek(0, os.SEEK_END)
+        if end == 0:
+            return True
+        fh.seek(end - 1)
+        return fh.read(1) == b"\n"
 
 
 def _navframe_key(row: dict) -> str:
@@ -394,7 +420,7 @@ def _detection_labels(row: dict) -> dict:
 
 DETECTION = RecordKind(
     name="detection",
-    rows=lambda d: _frame_rows(d, _DETECTION_REQUIRED, "detection-frames"),
+    rows=lambda d: _frame_rows(d, _DETECTION_REQUIRED, "detection-frames", compact=True),
     key=lambda row: Path(row["rel_path"]).stem.replace(".", "p"),
     arrays=_navframe_arrays,
     label_fields=_detection_label_fields,
