@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from crater_synth.dataset.detection import manifest_rows
 from crater_synth.navigation.detectors import learned
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
@@ -422,7 +423,7 @@ def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
     """nav-detector-train on a detection set: the last fields are the synthetic hold-out, scored over the
     network's band of rim radii; an occluded label is neither positive nor negative."""
     frames = fake_detection_set(tmp_path / "det", fields=4)
-    u, v, r, d, hidden = learned_train.label_circles(learned_train.detection_rows(frames)[0], (256, 256))
+    u, v, r, d, hidden = learned_train.label_circles(manifest_rows(frames)[0], (256, 256))
     assert hidden[0] and not hidden[1:].any() and d[1] == pytest.approx(2 * r[1] * 0.06)
     out = tmp_path / "model.pt"
     s = cd.DetectorTrainSettings(steps=3, batch=2, crop_px=32, width=4, threads=1)
@@ -484,3 +485,56 @@ def test_nav_detector_train_refuses_a_folder_twice_and_shares_that_do_not_fit(tm
     )
     assert r.exit_code == 2 and "one share per frames folder (1 given)" in r.output
     assert not out.exists()
+
+
+def test_a_slimmed_detection_row_gives_the_same_circles():
+    """Training keeps a detection row's circles only; they are the label dicts' circles."""
+    labels = [
+        {
+            "ellipse": {"cu": 10.0, "cv": 20.0, "a": 7.0},
+            "diameter_m": 900.0,
+            "lit_rim_fraction": 0.02,
+            "occluded": False,
+        },
+        {
+            "ellipse": {"cu": 300.0, "cv": 20.0, "a": 7.0},
+            "diameter_m": 900.0,
+            "lit_rim_fraction": 0.5,
+            "occluded": False,
+        },
+        {"ellipse": {"cu": -1.0, "cv": 5.0, "a": 9.0}, "diameter_m": 1200.0, "lit_rim_fraction": 0.5, "occluded": True},
+        {
+            "ellipse": {"cu": 50.0, "cv": 60.0, "a": 9.0},
+            "diameter_m": 1200.0,
+            "lit_rim_fraction": 0.5,
+            "occluded": True,
+        },
+    ]
+    row = {"index": 3, "rel_path": "f.exr", "ground_sample_m": 60.0, "terrain": {"field": 0}, "labels": labels}
+    full = learned_train.label_circles(row, (256, 256))
+    slim = learned_train.label_circles(learned_train.slim_row(row), (256, 256))
+    assert len(full[0]) == 2 and all(np.array_equal(a, b) for a, b in zip(full, slim))
+    assert list(full[4]) == [True, True]  # dark rim, occluded rim
+
+
+def test_train_from_a_sharded_detection_set_holds_out_its_last_fields_across_shards(tmp_path):
+    """nav-detector-train DIR on a sharded set (launcher=dask): the shards' frames together, the set's last
+    fields held out, whichever shard holds them."""
+    from crater_synth.dataset.detection import SHARDS_KIND
+    from crater_synth.outfolder import OutFolder
+
+    parent = tmp_path / "sharded"
+    parent.mkdir()
+    fake_detection_set(parent / "shard_00000", fields=2)
+    second = fake_detection_set(parent / "shard_00001", fields=2)
+    rows = [json.loads(line) for line in (second / "manifest.jsonl").read_text().splitlines()]
+    for row in rows:  # the second shard's fields follow the first's
+        row["terrain"]["field"] += 2
+    (second / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    folder = OutFolder(parent, SHARDS_KIND, subject="recipe test, 4 frames a shard", names=lambda rel: False)
+    folder.claim()
+    folder.release()
+    train, hold, what = learned_train.frames_source(parent)[:3]
+    assert what["holdout_fields"] == [3] and what["train_fields"] == 3
+    assert len(train) == 6 and len(hold) == 2 and all(r["terrain"]["field"] == 3 for _, r in hold)
+    assert all("circles" in r and "labels" not in r for _, r in train)

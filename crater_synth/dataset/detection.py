@@ -88,6 +88,7 @@ PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' te
 # worker at 256 px), so a retried task loses little.
 MAX_SHARD_FRAMES = 2048
 SHARD_GLOB = "shard_[0-9][0-9][0-9][0-9][0-9]"
+SHARDS_KIND = "detection-shards"  # the output-folder kind of a sharded set's parent folder
 
 
 def shard_name(k: int) -> str:

@@ -36,12 +36,11 @@ from crater_core.errors import ContractError
 from crater_core.progress import Progress
 from crater_core.settings import replace
 from crater_synth.dataset.dask_launcher import open_client
-from crater_synth.dataset.detection import shard_frames, shard_name
+from crater_synth.dataset.detection import SHARDS_KIND, shard_frames, shard_name
 from crater_synth.dataset.detection_run import KIND, check_request, recipe_key, render_detection_frames
 from crater_synth.errors import RenderError, UserError
 from crater_synth.outfolder import MARKERS, OutFolder
 
-SHARDS_KIND = "detection-shards"
 _SHARD_FILE = re.compile(r"shard_\d{5}/")
 _PER_SHARD = re.compile(r", (\d+) frames a shard$")
 

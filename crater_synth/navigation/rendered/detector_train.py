@@ -19,7 +19,7 @@ from crater_core import exr
 from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose_group
-from crater_synth.dataset.detection import manifest_rows as detection_rows
+from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect
@@ -64,7 +64,13 @@ def labels_in_frame(row: dict, shape) -> list[dict]:
 def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
     label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden) or, for a
-    detection frame's label, where nearer relief hides most of its rim (``occluded``)."""
+    detection frame's label, where nearer relief hides most of its rim (``occluded``). A row slimmed by
+    :func:`slim_row` carries these arrays already (``circles``)."""
+    if "circles" in row:
+        u, v, r, d, hidden = row["circles"]
+        h, w = shape
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        return u[inside], v[inside], r[inside], d[inside], hidden[inside]
     lms = labels_in_frame(row, shape)
     u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
     v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
@@ -75,19 +81,37 @@ def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     return u, v, r, d, (lit < MIN_LIT_RIM) | occluded
 
 
+def slim_row(row: dict) -> dict:
+    """A detection row with its label dicts replaced by the arrays training reads (:func:`label_circles`):
+    ~1,000 labels a frame of a dense surface are ~150 KB of Python objects, their circles ~40 KB."""
+    inf = (np.inf, np.inf)
+    circles = label_circles(row, inf)
+    return {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")} | {"circles": circles}
+
+
 def detection_set_records(folder: Path, holdout_share: float) -> tuple[list, list, dict]:
-    """(training records, held-out records, what they are) of a detection set: (I/F image, row) of every
-    frame, the frames of the last ``holdout_share`` of its fields held out (a field's frames share craters)."""
-    rows = sorted(detection_rows(folder).values(), key=lambda r: r["index"])
-    if not rows:
+    """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
+    folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
+    fields held out (a field's frames share craters). Each manifest is streamed twice (fields, then rows):
+    held-out rows keep their labels for scoring, training rows their circles only (:func:`slim_row`), so a
+    large set's labels need not fit in memory."""
+    folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
+    fields_in = [
+        {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
+    ]
+    fields = sorted(set().union(*fields_in))
+    if not fields:
         raise UserError(f"{folder}: no detection frame (run `crater-synth detection-frames --out {folder}`)")
-    fields = sorted({r["terrain"]["field"] for r in rows})
     n_hold = max(1, int(round(holdout_share * len(fields)))) if len(fields) > 1 else 0
     held = set(fields[len(fields) - n_hold :])
-    records = [(exr.read_channel(folder / r["rel_path"], "IF"), r) for r in rows]
-    train = [rec for rec in records if rec[1]["terrain"]["field"] not in held]
-    hold = [rec for rec in records if rec[1]["terrain"]["field"] in held]
-    what = {"train_fields": len(fields) - n_hold, "holdout_fields": sorted(held), "recipe": _recipe(folder)}
+    train, hold = [], []
+    for d in folders:
+        found, _ = scan_manifest(d, keep=lambda row: row if row["terrain"]["field"] in held else slim_row(row))
+        for i in sorted(found):
+            row = found[i][2]
+            record = (exr.read_channel(d / row["rel_path"], "IF"), row)
+            (hold if row["terrain"]["field"] in held else train).append(record)
+    what = {"train_fields": len(fields) - n_hold, "holdout_fields": sorted(held), "recipe": _recipe(folders[0])}
     return train, hold, what
 
 
@@ -167,7 +191,8 @@ def detection_source(folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE) -
 
 def frames_source(frames_dir: Path) -> tuple[list, list, dict, dict]:
     """:func:`detection_source` or :func:`survey_source`, by the folder's marker."""
-    return detection_source(frames_dir) if marker_kind(frames_dir) == DETECTION_KIND else survey_source(frames_dir)
+    detection = marker_kind(frames_dir) in (DETECTION_KIND, SHARDS_KIND)
+    return detection_source(frames_dir) if detection else survey_source(frames_dir)
 
 
 def train_from_survey(
