@@ -102,6 +102,22 @@ def run_dask(settings: Settings | Mapping, progress: bool = True) -> dict:
         return _run_dask_locked(s, plan, progress)
 
 
+def completed_summaries(futures):
+    """Each task's summary as it completes. A task returns bad input as ``{"error": ...}`` (so Dask does not
+    retry it): that is one error line; a task that killed its worker process repeatedly is one too."""
+    for fut in as_completed(futures):
+        try:
+            summary = fut.result()
+        except KilledWorker as exc:
+            raise RenderError(
+                f"Dask task {fut.key} killed its worker process repeatedly "
+                f"(distributed.scheduler.allowed-failures): {exc}"
+            ) from None
+        if "error" in summary:
+            raise UserError(summary["error"])
+        yield summary
+
+
 def open_client(launcher) -> tuple[Client, LocalCluster | None]:
     """(client, its local cluster or None): a client of ``launcher.address``'s scheduler, or of a local
     cluster of ``launcher.n_workers`` single-threaded worker processes on 127.0.0.1. The caller closes both."""
@@ -149,16 +165,7 @@ def _run_dask_locked(s: Settings, plan: dict, progress: bool) -> dict:
         ]
         rendered = skipped = 0
         with Progress(n_shards, f"dask sweep ({workers} workers)", "shard", "auto" if progress else "off") as bar:
-            for fut in as_completed(futures):
-                try:
-                    summary = fut.result()
-                except KilledWorker as exc:
-                    raise RenderError(
-                        f"Dask task {fut.key} killed its worker process repeatedly "
-                        f"(distributed.scheduler.allowed-failures): {exc}"
-                    ) from None
-                if "error" in summary:
-                    raise UserError(summary["error"])
+            for summary in completed_summaries(futures):
                 rendered += summary["rendered"]
                 skipped += summary["skipped_existing"]
                 bar.update(1, renders=rendered)

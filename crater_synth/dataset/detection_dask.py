@@ -29,13 +29,10 @@ import re
 import time
 from pathlib import Path
 
-from distributed import as_completed
-from distributed.scheduler import KilledWorker
-
 from crater_core.errors import ContractError
 from crater_core.progress import Progress
 from crater_core.settings import replace
-from crater_synth.dataset.dask_launcher import open_client
+from crater_synth.dataset.dask_launcher import completed_summaries, open_client
 from crater_synth.dataset.detection import SHARDS_KIND, shard_frames, shard_name
 from crater_synth.dataset.detection_run import KIND, check_request, recipe_key, render_detection_frames
 from crater_synth.errors import RenderError, UserError
@@ -112,16 +109,7 @@ def _gather(client, futures, progress: bool, workers: int) -> list[dict]:
     with Progress(
         len(futures), f"dask detection set ({workers} workers)", "shard", "auto" if progress else "off"
     ) as bar:
-        for fut in as_completed(futures):
-            try:
-                summary = fut.result()
-            except KilledWorker as exc:
-                raise RenderError(
-                    f"Dask task {fut.key} killed its worker process repeatedly "
-                    f"(distributed.scheduler.allowed-failures): {exc}"
-                ) from None
-            if "error" in summary:
-                raise UserError(summary["error"])
+        for summary in completed_summaries(futures):
             done.append(summary)
             bar.update(1, frames=sum(s["rendered"] for s in done))
     return done
