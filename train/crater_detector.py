@@ -244,24 +244,30 @@ def _blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
 
 
 def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> torch.Tensor:
-    """The network input of a batch of stacked crops (B, 8, c, c): photometric augmentation of the
-    brightness (gamma, shadow floor, blur), standardisation over the valid pixels, noise."""
-    b = t.shape[0]
+    """The network input of a batch of stacked crops (B, 8, c, c): :func:`augment_brightness`."""
+    return augment_brightness(t[:, _IMG : _IMG + 1], t[:, _VALID : _VALID + 1], s, gen)
+
+
+def augment_brightness(
+    brightness: torch.Tensor, valid: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator
+) -> torch.Tensor:
+    """Photometric augmentation of a batch of brightness crops (B, 1, c, c; 0-1) with their valid-pixel
+    masks (gamma, shadow floor, blur), standardisation over the valid pixels, noise; 0 off the valid pixels."""
+    b = brightness.shape[0]
 
     def uniform(lo_hi):
         lo, hi = lo_hi
-        return lo + (hi - lo) * torch.rand(b, 1, 1, 1, generator=gen, device=t.device)
+        return lo + (hi - lo) * torch.rand(b, 1, 1, 1, generator=gen, device=brightness.device)
 
-    valid = t[:, _VALID : _VALID + 1]
     n = valid.sum((2, 3), keepdim=True).clamp(min=1.0)
-    x = t[:, _IMG : _IMG + 1].clamp(min=0.0) ** uniform(s.gamma)
+    x = brightness.clamp(min=0.0) ** uniform(s.gamma)
     x = x + uniform(s.shadow_lift) * (x * valid).sum((2, 3), keepdim=True) / n
     sigma = uniform(s.blur_sigma_px).flatten()
     x = torch.where((sigma > 0.2)[:, None, None, None], _blur(x, sigma), x)
     mean = (x * valid).sum((2, 3), keepdim=True) / n
     std = (((x - mean) ** 2 * valid).sum((2, 3), keepdim=True) / n).sqrt().clamp(min=1e-6)
     x = (x - mean) / std
-    x = x + uniform(s.noise) * torch.randn(x.shape, generator=gen, device=t.device)
+    x = x + uniform(s.noise) * torch.randn(x.shape, generator=gen, device=brightness.device)
     return x * valid
 
 

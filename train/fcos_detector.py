@@ -12,7 +12,7 @@ y1, x2, y2) is read back as its centre and r = the mean half side.
 Input: one grey channel standardised per image (zero mean, unit deviation), as the CenterNet's, so the
 model's own normalisation is the identity, and no image is resized (the pyramid level a frame is
 searched at sets the scale, as for the CenterNet). Training reuses the CenterNet's level samples, its
-photometric augmentation (:func:`train.crater_detector.augment`) and its 8 dihedral transforms.
+photometric augmentation (:func:`train.crater_detector.augment_brightness`) and its 8 dihedral transforms.
 """
 
 from __future__ import annotations
@@ -25,11 +25,9 @@ from torch import nn
 
 from crater_core.settings_nav import DetectorTrainSettings
 from train.crater_detector import (
-    _IMG,
-    _VALID,
     DetectorModelError,
     LevelSample,
-    augment,
+    augment_brightness,
     decimate2,
     read_model_file,
     source_probabilities,
@@ -128,9 +126,9 @@ def circle_boxes(uvr: np.ndarray) -> torch.Tensor:
 
 
 def _batch(prepared, s: DetectorTrainSettings, rng: np.random.Generator, p) -> tuple[torch.Tensor, list[dict]]:
-    """A batch of random ``crop_px`` crops, each turned and mirrored at random, stacked as
-    :func:`train.crater_detector.augment` reads them (B, 8, c, c: brightness, valid mask), with their targets:
-    the circles whose centre lies in the crop (a rim cut by the crop edge keeps its whole box)."""
+    """A batch of random ``crop_px`` crops (B, 2, c, c: brightness, valid mask), each turned and mirrored
+    at random, with their targets: the circles whose centre lies in the crop (a rim cut by the crop edge
+    keeps its whole box)."""
     c = s.crop_px
     stacks, targets = [], []
     picks = rng.integers(0, len(prepared), s.batch) if p is None else rng.choice(len(prepared), s.batch, p=p)
@@ -140,10 +138,7 @@ def _batch(prepared, s: DetectorTrainSettings, rng: np.random.Generator, p) -> t
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
         k, flip = int(rng.integers(4)), bool(rng.integers(2))
         crop = torch.rot90(img[:, i0 : i0 + c, j0 : j0 + c], k, dims=(-2, -1))
-        crop = torch.flip(crop, dims=(-2,)) if flip else crop
-        t = torch.zeros(8, c, c)
-        t[_IMG], t[_VALID] = crop[0], crop[1]
-        stacks.append(t)
+        stacks.append(torch.flip(crop, dims=(-2,)) if flip else crop)
         local = uvr - np.array([j0, i0, 0.0])
         inside = (local[:, 0] >= 0) & (local[:, 0] < c) & (local[:, 1] >= 0) & (local[:, 1] < c)
         boxes = circle_boxes(dihedral_circles(local[inside], c, k, flip))
@@ -175,7 +170,8 @@ def train_fcos(
     model.train()
     for step in range(1, settings.steps + 1):
         t, targets = _batch(prepared, settings, rng, p)
-        x = augment(t.to(device), settings, gen)
+        t = t.to(device)
+        x = augment_brightness(t[:, :1], t[:, 1:], settings, gen)
         parts = model(list(x), [{k: v.to(device) for k, v in tg.items()} for tg in targets])
         loss = sum(parts.values())
         opt.zero_grad()

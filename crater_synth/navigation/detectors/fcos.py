@@ -33,7 +33,7 @@ class FcosSettings(DetectorSettings):
 
 
 @functools.lru_cache(maxsize=4)
-def load_model(path: str):
+def load_fcos_model(path: str):
     from train.crater_detector import DetectorModelError
     from train.fcos_detector import load_model
 
@@ -43,7 +43,7 @@ def load_model(path: str):
         raise DetectorModelFileError(str(exc)) from None
 
 
-def model_path(params: FcosSettings) -> Path:
+def fcos_model_path(params: FcosSettings) -> Path:
     """The model file the settings name; none named is one error line saying how to make one."""
     if not params.model:
         raise UserError(
@@ -58,7 +58,7 @@ def fcos_candidates(frame: CandidateInput, params: FcosSettings):
     [min_radius_px, max_radius_px]."""
     from train.fcos_detector import detect_fcos
 
-    model, _meta = load_model(str(model_path(params)))
+    model, _meta = load_fcos_model(str(fcos_model_path(params)))
     u, v, r, s = detect_fcos(model, frame.image, params.threshold, first_level(params.min_radius_px))
     keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
     return u[keep], v[keep], r[keep], s[keep]

@@ -195,7 +195,7 @@ def architecture(arch: str):
     if arch == "fcos":
         from train.fcos_detector import save_model, train_fcos
 
-        return train_fcos, save_model, lambda path: fcos.FcosSettings(**_SCORING, model=path), fcos.load_model
+        return train_fcos, save_model, lambda path: fcos.FcosSettings(**_SCORING, model=path), fcos.load_fcos_model
     from train.crater_detector import save_model, train_detector
 
     return train_detector, save_model, lambda path: LearnedSettings(**_SCORING, model=path), learned.load_model
