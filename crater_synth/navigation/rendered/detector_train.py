@@ -1,7 +1,8 @@
 """Training of the learned crater detector (:mod:`.learned`): its frames, labels, training and scores.
 
 ``crater-synth nav-detector-frames`` renders the survey of :mod:`.detector_frames` (south DEM only);
-``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` on every track but
+``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` (or, with
+``nav.detector_train.arch=fcos``, torchvision's FCOS of :mod:`train.fcos_detector`) on every track but
 the last ``HOLDOUT_TRACKS``, scores it on those against their exact labels (:func:`score_synthetic`) and
 writes the model with its provenance (docs/navigation/detectors.md).
 """
@@ -302,7 +303,8 @@ def nav_detector_train_command(frames_dir, more_dirs, out, device, overrides):
 
     Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
     `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
-    these steps), `nav.detector_train.threads=4` (0: every core). Example:
+    these steps), `nav.detector_train.threads=4` (0: every core), `nav.detector_train.arch=fcos` (torchvision's
+    FCOS instead of the learned detector's network; --out required). Example:
     `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
     """
     import torch
