@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_request,
 )
 
+PROG = "python -m crater_synth.tools.detector_choice"
 POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
 DETECTOR_PREFIXES = {"fcos": "fcos"}  # --model PREFIX:PATH -> the nav/detector option that runs it
 
@@ -104,7 +106,7 @@ def main(argv=None) -> None:
             )
             runs.append(r)
     doc = {
-        "command": "python -m crater_synth.tools.detector_choice " + " ".join(argv or []),
+        "command": " ".join([PROG, *(sys.argv[1:] if argv is None else argv)]),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "committed_model": str(DEFAULT_MODEL),
         "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",
