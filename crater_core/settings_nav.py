@@ -184,11 +184,17 @@ class LandmarksSettings(Group):
         need(0.0 < self.iau_recall_target <= 1.0, "iau_recall_target", self.iau_recall_target, "must be in (0, 1]")
 
 
+ARCHS = ("centernet", "fcos")  # DetectorTrainSettings.arch
+
+
 @dataclass(frozen=True)
 class DetectorTrainSettings(Group):
     """Training of the learned detector (``nav.detector_train``; ``train.crater_detector.train_detector``;
     configs/nav/detector_train/default.yaml; docs/navigation/detectors.md)."""
 
+    # "centernet": train.crater_detector's network (the learned detector); "fcos": torchvision's FCOS
+    # (train.fcos_detector, the fcos detector), the standard detector it is compared with.
+    arch: str = "centernet"
     # The committed model's length; the one-cycle schedule spans all steps, so a shorter run is not that
     # model's checkpoint.
     steps: int = 2000
@@ -196,7 +202,9 @@ class DetectorTrainSettings(Group):
     crop_px: int = 96
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    width: int = 16  # channels of the first stage (x2, x4 deeper)
+    # Channels of the first stage (x2, x4 deeper); fcos: of the backbone's first stage (x2, x4, x8 deeper;
+    # FPN and head: x4).
+    width: int = 16
     seed: int = 0
     threads: int = 0  # 0: every core
     # Photometric augmentation: the real mosaic is a stretched 8-bit product with lifted shadows and
@@ -211,6 +219,7 @@ class DetectorTrainSettings(Group):
     source_shares: Tuple[float, ...] = ()
 
     def _check(self) -> None:
+        need(self.arch in ARCHS, "arch", self.arch, f"must be one of {', '.join(ARCHS)}")
         for key in ("steps", "batch", "crop_px", "width"):
             need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")

@@ -142,8 +142,8 @@ _RENDER = (
 )
 EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     "render": _RENDER,
-    "train": (*_RENDER, "torch", "sklearn", "joblib", "jinja2", "markupsafe", "pyarrow"),
-    "nav": (*_RENDER, "torch"),
+    "train": (*_RENDER, "torch", "torchvision", "sklearn", "joblib", "jinja2", "markupsafe", "pyarrow"),
+    "nav": (*_RENDER, "torch", "torchvision"),
     "export": (*_RENDER, "pyarrow"),
     "dask": (*_RENDER, "distributed"),
 }

@@ -245,15 +245,18 @@ def test_base_commands_need_no_extra():
     assert needs_extra == set(COMMAND_EXTRA)
 
 
-def test_makefile_installs_the_pinned_torch():
-    """make setup installs torch first (the CPU build, from TORCH_INDEX) with pyproject.toml's pin."""
+@pytest.mark.parametrize("name,variable", [("torch", "TORCH_REQ"), ("torchvision", "TORCHVISION_REQ")])
+def test_makefile_installs_the_pinned_torch(name, variable):
+    """make setup installs torch and torchvision first (their CPU builds, from TORCH_INDEX) with
+    pyproject.toml's pins."""
     proc = subprocess.run(
-        ["make", "-s", "--no-print-directory", "--eval", "print-torch: ; @echo '$(TORCH_REQ)'", "print-torch"],
+        ["make", "-s", "--no-print-directory", "--eval", f"print-req: ; @echo '$({variable})'", "print-req"],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert proc.returncode == 0, proc.stderr
-    pins = {r for e in ("train", "nav") for r in pyproject()["optional-dependencies"][e] if r.startswith("torch")}
+    extras = pyproject()["optional-dependencies"]
+    pins = {r for e in ("train", "nav") for r in extras[e] if _requirement_name(r) == name}
     assert pins == {proc.stdout.strip()}

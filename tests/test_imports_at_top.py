@@ -22,6 +22,8 @@ DEFERRED_LIBRARIES = {
     "bpy": "Blender: importable only inside Blender or with the pip bpy module, and slow to load",
     "mathutils": "Blender's maths module, shipped with bpy",
     "scipy": "slow to load; most commands use it in one function",
+    "torchvision": "imported by train.tv_ops.import_torchvision only, which first stands in for its NMS where "
+    "its compiled ops do not load (a torch build they do not match)",
     "matplotlib": "slow to load; only the figure writers need it",
     "distributed": "Dask: only `launcher=dask` uses it, and a render-only install has none (docs/install.md)",
 }
@@ -33,8 +35,10 @@ DEFERRING_MODULES = {
     "train.crater_detector": "torch",
     "train.data": "torch",
     "train.evaluate": "torch",
+    "train.fcos_detector": "torch",
     "train.models": "torch",
     "train.trainer": "torch",
+    "train.tv_ops": "torch",
     "train.preprocess": "scipy",
     "train.realset": "scipy",
     "blender_gen.camera": "bpy",

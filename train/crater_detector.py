@@ -301,24 +301,30 @@ def _blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
 
 
 def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> torch.Tensor:
-    """The network input of a batch of stacked crops (B, 8, c, c): photometric augmentation of the
-    brightness (gamma, shadow floor, blur), standardisation over the valid pixels, noise."""
-    b = t.shape[0]
+    """The network input of a batch of stacked crops (B, 8, c, c): :func:`augment_brightness`."""
+    return augment_brightness(t[:, _IMG : _IMG + 1], t[:, _VALID : _VALID + 1], s, gen)
+
+
+def augment_brightness(
+    brightness: torch.Tensor, valid: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator
+) -> torch.Tensor:
+    """Photometric augmentation of a batch of brightness crops (B, 1, c, c; 0-1) with their valid-pixel
+    masks (gamma, shadow floor, blur), standardisation over the valid pixels, noise; 0 off the valid pixels."""
+    b = brightness.shape[0]
 
     def uniform(lo_hi):
         lo, hi = lo_hi
-        return lo + (hi - lo) * torch.rand(b, 1, 1, 1, generator=gen, device=t.device)
+        return lo + (hi - lo) * torch.rand(b, 1, 1, 1, generator=gen, device=brightness.device)
 
-    valid = t[:, _VALID : _VALID + 1]
     n = valid.sum((2, 3), keepdim=True).clamp(min=1.0)
-    x = t[:, _IMG : _IMG + 1].clamp(min=0.0) ** uniform(s.gamma)
+    x = brightness.clamp(min=0.0) ** uniform(s.gamma)
     x = x + uniform(s.shadow_lift) * (x * valid).sum((2, 3), keepdim=True) / n
     sigma = uniform(s.blur_sigma_px).flatten()
     x = torch.where((sigma > 0.2)[:, None, None, None], _blur(x, sigma), x)
     mean = (x * valid).sum((2, 3), keepdim=True) / n
     std = (((x - mean) ** 2 * valid).sum((2, 3), keepdim=True) / n).sqrt().clamp(min=1e-6)
     x = (x - mean) / std
-    x = x + uniform(s.noise) * torch.randn(x.shape, generator=gen, device=t.device)
+    x = x + uniform(s.noise) * torch.randn(x.shape, generator=gen, device=brightness.device)
     return x * valid
 
 
@@ -408,15 +414,16 @@ def train_detector(
 # ------------------------------------------------------------------------------------------------
 # Model files
 # ------------------------------------------------------------------------------------------------
-def save_model(path: Path, model: CraterNet, meta: dict) -> None:
-    """Write the weights and ``meta`` (provenance, settings) atomically, with a sha256 of the weights."""
+def write_model_file(path: Path, fmt: str, state_dict: dict, meta: dict, **fields) -> None:
+    """Write weights (``state_dict``), ``meta`` (provenance, settings; plain JSON types) and the architecture
+    ``fields`` atomically under the format tag ``fmt``, with a sha256 of the weights (every detector's file)."""
     meta = json.loads(json.dumps(meta, default=str))  # plain JSON types only: the file loads with weights_only
     buf = io.BytesIO()
-    torch.save(model.state_dict(), buf)
+    torch.save(state_dict, buf)
     weights = buf.getvalue()
     payload = {
-        "format": MODEL_FORMAT,
-        "width": model.head.in_channels,
+        "format": fmt,
+        **fields,
         "meta": meta,
         "weights_sha256": hashlib.sha256(weights).hexdigest(),
         "weights": weights,
@@ -426,20 +433,21 @@ def save_model(path: Path, model: CraterNet, meta: dict) -> None:
     atomic_write_bytes(Path(path), out.getvalue())
 
 
-def load_model(path: Path) -> tuple[CraterNet, dict]:
-    """The model and its meta from a :func:`save_model` file; a missing, corrupt or foreign file raises
+def read_model_file(path: Path, fmt: str, build) -> tuple[nn.Module, dict]:
+    """The model (``build(payload)`` with the file's weights loaded, in eval mode) and its meta from a
+    :func:`write_model_file` file of format ``fmt``; a missing, corrupt or foreign file raises
     :class:`DetectorModelError` naming it."""
     path = Path(path)
     if not path.is_file():
         raise DetectorModelError(f"detector model {path}: no such file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
-            raise DetectorModelError(f"detector model {path}: not a {MODEL_FORMAT} file")
+        if not isinstance(payload, dict) or payload.get("format") != fmt:
+            raise DetectorModelError(f"detector model {path}: not a {fmt} file")
         weights = payload["weights"]
         if hashlib.sha256(weights).hexdigest() != payload["weights_sha256"]:
             raise DetectorModelError(f"detector model {path}: weights checksum mismatch (corrupt file)")
-        model = CraterNet(int(payload["width"]))
+        model = build(payload)
         model.load_state_dict(torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True))
     except DetectorModelError:
         raise
@@ -447,6 +455,17 @@ def load_model(path: Path) -> tuple[CraterNet, dict]:
         raise DetectorModelError(f"detector model {path}: cannot be read ({type(exc).__name__})") from None
     model.eval()
     return model, dict(payload["meta"])
+
+
+def save_model(path: Path, model: CraterNet, meta: dict) -> None:
+    """Write the weights and ``meta`` (provenance, settings) atomically, with a sha256 of the weights."""
+    write_model_file(path, MODEL_FORMAT, model.state_dict(), meta, width=model.head.in_channels)
+
+
+def load_model(path: Path) -> tuple[CraterNet, dict]:
+    """The model and its meta from a :func:`save_model` file; a missing, corrupt or foreign file raises
+    :class:`DetectorModelError` naming it."""
+    return read_model_file(path, MODEL_FORMAT, lambda payload: CraterNet(int(payload["width"])))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -4,11 +4,13 @@ whole-frame measure), and write the runs and the choice as JSON.
 
 Every (model, threshold) pair runs the ``learned-detect`` option of ``nav-eval`` (the detection operating
 point: no light, no rim fit) on the same south validation windows (``--every N`` of them), the committed
-model among the candidates so the table holds the baseline measured in the same run. The chosen pair is the
+model among the candidates so the table holds the baseline measured in the same run. A model given as
+``fcos:PATH`` (torchvision's FCOS, ``nav.detector_train.arch=fcos``) runs the ``fcos`` option instead, with
+the same operating point and the same table. The chosen pair is the
 highest F1; ties go to the higher precision. The north windows are a test: this tool never reads them; run
 ``nav-eval --pole north`` once with the choice, after it is committed.
 
-    python -m crater_synth.tools.detector_choice --model A.pt --model B.pt --thresholds 0.2,0.3,0.4 \\
+    python -m crater_synth.tools.detector_choice --model A.pt --model fcos:B.pt --thresholds 0.2,0.3,0.4 \\
         --every 2 --out docs/results/detector_choice_south.json
 """
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -29,7 +32,18 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_request,
 )
 
+PROG = "python -m crater_synth.tools.detector_choice"
 POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
+DETECTOR_PREFIXES = {"fcos": "fcos"}  # --model PREFIX:PATH -> the nav/detector option that runs it
+
+
+def model_option(model: str) -> tuple[str, str]:
+    """(nav/detector option, model file or "committed") of a ``--model`` value: ``fcos:PATH`` runs the fcos
+    option; anything else is a learned-detect model (a path may itself hold a colon)."""
+    prefix, sep, rest = model.partition(":")
+    if sep and prefix in DETECTOR_PREFIXES:
+        return DETECTOR_PREFIXES[prefix], rest
+    return "learned-detect", model
 
 
 def f1(precision: float | None, recall: float | None) -> float | None:
@@ -39,18 +53,20 @@ def f1(precision: float | None, recall: float | None) -> float | None:
 
 
 def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dict:
-    """``learned-detect`` with ``model`` at ``threshold`` on the south validation windows: its detection
-    scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
-    overrides = ["nav/detector=learned-detect", f"nav.detector.threshold={threshold}"]
-    if model != "committed":
-        overrides.append(f"nav.detector.model={model}")
+    """``model``'s detector option (:func:`model_option`) at ``threshold`` on the south validation windows:
+    its detection scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
+    option, path = model_option(model)
+    overrides = [f"nav/detector={option}", f"nav.detector.threshold={threshold}"]
+    if path != "committed":
+        overrides.append(f"nav.detector.model={path}")
     settings, _, _ = nav_eval_request(every, PRIOR_OFFSET_KM, False, False, overrides)
-    nav = settings["learned-detect"]
+    nav = settings[option]
     t0 = time.perf_counter()
     summary, _ = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=every, pole=POLE, listed=listed)
     cat = summary["all_windows"].get("against_catalogue", {})
     return {
         "model": model,
+        "method": option,
         "threshold": threshold,
         "catalogue_15km": cat | {"f1": f1(cat.get("precision_15km"), cat.get("recall_15km"))},
         "map_by_size_km": summary["all_windows"].get("by_size_km"),
@@ -69,7 +85,9 @@ def choose(runs: list[dict]) -> dict:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", action="append", default=[], help="a candidate model file (repeatable)")
+    p.add_argument(
+        "--model", action="append", default=[], help="a candidate model file, fcos:PATH for an FCOS one (repeatable)"
+    )
     p.add_argument("--thresholds", default="0.2,0.3,0.4", help="heat thresholds, comma-separated")
     p.add_argument("--every", type=int, default=2, help="every Nth south validation window")
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
@@ -88,7 +106,7 @@ def main(argv=None) -> None:
             )
             runs.append(r)
     doc = {
-        "command": "python -m crater_synth.tools.detector_choice " + " ".join(argv or []),
+        "command": " ".join([PROG, *(sys.argv[1:] if argv is None else argv)]),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "committed_model": str(DEFAULT_MODEL),
         "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",

@@ -1,7 +1,8 @@
 """Training of the learned crater detector (:mod:`.learned`): its frames, labels, training and scores.
 
 ``crater-synth nav-detector-frames`` renders the survey of :mod:`.detector_frames` (south DEM only);
-``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` on every track but
+``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` (or, with
+``nav.detector_train.arch=fcos``, torchvision's FCOS of :mod:`train.fcos_detector`) on every track but
 the last ``HOLDOUT_TRACKS``, scores it on those against their exact labels (:func:`score_synthetic`) and
 writes the model with its provenance (docs/navigation/detectors.md).
 """
@@ -22,8 +23,9 @@ from crater_synth.config import compose_group
 from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors import fcos, learned
 from crater_synth.navigation.detectors.classical import detect
-from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings, load_model
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
@@ -211,13 +213,31 @@ def train_from_detection(
     return train_from_sources([detection_source(folder, holdout_share)], out, settings, log, device)
 
 
+def architecture(arch: str):
+    """(train, save, scoring settings of a model file, its detector's model cache) of ``arch``
+    (``nav.detector_train.arch``): the CenterNet of :mod:`train.crater_detector` scored as the learned
+    detector, or torchvision's FCOS of :mod:`train.fcos_detector` scored as the fcos detector; both scored
+    alike (:func:`score_synthetic`, from 4.5 px radii, no rim fit)."""
+    if arch == "fcos":
+        from train.fcos_detector import save_model, train_fcos
+
+        return train_fcos, save_model, lambda path: fcos.FcosSettings(**_SCORING, model=path), fcos.load_fcos_model
+    from train.crater_detector import save_model, train_detector
+
+    return train_detector, save_model, lambda path: LearnedSettings(**_SCORING, model=path), learned.load_model
+
+
+_SCORING = {"min_radius_px": 4.5, "refine": False}  # the synthetic hold-out's detector settings
+
+
 def train_from_sources(sources: list, out: Path, settings, log=None, device: str = "cpu") -> dict:
     """Train on the training records of every source (``*_source``'s tuples; their draw shares are
     ``settings.source_shares``), score the model on each source's held-out records, and save it to ``out``
     with its provenance; returns the summary written into the model. One source: its description and
     score at the top level; several: a list of them under ``sources``."""
-    from train.crater_detector import level_samples, save_model, settings_dict, train_detector
+    from train.crater_detector import level_samples, settings_dict
 
+    train, save_model, scoring_params, model_cache = architecture(settings.arch)
     samples, source = [], []
     for k, (train_records, _, _, _) in enumerate(sources):
         for image, row in train_records:
@@ -225,7 +245,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
             levels = level_samples(image, u, v, r, hidden)
             samples.extend(levels)
             source.extend([k] * len(levels))
-    result = train_detector(samples, settings, log=log, device=device, source=np.asarray(source, int))
+    result = train(samples, settings, log=log, device=device, source=np.asarray(source, int))
     run = {
         "train_frames": sum(len(s[0]) for s in sources),
         "level_samples": len(samples),
@@ -246,11 +266,10 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     tmp = Path(str(out) + ".scoring.pt")
     save_model(tmp, result["model"], meta)
     try:
-        params = LearnedSettings(model=str(tmp), min_radius_px=4.5, refine=False)
-        scores = [score_synthetic(s[1], params, **s[3]) for s in sources]
+        scores = [score_synthetic(s[1], scoring_params(str(tmp)), **s[3]) for s in sources]
     finally:
         tmp.unlink(missing_ok=True)
-        load_model.cache_clear()
+        model_cache.cache_clear()
     if len(sources) == 1:
         meta["synthetic_holdout"] = scores[0]
     else:
@@ -309,7 +328,8 @@ def nav_detector_train_command(frames_dir, more_dirs, out, device, overrides):
 
     Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
     `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
-    these steps), `nav.detector_train.threads=4` (0: every core). Example:
+    these steps), `nav.detector_train.threads=4` (0: every core), `nav.detector_train.arch=fcos` (torchvision's
+    FCOS instead of the learned detector's network; --out required). Example:
     `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
     """
     import torch
@@ -325,6 +345,8 @@ def nav_detector_train_command(frames_dir, more_dirs, out, device, overrides):
             f"nav.detector_train.source_shares={list(settings.source_shares)}: one share per frames folder "
             f"({len(frames_dirs)} given)"
         )
+    if settings.arch != "centernet" and out is None:
+        raise UserError(f"nav.detector_train.arch={settings.arch} needs --out (the default is the learned model)")
     sources = [frames_source(d) for d in frames_dirs]
     summary = train_from_sources(
         sources, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
