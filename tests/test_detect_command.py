@@ -267,6 +267,16 @@ def test_a_corrupt_model_file_is_one_line_before_any_output(tmp_path):
     assert not (tmp_path / "x.geojson").exists()
     one_error(run(tmp_path, "--out", tmp_path / "o", f"nav.detector.model={bad}"), bad)
     assert not (tmp_path / "o").exists()
+    # the same for the FCOS detector: checked once, before the folder's first image
+    one_error(run(tmp_path, "--out", tmp_path / "o", "--detector", "fcos", f"nav.detector.model={bad}"), bad)
+    assert not (tmp_path / "o").exists()
+    # and a trained detector's model is an input no output may replace, whichever detector it is
+    from crater_synth.navigation.detect_cmd import Detector, model_inputs
+    from crater_synth.navigation.detectors.fcos import FcosSettings
+    from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings
+
+    assert model_inputs(Detector("fcos", FcosSettings(model=str(bad)), None)) == [bad]
+    assert model_inputs(Detector("learned-detect", LearnedSettings(), None)) == [DEFAULT_MODEL]
 
 
 @pytest.mark.parametrize(

@@ -36,6 +36,7 @@ DEFERRING_MODULES = {
     "train.data": "torch",
     "train.evaluate": "torch",
     "train.fcos_detector": "torch",
+    "train.model_files": "torch",
     "train.models": "torch",
     "train.trainer": "torch",
     "train.tv_ops": "torch",

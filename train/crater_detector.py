@@ -21,9 +21,6 @@ and labels and calls :func:`detect_pyramid`.
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -34,8 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from crater_core.schema import atomic_write_bytes
 from crater_core.settings_nav import DetectorTrainSettings
+from train.model_files import DetectorModelError, read_model_file, write_model_file
 
 BAND_LO_PX = 6.0  # rim radius band of one pyramid level, px
 BAND_HI_PX = 12.0
@@ -45,10 +42,6 @@ HEAT_SIGMA_R = 0.25  # heat-map Gaussian sigma, fraction of the rim radius
 MIN_LEVEL_PX = 24  # a pyramid level smaller than this is not searched
 GAUSS_REACH_SIGMA = 7.0  # exp(-49 / 2) = 2e-11: past it a heat target is 0 (1 - heat == 1 in float32)
 MODEL_FORMAT = "crater-synth-detector/1"
-
-
-class DetectorModelError(ValueError):
-    """A detector model file that cannot be used (missing, corrupt, wrong format)."""
 
 
 def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
@@ -412,51 +405,8 @@ def train_detector(
 
 
 # ------------------------------------------------------------------------------------------------
-# Model files
+# Model files (the format: train.model_files)
 # ------------------------------------------------------------------------------------------------
-def write_model_file(path: Path, fmt: str, state_dict: dict, meta: dict, **fields) -> None:
-    """Write weights (``state_dict``), ``meta`` (provenance, settings; plain JSON types) and the architecture
-    ``fields`` atomically under the format tag ``fmt``, with a sha256 of the weights (every detector's file)."""
-    meta = json.loads(json.dumps(meta, default=str))  # plain JSON types only: the file loads with weights_only
-    buf = io.BytesIO()
-    torch.save(state_dict, buf)
-    weights = buf.getvalue()
-    payload = {
-        "format": fmt,
-        **fields,
-        "meta": meta,
-        "weights_sha256": hashlib.sha256(weights).hexdigest(),
-        "weights": weights,
-    }
-    out = io.BytesIO()
-    torch.save(payload, out)
-    atomic_write_bytes(Path(path), out.getvalue())
-
-
-def read_model_file(path: Path, fmt: str, build) -> tuple[nn.Module, dict]:
-    """The model (``build(payload)`` with the file's weights loaded, in eval mode) and its meta from a
-    :func:`write_model_file` file of format ``fmt``; a missing, corrupt or foreign file raises
-    :class:`DetectorModelError` naming it."""
-    path = Path(path)
-    if not path.is_file():
-        raise DetectorModelError(f"detector model {path}: no such file")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(payload, dict) or payload.get("format") != fmt:
-            raise DetectorModelError(f"detector model {path}: not a {fmt} file")
-        weights = payload["weights"]
-        if hashlib.sha256(weights).hexdigest() != payload["weights_sha256"]:
-            raise DetectorModelError(f"detector model {path}: weights checksum mismatch (corrupt file)")
-        model = build(payload)
-        model.load_state_dict(torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True))
-    except DetectorModelError:
-        raise
-    except Exception as exc:  # torch raises many types on a damaged file
-        raise DetectorModelError(f"detector model {path}: cannot be read ({type(exc).__name__})") from None
-    model.eval()
-    return model, dict(payload["meta"])
-
-
 def save_model(path: Path, model: CraterNet, meta: dict) -> None:
     """Write the weights and ``meta`` (provenance, settings) atomically, with a sha256 of the weights."""
     write_model_file(path, MODEL_FORMAT, model.state_dict(), meta, width=model.head.in_channels)

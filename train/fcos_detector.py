@@ -24,16 +24,8 @@ import torch
 from torch import nn
 
 from crater_core.settings_nav import DetectorTrainSettings
-from train.crater_detector import (
-    DetectorModelError,
-    LevelSample,
-    augment_brightness,
-    decimate2,
-    read_model_file,
-    source_probabilities,
-    standardise,
-    write_model_file,
-)
+from train.crater_detector import LevelSample, augment_brightness, decimate2, source_probabilities, standardise
+from train.model_files import DetectorModelError, read_model_file, write_model_file
 from train.tv_ops import import_torchvision
 
 MODEL_FORMAT = "crater-synth-fcos-detector/1"
@@ -203,7 +195,7 @@ def save_model(path, model: nn.Module, meta: dict) -> None:
 
 def load_model(path) -> tuple[nn.Module, dict]:
     """The model and its meta from a :func:`save_model` file; a missing, corrupt or foreign file raises
-    :class:`train.crater_detector.DetectorModelError` naming it."""
+    :class:`train.model_files.DetectorModelError` naming it."""
     return read_model_file(path, MODEL_FORMAT, lambda payload: build_fcos(int(payload["width"])))
 
 

@@ -50,7 +50,7 @@ from crater_core.exr import read_channel
 from crater_core.schema import EXR_CHANNELS, atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors import learned, registry
+from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.frame_file import (
     EXIT_SOME_FAILED,
@@ -176,7 +176,7 @@ def detect_command(source, out, pixel_m, png, detector_name, light_azimuth, over
 # ------------------------------------------------------------------------------------------------
 def load_detector(name: str | None, overrides, light_azimuth: float | None) -> Detector:
     """The detector's settings composed once (``--detector`` or ``nav/detector=``, default
-    :data:`DEFAULT_DETECTOR`) and, for the learned one, its model loaded once (a corrupt file: one line)."""
+    :data:`DEFAULT_DETECTOR`) and, for a trained one, its model loaded once (a corrupt file: one line)."""
     picked = [o for o in overrides if o.lstrip("+").startswith("nav/detector=")]
     if name is not None and picked:
         raise UserError(f"--detector {name} and {picked[0]}: give one of them")
@@ -192,17 +192,15 @@ def load_detector(name: str | None, overrides, light_azimuth: float | None) -> D
         )
     if light_azimuth is not None and not (entry.spectrum or nav.detector.refine):
         raise UserError(f"--light-azimuth: nav/detector={option} uses no light direction")
-    if isinstance(nav.detector, learned.LearnedSettings):
-        learned.load_model(str(learned.model_path(nav.detector)))
+    registry.preload_model(nav.detector)
     light = None if light_azimuth is None else math.radians(light_azimuth)
     return Detector(option, nav.detector, light)
 
 
 def model_inputs(detector: Detector) -> list[Path]:
-    """The detector's own input files (the learned model), which no output may replace."""
-    if isinstance(detector.params, learned.LearnedSettings):
-        return [learned.model_path(detector.params)]
-    return []
+    """The detector's own input files (a trained detector's model), which no output may replace."""
+    path = registry.model_file(detector.params)
+    return [path] if path else []
 
 
 def png_path(out: Path) -> Path:

@@ -30,7 +30,7 @@ from crater_core.errors import ContractError
 from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors import learned
+from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
@@ -528,8 +528,7 @@ def navigate_folder(request: NavigateRequest, overrides, png: bool) -> list[dict
             "the folder with nav-frames-eval; a folder run takes map windows"
         )
     nav = window_settings(request, overrides)
-    if isinstance(nav.detector, learned.LearnedSettings):
-        learned.load_model(str(learned.model_path(nav.detector)))  # a corrupt model: one line, before any window
+    registry.preload_model(nav.detector)  # a corrupt model: one line, before any window
     maps: dict = {}
     results: list[dict] = []
     failed: list[dict] = []

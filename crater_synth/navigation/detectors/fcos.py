@@ -34,8 +34,8 @@ class FcosSettings(DetectorSettings):
 
 @functools.lru_cache(maxsize=4)
 def load_fcos_model(path: str):
-    from train.crater_detector import DetectorModelError
     from train.fcos_detector import load_model
+    from train.model_files import DetectorModelError
 
     try:
         return load_model(Path(path))
@@ -72,4 +72,6 @@ DETECTOR = DetectorEntry(
     "torchvision's FCOS with a small ResNet, trained from scratch on rendered frames only "
     "(crater_synth.navigation.detectors.fcos, train.fcos_detector)",
     spectrum=False,
+    model_file=fcos_model_path,
+    load_model=load_fcos_model,
 )

@@ -45,7 +45,8 @@ class DetectorModelFileError(UserError):
 
 @functools.lru_cache(maxsize=4)
 def load_model(path: str):
-    from train.crater_detector import DetectorModelError, load_model
+    from train.crater_detector import load_model
+    from train.model_files import DetectorModelError
 
     try:
         return load_model(Path(path))
@@ -85,4 +86,6 @@ DETECTOR = DetectorEntry(
     "fully convolutional network on an image pyramid, trained on rendered frames only "
     "(crater_synth.navigation.detectors.learned, train.crater_detector)",
     spectrum=False,
+    model_file=model_path,
+    load_model=load_model,
 )

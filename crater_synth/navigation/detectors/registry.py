@@ -17,6 +17,7 @@ import functools
 import importlib
 import pkgutil
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 from crater_core.typed_config import SettingsError
@@ -45,14 +46,18 @@ class CandidateInput:
 class DetectorEntry:
     """One detector: ``name`` (``nav/detector=<name>``; its settings' ``method``), ``settings`` (its frozen
     settings class), ``candidates`` (None: not an image detector; it searches the map's landmarks under a
-    prior, so ``detect()`` refuses it), a one-line ``description``, and whether it needs the frame's
-    Fourier spectrum and a light direction (``spectrum``)."""
+    prior, so ``detect()`` refuses it), a one-line ``description``, whether it needs the frame's Fourier
+    spectrum and a light direction (``spectrum``), and for a trained detector its model file and loader."""
 
     name: str
     settings: type
     candidates: Callable | None
     description: str
     spectrum: bool = True
+    # A trained detector's model: the file its settings name (``model_file(params)``) and its cached loader
+    # (``load_model(path_str)``; a bad file raises one error line); None for a detector with no model.
+    model_file: Callable | None = None
+    load_model: Callable | None = None
 
 
 @functools.lru_cache(maxsize=1)
@@ -85,3 +90,17 @@ def settings_from(mapping, path: str = "nav.detector"):
     if method not in detectors():
         raise SettingsError(f"{path}.method", f"must be one of {', '.join(sorted(detectors()))}", method)
     return detector(method).settings.from_config(mapping, path)
+
+
+def model_file(params) -> Path | None:
+    """The model file a detector's settings name (None: the detector has no model), which a command's
+    outputs must never replace."""
+    entry = detector(params.method)
+    return entry.model_file(params) if entry.model_file else None
+
+
+def preload_model(params) -> None:
+    """Load the detector's model once, before any frame: a bad model file is one error line up front."""
+    entry = detector(params.method)
+    if entry.model_file and entry.load_model:
+        entry.load_model(str(entry.model_file(params)))
