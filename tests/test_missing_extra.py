@@ -72,6 +72,18 @@ def test_missing_dask_for_the_dask_launcher(tmp_path):
     assert not out.exists()
 
 
+def test_missing_dask_for_a_sharded_detection_set(tmp_path):
+    """detection-frames launcher=dask without Dask: one line naming the dask extra, no folder made."""
+    out = tmp_path / "det"
+    proc = cli_blocked({"distributed"}, "detection-frames", "--out", str(out), "--frames", "1", "launcher=dask")
+    _one_error_line(
+        proc,
+        f"`crater-synth detection-frames` needs the dask extra (distributed is not installed): "
+        f"pip install -e '{REPO}[dask]'",
+    )
+    assert not out.exists()
+
+
 def test_help_needs_no_extra():
     proc = cli_blocked({"torch"}, "train", "--help")
     assert proc.returncode == 0, proc.stderr
@@ -83,7 +95,10 @@ def test_render_commands_import_nothing_beyond_the_render_extra(command):
     """Every project module a render command may import loads without the other extras' libraries (the
     Blender worker's modules, which import bpy and run in the worker process, are checked by
     tests/test_declared_deps.py), and its help shows."""
-    modules = closure(MODULES[command], stop={"crater_synth.dataset.dask_launcher"})
+    # the Dask launchers are imported only for launcher=dask (the dask extra)
+    modules = closure(
+        MODULES[command], stop={"crater_synth.dataset.dask_launcher", "crater_synth.dataset.detection_dask"}
+    )
     host = sorted(m for m in modules if not imports(m)[1] & {"bpy", "mathutils"})
     code = f"import importlib\nfor m in {host!r}:\n    importlib.import_module(m)\n"
     code += f"from crater_synth.cli import main\nmain([{command!r}, '--help'], prog_name='crater-synth')\n"
