@@ -358,14 +358,11 @@ def source_probabilities(source, shares) -> np.ndarray | None:
     return p / p.sum()
 
 
-def train_detector(
-    samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
-) -> dict:
-    """Train :class:`CraterNet` on level samples; returns {"model" (on the CPU), "history", "seconds",
-    "checkpoints"} (``checkpoints``: step -> state dict copies at ``settings.checkpoints``). Each drawn
-    crop's targets are computed for the crop alone (:func:`crop_stack`), so memory holds the level images
-    and their craters, not full target stacks; augmentation is a tensor operation on ``device``.
-    ``source`` (an index per sample) with ``settings.source_shares`` sets each source's share of the draws."""
+def fit(build, samples: list, settings: DetectorTrainSettings, step_loss, log=None, device: str = "cpu", source=None):
+    """The training loop of every detector (torchvision's references/detection shape): seeds, the draw
+    probabilities of ``source`` (:func:`source_probabilities`), ``build()`` the model, AdamW with a one-cycle
+    schedule, and per step ``step_loss(model, rng, p, gen)`` -> (loss, {part: value}). Returns {"model" (on
+    the CPU), "history", "seconds", "checkpoints"} (step -> state dict copies at ``settings.checkpoints``)."""
     if not samples:
         raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
     torch.manual_seed(settings.seed)
@@ -375,33 +372,48 @@ def train_detector(
     p = source_probabilities(np.zeros(len(samples), int) if source is None else source, settings.source_shares)
     gen = torch.Generator(device=device)
     gen.manual_seed(settings.seed)
-    tops = [brightness_top(x.image) for x in samples]
-    model = CraterNet(settings.width).to(device)
+    model = build().to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
-    history = []
-    checkpoints = {}
+    history, checkpoints = [], {}
     t0 = time.perf_counter()
     model.train()
     for step in range(1, settings.steps + 1):
-        t = _batch(samples, tops, settings, rng, p).to(device)
-        out = model(augment(t, settings, gen))
-        w = t[:, _WEIGHT] * t[:, _VALID]
-        loss, parts = detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)
+        loss, parts = step_loss(model, rng, p, gen)
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
         if step % 50 == 0 or step == settings.steps:
-            history.append(
-                {"step": step, "loss": round(float(loss.detach()), 4), **{k: round(v, 4) for k, v in parts.items()}}
-            )
+            row = {k: round(float(v), 4) for k, v in parts.items()}
+            history.append({"step": step, "loss": round(float(loss.detach()), 4), **row})
             if log:
-                log(f"step {step}/{settings.steps}: loss {float(loss.detach()):.3f} ({parts['heat']:.3f} heat)")
+                log(
+                    f"step {step}/{settings.steps}: loss {float(loss.detach()):.3f} "
+                    + ", ".join(f"{k} {v}" for k, v in row.items())
+                )
         if step in settings.checkpoints:
             checkpoints[step] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     model.eval()
     return {"model": model.cpu(), "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
+
+
+def train_detector(
+    samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
+) -> dict:
+    """Train :class:`CraterNet` on level samples (:func:`fit`). Each drawn crop's targets are computed for
+    the crop alone (:func:`crop_stack`), so memory holds the level images and their craters, not full
+    target stacks; augmentation is a tensor operation on ``device``. ``source`` (an index per sample) with
+    ``settings.source_shares`` sets each source's share of the draws."""
+    tops = [brightness_top(x.image) for x in samples]
+
+    def step_loss(model, rng, p, gen):
+        t = _batch(samples, tops, settings, rng, p).to(device)
+        out = model(augment(t, settings, gen))
+        w = t[:, _WEIGHT] * t[:, _VALID]
+        return detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)
+
+    return fit(lambda: CraterNet(settings.width), samples, settings, step_loss, log, device, source)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -17,15 +17,13 @@ photometric augmentation (:func:`train.crater_detector.augment_brightness`) and 
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import torch
 from torch import nn
 
 from crater_core.settings_nav import DetectorTrainSettings
-from train.crater_detector import LevelSample, augment_brightness, decimate2, source_probabilities, standardise
-from train.model_files import DetectorModelError, read_model_file, write_model_file
+from train.crater_detector import LevelSample, augment_brightness, decimate2, fit, standardise
+from train.model_files import read_model_file, write_model_file
 from train.tv_ops import import_torchvision
 
 MODEL_FORMAT = "crater-synth-fcos-detector/1"
@@ -141,44 +139,18 @@ def _batch(prepared, s: DetectorTrainSettings, rng: np.random.Generator, p) -> t
 def train_fcos(
     samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
 ) -> dict:
-    """Train :func:`build_fcos` on level samples (torchvision's references/detection loop: the model's loss
-    dict summed, AdamW, one-cycle warm-up and cosine decay); returns {"model" (on the CPU), "history",
-    "seconds", "checkpoints"} as :func:`train.crater_detector.train_detector`."""
-    if not samples:
-        raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
-    torch.manual_seed(settings.seed)
-    if settings.threads:
-        torch.set_num_threads(settings.threads)
-    rng = np.random.default_rng(settings.seed)
-    p = source_probabilities(np.zeros(len(samples), int) if source is None else source, settings.source_shares)
-    gen = torch.Generator(device=device)
-    gen.manual_seed(settings.seed)
+    """Train :func:`build_fcos` on level samples with the detectors' loop (:func:`train.crater_detector.fit`:
+    torchvision's references/detection shape, the model's loss dict summed); returns what ``fit`` does."""
     prepared = [_prepared(x, settings.crop_px) for x in samples]
-    model = build_fcos(settings.width).to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
-    history, checkpoints = [], {}
-    t0 = time.perf_counter()
-    model.train()
-    for step in range(1, settings.steps + 1):
+
+    def step_loss(model, rng, p, gen):
         t, targets = _batch(prepared, settings, rng, p)
         t = t.to(device)
         x = augment_brightness(t[:, :1], t[:, 1:], settings, gen)
         parts = model(list(x), [{k: v.to(device) for k, v in tg.items()} for tg in targets])
-        loss = sum(parts.values())
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step % 50 == 0 or step == settings.steps:
-            row = {k: round(float(v.detach()), 4) for k, v in parts.items()}
-            history.append({"step": step, "loss": round(float(loss.detach()), 4), **row})
-            if log:
-                log(f"step {step}/{settings.steps}: loss {float(loss.detach()):.3f} {row}")
-        if step in settings.checkpoints:
-            checkpoints[step] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    model.eval()
-    return {"model": model.cpu(), "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
+        return sum(parts.values()), {k: float(v.detach()) for k, v in parts.items()}
+
+    return fit(lambda: build_fcos(settings.width), samples, settings, step_loss, log, device, source)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -11,14 +11,13 @@ This module is inference only.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
 from crater_core.settings_nav import DetectorSettings
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.learned import DetectorModelFileError, first_level
+from crater_synth.navigation.detectors.learned import cached_loader, first_level, within_radii
 from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
 
 
@@ -32,15 +31,13 @@ class FcosSettings(DetectorSettings):
     model: str = ""  # model file (required: no FCOS model is committed)
 
 
-@functools.lru_cache(maxsize=4)
-def load_fcos_model(path: str):
-    from train.fcos_detector import load_model
-    from train.model_files import DetectorModelError
+def _read_fcos(path: Path):
+    from train.fcos_detector import load_model as read
 
-    try:
-        return load_model(Path(path))
-    except DetectorModelError as exc:
-        raise DetectorModelFileError(str(exc)) from None
+    return read(path)
+
+
+load_fcos_model = cached_loader(_read_fcos)
 
 
 def fcos_model_path(params: FcosSettings) -> Path:
@@ -60,8 +57,7 @@ def fcos_candidates(frame: CandidateInput, params: FcosSettings):
 
     model, _meta = load_fcos_model(str(fcos_model_path(params)))
     u, v, r, s = detect_fcos(model, frame.image, params.threshold, first_level(params.min_radius_px))
-    keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
-    return u[keep], v[keep], r[keep], s[keep]
+    return within_radii(params, u, v, r, s)
 
 
 # Like the learned detector: no Fourier spectrum, no light direction.

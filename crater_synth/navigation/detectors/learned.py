@@ -43,15 +43,29 @@ class DetectorModelFileError(UserError):
     """The learned detector's model file cannot be used."""
 
 
-@functools.lru_cache(maxsize=4)
-def load_model(path: str):
-    from train.crater_detector import load_model
-    from train.model_files import DetectorModelError
+def cached_loader(read):
+    """A detector's model loader: ``read(Path)`` (a train module's ``load_model``) cached by path (a few
+    models at a time), a file that cannot be used one :class:`DetectorModelFileError` naming it."""
 
-    try:
-        return load_model(Path(path))
-    except DetectorModelError as exc:
-        raise DetectorModelFileError(str(exc)) from None
+    @functools.lru_cache(maxsize=4)
+    def load(path: str):
+        from train.model_files import DetectorModelError
+
+        try:
+            return read(Path(path))
+        except DetectorModelError as exc:
+            raise DetectorModelFileError(str(exc)) from None
+
+    return load
+
+
+def _read_centernet(path: Path):
+    from train.crater_detector import load_model as read
+
+    return read(path)
+
+
+load_model = cached_loader(_read_centernet)
 
 
 def model_path(params) -> Path:
@@ -74,6 +88,12 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
 
     model, _meta = load_model(str(model_path(params)))
     u, v, r, s, _level = detect_pyramid(model, frame.image, params.threshold, first_level(params.min_radius_px))
+    return within_radii(params, u, v, r, s)
+
+
+def within_radii(params, u, v, r, s):
+    """The candidates (u, v, r, score arrays) whose radius lies in the detector's [min_radius_px,
+    max_radius_px]."""
     keep = (r >= params.min_radius_px) & (r <= params.max_radius_px)
     return u[keep], v[keep], r[keep], s[keep]
 
