@@ -214,51 +214,40 @@ _IMG, _HEAT, _WEIGHT, _DU, _DV, _LOGR, _CENTRE, _VALID = range(8)
 
 
 def stack_sample(sample: LevelSample, crop_px: int) -> np.ndarray:
-    """(8, H, W) float32 of one level: brightness scaled to its 99.5th percentile, the targets computed
-    once, and the valid-pixel mask; padded with zeros (no loss) to at least ``crop_px`` a side."""
-    a = np.clip(np.asarray(sample.image, np.float32), 0.0, None)
-    top = brightness_top(a)
-    t = level_targets(a.shape, sample.u, sample.v, sample.r, sample.hidden)
-    h, w = a.shape
-    out = np.zeros((8, max(h, crop_px), max(w, crop_px)), np.float32)
-    out[_IMG, :h, :w] = a / top
-    out[_HEAT, :h, :w] = t["heat"]
-    out[_WEIGHT, :h, :w] = t["weight"]
-    out[_DU : _DV + 1, :h, :w] = t["offset"]
-    out[_LOGR, :h, :w] = t["logr"]
-    out[_CENTRE, :h, :w] = t["centre"]
-    out[_VALID, :h, :w] = 1.0
-    return out
+    """(8, H, W) float32 of one whole level (:func:`crop_stack` from its corner), padded with zeros (no loss)
+    to at least ``crop_px`` a side."""
+    h, w = np.shape(sample.image)
+    return crop_stack(sample, brightness_top(sample.image), 0, 0, max(h, crop_px), max(w, crop_px))
 
 
 CROP_REACH_PX = 24.0  # farthest a crater outside a crop can set its targets: a 16 px disc, a 21 px Gaussian
 
 
-def crop_stack(sample: LevelSample, top: float, i0: int, j0: int, crop_px: int) -> np.ndarray:
-    """The ``crop_px`` x ``crop_px`` window at (i0, j0) of :func:`stack_sample` (brightness over ``top``, the
-    level's 99.5th percentile), computed for that window only: the same values, without holding every
-    level's full stack in memory (~3 MB a 256 px frame), which would cap a training set at a few thousand
-    frames."""
+def crop_stack(sample: LevelSample, top: float, i0: int, j0: int, hw: int, ww: int) -> np.ndarray:
+    """(8, hw, ww) float32: the window at (i0, j0) of one level, its brightness over ``top`` (the level's
+    99.5th percentile), the targets of :func:`level_targets` computed for the window alone, and the
+    valid-pixel mask; past the level's edge, zeros (no loss). Training draws crops this way instead of
+    holding every level's full stack in memory (~3 MB a 256 px frame), which would cap a training set at a
+    few thousand frames."""
     a = np.clip(np.asarray(sample.image, np.float32), 0.0, None)
     h, w = a.shape
-    c = crop_px
     u, v, r = sample.u, sample.v, sample.r
     near = (
         (u > j0 - CROP_REACH_PX)
-        & (u < j0 + c + CROP_REACH_PX)
+        & (u < j0 + ww + CROP_REACH_PX)
         & (v > i0 - CROP_REACH_PX)
-        & (v < i0 + c + CROP_REACH_PX)
+        & (v < i0 + hw + CROP_REACH_PX)
     )
-    t = level_targets(a.shape, u[near], v[near], r[near], sample.hidden[near], window=(i0, j0, c, c))
-    out = np.zeros((8, c, c), np.float32)
-    hh, ww = max(0, min(c, h - i0)), max(0, min(c, w - j0))
-    out[_IMG, :hh, :ww] = a[i0 : i0 + hh, j0 : j0 + ww] / top
-    out[_HEAT, :hh, :ww] = t["heat"][:hh, :ww]
-    out[_WEIGHT, :hh, :ww] = t["weight"][:hh, :ww]
-    out[_DU : _DV + 1, :hh, :ww] = t["offset"][:, :hh, :ww]
-    out[_LOGR, :hh, :ww] = t["logr"][:hh, :ww]
-    out[_CENTRE, :hh, :ww] = t["centre"][:hh, :ww]
-    out[_VALID, :hh, :ww] = 1.0
+    t = level_targets(a.shape, u[near], v[near], r[near], sample.hidden[near], window=(i0, j0, hw, ww))
+    out = np.zeros((8, hw, ww), np.float32)
+    hh, wv = max(0, min(hw, h - i0)), max(0, min(ww, w - j0))
+    out[_IMG, :hh, :wv] = a[i0 : i0 + hh, j0 : j0 + wv] / top
+    out[_HEAT, :hh, :wv] = t["heat"][:hh, :wv]
+    out[_WEIGHT, :hh, :wv] = t["weight"][:hh, :wv]
+    out[_DU : _DV + 1, :hh, :wv] = t["offset"][:, :hh, :wv]
+    out[_LOGR, :hh, :wv] = t["logr"][:hh, :wv]
+    out[_CENTRE, :hh, :wv] = t["centre"][:hh, :wv]
+    out[_VALID, :hh, :wv] = 1.0
     return out
 
 
@@ -337,7 +326,7 @@ def _batch(
         x = samples[int(i)]
         h, w = (max(n, c) for n in x.image.shape)
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        t = torch.from_numpy(crop_stack(x, tops[int(i)], i0, j0, c))
+        t = torch.from_numpy(crop_stack(x, tops[int(i)], i0, j0, c, c))
         crops.append(dihedral(t, int(rng.integers(4)), bool(rng.integers(2))))
     return torch.stack(crops)
 
