@@ -217,6 +217,9 @@ class DetectorTrainSettings(Group):
     # With several training folders: each one's share of the drawn crops, in the order given (empty:
     # every level sample equally likely, so a folder weighs by its frame count).
     source_shares: Tuple[float, ...] = ()
+    # A model file whose weights training starts from (fine-tuning; its width replaces ``width``); empty:
+    # random initialisation.
+    init: str = ""
 
     def _check(self) -> None:
         need(self.arch in ARCHS, "arch", self.arch, f"must be one of {', '.join(ARCHS)}")
@@ -233,6 +236,7 @@ class DetectorTrainSettings(Group):
             self.source_shares,
             "must be >= 0 with a positive sum",
         )
+        need(not self.init or self.arch == "centernet", "init", self.init, "fine-tuning needs arch=centernet")
         bad = [c for c in self.checkpoints if not 1 <= c < self.steps]
         last = self.steps - 1
         need(not bad, "checkpoints", self.checkpoints, f"must lie in [1, {last}] (the last step is the model)")

@@ -115,7 +115,7 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
         ),
         (
             "nav-detector-train",
-            f"{_NAV}.rendered.detector_train:nav_detector_train_command",
+            f"{_NAV}.train_cmd:nav_detector_train_command",
             "Train the learned crater detector.",
         ),
     ),

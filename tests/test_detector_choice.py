@@ -4,7 +4,8 @@ from crater_synth.tools.detector_choice import POLE, SPLIT, choose, f1
 
 
 def _run(model, t, p, r):
-    return {"model": model, "threshold": t, "catalogue_15km": {"precision_15km": p, "recall_15km": r, "f1": f1(p, r)}}
+    cat = {"precision_15km": p, "recall_15km": r, "f1": f1(p, r)}
+    return {"model": model, "threshold": t, "catalogue_15km": cat, "model_sha256": f"sha of {model}"}
 
 
 def test_f1_and_the_choice_rule():
@@ -12,6 +13,7 @@ def test_f1_and_the_choice_rule():
     runs = [_run("committed", 0.3, 0.91, 0.38), _run("a.pt", 0.3, 0.7, 0.7), _run("a.pt", 0.4, 0.8, 0.6)]
     runs.append(_run("b.pt", 0.2, None, None))  # no detection of D >= 15 km: never chosen
     assert choose(runs)["model"] == "a.pt" and choose(runs)["threshold"] == 0.3
+    assert choose(runs)["model_sha256"] == "sha of a.pt"  # what the north test checks its model against
     tie = [_run("x", 0.2, 0.6, 0.8), _run("y", 0.3, 0.8, 0.6)]  # same F1: the more precise
     assert choose(tie)["model"] == "y"
     assert (POLE, SPLIT) == ("south", "validation")  # never the north test, nor the spent south test

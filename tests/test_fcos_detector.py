@@ -97,7 +97,7 @@ def test_fcos_trains_saves_loads_and_detects_through_detect(tmp_path):
     out = tmp_path / "fcos.pt"
     s = cd.DetectorTrainSettings(arch="fcos", steps=2, batch=2, crop_px=64, width=16, threads=1, lr=1e-3)
     summary = detector_train.train_from_sources([detector_train.detection_source(frames, 0.34)], out, s)
-    assert summary["synthetic_holdout"]["frames"] == 2 and summary["settings"]["arch"] == "fcos"
+    assert summary["holdout"]["frames"] == 2 and summary["settings"]["arch"] == "fcos"
     model, meta = fd.load_model(out)
     assert meta["settings"]["width"] == 16 and fd.weight_count(model) > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["det", "fcos.pt"]

@@ -336,6 +336,7 @@ NAV_RANK = {
     f"{NAV}.navigate": 7,
     f"{NAV}.demo": 7,
     f"{NAV}.detect_cmd": 7,
+    f"{NAV}.train_cmd": 7,
 }
 # The longest chain of imports between navigation modules (counted in modules, the first included).
 NAV_MAX_CHAIN = 8

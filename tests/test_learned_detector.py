@@ -237,7 +237,7 @@ def test_train_from_survey_holds_out_the_last_tracks_and_writes_a_usable_model(t
     s = cd.DetectorTrainSettings(steps=4, batch=2, crop_px=32, width=4, threads=1, checkpoints=(2,))
     summary = learned_train.train_from_survey(frames, out, s, holdout=1)
     assert summary["train_tracks"] == ["track_000", "track_001"] and summary["holdout_tracks"] == ["track_002"]
-    assert summary["synthetic_holdout"]["frames"] == 2
+    assert summary["holdout"]["frames"] == 2
     assert out.is_file() and (tmp_path / "model.step2.pt").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt", "model.step2.pt", "survey"]
     params = dataclasses.replace(compose_nav(["nav/detector=learned"]).detector, model=str(out), threshold=0.0)
@@ -429,9 +429,7 @@ def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
     s = cd.DetectorTrainSettings(steps=3, batch=2, crop_px=32, width=4, threads=1)
     summary = learned_train.train_from_detection(frames, out, s, holdout_share=0.25)
     assert summary["holdout_fields"] == [3] and summary["train_fields"] == 3 and summary["train_frames"] == 6
-    assert (
-        summary["synthetic_holdout"]["frames"] == 2 and summary["synthetic_holdout"]["min_radius_px"] == cd.BAND_LO_PX
-    )
+    assert summary["holdout"]["frames"] == 2 and summary["holdout"]["min_radius_px"] == cd.BAND_LO_PX
     assert "procedural" in summary["trained_on"] and summary["recipe"] == "recipe test"
     assert learned.load_model(str(out))[1]["frames_dir"] == str(frames)
 
@@ -460,9 +458,9 @@ def test_train_on_a_survey_and_a_detection_set_together_scores_each_hold_out(tmp
     assert first["holdout_tracks"] == ["track_002"] and first["train_frames"] == 4
     assert second["holdout_fields"] == [3] and second["train_frames"] == 6
     assert (
-        first["synthetic_holdout"]["frames"] == 2
-        and first["synthetic_holdout"]["min_diameter_km"] == 15.0
-        and second["synthetic_holdout"]["min_radius_px"] == cd.BAND_LO_PX
+        first["holdout"]["frames"] == 2
+        and first["holdout"]["min_diameter_km"] == 15.0
+        and second["holdout"]["min_radius_px"] == cd.BAND_LO_PX
     )
     assert summary["train_frames"] == first["train_frames"] + second["train_frames"]
     assert "survey" in summary["trained_on"] and "procedural" in summary["trained_on"]
@@ -483,7 +481,7 @@ def test_nav_detector_train_refuses_a_folder_twice_and_shares_that_do_not_fit(tm
     r = runner.invoke(
         main, ["nav-detector-train", str(det), "--out", str(out), "nav.detector_train.source_shares=[0.5,0.5]"]
     )
-    assert r.exit_code == 2 and "one share per frames folder (1 given)" in r.output
+    assert r.exit_code == 2 and "one share per training source (1 given)" in r.output
     assert not out.exists()
 
 

@@ -21,6 +21,7 @@ and labels and calls :func:`detect_pyramid`.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -402,7 +403,18 @@ def train_detector(
         w = t[:, _WEIGHT] * t[:, _VALID]
         return detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)
 
-    return fit(lambda: CraterNet(settings.width), samples, settings, step_loss, log, device, source)
+    if not settings.init:
+        return fit(lambda: CraterNet(settings.width), samples, settings, step_loss, log, device, source)
+    # Fine-tuning: the init model's weights (and so its width) are the start; the schedule is this run's.
+    init_model, init_meta = load_model(Path(settings.init))
+    result = fit(lambda: init_model, samples, settings, step_loss, log, device, source)
+    result["init"] = {
+        "model": settings.init,
+        "file_sha256": hashlib.sha256(Path(settings.init).read_bytes()).hexdigest(),
+        "width": init_model.head.in_channels,
+        "trained_on": init_meta.get("trained_on", "unknown"),
+    }
+    return result
 
 
 # ------------------------------------------------------------------------------------------------

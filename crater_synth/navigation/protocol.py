@@ -36,6 +36,8 @@ HEADLINE_MIN_LANDMARKS = 3
 
 
 SIZE_BINS_KM = (10.0, 15.0, 30.0, 60.0, 1e9)
+# Size bins of the scores against the LU1319381 catalogue, which lists craters from 8 km (issue 40's bins).
+CATALOGUE_BINS_KM = (8.0, 15.0, 30.0, 60.0, 1e9)
 
 
 TARGETS = {"fix_rate": 0.9, "median_error_km": 0.8, "false_fix_rate": 0.01, "recall_15km": 0.8, "precision_15km": 0.9}
@@ -154,16 +156,18 @@ def patches_alone(rows: list[dict]) -> dict:
     return out
 
 
-def catalogue_split(row: dict) -> dict[str, list[int]]:
-    """One row's D >= 15 km split against the crater catalogue (:func:`.windows.evaluate.catalogue_fields`):
-    ``found`` and ``missed``, positions in the row's catalogue craters in view (``catalogue_d_km``) of
-    D >= 15 km that a detection matches or none does; ``true`` and ``false``, indices of the detections of
-    D >= 15 km that match a map landmark (any size) or a catalogued crater (any size), or neither (the map's
-    truth misses most catalogued craters, and a detection of a crater the catalogue lacks is no false one)."""
+def catalogue_split(row: dict, lo_km: float = HEADLINE_MIN_D_KM, hi_km: float = 1e9) -> dict[str, list[int]]:
+    """One row's split against the crater catalogue (:func:`.windows.evaluate.catalogue_fields`) for
+    diameters in [``lo_km``, ``hi_km``) (default: D >= 15 km): ``found`` and ``missed``, positions in the
+    row's catalogue craters in view (``catalogue_d_km``) of that size that a detection matches or none does;
+    ``true`` and ``false``, indices of the detections of that size that match a map landmark (any size) or a
+    catalogued crater (any size), or neither (the map's truth misses most catalogued craters, and a
+    detection of a crater the catalogue lacks is no false one)."""
     dt = np.array(row["catalogue_d_km"], dtype=float)
     found = {int(k) for k in row["catalogue_found"]}
-    big = np.nonzero(dt >= HEADLINE_MIN_D_KM)[0]
-    sel = np.nonzero(2.0 * np.array(row["det_r_km"], dtype=float) >= HEADLINE_MIN_D_KM)[0]
+    big = np.nonzero((dt >= lo_km) & (dt < hi_km))[0]
+    dd = 2.0 * np.array(row["det_r_km"], dtype=float)
+    sel = np.nonzero((dd >= lo_km) & (dd < hi_km))[0]
     true = {int(k) for k in row["matched"]} | set(row["matched_any"]) | set(row["matched_catalogue"])
     return {
         "found": [int(k) for k in big if int(k) in found],
@@ -173,20 +177,31 @@ def catalogue_split(row: dict) -> dict[str, list[int]]:
     }
 
 
-def catalogue_scores(rows: list[dict]) -> dict:
-    """D >= 15 km, pooled over ``rows``: recall of the catalogue's craters in view and precision of the
-    detections, by :func:`catalogue_split`."""
-    splits = [catalogue_split(r) for r in rows]
+def _catalogue_pooled(splits: list[dict]) -> tuple[float | None, float | None, int, int]:
     tp_t = sum(len(s["found"]) for s in splits)
     n_t = tp_t + sum(len(s["missed"]) for s in splits)
     tp_d = sum(len(s["true"]) for s in splits)
     n_d = tp_d + sum(len(s["false"]) for s in splits)
-    return {
-        "recall_15km": round(tp_t / n_t, 4) if n_t else None,
-        "precision_15km": round(tp_d / n_d, 4) if n_d else None,
+    return (round(tp_t / n_t, 4) if n_t else None, round(tp_d / n_d, 4) if n_d else None, n_t, n_d)
+
+
+def catalogue_scores(rows: list[dict]) -> dict:
+    """Pooled over ``rows``: recall of the catalogue's craters in view and precision of the detections, by
+    :func:`catalogue_split`, for D >= 15 km and by size (``CATALOGUE_BINS_KM``)."""
+    recall, precision, n_t, n_d = _catalogue_pooled([catalogue_split(r) for r in rows])
+    out: dict = {
+        "recall_15km": recall,
+        "precision_15km": precision,
         "n_catalogue_15km": n_t,
         "n_detections_15km": n_d,
     }
+    bins = {}
+    for lo, hi in zip(CATALOGUE_BINS_KM[:-1], CATALOGUE_BINS_KM[1:]):
+        recall, precision, n_t, n_d = _catalogue_pooled([catalogue_split(r, lo, hi) for r in rows])
+        name = f"{lo:g}-{hi:g}" if hi < 1e8 else f">={lo:g}"
+        bins[name] = {"recall": recall, "precision": precision, "n_catalogue": n_t, "n_detections": n_d}
+    out["by_size_km"] = bins
+    return out
 
 
 def rendered_summary(rows: list[dict]) -> dict:

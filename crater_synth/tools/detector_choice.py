@@ -17,6 +17,7 @@ highest F1; ties go to the higher precision. The north windows are a test: this 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -66,6 +67,7 @@ def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dic
     cat = summary["all_windows"].get("against_catalogue", {})
     return {
         "model": model,
+        "model_sha256": model_sha256(model),
         "method": option,
         "threshold": threshold,
         "catalogue_15km": cat | {"f1": f1(cat.get("precision_15km"), cat.get("recall_15km"))},
@@ -80,7 +82,19 @@ def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dic
 def choose(runs: list[dict]) -> dict:
     scored = [r for r in runs if r["catalogue_15km"]["f1"] is not None]
     best = max(scored, key=lambda r: (r["catalogue_15km"]["f1"], r["catalogue_15km"]["precision_15km"] or 0.0))
-    return {"model": best["model"], "threshold": best["threshold"], "catalogue_15km": best["catalogue_15km"]}
+    return {
+        "model": best["model"],
+        "threshold": best["threshold"],
+        "catalogue_15km": best["catalogue_15km"],
+        "model_sha256": best["model_sha256"],
+    }
+
+
+def model_sha256(model: str) -> str:
+    """sha256 of a ``--model`` value's file (the committed model's for "committed"): what a test run checks
+    it is given the model that was chosen."""
+    _, path = model_option(model)
+    return hashlib.sha256(Path(DEFAULT_MODEL if path == "committed" else path).read_bytes()).hexdigest()
 
 
 def main(argv=None) -> None:
@@ -112,6 +126,9 @@ def main(argv=None) -> None:
         "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",
         "runs": runs,
         "chosen": choose(runs),
+        # Each model's own best threshold by the same rule: what `python -m crater_synth.tools.detector_test`
+        # runs on the north test windows, once, after this file is committed.
+        "chosen_per_model": [choose([r for r in runs if r["model"] == m]) for m in ["committed", *args.model]],
     }
     print(json.dumps(doc["chosen"]))
     if args.out:

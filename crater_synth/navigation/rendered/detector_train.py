@@ -17,15 +17,13 @@ import click
 import numpy as np
 
 from crater_core import exr
-from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
-from crater_synth.config import compose_group
 from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import fcos, learned
 from crater_synth.navigation.detectors.classical import detect
-from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings
+from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
@@ -167,6 +165,7 @@ def survey_source(frames_dir: Path, holdout: int = HOLDOUT_TRACKS) -> tuple[list
     if len(dirs) <= holdout:
         raise UserError(f"{frames_dir}: {len(dirs)} rendered tracks, need more than the {holdout} held out")
     what = {
+        "kind": "survey",
         "trained_on": "rendered survey frames only (crater-synth nav-detector-frames); no real pixel",
         "frames_dir": str(frames_dir),
         "train_tracks": [d.name for d in dirs[: len(dirs) - holdout]],
@@ -185,10 +184,18 @@ def detection_source(folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE) -
 
     train_records, holdout_records, what = detection_set_records(folder, holdout_share)
     what = {
+        "kind": "procedural",
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
         "frames_dir": str(folder),
     } | what
     return train_records, holdout_records, what, {"min_d_km": 0.0, "min_r_px": BAND_LO_PX}
+
+
+SOURCE_NAMES = {
+    "survey": "rendered survey frames",
+    "procedural": "procedural detection frames",
+    "real": "real mosaic windows",
+}
 
 
 def frames_source(frames_dir: Path) -> tuple[list, list, dict, dict]:
@@ -255,14 +262,19 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
         "history": result["history"],
         "code_commit": _code_commit(),
     }
+    if "init" in result:
+        run["init"] = result["init"]
     if len(sources) == 1:
         meta = sources[0][2] | run
     else:
-        kinds = sorted({s[2]["trained_on"].split(" only")[0] for s in sources})
+        kinds = [s[2]["kind"] for s in sources]
         meta = {
-            "trained_on": " + ".join(kinds) + "; no real pixel",
+            "trained_on": " + ".join(SOURCE_NAMES[k] for k in kinds)
+            + ("; real pixels (a reference)" if "real" in kinds else "; no real pixel"),
             "sources": [s[2] | {"train_frames": len(s[0])} for s in sources],
         } | run
+    if settings.init:
+        meta["trained_on"] += "; fine-tuned from a model trained on " + run["init"]["trained_on"]
     tmp = Path(str(out) + ".scoring.pt")
     save_model(tmp, result["model"], meta)
     try:
@@ -271,10 +283,10 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
         tmp.unlink(missing_ok=True)
         model_cache.cache_clear()
     if len(sources) == 1:
-        meta["synthetic_holdout"] = scores[0]
+        meta["holdout"] = scores[0]
     else:
         for entry, score in zip(meta["sources"], scores):
-            entry["synthetic_holdout"] = score
+            entry["holdout"] = score
     model = result["model"]
     final = {k: v.clone() for k, v in model.state_dict().items()}
     for step, state in sorted(result["checkpoints"].items()):
@@ -303,52 +315,3 @@ def nav_detector_frames_command(overrides, tracks, seed, out):
     """
     summary = render_survey(out or DEFAULT_FRAMES, tracks, seed, tuple(overrides))
     click.echo(json.dumps(summary))
-
-
-@click.command("nav-detector-train")
-@click.argument("frames_dir", type=click.Path(path_type=Path))
-@click.option(
-    "--also",
-    "more_dirs",
-    multiple=True,
-    type=click.Path(path_type=Path),
-    help="Another frames folder, trained on together with FRAMES_DIR (repeatable).",
-)
-@click.option("--out", type=click.Path(path_type=Path), default=None, help=f"Model file (default: {DEFAULT_MODEL}).")
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Training device.")
-@OVERRIDES
-@user_errors
-def nav_detector_train_command(frames_dir, more_dirs, out, device, overrides):
-    """Train the learned crater detector on rendered frames; score it on the held-out frames.
-
-    FRAMES_DIR (and each --also folder) is a survey (crater-synth nav-detector-frames: the last 10 tracks held
-    out) or a detection set (crater-synth detection-frames: the last 10 % of its fields held out). Several
-    folders are trained on together (`nav.detector_train.source_shares=[0.5,0.5]`: each one's share of the
-    drawn crops, FRAMES_DIR first) and each is scored on its own hold-out.
-
-    Settings are Hydra overrides of nav.detector_train (docs/navigation/settings.md), e.g.
-    `nav.detector_train.steps=500`, `nav.detector_train.checkpoints=[500,1000]` (also save the weights after
-    these steps), `nav.detector_train.threads=4` (0: every core), `nav.detector_train.arch=fcos` (torchvision's
-    FCOS instead of the learned detector's network; --out required). Example:
-    `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
-    """
-    import torch
-
-    settings = compose_group("nav/detector_train", DetectorTrainSettings, overrides)
-    if device == "cuda" and not torch.cuda.is_available():
-        raise UserError("--device cuda: no CUDA device is available (use --device cpu)")
-    frames_dirs = (frames_dir, *more_dirs)
-    if len(set(frames_dirs)) < len(frames_dirs):
-        raise UserError(f"nav-detector-train: a frames folder is given twice ({', '.join(map(str, frames_dirs))})")
-    if settings.source_shares and len(settings.source_shares) != len(frames_dirs):
-        raise UserError(
-            f"nav.detector_train.source_shares={list(settings.source_shares)}: one share per frames folder "
-            f"({len(frames_dirs)} given)"
-        )
-    if settings.arch != "centernet" and out is None:
-        raise UserError(f"nav.detector_train.arch={settings.arch} needs --out (the default is the learned model)")
-    sources = [frames_source(d) for d in frames_dirs]
-    summary = train_from_sources(
-        sources, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
-    )
-    click.echo(json.dumps(summary, indent=1))
