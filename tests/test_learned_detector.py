@@ -89,7 +89,7 @@ def test_detect_pyramid_scales_level_peaks_back_to_frame_pixels(monkeypatch):
     """A peak at level pixel (10, 5) of level 2 with offset (0.25, -0.25) and radius 9 px is a crater at
     frame pixel (4 x 10.75, 4 x 5.25) of radius 36 px."""
 
-    def fake_output(model, a):
+    def fake_output(model, a, tta=1):
         out = np.zeros((4,) + a.shape, np.float32)
         if a.shape[0] == 32:  # level 2 of a 128 px frame
             out[0, 5, 10] = 0.9
@@ -101,6 +101,44 @@ def test_detect_pyramid_scales_level_peaks_back_to_frame_pixels(monkeypatch):
     u, v, r, s, level = cd.detect_pyramid(None, np.zeros((128, 128)), threshold=0.5)
     assert (u[0], v[0], r[0], s[0], level[0]) == pytest.approx((43.0, 21.0, 36.0, 0.9, 2))
     assert u.size == 1
+
+
+def test_half_octaves_search_the_shrunk_frame_and_scale_back_to_frame_pixels(monkeypatch):
+    """A peak at the middle of every level image, radius 6 px: in frame pixels, the frame's middle and
+    6 x 2**level px in the octave pyramid, 6 x 2**level x sqrt(2) in the shrunk one (level k + 0.5)."""
+
+    def fake_output(model, a, tta=1):
+        out = np.zeros((4,) + a.shape, np.float32)
+        h, w = a.shape
+        out[0, h // 2, w // 2] = 0.9
+        out[1:3, h // 2, w // 2] = (w / 2 - w // 2 - 0.5, h / 2 - h // 2 - 0.5)
+        return out
+
+    monkeypatch.setattr(cd, "level_output", fake_output)
+    u, v, r, _s, level = cd.detect_pyramid(None, np.zeros((128, 192)), threshold=0.5, half_octaves=True)
+    assert sorted(level) == [0, 0.5, 1, 1.5, 2]  # the shrunk level 2 (22 px) is below MIN_LEVEL_PX
+    # (an odd row dropped by the decimation moves a level's middle by under a frame pixel)
+    np.testing.assert_allclose(u, 96.0, atol=1.0)
+    np.testing.assert_allclose(v, 64.0, atol=1.0)
+    np.testing.assert_allclose(r, 6.0 * 2.0**level, rtol=0.01)
+
+
+def test_dihedral_views_averaged_over_the_whole_group_turn_with_the_image():
+    """tta=8 averages the heat over all 8 views, so the heat of a turned image is the turned heat; tta=1 is
+    the plain pass."""
+    torch.manual_seed(0)
+    model = cd.CraterNet(4).eval()
+    a = np.random.default_rng(1).random((32, 32)).astype(np.float32)
+    heat = cd.level_output(model, a, tta=8)[0]
+    np.testing.assert_allclose(cd.level_output(model, np.rot90(a).copy(), tta=8)[0], np.rot90(heat), atol=1e-5)
+    np.testing.assert_allclose(cd.level_output(model, a[:, ::-1].copy(), tta=8)[0], heat[:, ::-1], atol=1e-5)
+    plain = cd.level_output(model, a)[0]
+    with torch.no_grad():
+        direct = torch.sigmoid(model(torch.from_numpy(cd.standardise(a))[None, None])[0, 0]).numpy()
+    np.testing.assert_allclose(plain, direct, atol=1e-6)
+    assert not np.allclose(plain, heat, atol=1e-4)
+    with pytest.raises(ValueError, match="tta"):
+        learned.LearnedSettings(tta=3)
 
 
 def test_first_level_searches_the_wanted_radii_inside_a_band():

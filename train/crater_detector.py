@@ -435,12 +435,25 @@ def load_model(path: Path) -> tuple[CraterNet, dict]:
 # Inference
 # ------------------------------------------------------------------------------------------------
 @torch.no_grad()
-def level_output(model: CraterNet, a: np.ndarray) -> np.ndarray:
-    """The network's 4 output maps on one level image (standardised here): (4, H, W), heat as probability."""
+def level_output(model: CraterNet, a: np.ndarray, tta: int = 1) -> np.ndarray:
+    """The network's 4 output maps on one level image (standardised here): (4, H, W), heat as probability.
+    ``tta`` > 1 averages the heat and log-radius maps over the first ``tta`` of the 8 rotations and
+    mirrorings (training draws all 8, so each is an equally valid view); the offsets stay the identity
+    view's (they would need turning with the view, and are sub-pixel)."""
     x = torch.from_numpy(standardise(a))[None, None]
-    out = model(x)[0].numpy()
-    out[0] = 1.0 / (1.0 + np.exp(-out[0]))
-    return out
+    out = model(x)[0]
+    heat = torch.sigmoid(out[0])
+    logr = out[3].clone()
+    for k in range(1, tta):
+        turns, flip = k % 4, k >= 4
+        xt = torch.rot90(x.flip(3) if flip else x, turns, (2, 3))
+        o = torch.rot90(model(xt)[0], -turns, (1, 2))
+        o = o.flip(2) if flip else o
+        heat += torch.sigmoid(o[0])
+        logr += o[3]
+    out[0] = heat / tta
+    out[3] = logr / tta
+    return out.numpy()
 
 
 def peaks(out: np.ndarray, threshold: float) -> tuple[np.ndarray, ...]:
@@ -455,17 +468,33 @@ def peaks(out: np.ndarray, threshold: float) -> tuple[np.ndarray, ...]:
     return u, v, r, heat[i, j]
 
 
-def detect_pyramid(model: CraterNet, image: np.ndarray, threshold: float, first_level: int = 0):
-    """Craters of every pyramid level from ``first_level``: (u, v, r, score, level) in frame pixels."""
+HALF_OCTAVE = math.sqrt(2.0)
+
+
+def detect_pyramid(
+    model: CraterNet, image: np.ndarray, threshold: float, first_level: int = 0, tta: int = 1, half_octaves=False
+):
+    """Craters of every pyramid level from ``first_level``: (u, v, r, score, level) in frame pixels.
+    ``half_octaves`` also searches the pyramid of the image shrunk by sqrt(2) (its level k sits between
+    levels k and k + 1; "level" k + 0.5), so every rim radius lies near a band's middle in one of the two:
+    an octave's band edges are where the heat is weakest. ``tta``: :func:`level_output`."""
+    image = np.asarray(image, dtype=np.float32)
+    starts = [(0.0, image, 1.0, 1.0)]
+    if half_octaves:
+        h, w = image.shape
+        hh, ww = max(1, round(h / HALF_OCTAVE)), max(1, round(w / HALF_OCTAVE))
+        small = F.interpolate(torch.from_numpy(image)[None, None], size=(hh, ww), mode="bilinear", antialias=True)
+        starts.append((0.5, small[0, 0].numpy(), w / ww, h / hh))
     us, vs, rs, ss, ls = [], [], [], [], []
-    for level, a in pyramid(image, first_level):
-        u, v, r, s = peaks(level_output(model, a), threshold)
-        f = 2.0**level
-        us.append(u * f)
-        vs.append(v * f)
-        rs.append(r * f)
-        ss.append(s)
-        ls.append(np.full(u.size, level))
+    for half, img, fu, fv in starts:
+        for level, a in pyramid(img, first_level):
+            u, v, r, s = peaks(level_output(model, a, tta), threshold)
+            f = 2.0**level
+            us.append(u * f * fu)
+            vs.append(v * f * fv)
+            rs.append(r * f * math.sqrt(fu * fv))
+            ss.append(s)
+            ls.append(np.full(u.size, level + half))
     if not us:
         return tuple(np.zeros(0) for _ in range(5))
     return tuple(np.concatenate(x) for x in (us, vs, rs, ss, ls))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -32,6 +33,7 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_map,
     nav_eval_request,
 )
+from crater_synth.paths import SOURCE_ROOT
 
 PROG = "python -m crater_synth.tools.detector_choice"
 POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
@@ -53,14 +55,23 @@ def f1(precision: float | None, recall: float | None) -> float | None:
     return round(2.0 * precision * recall / (precision + recall), 4)
 
 
-def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dict:
-    """``model``'s detector option (:func:`model_option`) at ``threshold`` on the south validation windows:
-    its detection scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
+def detector_overrides(model: str, threshold: float, variant: tuple[str, ...] = ()) -> list[str]:
+    """The nav-eval overrides that run ``model`` at ``threshold`` with the ``variant``'s own overrides."""
     option, path = model_option(model)
-    overrides = [f"nav/detector={option}", f"nav.detector.threshold={threshold}"]
+    overrides = [f"nav/detector={option}", f"nav.detector.threshold={threshold}", *variant]
     if path != "committed":
         overrides.append(f"nav.detector.model={path}")
-    settings, _, _ = nav_eval_request(every, PRIOR_OFFSET_KM, False, False, overrides)
+    return overrides
+
+
+def run_pair(model: str, threshold: float, landmarks, listed, every: int, variant: tuple[str, ...] = ()) -> dict:
+    """``model``'s detector option (:func:`model_option`) at ``threshold``, with the ``variant`` overrides
+    (inference settings such as ``nav.detector.tta=4``), on the south validation windows: its detection
+    scores (against the catalogue, D >= 15 km, and the map's size bins) and fix metrics."""
+    option, _ = model_option(model)
+    settings, _, _ = nav_eval_request(
+        every, PRIOR_OFFSET_KM, False, False, detector_overrides(model, threshold, variant)
+    )
     nav = settings[option]
     t0 = time.perf_counter()
     summary, _ = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=every, pole=POLE, listed=listed)
@@ -70,6 +81,7 @@ def run_pair(model: str, threshold: float, landmarks, listed, every: int) -> dic
         "model_sha256": model_sha256(model),
         "method": option,
         "threshold": threshold,
+        "variant": list(variant),
         "catalogue_15km": cat | {"f1": f1(cat.get("precision_15km"), cat.get("recall_15km"))},
         "map_by_size_km": summary["all_windows"].get("by_size_km"),
         "fix_rate": summary["all_windows"].get("fix_rate"),
@@ -85,6 +97,7 @@ def choose(runs: list[dict]) -> dict:
     return {
         "model": best["model"],
         "threshold": best["threshold"],
+        "variant": best.get("variant", []),
         "catalogue_15km": best["catalogue_15km"],
         "model_sha256": best["model_sha256"],
     }
@@ -104,25 +117,35 @@ def main(argv=None) -> None:
     )
     p.add_argument("--thresholds", default="0.2,0.3,0.4", help="heat thresholds, comma-separated")
     p.add_argument("--every", type=int, default=2, help="every Nth south validation window")
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=None,
+        help="space-separated nav.detector overrides run as one more candidate of every model and threshold, "
+        "e.g. 'nav.detector.tta=4' (repeatable; '' is the option as it is; default: '' alone)",
+    )
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
     args = p.parse_args(argv)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     landmarks, _ = nav_eval_map(POLE, None)
     listed = catalogue_craters(POLE)  # LU1319381, as nav-eval scores against it
+    variants = [tuple(v.split()) for v in (args.variant or [""])]
     runs = []
     for model in ["committed", *args.model]:
-        for t in thresholds:
-            r = run_pair(model, t, landmarks, listed, args.every)
-            c = r["catalogue_15km"]
-            print(
-                f"{model} t={t}: F1 {c['f1']} P {c['precision_15km']} R {c['recall_15km']} ({r['seconds']} s)",
-                flush=True,
-            )
-            runs.append(r)
+        for variant in variants:
+            for t in thresholds:
+                r = run_pair(model, t, landmarks, listed, args.every, variant)
+                c = r["catalogue_15km"]
+                print(
+                    f"{model} {' '.join(variant)} t={t}: F1 {c['f1']} P {c['precision_15km']} "
+                    f"R {c['recall_15km']} ({r['seconds']} s)",
+                    flush=True,
+                )
+                runs.append(r)
     doc = {
-        "command": " ".join([PROG, *(sys.argv[1:] if argv is None else argv)]),
+        "command": shlex.join([*PROG.split(), *(sys.argv[1:] if argv is None else argv)]),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
-        "committed_model": str(DEFAULT_MODEL),
+        "committed_model": str(DEFAULT_MODEL.relative_to(SOURCE_ROOT)),  # where it lies in a checkout
         "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",
         "runs": runs,
         "chosen": choose(runs),

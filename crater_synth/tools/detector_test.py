@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -35,7 +36,7 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_request,
 )
 from crater_synth.paths import SOURCE_ROOT
-from crater_synth.tools.detector_choice import f1, model_option, model_sha256
+from crater_synth.tools.detector_choice import detector_overrides, f1, model_option, model_sha256
 
 PROG = "python -m crater_synth.tools.detector_test"
 POLE, SPLIT = "north", "test"  # the held-out pole: run once per frozen model (docs/navigation/protocol.md)
@@ -89,10 +90,8 @@ def with_f1(scores: dict) -> dict:
 
 
 def run_model(choice: dict, landmarks, listed) -> dict:
-    option, path = model_option(choice["model"])
-    overrides = [f"nav/detector={option}", f"nav.detector.threshold={choice['threshold']}"]
-    if path != "committed":
-        overrides.append(f"nav.detector.model={path}")
+    option, _ = model_option(choice["model"])
+    overrides = detector_overrides(choice["model"], choice["threshold"], tuple(choice.get("variant", ())))
     settings, _, _ = nav_eval_request(1, PRIOR_OFFSET_KM, False, False, overrides)
     nav = settings[option]
     t0 = time.perf_counter()
@@ -103,6 +102,7 @@ def run_model(choice: dict, landmarks, listed) -> dict:
         "model_sha256": choice["model_sha256"],
         "method": option,
         "threshold": choice["threshold"],
+        "variant": choice.get("variant", []),
         "south_validation_catalogue_15km": choice["catalogue_15km"],
         "catalogue": with_f1(every.get("against_catalogue", {})),
         "map_by_size_km": every.get("by_size_km"),
@@ -159,7 +159,7 @@ def main(argv=None) -> None:
         )
         runs.append(r)
     doc = {
-        "command": " ".join([PROG, *(sys.argv[1:] if argv is None else argv)]),
+        "command": shlex.join([*PROG.split(), *(sys.argv[1:] if argv is None else argv)]),
         "split": f"{POLE} {SPLIT}, every window",
         "choice_file": str(args.choice),
         "rule": "each model at the threshold its choice file froze on the south validation windows; run once",

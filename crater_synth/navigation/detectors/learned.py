@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from crater_core.settings_nav import DetectorSettings
+from crater_core.typed_config import need
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
 from crater_synth.paths import MODELS_DIR
@@ -37,6 +38,15 @@ class LearnedSettings(DetectorSettings):
 
     threshold: float = 0.3  # heat-map peak of a candidate
     model: str = ""  # model file ("": the committed south model)
+    # Test-time views: the heat map averaged over this many of the 8 rotations and mirrorings (1: none);
+    # each view costs one more network pass.
+    tta: int = 1
+    # Also search the pyramid of the frame shrunk by sqrt(2) (half-octave steps); twice the network passes.
+    half_octaves: bool = False
+
+    def _check(self) -> None:
+        super()._check()
+        need(self.tta in (1, 2, 4, 8), "tta", self.tta, "must be 1, 2, 4 or 8")
 
 
 class DetectorModelFileError(UserError):
@@ -87,7 +97,9 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     from train.crater_detector import detect_pyramid
 
     model, _meta = load_model(str(model_path(params)))
-    u, v, r, s, _level = detect_pyramid(model, frame.image, params.threshold, first_level(params.min_radius_px))
+    u, v, r, s, _level = detect_pyramid(
+        model, frame.image, params.threshold, first_level(params.min_radius_px), params.tta, params.half_octaves
+    )
     return within_radii(params, u, v, r, s)
 
 
