@@ -17,3 +17,16 @@ def test_f1_and_the_choice_rule():
     tie = [_run("x", 0.2, 0.6, 0.8), _run("y", 0.3, 0.8, 0.6)]  # same F1: the more precise
     assert choose(tie)["model"] == "y"
     assert (POLE, SPLIT) == ("south", "validation")  # never the north test, nor the spent south test
+
+
+def test_a_variant_adds_its_overrides_to_every_run_and_the_choice_keeps_them():
+    from crater_synth.tools.detector_choice import detector_overrides
+
+    assert detector_overrides("committed", 0.2, ("nav.detector.tta=4",)) == [
+        "nav/detector=learned-detect",
+        "nav.detector.threshold=0.2",
+        "nav.detector.tta=4",
+    ]
+    assert detector_overrides("fcos:f.pt", 0.4)[-1] == "nav.detector.model=f.pt"
+    runs = [_run("a.pt", 0.2, 0.8, 0.5) | {"variant": ["nav.detector.tta=4"]}, _run("a.pt", 0.2, 0.8, 0.4)]
+    assert choose(runs)["variant"] == ["nav.detector.tta=4"]
