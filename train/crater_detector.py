@@ -3,8 +3,8 @@
 Scale is handled by the pyramid, not by the network: the network finds craters whose rim radius lies in
 one octave, [``BAND_LO_PX``, ``BAND_HI_PX``) pixels, and it is run on the frame decimated by 1, 2, 4, ...
 (area means), so each level covers the next octave of crater sizes with the same weights. The network
-therefore needs a receptive field of a few band radii only (about 70 px), it is small (~60 k weights),
-and every training frame teaches every size at once.
+therefore needs a receptive field of a few band radii only (about 70 px), it is small (144 k weights at
+width 16), and every training frame teaches every size at once.
 
 Output, per level pixel (CenterNet-style, Zhou et al. 2019, "Objects as Points"): a centre heat map
 (logit), the sub-pixel offset of the centre from the pixel centre, and log(r / ``BAND_LO_PX``). Targets: a
@@ -40,6 +40,7 @@ BAND_HI_PX = 12.0
 IGNORE_LO_PX = 4.5  # craters between these and the band carry no loss at that level
 IGNORE_HI_PX = 16.0
 HEAT_SIGMA_R = 0.25  # heat-map Gaussian sigma, fraction of the rim radius
+HALF_OCTAVE = math.sqrt(2.0)  # the shrink of the half-octave pyramid (detect_pyramid)
 MIN_LEVEL_PX = 24  # a pyramid level smaller than this is not searched
 GAUSS_REACH_SIGMA = 7.0  # exp(-49 / 2) = 2e-11: past it a heat target is 0 (1 - heat == 1 in float32)
 MODEL_FORMAT = "crater-synth-detector/1"
@@ -468,9 +469,6 @@ def peaks(out: np.ndarray, threshold: float) -> tuple[np.ndarray, ...]:
     return u, v, r, heat[i, j]
 
 
-HALF_OCTAVE = math.sqrt(2.0)
-
-
 def detect_pyramid(
     model: CraterNet, image: np.ndarray, threshold: float, first_level: int = 0, tta: int = 1, half_octaves=False
 ):
@@ -485,19 +483,15 @@ def detect_pyramid(
         hh, ww = max(1, round(h / HALF_OCTAVE)), max(1, round(w / HALF_OCTAVE))
         small = F.interpolate(torch.from_numpy(image)[None, None], size=(hh, ww), mode="bilinear", antialias=True)
         starts.append((0.5, small[0, 0].numpy(), w / ww, h / hh))
-    us, vs, rs, ss, ls = [], [], [], [], []
+    found = []
     for half, img, fu, fv in starts:
         for level, a in pyramid(img, first_level):
             u, v, r, s = peaks(level_output(model, a, tta), threshold)
             f = 2.0**level
-            us.append(u * f * fu)
-            vs.append(v * f * fv)
-            rs.append(r * f * math.sqrt(fu * fv))
-            ss.append(s)
-            ls.append(np.full(u.size, level + half))
-    if not us:
+            found.append((u * f * fu, v * f * fv, r * f * math.sqrt(fu * fv), s, np.full(u.size, level + half)))
+    if not found:
         return tuple(np.zeros(0) for _ in range(5))
-    return tuple(np.concatenate(x) for x in (us, vs, rs, ss, ls))
+    return tuple(np.concatenate(x) for x in zip(*found))
 
 
 def settings_dict(s: DetectorTrainSettings) -> dict:
