@@ -103,6 +103,16 @@ def choose(runs: list[dict]) -> dict:
     }
 
 
+def command_line(argv, prog: str = PROG) -> str:
+    """A tool's command line as run (``argv``: the arguments, None for the process's own), shell-quoted."""
+    return shlex.join([*prog.split(), *(sys.argv[1:] if argv is None else argv)])
+
+
+def score_line(label: str, cat: dict, f1_key: str, seconds: float) -> str:
+    """One progress line: a run's F1, precision and recall against the catalogue at D >= 15 km."""
+    return f"{label}: F1 {cat[f1_key]} P {cat['precision_15km']} R {cat['recall_15km']} ({seconds} s)"
+
+
 def model_sha256(model: str) -> str:
     """sha256 of a ``--model`` value's file (the committed model's for "committed"): what a test run checks
     it is given the model that was chosen."""
@@ -135,15 +145,11 @@ def main(argv=None) -> None:
         for variant in variants:
             for t in thresholds:
                 r = run_pair(model, t, landmarks, listed, args.every, variant)
-                c = r["catalogue_15km"]
-                print(
-                    f"{model} {' '.join(variant)} t={t}: F1 {c['f1']} P {c['precision_15km']} "
-                    f"R {c['recall_15km']} ({r['seconds']} s)",
-                    flush=True,
-                )
+                label = " ".join([model, *variant, f"t={t}"])
+                print(score_line(label, r["catalogue_15km"], "f1", r["seconds"]), flush=True)
                 runs.append(r)
     doc = {
-        "command": shlex.join([*PROG.split(), *(sys.argv[1:] if argv is None else argv)]),
+        "command": command_line(argv),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "committed_model": str(DEFAULT_MODEL.relative_to(SOURCE_ROOT)),  # where it lies in a checkout
         "rule": "highest detection F1 against the LU1319381 catalogue, D >= 15 km (ties: higher precision)",

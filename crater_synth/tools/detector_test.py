@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -36,7 +34,14 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_request,
 )
 from crater_synth.paths import SOURCE_ROOT
-from crater_synth.tools.detector_choice import detector_overrides, f1, model_option, model_sha256
+from crater_synth.tools.detector_choice import (
+    command_line,
+    detector_overrides,
+    f1,
+    model_option,
+    model_sha256,
+    score_line,
+)
 
 PROG = "python -m crater_synth.tools.detector_test"
 POLE, SPLIT = "north", "test"  # the held-out pole: run once per frozen model (docs/navigation/protocol.md)
@@ -151,15 +156,10 @@ def main(argv=None) -> None:
     runs = []
     for c in chosen:
         r = run_model(c, landmarks, listed)
-        cat = r["catalogue"]
-        print(
-            f"{r['model']} t={r['threshold']}: F1 {cat['f1_15km']} P {cat['precision_15km']} "
-            f"R {cat['recall_15km']} ({r['seconds']} s)",
-            flush=True,
-        )
+        print(score_line(f"{r['model']} t={r['threshold']}", r["catalogue"], "f1_15km", r["seconds"]), flush=True)
         runs.append(r)
     doc = {
-        "command": shlex.join([*PROG.split(), *(sys.argv[1:] if argv is None else argv)]),
+        "command": command_line(argv, PROG),
         "split": f"{POLE} {SPLIT}, every window",
         "choice_file": str(args.choice),
         "rule": "each model at the threshold its choice file froze on the south validation windows; run once",
