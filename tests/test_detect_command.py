@@ -415,7 +415,9 @@ def test_detect_bench_sets_one_folder_process_against_one_process_per_image(monk
     assert f["inside_per_image_s"] == 0.5 and f["one_process_per_image_s"] == 2.0
     assert r["other_detectors"] == dict.fromkeys(bd.OTHER_DETECTORS, 0.5)
     others = [("frame_64x96.png", "--detector", name) for name in bd.OTHER_DETECTORS]
-    assert calls == [("frame_64x96.png",), *others, ("folder",), *[(f"frame_{k}.png",) for k in range(3)]]
+    views = [("frame_64x96.png", *bd.VIEWS)]
+    assert r["views"] == {"overrides": list(bd.VIEWS), "seconds_per_frame": {"64x96": 0.5}}
+    assert calls == [("frame_64x96.png",), *others, *views, ("folder",), *[(f"frame_{k}.png",) for k in range(3)]]
     # The synthetic frames are seeded: one crater per cell, the same every run.
     a, b = bd.crater_frame(64, 96, 1), bd.crater_frame(64, 96, 1)
     assert np.array_equal(a, b) and a.shape == (64, 96) and (a < 20).sum() > 6  # six shadows

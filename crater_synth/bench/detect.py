@@ -27,6 +27,9 @@ from crater_synth.navigation.detectors.template import crater_heights, shade_hei
 
 FRAMES = {"1024x1024": (1024, 1024), "2592x1944": (1944, 2592)}  # name -> (height, width)
 OTHER_DETECTORS = ("classical", "template", "learned")
+# The learned detector's inference views (docs/navigation/detectors.md): off by default for their cost,
+# measured here at every frame size.
+VIEWS = ("nav.detector.tta=4", "nav.detector.half_octaves=true")
 FOLDER_FRAMES = 4  # 1024 x 1024 frames of the folder-mode comparison
 CELL_PX = 128  # one crater per cell of the frame's grid
 SUN_EL_DEG = 12.0
@@ -98,6 +101,17 @@ def bench_detect(work: Path) -> dict:
             run_detect(work / f"log_{name}", first, "--out", work / f"{name}.csv", "--detector", name)["last"]
         )["seconds"]
         for name in OTHER_DETECTORS
+    }
+    result["views"] = {
+        "overrides": list(VIEWS),
+        "seconds_per_frame": {
+            name: json.loads(
+                run_detect(
+                    work / f"log_views_{name}", work / f"frame_{name}.png", "--out", work / f"views_{name}.csv", *VIEWS
+                )["last"]
+            )["seconds"]
+            for name in FRAMES
+        },
     }
     folder = work / "folder"
     folder.mkdir(exist_ok=True)
