@@ -1,10 +1,11 @@
 """Training of the learned crater detector (:mod:`.learned`): its frames, labels, training and scores.
 
 ``crater-synth nav-detector-frames`` renders the survey of :mod:`.detector_frames` (south DEM only);
-``crater-synth nav-detector-train`` trains :class:`train.crater_detector.CraterNet` (or, with
-``nav.detector_train.arch=fcos``, torchvision's FCOS of :mod:`train.fcos_detector`) on every track but
-the last ``HOLDOUT_TRACKS``, scores it on those against their exact labels (:func:`score_synthetic`) and
-writes the model with its provenance (docs/navigation/detectors.md).
+:func:`train_from_sources`, run by ``crater-synth nav-detector-train`` (:mod:`..train_cmd`), trains
+:class:`train.crater_detector.CraterNet` (or, with ``nav.detector_train.arch=fcos``, torchvision's FCOS of
+:mod:`train.fcos_detector`) on every track but the last ``HOLDOUT_TRACKS`` (a detection set: every field but
+the last 10 %), scores it on those against their exact labels (:func:`score_synthetic`) and writes the model
+with its provenance (docs/navigation/detectors.md).
 """
 
 from __future__ import annotations
