@@ -70,6 +70,7 @@ def test_fine_tuning_starts_from_the_init_model_and_says_so(tmp_path):
         (["--also", "x"], "--also needs FRAMES_DIR"),
         (["--real-windows"], "--real-windows needs --out"),
         (["--real-windows", "--out", "{out}", "nav.detector_train.init={tmp}/none.pt"], "none.pt: no such model file"),
+        (["--real-windows", "--out", "{out}", "nav.detector_train.init={bad}"], "bad.pt: cannot be read"),
         (
             ["--real-windows", "--out", "{out}", "nav.detector_train.source_shares=[0.5,0.5]"],
             "one share per training source (1 given)",
@@ -78,10 +79,13 @@ def test_fine_tuning_starts_from_the_init_model_and_says_so(tmp_path):
 )
 def test_nav_detector_train_refuses_bad_real_window_requests_in_one_line(tmp_path, args, message):
     out = tmp_path / "m.pt"
-    args = [a.format(out=out, tmp=tmp_path) for a in args]
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    (inputs / "bad.pt").write_bytes(b"not a model")
+    args = [a.format(out=out, tmp=tmp_path, bad=inputs / "bad.pt") for a in args]
     r = CliRunner().invoke(main, ["nav-detector-train", *args])
     assert r.exit_code == 2 and message in r.output and len(r.output.strip().splitlines()) == 1
-    assert not list(tmp_path.iterdir())
+    assert [p.name for p in tmp_path.iterdir()] == ["inputs"]
 
 
 def test_the_north_test_refuses_an_uncommitted_choice_and_a_changed_model(tmp_path, monkeypatch):

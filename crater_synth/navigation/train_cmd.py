@@ -17,6 +17,7 @@ from crater_core.settings_nav import DetectorTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose_group
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors import learned
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
 from crater_synth.navigation.rendered.detector_train import frames_source, train_from_sources
 from crater_synth.navigation.windows.training import real_window_records
@@ -95,8 +96,10 @@ def nav_detector_train_command(frames_dir, more_dirs, real_windows, out, device,
         raise UserError(f"nav.detector_train.arch={settings.arch} needs --out (the default is the learned model)")
     if real_windows and out is None:
         raise UserError("--real-windows needs --out (the default is the committed synthetic-only model)")
-    if settings.init and not Path(settings.init).is_file():
-        raise UserError(f"nav.detector_train.init={settings.init}: no such model file")
+    if settings.init:
+        if not Path(settings.init).is_file():
+            raise UserError(f"nav.detector_train.init={settings.init}: no such model file")
+        learned.load_model(settings.init)  # a corrupt or foreign file: one line, before any frame is read
     sources = [frames_source(d) for d in frames_dirs] + ([real_source()] if real_windows else [])
     summary = train_from_sources(
         sources, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
