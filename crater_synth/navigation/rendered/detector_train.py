@@ -22,7 +22,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors import fcos, learned
+from crater_synth.navigation.detectors import fcos, registry
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
@@ -222,17 +222,17 @@ def train_from_detection(
 
 
 def architecture(arch: str):
-    """(train, save, scoring settings of a model file, its detector's model cache) of ``arch``
-    (``nav.detector_train.arch``): the CenterNet of :mod:`train.crater_detector` scored as the learned
-    detector, or torchvision's FCOS of :mod:`train.fcos_detector` scored as the fcos detector; both scored
-    alike (:func:`score_synthetic`, from 4.5 px radii, no rim fit)."""
+    """(train, save, scoring settings of a model file) of ``arch`` (``nav.detector_train.arch``): the
+    CenterNet of :mod:`train.crater_detector` scored as the learned detector, or torchvision's FCOS of
+    :mod:`train.fcos_detector` scored as the fcos detector; both scored alike (:func:`score_synthetic`, from
+    4.5 px radii, no rim fit)."""
     if arch == "fcos":
         from train.fcos_detector import save_model, train_fcos
 
-        return train_fcos, save_model, lambda path: fcos.FcosSettings(**_SCORING, model=path), fcos.load_fcos_model
+        return train_fcos, save_model, lambda path: fcos.FcosSettings(**_SCORING, model=path)
     from train.crater_detector import save_model, train_detector
 
-    return train_detector, save_model, lambda path: LearnedSettings(**_SCORING, model=path), learned.load_model
+    return train_detector, save_model, lambda path: LearnedSettings(**_SCORING, model=path)
 
 
 _SCORING = {"min_radius_px": 4.5, "refine": False}  # the synthetic hold-out's detector settings
@@ -245,7 +245,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     score at the top level; several: a list of them under ``sources``."""
     from train.crater_detector import level_samples, settings_dict
 
-    train, save_model, scoring_params, model_cache = architecture(settings.arch)
+    train, save_model, scoring_params = architecture(settings.arch)
     samples, source = [], []
     for k, (train_records, _, _, _) in enumerate(sources):
         for image, row in train_records:
@@ -278,11 +278,12 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
         meta["trained_on"] += "; fine-tuned from a model trained on " + run["init"]["trained_on"]
     tmp = Path(str(out) + ".scoring.pt")
     save_model(tmp, result["model"], meta)
+    params = scoring_params(str(tmp))
     try:
-        scores = [score_synthetic(s[1], scoring_params(str(tmp)), **s[3]) for s in sources]
+        scores = [score_synthetic(s[1], params, **s[3]) for s in sources]
     finally:
         tmp.unlink(missing_ok=True)
-        model_cache.cache_clear()
+        registry.detector(params.method).load_model.cache_clear()  # the scoring file is gone
     if len(sources) == 1:
         meta["holdout"] = scores[0]
     else:
