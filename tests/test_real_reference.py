@@ -1,4 +1,4 @@
-"""The reference trained on real images (issue 40's sim-to-real gap): real mosaic windows as training records,
+"""The reference trained on real images (the sim-to-real gap): real mosaic windows as training records,
 fine-tuning from a model file, the north test tool's freezing checks, and the F1 ratio."""
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ HEADLINE_MIN_LANDMARKS = 3
 
 
 SIZE_BINS_KM = (10.0, 15.0, 30.0, 60.0, 1e9)
-# Size bins of the scores against the LU1319381 catalogue, which lists craters from 8 km (issue 40's bins).
+# Size bins of the scores against the LU1319381 catalogue, which lists craters from 8 km.
 CATALOGUE_BINS_KM = (8.0, 15.0, 30.0, 60.0, 1e9)
 
 

@@ -1,6 +1,6 @@
 """Real mosaic windows as detector training records: the reference trained on real images.
 
-Issue 40 measures the sim-to-real gap as the ratio of two north-test F1 scores: the detector trained on
+The sim-to-real gap is measured as the ratio of two north-test F1 scores: the detector trained on
 rendered frames only, and the same detector trained on **real** south WAC windows with the LU1319381
 catalogue as labels. This module makes those real records, in the shape the training of
 :mod:`..rendered.detector_train` reads (an image and a row whose ``circles`` are the labels' pixel circles).
