@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -122,6 +122,7 @@ RIM_SAMPLES = 64  # rim points per crater for visible_rim_fraction
 # Diffusion moves a rim crest out as it flattens it; a degraded crest is searched for within this many R
 # (a near-ghost's flat crest may sit at the bound).
 RIM_SEARCH_RADII = 1.5
+PROFILE_CHUNK = 8192  # profile rows computed at once (memory-bound above ~10^4)
 MAX_CRATERS = 2_000_000  # a population above this is a settings mistake, not a terrain
 
 CLASSES = ("simple", "transitional", "complex")
@@ -354,7 +355,9 @@ def _simple_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def degraded_profiles(shape: dict[str, np.ndarray], tau_d: np.ndarray) -> np.ndarray:
     """(N, S) radial profiles (m) on s = 0..PROFILE_EXTENT_RADII of craters of fresh ``shape``
     (:func:`morphometry`) diffused for ``tau_d``: simple ones from the tables (linear in tau between
-    ladder rungs), the others diffused one by one from their own fresh profile."""
+    ladder rungs), the others diffused one by one from their own fresh profile. Rows are filled
+    PROFILE_CHUNK at a time: a saturated field holds ~10^6 craters, whose whole-table temporaries
+    (~3 GB each) made this step memory-bound."""
     f = _diffusion()
     tau_d = np.asarray(tau_d, dtype=float)
     tau_tab, ta, tb = _simple_tables()
@@ -362,7 +365,10 @@ def degraded_profiles(shape: dict[str, np.ndarray], tau_d: np.ndarray) -> np.nda
     i0 = np.minimum(np.floor(pos).astype(int), tau_tab.size - 2)
     w = (pos - i0)[:, None]
     rim, depth = shape["rim"][:, None], shape["depth"][:, None]
-    out = rim * ((1 - w) * ta[i0] + w * ta[i0 + 1]) + depth * ((1 - w) * tb[i0] + w * tb[i0 + 1])
+    out = np.empty((tau_d.size, f.s.size))
+    for a in range(0, tau_d.size, PROFILE_CHUNK):
+        c, j = slice(a, a + PROFILE_CHUNK), i0[a : a + PROFILE_CHUNK]
+        out[c] = rim[c] * ((1 - w[c]) * ta[j] + w[c] * ta[j + 1]) + depth[c] * ((1 - w[c]) * tb[j] + w[c] * tb[j + 1])
     for i in np.flatnonzero(shape["cls"] > 0):
         d_m = float(shape["diameter"][i])
         args = (
@@ -381,12 +387,18 @@ def degraded_profiles(shape: dict[str, np.ndarray], tau_d: np.ndarray) -> np.nda
 
 def profile_labels(profiles: np.ndarray, fresh_depth: np.ndarray) -> dict[str, np.ndarray]:
     """From each radial profile: rim crest radius (units of R), rim height above the pre-impact
-    surface, rim-to-floor depth, and the degradation state (0 fresh .. 1 ghost)."""
+    surface, rim-to-floor depth, and the degradation state (0 fresh .. 1 ghost). PROFILE_CHUNK rows
+    at a time, as :func:`degraded_profiles`."""
     s = _diffusion().s
     inner = s <= RIM_SEARCH_RADII
-    crest = np.argmax(np.where(inner, profiles, -np.inf), axis=1)
+    crest = np.empty(len(profiles), dtype=np.int64)
+    floor = np.empty(len(profiles))
+    for a in range(0, len(profiles), PROFILE_CHUNK):
+        p = profiles[a : a + PROFILE_CHUNK]
+        k = np.argmax(np.where(inner, p, -np.inf), axis=1)
+        crest[a : a + PROFILE_CHUNK] = k
+        floor[a : a + PROFILE_CHUNK] = np.min(np.where(s[None, :] <= s[k][:, None], p, np.inf), axis=1)
     rim_h = profiles[np.arange(len(profiles)), crest]
-    floor = np.min(np.where(s[None, :] <= s[crest][:, None], profiles, np.inf), axis=1)
     depth = rim_h - floor
     ratio = depth / np.maximum(fresh_depth, 1e-12)
     state = np.clip((1.0 - ratio) / (1.0 - GHOST_DEPTH_RATIO), 0.0, 1.0)
@@ -593,15 +605,21 @@ class ProceduralTerrain:
     height: np.ndarray  # (size, size) metres
     spacing_m: float
     craters: tuple[Crater, ...]
+    # detectable()'s answers: every frame of a field asks, and a saturated field holds ~10^6 craters.
+    _detectable: dict = field(default_factory=dict, compare=False, repr=False)
 
     def detectable(self, min_visible_rim: float = 0.5, max_degradation: float = 0.9) -> list[Crater]:
         """Craters a detector's label set may hold: not a ghost, most of the rim neither overprinted
         nor off the grid."""
-        return [
-            c
-            for c in self.craters
-            if c.visible_rim_fraction * c.rim_in_grid_fraction >= min_visible_rim and c.degradation <= max_degradation
-        ]
+        key = (min_visible_rim, max_degradation)
+        if key not in self._detectable:
+            self._detectable[key] = [
+                c
+                for c in self.craters
+                if c.visible_rim_fraction * c.rim_in_grid_fraction >= min_visible_rim
+                and c.degradation <= max_degradation
+            ]
+        return list(self._detectable[key])
 
 
 def _craters(table: dict[str, np.ndarray], visible: np.ndarray, in_grid: np.ndarray) -> tuple[Crater, ...]:

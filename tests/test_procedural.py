@@ -272,3 +272,22 @@ def test_degradation_agrees_with_the_sub_dem_details_independent_solution():
         mine = table["profile"][0] / table["fresh_depth"][0]
         theirs = detail.degraded_profile(s, np.full(s.shape, tau))
         assert np.abs(mine - theirs)[s < P.TAPER_START_RADII].max() < 1e-3
+
+
+def test_profiles_and_their_labels_do_not_depend_on_the_chunk_size(monkeypatch):
+    """Profiles are computed PROFILE_CHUNK rows at a time (memory); any chunk gives the same bits."""
+    rng = np.random.default_rng(4)
+    d = np.concatenate([rng.uniform(150.0, 3000.0, 40), [17000.0, 30000.0]])  # simple, transitional, complex
+    args = (d, rng.uniform(0, 9e3, d.size), rng.uniform(0, 9e3, d.size), rng.uniform(0, 3900.0, d.size), 5.5)
+    whole = P.crater_table(*args)
+    monkeypatch.setattr(P, "PROFILE_CHUNK", 7)
+    chunked = P.crater_table(*args)
+    for key, value in whole.items():
+        assert np.array_equal(value, chunked[key]), key
+
+
+def test_detectable_craters_are_computed_once_and_not_shared_out():
+    t = P.generate(SMALL)
+    first = t.detectable()
+    first.clear()
+    assert t.detectable() and t.detectable() == t.detectable() and t.detectable(0.9) != t.detectable()
