@@ -220,8 +220,12 @@ class DetectorTrainSettings(Group):
     # A model file whose weights training starts from (fine-tuning; its width replaces ``width``); empty:
     # random initialisation.
     init: str = ""
+    # Training frames taken from each detection set: its first N outside the held-out fields (0: all). The
+    # hold-out stays the set's own, so models trained on parts of one set are scored alike (the data curve).
+    frames: int = 0
 
     def _check(self) -> None:
+        need(self.frames >= 0, "frames", self.frames, "must be >= 0 (0: every frame)")
         need(self.arch in ARCHS, "arch", self.arch, f"must be one of {', '.join(ARCHS)}")
         for key in ("steps", "batch", "crop_px", "width"):
             need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from crater_synth.dataset.detection import manifest_rows
+from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import learned
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
@@ -574,3 +575,19 @@ def test_train_from_a_sharded_detection_set_holds_out_its_last_fields_across_sha
     assert what["holdout_fields"] == [3] and what["train_fields"] == 3
     assert len(train) == 6 and len(hold) == 2 and all(r["terrain"]["field"] == 3 for _, r in hold)
     assert all("circles" in r and "labels" not in r for _, r in train)
+
+
+def test_frames_takes_the_first_training_frames_and_keeps_the_hold_out(tmp_path):
+    """nav.detector_train.frames=N (the data curve): the first N training frames by index, the same held-out
+    fields as the whole set; more than the set holds is one line naming the folder."""
+    frames = fake_detection_set(tmp_path / "det", fields=4)
+    train, hold, what = learned_train.frames_source(frames)[:3]
+    part, part_hold, part_what = learned_train.frames_source(frames, max_frames=3)[:3]
+    assert [r["index"] for _, r in part] == [r["index"] for _, r in train][:3]
+    assert [r["index"] for _, r in part_hold] == [r["index"] for _, r in hold]
+    assert part_what["holdout_fields"] == what["holdout_fields"] and part_what["train_fields"] == 2
+    assert part_what["frames_limit"] == 3 and "frames_limit" not in what
+    with pytest.raises(UserError, match=r"det: nav.detector_train.frames=7, but the set has 6 training frames"):
+        learned_train.frames_source(frames, max_frames=7)
+    with pytest.raises(ValueError, match="frames"):
+        cd.DetectorTrainSettings(frames=-1)

@@ -90,12 +90,14 @@ def slim_row(row: dict) -> dict:
     return {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")} | {"circles": circles}
 
 
-def detection_set_records(folder: Path, holdout_share: float) -> tuple[list, list, dict]:
+def detection_set_records(folder: Path, holdout_share: float, max_frames: int = 0) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
     folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
     fields held out (a field's frames share craters). Each manifest is streamed twice (fields, then rows):
     held-out rows keep their labels for scoring, training rows their circles only (:func:`slim_row`), so a
-    large set's labels need not fit in memory."""
+    large set's labels need not fit in memory. ``max_frames`` > 0: only the first that many training frames
+    (by shard, then frame index), the hold-out unchanged, so models trained on parts of one set are scored
+    on the same fields."""
     folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
     fields_in = [
         {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
@@ -110,10 +112,18 @@ def detection_set_records(folder: Path, holdout_share: float) -> tuple[list, lis
         found, _ = scan_manifest(d, keep=lambda row: row if row["terrain"]["field"] in held else slim_row(row))
         for i in sorted(found):
             row = found[i][2]
-            record = (exr.read_channel(d / row["rel_path"], "IF"), row)
-            (hold if row["terrain"]["field"] in held else train).append(record)
-    what = {"train_fields": len(fields) - n_hold, "holdout_fields": sorted(held), "recipe": _recipe(folders[0])}
-    return train, hold, what
+            is_held = row["terrain"]["field"] in held
+            if not is_held and 0 < max_frames <= len(train):
+                continue
+            (hold if is_held else train).append((exr.read_channel(d / row["rel_path"], "IF"), row))
+    if len(train) < max_frames:
+        raise UserError(
+            f"{folder}: nav.detector_train.frames={max_frames}, but the set has {len(train)} training frames "
+            "outside its held-out fields"
+        )
+    train_fields = len({row["terrain"]["field"] for _, row in train})
+    what = {"train_fields": train_fields, "holdout_fields": sorted(held), "recipe": _recipe(folders[0])}
+    return train, hold, what | ({"frames_limit": max_frames} if max_frames else {})
 
 
 def _recipe(folder: Path) -> str | None:
@@ -177,13 +187,16 @@ def survey_source(frames_dir: Path, holdout: int = HOLDOUT_TRACKS) -> tuple[list
     return train_records, holdout_records, what, {}
 
 
-def detection_source(folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE) -> tuple[list, list, dict, dict]:
+def detection_source(
+    folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE, max_frames: int = 0
+) -> tuple[list, list, dict, dict]:
     """(training records, held-out records, what they are, scoring) of a detection set (procedural crater
     fields only): the last ``holdout_share`` of its fields held out and scored over every rim of the
-    network's band and up (a 38 km field holds few craters of D >= 15 km)."""
+    network's band and up (a 38 km field holds few craters of D >= 15 km); ``max_frames``: as
+    :func:`detection_set_records`."""
     from train.crater_detector import BAND_LO_PX
 
-    train_records, holdout_records, what = detection_set_records(folder, holdout_share)
+    train_records, holdout_records, what = detection_set_records(folder, holdout_share, max_frames)
     what = {
         "kind": "procedural",
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
@@ -199,10 +212,14 @@ SOURCE_NAMES = {
 }
 
 
-def frames_source(frames_dir: Path) -> tuple[list, list, dict, dict]:
-    """:func:`detection_source` or :func:`survey_source`, by the folder's marker."""
-    detection = marker_kind(frames_dir) in (DETECTION_KIND, SHARDS_KIND)
-    return detection_source(frames_dir) if detection else survey_source(frames_dir)
+def frames_source(frames_dir: Path, max_frames: int = 0) -> tuple[list, list, dict, dict]:
+    """:func:`detection_source` or :func:`survey_source`, by the folder's marker; ``max_frames``
+    (``nav.detector_train.frames``) applies to a detection set only."""
+    if marker_kind(frames_dir) in (DETECTION_KIND, SHARDS_KIND):
+        return detection_source(frames_dir, max_frames=max_frames)
+    if max_frames:
+        raise UserError(f"{frames_dir}: nav.detector_train.frames applies to detection sets, not to survey frames")
+    return survey_source(frames_dir)
 
 
 def train_from_survey(
