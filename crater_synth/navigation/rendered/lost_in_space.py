@@ -28,15 +28,23 @@ import click
 import numpy as np
 
 from crater_core import exr, geometry
+from crater_core.geometry import MOON_RADIUS_M
 from crater_core.schema import atomic_write_json
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
-from crater_synth.navigation.georef import pole_of, stereo_forward
+from crater_synth.navigation.georef import pole_of, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import load_default_map
-from crater_synth.navigation.protocol import lost_in_space_summary
-from crater_synth.navigation.rendered.evaluate import cv_camera, light_direction, match_pixels, perfect_detections
+from crater_synth.navigation.protocol import FALSE_FIX_KM, lost_in_space_summary
+from crater_synth.navigation.rendered.evaluate import (
+    cv_camera,
+    evaluate_frame,
+    frame_run,
+    light_direction,
+    match_pixels,
+    perfect_detections,
+)
 from crater_synth.navigation.rendered.labels import labelled_rows
 from crater_synth.navigation.settings import compose_nav, map_scales
 
@@ -44,10 +52,16 @@ LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 
 
 
 def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int, int], list[int]]:
-    """``dets`` of the frame ``row`` moved onto the horizontal plane through the boresight's ground point
-    (``range_m`` along the boresight), as detections of a nadir frame of :data:`LIS_PIXEL_M` pixels whose
-    centre lies under the camera; that frame's shape; the index in ``dets`` of each (a detection whose ray
-    misses the plane is dropped)."""
+    """``dets`` of the frame ``row`` moved onto the ground, as detections of a nadir frame of
+    :data:`LIS_PIXEL_M` pixels whose centre lies under the camera; that frame's shape; the index in ``dets``
+    of each (a detection whose ray misses the ground is dropped).
+
+    The ground is the sphere of the Moon's radius through the boresight's ground point (``range_m`` along
+    the boresight; the local vertical there is the frame's up). Each detection's ray is cut with it and the
+    point placed by its azimuthal-equidistant coordinates about the point under the camera (distance along
+    the sphere, bearing from the frame's east axis): an oblique frame reaches hundreds of km, where a flat
+    plane would lie tens of km above the ground. A rim's radius is its pixel radius times its depth along
+    the optical axis over the focal length."""
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     width, fov = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"])
     r_wc, k = cv_camera(rot, width, fov)
@@ -55,22 +69,41 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
         return [], (1, 1), []
     pix = np.array([[d.u, d.v, 1.0] for d in dets])
     rays = np.linalg.solve(k, pix.T).T @ r_wc  # world directions, unit depth along the optical axis
-    drop = range_m * r_wc[2, 2]  # height of the boresight's ground point below the camera (negative)
-    t = drop / np.where(rays[:, 2] < 0.0, rays[:, 2], np.nan)  # depth along the optical axis
+    q = -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])  # the camera, from the Moon's centre
+    half_b = rays @ q
+    disc = half_b**2 - np.sum(rays**2, axis=1) * (q @ q - MOON_RADIUS_M**2)
+    t = (-half_b - np.sqrt(np.where(disc >= 0.0, disc, np.nan))) / np.sum(rays**2, axis=1)  # the nearer cut
     keep = np.isfinite(t) & (t > 0.0)
-    east, north = t * rays[:, 0], t * rays[:, 1]
+    ground = q + np.where(keep, t, 0.0)[:, None] * rays
+    up = q / np.linalg.norm(q)
+    east = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    east /= np.linalg.norm(east)
+    north = np.cross(up, east)
+    e, n = ground @ east, ground @ north
+    along = MOON_RADIUS_M * np.arctan2(np.hypot(e, n), ground @ up) / np.maximum(np.hypot(e, n), 1e-9)
+    east_m, north_m = along * e, along * n
     r_ground = np.array([d.r for d in dets]) * t / k[0, 0]
     half = (
-        float(np.nanmax(np.abs(np.concatenate([east[keep], north[keep]])))) / LIS_PIXEL_M + 2.0 if keep.any() else 1.0
+        float(np.nanmax(np.abs(np.concatenate([east_m[keep], north_m[keep]])))) / LIS_PIXEL_M + 2.0
+        if keep.any()
+        else 1.0
     )
     size = int(math.ceil(2.0 * half))
     c = size / 2.0
     idx = [int(i) for i in np.nonzero(keep)[0]]
     out = [
-        Detection(c + east[i] / LIS_PIXEL_M, c - north[i] / LIS_PIXEL_M, r_ground[i] / LIS_PIXEL_M, dets[i].score)
+        Detection(c + east_m[i] / LIS_PIXEL_M, c - north_m[i] / LIS_PIXEL_M, r_ground[i] / LIS_PIXEL_M, dets[i].score)
         for i in idx
     ]
     return out, (size, size), idx
+
+
+def camera_height_m(row: dict, range_m: float) -> float:
+    """The camera's height above the sphere of the Moon's radius through the boresight's ground point, from
+    the altimeter's range and the attitude (what :func:`rectify` assumes)."""
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    q = -range_m * cv_camera(rot, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))[0][2]
+    return float(np.linalg.norm(q + np.array([0.0, 0.0, MOON_RADIUS_M]))) - MOON_RADIUS_M
 
 
 def map_heading_deg(row: dict, pole: str) -> float:
@@ -131,7 +164,44 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
         out["identified_correct"] = int(
             sum(1 for fi, li in fix.inliers if kept[fi] in truth_of and label_ids[truth_of[kept[fi]]] == li)
         )
+    out["six_dof"] = (
+        six_dof_fix(row, dets, fix, rng, landmarks, nav) if fix.ok else {"fix": False, "reason": fix.reason}
+    )
     return out
+
+
+SIX_DOF_KEYS = ("fix", "reason", "error_km", "error_horizontal_km", "attitude_error_deg", "identified",
+                "identified_correct", "rms_px")  # fmt: skip
+
+
+def six_dof_fix(row: dict, image, dets, fix, range_m: float, landmarks, nav) -> dict:
+    """The 6-DOF pose from the lost-in-space fix: the camera placed over the fixed map point at the height
+    the altimeter and attitude give (:func:`camera_height_m`), which is the prior of ``nav-frames-eval``'s
+    pinhole fix (``nav.frames.solver=pnp``: the landmarks that prior predicts paired with ``dets``, RANSAC
+    over P3P, attitude and position solved together). Its fields of the frame's row (:data:`SIX_DOF_KEYS`);
+    ``image`` is not searched again (``dets`` are the frame's detections)."""
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole_of(lat0))
+    centre = geometry.latlon_to_mc(float(lat), float(lon), camera_height_m(row, range_m))
+    prior = geometry.mc_to_enu(np.atleast_2d(centre), lat0, lon0)[0]
+    r = evaluate_frame(row, image, landmarks, frame_run(nav, method="pnp", refine=False), list(dets), prior_enu=prior)
+    return {k: r[k] for k in SIX_DOF_KEYS if k in r}
+
+
+def six_dof_summary(rows: list[dict]) -> dict:
+    """Fix rate, false fixes (3-D error > FALSE_FIX_KM), median position and attitude errors of the 6-DOF
+    fixes of lost-in-space rows."""
+    fixed = [r["six_dof"] for r in rows if r["six_dof"]["fix"]]
+    err = np.array([r["error_km"] for r in fixed])
+    att = np.array([r["attitude_error_deg"] for r in fixed])
+    return {
+        "frames": len(rows),
+        "fixes": len(fixed),
+        "fix_rate": round(len(fixed) / len(rows), 4) if rows else None,
+        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+        "median_error_km": round(float(np.median(err)), 3) if err.size else None,
+        "median_attitude_error_deg": round(float(np.median(att)), 4) if att.size else None,
+    }
 
 
 def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
@@ -166,6 +236,8 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
         "lis_settings": lis.as_dict(),
         "summary": lost_in_space_summary(out),
         "perfect_summary": lost_in_space_summary([r["perfect"] for r in out]),
+        "six_dof_summary": six_dof_summary(out),
+        "perfect_six_dof_summary": six_dof_summary([r["perfect"] for r in out]),
         "rows": out,
     }
 
