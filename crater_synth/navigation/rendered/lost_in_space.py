@@ -1,21 +1,26 @@
 """Lost in space on rendered perspective frames (``crater-synth nav-frames-lis DIR``): the pair vote of
-:mod:`.lost_in_space` on detections rectified onto the ground with the known attitude and an altimeter.
+:mod:`.lost_in_space` on detections rectified onto the ground with the known attitude and an altimeter,
+then the 6-DOF pinhole fix from the vote's position.
 
 A lander that has lost its position still knows its attitude (star tracker and ephemeris) and measures
 its range to the ground along the boresight (altimeter). With both, a perspective frame's detections are
-projected onto the horizontal plane through the boresight's ground point (each detection's camera ray
-from the known attitude, the plane at the measured range): a nadir map of the frame at a known scale,
-which is what the mosaic windows are. The frozen ``south-choice`` pair vote then runs on it unchanged,
-its tolerances in the windows' 400 m pixels (:data:`LIS_PIXEL_M`), and gives the map point under the
-camera: the horizontal position (the altitude is the altimeter's). Nothing here was chosen on rendered
-frames: the detector settings are the ``nav-frames-eval`` preset's, the vote's the windows'.
+placed on the ground (:func:`rectify`: each detection's camera ray cut with the Moon's sphere through the
+boresight's ground point, at its distance along the ground from the point under the camera): a nadir
+map of the frame at a known scale, which is what the mosaic windows are. The frozen ``south-choice`` pair
+vote then runs on it unchanged, its tolerances in the windows' 400 m pixels (:data:`LIS_PIXEL_M`), and
+gives the map point under the camera. The camera placed over that point at the height the range and
+attitude give is the prior of ``nav-frames-eval``'s 6-DOF fix (:func:`six_dof_fix`), which solves the
+attitude and the 3-D position from the map landmarks that prior predicts. Nothing here was chosen on
+rendered frames: the detector settings are the given ``nav/detector``'s (the ``synthetic`` preset's by
+default), the vote's the windows'.
 
 Assumptions, as in ``nav-frames-eval``: the attitude relative to the local vertical is the true one; the
 range is the rendered depth at the image centre (what a boresight altimeter measures); the light
-direction in the image is given (attitude and ephemeris need no position). The local horizontal plane
-and the polar stereographic map plane differ by the projection's scale (< 1 % poleward of 80 degrees
-of latitude) and a rotation, which the vote's free heading absorbs. The error is the horizontal
-distance between the fixed and the true map point under the camera; a fix is false beyond 5 km.
+direction in the image is given (attitude and ephemeris need no position). The rectified ground and the
+polar stereographic map plane differ by the projection's scale (< 1 % poleward of 80 degrees of latitude)
+and a rotation, which the vote's free heading absorbs. The vote's error is the horizontal distance between
+the fixed and the true map point under the camera, the 6-DOF fix's the 3-D distance to the true camera; a
+fix is false beyond 5 km.
 """
 
 from __future__ import annotations
@@ -122,6 +127,17 @@ def boresight_range_m(depth: np.ndarray) -> float:
     return float(np.mean(depth[h // 2 - 1 : h // 2 + 1, w // 2 - 1 : w // 2 + 1]))
 
 
+def found(dets, labels: list[dict]) -> list[int]:
+    """[labels a detection matches (:func:`.evaluate.match_pixels`), labels]."""
+    return [len(match_pixels(dets, labels)) if labels else 0, len(labels)]
+
+
+def recall(rows: list[dict], key: str) -> float | None:
+    """The share of the rows' labels in ``key`` (:func:`found`) that a detection matches."""
+    n = sum(r[key][1] for r in rows)
+    return round(sum(r[key][0] for r in rows) / n, 4) if n else None
+
+
 def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detections=None) -> dict:
     """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
     its pose and labels, with the settings ``nav`` (its detector, fix and ``lost_in_space``; ``index``: the
@@ -148,6 +164,9 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     out = {
         "index": row["index"],
         "altitude_km": row["pose"]["altitude_m"] / 1000.0,
+        # Found, of the labelled landmarks: those whose rim spans >= 10 px, and those the vote uses.
+        "found_span10": found(dets, [lb for lb in row["landmarks"] if 2.0 * lb["ellipse"]["a"] >= 10.0]),
+        "found_lis": found(dets, [lb for lb in row["landmarks"] if lb["diameter_km"] >= lis.min_landmark_km]),
         "range_km": rng / 1000.0,
         "detections": len(dets),
         "rectified": len(flat),
@@ -164,9 +183,8 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
         out["identified_correct"] = int(
             sum(1 for fi, li in fix.inliers if kept[fi] in truth_of and label_ids[truth_of[kept[fi]]] == li)
         )
-    out["six_dof"] = (
-        six_dof_fix(row, dets, fix, rng, landmarks, nav) if fix.ok else {"fix": False, "reason": fix.reason}
-    )
+    no_fix = {"fix": False, "reason": fix.reason}
+    out["six_dof"] = six_dof_fix(row, image, dets, fix, rng, landmarks, nav) if fix.ok else no_fix
     return out
 
 
@@ -184,7 +202,9 @@ def six_dof_fix(row: dict, image, dets, fix, range_m: float, landmarks, nav) -> 
     lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole_of(lat0))
     centre = geometry.latlon_to_mc(float(lat), float(lon), camera_height_m(row, range_m))
     prior = geometry.mc_to_enu(np.atleast_2d(centre), lat0, lon0)[0]
-    r = evaluate_frame(row, image, landmarks, frame_run(nav, method="pnp", refine=False), list(dets), prior_enu=prior)
+    r = evaluate_frame(
+        row, image, landmarks, frame_run(nav, method="pnp", refine=False), detections=list(dets), prior_enu=prior
+    )
     return {k: r[k] for k in SIX_DOF_KEYS if k in r}
 
 
@@ -237,6 +257,7 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
         "summary": lost_in_space_summary(out),
         "perfect_summary": lost_in_space_summary([r["perfect"] for r in out]),
         "six_dof_summary": six_dof_summary(out),
+        "detector_recall": {"rim_span_10px": recall(out, "found_span10"), "lis_landmarks": recall(out, "found_lis")},
         "perfect_six_dof_summary": six_dof_summary([r["perfect"] for r in out]),
         "rows": out,
     }
@@ -267,4 +288,14 @@ def nav_frames_lis_command(frames_dir, json_path, overrides):
         )
     if json_path is not None:
         atomic_write_json(json_path, result)
-    click.echo(json.dumps({"detector": result["summary"], "perfect_detections": result["perfect_summary"]}))
+    click.echo(
+        json.dumps(
+            {
+                "detector": result["summary"],
+                "perfect_detections": result["perfect_summary"],
+                "six_dof": result["six_dof_summary"],
+                "perfect_six_dof": result["perfect_six_dof_summary"],
+                "detector_recall": result["detector_recall"],
+            }
+        )
+    )
