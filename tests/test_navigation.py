@@ -293,6 +293,29 @@ def test_pnp_refuses_an_ill_conditioned_pose():
             assert "ill-conditioned" in reason
 
 
+def test_pnp_with_a_measured_attitude_fixes_what_the_free_pose_cannot():
+    """The ill-conditioned case above (five landmarks within 12 km, 90 km below, half a pixel of scatter)
+    with the attitude measured to 0.05 degrees: the tilt is no longer free, the position is fixed within
+    its 3-sigma, and the pose keeps the measured attitude within a few sigma. A measured attitude 0.5 degree
+    off (10 sigma: a wrong measurement) moves the fix by about the altitude times that angle, 0.8 km."""
+    k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
+    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    c_true = np.array([500.0, -300.0, 90e3])
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-12e3, 12e3, (5, 2)), rng.uniform(-500, 500, 5)])
+    uv = nf.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
+    sigma = math.radians(0.05)
+    assert not nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0)[0]  # free: ill-conditioned
+    ok, reason, r, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0, attitude_sigma_rad=sigma)
+    sigma_km = nf.pose_sigma_horizontal_m(pts, uv, k, r, c, sigma) / 1000.0
+    assert ok and nf.PNP_SIGMAS * sigma_km < nf.FALSE_FIX_KM, reason
+    assert np.hypot(*(c - c_true)[:2]) < nf.PNP_SIGMAS * sigma_km * 1000.0
+    assert nf.attitude_difference_deg(r, r0) < 3 * 0.05
+    off = nf.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r0
+    ok, _, r, c, _ = nf.ransac_pnp(pts, uv, k, off, c_true, inlier_px=3.0, attitude_sigma_rad=sigma)
+    assert ok and 0.5e3 < np.hypot(*(c - c_true)[:2]) < 1.0e3
+
+
 # --------------------------------------------------------------------------------------------
 # navigate: bad input gives one clear error and writes nothing
 # --------------------------------------------------------------------------------------------

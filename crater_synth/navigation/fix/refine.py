@@ -49,7 +49,7 @@ from crater_core.hapke import shade_np
 from crater_core.horizon import Terrain, disc_fraction_above, horizon_maps, texel_centres
 from crater_synth.config import load_settings
 from crater_synth.navigation.detectors.template import hapke_params
-from crater_synth.navigation.fix.solve import project_pinhole, refine_pose, solve_position
+from crater_synth.navigation.fix.solve import pose_with_attitude, project_pinhole, refine_pose, solve_position
 from crater_synth.terrain.dem import DemError
 from crater_synth.terrain.grid import sphere_points
 from crater_synth.terrain.patch import open_dem_stack
@@ -415,7 +415,7 @@ class Refiner:
         at least three registered landmarks), and the record adds the final world->camera ``rotation``;
         ``attitude_prior`` (the attitude the lander believes, its 1-sigma in radians): each 6-DOF solve is
         then weighted towards it (:func:`.fix.refine_pose`), against the observations' own scatter (the
-        residuals of the solve without it, no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
+        residuals of the solve without it, no less than ``PNP_MIN_SIGMA_PX``)."""
         t0 = time.perf_counter()
         p = self.params
         c = np.asarray(c_fix, dtype=np.float64)
@@ -484,13 +484,10 @@ class Refiner:
     @staticmethod
     def _solve_pose(points_enu, moved, k, r_wc, c, attitude_prior):
         """The 6-DOF solve from the registered observations; with ``attitude_prior`` weighted towards it
-        against the observations' own scatter (no less than ``MIN_REGISTRATION_SIGMA_PX``)."""
+        against the observations' own scatter (no less than ``PNP_MIN_SIGMA_PX``)."""
         r_wc, c = refine_pose(points_enu, moved, k, r_wc, c)
         if attitude_prior is not None:
-            res = (project_pinhole(points_enu, r_wc, c, k) - moved).ravel()
-            sigma_px = max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), MIN_REGISTRATION_SIGMA_PX)
-            weight = sigma_px / attitude_prior[1]
-            r_wc, c = refine_pose(points_enu, moved, k, r_wc, c, attitude_prior=(attitude_prior[0], weight))
+            r_wc, c = pose_with_attitude(points_enu, moved, k, r_wc, c, *attitude_prior)
         return r_wc, c
 
     def verified(self, refinement: dict) -> tuple[bool, str]:
@@ -503,12 +500,6 @@ class Refiner:
             n = len(refinement["landmarks"])
             return False, f"appearance check: {used} of {n} landmarks appear where the fix predicts them (need 2)"
         return True, ""
-
-
-# The scatter of registered observations is estimated from a 6-DOF solve's residuals; with 4-5 landmarks a
-# near-exact fit would make it ~0 and the attitude prior weightless: a tenth of a pixel is the floor (a stated
-# assumption, not tuned).
-MIN_REGISTRATION_SIGMA_PX = 0.1
 
 
 def lander_dem(pole: str):

@@ -262,12 +262,14 @@ def _pose_jacobian(points, uv, k, r, c, scale: float):
     return res, jac
 
 
-def pose_sigma_horizontal_m(points, uv, k, r, c) -> float:
+def pose_sigma_horizontal_m(points, uv, k, r, c, attitude_sigma_rad: float = 0.0) -> float:
     """1-sigma horizontal (first two axes) uncertainty (m) of the camera centre of pose (r, c) fitted to
     >= 4 ``points`` at pixels ``uv``: the least-squares covariance sigma^2 (J^T J)^-1, sigma the residuals'
     own scatter with the fit's 6 unknowns taken off (sum of squares / (2n - 6)). Large where a tilt and a
-    shift of the camera explain the pixels nearly alike (a few landmarks, seen near nadir)."""
-    return _sigma_horizontal_m(points, uv, k, r, c, attitude_held=False)
+    shift of the camera explain the pixels nearly alike (a few landmarks, seen near nadir, or a narrow
+    field). ``attitude_sigma_rad`` > 0: the attitude also measured to that 1-sigma (a star tracker), its
+    information added to the pixels'."""
+    return _sigma_horizontal_m(points, uv, k, r, c, attitude_held=False, attitude_sigma_rad=attitude_sigma_rad)
 
 
 def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
@@ -278,9 +280,10 @@ def position_sigma_horizontal_m(points, uv, k, r, c) -> float:
     return _sigma_horizontal_m(points, uv, k, r, c, attitude_held=True)
 
 
-def _sigma_horizontal_m(points, uv, k, r, c, attitude_held: bool) -> float:
+def _sigma_horizontal_m(points, uv, k, r, c, attitude_held: bool, attitude_sigma_rad: float = 0.0) -> float:
     """The least-squares 1-sigma horizontal uncertainty (m) of the camera centre, sigma^2 (J^T J)^-1 with sigma
-    from the residuals less the unknowns (6, or the centre's 3 with the attitude held)."""
+    from the residuals less the unknowns (6, or the centre's 3 with the attitude held); with a measured
+    attitude (``attitude_sigma_rad`` > 0), (J^T J / sigma^2 + diag(1 / attitude_sigma^2, 0))^-1."""
     points, uv = np.asarray(points, float), np.asarray(uv, float)
     scale = max(float(np.linalg.norm(points - c, axis=1).mean()), 1.0)
     res, jac = _pose_jacobian(points, uv, k, r, c, scale)
@@ -288,7 +291,11 @@ def _sigma_horizontal_m(points, uv, k, r, c, attitude_held: bool) -> float:
         jac = jac[:, 3:]
     unknowns = jac.shape[1]
     sigma2 = float(res @ res) / max(res.size - unknowns, 1)
-    cov = np.linalg.pinv(jac.T @ jac) * sigma2
+    if attitude_sigma_rad > 0.0 and not attitude_held:
+        prior = np.diag([attitude_sigma_rad**-2] * 3 + [0.0] * 3)
+        cov = np.linalg.pinv(jac.T @ jac / max(sigma2, 1e-300) + prior)
+    else:
+        cov = np.linalg.pinv(jac.T @ jac) * sigma2
     x = unknowns - 3  # the centre's first axis among the unknowns
     return float(math.sqrt(max(cov[x, x] + cov[x + 1, x + 1], 0.0))) * scale
 
@@ -323,11 +330,24 @@ def refine_pose(points, uv, k, r0, c0, iterations: int = 20, attitude_prior=None
     return r, c
 
 
+def pose_with_attitude(points, uv, k, r, c, r_measured, attitude_sigma_rad: float):
+    """The pose (r, c), fitted to ``points`` at ``uv``, fitted again as the maximum a posteriori pose given
+    a measured attitude ``r_measured`` of 1-sigma ``attitude_sigma_rad``: :func:`refine_pose`'s attitude
+    prior, weighted against the pixels' own scatter in the first fit (no less than :data:`PNP_MIN_SIGMA_PX`)."""
+    res = (project_pinhole(points, r, c, k) - uv).ravel()
+    sigma_px = max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), PNP_MIN_SIGMA_PX)
+    return refine_pose(points, uv, k, r, c, attitude_prior=(r_measured, sigma_px / attitude_sigma_rad))
+
+
 PNP_MIN_INLIERS = 4  # three points determine a pinhole pose exactly: any three pairs "agree"
 FALSE_FIX_KM = 5.0  # a fix further than this from the truth is a false fix (the evaluation's definition)
 # A 6-DOF pose whose horizontal 3-sigma uncertainty reaches the false-fix distance is no fix: the pixels
 # cannot tell it from a pose that is false (not tuned: the bound is the definition, 3 the usual coverage).
 PNP_SIGMAS = 3.0
+# The pixels' scatter a measured attitude is weighed against is estimated from a 6-DOF fit's residuals; with
+# 4-5 landmarks a near-exact fit would make it ~0 and the attitude weightless: a tenth of a pixel is the floor
+# (a stated assumption, not tuned).
+PNP_MIN_SIGMA_PX = 0.1
 
 
 def attitude_difference_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
@@ -346,9 +366,16 @@ def ransac_pnp(
     inlier_px: float = 2.0,
     pairs=None,
     minimal=p3p_pose,
+    attitude_sigma_rad: float = 0.0,
 ):
     """Robust pinhole pose from 3-D ``points`` (n, 3) and their pixels ``uv`` (n, 2) with known
     correspondences, some wrong. Returns (ok, reason, r_wc, centre, inlier mask).
+
+    ``attitude_sigma_rad`` > 0: ``r_prior`` is a measured attitude of that 1-sigma (a star tracker), and the
+    inliers' pose is its maximum a posteriori estimate (:func:`refine_pose`'s attitude prior, weighted by the
+    residuals' own scatter, no less than :data:`PNP_MIN_SIGMA_PX`); the conditioning test counts it too.
+    With a few landmarks in a narrow field, a tilt and a shift explain the pixels nearly alike, and the free
+    pose can sit kilometres off while its residual scatter, from a handful of degrees of freedom, looks small.
 
     "No fix" when fewer than ``min_inliers`` (and never fewer than :data:`PNP_MIN_INLIERS`) agree; when the
     pose contradicts the prior it started from: an attitude more than ``max_heading_deg`` from the prior's
@@ -380,6 +407,8 @@ def ransac_pnp(
     if best.sum() < need:
         return False, f"only {int(best.sum())} landmarks agree on one pose", None, None, best
     r, c = refine_pose(points[best], uv[best], k, r, c)
+    if attitude_sigma_rad > 0.0:
+        r, c = pose_with_attitude(points[best], uv[best], k, r, c, r_prior, attitude_sigma_rad)
     turned = attitude_difference_deg(r, r_prior)
     if turned > params.max_heading_deg:
         return (
@@ -395,7 +424,7 @@ def ransac_pnp(
     rival = _rival(pairs, best, hyps, need, params.ambiguity_margin)
     if rival:
         return False, rival, None, None, best
-    sigma_km = pose_sigma_horizontal_m(points[best], uv[best], k, r, c) / 1000.0
+    sigma_km = pose_sigma_horizontal_m(points[best], uv[best], k, r, c, attitude_sigma_rad) / 1000.0
     if PNP_SIGMAS * sigma_km > FALSE_FIX_KM:
         why = f"ill-conditioned pose: {PNP_SIGMAS:g} sigma = {PNP_SIGMAS * sigma_km:.1f} km > {FALSE_FIX_KM:g} km"
         return False, why, None, None, best

@@ -175,7 +175,8 @@ class FrameRun:
     turned by this angle about a seeded axis (the lander's attitude error; the image and the truth are the
     frame's); ``prior_offset_km``: how far the prior is from the true camera (horizontally, seeded
     direction); ``refine_pnp``: a 6-DOF fix is refined too, weighted towards the believed attitude by its
-    1-sigma ``attitude_sigma_deg`` when > 0."""
+    1-sigma ``attitude_sigma_deg`` when > 0; ``pnp_attitude_sigma_deg`` > 0: the 6-DOF fix itself takes the
+    believed attitude as a measurement of that 1-sigma (:func:`.fix.solve.ransac_pnp`)."""
 
     dparams: DetectorSettings = dataclasses.field(default_factory=ClassicalSettings)
     fparams: FixParams = dataclasses.field(default_factory=FixParams)
@@ -189,6 +190,7 @@ class FrameRun:
     prior_offset_km: float = PRIOR_OFFSET_KM
     refine_pnp: bool = False
     attitude_sigma_deg: float = 0.0
+    pnp_attitude_sigma_deg: float = 0.0
 
 
 def frame_run(nav, **kw) -> FrameRun:
@@ -354,7 +356,8 @@ def solve_frame_fix(view: FrameView, dets, pairs_det, pairs_lm, run: FrameRun) -
     pair_ids = np.column_stack([pairs_det, pairs_lm])
     if run.method == "pnp":
         args = (p3, p2, k, r_wc, view.c_prior, fparams, run.inlier_px)
-        ok, reason, r_fix, c_fix, inl = ransac_pnp(*args, pairs=pair_ids)
+        sigma = math.radians(run.pnp_attitude_sigma_deg)
+        ok, reason, r_fix, c_fix, inl = ransac_pnp(*args, pairs=pair_ids, attitude_sigma_rad=sigma)
     else:
         r_fix = r_wc
         ok, reason, c_fix, inl = ransac_position(p3, p2, k, r_wc, fparams, run.inlier_px, pairs=pair_ids)

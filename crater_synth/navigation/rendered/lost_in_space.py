@@ -54,6 +54,10 @@ from crater_synth.navigation.rendered.labels import labelled_rows
 from crater_synth.navigation.settings import compose_nav, map_scales
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
+# The attitude rectify() assumes is measured (star tracker and camera alignment): its 1-sigma, with which the
+# 6-DOF fix takes it as a measurement. A stated assumption of a typical budget (a tracker's own 1-10 arcsec
+# plus a few hundredths of a degree of camera-to-tracker alignment), not tuned.
+LIS_ATTITUDE_SIGMA_DEG = 0.05
 
 
 def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int, int], list[int]]:
@@ -196,14 +200,20 @@ def six_dof_fix(row: dict, image, dets, fix, range_m: float, landmarks, nav) -> 
     """The 6-DOF pose from the lost-in-space fix: the camera placed over the fixed map point at the height
     the altimeter and attitude give (:func:`camera_height_m`), which is the prior of ``nav-frames-eval``'s
     pinhole fix (``nav.frames.solver=pnp``: the landmarks that prior predicts paired with ``dets``, RANSAC
-    over P3P, attitude and position solved together). Its fields of the frame's row (:data:`SIX_DOF_KEYS`);
+    over P3P, attitude and position solved together, the attitude rectification assumed taken as a
+    measurement of 1-sigma :data:`LIS_ATTITUDE_SIGMA_DEG`). Its fields of the frame's row (:data:`SIX_DOF_KEYS`);
     ``image`` is not searched again (``dets`` are the frame's detections)."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole_of(lat0))
     centre = geometry.latlon_to_mc(float(lat), float(lon), camera_height_m(row, range_m))
     prior = geometry.mc_to_enu(np.atleast_2d(centre), lat0, lon0)[0]
     r = evaluate_frame(
-        row, image, landmarks, frame_run(nav, method="pnp", refine=False), detections=list(dets), prior_enu=prior
+        row,
+        image,
+        landmarks,
+        frame_run(nav, method="pnp", refine=False, pnp_attitude_sigma_deg=LIS_ATTITUDE_SIGMA_DEG),
+        detections=list(dets),
+        prior_enu=prior,
     )
     return {k: r[k] for k in SIX_DOF_KEYS if k in r}
 
