@@ -162,7 +162,7 @@ def test_rectify_places_an_oblique_frames_craters_at_their_distances_on_the_sphe
     curvature drops it ~25 km below a flat plane: cut with the sphere, the rectified detections keep the
     craters' distances along the ground (azimuthal equidistant about the point under the camera)."""
     from crater_core.geometry import MOON_RADIUS_M
-    from crater_synth.navigation.fix.solve import project_pinhole
+    from crater_synth.navigation.fix.pose import project_pinhole
     from crater_synth.navigation.rendered.evaluate import cv_camera
     from crater_synth.navigation.rendered.lost_in_space import LIS_PIXEL_M, camera_height_m, rectify
 

@@ -85,7 +85,8 @@ def test_project_circle_vertical_normal_is_the_horizontal_circle():
 
 
 def test_position_fix_with_known_attitude_is_exact_and_robust():
-    from crater_synth.navigation.fix.solve import FixParams, project_pinhole, ransac_position
+    from crater_synth.navigation.fix.pose import project_pinhole
+    from crater_synth.navigation.fix.solve import FixParams, ransac_position
 
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-60e3, 60e3, (12, 2)), rng.uniform(-2e3, 2e3, 12)])
@@ -103,7 +104,7 @@ def test_position_fix_with_known_attitude_is_exact_and_robust():
 def test_known_attitude_fix_sigma_follows_its_scatter_under_pixel_noise():
     """position_sigma_horizontal_m: the fit's own covariance; with Gaussian pixel noise it is the
     horizontal error's spread (Monte Carlo of the same least-squares solve)."""
-    from crater_synth.navigation.fix.solve import position_sigma_horizontal_m, project_pinhole, solve_position
+    from crater_synth.navigation.fix.pose import position_sigma_horizontal_m, project_pinhole, solve_position
 
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, (6, 2)), rng.uniform(-2e3, 2e3, 6)])
@@ -126,7 +127,8 @@ def test_position_hypotheses_leave_out_degenerate_pairs_and_centres_behind():
     """All pairs are solved at once: a pair whose two pixels coincide (one detection twice) or whose centre
     has a landmark behind the camera gives no hypothesis; every other pair of true correspondences gives
     the true centre, so all its points are inliers."""
-    from crater_synth.navigation.fix.solve import position_hypotheses, project_pinhole
+    from crater_synth.navigation.fix.pose import project_pinhole
+    from crater_synth.navigation.fix.solve import position_hypotheses
 
     r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
     k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
@@ -143,7 +145,8 @@ def test_position_fix_refuses_an_ambiguous_set():
     """Two disjoint landmark sets (a pattern and its shifted copy) explain the same detections from two
     camera positions: with the (detection, landmark) ids the known-attitude fix answers "ambiguous";
     the true set alone fixes exactly."""
-    from crater_synth.navigation.fix.solve import FixParams, project_pinhole, ransac_position
+    from crater_synth.navigation.fix.pose import project_pinhole
+    from crater_synth.navigation.fix.solve import FixParams, ransac_position
 
     r_wc = np.diag([1.0, -1.0, -1.0])  # nadir
     k = np.array([[400.0, 0, 256], [0, 400.0, 256], [0, 0, 1]])
@@ -518,6 +521,7 @@ def test_worker_rejects_a_bad_explicit_camera(tmp_path):
 def test_every_preset_serves_the_6dof_fix_with_at_least_four_landmarks():
     """The presets of 3 agreeing landmarks take 4 for the 6-DOF fix (three points fix a pinhole pose
     exactly, so any three pairs would agree)."""
+    from crater_synth.navigation.fix import pose as pm
     from crater_synth.navigation.fix import solve as nf
     from crater_synth.navigation.settings import compose_nav, preset_options
 
@@ -527,8 +531,8 @@ def test_every_preset_serves_the_6dof_fix_with_at_least_four_landmarks():
         assert fparams.min_inliers in (3, 5)
     pts = np.column_stack([np.linspace(-9e3, 9e3, 3), np.zeros(3), np.zeros(3)])
     k = np.array([[500.0, 0, 256], [0, 500.0, 256], [0, 0, 1]])
-    r0 = nf.rodrigues(np.array([np.pi, 0.0, 0.0]))
-    uv = nf.project_pinhole(pts, r0, np.array([0.0, 0.0, 60e3]), k)
+    r0 = pm.rodrigues(np.array([np.pi, 0.0, 0.0]))
+    uv = pm.project_pinhole(pts, r0, np.array([0.0, 0.0, 60e3]), k)
     ok, reason, *_ = nf.ransac_pnp(
         pts, uv, k, r0, np.array([0.0, 0.0, 60e3]), dataclasses.replace(fparams, min_inliers=3)
     )

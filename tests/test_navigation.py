@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from crater_synth.cli import main
 from crater_synth.navigation.detectors.classical import ClassicalSettings, detect
+from crater_synth.navigation.fix import pose as pm
 from crater_synth.navigation.fix import solve as nf
 from crater_synth.navigation.georef import FrameError, Georef, check_frame, scale_factor, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import Landmark, LandmarkMapError, read_map, to_geojson
@@ -213,11 +214,11 @@ def test_pnp_recovers_known_pose_with_outliers_and_refuses_too_few():
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, 10), rng.uniform(-40e3, 40e3, 10), rng.uniform(-2e3, 2e3, 10)])
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r_true = nf.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))  # looking down, slightly off nadir
+    r_true = pm.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))  # looking down, slightly off nadir
     c_true = np.array([1500.0, -800.0, 90e3])
-    uv = nf.project_pinhole(pts, r_true, c_true, k)
+    uv = pm.project_pinhole(pts, r_true, c_true, k)
     uv[[2, 7]] += [[60.0, -40.0], [-80.0, 25.0]]  # two wrong identifications
-    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    r0 = pm.rodrigues(np.array([math.pi, 0.0, 0.0]))
     ok, _, r, c, inl = nf.ransac_pnp(pts, uv, k, r0, np.array([0.0, 0.0, 85e3]))
     assert ok and not inl[2] and not inl[7] and inl.sum() == 8
     assert np.linalg.norm(c - c_true) < 1.0
@@ -229,21 +230,21 @@ def test_rotation_vector_inverts_rodrigues_and_the_attitude_prior_weighs_the_pos
     """rotation_vector is rodrigues' inverse; a pose refined with an attitude prior stays at the prior's
     attitude when the prior is strong and follows the pixels when it is weak."""
     for w in (np.array([0.3, -0.2, 0.1]), np.array([1e-9, 0.0, 0.0]), np.array([math.pi - 0.1, 0.02, 0.0])):
-        np.testing.assert_allclose(nf.rotation_vector(nf.rodrigues(w)), w, atol=1e-9)
+        np.testing.assert_allclose(pm.rotation_vector(pm.rodrigues(w)), w, atol=1e-9)
     rng = np.random.default_rng(4)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, 12), rng.uniform(-40e3, 40e3, 12), rng.uniform(-2e3, 2e3, 12)])
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r_true = nf.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))
+    r_true = pm.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))
     c_true = np.array([1500.0, -800.0, 90e3])
-    uv = nf.project_pinhole(pts, r_true, c_true, k)
-    r_prior = nf.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r_true  # the believed attitude, 0.5 degree off
+    uv = pm.project_pinhole(pts, r_true, c_true, k)
+    r_prior = pm.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r_true  # the believed attitude, 0.5 degree off
     c0 = c_true + [300.0, 200.0, 0.0]
-    free = nf.refine_pose(pts, uv, k, r_prior, c0)
-    strong = nf.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e7))
-    weak = nf.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e-3))
-    assert nf.attitude_difference_deg(free[0], r_true) < 1e-4  # exact pixels: the truth
-    assert nf.attitude_difference_deg(strong[0], r_prior) < 1e-3  # held at the prior
-    assert nf.attitude_difference_deg(weak[0], r_true) < 1e-3 and np.linalg.norm(weak[1] - c_true) < 1.0
+    free = pm.refine_pose(pts, uv, k, r_prior, c0)
+    strong = pm.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e7))
+    weak = pm.refine_pose(pts, uv, k, r_prior, c0, attitude_prior=(r_prior, 1e-3))
+    assert pm.attitude_difference_deg(free[0], r_true) < 1e-4  # exact pixels: the truth
+    assert pm.attitude_difference_deg(strong[0], r_prior) < 1e-3  # held at the prior
+    assert pm.attitude_difference_deg(weak[0], r_true) < 1e-3 and np.linalg.norm(weak[1] - c_true) < 1.0
 
 
 def test_pnp_refuses_a_pose_that_contradicts_its_prior_or_a_rival_set():
@@ -253,20 +254,20 @@ def test_pnp_refuses_a_pose_that_contradicts_its_prior_or_a_rival_set():
     rng = np.random.default_rng(2)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, 12), rng.uniform(-40e3, 40e3, 12), rng.uniform(-2e3, 2e3, 12)])
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r_true = nf.rodrigues(np.array([math.pi - 0.02, 0.01, 0.0]))
+    r_true = pm.rodrigues(np.array([math.pi - 0.02, 0.01, 0.0]))
     c_true = np.array([1000.0, 500.0, 90e3])
-    uv = nf.project_pinhole(pts, r_true, c_true, k)
-    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    uv = pm.project_pinhole(pts, r_true, c_true, k)
+    r0 = pm.rodrigues(np.array([math.pi, 0.0, 0.0]))
     ok, reason, _, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true + [4000.0, 0.0, 0.0])
     assert ok and np.linalg.norm(c - c_true) < 1.0, reason
     ok, reason, *_ = nf.ransac_pnp(pts, uv, k, r0, c_true + [12000.0, 0.0, 0.0])  # prior 12 km off, sigma 10
     assert not ok and "km from the prior" in reason
-    tilted = nf.rodrigues(np.array([math.pi - 0.16, 0.0, 0.0]))  # the prior attitude 8 deg away
+    tilted = pm.rodrigues(np.array([math.pi - 0.16, 0.0, 0.0]))  # the prior attitude 8 deg away
     ok, reason, *_ = nf.ransac_pnp(pts, uv, k, tilted, c_true)
     assert not ok and "from the prior attitude" in reason
     # Two disjoint halves, each seen from its own position 3 km apart: as well explained either way.
     uv2 = uv.copy()
-    uv2[6:] = nf.project_pinhole(pts[6:], r_true, c_true + [3000.0, 0.0, 0.0], k)
+    uv2[6:] = pm.project_pinhole(pts[6:], r_true, c_true + [3000.0, 0.0, 0.0], k)
     pairs = np.column_stack([np.arange(12), np.arange(12)])
     ok, reason, *_ = nf.ransac_pnp(pts, uv2, k, r0, c_true, pairs=pairs)
     assert not ok and "ambiguous" in reason
@@ -278,13 +279,13 @@ def test_pnp_refuses_an_ill_conditioned_pose():
     pixels nearly alike, so half a pixel of scatter leaves the position kilometres uncertain: no fix. The
     same scatter on landmarks spread over 80 km fixes the position within its 3-sigma uncertainty."""
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    r0 = pm.rodrigues(np.array([math.pi, 0.0, 0.0]))
     c_true = np.array([500.0, -300.0, 90e3])
     for half_width, fixes in ((12e3, False), (40e3, True)):
         rng = np.random.default_rng(5)
         pts = np.column_stack([rng.uniform(-half_width, half_width, (5, 2)), rng.uniform(-500, 500, 5)])
-        uv = nf.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
-        sigma_km = nf.pose_sigma_horizontal_m(pts, uv, k, r0, c_true) / 1000.0
+        uv = pm.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
+        sigma_km = pm.pose_sigma_horizontal_m(pts, uv, k, r0, c_true) / 1000.0
         ok, reason, _, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0)
         assert ok == fixes and (nf.PNP_SIGMAS * sigma_km > nf.FALSE_FIX_KM) != fixes, (half_width, reason, sigma_km)
         if fixes:
@@ -299,19 +300,19 @@ def test_pnp_with_a_measured_attitude_fixes_what_the_free_pose_cannot():
     its 3-sigma, and the pose keeps the measured attitude within a few sigma. A measured attitude 0.5 degree
     off (10 sigma: a wrong measurement) moves the fix by about the altitude times that angle, 0.8 km."""
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r0 = nf.rodrigues(np.array([math.pi, 0.0, 0.0]))
+    r0 = pm.rodrigues(np.array([math.pi, 0.0, 0.0]))
     c_true = np.array([500.0, -300.0, 90e3])
     rng = np.random.default_rng(5)
     pts = np.column_stack([rng.uniform(-12e3, 12e3, (5, 2)), rng.uniform(-500, 500, 5)])
-    uv = nf.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
+    uv = pm.project_pinhole(pts, r0, c_true, k) + rng.normal(0.0, 0.5, (5, 2))
     sigma = math.radians(0.05)
     assert not nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0)[0]  # free: ill-conditioned
     ok, reason, r, c, _ = nf.ransac_pnp(pts, uv, k, r0, c_true, inlier_px=3.0, attitude_sigma_rad=sigma)
-    sigma_km = nf.pose_sigma_horizontal_m(pts, uv, k, r, c, sigma) / 1000.0
+    sigma_km = pm.pose_sigma_horizontal_m(pts, uv, k, r, c, sigma) / 1000.0
     assert ok and nf.PNP_SIGMAS * sigma_km < nf.FALSE_FIX_KM, reason
     assert np.hypot(*(c - c_true)[:2]) < nf.PNP_SIGMAS * sigma_km * 1000.0
-    assert nf.attitude_difference_deg(r, r0) < 3 * 0.05
-    off = nf.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r0
+    assert pm.attitude_difference_deg(r, r0) < 3 * 0.05
+    off = pm.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r0
     ok, _, r, c, _ = nf.ransac_pnp(pts, uv, k, off, c_true, inlier_px=3.0, attitude_sigma_rad=sigma)
     assert ok and 0.5e3 < np.hypot(*(c - c_true)[:2]) < 1.0e3
 

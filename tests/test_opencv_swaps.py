@@ -27,6 +27,7 @@ from crater_synth.bench.opencv import (
     smooth_image,
 )
 from crater_synth.navigation.detectors.template import crater_template, ncc
+from crater_synth.navigation.fix import pose as pm
 from crater_synth.navigation.fix import solve as nf
 from crater_synth.navigation.fix.p3p import p3p_pose
 from train.preprocess import PreprocessConfig, box_axes, resample_affine, resample_box, rotate_crop
@@ -47,10 +48,10 @@ def test_ap3p_hypotheses_are_the_gauss_newton_poses():
         i = rng.choice(len(pts), 3, replace=False)
         new, old = p3p_pose(pts[i], uv[i], k, r_prior, c_prior), gauss_newton_p3(pts[i], uv[i], k, r_prior, c_prior)
         if new is None:  # the pixels' noise leaves no exact pose: Gauss-Newton's last step is no pose either
-            assert np.abs(nf.project_pinhole(pts[i], *old, k) - uv[i]).max() > 1e-3
+            assert np.abs(pm.project_pinhole(pts[i], *old, k) - uv[i]).max() > 1e-3
             continue
-        assert np.abs(nf.project_pinhole(pts[i], *new, k) - uv[i]).max() < 1e-6  # exact
-        agree += np.linalg.norm(new[1] - old[1]) < 1e-3 and nf.attitude_difference_deg(new[0], old[0]) < 1e-4
+        assert np.abs(pm.project_pinhole(pts[i], *new, k) - uv[i]).max() < 1e-6  # exact
+        agree += np.linalg.norm(new[1] - old[1]) < 1e-3 and pm.attitude_difference_deg(new[0], old[0]) < 1e-4
     assert agree >= 50  # 53 of 59: on the rest Gauss-Newton ends on another of the triple's poses, or diverges
 
 
@@ -72,7 +73,7 @@ def test_ransac_pnp_fixes_alike_with_either_minimal_solver(seed):
         assert old[0] == new[0] and old[1] == new[1] and np.array_equal(old[4], new[4])
         if new[0]:
             assert not new[4][:4].any() and np.linalg.norm(new[3] - old[3]) < 1e-3
-            assert nf.attitude_difference_deg(new[2], old[2]) < 1e-4
+            assert pm.attitude_difference_deg(new[2], old[2]) < 1e-4
             assert np.linalg.norm(new[3] - c_true) < 500.0
 
 

@@ -82,7 +82,7 @@ def test_patches_lie_on_the_dem_under_the_frame_grid():
     lms = patch_landmarks(dem, c, r_wc, k, 512, (lat0, lon0), "south", params)
     assert len(lms) == 9 and len({lm.id for lm in lms}) == 9 and {lm.source for lm in lms} == {PATCH_SOURCE}
     pts = geometry.mc_to_enu(np.array([lm.position_mc() for lm in lms]), lat0, lon0)
-    from crater_synth.navigation.fix.solve import project_pinhole
+    from crater_synth.navigation.fix.pose import project_pinhole
 
     uv = project_pinhole(pts, r_wc, c, k)  # each point is seen at its cell's centre
     centres = (np.arange(3) + 0.5) / 3 * 512

@@ -11,7 +11,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 from crater_core import geometry
 from crater_synth.navigation.fix import appearance, refine
-from crater_synth.navigation.fix.solve import project_pinhole, solve_position
+from crater_synth.navigation.fix.pose import project_pinhole, solve_position
 
 
 def _smooth_image(seed: int = 0, size: int = 160) -> np.ndarray:
@@ -255,7 +255,7 @@ def test_pose_refinement_recovers_attitude_and_centre(scene):
     """A 6-DOF fix off by 0.5 degree and a kilometre, its landmarks seen with a 1.5 px scatter: registering the
     windows and solving attitude and centre together (``pose=True``) brings both back; the record gives the
     rotation."""
-    from crater_synth.navigation.fix.solve import attitude_difference_deg, rodrigues
+    from crater_synth.navigation.fix.pose import attitude_difference_deg, rodrigues
 
     rng = np.random.default_rng(5)
     observed = scene.uv + rng.normal(scale=1.5, size=scene.uv.shape)

@@ -32,6 +32,7 @@ from scipy import ndimage
 
 from crater_synth.navigation.detectors import template
 from crater_synth.navigation.detectors.template import crater_template, ncc
+from crater_synth.navigation.fix import pose as pm
 from crater_synth.navigation.fix import solve as nf
 from crater_synth.navigation.fix.p3p import p3p_pose
 from crater_synth.navigation.map.landmarks import load_default_map
@@ -49,7 +50,7 @@ TRIPLES = 200  # minimal solves timed per solver
 def gauss_newton_p3(points, uv, k, r_prior, c_prior):
     """The former minimal solver of :func:`~..navigation.fix.solve.ransac_pnp`: Gauss-Newton from the prior
     pose, 15 iterations, on the 3 correspondences."""
-    return nf.refine_pose(points, uv, k, r_prior, c_prior, iterations=15)
+    return pm.refine_pose(points, uv, k, r_prior, c_prior, iterations=15)
 
 
 def ncc_scipy(image: np.ndarray, template: np.ndarray) -> np.ndarray:
@@ -102,11 +103,11 @@ def pnp_problem(seed: int = 3, n: int = 12, wrong: int = 4):
     rng = np.random.default_rng(seed)
     pts = np.column_stack([rng.uniform(-40e3, 40e3, (n, 2)), rng.uniform(-2e3, 2e3, n)])
     k = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])
-    r_true = nf.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))
+    r_true = pm.rodrigues(np.array([math.pi - 0.05, 0.03, 0.02]))
     c_true = np.array([1500.0, -800.0, 90e3])
-    uv = nf.project_pinhole(pts, r_true, c_true, k) + rng.normal(0.0, 0.3, (n, 2))
+    uv = pm.project_pinhole(pts, r_true, c_true, k) + rng.normal(0.0, 0.3, (n, 2))
     uv[:wrong] += rng.uniform(30.0, 80.0, (wrong, 2)) * rng.choice([-1.0, 1.0], (wrong, 2))
-    r_prior = nf.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r_true
+    r_prior = pm.rodrigues(np.radians([0.5, 0.0, 0.0])) @ r_true
     return pts, uv, k, r_true, c_true, r_prior, c_true + np.array([3000.0, -2500.0, 1000.0])
 
 

@@ -33,6 +33,7 @@ import numpy as np
 from crater_core import geometry
 from crater_core.settings_nav import AppearanceSettings
 from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.fix.pose import project_pinhole
 from crater_synth.navigation.fix.refine import (
     ncc_at_offsets,
     parabola_vertex,
@@ -40,7 +41,6 @@ from crater_synth.navigation.fix.refine import (
     samples_in_reach,
     square_offsets,
 )
-from crater_synth.navigation.fix.solve import project_pinhole
 from crater_synth.terrain.dem import DemError
 
 

@@ -49,7 +49,7 @@ from crater_core.hapke import shade_np
 from crater_core.horizon import Terrain, disc_fraction_above, horizon_maps, texel_centres
 from crater_synth.config import load_settings
 from crater_synth.navigation.detectors.template import hapke_params
-from crater_synth.navigation.fix.solve import pose_with_attitude, project_pinhole, refine_pose, solve_position
+from crater_synth.navigation.fix.pose import pose_with_attitude, project_pinhole, refine_pose, solve_position
 from crater_synth.terrain.dem import DemError
 from crater_synth.terrain.grid import sphere_points
 from crater_synth.terrain.patch import open_dem_stack

@@ -60,18 +60,16 @@ from crater_core.settings_nav import AppearanceSettings, DetectorSettings, Frame
 from crater_synth.navigation.detectors.classical import ClassicalSettings, Detection, detect
 from crater_synth.navigation.fix.appearance import appearance_detections
 from crater_synth.navigation.fix.patches import PatchParams, patch_landmarks
-from crater_synth.navigation.fix.refine import RefineParams, Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
-from crater_synth.navigation.fix.sequence import SequenceParams, last_fix, propagated_prior
-from crater_synth.navigation.fix.solve import (
-    FixParams,
+from crater_synth.navigation.fix.pose import (
     attitude_difference_deg,
     pose_sigma_horizontal_m,
     position_sigma_horizontal_m,
     project_pinhole,
-    ransac_pnp,
-    ransac_position,
     rodrigues,
 )
+from crater_synth.navigation.fix.refine import RefineParams, Refiner, ellipse_centre_fix, lander_dem, rim_ellipses
+from crater_synth.navigation.fix.sequence import SequenceParams, last_fix, propagated_prior
+from crater_synth.navigation.fix.solve import FixParams, ransac_pnp, ransac_position
 from crater_synth.navigation.georef import FrameError, pole_of
 from crater_synth.navigation.map.dem_error import DemErrorParams, PerturbedDem
 from crater_synth.navigation.map.landmarks import load_default_map, positions_mc

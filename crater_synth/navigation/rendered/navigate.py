@@ -22,8 +22,8 @@ import numpy as np
 from crater_core import exr, geometry, schema
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.fix.pose import project_pinhole
 from crater_synth.navigation.fix.refine import Refiner, lander_dem
-from crater_synth.navigation.fix.solve import project_pinhole
 from crater_synth.navigation.georef import FrameError, pole_of
 from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.output import detection_records, draw_detections, png_of, write_detections
