@@ -71,14 +71,11 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     the sphere, bearing from the frame's east axis): an oblique frame reaches hundreds of km, where a flat
     plane would lie tens of km above the ground. A rim's radius is its pixel radius times its depth along
     the optical axis over the focal length."""
-    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    width, fov = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"])
-    r_wc, k = cv_camera(rot, width, fov)
+    r_wc, k, q = _camera_from_centre(row, range_m)
     if not dets:
         return [], (1, 1), []
     pix = np.array([[d.u, d.v, 1.0] for d in dets])
     rays = np.linalg.solve(k, pix.T).T @ r_wc  # world directions, unit depth along the optical axis
-    q = -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])  # the camera, from the Moon's centre
     half_b = rays @ q
     disc = half_b**2 - np.sum(rays**2, axis=1) * (q @ q - MOON_RADIUS_M**2)
     t = (-half_b - np.sqrt(np.where(disc >= 0.0, disc, np.nan))) / np.sum(rays**2, axis=1)  # the nearer cut
@@ -107,12 +104,18 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     return out, (size, size), idx
 
 
+def _camera_from_centre(row: dict, range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(world -> camera rotation, K, the camera's position from the Moon's centre) of the frame ``row``, its
+    boresight's ground point ``range_m`` ahead on the sphere of the Moon's radius (the frame's origin)."""
+    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
+    r_wc, k = cv_camera(rot, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
+    return r_wc, k, -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])
+
+
 def camera_height_m(row: dict, range_m: float) -> float:
     """The camera's height above the sphere of the Moon's radius through the boresight's ground point, from
     the altimeter's range and the attitude (what :func:`rectify` assumes)."""
-    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    q = -range_m * cv_camera(rot, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))[0][2]
-    return float(np.linalg.norm(q + np.array([0.0, 0.0, MOON_RADIUS_M]))) - MOON_RADIUS_M
+    return float(np.linalg.norm(_camera_from_centre(row, range_m)[2])) - MOON_RADIUS_M
 
 
 def map_heading_deg(row: dict, pole: str) -> float:
