@@ -213,16 +213,23 @@ def rendered_summary(rows: list[dict]) -> dict:
     return out
 
 
+def fix_counts(frames: int, errors_km) -> dict:
+    """Frames, fixes, fix rate and false fixes (error > FALSE_FIX_KM) of a run whose fixes have these errors."""
+    err = np.asarray(errors_km, dtype=float)
+    return {
+        "frames": frames,
+        "fixes": int(err.size),
+        "fix_rate": round(err.size / frames, 4) if frames else None,
+        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+    }
+
+
 def lost_in_space_summary(out: list[dict]) -> dict:
     """Fix rate, false fixes, horizontal error and identification accuracy of lost-in-space rows."""
     fixed = [r for r in out if r["fix"]]
     err = np.array([r["error_km"] for r in fixed])
     ident = sum(r["identified"] for r in fixed)
-    return {
-        "frames": len(out),
-        "fixes": len(fixed),
-        "fix_rate": round(len(fixed) / len(out), 4) if out else None,
-        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+    return fix_counts(len(out), err) | {
         "median_horizontal_error_km": round(float(np.median(err)), 3) if err.size else None,
         "p90_horizontal_error_km": round(float(np.percentile(err, 90)), 3) if err.size else None,
         "identification_accuracy": round(sum(r["identified_correct"] for r in fixed) / ident, 4) if ident else None,

@@ -41,7 +41,7 @@ from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
 from crater_synth.navigation.georef import pole_of, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import load_default_map
-from crater_synth.navigation.protocol import FALSE_FIX_KM, lost_in_space_summary
+from crater_synth.navigation.protocol import fix_counts, lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import (
     cv_camera,
     evaluate_frame,
@@ -227,11 +227,7 @@ def six_dof_summary(rows: list[dict]) -> dict:
     fixed = [r["six_dof"] for r in rows if r["six_dof"]["fix"]]
     err = np.array([r["error_km"] for r in fixed])
     att = np.array([r["attitude_error_deg"] for r in fixed])
-    return {
-        "frames": len(rows),
-        "fixes": len(fixed),
-        "fix_rate": round(len(fixed) / len(rows), 4) if rows else None,
-        "false_fixes": int((err > FALSE_FIX_KM).sum()),
+    return fix_counts(len(rows), err) | {
         "median_error_km": round(float(np.median(err)), 3) if err.size else None,
         "median_attitude_error_deg": round(float(np.median(att)), 4) if att.size else None,
     }
