@@ -591,3 +591,6 @@ def test_frames_takes_the_first_training_frames_and_keeps_the_hold_out(tmp_path)
         learned_train.frames_source(frames, max_frames=7)
     with pytest.raises(ValueError, match="frames"):
         cd.DetectorTrainSettings(frames=-1)
+    survey = fake_survey(tmp_path / "survey")
+    with pytest.raises(UserError, match="survey: nav.detector_train.frames applies to detection sets"):
+        learned_train.frames_source(survey, max_frames=3)

@@ -441,6 +441,13 @@ def test_nav_frames_command_end_to_end(tmp_path):
     assert lr["perfect"]["fix"] and lr["perfect"]["error_km"] < 1.5, lr["perfect"]
     assert lr["perfect"]["identified_correct"] == lr["perfect"]["identified"] >= 6
     assert not lr["fix"] or lr["error_km"] < 5.0
+    # The vote's fix seeds the 6-DOF pinhole fix (the attitude taken as a measurement); the perfect detections
+    # are the vote's landmarks themselves, every one found.
+    assert lr["perfect"]["found_lis"][0] == lr["perfect"]["found_lis"][1] >= 6
+    six = lr["perfect"]["six_dof"]
+    assert six["fix"] and six["error_km"] < 5.0 and six["attitude_error_deg"] < 0.5, six
+    assert lis["perfect_six_dof_summary"]["fixes"] == 1 and lis["perfect_six_dof_summary"]["false_fixes"] == 0
+    assert set(lis["detector_recall"]) == {"rim_span_10px", "lis_landmarks"}
     # The heading the attitude gives is the one the vote finds (only votes near it are kept).
     known = compose_nav(["nav/preset=synthetic", "nav.lost_in_space.known_heading=true"])
     (lh,) = evaluate_lis_dir(out, known)["rows"]
