@@ -223,9 +223,13 @@ class DetectorTrainSettings(Group):
     # Training frames taken from each detection set: its first N outside the held-out fields (0: all). The
     # hold-out stays the set's own, so models trained on parts of one set are scored alike (the data curve).
     frames: int = 0
+    # Training frames of a detection set viewed at most this far from nadir (the oblique-view lever's
+    # ablation; applied before ``frames``, the hold-out unchanged). Survey frames are nadir: all kept.
+    max_off_nadir_deg: float = 90.0
 
     def _check(self) -> None:
         need(self.frames >= 0, "frames", self.frames, "must be >= 0 (0: every frame)")
+        need(0.0 <= self.max_off_nadir_deg <= 90.0, "max_off_nadir_deg", self.max_off_nadir_deg, "must lie in [0, 90]")
         need(self.arch in ARCHS, "arch", self.arch, f"must be one of {', '.join(ARCHS)}")
         for key in ("steps", "batch", "crop_px", "width"):
             need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")

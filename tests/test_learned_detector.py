@@ -451,7 +451,14 @@ def fake_detection_set(root, fields: int = 3, frames: int = 2):
                 for n, (a, b, c) in enumerate(zip(u, v, r))
             ]
             rows.append(
-                {"index": i, "rel_path": rel, "ground_sample_m": 60.0, "terrain": {"field": f}, "labels": labels}
+                {
+                    "index": i,
+                    "rel_path": rel,
+                    "ground_sample_m": 60.0,
+                    "terrain": {"field": f},
+                    "view": {"off_nadir_deg": 30.0 * (k % 2)},
+                    "labels": labels,
+                }
             )
     (root / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
     folder.release()
@@ -594,3 +601,33 @@ def test_frames_takes_the_first_training_frames_and_keeps_the_hold_out(tmp_path)
     survey = fake_survey(tmp_path / "survey")
     with pytest.raises(UserError, match="survey: nav.detector_train.frames applies to detection sets"):
         learned_train.frames_source(survey, max_frames=3)
+
+
+def test_max_off_nadir_keeps_the_near_nadir_training_frames_and_the_hold_out(tmp_path):
+    """nav.detector_train.max_off_nadir_deg (the oblique-view ablation): only training frames viewed within it,
+    counted before ``frames``; the hold-out unchanged; none left is one line naming the folder; a survey
+    (nadir) keeps every frame."""
+    frames = fake_detection_set(tmp_path / "det", fields=4, frames=2)  # views 0 and 30 degrees off nadir
+    train, hold = learned_train.frames_source(frames)[:2]
+    near, near_hold, what = learned_train.frames_source(frames, max_off_nadir=10.0)[:3]
+    assert len(train) == 6 and [r["index"] for _, r in near] == [0, 2, 4]
+    assert all(learned_train.off_nadir_deg(r) == 0.0 for _, r in near) and what["max_off_nadir_deg"] == 10.0
+    assert [r["index"] for _, r in near_hold] == [r["index"] for _, r in hold] == [6, 7]
+    assert [r["index"] for _, r in learned_train.frames_source(frames, 2, 10.0)[0]] == [0, 2]
+    with pytest.raises(UserError, match=r"det: nav.detector_train.frames=4, but the set has 3 training frames "):
+        learned_train.frames_source(frames, 4, 10.0)
+    strict = fake_detection_set(tmp_path / "oblique", fields=2, frames=1)
+    rows = manifest_rows(strict)
+    (strict / "manifest.jsonl").write_text(
+        "".join(json.dumps(r | {"view": {"off_nadir_deg": 40.0}}) + "\n" for r in rows.values())
+    )
+    with pytest.raises(UserError, match=r"oblique: training needs frames, but the set has 0 .* within 20 degrees"):
+        learned_train.frames_source(strict, max_off_nadir=20.0)
+    with pytest.raises(ValueError, match="max_off_nadir_deg"):
+        cd.DetectorTrainSettings(max_off_nadir_deg=91.0)
+    survey = fake_survey(tmp_path / "survey", tracks=12, frames=1)
+    assert (
+        len(learned_train.frames_source(survey, max_off_nadir=0.0)[0])
+        == 2
+        == len(learned_train.survey_source(survey)[0])
+    )

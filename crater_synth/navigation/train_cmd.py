@@ -67,7 +67,8 @@ def nav_detector_train_command(frames_dir, more_dirs, real_windows, out, device,
     these steps), `nav.detector_train.threads=4` (0: every core), `nav.detector_train.arch=fcos` (torchvision's
     FCOS instead of the learned detector's network; --out required), `nav.detector_train.init=MODEL.pt`
     (fine-tune that model), `nav.detector_train.frames=1000` (only the first 1,000 training frames of each
-    detection set, its hold-out unchanged: the data curve). Example:
+    detection set, its hold-out unchanged: the data curve), `nav.detector_train.max_off_nadir_deg=5` (only
+    detection frames viewed within 5 degrees of nadir: the oblique-view ablation). Example:
     `crater-synth nav-detector-train data/detector_frames/south --out model.pt nav.detector_train.steps=500`
     """
     import torch
@@ -101,7 +102,9 @@ def nav_detector_train_command(frames_dir, more_dirs, real_windows, out, device,
         if not Path(settings.init).is_file():
             raise UserError(f"nav.detector_train.init={settings.init}: no such model file")
         learned.load_model(settings.init)  # a corrupt or foreign file: one line, before any frame is read
-    sources = [frames_source(d, settings.frames) for d in frames_dirs] + ([real_source()] if real_windows else [])
+    sources = [frames_source(d, settings.frames, settings.max_off_nadir_deg) for d in frames_dirs] + (
+        [real_source()] if real_windows else []
+    )
     summary = train_from_sources(
         sources, out or DEFAULT_MODEL, settings, log=lambda m: click.echo(m, err=True), device=device
     )

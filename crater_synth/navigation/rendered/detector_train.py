@@ -87,17 +87,27 @@ def slim_row(row: dict) -> dict:
     ~1,000 labels a frame of a dense surface are ~150 KB of Python objects, their circles ~40 KB."""
     inf = (np.inf, np.inf)
     circles = label_circles(row, inf)
-    return {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")} | {"circles": circles}
+    kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
+    return kept | {"off_nadir_deg": off_nadir_deg(row), "circles": circles}
 
 
-def detection_set_records(folder: Path, holdout_share: float, max_frames: int = 0) -> tuple[list, list, dict]:
+def off_nadir_deg(row: dict) -> float:
+    """The frame's boresight angle from nadir in degrees: a detection frame's view, else (a survey frame, or a
+    slimmed row) what the row carries, nadir when nothing does."""
+    return float(row["view"]["off_nadir_deg"]) if "view" in row else float(row.get("off_nadir_deg", 0.0))
+
+
+def detection_set_records(
+    folder: Path, holdout_share: float, max_frames: int = 0, max_off_nadir: float = 90.0
+) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
     folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
     fields held out (a field's frames share craters). Each manifest is streamed twice (fields, then rows):
     held-out rows keep their labels for scoring, training rows their circles only (:func:`slim_row`), so a
     large set's labels need not fit in memory. ``max_frames`` > 0: only the first that many training frames
     (by shard, then frame index), the hold-out unchanged, so models trained on parts of one set are scored
-    on the same fields."""
+    on the same fields. ``max_off_nadir`` < 90: only training frames viewed at most that many degrees off
+    nadir (before ``max_frames`` counts them), the hold-out unchanged."""
     folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
     fields_in = [
         {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
@@ -113,17 +123,21 @@ def detection_set_records(folder: Path, holdout_share: float, max_frames: int = 
         for i in sorted(found):
             row = found[i][2]
             is_held = row["terrain"]["field"] in held
-            if not is_held and 0 < max_frames <= len(train):
+            if not is_held and (0 < max_frames <= len(train) or off_nadir_deg(row) > max_off_nadir):
                 continue
             (hold if is_held else train).append((exr.read_channel(d / row["rel_path"], "IF"), row))
-    if len(train) < max_frames:
+    within = f" within {max_off_nadir:g} degrees of nadir" if max_off_nadir < 90.0 else ""
+    if len(train) < max(max_frames, 1):
+        asked = f"nav.detector_train.frames={max_frames}" if max_frames else "training needs frames"
         raise UserError(
-            f"{folder}: nav.detector_train.frames={max_frames}, but the set has {len(train)} training frames "
-            "outside its held-out fields"
+            f"{folder}: {asked}, but the set has {len(train)} training frames{within} outside its held-out fields"
         )
     train_fields = len({row["terrain"]["field"] for _, row in train})
     what = {"train_fields": train_fields, "holdout_fields": sorted(held), "recipe": _recipe(folders[0])}
-    return train, hold, what | ({"frames_limit": max_frames} if max_frames else {})
+    limits = ({"frames_limit": max_frames} if max_frames else {}) | (
+        {"max_off_nadir_deg": max_off_nadir} if max_off_nadir < 90.0 else {}
+    )
+    return train, hold, what | limits
 
 
 def _recipe(folder: Path) -> str | None:
@@ -188,15 +202,15 @@ def survey_source(frames_dir: Path, holdout: int = HOLDOUT_TRACKS) -> tuple[list
 
 
 def detection_source(
-    folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE, max_frames: int = 0
+    folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE, max_frames: int = 0, max_off_nadir: float = 90.0
 ) -> tuple[list, list, dict, dict]:
     """(training records, held-out records, what they are, scoring) of a detection set (procedural crater
     fields only): the last ``holdout_share`` of its fields held out and scored over every rim of the
-    network's band and up (a 38 km field holds few craters of D >= 15 km); ``max_frames``: as
-    :func:`detection_set_records`."""
+    network's band and up (a 38 km field holds few craters of D >= 15 km); ``max_frames`` and
+    ``max_off_nadir``: as :func:`detection_set_records`."""
     from train.crater_detector import BAND_LO_PX
 
-    train_records, holdout_records, what = detection_set_records(folder, holdout_share, max_frames)
+    train_records, holdout_records, what = detection_set_records(folder, holdout_share, max_frames, max_off_nadir)
     what = {
         "kind": "procedural",
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
@@ -212,11 +226,12 @@ SOURCE_NAMES = {
 }
 
 
-def frames_source(frames_dir: Path, max_frames: int = 0) -> tuple[list, list, dict, dict]:
+def frames_source(frames_dir: Path, max_frames: int = 0, max_off_nadir: float = 90.0) -> tuple[list, list, dict, dict]:
     """:func:`detection_source` or :func:`survey_source`, by the folder's marker; ``max_frames``
-    (``nav.detector_train.frames``) applies to a detection set only."""
+    (``nav.detector_train.frames``) applies to a detection set only, ``max_off_nadir``
+    (``nav.detector_train.max_off_nadir_deg``) keeps every survey frame (nadir)."""
     if marker_kind(frames_dir) in (DETECTION_KIND, SHARDS_KIND):
-        return detection_source(frames_dir, max_frames=max_frames)
+        return detection_source(frames_dir, max_frames=max_frames, max_off_nadir=max_off_nadir)
     if max_frames:
         raise UserError(f"{frames_dir}: nav.detector_train.frames applies to detection sets, not to survey frames")
     return survey_source(frames_dir)
