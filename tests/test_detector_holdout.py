@@ -1,0 +1,54 @@
+"""python -m crater_synth.tools.detector_holdout: a detection set's held-out frames scored by off-nadir angle."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from test_learned_detector import fake_detection_set
+
+from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
+from crater_synth.tools import detector_holdout as dh
+
+
+def test_counts_follow_the_labels_size_and_hidden_rule(tmp_path, monkeypatch):
+    """Found labels, labels, matched and all detections of rims >= the minimum radius; an occluded label and a
+    detection matched to it count nowhere; an unmatched detection is a false one."""
+    folder = fake_detection_set(tmp_path / "det", fields=2, frames=2)
+    _, hold, _ = dh.detection_set_records(folder, 0.5)
+    image, row = hold[0]
+    labels = [
+        lb["ellipse"] for lb in row["labels"] if 0 <= lb["ellipse"]["cu"] < 256 and 0 <= lb["ellipse"]["cv"] < 256
+    ]
+    assert row["labels"][0]["occluded"] and len(labels) >= 3
+    dets = [Detection(u=e["cu"], v=e["cv"], r=e["a"], score=1.0) for e in labels[:3]]
+    dets.append(Detection(u=5.0, v=5.0, r=max(e["a"] for e in labels), score=1.0))  # matches nothing
+    monkeypatch.setattr(dh, "detect", lambda *a, **k: (dets, None))
+    found, n_labels, true_pos, n_dets = dh.frame_counts(image, row, None, 0.0)
+    assert (found, n_labels, true_pos, n_dets) == (2, len(labels) - 1, 2, 3)
+    big = min(e["a"] for e in labels[1:3]) + 1e-6  # only labels and detections at least this large
+    n_big = sum(e["a"] >= big for e in labels[1:])
+    assert dh.frame_counts(image, row, None, big)[1] == n_big
+
+
+def test_main_scores_by_off_nadir_bin(tmp_path, capsys):
+    """One run writes each model's recall and precision in all and per off-nadir bin of the held-out frames
+    (the fake set's views: 0 and 30 degrees); a missing model file is one error line and no output."""
+    folder = fake_detection_set(tmp_path / "det", fields=3, frames=2)
+    out = tmp_path / "holdout.json"
+    assert dh.main([str(folder), "--model", str(DEFAULT_MODEL), "--threshold", "0.2", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    run = result["runs"][0]
+    assert result["set"]["holdout_fields"] == [2] and run["all"]["frames"] == 2
+    assert run["0-1"]["frames"] == 1 and run["30-46"]["frames"] == 1 and "1-15" not in run
+    assert run["all"]["labels"] == run["0-1"]["labels"] + run["30-46"]["labels"] > 0
+    assert 0.0 <= run["all"]["recall"] <= 1.0
+    bad = tmp_path / "bad.json"
+    assert dh.main([str(folder), "--model", str(tmp_path / "none.pt"), "--out", str(bad)]) == 1
+    assert "none.pt: no such model file" in capsys.readouterr().err and not bad.exists()
+
+
+@pytest.mark.parametrize(("angle", "key"), [(0.0, "0-1"), (14.9, "1-15"), (45.0, "30-46"), (50.0, None)])
+def test_off_nadir_bins(angle, key):
+    assert dh.off_nadir_bin(angle, dh.DEFAULT_BINS) == key
