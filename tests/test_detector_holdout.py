@@ -9,12 +9,14 @@ from test_learned_detector import fake_detection_set
 
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
+from crater_synth.navigation.rendered import detector_train as dt
 from crater_synth.tools import detector_holdout as dh
 
 
 def test_counts_follow_the_labels_size_and_hidden_rule(tmp_path, monkeypatch):
-    """Found labels, labels, matched and all detections of rims >= the minimum radius; an occluded label and a
-    detection matched to it count nowhere; an unmatched detection is a false one."""
+    """Found labels, labels, matched and all detections of rims >= the minimum radius; an occluded label, a
+    label centred off the frame and a detection matched to a hidden one count nowhere; an unmatched detection
+    is a false one."""
     folder = fake_detection_set(tmp_path / "det", fields=2, frames=2)
     _, hold, _ = dh.detection_set_records(folder, 0.5)
     image, row = hold[0]
@@ -24,12 +26,15 @@ def test_counts_follow_the_labels_size_and_hidden_rule(tmp_path, monkeypatch):
     assert row["labels"][0]["occluded"] and len(labels) >= 3
     dets = [Detection(u=e["cu"], v=e["cv"], r=e["a"], score=1.0) for e in labels[:3]]
     dets.append(Detection(u=5.0, v=5.0, r=max(e["a"] for e in labels), score=1.0))  # matches nothing
-    monkeypatch.setattr(dh, "detect", lambda *a, **k: (dets, None))
-    found, n_labels, true_pos, n_dets = dh.frame_counts(image, row, None, 0.0)
+    monkeypatch.setattr(dt, "detect", lambda *a, **k: (dets, None))
+    outside = dict(row["labels"][1], ellipse=dict(row["labels"][1]["ellipse"], cu=-4.0))
+    row = dict(row, labels=[*row["labels"], outside])  # a rim whose centre is off the frame counts nowhere
+    found, n_labels, true_pos, n_dets = dt.frame_counts(image, row, None, 0.0, 0.0, skip_hidden=True)
     assert (found, n_labels, true_pos, n_dets) == (2, len(labels) - 1, 2, 3)
+    assert dt.frame_counts(image, row, None, 0.0, 0.0) == (3, len(labels), 3, 4)  # the training hold-out's rule
     big = min(e["a"] for e in labels[1:3]) + 1e-6  # only labels and detections at least this large
     n_big = sum(e["a"] >= big for e in labels[1:])
-    assert dh.frame_counts(image, row, None, big)[1] == n_big
+    assert dt.frame_counts(image, row, None, 0.0, big, skip_hidden=True)[1] == n_big
 
 
 def test_main_scores_by_off_nadir_bin(tmp_path, capsys):

@@ -614,6 +614,8 @@ def test_max_off_nadir_keeps_the_near_nadir_training_frames_and_the_hold_out(tmp
     assert all(learned_train.off_nadir_deg(r) == 0.0 for _, r in near) and what["max_off_nadir_deg"] == 10.0
     assert [r["index"] for _, r in near_hold] == [r["index"] for _, r in hold] == [6, 7]
     assert [r["index"] for _, r in learned_train.frames_source(frames, 2, 10.0)[0]] == [0, 2]
+    no_train, only_hold, _ = learned_train.detection_set_records(frames, 0.1, training=False)
+    assert no_train == [] and [r["index"] for _, r in only_hold] == [6, 7]
     with pytest.raises(UserError, match=r"det: nav.detector_train.frames=4, but the set has 3 training frames "):
         learned_train.frames_source(frames, 4, 10.0)
     strict = fake_detection_set(tmp_path / "oblique", fields=2, frames=1)

@@ -28,15 +28,13 @@ import numpy as np
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     architecture,
     detection_set_records,
-    label_circles,
+    frame_counts,
     off_nadir_deg,
 )
-from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.tools.detector_choice import model_option
 
 PROG = "python -m crater_synth.tools.detector_holdout"
@@ -50,30 +48,11 @@ def off_nadir_bin(angle: float, edges) -> str | None:
     return None
 
 
-def frame_counts(image: np.ndarray, row: dict, params, min_r: float) -> tuple[int, int, int, int]:
-    """(labels found, labels, detections matched, detections) of one frame, for rims of radius >= ``min_r``;
-    a hidden label (occluded or unlit) is neither, and a detection matched to one counts nowhere."""
-    labels = [dict(lb) for lb in row["labels"]]
-    h, w = image.shape
-    _, _, r, _, hidden = label_circles(row, (np.inf, np.inf))
-    inside = [0 <= lb["ellipse"]["cu"] < w and 0 <= lb["ellipse"]["cv"] < h for lb in labels]
-    labels = [lb for lb, ok in zip(labels, inside) if ok]
-    r, hidden = r[np.asarray(inside, bool)], hidden[np.asarray(inside, bool)]
-    dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
-    matched = match_pixels(dets, labels)  # detection index -> label index
-    counted = (r >= min_r) & ~hidden
-    found = sum(1 for j in matched.values() if counted[j])
-    big = [i for i, d in enumerate(dets) if d.r >= min_r]
-    true_pos = sum(1 for i in big if i in matched and counted[matched[i]])
-    false_pos = sum(1 for i in big if i not in matched)
-    return found, int(counted.sum()), true_pos, true_pos + false_pos
-
-
 def score_model(records, params, min_r: float, edges) -> dict:
     """Recall and precision of one model over ``records``, in all and by off-nadir bin."""
     sums: dict[str, np.ndarray] = {}
     for image, row in records:
-        counts = np.array(frame_counts(image, row, params, min_r))
+        counts = np.array(frame_counts(image, row, params, 0.0, min_r, skip_hidden=True))
         for key in ("all", off_nadir_bin(off_nadir_deg(row), edges)):
             if key is not None:
                 sums[key] = sums.get(key, np.zeros(5, int)) + np.r_[counts, 1]
@@ -96,7 +75,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
     try:
-        _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE)
+        _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
         hold = hold[:: max(1, args.every)]
         runs = []
         for model in args.model:

@@ -98,7 +98,7 @@ def off_nadir_deg(row: dict) -> float:
 
 
 def detection_set_records(
-    folder: Path, holdout_share: float, max_frames: int = 0, max_off_nadir: float = 90.0
+    folder: Path, holdout_share: float, max_frames: int = 0, max_off_nadir: float = 90.0, training: bool = True
 ) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
     folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
@@ -107,7 +107,8 @@ def detection_set_records(
     large set's labels need not fit in memory. ``max_frames`` > 0: only the first that many training frames
     (by shard, then frame index), the hold-out unchanged, so models trained on parts of one set are scored
     on the same fields. ``max_off_nadir`` < 90: only training frames viewed at most that many degrees off
-    nadir (before ``max_frames`` counts them), the hold-out unchanged."""
+    nadir (before ``max_frames`` counts them), the hold-out unchanged. ``training=False``: the held-out
+    frames only (scoring a model: a large set's training images need not be read)."""
     folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
     fields_in = [
         {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
@@ -119,15 +120,19 @@ def detection_set_records(
     held = set(fields[len(fields) - n_hold :])
     train, hold = [], []
     for d in folders:
-        found, _ = scan_manifest(d, keep=lambda row: row if row["terrain"]["field"] in held else slim_row(row))
+        found, _ = scan_manifest(
+            d, keep=lambda row: row if row["terrain"]["field"] in held else slim_row(row) if training else None
+        )
         for i in sorted(found):
             row = found[i][2]
+            if row is None:
+                continue
             is_held = row["terrain"]["field"] in held
             if not is_held and (0 < max_frames <= len(train) or off_nadir_deg(row) > max_off_nadir):
                 continue
             (hold if is_held else train).append((exr.read_channel(d / row["rel_path"], "IF"), row))
     within = f" within {max_off_nadir:g} degrees of nadir" if max_off_nadir < 90.0 else ""
-    if len(train) < max(max_frames, 1):
+    if training and len(train) < max(max_frames, 1):
         asked = f"nav.detector_train.frames={max_frames}" if max_frames else "training needs frames"
         raise UserError(
             f"{folder}: {asked}, but the set has {len(train)} training frames{within} outside its held-out fields"
@@ -147,28 +152,32 @@ def _recipe(folder: Path) -> str | None:
         return None
 
 
+def frame_counts(image, row: dict, params, min_d_km: float = 15.0, min_r_px: float = 0.0, skip_hidden: bool = False):
+    """(labels found, labels, detections matched, detections) of one rendered frame against its exact labels
+    (the rendered frames' matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for
+    labels and detections of D >= ``min_d_km`` and a rim radius >= ``min_r_px``. ``skip_hidden``: a label
+    that training treats as neither (:func:`label_circles`), and a detection matched to one, count nowhere."""
+    labels = labels_in_frame(row, image.shape)
+    km_per_px = float(row["ground_sample_m"]) / 1000.0
+    dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
+    matched = match_pixels(dets, labels)  # detection index -> label index
+    r_min = max(min_r_px, 0.5 * min_d_km / km_per_px)
+    hidden = label_circles({"labels": labels}, image.shape)[4] if skip_hidden else np.zeros(len(labels), bool)
+    big_t = [lb["ellipse"]["a"] >= r_min and not hide for lb, hide in zip(labels, hidden)]
+    big_d = [d.r >= r_min and not (i in matched and hidden[matched[i]]) for i, d in enumerate(dets)]
+    found = sum(1 for j in matched.values() if big_t[j])
+    return found, sum(big_t), sum(1 for i in matched if big_d[i]), sum(big_d)
+
+
 def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0.0) -> dict:
-    """Detection recall and precision against the exact labels of rendered frames (the rendered frames'
-    matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for labels and detections of
-    D >= ``min_d_km`` and a rim radius >= ``min_r_px``."""
-    tp_t = n_t = tp_d = n_d = 0
-    for image, row in records:
-        labels = labels_in_frame(row, image.shape)
-        km_per_px = float(row["ground_sample_m"]) / 1000.0
-        dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
-        matched = match_pixels(dets, labels)  # detection index -> label index
-        big_t = [lb["ellipse"]["a"] >= max(min_r_px, 0.5 * min_d_km / km_per_px) for lb in labels]
-        big_d = [d.r >= max(min_r_px, 0.5 * min_d_km / km_per_px) for d in dets]
-        n_t += sum(big_t)
-        tp_t += sum(1 for j in matched.values() if big_t[j])
-        n_d += sum(big_d)
-        tp_d += sum(1 for i in matched if big_d[i])
+    """Detection recall and precision over ``records`` (:func:`frame_counts`, every label counted)."""
+    tp_t, n_t, tp_d, n_d = np.sum([frame_counts(im, row, params, min_d_km, min_r_px) for im, row in records], 0)
     return {
         "frames": len(records),
         "recall": round(tp_t / n_t, 4) if n_t else None,
         "precision": round(tp_d / n_d, 4) if n_d else None,
-        "n_labels": n_t,
-        "n_detections": n_d,
+        "n_labels": int(n_t),
+        "n_detections": int(n_d),
         "min_diameter_km": min_d_km,
         "min_radius_px": min_r_px,
     }
