@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -35,7 +33,7 @@ from crater_synth.navigation.rendered.detector_train import (
     frame_counts,
     off_nadir_deg,
 )
-from crater_synth.tools.detector_choice import model_option
+from crater_synth.tools.detector_choice import command_line, f1, model_option, model_sha256
 
 PROG = "python -m crater_synth.tools.detector_holdout"
 DEFAULT_BINS = (0.0, 1.0, 15.0, 30.0, 46.0)  # nadir; 1-15; 15-30; 30-45 degrees off nadir (the oblique band)
@@ -60,8 +58,13 @@ def score_model(records, params, min_r: float, edges) -> dict:
     for key, (found, n_lab, tp, n_det, frames) in sums.items():
         recall = round(found / n_lab, 4) if n_lab else None
         precision = round(tp / n_det, 4) if n_det else None
-        f1 = round(2 * recall * precision / (recall + precision), 4) if recall and precision else None
-        out[key] = {"frames": int(frames), "recall": recall, "precision": precision, "f1": f1, "labels": int(n_lab)}
+        out[key] = {
+            "frames": int(frames),
+            "recall": recall,
+            "precision": precision,
+            "f1": f1(precision, recall),
+            "labels": int(n_lab),
+        }
     return out
 
 
@@ -87,14 +90,14 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS)
             registry.detector(params.method).load_model.cache_clear()
-            sha = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-            runs.append({"model": model, "model_sha256": sha, "seconds": round(time.perf_counter() - t0, 1)} | scores)
+            seconds = round(time.perf_counter() - t0, 1)
+            runs.append({"model": model, "model_sha256": model_sha256(model), "seconds": seconds} | scores)
             print(f"{model}: {json.dumps(scores['all'])}", flush=True)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     result = {
-        "command": " ".join([PROG, *map(shlex.quote, sys.argv[1:] if argv is None else argv)]),
+        "command": command_line(argv, PROG),
         "set": {"folder": str(args.folder), "holdout_fields": what["holdout_fields"], "recipe": what["recipe"]},
         "threshold": args.threshold,
         "min_span_px": args.min_span_px,

@@ -121,7 +121,7 @@ def detection_set_records(
     train, hold = [], []
     for d in folders:
         found, _ = scan_manifest(
-            d, keep=lambda row: row if row["terrain"]["field"] in held else slim_row(row) if training else None
+            d, keep=lambda row: row if row["terrain"]["field"] in held else (slim_row(row) if training else None)
         )
         for i in sorted(found):
             row = found[i][2]
