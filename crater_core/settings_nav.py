@@ -248,3 +248,43 @@ class DetectorTrainSettings(Group):
         bad = [c for c in self.checkpoints if not 1 <= c < self.steps]
         last = self.steps - 1
         need(not bad, "checkpoints", self.checkpoints, f"must lie in [1, {last}] (the last step is the model)")
+
+
+@dataclass(frozen=True)
+class VerifierTrainSettings(Group):
+    """Training of the learned detector's second stage (``nav.verifier_train``; ``train.crater_verifier``;
+    configs/nav/verifier_train/default.yaml; docs/navigation/detectors.md)."""
+
+    steps: int = 3000
+    batch: int = 256
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    width: int = 16  # channels of the first stage (x2, x4 deeper)
+    seed: int = 0
+    threads: int = 0  # 0: every core
+    # The detector whose candidates are the examples ("": the committed model) and the heat at which they
+    # are gathered: below any operating point, so the verifier sees the candidates it will be asked about.
+    detector: str = ""
+    heat: float = 0.05
+    frames: int = 2000  # the detection set's first N training frames (0: all)
+    # Photometric augmentation: the detector training's ranges (DetectorTrainSettings).
+    gamma: Tuple[float, ...] = (0.5, 1.5)
+    shadow_lift: Tuple[float, ...] = (0.0, 0.2)
+    blur_sigma_px: Tuple[float, ...] = (0.0, 1.0)
+    noise: Tuple[float, ...] = (0.0, 0.08)
+
+    def _check(self) -> None:
+        for key in ("steps", "batch", "width"):
+            need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
+        need(self.frames >= 0, "frames", self.frames, "must be >= 0 (0: every frame)")
+        need(self.lr > 0.0, "lr", self.lr, "must be > 0")
+        need(0.0 < self.heat < 1.0, "heat", self.heat, "must lie in (0, 1)")
+        need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
+        for key in ("gamma", "shadow_lift", "blur_sigma_px", "noise"):
+            lo_hi = getattr(self, key)
+            need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
+
+
+# Settings holding the photometric augmentation's ranges (gamma, shadow_lift, blur_sigma_px, noise):
+# train.crater_detector.augment_brightness serves both trainings.
+AugmentRanges = DetectorTrainSettings | VerifierTrainSettings

@@ -118,6 +118,11 @@ COMMANDS: dict[str, tuple[tuple[str, str, str], ...]] = {
             f"{_NAV}.train_cmd:nav_detector_train_command",
             "Train the learned crater detector.",
         ),
+        (
+            "nav-verifier-train",
+            f"{_NAV}.rendered.verifier_train:nav_verifier_train_command",
+            "Train the learned detector's second stage (the verifier).",
+        ),
     ),
     "tools": (
         ("bench", "crater_synth.bench.cli:bench_command", "Benchmarks: rendering, training, navigation, export."),

@@ -133,3 +133,29 @@ def test_f1_ratios_to_the_reference():
         {"precision_15km": 0.9, "recall_15km": 0.45, "by_size_km": {"8-15": {"precision": None, "recall": 0.0}}}
     )
     assert scored["f1_15km"] == 0.6 and scored["by_size_km"]["8-15"]["f1"] is None
+
+
+def test_the_north_test_refuses_a_changed_verifier(tmp_path, monkeypatch):
+    """A verifier named in the chosen variant is checked like the model: a changed file is refused."""
+    choice = tmp_path / "choice.json"
+    model, verifier = tmp_path / "m.pt", tmp_path / "v.pt"
+    model.write_bytes(b"weights")
+    verifier.write_bytes(b"verifier")
+    variant = [f"nav.detector.verifier={verifier}", "nav.detector.verify_threshold=0.5"]
+    entry = {
+        "model": str(model),
+        "threshold": 0.1,
+        "variant": variant,
+        "variant_sha256": detector_test.variant_sha256(variant),
+        "catalogue_15km": {},
+        "model_sha256": detector_test.model_sha256(str(model)),
+    }
+    choice.write_text(json.dumps({"chosen_per_model": [entry]}))
+    monkeypatch.setattr(detector_test, "committed_unchanged", lambda path: True)
+    assert detector_test.frozen_choices(choice, []) == [entry]
+    verifier.write_bytes(b"another verifier")
+    with pytest.raises(Exception, match="v.pt: not the file chosen"):
+        detector_test.frozen_choices(choice, [])
+    verifier.unlink()
+    with pytest.raises(Exception, match="v.pt: cannot be read"):
+        detector_test.frozen_choices(choice, [])

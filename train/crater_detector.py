@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from crater_core.settings_nav import DetectorTrainSettings
+from crater_core.settings_nav import AugmentRanges, DetectorTrainSettings
 from train.model_files import DetectorModelError, read_model_file, write_model_file
 
 BAND_LO_PX = 6.0  # rim radius band of one pyramid level, px
@@ -290,7 +290,7 @@ def augment(t: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator) -> 
 
 
 def augment_brightness(
-    brightness: torch.Tensor, valid: torch.Tensor, s: DetectorTrainSettings, gen: torch.Generator
+    brightness: torch.Tensor, valid: torch.Tensor, s: AugmentRanges, gen: torch.Generator
 ) -> torch.Tensor:
     """Photometric augmentation of a batch of brightness crops (B, 1, c, c; 0-1) with their valid-pixel
     masks (gamma, shadow floor, blur), standardisation over the valid pixels, noise; 0 off the valid pixels."""

@@ -82,6 +82,7 @@ def run_pair(model: str, threshold: float, landmarks, listed, every: int, varian
         "method": option,
         "threshold": threshold,
         "variant": list(variant),
+        "variant_sha256": variant_sha256(variant),
         "catalogue_15km": cat | {"f1": f1(cat.get("precision_15km"), cat.get("recall_15km"))},
         "map_by_size_km": summary["all_windows"].get("by_size_km"),
         "fix_rate": summary["all_windows"].get("fix_rate"),
@@ -98,6 +99,7 @@ def choose(runs: list[dict]) -> dict:
         "model": best["model"],
         "threshold": best["threshold"],
         "variant": best.get("variant", []),
+        "variant_sha256": best.get("variant_sha256", {}),
         "catalogue_15km": best["catalogue_15km"],
         "model_sha256": best["model_sha256"],
     }
@@ -118,6 +120,19 @@ def model_sha256(model: str) -> str:
     it is given the model that was chosen."""
     _, path = model_option(model)
     return hashlib.sha256(Path(DEFAULT_MODEL if path == "committed" else path).read_bytes()).hexdigest()
+
+
+VARIANT_FILE_KEYS = ("nav.detector.verifier",)  # variant overrides naming a model file: hashed like --model
+
+
+def variant_sha256(variant) -> dict:
+    """sha256 of each model file a variant's overrides name (the verifier), keyed by the file as given."""
+    out = {}
+    for o in variant:
+        key, _, value = o.partition("=")
+        if key in VARIANT_FILE_KEYS and value:
+            out[value] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
+    return out
 
 
 def main(argv=None) -> None:

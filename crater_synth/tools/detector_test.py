@@ -35,12 +35,14 @@ from crater_synth.navigation.windows.evaluate import (
 )
 from crater_synth.paths import SOURCE_ROOT
 from crater_synth.tools.detector_choice import (
+    VARIANT_FILE_KEYS,
     command_line,
     detector_overrides,
     f1,
     model_option,
     model_sha256,
     score_line,
+    variant_sha256,
 )
 
 PROG = "python -m crater_synth.tools.detector_test"
@@ -82,6 +84,13 @@ def frozen_choices(choice_file: Path, models: list[str]) -> list[dict]:
             raise UserError(f"model {c['model']}: cannot be read") from None
         if sha != c["model_sha256"]:
             raise UserError(f"model {c['model']}: not the file chosen in {choice_file} (sha256 differs)")
+        for path, want in c.get("variant_sha256", {}).items():
+            try:
+                got = variant_sha256([f"{VARIANT_FILE_KEYS[0]}={path}"])[path]
+            except OSError:
+                raise UserError(f"model {path}: cannot be read") from None
+            if got != want:
+                raise UserError(f"model {path}: not the file chosen in {choice_file} (sha256 differs)")
     return chosen
 
 
@@ -108,6 +117,7 @@ def run_model(choice: dict, landmarks, listed) -> dict:
         "method": option,
         "threshold": choice["threshold"],
         "variant": choice.get("variant", []),
+        "variant_sha256": choice.get("variant_sha256", {}),
         "south_validation_catalogue_15km": choice["catalogue_15km"],
         "catalogue": with_f1(every.get("against_catalogue", {})),
         "map_by_size_km": every.get("by_size_km"),

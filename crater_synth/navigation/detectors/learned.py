@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import numpy as np
+
 from crater_core.settings_nav import DetectorSettings
 from crater_core.typed_config import need
 from crater_synth.errors import UserError
@@ -28,6 +30,7 @@ from crater_synth.navigation.detectors.registry import CandidateInput, DetectorE
 from crater_synth.paths import MODELS_DIR
 
 DEFAULT_MODEL = MODELS_DIR / "crater_detector_south.pt"
+VERIFY_SCORES = ("verifier", "geometric")  # LearnedSettings.verify_score
 
 
 @dataclass(frozen=True)
@@ -43,10 +46,21 @@ class LearnedSettings(DetectorSettings):
     tta: int = 1
     # Also search the pyramid of the frame shrunk by sqrt(2) (half-octave steps); twice the network passes.
     half_octaves: bool = False
+    # The second stage (train.crater_verifier): a model file that re-measures each candidate on a crop
+    # scaled to its radius and scores it; "" = none. The heat ``threshold`` then only gathers candidates,
+    # and a candidate is kept when the verifier's probability reaches ``verify_threshold`` (its score).
+    verifier: str = ""
+    verify_threshold: float = 0.5
+    verify_refine: bool = True  # take the verifier's re-measured centre and radius (else the detector's)
+    # The kept candidate's score, compared with verify_threshold: the verifier's probability ("verifier")
+    # or its geometric mean with the heat ("geometric": a strong heat peak outvotes a doubtful crop).
+    verify_score: str = "verifier"
 
     def _check(self) -> None:
         super()._check()
         need(self.tta in (1, 2, 4, 8), "tta", self.tta, "must be 1, 2, 4 or 8")
+        need(0.0 <= self.verify_threshold <= 1.0, "verify_threshold", self.verify_threshold, "must be in [0, 1]")
+        need(self.verify_score in VERIFY_SCORES, "verify_score", self.verify_score, f"must be one of {VERIFY_SCORES}")
 
 
 class DetectorModelFileError(UserError):
@@ -78,6 +92,15 @@ def _read_centernet(path: Path):
 load_model = cached_loader(_read_centernet)
 
 
+def _read_verifier(path: Path):
+    from train.crater_verifier import load_model as read
+
+    return read(path)
+
+
+load_verifier = cached_loader(_read_verifier)
+
+
 def model_path(params) -> Path:
     """The model file a detector setting names ("" = the committed default)."""
     return Path(params.model) if params.model else DEFAULT_MODEL
@@ -100,6 +123,16 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     u, v, r, s, _level = detect_pyramid(
         model, frame.image, params.threshold, first_level(params.min_radius_px), params.tta, params.half_octaves
     )
+    if params.verifier:
+        from train.crater_verifier import verify
+
+        verifier, _ = load_verifier(params.verifier)
+        uv, vv, rv, p = verify(verifier, frame.image, u, v, r)
+        s = p if params.verify_score == "verifier" else np.sqrt(p * s)
+        if params.verify_refine:
+            u, v, r = uv, vv, rv
+        keep = s >= params.verify_threshold
+        u, v, r, s = u[keep], v[keep], r[keep], s[keep]
     return within_radii(params, u, v, r, s)
 
 

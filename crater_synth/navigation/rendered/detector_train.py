@@ -98,7 +98,12 @@ def off_nadir_deg(row: dict) -> float:
 
 
 def detection_set_records(
-    folder: Path, holdout_share: float, max_frames: int = 0, max_off_nadir: float = 90.0, training: bool = True
+    folder: Path,
+    holdout_share: float,
+    max_frames: int = 0,
+    max_off_nadir: float = 90.0,
+    training: bool = True,
+    frames_key: str = "nav.detector_train.frames",
 ) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
     folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
@@ -108,7 +113,8 @@ def detection_set_records(
     (by shard, then frame index), the hold-out unchanged, so models trained on parts of one set are scored
     on the same fields. ``max_off_nadir`` < 90: only training frames viewed at most that many degrees off
     nadir (before ``max_frames`` counts them), the hold-out unchanged. ``training=False``: the held-out
-    frames only (scoring a model: a large set's training images need not be read)."""
+    frames only (scoring a model: a large set's training images need not be read). ``frames_key``: the
+    setting that asked for ``max_frames``, named when the set has fewer."""
     folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
     fields_in = [
         {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
@@ -133,7 +139,7 @@ def detection_set_records(
             (hold if is_held else train).append((exr.read_channel(d / row["rel_path"], "IF"), row))
     within = f" within {max_off_nadir:g} degrees of nadir" if max_off_nadir < 90.0 else ""
     if training and len(train) < max(max_frames, 1):
-        asked = f"nav.detector_train.frames={max_frames}" if max_frames else "training needs frames"
+        asked = f"{frames_key}={max_frames}" if max_frames else "training needs frames"
         raise UserError(
             f"{folder}: {asked}, but the set has {len(train)} training frames{within} outside its held-out fields"
         )
@@ -183,7 +189,8 @@ def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0
     }
 
 
-def _code_commit() -> str:
+def code_commit() -> str:
+    """The source tree's git commit ("unknown" outside a checkout): a model's provenance."""
     try:
         return subprocess.run(
             ["git", "-C", str(SOURCE_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
@@ -302,7 +309,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
         "seconds": round(result["seconds"], 1),
         "device": device,
         "history": result["history"],
-        "code_commit": _code_commit(),
+        "code_commit": code_commit(),
     }
     if "init" in result:
         run["init"] = result["init"]
