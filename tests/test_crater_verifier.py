@@ -90,6 +90,11 @@ def test_the_verifier_rescores_the_learned_candidates_and_a_bad_file_is_one_erro
         len(learned.learned_candidates(frame, LearnedSettings(**base, verifier=str(path), verify_threshold=1.0))[0])
         == 0
     )
+    # kept where the detector put them, each scored by the geometric mean of its heat and probability
+    geo = dict(base, verifier=str(path), verify_threshold=0.0, verify_refine=False, verify_score="geometric")
+    u, v, r, s = learned.learned_candidates(frame, LearnedSettings(**geo))
+    np.testing.assert_array_equal(np.stack([u, v, r]), np.stack(plain[:3]))
+    np.testing.assert_allclose(s, np.sqrt(plain[3] * cv.verify(model, image, u, v, r)[3]), rtol=1e-5)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a model")
     with pytest.raises(DetectorModelFileError, match="bad.pt"):
