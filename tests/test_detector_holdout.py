@@ -57,3 +57,25 @@ def test_main_scores_by_off_nadir_bin(tmp_path, capsys):
 @pytest.mark.parametrize(("angle", "key"), [(0.0, "0-1"), (14.9, "1-15"), (45.0, "30-46"), (50.0, None)])
 def test_off_nadir_bins(angle, key):
     assert dh.off_nadir_bin(angle, dh.DEFAULT_BINS) == key
+
+
+def test_a_verifier_runs_every_learned_model_once_more(tmp_path, capsys):
+    """--verifier adds one run of each learned model with that second stage; a missing verifier file is one
+    error line and no output."""
+    import torch
+
+    from train import crater_verifier as cv
+
+    folder = fake_detection_set(tmp_path / "det", fields=2, frames=2)
+    torch.manual_seed(0)
+    verifier = tmp_path / "v.pt"
+    cv.save_model(verifier, cv.VerifierNet(4).eval(), {})
+    out = tmp_path / "holdout.json"
+    args = [str(folder), "--model", str(DEFAULT_MODEL), "--threshold", "0.1", "--verify-threshold", "0.0"]
+    assert dh.main([*args, "--verifier", str(verifier), "--out", str(out)]) == 0
+    plain, second = json.loads(out.read_text())["runs"]
+    assert "verifier" not in plain and second["verifier"] == str(verifier) and len(second["verifier_sha256"]) == 64
+    assert second["all"]["frames"] == plain["all"]["frames"] == 2
+    bad = tmp_path / "bad.json"
+    assert dh.main([*args, "--verifier", str(tmp_path / "none.pt"), "--out", str(bad)]) == 1
+    assert "none.pt: no such model file" in capsys.readouterr().err and not bad.exists()

@@ -6,7 +6,9 @@ every view are scored on the same held-out fields (the last 10 % of the set's fi
 either), frame by frame against their exact labels. Recall counts labelled rims that span at least
 ``--min-span-px`` (10 px: a rim radius of 5 px), precision the detections of that size; occluded rims and
 rims lit on less than 5 % of their length are neither (the training's rule). Each model runs at the
-hold-out's scoring settings (no rim fit) and ``--threshold``. Nothing real is read.
+hold-out's scoring settings (no rim fit) and ``--threshold``. ``--verifier V.pt`` runs every learned model
+once more with that second stage (``nav.detector.verifier``; its candidates at ``--threshold``, kept at
+``--verify-threshold`` of ``--verify-score``). Nothing real is read.
 
     python -m crater_synth.tools.detector_holdout SET --model A.pt --model fcos:B.pt --threshold 0.15 \\
         --out holdout.json
@@ -26,6 +28,7 @@ import numpy as np
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.detectors.learned import VERIFY_SCORES
 from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     architecture,
@@ -75,24 +78,41 @@ def main(argv=None) -> int:
     ap.add_argument("--threshold", type=float, default=0.15, help="detection threshold of every model")
     ap.add_argument("--min-span-px", type=float, default=10.0, help="rims spanning at least this many pixels")
     ap.add_argument("--every", type=int, default=1, help="every Nth held-out frame")
+    ap.add_argument("--verifier", action="append", default=[], help="a second-stage model file (repeatable)")
+    ap.add_argument("--verify-threshold", type=float, default=0.5, help="the verifier score a candidate needs")
+    ap.add_argument("--verify-score", choices=VERIFY_SCORES, default="verifier", help="the verifier's score rule")
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
     try:
         _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
         hold = hold[:: max(1, args.every)]
+        for path in [*(model_option(m)[1] for m in args.model), *args.verifier]:
+            if not Path(path).is_file():
+                raise UserError(f"{path}: no such model file")
         runs = []
         for model in args.model:
             option, path = model_option(model)
-            if not Path(path).is_file():
-                raise UserError(f"{path}: no such model file")
-            params = architecture("fcos" if option == "fcos" else "centernet")[2](path)
-            params = dataclasses.replace(params, threshold=args.threshold)
-            t0 = time.perf_counter()
-            scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS)
-            registry.detector(params.method).load_model.cache_clear()
-            seconds = round(time.perf_counter() - t0, 1)
-            runs.append({"model": model, "model_sha256": model_sha256(model), "seconds": seconds} | scores)
-            print(f"{model}: {json.dumps(scores['all'])}", flush=True)
+            plain = architecture("fcos" if option == "fcos" else "centernet")[2](path)
+            plain = dataclasses.replace(plain, threshold=args.threshold)
+            stages = [("", plain)] + [
+                (
+                    v,
+                    dataclasses.replace(
+                        plain, verifier=v, verify_threshold=args.verify_threshold, verify_score=args.verify_score
+                    ),
+                )
+                for v in (args.verifier if option != "fcos" else [])
+            ]
+            for verifier, params in stages:
+                t0 = time.perf_counter()
+                scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS)
+                seconds = round(time.perf_counter() - t0, 1)
+                second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
+                runs.append(
+                    {"model": model, "model_sha256": model_sha256(model)} | second | {"seconds": seconds} | scores
+                )
+                print(f"{model} {verifier}: {json.dumps(scores['all'])}", flush=True)
+            registry.detector(plain.method).load_model.cache_clear()
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -100,6 +120,7 @@ def main(argv=None) -> int:
         "command": command_line(argv, PROG),
         "set": {"folder": str(args.folder), "holdout_fields": what["holdout_fields"], "recipe": what["recipe"]},
         "threshold": args.threshold,
+        "verify": {"threshold": args.verify_threshold, "score": args.verify_score} if args.verifier else None,
         "min_span_px": args.min_span_px,
         "off_nadir_bins_deg": list(DEFAULT_BINS),
         "runs": runs,
