@@ -21,12 +21,14 @@ import numpy as np
 from crater_core.settings_nav import VerifierTrainSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.config import compose_group
+from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings
 from crater_synth.navigation.detectors.learned import load_model as load_detector
 from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     code_commit,
     detection_set_records,
     label_circles,
+    score_synthetic,
 )
 
 # A candidate within POS_CENTRE_R label radii of a visible rim's centre, its radius within a factor POS_RATIO,
@@ -138,8 +140,6 @@ def train_verifier_from_set(folder: Path, out: Path, settings, log=None) -> dict
     at the examples' heat), and save it to ``out`` with its provenance; returns the summary it carries."""
     import torch
 
-    from crater_synth.navigation.detectors.learned import DEFAULT_MODEL, LearnedSettings
-    from crater_synth.navigation.rendered.detector_train import score_synthetic
     from train.crater_detector import BAND_LO_PX
     from train.crater_verifier import save_model, settings_dict, train_verifier
 
