@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -167,10 +166,6 @@ def train_verifier(
                 log(f"step {step}/{s.steps}: loss {float(loss.detach()):.3f} cls {row['cls']} reg {row['reg']}")
     model.eval()
     return {"model": model, "history": history, "seconds": round(time.perf_counter() - t0, 1)}
-
-
-def settings_dict(s: VerifierTrainSettings) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(s).items()}
 
 
 # ------------------------------------------------------------------------------------------------

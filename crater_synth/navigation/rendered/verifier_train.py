@@ -141,7 +141,7 @@ def train_verifier_from_set(folder: Path, out: Path, settings, log=None) -> dict
     import torch
 
     from train.crater_detector import BAND_LO_PX
-    from train.crater_verifier import save_model, settings_dict, train_verifier
+    from train.crater_verifier import save_model, train_verifier
 
     if settings.threads:
         torch.set_num_threads(settings.threads)
@@ -151,7 +151,7 @@ def train_verifier_from_set(folder: Path, out: Path, settings, log=None) -> dict
     summary = {
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
         "set": ex["what"],
-        "settings": settings_dict(settings),
+        "settings": settings.as_dict(),
         "history": result["history"],
         "train_seconds": result["seconds"],
     }
