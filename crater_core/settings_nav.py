@@ -185,6 +185,14 @@ class LandmarksSettings(Group):
 
 
 ARCHS = ("centernet", "fcos")  # DetectorTrainSettings.arch
+AUGMENT_KEYS = ("gamma", "shadow_lift", "blur_sigma_px", "noise")  # train.crater_detector.augment_brightness
+
+
+def need_augment_ranges(settings) -> None:
+    """Each photometric augmentation setting of a training's settings is a range [low, high]."""
+    for key in AUGMENT_KEYS:
+        lo_hi = getattr(settings, key)
+        need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
 
 
 @dataclass(frozen=True)
@@ -235,9 +243,7 @@ class DetectorTrainSettings(Group):
             need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
-        for key in ("gamma", "shadow_lift", "blur_sigma_px", "noise"):
-            lo_hi = getattr(self, key)
-            need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
+        need_augment_ranges(self)
         need(
             all(x >= 0 for x in self.source_shares) and (not self.source_shares or sum(self.source_shares) > 0),
             "source_shares",
@@ -280,9 +286,7 @@ class VerifierTrainSettings(Group):
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         need(0.0 < self.heat < 1.0, "heat", self.heat, "must lie in (0, 1)")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
-        for key in ("gamma", "shadow_lift", "blur_sigma_px", "noise"):
-            lo_hi = getattr(self, key)
-            need(len(lo_hi) == 2 and lo_hi[0] <= lo_hi[1], key, lo_hi, "must be a range [low, high]")
+        need_augment_ranges(self)
 
 
 # Settings holding the photometric augmentation's ranges (gamma, shadow_lift, blur_sigma_px, noise):

@@ -374,20 +374,32 @@ def test_navigate_a_real_window_with_the_learned_detector_and_refuse_a_bad_model
 
 
 @pytest.mark.parametrize(
-    "args, message",
+    "command, args, message",
     [
-        (["nav.detector_train.steps=0"], "nav.detector_train.steps=0: must be >= 1"),
-        (["nav.detector_train.steps=10", "nav.detector_train.checkpoints=[10]"], "nav.detector_train.checkpoints=[10]"),
-        (["nav.detector_train.step=10"], "nav.detector_train.step: unknown key"),
-        (["nav.fix.min_inliers=3"], "nav.fix.min_inliers=3: this command's settings are nav.detector_train."),
+        ("nav-detector-train", ["nav.detector_train.steps=0"], "nav.detector_train.steps=0: must be >= 1"),
+        (
+            "nav-detector-train",
+            ["nav.detector_train.steps=10", "nav.detector_train.checkpoints=[10]"],
+            "nav.detector_train.checkpoints=[10]",
+        ),
+        ("nav-detector-train", ["nav.detector_train.step=10"], "nav.detector_train.step: unknown key"),
+        (
+            "nav-detector-train",
+            ["nav.fix.min_inliers=3"],
+            "nav.fix.min_inliers=3: this command's settings are nav.detector_train.",
+        ),
+        ("nav-verifier-train", ["nav.verifier_train.steps=0"], "nav.verifier_train.steps=0: must be >= 1"),
+        ("nav-verifier-train", ["nav.verifier_train.heat=1.5"], "nav.verifier_train.heat=1.5: must lie in (0, 1)"),
+        ("nav-verifier-train", ["nav.detector_train.steps=3"], "this command's settings are nav.verifier_train."),
     ],
 )
-def test_nav_detector_train_refuses_nonsense_settings_before_reading_anything(tmp_path, args, message):
+def test_training_commands_refuse_nonsense_settings_before_reading_anything(tmp_path, command, args, message):
+    """nav-detector-train and nav-verifier-train: one error line, nothing read or written."""
     from click.testing import CliRunner
 
     from crater_synth.cli import main
 
-    r = CliRunner().invoke(main, ["nav-detector-train", str(tmp_path / "none"), "--out", str(tmp_path / "m.pt"), *args])
+    r = CliRunner().invoke(main, [command, str(tmp_path / "none"), "--out", str(tmp_path / "m.pt"), *args])
     assert r.exit_code == 2 and message in r.output and len(r.output.strip().splitlines()) == 1
     assert not list(tmp_path.iterdir())
 

@@ -15,7 +15,7 @@ from crater_synth.navigation.georef import Frame, Georef
 from crater_synth.navigation.map.check import ListedCrater
 from crater_synth.navigation.rendered import detector_train as learned_train
 from crater_synth.navigation.windows import training
-from crater_synth.tools import detector_test
+from crater_synth.tools import detector_choice, detector_test
 from train import crater_detector as cd
 
 
@@ -146,7 +146,7 @@ def test_the_north_test_refuses_a_changed_verifier(tmp_path, monkeypatch):
         "model": str(model),
         "threshold": 0.1,
         "variant": variant,
-        "variant_sha256": detector_test.variant_sha256(variant),
+        "variant_sha256": detector_choice.variant_sha256(variant),
         "catalogue_15km": {},
         "model_sha256": detector_test.model_sha256(str(model)),
     }

@@ -119,7 +119,12 @@ def model_sha256(model: str) -> str:
     """sha256 of a ``--model`` value's file (the committed model's for "committed"): what a test run checks
     it is given the model that was chosen."""
     _, path = model_option(model)
-    return hashlib.sha256(Path(DEFAULT_MODEL if path == "committed" else path).read_bytes()).hexdigest()
+    return file_sha256(DEFAULT_MODEL if path == "committed" else path)
+
+
+def file_sha256(path) -> str:
+    """sha256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 VARIANT_FILE_KEYS = ("nav.detector.verifier",)  # variant overrides naming a model file: hashed like --model
@@ -131,7 +136,7 @@ def variant_sha256(variant) -> dict:
     for o in variant:
         key, _, value = o.partition("=")
         if key in VARIANT_FILE_KEYS and value:
-            out[value] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
+            out[value] = file_sha256(value)
     return out
 
 

@@ -103,14 +103,13 @@ def main(argv=None) -> int:
                 )
                 for v in (args.verifier if option != "fcos" else [])
             ]
+            model_sha = model_sha256(model)
             for verifier, params in stages:
                 t0 = time.perf_counter()
                 scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS)
                 seconds = round(time.perf_counter() - t0, 1)
                 second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
-                runs.append(
-                    {"model": model, "model_sha256": model_sha256(model)} | second | {"seconds": seconds} | scores
-                )
+                runs.append({"model": model, "model_sha256": model_sha} | second | {"seconds": seconds} | scores)
                 print(f"{model} {verifier}: {json.dumps(scores['all'])}", flush=True)
             registry.detector(plain.method).load_model.cache_clear()
     except UserError as e:

@@ -35,14 +35,12 @@ from crater_synth.navigation.windows.evaluate import (
 )
 from crater_synth.paths import SOURCE_ROOT
 from crater_synth.tools.detector_choice import (
-    VARIANT_FILE_KEYS,
     command_line,
     detector_overrides,
     f1,
     model_option,
     model_sha256,
     score_line,
-    variant_sha256,
 )
 
 PROG = "python -m crater_synth.tools.detector_test"
@@ -78,19 +76,14 @@ def frozen_choices(choice_file: Path, models: list[str]) -> list[dict]:
             raise UserError(f"{choice_file}: no choice for {', '.join(missing)}")
         chosen = [c for c in chosen if c["model"] in models]
     for c in chosen:
-        try:
-            sha = model_sha256(c["model"])
-        except OSError:
-            raise UserError(f"model {c['model']}: cannot be read") from None
-        if sha != c["model_sha256"]:
-            raise UserError(f"model {c['model']}: not the file chosen in {choice_file} (sha256 differs)")
-        for path, want in c.get("variant_sha256", {}).items():
+        # the model, and each model file its variant names (the verifier; a plain path reads as itself)
+        for name, want in ({c["model"]: c["model_sha256"]} | c.get("variant_sha256", {})).items():
             try:
-                got = variant_sha256([f"{VARIANT_FILE_KEYS[0]}={path}"])[path]
+                got = model_sha256(name)
             except OSError:
-                raise UserError(f"model {path}: cannot be read") from None
+                raise UserError(f"model {name}: cannot be read") from None
             if got != want:
-                raise UserError(f"model {path}: not the file chosen in {choice_file} (sha256 differs)")
+                raise UserError(f"model {name}: not the file chosen in {choice_file} (sha256 differs)")
     return chosen
 
 
