@@ -12,6 +12,7 @@ import dataclasses
 import difflib
 import math
 import re
+import types
 import typing
 from typing import Any, Mapping
 
@@ -129,7 +130,7 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if tp is Any:
         return value
-    if origin is typing.Union:
+    if origin is typing.Union or origin is types.UnionType:  # Optional[X] and X | None
         if value is None and type(None) in args:
             return None
         (inner,) = [a for a in args if a is not type(None)]

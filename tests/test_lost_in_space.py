@@ -97,6 +97,73 @@ def test_lis_settings_overrides_and_errors():
         compose_nav(["nav/lost_in_space=missing"])
 
 
+def _two_tier_frame(lms, centre, rng, n_sure, n_weak, weak_clutter):
+    """Detections of a north-up frame: ``n_sure`` true craters at score 1, ``n_weak`` true ones and
+    ``weak_clutter`` random circles at score 0.1."""
+    true = [d for d in _frame(lms, centre, 0.0, rng, keep=1.0, clutter=0, noise_px=0.5)]
+    true.sort(key=lambda d: -d.r)
+    sure = true[:n_sure]
+    weak = [Detection(d.u, d.v, d.r, 0.1) for d in true[n_sure : n_sure + n_weak]]
+    clutter = [Detection(*rng.uniform(0, 512, 2), rng.uniform(9, 40), 0.1) for _ in range(weak_clutter)]
+    return sure + weak + clutter
+
+
+def test_weak_detections_confirm_a_vote_they_do_not_cast():
+    """Two tiers: the sure detections vote; the weak ones, too many to vote among, confirm the voted
+    transform. With too few sure detections the frame is refused before any vote."""
+    rng = np.random.default_rng(11)
+    lms = _map(rng)
+    index = build_index(lms)
+    dets = _two_tier_frame(lms, (120e3, -80e3), rng, n_sure=4, n_weak=6, weak_clutter=150)
+    two = LostInSpaceParams(vote_min_score=0.5, min_inliers=8)
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, two, index=index)
+    assert fix.ok, fix.reason
+    assert math.hypot(fix.x_m - 120e3, fix.y_m + 80e3) < 1000.0
+    assert len(fix.inliers) >= 8  # more than the 4 sure craters: the weak tier counted
+    sure_only = [d for d in dets if d.score >= 0.5]
+    alone = lost_in_space_fix(sure_only, lms, SHAPE, PIXEL_M, two, index=index)
+    assert not alone.ok  # 4 sure craters cannot reach 8 inliers by themselves
+    refused = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, LostInSpaceParams(vote_min_score=2.0), index=index)
+    assert not refused.ok and "score >= 2.0" in refused.reason
+
+
+def test_verification_tolerance_follows_the_lost_in_space_group():
+    """Large craters detected 6-8 px off their map centres: nav.fix's 2 px + 0.1 r refuses them, the
+    group's own inlier_r and RMS gate accept them; the prior-gated fix's settings stay as they are."""
+    from crater_synth.navigation.fix.solve import FixParams
+
+    rng = np.random.default_rng(12)
+    lms = [m for m in _map(rng, n=3000) if m.diameter_km >= 20.0]
+    index = build_index(lms)
+    dets = _frame(lms, (60e3, 40e3), 0.0, rng, keep=1.0, clutter=3, noise_px=0.0)
+    off = 0.14  # of the radius, each detection in another direction
+    shift = [off * d.r * complex(math.cos(k), math.sin(k)) for k, d in enumerate(dets)]
+    dets = [Detection(d.u + s.real, d.v + s.imag, d.r, d.score) for d, s in zip(dets, shift)]
+    strict = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, LostInSpaceParams(min_inliers=4), index=index)
+    loose = LostInSpaceParams(min_inliers=4, inlier_r=0.25, max_rms_px=12.0)
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, loose, index=index)
+    assert fix.ok, fix.reason
+    assert math.hypot(fix.x_m - 60e3, fix.y_m - 40e3) < 1000.0
+    assert not strict.ok and "RMS" in strict.reason
+    v = loose.verify_params(FixParams())
+    assert (v.inlier_r, v.max_rms_px, v.min_inliers) == (0.25, 12.0, 4)
+    assert LostInSpaceParams().verify_params(FixParams()).inlier_r == FixParams().inlier_r
+
+
+def test_lis_two_tier_settings_are_checked():
+    from crater_synth.errors import UserError
+    from crater_synth.navigation.settings import compose_nav
+
+    two = compose_nav(["nav/lost_in_space=two-tier"]).lost_in_space
+    assert two.vote_min_score is not None and two.inlier_r is not None
+    assert compose_nav([]).lost_in_space.vote_min_score is None  # south-choice: one tier
+    one = compose_nav(["nav/lost_in_space=two-tier", "nav.lost_in_space.vote_min_score=null"]).lost_in_space
+    assert one.vote_min_score is None and one.inlier_r == two.inlier_r
+    for key, bad in (("inlier_r", "-1"), ("max_rms_px", "0"), ("vote_min_score", "nan")):
+        with pytest.raises(UserError, match=key):
+            compose_nav([f"nav.lost_in_space.{key}={bad}"])
+
+
 def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
     """`crater-synth navigate IMAGE --lost-in-space --pixel-m 400`: a south window (development data) with
     no georeference and no prior is placed on the map; --prior with --lost-in-space is refused."""

@@ -10,15 +10,16 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   translation, and the absolute scale is known (no scale invariance is needed).
 * **Index**: every ordered pair of map landmarks (>= ``min_landmark_km``) closer than the frame's
   diagonal, sorted by distance (numpy sorting; :func:`build_index`, once per map).
-* **Query**: every pair of the frame's ``n_detections`` largest detections looks up the map pairs of
+* **Query**: every pair of the frame's ``n_detections`` largest detections (of those scoring at least
+  ``vote_min_score``, when set: the sure tier of a detector's candidates) looks up the map pairs of
   the same distance (within ``dist_tol_px`` + ``dist_tol_r`` x the radii) whose diameters agree within
   ``radius_ratio``. Each such match defines one similarity pixel -> map (scale known, heading free),
   hence a frame-centre map point and a heading: a **vote** in a (x, y, heading) grid of ``bin_km`` x
   ``bin_km`` x ``bin_deg`` cells. A true solution collects votes from many pairs of correctly detected
   craters at one cell; a false pairing scatters.
 * **Verification**: the ``n_verify`` best-voted cells each give a candidate transform (the mean of
-  its votes); all detections are paired with the landmarks it predicts in the frame (within
-  ``gate_km``) and the existing RANSAC similarity fix (:func:`.fix.ransac_similarity`, scale and
+  its votes); all detections, weak ones too, are paired with the landmarks it predicts in the frame
+  (within ``gate_km``) and the existing RANSAC similarity fix (:func:`.fix.ransac_similarity`, scale and
   heading gated around the candidate) runs with the usual "no fix" rules (min inliers, disjoint rival
   inside the candidate, inlier RMS).
 * **Ambiguity across the map** (strict: a false fix is worse than none): the best verified candidate
@@ -69,9 +70,37 @@ class LostInSpaceParams:
     # The attitude gives the frame's heading on the map (a north-up mosaic window: 0; a rendered frame: its
     # camera's): only votes within one heading cell of it count. Off in the frozen preset.
     known_heading: bool = False
+    # Two tiers of detections (None: one). A pair vote needs two sure craters, or chance pairs of the many weak
+    # candidates outvote the true ones; a candidate's transform, once voted, predicts where every landmark
+    # lies, so the weak candidates can still confirm it. Detections scoring >= vote_min_score (the detector's
+    # own score units) cast the votes; every detection takes part in the verification.
+    vote_min_score: float | None = None
+    # The verification's inlier tolerance (px + inlier_r x r) and RMS gate, in place of nav.fix's when set: a
+    # detector's centre errors grow with the crater (a large rim's shadowed centre is off by 5-10 px on real
+    # windows), and without a prior the position comes from the craters alone.
+    inlier_r: float | None = None
+    max_rms_px: float | None = None
+
+    def __post_init__(self):
+        for key in ("inlier_r", "max_rms_px"):
+            value = getattr(self, key)
+            if value is not None and not value > 0:
+                raise ValueError(f"{key} must be > 0 (got {value})")
+        if self.vote_min_score is not None and not math.isfinite(self.vote_min_score):
+            raise ValueError(f"vote_min_score must be a finite number (got {self.vote_min_score})")
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def verify_params(self, fparams: FixParams) -> FixParams:
+        """``fparams`` as the verification of a voted candidate uses them: this group's inlier count and
+        tolerances, the heading free within a vote cell."""
+        changes = {"min_inliers": self.min_inliers, "max_heading_deg": self.bin_deg}
+        if self.inlier_r is not None:
+            changes["inlier_r"] = self.inlier_r
+        if self.max_rms_px is not None:
+            changes["max_rms_px"] = self.max_rms_px
+        return replace(fparams, **changes)
 
 
 def window_heading_deg(params: LostInSpaceParams) -> float | None:
@@ -182,7 +211,7 @@ def _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pix
     vote_of, inv, best_cells = cells
     flip = _FLIP_V
     # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
-    vparams = replace(fparams, min_inliers=params.min_inliers, max_heading_deg=params.bin_deg)
+    vparams = params.verify_params(fparams)
     cands = []  # (support, fix or None, a, b, centre)
     for c in best_cells:
         sel = vote_of[inv == c]
@@ -259,7 +288,12 @@ def lost_in_space_fix(
     det_uv = np.array([[d.u, d.v] for d in detections], float)
     det_r = np.array([d.r for d in detections], float)
     det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
-    top = np.argsort(-det_r, kind="stable")[: params.n_detections]
+    voters = np.arange(len(detections))
+    if params.vote_min_score is not None:
+        voters = np.nonzero(np.array([d.score for d in detections], float) >= params.vote_min_score)[0]
+        if voters.size < 3:
+            return Fix(False, f"{voters.size} detections score >= {params.vote_min_score} (need 3 to vote)")
+    top = voters[np.argsort(-det_r[voters], kind="stable")[: params.n_detections]]
     votes = _votes(det_z[top], det_r[top], index, pixel_m, params)
     if votes is None or votes[0].size == 0:
         return Fix(False, "no crater pair of the frame matches a pair of the map")

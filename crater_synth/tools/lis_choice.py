@@ -1,0 +1,144 @@
+"""``python -m crater_synth.tools.lis_choice``: choose lost-in-space settings on the south validation windows, and
+write the runs and the choice as JSON.
+
+A detector runs once per window at its lowest candidate threshold (``--detector``: nav overrides); every
+``--variant`` then keeps the detections scoring at least its ``min_score=T`` and runs the lost-in-space fix with
+its own ``nav.lost_in_space`` overrides, scored as ``nav-eval --lost-in-space`` scores it (the same row and
+summary functions). Keeping the detections >= T of a run at a lower threshold gives the detections of a run at T:
+suppression is greedy, best score first, so only a higher-scoring detection ever drops one. The rule: no false fix
+on any window, then the highest fix rate of the headline windows (rates within one window of it are tied: then
+the lowest median error). The north
+windows are a test: this tool never reads them; run ``nav-eval --pole north`` once with the choice, after it is
+committed.
+
+    python -m crater_synth.tools.lis_choice --detector 'nav/detector=learned-detect nav.detector.tta=4
+        nav.detector.half_octaves=true nav.detector.threshold=0.05' --variant 'min_score=0.15' \\
+        --variant 'min_score=0.1 nav/lost_in_space=two-tier' --out docs/results/FILE.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from crater_core.schema import atomic_write_text
+from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
+from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
+from crater_synth.navigation.settings import compose_nav
+from crater_synth.navigation.windows.evaluate import catalogue_craters, nav_eval_map, score_window
+from crater_synth.navigation.windows.light import frame_light
+from crater_synth.navigation.windows.mosaic import windows
+from crater_synth.tools.detector_choice import command_line
+
+PROG = "python -m crater_synth.tools.lis_choice"
+POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
+
+
+def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
+    """(minimum detection score, nav overrides) of a ``--variant``: ``min_score=T`` (default: the detector's
+    own threshold ``base``, below which no detection exists) and ``nav.lost_in_space`` overrides."""
+    min_score, overrides = base, []
+    for token in text.split():
+        key, _, value = token.partition("=")
+        if key == "min_score":
+            try:
+                min_score = float(value)
+            except ValueError:
+                raise UserError(f"--variant {text!r}: min_score must be a number, not {value!r}") from None
+            if min_score < base:
+                raise UserError(f"--variant {text!r}: min_score {min_score} is below the detector's threshold {base}")
+        elif key.startswith(("nav.lost_in_space.", "nav/lost_in_space")):
+            overrides.append(token)
+        else:
+            raise UserError(f"--variant {text!r}: {token!r} is neither min_score=T nor a nav.lost_in_space override")
+    return min_score, overrides
+
+
+def detect_windows(detector_overrides: list[str], every: int):
+    """(frames, detections of each with its light direction, detector settings) on every ``every``-th south
+    validation window."""
+    nav = compose_nav(detector_overrides)
+    frames = windows(SPLIT, POLE)[::every]
+    found = [detect(f.image, nav.detector, what=f"frame {f.id}", **frame_light(f, nav.detector)) for f in frames]
+    return frames, found, nav
+
+
+def run_variant(text: str, frames, found, nav, detector_overrides, landmarks, listed) -> dict:
+    """One variant's rows on every window, summarised as ``nav-eval`` summarises them."""
+    min_score, overrides = parse_variant(text, nav.detector.threshold)
+    lis = compose_nav([*detector_overrides, *overrides]).lost_in_space
+    index = build_index(landmarks, lis)
+    t0 = time.perf_counter()
+    rows = []
+    for frame, (dets, theta) in zip(frames, found):
+        kept = [d for d in dets if d.score >= min_score]
+        fix = lost_in_space_fix(kept, landmarks, frame.image.shape, frame.georef.pixel_m, lis, nav.fix, index)
+        rows.append(score_window(frame, landmarks, nav.fix, kept, theta, fix, listed))
+    head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    return {
+        "variant": text,
+        "min_score": min_score,
+        "lost_in_space": lis.as_dict(),
+        "headline": summarise(head),
+        "all_windows": summarise(rows),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def choose(runs: list[dict]) -> dict:
+    """No false fix on any window; then the highest headline fix rate, rates within one headline window of it
+    tied; among the tied, the lowest median error."""
+    safe = [r for r in runs if not r["all_windows"].get("false_fixes")]
+    if not safe:
+        return {"variant": None, "why": "every variant made a false fix"}
+    top = max(r["headline"].get("fix_rate") or 0.0 for r in safe)
+    tied = [r for r in safe if (top - (r["headline"].get("fix_rate") or 0.0)) * r["headline"]["windows"] <= 1.0 + 1e-9]
+    best = min(tied, key=lambda r: r["headline"].get("median_error_km") or 1e9)
+    return {"variant": best["variant"], "headline_fix_rate": best["headline"].get("fix_rate")}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--detector", required=True, help="the detector's nav overrides (space-separated), lowest threshold")
+    p.add_argument("--variant", action="append", required=True, help="'min_score=T [overrides]', repeatable")
+    p.add_argument("--every", type=int, default=1, help="every Nth south validation window")
+    p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
+    args = p.parse_args(argv)
+    try:
+        detector_overrides = args.detector.split()
+        nav = compose_nav(detector_overrides)
+        for v in args.variant:  # every variant checked before the detector runs
+            compose_nav([*detector_overrides, *parse_variant(v, nav.detector.threshold)[1]])
+        landmarks, _ = nav_eval_map(POLE, None)
+        listed = catalogue_craters(POLE)
+        t0 = time.perf_counter()
+        frames, found, nav = detect_windows(detector_overrides, args.every)
+        detect_s = round(time.perf_counter() - t0, 1)
+        runs = []
+        for v in args.variant:
+            r = run_variant(v, frames, found, nav, detector_overrides, landmarks, listed)
+            rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
+            print(f"{v}: headline fix rate {rate}, false fixes {false}", flush=True)
+            runs.append(r)
+    except UserError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    doc = {
+        "command": command_line(argv, PROG),
+        "split": f"{POLE} {SPLIT}, every {args.every}th window",
+        "detector": {"overrides": detector_overrides, "settings": nav.detector.as_dict(), "seconds": detect_s},
+        "rule": "no false fix on any window, then the highest headline fix rate (within one headline window: tied, "
+        "then the lowest median error)",
+        "runs": runs,
+        "chosen": choose(runs),
+    }
+    print(json.dumps(doc["chosen"]))
+    if args.out:
+        atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

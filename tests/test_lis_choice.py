@@ -1,0 +1,41 @@
+"""The lost-in-space choice tool: its variants and its rule (the windows themselves run in nav-eval's tests)."""
+
+from __future__ import annotations
+
+import pytest
+
+from crater_synth.errors import UserError
+from crater_synth.tools import lis_choice
+
+
+def test_a_variant_is_a_minimum_score_and_lost_in_space_overrides():
+    assert lis_choice.parse_variant("", 0.05) == (0.05, [])
+    text = "min_score=0.1 nav/lost_in_space=two-tier nav.lost_in_space.min_inliers=7"
+    lis = ["nav/lost_in_space=two-tier", "nav.lost_in_space.min_inliers=7"]
+    assert lis_choice.parse_variant(text, 0.05) == (0.1, lis)
+    with pytest.raises(UserError, match="below the detector's threshold"):
+        lis_choice.parse_variant("min_score=0.01", 0.05)
+    with pytest.raises(UserError, match="nav.detector.threshold=0.3"):
+        lis_choice.parse_variant("nav.detector.threshold=0.3", 0.05)  # the detector is --detector's alone
+    with pytest.raises(UserError, match="min_score must be a number"):
+        lis_choice.parse_variant("min_score=high", 0.05)
+
+
+def _run(variant, fixed, false, median=0.3, windows=100):
+    head = {"fix_rate": fixed / windows, "median_error_km": median, "windows": windows}
+    return {"variant": variant, "headline": head, "all_windows": {"false_fixes": false}}
+
+
+def test_the_rule_refuses_any_false_fix_then_takes_the_most_fixes():
+    runs = [_run("a", 90, 1), _run("b", 71, 0, 0.4), _run("c", 70, 0, 0.3), _run("d", 60, 0, 0.1)]
+    assert lis_choice.choose(runs)["variant"] == "c"  # one window fewer than b: tied, and closer
+    runs = [_run("b", 72, 0, 0.4), _run("c", 70, 0, 0.3)]
+    assert lis_choice.choose(runs)["variant"] == "b"  # two windows more: not a tie
+    assert lis_choice.choose([_run("a", 0.9, 2)])["variant"] is None
+
+
+def test_a_bad_variant_is_one_error_before_any_window_is_read(capsys):
+    with pytest.raises(SystemExit, match="nav.lost_in_space.nope"):
+        lis_choice.main(["--detector", "nav/detector=learned-detect", "--variant", "nav.lost_in_space.nope=1"])
+    with pytest.raises(SystemExit, match="neither min_score"):
+        lis_choice.main(["--detector", "nav/detector=learned-detect", "--variant", "gate=3"])
