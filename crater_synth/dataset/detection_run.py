@@ -82,18 +82,23 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
     return [plan_field(settings, f, idx, chunk_dir) for f, idx in by_field.items()]
 
 
+def _kept(row: dict) -> dict:
+    """What a run keeps of a manifest row (not the row: a frame's labels run to ~0.5 MB in memory): its file
+    and what the summary counts."""
+    return {"rel_path": row["rel_path"], "mode": row.get("mode"), "labels": len(row["labels"])}
+
+
 def _ref(row: dict, at: tuple[int, int]) -> dict:
-    """What a run keeps of a manifest row (not the row: a frame's labels run to ~0.5 MB in memory): its file,
-    what the summary counts, and where its line lies in the manifest (byte offset, length)."""
-    return {"rel_path": row["rel_path"], "mode": row.get("mode"), "labels": len(row["labels"]), "at": at}
+    """:func:`_kept` of a manifest row and where its line lies in the manifest (byte offset, length)."""
+    return _kept(row) | {"at": at}
 
 
 def manifest_refs(out_dir: Path) -> tuple[dict[int, dict], bool]:
     """(frame index -> :func:`_ref` of its row, compact) of the manifest in ``out_dir`` (:func:`scan_manifest`).
     Each row is reduced as it is read: a 22,528-frame set's manifest is ~10 GB of labels, which held as rows
     did not fit in 24 GB."""
-    found, compact = scan_manifest(out_dir, keep=lambda row: _ref(row, (0, 0)))
-    return {i: {**ref, "at": (start, length)} for i, (start, length, ref) in found.items()}, compact
+    found, compact = scan_manifest(out_dir, keep=_kept)
+    return {i: kept | {"at": (start, length)} for i, (start, length, kept) in found.items()}, compact
 
 
 def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -> None:

@@ -26,10 +26,14 @@ from pathlib import Path
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect
-from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
-from crater_synth.navigation.protocol import HEADLINE_MIN_LANDMARKS, summarise
+from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
 from crater_synth.navigation.settings import compose_nav
-from crater_synth.navigation.windows.evaluate import catalogue_craters, nav_eval_map, score_window
+from crater_synth.navigation.windows.evaluate import (
+    catalogue_craters,
+    nav_eval_map,
+    score_window,
+    summarise_windows,
+)
 from crater_synth.navigation.windows.light import frame_light
 from crater_synth.navigation.windows.mosaic import windows
 from crater_synth.tools.detector_choice import command_line
@@ -58,19 +62,24 @@ def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
     return min_score, overrides
 
 
-def detect_windows(detector_overrides: list[str], every: int):
-    """(frames, detections of each with its light direction, detector settings) on every ``every``-th south
+def variant_settings(text: str, detector_overrides: list[str], nav) -> tuple[float, LostInSpaceParams]:
+    """(minimum detection score, composed ``nav.lost_in_space`` settings) of a ``--variant``; ``nav``: the
+    detector's composed settings."""
+    min_score, overrides = parse_variant(text, nav.detector.threshold)
+    return min_score, compose_nav([*detector_overrides, *overrides]).lost_in_space
+
+
+def detect_windows(nav, every: int):
+    """(frames, detections of each with its light direction) of ``nav``'s detector on every ``every``-th south
     validation window."""
-    nav = compose_nav(detector_overrides)
     frames = windows(SPLIT, POLE)[::every]
     found = [detect(f.image, nav.detector, what=f"frame {f.id}", **frame_light(f, nav.detector)) for f in frames]
-    return frames, found, nav
+    return frames, found
 
 
-def run_variant(text: str, frames, found, nav, detector_overrides, landmarks, listed) -> dict:
-    """One variant's rows on every window, summarised as ``nav-eval`` summarises them."""
-    min_score, overrides = parse_variant(text, nav.detector.threshold)
-    lis = compose_nav([*detector_overrides, *overrides]).lost_in_space
+def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed) -> dict:
+    """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
+    ``lis``), summarised as ``nav-eval`` summarises them."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     rows = []
@@ -78,13 +87,13 @@ def run_variant(text: str, frames, found, nav, detector_overrides, landmarks, li
         kept = [d for d in dets if d.score >= min_score]
         fix = lost_in_space_fix(kept, landmarks, frame.image.shape, frame.georef.pixel_m, lis, nav.fix, index)
         rows.append(score_window(frame, landmarks, nav.fix, kept, theta, fix, listed))
-    head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    summary = summarise_windows(rows)
     return {
         "variant": text,
         "min_score": min_score,
         "lost_in_space": lis.as_dict(),
-        "headline": summarise(head),
-        "all_windows": summarise(rows),
+        "headline": summary["headline"],
+        "all_windows": summary["all_windows"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
@@ -111,16 +120,16 @@ def main(argv=None) -> None:
     try:
         detector_overrides = args.detector.split()
         nav = compose_nav(detector_overrides)
-        for v in args.variant:  # every variant checked before the detector runs
-            compose_nav([*detector_overrides, *parse_variant(v, nav.detector.threshold)[1]])
+        # Every variant is composed (and so checked) before the detector runs.
+        variants = [(v, *variant_settings(v, detector_overrides, nav)) for v in args.variant]
         landmarks, _ = nav_eval_map(POLE, None)
         listed = catalogue_craters(POLE)
         t0 = time.perf_counter()
-        frames, found, nav = detect_windows(detector_overrides, args.every)
+        frames, found = detect_windows(nav, args.every)
         detect_s = round(time.perf_counter() - t0, 1)
         runs = []
-        for v in args.variant:
-            r = run_variant(v, frames, found, nav, detector_overrides, landmarks, listed)
+        for v, min_score, lis in variants:
+            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed)
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
             print(f"{v}: headline fix rate {rate}, false fixes {false}", flush=True)
             runs.append(r)

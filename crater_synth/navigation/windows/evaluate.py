@@ -290,11 +290,17 @@ def evaluate_split(
         f"nav-eval {pole} {split}",
         progress,
     )
-    head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
-    out = {"all_windows": summarise(rows), "headline": summarise(head)}
+    out = summarise_windows(rows)
     if patches is not None:  # where the craters cannot serve: fewer than the headline's landmarks in view
         out["few_landmarks"] = summarise([r for r in rows if r["n_headline_landmarks"] < HEADLINE_MIN_LANDMARKS])
     return out, rows
+
+
+def summarise_windows(rows: list[dict]) -> dict:
+    """The metrics of a split's window rows: all windows, and the headline windows (>= 3 landmarks of
+    D >= 15 km in view)."""
+    head = [r for r in rows if r["n_headline_landmarks"] >= HEADLINE_MIN_LANDMARKS]
+    return {"all_windows": summarise(rows), "headline": summarise(head)}
 
 
 def _row_md(name: str, s: dict) -> str:
