@@ -36,10 +36,9 @@ from crater_synth.navigation.windows.evaluate import (
 )
 from crater_synth.navigation.windows.light import frame_light
 from crater_synth.navigation.windows.mosaic import windows
-from crater_synth.tools.detector_choice import command_line
+from crater_synth.tools.detector_choice import POLE, SPLIT, command_line
 
 PROG = "python -m crater_synth.tools.lis_choice"
-POLE, SPLIT = "south", "validation"  # choices are made here only (docs/navigation/protocol.md)
 
 
 def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
