@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -263,3 +264,92 @@ def test_rectify_places_an_oblique_frames_craters_at_their_distances_on_the_sphe
     truth = MOON_RADIUS_M * np.arccos(np.clip(np.sum(unit[i] * unit[j], axis=1), -1.0, 1.0))
     ratio = np.hypot(*(xy[i] - xy[j]).T) / truth
     assert truth.max() > 100e3 and np.median(np.abs(ratio - 1.0)) < 0.005 and np.max(np.abs(ratio - 1.0)) < 0.03
+
+
+SIGNIFICANCE = LostInSpaceParams(candidate_score="significance", n_verify=64)
+
+
+def test_chance_log10_is_the_poisson_tail_where_one_minus_the_cdf_rounds_to_zero():
+    from scipy.stats import poisson
+
+    from crater_synth.navigation.fix.lost_in_space import chance_log10
+
+    for k, lam in ((1, 0.3), (6, 0.25), (6, 4.0), (12, 9.0), (3, 30.0)):
+        assert chance_log10(k, lam) == pytest.approx(poisson.logsf(k - 1, lam) / math.log(10), abs=1e-9)
+    assert chance_log10(40, 0.2) == pytest.approx(poisson.logsf(39, 0.2) / math.log(10), rel=1e-9)
+    assert 1.0 - poisson.cdf(39, 0.2) == 0.0  # the naive tail is lost to rounding
+    assert chance_log10(0, 0.5) == 0.0 and chance_log10(3, 0.0) == -math.inf
+
+
+def test_chance_inliers_counts_compatible_detections_over_the_tolerance_discs():
+    """One landmark in the frame (radius 25 px), one outside: of four detections, the two within the radius
+    ratio of the one inside count, over its tolerance disc (2 px + 0.2 r) and the frame's area."""
+    from crater_synth.navigation.fix.lost_in_space import chance_inliers
+    from crater_synth.navigation.fix.solve import FixParams
+
+    lms = [
+        SimpleNamespace(x_m=100e3, y_m=-100e3, diameter_km=20.0),  # pixel (250, 250) under (a, b) below
+        SimpleNamespace(x_m=900e3, y_m=-100e3, diameter_km=20.0),  # far outside the frame
+    ]
+    index = build_index(lms)
+    a, b = complex(PIXEL_M), complex(0.0, 0.0)
+    params = LostInSpaceParams(inlier_r=0.2)
+    vparams = params.verify_params(FixParams())
+    det_r = np.array([25.0, 30.0, 10.0, 60.0])
+    expected = chance_inliers(det_r, index, a, b, SHAPE, PIXEL_M, params, vparams)
+    disc = math.pi * (2.0 + 0.2 * 25.0) ** 2
+    assert expected == pytest.approx(1.0 - math.exp(-2 * disc / (512 * 512)))
+
+
+def test_significance_recovers_transforms_refuses_clutter_and_repetition():
+    rng = np.random.default_rng(3)
+    lms = _map(rng)
+    index = build_index(lms, SIGNIFICANCE)
+    for centre, heading in (((120e3, -80e3), 0.0), ((-250e3, 300e3), 37.0)):
+        fix = lost_in_space_fix(_frame(lms, centre, heading, rng), lms, SHAPE, PIXEL_M, SIGNIFICANCE, index=index)
+        assert fix.ok, fix.reason
+        assert math.hypot(fix.x_m - centre[0], fix.y_m - centre[1]) < 1000.0
+    clutter = [Detection(*rng.uniform(0, 512, 2), rng.uniform(12, 60), 0.5) for _ in range(40)]
+    assert not lost_in_space_fix(clutter, lms, SHAPE, PIXEL_M, SIGNIFICANCE, index=index).ok
+    motif = _map(rng, n=14, half_km=90.0)
+    twice = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
+    dets = _frame(twice, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    fix = lost_in_space_fix(dets, twice, SHAPE, PIXEL_M, SIGNIFICANCE)
+    assert not fix.ok and "ambiguous" in fix.reason
+    strict = replace(SIGNIFICANCE, max_log10_nfa=-80.0)
+    fix = lost_in_space_fix(dets, motif, SHAPE, PIXEL_M, strict)
+    assert not fix.ok and "not significant" in fix.reason
+
+
+def test_significance_weighs_a_rival_by_its_chance_not_its_count():
+    """A true candidate of 7 large craters (few detections of their size: little chance) against a far rival
+    of 5 small ones (many detections of their size): the inlier count calls them ambiguous (5 >= 7 - 2), their
+    chance tells them apart."""
+    from crater_synth.navigation.fix.lost_in_space import _Candidate, _unambiguous_candidate, chance_log10
+    from crater_synth.navigation.fix.solve import Fix
+
+    true = Fix(True, inliers=[(i, i) for i in range(7)], rms_px=1.0)
+    rival = Fix(False, "only 5 landmarks agree (need 6)")
+    counts = [_Candidate(7.0, true, 1j, 0j, 0j, 7), _Candidate(5.0, rival, 1j, 0j, 300e3 + 0j, 5)]
+    best, no_fix = _unambiguous_candidate(counts, LostInSpaceParams())
+    assert best is None and "ambiguous" in no_fix.reason
+    chance = [
+        _Candidate(-chance_log10(7, 0.05), true, 1j, 0j, 0j, 7),
+        _Candidate(-chance_log10(5, 2.0), rival, 1j, 0j, 300e3 + 0j, 5),
+    ]
+    best, no_fix = _unambiguous_candidate(chance, SIGNIFICANCE)
+    assert no_fix is None and best.fix is true
+
+
+def test_significance_settings_are_checked():
+    from crater_synth.errors import UserError
+    from crater_synth.navigation.settings import compose_nav
+
+    sig = compose_nav(["nav/lost_in_space=significance"]).lost_in_space
+    two = compose_nav(["nav/lost_in_space=two-tier"]).lost_in_space
+    assert sig.candidate_score == "significance" and sig.n_verify == 128
+    assert (sig.vote_min_score, sig.inlier_r, sig.max_rms_px) == (two.vote_min_score, two.inlier_r, two.max_rms_px)
+    assert compose_nav([]).lost_in_space.candidate_score == "inliers"
+    for key, bad in (("candidate_score", "votes"), ("ambiguity_log10", "-1"), ("max_log10_nfa", "nan")):
+        with pytest.raises(UserError, match=key):
+            compose_nav([f"nav.lost_in_space.{key}={bad}"])

@@ -26,6 +26,17 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   is refused when another candidate whose frame centre lies more than ``rival_km`` away is supported by
   at least best - ``ambiguity_margin`` inliers (its consensus counted under its own transform, whether
   or not it reached ``min_inliers``). A repeated crater pattern therefore gives "no fix".
+* **Candidate score** (``candidate_score``). ``inliers``: a candidate's support is its inlier count.
+  ``significance`` (a contrario, as in the a-contrario RANSAC of Moisan and Stival 2004): its support is
+  -log10 of the probability that chance alone puts that many of the frame's detections on the landmarks
+  the candidate predicts (:func:`chance_log10`). A landmark is matched by chance when a detection of
+  compatible radius (``fix.radius_ratio``) falls within its inlier tolerance anywhere in the frame, so the
+  expected chance inliers are the sum over the predicted landmarks of 1 - exp(-n_compatible x tolerance
+  disc / frame area); the count of chance inliers is taken as Poisson. Six inliers among a few large
+  craters with few detections of their size are then strong evidence, six among many small ones weak,
+  where the inlier count weighs both alike. The best candidate is kept only when its number of false
+  alarms (``n_verify`` x that probability) is at most 10^``max_log10_nfa``, and a rival elsewhere within
+  ``ambiguity_log10`` of its score makes the fix ambiguous.
 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
@@ -36,6 +47,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -47,6 +59,8 @@ from crater_synth.navigation.fix.solve import (
     inliers_of,
     ransac_similarity,
 )
+
+CANDIDATE_SCORES = ("inliers", "significance")
 
 
 @dataclass(frozen=True)
@@ -80,6 +94,13 @@ class LostInSpaceParams:
     # windows), and without a prior the position comes from the craters alone.
     inlier_r: float | None = None
     max_rms_px: float | None = None
+    # How candidates are weighed against each other (module docstring): "inliers" (their count, with
+    # ambiguity_margin) or "significance" (-log10 of their chance probability, with ambiguity_log10 and
+    # max_log10_nfa). With many candidates verified, a chance transform's best inlier count nears a true one's,
+    # so a count margin either refuses true fixes or must stay at few candidates.
+    candidate_score: str = "inliers"
+    ambiguity_log10: float = 2.0  # significance: a rival elsewhere within this many decades of the best: no fix
+    max_log10_nfa: float = -2.0  # significance: the best's false alarms (n_verify x chance) at most 10^this
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -88,6 +109,14 @@ class LostInSpaceParams:
                 raise ValueError(f"{key} must be > 0 (got {value})")
         if self.vote_min_score is not None and not math.isfinite(self.vote_min_score):
             raise ValueError(f"vote_min_score must be a finite number (got {self.vote_min_score})")
+        if self.candidate_score not in CANDIDATE_SCORES:
+            names = ", ".join(CANDIDATE_SCORES)
+            raise ValueError(f"candidate_score must be one of {names} (got {self.candidate_score!r})")
+        for key in ("ambiguity_log10", "max_log10_nfa"):
+            if not math.isfinite(getattr(self, key)):
+                raise ValueError(f"{key} must be a finite number (got {getattr(self, key)})")
+        if self.ambiguity_log10 < 0:
+            raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -205,14 +234,57 @@ def _pair_vote_cells(va: np.ndarray, centre: np.ndarray, params: LostInSpacePara
     return vote_of, inv, np.argsort(-counts, kind="stable")[: params.n_verify]
 
 
-def _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams) -> list[tuple]:
-    """Verify each vote cell's candidate transform by RANSAC against the map: per cell (support,
-    fix or None, a, b, frame centre on the map)."""
+class _Candidate(NamedTuple):
+    """A verified vote cell: its support (module docstring, "Candidate score"), its RANSAC fix (None: no
+    transform), its transform pixel -> map (a, b), the map point under the frame centre, and its inlier count."""
+
+    support: float
+    fix: Fix | None
+    a: complex
+    b: complex
+    centre: complex
+    inliers: int
+
+
+def chance_log10(k: int, expected: float) -> float:
+    """log10 of P(X >= ``k``) for X Poisson with mean ``expected``: the chance that ``k`` or more inliers come
+    from detections placed at random. Summed upwards from the k-th term in log space, exact where 1 - cdf
+    would round to 0."""
+    if k <= 0:
+        return 0.0
+    if expected <= 0.0:
+        return -math.inf
+    i = np.arange(k, k + 60 + int(4.0 * expected))
+    log_terms = -expected + i * math.log(expected) - np.array([math.lgamma(n + 1.0) for n in i])
+    top = float(log_terms.max())
+    return (top + math.log(float(np.exp(log_terms - top).sum()))) / math.log(10.0)
+
+
+def chance_inliers(det_r, index: PairIndex, a: complex, b: complex, frame_shape, pixel_m, params, vparams) -> float:
+    """Expected number of the landmarks a transform (a, b) predicts in the frame that detections of compatible
+    radius, placed at random, match within the verification's inlier tolerance (module docstring; the
+    tolerance taken at the landmark's radius)."""
+    h, w = frame_shape
+    lm = np.nonzero(index.lm_r_m >= params.min_landmark_km * 500.0)[0]
+    z = (index.lm_xy[lm, 0] + 1j * index.lm_xy[lm, 1] - b) / a  # landmark -> pixel (u - i v)
+    inside = (z.real >= 0) & (z.real < w) & (-z.imag >= 0) & (-z.imag < h)
+    r_lm = index.lm_r_m[lm[inside]] / pixel_m
+    ratio = np.asarray(det_r, float)[None, :] / r_lm[:, None]
+    n_compatible = ((ratio <= vparams.radius_ratio) & (ratio >= 1.0 / vparams.radius_ratio)).sum(axis=1)
+    disc = math.pi * (vparams.inlier_px + vparams.inlier_r * r_lm) ** 2
+    return float(np.sum(1.0 - np.exp(-n_compatible * disc / float(h * w))))
+
+
+def _verified_candidates(
+    cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
+) -> list[_Candidate]:
+    """Verify each vote cell's candidate transform by RANSAC against the map, and score it
+    (``params.candidate_score``)."""
     vote_of, inv, best_cells = cells
     flip = _FLIP_V
     # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
     vparams = params.verify_params(fparams)
-    cands = []  # (support, fix or None, a, b, centre)
+    cands = []
     for c in best_cells:
         sel = vote_of[inv == c]
         # Candidate transform: mean heading (unit phasors) at the known scale, mean centre.
@@ -223,30 +295,42 @@ def _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pix
         pairs = _candidate_pairs(det_z, det_r, index, a0, b0, pixel_m, params, fparams)
         fix, a, b = ransac_similarity(det_uv * flip, det_r, index.lm_xy, pairs, a0, vparams)
         if a == 0j:
-            cands.append((0, None, a0, b0, c0))
+            cands.append(_Candidate(0.0, None, a0, b0, c0, 0))
             continue
-        support = len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams)) if pairs.size else 0
-        cands.append((support if not fix.ok else len(fix.inliers), fix, a, b, complex(a * zc + b)))
+        n = len(fix.inliers) if fix.ok else len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams))
+        support = float(n)
+        if params.candidate_score == "significance" and n:  # no inlier (a degenerate transform too): no evidence
+            expected = chance_inliers(det_r, index, a, b, frame_shape, pixel_m, params, vparams)
+            support = -chance_log10(n, expected)
+        cands.append(_Candidate(support, fix, a, b, complex(a * zc + b), n))
     return cands
 
 
-def _unambiguous_candidate(cands: list[tuple], params: LostInSpaceParams):
-    """(the best verified candidate, None), or (None, the "no fix" saying why: none verified, or a rival
-    candidate far away with about as much support)."""
-    oks = [c for c in cands if c[1] is not None and c[1].ok]
+def _unambiguous_candidate(cands: list[_Candidate], params: LostInSpaceParams):
+    """(the best verified candidate, None), or (None, the "no fix" saying why: none verified, the best not
+    significant, or a rival candidate far away with about as much support)."""
+    oks = [c for c in cands if c.fix is not None and c.fix.ok]
     if not oks:
-        best = max(cands, key=lambda c: c[0])
-        reason = best[1].reason if best[1] is not None else "no candidate pairs with the map's landmarks"
+        best = max(cands, key=lambda c: c.support)
+        reason = best.fix.reason if best.fix is not None else "no candidate pairs with the map's landmarks"
         return None, Fix(False, f"no candidate verified (best: {reason})")
-    best = max(oks, key=lambda c: (c[0], -c[1].rms_px))
+    best = max(oks, key=lambda c: (c.support, -c.fix.rms_px))
+    significance = params.candidate_score == "significance"
+    if significance and math.log10(len(cands)) - best.support > params.max_log10_nfa:
+        return None, Fix(
+            False,
+            f"not significant: {best.inliers} landmarks agree, chance 1e{-best.support:.1f} "
+            f"over {len(cands)} candidates (at most 1e{params.max_log10_nfa:g} allowed)",
+        )
+    margin = params.ambiguity_log10 if significance else params.ambiguity_margin
     for rival in cands:
-        if rival is best or abs(rival[4] - best[4]) <= params.rival_km * 1000.0:
+        if rival is best or abs(rival.centre - best.centre) <= params.rival_km * 1000.0:
             continue
-        if rival[0] >= best[0] - params.ambiguity_margin and rival[0] >= 3:
+        if rival.support >= best.support - margin and rival.inliers >= 3:
             return None, Fix(
                 False,
-                f"ambiguous: candidates {abs(rival[4] - best[4]) / 1000.0:.0f} km apart agree "
-                f"({best[0]} and {rival[0]} landmarks)",
+                f"ambiguous: candidates {abs(rival.centre - best.centre) / 1000.0:.0f} km apart agree "
+                f"({best.inliers} and {rival.inliers} landmarks)",
             )
     return best, None
 
@@ -307,8 +391,10 @@ def lost_in_space_fix(
     zc = w / 2.0 - 1j * h / 2.0
     centre = va * zc + vb
     cells = _pair_vote_cells(va, centre, params)
-    cands = _verified_candidates(cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams)
+    cands = _verified_candidates(
+        cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
+    )
     best, no_fix = _unambiguous_candidate(cands, params)
     if best is None:
         return no_fix
-    return _fix_from_inliers(best[1], det_uv, index, frame_shape)
+    return _fix_from_inliers(best.fix, det_uv, index, frame_shape)
