@@ -277,6 +277,10 @@ def test_a_corrupt_model_file_is_one_line_before_any_output(tmp_path):
 
     assert model_inputs(Detector("fcos", FcosSettings(model=str(bad)), None)) == [bad]
     assert model_inputs(Detector("learned-detect", LearnedSettings(), None)) == [DEFAULT_MODEL]
+    many = LearnedSettings(ensemble=(str(tmp_path / "e.pt"),), verifier=str(tmp_path / "v.pt"))
+    assert model_inputs(Detector("learned-detect", many, None)) == [DEFAULT_MODEL, tmp_path / "e.pt", tmp_path / "v.pt"]
+    # an ensemble's bad model file is refused up front too, by name
+    one_error(run(img, "--detector", "learned", f"nav.detector.ensemble=[{bad}]"), bad)
 
 
 @pytest.mark.parametrize(

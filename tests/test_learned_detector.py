@@ -142,6 +142,41 @@ def test_dihedral_views_averaged_over_the_whole_group_turn_with_the_image():
         learned.LearnedSettings(tta=3)
 
 
+def test_an_ensemble_averages_its_models_heat_and_radius_maps():
+    """Two networks' maps averaged: the heat and log radius are the means of each model's (views averaged
+    first), the offsets the first model's; one model, or a model with itself, is that model alone."""
+    torch.manual_seed(0)
+    a_model, b_model = cd.CraterNet(4).eval(), cd.CraterNet(4).eval()
+    img = np.random.default_rng(2).random((32, 32)).astype(np.float32)
+    a, b = cd.level_output(a_model, img, tta=2), cd.level_output(b_model, img, tta=2)
+    both = cd.ensemble_output([a_model, b_model], img, tta=2)
+    np.testing.assert_allclose(both[0], (a[0] + b[0]) / 2, atol=1e-6)
+    np.testing.assert_allclose(both[3], (a[3] + b[3]) / 2, atol=1e-6)
+    np.testing.assert_allclose(both[1:3], a[1:3])
+    assert not np.allclose(both[0], a[0], atol=1e-4)
+    np.testing.assert_allclose(cd.ensemble_output([a_model, a_model], img, tta=2), a, atol=1e-6)
+
+
+def test_an_ensemble_names_its_model_files_and_refuses_a_missing_one(tmp_path):
+    """``nav.detector.ensemble``: the committed model with itself finds what it finds alone; a missing file is
+    one error naming it; the choice tool hashes every file an ensemble names."""
+    from crater_synth.tools.detector_choice import file_sha256, variant_sha256
+
+    img = crater_field(3, size=128, n=4)[0]
+    alone = compose_nav(["nav/detector=learned-detect"]).detector
+    committed = str(learned.DEFAULT_MODEL)
+    twice = compose_nav(["nav/detector=learned-detect", f"nav.detector.ensemble=[{committed}]"]).detector
+    assert twice.ensemble == (committed,)
+    assert [(d.u, d.v, d.r) for d in detect(img, alone)[0]] == [(d.u, d.v, d.r) for d in detect(img, twice)[0]]
+    missing = dataclasses.replace(alone, ensemble=(str(tmp_path / "gone.pt"),))
+    with pytest.raises(learned.DetectorModelFileError, match="gone.pt"):
+        detect(img, missing)
+    other = tmp_path / "other.pt"
+    cd.save_model(other, cd.CraterNet(4), {})
+    hashed = variant_sha256(["nav.detector.tta=4", f"nav.detector.ensemble=[{committed},{other}]"])
+    assert hashed == {committed: file_sha256(committed), str(other): file_sha256(other)}
+
+
 def test_first_level_searches_the_wanted_radii_inside_a_band():
     assert learned.first_level(9.0) == 1  # a 400 m/px mosaic window: from 800 m/px, r >= 12 px
     for rmin in (5.0, 11.0, 30.0, 83.0):

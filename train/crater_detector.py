@@ -469,13 +469,31 @@ def peaks(out: np.ndarray, threshold: float) -> tuple[np.ndarray, ...]:
     return u, v, r, heat[i, j]
 
 
+def ensemble_output(models: list[CraterNet], a: np.ndarray, tta: int = 1) -> np.ndarray:
+    """:func:`level_output` of each of ``models`` (the same network, other weights), their heat and log-radius
+    maps averaged; the offsets stay the first model's (sub-pixel, as the views' are)."""
+    out = level_output(models[0], a, tta)
+    if len(models) > 1:
+        rest = [level_output(m, a, tta) for m in models[1:]]
+        out[0] = (out[0] + sum(o[0] for o in rest)) / len(models)
+        out[3] = (out[3] + sum(o[3] for o in rest)) / len(models)
+    return out
+
+
 def detect_pyramid(
-    model: CraterNet, image: np.ndarray, threshold: float, first_level: int = 0, tta: int = 1, half_octaves=False
+    model: CraterNet | list[CraterNet],
+    image: np.ndarray,
+    threshold: float,
+    first_level: int = 0,
+    tta: int = 1,
+    half_octaves=False,
 ):
     """Craters of every pyramid level from ``first_level``: (u, v, r, score, level) in frame pixels.
     ``half_octaves`` also searches the pyramid of the image shrunk by sqrt(2) (its level k sits between
     levels k and k + 1; "level" k + 0.5), so every rim radius lies near a band's middle in one of the two:
-    an octave's band edges are where the heat is weakest. ``tta``: :func:`level_output`."""
+    an octave's band edges are where the heat is weakest. ``tta``: :func:`level_output`; a list of models:
+    their maps averaged (:func:`ensemble_output`)."""
+    models = model if isinstance(model, list) else [model]
     image = np.asarray(image, dtype=np.float32)
     starts = [(0.0, image, 1.0, 1.0)]
     if half_octaves:
@@ -486,7 +504,7 @@ def detect_pyramid(
     found = []
     for half, img, fu, fv in starts:
         for level, a in pyramid(img, first_level):
-            u, v, r, s = peaks(level_output(model, a, tta), threshold)
+            u, v, r, s = peaks(ensemble_output(models, a, tta), threshold)
             f = 2.0**level
             found.append((u * f * fu, v * f * fv, r * f * math.sqrt(fu * fv), s, np.full(u.size, level + half)))
     if not found:

@@ -198,9 +198,10 @@ def load_detector(name: str | None, overrides, light_azimuth: float | None) -> D
 
 
 def model_inputs(detector: Detector) -> list[Path]:
-    """The detector's own input files (a trained detector's model), which no output may replace."""
-    path = registry.model_file(detector.params)
-    return [path] if path else []
+    """The detector's own input files (a trained detector's models and its verifier's), which no output may
+    replace."""
+    verifier = getattr(detector.params, "verifier", "")
+    return registry.model_files(detector.params) + ([Path(verifier)] if verifier else [])
 
 
 def png_path(out: Path) -> Path:

@@ -127,16 +127,21 @@ def file_sha256(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-VARIANT_FILE_KEYS = ("nav.detector.verifier",)  # variant overrides naming a model file: hashed like --model
+# Variant overrides naming model files (one, or a [list]): hashed like --model.
+VARIANT_FILE_KEYS = ("nav.detector.verifier", "nav.detector.ensemble")
 
 
 def variant_sha256(variant) -> dict:
-    """sha256 of each model file a variant's overrides name (the verifier), keyed by the file as given."""
+    """sha256 of each model file a variant's overrides name (the verifier, the ensemble's models), keyed by
+    the file as given."""
     out = {}
     for o in variant:
         key, _, value = o.partition("=")
-        if key in VARIANT_FILE_KEYS and value:
-            out[value] = file_sha256(value)
+        if key not in VARIANT_FILE_KEYS:
+            continue
+        for name in value.strip("[]").split(","):
+            if name.strip():
+                out[name.strip()] = file_sha256(name.strip())
     return out
 
 

@@ -19,7 +19,7 @@ import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Tuple
 
 import numpy as np
 
@@ -46,6 +46,10 @@ class LearnedSettings(DetectorSettings):
     tta: int = 1
     # Also search the pyramid of the frame shrunk by sqrt(2) (half-octave steps); twice the network passes.
     half_octaves: bool = False
+    # More model files of the same network (trained on other frames or seeds): their heat and log-radius maps
+    # are averaged with ``model``'s, view by view. Models that err differently average their errors down; each
+    # costs ``model``'s network passes again.
+    ensemble: Tuple[str, ...] = ()
     # The second stage (train.crater_verifier): a model file that re-measures each candidate on a crop
     # scaled to its radius and scores it; "" = none. The heat ``threshold`` then only gathers candidates,
     # and a candidate is kept when the verifier's probability reaches ``verify_threshold`` (its score).
@@ -119,9 +123,9 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     detector's [min_radius_px, max_radius_px]."""
     from train.crater_detector import detect_pyramid
 
-    model, _meta = load_model(str(model_path(params)))
+    models = [load_model(str(path))[0] for path in (model_path(params), *params.ensemble)]
     u, v, r, s, _level = detect_pyramid(
-        model, frame.image, params.threshold, first_level(params.min_radius_px), params.tta, params.half_octaves
+        models, frame.image, params.threshold, first_level(params.min_radius_px), params.tta, params.half_octaves
     )
     if params.verifier:
         from train.crater_verifier import verify

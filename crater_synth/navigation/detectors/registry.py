@@ -92,15 +92,18 @@ def settings_from(mapping, path: str = "nav.detector"):
     return detector(method).settings.from_config(mapping, path)
 
 
-def model_file(params) -> Path | None:
-    """The model file a detector's settings name (None: the detector has no model), which a command's
-    outputs must never replace."""
+def model_files(params) -> list[Path]:
+    """The model files a detector's settings name (its model, then its ensemble's; none for a detector with
+    no model), which a command's outputs must never replace."""
     entry = detector(params.method)
-    return entry.model_file(params) if entry.model_file else None
+    if not entry.model_file:
+        return []
+    return [Path(entry.model_file(params)), *(Path(p) for p in getattr(params, "ensemble", ()))]
 
 
 def preload_model(params) -> None:
-    """Load the detector's model once, before any frame: a bad model file is one error line up front."""
+    """Load the detector's models once, before any frame: a bad model file is one error line up front."""
     entry = detector(params.method)
-    if entry.model_file and entry.load_model:
-        entry.load_model(str(entry.model_file(params)))
+    if entry.load_model:
+        for path in model_files(params):
+            entry.load_model(str(path))
