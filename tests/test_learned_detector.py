@@ -20,6 +20,7 @@ from crater_synth.navigation.detectors.template import crater_heights, shade_hei
 from crater_synth.navigation.rendered import detector_train as learned_train
 from crater_synth.navigation.settings import compose_nav
 from train import crater_detector as cd
+from train import crater_detector_inference as infer
 
 
 # ------------------------------------------------------------------------------------------------
@@ -98,8 +99,8 @@ def test_detect_pyramid_scales_level_peaks_back_to_frame_pixels(monkeypatch):
             out[3, 5, 10] = math.log(9.0 / cd.BAND_LO_PX)
         return out
 
-    monkeypatch.setattr(cd, "level_output", fake_output)
-    u, v, r, s, level = cd.detect_pyramid(None, np.zeros((128, 128)), threshold=0.5)
+    monkeypatch.setattr(infer, "level_output", fake_output)
+    u, v, r, s, level = infer.detect_pyramid(None, np.zeros((128, 128)), threshold=0.5)
     assert (u[0], v[0], r[0], s[0], level[0]) == pytest.approx((43.0, 21.0, 36.0, 0.9, 2))
     assert u.size == 1
 
@@ -115,8 +116,8 @@ def test_half_octaves_search_the_shrunk_frame_and_scale_back_to_frame_pixels(mon
         out[1:3, h // 2, w // 2] = (w / 2 - w // 2 - 0.5, h / 2 - h // 2 - 0.5)
         return out
 
-    monkeypatch.setattr(cd, "level_output", fake_output)
-    u, v, r, _s, level = cd.detect_pyramid(None, np.zeros((128, 192)), threshold=0.5, half_octaves=True)
+    monkeypatch.setattr(infer, "level_output", fake_output)
+    u, v, r, _s, level = infer.detect_pyramid(None, np.zeros((128, 192)), threshold=0.5, half_octaves=True)
     assert sorted(level) == [0, 0.5, 1, 1.5, 2]  # the shrunk level 2 (22 px) is below MIN_LEVEL_PX
     # (an odd row dropped by the decimation moves a level's middle by under a frame pixel)
     np.testing.assert_allclose(u, 96.0, atol=1.0)
@@ -130,10 +131,10 @@ def test_dihedral_views_averaged_over_the_whole_group_turn_with_the_image():
     torch.manual_seed(0)
     model = cd.CraterNet(4).eval()
     a = np.random.default_rng(1).random((32, 32)).astype(np.float32)
-    heat = cd.level_output(model, a, tta=8)[0]
-    np.testing.assert_allclose(cd.level_output(model, np.rot90(a).copy(), tta=8)[0], np.rot90(heat), atol=1e-5)
-    np.testing.assert_allclose(cd.level_output(model, a[:, ::-1].copy(), tta=8)[0], heat[:, ::-1], atol=1e-5)
-    plain = cd.level_output(model, a)[0]
+    heat = infer.level_output(model, a, tta=8)[0]
+    np.testing.assert_allclose(infer.level_output(model, np.rot90(a).copy(), tta=8)[0], np.rot90(heat), atol=1e-5)
+    np.testing.assert_allclose(infer.level_output(model, a[:, ::-1].copy(), tta=8)[0], heat[:, ::-1], atol=1e-5)
+    plain = infer.level_output(model, a)[0]
     with torch.no_grad():
         direct = torch.sigmoid(model(torch.from_numpy(cd.standardise(a))[None, None])[0, 0]).numpy()
     np.testing.assert_allclose(plain, direct, atol=1e-6)
@@ -148,13 +149,13 @@ def test_an_ensemble_averages_its_models_heat_and_radius_maps():
     torch.manual_seed(0)
     a_model, b_model = cd.CraterNet(4).eval(), cd.CraterNet(4).eval()
     img = np.random.default_rng(2).random((32, 32)).astype(np.float32)
-    a, b = cd.level_output(a_model, img, tta=2), cd.level_output(b_model, img, tta=2)
-    both = cd.ensemble_output([a_model, b_model], img, tta=2)
+    a, b = infer.level_output(a_model, img, tta=2), infer.level_output(b_model, img, tta=2)
+    both = infer.ensemble_output([a_model, b_model], img, tta=2)
     np.testing.assert_allclose(both[0], (a[0] + b[0]) / 2, atol=1e-6)
     np.testing.assert_allclose(both[3], (a[3] + b[3]) / 2, atol=1e-6)
     np.testing.assert_allclose(both[1:3], a[1:3])
     assert not np.allclose(both[0], a[0], atol=1e-4)
-    np.testing.assert_allclose(cd.ensemble_output([a_model, a_model], img, tta=2), a, atol=1e-6)
+    np.testing.assert_allclose(infer.ensemble_output([a_model, a_model], img, tta=2), a, atol=1e-6)
 
 
 def test_an_ensemble_names_its_model_files_and_refuses_a_missing_one(tmp_path):
@@ -256,7 +257,7 @@ def test_a_short_training_run_learns_to_find_shaded_craters():
     found = total = hits = 0
     for seed in (100, 101, 102):
         img, u, v, r = crater_field(seed)
-        du, dv, dr, _, _ = cd.detect_pyramid(result["model"], img, threshold=0.3)
+        du, dv, dr, _, _ = infer.detect_pyramid(result["model"], img, threshold=0.3)
         total += u.size
         found += du.size
         for a, b, c in zip(u, v, r):

@@ -325,19 +325,19 @@ def test_significance_weighs_a_rival_by_its_chance_not_its_count():
     """A true candidate of 7 large craters (few detections of their size: little chance) against a far rival
     of 5 small ones (many detections of their size): the inlier count calls them ambiguous (5 >= 7 - 2), their
     chance tells them apart."""
-    from crater_synth.navigation.fix.lost_in_space import _Candidate, _unambiguous_candidate, chance_log10
+    from crater_synth.navigation.fix.lost_in_space import Candidate, chance_log10, unambiguous_candidate
     from crater_synth.navigation.fix.solve import Fix
 
     true = Fix(True, inliers=[(i, i) for i in range(7)], rms_px=1.0)
     rival = Fix(False, "only 5 landmarks agree (need 6)")
-    counts = [_Candidate(7.0, true, 1j, 0j, 0j, 7), _Candidate(5.0, rival, 1j, 0j, 300e3 + 0j, 5)]
-    best, no_fix = _unambiguous_candidate(counts, LostInSpaceParams())
+    counts = [Candidate(7.0, true, 1j, 0j, 0j, 7), Candidate(5.0, rival, 1j, 0j, 300e3 + 0j, 5)]
+    best, no_fix = unambiguous_candidate(counts, LostInSpaceParams())
     assert best is None and "ambiguous" in no_fix.reason
     chance = [
-        _Candidate(-chance_log10(7, 0.05), true, 1j, 0j, 0j, 7),
-        _Candidate(-chance_log10(5, 2.0), rival, 1j, 0j, 300e3 + 0j, 5),
+        Candidate(-chance_log10(7, 0.05), true, 1j, 0j, 0j, 7),
+        Candidate(-chance_log10(5, 2.0), rival, 1j, 0j, 300e3 + 0j, 5),
     ]
-    best, no_fix = _unambiguous_candidate(chance, SIGNIFICANCE)
+    best, no_fix = unambiguous_candidate(chance, SIGNIFICANCE)
     assert no_fix is None and best.fix is true
 
 

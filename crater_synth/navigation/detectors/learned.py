@@ -121,7 +121,7 @@ def first_level(min_radius_px: float) -> int:
 def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     """The network's craters in ``frame.image``: (u, v, r, score) in frame pixels, radii within the
     detector's [min_radius_px, max_radius_px]."""
-    from train.crater_detector import detect_pyramid
+    from train.crater_detector_inference import detect_pyramid
 
     models = [load_model(str(path))[0] for path in (model_path(params), *params.ensemble)]
     u, v, r, s, _level = detect_pyramid(

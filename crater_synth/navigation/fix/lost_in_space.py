@@ -237,7 +237,7 @@ def _pair_vote_cells(va: np.ndarray, centre: np.ndarray, params: LostInSpacePara
     return vote_of, inv, np.argsort(-counts, kind="stable")[: params.n_verify]
 
 
-class _Candidate(NamedTuple):
+class Candidate(NamedTuple):
     """A verified vote cell: its support (module docstring, "Candidate score"), its RANSAC fix (None: no
     transform), its transform pixel -> map (a, b), the map point under the frame centre, and its inlier count."""
 
@@ -280,7 +280,7 @@ def chance_inliers(det_r, index: PairIndex, a: complex, b: complex, frame_shape,
 
 def _verified_candidates(
     cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
-) -> list[_Candidate]:
+) -> list[Candidate]:
     """Verify each vote cell's candidate transform by RANSAC against the map, and score it
     (``params.candidate_score``)."""
     vote_of, inv, best_cells = cells
@@ -298,18 +298,18 @@ def _verified_candidates(
         pairs = _candidate_pairs(det_z, det_r, index, a0, b0, pixel_m, params, fparams)
         fix, a, b = ransac_similarity(det_uv * flip, det_r, index.lm_xy, pairs, a0, vparams)
         if a == 0j:
-            cands.append(_Candidate(0.0, None, a0, b0, c0, 0))
+            cands.append(Candidate(0.0, None, a0, b0, c0, 0))
             continue
         n = len(fix.inliers) if fix.ok else len(inliers_of(a, b, det_uv * flip, det_r, index.lm_xy, pairs, vparams))
         support = float(n)
         if params.candidate_score == "significance" and n:  # no inlier (a degenerate transform too): no evidence
             expected = chance_inliers(det_r, index, a, b, frame_shape, pixel_m, params, vparams)
             support = -chance_log10(n, expected)
-        cands.append(_Candidate(support, fix, a, b, complex(a * zc + b), n))
+        cands.append(Candidate(support, fix, a, b, complex(a * zc + b), n))
     return cands
 
 
-def _unambiguous_candidate(cands: list[_Candidate], params: LostInSpaceParams):
+def unambiguous_candidate(cands: list[Candidate], params: LostInSpaceParams):
     """(the best verified candidate, None), or (None, the "no fix" saying why: none verified, the best not
     significant, or a rival candidate far away with about as much support)."""
     oks = [c for c in cands if c.fix is not None and c.fix.ok]
@@ -397,7 +397,7 @@ def lost_in_space_fix(
     cands = _verified_candidates(
         cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
     )
-    best, no_fix = _unambiguous_candidate(cands, params)
+    best, no_fix = unambiguous_candidate(cands, params)
     if best is None:
         return no_fix
     return _fix_from_inliers(best.fix, det_uv, index, frame_shape)

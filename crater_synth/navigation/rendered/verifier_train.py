@@ -69,7 +69,7 @@ def candidate_targets(uc, vc, rc, u, v, r, hidden) -> tuple[np.ndarray, np.ndarr
 def frame_examples(image, row, detector, heat: float, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """One frame's examples: (crops, label, target) of the detector's candidates at ``heat``, jittered rims
     and random circles."""
-    from train.crater_detector import detect_pyramid
+    from train.crater_detector_inference import detect_pyramid
     from train.crater_verifier import crops, jitter
 
     u, v, r, _, hidden = label_circles(row, image.shape)
