@@ -33,6 +33,7 @@ DEFERRING_MODULES = {
     "crater_synth.dataset.dask_launcher": "distributed",
     "crater_synth.dataset.detection_dask": "distributed",
     "train.crater_detector": "torch",
+    "train.crater_detector_inference": "torch",
     "train.crater_verifier": "torch",
     "train.data": "torch",
     "train.evaluate": "torch",
