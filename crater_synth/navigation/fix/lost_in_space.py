@@ -36,10 +36,9 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   craters with few detections of their size are then strong evidence, six among many small ones weak,
   where the inlier count weighs both alike. The best candidate is kept only when its number of false
   alarms (``n_verify`` x that probability) is at most 10^``max_log10_nfa``, and a rival elsewhere within
-  ``ambiguity_log10`` of its score makes the fix ambiguous. The false alarms count one test per cell, though
-  RANSAC keeps the best of many transforms in each: chance is underestimated, and on the north test windows
-  this weighting made false fixes that inlier counts did not (docs/navigation/fix.md). It is an option, off by
-  default.
+  ``ambiguity_log10`` of its score makes the fix ambiguous. The model underestimates chance: on the north test
+  windows this weighting made false fixes that inlier counts did not (docs/navigation/fix.md). It is an
+  option, off by default.
 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
