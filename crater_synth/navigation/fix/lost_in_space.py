@@ -180,7 +180,7 @@ def _votes(det_z, det_r, index: PairIndex, pixel_m: float, p: LostInSpaceParams)
     la, lb = index.i[k], index.j[k]
     ra = det_r[ii[q]] * pixel_m / index.lm_r_m[la]
     rb = det_r[jj[q]] * pixel_m / index.lm_r_m[lb]
-    ok = (ra <= p.radius_ratio) & (ra >= 1 / p.radius_ratio) & (rb <= p.radius_ratio) & (rb >= 1 / p.radius_ratio)
+    ok = _within_ratio(ra, p.radius_ratio) & _within_ratio(rb, p.radius_ratio)
     q, la, lb = q[ok], la[ok], lb[ok]
     if q.size > p.max_matches:  # bounded work: keep the matches of smallest relative distance error
         err = np.abs(index.dist_m[k[ok]] - dpx[q] * pixel_m) / tol[q]
@@ -192,16 +192,25 @@ def _votes(det_z, det_r, index: PairIndex, pixel_m: float, p: LostInSpaceParams)
     return ii[q], jj[q], la, lb, a, wa - a * det_z[ii[q]]
 
 
+def _within_ratio(ratio, limit: float):
+    """Radius ratios within [1/``limit``, ``limit``]: a detection and a landmark of compatible size."""
+    return (ratio <= limit) & (ratio >= 1.0 / limit)
+
+
+def _predicted_landmarks(index: PairIndex, a: complex, b: complex, p) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of the landmarks >= ``min_landmark_km``, their points under the inverse of the transform
+    pixel -> map (a, b), as complex u - i v)."""
+    lm = np.nonzero(index.lm_r_m >= p.min_landmark_km * 500.0)[0]
+    return lm, (index.lm_xy[lm, 0] + 1j * index.lm_xy[lm, 1] - b) / a
+
+
 def _candidate_pairs(det_z, det_r, index: PairIndex, a: complex, b: complex, pixel_m: float, p, fparams):
     """(detection, landmark) pairs of the landmarks a candidate transform predicts in the frame."""
-    lm = np.nonzero(index.lm_r_m >= p.min_landmark_km * 500.0)[0]
-    w = index.lm_xy[lm, 0] + 1j * index.lm_xy[lm, 1]
-    z = (w - b) / a  # landmark -> pixel
+    lm, z = _predicted_landmarks(index, a, b, p)
     r_lm = index.lm_r_m[lm] / pixel_m
     gate = p.gate_km * 1000.0 / pixel_m
     d = np.abs(det_z[:, None] - z[None, :])
-    rr = det_r[:, None] / r_lm[None, :]
-    ok = (d <= gate + 0.25 * r_lm[None, :]) & (rr <= fparams.radius_ratio) & (rr >= 1.0 / fparams.radius_ratio)
+    ok = (d <= gate + 0.25 * r_lm[None, :]) & _within_ratio(det_r[:, None] / r_lm[None, :], fparams.radius_ratio)
     di, lj = np.nonzero(ok)
     return np.stack([di, lm[lj]], axis=1)
 
@@ -267,12 +276,10 @@ def chance_inliers(det_r, index: PairIndex, a: complex, b: complex, frame_shape,
     radius, placed at random, match within the verification's inlier tolerance (module docstring; the
     tolerance taken at the landmark's radius)."""
     h, w = frame_shape
-    lm = np.nonzero(index.lm_r_m >= params.min_landmark_km * 500.0)[0]
-    z = (index.lm_xy[lm, 0] + 1j * index.lm_xy[lm, 1] - b) / a  # landmark -> pixel (u - i v)
+    lm, z = _predicted_landmarks(index, a, b, params)
     inside = (z.real >= 0) & (z.real < w) & (-z.imag >= 0) & (-z.imag < h)
     r_lm = index.lm_r_m[lm[inside]] / pixel_m
-    ratio = np.asarray(det_r, float)[None, :] / r_lm[:, None]
-    n_compatible = ((ratio <= vparams.radius_ratio) & (ratio >= 1.0 / vparams.radius_ratio)).sum(axis=1)
+    n_compatible = _within_ratio(np.asarray(det_r, float)[None, :] / r_lm[:, None], vparams.radius_ratio).sum(axis=1)
     disc = math.pi * (vparams.inlier_px + vparams.inlier_r * r_lm) ** 2
     return float(np.sum(1.0 - np.exp(-n_compatible * disc / float(h * w))))
 
