@@ -163,6 +163,7 @@ class FramesSettings(Group):
     scales_from_map: bool = False  # the detector searches only the radii of the landmarks the prior predicts
     inlier_px: float = 3.0  # the pinhole fix's reprojection inlier tolerance (px)
     refine: bool = False  # known-attitude fixes refined by predicted appearance
+    ground_view: bool = True  # nav-frames-lis: detect on the frame resampled onto the ground (attitude, range)
 
     def _check(self) -> None:
         need(self.solver in SOLVERS, "solver", self.solver, f"must be one of {SOLVERS}")

@@ -43,12 +43,20 @@ from crater_synth.navigation.georef import pole_of, stereo_forward, stereo_inver
 from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.protocol import fix_counts, lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import (
-    cv_camera,
     evaluate_frame,
     frame_run,
     light_direction,
     match_pixels,
     perfect_detections,
+)
+from crater_synth.navigation.rendered.ground_view import (
+    camera_from_centre,
+    ground_axes,
+    ground_coords,
+    ground_view,
+    inside_footprint,
+    rays_to_ground,
+    to_frame,
 )
 from crater_synth.navigation.rendered.labels import labelled_rows
 from crater_synth.navigation.settings import compose_nav, map_scales
@@ -71,23 +79,13 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     the sphere, bearing from the frame's east axis): an oblique frame reaches hundreds of km, where a flat
     plane would lie tens of km above the ground. A rim's radius is its pixel radius times its depth along
     the optical axis over the focal length."""
-    r_wc, k, q = _camera_from_centre(row, range_m)
+    r_wc, k, q = camera_from_centre(row, range_m)
     if not dets:
         return [], (1, 1), []
     pix = np.array([[d.u, d.v, 1.0] for d in dets])
     rays = np.linalg.solve(k, pix.T).T @ r_wc  # world directions, unit depth along the optical axis
-    half_b = rays @ q
-    disc = half_b**2 - np.sum(rays**2, axis=1) * (q @ q - MOON_RADIUS_M**2)
-    t = (-half_b - np.sqrt(np.where(disc >= 0.0, disc, np.nan))) / np.sum(rays**2, axis=1)  # the nearer cut
-    keep = np.isfinite(t) & (t > 0.0)
-    ground = q + np.where(keep, t, 0.0)[:, None] * rays
-    up = q / np.linalg.norm(q)
-    east = np.array([1.0, 0.0, 0.0]) - up[0] * up
-    east /= np.linalg.norm(east)
-    north = np.cross(up, east)
-    e, n = ground @ east, ground @ north
-    along = MOON_RADIUS_M * np.arctan2(np.hypot(e, n), ground @ up) / np.maximum(np.hypot(e, n), 1e-9)
-    east_m, north_m = along * e, along * n
+    ground, t, keep = rays_to_ground(rays, q)
+    east_m, north_m = ground_coords(ground, q)
     r_ground = np.array([d.r for d in dets]) * t / k[0, 0]
     half = (
         float(np.nanmax(np.abs(np.concatenate([east_m[keep], north_m[keep]])))) / LIS_PIXEL_M + 2.0
@@ -104,18 +102,10 @@ def rectify(dets, row: dict, range_m: float) -> tuple[list[Detection], tuple[int
     return out, (size, size), idx
 
 
-def _camera_from_centre(row: dict, range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(world -> camera rotation, K, the camera's position from the Moon's centre) of the frame ``row``, its
-    boresight's ground point ``range_m`` ahead on the sphere of the Moon's radius (the frame's origin)."""
-    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    r_wc, k = cv_camera(rot, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
-    return r_wc, k, -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])
-
-
 def camera_height_m(row: dict, range_m: float) -> float:
     """The camera's height above the sphere of the Moon's radius through the boresight's ground point, from
     the altimeter's range and the attitude (what :func:`rectify` assumes)."""
-    return float(np.linalg.norm(_camera_from_centre(row, range_m)[2])) - MOON_RADIUS_M
+    return float(np.linalg.norm(camera_from_centre(row, range_m)[2])) - MOON_RADIUS_M
 
 
 def map_heading_deg(row: dict, pole: str) -> float:
@@ -157,11 +147,13 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
     biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
     dparams = map_scales(dparams, fparams, gsd, [biggest / gsd])
-    if detections is None:
-        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
-    else:
-        dets = list(detections)
     rng = boresight_range_m(depth)
+    if detections is not None:
+        dets = list(detections)
+    elif nav.frames.ground_view:
+        dets = ground_view_detections(image, row, rng, nav, biggest, to_sun)
+    else:
+        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
     flat, shape, kept = rectify(dets, row, rng)
     pole = pole_of(row["frame_origin"]["lat"])
     heading = map_heading_deg(row, pole) if lis.known_heading else None
@@ -193,6 +185,21 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     no_fix = {"fix": False, "reason": fix.reason}
     out["six_dof"] = six_dof_fix(row, image, dets, fix, rng, landmarks, nav) if fix.ok else no_fix
     return out
+
+
+def ground_view_detections(image, row: dict, range_m: float, nav, biggest_m: float, to_sun) -> list[Detection]:
+    """The detector run on the frame resampled onto the ground (:func:`.ground_view.ground_view`) at that
+    view's one ground sample, from the smallest landmark's radius to ``biggest_m``, the light crossing the
+    view along the Sun's ground direction under the camera; rims cut by the footprint's edge dropped, and the
+    rest carried back into the frame's pixels."""
+    view = ground_view(image, row, range_m)
+    _, _, q = camera_from_centre(row, range_m)
+    _, east, north = ground_axes(q)
+    travel = -np.asarray(to_sun, dtype=np.float64)
+    light = math.atan2(-(travel @ north), travel @ east)  # image azimuth, v down
+    dparams = map_scales(nav.detector, nav.fix, view.pixel_m, [biggest_m / view.pixel_m])
+    dets, _ = detect(view.image, dparams, light_dir=light, what=f"frame {row['rel_path']} on the ground")
+    return to_frame(inside_footprint(dets, view), view, row, range_m)
 
 
 SIX_DOF_KEYS = ("fix", "reason", "error_km", "error_horizontal_km", "attitude_error_deg", "identified",
