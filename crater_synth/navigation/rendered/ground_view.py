@@ -153,12 +153,10 @@ def inside_footprint(dets, view: GroundView, margin: float = 1.0) -> list[Detect
         return []
     dist = cv2.distanceTransform(view.valid.astype(np.uint8), cv2.DIST_L2, 5)
     h, w = dist.shape
-    out = []
-    for d in dets:
-        i, j = min(max(int(d.v), 0), h - 1), min(max(int(d.u), 0), w - 1)
-        if dist[i, j] >= margin * d.r:
-            out.append(d)
-    return out
+    i = np.clip(np.array([d.v for d in dets]).astype(int), 0, h - 1)
+    j = np.clip(np.array([d.u for d in dets]).astype(int), 0, w - 1)
+    ok = dist[i, j] >= margin * np.array([d.r for d in dets])
+    return [d for d, keep in zip(dets, ok) if keep]
 
 
 def to_frame(dets, view: GroundView, row: dict, range_m: float) -> list[Detection]:
