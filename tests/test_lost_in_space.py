@@ -128,6 +128,55 @@ def test_weak_detections_confirm_a_vote_they_do_not_cast():
     assert not refused.ok and "score >= 2.0" in refused.reason
 
 
+def test_a_second_detectors_craters_verify_but_never_vote():
+    """``voters``: the detections after the first ``voters`` (a verify detector's) confirm a voted transform
+    but cast no vote. The first detector's 4 sure craters vote; 5 more true craters found only by the second
+    lift the inliers past min_inliers 8. Scored high, the second's craters still never vote: with the first
+    detector's list empty of sure craters the frame is refused before any vote."""
+    rng = np.random.default_rng(11)
+    lms = _map(rng)
+    index = build_index(lms)
+    dets = _two_tier_frame(lms, (120e3, -80e3), rng, n_sure=4, n_weak=5, weak_clutter=40)
+    first, second = dets[:4] + dets[9:], [Detection(d.u, d.v, d.r, 1.0) for d in dets[4:9]]
+    two = LostInSpaceParams(vote_min_score=0.5, min_inliers=8)
+    alone = lost_in_space_fix(first, lms, SHAPE, PIXEL_M, two, index=index)
+    assert not alone.ok  # 4 true craters among the first detector's
+    both = [*first, *second]
+    fix = lost_in_space_fix(both, lms, SHAPE, PIXEL_M, two, index=index, voters=len(first))
+    assert fix.ok, fix.reason
+    assert math.hypot(fix.x_m - 120e3, fix.y_m + 80e3) < 1000.0
+    assert any(i >= len(first) for i, _ in fix.inliers)  # the second detector's craters counted
+    none_vote = lost_in_space_fix([*first[4:], *second], lms, SHAPE, PIXEL_M, two, index=index, voters=len(first) - 4)
+    assert not none_vote.ok and "score >= 0.5" in none_vote.reason
+
+
+def test_new_detections_keeps_the_craters_the_first_detector_lacks():
+    from crater_synth.navigation.detectors.classical import new_detections
+
+    known = [Detection(100.0, 100.0, 20.0, 0.9), Detection(300.0, 300.0, 10.0, 0.5)]
+    found = [
+        Detection(108.0, 96.0, 24.0, 0.6),  # the same crater: centre within 0.6 r, radius within 1.5
+        Detection(100.0, 100.0, 40.0, 0.6),  # concentric but twice the size: another crater
+        Detection(330.0, 300.0, 10.0, 0.6),  # 30 px off a 10 px crater: another crater
+        Detection(400.0, 50.0, 15.0, 0.6),
+    ]
+    assert new_detections(found, known, 0.6, 1.5) == found[1:]
+    assert new_detections(found, [], 0.6, 1.5) == found and new_detections([], known, 0.6, 1.5) == []
+
+
+def test_verify_detector_names_a_crater_detector():
+    from crater_synth.errors import ConfigError
+    from crater_synth.navigation.settings import compose_nav, verify_detector_settings
+
+    nav = compose_nav(["nav/lost_in_space=two-tier", "nav.lost_in_space.verify_detector=template"])
+    assert nav.lost_in_space.verify_detector == "template"
+    assert verify_detector_settings("template").method == "template"
+    assert verify_detector_settings("") is None
+    for bad, says in (("nope", "not a nav/detector option"), ("appearance", "the appearance method finds no craters")):
+        with pytest.raises(ConfigError, match=f"nav.lost_in_space.verify_detector={bad!r}: {says}"):
+            compose_nav([f"nav.lost_in_space.verify_detector={bad}"])
+
+
 def test_verification_tolerance_follows_the_lost_in_space_group():
     """Large craters detected 6-8 px off their map centres: nav.fix's 2 px + 0.1 r refuses them, the
     group's own inlier_r and RMS gate accept them; the prior-gated fix's settings stay as they are."""
@@ -200,6 +249,15 @@ def test_navigate_one_frame_lost_in_space_with_no_georeference(tmp_path):
     assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
     r = runner.invoke(main, ["navigate", str(img), "--known-heading", "--pixel-m", "400"])
     assert r.exit_code == 2 and "--lost-in-space only" in r.output
+    # A second detector's craters join the verification (nav.lost_in_space.verify_detector).
+    args = ["navigate", str(img), "--lost-in-space", "--pixel-m", "400", "--pole", "south"]
+    plain = json.loads(runner.invoke(main, args).output.strip().splitlines()[-1])
+    r = runner.invoke(main, [*args, "nav.lost_in_space.verify_detector=classical"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    x, y = stereo_forward(out["lat"], out["lon"], "south")
+    assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 2.0
+    assert out["detections"] > plain["detections"] and len(out["landmarks"]) >= len(plain["landmarks"])
 
 
 def test_nav_frames_lis_without_a_manifest_is_one_error(tmp_path):

@@ -31,7 +31,7 @@ from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.detectors.classical import detect, new_detections
 from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.frame_file import (
@@ -58,7 +58,7 @@ from crater_synth.navigation.georef import (
 from crater_synth.navigation.map.landmarks import load_default_map, read_map
 from crater_synth.navigation.output import detection_records, detections_text, write_detections
 from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
-from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav
+from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav, verify_detector_settings
 from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, prior_georef
 from crater_synth.navigation.windows.navigate import (
     annotate,
@@ -311,9 +311,20 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
     turned north-up: :func:`.windows.navigate.inside_frame`) drops the detections outside the frame."""
     light = None if request.light_azimuth is None else math.radians(request.light_azimuth)
     lis = dataclasses.replace(nav.lost_in_space, known_heading=request.known_heading)
+    extra: list = []  # the verify detector's craters: they join the lost-in-space verification, never the vote
+    vparams = verify_detector_settings(lis.verify_detector) if prior_g is None else None
+    if vparams is not None:
+        found = detect(img, vparams, light_dir=light, what=str(request.image))[0]
+        extra = found if keep is None else keep(found, vparams.border_r)
+
+    def with_extra(dets):  # the verify detector's craters these lack, after them (the fix's inliers index both)
+        return [*dets, *new_detections(extra, dets, nav.detector.nms_centre_r, nav.detector.nms_radius_ratio)]
 
     def vote_fix(dets):
-        return lost_in_space_fix(dets, landmarks, img.shape, pixel, lis, nav.fix, heading_deg=window_heading_deg(lis))
+        heading = window_heading_deg(lis)
+        return lost_in_space_fix(
+            with_extra(dets), landmarks, img.shape, pixel, lis, nav.fix, heading_deg=heading, voters=len(dets)
+        )
 
     patches = nav.appearance if request.patches is None else request.patches
     if not nav.appearance:
@@ -322,6 +333,8 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
             return vote_fix(dets) if prior_g is None else fix_frame(dets, landmarks, prior_g, img.shape, nav.fix)
 
         dets, theta, fix = either_light_fix(img, nav.detector, light, fit, str(request.image), keep)
+        if prior_g is None:
+            dets = with_extra(dets)
         return dets, theta, fix, landmarks, "craters"
     assert light is not None
     if prior_g is None:

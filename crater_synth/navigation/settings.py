@@ -13,6 +13,7 @@ detector setting, each with its detector's own schema from :mod:`.detectors.regi
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Sequence
 
 import numpy as np
@@ -118,7 +119,25 @@ def compose_nav(overrides: Sequence[str] = (), defaults: Sequence[str] = ()) -> 
     check_preset_detector(overrides)
     register_nav_schemas()
     plain, choices = compose_plain(NAV_CONFIG, overrides, CONFIG_DIR)
-    return nav_settings(plain["nav"], choices)
+    nav = nav_settings(plain["nav"], choices)
+    verify_detector_settings(nav.lost_in_space.verify_detector)  # a bad name fails here, before any frame
+    return nav
+
+
+@functools.lru_cache(maxsize=None)
+def verify_detector_settings(name: str):
+    """The settings of the ``nav/detector`` option ``name`` whose detections join a lost-in-space fix's
+    verification (``nav.lost_in_space.verify_detector``), as its file sets them; None for "". One
+    :class:`ConfigError` for a name that is no option or an option that finds no craters."""
+    if not name:
+        return None
+    key = "nav.lost_in_space.verify_detector"
+    if name not in detector_options():
+        raise ConfigError(f"{key}={name!r}: not a nav/detector option (choose one of {', '.join(detector_options())})")
+    settings = compose_nav([f"nav/detector={name}"]).detector
+    if registry.detector(settings.method).candidates is None:
+        raise ConfigError(f"{key}={name!r}: the {settings.method} method finds no craters to verify with")
+    return settings
 
 
 def check_preset_detector(overrides: Sequence[str]) -> None:

@@ -4,12 +4,12 @@ write the runs and the choice as JSON.
 A detector runs once per window at its lowest candidate threshold (``--detector``: nav overrides); every
 ``--variant`` then keeps the detections scoring at least its ``min_score=T`` and runs the lost-in-space fix with
 its own ``nav.lost_in_space`` overrides, scored as ``nav-eval --lost-in-space`` scores it (the same row and
-summary functions). Keeping the detections >= T of a run at a lower threshold gives the detections of a run at T:
-suppression is greedy, best score first, so only a higher-scoring detection ever drops one. The rule: no false fix
-on any window, then the highest fix rate of the headline windows (rates within one window of it are tied: then
-the lowest median error). The north
-windows are a test: this tool never reads them; run ``nav-eval --pole north`` once with the choice, after it is
-committed.
+summary functions; a variant naming ``nav.lost_in_space.verify_detector`` adds that detector's new craters, run
+once per window, to the verification). Keeping the detections >= T of a run at a lower threshold gives the
+detections of a run at T: suppression is greedy, best score first, so only a higher-scoring detection ever drops
+one. The rule: no false fix on any window, then the highest fix rate of the headline windows (rates within one
+window of it are tied: then the lowest median error). The north windows are a test: this tool never reads them;
+run ``nav-eval --pole north`` once with the choice, after it is committed.
 
     python -m crater_synth.tools.lis_choice --detector 'nav/detector=learned-detect nav.detector.tta=4
         nav.detector.half_octaves=true nav.detector.threshold=0.05' --variant 'min_score=0.15' \\
@@ -25,7 +25,7 @@ from pathlib import Path
 
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.detectors.classical import detect, new_detections
 from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
 from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows.evaluate import (
@@ -33,6 +33,7 @@ from crater_synth.navigation.windows.evaluate import (
     nav_eval_map,
     score_window,
     summarise_windows,
+    verify_detections,
 )
 from crater_synth.navigation.windows.light import frame_light
 from crater_synth.navigation.windows.mosaic import windows
@@ -81,11 +82,15 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
     ``lis``), summarised as ``nav-eval`` summarises them."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
+    extras = verify_found(frames, lis)
     rows = []
-    for frame, (dets, theta) in zip(frames, found):
+    for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
-        fix = lost_in_space_fix(kept, landmarks, frame.image.shape, frame.georef.pixel_m, lis, nav.fix, index)
-        rows.append(score_window(frame, landmarks, nav.fix, kept, theta, fix, listed))
+        pixel_m = frame.georef.pixel_m
+        # a verify detector's new craters after the voters' (nav-eval's order)
+        together = [*kept, *new_detections(extra, kept, nav.detector.nms_centre_r, nav.detector.nms_radius_ratio)]
+        fix = lost_in_space_fix(together, landmarks, frame.image.shape, pixel_m, lis, nav.fix, index, voters=len(kept))
+        rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
     summary = summarise_windows(rows)
     return {
         "variant": text,
@@ -95,6 +100,19 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         "all_windows": summary["all_windows"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
+
+
+_VERIFY_FOUND: dict[tuple, list] = {}  # (verify detector, windows) -> its detections: run once for every variant
+
+
+def verify_found(frames, lis) -> list[list]:
+    """Each window's detections by ``lis.verify_detector`` (empty lists when ""), run once per detector."""
+    if not lis.verify_detector:
+        return [[] for _ in frames]
+    key = (lis.verify_detector, tuple(f.id for f in frames))
+    if key not in _VERIFY_FOUND:
+        _VERIFY_FOUND[key] = [verify_detections(f, lis) for f in frames]
+    return _VERIFY_FOUND[key]
 
 
 def choose(runs: list[dict]) -> dict:

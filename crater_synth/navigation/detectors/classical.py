@@ -202,6 +202,20 @@ def suppress(u, v, r, score, centre_r: float, radius_ratio: float) -> np.ndarray
     return order[np.array(keep)]
 
 
+def new_detections(found, known, centre_r: float, radius_ratio: float) -> list:
+    """The detections of ``found`` that no detection of ``known`` overlaps, as :func:`suppress` counts overlap
+    (centres within ``centre_r`` x the larger radius, radii within ``radius_ratio``): another detector's craters
+    that these detections do not already hold."""
+    if not found or not known:
+        return list(found)
+    a = np.array([[d.u, d.v, d.r] for d in found], float)
+    b = np.array([[d.u, d.v, d.r] for d in known], float)
+    big = np.maximum(a[:, None, 2], b[None, :, 2])
+    near = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1]) < centre_r * big
+    alike = big / np.minimum(a[:, None, 2], b[None, :, 2]) < radius_ratio
+    return [d for d, hit in zip(found, (near & alike).any(axis=1)) if not hit]
+
+
 def scale_radii(params: DetectorSettings, shape) -> np.ndarray:
     """Crater radii (px) searched: ``min_radius_px`` up by ``scale_ratio``, at most half the frame."""
     n_scales = int(math.floor(math.log(params.max_radius_px / params.min_radius_px) / math.log(params.scale_ratio))) + 1

@@ -103,6 +103,10 @@ class LostInSpaceParams:
     candidate_score: str = "inliers"
     ambiguity_log10: float = 2.0  # significance: a rival elsewhere within this many decades of the best: no fix
     max_log10_nfa: float = -2.0  # significance: the best's false alarms (n_verify x chance) at most 10^this
+    # A second detector (a nav/detector option; "": none) whose detections join the verification only, never the
+    # vote: detectors miss different craters, and a voted transform needs min_inliers landmarks found by either.
+    # Its detections follow the first detector's in the list the fix's inliers index (``voters``).
+    verify_detector: str = ""
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -369,21 +373,23 @@ def lost_in_space_fix(
     fparams: FixParams = FixParams(),
     index: PairIndex | None = None,
     heading_deg: float | None = None,
+    voters: int | None = None,
 ) -> Fix:
     """Fix of a nadir frame of known pixel size ``pixel_m`` (map metres) with no position or heading
     prior: the map point under the frame centre, or "no fix" (module docstring). ``index``: a prebuilt
     :func:`build_index` of ``landmarks`` (built here when None). ``heading_deg``: the frame's heading on
     the map when an attitude gives it (the angle of the pixel -> map similarity); only votes within one
-    heading cell (``bin_deg``) of it count."""
+    heading cell (``bin_deg``) of it count. ``voters``: only the first ``voters`` detections may vote (the
+    rest, a ``verify_detector``'s, take part in the verification only); None: all."""
     index = index if index is not None else build_index(landmarks, params)
     if len(detections) < max(3, params.min_inliers):
         return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})")
     det_uv = np.array([[d.u, d.v] for d in detections], float)
     det_r = np.array([d.r for d in detections], float)
     det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
-    voters = np.arange(len(detections))
+    voters = np.arange(len(detections) if voters is None else min(voters, len(detections)))
     if params.vote_min_score is not None:
-        voters = np.nonzero(np.array([d.score for d in detections], float) >= params.vote_min_score)[0]
+        voters = voters[np.array([detections[i].score for i in voters], float) >= params.vote_min_score]
         if voters.size < 3:
             return Fix(False, f"{voters.size} detections score >= {params.vote_min_score} (need 3 to vote)")
     top = voters[np.argsort(-det_r[voters], kind="stable")[: params.n_detections]]

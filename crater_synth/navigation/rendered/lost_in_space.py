@@ -247,6 +247,11 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
     if nav.appearance:
         raise UserError("lost in space needs a crater detector (the appearance search needs a prior)")
     lis = nav.lost_in_space
+    if lis.verify_detector:
+        raise UserError(
+            f"nav.lost_in_space.verify_detector={lis.verify_detector}: rendered frames take one detector "
+            "(a second one's detections verify on map windows only: nav-eval, navigate)"
+        )
     maps: dict[str, tuple] = {}
     out = []
     for row in labelled_rows(frames_dir):

@@ -35,7 +35,7 @@ from crater_core.settings_nav import DetectorSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect
+from crater_synth.navigation.detectors.classical import detect, new_detections
 from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM, FixParams, fix_frame
@@ -54,7 +54,7 @@ from crater_synth.navigation.protocol import (
     summarise,
     truth_in_frame,
 )
-from crater_synth.navigation.settings import compose_nav, detector_options
+from crater_synth.navigation.settings import compose_nav, detector_options, verify_detector_settings
 from crater_synth.navigation.windows.appearance import (
     lander_refiner,
     patch_truth_correct,
@@ -94,6 +94,7 @@ def navigate_window(
     if registry.detector(dparams.method).candidates is None:  # the appearance search
         return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
+    extra = [] if lis is None else verify_detections(frame, lis[0])
     best = None
     for k, off in enumerate(dparams.light_tries_deg):
         if off == 0.0:
@@ -105,14 +106,27 @@ def navigate_window(
             fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
         else:
             heading = window_heading_deg(lis[0])
+            voters = len(dets)
+            dets = [*dets, *new_detections(extra, dets, dparams.nms_centre_r, dparams.nms_radius_ratio)]
+            pixel_m = frame.georef.pixel_m
             fix = lost_in_space_fix(
-                dets, landmarks, frame.image.shape, frame.georef.pixel_m, lis[0], fparams, lis[1], heading_deg=heading
+                dets, landmarks, frame.image.shape, pixel_m, lis[0], fparams, lis[1], heading_deg=heading, voters=voters
             )
         key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
         if best is None or key > best[0]:
             best = (key, dets, theta, fix)
     _, dets, theta, fix = best
     return dets, theta, fix, prior
+
+
+def verify_detections(frame: Frame, lis_params) -> list:
+    """The detections of ``lis_params.verify_detector`` (none when "") on a window, with that detector's own
+    light model: those the first detector lacks (:func:`.classical.new_detections`) join the lost-in-space
+    verification after its own (never the vote)."""
+    vparams = verify_detector_settings(lis_params.verify_detector)
+    if vparams is None:
+        return []
+    return detect(frame.image, vparams, what=f"frame {frame.id}", **frame_light(frame, vparams))[0]
 
 
 # With no position prior, the appearance search starts from this detector's lost-in-space fix (the best
