@@ -370,3 +370,24 @@ def test_significance_settings_are_checked():
     for key, bad in (("candidate_score", "votes"), ("ambiguity_log10", "-1"), ("max_log10_nfa", "nan")):
         with pytest.raises(UserError, match=key):
             compose_nav([f"nav.lost_in_space.{key}={bad}"])
+
+
+def test_nav_eval_window_with_a_verify_detector_keeps_the_fix_and_indexes_both():
+    """``navigate_window`` lost in space with a second detector: its new craters follow the first detector's in
+    the detections returned, the fix still places the window, and every inlier indexes that list."""
+    from dataclasses import replace as dc_replace
+
+    from crater_synth.navigation.settings import compose_nav
+    from crater_synth.navigation.windows.evaluate import nav_eval_map, navigate_window
+    from crater_synth.navigation.windows.mosaic import windows
+
+    frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
+    landmarks, _ = nav_eval_map("south", None)
+    nav = compose_nav(["nav/detector=template"])
+    base = nav.lost_in_space
+    plain = navigate_window(frame, landmarks, nav.detector, nav.fix, lis=(base, build_index(landmarks, base)))
+    lis = dc_replace(base, verify_detector="classical")
+    dets, _, fix, _ = navigate_window(frame, landmarks, nav.detector, nav.fix, lis=(lis, build_index(landmarks, lis)))
+    assert len(dets) > len(plain[0]) and dets[: len(plain[0])] == plain[0]
+    assert fix.ok and math.hypot(fix.x_m - frame.centre_xy[0], fix.y_m - frame.centre_xy[1]) < 2000.0
+    assert all(0 <= i < len(dets) for i, _ in fix.inliers)
