@@ -151,7 +151,7 @@ def test_a_second_detectors_craters_verify_but_never_vote():
 
 
 def test_new_detections_keeps_the_craters_the_first_detector_lacks():
-    from crater_synth.navigation.detectors.classical import new_detections
+    from crater_synth.navigation.detectors.classical import new_detections, with_new
 
     known = [Detection(100.0, 100.0, 20.0, 0.9), Detection(300.0, 300.0, 10.0, 0.5)]
     found = [
@@ -162,6 +162,9 @@ def test_new_detections_keeps_the_craters_the_first_detector_lacks():
     ]
     assert new_detections(found, known, 0.6, 1.5) == found[1:]
     assert new_detections(found, [], 0.6, 1.5) == found and new_detections([], known, 0.6, 1.5) == []
+    # with_new: no verify detector (an appearance search's lost in space has no suppression settings to read)
+    assert with_new(known, [], None) == known
+    assert with_new(known, found, SimpleNamespace(nms_centre_r=0.6, nms_radius_ratio=1.5)) == known + found[1:]
 
 
 def test_verify_detector_names_a_crater_detector():

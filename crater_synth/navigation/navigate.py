@@ -31,7 +31,7 @@ from crater_core.schema import atomic_write_bytes
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect, new_detections
+from crater_synth.navigation.detectors.classical import detect, with_new
 from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.frame_file import (
@@ -318,7 +318,7 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
         extra = found if keep is None else keep(found, vparams.border_r)
 
     def with_extra(dets):  # the verify detector's craters these lack, after them (the fix's inliers index both)
-        return [*dets, *new_detections(extra, dets, nav.detector.nms_centre_r, nav.detector.nms_radius_ratio)]
+        return with_new(dets, extra, vparams)
 
     def vote_fix(dets):
         heading = window_heading_deg(lis)

@@ -216,6 +216,14 @@ def new_detections(found, known, centre_r: float, radius_ratio: float) -> list:
     return [d for d, hit in zip(found, (near & alike).any(axis=1)) if not hit]
 
 
+def with_new(known, found, params) -> list:
+    """``known`` followed by the detections of ``found`` it lacks (:func:`new_detections` with the suppression
+    settings of ``params``, the detector that found them; None: ``found`` is empty)."""
+    if not found:
+        return list(known)
+    return [*known, *new_detections(found, known, params.nms_centre_r, params.nms_radius_ratio)]
+
+
 def scale_radii(params: DetectorSettings, shape) -> np.ndarray:
     """Crater radii (px) searched: ``min_radius_px`` up by ``scale_ratio``, at most half the frame."""
     n_scales = int(math.floor(math.log(params.max_radius_px / params.min_radius_px) / math.log(params.scale_ratio))) + 1

@@ -35,7 +35,7 @@ from crater_core.settings_nav import DetectorSettings
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect, new_detections
+from crater_synth.navigation.detectors.classical import detect, with_new
 from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix, window_heading_deg
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM, FixParams, fix_frame
@@ -107,7 +107,7 @@ def navigate_window(
         else:
             heading = window_heading_deg(lis[0])
             voters = len(dets)
-            dets = [*dets, *new_detections(extra, dets, dparams.nms_centre_r, dparams.nms_radius_ratio)]
+            dets = with_new(dets, extra, verify_detector_settings(lis[0].verify_detector))
             pixel_m = frame.georef.pixel_m
             fix = lost_in_space_fix(
                 dets, landmarks, frame.image.shape, pixel_m, lis[0], fparams, lis[1], heading_deg=heading, voters=voters
