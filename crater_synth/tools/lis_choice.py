@@ -77,12 +77,13 @@ def detect_windows(nav, every: int):
     return frames, found
 
 
-def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed) -> dict:
+def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None) -> dict:
     """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
-    ``lis``), summarised as ``nav-eval`` summarises them."""
+    ``lis``; ``extras``: each window's detections by ``lis.verify_detector``), summarised as ``nav-eval``
+    summarises them."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
-    extras = verify_found(frames, lis)
+    extras = extras if extras is not None else [[] for _ in frames]
     rows = []
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
@@ -100,19 +101,6 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         "all_windows": summary["all_windows"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
-
-
-_VERIFY_FOUND: dict[tuple, list] = {}  # (verify detector, windows) -> its detections: run once for every variant
-
-
-def verify_found(frames, lis) -> list[list]:
-    """Each window's detections by ``lis.verify_detector`` (empty lists when ""), run once per detector."""
-    if not lis.verify_detector:
-        return [[] for _ in frames]
-    key = (lis.verify_detector, tuple(f.id for f in frames))
-    if key not in _VERIFY_FOUND:
-        _VERIFY_FOUND[key] = [verify_detections(f, lis) for f in frames]
-    return _VERIFY_FOUND[key]
 
 
 def choose(runs: list[dict]) -> dict:
@@ -145,8 +133,12 @@ def main(argv=None) -> None:
         frames, found = detect_windows(nav, args.every)
         detect_s = round(time.perf_counter() - t0, 1)
         runs = []
+        verify: dict[str, list] = {}  # verify detector -> its detections on each window, run once for every variant
         for v, min_score, lis in variants:
-            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed)
+            name = lis.verify_detector
+            if name and name not in verify:
+                verify[name] = [verify_detections(f, lis) for f in frames]
+            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed, verify.get(name))
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
             print(f"{v}: headline fix rate {rate}, false fixes {false}", flush=True)
             runs.append(r)

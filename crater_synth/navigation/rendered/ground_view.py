@@ -135,13 +135,11 @@ def ground_view(image: np.ndarray, row: dict, range_m: float) -> GroundView:
     my = (uv[..., 1] - 0.5).astype(np.float32)
     valid = facing & (z > 0.0) & (mx >= 0.0) & (mx <= w - 1) & (my >= 0.0) & (my <= h - 1)
     src = np.asarray(image, dtype=np.float32)
-    fill = float(np.median(src))
     out = cv2.remap(
         src, np.where(valid, mx, -1.0).astype(np.float32), np.where(valid, my, -1.0).astype(np.float32),
-        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill,
+        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
     )  # fmt: skip
-    if valid.any():
-        out[~valid] = float(np.median(out[valid]))
+    out[~valid] = float(np.median(out[valid] if valid.any() else src))
     return GroundView(out, valid, float(pixel_m), (e0, n1))
 
 

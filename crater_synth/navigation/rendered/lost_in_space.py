@@ -140,19 +140,19 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     its pose and labels, with the settings ``nav`` (its detector, fix and ``lost_in_space``; ``index``: the
     map's pair index). ``detections`` replaces the detector's (the perfect-detection check). With
     ``nav.lost_in_space.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
-    dparams, fparams, lis = nav.detector, nav.fix, nav.lost_in_space
+    fparams, lis = nav.fix, nav.lost_in_space
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     gsd = float(row["ground_sample_m"])
     # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
     biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
-    dparams = map_scales(dparams, fparams, gsd, [biggest / gsd])
     rng = boresight_range_m(depth)
     if detections is not None:
         dets = list(detections)
     elif nav.frames.ground_view:
         dets = ground_view_detections(image, row, rng, nav, biggest, to_sun)
     else:
+        dparams = map_scales(nav.detector, fparams, gsd, [biggest / gsd])
         dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
     flat, shape, kept = rectify(dets, row, rng)
     pole = pole_of(row["frame_origin"]["lat"])
