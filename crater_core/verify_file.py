@@ -39,6 +39,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from crater_core import schema
+from crater_core.detection_labels import label_file_faults, label_rel_paths
 from crater_core.exr import SEAL_ATTR, ExrError, exr_info, read_exr, sealed_attrs
 from crater_core.render_labels import label_faults
 from crater_core.trajectory import FramePose
@@ -78,6 +79,11 @@ def manifest_kind(dataset_dir: str | os.PathLike) -> str | None:
 def rel_path_of(kind: str, row: dict) -> str:
     """The file a row names, relative to its dataset."""
     return str(row["path"] if kind == "render" else row["rel_path"])
+
+
+def row_files(kind: str, row: dict) -> list[str]:
+    """Every file a row names, relative to its dataset: its frame and, for a detection row, its label file."""
+    return [rel_path_of(kind, row), *(label_rel_paths(row) if kind == "detection" else [])]
 
 
 def dataset_file(dataset_dir: str | os.PathLike, rel: str) -> Path:
@@ -295,11 +301,13 @@ def navframe_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = Tr
 
 def detection_faults(dataset_dir: str | os.PathLike, row: dict, decode: bool = True, sha: bool = True) -> list[str]:
     """A detection frame's row (``crater-synth detection-frames``): its file inside the folder, its sha256,
-    the contract's channels at the row's size and, with ``decode``, finite pixels under an intact seal. Its
-    labels come from the procedural crater table, not from the header, so there is no header label to
-    compare."""
+    the contract's channels at the row's size and, with ``decode``, finite pixels under an intact seal; its
+    label file inside the folder, hashing to the row's sha256, of the row's count
+    (:func:`crater_core.detection_labels.label_file_faults`). Its labels come from the procedural crater
+    table, not from the header, so there is no header label to compare."""
     width = (row.get("camera_enu") or {}).get("width_px")
-    return _file_faults(dataset_dir, str(row["rel_path"]), row["sha256"], (width, width), decode, sha)[0]
+    faults = _file_faults(dataset_dir, str(row["rel_path"]), row["sha256"], (width, width), decode, sha)[0]
+    return faults + label_file_faults(dataset_dir, row, sha)
 
 
 FILE_CHECKS: dict[str, Callable[..., list[str]]] = {
@@ -328,8 +336,8 @@ def write_record(dataset_dir: str | os.PathLike, kind: str, rows: Iterable[dict]
     d = Path(dataset_dir)
     files = {}
     for row in rows:
-        rel = rel_path_of(kind, row)
-        files[rel] = file_identity(dataset_file(d, rel))
+        for rel in row_files(kind, row):
+            files[rel] = file_identity(dataset_file(d, rel))
     record = {
         "format": RECORD_FORMAT,
         "kind": kind,
@@ -381,7 +389,7 @@ def rows_faults(
     trusted = trusted_paths(dataset_dir, kind, decode)
     faults: list[str] = []
     for row in rows:
-        if rel_path_of(kind, row) not in trusted:
+        if not trusted.issuperset(row_files(kind, row)):
             faults += file_faults(kind, dataset_dir, row, decode, sha)
     return faults
 
@@ -391,6 +399,6 @@ def identity_digest(dataset_dir: str | os.PathLike, kind: str, rows: Iterable[di
     rewritten, replaced or deleted (then :class:`OSError` naming it). Keys caches built from the files."""
     h = hashlib.sha256()
     for row in rows:
-        rel = rel_path_of(kind, row)
-        h.update(json.dumps([rel, file_identity(dataset_file(dataset_dir, rel))]).encode())
+        for rel in row_files(kind, row):
+            h.update(json.dumps([rel, file_identity(dataset_file(dataset_dir, rel))]).encode())
     return h.hexdigest()[:16]

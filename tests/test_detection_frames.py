@@ -15,6 +15,7 @@ import pytest
 
 import crater_core.procedural as P
 from crater_core import exr, geometry, schema
+from crater_core.detection_labels import DETECTION_LABEL_FIELDS, label_file_name, with_labels
 from crater_core.rim_fractions import hidden_rim_fraction, rim_circle
 from crater_core.settings import replace
 from crater_synth.config import load_settings
@@ -246,9 +247,14 @@ def _render(tmp_path, name: str, nadir_share: float, off_range=(0.0, 45.0), fram
     rows = list(D.manifest_rows(out).values())
     assert summary["frames"] == len(rows) == frames and summary["fields"] == -(-frames // views)
     names = sorted(p.name for p in out.iterdir() if p.name[0] != ".")
-    assert names == [D.frame_rel_path(i) for i in range(frames)] + ["manifest.jsonl"]
-    for r in rows:
+    frame_names = [D.frame_rel_path(i) for i in range(frames)]
+    assert names == sorted(frame_names + [label_file_name(n) for n in frame_names]) + ["manifest.jsonl"]
+    raw = [v[2] for v in D.scan_manifest(out)[0].values()]
+    for r, r_raw in zip(rows, raw):
         assert schema.sha256_file(out / r["rel_path"]) == r["sha256"]
+        ref = r_raw["labels"]  # the row references its label file, whose labels read_manifest put inline
+        assert ref["file"] == label_file_name(r["rel_path"]) and ref["count"] == len(r["labels"])
+        assert schema.sha256_file(out / ref["file"]) == ref["sha256"]
     assert not (out / D.PATCH_DIR).exists()
     return out, rows[0] if frames == 1 else rows
 
@@ -325,8 +331,8 @@ def test_rendered_frames_have_their_rims_where_the_labels_say_and_are_determinis
 
 
 def _fake_frames(tmp_path, n: int = 2):
-    """``n`` detection frames as the command writes them, the EXRs made up (no Blender): rows by
-    :func:`detection.frame_row` over a generated field and drawn conditions."""
+    """``n`` detection frames as the command writes them, the EXRs made up (no Blender): rows and label files
+    by :func:`detection.frame_row` over a generated field and drawn conditions; returned with their labels."""
     terrain = P.generate(P.ProceduralSettings(size_px=768, spacing_m=50.0, seed=2))
     out = tmp_path / "frames"
     out.mkdir()
@@ -351,14 +357,14 @@ def _fake_frames(tmp_path, n: int = 2):
         frame |= {"view_first": i, "grouping": D.grouping(DET)}
         rows.append(D.frame_row(frame, res, out))
     (out / schema.MANIFEST_NAME).write_text("".join(schema.dumps_row(r) + "\n" for r in rows))
-    return out, rows
+    return out, [with_labels(out, r) for r in rows]  # each row as read_manifest gives it: its labels inline
 
 
 def test_labels_carry_the_fields_the_export_types(tmp_path):
     _, rows = _fake_frames(tmp_path, 1)
     assert rows[0]["labels"]
     for lb in rows[0]["labels"]:
-        assert list(lb) == [name for name, _ in D.DETECTION_LABEL_FIELDS]
+        assert list(lb) == [name for name, _ in DETECTION_LABEL_FIELDS]
 
 
 def test_detection_frames_export_to_parquet_with_typed_labels(tmp_path):
@@ -391,6 +397,24 @@ def _refusal(out, *overrides) -> str:
     with pytest.raises(UserError) as exc:
         R.render_detection_frames(settings, out, 1)
     return str(exc.value)
+
+
+def test_verify_and_export_check_each_frames_label_file(tmp_path):
+    """A label file changed after a passing verify is one fault for verify and refused by export (the
+    recorded pass no longer covers it); a label file no row names is an orphan."""
+    from crater_synth.dataset import export as ex
+
+    frames, _ = _fake_frames(tmp_path)
+    report = verify_dataset(frames, decode=False, jobs=1)
+    assert report["ok"] and report["orphans"] == [], report["faults"]
+    (frames / "frame_000001.labels.npz").write_bytes(b"x")
+    (frames / "frame_000009.labels.npz").write_bytes(b"y")
+    report = verify_dataset(frames, decode=False, jobs=1)
+    assert not report["ok"] and len(report["faults"]) == 1 and "frame_000001.labels.npz" in report["faults"][0]
+    assert report["orphans"] == [str(frames / "frame_000009.labels.npz")]
+    with pytest.raises(ex.ExportError, match="frame_000001.labels.npz"):
+        ex.export_dataset(frames, tmp_path / "pq", "parquet", channels=["IF"], shard_rows=1)
+    assert not (tmp_path / "pq" / ex.INDEX_FILE).exists()  # no export.json: not a complete export
 
 
 def test_detection_folder_refuses_a_file_it_did_not_write_and_another_kind(tmp_path):

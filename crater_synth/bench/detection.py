@@ -17,18 +17,27 @@ than the default one (``procedural.size_px`` :data:`FIELD_PX_512`).
 256² grouped run's own rows (their real size) repeated: rewriting every row so far, as each chunk once
 did, against appending the chunk's rows, as it does now; and both totals over the run (a rewrite costs
 its bytes, so the rewrites' total is the last one's times half the chunks).
+
+``labels``: the 256² grouped run's labels as each frame's label file (columns, crater_core.detection_labels)
+against the same labels inline in its row as JSON, as rows once held them: bytes a frame (row and file
+against the inline row), the time to read a frame's labels (the label file's columns against parsing the
+inline row) and to read them as a training does (its rim circles, :func:`slim_row`: from the columns against
+from the parsed row's label dicts).
 """
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
 from crater_core import schema
+from crater_core.detection_labels import label_path, read_label_columns, with_labels
 from crater_synth.bench.renderer import stage_summary, worker_stats
 from crater_synth.config import load_settings
-from crater_synth.dataset.detection import detection_overrides, manifest_rows
+from crater_synth.dataset.detection import detection_overrides, scan_manifest
 from crater_synth.dataset.detection_run import append_rows, render_detection_frames
+from crater_synth.navigation.rendered.detector_train import slim_row
 
 FIELD_PX_512 = 1400  # check_field_fits: a 512 px frame at the grid's spacing, 45 deg off nadir
 PER_FRAME = ("detection.views_per_field=1", "detection.suns_per_view=1", "detection.azimuths_per_field=0")
@@ -61,6 +70,35 @@ def bench_manifest(rows: list[dict], work: Path, frames: int = MANIFEST_SET_FRAM
     }
 
 
+def bench_labels(folder: Path) -> dict:
+    """Label storage of the set in ``folder``: label files against the same labels inline (module docstring)."""
+    rows = [v[2] for v in scan_manifest(folder)[0].values()]
+    inline = [schema.dumps_row(with_labels(folder, r)).encode("utf-8") for r in rows]
+    file_bytes = sum(len(schema.dumps_row(r)) + 1 + label_path(folder, r).stat().st_size for r in rows)
+    inline_bytes = sum(len(line) + 1 for line in inline)
+    timings = {
+        "read_file": lambda: [read_label_columns(folder, r) for r in rows],
+        "read_inline": lambda: [json.loads(line) for line in inline],
+        "training_file": lambda: [slim_row(r, folder) for r in rows],
+        "training_inline": lambda: [slim_row(json.loads(line)) for line in inline],
+    }
+    ms = {}
+    for name, fn in timings.items():
+        t0 = time.perf_counter()
+        fn()
+        ms[name] = 1000 * (time.perf_counter() - t0) / max(1, len(rows))
+    n = max(1, len(rows))
+    return {
+        "frames": len(rows),
+        "kb_per_frame_file": round(file_bytes / n / 1024, 1),
+        "kb_per_frame_inline": round(inline_bytes / n / 1024, 1),
+        "size_ratio": round(inline_bytes / max(1, file_bytes), 2),
+        **{f"{k}_ms_per_frame": round(v, 3) for k, v in ms.items()},
+        "read_ratio": round(ms["read_inline"] / ms["read_file"], 2) if ms["read_file"] > 0 else None,
+        "training_ratio": round(ms["training_inline"] / ms["training_file"], 2) if ms["training_file"] > 0 else None,
+    }
+
+
 def _run(overrides: list[str], out: Path, frames: int) -> dict:
     settings = load_settings(detection_overrides(overrides))
     t0 = time.perf_counter()
@@ -88,7 +126,9 @@ def bench_detection(overrides, work: Path, frames: int = 256, per_frame_frames: 
             "per_frame": single,
             "ratio": round(grouped["frames_per_s"] / single["frames_per_s"], 2),
         }
-    out["manifest"] = bench_manifest(list(manifest_rows(work / "grouped_256").values()), work / "manifest")
+    rows = [v[2] for v in scan_manifest(work / "grouped_256")[0].values()]
+    out["manifest"] = bench_manifest(rows, work / "manifest")
+    out["labels"] = bench_labels(work / "grouped_256")
     return out
 
 
@@ -104,4 +144,6 @@ def summary_line(r: dict) -> str:
         ]
     m = r["manifest"]
     parts += [f"manifest_rewrite_s={m['last_chunk_rewrite_s']}", f"manifest_append_s={m['last_chunk_append_s']}"]
+    lb = r["labels"]
+    parts += [f"labels_size_ratio={lb['size_ratio']}", f"labels_training_read_ratio={lb['training_ratio']}"]
     return " ".join(parts)

@@ -21,7 +21,8 @@ ranges and shares are ``detection.*``, crater_core/settings_detection.py):
    the frame and whose projected rim spans at least :data:`MIN_RIM_SPAN_PX` pixels: the rim circle (D/2 at
    the rim's mean grid height, level with the crater's own local horizontal) projected exactly through the
    camera (:func:`crater_core.geometry.project_circles`), its lit and hidden rim fractions read from the
-   frame's ``lit`` and ``depth`` channels (:mod:`crater_core.rim_fractions`).
+   frame's ``lit`` and ``depth`` channels (:mod:`crater_core.rim_fractions`); they go to the frame's label
+   file, columns the row references (:mod:`crater_core.detection_labels`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from crater_core import exr, geometry, rim_fractions, schema
+from crater_core.detection_labels import label_file_name, with_labels, write_label_file
 from crater_core.procedural import ProceduralTerrain, generate
 from crater_core.settings import CraterSettings, replace
 from crater_core.settings_detection import DetectionSettings
@@ -43,28 +45,6 @@ from crater_synth.errors import ConfigError, UserError
 from crater_synth.terrain.procedural_patch import grid_centre_m, grid_to_enu, height_at, write_patch
 
 DETECTION_LABEL_VERSION = 1
-# A label's fields, in order, with their kinds (the typed columns of `crater-synth export --kind detection`).
-DETECTION_LABEL_FIELDS = (
-    ("id", "int"),
-    ("source", "string"),
-    ("ellipse", "ellipse"),
-    ("centre_px", "float list"),
-    ("x_m", "float"),
-    ("y_m", "float"),
-    ("diameter_m", "float"),
-    ("rim_diameter_m", "float"),
-    ("depth_m", "float"),
-    ("rim_height_m", "float"),
-    ("degradation", "float"),
-    ("class", "string"),
-    ("is_secondary", "bool"),
-    ("visible_rim_fraction", "float"),
-    ("emission_deg", "float"),
-    ("rim_inside", "bool"),
-    ("lit_rim_fraction", "float"),
-    ("occluded_rim_fraction", "float"),
-    ("occluded", "bool"),
-)
 FOOTPRINT_MARGIN = 1.1  # field half-width / footprint half-extent at least this (relief, curvature)
 PATCH_LAT, PATCH_LON = 0.0, 0.0  # where the field lies on the Moon (the Sun is set in its ENU frame)
 MIN_RIM_SPAN_PX = 3.0  # a label's projected rim spans at least this many pixels (2a)
@@ -83,9 +63,8 @@ PATCH_DIR = ".jobs/patches"  # under --out, with the worker jobs: the chunks' te
 
 # A sharded set (``detection-frames launcher=dask``): DIR/shard_NNNNN/, each an ordinary detection-frames folder
 # of a contiguous range of whole fields. By default a shard holds at most this many frames, so a folder's
-# manifest (~50 KB a frame on the default surface, ~480 KB on a 4.3 Gyr one: 100 MB and 980 MB here) and a
-# training's read of it stay bounded however large the set; a task renders it in minutes (~6 frames/s a
-# worker at 256 px), so a retried task loses little.
+# manifest, its marker's file list and a training's read of it stay bounded however large the set; a task
+# renders it in minutes (~6 frames/s a worker at 256 px), so a retried task loses little.
 MAX_SHARD_FRAMES = 2048
 SHARD_GLOB = "shard_[0-9][0-9][0-9][0-9][0-9]"
 SHARDS_KIND = "detection-shards"  # the output-folder kind of a sharded set's parent folder
@@ -397,10 +376,13 @@ def plan_field(settings, field: int, indices: list[int], patch_dir: Path) -> dic
 
 def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
     """The manifest row of one rendered frame: the worker's ``res``, the frame's terrain, Sun and camera,
-    and its labels (lit and hidden rim fractions read from the frame's EXR)."""
+    and its labels (lit and hidden rim fractions read from the frame's EXR), written to the frame's label
+    file (``frame_NNNNNN.labels.npz``) before the row names it."""
     cond, terrain = frame["cond"], frame["terrain"]
     channels = exr.read_channels(out_dir / res["rel_path"], ("lit", "depth"))
     cam = cond["camera"]
+    labels = frame_labels(terrain, cam, cond["width_px"], channels["lit"], channels["depth"])
+    label_rel = label_file_name(res["rel_path"])
     return {
         "schema_version": schema.SCHEMA_VERSION,
         "label_version": DETECTION_LABEL_VERSION,
@@ -432,7 +414,8 @@ def frame_row(frame: dict, res: dict, out_dir: Path) -> dict:
         "grouping": frame["grouping"],
         "lit_fraction": res["lit_fraction"],
         "mean_if": res["mean_if"],
-        "labels": frame_labels(terrain, cam, cond["width_px"], channels["lit"], channels["depth"]),
+        # a reference to the labels' own file (crater_core.detection_labels): ~6 x smaller than inline JSON
+        "labels": write_label_file(out_dir / label_rel, labels, label_rel),
     }
 
 
@@ -482,8 +465,10 @@ def scan_manifest(out_dir: Path, keep: Callable[[dict], Any] = lambda row: row) 
 
 
 def read_manifest(out_dir: Path) -> tuple[dict[int, dict], bool]:
-    """(frame index -> row, compact) of the detection manifest in ``out_dir`` (:func:`scan_manifest`)."""
-    found, compact = scan_manifest(out_dir)
+    """(frame index -> row with its labels inline, compact) of the detection manifest in ``out_dir``
+    (:func:`scan_manifest`; each label file read, :func:`crater_core.detection_labels.with_labels`). A large
+    set's readers stream the rows instead (:func:`scan_manifest`) and read the labels they need."""
+    found, compact = scan_manifest(out_dir, keep=lambda row: with_labels(out_dir, row))
     return {i: v[2] for i, v in found.items()}, compact
 
 

@@ -28,6 +28,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from crater_core import schema
+from crater_core.detection_labels import label_count, label_file_name, label_rel_paths
 from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import replace
 from crater_synth.dataset.detection import (
@@ -39,7 +40,6 @@ from crater_synth.dataset.detection import (
     frame_row,
     grouping,
     plan_field,
-    read_manifest,
     scan_manifest,
 )
 from crater_synth.dataset.dispatch import run_workers
@@ -62,15 +62,17 @@ def kept_rows(
     folder: OutFolder, wanted: range, on_disk: dict[int, dict] | None = None
 ) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
-    frames whose file is unchanged since this writer wrote it (listed, same size and mtime). ``on_disk``:
-    the manifest's rows or their :func:`_ref` (anything with ``rel_path``), its rows read here when not given."""
+    frames whose files (the frame, its label file) are unchanged since this writer wrote them (listed, same
+    size and mtime). ``on_disk``: the manifest's :func:`_ref` of each row (anything with ``rel_path`` and,
+    where the row has one, ``label_files``), read here when not given."""
     rows: dict[int, dict] = {}
     done: set[int] = set()
-    for i, r in (read_manifest(folder.path)[0] if on_disk is None else on_disk).items():
+    for i, r in (manifest_refs(folder.path)[0] if on_disk is None else on_disk).items():
         if i not in wanted:
             rows[i] = r
-        elif (
-            (folder.path / r["rel_path"]).is_file() and folder.files.get(r["rel_path"]) and folder.proved(r["rel_path"])
+        elif all(
+            (folder.path / rel).is_file() and folder.files.get(rel) and folder.proved(rel)
+            for rel in [r["rel_path"], *r.get("label_files", [])]
         ):
             rows[i] = r
             done.add(i)
@@ -83,9 +85,14 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
 
 
 def _kept(row: dict) -> dict:
-    """What a run keeps of a manifest row (not the row: a frame's labels run to ~0.5 MB in memory): its file
-    and what the summary counts."""
-    return {"rel_path": row["rel_path"], "mode": row.get("mode"), "labels": len(row["labels"])}
+    """What a run keeps of a manifest row (not the row: a frame's labels inline ran to ~0.5 MB in memory):
+    its files and what the summary counts."""
+    return {
+        "rel_path": row["rel_path"],
+        "label_files": label_rel_paths(row),
+        "mode": row.get("mode"),
+        "labels": label_count(row),
+    }
 
 
 def _ref(row: dict, at: tuple[int, int]) -> dict:
@@ -106,7 +113,7 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -
     render); the frames' files are listed before, their rows appended to the manifest and both sealed
     after, and their :func:`_ref` put in ``refs``."""
     frames = {i: f for field in fields for i, f in field["frames"].items()}
-    names = [frame_rel_path(i) for i in frames]
+    names = [name for i in frames for name in frame_files(i)]
     # The manifest is listed as being written while the chunk renders: a run killed while appending leaves
     # a file whose size the marker cannot know, still this writer's (OutFolder.proved).
     folder.files.pop(schema.MANIFEST_NAME, None)
@@ -125,10 +132,16 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -
         done = sorted(rows)
         for i, at in zip(done, append_rows(folder.path, [rows[i] for i in done])):
             refs[i] = _ref(rows[i], at)
-        folder.seal([*(frame_rel_path(i) for i in done), schema.MANIFEST_NAME])
+        folder.seal([*(name for i in done for name in frame_files(i)), schema.MANIFEST_NAME])
     missing = sorted(set(frames) - set(rows))
     if missing:
         raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
+
+
+def frame_files(index: int) -> list[str]:
+    """The files a run writes for frame ``index``: its EXR and its label file."""
+    rel = frame_rel_path(index)
+    return [rel, label_file_name(rel)]
 
 
 def append_rows(out_dir: Path, rows: list[dict]) -> list[tuple[int, int]]:

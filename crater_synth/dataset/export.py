@@ -52,7 +52,7 @@ import click
 
 from crater_core.progress import Progress
 from crater_core.schema import ManifestError, atomic_write_text, sha256_file
-from crater_core.verify_file import dataset_file, file_faults, rel_path_of, trusted_paths
+from crater_core.verify_file import dataset_file, file_faults, row_files, trusted_paths
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.dataset.export_shapes import (  # noqa: F401 (re-exported: part of this API)
     SHAPES,
@@ -112,25 +112,28 @@ def iter_samples(
             seen.add(key)
             check_row(kind.name, dataset_dir, row, trusted)
             arrays = kind.arrays(dataset_dir, row, channels)
+            row = kind.inline(dataset_dir, row)
+            labels = kind.labels(row)
             if shaping.layout.mode == "native":
-                yield Sample(key, kind.labels(row), row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
+                yield Sample(key, labels, row, {column_name(c): npy_bytes(arrays[c]) for c in channels})
             else:
-                yield from shaping.samples(key, kind.labels(row), row, arrays, f"dataset {dataset_dir}: {key}")
+                yield from shaping.samples(key, labels, row, arrays, f"dataset {dataset_dir}: {key}")
 
     return n * max(1, len(shaping.sigmas)), gen()
 
 
 def check_row(kind: str, dataset_dir: Path, row: dict, trusted: set[str]) -> None:
-    """verify's check of a row's file (:func:`crater_core.verify_file.file_faults` without decoding: its
-    sha256 and the labels its header carries), unless a recorded verify covers the file unchanged
+    """verify's check of a row's files (:func:`crater_core.verify_file.file_faults` without decoding: their
+    sha256 and the labels a header carries), unless a recorded verify covers the files unchanged
     (``trusted``). A path or link leading out of the dataset is refused either
     way. The first fault is an :class:`ExportError`."""
-    rel = rel_path_of(kind, row)
+    rels = row_files(kind, row)
     try:
-        dataset_file(dataset_dir, rel)
+        for rel in rels:
+            dataset_file(dataset_dir, rel)
     except ManifestError as exc:
         raise ExportError(f"dataset {dataset_dir}: {exc}: refused for export") from None
-    if rel in trusted:
+    if trusted.issuperset(rels):
         return
     faults = file_faults(kind, dataset_dir, row, decode=False)
     if faults:

@@ -23,6 +23,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import pyarrow as pa
 
+from crater_core.detection_labels import DETECTION_LABEL_FIELDS, with_labels
 from crater_core.exr import ExrError, exr_info, read_channel, read_exr, stored_dtype
 from crater_core.schema import (
     EXR_CHANNELS,
@@ -35,7 +36,6 @@ from crater_core.schema import (
     manifest_lines,
 )
 from crater_core.verify_file import KIND_FIELDS
-from crater_synth.dataset.detection import DETECTION_LABEL_FIELDS
 from crater_synth.errors import UserError
 
 
@@ -54,7 +54,9 @@ class RecordKind:
     - ``key(row)``: a unique sample key without dots or slashes (WebDataset splits names at the dot);
     - ``arrays(dataset_dir, row, channels)``: ``{channel: ndarray}``, the lossless images;
     - ``label_fields()``: ``[(name, pyarrow type)]`` of the typed label columns;
-    - ``labels(row)``: the typed label values (JSON-able) for those columns;
+    - ``labels(row)``: the typed label values (JSON-able) for those columns, of the row :attr:`inline` gives;
+    - ``inline(dataset_dir, row)``: the row as a self-contained record (a detection row's labels read from
+      the label file beside its frame; other rows as they are);
     - ``channels``: the channel names a user may ask for;
     - ``shape(dataset_dir, row)``: the (height, width) of its images (``export --shape pad``).
     """
@@ -67,6 +69,7 @@ class RecordKind:
     labels: Callable[[dict], dict]
     channels: tuple[str, ...]
     shape: Callable[[Path, dict], tuple[int, int]]
+    inline: Callable[[Path, dict], dict] = lambda _dataset_dir, row: row
 
 
 def _render_rows(dataset_dir: Path) -> tuple[int, Iterator[dict]]:
@@ -344,8 +347,8 @@ NAVFRAME = RecordKind(
 )
 
 
-# Detection frames (``crater-synth detection-frames``, docs/procedural.md): ``frame_NNNNNN.exr`` and a row per
-# frame with its camera, Sun, terrain and the labels of the procedural craters in view.
+# Detection frames (``crater-synth detection-frames``, docs/procedural.md): ``frame_NNNNNN.exr``, its label file
+# (crater_core.detection_labels) and a row per frame with its camera, Sun, terrain and the label file's reference.
 _DETECTION_REQUIRED = ("index", "rel_path", "sha256", "terrain", "labels")
 
 
@@ -427,6 +430,7 @@ DETECTION = RecordKind(
     labels=_detection_labels,
     channels=RENDER.channels,
     shape=_navframe_shape,
+    inline=with_labels,
 )
 RECORD_KINDS: dict[str, RecordKind] = {k.name: k for k in (RENDER, NAVFRAME, DETECTION)}
 

@@ -15,8 +15,9 @@ from pathlib import Path
 import click
 
 from crater_core import schema
+from crater_core.detection_labels import LABEL_FILE_SUFFIX
 from crater_core.progress import Progress
-from crater_core.verify_file import RECORD_NAME, file_faults, manifest_kind, write_record
+from crater_core.verify_file import RECORD_NAME, file_faults, manifest_kind, row_files, write_record
 from crater_synth.cli_common import user_errors
 from crater_synth.dataset.disk import JOBS_DIR, find_orphans, holder, temp_target
 from crater_synth.dataset.manifest import stale_parts
@@ -209,14 +210,15 @@ def orphan_note(path: Path, kind: str) -> str:
 
 def _verify_frames(d: Path, kind: str, decode: bool, jobs: int | None, progress: bool) -> tuple[dict, list[dict]]:
     """A nav-frames or detection-frames folder (``kind``): every row against its frame, no frame index, file
-    or content twice. Orphans are frame EXRs no row names."""
+    or content twice. Orphans are frame EXRs and label files no row names."""
     rows, faults = _frame_lines(d / schema.MANIFEST_NAME)
     for field in ("index", "rel_path", "sha256"):
         seen = Counter(str(r.get(field)) for r in rows)
         faults += [f"{d / schema.MANIFEST_NAME}: {field} {v} in {n} rows" for v, n in seen.items() if n > 1]
     faults += _check_files([(str(d), r, decode, kind) for r in rows], jobs, progress)
-    named = {str(r.get("rel_path")) for r in rows}
-    orphans = [str(f) for f in sorted(d.glob("frame_*.exr")) if f.name not in named]
+    named = {rel for r in rows for rel in row_files(kind, r)}
+    candidates = [*d.glob("frame_*.exr"), *d.glob(f"frame_*{LABEL_FILE_SUFFIX}")]
+    orphans = [str(f) for f in sorted(candidates) if f.name not in named]
     report = {
         "dataset": str(d),
         "rows": len(rows),

@@ -10,6 +10,7 @@ with its provenance (docs/navigation/detectors.md).
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 from pathlib import Path
@@ -18,6 +19,7 @@ import click
 import numpy as np
 
 from crater_core import exr
+from crater_core.detection_labels import label_ref, read_label_columns, with_labels
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
@@ -77,16 +79,41 @@ def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
     v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
     r = np.array([lm["ellipse"]["a"] for lm in lms], float)
     d = np.array([lm["diameter_km"] if "diameter_km" in lm else lm["diameter_m"] / 1000.0 for lm in lms], float)
-    lit = np.array([1.0 if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
+    lit = np.array([np.nan if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
     occluded = np.array([bool(lm.get("occluded", False)) for lm in lms], bool)
-    return u, v, r, d, (lit < MIN_LIT_RIM) | occluded
+    return u, v, r, d, hidden_rims(lit, occluded)
 
 
-def slim_row(row: dict) -> dict:
-    """A detection row with its label dicts replaced by the arrays training reads (:func:`label_circles`):
-    ~1,000 labels a frame of a dense surface are ~150 KB of Python objects, their circles ~40 KB."""
+def hidden_rims(lit: np.ndarray, occluded: np.ndarray) -> np.ndarray:
+    """Labels training treats as neither: a lit-rim fraction below ``MIN_LIT_RIM`` (NaN, unknown: lit) or
+    a rim mostly hidden by nearer relief."""
+    return (np.nan_to_num(lit, nan=1.0) < MIN_LIT_RIM) | occluded
+
+
+CIRCLE_COLUMNS = ("ellipse", "diameter_m", "lit_rim_fraction", "occluded")  # what column_circles reads
+
+
+def column_circles(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """:func:`label_circles` of a detection frame's label columns (its label file), every label."""
+    ellipse = cols["ellipse"]
+    n = len(ellipse)
+    lit = cols.get("lit_rim_fraction", np.full(n, np.nan))
+    occluded = cols.get("occluded", np.zeros(n, bool))
+    d = cols["diameter_m"] / 1000.0
+    return ellipse[:, 0].copy(), ellipse[:, 1].copy(), ellipse[:, 2].copy(), d, hidden_rims(lit, occluded)
+
+
+def slim_row(row: dict, folder: Path | None = None) -> dict:
+    """A detection row with its labels replaced by the arrays training reads (:func:`label_circles`):
+    ~1,000 labels a frame of a dense surface are ~150 KB of Python objects, their circles ~40 KB. A row
+    whose labels are in a label file (``folder``: the set's folder) has them read as columns."""
     inf = (np.inf, np.inf)
-    circles = label_circles(row, inf)
+    if label_ref(row) is not None:
+        if folder is None:
+            raise ValueError("slim_row: a row with a label file needs its folder")
+        circles = column_circles(read_label_columns(folder, row, CIRCLE_COLUMNS))
+    else:
+        circles = label_circles(row, inf)
     kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
     return kept | {"off_nadir_deg": off_nadir_deg(row), "circles": circles}
 
@@ -126,9 +153,7 @@ def detection_set_records(
     held = set(fields[len(fields) - n_hold :])
     train, hold = [], []
     for d in folders:
-        found, _ = scan_manifest(
-            d, keep=lambda row: row if row["terrain"]["field"] in held else (slim_row(row) if training else None)
-        )
+        found, _ = scan_manifest(d, keep=functools.partial(_set_row, d, held, training))
         for i in sorted(found):
             row = found[i][2]
             if row is None:
@@ -149,6 +174,14 @@ def detection_set_records(
         {"max_off_nadir_deg": max_off_nadir} if max_off_nadir < 90.0 else {}
     )
     return train, hold, what | limits
+
+
+def _set_row(folder: Path, held: set, training: bool, row: dict) -> dict | None:
+    """What :func:`detection_set_records` keeps of a row: a held-out one with its labels, a training one
+    slimmed (None when not training)."""
+    if row["terrain"]["field"] in held:
+        return with_labels(folder, row)
+    return slim_row(row, folder) if training else None
 
 
 def _recipe(folder: Path) -> str | None:
