@@ -473,10 +473,12 @@ def test_bench_detector_skips_without_a_survey(monkeypatch, tmp_path):
     assert res.exit_code == 0 and "detector skipped: no survey frames" in res.output
 
 
-def fake_detection_set(root, fields: int = 3, frames: int = 2):
+def fake_detection_set(root, fields: int = 3, frames: int = 2, label_files: bool = False):
     """A detection set as ``detection-frames`` writes it (marked folder, I/F EXRs, rows with procedural
-    labels and their field); the images are the synthetic crater fields of these tests."""
+    labels and their field; ``label_files``: the labels in each frame's label file, as the command writes
+    them today, else inline as it once did); the images are the synthetic crater fields of these tests."""
     from crater_core import exr
+    from crater_core.detection_labels import label_file_name, write_label_file
     from crater_synth.dataset.detection_run import KIND
     from crater_synth.outfolder import OutFolder
 
@@ -505,7 +507,9 @@ def fake_detection_set(root, fields: int = 3, frames: int = 2):
                     "ground_sample_m": 60.0,
                     "terrain": {"field": f},
                     "view": {"off_nadir_deg": 30.0 * (k % 2)},
-                    "labels": labels,
+                    "labels": write_label_file(root / label_file_name(rel), labels, label_file_name(rel))
+                    if label_files
+                    else labels,
                 }
             )
     (root / "manifest.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
@@ -526,6 +530,35 @@ def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
     assert summary["holdout"]["frames"] == 2 and summary["holdout"]["min_radius_px"] == cd.BAND_LO_PX
     assert "procedural" in summary["trained_on"] and summary["recipe"] == "recipe test"
     assert learned.load_model(str(out))[1]["frames_dir"] == str(frames)
+
+
+def test_a_streamed_training_reads_each_frame_when_drawn_and_learns_the_same_weights(tmp_path):
+    """nav.detector_train.stream=true: no frame is read before training (records hold where each frame and
+    label file are), the level samples are those held in memory, in their order, so the same seed draws
+    the same crops and learns the same weights, beside a survey held in memory; the hold-out scores alike."""
+    survey = fake_survey(tmp_path / "survey")
+    det = fake_detection_set(tmp_path / "det", fields=4, label_files=True)
+    s = cd.DetectorTrainSettings(steps=4, batch=3, crop_px=32, width=4, threads=1, source_shares=(0.3, 0.7))
+    held = learned_train.detection_source(det, 0.25)
+    streamed = learned_train.detection_source(det, 0.25, stream=True)
+    assert all(im is None and "circles" not in row for im, row in streamed[0] + streamed[1])
+    levels = learned_train.StreamedFrames([row for _, row in streamed[0]])
+    circles = [learned_train.label_circles(row, im.shape) for im, row in held[0]]
+    in_memory = [x for (im, _), (u, v, r, _, h) in zip(held[0], circles) for x in cd.level_samples(im, u, v, r, h)]
+    assert len(levels) == len(in_memory) and all(
+        np.array_equal(a.image, b.image) and np.array_equal(a.r, b.r) and np.array_equal(a.hidden, b.hidden)
+        for a, b in zip(levels, in_memory)
+    )
+    survey_source = learned_train.survey_source(survey, holdout=1)
+    a = learned_train.train_from_sources([survey_source, held], tmp_path / "a.pt", s)
+    b = learned_train.train_from_sources(
+        [survey_source, streamed], tmp_path / "b.pt", dataclasses.replace(s, stream=True)
+    )
+    wa, wb = (cd.load_model(tmp_path / f"{n}.pt")[0].state_dict() for n in "ab")
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert a["level_samples"] == b["level_samples"] and a["sources"][1]["holdout"] == b["sources"][1]["holdout"]
+    with pytest.raises(ValueError, match="stream"):
+        cd.DetectorTrainSettings(arch="fcos", stream=True)
 
 
 def test_source_shares_set_each_folders_share_of_the_draws():

@@ -26,6 +26,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -101,6 +102,17 @@ def pyramid(image: np.ndarray, first_level: int = 0, min_px: int = MIN_LEVEL_PX)
         a = decimate2(a)
         level += 1
     return out
+
+
+def level_count(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> int:
+    """How many levels :func:`pyramid` gives an image of ``shape`` (without the image: a training set read
+    from disk counts its samples before reading a frame)."""
+    h, w = (int(n) for n in shape)
+    n, level = 0, 0
+    while min(h, w) >= min_px:
+        n += int(level >= first_level)
+        h, w, level = h // 2, w // 2, level + 1
+    return n
 
 
 def standardise(a: np.ndarray) -> np.ndarray:
@@ -312,14 +324,16 @@ def augment_brightness(
 
 
 def _batch(
-    samples: list[LevelSample],
-    tops: list[float],
+    samples: Sequence[LevelSample],
+    tops: list[float] | None,
     s: DetectorTrainSettings,
     rng: np.random.Generator,
     p: np.ndarray | None = None,
 ) -> torch.Tensor:
     """A batch of random ``crop_px`` crops of random level samples (drawn with probabilities ``p``; None:
-    uniformly), each rotated and mirrored at random; a level smaller than the crop is padded (no loss)."""
+    uniformly), each rotated and mirrored at random; a level smaller than the crop is padded (no loss).
+    ``tops``: each sample's brightness scale, None to take it from each drawn sample (samples read from
+    disk when drawn: the same values, computed per draw)."""
     c = s.crop_px
     crops = []
     picks = rng.integers(0, len(samples), s.batch) if p is None else rng.choice(len(samples), s.batch, p=p)
@@ -327,7 +341,8 @@ def _batch(
         x = samples[int(i)]
         h, w = (max(n, c) for n in x.image.shape)
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        t = torch.from_numpy(crop_stack(x, tops[int(i)], i0, j0, c, c))
+        top = tops[int(i)] if tops is not None else brightness_top(x.image)
+        t = torch.from_numpy(crop_stack(x, top, i0, j0, c, c))
         crops.append(dihedral(t, int(rng.integers(4)), bool(rng.integers(2))))
     return torch.stack(crops)
 
@@ -389,13 +404,15 @@ def fit(build, samples: list, settings: DetectorTrainSettings, step_loss, log=No
 
 
 def train_detector(
-    samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
+    samples: Sequence[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
 ) -> dict:
-    """Train :class:`CraterNet` on level samples (:func:`fit`). Each drawn crop's targets are computed for
-    the crop alone (:func:`crop_stack`), so memory holds the level images and their craters, not full
-    target stacks; augmentation is a tensor operation on ``device``. ``source`` (an index per sample) with
-    ``settings.source_shares`` sets each source's share of the draws."""
-    tops = [brightness_top(x.image) for x in samples]
+    """Train :class:`CraterNet` on level samples (:func:`fit`): a list held in memory, or any sequence that
+    builds each sample when drawn (frames read from disk: memory flat in the number of frames). Each drawn
+    crop's targets are computed for the crop alone (:func:`crop_stack`), so memory holds the level images and
+    their craters, not full target stacks; augmentation is a tensor operation on ``device``. ``source`` (an
+    index per sample) with ``settings.source_shares`` sets each source's share of the draws."""
+    # a list is held in memory: its brightness scales once; a sequence read from disk when drawn: per draw
+    tops = [brightness_top(x.image) for x in samples] if isinstance(samples, list) else None
 
     def step_loss(model, rng, p, gen):
         t = _batch(samples, tops, settings, rng, p).to(device)

@@ -102,7 +102,7 @@ def nav_detector_train_command(frames_dir, more_dirs, real_windows, out, device,
         if not Path(settings.init).is_file():
             raise UserError(f"nav.detector_train.init={settings.init}: no such model file")
         learned.load_model(settings.init)  # a corrupt or foreign file: one line, before any frame is read
-    sources = [frames_source(d, settings.frames, settings.max_off_nadir_deg) for d in frames_dirs] + (
+    sources = [frames_source(d, settings.frames, settings.max_off_nadir_deg, settings.stream) for d in frames_dirs] + (
         [real_source()] if real_windows else []
     )
     summary = train_from_sources(

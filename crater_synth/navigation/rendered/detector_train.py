@@ -14,6 +14,7 @@ import functools
 import json
 import subprocess
 from pathlib import Path
+from typing import Sequence
 
 import click
 import numpy as np
@@ -131,6 +132,7 @@ def detection_set_records(
     max_off_nadir: float = 90.0,
     training: bool = True,
     frames_key: str = "nav.detector_train.frames",
+    stream: bool = False,
 ) -> tuple[list, list, dict]:
     """(training records, held-out records, what they are) of a detection set (or a sharded one: its shard
     folders together): (I/F image, row) of every frame, the frames of the last ``holdout_share`` of its
@@ -141,7 +143,9 @@ def detection_set_records(
     on the same fields. ``max_off_nadir`` < 90: only training frames viewed at most that many degrees off
     nadir (before ``max_frames`` counts them), the hold-out unchanged. ``training=False``: the held-out
     frames only (scoring a model: a large set's training images need not be read). ``frames_key``: the
-    setting that asked for ``max_frames``, named when the set has fewer."""
+    setting that asked for ``max_frames``, named when the set has fewer. ``stream``: no image is read and no
+    label kept; each record is (None, :func:`streamed_row`), read when used (:class:`StreamedFrames`,
+    :func:`record_frame`)."""
     folders = shard_folders(folder) if marker_kind(folder) == SHARDS_KIND else [folder]
     fields_in = [
         {f for _, _, f in scan_manifest(d, keep=lambda row: row["terrain"]["field"])[0].values()} for d in folders
@@ -153,7 +157,7 @@ def detection_set_records(
     held = set(fields[len(fields) - n_hold :])
     train, hold = [], []
     for d in folders:
-        found, _ = scan_manifest(d, keep=functools.partial(_set_row, d, held, training))
+        found, _ = scan_manifest(d, keep=functools.partial(_set_row, d, held, training, stream))
         for i in sorted(found):
             row = found[i][2]
             if row is None:
@@ -161,7 +165,8 @@ def detection_set_records(
             is_held = row["terrain"]["field"] in held
             if not is_held and (0 < max_frames <= len(train) or off_nadir_deg(row) > max_off_nadir):
                 continue
-            (hold if is_held else train).append((exr.read_channel(d / row["rel_path"], "IF"), row))
+            image = None if stream else exr.read_channel(d / row["rel_path"], "IF")
+            (hold if is_held else train).append((image, row))
     within = f" within {max_off_nadir:g} degrees of nadir" if max_off_nadir < 90.0 else ""
     if training and len(train) < max(max_frames, 1):
         asked = f"{frames_key}={max_frames}" if max_frames else "training needs frames"
@@ -176,12 +181,91 @@ def detection_set_records(
     return train, hold, what | limits
 
 
-def _set_row(folder: Path, held: set, training: bool, row: dict) -> dict | None:
+def _set_row(folder: Path, held: set, training: bool, stream: bool, row: dict) -> dict | None:
     """What :func:`detection_set_records` keeps of a row: a held-out one with its labels, a training one
-    slimmed (None when not training)."""
-    if row["terrain"]["field"] in held:
-        return with_labels(folder, row)
-    return slim_row(row, folder) if training else None
+    slimmed (None when not training); streamed, either one's :func:`streamed_row`."""
+    is_held = row["terrain"]["field"] in held
+    if not (is_held or training):
+        return None
+    if stream:
+        return streamed_row(row, folder)
+    return with_labels(folder, row) if is_held else slim_row(row, folder)
+
+
+def streamed_row(row: dict, folder: Path) -> dict:
+    """A detection row as a streamed training keeps it: where its frame and labels are (the label file's
+    reference; a row with inline labels keeps their circles, :func:`slim_row`) and what selection reads."""
+    kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
+    width = (row.get("camera_enu") or {}).get("width_px")
+    kept |= {"off_nadir_deg": off_nadir_deg(row), "folder": folder, "width_px": width}
+    ref = label_ref(row)
+    return kept | ({"labels": ref} if ref is not None else {"circles": slim_row(row)["circles"]})
+
+
+def record_frame(record: tuple) -> tuple[np.ndarray, dict]:
+    """(I/F image, row with its labels) of a training or held-out record, read now if it was streamed."""
+    image, row = record
+    if image is not None:
+        return image, row
+    folder = row["folder"]
+    return exr.read_channel(folder / row["rel_path"], "IF"), with_labels(folder, row)
+
+
+def streamed_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
+    """:func:`label_circles` of a :func:`streamed_row`: its rim columns read from its label file."""
+    if "circles" in row:
+        return label_circles(row, shape)
+    circles = column_circles(read_label_columns(row["folder"], row, CIRCLE_COLUMNS))
+    return label_circles({"circles": circles}, shape)
+
+
+class StreamedFrames(Sequence):
+    """The level samples of streamed detection records (:func:`detection_set_records` with ``stream``), in
+    the order a list of them held in memory has (frame by frame, level by level), each built when drawn: its
+    frame's EXR and rim columns read, its pyramid made. Memory holds a few fields a frame."""
+
+    def __init__(self, rows: list[dict]):
+        from train.crater_detector import level_count
+
+        self.rows = rows
+        counts = [level_count(self._shape(r)) for r in rows]
+        self.first = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
+
+    @staticmethod
+    def _shape(row: dict) -> tuple[int, int]:
+        if row.get("width_px"):
+            return int(row["width_px"]), int(row["width_px"])
+        info = exr.exr_info(row["folder"] / row["rel_path"], decode=False)
+        return int(info["height"]), int(info["width"])
+
+    def __len__(self) -> int:
+        return int(self.first[-1])
+
+    def __getitem__(self, i):
+        from train.crater_detector import level_samples
+
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        j = int(np.searchsorted(self.first, i, side="right")) - 1
+        row = self.rows[j]
+        image = exr.read_channel(row["folder"] / row["rel_path"], "IF")
+        u, v, r, _, hidden = streamed_circles(row, image.shape)
+        return level_samples(image, u, v, r, hidden)[i - int(self.first[j])]
+
+
+class ChainedSamples(Sequence):
+    """Several sources' level samples as one sequence (a list held in memory, :class:`StreamedFrames`)."""
+
+    def __init__(self, parts: list):
+        self.parts = parts
+        self.first = np.concatenate([[0], np.cumsum([len(p) for p in parts], dtype=np.int64)])
+
+    def __len__(self) -> int:
+        return int(self.first[-1])
+
+    def __getitem__(self, i):
+        j = int(np.searchsorted(self.first, i, side="right")) - 1
+        return self.parts[j][i - int(self.first[j])]
 
 
 def _recipe(folder: Path) -> str | None:
@@ -210,7 +294,8 @@ def frame_counts(image, row: dict, params, min_d_km: float = 15.0, min_r_px: flo
 
 def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0.0) -> dict:
     """Detection recall and precision over ``records`` (:func:`frame_counts`, every label counted)."""
-    tp_t, n_t, tp_d, n_d = np.sum([frame_counts(im, row, params, min_d_km, min_r_px) for im, row in records], 0)
+    counts = [frame_counts(*record_frame(rec), params, min_d_km, min_r_px) for rec in records]
+    tp_t, n_t, tp_d, n_d = np.sum(counts, 0)
     return {
         "frames": len(records),
         "recall": round(tp_t / n_t, 4) if n_t else None,
@@ -251,15 +336,21 @@ def survey_source(frames_dir: Path, holdout: int = HOLDOUT_TRACKS) -> tuple[list
 
 
 def detection_source(
-    folder: Path, holdout_share: float = HOLDOUT_FIELD_SHARE, max_frames: int = 0, max_off_nadir: float = 90.0
+    folder: Path,
+    holdout_share: float = HOLDOUT_FIELD_SHARE,
+    max_frames: int = 0,
+    max_off_nadir: float = 90.0,
+    stream: bool = False,
 ) -> tuple[list, list, dict, dict]:
     """(training records, held-out records, what they are, scoring) of a detection set (procedural crater
     fields only): the last ``holdout_share`` of its fields held out and scored over every rim of the
     network's band and up (a 38 km field holds few craters of D >= 15 km); ``max_frames`` and
-    ``max_off_nadir``: as :func:`detection_set_records`."""
+    ``max_off_nadir`` and ``stream``: as :func:`detection_set_records`."""
     from train.crater_detector import BAND_LO_PX
 
-    train_records, holdout_records, what = detection_set_records(folder, holdout_share, max_frames, max_off_nadir)
+    train_records, holdout_records, what = detection_set_records(
+        folder, holdout_share, max_frames, max_off_nadir, stream=stream
+    )
     what = {
         "kind": "procedural",
         "trained_on": "procedural detection frames only (crater-synth detection-frames); no real pixel, no DEM",
@@ -275,12 +366,14 @@ SOURCE_NAMES = {
 }
 
 
-def frames_source(frames_dir: Path, max_frames: int = 0, max_off_nadir: float = 90.0) -> tuple[list, list, dict, dict]:
+def frames_source(
+    frames_dir: Path, max_frames: int = 0, max_off_nadir: float = 90.0, stream: bool = False
+) -> tuple[list, list, dict, dict]:
     """:func:`detection_source` or :func:`survey_source`, by the folder's marker; ``max_frames``
-    (``nav.detector_train.frames``) applies to a detection set only, ``max_off_nadir``
-    (``nav.detector_train.max_off_nadir_deg``) keeps every survey frame (nadir)."""
+    (``nav.detector_train.frames``) and ``stream`` (``nav.detector_train.stream``) apply to a detection set
+    only, ``max_off_nadir`` (``nav.detector_train.max_off_nadir_deg``) keeps every survey frame (nadir)."""
     if marker_kind(frames_dir) in (DETECTION_KIND, SHARDS_KIND):
-        return detection_source(frames_dir, max_frames=max_frames, max_off_nadir=max_off_nadir)
+        return detection_source(frames_dir, max_frames=max_frames, max_off_nadir=max_off_nadir, stream=stream)
     if max_frames:
         raise UserError(f"{frames_dir}: nav.detector_train.frames applies to detection sets, not to survey frames")
     return survey_source(frames_dir)
@@ -327,13 +420,18 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     from train.crater_detector import level_samples, settings_dict
 
     train, save_model, scoring_params = architecture(settings.arch)
-    samples, source = [], []
+    parts, source = [], []
     for k, (train_records, _, _, _) in enumerate(sources):
-        for image, row in train_records:
+        held = [(image, row) for image, row in train_records if image is not None]
+        levels: list | StreamedFrames = []
+        for image, row in held:
             u, v, r, _, hidden = label_circles(row, image.shape)
-            levels = level_samples(image, u, v, r, hidden)
-            samples.extend(levels)
-            source.extend([k] * len(levels))
+            levels.extend(level_samples(image, u, v, r, hidden))
+        if len(held) < len(train_records):  # streamed records (detection_set_records(stream=True))
+            levels = StreamedFrames([row for image, row in train_records if image is None])
+        parts.append(levels)
+        source.extend([k] * len(levels))
+    samples = [x for p in parts for x in p] if all(isinstance(p, list) for p in parts) else ChainedSamples(parts)
     result = train(samples, settings, log=log, device=device, source=np.asarray(source, int))
     run = {
         "train_frames": sum(len(s[0]) for s in sources),
