@@ -535,35 +535,42 @@ def test_a_stopped_run_resumes_to_the_manifest_of_an_uninterrupted_one(tmp_path,
 
 
 def test_a_hard_killed_run_leaves_a_readable_manifest_and_resumes(tmp_path, monkeypatch):
-    """Killed halfway through appending its second chunk's rows (no compaction, no seal): the torn line is
-    dropped, the folder is still the writer's, the export refuses the uncompacted manifest in one line,
-    and the rerun renders the second chunk and compacts to the uninterrupted run's bytes."""
+    """Killed halfway through appending the row of its second chunk's third frame (no compaction, no seal,
+    no fsync): the torn line is dropped, the folder is still the writer's, the export refuses the
+    uncompacted manifest in one line, and the rerun keeps a frame of that chunk whose row was written and
+    whose never-sealed files hash to it (then seals them), renders the others (one whose file no longer
+    hashes to its row among them) and compacts to the uninterrupted run's bytes."""
     from crater_synth.dataset import export as ex
 
     _fake_workers(monkeypatch)
     _tiny(tmp_path, "whole")
     real_append = R.append_rows
 
-    def torn_append(out_dir, rows):
-        if rows and rows[0]["index"] >= 4:
+    def torn_append(out_dir, rows, sync=True):
+        if rows and rows[0]["index"] >= 6:
             with open(out_dir / schema.MANIFEST_NAME, "a") as fh:
-                fh.write(schema.dumps_row(rows[0])[:999])  # torn in its first row
+                fh.write(schema.dumps_row(rows[0])[:99])  # torn in its first row
             raise _Killed
-        return real_append(out_dir, rows)
+        return real_append(out_dir, rows, sync)
 
     monkeypatch.setattr(R, "append_rows", torn_append)
     monkeypatch.setattr(R, "_write_manifest", lambda *_: None)  # a killed run compacts nothing
+    monkeypatch.setattr(R, "_end_chunk", lambda *_: None)  # nor fsyncs and seals its chunk
     with pytest.raises(_Killed):
         _tiny(tmp_path, "killed")
     out = tmp_path / "killed"
     rows, compact = D.read_manifest(out)
-    assert sorted(rows) == [0, 1, 2, 3] and not compact
+    assert sorted(rows) == [0, 1, 2, 3, 4, 5] and not compact
     with pytest.raises(ex.ExportError, match="rerun that command"):
         ex.export_dataset(out, tmp_path / "pq", "parquet", channels=["IF"])
     monkeypatch.undo()
+    (out / D.frame_rel_path(5)).write_bytes(b"not what its row hashed")  # listed, never sealed: the run's own
     calls = _fake_workers(monkeypatch)
-    assert _tiny(tmp_path, "killed")["rendered"] == 4 and calls == [[4, 5, 6, 7]]
+    summary = _tiny(tmp_path, "killed")
+    assert summary["rendered"] == 3 and summary["kept"] == 5 and calls == [[5, 6, 7]]
     _same_set(tmp_path / "whole", out)
+    stamps = json.loads((out / ".crater-synth-detection-frames").read_text())["files"]
+    assert all(stamps[n] for i in (4, 5) for n in R.frame_files(i))  # sealed: a later run need not hash them
 
 
 def test_a_manifest_with_a_torn_last_line_and_a_repeated_index_reads_each_frame_once(tmp_path):
@@ -625,15 +632,15 @@ def test_the_command_renders_a_sharded_set_with_launcher_dask(tmp_path, monkeypa
 
 
 def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, monkeypatch):
-    """Each chunk appends only its own rows; the whole file is written once, when the run ends: the run
+    """Each frame appends only its own row; the whole file is written once, when the run ends: the run
     writes the manifest's bytes twice in all, whatever the number of chunks (a rewrite per chunk: O(chunks x
     rows))."""
     appended, compactions = [], []
     real_append, real_write = R.append_rows, R._write_manifest
 
-    def count_append(out_dir, rows):
+    def count_append(out_dir, rows, sync=True):
         appended.append(sum(len(schema.dumps_row(r)) + 1 for r in rows))
-        return real_append(out_dir, rows)
+        return real_append(out_dir, rows, sync)
 
     def count_write(folder, rows):
         compactions.append(len(rows))
@@ -644,8 +651,8 @@ def test_the_manifest_is_written_once_per_chunk_and_compacted_once(tmp_path, mon
     calls = _fake_workers(monkeypatch)
     _tiny(tmp_path, "set", frames=16)
     size = (tmp_path / "set" / schema.MANIFEST_NAME).stat().st_size
-    assert len(calls) == len(appended) == 4 and compactions == [16]
-    assert sum(appended) == size and max(appended) < size / 3
+    assert len(calls) == 4 and len(appended) == 16 and compactions == [16]
+    assert sum(appended) == size and max(appended) < size / 12
 
 
 # --------------------------------------------------------------------------------------------

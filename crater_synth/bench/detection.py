@@ -15,8 +15,9 @@ than the default one (``procedural.size_px`` :data:`FIELD_PX_512`).
 
 ``manifest``: the manifest's cost at the last chunk of a :data:`MANIFEST_SET_FRAMES`-frame run, with the
 256² grouped run's own rows (their real size) repeated: rewriting every row so far, as each chunk once
-did, against appending the chunk's rows, as it does now; and both totals over the run (a rewrite costs
-its bytes, so the rewrites' total is the last one's times half the chunks).
+did, against appending the chunk's rows one frame at a time with one fsync, as it does now; and both
+totals over the run (a rewrite costs its bytes, so the rewrites' total is the last one's times half the
+chunks).
 
 ``labels``: the 256² grouped run's labels as each frame's label file (columns, crater_core.detection_labels)
 against the same labels inline in its row as JSON, as rows once held them: bytes a frame (row and file
@@ -28,6 +29,7 @@ from the parsed row's label dicts).
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -55,7 +57,10 @@ def bench_manifest(rows: list[dict], work: Path, frames: int = MANIFEST_SET_FRAM
     schema.atomic_write_text(work / "rewritten.jsonl", "".join(schema.dumps_row(r) + "\n" for r in many))
     rewrite = time.perf_counter() - t0
     t0 = time.perf_counter()
-    append_rows(work, many[-chunk:])
+    for row in many[-chunk:]:  # as a run appends: each frame's row as it is labelled, one fsync a chunk
+        append_rows(work, [row], sync=False)
+    with open(work / schema.MANIFEST_NAME, "ab") as fh:
+        os.fsync(fh.fileno())
     append = time.perf_counter() - t0
     chunks = frames // chunk
     return {

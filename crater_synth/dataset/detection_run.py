@@ -5,13 +5,16 @@
   marker names the set's recipe (:func:`recipe_key`: every setting that can change a pixel or a label, the
   frame width and the grouping), so frames of two recipes never mix; a folder holding a file the command
   did not write is refused; one writer at a time.
-- **Resumption**: a frame whose row is in the manifest and whose file is unchanged since it was written is
-  kept; the others of the requested range are rendered. Each chunk of fields appends its rows to the
-  manifest (one write and fsync: O(chunk) bytes, where a rewrite would be O(rows so far)); the run
-  compacts it (sorted, one row per frame, rows outside the range kept, rewritten atomically) once when
-  it ends, normally or stopped by an exception or signal, copying each row's line from where it lies
-  (a run holds a few numbers a frame, not its labels). A hard-killed run leaves an appended file, which
-  the next run reads (:func:`crater_synth.dataset.detection.scan_manifest`) and compacts.
+- **Resumption**: a frame whose row is in the manifest and whose files (frame, label file) are unchanged
+  since they were written is kept; the others of the requested range are rendered. Each frame's row is
+  appended to the manifest as soon as it is labelled (its own bytes, flushed; one fsync a chunk), where a
+  rewrite would cost O(rows so far); the run compacts it (sorted, one row per frame, rows outside the
+  range kept, rewritten atomically) once when it ends, normally or stopped by an exception or signal,
+  copying each row's line from where it lies (a run holds a few numbers a frame, not its rows). A
+  hard-killed run leaves an appended file, which the next run reads
+  (:func:`crater_synth.dataset.detection.scan_manifest`) and compacts; its last chunk's files were never
+  sealed, so each of its frames with a row is kept when its files hash to the row (:func:`kept_rows`):
+  a kill loses only the frames not yet labelled.
 - **Pipelining**: while the workers render one chunk of fields, a second process generates the next
   chunk's fields and writes their patches (``generate`` and the patch take ~1 s per field, which would
   otherwise leave the workers idle between chunks).
@@ -28,7 +31,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from crater_core import schema
-from crater_core.detection_labels import label_count, label_file_name, label_rel_paths
+from crater_core.detection_labels import label_count, label_file_name, label_ref, label_rel_paths
 from crater_core.horizon import HORIZON_VERSION
 from crater_core.settings import replace
 from crater_synth.dataset.detection import (
@@ -70,13 +73,25 @@ def kept_rows(
     for i, r in (manifest_refs(folder.path)[0] if on_disk is None else on_disk).items():
         if i not in wanted:
             rows[i] = r
-        elif all(
-            (folder.path / rel).is_file() and folder.files.get(rel) and folder.proved(rel)
-            for rel in [r["rel_path"], *r.get("label_files", [])]
-        ):
+        elif all(_unchanged(folder, rel, sha) for rel, sha in _files_and_hashes(r)):
             rows[i] = r
             done.add(i)
     return rows, done
+
+
+def _files_and_hashes(ref: dict) -> list[tuple[str, str | None]]:
+    """(file, its sha256 in the row) of a :func:`_ref`: the frame and its label file."""
+    return [(ref["rel_path"], ref.get("sha256")), *zip(ref.get("label_files", []), ref.get("label_sha256", []))]
+
+
+def _unchanged(folder: OutFolder, rel: str, sha: str | None) -> bool:
+    """``rel`` is as this writer wrote it: sealed and unchanged since (size and mtime), or, listed but never
+    sealed (a hard-killed run wrote it and then its row), hashing to the row's sha256."""
+    if not (folder.path / rel).is_file() or rel not in folder.files:
+        return False
+    if folder.files[rel]:
+        return folder.proved(rel)
+    return sha is not None and schema.sha256_file(folder.path / rel) == sha
 
 
 def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
@@ -87,9 +102,12 @@ def _plan_chunk(settings, by_field: dict[int, list[int]], chunk_dir: Path):
 def _kept(row: dict) -> dict:
     """What a run keeps of a manifest row (not the row: a frame's labels inline ran to ~0.5 MB in memory):
     its files and what the summary counts."""
+    ref = label_ref(row)
     return {
         "rel_path": row["rel_path"],
+        "sha256": row.get("sha256"),
         "label_files": label_rel_paths(row),
+        "label_sha256": [] if ref is None else [ref.get("sha256")],
         "mode": row.get("mode"),
         "labels": label_count(row),
     }
@@ -110,8 +128,10 @@ def manifest_refs(out_dir: Path) -> tuple[dict[int, dict], bool]:
 
 def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -> None:
     """Render the planned ``fields``, labelling each frame as it arrives (the host labels while the workers
-    render); the frames' files are listed before, their rows appended to the manifest and both sealed
-    after, and their :func:`_ref` put in ``refs``."""
+    render) and appending its row to the manifest then (flushed: a killed process loses no row it wrote;
+    fsynced once at the chunk's end); the frames' files are listed before and sealed after
+    (:func:`_end_chunk`), and each frame's :func:`_ref` put in ``refs``. A hard-killed run's rows name files
+    it never sealed; the next run keeps such a frame when its files hash to its row (:func:`kept_rows`)."""
     frames = {i: f for field in fields for i, f in field["frames"].items()}
     names = [name for i in frames for name in frame_files(i)]
     # The manifest is listed as being written while the chunk renders: a run killed while appending leaves
@@ -120,20 +140,19 @@ def _render_chunk(settings, fields: list[dict], folder: OutFolder, refs: dict) -
     folder.record([schema.MANIFEST_NAME, *names])
     for i in frames:
         refs.pop(i, None)
-    rows: dict[int, dict] = {}
+    done: list[int] = []
 
     def on_result(_job, _plan, result):
         idx = int(result["index"])
-        rows[idx] = frame_row(frames[idx], result, folder.path)
+        row = frame_row(frames[idx], result, folder.path)
+        refs[idx] = _ref(row, append_rows(folder.path, [row], sync=False)[0])
+        done.append(idx)
 
     try:
         run_workers([f["job"] for f in fields], settings.render, settings.hapke, folder.path, on_result)
     finally:
-        done = sorted(rows)
-        for i, at in zip(done, append_rows(folder.path, [rows[i] for i in done])):
-            refs[i] = _ref(rows[i], at)
-        folder.seal([*(name for i in done for name in frame_files(i)), schema.MANIFEST_NAME])
-    missing = sorted(set(frames) - set(rows))
+        _end_chunk(folder, done)
+    missing = sorted(set(frames) - set(done))
     if missing:
         raise UserError(f"detection frames {missing} were not rendered (see {folder.path}/.jobs/*.log)")
 
@@ -144,9 +163,17 @@ def frame_files(index: int) -> list[str]:
     return [rel, label_file_name(rel)]
 
 
-def append_rows(out_dir: Path, rows: list[dict]) -> list[tuple[int, int]]:
-    """Append ``rows`` to the manifest in one write, flushed and fsynced (a chunk's rows are durable
-    before the next chunk starts); returns where each line lies (byte offset, length)."""
+def _end_chunk(folder: OutFolder, done: list[int]) -> None:
+    """The manifest's appended rows made durable (one fsync a chunk) and the chunk's files sealed."""
+    with open(folder.path / schema.MANIFEST_NAME, "ab") as fh:
+        os.fsync(fh.fileno())
+    folder.seal([*(name for i in sorted(done) for name in frame_files(i)), schema.MANIFEST_NAME])
+
+
+def append_rows(out_dir: Path, rows: list[dict], sync: bool = True) -> list[tuple[int, int]]:
+    """Append ``rows`` to the manifest in one write, flushed (a killed process loses none of them) and,
+    with ``sync``, fsynced (durable through a power loss); returns where each line lies (byte offset,
+    length)."""
     if not rows:
         return []
     lines = [(schema.dumps_row(r) + "\n").encode("utf-8") for r in rows]
@@ -154,7 +181,8 @@ def append_rows(out_dir: Path, rows: list[dict]) -> list[tuple[int, int]]:
         offset = os.fstat(fh.fileno()).st_size
         fh.write(b"".join(lines))
         fh.flush()
-        os.fsync(fh.fileno())
+        if sync:
+            os.fsync(fh.fileno())
     at = []
     for line in lines:
         at.append((offset, len(line)))
@@ -253,6 +281,9 @@ def render_detection_frames(settings, out_dir: Path, n_frames: int, start: int =
         wanted = range(start, start + n_frames)
         on_disk, compact = manifest_refs(folder.path)
         refs, done = kept_rows(folder, wanted, on_disk)
+        proved = [rel for i in done for rel, _ in _files_and_hashes(refs[i]) if not folder.files.get(rel)]
+        if proved:  # a hard-killed run's frames, proved by their hashes: sealed now, so no later run hashes them
+            folder.seal(proved)
         if not compact:  # a hard-killed run's appended file: compacted before anything is appended to it
             _write_manifest(folder, refs)
         by_field: dict[int, list[int]] = {}
