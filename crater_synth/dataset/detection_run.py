@@ -65,9 +65,9 @@ def kept_rows(
     folder: OutFolder, wanted: range, on_disk: dict[int, dict] | None = None
 ) -> tuple[dict[int, dict], set[int]]:
     """(the manifest's rows to keep, the wanted frames among them): rows outside ``wanted``, and wanted
-    frames whose files (the frame, its label file) are unchanged since this writer wrote them (listed, same
-    size and mtime). ``on_disk``: the manifest's :func:`_ref` of each row (anything with ``rel_path`` and,
-    where the row has one, ``label_files``), read here when not given."""
+    frames whose files (the frame, its label file) are unchanged since this writer wrote them
+    (:func:`_unchanged`: sealed with the same size and mtime, or never sealed and hashing to the row).
+    ``on_disk``: the manifest's :func:`_ref` of each row, read here when not given."""
     rows: dict[int, dict] = {}
     done: set[int] = set()
     for i, r in (manifest_refs(folder.path)[0] if on_disk is None else on_disk).items():
