@@ -222,7 +222,7 @@ def streamed_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
 class StreamedFrames(Sequence):
     """The level samples of streamed detection records (:func:`detection_set_records` with ``stream``), in
     the order a list of them held in memory has (frame by frame, level by level), each built when drawn: its
-    frame's EXR and rim columns read, its pyramid made. Memory holds a few fields a frame."""
+    frame's EXR and rim columns read, its pyramid made. Memory holds a few values a frame, no image."""
 
     def __init__(self, rows: list[dict]):
         from train.crater_detector import level_count
