@@ -25,7 +25,7 @@ from crater_synth.errors import UserError
 @click.option("--start", type=int, default=0, show_default=True, help="Index of the first frame.")
 @user_errors
 def detection_frames_command(overrides, out, n_frames, start):
-    """Render labelled detection frames of procedural crater fields (EXR + manifest), resumably.
+    """Render labelled detection frames of procedural crater fields (EXR, label file + manifest), resumably.
 
     Each frame draws its field (procedural.*, default procedural=detection), Sun and view (detection.*, default
     detection=default: conditions and grouping) from the run seed and its index. Example:
