@@ -179,8 +179,8 @@ def decode(data: bytes, what: str, names: Iterable[str] | None = None) -> dict[s
     only when asked for, ~65 us each); anything else is one LabelFileError naming ``what``."""
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            wanted = npz.files if names is None else [k for k in npz.files if k in set(names) | {"format"}]
-            cols = {k: npz[k] for k in wanted}
+            keep = None if names is None else {*names, "format"}
+            cols = {k: npz[k] for k in npz.files if keep is None or k in keep}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
         raise LabelFileError(f"{what}: not a detection label file ({exc})") from None
     if int(cols.pop("format", -1)) != LABEL_FILE_FORMAT:
@@ -199,15 +199,16 @@ def read_label_columns(
     path = label_path(dataset_dir, row)
     if path is None:
         cols = to_columns(row.get("labels") or [])
-        return cols if names is None else {k: v for k, v in cols.items() if k in set(names)}
+        keep = None if names is None else set(names)
+        return {k: v for k, v in cols.items() if keep is None or k in keep}
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise LabelFileError(f"{path}: cannot read the frame's labels ({exc.strerror or exc})") from None
     cols = decode(data, str(path), names)
-    n = len(next(iter(cols.values()))) if cols else 0
-    if n != label_count(row):
-        raise LabelFileError(f"{path}: {n} labels, the row says {label_count(row)}")
+    fault = _count_fault(cols, row, path)
+    if fault:
+        raise LabelFileError(fault)
     return cols
 
 
@@ -243,5 +244,11 @@ def label_file_faults(dataset_dir: str | os.PathLike, row: dict, sha: bool = Tru
         cols = decode(data, str(path))
     except LabelFileError as exc:
         return [str(exc)]
+    fault = _count_fault(cols, row, path)
+    return [fault] if fault else []
+
+
+def _count_fault(cols: dict[str, np.ndarray], row: dict, path: Path) -> str | None:
+    """The fault of label columns whose length is not the row's count (None when it is)."""
     n = len(next(iter(cols.values()))) if cols else 0
-    return [] if n == label_count(row) else [f"{path}: {n} labels, the row says {label_count(row)}"]
+    return None if n == label_count(row) else f"{path}: {n} labels, the row says {label_count(row)}"
