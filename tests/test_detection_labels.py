@@ -14,7 +14,7 @@ from crater_core.verify_file import row_files
 from crater_synth.config import load_settings
 from crater_synth.dataset import detection as D
 from crater_synth.dataset import detection_run as R
-from crater_synth.navigation.rendered import detector_train
+from crater_synth.navigation.rendered import training_rows
 from crater_synth.outfolder import OutFolder
 
 
@@ -139,9 +139,9 @@ def test_training_reads_the_same_rim_circles_from_a_label_file_as_from_inline_la
     rel = "frame_000007.labels.npz"
     base = {"index": 7, "rel_path": "frame_000007.exr", "ground_sample_m": 60.0, "terrain": {"field": 0}}
     with_file = base | {"labels": L.write_label_file(tmp_path / rel, labels, rel)}
-    from_file = detector_train.slim_row(with_file, tmp_path)["circles"]
-    inline = detector_train.slim_row(base | {"labels": labels})["circles"]
+    from_file = training_rows.slim_row(with_file, tmp_path)["circles"]
+    inline = training_rows.slim_row(base | {"labels": labels})["circles"]
     assert all(np.array_equal(a, b) for a, b in zip(from_file, inline))
     assert from_file[4].tolist() == [False, False, True, True, True]
     with pytest.raises(ValueError, match="folder"):
-        detector_train.slim_row(with_file)
+        training_rows.slim_row(with_file)

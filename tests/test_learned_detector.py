@@ -18,6 +18,7 @@ from crater_synth.navigation.detectors import learned
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.template import crater_heights, shade_heights
 from crater_synth.navigation.rendered import detector_train as learned_train
+from crater_synth.navigation.rendered import training_rows
 from crater_synth.navigation.settings import compose_nav
 from train import crater_detector as cd
 from train import crater_detector_inference as infer
@@ -521,7 +522,7 @@ def test_train_from_a_detection_set_holds_out_its_last_fields(tmp_path):
     """nav-detector-train on a detection set: the last fields are the synthetic hold-out, scored over the
     network's band of rim radii; an occluded label is neither positive nor negative."""
     frames = fake_detection_set(tmp_path / "det", fields=4)
-    u, v, r, d, hidden = learned_train.label_circles(manifest_rows(frames)[0], (256, 256))
+    u, v, r, d, hidden = training_rows.label_circles(manifest_rows(frames)[0], (256, 256))
     assert hidden[0] and not hidden[1:].any() and d[1] == pytest.approx(2 * r[1] * 0.06)
     out = tmp_path / "model.pt"
     s = cd.DetectorTrainSettings(steps=3, batch=2, crop_px=32, width=4, threads=1)
@@ -542,8 +543,8 @@ def test_a_streamed_training_reads_each_frame_when_drawn_and_learns_the_same_wei
     held = learned_train.detection_source(det, 0.25)
     streamed = learned_train.detection_source(det, 0.25, stream=True)
     assert all(im is None and "circles" not in row for im, row in streamed[0] + streamed[1])
-    levels = learned_train.StreamedFrames([row for _, row in streamed[0]])
-    circles = [learned_train.label_circles(row, im.shape) for im, row in held[0]]
+    levels = training_rows.StreamedFrames([row for _, row in streamed[0]])
+    circles = [training_rows.label_circles(row, im.shape) for im, row in held[0]]
     in_memory = [x for (im, _), (u, v, r, _, h) in zip(held[0], circles) for x in cd.level_samples(im, u, v, r, h)]
     assert len(levels) == len(in_memory) and all(
         np.array_equal(a.image, b.image) and np.array_equal(a.r, b.r) and np.array_equal(a.hidden, b.hidden)
@@ -636,8 +637,8 @@ def test_a_slimmed_detection_row_gives_the_same_circles():
         },
     ]
     row = {"index": 3, "rel_path": "f.exr", "ground_sample_m": 60.0, "terrain": {"field": 0}, "labels": labels}
-    full = learned_train.label_circles(row, (256, 256))
-    slim = learned_train.label_circles(learned_train.slim_row(row), (256, 256))
+    full = training_rows.label_circles(row, (256, 256))
+    slim = training_rows.label_circles(training_rows.slim_row(row), (256, 256))
     assert len(full[0]) == 2 and all(np.array_equal(a, b) for a, b in zip(full, slim))
     assert list(full[4]) == [True, True]  # dark rim, occluded rim
 
@@ -692,7 +693,7 @@ def test_max_off_nadir_keeps_the_near_nadir_training_frames_and_the_hold_out(tmp
     train, hold = learned_train.frames_source(frames)[:2]
     near, near_hold, what = learned_train.frames_source(frames, max_off_nadir=10.0)[:3]
     assert len(train) == 6 and [r["index"] for _, r in near] == [0, 2, 4]
-    assert all(learned_train.off_nadir_deg(r) == 0.0 for _, r in near) and what["max_off_nadir_deg"] == 10.0
+    assert all(training_rows.off_nadir_deg(r) == 0.0 for _, r in near) and what["max_off_nadir_deg"] == 10.0
     assert [r["index"] for _, r in near_hold] == [r["index"] for _, r in hold] == [6, 7]
     assert [r["index"] for _, r in learned_train.frames_source(frames, 2, 10.0)[0]] == [0, 2]
     no_train, only_hold, _ = learned_train.detection_set_records(frames, 0.1, training=False)

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from crater_synth.cli import main
 from crater_synth.navigation.georef import Frame, Georef
 from crater_synth.navigation.map.check import ListedCrater
-from crater_synth.navigation.rendered import detector_train as learned_train
+from crater_synth.navigation.rendered import training_rows
 from crater_synth.navigation.windows import training
 from crater_synth.tools import detector_choice, detector_test
 from train import crater_detector as cd
@@ -32,7 +32,7 @@ def test_a_window_record_is_decimated_with_its_catalogue_circles():
     np.testing.assert_allclose([u[0], v[0], r[0], d[0]], [10.0, 5.0, 10.0, 16.0])
     assert u.size == 1 and not hidden.any() and row["ground_sample_m"] == 800.0
     # The training reads it as it reads a slimmed detection row.
-    assert learned_train.label_circles(row, img.shape)[2].tolist() == [10.0]
+    assert training_rows.label_circles(row, img.shape)[2].tolist() == [10.0]
 
 
 def test_real_windows_come_from_the_spent_south_test_sectors_only():

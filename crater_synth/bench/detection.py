@@ -39,7 +39,7 @@ from crater_synth.bench.renderer import stage_summary, worker_stats
 from crater_synth.config import load_settings
 from crater_synth.dataset.detection import detection_overrides, scan_manifest
 from crater_synth.dataset.detection_run import append_rows, render_detection_frames
-from crater_synth.navigation.rendered.detector_train import slim_row
+from crater_synth.navigation.rendered.training_rows import slim_row
 
 FIELD_PX_512 = 1400  # check_field_fits: a 512 px frame at the grid's spacing, 45 deg off nadir
 PER_FRAME = ("detection.views_per_field=1", "detection.suns_per_view=1", "detection.azimuths_per_field=0")

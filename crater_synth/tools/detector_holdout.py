@@ -34,8 +34,8 @@ from crater_synth.navigation.rendered.detector_train import (
     architecture,
     detection_set_records,
     frame_counts,
-    off_nadir_deg,
 )
+from crater_synth.navigation.rendered.training_rows import off_nadir_deg
 from crater_synth.tools.detector_choice import command_line, f1, model_option, model_sha256
 
 PROG = "python -m crater_synth.tools.detector_holdout"

@@ -14,13 +14,12 @@ import functools
 import json
 import subprocess
 from pathlib import Path
-from typing import Sequence
 
 import click
 import numpy as np
 
 from crater_core import exr
-from crater_core.detection_labels import label_ref, read_label_columns, with_labels
+from crater_core.detection_labels import with_labels
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.dataset.detection import SHARDS_KIND, scan_manifest, shard_folders
 from crater_synth.dataset.detection_run import KIND as DETECTION_KIND
@@ -31,6 +30,16 @@ from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
+from crater_synth.navigation.rendered.training_rows import (
+    ChainedSamples,
+    StreamedFrames,
+    label_circles,
+    labels_in_frame,
+    off_nadir_deg,
+    record_frame,
+    slim_row,
+    streamed_row,
+)
 from crater_synth.outfolder import MARKERS, marker_kind
 from crater_synth.paths import SOURCE_ROOT
 
@@ -52,77 +61,6 @@ def frame_records(root: Path, tracks: slice) -> list[tuple[np.ndarray, dict]]:
         for row in frame_rows(d):
             out.append((exr.read_channel(d / row["rel_path"], "IF"), row))
     return out
-
-
-MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
-
-
-def labels_in_frame(row: dict, shape) -> list[dict]:
-    """The frame's labels whose rim-ellipse centre lies inside a frame of ``shape``: a survey frame's
-    landmarks, or a detection frame's procedural craters (``crater-synth detection-frames``)."""
-    h, w = shape
-    labels = row["landmarks"] if "landmarks" in row else row["labels"]
-    return [lm for lm in labels if 0 <= lm["ellipse"]["cu"] < w and 0 <= lm["ellipse"]["cv"] < h]
-
-
-def label_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
-    """Labelled rims whose centre is in the frame: (u, v, r px, diameter km, hidden), ``hidden`` where the
-    label's lit-rim fraction is below ``MIN_LIT_RIM`` (unknown lit fraction: not hidden) or, for a
-    detection frame's label, where nearer relief hides most of its rim (``occluded``). A row slimmed by
-    :func:`slim_row` carries these arrays already (``circles``)."""
-    if "circles" in row:
-        u, v, r, d, hidden = row["circles"]
-        h, w = shape
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        return u[inside], v[inside], r[inside], d[inside], hidden[inside]
-    lms = labels_in_frame(row, shape)
-    u = np.array([lm["ellipse"]["cu"] for lm in lms], float)
-    v = np.array([lm["ellipse"]["cv"] for lm in lms], float)
-    r = np.array([lm["ellipse"]["a"] for lm in lms], float)
-    d = np.array([lm["diameter_km"] if "diameter_km" in lm else lm["diameter_m"] / 1000.0 for lm in lms], float)
-    lit = np.array([np.nan if lm.get("lit_rim_fraction") is None else lm["lit_rim_fraction"] for lm in lms], float)
-    occluded = np.array([bool(lm.get("occluded", False)) for lm in lms], bool)
-    return u, v, r, d, hidden_rims(lit, occluded)
-
-
-def hidden_rims(lit: np.ndarray, occluded: np.ndarray) -> np.ndarray:
-    """Labels training treats as neither: a lit-rim fraction below ``MIN_LIT_RIM`` (NaN, unknown: lit) or
-    a rim mostly hidden by nearer relief."""
-    return (np.nan_to_num(lit, nan=1.0) < MIN_LIT_RIM) | occluded
-
-
-CIRCLE_COLUMNS = ("ellipse", "diameter_m", "lit_rim_fraction", "occluded")  # what column_circles reads
-
-
-def column_circles(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
-    """:func:`label_circles` of a detection frame's label columns (its label file), every label."""
-    ellipse = cols["ellipse"]
-    n = len(ellipse)
-    lit = cols.get("lit_rim_fraction", np.full(n, np.nan))
-    occluded = cols.get("occluded", np.zeros(n, bool))
-    d = cols["diameter_m"] / 1000.0
-    return ellipse[:, 0].copy(), ellipse[:, 1].copy(), ellipse[:, 2].copy(), d, hidden_rims(lit, occluded)
-
-
-def slim_row(row: dict, folder: Path | None = None) -> dict:
-    """A detection row with its labels replaced by the arrays training reads (:func:`label_circles`):
-    ~1,000 labels a frame of a dense surface are ~150 KB of Python objects, their circles ~40 KB. A row
-    whose labels are in a label file (``folder``: the set's folder) has them read as columns."""
-    inf = (np.inf, np.inf)
-    if label_ref(row) is not None:
-        if folder is None:
-            raise ValueError("slim_row: a row with a label file needs its folder")
-        circles = column_circles(read_label_columns(folder, row, CIRCLE_COLUMNS))
-    else:
-        circles = label_circles(row, inf)
-    kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
-    return kept | {"off_nadir_deg": off_nadir_deg(row), "circles": circles}
-
-
-def off_nadir_deg(row: dict) -> float:
-    """The frame's boresight angle from nadir in degrees: a detection frame's view, else (a survey frame, or a
-    slimmed row) what the row carries, nadir when nothing does."""
-    return float(row["view"]["off_nadir_deg"]) if "view" in row else float(row.get("off_nadir_deg", 0.0))
 
 
 def detection_set_records(
@@ -190,82 +128,6 @@ def _set_row(folder: Path, held: set, training: bool, stream: bool, row: dict) -
     if stream:
         return streamed_row(row, folder)
     return with_labels(folder, row) if is_held else slim_row(row, folder)
-
-
-def streamed_row(row: dict, folder: Path) -> dict:
-    """A detection row as a streamed training keeps it: where its frame and labels are (the label file's
-    reference; a row with inline labels keeps their circles, :func:`slim_row`) and what selection reads."""
-    kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
-    width = (row.get("camera_enu") or {}).get("width_px")
-    kept |= {"off_nadir_deg": off_nadir_deg(row), "folder": folder, "width_px": width}
-    ref = label_ref(row)
-    return kept | ({"labels": ref} if ref is not None else {"circles": slim_row(row)["circles"]})
-
-
-def record_frame(record: tuple) -> tuple[np.ndarray, dict]:
-    """(I/F image, row with its labels) of a training or held-out record, read now if it was streamed."""
-    image, row = record
-    if image is not None:
-        return image, row
-    folder = row["folder"]
-    return exr.read_channel(folder / row["rel_path"], "IF"), with_labels(folder, row)
-
-
-def streamed_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
-    """:func:`label_circles` of a :func:`streamed_row`: its rim columns read from its label file."""
-    if "circles" in row:
-        return label_circles(row, shape)
-    circles = column_circles(read_label_columns(row["folder"], row, CIRCLE_COLUMNS))
-    return label_circles({"circles": circles}, shape)
-
-
-class StreamedFrames(Sequence):
-    """The level samples of streamed detection records (:func:`detection_set_records` with ``stream``), in
-    the order a list of them held in memory has (frame by frame, level by level), each built when drawn: its
-    frame's EXR and rim columns read, its pyramid made. Memory holds a few values a frame, no image."""
-
-    def __init__(self, rows: list[dict]):
-        from train.crater_detector import level_count
-
-        self.rows = rows
-        counts = [level_count(self._shape(r)) for r in rows]
-        self.first = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
-
-    @staticmethod
-    def _shape(row: dict) -> tuple[int, int]:
-        if row.get("width_px"):
-            return int(row["width_px"]), int(row["width_px"])
-        info = exr.exr_info(row["folder"] / row["rel_path"], decode=False)
-        return int(info["height"]), int(info["width"])
-
-    def __len__(self) -> int:
-        return int(self.first[-1])
-
-    def __getitem__(self, i):
-        from train.crater_detector import level_samples
-
-        if not 0 <= i < len(self):
-            raise IndexError(i)
-        j = int(np.searchsorted(self.first, i, side="right")) - 1
-        row = self.rows[j]
-        image = exr.read_channel(row["folder"] / row["rel_path"], "IF")
-        u, v, r, _, hidden = streamed_circles(row, image.shape)
-        return level_samples(image, u, v, r, hidden)[i - int(self.first[j])]
-
-
-class ChainedSamples(Sequence):
-    """Several sources' level samples as one sequence (a list held in memory, :class:`StreamedFrames`)."""
-
-    def __init__(self, parts: list):
-        self.parts = parts
-        self.first = np.concatenate([[0], np.cumsum([len(p) for p in parts], dtype=np.int64)])
-
-    def __len__(self) -> int:
-        return int(self.first[-1])
-
-    def __getitem__(self, i):
-        j = int(np.searchsorted(self.first, i, side="right")) - 1
-        return self.parts[j][i - int(self.first[j])]
 
 
 def _recipe(folder: Path) -> str | None:
@@ -422,13 +284,14 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     train, save_model, scoring_params = architecture(settings.arch)
     parts, source = [], []
     for k, (train_records, _, _, _) in enumerate(sources):
-        held = [(image, row) for image, row in train_records if image is not None]
-        levels: list | StreamedFrames = []
-        for image, row in held:
-            u, v, r, _, hidden = label_circles(row, image.shape)
-            levels.extend(level_samples(image, u, v, r, hidden))
-        if len(held) < len(train_records):  # streamed records (detection_set_records(stream=True))
-            levels = StreamedFrames([row for image, row in train_records if image is None])
+        levels: list | StreamedFrames
+        if any(image is None for image, _ in train_records):  # streamed (detection_set_records(stream=True))
+            levels = StreamedFrames([row for _, row in train_records])
+        else:
+            levels = []
+            for image, row in train_records:
+                u, v, r, _, hidden = label_circles(row, image.shape)
+                levels.extend(level_samples(image, u, v, r, hidden))
         parts.append(levels)
         source.extend([k] * len(levels))
     samples = [x for p in parts for x in p] if all(isinstance(p, list) for p in parts) else ChainedSamples(parts)

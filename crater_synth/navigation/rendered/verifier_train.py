@@ -27,9 +27,9 @@ from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     code_commit,
     detection_set_records,
-    label_circles,
     score_synthetic,
 )
+from crater_synth.navigation.rendered.training_rows import label_circles
 
 # A candidate within POS_CENTRE_R label radii of a visible rim's centre, its radius within a factor POS_RATIO,
 # is that crater (the target: its offset and radius ratio); one within the looser NEAR_* bounds of any rim
