@@ -240,6 +240,10 @@ class DetectorTrainSettings(Group):
     # peaked at 14 GB), at one frame read per drawn crop (~9 ms at 256 px). The same crops, so the same
     # weights. Survey frames are always held (a few hundred).
     stream: bool = False
+    # Worker processes that build the training batches ahead of the step (train.prefetch; 0: built in the
+    # training process). The batches are the same, drawn in the training process; what workers buy is the
+    # frame reads of a streamed set overlapping the network's step.
+    loader_workers: int = 0
 
     def _check(self) -> None:
         need(self.frames >= 0, "frames", self.frames, "must be >= 0 (0: every frame)")
@@ -250,6 +254,7 @@ class DetectorTrainSettings(Group):
             need(getattr(self, key) >= 1, key, getattr(self, key), "must be >= 1")
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
+        need(self.loader_workers >= 0, "loader_workers", self.loader_workers, "must be >= 0 (0: none)")
         need_augment_ranges(self)
         need(
             all(x >= 0 for x in self.source_shares) and (not self.source_shares or sum(self.source_shares) > 0),
@@ -293,6 +298,7 @@ class VerifierTrainSettings(Group):
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         need(0.0 < self.heat < 1.0, "heat", self.heat, "must lie in (0, 1)")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
+        need(self.loader_workers >= 0, "loader_workers", self.loader_workers, "must be >= 0 (0: none)")
         need_augment_ranges(self)
 
 

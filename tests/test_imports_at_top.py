@@ -40,6 +40,7 @@ DEFERRING_MODULES = {
     "train.fcos_detector": "torch",
     "train.model_files": "torch",
     "train.models": "torch",
+    "train.prefetch": "torch",
     "train.trainer": "torch",
     "train.tv_ops": "torch",
     "train.preprocess": "scipy",

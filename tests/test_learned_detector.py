@@ -562,6 +562,34 @@ def test_a_streamed_training_reads_each_frame_when_drawn_and_learns_the_same_wei
         cd.DetectorTrainSettings(arch="fcos", stream=True)
 
 
+def test_loader_workers_build_the_same_batches_and_a_bad_frame_fails_as_itself(tmp_path):
+    """nav.detector_train.loader_workers: batches built ahead in a spawned worker from plans drawn in the
+    training process are the batches built in it, so the weights are the same; the plans need no frame read
+    (a streamed level's shape is known from its row). A frame that cannot be read raises its own error in
+    the training process, as it does without workers."""
+    det = fake_detection_set(tmp_path / "det", fields=4, label_files=True)
+    s = cd.DetectorTrainSettings(steps=3, batch=3, crop_px=32, width=4, threads=1, stream=True)
+    streamed = learned_train.detection_source(det, 0.25, stream=True)
+    levels = training_rows.StreamedFrames([row for _, row in streamed[0]])
+    assert [cd.sample_shape(levels, i) for i in range(len(levels))] == [np.shape(x.image) for x in levels]
+    learned_train.train_from_sources([streamed], tmp_path / "a.pt", s)
+    learned_train.train_from_sources([streamed], tmp_path / "b.pt", dataclasses.replace(s, loader_workers=1))
+    wa, wb = (cd.load_model(tmp_path / f"{n}.pt")[0].state_dict() for n in "ab")
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    for _, row in streamed[0]:
+        (det / row["rel_path"]).write_bytes(b"not an EXR")
+    errors = []
+    for workers in (0, 1):
+        with pytest.raises(Exception) as e:
+            bad = dataclasses.replace(s, loader_workers=workers)
+            learned_train.train_from_sources([streamed], tmp_path / "c.pt", bad)
+        errors.append((type(e.value), str(e.value)))
+    assert errors[0] == errors[1] and "frame_" in errors[0][1]
+    assert not (tmp_path / "c.pt").exists()
+    with pytest.raises(ValueError, match="loader_workers"):
+        cd.DetectorTrainSettings(loader_workers=-1)
+
+
 def test_source_shares_set_each_folders_share_of_the_draws():
     """Two sources of 1 and 3 samples at shares 0.5/0.5: the single sample is drawn half the time."""
     p = cd.source_probabilities([0, 1, 1, 1], (0.5, 0.5))

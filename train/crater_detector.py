@@ -26,7 +26,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -35,6 +35,7 @@ from torch import nn
 
 from crater_core.settings_nav import AugmentRanges, DetectorTrainSettings
 from train.model_files import DetectorModelError, read_model_file, write_model_file
+from train.prefetch import prefetched
 
 BAND_LO_PX = 6.0  # rim radius band of one pyramid level, px
 BAND_HI_PX = 12.0
@@ -104,15 +105,21 @@ def pyramid(image: np.ndarray, first_level: int = 0, min_px: int = MIN_LEVEL_PX)
     return out
 
 
-def level_count(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> int:
-    """How many levels :func:`pyramid` gives an image of ``shape`` (without the image: a training set read
-    from disk counts its samples before reading a frame)."""
+def level_shapes(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> list[tuple[int, int]]:
+    """The shapes of :func:`pyramid`'s levels of an image of ``shape``, without the image: a training set
+    read from disk counts and plans its samples before reading a frame."""
     h, w = (int(n) for n in shape)
-    n, level = 0, 0
+    out, level = [], 0
     while min(h, w) >= min_px:
-        n += int(level >= first_level)
+        if level >= first_level:
+            out.append((h, w))
         h, w, level = h // 2, w // 2, level + 1
-    return n
+    return out
+
+
+def level_count(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> int:
+    """How many levels :func:`pyramid` gives an image of ``shape`` (:func:`level_shapes`)."""
+    return len(level_shapes(shape, first_level, min_px))
 
 
 def standardise(a: np.ndarray) -> np.ndarray:
@@ -323,28 +330,54 @@ def augment_brightness(
     return x * valid
 
 
-def _batch(
-    samples: Sequence[LevelSample],
-    tops: list[float] | None,
-    s: DetectorTrainSettings,
-    rng: np.random.Generator,
-    p: np.ndarray | None = None,
-) -> torch.Tensor:
-    """A batch of random ``crop_px`` crops of random level samples (drawn with probabilities ``p``; None:
-    uniformly), each rotated and mirrored at random; a level smaller than the crop is padded (no loss).
-    ``tops``: each sample's brightness scale, None to take it from each drawn sample (samples read from
-    disk when drawn: the same values, computed per draw)."""
+def sample_shape(samples: Sequence[LevelSample], i: int) -> tuple[int, int]:
+    """The level image shape of sample ``i``: a sequence read from disk when drawn (``shape``) tells it
+    without reading the frame, so crops can be planned ahead of their reads."""
+    shape = getattr(samples, "shape", None)
+    return tuple(shape(i)) if shape is not None else np.shape(samples[i].image)  # type: ignore[return-value]
+
+
+def plan_batch(samples: Sequence[LevelSample], s: DetectorTrainSettings, rng, p=None) -> list[tuple]:
+    """The draws of one batch, (sample, row, column, quarter turns, mirrored) per crop: random level
+    samples (probabilities ``p``; None: uniformly), a random ``crop_px`` window of each, a random dihedral
+    view. Only the plan uses ``rng``, so plans drawn ahead (:func:`crop_batches`) are the same draws."""
     c = s.crop_px
-    crops = []
     picks = rng.integers(0, len(samples), s.batch) if p is None else rng.choice(len(samples), s.batch, p=p)
+    plan = []
     for i in picks:
-        x = samples[int(i)]
-        h, w = (max(n, c) for n in x.image.shape)
+        h, w = (max(n, c) for n in sample_shape(samples, int(i)))
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        top = tops[int(i)] if tops is not None else brightness_top(x.image)
-        t = torch.from_numpy(crop_stack(x, top, i0, j0, c, c))
-        crops.append(dihedral(t, int(rng.integers(4)), bool(rng.integers(2))))
-    return torch.stack(crops)
+        plan.append((int(i), i0, j0, int(rng.integers(4)), bool(rng.integers(2))))
+    return plan
+
+
+class PlannedCrops:
+    """Builds the crops of a batch plan (:func:`plan_batch`): each a :func:`crop_stack` turned by
+    :func:`dihedral`. ``tops``: each sample's brightness scale, None to take it from each drawn sample (samples
+    read from disk when drawn: the same values, computed per draw). A module-level class, so a loader's
+    worker processes can receive it however they start."""
+
+    def __init__(self, samples: Sequence[LevelSample], tops: list[float] | None, crop_px: int):
+        self.samples, self.tops, self.crop_px = samples, tops, crop_px
+
+    def __call__(self, plan: list[tuple]) -> torch.Tensor:
+        crops = []
+        for i, i0, j0, turns, flip in plan:
+            x = self.samples[i]
+            top = self.tops[i] if self.tops is not None else brightness_top(x.image)
+            t = torch.from_numpy(crop_stack(x, top, i0, j0, self.crop_px, self.crop_px))
+            crops.append(dihedral(t, turns, flip))
+        return torch.stack(crops)
+
+
+def crop_batches(samples, tops, s: DetectorTrainSettings, rng, p, device: str = "cpu") -> Iterator[torch.Tensor]:
+    """The ``s.steps`` training batches, in order: built in this process (``s.loader_workers`` 0) or by
+    that many worker processes from plans drawn here (:func:`train.prefetch.prefetched`), so frames read
+    from disk are read while the network trains. The same batches either way."""
+    build = PlannedCrops(samples, tops, s.crop_px)
+    return prefetched(
+        lambda: plan_batch(samples, s, rng, p), build, s.steps, s.loader_workers, pin_memory=device != "cpu"
+    )
 
 
 def source_probabilities(source, shares) -> np.ndarray | None:
@@ -414,8 +447,13 @@ def train_detector(
     # a list is held in memory: its brightness scales once; a sequence read from disk when drawn: per draw
     tops = [brightness_top(x.image) for x in samples] if isinstance(samples, list) else None
 
+    batches: Iterator[torch.Tensor] | None = None
+
     def step_loss(model, rng, p, gen):
-        t = _batch(samples, tops, settings, rng, p).to(device)
+        nonlocal batches
+        if batches is None:  # fit's seeded generator and draw probabilities exist from its first step
+            batches = crop_batches(samples, tops, settings, rng, p, device)
+        t = next(batches).to(device)
         out = model(augment(t, settings, gen))
         w = t[:, _WEIGHT] * t[:, _VALID]
         return detector_loss(out, t[:, _HEAT], w, t[:, _DU : _DV + 1], t[:, _LOGR], t[:, _CENTRE] > 0.5)

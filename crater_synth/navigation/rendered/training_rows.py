@@ -126,13 +126,23 @@ class PartedSequence(Sequence):
     def __len__(self) -> int:
         return int(self.first[-1])
 
-    def __getitem__(self, i):
+    def _locate(self, i) -> tuple[int, int]:
         if not 0 <= i < len(self):
             raise IndexError(i)
         j = int(np.searchsorted(self.first, i, side="right")) - 1
-        return self.item(j, i - int(self.first[j]))
+        return j, int(i - self.first[j])
+
+    def __getitem__(self, i):
+        return self.item(*self._locate(i))
+
+    def shape(self, i) -> tuple[int, int]:
+        """Item i's level image shape, without building the item (``train.crater_detector.sample_shape``)."""
+        return self.item_shape(*self._locate(i))
 
     def item(self, part: int, k: int):
+        raise NotImplementedError
+
+    def item_shape(self, part: int, k: int) -> tuple[int, int]:
         raise NotImplementedError
 
 
@@ -145,7 +155,13 @@ class StreamedFrames(PartedSequence):
         from train.crater_detector import level_count
 
         self.rows = rows
-        super().__init__([level_count(self._shape(r)) for r in rows])
+        self.shapes = np.array([self._shape(r) for r in rows], np.int32).reshape(-1, 2)  # 8 bytes a frame
+        super().__init__([level_count(shape) for shape in self.shapes])
+
+    def item_shape(self, part: int, k: int) -> tuple[int, int]:
+        from train.crater_detector import level_shapes
+
+        return level_shapes(self.shapes[part])[k]
 
     @staticmethod
     def _shape(row: dict) -> tuple[int, int]:
@@ -172,3 +188,8 @@ class ChainedSamples(PartedSequence):
 
     def item(self, part: int, k: int):
         return self.parts[part][k]
+
+    def item_shape(self, part: int, k: int) -> tuple[int, int]:
+        from train.crater_detector import sample_shape
+
+        return sample_shape(self.parts[part], k)
