@@ -298,7 +298,6 @@ class VerifierTrainSettings(Group):
         need(self.lr > 0.0, "lr", self.lr, "must be > 0")
         need(0.0 < self.heat < 1.0, "heat", self.heat, "must lie in (0, 1)")
         need(self.threads >= 0, "threads", self.threads, "must be >= 0 (0: every core)")
-        need(self.loader_workers >= 0, "loader_workers", self.loader_workers, "must be >= 0 (0: none)")
         need_augment_ranges(self)
 
 
