@@ -36,3 +36,18 @@ def test_tables_split_recall_by_map_size_depth_and_rim():
     assert out["in_map"]["by_depth_d"]["0-0.05"] == {"n": 0, "recall": None}
     assert out["not_in_map"]["recall"] == 0.5 and out["not_in_map"]["rim_wholly_inside"] == {"n": 1, "recall": 1.0}
     assert out["not_in_map"]["by_size_km"]["30-60"] == {"n": 1, "recall": 0.0}
+
+
+def test_the_north_needs_a_committed_choice_and_the_south_a_threshold(tmp_path, capsys):
+    """--pole north without --choice, or with a choice file git does not hold, and the south without
+    --threshold: one error line each, no output."""
+    out = tmp_path / "misses.json"
+    assert dm.main(["--pole", "north", "--out", str(out)]) == 1
+    assert "--choice" in capsys.readouterr().err
+    loose = tmp_path / "choice.json"
+    loose.write_text("{}")
+    assert dm.main(["--pole", "north", "--choice", str(loose), "--out", str(out)]) == 1
+    assert "not committed" in capsys.readouterr().err
+    assert dm.main(["--out", str(out)]) == 1
+    assert "--threshold" in capsys.readouterr().err
+    assert not out.exists()

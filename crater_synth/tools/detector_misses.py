@@ -6,11 +6,14 @@ the craters that are closed depressions in the LOLA DEM (docs/navigation/map.md)
 counts as "in the map" when a map landmark lies within 0.25 D of it with a diameter within 25 % (the scoring's
 own match rule), and then carries that landmark's depth / D. Recall is given for each part, by size and by
 depth / D, for every catalogued crater and for those whose rim lies wholly inside the window. The detector
-runs at ``model``/``threshold``/``variant`` as ``detector_choice`` runs it. South validation only: nothing
-is chosen here, and the north is never read.
+runs at ``model``/``threshold``/``variant`` as ``detector_choice`` runs it, on the south validation windows.
+Nothing is chosen here. ``--pole north`` breaks down a frozen choice's north test instead: the model runs at
+the threshold and variant a committed choice file froze for it (``--choice``, checked as ``detector_test``
+checks it), on every north test window; it is that test's detections, split, not a new method.
 
     python -m crater_synth.tools.detector_misses --threshold 0.25 --every 2 \\
         --variant 'nav.detector.tta=4 nav.detector.half_octaves=true nav.detector.border_r=0' --out FILE
+    python -m crater_synth.tools.detector_misses --pole north --choice CHOICE.json --out FILE
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from crater_synth.navigation.windows.evaluate import (
 )
 from crater_synth.navigation.windows.mosaic import windows
 from crater_synth.tools.detector_choice import POLE, SPLIT, command_line, detector_overrides, model_sha256
+from crater_synth.tools.detector_test import frozen_choices
 
 PROG = "python -m crater_synth.tools.detector_misses"
 MIN_D_KM = 15.0
@@ -58,9 +62,9 @@ def map_match(listed, landmarks) -> tuple[np.ndarray, np.ndarray]:
     return inside, dd
 
 
-def crater_table(rows: list[dict], listed, every: int) -> np.ndarray:
+def crater_table(rows: list[dict], listed, split: str, pole: str, every: int) -> np.ndarray:
     """(catalogue index, found, D km, rim wholly inside) of every catalogued crater >= ``MIN_D_KM`` in view."""
-    frames = {f.id: f for f in windows(SPLIT, POLE)[::every]}
+    frames = {f.id: f for f in windows(split, pole)[::every]}
     out = []
     for r in rows:
         frame = frames[r["id"]]
@@ -101,29 +105,40 @@ def tables(t: np.ndarray, listed, landmarks) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pole", choices=("south", "north"), default=POLE, help="south validation, or a frozen north test")
     ap.add_argument("--model", default="committed", help="a learned-detect model file (default: the committed one)")
-    ap.add_argument("--threshold", type=float, required=True, help="the detector's heat threshold")
-    ap.add_argument("--variant", default="", help="more nav-eval overrides, one shell-quoted string")
+    ap.add_argument("--threshold", type=float, help="the detector's heat threshold (south)")
+    ap.add_argument("--variant", default="", help="more nav-eval overrides, one shell-quoted string (south)")
     ap.add_argument("--every", type=int, default=2, help="every Nth south validation window")
+    ap.add_argument("--choice", type=Path, help="north: the committed detector_choice file that froze the model")
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
     try:
-        variant = tuple(shlex.split(args.variant))
-        overrides = detector_overrides(args.model, args.threshold, variant)
-        settings, _, _ = nav_eval_request(args.every, PRIOR_OFFSET_KM, False, False, overrides)
+        if args.pole == "north":
+            if args.choice is None:
+                raise UserError("--pole north: give --choice, the committed choice file that froze the model")
+            (chosen,) = frozen_choices(args.choice, [args.model])
+            threshold, variant, split, every = chosen["threshold"], tuple(chosen.get("variant", ())), "test", 1
+        else:
+            if args.threshold is None:
+                raise UserError("--threshold: required on the south validation windows")
+            threshold, variant, split, every = args.threshold, tuple(shlex.split(args.variant)), SPLIT, args.every
+        overrides = detector_overrides(args.model, threshold, variant)
+        settings, _, _ = nav_eval_request(every, PRIOR_OFFSET_KM, False, False, overrides)
         nav = settings["learned-detect"]
-        landmarks = nav_eval_map(POLE, None)[0]
-        listed = catalogue_craters(POLE)
+        landmarks = nav_eval_map(args.pole, None)[0]
+        listed = catalogue_craters(args.pole)
         t0 = time.perf_counter()
-        _, rows = evaluate_split(SPLIT, landmarks, nav.detector, nav.fix, every=args.every, pole=POLE, listed=listed)
-        t = crater_table(rows, listed, args.every)
+        _, rows = evaluate_split(split, landmarks, nav.detector, nav.fix, every=every, pole=args.pole, listed=listed)
+        t = crater_table(rows, listed, split, args.pole, every)
         result = {
             "command": command_line(argv, PROG),
-            "split": f"{POLE} {SPLIT}, every {args.every}",
+            "split": f"{args.pole} {split}, every {every}",
             "model": args.model,
             "model_sha256": model_sha256(args.model),
-            "threshold": args.threshold,
+            "threshold": threshold,
             "variant": list(variant),
+            "choice_file": str(args.choice) if args.choice else None,
             "min_diameter_km": MIN_D_KM,
             "in_map_rule": f"a map landmark within {MATCH_CENTRE_D} D, diameter within {MATCH_DIAMETER:.0%}",
             "seconds": round(time.perf_counter() - t0, 1),
