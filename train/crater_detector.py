@@ -354,8 +354,8 @@ def plan_batch(samples: Sequence[LevelSample], s: DetectorTrainSettings, rng, p=
 class PlannedCrops:
     """Builds the crops of a batch plan (:func:`plan_batch`): each a :func:`crop_stack` turned by
     :func:`dihedral`. ``tops``: each sample's brightness scale, None to take it from each drawn sample (samples
-    read from disk when drawn: the same values, computed per draw). A module-level class, so a loader's
-    worker processes can receive it however they start."""
+    read from disk when drawn: the same values, computed per draw). A module-level class, so the loader's
+    spawned worker processes can unpickle it."""
 
     def __init__(self, samples: Sequence[LevelSample], tops: list[float] | None, crop_px: int):
         self.samples, self.tops, self.crop_px = samples, tops, crop_px

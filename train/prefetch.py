@@ -58,7 +58,7 @@ class _Plans(Sampler):
 def prefetched(draw: Callable, build: Callable, n: int, workers: int = 0, pin_memory: bool = False) -> Iterator:
     """``build(draw())`` ``n`` times, in order. ``workers`` 0: each built here when asked for; else by that
     many worker processes, ``PREFETCH_BATCHES`` each ahead of the training (``pin_memory`` for a GPU's
-    copies). ``build`` must be picklable where workers are spawned rather than forked."""
+    copies). ``build`` must be picklable: the workers are spawned."""
     if workers == 0:
         return (build(draw()) for _ in range(n))
     loader = DataLoader(
