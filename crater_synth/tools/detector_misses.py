@@ -85,21 +85,25 @@ def recall(found: np.ndarray, sel: np.ndarray) -> dict:
     return {"n": n, "recall": round(float(found[sel].mean()), 4) if n else None}
 
 
+def binned(found: np.ndarray, part: np.ndarray, values: np.ndarray, edges) -> dict:
+    """:func:`recall` of the craters of ``part`` in each [lo, hi) bin of ``values`` ("lo-hi", ">=lo" last)."""
+    return {
+        f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}": recall(found, part & (values >= lo) & (values < hi))
+        for lo, hi in zip(edges[:-1], edges[1:])
+    }
+
+
 def tables(t: np.ndarray, listed, landmarks) -> dict:
     """Recall of the craters of :func:`crater_table` ``t``, in all, in the map and not (module docstring)."""
     found, d, whole = t[:, 1] == 1, t[:, 2], t[:, 3] == 1
     m, depth = map_match([listed[int(i)] for i in t[:, 0]], landmarks)
     out: dict = {"all": recall(found, np.ones(len(t), bool))}
     for name, part in (("in_map", m), ("not_in_map", ~m)):
-        sizes = {
-            f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}": recall(found, part & (d >= lo) & (d < hi))
-            for lo, hi in zip(SIZE_BINS_KM[:-1], SIZE_BINS_KM[1:])
+        out[name] = recall(found, part) | {
+            "rim_wholly_inside": recall(found, part & whole),
+            "by_size_km": binned(found, part, d, SIZE_BINS_KM),
         }
-        out[name] = recall(found, part) | {"rim_wholly_inside": recall(found, part & whole), "by_size_km": sizes}
-    out["in_map"]["by_depth_d"] = {
-        f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}": recall(found, m & (depth >= lo) & (depth < hi))
-        for lo, hi in zip(DEPTH_BINS_D[:-1], DEPTH_BINS_D[1:])
-    }
+    out["in_map"]["by_depth_d"] = binned(found, m, depth, DEPTH_BINS_D)
     return out
 
 
