@@ -449,13 +449,14 @@ def test_detector_bench_takes_the_step_time_from_two_runs(monkeypatch, tmp_path)
     walls = {1: 30.0, bd.SHORT_STEPS: 12.0, bd.LONG_STEPS: 12.0 + 0.25 * (bd.LONG_STEPS - bd.SHORT_STEPS)}
     calls = []
 
-    def fake_train(frames_dir, out, steps):
-        calls.append(steps)
+    def fake_train(frames_dir, out, steps, device, overrides):
+        calls.append((steps, device, overrides))
         return {"steps": steps, "wall_s": walls[steps], "peak_rss_mb": 1000.0 + steps}
 
     monkeypatch.setattr(bd, "_train", fake_train)
     r = bd.bench_detector_training(tmp_path, tmp_path / "w", 2000)
-    assert calls == [1, bd.SHORT_STEPS, bd.LONG_STEPS]
+    assert calls == [(n, "cpu", ()) for n in (1, bd.SHORT_STEPS, bd.LONG_STEPS)]
+    assert r["device"] == "cpu" and r["gpu"] is None and r["overrides"] == []
     assert r["s_per_step"] == pytest.approx(0.25) and r["fixed_s"] == pytest.approx(12.0 - 0.25 * bd.SHORT_STEPS)
     assert r["full_training_s"] == pytest.approx(r["fixed_s"] + 500.0, abs=0.1)
     assert r["peak_rss_mb"] == 1000.0 + bd.LONG_STEPS
@@ -471,7 +472,31 @@ def test_bench_detector_skips_without_a_survey(monkeypatch, tmp_path):
 
     monkeypatch.chdir(tmp_path)  # the survey's default path is relative: none here
     res = CliRunner().invoke(main, ["bench", "--part", "detector", "--keep", str(tmp_path / "b")])
-    assert res.exit_code == 0 and "detector skipped: no survey frames" in res.output
+    assert res.exit_code == 0 and "detector skipped: no frames at data/detector_frames/south" in res.output
+
+
+def test_bench_detector_passes_its_device_and_settings(monkeypatch, tmp_path):
+    """`bench --part detector --detector-frames DIR --detector-device D --detector-train K=V`: the folder,
+    device and settings reach every training run; a setting outside nav.detector_train is one error."""
+    from click.testing import CliRunner
+
+    from crater_synth.bench import cli as bench_cli
+    from crater_synth.cli import main
+
+    seen = []
+
+    def fake_bench(frames_dir, work, full_steps, device, overrides):
+        seen.append((frames_dir, device, overrides))
+        return {"s_per_step": 0.1}
+
+    monkeypatch.setattr(bench_cli, "bench_detector_training", fake_bench)
+    args = ["bench", "--part", "detector", "--keep", str(tmp_path / "b"), "--detector-frames", str(tmp_path)]
+    w = "nav.detector_train.loader_workers=4"
+    res = CliRunner().invoke(main, [*args, "--detector-device", "cuda", "--detector-train", w])
+    assert res.exit_code == 0, res.output
+    assert seen == [(tmp_path, "cuda", (w,))] and 'detector {"s_per_step": 0.1}' in res.output
+    res = CliRunner().invoke(main, [*args, "--detector-train", "render.samples=4"])
+    assert res.exit_code == 2 and "not nav.detector_train.KEY=VALUE" in res.output and len(seen) == 1
 
 
 def fake_detection_set(root, fields: int = 3, frames: int = 2, label_files: bool = False):

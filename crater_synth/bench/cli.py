@@ -14,8 +14,9 @@ Parts (``--part``, default all, in this order):
   EXRs, extrapolated to the 67,500-render sweep (crater_synth.bench.export);
 - ``navframes``: navigation-frame renders/s along a trajectory, then their navigation time per frame,
   appearance search against the classical detector (crater_synth.bench.navframes);
-- ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS
-  (crater_synth.bench.detector; skipped with a note if its survey frames are not rendered yet);
+- ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS, on the
+  survey or ``--detector-frames``, on ``--detector-device``, with ``--detector-train`` settings
+  (crater_synth.bench.detector; skipped with a note if its frames are not rendered yet);
 - ``detection-frames``: detection-frame renders/s at 256² and 512², the default grouping against one frame per field
   (crater_synth.bench.detection);
 - ``detect``: ``crater-synth detect`` on synthetic frames: seconds per 1024 x 1024 and 2592 x 1944 frame, peak
@@ -92,15 +93,41 @@ PARTS = (
     show_default=True,
     help="navframes part: how many of the trajectory's first frames to render (each path).",
 )
+@click.option(
+    "--detector-frames",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=DEFAULT_FRAMES,
+    show_default=True,
+    help="detector part: the frames folder to train on (a rendered survey or a detection set).",
+)
+@click.option(
+    "--detector-device",
+    type=click.Choice(["cpu", "cuda"]),
+    default="cpu",
+    show_default=True,
+    help="detector part: the training device.",
+)
+@click.option(
+    "--detector-train",
+    "detector_train",
+    multiple=True,
+    metavar="nav.detector_train.KEY=VALUE",
+    help="detector part: a training setting (repeatable), e.g. nav.detector_train.loader_workers=4.",
+)
 @OVERRIDES
 @user_errors
-def bench_command(part, keep, export_renders, navframes_frames, overrides):
+def bench_command(
+    part, keep, export_renders, navframes_frames, detector_frames, detector_device, detector_train, overrides
+):
     """Measure the performance goals: renderer vs baselines, training, distributed sweep, navigation, export.
 
     Overrides apply to every part, e.g. ``crater-synth bench render.workers=2``. The last line is
     ``renders_per_s=X naive_renders_per_s=Y ratio=Z`` (after the renderer's rates line).
     """
     overrides = list(overrides)
+    for setting in detector_train:
+        if not setting.startswith("nav.detector_train.") or "=" not in setting:
+            raise click.BadParameter(f"{setting!r}: not nav.detector_train.KEY=VALUE", param_hint="--detector-train")
     load_settings(overrides)  # a typo stops here in one line, not after the parts that ignore it have run
     work = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="crater-synth-bench-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -127,15 +154,18 @@ def bench_command(part, keep, export_renders, navframes_frames, overrides):
         if part in ("all", "navframes"):
             click.echo("navframes " + json.dumps(bench_navframes(overrides, work, navframes_frames)))
         if part in ("all", "detector"):
-            if (DEFAULT_FRAMES / "track_000").is_dir():
+            if detector_frames.is_dir():
                 from train.crater_detector import DetectorTrainSettings
 
-                r = bench_detector_training(DEFAULT_FRAMES, work / "detector", DetectorTrainSettings().steps)
+                full = DetectorTrainSettings().steps
+                r = bench_detector_training(
+                    detector_frames, work / "detector", full, detector_device, tuple(detector_train)
+                )
                 click.echo("detector " + json.dumps(r))
             else:
                 click.echo(
-                    f"detector skipped: no survey frames at {DEFAULT_FRAMES} (crater-synth nav-detector-frames, "
-                    "or make nav-detector, renders them)"
+                    f"detector skipped: no frames at {detector_frames} (crater-synth nav-detector-frames, "
+                    "or make nav-detector, renders the survey there)"
                 )
         if part in ("all", "detect"):
             click.echo("detect " + json.dumps(bench_detect(work / "detect")))
