@@ -6,7 +6,10 @@ every view are scored on the same held-out fields (the last 10 % of the set's fi
 either), frame by frame against their exact labels. Recall counts labelled rims that span at least
 ``--min-span-px`` (10 px: a rim radius of 5 px), precision the detections of that size; occluded rims and
 rims lit on less than 5 % of their length are neither (the training's rule). Each model runs at the
-hold-out's scoring settings (no rim fit) and ``--threshold``. ``--verifier V.pt`` runs every learned model
+hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by the label's
+degradation (0 fresh .. 1 ghost, :class:`crater_core.procedural.Crater`; ``by_degradation``, in all and in
+each off-nadir bin): which rims a model misses, the fresh or the worn. ``--verifier V.pt`` runs every
+learned model
 once more with that second stage (``nav.detector.verifier``; its candidates at ``--threshold``, kept at
 ``--verify-threshold`` of ``--verify-score``). Nothing real is read.
 
@@ -33,13 +36,15 @@ from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     architecture,
     detection_set_records,
-    frame_counts,
+    frame_matches,
 )
 from crater_synth.navigation.rendered.training_rows import off_nadir_deg
 from crater_synth.tools.detector_choice import command_line, f1, model_option, model_sha256
 
 PROG = "python -m crater_synth.tools.detector_holdout"
 DEFAULT_BINS = (0.0, 1.0, 15.0, 30.0, 46.0)  # nadir; 1-15; 15-30; 30-45 degrees off nadir (the issue's oblique band)
+# Degradation quarters; detectable() labels stop at 0.9, so the last bin holds 0.75-0.9.
+DEGRADATION_BINS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
 def off_nadir_bin(angle: float, edges) -> str | None:
@@ -49,17 +54,34 @@ def off_nadir_bin(angle: float, edges) -> str | None:
     return None
 
 
-def score_model(records, params, min_r: float, edges) -> dict:
-    """Recall and precision of one model over ``records``, in all and by off-nadir bin."""
+def degradation_bin(value: float, edges=DEGRADATION_BINS) -> int:
+    """The index of the degradation bin holding ``value`` (the last bin closed)."""
+    return int(np.clip(np.searchsorted(edges, value, side="right") - 1, 0, len(edges) - 2))
+
+
+def score_model(records, params, min_r: float, edges, degradation_edges=DEGRADATION_BINS) -> dict:
+    """Recall and precision of one model over ``records``, in all and by off-nadir bin, each with its recall
+    by degradation bin (``by_degradation``: labels and recall per bin)."""
+    n_deg = len(degradation_edges) - 1
     sums: dict[str, np.ndarray] = {}
+    by_deg: dict[str, np.ndarray] = {}  # key -> (bins, 2): labels counted, found
     for image, row in records:
-        counts = np.array(frame_counts(image, row, params, 0.0, min_r, skip_hidden=True))
+        labels, counted, found, tp, n_det = frame_matches(image, row, params, 0.0, min_r, skip_hidden=True)
+        # a label without a degradation (a set whose labels lack the field) is in no degradation bin
+        bins = np.array(
+            [degradation_bin(lb["degradation"], degradation_edges) if "degradation" in lb else -1 for lb in labels], int
+        )
+        known = bins >= 0
+        per_bin = np.stack(
+            [np.bincount(bins[counted & known], minlength=n_deg), np.bincount(bins[found & known], minlength=n_deg)], 1
+        )
         for key in ("all", off_nadir_bin(off_nadir_deg(row), edges)):
             if key is not None:
-                sums[key] = sums.get(key, np.zeros(5, int)) + np.r_[counts, 1]
+                sums[key] = sums.get(key, np.zeros(5, int)) + np.r_[found.sum(), counted.sum(), tp, n_det, 1]
+                by_deg[key] = by_deg.get(key, np.zeros((n_deg, 2), int)) + per_bin
     out = {}
-    for key, (found, n_lab, tp, n_det, frames) in sums.items():
-        recall = round(found / n_lab, 4) if n_lab else None
+    for key, (n_found, n_lab, tp, n_det, frames) in sums.items():
+        recall = round(n_found / n_lab, 4) if n_lab else None
         precision = round(tp / n_det, 4) if n_det else None
         out[key] = {
             "frames": int(frames),
@@ -67,6 +89,10 @@ def score_model(records, params, min_r: float, edges) -> dict:
             "precision": precision,
             "f1": f1(precision, recall),
             "labels": int(n_lab),
+            "by_degradation": {
+                f"{lo:g}-{hi:g}": {"labels": int(n), "recall": round(k / n, 4) if n else None}
+                for lo, hi, (n, k) in zip(degradation_edges[:-1], degradation_edges[1:], by_deg[key])
+            },
         }
     return out
 
@@ -122,6 +148,7 @@ def main(argv=None) -> int:
         "verify": {"threshold": args.verify_threshold, "score": args.verify_score} if args.verifier else None,
         "min_span_px": args.min_span_px,
         "off_nadir_bins_deg": list(DEFAULT_BINS),
+        "degradation_bins": list(DEGRADATION_BINS),
         "runs": runs,
     }
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")

@@ -137,21 +137,30 @@ def _recipe(folder: Path) -> str | None:
         return None
 
 
-def frame_counts(image, row: dict, params, min_d_km: float = 15.0, min_r_px: float = 0.0, skip_hidden: bool = False):
-    """(labels found, labels, detections matched, detections) of one rendered frame against its exact labels
-    (the rendered frames' matching, :func:`crater_synth.navigation.rendered.evaluate.match_pixels`), for
-    labels and detections of D >= ``min_d_km`` and a rim radius >= ``min_r_px``. ``skip_hidden``: a label
-    that training treats as neither (:func:`label_circles`), and a detection matched to one, count nowhere."""
+def frame_matches(image, row: dict, params, min_d_km: float = 15.0, min_r_px: float = 0.0, skip_hidden: bool = False):
+    """(the frame's labels, which of them count, which of those were found, detections matched, detections)
+    of one rendered frame against its exact labels (the rendered frames' matching,
+    :func:`crater_synth.navigation.rendered.evaluate.match_pixels`): labels and detections of D >=
+    ``min_d_km`` and a rim radius >= ``min_r_px`` count. ``skip_hidden``: a label that training treats as
+    neither (:func:`label_circles`), and a detection matched to one, count nowhere."""
     labels = labels_in_frame(row, image.shape)
     km_per_px = float(row["ground_sample_m"]) / 1000.0
     dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
     matched = match_pixels(dets, labels)  # detection index -> label index
     r_min = max(min_r_px, 0.5 * min_d_km / km_per_px)
     hidden = label_circles({"labels": labels}, image.shape)[4] if skip_hidden else np.zeros(len(labels), bool)
-    big_t = [lb["ellipse"]["a"] >= r_min and not hide for lb, hide in zip(labels, hidden)]
+    big_t = np.array([lb["ellipse"]["a"] >= r_min and not hide for lb, hide in zip(labels, hidden)], bool)
     big_d = [d.r >= r_min and not (i in matched and hidden[matched[i]]) for i, d in enumerate(dets)]
-    found = sum(1 for j in matched.values() if big_t[j])
-    return found, sum(big_t), sum(1 for i in matched if big_d[i]), sum(big_d)
+    found = np.zeros(len(labels), bool)
+    found[list(matched.values())] = True
+    return labels, big_t, found & big_t, sum(1 for i in matched if big_d[i]), sum(big_d)
+
+
+def frame_counts(image, row: dict, params, min_d_km: float = 15.0, min_r_px: float = 0.0, skip_hidden: bool = False):
+    """(labels found, labels, detections matched, detections) of one rendered frame: :func:`frame_matches`
+    counted."""
+    _, counted, found, tp, n_det = frame_matches(image, row, params, min_d_km, min_r_px, skip_hidden)
+    return int(found.sum()), int(counted.sum()), tp, n_det
 
 
 def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0.0) -> dict:
