@@ -82,24 +82,35 @@ def test_a_verifier_runs_every_learned_model_once_more(tmp_path, capsys):
     assert "none.pt: no such model file" in capsys.readouterr().err and not bad.exists()
 
 
-def test_recall_by_degradation_bins_the_counted_labels(monkeypatch):
-    """Each bin's labels and recall come from the counted labels of its degradation (the last bin closed);
-    the bins add up to the whole, in all and per off-nadir bin."""
+def test_recall_by_label_property_bins_the_counted_labels(monkeypatch):
+    """Each bin's labels and recall come from the counted labels whose property falls in it (the last bin
+    closed, a missing value in none); the bins add up to the whole, in all and per off-nadir bin."""
     degradation = [0.0, 0.1, 0.3, 0.6, 0.9, 1.0, 0.2]
     counted = np.array([1, 1, 1, 1, 1, 1, 0], bool)  # the last label is hidden or too small
     found = np.array([1, 0, 1, 0, 0, 1, 0], bool)
-    labels = [{"degradation": d} for d in degradation]
+    radius = [5.0, 9.0, 9.0, 50.0, 6.0, 7.0, 30.0]
+    labels = [
+        {"degradation": d, "ellipse": {"a": r, "b": 0.9 * r}} | ({"lit_rim_fraction": 0.6} if i else {})
+        for i, (d, r) in enumerate(zip(degradation, radius))
+    ]
     monkeypatch.setattr(dh, "frame_matches", lambda *a, **k: (labels, counted, found & counted, 3, 4))
     rows = [(None, {"view": {"off_nadir_deg": 0.0}}), (None, {"view": {"off_nadir_deg": 35.0}})]
     out = dh.score_model(rows, None, 5.0, dh.DEFAULT_BINS)
-    by = out["all"]["by_degradation"]
+    by = out["all"]["recall_by"]["degradation"]
     assert {k: v["labels"] for k, v in by.items()} == {"0-0.25": 4, "0.25-0.5": 2, "0.5-0.75": 2, "0.75-1": 4}
     assert by["0-0.25"]["recall"] == 0.5 and by["0.25-0.5"]["recall"] == 1.0 and by["0.5-0.75"]["recall"] == 0.0
     assert by["0.75-1"]["recall"] == 0.5 and out["all"]["recall"] == round(6 / 12, 4)
-    assert sum(v["labels"] for v in out["30-46"]["by_degradation"].values()) == out["30-46"]["labels"] == 6
+    radius_bins = out["all"]["recall_by"]["rim_radius_px"]
+    assert radius_bins["5-8"] == {"labels": 6, "recall": round(4 / 6, 4)} and radius_bins[">=40"]["labels"] == 2
+    assert out["all"]["recall_by"]["axis_ratio"]["0.85-0.95"]["labels"] == 12
+    assert out["all"]["recall_by"]["lit_rim"]["0.5-0.75"]["labels"] == 10  # the first label has no lit fraction
+    for split in out["30-46"]["recall_by"].values():
+        assert sum(v["labels"] for v in split.values()) <= out["30-46"]["labels"] == 6
     assert out["all"]["precision"] == 0.75
 
 
-@pytest.mark.parametrize(("value", "index"), [(0.0, 0), (0.25, 1), (0.9, 3), (1.0, 3)])
-def test_degradation_bins(value, index):
-    assert dh.degradation_bin(value) == index
+@pytest.mark.parametrize(
+    ("value", "index"), [(0.0, 0), (0.25, 1), (0.9, 3), (1.0, 3), (7.0, 3), (-1.0, 0), (None, -1), (float("nan"), -1)]
+)
+def test_value_bins(value, index):
+    assert dh.value_bin(value, (0.0, 0.25, 0.5, 0.75, 1.0)) == index

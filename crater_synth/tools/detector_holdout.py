@@ -6,9 +6,10 @@ every view are scored on the same held-out fields (the last 10 % of the set's fi
 either), frame by frame against their exact labels. Recall counts labelled rims that span at least
 ``--min-span-px`` (10 px: a rim radius of 5 px), precision the detections of that size; occluded rims and
 rims lit on less than 5 % of their length are neither (the training's rule). Each model runs at the
-hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by the label's
-degradation (0 fresh .. 1 ghost, :class:`crater_core.procedural.Crater`; ``by_degradation``, in all and in
-each off-nadir bin): which rims a model misses, the fresh or the worn. ``--verifier V.pt`` runs every
+hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by four properties of the
+counted labels (``recall_by``, in all and in each off-nadir bin; :data:`LABEL_SPLITS`): the degradation (0
+fresh .. 1 ghost, :class:`crater_core.procedural.Crater`), the rim's semi-major axis in pixels, its axis
+ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--verifier V.pt`` runs every
 learned model
 once more with that second stage (``nav.detector.verifier``; its candidates at ``--threshold``, kept at
 ``--verify-threshold`` of ``--verify-score``). Nothing real is read.
@@ -43,8 +44,15 @@ from crater_synth.tools.detector_choice import command_line, f1, model_option, m
 
 PROG = "python -m crater_synth.tools.detector_holdout"
 DEFAULT_BINS = (0.0, 1.0, 15.0, 30.0, 46.0)  # nadir; 1-15; 15-30; 30-45 degrees off nadir (the issue's oblique band)
-# Degradation quarters; detectable() labels stop at 0.9, so the last bin holds 0.75-0.9.
-DEGRADATION_BINS = (0.0, 0.25, 0.5, 0.75, 1.0)
+# Label properties recall is split by: name -> (the label's value, bin edges; the last bin closed, values
+# beyond the edges in the end bins). A label without the property (a set whose labels lack the field) is
+# in none of its bins.
+LABEL_SPLITS = {
+    "degradation": (lambda lb: lb.get("degradation"), (0.0, 0.25, 0.5, 0.75, 1.0)),  # detectable() stops at 0.9
+    "rim_radius_px": (lambda lb: lb["ellipse"]["a"], (5.0, 8.0, 12.0, 20.0, 40.0, np.inf)),
+    "axis_ratio": (lambda lb: lb["ellipse"]["b"] / lb["ellipse"]["a"], (0.0, 0.7, 0.85, 0.95, 1.0)),
+    "lit_rim": (lambda lb: lb.get("lit_rim_fraction"), (0.0, 0.25, 0.5, 0.75, 1.0)),
+}
 
 
 def off_nadir_bin(angle: float, edges) -> str | None:
@@ -54,31 +62,43 @@ def off_nadir_bin(angle: float, edges) -> str | None:
     return None
 
 
-def degradation_bin(value: float, edges=DEGRADATION_BINS) -> int:
-    """The index of the degradation bin holding ``value`` (the last bin closed)."""
+def value_bin(value, edges) -> int:
+    """The index of the bin of ``edges`` holding ``value`` (the last bin closed, values beyond the edges
+    in the end bins); -1 for a missing value."""
+    if value is None or not np.isfinite(value):
+        return -1
     return int(np.clip(np.searchsorted(edges, value, side="right") - 1, 0, len(edges) - 2))
 
 
-def score_model(records, params, min_r: float, edges, degradation_edges=DEGRADATION_BINS) -> dict:
+def _bin_name(lo: float, hi: float) -> str:
+    return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
+
+
+def score_model(records, params, min_r: float, edges, splits=LABEL_SPLITS) -> dict:
     """Recall and precision of one model over ``records``, in all and by off-nadir bin, each with its recall
-    by degradation bin (``by_degradation``: labels and recall per bin)."""
-    n_deg = len(degradation_edges) - 1
+    by the bins of each label property of ``splits`` (``recall_by``: labels and recall per bin)."""
     sums: dict[str, np.ndarray] = {}
-    by_deg: dict[str, np.ndarray] = {}  # key -> (bins, 2): labels counted, found
+    by: dict[tuple[str, str], np.ndarray] = {}  # (off-nadir key, property) -> (bins, 2): labels counted, found
     for image, row in records:
         labels, counted, found, tp, n_det = frame_matches(image, row, params, 0.0, min_r, skip_hidden=True)
-        # a label without a degradation (a set whose labels lack the field) is in no degradation bin
-        bins = np.array(
-            [degradation_bin(lb["degradation"], degradation_edges) if "degradation" in lb else -1 for lb in labels], int
-        )
-        known = bins >= 0
-        per_bin = np.stack(
-            [np.bincount(bins[counted & known], minlength=n_deg), np.bincount(bins[found & known], minlength=n_deg)], 1
-        )
+        per_split = {}
+        for name, (value, split_edges) in splits.items():
+            n_bins = len(split_edges) - 1
+            bins = np.array([value_bin(value(lb), split_edges) for lb in labels], int)
+            known = bins >= 0
+            per_split[name] = np.stack(
+                [
+                    np.bincount(bins[counted & known], minlength=n_bins),
+                    np.bincount(bins[found & known], minlength=n_bins),
+                ],
+                1,
+            )
         for key in ("all", off_nadir_bin(off_nadir_deg(row), edges)):
-            if key is not None:
-                sums[key] = sums.get(key, np.zeros(5, int)) + np.r_[found.sum(), counted.sum(), tp, n_det, 1]
-                by_deg[key] = by_deg.get(key, np.zeros((n_deg, 2), int)) + per_bin
+            if key is None:
+                continue
+            sums[key] = sums.get(key, np.zeros(5, int)) + np.r_[found.sum(), counted.sum(), tp, n_det, 1]
+            for name, counts in per_split.items():
+                by[key, name] = by.get((key, name), 0) + counts
     out = {}
     for key, (n_found, n_lab, tp, n_det, frames) in sums.items():
         recall = round(n_found / n_lab, 4) if n_lab else None
@@ -89,9 +109,12 @@ def score_model(records, params, min_r: float, edges, degradation_edges=DEGRADAT
             "precision": precision,
             "f1": f1(precision, recall),
             "labels": int(n_lab),
-            "by_degradation": {
-                f"{lo:g}-{hi:g}": {"labels": int(n), "recall": round(k / n, 4) if n else None}
-                for lo, hi, (n, k) in zip(degradation_edges[:-1], degradation_edges[1:], by_deg[key])
+            "recall_by": {
+                name: {
+                    _bin_name(lo, hi): {"labels": int(n), "recall": round(k / n, 4) if n else None}
+                    for lo, hi, (n, k) in zip(split_edges[:-1], split_edges[1:], by[key, name])
+                }
+                for name, (_, split_edges) in splits.items()
             },
         }
     return out
@@ -148,7 +171,9 @@ def main(argv=None) -> int:
         "verify": {"threshold": args.verify_threshold, "score": args.verify_score} if args.verifier else None,
         "min_span_px": args.min_span_px,
         "off_nadir_bins_deg": list(DEFAULT_BINS),
-        "degradation_bins": list(DEGRADATION_BINS),
+        "recall_by_bins": {
+            name: [_bin_name(lo, hi) for lo, hi in zip(e[:-1], e[1:])] for name, (_, e) in LABEL_SPLITS.items()
+        },
         "runs": runs,
     }
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
