@@ -9,9 +9,10 @@ rims lit on less than 5 % of their length are neither (the training's rule). Eac
 hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by four properties of the
 counted labels (``recall_by``, in all and in each off-nadir bin; :data:`LABEL_SPLITS`): the degradation (0
 fresh .. 1 ghost, :class:`crater_core.procedural.Crater`), the rim's semi-major axis in pixels, its axis
-ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--verifier V.pt`` runs every
-learned model
-once more with that second stage (``nav.detector.verifier``; its candidates at ``--threshold``, kept at
+ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--rectify on|both``
+detects on each frame's ground plane (:mod:`crater_synth.navigation.rendered.rectify`; both: each model
+plain and so). ``--verifier V.pt`` runs every learned model once more with that second stage
+(``nav.detector.verifier``; its candidates at ``--threshold``, kept at
 ``--verify-threshold`` of ``--verify-score``). Nothing real is read.
 
     python -m crater_synth.tools.detector_holdout SET --model A.pt --model fcos:B.pt --threshold 0.15 \\
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import sys
 import time
@@ -74,13 +76,16 @@ def _bin_name(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
 
 
-def score_model(records, params, min_r: float, edges, splits=LABEL_SPLITS) -> dict:
+def score_model(records, params, min_r: float, edges, splits=LABEL_SPLITS, rectify: bool = False) -> dict:
     """Recall and precision of one model over ``records``, in all and by off-nadir bin, each with its recall
-    by the bins of each label property of ``splits`` (``recall_by``: labels and recall per bin)."""
+    by the bins of each label property of ``splits`` (``recall_by``: labels and recall per bin);
+    ``rectify``: detected on each frame's ground plane (:func:`frame_matches`)."""
     sums: dict[str, np.ndarray] = {}
     by: dict[tuple[str, str], np.ndarray] = {}  # (off-nadir key, property) -> (bins, 2): labels counted, found
     for image, row in records:
-        labels, counted, found, tp, n_det = frame_matches(image, row, params, 0.0, min_r, skip_hidden=True)
+        labels, counted, found, tp, n_det = frame_matches(
+            image, row, params, 0.0, min_r, skip_hidden=True, rectify=rectify
+        )
         per_split = {}
         for name, (value, split_edges) in splits.items():
             n_bins = len(split_edges) - 1
@@ -130,8 +135,15 @@ def main(argv=None) -> int:
     ap.add_argument("--verifier", action="append", default=[], help="a second-stage model file (repeatable)")
     ap.add_argument("--verify-threshold", type=float, default=0.5, help="the verifier score a candidate needs")
     ap.add_argument("--verify-score", choices=VERIFY_SCORES, default="verifier", help="the verifier's score rule")
+    ap.add_argument(
+        "--rectify",
+        choices=("off", "on", "both"),
+        default="off",
+        help="detect on each frame's ground plane (crater_synth.navigation.rendered.rectify): on, off or both runs",
+    )
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
+    views = {"off": (False,), "on": (True,), "both": (False, True)}[args.rectify]
     try:
         _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
         hold = hold[:: max(1, args.every)]
@@ -153,13 +165,14 @@ def main(argv=None) -> int:
                 for v in (args.verifier if option != "fcos" else [])
             ]
             model_sha = model_sha256(model)
-            for verifier, params in stages:
+            for (verifier, params), rectify in itertools.product(stages, views):
                 t0 = time.perf_counter()
-                scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS)
+                scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS, rectify=rectify)
                 seconds = round(time.perf_counter() - t0, 1)
                 second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
-                runs.append({"model": model, "model_sha256": model_sha} | second | {"seconds": seconds} | scores)
-                print(f"{model} {verifier}: {json.dumps(scores['all'])}", flush=True)
+                first = {"model": model, "model_sha256": model_sha, "rectified": rectify}
+                runs.append(first | second | {"seconds": seconds} | scores)
+                print(f"{model} {verifier} rectified={rectify}: {json.dumps(scores['all'])}", flush=True)
             registry.detector(plain.method).load_model.cache_clear()
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)

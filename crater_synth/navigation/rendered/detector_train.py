@@ -29,6 +29,7 @@ from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
+from crater_synth.navigation.rendered.rectify import rectified_detect
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.navigation.rendered.training_rows import (
     ChainedSamples,
@@ -137,15 +138,27 @@ def _recipe(folder: Path) -> str | None:
         return None
 
 
-def frame_matches(image, row: dict, params, min_d_km: float = 15.0, min_r_px: float = 0.0, skip_hidden: bool = False):
+def frame_matches(
+    image,
+    row: dict,
+    params,
+    min_d_km: float = 15.0,
+    min_r_px: float = 0.0,
+    skip_hidden: bool = False,
+    rectify: bool = False,
+):
     """(the frame's labels, which of them count, which of those were found, detections matched, detections)
     of one rendered frame against its exact labels (the rendered frames' matching,
     :func:`crater_synth.navigation.rendered.evaluate.match_pixels`): labels and detections of D >=
     ``min_d_km`` and a rim radius >= ``min_r_px`` count. ``skip_hidden``: a label that training treats as
-    neither (:func:`label_circles`), and a detection matched to one, count nowhere."""
+    neither (:func:`label_circles`), and a detection matched to one, count nowhere. ``rectify``: the
+    detector runs on the frame's ground plane (:func:`.rectify.rectified_detect`)."""
     labels = labels_in_frame(row, image.shape)
     km_per_px = float(row["ground_sample_m"]) / 1000.0
-    dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
+    if rectify:
+        dets = rectified_detect(image, row, params, what=row["rel_path"])
+    else:
+        dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
     matched = match_pixels(dets, labels)  # detection index -> label index
     r_min = max(min_r_px, 0.5 * min_d_km / km_per_px)
     hidden = label_circles({"labels": labels}, image.shape)[4] if skip_hidden else np.zeros(len(labels), bool)
