@@ -65,7 +65,8 @@ def test_a_circle_found_on_the_plane_comes_back_as_its_rim_ellipse(monkeypatch):
     r_m = 1_500.0
     x, y = 2_500.0, 1_000.0
     j, i = np.linalg.solve(rect["to_plane"], [x, y, 1.0])[:2]
-    found = [Detection(j, i, r_m / rect["gsd_m"], 0.9), Detection(1.0, 1.0, 3.0, 0.8)]  # the second: on the fill
+    near_corner = Detection(1.0, rect["size"][1] - 1.0, 3.0, 0.8)  # the near side is narrower: fill there
+    found = [Detection(j, i, r_m / rect["gsd_m"], 0.9), near_corner]
     monkeypatch.setattr(rc, "detect", lambda *a, **k: (found, 0.0))
     (det,) = rc.rectified_detect(np.random.default_rng(0).random((WIDTH, WIDTH)), row, LearnedSettings())
     e1, e2 = geometry.plane_basis(rect["normal"])
@@ -73,6 +74,16 @@ def test_a_circle_found_on_the_plane_comes_back_as_its_rim_ellipse(monkeypatch):
     cu, cv, a, b, _ = geometry.project_circles(centre[None], rect["normal"][None], np.array([r_m]), rect["pose"], WIDTH)
     assert (det.u, det.v, det.r, det.score) == pytest.approx((cu[0], cv[0], a[0], 0.9), abs=1e-6)
     assert b[0] < 0.9 * a[0]  # foreshortened in the frame
+
+
+def test_a_frame_near_nadir_is_its_own_plane_image():
+    """The plane's axes are the camera's: a frame seen 0.5 degrees off nadir maps onto its plane image
+    nearly pixel for pixel (scale and offset within a pixel across the frame)."""
+    row = oblique_row(0.5, azimuth=123.0)
+    rect = rc.rectification(row, (WIDTH, WIDTH))
+    grid = np.array([[0.0, 0.0, 1.0], [WIDTH, 0.0, 1.0], [0.0, WIDTH, 1.0], [WIDTH, WIDTH, 1.0]])
+    frame = grid @ (rect["to_frame"] @ rect["to_plane"]).T
+    assert np.abs(frame[:, :2] / frame[:, 2:] - grid[:, :2]).max() < 1.5
 
 
 def test_a_nadir_frame_is_detected_as_it_is(monkeypatch):
