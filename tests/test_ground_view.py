@@ -123,3 +123,26 @@ def test_inside_footprint_drops_rims_the_footprints_edge_cuts():
     cut = Detection(edge_j + 2.5, centre.v, 8.0, 1.0)
     assert inside_footprint([centre, cut], view) == [centre]
     assert inside_footprint([], view) == []
+
+
+def test_detect_on_ground_reads_a_detection_frames_row_and_returns_frame_pixels(monkeypatch):
+    """A detection frame's row carries its optics in ``camera_enu``: the ground view of it is the one a
+    navigation frame's row (optics in ``pose``) gives. The detector runs on the ground view; its rims
+    within the footprint by the detector's border margin come back in the frame's pixels, the rest not."""
+    from crater_synth.navigation.detectors.learned import LearnedSettings
+    from crater_synth.navigation.rendered import ground_view as gv
+
+    row, _, _, _ = _oblique(view_deg=38.0, fov_deg=30.0, width=256)
+    set_row = {"camera_enu": dict(row["camera_enu"], width_px=256, fov_deg=30.0)}
+    image = np.random.default_rng(1).random((256, 256)).astype(np.float32)
+    view = ground_view(image, set_row, RANGE_M)
+    assert np.array_equal(view.image, ground_view(image, row, RANGE_M).image)
+    ii, jj = np.nonzero(view.valid)
+    inside = Detection(float(np.median(jj)) + 0.5, float(np.median(ii)) + 0.5, 6.0, 0.9)
+    outside = Detection(0.5, 0.5, 6.0, 0.8)
+    seen = []
+    monkeypatch.setattr(gv, "detect", lambda img, *a, **k: (seen.append(img.shape), ([inside, outside], 0.0))[1])
+    params = LearnedSettings()
+    got = gv.detect_on_ground(image, set_row, RANGE_M, params)
+    assert seen == [view.image.shape] and got == to_frame([inside], view, set_row, RANGE_M)
+    assert 0 <= got[0].u < 256 and 0 <= got[0].v < 256

@@ -9,9 +9,10 @@ rims lit on less than 5 % of their length are neither (the training's rule). Eac
 hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by four properties of the
 counted labels (``recall_by``, in all and in each off-nadir bin; :data:`LABEL_SPLITS`): the degradation (0
 fresh .. 1 ghost, :class:`crater_core.procedural.Crater`), the rim's semi-major axis in pixels, its axis
-ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--rectify on|both``
-detects on each frame's ground plane (:mod:`crater_synth.navigation.rendered.rectify`; both: each model
-plain and so). ``--verifier V.pt`` runs every learned model once more with that second stage
+ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--ground-view on|both``
+searches each frame at least ``--ground-view-from`` degrees off nadir on the ground, as lost in space on
+rendered frames does (:mod:`crater_synth.navigation.rendered.ground_view`; both: each model as the frame
+is and so). ``--verifier V.pt`` runs every learned model once more with that second stage
 (``nav.detector.verifier``; its candidates at ``--threshold``, kept at
 ``--verify-threshold`` of ``--verify-score``). Nothing real is read.
 
@@ -46,6 +47,10 @@ from crater_synth.tools.detector_choice import command_line, f1, model_option, m
 
 PROG = "python -m crater_synth.tools.detector_holdout"
 DEFAULT_BINS = (0.0, 1.0, 15.0, 30.0, 46.0)  # nadir; 1-15; 15-30; 30-45 degrees off nadir (the issue's oblique band)
+# The ground view serves frames at least this far off nadir (degrees). Chosen on the highland set's
+# validation fields (docs/history.md): it gains F1 at 30-45 degrees and loses it nearer nadir, where the
+# resampling and the fill of the east-north grid cost more precision than the foreshortening costs recall.
+GROUND_VIEW_FROM_DEG = 30.0
 # Label properties recall is split by: name -> (the label's value, bin edges; the last bin closed, values
 # beyond the edges in the end bins). A label without the property (a set whose labels lack the field) is
 # in none of its bins.
@@ -76,15 +81,17 @@ def _bin_name(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
 
 
-def score_model(records, params, min_r: float, edges, splits=LABEL_SPLITS, rectify: bool = False) -> dict:
+def score_model(
+    records, params, min_r: float, edges, splits=LABEL_SPLITS, ground_view_from_deg: float | None = None
+) -> dict:
     """Recall and precision of one model over ``records``, in all and by off-nadir bin, each with its recall
     by the bins of each label property of ``splits`` (``recall_by``: labels and recall per bin);
-    ``rectify``: detected on each frame's ground plane (:func:`frame_matches`)."""
+    ``ground_view_from_deg``: frames that far off nadir searched on the ground (:func:`frame_matches`)."""
     sums: dict[str, np.ndarray] = {}
     by: dict[tuple[str, str], np.ndarray] = {}  # (off-nadir key, property) -> (bins, 2): labels counted, found
     for image, row in records:
         labels, counted, found, tp, n_det = frame_matches(
-            image, row, params, 0.0, min_r, skip_hidden=True, rectify=rectify
+            image, row, params, 0.0, min_r, skip_hidden=True, ground_view_from_deg=ground_view_from_deg
         )
         per_split = {}
         for name, (value, split_edges) in splits.items():
@@ -136,14 +143,20 @@ def main(argv=None) -> int:
     ap.add_argument("--verify-threshold", type=float, default=0.5, help="the verifier score a candidate needs")
     ap.add_argument("--verify-score", choices=VERIFY_SCORES, default="verifier", help="the verifier's score rule")
     ap.add_argument(
-        "--rectify",
+        "--ground-view",
         choices=("off", "on", "both"),
         default="off",
-        help="detect on each frame's ground plane (crater_synth.navigation.rendered.rectify): on, off or both runs",
+        help="search oblique frames on the ground (crater_synth.navigation.rendered.ground_view): on, off or both",
+    )
+    ap.add_argument(
+        "--ground-view-from",
+        type=float,
+        default=GROUND_VIEW_FROM_DEG,
+        help="the ground view serves frames at least this many degrees off nadir",
     )
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
-    views = {"off": (False,), "on": (True,), "both": (False, True)}[args.rectify]
+    views = {"off": (None,), "on": (args.ground_view_from,), "both": (None, args.ground_view_from)}[args.ground_view]
     try:
         _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
         hold = hold[:: max(1, args.every)]
@@ -165,14 +178,16 @@ def main(argv=None) -> int:
                 for v in (args.verifier if option != "fcos" else [])
             ]
             model_sha = model_sha256(model)
-            for (verifier, params), rectify in itertools.product(stages, views):
+            for (verifier, params), ground_from in itertools.product(stages, views):
                 t0 = time.perf_counter()
-                scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS, rectify=rectify)
+                scores = score_model(
+                    hold, params, 0.5 * args.min_span_px, DEFAULT_BINS, ground_view_from_deg=ground_from
+                )
                 seconds = round(time.perf_counter() - t0, 1)
                 second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
-                first = {"model": model, "model_sha256": model_sha, "rectified": rectify}
+                first = {"model": model, "model_sha256": model_sha, "ground_view_from_deg": ground_from}
                 runs.append(first | second | {"seconds": seconds} | scores)
-                print(f"{model} {verifier} rectified={rectify}: {json.dumps(scores['all'])}", flush=True)
+                print(f"{model} {verifier} ground view from {ground_from}: {json.dumps(scores['all'])}", flush=True)
             registry.detector(plain.method).load_model.cache_clear()
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -28,8 +28,8 @@ from crater_synth.navigation.detectors import fcos, registry
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
+from crater_synth.navigation.rendered.ground_view import detect_on_ground
 from crater_synth.navigation.rendered.labels import frame_rows
-from crater_synth.navigation.rendered.rectify import rectified_detect
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.navigation.rendered.training_rows import (
     ChainedSamples,
@@ -145,18 +145,19 @@ def frame_matches(
     min_d_km: float = 15.0,
     min_r_px: float = 0.0,
     skip_hidden: bool = False,
-    rectify: bool = False,
+    ground_view_from_deg: float | None = None,
 ):
     """(the frame's labels, which of them count, which of those were found, detections matched, detections)
     of one rendered frame against its exact labels (the rendered frames' matching,
     :func:`crater_synth.navigation.rendered.evaluate.match_pixels`): labels and detections of D >=
     ``min_d_km`` and a rim radius >= ``min_r_px`` count. ``skip_hidden``: a label that training treats as
-    neither (:func:`label_circles`), and a detection matched to one, count nowhere. ``rectify``: the
-    detector runs on the frame's ground plane (:func:`.rectify.rectified_detect`)."""
+    neither (:func:`label_circles`), and a detection matched to one, count nowhere.
+    ``ground_view_from_deg``: a frame viewed at least that far off nadir is searched on the ground
+    (:func:`.ground_view.detect_on_ground`, the view's ``range_m``)."""
     labels = labels_in_frame(row, image.shape)
     km_per_px = float(row["ground_sample_m"]) / 1000.0
-    if rectify:
-        dets = rectified_detect(image, row, params, what=row["rel_path"])
+    if ground_view_from_deg is not None and off_nadir_deg(row) >= ground_view_from_deg:
+        dets = detect_on_ground(image, row, float(row["view"]["range_m"]), params, what=row["rel_path"])
     else:
         dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
     matched = match_pixels(dets, labels)  # detection index -> label index

@@ -27,7 +27,7 @@ import numpy as np
 
 from crater_core.geometry import MOON_RADIUS_M
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.rendered.evaluate import cv_camera
 
 # The ground view's side is capped (pixels): a frame whose footprint reaches towards the horizon is sampled
@@ -52,7 +52,8 @@ def camera_from_centre(row: dict, range_m: float) -> tuple[np.ndarray, np.ndarra
     """(world -> camera rotation, K, the camera's position from the Moon's centre) of the frame ``row``, its
     boresight's ground point ``range_m`` ahead on the sphere of the Moon's radius (the frame's origin)."""
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    r_wc, k = cv_camera(rot, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
+    optics = row["pose"] if "pose" in row else row["camera_enu"]  # a navigation frame's row, or a detection frame's
+    r_wc, k = cv_camera(rot, int(optics["width_px"]), float(optics["fov_deg"]))
     return r_wc, k, -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])
 
 
@@ -174,3 +175,13 @@ def to_frame(dets, view: GroundView, row: dict, range_m: float) -> list[Detectio
         for i, d in enumerate(dets)
         if z[i] > 0.0 and np.isfinite(uv[i]).all()
     ]
+
+
+def detect_on_ground(image: np.ndarray, row: dict, range_m: float, params, what: str = "frame") -> list[Detection]:
+    """The detector's craters (``params``, at its own scales) in the frame's :func:`ground_view`, those
+    whose rim lies within the footprint (:func:`inside_footprint`, the margin the detector's own border
+    rule keeps at a frame's edge: ``params.border_r``) carried back into the frame's pixels
+    (:func:`to_frame`); no light direction (the learned detector needs none)."""
+    view = ground_view(image, row, range_m)
+    dets, _ = detect(view.image, params, light_dir=0.0, what=f"{what} on the ground")
+    return to_frame(inside_footprint(dets, view, params.border_r), view, row, range_m)
