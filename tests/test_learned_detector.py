@@ -768,3 +768,25 @@ def test_max_off_nadir_keeps_the_near_nadir_training_frames_and_the_hold_out(tmp
         == 2
         == len(learned_train.survey_source(survey)[0])
     )
+
+
+def test_code_commit_says_when_the_tree_differs_from_its_commit(monkeypatch, tmp_path):
+    """A model's provenance: the commit, ``-dirty`` when a tracked file differs from it, "unknown" outside a
+    checkout (never a tag name)."""
+    import subprocess
+
+    from crater_synth.navigation.rendered import detector_train as dt
+
+    git = ["git", "-C", str(tmp_path), "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (tmp_path / "a.py").write_text("x = 1\n")
+    subprocess.run([*git, "add", "a.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "a"], check=True)
+    subprocess.run([*git, "tag", "v1"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    monkeypatch.setattr(dt, "SOURCE_ROOT", tmp_path)
+    assert dt.code_commit() == head
+    (tmp_path / "a.py").write_text("x = 2\n")
+    assert dt.code_commit() == head + "-dirty"
+    monkeypatch.setattr(dt, "SOURCE_ROOT", tmp_path / "none")
+    assert dt.code_commit() == "unknown"

@@ -35,6 +35,7 @@ import numpy as np
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import VERIFY_SCORES
 from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
@@ -42,6 +43,7 @@ from crater_synth.navigation.rendered.detector_train import (
     detection_set_records,
     frame_matches,
 )
+from crater_synth.navigation.rendered.ground_view import detect_on_ground
 from crater_synth.navigation.rendered.training_rows import off_nadir_deg
 from crater_synth.tools.detector_choice import command_line, f1, model_option, model_sha256
 
@@ -81,17 +83,32 @@ def _bin_name(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
 
 
+def finder(ground_view_from_deg: float | None):
+    """What finds a frame's craters for :func:`frame_matches`: None (the detector on the frame as it is),
+    or, from ``ground_view_from_deg`` off nadir, the detector on the frame's ground view
+    (:func:`crater_synth.navigation.rendered.ground_view.detect_on_ground`, the view's range)."""
+    if ground_view_from_deg is None:
+        return None
+
+    def find(image, row, params):
+        if off_nadir_deg(row) < ground_view_from_deg:
+            return detect(image, params, light_dir=0.0, what=row["rel_path"])[0]
+        return detect_on_ground(image, row, float(row["view"]["range_m"]), params, what=row["rel_path"])
+
+    return find
+
+
 def score_model(
     records, params, min_r: float, edges, splits=LABEL_SPLITS, ground_view_from_deg: float | None = None
 ) -> dict:
     """Recall and precision of one model over ``records``, in all and by off-nadir bin, each with its recall
     by the bins of each label property of ``splits`` (``recall_by``: labels and recall per bin);
-    ``ground_view_from_deg``: frames that far off nadir searched on the ground (:func:`frame_matches`)."""
+    ``ground_view_from_deg``: frames that far off nadir searched on the ground (:func:`finder`)."""
     sums: dict[str, np.ndarray] = {}
     by: dict[tuple[str, str], np.ndarray] = {}  # (off-nadir key, property) -> (bins, 2): labels counted, found
     for image, row in records:
         labels, counted, found, tp, n_det = frame_matches(
-            image, row, params, 0.0, min_r, skip_hidden=True, ground_view_from_deg=ground_view_from_deg
+            image, row, params, 0.0, min_r, skip_hidden=True, find=finder(ground_view_from_deg)
         )
         per_split = {}
         for name, (value, split_edges) in splits.items():

@@ -28,7 +28,6 @@ from crater_synth.navigation.detectors import fcos, registry
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
-from crater_synth.navigation.rendered.ground_view import detect_on_ground
 from crater_synth.navigation.rendered.labels import frame_rows
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.navigation.rendered.training_rows import (
@@ -145,19 +144,19 @@ def frame_matches(
     min_d_km: float = 15.0,
     min_r_px: float = 0.0,
     skip_hidden: bool = False,
-    ground_view_from_deg: float | None = None,
+    find=None,
 ):
     """(the frame's labels, which of them count, which of those were found, detections matched, detections)
     of one rendered frame against its exact labels (the rendered frames' matching,
     :func:`crater_synth.navigation.rendered.evaluate.match_pixels`): labels and detections of D >=
     ``min_d_km`` and a rim radius >= ``min_r_px`` count. ``skip_hidden``: a label that training treats as
     neither (:func:`label_circles`), and a detection matched to one, count nowhere.
-    ``ground_view_from_deg``: a frame viewed at least that far off nadir is searched on the ground
-    (:func:`.ground_view.detect_on_ground`, the view's ``range_m``)."""
+    ``find(image, row, params)``: the detections, where not the detector on the frame as it is (e.g. on the
+    ground, :func:`crater_synth.tools.detector_holdout.finder`)."""
     labels = labels_in_frame(row, image.shape)
     km_per_px = float(row["ground_sample_m"]) / 1000.0
-    if ground_view_from_deg is not None and off_nadir_deg(row) >= ground_view_from_deg:
-        dets = detect_on_ground(image, row, float(row["view"]["range_m"]), params, what=row["rel_path"])
+    if find is not None:
+        dets = find(image, row, params)
     else:
         dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
     matched = match_pixels(dets, labels)  # detection index -> label index
@@ -193,10 +192,14 @@ def score_synthetic(records, params, min_d_km: float = 15.0, min_r_px: float = 0
 
 
 def code_commit() -> str:
-    """The source tree's git commit ("unknown" outside a checkout): a model's provenance."""
+    """The source tree's git commit, with ``-dirty`` when tracked files differ from it ("unknown" outside a
+    checkout): a model's provenance. A model trained from uncommitted code must not claim a commit."""
     try:
         return subprocess.run(
-            ["git", "-C", str(SOURCE_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+            ["git", "-C", str(SOURCE_ROOT), "describe", "--always", "--dirty", "--abbrev=40", "--match=-"],
+            capture_output=True,
+            text=True,
+            check=True,
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
