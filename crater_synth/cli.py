@@ -161,6 +161,16 @@ COMMAND_EXTRA: dict[str, str] = {
     **{name: "nav" for name, _, _ in COMMANDS["navigation"]},
     "bench": "all",
 }
+# `bench --part P` needs P's extra only (crater_synth/bench/cli.py): a GPU host with the nav extra runs the
+# detector part without Dask.
+BENCH_PART_EXTRA: dict[str, str] = {
+    "renderer": "render",
+    "detection-frames": "render",
+    "train": "train",
+    "distributed": "dask",
+    "export": "export",
+    **dict.fromkeys(("navigation", "navframes", "detector", "detect", "opencv"), "nav"),
+}
 # Not checked before a command runs: a Blender binary (render.blender=...) stands in for the pip bpy module.
 _NOT_PROBED = {"bpy"}
 _EXIT_MISSING_EXTRA = 2  # as an environment error of a running command (cli_common)
@@ -177,11 +187,12 @@ def _install_command(extra: str) -> str:
     return f"pip install -e '{root}[{extra}]'"
 
 
-def missing_extra(command: str, module: str | None) -> str | None:
+def missing_extra(command: str, module: str | None, extra: str | None = None) -> str | None:
     """The one line for ``command`` whose import or run found ``module`` missing, or None when that module
-    belongs to no extra (a bug, not an install to complete)."""
+    belongs to no extra (a bug, not an install to complete). ``extra``: the one this run needs, where not
+    the command's (``bench --part P``)."""
     top = (module or "").split(".")[0]
-    extra = COMMAND_EXTRA.get(command)
+    extra = extra or COMMAND_EXTRA.get(command)
     if top not in EXTRA_MODULES.get(extra or "", ()):  # e.g. Dask for `dataset launcher=dask`
         extra = min(
             (e for e, mods in EXTRA_MODULES.items() if top in mods), key=lambda e: len(EXTRA_MODULES[e]), default=None
@@ -191,9 +202,9 @@ def missing_extra(command: str, module: str | None) -> str | None:
     return f"`crater-synth {command}` needs the {extra} extra ({top} is not installed): {_install_command(extra)}"
 
 
-def _exit_missing(command: str, exc: ModuleNotFoundError) -> None:
+def _exit_missing(command: str, exc: ModuleNotFoundError, extra: str | None = None) -> None:
     """Exit with the missing-extra line when ``exc`` is a module of an extra; otherwise re-raise it."""
-    line = missing_extra(command, exc.name)
+    line = missing_extra(command, exc.name, extra)
     if line is None:
         raise exc
     click.echo(f"error: {line}", err=True)
@@ -206,13 +217,16 @@ def _with_extra(command: str, callback):
 
     @functools.wraps(callback)
     def run(*args, **kwargs):
+        extra = COMMAND_EXTRA.get(command, "")
+        if command == "bench":
+            extra = BENCH_PART_EXTRA.get(kwargs.get("part", "all"), extra)
         try:
-            for module in EXTRA_MODULES.get(COMMAND_EXTRA.get(command, ""), ()):
+            for module in EXTRA_MODULES.get(extra, ()):
                 if module not in _NOT_PROBED and importlib.util.find_spec(module) is None:
                     raise ModuleNotFoundError(f"No module named {module!r}", name=module)
             return callback(*args, **kwargs)
         except ModuleNotFoundError as exc:
-            _exit_missing(command, exc)
+            _exit_missing(command, exc, extra)
 
     return run
 

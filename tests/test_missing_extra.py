@@ -116,3 +116,21 @@ def test_a_smoke_render_without_the_other_extras(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert '"rendered": 4' in proc.stdout
     assert len(list(out.rglob("*.exr"))) == 4
+
+
+def test_bench_checks_the_extra_of_the_parts_it_runs(tmp_path):
+    """`bench --part P` needs P's extra only: without Dask the detector part runs (here it finds no frames
+    and says so), the distributed part, and the whole bench, end in the dask extra's line."""
+    from crater_synth.bench.cli import PARTS
+    from crater_synth.cli import BENCH_PART_EXTRA
+
+    assert set(BENCH_PART_EXTRA) == set(PARTS) and set(BENCH_PART_EXTRA.values()) <= set(EXTRA_MODULES)
+    frames = str(tmp_path / "none")
+    proc = cli_blocked({"distributed"}, "bench", "--part", "detector", "--detector-frames", frames)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"detector skipped: no frames at {frames}" in proc.stdout
+    pip = f"pip install -e '{REPO}[dask]'"
+    proc = cli_blocked({"distributed"}, "bench", "--part", "distributed")
+    _one_error_line(proc, f"`crater-synth bench` needs the dask extra (distributed is not installed): {pip}")
+    proc = cli_blocked({"distributed"}, "bench")
+    assert proc.returncode == 2 and "needs the all extra (distributed is not installed)" in proc.stderr

@@ -41,7 +41,6 @@ from crater_synth.bench.detect import bench_detect
 from crater_synth.bench.detection import bench_detection
 from crater_synth.bench.detection import summary_line as detection_summary_line
 from crater_synth.bench.detector import bench_detector_training
-from crater_synth.bench.distributed import bench_distributed
 from crater_synth.bench.export import bench_export, summary_line
 from crater_synth.bench.navframes import bench_navframes
 from crater_synth.bench.navigation import bench_navigation
@@ -133,6 +132,8 @@ def bench_command(
     work.mkdir(parents=True, exist_ok=True)
     try:
         if part in ("all", "distributed"):
+            from crater_synth.bench.distributed import bench_distributed  # Dask: the dask extra, this part's alone
+
             cfg = compose(["sweep=smoke", "crater=shackleton", "launcher=dask", *overrides])
             click.echo("distributed " + json.dumps(bench_distributed(cfg, work / "distributed")))
         if part in ("all", "train"):
