@@ -114,3 +114,16 @@ def test_recall_by_label_property_bins_the_counted_labels(monkeypatch):
 )
 def test_value_bins(value, index):
     assert dh.value_bin(value, (0.0, 0.25, 0.5, 0.75, 1.0)) == index
+
+
+def test_set_passes_detector_settings_and_refuses_unknown_ones(tmp_path, capsys):
+    """--set KEY=VALUE reaches every model's settings (recorded in the output); an unknown key or a refused
+    value is one error line and no output."""
+    folder = fake_detection_set(tmp_path / "det", fields=2, frames=2)
+    out = tmp_path / "holdout.json"
+    args = [str(folder), "--model", str(DEFAULT_MODEL), "--threshold", "0.2"]
+    assert dh.main([*args, "--set", "upsample_levels=1", "--set", "min_radius_px=3", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["settings"] == {"upsample_levels": 1, "min_radius_px": 3}
+    for bad, why in (("nope=1", "unexpected keyword argument 'nope'"), ("upsample_levels=5", "must be 0, 1 or 2")):
+        assert dh.main([*args, "--set", bad, "--out", str(tmp_path / "bad.json")]) == 1
+        assert why in capsys.readouterr().err and not (tmp_path / "bad.json").exists()

@@ -187,6 +187,37 @@ def test_first_level_searches_the_wanted_radii_inside_a_band():
         assert 0.75 * cd.BAND_LO_PX * 2**k / math.sqrt(2) <= rmin <= 0.75 * cd.BAND_LO_PX * 2**k * math.sqrt(2)
 
 
+def test_first_level_goes_below_full_resolution_only_where_enlarging_is_allowed():
+    """A 3 px rim sits in the band of the frame enlarged 2x (level -1); without upsample_levels the search
+    still starts at full resolution, and never below -upsample_levels."""
+    assert learned.first_level(3.0) == 0 and learned.first_level(3.0, upsample_levels=1) == -1
+    assert learned.first_level(1.0, upsample_levels=1) == -1 and learned.first_level(1.0, upsample_levels=2) == -2
+    assert learned.first_level(9.0, upsample_levels=2) == 1  # a larger smallest radius is unchanged
+
+
+def test_an_enlarged_level_scales_back_to_frame_pixels(monkeypatch):
+    """pyramid(first_level=-1) starts with the frame enlarged 2x (pixel corners kept: a pixel's value
+    lands on its 2 x 2 block); a peak found there comes back at half its level coordinates and radius."""
+    a = np.zeros((64, 96), np.float32)
+    a[10, 20] = 1.0
+    levels = cd.pyramid(a, first_level=-1)
+    assert [k for k, _ in levels[:2]] == [-1, 0] and levels[0][1].shape == (128, 192)
+    big = levels[0][1]
+    assert np.unravel_index(np.argmax(big), big.shape) in {(20, 40), (20, 41), (21, 40), (21, 41)}
+    assert np.array_equal(levels[1][1], a)
+
+    def fake_output(model, level_image, tta=1):
+        out = np.zeros((4,) + level_image.shape, np.float32)
+        if level_image.shape == (128, 192):
+            out[0, 60, 100] = 0.9
+            out[3, 60, 100] = math.log(8.0 / cd.BAND_LO_PX)
+        return out
+
+    monkeypatch.setattr(infer, "level_output", fake_output)
+    u, v, r, _s, level = infer.detect_pyramid(None, a, threshold=0.5, first_level=-1)
+    assert (u[0], v[0], r[0], level[0]) == pytest.approx((50.25, 30.25, 4.0, -1))
+
+
 # ------------------------------------------------------------------------------------------------
 # Model files
 # ------------------------------------------------------------------------------------------------

@@ -93,9 +93,12 @@ def decimate2(a: np.ndarray) -> np.ndarray:
 
 
 def pyramid(image: np.ndarray, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> list[tuple[int, np.ndarray]]:
-    """(level, image decimated by 2**level) from ``first_level`` while the smaller side is >= ``min_px``."""
+    """(level, image decimated by 2**level) from ``first_level`` while the smaller side is >= ``min_px``. A
+    negative ``first_level`` starts with the image enlarged 2**-level times (bilinear; pixel corners kept, so
+    a level's coordinates times 2**level are the frame's): rims below the network's band at full
+    resolution lie inside it there."""
     a = np.asarray(image, dtype=np.float32)
-    out = []
+    out = [(level, enlarge(a, 2**-level)) for level in range(min(first_level, 0), 0)]
     level = 0
     while min(a.shape) >= min_px:
         if level >= first_level:
@@ -103,6 +106,12 @@ def pyramid(image: np.ndarray, first_level: int = 0, min_px: int = MIN_LEVEL_PX)
         a = decimate2(a)
         level += 1
     return out
+
+
+def enlarge(a: np.ndarray, factor: int) -> np.ndarray:
+    """``a`` enlarged ``factor`` times, bilinear with pixel corners kept (``align_corners=False``)."""
+    t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None, None]
+    return F.interpolate(t, scale_factor=float(factor), mode="bilinear", align_corners=False)[0, 0].numpy()
 
 
 def level_shapes(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> list[tuple[int, int]]:

@@ -31,8 +31,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from crater_core.schema import atomic_write_text
+from crater_core.typed_config import SettingsError
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import detect
@@ -81,6 +83,17 @@ def value_bin(value, edges) -> int:
 
 def _bin_name(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
+
+
+def detector_settings(pairs: list[str]) -> dict:
+    """``--set KEY=VALUE`` pairs as detector settings, each value read as YAML (``1``, ``3.0``, ``true``)."""
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise UserError(f"--set {pair!r}: not KEY=VALUE")
+        out[key] = yaml.safe_load(value)
+    return out
 
 
 def finder(ground_view_from_deg: float | None):
@@ -171,10 +184,19 @@ def main(argv=None) -> int:
         default=GROUND_VIEW_FROM_DEG,
         help="the ground view serves frames at least this many degrees off nadir",
     )
+    ap.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a detector setting for every model (nav.detector's keys, e.g. upsample_levels=1); repeatable",
+    )
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
     views = {"off": (None,), "on": (args.ground_view_from,), "both": (None, args.ground_view_from)}[args.ground_view]
     try:
+        settings = detector_settings(args.settings)
         _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
         hold = hold[:: max(1, args.every)]
         for path in [*(model_option(m)[1] for m in args.model), *args.verifier]:
@@ -184,7 +206,10 @@ def main(argv=None) -> int:
         for model in args.model:
             option, path = model_option(model)
             plain = architecture("fcos" if option == "fcos" else "centernet")[2](path)
-            plain = dataclasses.replace(plain, threshold=args.threshold)
+            try:
+                plain = dataclasses.replace(plain, threshold=args.threshold, **settings)
+            except (TypeError, SettingsError) as e:  # a key the detector has not, or a value it refuses
+                raise UserError(f"--set {' '.join(args.settings)}: {e}") from None
             stages = [("", plain)] + [
                 (
                     v,
@@ -213,6 +238,7 @@ def main(argv=None) -> int:
         "command": command_line(argv, PROG),
         "set": {"folder": str(args.folder), "holdout_fields": what["holdout_fields"], "recipe": what["recipe"]},
         "threshold": args.threshold,
+        "settings": settings,
         "verify": {"threshold": args.verify_threshold, "score": args.verify_score} if args.verifier else None,
         "min_span_px": args.min_span_px,
         "off_nadir_bins_deg": list(DEFAULT_BINS),

@@ -46,6 +46,9 @@ class LearnedSettings(DetectorSettings):
     tta: int = 1
     # Also search the pyramid of the frame shrunk by sqrt(2) (half-octave steps); twice the network passes.
     half_octaves: bool = False
+    # Levels of the frame enlarged 2x, 4x, ... the search may start at (0: none), for rims below the
+    # network's band at full resolution (< 6 px, first_level); the first costs 4 x a full-resolution pass.
+    upsample_levels: int = 0
     # More model files of the same network (trained on other frames or seeds): their heat and log-radius maps
     # are averaged with ``model``'s, view by view. Models that err differently average their errors down; each
     # costs ``model``'s network passes again.
@@ -63,6 +66,7 @@ class LearnedSettings(DetectorSettings):
     def _check(self) -> None:
         super()._check()
         need(self.tta in (1, 2, 4, 8), "tta", self.tta, "must be 1, 2, 4 or 8")
+        need(self.upsample_levels in (0, 1, 2), "upsample_levels", self.upsample_levels, "must be 0, 1 or 2")
         need(0.0 <= self.verify_threshold <= 1.0, "verify_threshold", self.verify_threshold, "must be in [0, 1]")
         need(self.verify_score in VERIFY_SCORES, "verify_score", self.verify_score, f"must be one of {VERIFY_SCORES}")
 
@@ -110,12 +114,13 @@ def model_path(params) -> Path:
     return Path(params.model) if params.model else DEFAULT_MODEL
 
 
-def first_level(min_radius_px: float) -> int:
+def first_level(min_radius_px: float, upsample_levels: int = 0) -> int:
     """The first pyramid level searched: its band's lower edge (6 x 2**level px) near 4/3 x the
-    smallest radius wanted, so that radius is found at a level where it lies inside the band."""
+    smallest radius wanted, so that radius is found at a level where it lies inside the band; no lower
+    than ``-upsample_levels`` (a negative level: the frame enlarged, :func:`train.crater_detector.pyramid`)."""
     from train.crater_detector import BAND_LO_PX
 
-    return max(0, int(round(math.log2(max(min_radius_px, 1e-6) / (0.75 * BAND_LO_PX)))))
+    return max(-upsample_levels, int(round(math.log2(max(min_radius_px, 1e-6) / (0.75 * BAND_LO_PX)))))
 
 
 def learned_candidates(frame: CandidateInput, params: LearnedSettings):
@@ -125,7 +130,12 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
 
     models = [load_model(str(path))[0] for path in (model_path(params), *params.ensemble)]
     u, v, r, s, _level = detect_pyramid(
-        models, frame.image, params.threshold, first_level(params.min_radius_px), params.tta, params.half_octaves
+        models,
+        frame.image,
+        params.threshold,
+        first_level(params.min_radius_px, params.upsample_levels),
+        params.tta,
+        params.half_octaves,
     )
     if params.verifier:
         from train.crater_verifier import verify
