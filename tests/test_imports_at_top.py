@@ -31,6 +31,7 @@ DEFERRED_LIBRARIES = {
 # imports): importing one counts as deferring that library. The test checks each still does.
 DEFERRING_MODULES = {
     "crater_synth.dataset.dask_launcher": "distributed",
+    "crater_synth.bench.distributed": "distributed",
     "crater_synth.dataset.detection_dask": "distributed",
     "train.crater_detector": "torch",
     "train.crater_detector_inference": "torch",

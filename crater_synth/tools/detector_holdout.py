@@ -162,6 +162,32 @@ def score_model(
     return out
 
 
+def model_runs(model: str, args, settings: dict, hold: list, views) -> list[dict]:
+    """One model's runs: as it is and with each ``--verifier``, each with and without the ground view as
+    ``views`` asks, scored on ``hold``."""
+    option, path = model_option(model)
+    plain = architecture("fcos" if option == "fcos" else "centernet")[2](path)
+    try:
+        plain = dataclasses.replace(plain, threshold=args.threshold, **settings)
+    except (TypeError, SettingsError) as e:  # a key the detector has not, or a value it refuses
+        raise UserError(f"--set {' '.join(args.settings)}: {e}") from None
+    verify = {"verify_threshold": args.verify_threshold, "verify_score": args.verify_score}
+    verifiers = args.verifier if option != "fcos" else []
+    stages = [("", plain)] + [(v, dataclasses.replace(plain, verifier=v, **verify)) for v in verifiers]
+    model_sha = model_sha256(model)
+    runs = []
+    for (verifier, params), ground_from in itertools.product(stages, views):
+        t0 = time.perf_counter()
+        scores = score_model(hold, params, 0.5 * args.min_span_px, DEFAULT_BINS, ground_view_from_deg=ground_from)
+        seconds = round(time.perf_counter() - t0, 1)
+        second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
+        first = {"model": model, "model_sha256": model_sha, "ground_view_from_deg": ground_from}
+        runs.append(first | second | {"seconds": seconds} | scores)
+        print(f"{model} {verifier} ground view from {ground_from}: {json.dumps(scores['all'])}", flush=True)
+    registry.detector(plain.method).load_model.cache_clear()
+    return runs
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     ap.add_argument("folder", type=Path, help="a detection set (crater-synth detection-frames)")
@@ -202,35 +228,7 @@ def main(argv=None) -> int:
         for path in [*(model_option(m)[1] for m in args.model), *args.verifier]:
             if not Path(path).is_file():
                 raise UserError(f"{path}: no such model file")
-        runs = []
-        for model in args.model:
-            option, path = model_option(model)
-            plain = architecture("fcos" if option == "fcos" else "centernet")[2](path)
-            try:
-                plain = dataclasses.replace(plain, threshold=args.threshold, **settings)
-            except (TypeError, SettingsError) as e:  # a key the detector has not, or a value it refuses
-                raise UserError(f"--set {' '.join(args.settings)}: {e}") from None
-            stages = [("", plain)] + [
-                (
-                    v,
-                    dataclasses.replace(
-                        plain, verifier=v, verify_threshold=args.verify_threshold, verify_score=args.verify_score
-                    ),
-                )
-                for v in (args.verifier if option != "fcos" else [])
-            ]
-            model_sha = model_sha256(model)
-            for (verifier, params), ground_from in itertools.product(stages, views):
-                t0 = time.perf_counter()
-                scores = score_model(
-                    hold, params, 0.5 * args.min_span_px, DEFAULT_BINS, ground_view_from_deg=ground_from
-                )
-                seconds = round(time.perf_counter() - t0, 1)
-                second = {"verifier": verifier, "verifier_sha256": model_sha256(verifier)} if verifier else {}
-                first = {"model": model, "model_sha256": model_sha, "ground_view_from_deg": ground_from}
-                runs.append(first | second | {"seconds": seconds} | scores)
-                print(f"{model} {verifier} ground view from {ground_from}: {json.dumps(scores['all'])}", flush=True)
-            registry.detector(plain.method).load_model.cache_clear()
+        runs = [run for model in args.model for run in model_runs(model, args, settings, hold, views)]
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
