@@ -37,11 +37,11 @@ from crater_core.schema import atomic_write_text
 from crater_core.typed_config import SettingsError
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
-from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import VERIFY_SCORES
 from crater_synth.navigation.rendered.detector_train import (
     HOLDOUT_FIELD_SHARE,
     architecture,
+    detect_in_frame,
     detection_set_records,
     frame_matches,
 )
@@ -97,15 +97,15 @@ def detector_settings(pairs: list[str]) -> dict:
 
 
 def finder(ground_view_from_deg: float | None):
-    """What finds a frame's craters for :func:`frame_matches`: None (the detector on the frame as it is),
-    or, from ``ground_view_from_deg`` off nadir, the detector on the frame's ground view
+    """What finds a frame's craters for :func:`frame_matches`: the detector on the frame as it is
+    (:func:`detect_in_frame`), or, from ``ground_view_from_deg`` off nadir, on the frame's ground view
     (:func:`crater_synth.navigation.rendered.ground_view.detect_on_ground`, the view's range)."""
     if ground_view_from_deg is None:
-        return None
+        return detect_in_frame
 
     def find(image, row, params):
         if off_nadir_deg(row) < ground_view_from_deg:
-            return detect(image, params, light_dir=0.0, what=row["rel_path"])[0]
+            return detect_in_frame(image, row, params)
         return detect_on_ground(image, row, float(row["view"]["range_m"]), params, what=row["rel_path"])
 
     return find
@@ -119,10 +119,9 @@ def score_model(
     ``ground_view_from_deg``: frames that far off nadir searched on the ground (:func:`finder`)."""
     sums: dict[str, np.ndarray] = {}
     by: dict[tuple[str, str], np.ndarray] = {}  # (off-nadir key, property) -> (bins, 2): labels counted, found
+    find = finder(ground_view_from_deg)
     for image, row in records:
-        labels, counted, found, tp, n_det = frame_matches(
-            image, row, params, 0.0, min_r, skip_hidden=True, find=finder(ground_view_from_deg)
-        )
+        labels, counted, found, tp, n_det = frame_matches(image, row, params, 0.0, min_r, skip_hidden=True, find=find)
         per_split = {}
         for name, (value, split_edges) in splits.items():
             n_bins = len(split_edges) - 1

@@ -137,6 +137,12 @@ def _recipe(folder: Path) -> str | None:
         return None
 
 
+def detect_in_frame(image, row: dict, params) -> list:
+    """The detector's craters in a rendered frame as it is (no light direction: the learned detector needs
+    none), the way :func:`frame_matches` finds them unless told otherwise."""
+    return detect(image, params, light_dir=0.0, what=row["rel_path"])[0]
+
+
 def frame_matches(
     image,
     row: dict,
@@ -144,21 +150,18 @@ def frame_matches(
     min_d_km: float = 15.0,
     min_r_px: float = 0.0,
     skip_hidden: bool = False,
-    find=None,
+    find=detect_in_frame,
 ):
     """(the frame's labels, which of them count, which of those were found, detections matched, detections)
     of one rendered frame against its exact labels (the rendered frames' matching,
     :func:`crater_synth.navigation.rendered.evaluate.match_pixels`): labels and detections of D >=
     ``min_d_km`` and a rim radius >= ``min_r_px`` count. ``skip_hidden``: a label that training treats as
     neither (:func:`label_circles`), and a detection matched to one, count nowhere.
-    ``find(image, row, params)``: the detections, where not the detector on the frame as it is (e.g. on the
-    ground, :func:`crater_synth.tools.detector_holdout.finder`)."""
+    ``find(image, row, params)``: the detections (default :func:`detect_in_frame`; on the ground for oblique
+    frames: :func:`crater_synth.tools.detector_holdout.finder`)."""
     labels = labels_in_frame(row, image.shape)
     km_per_px = float(row["ground_sample_m"]) / 1000.0
-    if find is not None:
-        dets = find(image, row, params)
-    else:
-        dets, _ = detect(image, params, light_dir=0.0, what=row["rel_path"])
+    dets = find(image, row, params)
     matched = match_pixels(dets, labels)  # detection index -> label index
     r_min = max(min_r_px, 0.5 * min_d_km / km_per_px)
     hidden = label_circles({"labels": labels}, image.shape)[4] if skip_hidden else np.zeros(len(labels), bool)
