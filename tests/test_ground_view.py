@@ -29,11 +29,12 @@ RANGE_M = 220e3
 WIDTH = 1024
 
 
-def _oblique(view_deg: float = 52.0, fov_deg: float = 40.0, width: int = WIDTH):
+def _oblique(view_deg: float = 52.0, fov_deg: float = 40.0, width: int = WIDTH, heading_deg: float = 0.0):
     """(frame row, camera position, world -> camera rotation, K) of a camera ``RANGE_M`` from the boresight's
-    ground point, the boresight ``view_deg`` from the vertical there (~45 degrees off nadir from 150 km)."""
-    view = math.radians(view_deg)
-    cam = RANGE_M * np.array([0.0, -math.sin(view), math.cos(view)])
+    ground point, the boresight ``view_deg`` from the vertical there (~45 degrees off nadir from 150 km),
+    looking ``heading_deg`` east of north."""
+    view, head = math.radians(view_deg), math.radians(heading_deg)
+    cam = RANGE_M * np.array([-math.sin(view) * math.sin(head), -math.sin(view) * math.cos(head), math.cos(view)])
     fwd = -cam / RANGE_M
     right = np.cross(fwd, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
@@ -83,14 +84,22 @@ def test_ground_points_inverts_ground_coords():
     assert np.allclose(e, east.ravel(), atol=0.01) and np.allclose(n, north.ravel(), atol=0.01)
 
 
-def test_ground_view_samples_each_ground_point_at_its_pixel_and_to_frame_carries_it_back():
+@pytest.mark.parametrize("heading_deg", [0.0, 35.0, -120.0])
+def test_ground_view_samples_each_ground_point_at_its_pixel_and_to_frame_carries_it_back(heading_deg):
     """The frame holds its own u coordinate (linear, so bilinear sampling is exact to OpenCV's 1/32 px
     grid): every ground-view pixel inside the footprint holds the u of the pixel its ground point projects
     to. A ground-view detection carried back lands on that pixel, its radius the ground radius over the
-    ground sample there."""
-    row, cam, r_wc, k = _oblique()
+    ground sample there. The grid turns with the camera: a camera looking any way fills the view alike."""
+    row, cam, r_wc, k = _oblique(heading_deg=heading_deg)
     image = np.tile(np.arange(WIDTH, dtype=np.float32) + 0.5, (WIDTH, 1))
     view = ground_view(image, row, RANGE_M)
+    # the image's x axis on the ground, east turned with the camera (to within the convergence of the ground's
+    # axes between the boresight's ground point and the point under the camera)
+    assert math.degrees(view.turn_rad) == pytest.approx(-heading_deg, abs=0.5)
+    if heading_deg:
+        north_up = ground_view(image, _oblique()[0], RANGE_M)
+        assert np.allclose(view.image.shape, north_up.image.shape, atol=2)
+        assert view.valid.mean() == pytest.approx(north_up.valid.mean(), abs=0.01)
     _, _, q = camera_from_centre(row, RANGE_M)
     assert np.allclose(q, cam - CENTRE)
     # a footprint far longer than wide (the tilt), its side capped by a coarser ground sample than the boresight's
@@ -101,7 +110,9 @@ def test_ground_view_samples_each_ground_point_at_its_pixel_and_to_frame_carries
     ii, jj = np.nonzero(view.valid)
     pick = np.random.default_rng(0).choice(len(ii), 200, replace=False)
     i, j = ii[pick], jj[pick]
-    gp = sphere_points(view.origin_m[0] + (j + 0.5) * view.pixel_m, view.origin_m[1] - (i + 0.5) * view.pixel_m, q)
+    gp = sphere_points(
+        view.origin_m[0] + (j + 0.5) * view.pixel_m, view.origin_m[1] - (i + 0.5) * view.pixel_m, q, view.turn_rad
+    )
     uv = project_pinhole(gp + CENTRE, r_wc, cam, k)
     assert np.allclose(view.image[i, j], uv[:, 0], atol=0.05)  # OpenCV interpolates in 1/32 px steps
     dets = [Detection(float(jj[p] + 0.5), float(ii[p] + 0.5), 4.0, 1.0) for p in pick[:20]]
