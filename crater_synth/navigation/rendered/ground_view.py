@@ -8,10 +8,7 @@ radii below the smallest it searches for a landmark's size. With the attitude an
 known (what lost in space on rendered frames assumes, :mod:`.lost_in_space`), each point of the ground has
 a known pixel: the frame is resampled onto a regular grid of the ground (azimuthal-equidistant about the
 point under the camera, the coordinates :func:`ground_axes` define), at one ground sample everywhere, and
-searched there like a mosaic window. The grid is turned to the camera: its rows run along the frame's
-rows' direction on the ground (:func:`camera_turn`), so the footprint, a trapezoid symmetric about the
-frame's vertical, fills its bounding box as fully as it can; an east-north grid leaves the corners of a
-turned footprint to fill, where the detector finds more false rims than craters (docs/history.md). The detections are then carried back into the frame's pixels, so
+searched there like a mosaic window. The detections are then carried back into the frame's pixels, so
 everything downstream (the rectification of detections, the pair vote, the 6-DOF fix, the scoring against
 the frame's labels) is unchanged.
 
@@ -42,15 +39,13 @@ BORDER_POINTS = 64
 
 class GroundView(NamedTuple):
     """The frame resampled onto the ground: ``image`` (float32, the frame's values; outside the footprint the
-    median of those inside), ``valid`` (inside the footprint), ``pixel_m`` (its ground sample),
-    ``origin_m`` (x, y) of its top-left corner about the point under the camera and ``turn_rad``, the
-    angle of its x axis from east towards north (:func:`ground_axes`)."""
+    median of those inside), ``valid`` (inside the footprint), ``pixel_m`` (its ground sample) and
+    ``origin_m`` (east, north) of its top-left corner about the point under the camera."""
 
     image: np.ndarray
     valid: np.ndarray
     pixel_m: float
     origin_m: tuple[float, float]
-    turn_rad: float = 0.0
 
 
 def camera_from_centre(row: dict, range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,27 +57,13 @@ def camera_from_centre(row: dict, range_m: float) -> tuple[np.ndarray, np.ndarra
     return r_wc, k, -range_m * r_wc[2] + np.array([0.0, 0.0, MOON_RADIUS_M])
 
 
-def ground_axes(q: np.ndarray, turn: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(up, x, y) unit vectors at the point under the camera at ``q`` (from the Moon's centre, in the
-    frame's axes): the azimuthal-equidistant ground coordinates' axes, x turned ``turn`` radians from east
-    towards north and y a right angle on (east and north at 0)."""
+def ground_axes(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(up, east, north) unit vectors at the point under the camera at ``q`` (from the Moon's centre, in the
+    frame's axes): the azimuthal-equidistant ground coordinates' axes."""
     up = q / np.linalg.norm(q)
     east = np.array([1.0, 0.0, 0.0]) - up[0] * up
     east /= np.linalg.norm(east)
-    north = np.cross(up, east)
-    x = math.cos(turn) * east + math.sin(turn) * north
-    return up, x, np.cross(up, x)
-
-
-def camera_turn(r_wc: np.ndarray, q: np.ndarray) -> float:
-    """The angle (radians, from east towards north) of the camera's image x axis (world -> camera rotation
-    ``r_wc``'s first row) laid on the ground under the camera at ``q``: the ground view's grid turn. A frame
-    whose x axis points straight down or up has no such direction; it keeps east (0)."""
-    up, east, north = ground_axes(q)
-    x = r_wc[0] - (r_wc[0] @ up) * up
-    if np.linalg.norm(x) < 1e-9:
-        return 0.0
-    return math.atan2(float(x @ north), float(x @ east))
+    return up, east, np.cross(up, east)
 
 
 def rays_to_ground(rays: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,19 +77,18 @@ def rays_to_ground(rays: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     return q + np.where(hit, t, 0.0)[:, None] * rays, t, hit
 
 
-def ground_coords(points: np.ndarray, q: np.ndarray, turn: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y) in metres along the sphere about the point under the camera at ``q``, of ``points``; the axes
-    :func:`ground_axes` turns by ``turn`` (0: east, north)."""
-    up, east, north = ground_axes(q, turn)
+def ground_coords(points: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(east, north) in metres along the sphere about the point under the camera at ``q``, of ``points``."""
+    up, east, north = ground_axes(q)
     e, n = points @ east, points @ north
     along = MOON_RADIUS_M * np.arctan2(np.hypot(e, n), points @ up) / np.maximum(np.hypot(e, n), 1e-9)
     return along * e, along * n
 
 
-def sphere_points(east_m: np.ndarray, north_m: np.ndarray, q: np.ndarray, turn: float = 0.0) -> np.ndarray:
-    """The points of the sphere at azimuthal-equidistant ``east_m``, ``north_m`` about the point under ``q``,
-    along the axes ``turn`` gives (the inverse of :func:`ground_coords`)."""
-    up, east, north = ground_axes(q, turn)
+def sphere_points(east_m: np.ndarray, north_m: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The points of the sphere at azimuthal-equidistant ``east_m``, ``north_m`` about the point under ``q``
+    (the inverse of :func:`ground_coords`)."""
+    up, east, north = ground_axes(q)
     dist = np.hypot(east_m, north_m)
     ang = dist / MOON_RADIUS_M
     scale = np.where(dist > 0.0, np.sin(ang) / np.maximum(dist, 1e-9), 1.0 / MOON_RADIUS_M)
@@ -127,10 +107,8 @@ def _project(points: np.ndarray, r_wc: np.ndarray, k: np.ndarray, q: np.ndarray)
 def ground_view(image: np.ndarray, row: dict, range_m: float) -> GroundView:
     """The frame ``image`` of ``row`` resampled onto the ground (module docstring) at the ground sample at its
     boresight (``range_m`` / focal length), or coarser where the footprint would exceed :data:`MAX_SIDE_PX`;
-    bilinear, on the grid turned to the camera (:func:`camera_turn`). A ground point hidden behind the limb
-    or outside the frame is outside the footprint."""
+    bilinear. A ground point hidden behind the limb or outside the frame is outside the footprint."""
     r_wc, k, q = camera_from_centre(row, range_m)
-    turn = camera_turn(r_wc, q)
     h, w = image.shape
     s = np.linspace(0.0, 1.0, BORDER_POINTS)
     border = np.concatenate(
@@ -141,7 +119,7 @@ def ground_view(image: np.ndarray, row: dict, range_m: float) -> GroundView:
     pts, _, hit = rays_to_ground(rays, q)
     if not hit.any():
         raise UserError(f"frame {row.get('rel_path', '?')}: no pixel of it sees the ground")
-    east_m, north_m = ground_coords(pts[hit], q, turn)
+    east_m, north_m = ground_coords(pts[hit], q)
     pixel_m = range_m / k[0, 0]
     span = max(float(np.ptp(east_m)), float(np.ptp(north_m)))
     pixel_m = max(pixel_m, span / MAX_SIDE_PX)
@@ -150,7 +128,7 @@ def ground_view(image: np.ndarray, row: dict, range_m: float) -> GroundView:
     ny = int(math.ceil((n1 - float(north_m.min())) / pixel_m))
     ge = e0 + (np.arange(nx) + 0.5) * pixel_m
     gn = n1 - (np.arange(ny) + 0.5) * pixel_m
-    ground = sphere_points(ge[None, :], gn[:, None], q, turn)
+    ground = sphere_points(ge[None, :], gn[:, None], q)
     uv, z = _project(ground, r_wc, k, q)
     facing = np.sum((ground - q) * ground, axis=-1) < 0.0  # not behind the limb
     # OpenCV samples pixel centres at integers; the frame's pixel j spans [j, j + 1) in u.
@@ -163,7 +141,7 @@ def ground_view(image: np.ndarray, row: dict, range_m: float) -> GroundView:
         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
     )  # fmt: skip
     out[~valid] = float(np.median(out[valid] if valid.any() else src))
-    return GroundView(out, valid, float(pixel_m), (e0, n1), turn)
+    return GroundView(out, valid, float(pixel_m), (e0, n1))
 
 
 def inside_footprint(dets, view: GroundView, margin: float = 1.0) -> list[Detection]:
@@ -189,7 +167,7 @@ def to_frame(dets, view: GroundView, row: dict, range_m: float) -> list[Detectio
     r_wc, k, q = camera_from_centre(row, range_m)
     u = np.array([d.u for d in dets])
     v = np.array([d.v for d in dets])
-    pts = sphere_points(view.origin_m[0] + u * view.pixel_m, view.origin_m[1] - v * view.pixel_m, q, view.turn_rad)
+    pts = sphere_points(view.origin_m[0] + u * view.pixel_m, view.origin_m[1] - v * view.pixel_m, q)
     uv, z = _project(pts, r_wc, k, q)
     r = np.array([d.r for d in dets]) * view.pixel_m * k[0, 0] / z
     return [

@@ -194,9 +194,9 @@ def ground_view_detections(image, row: dict, range_m: float, nav, biggest_m: flo
     rest carried back into the frame's pixels."""
     view = ground_view(image, row, range_m)
     _, _, q = camera_from_centre(row, range_m)
-    _, x, y = ground_axes(q, view.turn_rad)
+    _, east, north = ground_axes(q)
     travel = -np.asarray(to_sun, dtype=np.float64)
-    light = math.atan2(-(travel @ y), travel @ x)  # image azimuth in the view's turned grid, v down
+    light = math.atan2(-(travel @ north), travel @ east)  # image azimuth, v down
     dparams = map_scales(nav.detector, nav.fix, view.pixel_m, [biggest_m / view.pixel_m])
     dets, _ = detect(view.image, dparams, light_dir=light, what=f"frame {row['rel_path']} on the ground")
     return to_frame(inside_footprint(dets, view), view, row, range_m)
