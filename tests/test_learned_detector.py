@@ -821,3 +821,26 @@ def test_code_commit_says_when_the_tree_differs_from_its_commit(monkeypatch, tmp
     assert dt.code_commit() == head + "-dirty"
     monkeypatch.setattr(dt, "SOURCE_ROOT", tmp_path / "none")
     assert dt.code_commit() == "unknown"
+
+
+def test_a_model_names_the_commit_its_training_started_from(monkeypatch, tmp_path):
+    """A training runs for up to hours; a commit made meanwhile is not the code that trained the model."""
+    from crater_synth.navigation.rendered import detector_train as dt
+
+    tree = {"commit": "started"}
+    real = dt.architecture
+
+    def committing_meanwhile(arch):
+        train, save, scoring = real(arch)
+
+        def train_and_commit(*args, **kwargs):
+            tree["commit"] = "committed during the run"
+            return train(*args, **kwargs)
+
+        return train_and_commit, save, scoring
+
+    monkeypatch.setattr(dt, "code_commit", lambda: tree["commit"])
+    monkeypatch.setattr(dt, "architecture", committing_meanwhile)
+    frames = fake_detection_set(tmp_path / "det", fields=4)
+    s = cd.DetectorTrainSettings(steps=2, batch=2, crop_px=32, width=4, threads=1)
+    assert dt.train_from_detection(frames, tmp_path / "m.pt", s, holdout_share=0.25)["code_commit"] == "started"

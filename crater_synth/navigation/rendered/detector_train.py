@@ -310,6 +310,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     score at the top level; several: a list of them under ``sources``."""
     from train.crater_detector import level_samples, settings_dict
 
+    commit = code_commit()  # the code the training runs: the tree may change during a long run
     train, save_model, scoring_params = architecture(settings.arch)
     parts, source = [], []
     for k, (train_records, _, _, _) in enumerate(sources):
@@ -332,7 +333,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
         "seconds": round(result["seconds"], 1),
         "device": device,
         "history": result["history"],
-        "code_commit": code_commit(),
+        "code_commit": commit,
     }
     if "init" in result:
         run["init"] = result["init"]
