@@ -218,6 +218,14 @@ def test_an_enlarged_level_scales_back_to_frame_pixels(monkeypatch):
     assert (u[0], v[0], r[0], level[0]) == pytest.approx((50.25, 30.25, 4.0, -1))
 
 
+@pytest.mark.parametrize("first_level", [-2, -1, 0, 1])
+def test_level_shapes_are_the_pyramids_without_the_image(first_level):
+    """A set read from disk plans its samples from level_shapes: they are pyramid's, enlarged levels too."""
+    a = np.zeros((70, 97), np.float32)
+    assert cd.level_shapes(a.shape, first_level) == [im.shape for _, im in cd.pyramid(a, first_level)]
+    assert cd.level_count(a.shape, first_level) == len(cd.pyramid(a, first_level))
+
+
 # ------------------------------------------------------------------------------------------------
 # Model files
 # ------------------------------------------------------------------------------------------------

@@ -118,7 +118,7 @@ def level_shapes(shape, first_level: int = 0, min_px: int = MIN_LEVEL_PX) -> lis
     """The shapes of :func:`pyramid`'s levels of an image of ``shape``, without the image: a training set
     read from disk counts and plans its samples before reading a frame."""
     h, w = (int(n) for n in shape)
-    out, level = [], 0
+    out, level = [(h << -k, w << -k) for k in range(min(first_level, 0), 0)], 0  # pyramid's enlarged levels
     while min(h, w) >= min_px:
         if level >= first_level:
             out.append((h, w))
