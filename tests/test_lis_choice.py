@@ -39,3 +39,21 @@ def test_a_bad_variant_is_one_error_before_any_window_is_read(capsys):
         lis_choice.main(["--detector", "nav/detector=learned-detect", "--variant", "nav.lost_in_space.nope=1"])
     with pytest.raises(SystemExit, match="neither min_score"):
         lis_choice.main(["--detector", "nav/detector=learned-detect", "--variant", "gate=3"])
+
+
+@pytest.mark.parametrize(("known", "heading"), [(False, None), (True, 0.0)])
+def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkeypatch, known, heading):
+    from types import SimpleNamespace
+
+    from crater_synth.navigation.settings import compose_nav
+
+    seen = []
+    monkeypatch.setattr(lis_choice, "build_index", lambda landmarks, lis: None)
+    monkeypatch.setattr(lis_choice, "lost_in_space_fix", lambda *a, heading_deg=None, **k: seen.append(heading_deg))
+    monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
+    monkeypatch.setattr(lis_choice, "summarise_windows", lambda rows: {"headline": {}, "all_windows": {}})
+    nav = compose_nav(["nav/detector=learned-detect"])
+    lis = compose_nav([f"nav.lost_in_space.known_heading={str(known).lower()}"]).lost_in_space
+    frame = SimpleNamespace(georef=SimpleNamespace(pixel_m=400.0), image=SimpleNamespace(shape=(512, 512)))
+    lis_choice.run_variant("", 0.1, lis, [frame], [([], 0.0)], nav, [], None)
+    assert seen == [heading]  # the tool once dropped the heading: known_heading variants ran heading-free

@@ -26,7 +26,12 @@ from pathlib import Path
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import detect, with_new
-from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
+from crater_synth.navigation.fix.lost_in_space import (
+    LostInSpaceParams,
+    build_index,
+    lost_in_space_fix,
+    window_heading_deg,
+)
 from crater_synth.navigation.settings import compose_nav, verify_detector_settings
 from crater_synth.navigation.windows.evaluate import (
     catalogue_craters,
@@ -90,7 +95,11 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         pixel_m = frame.georef.pixel_m
         # a verify detector's new craters after the voters' (nav-eval's order)
         together = with_new(kept, extra, verify_detector_settings(lis.verify_detector))
-        fix = lost_in_space_fix(together, landmarks, frame.image.shape, pixel_m, lis, nav.fix, index, voters=len(kept))
+        # nav-eval's heading: north-up (0) when the variant says the attitude gives it
+        heading = window_heading_deg(lis)
+        fix = lost_in_space_fix(
+            together, landmarks, frame.image.shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
+        )
         rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
     summary = summarise_windows(rows)
     return {
