@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from crater_synth.errors import UserError
+from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.settings import compose_nav
 from crater_synth.tools import lis_choice
 
 
@@ -43,17 +47,38 @@ def test_a_bad_variant_is_one_error_before_any_window_is_read(capsys):
 
 @pytest.mark.parametrize(("known", "heading"), [(False, None), (True, 0.0)])
 def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkeypatch, known, heading):
-    from types import SimpleNamespace
-
-    from crater_synth.navigation.settings import compose_nav
-
     seen = []
     monkeypatch.setattr(lis_choice, "build_index", lambda landmarks, lis: None)
-    monkeypatch.setattr(lis_choice, "lost_in_space_fix", lambda *a, heading_deg=None, **k: seen.append(heading_deg))
+
+    def fix(dets, *a, heading_deg=None, **k):
+        seen.append(heading_deg)
+        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256)  # "fixes" the left-right mirror only
+
+    monkeypatch.setattr(lis_choice, "lost_in_space_fix", fix)
     monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
     monkeypatch.setattr(lis_choice, "summarise_windows", lambda rows: {"headline": {}, "all_windows": {}})
     nav = compose_nav(["nav/detector=learned-detect"])
     lis = compose_nav([f"nav.lost_in_space.known_heading={str(known).lower()}"]).lost_in_space
     frame = SimpleNamespace(georef=SimpleNamespace(pixel_m=400.0), image=SimpleNamespace(shape=(512, 512)))
-    lis_choice.run_variant("", 0.1, lis, [frame], [([], 0.0)], nav, [], None)
-    assert seen == [heading]  # the tool once dropped the heading: known_heading variants ran heading-free
+    frame.id = "w7"
+    dets = [Detection(10.0, 100.0, 7.0, 0.6)]
+    run = lis_choice.run_variant("", 0.1, lis, [frame], [(dets, 0.0)], nav, [], None, null=True)
+    # the window and its three mirror images, each with the heading (the tool once ran them heading-free)
+    assert seen == [heading] * 4
+    assert run["null"] == {"mirrored_windows": 3, "fixes": 1, "fixed": ["w7 left-right"]}
+
+
+def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place():
+    d = [Detection(10.0, 100.0, 7.0, 0.6)]
+    assert lis_choice.mirrored(d, (512, 512), "left-right") == [Detection(502.0, 100.0, 7.0, 0.6)]
+    assert lis_choice.mirrored(d, (512, 512), "top-bottom") == [Detection(10.0, 412.0, 7.0, 0.6)]
+    assert lis_choice.mirrored(d, (512, 512), "diagonal") == [Detection(100.0, 10.0, 7.0, 0.6)]
+    with pytest.raises(UserError, match="square"):
+        lis_choice.mirrored(d, (512, 256), "left-right")
+
+
+def test_a_variant_that_fixes_a_mirrored_window_is_not_safe():
+    runs = [_run("a", 90, 0), _run("b", 70, 0)]
+    runs[0]["null"] = {"mirrored_windows": 300, "fixes": 1}
+    runs[1]["null"] = {"mirrored_windows": 300, "fixes": 0}
+    assert lis_choice.choose(runs)["variant"] == "b"

@@ -7,8 +7,13 @@ its own ``nav.lost_in_space`` overrides, scored as ``nav-eval --lost-in-space`` 
 summary functions; a variant naming ``nav.lost_in_space.verify_detector`` adds that detector's new craters, run
 once per window, to the verification). Keeping the detections >= T of a run at a lower threshold gives the
 detections of a run at T: suppression is greedy, best score first, so only a higher-scoring detection ever drops
-one. The rule: no false fix on any window, then the highest fix rate of the headline windows (rates within one
-window of it are tied: then the lowest median error). The north windows are a test: this tool never reads them;
+one. ``--null`` also runs every variant on each window's detections mirrored (left-right, top-bottom, and across
+the diagonal): no rotation, shift or scale maps a mirror image of the frame's craters onto the map, so any fix
+of a mirrored window is false. A validation set's 120 windows bound a false-fix rate only to a few percent;
+the mirrored windows keep the detections' number, sizes, scores and spacing, and test the gates on three
+times as many windows that cannot be fixed. The rule: no false fix on any window (nor a fix of any mirrored
+window, with ``--null``), then the highest fix rate of the headline windows (rates within one window of it
+are tied: then the lowest median error). The north windows are a test: this tool never reads them;
 run ``nav-eval --pole north`` once with the choice, after it is committed.
 
     python -m crater_synth.tools.lis_choice --detector 'nav/detector=learned-detect nav.detector.tta=4
@@ -25,7 +30,7 @@ from pathlib import Path
 
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors.classical import detect, with_new
+from crater_synth.navigation.detectors.classical import Detection, detect, with_new
 from crater_synth.navigation.fix.lost_in_space import (
     LostInSpaceParams,
     build_index,
@@ -45,6 +50,23 @@ from crater_synth.navigation.windows.mosaic import windows
 from crater_synth.tools.detector_choice import POLE, SPLIT, command_line
 
 PROG = "python -m crater_synth.tools.lis_choice"
+
+# Mirror images of a square frame's detections (u right, v down, pixel-corner origin): no similarity maps
+# one onto the map's pattern, so each is a window that cannot be fixed.
+MIRRORS = {
+    "left-right": lambda u, v, side: (side - u, v),
+    "top-bottom": lambda u, v, side: (u, side - v),
+    "diagonal": lambda u, v, side: (v, u),
+}
+
+
+def mirrored(dets: list[Detection], shape, how: str) -> list[Detection]:
+    """``dets`` mirrored by ``MIRRORS[how]`` in a square frame of ``shape``; radii and scores kept."""
+    h, w = shape
+    if h != w:
+        raise UserError(f"--null needs square windows, not {w} x {h} px")
+    flip = MIRRORS[how]
+    return [Detection(*flip(d.u, d.v, float(w)), d.r, d.score) for d in dets]
 
 
 def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
@@ -82,27 +104,35 @@ def detect_windows(nav, every: int):
     return frames, found
 
 
-def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None) -> dict:
+def run_variant(
+    text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, null: bool = False
+) -> dict:
     """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
     ``lis``; ``extras``: each window's detections by ``lis.verify_detector``), summarised as ``nav-eval``
-    summarises them."""
+    summarises them; ``null``: also the fixes of each window's mirror images (``"null"``)."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     extras = extras if extras is not None else [[] for _ in frames]
-    rows = []
+    # nav-eval's heading: north-up (0) when the variant says the attitude gives it
+    heading = window_heading_deg(lis)
+    rows, null_fixed = [], []
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
-        pixel_m = frame.georef.pixel_m
+        pixel_m, shape = frame.georef.pixel_m, frame.image.shape
         # a verify detector's new craters after the voters' (nav-eval's order)
         together = with_new(kept, extra, verify_detector_settings(lis.verify_detector))
-        # nav-eval's heading: north-up (0) when the variant says the attitude gives it
-        heading = window_heading_deg(lis)
         fix = lost_in_space_fix(
-            together, landmarks, frame.image.shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
+            together, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
         )
         rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
+        for how in MIRRORS if null else ():
+            flipped = mirrored(together, shape, how)
+            if lost_in_space_fix(
+                flipped, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
+            ).ok:
+                null_fixed.append(f"{frame.id} {how}")
     summary = summarise_windows(rows)
-    return {
+    run = {
         "variant": text,
         "min_score": min_score,
         "lost_in_space": lis.as_dict(),
@@ -110,14 +140,17 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         "all_windows": summary["all_windows"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
+    if null:
+        run["null"] = {"mirrored_windows": len(frames) * len(MIRRORS), "fixes": len(null_fixed), "fixed": null_fixed}
+    return run
 
 
 def choose(runs: list[dict]) -> dict:
-    """No false fix on any window; then the highest headline fix rate, rates within one headline window of it
-    tied; among the tied, the lowest median error."""
-    safe = [r for r in runs if not r["all_windows"].get("false_fixes")]
+    """No false fix on any window, nor a fix of a mirrored one (``--null``); then the highest headline fix rate,
+    rates within one headline window of it tied; among the tied, the lowest median error."""
+    safe = [r for r in runs if not r["all_windows"].get("false_fixes") and not r.get("null", {}).get("fixes")]
     if not safe:
-        return {"variant": None, "why": "every variant made a false fix"}
+        return {"variant": None, "why": "every variant made a false fix (or fixed a mirrored window)"}
     top = max(r["headline"].get("fix_rate") or 0.0 for r in safe)
     tied = [r for r in safe if (top - (r["headline"].get("fix_rate") or 0.0)) * r["headline"]["windows"] <= 1.0 + 1e-9]
     best = min(tied, key=lambda r: r["headline"].get("median_error_km") or 1e9)
@@ -129,6 +162,7 @@ def main(argv=None) -> None:
     p.add_argument("--detector", required=True, help="the detector's nav overrides (space-separated), lowest threshold")
     p.add_argument("--variant", action="append", required=True, help="'min_score=T [overrides]', repeatable")
     p.add_argument("--every", type=int, default=1, help="every Nth south validation window")
+    p.add_argument("--null", action="store_true", help="also run every variant on the windows mirrored")
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
     args = p.parse_args(argv)
     try:
@@ -147,9 +181,10 @@ def main(argv=None) -> None:
             name = lis.verify_detector
             if name and name not in verify:
                 verify[name] = [verify_detections(f, lis) for f in frames]
-            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed, verify.get(name))
+            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed, verify.get(name), args.null)
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
-            print(f"{v}: headline fix rate {rate}, false fixes {false}", flush=True)
+            mirrors = f", mirrored windows fixed {r['null']['fixes']}" if args.null else ""
+            print(f"{v}: headline fix rate {rate}, false fixes {false}{mirrors}", flush=True)
             runs.append(r)
     except UserError as exc:
         raise SystemExit(f"error: {exc}") from None
@@ -157,8 +192,8 @@ def main(argv=None) -> None:
         "command": command_line(argv, PROG),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "detector": {"overrides": detector_overrides, "settings": nav.detector.as_dict(), "seconds": detect_s},
-        "rule": "no false fix on any window, then the highest headline fix rate (within one headline window: tied, "
-        "then the lowest median error)",
+        "rule": "no false fix on any window (nor a fix of a mirrored window, with --null), then the highest headline "
+        "fix rate (within one headline window: tied, then the lowest median error)",
         "runs": runs,
         "chosen": choose(runs),
     }
