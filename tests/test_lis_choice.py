@@ -52,20 +52,23 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
 
     def fix(dets, *a, heading_deg=None, **k):
         seen.append(heading_deg)
-        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256)  # "fixes" the left-right mirror only
+        # "fixes" the left-right mirror only, at the map's origin: 5 km from the window's place
+        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6)
 
     monkeypatch.setattr(lis_choice, "lost_in_space_fix", fix)
     monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
     monkeypatch.setattr(lis_choice, "summarise_windows", lambda rows: {"headline": {}, "all_windows": {}})
     nav = compose_nav(["nav/detector=learned-detect"])
     lis = compose_nav([f"nav.lost_in_space.known_heading={str(known).lower()}"]).lost_in_space
-    frame = SimpleNamespace(georef=SimpleNamespace(pixel_m=400.0), image=SimpleNamespace(shape=(512, 512)))
+    georef = SimpleNamespace(pixel_m=400.0, pole="south")
+    frame = SimpleNamespace(georef=georef, image=SimpleNamespace(shape=(512, 512)), centre_xy=(3.0e3, 4.0e3))
     frame.id = "w7"
     dets = [Detection(10.0, 100.0, 7.0, 0.6)]
     run = lis_choice.run_variant("", 0.1, lis, [frame], [(dets, 0.0)], nav, [], None, null=True)
     # the window and its three mirror images, each with the heading (the tool once ran them heading-free)
     assert seen == [heading] * 4
-    assert run["null"] == {"mirrored_windows": 3, "fixes": 1, "fixed": ["w7 left-right"]}
+    fixed = [{"window": "w7", "mirror": "left-right", "landmarks": 6, "km": 5.0}]
+    assert run["null"] == {"mirrored_windows": 3, "fixes": 1, "fixed": fixed}
 
 
 def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place():

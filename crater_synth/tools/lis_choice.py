@@ -37,6 +37,7 @@ from crater_synth.navigation.fix.lost_in_space import (
     lost_in_space_fix,
     window_heading_deg,
 )
+from crater_synth.navigation.georef import ground_distance_km
 from crater_synth.navigation.settings import compose_nav, verify_detector_settings
 from crater_synth.navigation.windows.evaluate import (
     catalogue_craters,
@@ -127,10 +128,15 @@ def run_variant(
         rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
         for how in MIRRORS if null else ():
             flipped = mirrored(together, shape, how)
-            if lost_in_space_fix(
+            nfix = lost_in_space_fix(
                 flipped, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
-            ).ok:
-                null_fixed.append(f"{frame.id} {how}")
+            )
+            if nfix.ok:  # a mirror keeps the frame's centre: how far is the fix from the window's true place?
+                tx, ty = frame.centre_xy
+                km = ground_distance_km(nfix.x_m, nfix.y_m, tx, ty, frame.georef.pole)
+                null_fixed.append(
+                    {"window": frame.id, "mirror": how, "landmarks": len(nfix.inliers), "km": round(km, 2)}
+                )
     summary = summarise_windows(rows)
     run = {
         "variant": text,
