@@ -53,7 +53,7 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     def fix(dets, *a, heading_deg=None, **k):
         seen.append(heading_deg)
         # "fixes" the left-right mirror only, at the map's origin: 5 km from the window's place
-        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6)
+        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256 > dets[0].v, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6)
 
     monkeypatch.setattr(lis_choice, "lost_in_space_fix", fix)
     monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
@@ -65,10 +65,10 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     frame.id = "w7"
     dets = [Detection(10.0, 100.0, 7.0, 0.6)]
     run = lis_choice.run_variant("", 0.1, lis, [frame], [(dets, 0.0)], nav, [], None, null=True)
-    # the window and its three mirror images, each with the heading (the tool once ran them heading-free)
-    assert seen == [heading] * 4
+    # the window and its four mirror images, each with the heading (the tool once ran them heading-free)
+    assert seen == [heading] * 5
     fixed = [{"window": "w7", "mirror": "left-right", "landmarks": 6, "km": 5.0}]
-    assert run["null"] == {"mirrored_windows": 3, "fixes": 1, "fixed": fixed}
+    assert run["null"] == {"mirrored_windows": 4, "fixes": 1, "fixed": fixed}
 
 
 def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place():
@@ -76,6 +76,7 @@ def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place
     assert lis_choice.mirrored(d, (512, 512), "left-right") == [Detection(502.0, 100.0, 7.0, 0.6)]
     assert lis_choice.mirrored(d, (512, 512), "top-bottom") == [Detection(10.0, 412.0, 7.0, 0.6)]
     assert lis_choice.mirrored(d, (512, 512), "diagonal") == [Detection(100.0, 10.0, 7.0, 0.6)]
+    assert lis_choice.mirrored(d, (512, 512), "anti-diagonal") == [Detection(412.0, 502.0, 7.0, 0.6)]
     with pytest.raises(UserError, match="square"):
         lis_choice.mirrored(d, (512, 256), "left-right")
 

@@ -286,6 +286,30 @@ def test_a_known_heading_keeps_only_the_votes_that_agree_with_it():
     assert not off.ok
 
 
+def test_a_heading_tolerance_holds_the_fix_to_the_attitudes_heading():
+    """A frame 5 degrees from the heading the attitude gives: within a vote cell (10 degrees) it is fixed as
+    before; held to 2 degrees of the attitude it is not (a chance transform is turned like it), and a frame
+    at the attitude's heading is still fixed at its place."""
+    rng = np.random.default_rng(7)
+    lms = _map(rng)
+    index = build_index(lms)
+    dets = _frame(lms, (-250e3, 300e3), 42.0, rng)
+    loose = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=37.0)
+    assert loose.ok and abs(loose.heading_deg - 42.0) < 1.0
+    held = LostInSpaceParams(heading_tol_deg=2.0)
+    assert not lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, held, index=index, heading_deg=37.0).ok
+    fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, held, index=index, heading_deg=42.0)
+    assert fix.ok and math.hypot(fix.x_m + 250e3, fix.y_m - 300e3) < 1000.0
+    assert abs(fix.heading_deg - 42.0) < 1.0
+    # heading-free, the tolerance changes nothing
+    free = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, held, index=index)
+    assert free.ok and free.heading_deg == pytest.approx(
+        lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index).heading_deg
+    )
+    with pytest.raises(ValueError, match="heading_tol_deg"):
+        LostInSpaceParams(heading_tol_deg=12.0)
+
+
 SIGNIFICANCE = LostInSpaceParams(candidate_score="significance", n_verify=64)
 
 

@@ -8,9 +8,9 @@ summary functions; a variant naming ``nav.lost_in_space.verify_detector`` adds t
 once per window, to the verification). Keeping the detections >= T of a run at a lower threshold gives the
 detections of a run at T: suppression is greedy, best score first, so only a higher-scoring detection ever drops
 one. ``--null`` also runs every variant on each window's detections mirrored (left-right, top-bottom, and across
-the diagonal): no rotation, shift or scale maps a mirror image of the frame's craters onto the map, so any fix
+both diagonals): no rotation, shift or scale maps a mirror image of the frame's craters onto the map, so any fix
 of a mirrored window is false. A validation set's 120 windows bound a false-fix rate only to a few percent;
-the mirrored windows keep the detections' number, sizes, scores and spacing, and test the gates on three
+the mirrored windows keep the detections' number, sizes, scores and spacing, and test the gates on four
 times as many windows that cannot be fixed. The rule: no false fix on any window (nor a fix of any mirrored
 window, with ``--null``), then the highest fix rate of the headline windows (rates within one window of it
 are tied: then the lowest median error). The north windows are a test: this tool never reads them;
@@ -58,6 +58,7 @@ MIRRORS = {
     "left-right": lambda u, v, side: (side - u, v),
     "top-bottom": lambda u, v, side: (u, side - v),
     "diagonal": lambda u, v, side: (v, u),
+    "anti-diagonal": lambda u, v, side: (side - v, side - u),
 }
 
 

@@ -86,6 +86,11 @@ class LostInSpaceParams:
     # The attitude gives the frame's heading on the map (a north-up mosaic window: 0; a rendered frame: its
     # camera's): only votes within one heading cell of it count. Off in the frozen preset.
     known_heading: bool = False
+    # With the heading known: each candidate takes that heading, and its fix may turn from it by at most this
+    # (degrees; None: as far as a vote cell, bin_deg, from its votes' mean heading). An attitude gives a
+    # north-up window's heading exactly, and true fixes of the south validation windows come out within 1.2
+    # degrees of it, while chance transforms of mirrored windows reach the cell's edge.
+    heading_tol_deg: float | None = None
     # Two tiers of detections (None: one). A pair vote needs two sure craters, or chance pairs of the many weak
     # candidates outvote the true ones; a candidate's transform, once voted, predicts where every landmark
     # lies, so the weak candidates can still confirm it. Detections scoring >= vote_min_score (the detector's
@@ -121,16 +126,20 @@ class LostInSpaceParams:
         for key in ("ambiguity_log10", "max_log10_nfa"):
             if not math.isfinite(getattr(self, key)):
                 raise ValueError(f"{key} must be a finite number (got {getattr(self, key)})")
+        if self.heading_tol_deg is not None and not 0 < self.heading_tol_deg <= self.bin_deg:
+            raise ValueError(f"heading_tol_deg must be in (0, bin_deg = {self.bin_deg}] (got {self.heading_tol_deg})")
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
 
     def as_dict(self) -> dict:
         return asdict(self)
 
-    def verify_params(self, fparams: FixParams) -> FixParams:
+    def verify_params(self, fparams: FixParams, heading_known: bool = False) -> FixParams:
         """``fparams`` as the verification of a voted candidate uses them: this group's inlier count and
-        tolerances, the heading free within a vote cell."""
-        changes = {"min_inliers": self.min_inliers, "max_heading_deg": self.bin_deg}
+        tolerances, the heading free within a vote cell (``heading_known``: within ``heading_tol_deg``, when
+        set, of the attitude's)."""
+        turn = self.heading_tol_deg if heading_known and self.heading_tol_deg is not None else self.bin_deg
+        changes = {"min_inliers": self.min_inliers, "max_heading_deg": turn}
         if self.inlier_r is not None:
             changes["inlier_r"] = self.inlier_r
         if self.max_rms_px is not None:
@@ -289,19 +298,22 @@ def chance_inliers(det_r, index: PairIndex, a: complex, b: complex, frame_shape,
 
 
 def _verified_candidates(
-    cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
+    cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape, heading_deg=None
 ) -> list[Candidate]:
     """Verify each vote cell's candidate transform by RANSAC against the map, and score it
-    (``params.candidate_score``)."""
+    (``params.candidate_score``). ``heading_deg``: the attitude's heading (:func:`lost_in_space_fix`)."""
     vote_of, inv, best_cells = cells
     flip = _FLIP_V
-    # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much.
-    vparams = params.verify_params(fparams)
+    # The candidate's heading is known to about a vote cell: RANSAC may turn it by up to that much; with the
+    # attitude's heading and heading_tol_deg, it starts from that heading and turns by up to the tolerance.
+    attitude = heading_deg is not None and params.heading_tol_deg is not None
+    vparams = params.verify_params(fparams, heading_known=attitude)
     cands = []
     for c in best_cells:
         sel = vote_of[inv == c]
-        # Candidate transform: mean heading (unit phasors) at the known scale, mean centre.
-        ph = np.mean(va[sel] / np.abs(va[sel]))
+        # Candidate transform: mean heading (unit phasors; the attitude's when it is held to it) at the known
+        # scale, mean centre.
+        ph = np.exp(1j * math.radians(heading_deg)) if attitude else np.mean(va[sel] / np.abs(va[sel]))
         a0 = complex(pixel_m * ph / abs(ph))
         c0 = complex(np.median(centre[sel].real), np.median(centre[sel].imag))
         b0 = c0 - a0 * zc
@@ -407,7 +419,7 @@ def lost_in_space_fix(
     centre = va * zc + vb
     cells = _pair_vote_cells(va, centre, params)
     cands = _verified_candidates(
-        cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape
+        cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape, heading_deg
     )
     best, no_fix = unambiguous_candidate(cands, params)
     if best is None:
