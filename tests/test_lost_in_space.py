@@ -418,3 +418,18 @@ def test_nav_eval_window_with_a_verify_detector_keeps_the_fix_and_indexes_both()
     assert len(dets) > len(plain[0]) and dets[: len(plain[0])] == plain[0]
     assert fix.ok and math.hypot(fix.x_m - frame.centre_xy[0], fix.y_m - frame.centre_xy[1]) < 2000.0
     assert all(0 <= i < len(dets) for i, _ in fix.inliers)
+
+
+def test_navigate_keeps_a_known_heading_its_settings_give():
+    """`navigate` once replaced nav.lost_in_space.known_heading by its --known-heading flag: a settings
+    group that says the attitude gives the heading was run heading-free."""
+    from pathlib import Path
+
+    from crater_synth.navigation.navigate import NavigateRequest, lost_in_space_settings
+    from crater_synth.navigation.settings import compose_nav
+
+    plain = NavigateRequest(Path("w.png"), Path("out"), lost_in_space=True)
+    flag = NavigateRequest(Path("w.png"), Path("out"), lost_in_space=True, known_heading=True)
+    assert not lost_in_space_settings(plain, compose_nav()).known_heading
+    assert lost_in_space_settings(flag, compose_nav()).known_heading
+    assert lost_in_space_settings(plain, compose_nav(["nav.lost_in_space.known_heading=true"])).known_heading

@@ -304,13 +304,20 @@ def window_prior(request: NavigateRequest, img, truth, landmarks, pole: str, pix
     return prior_g
 
 
+def lost_in_space_settings(request: NavigateRequest, nav):
+    """``nav.lost_in_space`` with the heading known when ``--known-heading`` says so, or the settings do."""
+    return dataclasses.replace(
+        nav.lost_in_space, known_heading=request.known_heading or nav.lost_in_space.known_heading
+    )
+
+
 def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landmarks, pixel: float, keep=None):
     """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of a map window: its
     detector's craters fixed under the prior or by the lost-in-space vote; the appearance search under the
     prior, or under the first stage's lost-in-space fix without one (as nav-eval). ``keep`` (a frame
     turned north-up: :func:`.windows.navigate.inside_frame`) drops the detections outside the frame."""
     light = None if request.light_azimuth is None else math.radians(request.light_azimuth)
-    lis = dataclasses.replace(nav.lost_in_space, known_heading=request.known_heading)
+    lis = lost_in_space_settings(request, nav)
     extra: list = []  # the verify detector's craters: they join the lost-in-space verification, never the vote
     vparams = verify_detector_settings(lis.verify_detector) if prior_g is None else None
     if vparams is not None:
