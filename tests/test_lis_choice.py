@@ -64,21 +64,30 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     frame = SimpleNamespace(georef=georef, image=SimpleNamespace(shape=(512, 512)), centre_xy=(3.0e3, 4.0e3))
     frame.id = "w7"
     dets = [Detection(10.0, 100.0, 7.0, 0.6)]
-    run = lis_choice.run_variant("", 0.1, lis, [frame], [(dets, 0.0)], nav, [], None, null=True)
-    # the window and its four mirror images, each with the heading (the tool once ran them heading-free)
-    assert seen == [heading] * 5
-    fixed = [{"window": "w7", "mirror": "left-right", "landmarks": 6, "km": 5.0}]
-    assert run["null"] == {"mirrored_windows": 4, "fixes": 1, "fixed": fixed}
+    run = lis_choice.run_variant("", 0.1, lis, [frame], [(dets, 0.0)], nav, [], None, nulls=("mirror", "scale"))
+    # the window, its four mirror images and two scalings, each with the heading (the tool once ran them
+    # heading-free)
+    assert seen == [heading] * 7
+    fixed = [{"window": "w7", "null": "mirror left-right", "landmarks": 6, "km": 5.0}]
+    assert run["null"] == {"families": ["mirror", "scale"], "windows": 6, "fixes": 1, "fixed": fixed}
 
 
 def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place():
     d = [Detection(10.0, 100.0, 7.0, 0.6)]
-    assert lis_choice.mirrored(d, (512, 512), "left-right") == [Detection(502.0, 100.0, 7.0, 0.6)]
-    assert lis_choice.mirrored(d, (512, 512), "top-bottom") == [Detection(10.0, 412.0, 7.0, 0.6)]
-    assert lis_choice.mirrored(d, (512, 512), "diagonal") == [Detection(100.0, 10.0, 7.0, 0.6)]
-    assert lis_choice.mirrored(d, (512, 512), "anti-diagonal") == [Detection(412.0, 502.0, 7.0, 0.6)]
+    assert lis_choice.null_window(d, (512, 512), "mirror", "left-right") == [Detection(502.0, 100.0, 7.0, 0.6)]
+    assert lis_choice.null_window(d, (512, 512), "mirror", "top-bottom") == [Detection(10.0, 412.0, 7.0, 0.6)]
+    assert lis_choice.null_window(d, (512, 512), "mirror", "diagonal") == [Detection(100.0, 10.0, 7.0, 0.6)]
+    assert lis_choice.null_window(d, (512, 512), "mirror", "anti-diagonal") == [Detection(412.0, 502.0, 7.0, 0.6)]
     with pytest.raises(UserError, match="square"):
-        lis_choice.mirrored(d, (512, 256), "left-right")
+        lis_choice.null_window(d, (512, 256), "mirror", "left-right")
+
+
+def test_a_scaled_window_moves_and_grows_its_craters_about_the_centre_and_drops_those_it_pushes_out():
+    d = [Detection(156.0, 256.0, 10.0, 0.6), Detection(10.0, 10.0, 5.0, 0.2)]
+    big = lis_choice.null_window(d, (512, 512), "scale", "x1.30")
+    assert big == [Detection(pytest.approx(126.0), 256.0, pytest.approx(13.0), 0.6)]  # the corner one left
+    small = lis_choice.null_window(d, (512, 512), "scale", "x0.77")
+    assert len(small) == 2 and small[0].u == pytest.approx(256 - 100 / 1.3) and small[1].r == pytest.approx(5 / 1.3)
 
 
 def test_a_variant_that_fixes_a_mirrored_window_is_not_safe():

@@ -7,14 +7,15 @@ its own ``nav.lost_in_space`` overrides, scored as ``nav-eval --lost-in-space`` 
 summary functions; a variant naming ``nav.lost_in_space.verify_detector`` adds that detector's new craters, run
 once per window, to the verification). Keeping the detections >= T of a run at a lower threshold gives the
 detections of a run at T: suppression is greedy, best score first, so only a higher-scoring detection ever drops
-one. ``--null`` also runs every variant on each window's detections mirrored (left-right, top-bottom, and across
-both diagonals): no rotation, shift or scale maps a mirror image of the frame's craters onto the map, so any fix
-of a mirrored window is false. A validation set's 120 windows bound a false-fix rate only to a few percent;
-the mirrored windows keep the detections' number, sizes, scores and spacing, and test the gates on four
-times as many windows that cannot be fixed. The rule: no false fix on any window (nor a fix of any mirrored
-window, with ``--null``), then the highest fix rate of the headline windows (rates within one window of it
-are tied: then the lowest median error). The north windows are a test: this tool never reads them;
-run ``nav-eval --pole north`` once with the choice, after it is committed.
+one. ``--null FAMILY`` (repeatable) also runs every variant on each window's detections moved so that no
+similarity at the known pixel size maps them onto the map (:data:`NULLS`): ``mirror``, mirrored four ways
+(left-right, top-bottom, both diagonals), and ``scale``, scaled about the centre by 1.3 and 1/1.3. Any fix of a
+moved window is false. A validation set's 120 windows bound a false-fix rate only to a few percent; the moved
+windows keep the detections' number, sizes and scores, and test the gates on many windows that cannot be
+fixed. The rule: no false fix on any window (nor a fix of any moved window, with ``--null``), then the highest
+fix rate of the headline windows (rates within one window of it are tied: then the lowest median error). The
+north windows are a test: this tool never reads them; run ``nav-eval --pole north`` once with the choice, after
+it is committed.
 
     python -m crater_synth.tools.lis_choice --detector 'nav/detector=learned-detect nav.detector.tta=4
         nav.detector.half_octaves=true nav.detector.threshold=0.05' --variant 'min_score=0.15' \\
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 from crater_core.schema import atomic_write_text
@@ -52,23 +54,37 @@ from crater_synth.tools.detector_choice import POLE, SPLIT, command_line
 
 PROG = "python -m crater_synth.tools.lis_choice"
 
-# Mirror images of a square frame's detections (u right, v down, pixel-corner origin): no similarity maps
-# one onto the map's pattern, so each is a window that cannot be fixed.
-MIRRORS = {
-    "left-right": lambda u, v, side: (side - u, v),
-    "top-bottom": lambda u, v, side: (u, side - v),
-    "diagonal": lambda u, v, side: (v, u),
-    "anti-diagonal": lambda u, v, side: (side - v, side - u),
+
+def _scaled(u, v, r, side, k):
+    """A crater's place and radius in a square frame scaled by ``k`` about its centre."""
+    return side / 2 + k * (u - side / 2), side / 2 + k * (v - side / 2), k * r
+
+
+# Windows no setting should fix: each window's detections moved so that no similarity at the known pixel size
+# maps them onto the map. Mirror images (a square frame: u right, v down, pixel-corner origin) keep every
+# crater's size, score and neighbours; a window scaled about its centre (positions and radii by 1.3 or 1/1.3,
+# as if the altimeter were off by 30 %, detections leaving the frame dropped) keeps the pattern but not its
+# scale, which the fix holds to 5 %.
+NULLS = {
+    "mirror": {
+        "left-right": lambda u, v, r, side: (side - u, v, r),
+        "top-bottom": lambda u, v, r, side: (u, side - v, r),
+        "diagonal": lambda u, v, r, side: (v, u, r),
+        "anti-diagonal": lambda u, v, r, side: (side - v, side - u, r),
+    },
+    "scale": {f"x{k:.2f}": partial(_scaled, k=k) for k in (1.3, 1 / 1.3)},
 }
 
 
-def mirrored(dets: list[Detection], shape, how: str) -> list[Detection]:
-    """``dets`` mirrored by ``MIRRORS[how]`` in a square frame of ``shape``; radii and scores kept."""
+def null_window(dets: list[Detection], shape, family: str, how: str) -> list[Detection]:
+    """``dets`` moved by ``NULLS[family][how]`` in a square frame of ``shape`` (scores kept; a detection whose
+    centre leaves the frame is dropped)."""
     h, w = shape
     if h != w:
         raise UserError(f"--null needs square windows, not {w} x {h} px")
-    flip = MIRRORS[how]
-    return [Detection(*flip(d.u, d.v, float(w)), d.r, d.score) for d in dets]
+    move = NULLS[family][how]
+    out = [Detection(*move(d.u, d.v, d.r, float(w)), d.score) for d in dets]
+    return [d for d in out if 0.0 <= d.u < w and 0.0 <= d.v < h]
 
 
 def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
@@ -106,18 +122,18 @@ def detect_windows(nav, every: int):
     return frames, found
 
 
-def run_variant(
-    text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, null: bool = False
-) -> dict:
+def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, nulls=()) -> dict:
     """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
     ``lis``; ``extras``: each window's detections by ``lis.verify_detector``), summarised as ``nav-eval``
-    summarises them; ``null``: also the fixes of each window's mirror images (``"null"``)."""
+    summarises them; ``nulls``: also the fixes of each window moved by those families of :data:`NULLS`
+    (``"null"``)."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     extras = extras if extras is not None else [[] for _ in frames]
     # nav-eval's heading: north-up (0) when the variant says the attitude gives it
     heading = window_heading_deg(lis)
     rows, null_fixed = [], []
+    moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
         pixel_m, shape = frame.georef.pixel_m, frame.image.shape
@@ -127,17 +143,16 @@ def run_variant(
             together, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
         )
         rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
-        for how in MIRRORS if null else ():
-            flipped = mirrored(together, shape, how)
+        for family, how in moves:
+            moved = null_window(together, shape, family, how)
+            voters = sum(d.score >= min_score for d in null_window(kept, shape, family, how))
             nfix = lost_in_space_fix(
-                flipped, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
+                moved, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=voters
             )
-            if nfix.ok:  # a mirror keeps the frame's centre: how far is the fix from the window's true place?
-                tx, ty = frame.centre_xy
-                km = ground_distance_km(nfix.x_m, nfix.y_m, tx, ty, frame.georef.pole)
-                null_fixed.append(
-                    {"window": frame.id, "mirror": how, "landmarks": len(nfix.inliers), "km": round(km, 2)}
-                )
+            if nfix.ok:  # both moves keep the frame's centre: how far is the fix from the window's true place?
+                km = ground_distance_km(nfix.x_m, nfix.y_m, *frame.centre_xy, frame.georef.pole)
+                where = {"window": frame.id, "null": f"{family} {how}", "landmarks": len(nfix.inliers)}
+                null_fixed.append({**where, "km": round(float(km), 2)})
     summary = summarise_windows(rows)
     run = {
         "variant": text,
@@ -147,17 +162,18 @@ def run_variant(
         "all_windows": summary["all_windows"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
-    if null:
-        run["null"] = {"mirrored_windows": len(frames) * len(MIRRORS), "fixes": len(null_fixed), "fixed": null_fixed}
+    if moves:
+        run["null"] = {"families": list(nulls), "windows": len(frames) * len(moves), "fixes": len(null_fixed)}
+        run["null"]["fixed"] = null_fixed
     return run
 
 
 def choose(runs: list[dict]) -> dict:
-    """No false fix on any window, nor a fix of a mirrored one (``--null``); then the highest headline fix rate,
+    """No false fix on any window, nor a fix of a moved one (``--null``); then the highest headline fix rate,
     rates within one headline window of it tied; among the tied, the lowest median error."""
     safe = [r for r in runs if not r["all_windows"].get("false_fixes") and not r.get("null", {}).get("fixes")]
     if not safe:
-        return {"variant": None, "why": "every variant made a false fix (or fixed a mirrored window)"}
+        return {"variant": None, "why": "every variant made a false fix (or fixed a moved window)"}
     top = max(r["headline"].get("fix_rate") or 0.0 for r in safe)
     tied = [r for r in safe if (top - (r["headline"].get("fix_rate") or 0.0)) * r["headline"]["windows"] <= 1.0 + 1e-9]
     best = min(tied, key=lambda r: r["headline"].get("median_error_km") or 1e9)
@@ -169,7 +185,13 @@ def main(argv=None) -> None:
     p.add_argument("--detector", required=True, help="the detector's nav overrides (space-separated), lowest threshold")
     p.add_argument("--variant", action="append", required=True, help="'min_score=T [overrides]', repeatable")
     p.add_argument("--every", type=int, default=1, help="every Nth south validation window")
-    p.add_argument("--null", action="store_true", help="also run every variant on the windows mirrored")
+    p.add_argument(
+        "--null",
+        action="append",
+        default=[],
+        choices=sorted(NULLS),
+        help="also run every variant on each window moved so that it cannot be fixed (repeatable)",
+    )
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
     args = p.parse_args(argv)
     try:
@@ -190,8 +212,8 @@ def main(argv=None) -> None:
                 verify[name] = [verify_detections(f, lis) for f in frames]
             r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed, verify.get(name), args.null)
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
-            mirrors = f", mirrored windows fixed {r['null']['fixes']}" if args.null else ""
-            print(f"{v}: headline fix rate {rate}, false fixes {false}{mirrors}", flush=True)
+            moved = f", moved windows fixed {r['null']['fixes']} of {r['null']['windows']}" if args.null else ""
+            print(f"{v}: headline fix rate {rate}, false fixes {false}{moved}", flush=True)
             runs.append(r)
     except UserError as exc:
         raise SystemExit(f"error: {exc}") from None
@@ -199,7 +221,7 @@ def main(argv=None) -> None:
         "command": command_line(argv, PROG),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "detector": {"overrides": detector_overrides, "settings": nav.detector.as_dict(), "seconds": detect_s},
-        "rule": "no false fix on any window (nor a fix of a mirrored window, with --null), then the highest headline "
+        "rule": "no false fix on any window (nor a fix of a moved window, with --null), then the highest headline "
         "fix rate (within one headline window: tied, then the lowest median error)",
         "runs": runs,
         "chosen": choose(runs),
