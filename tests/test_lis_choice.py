@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -53,7 +54,8 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     def fix(dets, *a, heading_deg=None, **k):
         seen.append(heading_deg)
         # "fixes" the left-right mirror only, at the map's origin: 5 km from the window's place
-        return SimpleNamespace(ok=bool(dets) and dets[0].u > 256 > dets[0].v, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6)
+        ok = bool(dets) and dets[0].u > 256 > dets[0].v
+        return SimpleNamespace(ok=ok, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6, support=6.0 if ok else math.nan)
 
     monkeypatch.setattr(lis_choice, "lost_in_space_fix", fix)
     monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
@@ -69,7 +71,14 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     # heading-free)
     assert seen == [heading] * 7
     fixed = [{"window": "w7", "null": "mirror left-right", "landmarks": 6, "km": 5.0}]
-    assert run["null"] == {"families": ["mirror", "scale"], "windows": 6, "fixes": 1, "fixed": fixed}
+    assert run["null"] == {
+        "families": ["mirror", "scale"],
+        "windows": 6,
+        "fixes": 1,
+        "fixed": fixed,
+        "supports_verified": [6.0],
+    }
+    assert run["fixed_supports"] == []
 
 
 def test_a_mirrored_window_keeps_each_craters_size_and_score_and_flips_its_place():

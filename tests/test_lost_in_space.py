@@ -433,3 +433,19 @@ def test_navigate_keeps_a_known_heading_its_settings_give():
     assert not lost_in_space_settings(plain, compose_nav()).known_heading
     assert lost_in_space_settings(flag, compose_nav()).known_heading
     assert lost_in_space_settings(plain, compose_nav(["nav.lost_in_space.known_heading=true"])).known_heading
+
+
+def test_a_fix_and_a_refusal_carry_the_best_candidates_support():
+    """The support of the best verified candidate: a fix's inlier count (inlier scoring); a refused
+    repeated pattern's too (its rival was as well supported); nan where no candidate verified."""
+    rng = np.random.default_rng(5)
+    motif = _map(rng, n=14, half_km=90.0)
+    lms = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
+    dets = _frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    fix = lost_in_space_fix(dets, motif, SHAPE, PIXEL_M)
+    assert fix.ok and fix.support == len(fix.inliers)
+    refused = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
+    assert not refused.ok and refused.support >= 6
+    nothing = [Detection(*rng.uniform(0, 512, 2), rng.uniform(12, 60), 0.5) for _ in range(40)]
+    none = lost_in_space_fix(nothing, motif, SHAPE, PIXEL_M)
+    assert not none.ok and math.isnan(none.support)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from functools import partial
 from pathlib import Path
@@ -132,7 +133,7 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
     extras = extras if extras is not None else [[] for _ in frames]
     # nav-eval's heading: north-up (0) when the variant says the attitude gives it
     heading = window_heading_deg(lis)
-    rows, null_fixed = [], []
+    rows, null_fixed, fixed_support, null_support = [], [], [], []
     moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
@@ -143,12 +144,16 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
             together, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
         )
         rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
+        if fix.ok:
+            fixed_support.append(fix.support)
         for family, how in moves:
             moved = null_window(together, shape, family, how)
             voters = sum(d.score >= min_score for d in null_window(kept, shape, family, how))
             nfix = lost_in_space_fix(
                 moved, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=voters
             )
+            if math.isfinite(nfix.support):
+                null_support.append(nfix.support)
             if nfix.ok:  # both moves keep the frame's centre: how far is the fix from the window's true place?
                 km = ground_distance_km(nfix.x_m, nfix.y_m, *frame.centre_xy, frame.georef.pole)
                 where = {"window": frame.id, "null": f"{family} {how}", "landmarks": len(nfix.inliers)}
@@ -165,6 +170,10 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
     if moves:
         run["null"] = {"families": list(nulls), "windows": len(frames) * len(moves), "fixes": len(null_fixed)}
         run["null"]["fixed"] = null_fixed
+        # The support of the best verified candidate (inliers, or -log10 chance) of each moved window where one
+        # verified, fixed or not, beside that of the windows' own fixes: where chance reaches, what a gate needs.
+        run["null"]["supports_verified"] = sorted((round(x, 2) for x in null_support), reverse=True)
+        run["fixed_supports"] = sorted(round(x, 2) for x in fixed_support)
     return run
 
 

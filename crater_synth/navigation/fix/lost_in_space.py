@@ -423,5 +423,8 @@ def lost_in_space_fix(
     )
     best, no_fix = unambiguous_candidate(cands, params)
     if best is None:
+        no_fix.support = max((c.support for c in cands if c.fix is not None and c.fix.ok), default=math.nan)
         return no_fix
-    return _fix_from_inliers(best.fix, det_uv, index, frame_shape)
+    fix = _fix_from_inliers(best.fix, det_uv, index, frame_shape)
+    fix.support = best.support
+    return fix

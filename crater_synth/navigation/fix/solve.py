@@ -79,6 +79,9 @@ class Fix:
     heading_deg: float = math.nan
     inliers: list[tuple[int, int]] = field(default_factory=list)  # (detection index, landmark index)
     rms_px: float = math.nan
+    # Lost in space: the support of the best verified candidate (its inlier count, or -log10 of its chance),
+    # fixed or refused; nan where none verified or for a prior-gated fix.
+    support: float = math.nan
 
     def as_dict(self) -> dict:
         d = asdict(self)
