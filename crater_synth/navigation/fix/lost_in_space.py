@@ -37,8 +37,10 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   where the inlier count weighs both alike. The best candidate is kept only when its number of false
   alarms (``n_verify`` x that probability) is at most 10^``max_log10_nfa``, and a rival elsewhere within
   ``ambiguity_log10`` of its score makes the fix ambiguous. The model underestimates chance: on the north test
-  windows this weighting made false fixes that inlier counts did not (docs/navigation/fix.md). It is an
-  option, off by default.
+  windows this weighting made false fixes that inlier counts did not, and on validation windows moved so that
+  they cannot be fixed chance reached 10^-8.5 heading-free, 10^-7.1 with the heading known, where the gate at
+  0.01 false alarms asks 10^-4.1 (docs/navigation/fix.md). The ``attitude`` settings gate at 10^-7.6 with the
+  heading known; the weighting is off by default.
 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
@@ -84,12 +86,13 @@ class LostInSpaceParams:
     ambiguity_margin: int = 2  # a rival elsewhere with >= best - margin inliers: no fix
     rival_km: float = 5.0  # candidates whose centres are closer than this are the same solution
     # The attitude gives the frame's heading on the map (a north-up mosaic window: 0; a rendered frame: its
-    # camera's): only votes within one heading cell of it count. Off in the frozen preset.
+    # camera's): only votes within one heading cell of it count. On in the attitude settings only.
     known_heading: bool = False
     # With the heading known: each candidate takes that heading, and its fix may turn from it by at most this
-    # (degrees; None: as far as a vote cell, bin_deg, from its votes' mean heading). An attitude gives a
-    # north-up window's heading exactly, and true fixes of the south validation windows come out within 1.2
-    # degrees of it, while chance transforms of mirrored windows reach the cell's edge.
+    # (degrees; None: as far as a vote cell, bin_deg, from its votes' mean heading). True fixes of the south
+    # validation windows come out within 1.2 degrees of a north-up window's heading, and chance transforms of
+    # its mirror images up to 10 degrees off; yet at 2 degrees it removed no chance fix of them (other chance
+    # transforms took their place), so it stays off.
     heading_tol_deg: float | None = None
     # Two tiers of detections (None: one). A pair vote needs two sure craters, or chance pairs of the many weak
     # candidates outvote the true ones; a candidate's transform, once voted, predicts where every landmark
