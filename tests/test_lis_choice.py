@@ -101,6 +101,6 @@ def test_a_scaled_window_moves_and_grows_its_craters_about_the_centre_and_drops_
 
 def test_a_variant_that_fixes_a_mirrored_window_is_not_safe():
     runs = [_run("a", 90, 0), _run("b", 70, 0)]
-    runs[0]["null"] = {"mirrored_windows": 300, "fixes": 1}
-    runs[1]["null"] = {"mirrored_windows": 300, "fixes": 0}
+    runs[0]["null"] = {"families": ["mirror"], "windows": 300, "fixes": 1}
+    runs[1]["null"] = {"families": ["mirror"], "windows": 300, "fixes": 0}
     assert lis_choice.choose(runs)["variant"] == "b"

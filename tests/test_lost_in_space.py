@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,6 +12,8 @@ import pytest
 
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index, lost_in_space_fix
+from crater_synth.navigation.navigate import NavigateRequest, lost_in_space_settings
+from crater_synth.navigation.settings import compose_nav
 
 PIXEL_M = 400.0
 SHAPE = (512, 512)
@@ -86,7 +89,6 @@ def test_lis_settings_overrides_and_errors():
     import pytest
 
     from crater_synth.errors import UserError
-    from crater_synth.navigation.settings import compose_nav
 
     p = compose_nav(["nav.lost_in_space.n_detections=40", "nav.lost_in_space.gate_km=6"]).lost_in_space
     assert p.n_detections == 40 and p.gate_km == 6.0
@@ -169,7 +171,7 @@ def test_new_detections_keeps_the_craters_the_first_detector_lacks():
 
 def test_verify_detector_names_a_crater_detector():
     from crater_synth.errors import ConfigError
-    from crater_synth.navigation.settings import compose_nav, verify_detector_settings
+    from crater_synth.navigation.settings import verify_detector_settings
 
     nav = compose_nav(["nav/lost_in_space=two-tier", "nav.lost_in_space.verify_detector=template"])
     assert nav.lost_in_space.verify_detector == "template"
@@ -205,7 +207,6 @@ def test_verification_tolerance_follows_the_lost_in_space_group():
 
 def test_lis_two_tier_settings_are_checked():
     from crater_synth.errors import UserError
-    from crater_synth.navigation.settings import compose_nav
 
     two = compose_nav(["nav/lost_in_space=two-tier"]).lost_in_space
     assert two.vote_min_score is not None and two.inlier_r is not None
@@ -387,7 +388,6 @@ def test_significance_weighs_a_rival_by_its_chance_not_its_count():
 
 def test_significance_settings_are_checked():
     from crater_synth.errors import UserError
-    from crater_synth.navigation.settings import compose_nav
 
     sig = compose_nav(["nav/lost_in_space=significance"]).lost_in_space
     two = compose_nav(["nav/lost_in_space=two-tier"]).lost_in_space
@@ -404,7 +404,6 @@ def test_nav_eval_window_with_a_verify_detector_keeps_the_fix_and_indexes_both()
     the detections returned, the fix still places the window, and every inlier indexes that list."""
     from dataclasses import replace as dc_replace
 
-    from crater_synth.navigation.settings import compose_nav
     from crater_synth.navigation.windows.evaluate import nav_eval_map, navigate_window
     from crater_synth.navigation.windows.mosaic import windows
 
@@ -423,11 +422,6 @@ def test_nav_eval_window_with_a_verify_detector_keeps_the_fix_and_indexes_both()
 def test_navigate_keeps_a_known_heading_its_settings_give():
     """`navigate` once replaced nav.lost_in_space.known_heading by its --known-heading flag: a settings
     group that says the attitude gives the heading was run heading-free."""
-    from pathlib import Path
-
-    from crater_synth.navigation.navigate import NavigateRequest, lost_in_space_settings
-    from crater_synth.navigation.settings import compose_nav
-
     plain = NavigateRequest(Path("w.png"), Path("out"), lost_in_space=True)
     flag = NavigateRequest(Path("w.png"), Path("out"), lost_in_space=True, known_heading=True)
     assert not lost_in_space_settings(plain, compose_nav()).known_heading

@@ -148,7 +148,7 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
             fixed_support.append(fix.support)
         for family, how in moves:
             moved = null_window(together, shape, family, how)
-            voters = sum(d.score >= min_score for d in null_window(kept, shape, family, how))
+            voters = len(null_window(kept, shape, family, how))  # the voters lead the moved list, as unmoved
             nfix = lost_in_space_fix(
                 moved, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=voters
             )
