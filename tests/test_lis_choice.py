@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.settings import compose_nav
+from crater_synth.navigation.windows import evaluate
 from crater_synth.tools import lis_choice
 
 
@@ -51,13 +53,13 @@ def test_a_variant_with_the_heading_known_gives_the_fix_nav_evals_heading(monkey
     seen = []
     monkeypatch.setattr(lis_choice, "build_index", lambda landmarks, lis: None)
 
-    def fix(dets, *a, heading_deg=None, **k):
+    def search(dets, landmarks, shape, pixel_m, params, fparams, index, heading_deg, voters):
         seen.append(heading_deg)
         # "fixes" the left-right mirror only, at the map's origin: 5 km from the window's place
         ok = bool(dets) and dets[0].u > 256 > dets[0].v
-        return SimpleNamespace(ok=ok, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6, support=6.0 if ok else math.nan)
+        return SimpleNamespace(ok=ok, x_m=0.0, y_m=0.0, inliers=[(0, 0)] * 6, support=6.0 if ok else math.nan), []
 
-    monkeypatch.setattr(lis_choice, "lost_in_space_fix", fix)
+    monkeypatch.setattr(evaluate, "lost_in_space_search", search)
     monkeypatch.setattr(lis_choice, "score_window", lambda *a: {})
     monkeypatch.setattr(lis_choice, "summarise_windows", lambda rows: {"headline": {}, "all_windows": {}})
     nav = compose_nav(["nav/detector=learned-detect"])
@@ -104,3 +106,16 @@ def test_a_variant_that_fixes_a_mirrored_window_is_not_safe():
     runs[0]["null"] = {"families": ["mirror"], "windows": 300, "fixes": 1}
     runs[1]["null"] = {"families": ["mirror"], "windows": 300, "fixes": 0}
     assert lis_choice.choose(runs)["variant"] == "b"
+
+
+@pytest.mark.parametrize(("family", "how"), [(f, h) for f in lis_choice.NULLS for h in lis_choice.NULLS[f]])
+def test_a_moved_image_carries_its_craters_where_the_moved_detections_lie(family, how):
+    # a bright disc centred at pixel-corner coordinates (100.5, 60.5), radius 6 px
+    v, u = np.mgrid[0:256, 0:256] + 0.5
+    image = (np.hypot(u - 100.5, v - 60.5) <= 6.0).astype(np.float32) * 200.0
+    moved = lis_choice.null_image(image, family, how)
+    (d,) = lis_choice.null_window([Detection(100.5, 60.5, 6.0, 0.9)], image.shape, family, how)
+    vv, uu = np.nonzero(moved > 100.0)
+    assert abs((uu + 0.5).mean() - d.u) < 0.3 and abs((vv + 0.5).mean() - d.v) < 0.3
+    # the disc's area grows with the move's scale, as the detection's radius does
+    assert (moved > 100.0).sum() == pytest.approx(math.pi * d.r**2, rel=0.15)

@@ -25,21 +25,21 @@ it is committed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
 from functools import partial
 from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
 
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect, with_new
-from crater_synth.navigation.fix.lost_in_space import (
-    LostInSpaceParams,
-    build_index,
-    lost_in_space_fix,
-    window_heading_deg,
-)
+from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index
 from crater_synth.navigation.georef import ground_distance_km
 from crater_synth.navigation.settings import compose_nav, verify_detector_settings
 from crater_synth.navigation.windows.evaluate import (
@@ -48,6 +48,7 @@ from crater_synth.navigation.windows.evaluate import (
     score_window,
     summarise_windows,
     verify_detections,
+    window_lost_in_space,
 )
 from crater_synth.navigation.windows.light import frame_light
 from crater_synth.navigation.windows.mosaic import windows
@@ -56,36 +57,53 @@ from crater_synth.tools.detector_choice import POLE, SPLIT, command_line
 PROG = "python -m crater_synth.tools.lis_choice"
 
 
-def _scaled(u, v, r, side, k):
-    """A crater's place and radius in a square frame scaled by ``k`` about its centre."""
-    return side / 2 + k * (u - side / 2), side / 2 + k * (v - side / 2), k * r
+def _scaled(side: float, k: float) -> np.ndarray:
+    """Scaling by ``k`` about a square frame's centre, as :data:`NULLS` writes a move."""
+    c = (1.0 - k) * side / 2.0
+    return np.array([[k, 0.0, c], [0.0, k, c]])
 
 
-# Windows no setting should fix: each window's detections moved so that no similarity at the known pixel size
-# maps them onto the map. Mirror images (a square frame: u right, v down, pixel-corner origin) keep every
-# crater's size, score and neighbours; a window scaled about its centre (positions and radii by 1.3 or 1/1.3,
-# as if the altimeter were off by 30 %, detections leaving the frame dropped) keeps the pattern but not its
-# scale, which the fix holds to 5 %.
-NULLS = {
+# Windows no setting should fix: each window moved so that no similarity at the known pixel size maps its craters
+# onto the map. A move is the affine map (u, v) -> A (u, v) + t of a square frame of side s (u right, v down,
+# pixel-corner origin), applied to the detections (a radius scales by sqrt |det A|) and, for a confirmation by
+# appearance, to the image. Mirror images keep every crater's size, score and neighbours; a window scaled about its
+# centre (by 1.3 or 1/1.3, as if the altimeter were off by 30 %, craters leaving the frame dropped) keeps the
+# pattern but not its scale, which the fix holds to 5 %.
+NULLS: dict[str, dict[str, Callable[[float], np.ndarray]]] = {
     "mirror": {
-        "left-right": lambda u, v, r, side: (side - u, v, r),
-        "top-bottom": lambda u, v, r, side: (u, side - v, r),
-        "diagonal": lambda u, v, r, side: (v, u, r),
-        "anti-diagonal": lambda u, v, r, side: (side - v, side - u, r),
+        "left-right": lambda s: np.array([[-1.0, 0.0, s], [0.0, 1.0, 0.0]]),
+        "top-bottom": lambda s: np.array([[1.0, 0.0, 0.0], [0.0, -1.0, s]]),
+        "diagonal": lambda s: np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
+        "anti-diagonal": lambda s: np.array([[0.0, -1.0, s], [-1.0, 0.0, s]]),
     },
     "scale": {f"x{k:.2f}": partial(_scaled, k=k) for k in (1.3, 1 / 1.3)},
 }
 
 
-def null_window(dets: list[Detection], shape, family: str, how: str) -> list[Detection]:
-    """``dets`` moved by ``NULLS[family][how]`` in a square frame of ``shape`` (scores kept; a detection whose
-    centre leaves the frame is dropped)."""
+def _null_move(shape, family: str, how: str) -> np.ndarray:
     h, w = shape
     if h != w:
         raise UserError(f"--null needs square windows, not {w} x {h} px")
-    move = NULLS[family][how]
-    out = [Detection(*move(d.u, d.v, d.r, float(w)), d.score) for d in dets]
-    return [d for d in out if 0.0 <= d.u < w and 0.0 <= d.v < h]
+    return NULLS[family][how](float(w))
+
+
+def null_window(dets: list[Detection], shape, family: str, how: str) -> list[Detection]:
+    """``dets`` moved by ``NULLS[family][how]`` in a square frame of ``shape`` (scores kept; a detection whose
+    centre leaves the frame is dropped)."""
+    m = _null_move(shape, family, how)
+    k = math.sqrt(abs(np.linalg.det(m[:, :2])))
+    out = [Detection(*(m[:, :2] @ (d.u, d.v) + m[:, 2]).tolist(), k * d.r, d.score) for d in dets]
+    return [d for d in out if 0.0 <= d.u < shape[1] and 0.0 <= d.v < shape[0]]
+
+
+def null_image(image: np.ndarray, family: str, how: str) -> np.ndarray:
+    """``image`` moved as :func:`null_window` moves its craters (bilinear; outside the frame: reflected)."""
+    m = _null_move(image.shape, family, how)
+    # OpenCV's pixel coordinates sit at pixel centres: x = u - 0.5
+    shift = m[:, :2] @ (0.5, 0.5) + m[:, 2] - 0.5
+    pixel = np.concatenate([m[:, :2], shift[:, None]], axis=1)
+    side = image.shape[0]
+    return cv2.warpAffine(image, pixel, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
 
 
 def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
@@ -131,27 +149,25 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     extras = extras if extras is not None else [[] for _ in frames]
-    # nav-eval's heading: north-up (0) when the variant says the attitude gives it
-    heading = window_heading_deg(lis)
     rows, null_fixed, fixed_support, null_support = [], [], [], []
     moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
-        pixel_m, shape = frame.georef.pixel_m, frame.image.shape
+        shape = frame.image.shape
         # a verify detector's new craters after the voters' (nav-eval's order)
         together = with_new(kept, extra, verify_detector_settings(lis.verify_detector))
-        fix = lost_in_space_fix(
-            together, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=len(kept)
-        )
-        rows.append(score_window(frame, landmarks, nav.fix, together, theta, fix, listed))
+        used, fix = window_lost_in_space(frame, together, landmarks, (lis, index), nav.fix, len(kept))
+        rows.append(score_window(frame, landmarks, nav.fix, used, theta, fix, listed))
         if fix.ok:
             fixed_support.append(fix.support)
         for family, how in moves:
             moved = null_window(together, shape, family, how)
             voters = len(null_window(kept, shape, family, how))  # the voters lead the moved list, as unmoved
-            nfix = lost_in_space_fix(
-                moved, landmarks, shape, pixel_m, lis, nav.fix, index, heading_deg=heading, voters=voters
+            # a confirmation by appearance searches the moved image
+            moved_frame = (
+                dataclasses.replace(frame, image=null_image(frame.image, family, how)) if lis.confirm else frame
             )
+            _, nfix = window_lost_in_space(moved_frame, moved, landmarks, (lis, index), nav.fix, voters)
             if math.isfinite(nfix.support):
                 null_support.append(nfix.support)
             if nfix.ok:  # both moves keep the frame's centre: how far is the fix from the window's true place?

@@ -65,6 +65,7 @@ from crater_synth.navigation.fix.solve import (
 )
 
 CANDIDATE_SCORES = ("inliers", "significance")
+CONFIRMS = ("", "appearance")
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,17 @@ class LostInSpaceParams:
     # vote: detectors miss different craters, and a voted transform needs min_inliers landmarks found by either.
     # Its detections follow the first detector's in the list the fix's inliers index (``voters``).
     verify_detector: str = ""
+    # Confirmation by appearance ("": none; "appearance": the craters' candidates are hypotheses, and a window is
+    # fixed only where the appearance search, run around one of them, fixes it). A lander carrying the DEM its
+    # map was measured in predicts what each landmark looks like: a chance pattern of craters rarely also has
+    # the map's terrain where it says. The candidates with >= confirm_min_inliers landmarks, the best supported
+    # first and at most confirm_hypotheses of them (one per place, rival_km apart), are searched within
+    # confirm_reach_km; two confirmed places: no fix. The search's prior heading is the attitude's, so it needs
+    # known_heading.
+    confirm: str = ""
+    confirm_hypotheses: int = 3
+    confirm_min_inliers: int = 3
+    confirm_reach_km: float = 4.0
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -131,6 +143,15 @@ class LostInSpaceParams:
                 raise ValueError(f"{key} must be a finite number (got {getattr(self, key)})")
         if self.heading_tol_deg is not None and not 0 < self.heading_tol_deg <= self.bin_deg:
             raise ValueError(f"heading_tol_deg must be in (0, bin_deg = {self.bin_deg}] (got {self.heading_tol_deg})")
+        if self.confirm not in CONFIRMS:
+            raise ValueError(f"confirm must be one of {', '.join(map(repr, CONFIRMS))} (got {self.confirm!r})")
+        if self.confirm and not self.known_heading:
+            raise ValueError("confirm needs known_heading: the search predicts the frame at the attitude's heading")
+        if self.confirm_hypotheses < 1 or self.confirm_min_inliers < 1 or not self.confirm_reach_km > 0:
+            raise ValueError(
+                "confirm_hypotheses and confirm_min_inliers must be >= 1 and confirm_reach_km > 0 (got "
+                f"{self.confirm_hypotheses}, {self.confirm_min_inliers}, {self.confirm_reach_km})"
+            )
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
 
@@ -396,9 +417,43 @@ def lost_in_space_fix(
     the map when an attitude gives it (the angle of the pixel -> map similarity); only votes within one
     heading cell (``bin_deg``) of it count. ``voters``: only the first ``voters`` detections may vote (the
     rest, a ``verify_detector``'s, take part in the verification only); None: all."""
+    args = (detections, landmarks, frame_shape, pixel_m, params, fparams, index, heading_deg, voters)
+    return lost_in_space_search(*args)[0]
+
+
+def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candidate]:
+    """The places a confirmation searches (``params.confirm``): the candidates agreeing with at least
+    ``confirm_min_inliers`` landmarks, best supported first (then fewest RMS), one per place (a candidate
+    within ``rival_km`` of a better one is the same place), at most ``confirm_hypotheses``."""
+    ranked = sorted(
+        (c for c in cands if c.inliers >= params.confirm_min_inliers),
+        key=lambda c: (-c.support, c.fix.rms_px if c.fix is not None and c.fix.ok else math.inf),
+    )
+    kept: list[Candidate] = []
+    for c in ranked:
+        if all(abs(c.centre - k.centre) > params.rival_km * 1000.0 for k in kept):
+            kept.append(c)
+        if len(kept) == params.confirm_hypotheses:
+            break
+    return kept
+
+
+def lost_in_space_search(
+    detections,
+    landmarks,
+    frame_shape,
+    pixel_m: float,
+    params: LostInSpaceParams = LostInSpaceParams(),
+    fparams: FixParams = FixParams(),
+    index: PairIndex | None = None,
+    heading_deg: float | None = None,
+    voters: int | None = None,
+) -> tuple[Fix, list[Candidate]]:
+    """(:func:`lost_in_space_fix`'s fix, every verified candidate): the candidates are what a confirmation
+    (:func:`hypotheses`) searches; none when the vote could not run."""
     index = index if index is not None else build_index(landmarks, params)
     if len(detections) < max(3, params.min_inliers):
-        return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})")
+        return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})"), []
     det_uv = np.array([[d.u, d.v] for d in detections], float)
     det_r = np.array([d.r for d in detections], float)
     det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
@@ -406,17 +461,17 @@ def lost_in_space_fix(
     if params.vote_min_score is not None:
         voters = voters[np.array([detections[i].score for i in voters], float) >= params.vote_min_score]
         if voters.size < 3:
-            return Fix(False, f"{voters.size} detections score >= {params.vote_min_score} (need 3 to vote)")
+            return Fix(False, f"{voters.size} detections score >= {params.vote_min_score} (need 3 to vote)"), []
     top = voters[np.argsort(-det_r[voters], kind="stable")[: params.n_detections]]
     votes = _votes(det_z[top], det_r[top], index, pixel_m, params)
     if votes is None or votes[0].size == 0:
-        return Fix(False, "no crater pair of the frame matches a pair of the map")
+        return Fix(False, "no crater pair of the frame matches a pair of the map"), []
     _, _, _, _, va, vb = votes
     if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
         near = np.abs(np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)) <= params.bin_deg
         va, vb = va[near], vb[near]
         if va.size == 0:
-            return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading")
+            return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading"), []
     h, w = frame_shape
     zc = w / 2.0 - 1j * h / 2.0
     centre = va * zc + vb
@@ -427,7 +482,7 @@ def lost_in_space_fix(
     best, no_fix = unambiguous_candidate(cands, params)
     if best is None:
         no_fix.support = max((c.support for c in cands if c.fix is not None and c.fix.ok), default=math.nan)
-        return no_fix
+        return no_fix, cands
     fix = _fix_from_inliers(best.fix, det_uv, index, frame_shape)
     fix.support = best.support
-    return fix
+    return fix, cands

@@ -26,6 +26,7 @@ landmark is), so its detection precision is measured against the map's own landm
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -34,10 +35,11 @@ import numpy as np
 from crater_core import geometry
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.appearance import blurred_frames, register_wide
+from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpaceParams, hypotheses
 from crater_synth.navigation.fix.patches import window_patches
 from crater_synth.navigation.fix.refine import Refiner, lander_dem, shade_window
 from crater_synth.navigation.fix.solve import Fix, fix_frame
-from crater_synth.navigation.georef import stereo_forward
+from crater_synth.navigation.georef import Georef, ground_distance_km, stereo_forward
 from crater_synth.terrain.dem import DemError
 
 # The view of a mosaic window is nadir; a camera this far above the landmark sees every sample along its
@@ -136,3 +138,42 @@ def patch_truth_correct(dets, patches, inliers, truth, inlier_px: float) -> int:
         u, v = truth.xy_to_uv(patches[p].x_m, patches[p].y_m)
         hits += int(math.hypot(dets[d].u - float(u), dets[d].v - float(v)) <= inlier_px)
     return hits
+
+
+def confirmed_fix(
+    image, pole: str, pixel_m: float, cands: list[Candidate], landmarks, light_azimuth_rad: float, lis, dparams, fparams
+) -> tuple[list, Fix]:
+    """(the appearance search's detections, its fix) of a map window lost in space, its craters' candidates
+    (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
+    :class:`.lost_in_space.LostInSpaceParams`): each place :func:`.lost_in_space.hypotheses` keeps, best first,
+    becomes a north-up prior (the attitude's heading) searched within ``lis.confirm_reach_km``
+    (:func:`window_detections`, the appearance settings ``dparams``) and fixed with ``fparams``. The first
+    confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
+    ambiguous: no fix."""
+    assert isinstance(lis, LostInSpaceParams)
+    places = hypotheses(cands, lis)
+    if not places:
+        return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
+    reach = dataclasses.replace(fparams, prior_sigma_km=lis.confirm_reach_km)
+    refiner = lander_refiner(pole)
+    shape = np.shape(image)
+    confirmed: list[tuple[list, Fix, Candidate]] = []
+    refusals = []
+    for place in places:
+        prior = Georef.centred_on(pole, place.centre.real, place.centre.imag, shape, pixel_m)
+        dets, _ = window_detections(image, prior, landmarks, light_azimuth_rad, dparams, reach, refiner)
+        fix = fix_frame(dets, landmarks, prior, shape, reach)
+        if fix.ok:
+            fix.support = place.support
+            confirmed.append((dets, fix, place))
+        else:
+            refusals.append(fix.reason)
+    if not confirmed:
+        return [], Fix(False, f"no place confirmed by appearance ({len(places)} searched; the best: {refusals[0]})")
+    dets, fix, _ = confirmed[0]
+    for _, other, _ in confirmed[1:]:
+        km = float(ground_distance_km(fix.x_m, fix.y_m, other.x_m, other.y_m, pole))
+        if km > lis.rival_km:
+            n = f"{len(fix.inliers)} and {len(other.inliers)} landmarks"
+            return [], Fix(False, f"ambiguous: appearance confirms places {km:.0f} km apart ({n})")
+    return dets, fix

@@ -19,6 +19,7 @@ Length: the metrics and ``nav-eval`` (with the prior and lost in space) run the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -36,7 +37,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import detect, with_new
-from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix, window_heading_deg
+from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_search, window_heading_deg
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM, FixParams, fix_frame
 from crater_synth.navigation.georef import Frame, Georef, check_frame, ground_distance_km
@@ -56,6 +57,7 @@ from crater_synth.navigation.protocol import (
 )
 from crater_synth.navigation.settings import compose_nav, detector_options, verify_detector_settings
 from crater_synth.navigation.windows.appearance import (
+    confirmed_fix,
     lander_refiner,
     patch_truth_correct,
     window_detections,
@@ -105,18 +107,37 @@ def navigate_window(
         if lis is None:
             fix = fix_frame(dets, landmarks, prior, frame.image.shape, fparams)
         else:
-            heading = window_heading_deg(lis[0])
             voters = len(dets)
             dets = with_new(dets, extra, verify_detector_settings(lis[0].verify_detector))
-            pixel_m = frame.georef.pixel_m
-            fix = lost_in_space_fix(
-                dets, landmarks, frame.image.shape, pixel_m, lis[0], fparams, lis[1], heading_deg=heading, voters=voters
-            )
+            dets, fix = window_lost_in_space(frame, dets, landmarks, lis, fparams, voters)
         key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
         if best is None or key > best[0]:
             best = (key, dets, theta, fix)
     _, dets, theta, fix = best
     return dets, theta, fix, prior
+
+
+def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams, voters: int):
+    """(the detections the fix indexes, the fix) of a window lost in space (``lis``: its settings and pair
+    index; ``voters``: the first detections, which may vote). With ``confirm="appearance"`` the candidates
+    are confirmed by the appearance search (:func:`.appearance.confirmed_fix`, the ``nav/detector=appearance``
+    settings and light model): a confirmed fix indexes the search's detections, a refusal the detector's."""
+    params, index = lis
+    shape, pixel_m = frame.image.shape, frame.georef.pixel_m
+    heading = window_heading_deg(params)
+    fix, cands = lost_in_space_search(dets, landmarks, shape, pixel_m, params, fparams, index, heading, voters)
+    if not params.confirm:
+        return dets, fix
+    app = appearance_settings()
+    light = frame_local_light(frame, app)
+    found, fix = confirmed_fix(frame.image, frame.georef.pole, pixel_m, cands, landmarks, light, params, app, fparams)
+    return (found, fix) if fix.ok else (dets, fix)
+
+
+@functools.lru_cache(maxsize=1)
+def appearance_settings() -> DetectorSettings:
+    """The ``nav/detector=appearance`` settings a confirmation by appearance searches with."""
+    return compose_nav(["nav/detector=appearance"]).detector
 
 
 def verify_detections(frame: Frame, lis_params) -> list:
