@@ -39,7 +39,7 @@ from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpacePara
 from crater_synth.navigation.fix.patches import window_patches
 from crater_synth.navigation.fix.refine import Refiner, lander_dem, shade_window
 from crater_synth.navigation.fix.solve import Fix, fix_frame
-from crater_synth.navigation.georef import Georef, ground_distance_km, stereo_forward
+from crater_synth.navigation.georef import Georef, ground_distance_km, local_north_image_angle, stereo_forward
 from crater_synth.terrain.dem import DemError
 
 # The view of a mosaic window is nadir; a camera this far above the landmark sees every sample along its
@@ -141,13 +141,15 @@ def patch_truth_correct(dets, patches, inliers, truth, inlier_px: float) -> int:
 
 
 def confirmed_fix(
-    image, pole: str, pixel_m: float, cands: list[Candidate], landmarks, light_azimuth_rad: float, lis, dparams, fparams
+    image, pole: str, pixel_m: float, cands: list[Candidate], landmarks, light: float, lis, dparams, fparams
 ) -> tuple[list, Fix]:
     """(the appearance search's detections, its fix) of a map window lost in space, its craters' candidates
     (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
     :class:`.lost_in_space.LostInSpaceParams`): each place :func:`.lost_in_space.hypotheses` keeps, best first,
     becomes a north-up prior (the attitude's heading) searched within ``lis.confirm_reach_km``
-    (:func:`window_detections`, the appearance settings ``dparams``) and fixed with ``fparams``. The first
+    (:func:`window_detections`, the appearance settings ``dparams``) and fixed with ``fparams``. ``light``: the
+    image direction (radians) the light travels along, which the ephemeris and the attitude give whatever the
+    place; each place predicts its landmarks under the local azimuth that direction has there. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
     ambiguous: no fix."""
     assert isinstance(lis, LostInSpaceParams)
@@ -161,15 +163,18 @@ def confirmed_fix(
     refusals = []
     for place in places:
         prior = Georef.centred_on(pole, place.centre.real, place.centre.imag, shape, pixel_m)
-        dets, _ = window_detections(image, prior, landmarks, light_azimuth_rad, dparams, reach, refiner)
+        alpha = light - float(local_north_image_angle(place.centre.real, place.centre.imag, pole))
+        dets, _ = window_detections(image, prior, landmarks, alpha, dparams, reach, refiner)
         fix = fix_frame(dets, landmarks, prior, shape, reach)
         if fix.ok:
             fix.support = place.support
             confirmed.append((dets, fix, place))
         else:
             refusals.append(fix.reason)
-    if not confirmed:
-        return [], Fix(False, f"no place confirmed by appearance ({len(places)} searched; the best: {refusals[0]})")
+    if not confirmed:  # its support says a place was searched (the best's, as a lost-in-space refusal carries)
+        refused = Fix(False, f"no place confirmed by appearance ({len(places)} searched; the best: {refusals[0]})")
+        refused.support = places[0].support
+        return [], refused
     dets, fix, _ = confirmed[0]
     for _, other, _ in confirmed[1:]:
         km = float(ground_distance_km(fix.x_m, fix.y_m, other.x_m, other.y_m, pole))

@@ -121,7 +121,8 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
     """(the detections the fix indexes, the fix) of a window lost in space (``lis``: its settings and pair
     index; ``voters``: the first detections, which may vote). With ``confirm="appearance"`` the candidates
     are confirmed by the appearance search (:func:`.appearance.confirmed_fix`, the ``nav/detector=appearance``
-    settings and light model): a confirmed fix indexes the search's detections, a refusal the detector's."""
+    settings; the light's image direction that its light model gives the window, standing in for the ephemeris
+    and attitude a lander has): a confirmed fix indexes the search's detections, a refusal the detector's."""
     params, index = lis
     shape, pixel_m = frame.image.shape, frame.georef.pixel_m
     heading = window_heading_deg(params)
@@ -129,7 +130,7 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
     if not params.confirm:
         return dets, fix
     app = appearance_settings()
-    light = frame_local_light(frame, app)
+    light = frame_light(frame, app)["light_dir"]
     found, fix = confirmed_fix(frame.image, frame.georef.pole, pixel_m, cands, landmarks, light, params, app, fparams)
     return (found, fix) if fix.ok else (dets, fix)
 
