@@ -122,3 +122,35 @@ def test_a_real_window_is_confirmed_where_it_lies_and_its_mirror_image_nowhere()
     mirror = replace(frame, image=null_image(frame.image, "mirror", "left-right"))
     kept, refused = window_lost_in_space(mirror, moved, landmarks, lis, nav.fix, len(moved))
     assert not refused.ok and kept == moved
+
+
+@pytest.mark.integration
+def test_navigate_confirms_a_window_lost_in_space_under_the_light_it_is_given(tmp_path):
+    """`crater-synth navigate W.png --lost-in-space --pixel-m 400 --pole south --light-azimuth A
+    nav/lost_in_space=confirmed`: a south validation window with no georeference is placed by the search's
+    landmarks; without the light the command ends with one error line."""
+    import json
+
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+    from crater_synth.navigation.georef import ground_distance_km, stereo_forward
+    from crater_synth.navigation.windows.evaluate import appearance_settings
+    from crater_synth.navigation.windows.light import frame_light
+    from crater_synth.navigation.windows.mosaic import windows
+    from crater_synth.navigation.windows.navigate import write_window
+
+    frame = next(f for f in windows("validation", "south") if f.id == "S0_1536_0320")
+    img = tmp_path / "w.png"
+    write_window(img, frame)
+    (tmp_path / "w.png.geo.json").unlink()
+    args = ["navigate", str(img), "--lost-in-space", "--pixel-m", "400", "--pole", "south"]
+    args += ["nav/lost_in_space=confirmed", "nav.lost_in_space.vote_min_score=null"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and "nav.lost_in_space.confirm=appearance" in r.output and "--light-azimuth" in r.output
+    light = math.degrees(frame_light(frame, appearance_settings())["light_dir"])
+    r = CliRunner().invoke(main, [*args, "--light-azimuth", f"{light:.1f}"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    x, y = stereo_forward(out["lat"], out["lon"], "south")
+    assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 1.0

@@ -32,7 +32,7 @@ from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors import registry
 from crater_synth.navigation.detectors.classical import detect, with_new
-from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, window_heading_deg
+from crater_synth.navigation.fix.lost_in_space import lost_in_space_fix, lost_in_space_search, window_heading_deg
 from crater_synth.navigation.fix.solve import fix_frame
 from crater_synth.navigation.frame_file import (
     EXIT_SOME_FAILED,
@@ -59,7 +59,8 @@ from crater_synth.navigation.map.landmarks import load_default_map, read_map
 from crater_synth.navigation.output import detection_records, detections_text, write_detections
 from crater_synth.navigation.rendered.navigate import navigate_rendered_frame
 from crater_synth.navigation.settings import DEFAULT_FRAMES_PRESET, compose_nav, verify_detector_settings
-from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, prior_georef
+from crater_synth.navigation.windows.appearance import confirmed_fix
+from crater_synth.navigation.windows.evaluate import LOST_IN_SPACE_FIRST_STAGE, appearance_settings, prior_georef
 from crater_synth.navigation.windows.navigate import (
     annotate,
     appearance_window_fix,
@@ -239,14 +240,21 @@ def check_window_request(request: NavigateRequest, nav) -> None:
         )
     if request.patches and not nav.appearance:
         raise UserError(f"--patches needs the appearance search (nav/detector=appearance), not nav/detector={option}")
-    if nav.appearance and request.light_azimuth is None:
+    # lost in space confirmed by appearance searches like nav/detector=appearance
+    searched = "nav/detector=appearance" if nav.appearance else ""
+    if request.lost_in_space and nav.lost_in_space.confirm:
+        searched = searched or "nav.lost_in_space.confirm=appearance"
+    if searched and request.light_azimuth is None:
         raise UserError(
-            f"nav/detector=appearance on the map window {request.image} predicts each landmark under the Sun: give "
+            f"{searched} on the map window {request.image} predicts each landmark under the Sun: give "
             "--light-azimuth (from the attitude and the ephemeris)"
         )
     elevation = request.sun_elevation
-    if elevation is not None and (not nav.appearance or not 0.0 < elevation < 90.0):
-        raise UserError(f"--sun-elevation {elevation}: only with nav/detector=appearance, in (0, 90) degrees")
+    if elevation is not None and (not searched or not 0.0 < elevation < 90.0):
+        raise UserError(
+            f"--sun-elevation {elevation}: only with nav/detector=appearance or lost in space confirmed by "
+            "appearance, in (0, 90) degrees"
+        )
     if request.known_heading and not request.lost_in_space:
         raise UserError("--known-heading applies to --lost-in-space only (a prior gives the heading already)")
     if request.lost_in_space and request.prior is not None:
@@ -334,6 +342,8 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
         )
 
     patches = nav.appearance if request.patches is None else request.patches
+    if prior_g is None and lis.confirm and not nav.appearance:
+        return confirmed_window_fix(request, nav, img, landmarks, pixel, lis, light, keep, with_extra)
     if not nav.appearance:
 
         def fit(dets):
@@ -359,6 +369,24 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
         prior_g = Georef.centred_on(request.pole, coarse.x_m, coarse.y_m, img.shape, pixel)
     args = (request.sun_elevation, nav.detector, nav.fix, patches)
     return appearance_window_fix(img, prior_g, landmarks, light, *args)
+
+
+def confirmed_window_fix(request: NavigateRequest, nav, img, landmarks, pixel: float, lis, light, keep, with_extra):
+    """:func:`window_fix` lost in space with ``nav.lost_in_space.confirm="appearance"``: the detector's craters
+    vote, and the appearance search confirms one of the vote's places (:func:`.appearance.confirmed_fix`) under
+    the light's image direction ``light`` (radians; ``--light-azimuth``, which the ephemeris and the attitude
+    give), north-up (``keep``: a frame turned north-up), with the pole's DEM."""
+    assert light is not None  # check_window_request asks for --light-azimuth
+    found = detect(img, nav.detector, light_dir=light, what=str(request.image))[0]
+    found = found if keep is None else keep(found, nav.detector.border_r)
+    dets = with_extra(found)
+    heading = window_heading_deg(lis)
+    _, cands = lost_in_space_search(dets, landmarks, img.shape, pixel, lis, nav.fix, None, heading, len(found))
+    app = appearance_settings()
+    if request.sun_elevation is not None:
+        app = dataclasses.replace(app, sun_el_deg=(float(request.sun_elevation),))
+    confirmed, fix = confirmed_fix(img, request.pole, pixel, cands, landmarks, light, lis, app, nav.fix)
+    return (confirmed if fix.ok else dets), light, fix, landmarks, "craters"
 
 
 # A frame's light estimate can read 180 degrees wrong (a crater's lit wall and its shadow swap); the detector
