@@ -400,25 +400,9 @@ def _fix_from_inliers(fix: Fix, det_uv: np.ndarray, index: PairIndex, frame_shap
     return fix
 
 
-def lost_in_space_fix(
-    detections,
-    landmarks,
-    frame_shape,
-    pixel_m: float,
-    params: LostInSpaceParams = LostInSpaceParams(),
-    fparams: FixParams = FixParams(),
-    index: PairIndex | None = None,
-    heading_deg: float | None = None,
-    voters: int | None = None,
-) -> Fix:
-    """Fix of a nadir frame of known pixel size ``pixel_m`` (map metres) with no position or heading
-    prior: the map point under the frame centre, or "no fix" (module docstring). ``index``: a prebuilt
-    :func:`build_index` of ``landmarks`` (built here when None). ``heading_deg``: the frame's heading on
-    the map when an attitude gives it (the angle of the pixel -> map similarity); only votes within one
-    heading cell (``bin_deg``) of it count. ``voters``: only the first ``voters`` detections may vote (the
-    rest, a ``verify_detector``'s, take part in the verification only); None: all."""
-    args = (detections, landmarks, frame_shape, pixel_m, params, fparams, index, heading_deg, voters)
-    return lost_in_space_search(*args)[0]
+def lost_in_space_fix(*args, **kwargs) -> Fix:
+    """The fix of :func:`lost_in_space_search` (same arguments), without its candidates."""
+    return lost_in_space_search(*args, **kwargs)[0]
 
 
 def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candidate]:
@@ -449,8 +433,13 @@ def lost_in_space_search(
     heading_deg: float | None = None,
     voters: int | None = None,
 ) -> tuple[Fix, list[Candidate]]:
-    """(:func:`lost_in_space_fix`'s fix, every verified candidate): the candidates are what a confirmation
-    (:func:`hypotheses`) searches; none when the vote could not run."""
+    """(the fix, every verified candidate) of a nadir frame of known pixel size ``pixel_m`` (map metres) with no
+    position or heading prior. The fix: the map point under the frame centre, or "no fix" (module docstring).
+    The candidates are what a confirmation (:func:`hypotheses`) searches; none when the vote could not run.
+    ``index``: a prebuilt :func:`build_index` of ``landmarks`` (built here when None). ``heading_deg``: the
+    frame's heading on the map when an attitude gives it (the angle of the pixel -> map similarity); only votes
+    within one heading cell (``bin_deg``) of it count. ``voters``: only the first ``voters`` detections may vote
+    (the rest, a ``verify_detector``'s, take part in the verification only); None: all."""
     index = index if index is not None else build_index(landmarks, params)
     if len(detections) < max(3, params.min_inliers):
         return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})"), []
