@@ -29,6 +29,7 @@ import dataclasses
 import json
 import math
 import time
+import zlib
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -42,7 +43,9 @@ from crater_synth.navigation.detectors.classical import Detection, detect, with_
 from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index
 from crater_synth.navigation.georef import ground_distance_km
 from crater_synth.navigation.settings import compose_nav, verify_detector_settings
+from crater_synth.navigation.windows.appearance import search_place
 from crater_synth.navigation.windows.evaluate import (
+    appearance_settings,
     catalogue_craters,
     nav_eval_map,
     score_window,
@@ -106,6 +109,41 @@ def null_image(image: np.ndarray, family: str, how: str) -> np.ndarray:
     return cv2.warpAffine(image, pixel, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
 
 
+# A place elsewhere (``--places``): a landmark's point at least this far from the window's place (beyond the frame's
+# diagonal, so the frame there holds none of the window's own ground), moved by up to PLACE_JITTER_KM.
+PLACE_MIN_KM = 300.0
+PLACE_JITTER_KM = 10.0
+
+
+def places_elsewhere(frame, landmarks, n: int, min_landmark_km: float) -> list[complex]:
+    """``n`` map points (x + iy) where the window is not, seeded by its id: landmarks >= ``min_landmark_km`` at
+    least :data:`PLACE_MIN_KM` from its place, each moved by up to :data:`PLACE_JITTER_KM` (the vote's places lie
+    on crater patterns, so these lie where landmarks are)."""
+    rng = np.random.default_rng(zlib.crc32(frame.id.encode()))
+    cx, cy = frame.centre_xy
+    far = [lm for lm in landmarks if lm.diameter_km >= min_landmark_km]
+    far = [lm for lm in far if math.hypot(lm.x_m - cx, lm.y_m - cy) >= PLACE_MIN_KM * 1000.0]
+    picks = rng.choice(len(far), size=min(n, len(far)), replace=False)
+    jitter = rng.uniform(-PLACE_JITTER_KM, PLACE_JITTER_KM, size=(len(picks), 2)) * 1000.0
+    return [complex(far[i].x_m + dx, far[i].y_m + dy) for i, (dx, dy) in zip(picks, jitter)]
+
+
+def search_elsewhere(frame, landmarks, lis, nav, n: int) -> list[dict]:
+    """The appearance search (:func:`.appearance.search_place`) of the window's own image at ``n`` places where it
+    is not (:func:`places_elsewhere`): each place it confirms, with its landmarks and distance. A confirmation by
+    appearance then fixes a window there only if the vote offers that place too, so this bounds its chance."""
+    app = appearance_settings()
+    light = frame_light(frame, app)["light_dir"]
+    pole, pixel_m = frame.georef.pole, frame.georef.pixel_m
+    confirmed = []
+    for place in places_elsewhere(frame, landmarks, n, lis.min_landmark_km):
+        _, fix = search_place(frame.image, pole, pixel_m, place, landmarks, light, lis, app, nav.fix)
+        if fix.ok:
+            km = ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, pole)
+            confirmed.append({"window": frame.id, "landmarks": len(fix.inliers), "km": round(float(km), 1)})
+    return confirmed
+
+
 def parse_variant(text: str, base: float) -> tuple[float, list[str]]:
     """(minimum detection score, nav overrides) of a ``--variant``: ``min_score=T`` (default: the detector's
     own threshold ``base``, below which no detection exists) and ``nav.lost_in_space`` overrides."""
@@ -141,15 +179,18 @@ def detect_windows(nav, every: int):
     return frames, found
 
 
-def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, nulls=()) -> dict:
+def run_variant(
+    text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, nulls=(), places=0
+) -> dict:
     """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
     ``lis``; ``extras``: each window's detections by ``lis.verify_detector``), summarised as ``nav-eval``
     summarises them; ``nulls``: also the fixes of each window moved by those families of :data:`NULLS`
-    (``"null"``)."""
+    (``"null"``); ``places``: a variant confirmed by appearance also searches each window's image at that many
+    places elsewhere (:func:`search_elsewhere`, ``"elsewhere"``)."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     extras = extras if extras is not None else [[] for _ in frames]
-    rows, null_fixed, fixed_support, null_support = [], [], [], []
+    rows, null_fixed, fixed_support, null_support, fixed_landmarks, elsewhere = [], [], [], [], [], []
     moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
@@ -160,6 +201,9 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         rows.append(score_window(frame, landmarks, nav.fix, used, theta, fix, listed))
         if fix.ok:
             fixed_support.append(fix.support)
+            fixed_landmarks.append(len(fix.inliers))
+        if lis.confirm and places:
+            elsewhere += search_elsewhere(frame, landmarks, lis, nav, places)
         for family, how in moves:
             moved = null_window(together, shape, family, how)
             voters = len(null_window(kept, shape, family, how))  # the voters lead the moved list, as unmoved
@@ -190,15 +234,28 @@ def run_variant(text: str, min_score: float, lis, frames, found, nav, landmarks,
         # verified, fixed or not, beside that of the windows' own fixes: where chance reaches, what a gate needs.
         run["null"]["supports_verified"] = sorted((round(x, 2) for x in null_support), reverse=True)
         run["fixed_supports"] = sorted(round(x, 2) for x in fixed_support)
+    if lis.confirm and places:
+        run["elsewhere"] = {"places": places * len(frames), "min_km": PLACE_MIN_KM, "confirmed": elsewhere}
+        # beside the landmarks of the windows' own fixes: what a confirmation's landmark gate must exceed
+        run["fixed_landmarks"] = sorted(fixed_landmarks)
     return run
 
 
 def choose(runs: list[dict]) -> dict:
-    """No false fix on any window, nor a fix of a moved one (``--null``); then the highest headline fix rate,
-    rates within one headline window of it tied; among the tied, the lowest median error."""
-    safe = [r for r in runs if not r["all_windows"].get("false_fixes") and not r.get("null", {}).get("fixes")]
+    """No false fix on any window, nor a fix of a moved one (``--null``), nor a place elsewhere confirmed by
+    appearance (``--places``); then the highest headline fix rate, rates within one headline window of it tied;
+    among the tied, the lowest median error."""
+
+    def is_safe(r: dict) -> bool:
+        chance = r.get("null", {}).get("fixes") or r.get("elsewhere", {}).get("confirmed")
+        return not r["all_windows"].get("false_fixes") and not chance
+
+    safe = [r for r in runs if is_safe(r)]
     if not safe:
-        return {"variant": None, "why": "every variant made a false fix (or fixed a moved window)"}
+        return {
+            "variant": None,
+            "why": "every variant made a false fix (or fixed a moved window, or confirmed a place elsewhere)",
+        }
     top = max(r["headline"].get("fix_rate") or 0.0 for r in safe)
     tied = [r for r in safe if (top - (r["headline"].get("fix_rate") or 0.0)) * r["headline"]["windows"] <= 1.0 + 1e-9]
     best = min(tied, key=lambda r: r["headline"].get("median_error_km") or 1e9)
@@ -216,6 +273,12 @@ def main(argv=None) -> None:
         default=[],
         choices=sorted(NULLS),
         help="also run every variant on each window moved so that it cannot be fixed (repeatable)",
+    )
+    p.add_argument(
+        "--places",
+        type=int,
+        default=0,
+        help="variants confirmed by appearance: also search each window's image at this many places elsewhere",
     )
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
     args = p.parse_args(argv)
@@ -235,7 +298,8 @@ def main(argv=None) -> None:
             name = lis.verify_detector
             if name and name not in verify:
                 verify[name] = [verify_detections(f, lis) for f in frames]
-            r = run_variant(v, min_score, lis, frames, found, nav, landmarks, listed, verify.get(name), args.null)
+            args_v = (frames, found, nav, landmarks, listed, verify.get(name), args.null, args.places)
+            r = run_variant(v, min_score, lis, *args_v)
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
             moved = f", moved windows fixed {r['null']['fixes']} of {r['null']['windows']}" if args.null else ""
             print(f"{v}: headline fix rate {rate}, false fixes {false}{moved}", flush=True)
@@ -246,8 +310,9 @@ def main(argv=None) -> None:
         "command": command_line(argv, PROG),
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "detector": {"overrides": detector_overrides, "settings": nav.detector.as_dict(), "seconds": detect_s},
-        "rule": "no false fix on any window (nor a fix of a moved window, with --null), then the highest headline "
-        "fix rate (within one headline window: tied, then the lowest median error)",
+        "rule": "no false fix on any window (nor a fix of a moved window, with --null, nor a place elsewhere "
+        "confirmed, with --places), then the highest headline fix rate (within one headline window: tied, then the "
+        "lowest median error)",
         "runs": runs,
         "chosen": choose(runs),
     }

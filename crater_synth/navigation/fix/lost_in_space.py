@@ -127,6 +127,7 @@ class LostInSpaceParams:
     confirm_hypotheses: int = 3
     confirm_min_inliers: int = 3
     confirm_reach_km: float = 4.0
+    confirm_min_landmarks: int = 5  # the search's fix needs this many landmarks (nav.fix's min_inliers if more)
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -147,10 +148,11 @@ class LostInSpaceParams:
             raise ValueError(f"confirm must be one of {', '.join(map(repr, CONFIRMS))} (got {self.confirm!r})")
         if self.confirm and not self.known_heading:
             raise ValueError("confirm needs known_heading: the search predicts the frame at the attitude's heading")
-        if self.confirm_hypotheses < 1 or self.confirm_min_inliers < 1 or not self.confirm_reach_km > 0:
+        counts = (self.confirm_hypotheses, self.confirm_min_inliers, self.confirm_min_landmarks)
+        if min(counts) < 1 or not self.confirm_reach_km > 0:
             raise ValueError(
-                "confirm_hypotheses and confirm_min_inliers must be >= 1 and confirm_reach_km > 0 (got "
-                f"{self.confirm_hypotheses}, {self.confirm_min_inliers}, {self.confirm_reach_km})"
+                "confirm_hypotheses, confirm_min_inliers and confirm_min_landmarks must be >= 1 and confirm_reach_km "
+                f"> 0 (got {', '.join(map(str, counts))}, {self.confirm_reach_km})"
             )
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")

@@ -156,16 +156,10 @@ def confirmed_fix(
     places = hypotheses(cands, lis)
     if not places:
         return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
-    reach = dataclasses.replace(fparams, prior_sigma_km=lis.confirm_reach_km)
-    refiner = lander_refiner(pole)
-    shape = np.shape(image)
     confirmed: list[tuple[list, Fix, Candidate]] = []
     refusals = []
     for place in places:
-        prior = Georef.centred_on(pole, place.centre.real, place.centre.imag, shape, pixel_m)
-        alpha = light - float(local_north_image_angle(place.centre.real, place.centre.imag, pole))
-        dets, _ = window_detections(image, prior, landmarks, alpha, dparams, reach, refiner)
-        fix = fix_frame(dets, landmarks, prior, shape, reach)
+        dets, fix = search_place(image, pole, pixel_m, place.centre, landmarks, light, lis, dparams, fparams)
         if fix.ok:
             fix.support = place.support
             confirmed.append((dets, fix, place))
@@ -182,3 +176,17 @@ def confirmed_fix(
             n = f"{len(fix.inliers)} and {len(other.inliers)} landmarks"
             return [], Fix(False, f"ambiguous: appearance confirms places {km:.0f} km apart ({n})")
     return dets, fix
+
+
+def search_place(image, pole: str, pixel_m: float, centre: complex, landmarks, light: float, lis, dparams, fparams):
+    """(detections, fix) of the appearance search around one place (map point ``centre`` as x + iy under the
+    frame centre), north-up, within ``lis.confirm_reach_km``, under the local azimuth the light's image
+    direction ``light`` has there; the fix needs ``lis.confirm_min_landmarks`` landmarks (at least ``fparams``'
+    own minimum)."""
+    need = max(fparams.min_inliers, lis.confirm_min_landmarks)
+    reach = dataclasses.replace(fparams, prior_sigma_km=lis.confirm_reach_km, min_inliers=need)
+    shape = np.shape(image)
+    prior = Georef.centred_on(pole, centre.real, centre.imag, shape, pixel_m)
+    alpha = light - float(local_north_image_angle(centre.real, centre.imag, pole))
+    dets, _ = window_detections(image, prior, landmarks, alpha, dparams, reach, lander_refiner(pole))
+    return dets, fix_frame(dets, landmarks, prior, shape, reach)
