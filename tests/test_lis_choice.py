@@ -119,3 +119,21 @@ def test_a_moved_image_carries_its_craters_where_the_moved_detections_lie(family
     assert abs((uu + 0.5).mean() - d.u) < 0.3 and abs((vv + 0.5).mean() - d.v) < 0.3
     # the disc's area grows with the move's scale, as the detection's radius does
     assert (moved > 100.0).sum() == pytest.approx(math.pi * d.r**2, rel=0.15)
+
+
+def test_places_elsewhere_lie_on_landmarks_far_from_the_window_and_repeat():
+    lms = [SimpleNamespace(x_m=1000.0 * k, y_m=0.0, diameter_km=12.0 if k // 50 % 2 else 8.0) for k in range(0, 2000, 50)]
+    frame = SimpleNamespace(id="S0_0000_0000", centre_xy=(0.0, 0.0))
+    places = lis_choice.places_elsewhere(frame, lms, 5, 10.0)
+    assert len(places) == 5 and places == lis_choice.places_elsewhere(frame, lms, 5, 10.0)
+    jitter = lis_choice.PLACE_JITTER_KM * 1000.0
+    for p in places:
+        assert abs(p) >= (lis_choice.PLACE_MIN_KM - lis_choice.PLACE_JITTER_KM * 1.5) * 1000.0
+        # each near one of the landmarks >= 10 km (odd multiples of 50 km here)
+        assert min(abs(p - complex(lm.x_m, lm.y_m)) for lm in lms if lm.diameter_km >= 10.0) <= jitter * 1.5
+
+
+def test_a_place_elsewhere_confirmed_by_chance_makes_a_variant_unsafe():
+    safe, chance = _run("a", 90, 0), _run("b", 95, 0)
+    chance["elsewhere"] = {"places": 10, "confirmed": [{"window": "w", "landmarks": 5, "km": 800.0}]}
+    assert lis_choice.choose([safe, chance])["variant"] == "a"

@@ -154,3 +154,20 @@ def test_navigate_confirms_a_window_lost_in_space_under_the_light_it_is_given(tm
     out = json.loads(r.output.strip().splitlines()[-1])
     x, y = stereo_forward(out["lat"], out["lon"], "south")
     assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 1.0
+
+
+def test_the_search_needs_the_confirmations_landmarks(monkeypatch):
+    """``confirm_min_landmarks`` raises the search's fix minimum above ``nav.fix``'s, never below it."""
+    from dataclasses import replace
+
+    needs = []
+    monkeypatch.setattr(appearance, "lander_refiner", lambda pole: None)
+    monkeypatch.setattr(appearance, "window_detections", lambda *a: ([], None))
+    monkeypatch.setattr(appearance, "fix_frame", lambda d, lm, prior, shape, fparams: needs.append(fparams.min_inliers))
+    image = np.zeros((512, 512))
+    for gate in (3, 7):
+        lis = replace(CONFIRM, confirm_min_landmarks=gate)
+        appearance.search_place(image, "south", 400.0, 100.0e3 + 200.0e3j, [], 1.0, lis, None, FixParams())
+    assert needs == [FixParams().min_inliers, 7]
+    with pytest.raises(ValueError, match="confirm_min_landmarks"):
+        replace(CONFIRM, confirm_min_landmarks=0)
