@@ -10,10 +10,13 @@ detections of a run at T: suppression is greedy, best score first, so only a hig
 one. ``--null FAMILY`` (repeatable) also runs every variant on each window's detections moved so that no
 similarity at the known pixel size maps them onto the map (:data:`NULLS`): ``mirror``, mirrored four ways
 (left-right, top-bottom, both diagonals), and ``scale``, scaled about the centre by 1.3 and 1/1.3. Any fix of a
-moved window is false. A validation set's 120 windows bound a false-fix rate only to a few percent; the moved
-windows keep the detections' number, sizes and scores, and test the gates on many windows that cannot be
-fixed. The rule: no false fix on any window (nor a fix of any moved window, with ``--null``), then the highest
-fix rate of the headline windows (rates within one window of it are tied: then the lowest median error). The
+moved window is false (a variant confirmed by appearance searches the moved image too: :func:`null_image`). A
+validation set's 120 windows bound a false-fix rate only to a few percent; the moved windows keep the
+detections' number, sizes and scores, and test the gates on many windows that cannot be fixed. ``--places N``:
+a variant confirmed by appearance also searches each window's image at N places where it is not
+(:func:`search_elsewhere`); any place confirmed is chance. The rule: no false fix on any window (nor a fix of
+any moved window, nor a place elsewhere confirmed), then the highest fix rate of the headline windows (rates
+within one window of it are tied: then the lowest median error). The
 north windows are a test: this tool never reads them; run ``nav-eval --pole north`` once with the choice, after
 it is committed.
 
