@@ -122,7 +122,9 @@ def test_a_moved_image_carries_its_craters_where_the_moved_detections_lie(family
 
 
 def test_places_elsewhere_lie_on_landmarks_far_from_the_window_and_repeat():
-    lms = [SimpleNamespace(x_m=1000.0 * k, y_m=0.0, diameter_km=12.0 if k // 50 % 2 else 8.0) for k in range(0, 2000, 50)]
+    lms = [
+        SimpleNamespace(x_m=1000.0 * k, y_m=0.0, diameter_km=12.0 if k // 50 % 2 else 8.0) for k in range(0, 2000, 50)
+    ]
     frame = SimpleNamespace(id="S0_0000_0000", centre_xy=(0.0, 0.0))
     places = lis_choice.places_elsewhere(frame, lms, 5, 10.0)
     assert len(places) == 5 and places == lis_choice.places_elsewhere(frame, lms, 5, 10.0)
