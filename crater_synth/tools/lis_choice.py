@@ -43,7 +43,14 @@ import numpy as np
 from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect, with_new
-from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_index
+from crater_synth.navigation.fix.lost_in_space import (
+    LostInSpaceParams,
+    build_index,
+    hypotheses,
+    lost_in_space_search,
+    window_heading_deg,
+)
+from crater_synth.navigation.fix.solve import FALSE_FIX_KM
 from crater_synth.navigation.georef import ground_distance_km
 from crater_synth.navigation.settings import compose_nav, verify_detector_settings
 from crater_synth.navigation.windows.appearance import search_place
@@ -131,15 +138,31 @@ def places_elsewhere(frame, landmarks, n: int, min_landmark_km: float) -> list[c
     return [complex(far[i].x_m + dx, far[i].y_m + dy) for i, (dx, dy) in zip(picks, jitter)]
 
 
-def search_elsewhere(frame, landmarks, lis, nav, n: int) -> list[dict]:
-    """The appearance search (:func:`.appearance.search_place`) of the window's own image at ``n`` places where it
-    is not (:func:`places_elsewhere`): each place it confirms, with its landmarks and distance. A confirmation by
-    appearance then fixes a window there only if the vote offers that place too, so this bounds its chance."""
+def vote_places_elsewhere(frame, dets, landmarks, lis, index, nav, voters: int) -> list[complex]:
+    """Every place the window's vote offers (:func:`.lost_in_space.hypotheses`, with no cap on their number) more
+    than :data:`.solve.FALSE_FIX_KM` from the window's true place: where the window's craters already line up
+    with some landmarks, the places a confirmation by appearance is most likely to confirm by chance."""
+    shape, pixel_m = frame.image.shape, frame.georef.pixel_m
+    heading = window_heading_deg(lis)
+    _, cands = lost_in_space_search(dets, landmarks, shape, pixel_m, lis, nav.fix, index, heading, voters)
+    every = dataclasses.replace(lis, confirm_hypotheses=max(1, len(cands)))
+    pole = frame.georef.pole
+    out = []
+    for place in hypotheses(cands, every):
+        km = ground_distance_km(place.centre.real, place.centre.imag, *frame.centre_xy, pole)
+        if km > FALSE_FIX_KM:
+            out.append(place.centre)
+    return out
+
+
+def search_elsewhere(frame, landmarks, lis, nav, places: list[complex]) -> list[dict]:
+    """The appearance search (:func:`.appearance.search_place`) of the window's own image at ``places`` where it
+    is not: each place it confirms, with its landmarks and distance from the window's true place."""
     app = appearance_settings()
     light = frame_light(frame, app)["light_dir"]
     pole, pixel_m = frame.georef.pole, frame.georef.pixel_m
     confirmed = []
-    for place in places_elsewhere(frame, landmarks, n, lis.min_landmark_km):
+    for place in places:
         _, fix = search_place(frame.image, pole, pixel_m, place, landmarks, light, lis, app, nav.fix)
         if fix.ok:
             km = ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, pole)
@@ -183,17 +206,30 @@ def detect_windows(nav, every: int):
 
 
 def run_variant(
-    text: str, min_score: float, lis, frames, found, nav, landmarks, listed, extras=None, nulls=(), places=0
+    text: str,
+    min_score: float,
+    lis,
+    frames,
+    found,
+    nav,
+    landmarks,
+    listed,
+    extras=None,
+    nulls=(),
+    places=0,
+    vote_places=False,
 ) -> dict:
     """One variant's rows on every window (its detections scoring >= ``min_score``, lost in space with
     ``lis``; ``extras``: each window's detections by ``lis.verify_detector``), summarised as ``nav-eval``
     summarises them; ``nulls``: also the fixes of each window moved by those families of :data:`NULLS`
     (``"null"``); ``places``: a variant confirmed by appearance also searches each window's image at that many
-    places elsewhere (:func:`search_elsewhere`, ``"elsewhere"``)."""
+    places elsewhere (:func:`places_elsewhere`, ``"elsewhere"``) and, with ``vote_places``, at every place its vote
+    offers elsewhere (:func:`vote_places_elsewhere`, ``"elsewhere"["vote"]``)."""
     index = build_index(landmarks, lis)
     t0 = time.perf_counter()
     extras = extras if extras is not None else [[] for _ in frames]
-    rows, null_fixed, fixed_support, null_support, fixed_landmarks, elsewhere = [], [], [], [], [], []
+    rows, null_fixed, fixed_support, null_support, fixed_landmarks, elsewhere, voted = [], [], [], [], [], [], []
+    n_voted = 0
     moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
@@ -206,7 +242,12 @@ def run_variant(
             fixed_support.append(fix.support)
             fixed_landmarks.append(len(fix.inliers))
         if lis.confirm and places:
-            elsewhere += search_elsewhere(frame, landmarks, lis, nav, places)
+            spots = places_elsewhere(frame, landmarks, places, lis.min_landmark_km)
+            elsewhere += search_elsewhere(frame, landmarks, lis, nav, spots)
+        if lis.confirm and vote_places:
+            spots = vote_places_elsewhere(frame, together, landmarks, lis, index, nav, len(kept))
+            n_voted += len(spots)
+            voted += search_elsewhere(frame, landmarks, lis, nav, spots)
         for family, how in moves:
             moved = null_window(together, shape, family, how)
             voters = len(null_window(kept, shape, family, how))  # the voters lead the moved list, as unmoved
@@ -237,8 +278,12 @@ def run_variant(
         # verified, fixed or not, beside that of the windows' own fixes: where chance reaches, what a gate needs.
         run["null"]["supports_verified"] = sorted((round(x, 2) for x in null_support), reverse=True)
         run["fixed_supports"] = sorted(round(x, 2) for x in fixed_support)
-    if lis.confirm and places:
-        run["elsewhere"] = {"places": places * len(frames), "min_km": PLACE_MIN_KM, "confirmed": elsewhere}
+    if lis.confirm and (places or vote_places):
+        run["elsewhere"] = {}
+        if places:
+            run["elsewhere"].update({"places": places * len(frames), "min_km": PLACE_MIN_KM, "confirmed": elsewhere})
+        if vote_places:
+            run["elsewhere"]["vote"] = {"places": n_voted, "min_km": FALSE_FIX_KM, "confirmed": voted}
         # beside the landmarks of the windows' own fixes: what a confirmation's landmark gate must exceed
         run["fixed_landmarks"] = sorted(fixed_landmarks)
     return run
@@ -250,7 +295,10 @@ def choose(runs: list[dict]) -> dict:
     among the tied, the lowest median error."""
 
     def is_safe(r: dict) -> bool:
-        chance = r.get("null", {}).get("fixes") or r.get("elsewhere", {}).get("confirmed")
+        elsewhere = r.get("elsewhere", {})
+        chance = (
+            r.get("null", {}).get("fixes") or elsewhere.get("confirmed") or elsewhere.get("vote", {}).get("confirmed")
+        )
         return not r["all_windows"].get("false_fixes") and not chance
 
     safe = [r for r in runs if is_safe(r)]
@@ -283,6 +331,12 @@ def main(argv=None) -> None:
         default=0,
         help="variants confirmed by appearance: also search each window's image at this many places elsewhere",
     )
+    p.add_argument(
+        "--vote-places",
+        action="store_true",
+        help="variants confirmed by appearance: also search each window's image at every place its vote offers "
+        "elsewhere",
+    )
     p.add_argument("--out", type=Path, default=None, help="JSON of the runs and the choice")
     args = p.parse_args(argv)
     try:
@@ -301,7 +355,7 @@ def main(argv=None) -> None:
             name = lis.verify_detector
             if name and name not in verify:
                 verify[name] = [verify_detections(f, lis) for f in frames]
-            args_v = (frames, found, nav, landmarks, listed, verify.get(name), args.null, args.places)
+            args_v = (frames, found, nav, landmarks, listed, verify.get(name), args.null, args.places, args.vote_places)
             r = run_variant(v, min_score, lis, *args_v)
             rate, false = r["headline"].get("fix_rate"), r["all_windows"].get("false_fixes")
             moved = f", moved windows fixed {r['null']['fixes']} of {r['null']['windows']}" if args.null else ""
