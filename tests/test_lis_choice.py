@@ -139,3 +139,20 @@ def test_a_place_elsewhere_confirmed_by_chance_makes_a_variant_unsafe():
     safe, chance = _run("a", 90, 0), _run("b", 95, 0)
     chance["elsewhere"] = {"places": 10, "confirmed": [{"window": "w", "landmarks": 5, "km": 800.0}]}
     assert lis_choice.choose([safe, chance])["variant"] == "a"
+
+
+def test_vote_places_elsewhere_are_every_place_the_vote_offers_away_from_the_window(monkeypatch):
+    from crater_synth.navigation.fix.lost_in_space import Candidate
+
+    def cand(support, x_km, inliers):
+        return Candidate(support, None, 400.0 + 0j, 0j, complex(x_km * 1000.0, -900.0e3), inliers)
+
+    # the window's own place (0 km), a place 2 km from it, and four places elsewhere, one with too few landmarks
+    cands = [cand(9.0, 0.0, 8), cand(8.0, 2.0, 5), cand(7.0, 300.0, 4), cand(6.0, 500.0, 3), cand(5.0, 700.0, 2)]
+    cands += [cand(4.0, 900.0, 3)]
+    monkeypatch.setattr(lis_choice, "lost_in_space_search", lambda *a: (None, cands))
+    lis = compose_nav(["nav/lost_in_space=confirmed"]).lost_in_space  # at most 3 places when confirming a fix
+    georef = SimpleNamespace(pixel_m=400.0, pole="south")
+    frame = SimpleNamespace(georef=georef, image=SimpleNamespace(shape=(512, 512)), centre_xy=(0.0, -900.0e3))
+    places = lis_choice.vote_places_elsewhere(frame, [], [], lis, None, compose_nav([]), 0)
+    assert [round(p.real / 1000.0) for p in places] == [300, 500, 900]
