@@ -157,15 +157,17 @@ def vote_places_elsewhere(frame, dets, landmarks, lis, index, nav, voters: int) 
 
 def search_elsewhere(frame, landmarks, lis, nav, places: list[complex]) -> list[dict]:
     """The appearance search (:func:`.appearance.search_place`) of the window's own image at ``places`` where it
-    is not: each place it confirms, with its landmarks and distance from the window's true place."""
+    is not: each place it confirms falsely (the fix more than :data:`.solve.FALSE_FIX_KM` from the window's true
+    place), with its landmarks and that distance. A place a few km off can be confirmed at the true place, which
+    the search reaches from there: that is no chance confirmation."""
     app = appearance_settings()
     light = frame_light(frame, app)["light_dir"]
     pole, pixel_m = frame.georef.pole, frame.georef.pixel_m
     confirmed = []
     for place in places:
         _, fix = search_place(frame.image, pole, pixel_m, place, landmarks, light, lis, app, nav.fix)
-        if fix.ok:
-            km = ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, pole)
+        km = ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, pole) if fix.ok else 0.0
+        if km > FALSE_FIX_KM:
             confirmed.append({"window": frame.id, "landmarks": len(fix.inliers), "km": round(float(km), 1)})
     return confirmed
 
