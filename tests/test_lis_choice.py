@@ -156,3 +156,22 @@ def test_vote_places_elsewhere_are_every_place_the_vote_offers_away_from_the_win
     frame = SimpleNamespace(georef=georef, image=SimpleNamespace(shape=(512, 512)), centre_xy=(0.0, -900.0e3))
     places = lis_choice.vote_places_elsewhere(frame, [], [], lis, None, compose_nav([]), 0)
     assert [round(p.real / 1000.0) for p in places] == [300, 500, 900]
+
+
+def test_a_place_elsewhere_counts_only_when_its_confirmation_lands_away_from_the_window(monkeypatch):
+    # a place 7 km off whose search reaches the true place (0.4 km): a correct fix; one confirmed 600 km away: chance
+    fixes = {7: (0.4e3, 12), 600: (600.0e3, 5), 900: None}
+
+    def search(image, pole, pixel_m, place, *a):
+        got = fixes[round(place.real / 1000.0)]
+        if got is None:
+            return [], SimpleNamespace(ok=False)
+        return [], SimpleNamespace(ok=True, x_m=got[0], y_m=-900.0e3, inliers=[(0, 0)] * got[1])
+
+    monkeypatch.setattr(lis_choice, "search_place", search)
+    monkeypatch.setattr(lis_choice, "frame_light", lambda frame, dparams: {"light_dir": 0.0})
+    georef = SimpleNamespace(pixel_m=400.0, pole="south")
+    frame = SimpleNamespace(id="w", georef=georef, image=None, centre_xy=(0.0, -900.0e3))
+    places = [complex(k * 1000.0, -900.0e3) for k in (7, 600, 900)]
+    found = lis_choice.search_elsewhere(frame, [], None, compose_nav([]), places)
+    assert [f["landmarks"] for f in found] == [5] and found[0]["km"] > 500.0  # ground km (the map scale)
