@@ -42,6 +42,10 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   0.01 false alarms asks 10^-4.1 (docs/navigation/fix.md). The ``attitude`` settings gate at 10^-7.6 with the
   heading known; the weighting is off by default.
 
+* **Confirmation by appearance** (``confirm``): with the DEM on board, the candidates are hypotheses the
+  appearance search confirms or not (:func:`hypotheses`; ``windows/appearance.py``), and the vote's own gate is
+  not used.
+
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
 south windows only (docs/navigation/fix.md).

@@ -22,6 +22,9 @@ kept between frames); only the shading changes with the elevation.
 
 What it cannot see: craters missing from the map (it looks only where the map and the prior say a
 landmark is), so its detection precision is measured against the map's own landmarks.
+
+Lost in space (:func:`confirmed_fix`), the places a crater vote offers take the prior's role: each is searched
+(:func:`search_place`), and the window is fixed where the search confirms one.
 """
 
 from __future__ import annotations
@@ -147,7 +150,7 @@ def confirmed_fix(
     (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
     :class:`.lost_in_space.LostInSpaceParams`): each place :func:`.lost_in_space.hypotheses` keeps, best first,
     becomes a north-up prior (the attitude's heading) searched within ``lis.confirm_reach_km``
-    (:func:`window_detections`, the appearance settings ``dparams``) and fixed with ``fparams``. ``light``: the
+    (:func:`search_place`, the appearance settings ``dparams``) and fixed with ``fparams``. ``light``: the
     image direction (radians) the light travels along, which the ephemeris and the attitude give whatever the
     place; each place predicts its landmarks under the local azimuth that direction has there. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
