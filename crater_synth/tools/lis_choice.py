@@ -207,6 +207,27 @@ def detect_windows(nav, every: int):
     return frames, found
 
 
+def moved_window_fix(frame, together, n_kept: int, family: str, how: str, landmarks, lis, nav):
+    """(the fix, its record or None) of a window's detections ``together`` (the first ``n_kept`` vote) moved by
+    ``NULLS[family][how]``, lost in space with ``lis`` (settings, pair index); a confirmation by appearance
+    searches the moved image. A fix is recorded with its landmarks and its distance from the window's true place
+    (both moves keep the frame's centre)."""
+    shape = frame.image.shape
+    moved = null_window(together, shape, family, how)
+    voters = len(null_window(together[:n_kept], shape, family, how))  # the voters lead the moved list, as unmoved
+    moved_frame = dataclasses.replace(frame, image=null_image(frame.image, family, how)) if lis[0].confirm else frame
+    _, fix = window_lost_in_space(moved_frame, moved, landmarks, lis, nav.fix, voters)
+    if not fix.ok:
+        return fix, None
+    km = ground_distance_km(fix.x_m, fix.y_m, *frame.centre_xy, frame.georef.pole)
+    return fix, {
+        "window": frame.id,
+        "null": f"{family} {how}",
+        "landmarks": len(fix.inliers),
+        "km": round(float(km), 2),
+    }
+
+
 def run_variant(
     text: str,
     min_score: float,
@@ -235,7 +256,6 @@ def run_variant(
     moves = [(family, how) for family in nulls for how in NULLS[family]]
     for frame, (dets, theta), extra in zip(frames, found, extras):
         kept = [d for d in dets if d.score >= min_score]
-        shape = frame.image.shape
         # a verify detector's new craters after the voters' (nav-eval's order)
         together = with_new(kept, extra, verify_detector_settings(lis.verify_detector))
         used, fix = window_lost_in_space(frame, together, landmarks, (lis, index), nav.fix, len(kept))
@@ -251,19 +271,11 @@ def run_variant(
             n_voted += len(spots)
             voted += search_elsewhere(frame, landmarks, lis, nav, spots)
         for family, how in moves:
-            moved = null_window(together, shape, family, how)
-            voters = len(null_window(kept, shape, family, how))  # the voters lead the moved list, as unmoved
-            # a confirmation by appearance searches the moved image
-            moved_frame = (
-                dataclasses.replace(frame, image=null_image(frame.image, family, how)) if lis.confirm else frame
-            )
-            _, nfix = window_lost_in_space(moved_frame, moved, landmarks, (lis, index), nav.fix, voters)
+            nfix, where = moved_window_fix(frame, together, len(kept), family, how, landmarks, (lis, index), nav)
             if math.isfinite(nfix.support):
                 null_support.append(nfix.support)
-            if nfix.ok:  # both moves keep the frame's centre: how far is the fix from the window's true place?
-                km = ground_distance_km(nfix.x_m, nfix.y_m, *frame.centre_xy, frame.georef.pole)
-                where = {"window": frame.id, "null": f"{family} {how}", "landmarks": len(nfix.inliers)}
-                null_fixed.append({**where, "km": round(float(km), 2)})
+            if where is not None:
+                null_fixed.append(where)
     summary = summarise_windows(rows)
     run = {
         "variant": text,
