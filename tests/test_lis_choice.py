@@ -139,6 +139,9 @@ def test_a_place_elsewhere_confirmed_by_chance_makes_a_variant_unsafe():
     safe, chance = _run("a", 90, 0), _run("b", 95, 0)
     chance["elsewhere"] = {"places": 10, "confirmed": [{"window": "w", "landmarks": 5, "km": 800.0}]}
     assert lis_choice.choose([safe, chance])["variant"] == "a"
+    voted = _run("c", 95, 0)
+    voted["elsewhere"] = {"vote": {"places": 3, "confirmed": [{"window": "w", "landmarks": 6, "km": 500.0}]}}
+    assert lis_choice.choose([safe, voted])["variant"] == "a"
 
 
 def test_vote_places_elsewhere_are_every_place_the_vote_offers_away_from_the_window(monkeypatch):

@@ -14,7 +14,9 @@ moved window is false (a variant confirmed by appearance searches the moved imag
 validation set's 120 windows bound a false-fix rate only to a few percent; the moved windows keep the
 detections' number, sizes and scores, and test the gates on many windows that cannot be fixed. ``--places N``:
 a variant confirmed by appearance also searches each window's image at N places where it is not
-(:func:`search_elsewhere`); any place confirmed is chance. The rule: no false fix on any window (nor a fix of
+(:func:`places_elsewhere`), and ``--vote-places`` at every place its vote offers more than 5 km from where it is
+(:func:`vote_places_elsewhere`); any place confirmed away from the window is chance (:func:`search_elsewhere`). The
+rule: no false fix on any window (nor a fix of
 any moved window, nor a place elsewhere confirmed), then the highest fix rate of the headline windows (rates
 within one window of it are tied: then the lowest median error). The
 north windows are a test: this tool never reads them; run ``nav-eval --pole north`` once with the choice, after
@@ -305,8 +307,8 @@ def run_variant(
 
 def choose(runs: list[dict]) -> dict:
     """No false fix on any window, nor a fix of a moved one (``--null``), nor a place elsewhere confirmed by
-    appearance (``--places``); then the highest headline fix rate, rates within one headline window of it tied;
-    among the tied, the lowest median error."""
+    appearance (``--places``, ``--vote-places``); then the highest headline fix rate, rates within one headline
+    window of it tied; among the tied, the lowest median error."""
 
     def is_safe(r: dict) -> bool:
         elsewhere = r.get("elsewhere", {})
@@ -382,8 +384,8 @@ def main(argv=None) -> None:
         "split": f"{POLE} {SPLIT}, every {args.every}th window",
         "detector": {"overrides": detector_overrides, "settings": nav.detector.as_dict(), "seconds": detect_s},
         "rule": "no false fix on any window (nor a fix of a moved window, with --null, nor a place elsewhere "
-        "confirmed, with --places), then the highest headline fix rate (within one headline window: tied, then the "
-        "lowest median error)",
+        "confirmed, with --places or --vote-places), then the highest headline fix rate (within one headline "
+        "window: tied, then the lowest median error)",
         "runs": runs,
         "chosen": choose(runs),
     }

@@ -144,7 +144,15 @@ def patch_truth_correct(dets, patches, inliers, truth, inlier_px: float) -> int:
 
 
 def confirmed_fix(
-    image, pole: str, pixel_m: float, cands: list[Candidate], landmarks, light: float, lis, dparams, fparams
+    image,
+    pole: str,
+    pixel_m: float,
+    cands: list[Candidate],
+    landmarks,
+    light: float,
+    lis: LostInSpaceParams,
+    dparams,
+    fparams,
 ) -> tuple[list, Fix]:
     """(the appearance search's detections, its fix) of a map window lost in space, its craters' candidates
     (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
@@ -155,7 +163,6 @@ def confirmed_fix(
     place; each place predicts its landmarks under the local azimuth that direction has there. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
     ambiguous: no fix."""
-    assert isinstance(lis, LostInSpaceParams)
     places = hypotheses(cands, lis)
     if not places:
         return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
