@@ -10,6 +10,7 @@ import pytest
 
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection
+from crater_synth.navigation.fix import lost_in_space
 from crater_synth.navigation.settings import compose_nav
 from crater_synth.navigation.windows import evaluate
 from crater_synth.tools import lis_choice
@@ -125,12 +126,11 @@ def test_places_elsewhere_lie_on_landmarks_far_from_the_window_and_repeat():
     lms = [
         SimpleNamespace(x_m=1000.0 * k, y_m=0.0, diameter_km=12.0 if k // 50 % 2 else 8.0) for k in range(0, 2000, 50)
     ]
-    frame = SimpleNamespace(id="S0_0000_0000", centre_xy=(0.0, 0.0))
-    places = lis_choice.places_elsewhere(frame, lms, 5, 10.0)
-    assert len(places) == 5 and places == lis_choice.places_elsewhere(frame, lms, 5, 10.0)
-    jitter = lis_choice.PLACE_JITTER_KM * 1000.0
+    places = lost_in_space.places_elsewhere("S0_0000_0000", (0.0, 0.0), lms, 5, 10.0)
+    assert len(places) == 5 and places == lost_in_space.places_elsewhere("S0_0000_0000", (0.0, 0.0), lms, 5, 10.0)
+    jitter = lost_in_space.PLACE_JITTER_KM * 1000.0
     for p in places:
-        assert abs(p) >= (lis_choice.PLACE_MIN_KM - lis_choice.PLACE_JITTER_KM * 1.5) * 1000.0
+        assert abs(p) >= (lost_in_space.PLACE_MIN_KM - lost_in_space.PLACE_JITTER_KM * 1.5) * 1000.0
         # each near one of the landmarks >= 10 km (odd multiples of 50 km here)
         assert min(abs(p - complex(lm.x_m, lm.y_m)) for lm in lms if lm.diameter_km >= 10.0) <= jitter * 1.5
 

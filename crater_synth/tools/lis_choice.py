@@ -34,7 +34,6 @@ import dataclasses
 import json
 import math
 import time
-import zlib
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -46,10 +45,12 @@ from crater_core.schema import atomic_write_text
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect, with_new
 from crater_synth.navigation.fix.lost_in_space import (
+    PLACE_MIN_KM,
     LostInSpaceParams,
     build_index,
     hypotheses,
     lost_in_space_search,
+    places_elsewhere,
     window_heading_deg,
 )
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM
@@ -119,25 +120,6 @@ def null_image(image: np.ndarray, family: str, how: str) -> np.ndarray:
     pixel = np.concatenate([m[:, :2], shift[:, None]], axis=1)
     side = image.shape[0]
     return cv2.warpAffine(image, pixel, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-
-
-# A place elsewhere (``--places``): a landmark's point at least this far from the window's place (beyond the frame's
-# diagonal, so the frame there holds none of the window's own ground), moved by up to PLACE_JITTER_KM.
-PLACE_MIN_KM = 300.0
-PLACE_JITTER_KM = 10.0
-
-
-def places_elsewhere(frame, landmarks, n: int, min_landmark_km: float) -> list[complex]:
-    """``n`` map points (x + iy) where the window is not, seeded by its id: landmarks >= ``min_landmark_km`` at
-    least :data:`PLACE_MIN_KM` from its place, each moved by up to :data:`PLACE_JITTER_KM` (the vote's places lie
-    on crater patterns, so these lie where landmarks are)."""
-    rng = np.random.default_rng(zlib.crc32(frame.id.encode()))
-    cx, cy = frame.centre_xy
-    far = [lm for lm in landmarks if lm.diameter_km >= min_landmark_km]
-    far = [lm for lm in far if math.hypot(lm.x_m - cx, lm.y_m - cy) >= PLACE_MIN_KM * 1000.0]
-    picks = rng.choice(len(far), size=min(n, len(far)), replace=False)
-    jitter = rng.uniform(-PLACE_JITTER_KM, PLACE_JITTER_KM, size=(len(picks), 2)) * 1000.0
-    return [complex(far[i].x_m + dx, far[i].y_m + dy) for i, (dx, dy) in zip(picks, jitter)]
 
 
 def vote_places_elsewhere(frame, dets, landmarks, lis, index, nav, voters: int) -> list[complex]:
@@ -266,7 +248,7 @@ def run_variant(
             fixed_support.append(fix.support)
             fixed_landmarks.append(len(fix.inliers))
         if lis.confirm and places:
-            spots = places_elsewhere(frame, landmarks, places, lis.min_landmark_km)
+            spots = places_elsewhere(frame.id, frame.centre_xy, landmarks, places, lis.min_landmark_km)
             elsewhere += search_elsewhere(frame, landmarks, lis, nav, spots)
         if lis.confirm and vote_places:
             spots = vote_places_elsewhere(frame, together, landmarks, lis, index, nav, len(kept))

@@ -54,6 +54,7 @@ south windows only (docs/navigation/fix.md).
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
@@ -426,6 +427,26 @@ def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candid
         if len(kept) == params.confirm_hypotheses:
             break
     return kept
+
+
+# Where a confirmation is tested against chance (:func:`places_elsewhere`): at least this far from where the frame
+# is (beyond a 512 px window's diagonal at 400 m/px, so the search there holds none of the frame's own ground),
+# moved by up to PLACE_JITTER_KM.
+PLACE_MIN_KM = 300.0
+PLACE_JITTER_KM = 10.0
+
+
+def places_elsewhere(key: str, centre_xy, landmarks, n: int, min_landmark_km: float) -> list[complex]:
+    """``n`` map points (x + iy) where a frame whose true place is ``centre_xy`` is not, seeded by its ``key``:
+    landmarks >= ``min_landmark_km`` at least :data:`PLACE_MIN_KM` from that place, each moved by up to
+    :data:`PLACE_JITTER_KM` (a vote's places lie on crater patterns, so these lie where landmarks are)."""
+    rng = np.random.default_rng(zlib.crc32(key.encode()))
+    cx, cy = centre_xy
+    far = [lm for lm in landmarks if lm.diameter_km >= min_landmark_km]
+    far = [lm for lm in far if math.hypot(lm.x_m - cx, lm.y_m - cy) >= PLACE_MIN_KM * 1000.0]
+    picks = rng.choice(len(far), size=min(n, len(far)), replace=False)
+    jitter = rng.uniform(-PLACE_JITTER_KM, PLACE_JITTER_KM, size=(len(picks), 2)) * 1000.0
+    return [complex(far[i].x_m + dx, far[i].y_m + dy) for i, (dx, dy) in zip(picks, jitter)]
 
 
 def lost_in_space_search(

@@ -25,6 +25,7 @@ fix is false beyond 5 km.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -38,16 +39,27 @@ from crater_core.schema import atomic_write_json
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect
-from crater_synth.navigation.fix.lost_in_space import build_index, lost_in_space_fix
-from crater_synth.navigation.georef import pole_of, stereo_forward, stereo_inverse
+from crater_synth.navigation.fix.lost_in_space import (
+    PLACE_MIN_KM,
+    build_index,
+    hypotheses,
+    lost_in_space_search,
+    places_elsewhere,
+)
+from crater_synth.navigation.fix.patches import PatchParams
+from crater_synth.navigation.fix.refine import Refiner, lander_dem
+from crater_synth.navigation.fix.solve import FALSE_FIX_KM
+from crater_synth.navigation.georef import ground_distance_km, pole_of, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.protocol import fix_counts, lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import (
+    FrameRun,
     evaluate_frame,
     frame_run,
     light_direction,
     match_pixels,
     perfect_detections,
+    with_patch_fallback,
 )
 from crater_synth.navigation.rendered.ground_view import (
     camera_from_centre,
@@ -135,11 +147,13 @@ def recall(rows: list[dict], key: str) -> float | None:
     return round(sum(r[key][0] for r in rows) / n, 4) if n else None
 
 
-def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detections=None) -> dict:
+def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detections=None, refiner=None) -> dict:
     """Detection, lost-in-space identification and horizontal fix of one rendered frame, scored against
     its pose and labels, with the settings ``nav`` (its detector, fix and ``lost_in_space``; ``index``: the
     map's pair index). ``detections`` replaces the detector's (the perfect-detection check). With
-    ``nav.lost_in_space.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`)."""
+    ``nav.lost_in_space.known_heading`` the vote keeps only the heading the attitude gives (:func:`map_heading_deg`).
+    With ``nav.lost_in_space.confirm`` and the pole's ``refiner`` (:class:`.refine.Refiner`), the 6-DOF fix is the
+    vote's places confirmed by appearance (:func:`confirmed_six_dof`; not for given ``detections``)."""
     fparams, lis = nav.fix, nav.lost_in_space
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
@@ -157,9 +171,8 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     flat, shape, kept = rectify(dets, row, rng)
     pole = pole_of(row["frame_origin"]["lat"])
     heading = map_heading_deg(row, pole) if lis.known_heading else None
-    fix = lost_in_space_fix(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index, heading_deg=heading)
-    lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
-    tx, ty = stereo_forward(float(lat), float(lon), pole)
+    fix, cands = lost_in_space_search(flat, landmarks, shape, LIS_PIXEL_M, lis, fparams, index, heading_deg=heading)
+    truth = true_place(row)
     out = {
         "index": row["index"],
         "altitude_km": row["pose"]["altitude_m"] / 1000.0,
@@ -177,13 +190,17 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
         truth_of = match_pixels(dets, row["landmarks"])
         ids = {lm.id: i for i, lm in enumerate(landmarks)}
         label_ids = [ids.get(lb["id"]) for lb in row["landmarks"]]
-        out["error_km"] = float(math.hypot(fix.x_m - float(tx), fix.y_m - float(ty))) / 1000.0
+        out["error_km"] = float(math.hypot(fix.x_m - truth.real, fix.y_m - truth.imag)) / 1000.0
         out["identified"] = len(fix.inliers)
         out["identified_correct"] = int(
             sum(1 for fi, li in fix.inliers if kept[fi] in truth_of and label_ids[truth_of[kept[fi]]] == li)
         )
-    no_fix = {"fix": False, "reason": fix.reason}
-    out["six_dof"] = six_dof_fix(row, image, dets, fix, rng, landmarks, nav) if fix.ok else no_fix
+    if lis.confirm and detections is None:
+        out["six_dof"] = confirmed_six_dof(row, image, cands, rng, landmarks, lis, refiner)
+    elif fix.ok:
+        out["six_dof"] = six_dof_fix(row, image, dets, place_prior(row, complex(fix.x_m, fix.y_m), rng), landmarks, nav)
+    else:
+        out["six_dof"] = {"fix": False, "reason": fix.reason}
     return out
 
 
@@ -206,17 +223,21 @@ SIX_DOF_KEYS = ("fix", "reason", "error_km", "error_horizontal_km", "attitude_er
                 "identified_correct", "rms_px")  # fmt: skip
 
 
-def six_dof_fix(row: dict, image, dets, fix, range_m: float, landmarks, nav) -> dict:
-    """The 6-DOF pose from the lost-in-space fix: the camera placed over the fixed map point at the height
-    the altimeter and attitude give (:func:`camera_height_m`), which is the prior of ``nav-frames-eval``'s
-    pinhole fix (``nav.frames.solver=pnp``: the landmarks that prior predicts paired with ``dets``, RANSAC
-    over P3P, attitude and position solved together, the attitude rectification assumed taken as a
-    measurement of 1-sigma :data:`LIS_ATTITUDE_SIGMA_DEG`). Its fields of the frame's row (:data:`SIX_DOF_KEYS`);
-    ``image`` is not searched again (``dets`` are the frame's detections)."""
+def place_prior(row: dict, centre: complex, range_m: float) -> np.ndarray:
+    """The camera (frame ENU) over map point ``centre`` (x + iy) at the height the altimeter and attitude give
+    (:func:`camera_height_m`): a lost-in-space place as the prior of a perspective fix."""
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
-    lat, lon = stereo_inverse(fix.x_m, fix.y_m, pole_of(lat0))
-    centre = geometry.latlon_to_mc(float(lat), float(lon), camera_height_m(row, range_m))
-    prior = geometry.mc_to_enu(np.atleast_2d(centre), lat0, lon0)[0]
+    lat, lon = stereo_inverse(centre.real, centre.imag, pole_of(lat0))
+    camera = geometry.latlon_to_mc(float(lat), float(lon), camera_height_m(row, range_m))
+    return geometry.mc_to_enu(np.atleast_2d(camera), lat0, lon0)[0]
+
+
+def six_dof_fix(row: dict, image, dets, prior: np.ndarray, landmarks, nav) -> dict:
+    """The 6-DOF pose from a lost-in-space place (``prior``: :func:`place_prior`), which is the prior of
+    ``nav-frames-eval``'s pinhole fix (``nav.frames.solver=pnp``: the landmarks that prior predicts paired with
+    ``dets``, RANSAC over P3P, attitude and position solved together, the attitude rectification assumed taken
+    as a measurement of 1-sigma :data:`LIS_ATTITUDE_SIGMA_DEG`). Its fields of the frame's row
+    (:data:`SIX_DOF_KEYS`); ``image`` is not searched again (``dets`` are the frame's detections)."""
     r = evaluate_frame(
         row,
         image,
@@ -226,6 +247,88 @@ def six_dof_fix(row: dict, image, dets, fix, range_m: float, landmarks, nav) -> 
         prior_enu=prior,
     )
     return {k: r[k] for k in SIX_DOF_KEYS if k in r}
+
+
+# The appearance search a confirmation runs at each place: nav-frames-eval's appearance preset (its search,
+# identification, refinement and terrain patches) with the 6-DOF fix, none of it chosen again here.
+CONFIRM_PRESET = ("nav/preset=appearance", "nav.frames.solver=pnp")
+
+
+def confirm_run(lis) -> FrameRun:
+    """The settings of :data:`CONFIRM_PRESET` a confirmation searches each place with: the 6-DOF fix refined by
+    appearance and taking the attitude as a measurement (1-sigma :data:`LIS_ATTITUDE_SIGMA_DEG`), its prior gate
+    ``lis.confirm_reach_km``, its fix at least ``lis.confirm_min_landmarks`` landmarks (craters or patches)."""
+    app = compose_nav(list(CONFIRM_PRESET))
+    need = max(app.fix.min_inliers, lis.confirm_min_landmarks)
+    fparams = dataclasses.replace(app.fix, prior_sigma_km=lis.confirm_reach_km, min_inliers=need)
+    return frame_run(app, fparams=fparams, refine_pnp=True, pnp_attitude_sigma_deg=LIS_ATTITUDE_SIGMA_DEG)
+
+
+def search_frame_place(row: dict, image, centre: complex, range_m: float, landmarks, run: FrameRun, refiner) -> dict:
+    """The appearance search's 6-DOF fix of a frame from one place (map point ``centre`` under the camera), its
+    terrain patches where its craters give none (:func:`.evaluate.with_patch_fallback`)."""
+    prior = place_prior(row, centre, range_m)
+    r = evaluate_frame(row, image, landmarks, run, refiner=refiner, prior_enu=prior)
+    return with_patch_fallback(r, row, image, landmarks, refiner, PatchParams(), run, prior)
+
+
+def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, refiner) -> dict:
+    """The 6-DOF fix of a frame lost in space, its vote's candidates confirmed by appearance: each place
+    :func:`.lost_in_space.hypotheses` keeps, best supported first, searched by :func:`search_frame_place`
+    (:func:`confirm_run`'s settings). The first confirmed place is the fix; a second one whose camera lies more
+    than ``lis.rival_km`` from it makes the frame ambiguous (no fix). Its fields of the row (:data:`SIX_DOF_KEYS`,
+    ``fix_source``) and ``places``: each place searched, how far it lies from the truth (km; scoring only) and
+    what the search gave."""
+    if refiner is None:
+        raise UserError("nav.lost_in_space.confirm=appearance needs the lander's DEM (a refiner)")
+    places = hypotheses(cands, lis)
+    if not places:
+        return {
+            "fix": False,
+            "reason": f"no candidate with {lis.confirm_min_inliers} landmarks to confirm",
+            "places": [],
+        }
+    run, truth = confirm_run(lis), true_place(row)
+    pole = pole_of(row["frame_origin"]["lat"])
+    tried, confirmed = [], []
+    for place in places:
+        r = search_frame_place(row, image, place.centre, range_m, landmarks, run, refiner)
+        km = float(ground_distance_km(place.centre.real, place.centre.imag, truth.real, truth.imag, pole))
+        tried.append({"support": round(float(place.support), 3), "inliers": place.inliers, "place_km": round(km, 2),
+                      "fix": r["fix"], "reason": r["reason"], "error_km": r.get("error_km")})  # fmt: skip
+        if r["fix"]:
+            confirmed.append(r)
+    if not confirmed:
+        out = {"fix": False, "reason": f"no place confirmed by appearance ({len(places)} searched)"}
+        return out | {"places": tried}
+    best = confirmed[0]
+    for other in confirmed[1:]:
+        apart = np.hypot(*(np.subtract(best["position_enu_m"], other["position_enu_m"])[:2])) / 1000.0
+        if apart > lis.rival_km:
+            reason = f"ambiguous: appearance confirms places {apart:.0f} km apart"
+            return {"fix": False, "reason": reason, "places": tried}
+    keep = {k: best[k] for k in SIX_DOF_KEYS if k in best}
+    return keep | {"fix_source": best.get("fix_source"), "places": tried}
+
+
+def true_place(row: dict) -> complex:
+    """The map point (x + iy) under the frame's true camera: where its lost-in-space fix should be."""
+    lat, lon, _ = geometry.mc_to_latlon(np.array(row["pose"]["position_mc_m"], dtype=np.float64))
+    x, y = stereo_forward(float(lat), float(lon), pole_of(row["frame_origin"]["lat"]))
+    return complex(float(x), float(y))
+
+
+def places_null(row: dict, image, range_m: float, landmarks, lis, refiner, n: int) -> list[dict]:
+    """The frame's image searched at ``n`` places where it is not (:func:`.lost_in_space.places_elsewhere`, >= 300
+    km from its true place) as a confirmation searches a place: each one confirmed more than
+    :data:`.solve.FALSE_FIX_KM` from the truth (a chance confirmation), with its landmarks and error."""
+    truth, run = true_place(row), confirm_run(lis)
+    chance = []
+    for centre in places_elsewhere(row["rel_path"], (truth.real, truth.imag), landmarks, n, lis.min_landmark_km):
+        r = search_frame_place(row, image, centre, range_m, landmarks, run, refiner)
+        if r["fix"] and r["error_km"] > FALSE_FIX_KM:
+            chance.append({"frame": row["index"], "landmarks": r["identified"], "error_km": round(r["error_km"], 1)})
+    return chance
 
 
 def six_dof_summary(rows: list[dict]) -> dict:
@@ -240,10 +343,11 @@ def six_dof_summary(rows: list[dict]) -> dict:
     }
 
 
-def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
+def evaluate_lis_dir(frames_dir: Path, nav, places: int = 0) -> dict:
     """Every frame of a ``nav-frames`` directory lost in space with the settings ``nav`` (a crater detector's;
     the pair vote's are ``nav.lost_in_space``), with the detector and with perfect detections; per-frame
-    rows and both summaries."""
+    rows and both summaries. With a confirmation by appearance (``nav.lost_in_space.confirm``), ``places`` > 0
+    also searches each frame's image at that many places where it is not (:func:`places_null`)."""
     if nav.appearance:
         raise UserError("lost in space needs a crater detector (the appearance search needs a prior)")
     lis = nav.lost_in_space
@@ -252,25 +356,30 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
             f"nav.lost_in_space.verify_detector={lis.verify_detector}: rendered frames take one detector "
             "(a second one's detections verify on map windows only: nav-eval, navigate)"
         )
+    if places and not lis.confirm:
+        raise UserError(f"--places {places}: places elsewhere test a confirmation (nav/lost_in_space=confirmed)")
     maps: dict[str, tuple] = {}
-    out = []
+    out, chance = [], []
     for row in labelled_rows(frames_dir):
         pole = pole_of(row["frame_origin"]["lat"])
         if pole not in maps:
             lms = load_default_map(pole)[0]
-            maps[pole] = (lms, build_index(lms, lis))
+            maps[pole] = (lms, build_index(lms, lis), Refiner(lander_dem(pole)) if lis.confirm else None)
+        lms, index, refiner = maps[pole]
         path = Path(frames_dir) / row["rel_path"]
         channels = exr.read_channels(path, ("IF", "depth"))
         image, depth = channels["IF"], channels["depth"]
-        r = lis_frame(row, image, depth, maps[pole][0], nav, maps[pole][1])
+        r = lis_frame(row, image, depth, lms, nav, index, refiner=refiner)
         # The chain (rectification, pair vote, verification) with every labelled landmark of the map's sizes
         # given as a detection (its own ellipse): what the detector's result is to be read against.
         big = [
             d for d, lb in zip(perfect_detections(row), row["landmarks"]) if lb["diameter_km"] >= lis.min_landmark_km
         ]
-        r["perfect"] = lis_frame(row, None, depth, maps[pole][0], nav, maps[pole][1], detections=big)
+        r["perfect"] = lis_frame(row, None, depth, lms, nav, index, detections=big)
+        if places:
+            chance += places_null(row, image, boresight_range_m(depth), lms, lis, refiner, places)
         out.append(r)
-    return {
+    result = {
         "frames_dir": str(frames_dir),
         "preset": nav.preset,
         "lis_preset": nav.choices["lost_in_space"],
@@ -282,6 +391,25 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
         "perfect_six_dof_summary": six_dof_summary([r["perfect"] for r in out]),
         "rows": out,
     }
+    if lis.confirm:
+        result["confirmation"] = confirmation_summary(out, places, chance)
+    return result
+
+
+def confirmation_summary(rows: list[dict], places: int, chance: list[dict]) -> dict:
+    """What the confirmations searched: the vote's places, those more than :data:`.solve.FALSE_FIX_KM` from the
+    truth, and how many of these the search fixed that far from it (chance confirmations); with ``places`` > 0,
+    the places elsewhere (:func:`places_null`) and those confirmed by chance."""
+    tried = [p for r in rows for p in r["six_dof"].get("places", [])]
+    wrong = [p for p in tried if p["place_km"] > FALSE_FIX_KM]
+    out = {
+        "places_searched": len(tried),
+        "wrong_places_searched": len(wrong),
+        "wrong_places_confirmed": sum(1 for p in wrong if p["fix"] and p["error_km"] > FALSE_FIX_KM),
+    }
+    if places:
+        out["elsewhere"] = {"places": places * len(rows), "min_km": PLACE_MIN_KM, "confirmed": chance}
+    return out
 
 
 @click.command("nav-frames-lis")
@@ -289,16 +417,22 @@ def evaluate_lis_dir(frames_dir: Path, nav) -> dict:
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the rows."
 )
+@click.option(
+    "--places",
+    type=click.IntRange(0, 100),
+    default=0,
+    help="With nav/lost_in_space=confirmed: also search each frame at N places >= 300 km from it (chance).",
+)
 @OVERRIDES
 @user_errors
-def nav_frames_lis_command(frames_dir, json_path, overrides):
+def nav_frames_lis_command(frames_dir, json_path, places, overrides):
     """Lost in space on rendered frames: no position prior; attitude, altimeter range and pixel scale known.
     Settings are Hydra overrides (docs/navigation/settings.md): the detector of `nav/preset=synthetic` (the
     default), the pair vote's `nav.lost_in_space.<name>=<value>`.
 
     Example: `crater-synth nav-frames-lis data/navframes/descent_ridge`
     """
-    result = evaluate_lis_dir(frames_dir, compose_nav(overrides, defaults=["nav/preset=synthetic"]))
+    result = evaluate_lis_dir(frames_dir, compose_nav(overrides, defaults=["nav/preset=synthetic"]), places)
     for r in result["rows"]:
         p = r["perfect"]
         tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]
@@ -318,5 +452,6 @@ def nav_frames_lis_command(frames_dir, json_path, overrides):
                 "perfect_six_dof": result["perfect_six_dof_summary"],
                 "detector_recall": result["detector_recall"],
             }
+            | ({"confirmation": result["confirmation"]} if "confirmation" in result else {})
         )
     )
