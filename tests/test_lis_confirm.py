@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -171,3 +172,17 @@ def test_the_search_needs_the_confirmations_landmarks(monkeypatch):
     assert needs == [FixParams().min_inliers, 7]
     with pytest.raises(ValueError, match="confirm_min_landmarks"):
         replace(CONFIRM, confirm_min_landmarks=0)
+
+
+def test_navigate_refuses_a_confirmation_of_the_appearance_searchs_own_lost_in_space(tmp_path):
+    """`nav/detector=appearance` lost in space already searches from the template's vote: a confirmation of a crater
+    detector's places on top of it would be silently ignored, so the pair is one error line."""
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    img = tmp_path / "w.png"
+    cv2.imwrite(str(img), np.full((64, 64), 100, np.uint8))
+    args = ["navigate", str(img), "--lost-in-space", "--pixel-m", "400", "--pole", "south", "--light-azimuth", "30"]
+    r = CliRunner().invoke(main, [*args, "nav/detector=appearance", "nav/lost_in_space=confirmed"])
+    assert r.exit_code == 2 and "give one of them" in r.output and not (tmp_path / "w_navigate.png").exists()

@@ -240,6 +240,11 @@ def check_window_request(request: NavigateRequest, nav) -> None:
         )
     if request.patches and not nav.appearance:
         raise UserError(f"--patches needs the appearance search (nav/detector=appearance), not nav/detector={option}")
+    if request.lost_in_space and nav.appearance and nav.lost_in_space.confirm:
+        raise UserError(
+            "nav/detector=appearance lost in space starts the search from the template's vote; "
+            "nav.lost_in_space.confirm=appearance confirms a crater detector's places: give one of them"
+        )
     # lost in space confirmed by appearance searches like nav/detector=appearance
     searched = "nav/detector=appearance" if nav.appearance else ""
     if request.lost_in_space and nav.lost_in_space.confirm:
