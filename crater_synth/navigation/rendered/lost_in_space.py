@@ -14,6 +14,11 @@ attitude and the 3-D position from the map landmarks that prior predicts. Nothin
 rendered frames: the detector settings are the given ``nav/detector``'s (the ``synthetic`` preset's by
 default), the vote's the windows'.
 
+With the DEM on board (``nav.lost_in_space.confirm=appearance``, ``nav/lost_in_space=confirmed-frames``) the
+vote's places are hypotheses instead (:func:`confirmed_six_dof`): each becomes the prior of the appearance
+search's 6-DOF fix (``nav-frames-eval``'s appearance preset), and the frame is fixed where that search fixes it.
+``--places N`` (:func:`places_null`) measures how often the search confirms a place where the frame is not.
+
 Assumptions, as in ``nav-frames-eval``: the attitude relative to the local vertical is the true one; the
 range is the rendered depth at the image centre (what a boresight altimeter measures); the light
 direction in the image is given (attitude and ephemeris need no position). The rectified ground and the
