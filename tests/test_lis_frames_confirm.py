@@ -9,13 +9,17 @@ import json
 import numpy as np
 import pytest
 
-from crater_core import geometry
+from crater_core import exr, geometry
 from crater_core.settings import TrajectorySettings
 from crater_core.trajectory import frame_poses
 from crater_synth.errors import UserError
 from crater_synth.navigation.fix.lost_in_space import Candidate
+from crater_synth.navigation.fix.refine import Refiner, lander_dem
+from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.rendered import lost_in_space as lis_frames
 from crater_synth.navigation.settings import compose_nav
+
+from helpers.cli import run_cli
 
 
 def _row(off_nadir_deg: float = 38.0) -> tuple[dict, float]:
@@ -153,12 +157,6 @@ def test_a_rendered_oblique_frame_is_confirmed_at_its_place_and_nowhere_else(tmp
     """One frame of the oblique development arc (38 degrees off nadir, the Sun 15 degrees up), rendered: from a
     place 3 km off its true one the appearance search fixes its 6-DOF pose within a kilometre; a place 500 km away
     confirms nothing, and neither do places elsewhere."""
-    from crater_core import exr
-    from crater_synth.navigation.fix.refine import Refiner, lander_dem
-    from crater_synth.navigation.map.landmarks import load_default_map
-
-    from helpers.cli import run_cli
-
     out = tmp_path / "frames"
     sun = ["trajectory.sun=explicit", "trajectory.sun_elevation_deg=15", "trajectory.sun_azimuth_deg=60"]
     args = ["nav-frames", "trajectory=oblique_arc_south_c", *sun, f"data_dir={tmp_path / 'data'}", "render.workers=1"]
