@@ -442,6 +442,8 @@ def nav_frames_lis_command(frames_dir, json_path, places, overrides):
         p = r["perfect"]
         tail = f"error {r['error_km']:.2f} km, {r['identified']} landmarks" if r["fix"] else r["reason"]
         tail += "; perfect detections: " + (f"error {p['error_km']:.2f} km" if p["fix"] else p["reason"])
+        six = r["six_dof"]
+        tail += "; 6-DOF: " + (f"error {six['error_km']:.2f} km" if six["fix"] else six["reason"])
         click.echo(
             f"frame {r['index']:3d} alt {r['altitude_km']:6.1f} km det {r['detections']:4d} fix {r['fix']}: {tail}",
             err=True,
