@@ -41,7 +41,6 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   they cannot be fixed chance reached 10^-8.5 heading-free, 10^-7.1 with the heading known, where the gate at
   0.01 false alarms asks 10^-4.1 (docs/navigation/fix.md). The ``attitude`` settings gate at 10^-7.6 with the
   heading known; the weighting is off by default.
-
 * **Confirmation by appearance** (``confirm``): with the DEM on board, the candidates are hypotheses the
   appearance search confirms or not (:func:`hypotheses`; ``windows/appearance.py``), and the vote's own gate is
   not used.
@@ -429,17 +428,14 @@ def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candid
     return kept
 
 
-# Where a confirmation is tested against chance (:func:`places_elsewhere`): at least this far from where the frame
-# is (beyond a 512 px window's diagonal at 400 m/px, so the search there holds none of the frame's own ground),
-# moved by up to PLACE_JITTER_KM.
-PLACE_MIN_KM = 300.0
-PLACE_JITTER_KM = 10.0
+# A place elsewhere (:func:`places_elsewhere`) lies beyond a 512 px window's diagonal at 400 m/px from the frame.
+PLACE_MIN_KM, PLACE_JITTER_KM = 300.0, 10.0
 
 
 def places_elsewhere(key: str, centre_xy, landmarks, n: int, min_landmark_km: float) -> list[complex]:
-    """``n`` map points (x + iy) where a frame whose true place is ``centre_xy`` is not, seeded by its ``key``:
-    landmarks >= ``min_landmark_km`` at least :data:`PLACE_MIN_KM` from that place, each moved by up to
-    :data:`PLACE_JITTER_KM` (a vote's places lie on crater patterns, so these lie where landmarks are)."""
+    """``n`` map points (x + iy), seeded by ``key``, where a frame whose true place is ``centre_xy`` is not, to test
+    a confirmation against chance: landmarks >= ``min_landmark_km`` at least :data:`PLACE_MIN_KM` from that place
+    (a vote's places lie on crater patterns), each moved by up to :data:`PLACE_JITTER_KM`."""
     rng = np.random.default_rng(zlib.crc32(key.encode()))
     cx, cy = centre_xy
     far = [lm for lm in landmarks if lm.diameter_km >= min_landmark_km]
