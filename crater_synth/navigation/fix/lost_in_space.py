@@ -178,8 +178,7 @@ class LostInSpaceParams:
 
 
 def window_heading_deg(params: LostInSpaceParams) -> float | None:
-    """The heading :func:`lost_in_space_fix` is given for a map window: 0 (north-up on the map) when the
-    settings say the attitude gives it, else None (the vote's heading is free)."""
+    """A map window's heading for the vote: 0 (north-up) when the attitude gives it, else None (free)."""
     return 0.0 if params.known_heading else None
 
 
