@@ -48,6 +48,9 @@ frame's detections are matched against the whole landmark map by **crater pairs 
 Work is bounded: at most C(n_detections, 2) frame pairs, at most ``max_matches`` votes (the pairs of
 smallest distance error kept), ``n_verify`` RANSAC runs. Settings (configs/nav/lost_in_space/) were chosen on
 south windows only (docs/navigation/fix.md).
+
+Length: one algorithm, the vote, its verification, the candidates' scores and the places a confirmation or its
+chance test searches, sharing the pair index and the candidate type; split, each part would import the others.
 """
 
 from __future__ import annotations
@@ -175,6 +178,12 @@ class LostInSpaceParams:
         if self.max_rms_px is not None:
             changes["max_rms_px"] = self.max_rms_px
         return replace(fparams, **changes)
+
+    def confirm_params(self, fparams: FixParams) -> FixParams:
+        """``fparams`` as a confirmation's search fixes one place: within ``confirm_reach_km`` of it, with at least
+        ``confirm_min_landmarks`` landmarks (``fparams``' own minimum if more)."""
+        need = max(fparams.min_inliers, self.confirm_min_landmarks)
+        return replace(fparams, prior_sigma_km=self.confirm_reach_km, min_inliers=need)
 
 
 def window_heading_deg(params: LostInSpaceParams) -> float | None:

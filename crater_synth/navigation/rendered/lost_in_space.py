@@ -30,7 +30,7 @@ fix is false beyond 5 km.
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 import json
 import math
 from pathlib import Path
@@ -259,13 +259,13 @@ def six_dof_fix(row: dict, image, dets, prior: np.ndarray, landmarks, nav) -> di
 CONFIRM_PRESET = ("nav/preset=appearance", "nav.frames.solver=pnp")
 
 
+@functools.lru_cache(maxsize=4)  # composing the preset takes ~0.2 s; every frame and place-elsewhere run asks
 def confirm_run(lis) -> FrameRun:
     """The settings of :data:`CONFIRM_PRESET` a confirmation searches each place with: the 6-DOF fix refined by
     appearance and taking the attitude as a measurement (1-sigma :data:`LIS_ATTITUDE_SIGMA_DEG`), its prior gate
     ``lis.confirm_reach_km``, its fix at least ``lis.confirm_min_landmarks`` landmarks (craters or patches)."""
     app = compose_nav(list(CONFIRM_PRESET))
-    need = max(app.fix.min_inliers, lis.confirm_min_landmarks)
-    fparams = dataclasses.replace(app.fix, prior_sigma_km=lis.confirm_reach_km, min_inliers=need)
+    fparams = lis.confirm_params(app.fix)
     return frame_run(app, fparams=fparams, refine_pnp=True, pnp_attitude_sigma_deg=LIS_ATTITUDE_SIGMA_DEG)
 
 

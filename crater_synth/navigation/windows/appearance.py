@@ -29,7 +29,6 @@ Lost in space (:func:`confirmed_fix`), the places a crater vote offers take the 
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 
@@ -193,8 +192,7 @@ def search_place(image, pole: str, pixel_m: float, centre: complex, landmarks, l
     frame centre), north-up, within ``lis.confirm_reach_km``, under the local azimuth the light's image
     direction ``light`` has there; the fix needs ``lis.confirm_min_landmarks`` landmarks (at least ``fparams``'
     own minimum)."""
-    need = max(fparams.min_inliers, lis.confirm_min_landmarks)
-    reach = dataclasses.replace(fparams, prior_sigma_km=lis.confirm_reach_km, min_inliers=need)
+    reach = lis.confirm_params(fparams)
     shape = np.shape(image)
     prior = Georef.centred_on(pole, centre.real, centre.imag, shape, pixel_m)
     alpha = light - float(local_north_image_angle(centre.real, centre.imag, pole))
