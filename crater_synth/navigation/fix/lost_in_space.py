@@ -135,6 +135,12 @@ class LostInSpaceParams:
     confirm_min_inliers: int = 3
     confirm_reach_km: float = 4.0
     confirm_min_landmarks: int = 5  # the search's fix needs this many landmarks (nav.fix's min_inliers if more)
+    # Places offered by the terrain (rendered frames, :mod:`.terrain_places`): the frame's ground view correlated
+    # with the lander's DEM shaded under the frame's Sun over the whole map; its terrain_places best places, on a
+    # grid of terrain_pixel_m, are searched before the vote's (confirm_hypotheses of them; 0: the terrain's only).
+    # Needs confirm: a place the terrain offers is a hypothesis like the vote's.
+    terrain_places: int = 0
+    terrain_pixel_m: float = 800.0
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -155,12 +161,17 @@ class LostInSpaceParams:
             raise ValueError(f"confirm must be one of {', '.join(map(repr, CONFIRMS))} (got {self.confirm!r})")
         if self.confirm and not self.known_heading:
             raise ValueError("confirm needs known_heading: the search predicts the frame at the attitude's heading")
-        counts = (self.confirm_hypotheses, self.confirm_min_inliers, self.confirm_min_landmarks)
-        if min(counts) < 1 or not self.confirm_reach_km > 0:
+        counts = (self.confirm_hypotheses + self.terrain_places, self.confirm_min_inliers, self.confirm_min_landmarks)
+        if min(counts) < 1 or min(self.confirm_hypotheses, self.terrain_places) < 0 or not self.confirm_reach_km > 0:
             raise ValueError(
-                "confirm_hypotheses, confirm_min_inliers and confirm_min_landmarks must be >= 1 and confirm_reach_km "
-                f"> 0 (got {', '.join(map(str, counts))}, {self.confirm_reach_km})"
+                "confirm_hypotheses and terrain_places must be >= 0 with one >= 1, confirm_min_inliers and "
+                "confirm_min_landmarks >= 1 and confirm_reach_km > 0 (got "
+                f"{self.confirm_hypotheses}, {self.terrain_places}, {counts[1]}, {counts[2]}, {self.confirm_reach_km})"
             )
+        if self.terrain_places and not self.confirm:
+            raise ValueError("terrain_places needs confirm: a place the terrain offers is a hypothesis to confirm")
+        if not self.terrain_pixel_m > 0:
+            raise ValueError(f"terrain_pixel_m must be > 0 (got {self.terrain_pixel_m})")
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
 
@@ -428,6 +439,8 @@ def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candid
         key=lambda c: (-c.support, c.fix.rms_px if c.fix is not None and c.fix.ok else math.inf),
     )
     kept: list[Candidate] = []
+    if params.confirm_hypotheses == 0:
+        return kept
     for c in ranked:
         if all(abs(c.centre - k.centre) > params.rival_km * 1000.0 for k in kept):
             kept.append(c)

@@ -54,6 +54,7 @@ from crater_synth.navigation.fix.lost_in_space import (
 from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.refine import Refiner, lander_dem
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM
+from crater_synth.navigation.fix.terrain_places import shaded_map, terrain_places
 from crater_synth.navigation.georef import ground_distance_km, pole_of, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.protocol import fix_counts, lost_in_space_summary
@@ -281,12 +282,17 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     """The 6-DOF fix of a frame lost in space, its vote's candidates confirmed by appearance: each place
     :func:`.lost_in_space.hypotheses` keeps, best supported first, searched by :func:`search_frame_place`
     (:func:`confirm_run`'s settings). The first confirmed place is the fix; a second one whose camera lies more
-    than ``lis.rival_km`` from it makes the frame ambiguous (no fix). Its fields of the row (:data:`SIX_DOF_KEYS`,
-    ``fix_source``) and ``places``: each place searched, how far it lies from the truth (km; scoring only) and
-    what the search gave."""
+    than ``lis.rival_km`` from it makes the frame ambiguous (no fix). The terrain's places
+    (:func:`frame_terrain_places`) are searched first, then the vote's more than ``lis.rival_km`` from them. Its fields of the row (:data:`SIX_DOF_KEYS`,
+    ``fix_source``) and ``places``: each place searched, where it came from, how far it lies from the truth (km;
+    scoring only) and what the search gave."""
     if refiner is None:
         raise UserError("nav.lost_in_space.confirm=appearance needs the lander's DEM (a refiner)")
-    places = hypotheses(cands, lis)
+    # (source, map point, support): the terrain's places first, then the vote's elsewhere.
+    places = [("terrain", centre, round(ncc, 3)) for centre, ncc in frame_terrain_places(row, image, range_m, lis)]
+    for cand in hypotheses(cands, lis):
+        if all(abs(cand.centre - p[1]) > lis.rival_km * 1000.0 for p in places):
+            places.append(("vote", cand.centre, round(float(cand.support), 3)))
     if not places:
         return {
             "fix": False,
@@ -296,10 +302,10 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     run, truth = confirm_run(lis), true_place(row)
     pole = pole_of(row["frame_origin"]["lat"])
     tried, confirmed = [], []
-    for place in places:
-        r = search_frame_place(row, image, place.centre, range_m, landmarks, run, refiner)
-        km = float(ground_distance_km(place.centre.real, place.centre.imag, truth.real, truth.imag, pole))
-        tried.append({"support": round(float(place.support), 3), "inliers": place.inliers, "place_km": round(km, 2),
+    for source, centre, support in places:
+        r = search_frame_place(row, image, centre, range_m, landmarks, run, refiner)
+        km = float(ground_distance_km(centre.real, centre.imag, truth.real, truth.imag, pole))
+        tried.append({"source": source, "support": support, "place_km": round(km, 2),
                       "fix": r["fix"], "reason": r["reason"], "error_km": r.get("error_km")})  # fmt: skip
         if r["fix"]:
             confirmed.append(r)
@@ -314,6 +320,27 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
             return {"fix": False, "reason": reason, "places": tried}
     keep = {k: best[k] for k in SIX_DOF_KEYS if k in best}
     return keep | {"fix_source": best.get("fix_source"), "places": tried}
+
+
+def frame_terrain_places(row: dict, image, range_m: float, lis) -> list[tuple[complex, float]]:
+    """The ``lis.terrain_places`` map points (with their correlation) where the frame's ground view
+    (:func:`.ground_view.ground_view`) best matches the lander's DEM shaded under the frame's Sun and seen along
+    its boresight (:func:`.terrain_places.shaded_map`), turned to the map by the attitude
+    (:func:`map_heading_deg`); two places at least twice ``lis.confirm_reach_km`` apart. The Sun and the
+    boresight are Moon-fixed directions (ephemeris and attitude): the frame's own ENU only carries them."""
+    if not lis.terrain_places:
+        return []
+    view = ground_view(image, row, range_m)
+    lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
+    to_mc = geometry.enu_basis(lat0, lon0).T
+    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    boresight = camera_from_centre(row, range_m)[0][2]
+    pole = pole_of(lat0)
+    shaded = shaded_map(pole, to_mc @ to_sun, to_mc @ -boresight, lis.terrain_pixel_m)
+    under = (-view.origin_m[0] / view.pixel_m, view.origin_m[1] / view.pixel_m)  # the point under the camera
+    heading = map_heading_deg(row, pole)
+    apart = 2.0 * lis.confirm_reach_km
+    return terrain_places(view.image, view.valid, view.pixel_m, under, heading, shaded, lis.terrain_places, apart)
 
 
 def true_place(row: dict) -> complex:
