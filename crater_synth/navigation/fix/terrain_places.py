@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from crater_core import geometry
-from crater_core.hapke import shade_np
+from crater_core.hapke import radiance_factor_np
 from crater_core.horizon import disc_fraction_above
 from crater_synth.navigation.detectors.template import hapke_params
 from crater_synth.navigation.fix.refine import lander_dem
@@ -135,19 +135,45 @@ def _slopes(pole: str, pixel_m: float, angle_deg: float) -> np.ndarray:
     return horizon_slopes(map_grid(pole, pixel_m).heights, pixel_m, angle_deg)
 
 
-def shaded_map(pole: str, to_sun_mc, to_viewer_mc, pixel_m: float) -> ShadedMap:
-    """The lander DEM of ``pole`` shaded under the Moon-fixed Sun direction ``to_sun_mc``, seen from
-    ``to_viewer_mc`` (module docstring). The horizon map is kept for the Sun's map direction to the nearest
-    degree (an arc's frames share it)."""
+def shaded_map(pole: str, pixel_m: float, to_sun_mc, to_viewer_mc=None) -> ShadedMap:
+    """The lander DEM of ``pole`` shaded under the Moon-fixed Sun direction ``to_sun_mc`` (parallel rays: one
+    (3,) vector) and seen from ``to_viewer_mc`` ((3,); None: each point from overhead), module docstring. The
+    horizon map is kept for the Sun's map direction to the nearest degree (an arc's frames share it)."""
     grid = map_grid(pole, float(pixel_m))
     s = np.asarray(to_sun_mc, dtype=np.float64)
-    s /= np.linalg.norm(s)
-    v = np.asarray(to_viewer_mc, dtype=np.float64)
-    v /= np.linalg.norm(v)
-    slopes = _slopes(pole, float(pixel_m), float(round(sun_map_angle_deg(s, pole))))
-    elevation = np.arcsin(np.clip(grid.up @ s, -1.0, 1.0))
+    s = s / np.linalg.norm(s)
+    return _shade(grid, np.broadcast_to(s, grid.up.shape), to_viewer_mc, sun_map_angle_deg(s, pole))
+
+
+def mosaic_shaded_map(pole: str, pixel_m: float, light_angle_deg: float, elevation_deg: float) -> ShadedMap:
+    """The lander DEM of ``pole`` shaded as a mosaic shows it: every point lit from map direction
+    ``light_angle_deg`` (anticlockwise from +x) at ``elevation_deg`` above its own horizon, and seen from
+    overhead. A mosaic's images were taken on many orbits, so its Sun is not one parallel beam."""
+    grid = map_grid(pole, float(pixel_m))
+    a = math.radians(light_angle_deg)
+    # The map direction as a Moon-centred vector: a step from the pole's point along it.
+    lat, lon = stereo_inverse(np.array([0.0, 1000.0 * math.cos(a)]), np.array([0.0, 1000.0 * math.sin(a)]), pole)
+    ends = geometry.latlon_to_mc(lat, lon, 0.0)
+    step = ends[1] - ends[0]
+    horiz = step - np.einsum("...k,k->...", grid.up, step)[..., None] * grid.up
+    horiz /= np.linalg.norm(horiz, axis=-1, keepdims=True)
+    el = math.radians(elevation_deg)
+    sun = math.cos(el) * horiz + math.sin(el) * grid.up
+    return _shade(grid, sun, None, float(light_angle_deg))
+
+
+def _shade(grid: MapGrid, sun: np.ndarray, to_viewer_mc, angle_deg: float) -> ShadedMap:
+    """I/F of ``grid``'s facets under per-point Sun directions ``sun`` (h, w, 3) whose map direction is
+    ``angle_deg``: the Hapke radiance factor times the solar disc's visible fraction above the horizon."""
+    view = grid.up if to_viewer_mc is None else np.broadcast_to(
+        np.asarray(to_viewer_mc, dtype=np.float64) / np.linalg.norm(to_viewer_mc), grid.up.shape
+    )  # fmt: skip
+    slopes = _slopes(grid.pole, grid.pixel_m, float(round(angle_deg)))
+    elevation = np.arcsin(np.clip(np.einsum("...k,...k->...", grid.up, sun), -1.0, 1.0))
     lit = disc_fraction_above(elevation, np.arctan(slopes))
-    radiance = shade_np(grid.normals, s, np.broadcast_to(v, grid.normals.shape), hapke_params())
+    mu0 = np.einsum("...k,...k->...", grid.normals, sun)
+    mu = np.einsum("...k,...k->...", grid.normals, view)
+    radiance = radiance_factor_np(mu0, mu, np.einsum("...k,...k->...", sun, view), hapke_params())
     return ShadedMap((radiance * lit).astype(np.float32), grid.pixel_m, grid.x0, grid.y1)
 
 

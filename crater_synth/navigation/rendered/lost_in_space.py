@@ -336,7 +336,7 @@ def frame_terrain_places(row: dict, image, range_m: float, lis) -> list[tuple[co
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
     boresight = camera_from_centre(row, range_m)[0][2]
     pole = pole_of(lat0)
-    shaded = shaded_map(pole, to_mc @ to_sun, to_mc @ -boresight, lis.terrain_pixel_m)
+    shaded = shaded_map(pole, lis.terrain_pixel_m, to_mc @ to_sun, to_mc @ -boresight)
     under = (-view.origin_m[0] / view.pixel_m, view.origin_m[1] / view.pixel_m)  # the point under the camera
     heading = map_heading_deg(row, pole)
     apart = 2.0 * lis.confirm_reach_km
