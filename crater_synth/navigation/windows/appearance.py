@@ -41,6 +41,7 @@ from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpacePara
 from crater_synth.navigation.fix.patches import window_patches
 from crater_synth.navigation.fix.refine import Refiner, lander_dem, shade_window
 from crater_synth.navigation.fix.solve import Fix, fix_frame
+from crater_synth.navigation.fix.terrain_places import mosaic_shaded_map, terrain_places
 from crater_synth.navigation.georef import Georef, ground_distance_km, local_north_image_angle, stereo_forward
 from crater_synth.terrain.dem import DemError
 
@@ -159,32 +160,63 @@ def confirmed_fix(
     becomes a north-up prior (the attitude's heading) searched within ``lis.confirm_reach_km``
     (:func:`search_place`, the appearance settings ``dparams``) and fixed with ``fparams``. ``light``: the
     image direction (radians) the light travels along, which the ephemeris and the attitude give whatever the
-    place; each place predicts its landmarks under the local azimuth that direction has there. The first
+    place; each place predicts its landmarks under the local azimuth that direction has there. With
+    ``lis.terrain_places`` the terrain's places (:func:`window_terrain_places`) are searched first, then the
+    vote's more than ``lis.rival_km`` from them. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
     ambiguous: no fix."""
-    places = hypotheses(cands, lis)
+    # (map point, support): the terrain's places first (their correlation), then the vote's elsewhere.
+    places = window_terrain_places(image, pole, pixel_m, light, lis, dparams)
+    for cand in hypotheses(cands, lis):
+        if all(abs(cand.centre - p[0]) > lis.rival_km * 1000.0 for p in places):
+            places.append((cand.centre, cand.support))
     if not places:
         return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
-    confirmed: list[tuple[list, Fix, Candidate]] = []
+    confirmed: list[tuple[list, Fix]] = []
     refusals = []
-    for place in places:
-        dets, fix = search_place(image, pole, pixel_m, place.centre, landmarks, light, lis, dparams, fparams)
+    for centre, support in places:
+        dets, fix = search_place(image, pole, pixel_m, centre, landmarks, light, lis, dparams, fparams)
         if fix.ok:
-            fix.support = place.support
-            confirmed.append((dets, fix, place))
+            fix.support = support
+            confirmed.append((dets, fix))
         else:
             refusals.append(fix.reason)
     if not confirmed:  # its support says a place was searched (the best's, as a lost-in-space refusal carries)
         refused = Fix(False, f"no place confirmed by appearance ({len(places)} searched; the best: {refusals[0]})")
-        refused.support = places[0].support
+        refused.support = places[0][1]
         return [], refused
-    dets, fix, _ = confirmed[0]
-    for _, other, _ in confirmed[1:]:
+    dets, fix = confirmed[0]
+    for _, other in confirmed[1:]:
         km = float(ground_distance_km(fix.x_m, fix.y_m, other.x_m, other.y_m, pole))
         if km > lis.rival_km:
             n = f"{len(fix.inliers)} and {len(other.inliers)} landmarks"
             return [], Fix(False, f"ambiguous: appearance confirms places {km:.0f} km apart ({n})")
     return dets, fix
+
+
+def window_terrain_places(image, pole: str, pixel_m: float, light: float, lis, dparams) -> list[tuple[complex, float]]:
+    """The ``lis.terrain_places`` map points under the window's centre (with their correlation) where the window
+    best matches the lander's DEM shaded as a mosaic shows it (:func:`.terrain_places.mosaic_shaded_map`): lit
+    from the direction opposite ``light`` (the image direction the light travels; a window's +u is the map's
+    +x, its +v the map's -y) at each of ``dparams.sun_el_deg`` above every point's horizon, the best places of
+    all elevations, at least twice ``lis.confirm_reach_km`` apart."""
+    if not lis.terrain_places:
+        return []
+    frame = np.asarray(image, dtype=np.float32)
+    valid = np.isfinite(frame)
+    frame = np.where(valid, frame, np.float32(np.median(frame[valid]) if valid.any() else 0.0))
+    sun_map_deg = -math.degrees(light + math.pi)
+    centre = (frame.shape[1] / 2.0, frame.shape[0] / 2.0)
+    apart = 2.0 * lis.confirm_reach_km
+    found: list[tuple[complex, float]] = []
+    for el in dparams.sun_el_deg:
+        shaded = mosaic_shaded_map(pole, lis.terrain_pixel_m, sun_map_deg, float(el))
+        found += terrain_places(frame, valid, pixel_m, centre, 0.0, shaded, lis.terrain_places, apart)
+    kept: list[tuple[complex, float]] = []
+    for place in sorted(found, key=lambda p: -p[1]):
+        if all(abs(place[0] - k[0]) > apart * 1000.0 for k in kept):
+            kept.append(place)
+    return kept[: lis.terrain_places]
 
 
 def search_place(image, pole: str, pixel_m: float, centre: complex, landmarks, light: float, lis, dparams, fparams):
