@@ -156,7 +156,7 @@ def test_places_elsewhere_need_a_confirmation(tmp_path):
 def test_a_rendered_oblique_frame_is_confirmed_at_its_place_and_nowhere_else(tmp_path):
     """One frame of the oblique development arc (38 degrees off nadir, the Sun 15 degrees up), rendered: from a
     place 3 km off its true one the appearance search fixes its 6-DOF pose within a kilometre; a place 500 km away
-    confirms nothing, and neither do places elsewhere."""
+    confirms nothing, and neither do places elsewhere. The terrain offers its true place."""
     out = tmp_path / "frames"
     sun = ["trajectory.sun=explicit", "trajectory.sun_elevation_deg=15", "trajectory.sun_azimuth_deg=60"]
     args = ["nav-frames", "trajectory=oblique_arc_south_c", *sun, f"data_dir={tmp_path / 'data'}", "render.workers=1"]
@@ -173,3 +173,10 @@ def test_a_rendered_oblique_frame_is_confirmed_at_its_place_and_nowhere_else(tmp
     assert r["fix"] and r["error_km"] < 1.0 and r["attitude_error_deg"] < 0.3, r
     assert [p["fix"] for p in r["places"]] == [True, False]
     assert lis_frames.places_null(row, ch["IF"], rng, lms, lis, refiner, 2) == []
+    # The terrain's best place (the frame's ground view against the DEM shaded under its Sun) is its own, and
+    # the confirmation fixes the frame from it with no vote at all.
+    terrain = compose_nav(["nav/lost_in_space=terrain-frames", "nav.lost_in_space.confirm_hypotheses=0"]).lost_in_space
+    ((place, ncc),) = lis_frames.frame_terrain_places(row, ch["IF"], rng, terrain)
+    assert abs(place - lis_frames.true_place(row)) < 3000.0 and ncc > 0.5
+    r = lis_frames.confirmed_six_dof(row, ch["IF"], [], rng, lms, terrain, refiner)
+    assert r["fix"] and r["error_km"] < 1.0 and [p["source"] for p in r["places"]] == ["terrain"], r

@@ -178,8 +178,8 @@ def _shade(grid: MapGrid, sun: np.ndarray, to_viewer_mc, angle_deg: float) -> Sh
 
 
 def turned_template(image: np.ndarray, valid: np.ndarray, centre_uv, heading_deg: float):
-    """(image, mask, the centre's pixel, pixel j spanning [j, j + 1)) of a ground view turned so that its +u axis points along map
-    direction ``heading_deg`` (anticlockwise from the map's +x), on a canvas that holds it whole."""
+    """(image, mask, the centre's pixel, pixel j spanning [j, j + 1)) of a ground view turned so that its +u axis
+    points along map direction ``heading_deg`` (anticlockwise from the map's +x), on a canvas that holds it whole."""
     h, w = image.shape
     side_w = int(math.ceil(abs(w * math.cos(math.radians(heading_deg))) + abs(h * math.sin(math.radians(heading_deg)))))
     side_h = int(math.ceil(abs(w * math.sin(math.radians(heading_deg))) + abs(h * math.cos(math.radians(heading_deg)))))

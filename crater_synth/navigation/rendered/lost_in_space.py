@@ -283,9 +283,9 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     :func:`.lost_in_space.hypotheses` keeps, best supported first, searched by :func:`search_frame_place`
     (:func:`confirm_run`'s settings). The first confirmed place is the fix; a second one whose camera lies more
     than ``lis.rival_km`` from it makes the frame ambiguous (no fix). The terrain's places
-    (:func:`frame_terrain_places`) are searched first, then the vote's more than ``lis.rival_km`` from them. Its fields of the row (:data:`SIX_DOF_KEYS`,
-    ``fix_source``) and ``places``: each place searched, where it came from, how far it lies from the truth (km;
-    scoring only) and what the search gave."""
+    (:func:`frame_terrain_places`) are searched first, then the vote's more than ``lis.rival_km`` from them. Its
+    fields of the row (:data:`SIX_DOF_KEYS`, ``fix_source``) and ``places``: each place searched, where it came
+    from, how far it lies from the truth (km; scoring only) and what the search gave."""
     if refiner is None:
         raise UserError("nav.lost_in_space.confirm=appearance needs the lander's DEM (a refiner)")
     # (source, map point, support): the terrain's places first, then the vote's elsewhere.
