@@ -135,7 +135,7 @@ class LostInSpaceParams:
     confirm_min_inliers: int = 3
     confirm_reach_km: float = 4.0
     confirm_min_landmarks: int = 5  # the search's fix needs this many landmarks (nav.fix's min_inliers if more)
-    # Places offered by the terrain (rendered frames, :mod:`.terrain_places`): the frame's ground view correlated
+    # Places offered by the terrain (:mod:`.terrain_places`): the frame's ground view, or the map window, correlated
     # with the lander's DEM shaded under the frame's Sun over the whole map; its terrain_places best places, on a
     # grid of terrain_pixel_m, are searched before the vote's (confirm_hypotheses of them; 0: the terrain's only).
     # Needs confirm: a place the terrain offers is a hypothesis like the vote's.
@@ -447,6 +447,16 @@ def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candid
         if len(kept) == params.confirm_hypotheses:
             break
     return kept
+
+
+def confirm_places(terrain: list[tuple[complex, float]], cands: list[Candidate], params: LostInSpaceParams):
+    """(source, map point, support) of every place a confirmation searches, in order: the ``terrain``'s places
+    ((point, correlation), best first), then the vote's :func:`hypotheses` more than ``rival_km`` from all of them."""
+    places = [("terrain", centre, float(ncc)) for centre, ncc in terrain]
+    for cand in hypotheses(cands, params):
+        if all(abs(cand.centre - p[1]) > params.rival_km * 1000.0 for p in places):
+            places.append(("vote", cand.centre, cand.support))
+    return places
 
 
 # A place elsewhere (:func:`places_elsewhere`) lies beyond a 512 px window's diagonal at 400 m/px from the frame.

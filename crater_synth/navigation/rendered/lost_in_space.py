@@ -47,7 +47,7 @@ from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.fix.lost_in_space import (
     PLACE_MIN_KM,
     build_index,
-    hypotheses,
+    confirm_places,
     lost_in_space_search,
     places_elsewhere,
 )
@@ -288,11 +288,7 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     from, how far it lies from the truth (km; scoring only) and what the search gave."""
     if refiner is None:
         raise UserError("nav.lost_in_space.confirm=appearance needs the lander's DEM (a refiner)")
-    # (source, map point, support): the terrain's places first, then the vote's elsewhere.
-    places = [("terrain", centre, round(ncc, 3)) for centre, ncc in frame_terrain_places(row, image, range_m, lis)]
-    for cand in hypotheses(cands, lis):
-        if all(abs(cand.centre - p[1]) > lis.rival_km * 1000.0 for p in places):
-            places.append(("vote", cand.centre, round(float(cand.support), 3)))
+    places = confirm_places(frame_terrain_places(row, image, range_m, lis), cands, lis)
     if not places:
         return {
             "fix": False,
@@ -305,7 +301,7 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     for source, centre, support in places:
         r = search_frame_place(row, image, centre, range_m, landmarks, run, refiner)
         km = float(ground_distance_km(centre.real, centre.imag, truth.real, truth.imag, pole))
-        tried.append({"source": source, "support": support, "place_km": round(km, 2),
+        tried.append({"source": source, "support": round(float(support), 3), "place_km": round(km, 2),
                       "fix": r["fix"], "reason": r["reason"], "error_km": r.get("error_km")})  # fmt: skip
         if r["fix"]:
             confirmed.append(r)

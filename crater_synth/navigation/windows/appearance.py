@@ -37,7 +37,7 @@ import numpy as np
 from crater_core import geometry
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.fix.appearance import blurred_frames, register_wide
-from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpaceParams, hypotheses
+from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpaceParams, confirm_places
 from crater_synth.navigation.fix.patches import window_patches
 from crater_synth.navigation.fix.refine import Refiner, lander_dem, shade_window
 from crater_synth.navigation.fix.solve import Fix, fix_frame
@@ -165,16 +165,12 @@ def confirmed_fix(
     vote's more than ``lis.rival_km`` from them. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
     ambiguous: no fix."""
-    # (map point, support): the terrain's places first (their correlation), then the vote's elsewhere.
-    places = window_terrain_places(image, pole, pixel_m, light, lis, dparams)
-    for cand in hypotheses(cands, lis):
-        if all(abs(cand.centre - p[0]) > lis.rival_km * 1000.0 for p in places):
-            places.append((cand.centre, cand.support))
+    places = confirm_places(window_terrain_places(image, pole, pixel_m, light, lis, dparams), cands, lis)
     if not places:
         return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
     confirmed: list[tuple[list, Fix]] = []
     refusals = []
-    for centre, support in places:
+    for _, centre, support in places:
         dets, fix = search_place(image, pole, pixel_m, centre, landmarks, light, lis, dparams, fparams)
         if fix.ok:
             fix.support = support
@@ -183,7 +179,7 @@ def confirmed_fix(
             refusals.append(fix.reason)
     if not confirmed:  # its support says a place was searched (the best's, as a lost-in-space refusal carries)
         refused = Fix(False, f"no place confirmed by appearance ({len(places)} searched; the best: {refusals[0]})")
-        refused.support = places[0][1]
+        refused.support = places[0][2]
         return [], refused
     dets, fix = confirmed[0]
     for _, other in confirmed[1:]:
