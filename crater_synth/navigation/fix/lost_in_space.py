@@ -138,9 +138,12 @@ class LostInSpaceParams:
     # Places offered by the terrain (:mod:`.terrain_places`): the frame's ground view, or the map window, correlated
     # with the lander's DEM shaded under the frame's Sun over the whole map; its terrain_places best places, on a
     # grid of terrain_pixel_m, are searched before the vote's (confirm_hypotheses of them; 0: the terrain's only).
-    # Needs confirm: a place the terrain offers is a hypothesis like the vote's.
+    # Needs confirm: a place the terrain offers is a hypothesis like the vote's. A place correlating below
+    # terrain_min_ncc is not searched (-1: none refused): the search's landmarks are predicted from the same DEM,
+    # so a poor correlation confirmed by a few landmarks is not two independent agreements.
     terrain_places: int = 0
     terrain_pixel_m: float = 800.0
+    terrain_min_ncc: float = -1.0
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -172,6 +175,8 @@ class LostInSpaceParams:
             raise ValueError("terrain_places needs confirm: a place the terrain offers is a hypothesis to confirm")
         if not self.terrain_pixel_m > 0:
             raise ValueError(f"terrain_pixel_m must be > 0 (got {self.terrain_pixel_m})")
+        if not -1.0 <= self.terrain_min_ncc < 1.0:
+            raise ValueError(f"terrain_min_ncc must be in [-1, 1) (got {self.terrain_min_ncc})")
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
 
@@ -195,6 +200,12 @@ class LostInSpaceParams:
         ``confirm_min_landmarks`` landmarks (``fparams``' own minimum if more)."""
         need = max(fparams.min_inliers, self.confirm_min_landmarks)
         return replace(fparams, prior_sigma_km=self.confirm_reach_km, min_inliers=need)
+
+    def no_place_reason(self) -> str:
+        """Why a confirmation had no place to search (:func:`confirm_places` empty)."""
+        vote = f"no candidate with {self.confirm_min_inliers} landmarks" if self.confirm_hypotheses else ""
+        terrain = f"no terrain place correlating >= {self.terrain_min_ncc:.2f}" if self.terrain_places else ""
+        return "no place to confirm: " + ", ".join(x for x in (terrain, vote) if x)
 
 
 def window_heading_deg(params: LostInSpaceParams) -> float | None:
@@ -451,8 +462,9 @@ def hypotheses(cands: list[Candidate], params: LostInSpaceParams) -> list[Candid
 
 def confirm_places(terrain: list[tuple[complex, float]], cands: list[Candidate], params: LostInSpaceParams):
     """(source, map point, support) of every place a confirmation searches, in order: the ``terrain``'s places
-    ((point, correlation), best first), then the vote's :func:`hypotheses` more than ``rival_km`` from all of them."""
-    places = [("terrain", centre, float(ncc)) for centre, ncc in terrain]
+    ((point, correlation), best first) correlating at least ``terrain_min_ncc``, then the vote's :func:`hypotheses`
+    more than ``rival_km`` from all of them."""
+    places = [("terrain", centre, float(ncc)) for centre, ncc in terrain if ncc >= params.terrain_min_ncc]
     for cand in hypotheses(cands, params):
         if all(abs(cand.centre - p[1]) > params.rival_km * 1000.0 for p in places):
             places.append(("vote", cand.centre, cand.support))

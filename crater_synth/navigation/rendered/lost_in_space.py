@@ -292,7 +292,7 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     if not places:
         return {
             "fix": False,
-            "reason": f"no candidate with {lis.confirm_min_inliers} landmarks to confirm",
+            "reason": lis.no_place_reason(),
             "places": [],
         }
     run, truth = confirm_run(lis), true_place(row)

@@ -167,7 +167,7 @@ def confirmed_fix(
     ambiguous: no fix."""
     places = confirm_places(window_terrain_places(image, pole, pixel_m, light, lis, dparams), cands, lis)
     if not places:
-        return [], Fix(False, f"no candidate with {lis.confirm_min_inliers} landmarks to confirm")
+        return [], Fix(False, lis.no_place_reason())
     confirmed: list[tuple[list, Fix]] = []
     refusals = []
     for _, centre, support in places:
