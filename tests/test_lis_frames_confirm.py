@@ -180,3 +180,9 @@ def test_a_rendered_oblique_frame_is_confirmed_at_its_place_and_nowhere_else(tmp
     assert abs(place - lis_frames.true_place(row)) < 3000.0 and ncc > 0.5
     r = lis_frames.confirmed_six_dof(row, ch["IF"], [], rng, lms, terrain, refiner)
     assert r["fix"] and r["error_km"] < 1.0 and [p["source"] for p in r["places"]] == ["terrain"], r
+    # A frame all in shadow is an answer of "no fix", not the end of the folder's run.
+    nav = compose_nav(["nav/preset=synthetic", "nav/lost_in_space=terrain-frames"])
+    index = lis_frames.build_index(lms, nav.lost_in_space)
+    dark = lis_frames.lis_frame(row, np.zeros_like(ch["IF"]), ch["depth"], lms, nav, index, refiner=refiner)
+    assert not dark["fix"] and not dark["six_dof"]["fix"] and dark["detections"] == 0, dark
+    assert "no terrain place" in dark["six_dof"]["reason"], dark

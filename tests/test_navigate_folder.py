@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from crater_synth.cli import main
 from crater_synth.navigation.detectors.classical import Detection
 from crater_synth.navigation.georef import Georef, ground_distance_km, stereo_forward
-from crater_synth.navigation.windows.navigate import turned_back, turned_north_up
+from crater_synth.navigation.windows.navigate import turned_back, turned_footprint, turned_north_up
 
 SOUTH_VALIDATION = ("S0_1536_0320", "S0_1600_0320")  # two windows of a validation sector
 
@@ -141,6 +141,12 @@ def test_a_turned_frame_is_turned_back_north_up_and_its_detections_back(heading)
     sv, su = np.unravel_index(np.argmax(seen), seen.shape)
     (back,) = turned_back([Detection(float(u) + 0.5, float(v) + 0.5, 3.0, 1.0)], turn)
     assert abs(back.u - (su + 0.5)) <= 1.5 and abs(back.v - (sv + 0.5)) <= 1.5 and back.r == 3.0
+    # the canvas's filled corners are not the frame's: a correlation masks them
+    inside = turned_footprint(turn, seen.shape, canvas.shape)
+    assert inside.shape == canvas.shape and inside[ch // 2, cw // 2]
+    assert abs(inside.sum() - seen.size) <= 0.02 * seen.size
+    if heading % 90:
+        assert not inside[0, 0] and not inside[-1, -1]
 
 
 # ------------------------------------------------------------------------------------------------

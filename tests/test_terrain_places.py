@@ -12,7 +12,7 @@ import pytest
 
 from crater_core import geometry
 from crater_synth.navigation.fix import terrain_places as tp
-from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpaceParams, hypotheses
+from crater_synth.navigation.fix.lost_in_space import Candidate, LostInSpaceParams, confirm_places, hypotheses
 from crater_synth.navigation.settings import compose_nav
 
 
@@ -102,6 +102,19 @@ def test_terrain_places_need_a_confirmation_and_may_stand_alone():
     assert hypotheses([cand], alone) == [] and hypotheses([cand], confirmed) == [cand]
     assert compose_nav(["nav/lost_in_space=terrain-frames"]).lost_in_space.terrain_places >= 1
     assert isinstance(alone, LostInSpaceParams)
+
+
+def test_a_terrain_place_below_the_correlation_floor_is_not_searched():
+    windows = compose_nav(["nav/lost_in_space=terrain-windows"]).lost_in_space
+    assert windows.terrain_places == 1 and windows.confirm_hypotheses == 0 and 0.43 < windows.terrain_min_ncc < 0.81
+    terrain = [(1e5 + 0j, 0.9), (3e5 + 0j, 0.5)]
+    assert [p[1] for p in confirm_places(terrain, [], windows)] == [1e5 + 0j]
+    assert confirm_places([(3e5 + 0j, 0.5)], [], windows) == []
+    assert "no terrain place correlating >= 0.62" in windows.no_place_reason()
+    unfloored = dataclasses.replace(windows, terrain_min_ncc=-1.0)  # the default: every place searched
+    assert len(confirm_places(terrain, [], unfloored)) == 2
+    with pytest.raises(ValueError, match="terrain_min_ncc"):
+        dataclasses.replace(windows, terrain_min_ncc=1.0)
 
 
 @pytest.mark.integration

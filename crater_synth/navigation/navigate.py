@@ -66,6 +66,7 @@ from crater_synth.navigation.windows.navigate import (
     appearance_window_fix,
     inside_frame,
     turned_back,
+    turned_footprint,
     turned_north_up,
 )
 
@@ -324,7 +325,9 @@ def lost_in_space_settings(request: NavigateRequest, nav):
     )
 
 
-def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landmarks, pixel: float, keep=None):
+def window_fix(
+    request: NavigateRequest, nav, img, prior_g: Georef | None, landmarks, pixel: float, keep=None, footprint=None
+):
     """(detections, light, fix, the landmarks the fix indexes, "craters" or "patches") of a map window: its
     detector's craters fixed under the prior or by the lost-in-space vote; the appearance search under the
     prior, or under the first stage's lost-in-space fix without one (as nav-eval). ``keep`` (a frame
@@ -348,7 +351,7 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
 
     patches = nav.appearance if request.patches is None else request.patches
     if prior_g is None and lis.confirm and not nav.appearance:
-        return confirmed_window_fix(request, nav, img, landmarks, pixel, lis, light, keep, with_extra)
+        return confirmed_window_fix(request, nav, img, landmarks, pixel, lis, light, (keep, footprint), with_extra)
     if not nav.appearance:
 
         def fit(dets):
@@ -376,12 +379,14 @@ def window_fix(request: NavigateRequest, nav, img, prior_g: Georef | None, landm
     return appearance_window_fix(img, prior_g, landmarks, light, *args)
 
 
-def confirmed_window_fix(request: NavigateRequest, nav, img, landmarks, pixel: float, lis, light, keep, with_extra):
+def confirmed_window_fix(request: NavigateRequest, nav, img, landmarks, pixel: float, lis, light, turned, with_extra):
     """:func:`window_fix` lost in space with ``nav.lost_in_space.confirm="appearance"``: the detector's craters
     vote, and the appearance search confirms one of the vote's places (:func:`.appearance.confirmed_fix`) under
     the light's image direction ``light`` (radians; ``--light-azimuth``, which the ephemeris and the attitude
-    give), north-up (``keep``: a frame turned north-up), with the pole's DEM."""
+    give), north-up (``turned``: (``keep``, ``footprint``) of a frame turned north-up, else Nones), with the
+    pole's DEM."""
     assert light is not None  # check_window_request asks for --light-azimuth
+    keep, footprint = turned
     found = detect(img, nav.detector, light_dir=light, what=str(request.image))[0]
     found = found if keep is None else keep(found, nav.detector.border_r)
     dets = with_extra(found)
@@ -390,7 +395,7 @@ def confirmed_window_fix(request: NavigateRequest, nav, img, landmarks, pixel: f
     app = appearance_settings()
     if request.sun_elevation is not None:
         app = dataclasses.replace(app, sun_el_deg=(float(request.sun_elevation),))
-    confirmed, fix = confirmed_fix(img, request.pole, pixel, cands, landmarks, light, lis, app, nav.fix)
+    confirmed, fix = confirmed_fix(img, request.pole, pixel, cands, landmarks, light, lis, app, nav.fix, footprint)
     return (confirmed if fix.ok else dets), light, fix, landmarks, "craters"
 
 
@@ -511,15 +516,16 @@ def navigate_one_window(request: NavigateRequest, nav, maps: dict) -> WindowNavi
         raise FrameError(f"{request.image}: no georeference, so --pixel-m is needed (400 for a WAC mosaic window)")
     request = dataclasses.replace(request, pole=pole)
     landmarks = window_map(request, pole, maps)
-    turn = keep = None
+    turn = keep = footprint = None
     if request.heading is not None:
         shape = img.shape
         img, truth, turn = turned_north_up(img, truth, request.heading)
         keep = functools.partial(inside_frame, turn=turn, shape=shape)
+        footprint = turned_footprint(turn, shape, img.shape)
         if request.light_azimuth is not None:
             request = dataclasses.replace(request, light_azimuth=request.light_azimuth + request.heading)
     prior_g = window_prior(request, img, truth, landmarks, pole, pixel)
-    dets, theta, fix, landmarks, source = window_fix(request, nav, img, prior_g, landmarks, pixel, keep)
+    dets, theta, fix, landmarks, source = window_fix(request, nav, img, prior_g, landmarks, pixel, keep, footprint)
     result = window_result(request, nav, dets, theta, fix, landmarks, source)
     if fix.ok and truth is not None:
         h, w = img.shape[:2]

@@ -198,13 +198,16 @@ def terrain_places(
 ) -> list[tuple[complex, float]]:  # fmt: skip
     """The ``n`` map points (x + iy, m) where the ground ``view`` (a nadir image of ``view_pixel_m``, ``valid``
     inside its footprint, the point under the camera at pixel ``centre_uv``, its +u axis along map direction
-    ``heading_deg``) correlates best with ``shaded``, at least ``apart_km`` apart, each with its correlation."""
+    ``heading_deg``) correlates best with ``shaded``, at least ``apart_km`` apart, each with its correlation;
+    none for a view too large for the map, with too small a footprint, or flat."""
     scale = view_pixel_m / shaded.pixel_m
     size = (max(1, round(view.shape[1] * scale)), max(1, round(view.shape[0] * scale)))
     small = cv2.resize(view.astype(np.float32), size, interpolation=cv2.INTER_AREA)
     inside = cv2.resize(valid.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.99
     templ, mask, (cu, cv) = turned_template(small, inside, (centre_uv[0] * scale, centre_uv[1] * scale), heading_deg)
     if mask.sum() < 16 or templ.shape[0] >= shaded.image.shape[0] or templ.shape[1] >= shaded.image.shape[1]:
+        return []
+    if not np.std(templ[mask > 0]) > 1e-6:  # a flat view (all in shadow) correlates with nothing
         return []
     score = cv2.matchTemplate(shaded.image, templ, cv2.TM_CCOEFF_NORMED, mask=mask)
     score = np.where(np.isfinite(score), score, -1.0)

@@ -55,7 +55,7 @@ from crater_synth.navigation.fix.patches import PatchParams
 from crater_synth.navigation.fix.refine import Refiner, lander_dem
 from crater_synth.navigation.fix.solve import FALSE_FIX_KM
 from crater_synth.navigation.fix.terrain_places import shaded_map, terrain_places
-from crater_synth.navigation.georef import ground_distance_km, pole_of, stereo_forward, stereo_inverse
+from crater_synth.navigation.georef import FrameError, ground_distance_km, pole_of, stereo_forward, stereo_inverse
 from crater_synth.navigation.map.landmarks import load_default_map
 from crater_synth.navigation.protocol import fix_counts, lost_in_space_summary
 from crater_synth.navigation.rendered.evaluate import (
@@ -167,13 +167,20 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
     biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
     rng = boresight_range_m(depth)
-    if detections is not None:
-        dets = list(detections)
-    elif nav.frames.ground_view:
-        dets = ground_view_detections(image, row, rng, nav, biggest, to_sun)
-    else:
-        dparams = map_scales(nav.detector, fparams, gsd, [biggest / gsd])
-        dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    # The frame on the ground, built once for the detector and the terrain's places (~0.3 s).
+    wants_view = detections is None and (nav.frames.ground_view or (lis.confirm and lis.terrain_places))
+    view = ground_view(image, row, rng) if wants_view else None
+    blank = ""
+    try:
+        if detections is not None:
+            dets = list(detections)
+        elif nav.frames.ground_view:
+            dets = ground_view_detections(image, row, rng, nav, biggest, to_sun, view)
+        else:
+            dparams = map_scales(nav.detector, fparams, gsd, [biggest / gsd])
+            dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+    except FrameError as exc:  # a frame all in shadow: nothing to detect, an answer of "no fix" (as nav-frames-eval)
+        dets, blank = [], str(exc)
     flat, shape, kept = rectify(dets, row, rng)
     pole = pole_of(row["frame_origin"]["lat"])
     heading = map_heading_deg(row, pole) if lis.known_heading else None
@@ -189,7 +196,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
         "detections": len(dets),
         "rectified": len(flat),
         "fix": fix.ok,
-        "reason": fix.reason,
+        "reason": blank or fix.reason,
     }
     if fix.ok:
         # Which landmark each identified detection is, by the frame's labels.
@@ -202,7 +209,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
             sum(1 for fi, li in fix.inliers if kept[fi] in truth_of and label_ids[truth_of[kept[fi]]] == li)
         )
     if lis.confirm and detections is None:
-        out["six_dof"] = confirmed_six_dof(row, image, cands, rng, landmarks, lis, refiner)
+        out["six_dof"] = confirmed_six_dof(row, image, cands, rng, landmarks, lis, refiner, view)
     elif fix.ok:
         out["six_dof"] = six_dof_fix(row, image, dets, place_prior(row, complex(fix.x_m, fix.y_m), rng), landmarks, nav)
     else:
@@ -210,12 +217,14 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     return out
 
 
-def ground_view_detections(image, row: dict, range_m: float, nav, biggest_m: float, to_sun) -> list[Detection]:
-    """The detector run on the frame resampled onto the ground (:func:`.ground_view.ground_view`) at that
-    view's one ground sample, from the smallest landmark's radius to ``biggest_m``, the light crossing the
-    view along the Sun's ground direction under the camera; rims cut by the footprint's edge dropped, and the
-    rest carried back into the frame's pixels."""
-    view = ground_view(image, row, range_m)
+def ground_view_detections(
+    image, row: dict, range_m: float, nav, biggest_m: float, to_sun, view=None
+) -> list[Detection]:
+    """The detector run on the frame resampled onto the ground (:func:`.ground_view.ground_view`, or the
+    given ``view`` of it) at that view's one ground sample, from the smallest landmark's radius to
+    ``biggest_m``, the light crossing the view along the Sun's ground direction under the camera; rims cut by
+    the footprint's edge dropped, and the rest carried back into the frame's pixels."""
+    view = ground_view(image, row, range_m) if view is None else view
     _, _, q = camera_from_centre(row, range_m)
     _, east, north = ground_axes(q)
     travel = -np.asarray(to_sun, dtype=np.float64)
@@ -278,17 +287,18 @@ def search_frame_place(row: dict, image, centre: complex, range_m: float, landma
     return with_patch_fallback(r, row, image, landmarks, refiner, PatchParams(), run, prior)
 
 
-def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, refiner) -> dict:
+def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, refiner, view=None) -> dict:
     """The 6-DOF fix of a frame lost in space, its vote's candidates confirmed by appearance: each place
     :func:`.lost_in_space.hypotheses` keeps, best supported first, searched by :func:`search_frame_place`
     (:func:`confirm_run`'s settings). The first confirmed place is the fix; a second one whose camera lies more
     than ``lis.rival_km`` from it makes the frame ambiguous (no fix). The terrain's places
     (:func:`frame_terrain_places`) are searched first, then the vote's more than ``lis.rival_km`` from them. Its
     fields of the row (:data:`SIX_DOF_KEYS`, ``fix_source``) and ``places``: each place searched, where it came
-    from, how far it lies from the truth (km; scoring only) and what the search gave."""
+    from, how far it lies from the truth (km; scoring only) and what the search gave. ``view``: the frame's
+    ground view, where the detector already built it."""
     if refiner is None:
         raise UserError("nav.lost_in_space.confirm=appearance needs the lander's DEM (a refiner)")
-    places = confirm_places(frame_terrain_places(row, image, range_m, lis), cands, lis)
+    places = confirm_places(frame_terrain_places(row, image, range_m, lis, view), cands, lis)
     if not places:
         return {
             "fix": False,
@@ -318,15 +328,15 @@ def confirmed_six_dof(row: dict, image, cands, range_m: float, landmarks, lis, r
     return keep | {"fix_source": best.get("fix_source"), "places": tried}
 
 
-def frame_terrain_places(row: dict, image, range_m: float, lis) -> list[tuple[complex, float]]:
+def frame_terrain_places(row: dict, image, range_m: float, lis, view=None) -> list[tuple[complex, float]]:
     """The ``lis.terrain_places`` map points (with their correlation) where the frame's ground view
-    (:func:`.ground_view.ground_view`) best matches the lander's DEM shaded under the frame's Sun and seen along
-    its boresight (:func:`.terrain_places.shaded_map`), turned to the map by the attitude
-    (:func:`map_heading_deg`); two places at least twice ``lis.confirm_reach_km`` apart. The Sun and the
+    (:func:`.ground_view.ground_view`, or the given ``view`` of it) best matches the lander's DEM shaded under
+    the frame's Sun and seen along its boresight (:func:`.terrain_places.shaded_map`), turned to the map by the
+    attitude (:func:`map_heading_deg`); two places at least twice ``lis.confirm_reach_km`` apart. The Sun and the
     boresight are Moon-fixed directions (ephemeris and attitude): the frame's own ENU only carries them."""
     if not lis.terrain_places:
         return []
-    view = ground_view(image, row, range_m)
+    view = ground_view(image, row, range_m) if view is None else view
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     to_mc = geometry.enu_basis(lat0, lon0).T
     to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])

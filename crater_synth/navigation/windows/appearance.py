@@ -153,6 +153,7 @@ def confirmed_fix(
     lis: LostInSpaceParams,
     dparams,
     fparams,
+    valid=None,
 ) -> tuple[list, Fix]:
     """(the appearance search's detections, its fix) of a map window lost in space, its craters' candidates
     (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
@@ -164,8 +165,9 @@ def confirmed_fix(
     ``lis.terrain_places`` the terrain's places (:func:`window_terrain_places`) are searched first, then the
     vote's more than ``lis.rival_km`` from them. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
-    ambiguous: no fix."""
-    places = confirm_places(window_terrain_places(image, pole, pixel_m, light, lis, dparams), cands, lis)
+    ambiguous: no fix. ``valid``: the image's pixels that are the window's (a turned frame's canvas has filled
+    corners), for the terrain's correlation."""
+    places = confirm_places(window_terrain_places(image, pole, pixel_m, light, lis, dparams, valid), cands, lis)
     if not places:
         return [], Fix(False, lis.no_place_reason())
     confirmed: list[tuple[list, Fix]] = []
@@ -190,16 +192,19 @@ def confirmed_fix(
     return dets, fix
 
 
-def window_terrain_places(image, pole: str, pixel_m: float, light: float, lis, dparams) -> list[tuple[complex, float]]:
+def window_terrain_places(
+    image, pole: str, pixel_m: float, light: float, lis, dparams, valid=None
+) -> list[tuple[complex, float]]:
     """The ``lis.terrain_places`` map points under the window's centre (with their correlation) where the window
     best matches the lander's DEM shaded as a mosaic shows it (:func:`.terrain_places.mosaic_shaded_map`): lit
     from the direction opposite ``light`` (the image direction the light travels; a window's +u is the map's
     +x, its +v the map's -y) at each of ``dparams.sun_el_deg`` above every point's horizon, the best places of
-    all elevations, at least twice ``lis.confirm_reach_km`` apart."""
+    all elevations, at least twice ``lis.confirm_reach_km`` apart; ``valid``: the pixels correlated (all finite
+    ones when None)."""
     if not lis.terrain_places:
         return []
     frame = np.asarray(image, dtype=np.float32)
-    valid = np.isfinite(frame)
+    valid = np.isfinite(frame) if valid is None else np.asarray(valid, dtype=bool) & np.isfinite(frame)
     frame = np.where(valid, frame, np.float32(np.median(frame[valid]) if valid.any() else 0.0))
     sun_map_deg = -math.degrees(light + math.pi)
     centre = (frame.shape[1] / 2.0, frame.shape[0] / 2.0)

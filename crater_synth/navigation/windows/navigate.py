@@ -152,6 +152,14 @@ def turned_back(dets: list[Detection], turn: np.ndarray) -> list[Detection]:
     return [dataclasses.replace(d, u=float(u), v=float(v)) for d, (u, v) in zip(dets, uv, strict=True)]
 
 
+def turned_footprint(turn: np.ndarray, shape, canvas_shape) -> np.ndarray:
+    """The pixels of :func:`turned_north_up`'s canvas (``canvas_shape``) that the given frame of ``shape``
+    covers (True), not its filled corners: a correlation's mask."""
+    ones = np.ones(shape[:2], dtype=np.uint8)
+    size = (int(canvas_shape[1]), int(canvas_shape[0]))
+    return cv2.warpAffine(ones, turn, size, flags=cv2.INTER_NEAREST, borderValue=0).astype(bool)
+
+
 def inside_frame(dets: list[Detection], border_r: float, turn: np.ndarray, shape) -> list[Detection]:
     """The detections on the canvas of :func:`turned_north_up` whose centre lies inside the given frame of
     ``shape`` by at least ``border_r`` x r: the detectors' border rule (:func:`.detectors.classical.detect`)
