@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -186,3 +187,36 @@ def test_navigate_refuses_a_confirmation_of_the_appearance_searchs_own_lost_in_s
     args = ["navigate", str(img), "--lost-in-space", "--pixel-m", "400", "--pole", "south", "--light-azimuth", "30"]
     r = CliRunner().invoke(main, [*args, "nav/detector=appearance", "nav/lost_in_space=confirmed"])
     assert r.exit_code == 2 and "give one of them" in r.output and not (tmp_path / "w_navigate.png").exists()
+
+
+def test_a_window_is_correlated_with_the_terrain_once_whatever_its_light_tries(monkeypatch):
+    from types import SimpleNamespace
+
+    from crater_synth.navigation.windows import evaluate
+
+    nav = compose_nav(["nav/detector=learned-detect", "nav/lost_in_space=terrain-windows"])
+    dparams = dataclasses.replace(nav.detector, light_tries_deg=[0.0, 90.0, 180.0])
+    frame = SimpleNamespace(id="w", image=np.zeros((64, 64)), georef=SimpleNamespace(pole="south", pixel_m=400.0))
+    correlated, given = [], []
+    monkeypatch.setattr(evaluate, "prior_georef", lambda *a: None)
+    monkeypatch.setattr(evaluate, "frame_light", lambda *a: {"light_dir": 0.5})
+    monkeypatch.setattr(evaluate, "detect", lambda image, params, **kw: ([], kw.get("light_dir", 0.5)))
+    monkeypatch.setattr(evaluate, "lost_in_space_search", lambda *a: (Fix(False, "no vote"), []))
+    monkeypatch.setattr(evaluate, "window_terrain_places", lambda *a: correlated.append(a) or [(1.0e5 + 2.0e5j, 0.9)])
+    monkeypatch.setattr(evaluate, "confirmed_fix", lambda *a: given.append(a[-1]) or ([], Fix(False, "not confirmed")))
+    evaluate.navigate_window(frame, [], dparams, nav.fix, lis=(nav.lost_in_space, None))
+    assert len(correlated) == 1 and given == [[(1.0e5 + 2.0e5j, 0.9)]] * 3
+
+
+def test_terrain_places_given_to_the_confirmation_are_not_found_again(monkeypatch):
+    _search(monkeypatch, {120: (120.3, 9)})
+
+    def correlate(*args):
+        raise AssertionError("the terrain was correlated again")
+
+    monkeypatch.setattr(appearance, "window_terrain_places", correlate)
+    lis = LostInSpaceParams(known_heading=True, confirm="appearance", confirm_hypotheses=0, terrain_places=1)
+    image = np.zeros((512, 512))
+    terrain = [(120.0e3 + 200.0e3j, 0.9)]
+    _, fix = appearance.confirmed_fix(image, "south", 400.0, [], [], 1.0, lis, None, FixParams(), None, terrain)
+    assert fix.ok and fix.x_m == 120.3e3

@@ -154,6 +154,7 @@ def confirmed_fix(
     dparams,
     fparams,
     valid=None,
+    terrain=None,
 ) -> tuple[list, Fix]:
     """(the appearance search's detections, its fix) of a map window lost in space, its craters' candidates
     (:func:`.lost_in_space.lost_in_space_search`) confirmed by appearance (``lis.confirm``,
@@ -166,8 +167,11 @@ def confirmed_fix(
     vote's more than ``lis.rival_km`` from them. The first
     confirmed place is the fix; a second confirmed place more than ``lis.rival_km`` from it makes it
     ambiguous: no fix. ``valid``: the image's pixels that are the window's (a turned frame's canvas has filled
-    corners), for the terrain's correlation."""
-    places = confirm_places(window_terrain_places(image, pole, pixel_m, light, lis, dparams, valid), cands, lis)
+    corners), for the terrain's correlation; ``terrain``: the terrain's places when already found (they depend
+    on neither the candidates nor a light try's detections)."""
+    if terrain is None:
+        terrain = window_terrain_places(image, pole, pixel_m, light, lis, dparams, valid)
+    places = confirm_places(terrain, cands, lis)
     if not places:
         return [], Fix(False, lis.no_place_reason())
     confirmed: list[tuple[list, Fix]] = []

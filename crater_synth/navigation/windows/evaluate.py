@@ -62,6 +62,7 @@ from crater_synth.navigation.windows.appearance import (
     patch_truth_correct,
     window_detections,
     window_patch_fix,
+    window_terrain_places,
 )
 from crater_synth.navigation.windows.light import frame_light, frame_local_light
 from crater_synth.navigation.windows.mosaic import MOSAIC_PRODUCTS, windows
@@ -97,6 +98,7 @@ def navigate_window(
         return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
     extra = [] if lis is None else verify_detections(frame, lis[0])
+    terrain = None if lis is None else window_terrain(frame, lis[0])
     best = None
     for k, off in enumerate(dparams.light_tries_deg):
         if off == 0.0:
@@ -109,7 +111,7 @@ def navigate_window(
         else:
             voters = len(dets)
             dets = with_new(dets, extra, verify_detector_settings(lis[0].verify_detector))
-            dets, fix = window_lost_in_space(frame, dets, landmarks, lis, fparams, voters)
+            dets, fix = window_lost_in_space(frame, dets, landmarks, lis, fparams, voters, terrain)
         key = (fix.ok, len(fix.inliers) if fix.ok else 0, -fix.rms_px if fix.ok else 0.0, -k)
         if best is None or key > best[0]:
             best = (key, dets, theta, fix)
@@ -117,12 +119,13 @@ def navigate_window(
     return dets, theta, fix, prior
 
 
-def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams, voters: int):
+def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams, voters: int, terrain=None):
     """(the detections the fix indexes, the fix) of a window lost in space (``lis``: its settings and pair
     index; ``voters``: the first detections, which may vote). With ``confirm="appearance"`` the candidates
     are confirmed by the appearance search (:func:`.appearance.confirmed_fix`, the ``nav/detector=appearance``
     settings; the light's image direction that its light model gives the window, standing in for the ephemeris
-    and attitude a lander has): a confirmed fix indexes the search's detections, a refusal the detector's."""
+    and attitude a lander has): a confirmed fix indexes the search's detections, a refusal the detector's.
+    ``terrain``: the terrain's places (:func:`window_terrain`), found once for all light tries."""
     params, index = lis
     shape, pixel_m = frame.image.shape, frame.georef.pixel_m
     heading = window_heading_deg(params)
@@ -131,8 +134,19 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
         return dets, fix
     app = appearance_settings()
     light = frame_light(frame, app)["light_dir"]
-    found, fix = confirmed_fix(frame.image, frame.georef.pole, pixel_m, cands, landmarks, light, params, app, fparams)
+    pole = frame.georef.pole
+    found, fix = confirmed_fix(frame.image, pole, pixel_m, cands, landmarks, light, params, app, fparams, None, terrain)
     return (found, fix) if fix.ok else (dets, fix)
+
+
+def window_terrain(frame: Frame, lis_params):
+    """The terrain's places of a window lost in space (:func:`.appearance.window_terrain_places`, under the light
+    its appearance settings give), found once whatever the light tries; None without a confirmation."""
+    if not lis_params.confirm:
+        return None
+    app = appearance_settings()
+    light = frame_light(frame, app)["light_dir"]
+    return window_terrain_places(frame.image, frame.georef.pole, frame.georef.pixel_m, light, lis_params, app)
 
 
 @functools.lru_cache(maxsize=1)
