@@ -98,7 +98,7 @@ def navigate_window(
         return _appearance_frame(frame, landmarks, dparams, fparams, prior, lis)
     dets0, theta0 = detect(frame.image, dparams, what=f"frame {frame.id}", **frame_light(frame, dparams))
     extra = [] if lis is None else verify_detections(frame, lis[0])
-    terrain = None if lis is None else window_terrain(frame, lis[0])
+    terrain = None if lis is None else window_terrain_once(frame, lis[0])
     best = None
     for k, off in enumerate(dparams.light_tries_deg):
         if off == 0.0:
@@ -125,7 +125,7 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
     are confirmed by the appearance search (:func:`.appearance.confirmed_fix`, the ``nav/detector=appearance``
     settings; the light's image direction that its light model gives the window, standing in for the ephemeris
     and attitude a lander has): a confirmed fix indexes the search's detections, a refusal the detector's.
-    ``terrain``: the terrain's places (:func:`window_terrain`), found once for all light tries."""
+    ``terrain``: the terrain's places (:func:`window_terrain_once`), found once for all light tries."""
     params, index = lis
     shape, pixel_m = frame.image.shape, frame.georef.pixel_m
     heading = window_heading_deg(params)
@@ -139,7 +139,7 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
     return (found, fix) if fix.ok else (dets, fix)
 
 
-def window_terrain(frame: Frame, lis_params):
+def window_terrain_once(frame: Frame, lis_params):
     """The terrain's places of a window lost in space (:func:`.appearance.window_terrain_places`, under the light
     its appearance settings give), found once whatever the light tries; None without a confirmation."""
     if not lis_params.confirm:
