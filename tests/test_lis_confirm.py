@@ -130,7 +130,8 @@ def test_a_real_window_is_confirmed_where_it_lies_and_its_mirror_image_nowhere()
 def test_navigate_confirms_a_window_lost_in_space_under_the_light_it_is_given(tmp_path):
     """`crater-synth navigate W.png --lost-in-space --pixel-m 400 --pole south --light-azimuth A
     nav/lost_in_space=confirmed`: a south validation window with no georeference is placed by the search's
-    landmarks; without the light the command ends with one error line."""
+    landmarks, as with `nav/lost_in_space=terrain-windows` (the terrain's place searched instead of the vote's);
+    without the light the command ends with one error line."""
     import json
 
     from click.testing import CliRunner
@@ -151,11 +152,12 @@ def test_navigate_confirms_a_window_lost_in_space_under_the_light_it_is_given(tm
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 2 and "nav.lost_in_space.confirm=appearance" in r.output and "--light-azimuth" in r.output
     light = math.degrees(frame_light(frame, appearance_settings())["light_dir"])
-    r = CliRunner().invoke(main, [*args, "--light-azimuth", f"{light:.1f}"])
-    assert r.exit_code == 0, r.output
-    out = json.loads(r.output.strip().splitlines()[-1])
-    x, y = stereo_forward(out["lat"], out["lon"], "south")
-    assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 1.0
+    for preset in ([], ["nav/lost_in_space=terrain-windows"]):  # the vote's places; the terrain's place instead
+        r = CliRunner().invoke(main, [*args, *preset, "--light-azimuth", f"{light:.1f}"])
+        assert r.exit_code == 0, r.output
+        out = json.loads(r.output.strip().splitlines()[-1])
+        x, y = stereo_forward(out["lat"], out["lon"], "south")
+        assert out["fix"] and float(ground_distance_km(float(x), float(y), *frame.centre_xy, "south")) < 1.0
 
 
 def test_the_search_needs_the_confirmations_landmarks(monkeypatch):
