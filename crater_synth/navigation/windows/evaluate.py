@@ -132,9 +132,7 @@ def window_lost_in_space(frame: Frame, dets, landmarks, lis, fparams: FixParams,
     fix, cands = lost_in_space_search(dets, landmarks, shape, pixel_m, params, fparams, index, heading, voters)
     if not params.confirm:
         return dets, fix
-    app = appearance_settings()
-    light = frame_light(frame, app)["light_dir"]
-    pole = frame.georef.pole
+    light, pole, app = confirmation_light(frame), frame.georef.pole, appearance_settings()
     found, fix = confirmed_fix(frame.image, pole, pixel_m, cands, landmarks, light, params, app, fparams, None, terrain)
     return (found, fix) if fix.ok else (dets, fix)
 
@@ -144,9 +142,14 @@ def window_terrain_once(frame: Frame, lis_params):
     its appearance settings give), found once whatever the light tries; None without a confirmation."""
     if not lis_params.confirm:
         return None
-    app = appearance_settings()
-    light = frame_light(frame, app)["light_dir"]
-    return window_terrain_places(frame.image, frame.georef.pole, frame.georef.pixel_m, light, lis_params, app)
+    light, georef = confirmation_light(frame), frame.georef
+    return window_terrain_places(frame.image, georef.pole, georef.pixel_m, light, lis_params, appearance_settings())
+
+
+def confirmation_light(frame: Frame) -> float:
+    """The image direction (radians) the light travels along in a window, as the confirmation by appearance
+    takes it: its settings' light model, standing in for the ephemeris and attitude a lander has."""
+    return frame_light(frame, appearance_settings())["light_dir"]
 
 
 @functools.lru_cache(maxsize=1)
