@@ -408,8 +408,10 @@ def source_probabilities(source, shares) -> np.ndarray | None:
 def fit(build, samples: list, settings: DetectorTrainSettings, step_loss, log=None, device: str = "cpu", source=None):
     """The training loop of every detector (torchvision's references/detection shape): seeds, the draw
     probabilities of ``source`` (:func:`source_probabilities`), ``build()`` the model, AdamW with a one-cycle
-    schedule, and per step ``step_loss(model, rng, p, gen)`` -> (loss, {part: value}). Returns {"model" (on
-    the CPU), "history", "seconds", "checkpoints"} (step -> state dict copies at ``settings.checkpoints``)."""
+    schedule, and per step ``step_loss(forward, rng, p, gen)`` -> (loss, {part: value}), ``forward`` the model's
+    forward pass at ``settings.precision`` (:func:`autocast_forward`), the model laid out channels last when
+    ``settings.channels_last``. Returns {"model" (on the CPU, standard layout), "history", "seconds",
+    "checkpoints"} (step -> state dict copies at ``settings.checkpoints``)."""
     if not samples:
         raise DetectorModelError("no training frames: render some with `crater-synth nav-detector-frames`")
     torch.manual_seed(settings.seed)
@@ -420,13 +422,15 @@ def fit(build, samples: list, settings: DetectorTrainSettings, step_loss, log=No
     gen = torch.Generator(device=device)
     gen.manual_seed(settings.seed)
     model = build().to(device)
+    model = model.to(memory_format=torch.channels_last if settings.channels_last else torch.contiguous_format)
+    forward = autocast_forward(model, settings.precision, device)
     opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
     history, checkpoints = [], {}
     t0 = time.perf_counter()
     model.train()
     for step in range(1, settings.steps + 1):
-        loss, parts = step_loss(model, rng, p, gen)
+        loss, parts = step_loss(forward, rng, p, gen)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -442,7 +446,27 @@ def fit(build, samples: list, settings: DetectorTrainSettings, step_loss, log=No
         if step in settings.checkpoints:
             checkpoints[step] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     model.eval()
-    return {"model": model.cpu(), "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
+    model = model.cpu().to(memory_format=torch.contiguous_format)  # files keep the standard layout
+    return {"model": model, "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
+
+
+def autocast_forward(model: nn.Module, precision: str, device: str):
+    """What a training step calls for the forward pass: ``model`` itself at "fp32"; at "bf16" the same call
+    under ``torch.autocast`` in bfloat16 (convolutions and matrix products; the weights, their gradients and
+    the optimiser stay float32, as torchvision's references train under autocast), its tensor outputs (a
+    tensor, or a dict of losses) handed back in float32, so every loss is computed and summed in float32."""
+    if precision == "fp32":
+        return model
+    device_type = torch.device(device).type
+
+    def forward(*args, **kwargs):
+        with torch.autocast(device_type, dtype=torch.bfloat16):
+            out = model(*args, **kwargs)
+        if isinstance(out, dict):
+            return {k: v.float() for k, v in out.items()}
+        return out.float()
+
+    return forward
 
 
 def train_detector(
@@ -491,8 +515,10 @@ def save_model(path: Path, model: CraterNet, meta: dict) -> None:
 
 def load_model(path: Path) -> tuple[CraterNet, dict]:
     """The model and its meta from a :func:`save_model` file; a missing, corrupt or foreign file raises
-    :class:`DetectorModelError` naming it."""
-    return read_model_file(path, MODEL_FORMAT, lambda payload: CraterNet(int(payload["width"])))
+    :class:`DetectorModelError` naming it. The model runs channels last (NHWC): oneDNN's convolutions take
+    ~0.6 of the time on the CPU, the outputs within ~1e-6 of the standard layout's."""
+    model, meta = read_model_file(path, MODEL_FORMAT, lambda payload: CraterNet(int(payload["width"])))
+    return model.to(memory_format=torch.channels_last), meta
 
 
 def settings_dict(s: DetectorTrainSettings) -> dict:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+from collections import OrderedDict
 from pathlib import Path
 
 import torch
@@ -25,7 +26,7 @@ def write_model_file(path: Path, fmt: str, state_dict: dict, meta: dict, **field
     ``fields`` atomically under the format tag ``fmt``, with a sha256 of the weights (every detector's file)."""
     meta = json.loads(json.dumps(meta, default=str))  # plain JSON types only: the file loads with weights_only
     buf = io.BytesIO()
-    torch.save(state_dict, buf)
+    torch.save(standard_layout(state_dict), buf)
     weights = buf.getvalue()
     payload = {
         "format": fmt,
@@ -37,6 +38,17 @@ def write_model_file(path: Path, fmt: str, state_dict: dict, meta: dict, **field
     out = io.BytesIO()
     torch.save(payload, out)
     atomic_write_bytes(Path(path), out.getvalue())
+
+
+def standard_layout(state_dict: dict) -> OrderedDict:
+    """``state_dict`` with every tensor in the standard (NCHW) layout, its version metadata kept: the same
+    weights give the same bytes and checksum whatever layout the model ran in (channels last stores other
+    strides, even where a size-1 dimension leaves both layouts contiguous)."""
+    out = OrderedDict((k, v.clone(memory_format=torch.contiguous_format)) for k, v in state_dict.items())
+    metadata = getattr(state_dict, "_metadata", None)
+    if metadata is not None:
+        out._metadata = metadata  # type: ignore[attr-defined]
+    return out
 
 
 def read_model_file(path: Path, fmt: str, build) -> tuple[nn.Module, dict]:

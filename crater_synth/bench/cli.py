@@ -17,6 +17,8 @@ Parts (``--part``, default all, in this order):
 - ``detector``: training cost of the learned crater detector, s per step, fixed s and peak RSS, on the
   survey or ``--detector-frames``, on ``--detector-device``, with ``--detector-train`` settings
   (crater_synth.bench.detector; skipped with a note if its frames are not rendered yet);
+- ``detector-layout``: the detector network's training step and 1024² level in the standard layout, channels last
+  and with the bfloat16 forward pass, in one run (crater_synth.bench.detector_layout);
 - ``detection-frames``: detection-frame renders/s at 256² and 512², the default grouping against one frame per field
   (crater_synth.bench.detection);
 - ``detect``: ``crater-synth detect`` on synthetic frames: seconds per 1024 x 1024 and 2592 x 1944 frame, peak
@@ -59,6 +61,7 @@ PARTS = (
     "export",
     "navframes",
     "detector",
+    "detector-layout",
     "detect",
     "opencv",
     "detection-frames",
@@ -168,6 +171,10 @@ def bench_command(
                     f"detector skipped: no frames at {detector_frames} (crater-synth nav-detector-frames, "
                     "or make nav-detector, renders the survey there)"
                 )
+        if part in ("all", "detector-layout"):
+            from crater_synth.bench.detector_layout import bench_detector_layout  # torch: the train extra
+
+            click.echo("detector-layout " + json.dumps(bench_detector_layout()))
         if part in ("all", "detect"):
             click.echo("detect " + json.dumps(bench_detect(work / "detect")))
         if part in ("all", "opencv"):
