@@ -1,6 +1,6 @@
 """How the learned detector's network runs, not what it learns: the channels-last layout and the bfloat16
 forward pass of its training (``nav.detector_train.channels_last``, ``nav.detector_train.precision``;
-train/crater_detector.py ``fit``, ``autocast_forward``), and the layout its model files keep
+train/detector_fit.py ``fit``, ``autocast_forward``), and the layout its model files keep
 (train/model_files.py)."""
 
 from __future__ import annotations
@@ -11,16 +11,19 @@ import io
 import numpy as np
 import pytest
 import torch
+from test_learned_detector import crater_field, fake_detection_set
 
 from crater_core.typed_config import SettingsError
+from crater_synth.navigation.rendered import detector_train
 from train import crater_detector as cd
 from train import crater_detector_inference as infer
+from train import detector_fit
+from train import fcos_detector as fd
 from train.model_files import write_model_file
 
 
 def samples(n_fields: int = 3):
     """Level samples of small shaded bowl fields (the learning test's, smaller)."""
-    from tests.test_learned_detector import crater_field
 
     out = []
     for seed in range(n_fields):
@@ -59,12 +62,14 @@ def test_a_bfloat16_forward_pass_trains_float32_weights_near_the_float32_run():
 def test_autocast_forward_hands_back_float32_tensors_and_loss_dicts():
     model = cd.CraterNet(4)
     x = torch.randn(1, 1, 32, 32)
-    assert cd.autocast_forward(model, "fp32", "cpu") is model
-    forward = cd.autocast_forward(model, "bf16", "cpu")
+    assert detector_fit.autocast_forward(model, "fp32", "cpu") is model
+    forward = detector_fit.autocast_forward(model, "bf16", "cpu")
     out = forward(x)
     assert out.dtype == torch.float32 and out.shape == (1, 4, 32, 32)
     assert torch.allclose(out, model(x), atol=0.1)
-    losses = cd.autocast_forward(lambda t: {"a": t.sum(), "b": (t @ t.transpose(-1, -2)).mean()}, "bf16", "cpu")(x)
+    losses = detector_fit.autocast_forward(
+        lambda t: {"a": t.sum(), "b": (t @ t.transpose(-1, -2)).mean()}, "bf16", "cpu"
+    )(x)
     assert {k: v.dtype for k, v in losses.items()} == {"a": torch.float32, "b": torch.float32}
 
 
@@ -95,3 +100,23 @@ def test_a_loaded_model_runs_channels_last_and_detects_as_the_standard_layout_do
 def test_an_unknown_precision_is_one_error_naming_the_setting():
     with pytest.raises(SettingsError, match="precision"):
         cd.DetectorTrainSettings(precision="fp16")
+
+
+def test_fcos_trains_in_the_standard_layout_and_under_bfloat16(tmp_path, monkeypatch):
+    """FCOS keeps the standard layout whatever ``channels_last`` says (its training step ran slower channels
+    last), and trains under the bfloat16 forward pass as torchvision's references do under autocast."""
+    frames = fake_detection_set(tmp_path / "det", fields=3)
+    s = cd.DetectorTrainSettings(arch="fcos", steps=2, batch=2, crop_px=64, width=16, threads=1, precision="bf16")
+    layouts = []
+
+    def fit(build, *args, channels_last=False):
+        layouts.append(channels_last)
+        return detector_fit.fit(build, *args, channels_last=channels_last)
+
+    monkeypatch.setattr(fd, "fit", fit)
+    summary = detector_train.train_from_sources([detector_train.detection_source(frames, 0.34)], tmp_path / "m.pt", s)
+    assert layouts == [False] and s.channels_last
+    assert summary["settings"]["precision"] == "bf16"
+    model, meta = fd.load_model(tmp_path / "m.pt")
+    assert np.isfinite([h["loss"] for h in meta["history"]]).all()
+    assert all(v.dtype in (torch.float32, torch.int64) for v in model.state_dict().values())

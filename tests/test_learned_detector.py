@@ -22,6 +22,8 @@ from crater_synth.navigation.rendered import training_rows
 from crater_synth.navigation.settings import compose_nav
 from train import crater_detector as cd
 from train import crater_detector_inference as infer
+from train import detector_fit
+from train.model_files import DetectorModelError
 
 
 # ------------------------------------------------------------------------------------------------
@@ -238,15 +240,15 @@ def test_model_file_round_trip_and_bad_files(tmp_path):
     for k, v in model.state_dict().items():
         assert torch.equal(v, loaded.state_dict()[k])
     assert not list(tmp_path.glob("*.tmp*"))  # atomic: no temp file left
-    with pytest.raises(cd.DetectorModelError, match="no such file"):
+    with pytest.raises(DetectorModelError, match="no such file"):
         cd.load_model(tmp_path / "missing.pt")
     broken = tmp_path / "broken.pt"
     broken.write_bytes(path.read_bytes()[:-100])
-    with pytest.raises(cd.DetectorModelError, match="broken.pt"):
+    with pytest.raises(DetectorModelError, match="broken.pt"):
         cd.load_model(broken)
     foreign = tmp_path / "foreign.pt"
     torch.save(model.state_dict(), foreign)  # a bare state dict, not a model file
-    with pytest.raises(cd.DetectorModelError, match="not a crater-synth-detector"):
+    with pytest.raises(DetectorModelError, match="not a crater-synth-detector"):
         cd.load_model(foreign)
 
 
@@ -656,11 +658,11 @@ def test_loader_workers_build_the_same_batches_and_a_bad_frame_fails_as_itself(t
 
 def test_source_shares_set_each_folders_share_of_the_draws():
     """Two sources of 1 and 3 samples at shares 0.5/0.5: the single sample is drawn half the time."""
-    p = cd.source_probabilities([0, 1, 1, 1], (0.5, 0.5))
+    p = detector_fit.source_probabilities([0, 1, 1, 1], (0.5, 0.5))
     assert p == pytest.approx([0.5, 1 / 6, 1 / 6, 1 / 6])
-    assert cd.source_probabilities([0, 1, 1], ()) is None
-    with pytest.raises(cd.DetectorModelError, match="3 entries for 2"):
-        cd.source_probabilities([0, 1], (1.0, 1.0, 1.0))
+    assert detector_fit.source_probabilities([0, 1, 1], ()) is None
+    with pytest.raises(DetectorModelError, match="3 entries for 2"):
+        detector_fit.source_probabilities([0, 1], (1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="source_shares"):
         cd.DetectorTrainSettings(source_shares=(0.0, 0.0))
 

@@ -22,7 +22,8 @@ import torch
 from torch import nn
 
 from crater_core.settings_nav import DetectorTrainSettings
-from train.crater_detector import LevelSample, augment_brightness, decimate2, fit, standardise
+from train.crater_detector import LevelSample, augment_brightness, decimate2, standardise
+from train.detector_fit import fit
 from train.model_files import read_model_file, write_model_file
 from train.tv_ops import import_torchvision
 
@@ -139,7 +140,7 @@ def _batch(prepared, s: DetectorTrainSettings, rng: np.random.Generator, p) -> t
 def train_fcos(
     samples: list[LevelSample], settings: DetectorTrainSettings, log=None, device: str = "cpu", source=None
 ) -> dict:
-    """Train :func:`build_fcos` on level samples with the detectors' loop (:func:`train.crater_detector.fit`:
+    """Train :func:`build_fcos` on level samples with the detectors' loop (:func:`train.detector_fit.fit`:
     torchvision's references/detection shape, the model's loss dict summed); returns what ``fit`` does."""
     prepared = [_prepared(x, settings.crop_px) for x in samples]
 

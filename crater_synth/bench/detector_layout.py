@@ -28,6 +28,7 @@ import torch
 from crater_synth.navigation.detectors.learned import DEFAULT_MODEL
 from train import crater_detector as cd
 from train.crater_detector_inference import level_output
+from train.detector_fit import autocast_forward
 
 BATCH, CROP_PX = 16, 96  # nav.detector_train's batch and crop_px (configs/nav/detector_train/default.yaml)
 LEVEL_PX = 1024
@@ -48,7 +49,7 @@ def train_step_seconds(width: int, channels_last: bool, precision: str, repeats:
     """Median seconds of one training step of a fresh width-``width`` network on a random batch."""
     torch.manual_seed(0)
     model = cd.CraterNet(width).to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
-    forward = cd.autocast_forward(model, precision, "cpu")
+    forward = autocast_forward(model, precision, "cpu")
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     x = torch.randn(BATCH, 1, CROP_PX, CROP_PX)
 
