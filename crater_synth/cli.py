@@ -169,7 +169,7 @@ BENCH_PART_EXTRA: dict[str, str] = {
     "train": "train",
     "distributed": "dask",
     "export": "export",
-    **dict.fromkeys(("navigation", "navframes", "detector", "detect", "opencv"), "nav"),
+    **dict.fromkeys(("navigation", "navframes", "detector", "detector-layout", "detect", "opencv"), "nav"),
 }
 # Not checked before a command runs: a Blender binary (render.blender=...) stands in for the pip bpy module.
 _NOT_PROBED = {"bpy"}

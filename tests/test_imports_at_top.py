@@ -32,10 +32,12 @@ DEFERRED_LIBRARIES = {
 DEFERRING_MODULES = {
     "crater_synth.dataset.dask_launcher": "distributed",
     "crater_synth.bench.distributed": "distributed",
+    "crater_synth.bench.detector_layout": "torch",
     "crater_synth.dataset.detection_dask": "distributed",
     "train.crater_detector": "torch",
     "train.crater_detector_inference": "torch",
     "train.crater_verifier": "torch",
+    "train.detector_fit": "torch",
     "train.data": "torch",
     "train.evaluate": "torch",
     "train.fcos_detector": "torch",

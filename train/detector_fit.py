@@ -90,7 +90,9 @@ def autocast_forward(model: nn.Module, precision: str, device: str):
     """What a training step calls for the forward pass: ``model`` itself at "fp32"; at "bf16" the same call
     under ``torch.autocast`` in bfloat16 (convolutions and matrix products; the weights, their gradients and
     the optimiser stay float32, as torchvision's references train under autocast), its tensor outputs (a
-    tensor, or a dict of losses) handed back in float32, so every loss is computed and summed in float32."""
+    tensor, or a dict of losses) handed back in float32. The CenterNet network's loss is then computed in
+    float32 outside the forward pass; FCOS computes its losses inside it, under autocast, as torchvision's
+    references do."""
     if precision == "fp32":
         return model
     device_type = torch.device(device).type

@@ -172,7 +172,7 @@ def bench_command(
                     "or make nav-detector, renders the survey there)"
                 )
         if part in ("all", "detector-layout"):
-            from crater_synth.bench.detector_layout import bench_detector_layout  # torch: the train extra
+            from crater_synth.bench.detector_layout import bench_detector_layout  # torch: this part's alone
 
             click.echo("detector-layout " + json.dumps(bench_detector_layout()))
         if part in ("all", "detect"):
