@@ -246,13 +246,14 @@ class DetectorTrainSettings(Group):
     # frame reads of a streamed set overlapping the network's step.
     loader_workers: int = 0
     # The centernet network's weights and activations laid out channels last (NHWC): oneDNN's convolutions
-    # run ~1.4-1.6 x faster on the CPU that way, the same float32 arithmetic in another order (outputs within
-    # ~1e-6). false: the layout of models trained before it (their runs reproduce step for step). FCOS keeps
-    # the standard layout (its training step measured ~10 % slower channels last). Files are saved in the
-    # standard layout either way.
+    # run a training step 1.4-1.6 x faster on the CPU that way, the same float32 arithmetic in another order
+    # (outputs within ~1e-6). false: the layout of models trained before it (their runs reproduce step for
+    # step). FCOS keeps the standard layout (its training step measured ~10 % slower channels last). Files are
+    # saved in the standard layout either way.
     channels_last: bool = True
     # "bf16": the forward pass under torch.autocast in bfloat16 (weights, optimiser and loss in float32), a
-    # further ~1.5 x on CPUs with AVX-512 BF16 and on GPUs; "fp32": float32 throughout (the committed models).
+    # step a further 1.3-2.3 x faster (widths 16-32) on CPUs with AVX-512 BF16, and on GPUs; "fp32": float32
+    # throughout (the committed models).
     precision: str = "fp32"
 
     def _check(self) -> None:

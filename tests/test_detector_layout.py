@@ -24,7 +24,6 @@ from train.model_files import write_model_file
 
 def samples(n_fields: int = 3):
     """Level samples of small shaded bowl fields (the learning test's, smaller)."""
-
     out = []
     for seed in range(n_fields):
         img, u, v, r = crater_field(seed, size=64, n=3)

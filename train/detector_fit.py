@@ -57,8 +57,7 @@ def fit(
     p = source_probabilities(np.zeros(len(samples), int) if source is None else source, settings.source_shares)
     gen = torch.Generator(device=device)
     gen.manual_seed(settings.seed)
-    model = build().to(device)
-    model = model.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+    model = build().to(device, memory_format=torch.channels_last if channels_last else torch.contiguous_format)
     forward = autocast_forward(model, settings.precision, device)
     opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=settings.steps, pct_start=0.1)
@@ -82,7 +81,8 @@ def fit(
         if step in settings.checkpoints:
             checkpoints[step] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     model.eval()
-    model = model.cpu().to(memory_format=torch.contiguous_format)  # files keep the standard layout
+    # handed back in the standard layout, as every model built here starts (files are written in it anyway)
+    model = model.cpu().to(memory_format=torch.contiguous_format)
     return {"model": model, "history": history, "seconds": time.perf_counter() - t0, "checkpoints": checkpoints}
 
 
