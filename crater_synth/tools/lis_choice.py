@@ -50,6 +50,7 @@ from crater_synth.navigation.fix.lost_in_space import (
     build_index,
     hypotheses,
     lost_in_space_search,
+    moved_detections,
     places_elsewhere,
     window_heading_deg,
 )
@@ -106,10 +107,9 @@ def _null_move(shape, family: str, how: str) -> np.ndarray:
 def null_window(dets: list[Detection], shape, family: str, how: str) -> list[Detection]:
     """``dets`` moved by ``NULLS[family][how]`` in a square frame of ``shape`` (scores kept; a detection whose
     centre leaves the frame is dropped)."""
-    m = _null_move(shape, family, how)
-    k = math.sqrt(abs(np.linalg.det(m[:, :2])))
-    out = [Detection(*(m[:, :2] @ (d.u, d.v) + m[:, 2]).tolist(), k * d.r, d.score) for d in dets]
-    return [d for d in out if 0.0 <= d.u < shape[1] and 0.0 <= d.v < shape[0]]
+    move = _null_move(shape, family, how)
+    uv, r, kept = moved_detections([[d.u, d.v] for d in dets], [d.r for d in dets], move, shape)
+    return [Detection(*uv[i].tolist(), float(r[i]), d.score) for i, d in enumerate(dets) if kept[i]]
 
 
 def null_image(image: np.ndarray, family: str, how: str) -> np.ndarray:

@@ -144,6 +144,14 @@ class LostInSpaceParams:
     terrain_places: int = 0
     terrain_pixel_m: float = 800.0
     terrain_min_ncc: float = -1.0
+    # The frame's own null (significance, known_heading; 0: none): the frame's detections turned about its centre
+    # by 90, 180 and 270 degrees (the first null_turns of them) are searched too. At the attitude's heading a
+    # turned pattern cannot land on its true place, so the best support a turned copy reaches is chance, measured
+    # on this frame's own craters: their number, sizes, clustering and scores, which the chance model's uniform,
+    # independent detections do not describe. The best candidate is kept only when its support exceeds every
+    # turned copy's by null_margin_log10 decades.
+    null_turns: int = 0
+    null_margin_log10: float = 1.0
 
     def __post_init__(self):
         for key in ("inlier_r", "max_rms_px"):
@@ -179,6 +187,15 @@ class LostInSpaceParams:
             raise ValueError(f"terrain_min_ncc must be in [-1, 1) (got {self.terrain_min_ncc})")
         if self.ambiguity_log10 < 0:
             raise ValueError(f"ambiguity_log10 must be >= 0 (got {self.ambiguity_log10})")
+        if self.null_turns not in (0, 1, 2, 3):
+            raise ValueError(f"null_turns must be 0, 1, 2 or 3 quarter turns (got {self.null_turns})")
+        if self.null_turns and not (self.known_heading and self.candidate_score == "significance"):
+            raise ValueError(
+                "null_turns needs known_heading (heading free, a turned frame lands on its true place) and "
+                "candidate_score=significance (the margin is in decades of chance)"
+            )
+        if not (math.isfinite(self.null_margin_log10) and self.null_margin_log10 >= 0):
+            raise ValueError(f"null_margin_log10 must be a finite number >= 0 (got {self.null_margin_log10})")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -488,6 +505,66 @@ def places_elsewhere(key: str, centre_xy, landmarks, n: int, min_landmark_km: fl
     return [complex(far[i].x_m + dx, far[i].y_m + dy) for i, (dx, dy) in zip(picks, jitter)]
 
 
+def moved_detections(det_uv, det_r, m: np.ndarray, frame_shape):
+    """(points, radii, kept): detections at ``det_uv`` (u right, v down) of radii ``det_r`` moved by the affine map
+    ``m`` (2 x 3: (u, v) -> m[:, :2] (u, v) + m[:, 2]; a radius scales by sqrt |det m[:, :2]|); ``kept`` marks the
+    centres that stay inside a frame of ``frame_shape``."""
+    uv = np.asarray(det_uv, float).reshape(-1, 2) @ m[:, :2].T + m[:, 2]
+    r = np.asarray(det_r, float) * math.sqrt(abs(np.linalg.det(m[:, :2])))
+    h, w = frame_shape
+    kept = (uv[:, 0] >= 0.0) & (uv[:, 0] < w) & (uv[:, 1] >= 0.0) & (uv[:, 1] < h)
+    return uv, r, kept
+
+
+def quarter_turn(frame_shape, k: int) -> np.ndarray:
+    """The affine map (:func:`moved_detections`) turning a frame's pixels by ``k`` x 90 degrees about its centre."""
+    h, w = frame_shape
+    c, s = round(math.cos(k * math.pi / 2.0)), round(math.sin(k * math.pi / 2.0))
+    rot = np.array([[c, -s], [s, c]], float)
+    centre = np.array([w / 2.0, h / 2.0])
+    return np.concatenate([rot, (centre - rot @ centre)[:, None]], axis=1)
+
+
+def _search(det_uv, det_r, voters, index: PairIndex, frame_shape, pixel_m, params, fparams, heading_deg):
+    """(every verified candidate, None) of the detections (arrays) whose indices ``voters`` cast the votes, or ([], the
+    "no fix" saying why the vote could not run)."""
+    det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
+    top = voters[np.argsort(-det_r[voters], kind="stable")[: params.n_detections]]
+    votes = _votes(det_z[top], det_r[top], index, pixel_m, params)
+    if votes is None or votes[0].size == 0:
+        return [], Fix(False, "no crater pair of the frame matches a pair of the map")
+    _, _, _, _, va, vb = votes
+    if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
+        near = np.abs(np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)) <= params.bin_deg
+        va, vb = va[near], vb[near]
+        if va.size == 0:
+            return [], Fix(False, "no crater pair of the frame matches a pair of the map at the known heading")
+    h, w = frame_shape
+    zc = w / 2.0 - 1j * h / 2.0
+    centre = va * zc + vb
+    cells = _pair_vote_cells(va, centre, params)
+    cands = _verified_candidates(
+        cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape, heading_deg
+    )
+    return cands, None
+
+
+def own_null_support(det_uv, det_r, voters, index, frame_shape, pixel_m, params, fparams, heading_deg) -> float:
+    """The best support (-log10 chance) that the frame's detections, turned by 90, 180 and 270 degrees about its centre
+    (the first ``params.null_turns``), reach at the attitude's heading ``heading_deg``: chance measured on this frame's
+    own craters (``LostInSpaceParams.null_turns``). 0 where no turned copy verifies a candidate transform."""
+    best = 0.0
+    for k in range(1, params.null_turns + 1):
+        uv, r, kept = moved_detections(det_uv, det_r, quarter_turn(frame_shape, k), frame_shape)
+        renumbered = np.cumsum(kept) - 1  # a kept detection's index among the kept
+        turned_voters = renumbered[voters[kept[voters]]]
+        if turned_voters.size < 3:
+            continue
+        cands, _ = _search(uv[kept], r[kept], turned_voters, index, frame_shape, pixel_m, params, fparams, heading_deg)
+        best = max([best, *(c.support for c in cands if c.fix is not None)])
+    return best
+
+
 def lost_in_space_search(
     detections,
     landmarks,
@@ -511,33 +588,32 @@ def lost_in_space_search(
         return Fix(False, f"{len(detections)} detections (need {max(3, params.min_inliers)})"), []
     det_uv = np.array([[d.u, d.v] for d in detections], float)
     det_r = np.array([d.r for d in detections], float)
-    det_z = det_uv[:, 0] - 1j * det_uv[:, 1]  # (u, -v): pixel -> map is then a proper similarity
     voters = np.arange(len(detections) if voters is None else min(voters, len(detections)))
     if params.vote_min_score is not None:
         voters = voters[np.array([detections[i].score for i in voters], float) >= params.vote_min_score]
         if voters.size < 3:
             return Fix(False, f"{voters.size} detections score >= {params.vote_min_score} (need 3 to vote)"), []
-    top = voters[np.argsort(-det_r[voters], kind="stable")[: params.n_detections]]
-    votes = _votes(det_z[top], det_r[top], index, pixel_m, params)
-    if votes is None or votes[0].size == 0:
-        return Fix(False, "no crater pair of the frame matches a pair of the map"), []
-    _, _, _, _, va, vb = votes
-    if heading_deg is not None:  # the attitude fixes the heading: a vote turned away from it is a chance match
-        near = np.abs(np.angle(va * np.exp(-1j * math.radians(heading_deg)), deg=True)) <= params.bin_deg
-        va, vb = va[near], vb[near]
-        if va.size == 0:
-            return Fix(False, "no crater pair of the frame matches a pair of the map at the known heading"), []
-    h, w = frame_shape
-    zc = w / 2.0 - 1j * h / 2.0
-    centre = va * zc + vb
-    cells = _pair_vote_cells(va, centre, params)
-    cands = _verified_candidates(
-        cells, va, centre, zc, det_uv, det_z, det_r, index, pixel_m, params, fparams, frame_shape, heading_deg
-    )
+    search = (index, frame_shape, pixel_m, params, fparams, heading_deg)
+    cands, no_vote = _search(det_uv, det_r, voters, *search)
+    if no_vote is not None:
+        return no_vote, []
     best, no_fix = unambiguous_candidate(cands, params)
+    null = math.nan
+    if best is not None and params.null_turns:  # measured only where a fix would be made: it costs a search a turn
+        null = own_null_support(det_uv, det_r, voters, *search)
+        if best.support < null + params.null_margin_log10:
+            best, no_fix = (
+                None,
+                Fix(
+                    False,
+                    f"within chance of its own turned craters: chance 1e{-best.support:.1f}, turned 1e{-null:.1f} "
+                    f"(a margin of {params.null_margin_log10:g} decades needed)",
+                ),
+            )
     if best is None:
         no_fix.support = max((c.support for c in cands if c.fix is not None and c.fix.ok), default=math.nan)
+        no_fix.null_support = null
         return no_fix, cands
     fix = _fix_from_inliers(best.fix, det_uv, index, frame_shape)
-    fix.support = best.support
+    fix.support, fix.null_support = best.support, null
     return fix, cands

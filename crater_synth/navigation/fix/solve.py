@@ -82,6 +82,9 @@ class Fix:
     # Lost in space: the support of the best verified candidate (its inlier count, or -log10 of its chance),
     # fixed or refused; nan where none verified or for a prior-gated fix.
     support: float = math.nan
+    # Lost in space with the frame's own null (null_turns): the best support its turned detections reached; nan where
+    # it was not measured.
+    null_support: float = math.nan
 
     def as_dict(self) -> dict:
         d = asdict(self)
