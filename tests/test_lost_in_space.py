@@ -15,42 +15,15 @@ from crater_synth.navigation.fix.lost_in_space import LostInSpaceParams, build_i
 from crater_synth.navigation.navigate import NavigateRequest, lost_in_space_settings
 from crater_synth.navigation.settings import compose_nav
 
-PIXEL_M = 400.0
-SHAPE = (512, 512)
-
-
-def _map(rng, n=800, half_km=500.0):
-    xy = rng.uniform(-half_km, half_km, (n, 2)) * 1000.0
-    d = 10.0 + rng.pareto(1.8, n) * 8.0
-    return [SimpleNamespace(x_m=float(x), y_m=float(y), diameter_km=float(min(k, 120.0))) for (x, y), k in zip(xy, d)]
-
-
-def _frame(landmarks, centre_xy, heading_deg, rng, keep=0.6, clutter=25, noise_px=1.0):
-    """Detections of the landmarks inside a frame whose pixel -> map similarity has the given centre and
-    heading (pixel size PIXEL_M), a random subset kept, with centre and radius noise and clutter."""
-    h, w = SHAPE
-    a = PIXEL_M * complex(math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg)))
-    b = complex(*centre_xy) - a * (w / 2.0 - 1j * h / 2.0)
-    dets = []
-    for lm in landmarks:
-        z = (complex(lm.x_m, lm.y_m) - b) / a
-        u, v = z.real, -z.imag
-        r = lm.diameter_km * 500.0 / PIXEL_M
-        if 0 <= u < w and 0 <= v < h and rng.random() < keep:
-            u, v = u + rng.normal(0, noise_px), v + rng.normal(0, noise_px)
-            dets.append(Detection(u, v, r * rng.uniform(0.9, 1.1), 1.0))
-    for _ in range(clutter):
-        dets.append(Detection(rng.uniform(0, w), rng.uniform(0, h), rng.uniform(9, 60), 0.5))
-    rng.shuffle(dets)
-    return dets
+from helpers.lis_maps import PIXEL_M, SHAPE, lis_frame, lis_map
 
 
 def test_recovers_known_transform_without_prior():
     rng = np.random.default_rng(3)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms)
     for centre, heading in (((120e3, -80e3), 0.0), ((-250e3, 300e3), 37.0), ((10e3, 20e3), -140.0)):
-        dets = _frame(lms, centre, heading, rng)
+        dets = lis_frame(lms, centre, heading, rng)
         fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index)
         assert fix.ok, fix.reason
         assert math.hypot(fix.x_m - centre[0], fix.y_m - centre[1]) < 1000.0
@@ -60,7 +33,7 @@ def test_recovers_known_transform_without_prior():
 
 def test_no_map_craters_gives_no_fix():
     rng = np.random.default_rng(4)
-    lms = _map(rng)
+    lms = lis_map(rng)
     dets = [Detection(*rng.uniform(0, 512, 2), rng.uniform(12, 60), 0.5) for _ in range(40)]
     fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
     assert not fix.ok and fix.reason
@@ -68,10 +41,10 @@ def test_no_map_craters_gives_no_fix():
 
 def test_repeated_pattern_is_ambiguous():
     rng = np.random.default_rng(5)
-    motif = _map(rng, n=14, half_km=90.0)
+    motif = lis_map(rng, n=14, half_km=90.0)
     # The same crater pattern twice on the map, 400 km apart: the frame sees one copy, no fix is safe.
     lms = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
-    dets = _frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    dets = lis_frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
     fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
     assert not fix.ok
     assert "ambiguous" in fix.reason
@@ -103,7 +76,7 @@ def test_lis_settings_overrides_and_errors():
 def _two_tier_frame(lms, centre, rng, n_sure, n_weak, weak_clutter):
     """Detections of a north-up frame: ``n_sure`` true craters at score 1, ``n_weak`` true ones and
     ``weak_clutter`` random circles at score 0.1."""
-    true = [d for d in _frame(lms, centre, 0.0, rng, keep=1.0, clutter=0, noise_px=0.5)]
+    true = [d for d in lis_frame(lms, centre, 0.0, rng, keep=1.0, clutter=0, noise_px=0.5)]
     true.sort(key=lambda d: -d.r)
     sure = true[:n_sure]
     weak = [Detection(d.u, d.v, d.r, 0.1) for d in true[n_sure : n_sure + n_weak]]
@@ -115,7 +88,7 @@ def test_weak_detections_confirm_a_vote_they_do_not_cast():
     """Two tiers: the sure detections vote; the weak ones, too many to vote among, confirm the voted
     transform. With too few sure detections the frame is refused before any vote."""
     rng = np.random.default_rng(11)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms)
     dets = _two_tier_frame(lms, (120e3, -80e3), rng, n_sure=4, n_weak=6, weak_clutter=150)
     two = LostInSpaceParams(vote_min_score=0.5, min_inliers=8)
@@ -136,7 +109,7 @@ def test_a_second_detectors_craters_verify_but_never_vote():
     lift the inliers past min_inliers 8. Scored high, the second's craters still never vote: with the first
     detector's list empty of sure craters the frame is refused before any vote."""
     rng = np.random.default_rng(11)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms)
     dets = _two_tier_frame(lms, (120e3, -80e3), rng, n_sure=4, n_weak=5, weak_clutter=40)
     first, second = dets[:4] + dets[9:], [Detection(d.u, d.v, d.r, 1.0) for d in dets[4:9]]
@@ -188,9 +161,9 @@ def test_verification_tolerance_follows_the_lost_in_space_group():
     from crater_synth.navigation.fix.solve import FixParams
 
     rng = np.random.default_rng(12)
-    lms = [m for m in _map(rng, n=3000) if m.diameter_km >= 20.0]
+    lms = [m for m in lis_map(rng, n=3000) if m.diameter_km >= 20.0]
     index = build_index(lms)
-    dets = _frame(lms, (60e3, 40e3), 0.0, rng, keep=1.0, clutter=3, noise_px=0.0)
+    dets = lis_frame(lms, (60e3, 40e3), 0.0, rng, keep=1.0, clutter=3, noise_px=0.0)
     off = 0.14  # of the radius, each detection in another direction
     shift = [off * d.r * complex(math.cos(k), math.sin(k)) for k, d in enumerate(dets)]
     dets = [Detection(d.u + s.real, d.v + s.imag, d.r, d.score) for d, s in zip(dets, shift)]
@@ -277,9 +250,9 @@ def test_a_known_heading_keeps_only_the_votes_that_agree_with_it():
     """With the attitude's heading the true solution is still found; told a heading 90 degrees off, the
     vote finds nothing there (the true pairs all point the other way): no fix, never a wrong one."""
     rng = np.random.default_rng(7)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms)
-    dets = _frame(lms, (-250e3, 300e3), 37.0, rng)
+    dets = lis_frame(lms, (-250e3, 300e3), 37.0, rng)
     fix = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=37.0)
     assert fix.ok and math.hypot(fix.x_m + 250e3, fix.y_m - 300e3) < 1000.0
     off = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=127.0)
@@ -292,9 +265,9 @@ def test_a_heading_tolerance_holds_the_fix_to_the_attitudes_heading():
     before; held to 2 degrees of the attitude it is not (a chance transform is turned like it), and a frame
     at the attitude's heading is still fixed at its place."""
     rng = np.random.default_rng(7)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms)
-    dets = _frame(lms, (-250e3, 300e3), 42.0, rng)
+    dets = lis_frame(lms, (-250e3, 300e3), 42.0, rng)
     loose = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M, index=index, heading_deg=37.0)
     assert loose.ok and abs(loose.heading_deg - 42.0) < 1.0
     held = LostInSpaceParams(heading_tol_deg=2.0)
@@ -348,17 +321,17 @@ def test_chance_inliers_counts_compatible_detections_over_the_tolerance_discs():
 
 def test_significance_recovers_transforms_refuses_clutter_and_repetition():
     rng = np.random.default_rng(3)
-    lms = _map(rng)
+    lms = lis_map(rng)
     index = build_index(lms, SIGNIFICANCE)
     for centre, heading in (((120e3, -80e3), 0.0), ((-250e3, 300e3), 37.0)):
-        fix = lost_in_space_fix(_frame(lms, centre, heading, rng), lms, SHAPE, PIXEL_M, SIGNIFICANCE, index=index)
+        fix = lost_in_space_fix(lis_frame(lms, centre, heading, rng), lms, SHAPE, PIXEL_M, SIGNIFICANCE, index=index)
         assert fix.ok, fix.reason
         assert math.hypot(fix.x_m - centre[0], fix.y_m - centre[1]) < 1000.0
     clutter = [Detection(*rng.uniform(0, 512, 2), rng.uniform(12, 60), 0.5) for _ in range(40)]
     assert not lost_in_space_fix(clutter, lms, SHAPE, PIXEL_M, SIGNIFICANCE, index=index).ok
-    motif = _map(rng, n=14, half_km=90.0)
+    motif = lis_map(rng, n=14, half_km=90.0)
     twice = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
-    dets = _frame(twice, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    dets = lis_frame(twice, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
     fix = lost_in_space_fix(dets, twice, SHAPE, PIXEL_M, SIGNIFICANCE)
     assert not fix.ok and "ambiguous" in fix.reason
     strict = replace(SIGNIFICANCE, max_log10_nfa=-80.0)
@@ -433,9 +406,9 @@ def test_a_fix_and_a_refusal_carry_the_best_candidates_support():
     """The support of the best verified candidate: a fix's inlier count (inlier scoring); a refused
     repeated pattern's too (its rival was as well supported); nan where no candidate verified."""
     rng = np.random.default_rng(5)
-    motif = _map(rng, n=14, half_km=90.0)
+    motif = lis_map(rng, n=14, half_km=90.0)
     lms = motif + [SimpleNamespace(x_m=m.x_m + 400e3, y_m=m.y_m, diameter_km=m.diameter_km) for m in motif]
-    dets = _frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
+    dets = lis_frame(lms, (0.0, 0.0), 20.0, rng, keep=1.0, clutter=5, noise_px=0.5)
     fix = lost_in_space_fix(dets, motif, SHAPE, PIXEL_M)
     assert fix.ok and fix.support == len(fix.inliers)
     refused = lost_in_space_fix(dets, lms, SHAPE, PIXEL_M)
