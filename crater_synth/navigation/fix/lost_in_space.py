@@ -41,6 +41,11 @@ frame's detections are matched against the whole landmark map by **crater pairs 
   they cannot be fixed chance reached 10^-8.5 heading-free, 10^-7.1 with the heading known, where the gate at
   0.01 false alarms asks 10^-4.1 (docs/navigation/fix.md). The ``attitude`` settings gate at 10^-7.6 with the
   heading known; the weighting is off by default.
+* **The frame's own null** (``null_turns``, with the heading known): the frame's detections turned by quarter
+  turns about its centre are searched too. At the attitude's heading a turned pattern cannot land on its true
+  place, so what its best candidate reaches is chance on this frame's own craters, and the best candidate of the
+  frame itself is kept only above it by ``null_margin_log10`` decades: a gate measured per frame, not set once for
+  every frame.
 * **Confirmation by appearance** (``confirm``): with the DEM on board, the candidates are hypotheses the
   appearance search confirms or not (:func:`hypotheses`; ``windows/appearance.py``), and the vote's own gate is
   not used.
