@@ -154,7 +154,9 @@ class LostInSpaceParams:
     # turned pattern cannot land on its true place, so the best support a turned copy reaches is chance, measured
     # on this frame's own craters: their number, sizes, clustering and scores, which the chance model's uniform,
     # independent detections do not describe. The best candidate is kept only when its support exceeds every
-    # turned copy's by null_margin_log10 decades.
+    # turned copy's by null_margin_log10 decades. Off in every option: three copies are too few draws of chance, so
+    # on the south validation windows every margin that fixed more windows than attitude's fixed gate also fixed
+    # windows moved so that they cannot be fixed (docs/navigation/fix.md).
     null_turns: int = 0
     null_margin_log10: float = 1.0
 
