@@ -609,14 +609,12 @@ def lost_in_space_search(
     if best is not None and params.null_turns:  # measured only where a fix would be made: it costs a search a turn
         null = own_null_support(det_uv, det_r, voters, *search)
         if best.support < null + params.null_margin_log10:
-            best, no_fix = (
-                None,
-                Fix(
-                    False,
-                    f"within chance of its own turned craters: chance 1e{-best.support:.1f}, turned 1e{-null:.1f} "
-                    f"(a margin of {params.null_margin_log10:g} decades needed)",
-                ),
+            no_fix = Fix(
+                False,
+                f"within chance of its own turned craters: chance 1e{-best.support:.1f}, turned 1e{-null:.1f} "
+                f"(a margin of {params.null_margin_log10:g} decades needed)",
             )
+            best = None
     if best is None:
         no_fix.support = max((c.support for c in cands if c.fix is not None and c.fix.ok), default=math.nan)
         no_fix.null_support = null
