@@ -255,9 +255,16 @@ class DetectorTrainSettings(Group):
     # step a further 1.3-2.3 x faster (widths 16-32) on CPUs with AVX-512 BF16, and on GPUs; "fp32": float32
     # throughout (the committed models).
     precision: str = "fp32"
+    # Every training frame turned so that its light travels along +u (train.light_turn), and no quarter-turn
+    # augmentation: the network learns the craters' look under one light direction instead of all of them.
+    # Its model file says so, and the learned detector then turns each frame to its light before the network
+    # sees it (the frame's light direction must be known: the renderer's, or a lander's ephemeris and
+    # attitude). false: any light direction (the committed models).
+    sun_aligned: bool = False
 
     def _check(self) -> None:
         need(self.frames >= 0, "frames", self.frames, "must be >= 0 (0: every frame)")
+        need(not self.sun_aligned or self.arch == "centernet", "sun_aligned", self.sun_aligned, "needs arch=centernet")
         need(self.precision in PRECISIONS, "precision", self.precision, f"must be one of {', '.join(PRECISIONS)}")
         need(not self.stream or self.arch == "centernet", "stream", self.stream, "streaming needs arch=centernet")
         need(0.0 <= self.max_off_nadir_deg <= 90.0, "max_off_nadir_deg", self.max_off_nadir_deg, "must lie in [0, 90]")

@@ -137,16 +137,25 @@ def test_detect_on_ground_reads_a_detection_frames_row_and_returns_frame_pixels(
     from crater_synth.navigation.rendered import ground_view as gv
 
     row, _, _, _ = _oblique(view_deg=38.0, fov_deg=30.0, width=256)
-    set_row = {"camera_enu": dict(row["camera_enu"], width_px=256, fov_deg=30.0)}
+    # the Sun 10 degrees up in the east: its light travels west, -u in the ground view (east along +u)
+    sun = {"elevation_deg": 10.0, "azimuth_deg": 90.0}
+    set_row = {"camera_enu": dict(row["camera_enu"], width_px=256, fov_deg=30.0), "sun_enu": sun}
     image = np.random.default_rng(1).random((256, 256)).astype(np.float32)
     view = ground_view(image, set_row, RANGE_M)
     assert np.array_equal(view.image, ground_view(image, row, RANGE_M).image)
     ii, jj = np.nonzero(view.valid)
     inside = Detection(float(np.median(jj)) + 0.5, float(np.median(ii)) + 0.5, 6.0, 0.9)
     outside = Detection(0.5, 0.5, 6.0, 0.8)
-    seen = []
-    monkeypatch.setattr(gv, "detect", lambda img, *a, **k: (seen.append(img.shape), ([inside, outside], 0.0))[1])
+    seen, lights = [], []
+
+    def fake_detect(img, *a, **k):
+        seen.append(img.shape)
+        lights.append(k["light_dir"])
+        return [inside, outside], 0.0
+
+    monkeypatch.setattr(gv, "detect", fake_detect)
     params = LearnedSettings()
     got = gv.detect_on_ground(image, set_row, RANGE_M, params)
     assert seen == [view.image.shape] and got == to_frame([inside], view, set_row, RANGE_M)
+    assert math.cos(lights[0]) == pytest.approx(-1.0, abs=1e-3)  # travel west; the ground's east is near ENU east
     assert 0 <= got[0].u < 256 and 0 <= got[0].v < 256

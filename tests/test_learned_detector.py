@@ -94,7 +94,7 @@ def test_detect_pyramid_scales_level_peaks_back_to_frame_pixels(monkeypatch):
     """A peak at level pixel (10, 5) of level 2 with offset (0.25, -0.25) and radius 9 px is a crater at
     frame pixel (4 x 10.75, 4 x 5.25) of radius 36 px."""
 
-    def fake_output(model, a, tta=1):
+    def fake_output(model, a, tta=1, sun_aligned=False):
         out = np.zeros((4,) + a.shape, np.float32)
         if a.shape[0] == 32:  # level 2 of a 128 px frame
             out[0, 5, 10] = 0.9
@@ -112,7 +112,7 @@ def test_half_octaves_search_the_shrunk_frame_and_scale_back_to_frame_pixels(mon
     """A peak at the middle of every level image, radius 6 px: in frame pixels, the frame's middle and
     6 x 2**level px in the octave pyramid, 6 x 2**level x sqrt(2) in the shrunk one (level k + 0.5)."""
 
-    def fake_output(model, a, tta=1):
+    def fake_output(model, a, tta=1, sun_aligned=False):
         out = np.zeros((4,) + a.shape, np.float32)
         h, w = a.shape
         out[0, h // 2, w // 2] = 0.9
@@ -208,7 +208,7 @@ def test_an_enlarged_level_scales_back_to_frame_pixels(monkeypatch):
     assert np.unravel_index(np.argmax(big), big.shape) in {(20, 40), (20, 41), (21, 40), (21, 41)}
     assert np.array_equal(levels[1][1], a)
 
-    def fake_output(model, level_image, tta=1):
+    def fake_output(model, level_image, tta=1, sun_aligned=False):
         out = np.zeros((4,) + level_image.shape, np.float32)
         if level_image.shape == (128, 192):
             out[0, 60, 100] = 0.9

@@ -270,19 +270,24 @@ def crop_stack(sample: LevelSample, top: float, i0: int, j0: int, hw: int, ww: i
     t = level_targets(a.shape, u[near], v[near], r[near], sample.hidden[near], window=(i0, j0, hw, ww))
     out = np.zeros((8, hw, ww), np.float32)
     hh, wv = max(0, min(hw, h - i0)), max(0, min(ww, w - j0))
-    out[_IMG, :hh, :wv] = a[i0 : i0 + hh, j0 : j0 + wv] / top
+    win = a[i0 : i0 + hh, j0 : j0 + wv]
+    inside = np.isfinite(win)  # a frame turned to its light (train.light_turn) is NaN outside itself
+    out[_IMG, :hh, :wv] = np.where(inside, win, 0.0) / top
     out[_HEAT, :hh, :wv] = t["heat"][:hh, :wv]
     out[_WEIGHT, :hh, :wv] = t["weight"][:hh, :wv]
     out[_DU : _DV + 1, :hh, :wv] = t["offset"][:, :hh, :wv]
     out[_LOGR, :hh, :wv] = t["logr"][:hh, :wv]
     out[_CENTRE, :hh, :wv] = t["centre"][:hh, :wv]
-    out[_VALID, :hh, :wv] = 1.0
+    out[_VALID, :hh, :wv] = inside
     return out
 
 
 def brightness_top(image: np.ndarray) -> float:
-    """The level's brightness scale: its 99.5th percentile (1 for a black level)."""
-    return float(np.percentile(np.clip(np.asarray(image, np.float32), 0.0, None), 99.5)) or 1.0
+    """The level's brightness scale: its 99.5th percentile of the pixels inside the frame (1 for a black
+    level)."""
+    a = np.clip(np.asarray(image, np.float32), 0.0, None)
+    inside = a[np.isfinite(a)]
+    return (float(np.percentile(inside, 99.5)) if inside.size else 0.0) or 1.0
 
 
 def dihedral(t: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
@@ -349,14 +354,16 @@ def sample_shape(samples: Sequence[LevelSample], i: int) -> tuple[int, int]:
 def plan_batch(samples: Sequence[LevelSample], s: DetectorTrainSettings, rng, p=None) -> list[tuple]:
     """The draws of one batch, (sample, row, column, quarter turns, mirrored) per crop: random level
     samples (probabilities ``p``; None: uniformly), a random ``crop_px`` window of each, a random dihedral
-    view. Only the plan uses ``rng``, so plans drawn ahead (:func:`crop_batches`) are the same draws."""
+    view (``s.sun_aligned``: no quarter turn, which would move the Sun; the mirror along the light only).
+    Only the plan uses ``rng``, so plans drawn ahead (:func:`crop_batches`) are the same draws."""
     c = s.crop_px
     picks = rng.integers(0, len(samples), s.batch) if p is None else rng.choice(len(samples), s.batch, p=p)
     plan = []
     for i in picks:
         h, w = (max(n, c) for n in sample_shape(samples, int(i)))
         i0, j0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        plan.append((int(i), i0, j0, int(rng.integers(4)), bool(rng.integers(2))))
+        turns = 0 if s.sun_aligned else int(rng.integers(4))
+        plan.append((int(i), i0, j0, turns, bool(rng.integers(2))))
     return plan
 
 

@@ -127,16 +127,35 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     """The network's craters in ``frame.image``: (u, v, r, score) in frame pixels, radii within the
     detector's [min_radius_px, max_radius_px]."""
     from train.crater_detector_inference import detect_pyramid
+    from train.light_turn import turn_to_light
 
-    models = [load_model(str(path))[0] for path in (model_path(params), *params.ensemble)]
+    loaded = [load_model(str(path)) for path in (model_path(params), *params.ensemble)]
+    aligned = {sun_aligned(meta) for _, meta in loaded}
+    if len(aligned) > 1:
+        raise DetectorModelFileError(
+            f"{model_path(params)} and nav.detector.ensemble={list(params.ensemble)}: "
+            "either every model is sun-aligned (nav.detector_train.sun_aligned) or none is"
+        )
+    image, turned = frame.image, None
+    if True in aligned:  # the frame turned to its light, as the model's training frames were
+        if not math.isfinite(frame.light):
+            raise UserError(f"{model_path(params)} is sun-aligned: it needs the frame's light direction, none given")
+        turned = turn_to_light(frame.image, frame.light)
+        image = np.where(np.isfinite(turned.image), turned.image, np.nanmedian(turned.image)).astype(np.float32)
     u, v, r, s, _level = detect_pyramid(
-        models,
-        frame.image,
+        [model for model, _ in loaded],
+        image,
         params.threshold,
         first_level(params.min_radius_px, params.upsample_levels),
         params.tta,
         params.half_octaves,
+        sun_aligned=turned is not None,
     )
+    if turned is not None:
+        u, v = turned.back(u, v)
+        h, w = np.shape(frame.image)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, r, s = u[inside], v[inside], r[inside], s[inside]
     if params.verifier:
         from train.crater_verifier import verify
 
@@ -150,6 +169,12 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     return within_radii(params, u, v, r, s)
 
 
+def sun_aligned(meta: dict) -> bool:
+    """Whether a model file's network was trained on frames turned to their light
+    (``nav.detector_train.sun_aligned``, :mod:`train.light_turn`)."""
+    return bool((meta.get("settings") or {}).get("sun_aligned", False))
+
+
 def within_radii(params, u, v, r, s):
     """The candidates (u, v, r, score arrays) whose radius lies in the detector's [min_radius_px,
     max_radius_px]."""
@@ -157,7 +182,7 @@ def within_radii(params, u, v, r, s):
     return u[keep], v[keep], r[keep], s[keep]
 
 
-# The network needs no Fourier spectrum and no light direction (no Sun knowledge).
+# The network needs no Fourier spectrum; a light direction only when its model is sun-aligned.
 DETECTOR = DetectorEntry(
     "learned",
     LearnedSettings,

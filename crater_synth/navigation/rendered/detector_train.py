@@ -33,12 +33,14 @@ from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.navigation.rendered.training_rows import (
     ChainedSamples,
     StreamedFrames,
+    frame_light,
     label_circles,
     labels_in_frame,
     off_nadir_deg,
     record_frame,
     slim_row,
     streamed_row,
+    training_levels,
 )
 from crater_synth.outfolder import MARKERS, marker_kind
 from crater_synth.paths import SOURCE_ROOT
@@ -138,9 +140,10 @@ def _recipe(folder: Path) -> str | None:
 
 
 def detect_in_frame(image, row: dict, params) -> list:
-    """The detector's craters in a rendered frame as it is (no light direction: the learned detector needs
-    none), the way :func:`frame_matches` finds them unless told otherwise."""
-    return detect(image, params, light_dir=0.0, what=row["rel_path"])[0]
+    """The detector's craters in a rendered frame as it is, under the renderer's light (:func:`frame_light`:
+    a sun-aligned model turns the frame to it), the way :func:`frame_matches` finds them unless told
+    otherwise."""
+    return detect(image, params, light_dir=frame_light(row), what=row["rel_path"])[0]
 
 
 def frame_matches(
@@ -308,7 +311,7 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     ``settings.source_shares``), score the model on each source's held-out records, and save it to ``out``
     with its provenance; returns the summary written into the model. One source: its description and
     score at the top level; several: a list of them under ``sources``."""
-    from train.crater_detector import level_samples, settings_dict
+    from train.crater_detector import settings_dict
 
     commit = code_commit()  # the code the training runs: the tree may change during a long run
     train, save_model, scoring_params = architecture(settings.arch)
@@ -316,12 +319,11 @@ def train_from_sources(sources: list, out: Path, settings, log=None, device: str
     for k, (train_records, _, _, _) in enumerate(sources):
         levels: list | StreamedFrames
         if any(image is None for image, _ in train_records):  # streamed (detection_set_records(stream=True))
-            levels = StreamedFrames([row for _, row in train_records])
+            levels = StreamedFrames([row for _, row in train_records], settings.sun_aligned)
         else:
             levels = []
             for image, row in train_records:
-                u, v, r, _, hidden = label_circles(row, image.shape)
-                levels.extend(level_samples(image, u, v, r, hidden))
+                levels.extend(training_levels(image, row, label_circles(row, image.shape), settings.sun_aligned))
         parts.append(levels)
         source.extend([k] * len(levels))
     samples = [x for p in parts for x in p] if all(isinstance(p, list) for p in parts) else ChainedSamples(parts)

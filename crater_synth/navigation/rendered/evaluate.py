@@ -115,6 +115,11 @@ def true_camera(row: dict) -> tuple[np.ndarray, np.ndarray]:
     return cv_camera(rotation, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
 
 
+def row_to_sun(row: dict) -> np.ndarray:
+    """The unit vector towards the Sun, in the frame's axes, of a rendered frame's row (``sun_enu``)."""
+    return geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+
+
 def light_direction(rotation: np.ndarray, to_sun: np.ndarray) -> float:
     """Image azimuth (radians, atan2(dv, du), v down) of the light's travel direction (away from the Sun)."""
     travel = -np.asarray(to_sun, dtype=np.float64)

@@ -28,7 +28,7 @@ import numpy as np
 from crater_core.geometry import MOON_RADIUS_M
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect
-from crater_synth.navigation.rendered.evaluate import cv_camera
+from crater_synth.navigation.rendered.evaluate import cv_camera, row_to_sun
 
 # The ground view's side is capped (pixels): a frame whose footprint reaches towards the horizon is sampled
 # more coarsely rather than into an image of tens of megapixels.
@@ -177,11 +177,20 @@ def to_frame(dets, view: GroundView, row: dict, range_m: float) -> list[Detectio
     ]
 
 
+def ground_light(row: dict, range_m: float) -> float:
+    """The image azimuth (radians, atan2(dv, du), v down) the light travels along in the frame's
+    :func:`ground_view`: the Sun's ground direction under the camera (the view's rows run east, north up)."""
+    _, _, q = camera_from_centre(row, range_m)
+    _, east, north = ground_axes(q)
+    travel = -row_to_sun(row)
+    return math.atan2(-(travel @ north), travel @ east)
+
+
 def detect_on_ground(image: np.ndarray, row: dict, range_m: float, params, what: str = "frame") -> list[Detection]:
-    """The detector's craters (``params``, at its own scales) in the frame's :func:`ground_view`, those
-    whose rim lies within the footprint (:func:`inside_footprint`, the margin the detector's own border
-    rule keeps at a frame's edge: ``params.border_r``) carried back into the frame's pixels
-    (:func:`to_frame`); no light direction (the learned detector needs none)."""
+    """The detector's craters (``params``, at its own scales) in the frame's :func:`ground_view` under its
+    light (:func:`ground_light`), those whose rim lies within the footprint (:func:`inside_footprint`, the
+    margin the detector's own border rule keeps at a frame's edge: ``params.border_r``) carried back into
+    the frame's pixels (:func:`to_frame`)."""
     view = ground_view(image, row, range_m)
-    dets, _ = detect(view.image, params, light_dir=0.0, what=f"{what} on the ground")
+    dets, _ = detect(view.image, params, light_dir=ground_light(row, range_m), what=f"{what} on the ground")
     return to_frame(inside_footprint(dets, view, params.border_r), view, row, range_m)

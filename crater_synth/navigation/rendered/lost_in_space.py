@@ -65,12 +65,13 @@ from crater_synth.navigation.rendered.evaluate import (
     light_direction,
     match_pixels,
     perfect_detections,
+    row_to_sun,
     with_patch_fallback,
 )
 from crater_synth.navigation.rendered.ground_view import (
     camera_from_centre,
-    ground_axes,
     ground_coords,
+    ground_light,
     ground_view,
     inside_footprint,
     rays_to_ground,
@@ -162,7 +163,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     vote's places confirmed by appearance (:func:`confirmed_six_dof`; not for given ``detections``)."""
     fparams, lis = nav.fix, nav.lost_in_space
     rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    to_sun = row_to_sun(row)
     gsd = float(row["ground_sample_m"])
     # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
     biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
@@ -175,7 +176,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
         if detections is not None:
             dets = list(detections)
         elif nav.frames.ground_view:
-            dets = ground_view_detections(image, row, rng, nav, biggest, to_sun, view)
+            dets = ground_view_detections(image, row, rng, nav, biggest, view)
         else:
             dparams = map_scales(nav.detector, fparams, gsd, [biggest / gsd])
             dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
@@ -217,18 +218,13 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     return out
 
 
-def ground_view_detections(
-    image, row: dict, range_m: float, nav, biggest_m: float, to_sun, view=None
-) -> list[Detection]:
+def ground_view_detections(image, row: dict, range_m: float, nav, biggest_m: float, view=None) -> list[Detection]:
     """The detector run on the frame resampled onto the ground (:func:`.ground_view.ground_view`, or the
     given ``view`` of it) at that view's one ground sample, from the smallest landmark's radius to
     ``biggest_m``, the light crossing the view along the Sun's ground direction under the camera; rims cut by
     the footprint's edge dropped, and the rest carried back into the frame's pixels."""
     view = ground_view(image, row, range_m) if view is None else view
-    _, _, q = camera_from_centre(row, range_m)
-    _, east, north = ground_axes(q)
-    travel = -np.asarray(to_sun, dtype=np.float64)
-    light = math.atan2(-(travel @ north), travel @ east)  # image azimuth, v down
+    light = ground_light(row, range_m)
     dparams = map_scales(nav.detector, nav.fix, view.pixel_m, [biggest_m / view.pixel_m])
     dets, _ = detect(view.image, dparams, light_dir=light, what=f"frame {row['rel_path']} on the ground")
     return to_frame(inside_footprint(dets, view), view, row, range_m)
@@ -339,7 +335,7 @@ def frame_terrain_places(row: dict, image, range_m: float, lis, view=None) -> li
     view = ground_view(image, row, range_m) if view is None else view
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     to_mc = geometry.enu_basis(lat0, lon0).T
-    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    to_sun = row_to_sun(row)
     boresight = camera_from_centre(row, range_m)[0][2]
     pole = pole_of(lat0)
     shaded = shaded_map(pole, lis.terrain_pixel_m, to_mc @ to_sun, to_mc @ -boresight)

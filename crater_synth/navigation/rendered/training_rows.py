@@ -11,6 +11,7 @@ streamed from disk.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -18,6 +19,8 @@ import numpy as np
 
 from crater_core import exr
 from crater_core.detection_labels import label_ref, read_label_columns, with_labels
+from crater_synth.errors import UserError
+from crater_synth.navigation.rendered.evaluate import light_direction, row_to_sun
 
 MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
 
@@ -81,7 +84,18 @@ def slim_row(row: dict, folder: Path | None = None) -> dict:
     else:
         circles = label_circles(row, inf)
     kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
-    return kept | {"off_nadir_deg": off_nadir_deg(row), "circles": circles}
+    return kept | {"off_nadir_deg": off_nadir_deg(row), "light_rad": frame_light(row), "circles": circles}
+
+
+def frame_light(row: dict) -> float:
+    """The image azimuth (radians, atan2(dv, du), v down) the light travels along in the frame of ``row``: the
+    renderer's Sun seen by its camera (:func:`.evaluate.light_direction`); what a slimmed or streamed row
+    carries (``light_rad``). NaN for a row that names no Sun or camera."""
+    if "light_rad" in row:
+        return float(row["light_rad"])
+    if "sun_enu" not in row or "camera_enu" not in row:
+        return math.nan
+    return light_direction(np.array(row["camera_enu"]["rotation"], dtype=np.float64), row_to_sun(row))
 
 
 def off_nadir_deg(row: dict) -> float:
@@ -95,7 +109,7 @@ def streamed_row(row: dict, folder: Path) -> dict:
     reference; a row with inline labels keeps their circles, :func:`slim_row`) and what selection reads."""
     kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
     width = (row.get("camera_enu") or {}).get("width_px")
-    kept |= {"off_nadir_deg": off_nadir_deg(row), "folder": folder, "width_px": width}
+    kept |= {"off_nadir_deg": off_nadir_deg(row), "light_rad": frame_light(row), "folder": folder, "width_px": width}
     ref = label_ref(row)
     return kept | ({"labels": ref} if ref is not None else {"circles": slim_row(row)["circles"]})
 
@@ -115,6 +129,29 @@ def streamed_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
         return label_circles(row, shape)
     circles = column_circles(read_label_columns(row["folder"], row, CIRCLE_COLUMNS))
     return label_circles({"circles": circles}, shape)
+
+
+def known_light(row: dict) -> float:
+    """:func:`frame_light` of a frame a sun-aligned training turns; a row without it is one error naming it."""
+    light = frame_light(row)
+    if not math.isfinite(light):
+        raise UserError(f"{row['rel_path']}: nav.detector_train.sun_aligned needs the frame's Sun and camera")
+    return light
+
+
+def training_levels(image: np.ndarray, row: dict, circles, sun_aligned: bool = False) -> list:
+    """The level samples (:func:`train.crater_detector.level_samples`) of a training frame and its label
+    ``circles`` (:func:`label_circles`); ``sun_aligned``: the frame and its rims turned so that its light
+    travels along +u (:func:`train.light_turn.turn_to_light`, ``nav.detector_train.sun_aligned``)."""
+    from train.crater_detector import level_samples
+    from train.light_turn import turn_to_light
+
+    u, v, r, _, hidden = circles
+    if sun_aligned:
+        turned = turn_to_light(image, known_light(row))
+        image = turned.image
+        u, v = turned.points(u, v)
+    return level_samples(image, u, v, r, hidden)
 
 
 class PartedSequence(Sequence):
@@ -151,11 +188,15 @@ class StreamedFrames(PartedSequence):
     the order a list of them held in memory has (frame by frame, level by level), each built when drawn: its
     frame's EXR and rim columns read, its pyramid made. Memory holds a few values a frame, no image."""
 
-    def __init__(self, rows: list[dict]):
+    def __init__(self, rows: list[dict], sun_aligned: bool = False):
         from train.crater_detector import level_count
+        from train.light_turn import turned_shape
 
-        self.rows = rows
-        self.shapes = np.array([self._shape(r) for r in rows], np.int32).reshape(-1, 2)  # 8 bytes a frame
+        self.rows, self.sun_aligned = rows, sun_aligned
+        shapes = [self._shape(r) for r in rows]
+        if sun_aligned:  # the frame turned to its light (training_levels)
+            shapes = [turned_shape(shape, known_light(r)) for shape, r in zip(shapes, rows)]
+        self.shapes = np.array(shapes, np.int32).reshape(-1, 2)  # 8 bytes a frame
         super().__init__([level_count(shape) for shape in self.shapes])
 
     def item_shape(self, part: int, k: int) -> tuple[int, int]:
@@ -171,12 +212,9 @@ class StreamedFrames(PartedSequence):
         return int(info["height"]), int(info["width"])
 
     def item(self, part: int, k: int):
-        from train.crater_detector import level_samples
-
         row = self.rows[part]
         image = exr.read_channel(row["folder"] / row["rel_path"], "IF")
-        u, v, r, _, hidden = streamed_circles(row, image.shape)
-        return level_samples(image, u, v, r, hidden)[k]
+        return training_levels(image, row, streamed_circles(row, image.shape), self.sun_aligned)[k]
 
 
 class ChainedSamples(PartedSequence):
