@@ -55,6 +55,20 @@ def test_main_scores_by_off_nadir_bin(tmp_path, capsys):
     assert "none.pt: no such model file" in capsys.readouterr().err and not bad.exists()
 
 
+def test_a_hold_out_rendered_alone_is_scored_whole(tmp_path, capsys):
+    """--held-out-share 1: every field of a folder holding only a set's held-out fields is scored; a share
+    outside (0, 1] is refused before anything is read."""
+    folder = fake_detection_set(tmp_path / "det", fields=3, frames=1)
+    out = tmp_path / "holdout.json"
+    args = [str(folder), "--model", str(DEFAULT_MODEL), "--threshold", "0.2", "--out", str(out)]
+    assert dh.main([*args, "--held-out-share", "1"]) == 0
+    result = json.loads(out.read_text())
+    assert result["set"]["holdout_fields"] == [0, 1, 2] and result["runs"][0]["all"]["frames"] == 3
+    with pytest.raises(SystemExit):
+        dh.main([*args, "--held-out-share", "0"])
+    assert "--held-out-share 0: must lie in (0, 1]" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("angle", "key"), [(0.0, "0-1"), (14.9, "1-15"), (45.0, "30-46"), (50.0, None)])
 def test_off_nadir_bins(angle, key):
     assert dh.off_nadir_bin(angle, dh.DEFAULT_BINS) == key

@@ -1,20 +1,21 @@
 """``python -m crater_synth.tools.detector_holdout``: score detector models on a detection set's held-out
 fields, by the frame's off-nadir angle, and write the table as JSON.
 
-The synthetic side of the oblique-view lever: a model trained on nadir frames only and one trained on
-every view are scored on the same held-out fields (the last 10 % of the set's fields, never trained on by
-either), frame by frame against their exact labels. Recall counts labelled rims that span at least
-``--min-span-px`` (10 px: a rim radius of 5 px), precision the detections of that size; occluded rims and
-rims lit on less than 5 % of their length are neither (the training's rule). Each model runs at the
-hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by four properties of the
-counted labels (``recall_by``, in all and in each off-nadir bin; :data:`LABEL_SPLITS`): the degradation (0
-fresh .. 1 ghost, :class:`crater_core.procedural.Crater`), the rim's semi-major axis in pixels, its axis
+The synthetic side of the oblique-view lever: a model trained on nadir frames only and one trained on every
+view are scored on the same held-out fields (the last 10 % of the set's fields, never trained on by either;
+``--held-out-share 1`` scores every field of a folder that holds only a set's held-out fields, rendered alone
+with ``detection-frames --start``), frame by frame against their exact labels. Recall counts labelled rims
+that span at least ``--min-span-px`` (10 px: a rim radius of 5 px), precision the detections of that size;
+occluded rims and rims lit on less than 5 % of their length are neither (the training's rule). Each model runs
+at the hold-out's scoring settings (no rim fit) and ``--threshold``. Recall is also split by four properties
+of the counted labels (``recall_by``, in all and in each off-nadir bin; :data:`LABEL_SPLITS`): the degradation
+(0 fresh .. 1 ghost, :class:`crater_core.procedural.Crater`), the rim's semi-major axis in pixels, its axis
 ratio b/a (foreshortening) and its lit-rim fraction: which rims a model misses. ``--ground-view on|both``
 searches each frame at least ``--ground-view-from`` degrees off nadir on the ground, as lost in space on
-rendered frames does (:mod:`crater_synth.navigation.rendered.ground_view`; both: each model as the frame
-is and so). ``--verifier V.pt`` runs every learned model once more with that second stage
-(``nav.detector.verifier``; its candidates at ``--threshold``, kept at
-``--verify-threshold`` of ``--verify-score``). Nothing real is read.
+rendered frames does (:mod:`crater_synth.navigation.rendered.ground_view`; both: each model as the frame is
+and so). ``--verifier V.pt`` runs every learned model once more with that second stage
+(``nav.detector.verifier``; its candidates at ``--threshold``, kept at ``--verify-threshold`` of
+``--verify-score``). Nothing real is read.
 
     python -m crater_synth.tools.detector_holdout SET --model A.pt --model fcos:B.pt --threshold 0.15 \\
         --out holdout.json
@@ -217,12 +218,20 @@ def main(argv=None) -> int:
         metavar="KEY=VALUE",
         help="a detector setting for every model (nav.detector's keys, e.g. upsample_levels=1); repeatable",
     )
+    ap.add_argument(
+        "--held-out-share",
+        type=float,
+        default=HOLDOUT_FIELD_SHARE,
+        help="the share of the set's last fields scored (1: every field, a hold-out rendered alone with --start)",
+    )
     ap.add_argument("--out", type=Path, required=True, help="JSON of the table")
     args = ap.parse_args(argv)
+    if not 0.0 < args.held_out_share <= 1.0:
+        ap.error(f"--held-out-share {args.held_out_share:g}: must lie in (0, 1]")
     views = {"off": (None,), "on": (args.ground_view_from,), "both": (None, args.ground_view_from)}[args.ground_view]
     try:
         settings = detector_settings(args.settings)
-        _, hold, what = detection_set_records(args.folder, HOLDOUT_FIELD_SHARE, training=False)
+        _, hold, what = detection_set_records(args.folder, args.held_out_share, training=False)
         hold = hold[:: max(1, args.every)]
         for path in [*(model_option(m)[1] for m in args.model), *args.verifier]:
             if not Path(path).is_file():
