@@ -159,3 +159,26 @@ def test_a_sun_aligned_model_is_seen_as_it_is_and_mirrored_along_the_light_only(
     model.inputs.clear()
     infer.level_output(model, a, tta=8)
     assert len(model.inputs) == 8
+
+
+def test_detect_asks_for_the_light_of_a_sun_aligned_model_and_uses_it(tmp_path):
+    """``crater-synth detect`` with a sun-aligned model: refused up front without ``--light-azimuth`` (one
+    line naming the model), run with it; a model trained without the turn still refuses the option."""
+    import cv2
+    from click.testing import CliRunner
+
+    from crater_synth.cli import main
+
+    aligned, plain = tmp_path / "aligned.pt", tmp_path / "plain.pt"
+    cd.save_model(aligned, cd.CraterNet(4), {"settings": {"sun_aligned": True}})
+    cd.save_model(plain, cd.CraterNet(4), {"settings": {"sun_aligned": False}})
+    img = tmp_path / "field.png"
+    assert cv2.imwrite(str(img), (crater_field(3)[0] / crater_field(3)[0].max() * 255).astype(np.uint8))
+    runner = CliRunner()
+    r = runner.invoke(main, ["detect", str(img), "--detector", "learned", f"nav.detector.model={aligned}"])
+    assert r.exit_code != 0 and "aligned.pt is sun-aligned: give the light with --light-azimuth" in r.output
+    args = ["detect", str(img), "--detector", "learned", "--light-azimuth", "35", "nav.detector.threshold=0.0"]
+    r = runner.invoke(main, [*args, f"nav.detector.model={aligned}"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(main, [*args, f"nav.detector.model={plain}"])
+    assert r.exit_code != 0 and "uses no light direction" in r.output

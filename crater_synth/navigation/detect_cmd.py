@@ -50,7 +50,7 @@ from crater_core.exr import read_channel
 from crater_core.schema import EXR_CHANNELS, atomic_write_bytes, atomic_write_text
 from crater_synth.cli_common import OVERRIDES, user_errors
 from crater_synth.errors import UserError
-from crater_synth.navigation.detectors import registry
+from crater_synth.navigation.detectors import learned, registry
 from crater_synth.navigation.detectors.classical import Detection, detect
 from crater_synth.navigation.frame_file import (
     EXIT_SOME_FAILED,
@@ -131,8 +131,8 @@ def image_detectors() -> list[str]:
     "--light-azimuth",
     type=float,
     default=None,
-    help="Classical and template detectors: the light travel direction in the image, degrees from +u (right) "
-    "towards +v (down); default: estimated on each image.",
+    help="Classical and template detectors, and a sun-aligned learned model (which needs it): the light travel "
+    "direction in the image, degrees from +u (right) towards +v (down); default: estimated on each image.",
 )
 @OVERRIDES
 @user_errors
@@ -190,9 +190,12 @@ def load_detector(name: str | None, overrides, light_azimuth: float | None) -> D
             f"nav/detector={option} searches a landmark map under a position prior; detect takes one of "
             f"{', '.join(image_detectors())}"
         )
-    if light_azimuth is not None and not (entry.spectrum or nav.detector.refine):
-        raise UserError(f"--light-azimuth: nav/detector={option} uses no light direction")
     registry.preload_model(nav.detector)
+    aligned = nav.detector.method == "learned" and learned.model_sun_aligned(nav.detector)
+    if light_azimuth is not None and not (entry.spectrum or nav.detector.refine or aligned):
+        raise UserError(f"--light-azimuth: nav/detector={option} uses no light direction")
+    if aligned and light_azimuth is None:
+        raise UserError(f"{learned.model_path(nav.detector)} is sun-aligned: give the light with --light-azimuth")
     light = None if light_azimuth is None else math.radians(light_azimuth)
     return Detector(option, nav.detector, light)
 

@@ -175,6 +175,11 @@ def sun_aligned(meta: dict) -> bool:
     return bool((meta.get("settings") or {}).get("sun_aligned", False))
 
 
+def model_sun_aligned(params) -> bool:
+    """Whether the learned detector's model file (``params.model``) is sun-aligned (:func:`sun_aligned`)."""
+    return sun_aligned(load_model(str(model_path(params)))[1])
+
+
 def within_radii(params, u, v, r, s):
     """The candidates (u, v, r, score arrays) whose radius lies in the detector's [min_radius_px,
     max_radius_px]."""
