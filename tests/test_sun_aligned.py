@@ -18,7 +18,7 @@ from crater_synth.navigation.detectors import learned
 from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.rendered import detector_train as learned_train
 from crater_synth.navigation.rendered import training_rows
-from crater_synth.navigation.rendered.evaluate import light_direction, row_to_sun
+from crater_synth.navigation.rendered.sunlight import light_direction, rendered_light, row_to_sun
 from train import crater_detector as cd
 from train import crater_detector_inference as infer
 from train.light_turn import turn_to_light, turned_shape
@@ -84,8 +84,8 @@ def _sunlit_rows(folder, azimuth_deg: float = 90.0):
 def test_a_training_frame_and_its_rims_turn_together_and_a_frame_without_a_sun_is_named(tmp_path):
     folder = fake_detection_set(tmp_path / "det", fields=2, frames=1, label_files=True)
     rows = _sunlit_rows(folder, azimuth_deg=90.0)  # Sun in the east: light travels west, to -u
-    assert training_rows.frame_light(rows[0]) == pytest.approx(math.pi)
-    assert training_rows.frame_light(rows[0]) == pytest.approx(light_direction(np.array(NADIR), row_to_sun(rows[0])))
+    assert rendered_light(rows[0]) == pytest.approx(math.pi)
+    assert rendered_light(rows[0]) == pytest.approx(light_direction(np.array(NADIR), row_to_sun(rows[0])))
     image, u, v, r = crater_field(2000)
     circles = (u, v, r, 2 * r * 0.06, np.zeros(len(u), bool))
     plain = training_rows.training_levels(image, rows[0], circles)[0]

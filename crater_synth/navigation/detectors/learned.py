@@ -28,6 +28,7 @@ from crater_core.typed_config import need
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.registry import CandidateInput, DetectorEntry
 from crater_synth.paths import MODELS_DIR
+from train.light_turn import turn_to_light
 
 DEFAULT_MODEL = MODELS_DIR / "crater_detector_south.pt"
 VERIFY_SCORES = ("verifier", "geometric")  # LearnedSettings.verify_score
@@ -127,7 +128,6 @@ def learned_candidates(frame: CandidateInput, params: LearnedSettings):
     """The network's craters in ``frame.image``: (u, v, r, score) in frame pixels, radii within the
     detector's [min_radius_px, max_radius_px]."""
     from train.crater_detector_inference import detect_pyramid
-    from train.light_turn import turn_to_light
 
     loaded = [load_model(str(path)) for path in (model_path(params), *params.ensemble)]
     aligned = {sun_aligned(meta) for _, meta in loaded}

@@ -29,11 +29,11 @@ from crater_synth.navigation.detectors.classical import detect
 from crater_synth.navigation.detectors.learned import LearnedSettings
 from crater_synth.navigation.rendered.evaluate import match_pixels
 from crater_synth.navigation.rendered.labels import frame_rows
+from crater_synth.navigation.rendered.sunlight import rendered_light
 from crater_synth.navigation.rendered.survey import render_survey, track_dirs
 from crater_synth.navigation.rendered.training_rows import (
     ChainedSamples,
     StreamedFrames,
-    frame_light,
     label_circles,
     labels_in_frame,
     off_nadir_deg,
@@ -140,10 +140,10 @@ def _recipe(folder: Path) -> str | None:
 
 
 def detect_in_frame(image, row: dict, params) -> list:
-    """The detector's craters in a rendered frame as it is, under the renderer's light (:func:`frame_light`:
-    a sun-aligned model turns the frame to it), the way :func:`frame_matches` finds them unless told
-    otherwise."""
-    return detect(image, params, light_dir=frame_light(row), what=row["rel_path"])[0]
+    """The detector's craters in a rendered frame as it is, under the renderer's light
+    (:func:`.sunlight.rendered_light`: a sun-aligned model turns the frame to it), the way
+    :func:`frame_matches` finds them unless told otherwise."""
+    return detect(image, params, light_dir=rendered_light(row), what=row["rel_path"])[0]
 
 
 def frame_matches(

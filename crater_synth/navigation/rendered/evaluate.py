@@ -82,6 +82,7 @@ from crater_synth.navigation.protocol import (
     rendered_summary,
 )
 from crater_synth.navigation.rendered.labels import hidden, labelled_rows
+from crater_synth.navigation.rendered.sunlight import light_direction
 from crater_synth.navigation.settings import map_scales
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -113,17 +114,6 @@ def true_camera(row: dict) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cv_camera` of a frame's true camera (its manifest ``row``'s rotation, width and field of view)."""
     rotation = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
     return cv_camera(rotation, int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]))
-
-
-def row_to_sun(row: dict) -> np.ndarray:
-    """The unit vector towards the Sun, in the frame's axes, of a rendered frame's row (``sun_enu``)."""
-    return geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
-
-
-def light_direction(rotation: np.ndarray, to_sun: np.ndarray) -> float:
-    """Image azimuth (radians, atan2(dv, du), v down) of the light's travel direction (away from the Sun)."""
-    travel = -np.asarray(to_sun, dtype=np.float64)
-    return math.atan2(-(travel @ rotation[:, 1]), travel @ rotation[:, 0])
 
 
 def match_pixels(dets, labels: list[dict]) -> dict[int, int]:

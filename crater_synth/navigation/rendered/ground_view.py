@@ -28,7 +28,8 @@ import numpy as np
 from crater_core.geometry import MOON_RADIUS_M
 from crater_synth.errors import UserError
 from crater_synth.navigation.detectors.classical import Detection, detect
-from crater_synth.navigation.rendered.evaluate import cv_camera, row_to_sun
+from crater_synth.navigation.rendered.evaluate import cv_camera
+from crater_synth.navigation.rendered.sunlight import row_to_sun
 
 # The ground view's side is capped (pixels): a frame whose footprint reaches towards the horizon is sampled
 # more coarsely rather than into an image of tens of megapixels.

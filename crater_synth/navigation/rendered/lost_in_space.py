@@ -62,10 +62,8 @@ from crater_synth.navigation.rendered.evaluate import (
     FrameRun,
     evaluate_frame,
     frame_run,
-    light_direction,
     match_pixels,
     perfect_detections,
-    row_to_sun,
     with_patch_fallback,
 )
 from crater_synth.navigation.rendered.ground_view import (
@@ -78,6 +76,7 @@ from crater_synth.navigation.rendered.ground_view import (
     to_frame,
 )
 from crater_synth.navigation.rendered.labels import labelled_rows
+from crater_synth.navigation.rendered.sunlight import light_direction, row_to_sun
 from crater_synth.navigation.settings import compose_nav, map_scales
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows

@@ -20,7 +20,8 @@ import numpy as np
 from crater_core import exr
 from crater_core.detection_labels import label_ref, read_label_columns, with_labels
 from crater_synth.errors import UserError
-from crater_synth.navigation.rendered.evaluate import light_direction, row_to_sun
+from crater_synth.navigation.rendered.sunlight import rendered_light
+from train.light_turn import turn_to_light, turned_shape
 
 MIN_LIT_RIM = 0.05  # a rim less lit than this is in shadow all round: invisible, trained as neither
 
@@ -84,18 +85,7 @@ def slim_row(row: dict, folder: Path | None = None) -> dict:
     else:
         circles = label_circles(row, inf)
     kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
-    return kept | {"off_nadir_deg": off_nadir_deg(row), "light_rad": frame_light(row), "circles": circles}
-
-
-def frame_light(row: dict) -> float:
-    """The image azimuth (radians, atan2(dv, du), v down) the light travels along in the frame of ``row``: the
-    renderer's Sun seen by its camera (:func:`.evaluate.light_direction`); what a slimmed or streamed row
-    carries (``light_rad``). NaN for a row that names no Sun or camera."""
-    if "light_rad" in row:
-        return float(row["light_rad"])
-    if "sun_enu" not in row or "camera_enu" not in row:
-        return math.nan
-    return light_direction(np.array(row["camera_enu"]["rotation"], dtype=np.float64), row_to_sun(row))
+    return kept | {"off_nadir_deg": off_nadir_deg(row), "light_rad": rendered_light(row), "circles": circles}
 
 
 def off_nadir_deg(row: dict) -> float:
@@ -109,7 +99,7 @@ def streamed_row(row: dict, folder: Path) -> dict:
     reference; a row with inline labels keeps their circles, :func:`slim_row`) and what selection reads."""
     kept = {k: row[k] for k in ("index", "rel_path", "ground_sample_m", "terrain")}
     width = (row.get("camera_enu") or {}).get("width_px")
-    kept |= {"off_nadir_deg": off_nadir_deg(row), "light_rad": frame_light(row), "folder": folder, "width_px": width}
+    kept |= {"off_nadir_deg": off_nadir_deg(row), "light_rad": rendered_light(row), "folder": folder, "width_px": width}
     ref = label_ref(row)
     return kept | ({"labels": ref} if ref is not None else {"circles": slim_row(row)["circles"]})
 
@@ -132,8 +122,9 @@ def streamed_circles(row: dict, shape) -> tuple[np.ndarray, ...]:
 
 
 def known_light(row: dict) -> float:
-    """:func:`frame_light` of a frame a sun-aligned training turns; a row without it is one error naming it."""
-    light = frame_light(row)
+    """:func:`.sunlight.rendered_light` of a frame a sun-aligned training turns; a row without it is one error
+    naming it."""
+    light = rendered_light(row)
     if not math.isfinite(light):
         raise UserError(f"{row['rel_path']}: nav.detector_train.sun_aligned needs the frame's Sun and camera")
     return light
@@ -144,7 +135,6 @@ def training_levels(image: np.ndarray, row: dict, circles, sun_aligned: bool = F
     ``circles`` (:func:`label_circles`); ``sun_aligned``: the frame and its rims turned so that its light
     travels along +u (:func:`train.light_turn.turn_to_light`, ``nav.detector_train.sun_aligned``)."""
     from train.crater_detector import level_samples
-    from train.light_turn import turn_to_light
 
     u, v, r, _, hidden = circles
     if sun_aligned:
@@ -190,7 +180,6 @@ class StreamedFrames(PartedSequence):
 
     def __init__(self, rows: list[dict], sun_aligned: bool = False):
         from train.crater_detector import level_count
-        from train.light_turn import turned_shape
 
         self.rows, self.sun_aligned = rows, sun_aligned
         shapes = [self._shape(r) for r in rows]
