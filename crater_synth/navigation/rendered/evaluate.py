@@ -82,7 +82,7 @@ from crater_synth.navigation.protocol import (
     rendered_summary,
 )
 from crater_synth.navigation.rendered.labels import hidden, labelled_rows
-from crater_synth.navigation.rendered.sunlight import light_direction
+from crater_synth.navigation.rendered.sunlight import light_direction, row_to_sun
 from crater_synth.navigation.settings import map_scales
 
 NOT_ENOUGH_LANDMARKS = "not enough landmarks in view"
@@ -233,7 +233,7 @@ def frame_view(row: dict, landmarks, run: FrameRun, prior_enu=None, candidates=N
     lat0, lon0 = row["frame_origin"]["lat"], row["frame_origin"]["lon"]
     rot = believed_rotation(row, run.seed, run.attitude_error_deg)
     width, fov, gsd = int(row["pose"]["width_px"]), float(row["pose"]["fov_deg"]), float(row["ground_sample_m"])
-    to_sun = geometry.direction_from_elevation_azimuth(row["sun_enu"]["elevation_deg"], row["sun_enu"]["azimuth_deg"])
+    to_sun = row_to_sun(row)
     r_wc, k = cv_camera(rot, width, fov)
     c_prior = prior_centre(row, run.seed, run.prior_offset_km) if prior_enu is None else np.asarray(prior_enu, float)
     cand = [lm for lm in landmarks if usable(lm, gsd, run.fparams)] if candidates is None else list(candidates)

@@ -76,7 +76,7 @@ from crater_synth.navigation.rendered.ground_view import (
     to_frame,
 )
 from crater_synth.navigation.rendered.labels import labelled_rows
-from crater_synth.navigation.rendered.sunlight import light_direction, row_to_sun
+from crater_synth.navigation.rendered.sunlight import rendered_light, row_to_sun
 from crater_synth.navigation.settings import compose_nav, map_scales
 
 LIS_PIXEL_M = 400.0  # the pair vote's pixel: its tolerances were chosen on 400 m/px mosaic windows
@@ -161,8 +161,6 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
     With ``nav.lost_in_space.confirm`` and the pole's ``refiner`` (:class:`.refine.Refiner`), the 6-DOF fix is the
     vote's places confirmed by appearance (:func:`confirmed_six_dof`; not for given ``detections``)."""
     fparams, lis = nav.fix, nav.lost_in_space
-    rot = np.array(row["camera_enu"]["rotation"], dtype=np.float64)
-    to_sun = row_to_sun(row)
     gsd = float(row["ground_sample_m"])
     # No prior predicts the landmarks in view: search up to the largest landmark that fits in the frame.
     biggest = min(max(lm.diameter_km for lm in landmarks) * 500.0, float(row["footprint_half_width_m"]))
@@ -178,7 +176,7 @@ def lis_frame(row: dict, image, depth: np.ndarray, landmarks, nav, index, detect
             dets = ground_view_detections(image, row, rng, nav, biggest, view)
         else:
             dparams = map_scales(nav.detector, fparams, gsd, [biggest / gsd])
-            dets, _ = detect(image, dparams, light_dir=light_direction(rot, to_sun), what=f"frame {row['rel_path']}")
+            dets, _ = detect(image, dparams, light_dir=rendered_light(row), what=f"frame {row['rel_path']}")
     except FrameError as exc:  # a frame all in shadow: nothing to detect, an answer of "no fix" (as nav-frames-eval)
         dets, blank = [], str(exc)
     flat, shape, kept = rectify(dets, row, rng)
